@@ -1,0 +1,184 @@
+"""Lens spec (the plain-dict lens-file form, docs/lens-format.md) <-> :class:`Lens`.
+
+``raywave.io`` reads and writes files as specs without touching torch; this module turns a validated
+spec into modules with real parameters, and a lens back into a spec (exact round trip).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from raywave.lens.lens import Lens
+from raywave.materials import get_material
+from raywave.surfaces.aperture import aperture_from_spec
+from raywave.surfaces.geometry import EvenAsphere, Plane, Standard
+from raywave.surfaces.interaction import IdealLens
+from raywave.surfaces.surface import Surface
+
+
+def _curvature(s: dict) -> float:
+    if "curvature" in s:
+        return float(s["curvature"])
+    r = s.get("radius", "inf")
+    if r == "inf" or (isinstance(r, float) and math.isinf(r)):
+        return 0.0
+    return 1.0 / float(r)
+
+
+def _aspheric_list(asph: dict) -> list[float]:
+    """{"a2":.., "a4":..} -> [a2, a4, ..., a_max] (zeros filled in)."""
+    if not asph:
+        return [0.0]
+    top = max(int(k[1:]) for k in asph)
+    return [float(asph.get(f"a{p}", 0.0)) for p in range(2, top + 1, 2)]
+
+
+def surface_from_spec(s: dict, catalogs=None, where: str = "surface") -> Surface:
+    """Build one :class:`Surface` from its spec dict."""
+    kind = s.get("type", "standard")
+    try:
+        material = get_material(s.get("material", "air"), catalogs=catalogs)
+    except (KeyError, ValueError) as err:
+        raise type(err)(f"{where}: {err}") from None
+    common = dict(
+        thickness=float(s.get("thickness", 0.0)),
+        aperture=aperture_from_spec(s.get("aperture")),
+        is_stop=bool(s.get("stop", False)),
+        semi_diameter=s.get("semi_diameter"),
+        comment=s.get("comment", ""),
+    )
+    if kind == "standard":
+        geom = Standard(_curvature(s), float(s.get("conic", 0.0)))
+        surf = Surface(geom, material, **common)
+    elif kind == "even_asphere":
+        geom = EvenAsphere(_curvature(s), float(s.get("conic", 0.0)), _aspheric_list(s.get("aspheric", {})))
+        surf = Surface(geom, material, **common)
+    elif kind == "paraxial":
+        surf = Surface(Plane(), material, interaction=IdealLens(float(s["focal_length"])), **common)
+    else:
+        raise ValueError(f"{where}: unknown surface type {kind!r}")
+    surf._spec_radius = s.get("radius")  # remembered for an exact round trip
+    return surf
+
+
+def lens_from_spec(spec: dict) -> Lens:
+    """Build a :class:`Lens` from a (validated) lens spec."""
+    catalogs = spec.get("catalogs")
+    surfaces = [surface_from_spec(s, catalogs, f"surfaces[{i}]") for i, s in enumerate(spec["surfaces"])]
+    obj = spec.get("object", {}) or {}
+    dist = obj.get("distance", "inf")
+    dist = math.inf if dist == "inf" else float(dist)
+    fields = spec.get("fields") or {"type": "angle", "values": [0.0]}
+    wls = spec.get("wavelengths") or {"values": [0.4861327, 0.5875618, 0.6562725], "primary": 1}
+    sensor = spec.get("sensor") or {}
+    epd = (spec.get("system_aperture") or {}).get("epd")
+    lens = Lens(
+        surfaces,
+        object_distance=dist,
+        fields=fields["values"],
+        field_type=fields.get("type", "angle"),
+        wavelengths=wls["values"],
+        primary=int(wls.get("primary", 0)),
+        sensor_size=sensor.get("size"),
+        sensor_resolution=sensor.get("resolution"),
+        epd=epd,
+        name=spec.get("name", ""),
+        catalogs=catalogs,
+    )
+    lens._spec_extra = {k: spec[k] for k in ("description",) if k in spec}
+    return lens
+
+
+def _radius_entry(surface: Surface) -> dict:
+    """'radius' when it round-trips exactly through the curvature, else 'curvature'."""
+    c = float(surface.geometry.curvature.detach())
+    if c == 0.0:
+        return {"radius": "inf"}
+    r = 1.0 / c
+    remembered = getattr(surface, "_spec_radius", None)
+    if isinstance(remembered, (int, float)) and 1.0 / float(remembered) == c:
+        return {"radius": float(remembered)}
+    if 1.0 / r == c:
+        return {"radius": r}
+    return {"curvature": c}
+
+
+def surface_to_spec(surface: Surface) -> dict:
+    """One surface as its spec dict."""
+    out: dict = {"type": surface.kind}
+    g = surface.geometry
+    if surface.kind == "paraxial":
+        out["focal_length"] = float(surface.interaction.focal_length.detach())
+    else:
+        out.update(_radius_entry(surface))
+        out["conic"] = float(g.conic.detach())
+        if surface.kind == "even_asphere":
+            coeffs = g.coefficients.detach().tolist()
+            out["aspheric"] = {f"a{2 * (i + 1)}": float(a) for i, a in enumerate(coeffs)}
+    out["thickness"] = float(surface.thickness.detach())
+    out["material"] = surface.material.to_spec()
+    out["aperture"] = None if surface.aperture is None else surface.aperture.to_spec()
+    if surface.semi_diameter is not None:
+        out["semi_diameter"] = float(surface.semi_diameter)
+    out["stop"] = surface.is_stop
+    if surface.comment:
+        out["comment"] = surface.comment
+    return out
+
+
+def lens_to_spec(lens: Lens) -> dict:
+    """The lens as a spec dict (raywave-lens format, version 1)."""
+    spec: dict = {"format": "raywave-lens", "version": 1, "units": {"length": "mm", "wavelength": "um"}}
+    if lens.name:
+        spec["name"] = lens.name
+    spec.update(getattr(lens, "_spec_extra", {}))
+    if lens.catalogs:
+        spec["catalogs"] = list(lens.catalogs)
+    spec["object"] = {"distance": "inf" if math.isinf(lens.object_distance) else lens.object_distance}
+    if lens.epd is not None:
+        spec["system_aperture"] = {"epd": lens.epd}
+    spec["fields"] = {"type": lens.field_type, "values": list(lens.fields)}
+    spec["wavelengths"] = {"values": list(lens.wavelengths), "primary": lens.primary}
+    if lens.sensor_size is not None:
+        spec["sensor"] = {"size": list(lens.sensor_size), "resolution": list(lens.sensor_resolution or (0, 0))}
+    spec["surfaces"] = [surface_to_spec(s) for s in lens.surfaces]
+    return spec
+
+
+def load_lens(path: str | Path) -> Lens:
+    """Read any lens file raywave knows (.json raywave or DeepLens-style, .zmx) into a :class:`Lens`."""
+    from raywave.io import read_lens_spec
+
+    return lens_from_spec(read_lens_spec(path))
+
+
+def save_lens(lens: Lens, path: str | Path) -> None:
+    """Write ``lens`` as raywave JSON (.json) or Zemax (.zmx), by extension."""
+    from raywave.io import write_lens_spec
+
+    write_lens_spec(lens_to_spec(lens), path)
+
+
+BUNDLED = Path(__file__).resolve().parent.parent / "data" / "lenses"
+
+
+def bundled_lens_path(name: str) -> Path:
+    """Path of a bundled example lens ('singlet', 'cooke_triplet', 'double_gauss', 'asphere_hk51')."""
+    p = BUNDLED / f"{name}.json"
+    if not p.exists():
+        avail = sorted(q.stem for q in BUNDLED.glob("*.json"))
+        raise FileNotFoundError(f"no bundled lens {name!r}; available: {', '.join(avail)}")
+    return p
+
+
+def resolve_lens_path(name_or_path: str | Path) -> Path:
+    """A file path, or the name of a bundled lens."""
+    p = Path(name_or_path)
+    if p.exists():
+        return p
+    if p.suffix == "" and (BUNDLED / f"{p.name}.json").exists():
+        return BUNDLED / f"{p.name}.json"
+    raise FileNotFoundError(f"lens file {str(name_or_path)!r} not found (nor a bundled lens of that name)")
+
+

@@ -1,0 +1,270 @@
+"""The sequential lens: surfaces + media + stop + sensor plane, and the float64 ray tracer."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from raywave.materials.base import Air, Material
+from raywave.rays.bundle import RayBundle
+from raywave.surfaces.surface import Surface
+
+
+#: Rays per chunk when tracing large bundles (see Lens._trace_chunked).
+TRACE_CHUNK = 65536
+
+
+class RayTraceError(ValueError):
+    """A trace that cannot be done (e.g. every ray of a point source is vignetted)."""
+
+
+@dataclass
+class TraceRecord:
+    """Positions of the rays at every surface, for layout plots: lists of (x, y, z) tensors and masks."""
+
+    points: list
+    valid: list
+
+
+class Lens(nn.Module):
+    """A rotationally symmetric sequential lens.
+
+    Geometry: surface ``i`` has its vertex at ``z_i`` = sum of the thicknesses before it (the first vertex
+    at z = 0); the image (sensor) plane is at ``z_image`` = sum of all thicknesses. Light travels toward +z.
+
+    Args:
+        surfaces: the surfaces in order; each carries the medium after it and its thickness.
+        object_distance: mm from the object plane to the first vertex (``math.inf`` for a distant object).
+        object_material: medium in front of the first surface (air).
+        fields: field values for analysis (degrees if ``field_type == "angle"``, mm if "object_height").
+        wavelengths: analysis wavelengths (µm); ``primary`` indexes the design wavelength.
+        sensor_size: (w, h) of the sensor (mm); ``sensor_resolution``: (nx, ny) pixels.
+        epd: entrance pupil diameter (mm). If given, the stop's aperture radius is set from it.
+    """
+
+    def __init__(
+        self,
+        surfaces: list[Surface],
+        object_distance: float = math.inf,
+        object_material: Material | None = None,
+        fields=(0.0,),
+        field_type: str = "angle",
+        wavelengths=(0.4861327, 0.5875618, 0.6562725),
+        primary: int = 1,
+        sensor_size=None,
+        sensor_resolution=None,
+        epd: float | None = None,
+        name: str = "",
+        catalogs=None,
+    ):
+        super().__init__()
+        if len(surfaces) == 0:
+            raise ValueError("a lens needs at least one surface")
+        stops = [i for i, s in enumerate(surfaces) if s.is_stop]
+        if len(stops) > 1:
+            raise ValueError(f"a lens has one aperture stop; surfaces {stops} are all marked as stop")
+        if not stops:
+            surfaces[0].is_stop = True
+        self.surfaces = nn.ModuleList(surfaces)
+        if not (object_distance > 0):
+            raise ValueError(f"object distance must be > 0 mm (or inf), got {object_distance!r}")
+        self.object_distance = float(object_distance)
+        self.object_material = object_material if object_material is not None else Air()
+        if field_type not in ("angle", "object_height"):
+            raise ValueError(f"field_type must be 'angle' or 'object_height', got {field_type!r}")
+        self.field_type = field_type
+        self.fields = [float(f) for f in fields]
+        self.wavelengths = [float(w) for w in wavelengths]
+        if not 0 <= primary < len(self.wavelengths):
+            raise ValueError(f"primary wavelength index {primary} out of range for {len(self.wavelengths)} wavelengths")
+        self.primary = int(primary)
+        self.sensor_size = None if sensor_size is None else (float(sensor_size[0]), float(sensor_size[1]))
+        self.sensor_resolution = None if sensor_resolution is None else (int(sensor_resolution[0]), int(sensor_resolution[1]))
+        self.name = name
+        self.catalogs = list(catalogs) if catalogs else None
+        self.epd = None if epd is None else float(epd)
+        self.check_geometry()
+        if self.epd is not None:
+            self.set_entrance_pupil_diameter(self.epd)
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def stop_index(self) -> int:
+        return next(i for i, s in enumerate(self.surfaces) if s.is_stop)
+
+    @property
+    def primary_wavelength(self) -> float:
+        return self.wavelengths[self.primary]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.surfaces[0].thickness.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.surfaces[0].thickness.device
+
+    def thicknesses(self) -> torch.Tensor:
+        """(n_surfaces,) thicknesses (mm)."""
+        return torch.stack([s.thickness for s in self.surfaces])
+
+    def vertex_z(self) -> torch.Tensor:
+        """(n_surfaces,) z of every vertex (mm); the first is 0."""
+        t = self.thicknesses()
+        return torch.cat([t.new_zeros(1), torch.cumsum(t[:-1], 0)])
+
+    def image_z(self) -> torch.Tensor:
+        """z of the image (sensor) plane (mm)."""
+        return self.thicknesses().sum()
+
+    def total_track(self) -> float:
+        """First vertex to image plane (mm)."""
+        return float(self.image_z().detach())
+
+    def check_geometry(self) -> None:
+        """Raise on thicknesses that make surfaces cross inside their clear apertures."""
+        z = self.vertex_z().detach()
+        for i, s in enumerate(self.surfaces):
+            if not torch.isfinite(s.thickness).all():
+                raise ValueError(f"surface {i}: thickness {float(s.thickness)!r} is not finite")
+        for i in range(len(self.surfaces) - 1):
+            a, b = self.surfaces[i], self.surfaces[i + 1]
+            r = min(x for x in (a.clear_radius(), b.clear_radius(), 1e30) if x is not None)
+            if r >= 1e30:
+                r = 0.0
+            rs = torch.linspace(0, r, 65, dtype=torch.float64)
+            zero = torch.zeros_like(rs)
+            with torch.no_grad():
+                za = z[i] + a.geometry.sag(rs, zero)
+                zb = z[i + 1] + b.geometry.sag(rs, zero)
+                ok = a.geometry.in_domain(rs, zero) & b.geometry.in_domain(rs, zero)
+            gap = (zb - za)[ok]
+            if float(a.thickness.detach()) < 0 and not a.material.is_air:
+                raise ValueError(f"surface {i}: negative thickness {float(a.thickness)} mm inside glass {a.material.name!r}")
+            if gap.numel() and float(gap.min()) < -1e-9:
+                where = float(rs[ok][int(torch.argmin(gap))])
+                raise ValueError(
+                    f"surfaces {i} and {i + 1} overlap: at radius {where:.4g} mm surface {i + 1} lies "
+                    f"{-float(gap.min()):.4g} mm before surface {i} (thickness {float(a.thickness):.6g} mm too small)"
+                )
+
+    def set_entrance_pupil_diameter(self, epd: float) -> None:
+        """Size the stop so that the paraxial entrance pupil diameter is ``epd`` (mm)."""
+        from raywave.lens import paraxial
+        from raywave.surfaces.aperture import CircularAperture
+
+        if not epd > 0:
+            raise ValueError(f"entrance pupil diameter must be > 0 mm, got {epd!r}")
+        stop = self.surfaces[self.stop_index]
+        m = float(paraxial.stop_to_entrance_pupil(self, self.primary_wavelength)[1])
+        radius = 0.5 * epd * abs(m)
+        if stop.aperture is None:
+            stop.aperture = CircularAperture(radius).to(self.device)
+        else:
+            stop.aperture.set_radius(radius)
+        self.epd = float(epd)
+
+    def stop_radius(self) -> float:
+        stop = self.surfaces[self.stop_index]
+        r = stop.clear_radius()
+        if r is None:
+            raise ValueError(f"the stop (surface {self.stop_index}) has no aperture: give it one or set an entrance pupil diameter")
+        if stop.aperture is not None and stop.aperture.shape == "square":
+            return float(stop.aperture.half_width)
+        return r
+
+    # ------------------------------------------------------------------ media
+    def indices(self, wavelength: torch.Tensor) -> list[torch.Tensor]:
+        """Refractive indices [n_object, n_after_surface_0, ..., n_after_last] at ``wavelength`` (µm)."""
+        media = [self.object_material] + [s.material for s in self.surfaces]
+        return [m.n(wavelength) for m in media]
+
+    # ------------------------------------------------------------------ tracing
+    def trace(self, rays: RayBundle, start: int = 0, stop: int | None = None, record: bool = False,
+              apertures: bool = True):
+        """Trace ``rays`` through surfaces ``start .. stop-1`` (default: all).
+
+        Rays must be in the medium in front of surface ``start``. Returns the bundle at the last surface
+        traced (after its interaction); with ``record=True`` also a :class:`TraceRecord`.
+        Rays that miss a surface, leave an aperture or meet TIR get ``valid = False`` and stay finite.
+        ``apertures=False`` ignores clear apertures (used by ray aiming).
+        """
+        stop = len(self.surfaces) if stop is None else stop
+        n_rays = rays.valid.numel()
+        if not record and n_rays > 2 * TRACE_CHUNK:
+            return self._trace_chunked(rays, start, stop, apertures)
+        return self._trace_kernel(rays, start, stop, record, apertures)
+
+    def _trace_chunked(self, rays: RayBundle, start: int, stop: int, apertures: bool) -> RayBundle:
+        """Trace a large bundle in chunks of TRACE_CHUNK rays: small temporaries stay in the allocator's
+        cache instead of being mapped afresh for every elementwise op (≈3× faster on CPU)."""
+        shape = rays.shape
+        flat = RayBundle(rays.o.reshape(-1, 3), rays.d.reshape(-1, 3),
+                         torch.broadcast_to(rays.wavelength, shape).reshape(-1), rays.valid.reshape(-1),
+                         rays.opl.reshape(-1))
+        outs = [self._trace_kernel(flat[i:i + TRACE_CHUNK], start, stop, False, apertures)
+                for i in range(0, flat.valid.numel(), TRACE_CHUNK)]
+        return RayBundle(torch.cat([o.o for o in outs]).reshape(shape + (3,)),
+                         torch.cat([o.d for o in outs]).reshape(shape + (3,)),
+                         rays.wavelength,
+                         torch.cat([o.valid for o in outs]).reshape(shape),
+                         torch.cat([o.opl for o in outs]).reshape(shape))
+
+    def _trace_kernel(self, rays: RayBundle, start: int, stop: int, record: bool, apertures: bool):
+        wl = rays.wavelength
+        n_all = self.indices(wl)
+        zs = self.vertex_z().to(rays.dtype)
+        x, y, z = rays.o.unbind(-1)
+        dx, dy, dz = rays.d.unbind(-1)
+        valid, opl = rays.valid, rays.opl
+        rec = TraceRecord([(x, y, rays.o[..., 2])], [valid]) if record else None
+        for i in range(start, stop):
+            s = self.surfaces[i]
+            n1, n2 = n_all[i].to(rays.dtype), n_all[i + 1].to(rays.dtype)
+            zl = z - zs[i]
+            t, ok = s.geometry.intersect(x, y, zl, dx, dy, dz)
+            x, y, zl = x + t * dx, y + t * dy, zl + t * dz
+            opl = opl + n1 * t
+            if apertures and s.aperture is not None:
+                ok = ok & s.aperture.contains(x, y)
+            nx, ny, nz = s.geometry.normal(x, y, zl)
+            dx, dy, dz, extra, ok_i = s.interaction(x, y, dx, dy, dz, nx, ny, nz, n1, n2, wl)
+            if extra is not None:
+                opl = opl + extra
+            valid = valid & ok & ok_i
+            z = zl + zs[i]
+            # Park dead rays on the axis so that later surfaces see harmless numbers (no NaN, no inf).
+            x, y = torch.where(valid, x, 0.0), torch.where(valid, y, 0.0)
+            dx, dy, dz = torch.where(valid, dx, 0.0), torch.where(valid, dy, 0.0), torch.where(valid, dz, 1.0)
+            if record:
+                rec.points.append((x, y, z))
+                rec.valid.append(valid)
+        out = RayBundle(torch.stack([x, y, z], -1), torch.stack([dx, dy, dz], -1), wl, valid, opl)
+        return (out, rec) if record else out
+
+    def trace_to_image(self, rays: RayBundle, z: float | torch.Tensor | None = None, record: bool = False):
+        """Trace through all surfaces and on to the image plane (or to the plane ``z``)."""
+        res = self.trace(rays, record=record)
+        out, rec = res if record else (res, None)
+        n_img = self.surfaces[-1].material.n(rays.wavelength).to(rays.dtype)
+        out = out.propagate_to_z(self.image_z().to(rays.dtype) if z is None else z, n_img)
+        if record:
+            x, y, zz = out.o.unbind(-1)
+            rec.points.append((x, y, zz))
+            rec.valid.append(out.valid)
+            return out, rec
+        return out
+
+    # ------------------------------------------------------------------ conveniences
+    def paraxial(self, wavelength: float | None = None):
+        """Paraxial data (EFL, BFL, pupils, ...) at ``wavelength`` (µm, default primary)."""
+        from raywave.lens.paraxial import paraxial_data
+
+        return paraxial_data(self, self.primary_wavelength if wavelength is None else wavelength)
+
+    def extra_repr(self) -> str:
+        od = "inf" if math.isinf(self.object_distance) else f"{self.object_distance:g}"
+        return f"name={self.name!r}, object_distance={od}, stop={self.stop_index}"

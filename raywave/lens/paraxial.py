@@ -1,0 +1,177 @@
+"""First-order (paraxial) optics of a sequential lens, with y–n·u transfer matrices in float64.
+
+State vector (y, n·u): height (mm) and reduced slope. Refraction by a surface of power φ:
+[[1, 0], [-φ, 1]]; a gap of thickness t in index n: [[1, t/n], [0, 1]]. Both have determinant 1.
+Surface powers include the r² term of even aspheres (vertex curvature c + 2·a2), which tools that use only
+the base radius leave out, and the power of ideal (paraxial) lenses.
+
+Every length is measured in mm along z from the first vertex unless its name says otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+
+
+def _m(a, b, c, d):
+    return torch.stack([torch.stack([a, b]), torch.stack([c, d])])
+
+
+def surface_powers(lens, wavelength: float) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Powers φ_i (1/mm) of each surface and indices [n_obj, n_1, ..., n_N] at ``wavelength`` (µm)."""
+    wl = torch.tensor(float(wavelength), dtype=torch.float64, device=lens.device)
+    n = lens.indices(wl)
+    phis = []
+    for i, s in enumerate(lens.surfaces):
+        phis.append(s.interaction.paraxial_power(s.geometry.paraxial_curvature(), n[i], n[i + 1]))
+    return phis, n
+
+
+def system_matrix(lens, wavelength: float, first: int = 0, last: int | None = None) -> torch.Tensor:
+    """2×2 matrix from just before surface ``first`` (at its vertex) to just after surface ``last - 1``."""
+    last = len(lens.surfaces) if last is None else last
+    phis, n = surface_powers(lens, wavelength)
+    one = torch.ones((), dtype=torch.float64, device=lens.device)
+    zero = torch.zeros_like(one)
+    m = _m(one, zero, zero, one)
+    for i in range(first, last):
+        if i > first:
+            t = lens.surfaces[i - 1].thickness
+            m = _m(one, t / n[i], zero, one) @ m
+        m = _m(one, zero, -phis[i], one) @ m
+    return m
+
+
+def stop_to_entrance_pupil(lens, wavelength: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(z of the entrance pupil, magnification stop/entrance pupil): the stop imaged into object space."""
+    s = lens.stop_index
+    phis, n = surface_powers(lens, wavelength)
+    if s == 0:
+        one = torch.ones((), dtype=torch.float64, device=lens.device)
+        return torch.zeros_like(one), one
+    m = system_matrix(lens, wavelength, 0, s)
+    t = lens.surfaces[s - 1].thickness
+    one = torch.ones_like(t)
+    m = torch.stack([torch.stack([one, t / n[s]]), torch.stack([torch.zeros_like(t), one])]) @ m
+    a, b = m[0, 0], m[0, 1]
+    # Object-space ray (y0, n0 u0) at the first vertex hits the stop centre when a·y0 + b·n0u0 = 0.
+    return b * n[0] / a, a
+
+
+@dataclass
+class ParaxialData:
+    """First-order properties (mm, degrees). z values are measured from the first vertex."""
+
+    wavelength: float
+    efl: float
+    bfl: float
+    ffl: float
+    fnum: float
+    working_fnum: float
+    epd: float
+    ep_z: float
+    xpd: float
+    xp_z: float
+    fov_deg: float
+    image_height: float
+    total_track: float
+    image_z_paraxial: float
+    magnification: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def exit_pupil(lens, wavelength: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(z of the exit pupil, magnification stop→exit pupil D'^-1 factor): the stop imaged into image space."""
+    s = lens.stop_index
+    phis, n = surface_powers(lens, wavelength)
+    m = system_matrix(lens, wavelength, s, None)
+    b, d = m[0, 1], m[1, 1]
+    z_last = lens.vertex_z()[-1]
+    n_img = n[-1]
+    return z_last - b * n_img / d, 1.0 / d
+
+
+def paraxial_image_distance(lens, wavelength: float) -> torch.Tensor:
+    """z of the paraxial image of the lens's object plane (mm from the first vertex)."""
+    m = system_matrix(lens, wavelength)
+    phis, n = surface_powers(lens, wavelength)
+    z_last = lens.vertex_z()[-1]
+    if math.isinf(lens.object_distance):
+        a, c = m[0, 0], m[1, 0]
+        return z_last - a * n[-1] / c
+    # A ray from the axial object point: y0 = s·u0 at the first vertex (s = object distance), n0·u0.
+    s = lens.object_distance
+    y0, nu0 = s, n[0]  # slope u0 = 1: height s at the first vertex
+    y1 = m[0, 0] * y0 + m[0, 1] * nu0
+    nu1 = m[1, 0] * y0 + m[1, 1] * nu0
+    return z_last - y1 * n[-1] / nu1
+
+
+def paraxial_data(lens, wavelength: float) -> ParaxialData:
+    """All first-order properties of ``lens`` at ``wavelength`` (µm)."""
+    m = system_matrix(lens, wavelength).detach()
+    n = [x.detach() for x in surface_powers(lens, wavelength)[1]]
+    a, b, c, d = m[0, 0], m[0, 1], m[1, 0], m[1, 1]
+    z_last = float(lens.vertex_z()[-1].detach())
+    power = -float(c)
+    efl = 1.0 / power if power != 0 else math.inf
+    bfl = -float(a) * float(n[-1]) / float(c) if power != 0 else math.inf
+    ffl = float(d) * float(n[0]) / float(c) if power != 0 else math.inf
+    ep_z, m_ep = (v.detach() for v in stop_to_entrance_pupil(lens, wavelength))
+    xp_z, m_xp = (v.detach() for v in exit_pupil(lens, wavelength))
+    r_stop = lens.stop_radius()
+    epd = 2.0 * r_stop / abs(float(m_ep))
+    xpd = 2.0 * r_stop * abs(float(m_xp))
+    z_img_par = float(paraxial_image_distance(lens, wavelength))
+    if math.isinf(lens.object_distance):
+        fnum = abs(efl) / epd
+        mag = 0.0
+        # Working F/#: 1 / (2 n' sin u') of the paraxial marginal ray (image space)
+        u_img = (epd / 2) * float(c) / float(n[-1])
+        working = 1.0 / (2.0 * abs(u_img)) if u_img else math.inf
+    else:
+        s = lens.object_distance
+        # Marginal ray from the axial object point to the edge of the entrance pupil.
+        u0 = (epd / 2) / (s + float(ep_z))
+        y0 = s * u0
+        y1 = float(a) * y0 + float(b) * float(n[0]) * u0
+        nu1 = float(c) * y0 + float(d) * float(n[0]) * u0
+        working = 1.0 / (2.0 * abs(nu1)) if nu1 else math.inf
+        fnum = abs(efl) / epd
+        # Chief ray from an object point at height h through the entrance pupil centre.
+        h = 1.0
+        uc = -h / (s + float(ep_z))
+        yc0 = h + s * uc
+        yc1 = float(a) * yc0 + float(b) * float(n[0]) * uc
+        nuc1 = float(c) * yc0 + float(d) * float(n[0]) * uc
+        mag = (yc1 + (z_img_par - z_last) * nuc1 / float(n[-1])) / h
+    fov, img_h = field_of_view(lens, wavelength, efl, float(ep_z), mag)
+    return ParaxialData(
+        wavelength=float(wavelength), efl=efl, bfl=bfl, ffl=ffl, fnum=fnum, working_fnum=working,
+        epd=epd, ep_z=float(ep_z), xpd=xpd, xp_z=float(xp_z), fov_deg=fov, image_height=img_h,
+        total_track=lens.total_track(), image_z_paraxial=z_img_par, magnification=mag,
+    )
+
+
+def field_of_view(lens, wavelength: float, efl: float, ep_z: float, mag: float) -> tuple[float, float]:
+    """(full field of view in degrees, paraxial image height in mm) at the largest field.
+
+    From the lens's fields if it has any non-zero one, else from the sensor's half-diagonal.
+    """
+    fmax = max((abs(f) for f in lens.fields), default=0.0)
+    if fmax > 0:
+        if lens.field_type == "angle":
+            return 2.0 * fmax, abs(efl) * math.tan(math.radians(fmax)) if math.isinf(lens.object_distance) else abs(
+                mag * (lens.object_distance + ep_z) * math.tan(math.radians(fmax)))
+        h_img = abs(mag) * fmax if not math.isinf(lens.object_distance) else 0.0
+        ang = math.degrees(math.atan(fmax / (lens.object_distance + ep_z))) if not math.isinf(lens.object_distance) else 0.0
+        return 2.0 * ang, h_img
+    if lens.sensor_size is not None:
+        h = 0.5 * math.hypot(*lens.sensor_size)
+        return 2.0 * math.degrees(math.atan(h / abs(efl))), h
+    return 0.0, 0.0

@@ -1,0 +1,199 @@
+"""Point sources: rays from a field point into the entrance pupil, aimed at the aperture stop.
+
+Field conventions (as OpticStudio):
+
+* ``field_type="angle"``: (θx, θy) in degrees; the chief ray in object space travels along
+  (tan θx, tan θy, 1), so a positive θy images at +y (the object point is at -y: the image is inverted).
+* ``field_type="object_height"``: (hx, hy) in mm on the object plane (finite objects only).
+
+Pupil coordinates (px, py) are normalised to the stop: a ray with pupil coordinates (px, py) passes the
+stop surface at (px, py)·R_stop, found by Newton iteration on the ray's crossing point with the paraxial
+entrance-pupil plane ("ray aiming"). ``aim="paraxial"`` skips the iteration and samples the paraxial
+entrance pupil uniformly instead (as OpticStudio with ray aiming off).
+
+Batch shape of every bundle made here: (F, W, N) = (fields, wavelengths, pupil samples).
+For a distant object the starting OPL is measured from the plane wavefront through the first vertex
+(global origin); for a finite object from the object point.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from raywave.lens import paraxial
+from raywave.rays import pupil as pupil_patterns
+from raywave.rays.bundle import RayBundle
+
+AIM_MAX_ITER = 30
+AIM_TOL = 1e-12  # mm, on the stop
+
+
+def _as_fields(field, dtype, device) -> torch.Tensor:
+    f = torch.as_tensor(field, dtype=dtype, device=device)
+    if f.ndim == 0:
+        f = torch.stack([torch.zeros_like(f), f])
+    if f.ndim == 1:
+        if f.shape[0] != 2:
+            raise ValueError(f"a field point is (x, y); got {tuple(f.shape)} values")
+        f = f[None]
+    return f  # (F, 2)
+
+
+def _directions_and_points(lens, fields, field_type, ep_z, dtype):
+    """Per field: chief-ray direction (F,3) for distant objects, or object point (F,3) for finite ones."""
+    if math.isinf(lens.object_distance):
+        if field_type != "angle":
+            raise ValueError("a distant object (object distance inf) needs angle fields, not object heights")
+        t = torch.tan(torch.deg2rad(fields))
+        d = torch.stack([t[:, 0], t[:, 1], torch.ones_like(t[:, 0])], -1)
+        return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True), None
+    z_obj = -lens.object_distance
+    if field_type == "angle":
+        t = torch.tan(torch.deg2rad(fields))
+        xy = t * (z_obj - ep_z)
+    else:
+        xy = fields
+    pts = torch.cat([xy, torch.full_like(xy[:, :1], z_obj)], -1)
+    return None, pts
+
+
+def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=torch.float64) -> RayBundle:
+    """Rays from each field point crossing the entrance-pupil plane at ``uv`` (F, W, N, 2) (mm)."""
+    device = lens.device
+    wl = torch.as_tensor(wavelength, dtype=dtype, device=device).reshape(1, -1, 1)
+    ep_z = float(paraxial.stop_to_entrance_pupil(lens, lens.primary_wavelength)[0])
+    d_inf, pts = _directions_and_points(lens, fields, field_type, ep_z, dtype)
+    F, W, N = uv.shape[:3]
+    target = torch.cat([uv, torch.full_like(uv[..., :1], ep_z)], -1)
+    n0 = lens.object_material.n(wl).to(dtype)
+    if d_inf is not None:
+        d = d_inf[:, None, None, :].expand(F, W, N, 3)
+        z_start = min(ep_z, 0.0) - 1.0
+        o = target + d * ((z_start - ep_z) / d[..., 2:3])
+        opl = n0 * (o * d).sum(-1)  # distance from the plane wavefront through the origin
+    else:
+        o = pts[:, None, None, :].expand(F, W, N, 3)
+        d = target - o
+        d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+        opl = torch.zeros((F, W, N), dtype=dtype, device=device)
+    return RayBundle.create(o, d, wl, opl=opl, dtype=dtype, device=device)
+
+
+def _stop_hit(lens, uv, fields, field_type, wavelength):
+    rays = rays_through(lens, uv, fields, field_type, wavelength)
+    out = lens.trace(rays, stop=lens.stop_index + 1, apertures=False)
+    return out.o[..., :2], out.valid
+
+
+def _newton_aim(lens, uv, target, fields, field_type, wavelength, h):
+    """Solve stop_hit(uv) = target for uv (F, W, N, 2) by Newton with a finite-difference Jacobian."""
+    ok = torch.ones(uv.shape[:-1], dtype=torch.bool, device=uv.device)
+    for _ in range(AIM_MAX_ITER):
+        p, v = _stop_hit(lens, uv, fields, field_type, wavelength)
+        err = p - target
+        conv = err.abs().amax(-1) <= AIM_TOL * max(1.0, float(target.abs().max()))
+        if bool((conv | ~v).all()):
+            break
+        px, _ = _stop_hit(lens, uv + torch.tensor([h, 0.0], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength)
+        py, _ = _stop_hit(lens, uv + torch.tensor([0.0, h], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength)
+        j = torch.stack([(px - p) / h, (py - p) / h], -1)  # (..., 2 out, 2 in)
+        det = j[..., 0, 0] * j[..., 1, 1] - j[..., 0, 1] * j[..., 1, 0]
+        good = v & (det.abs() > 1e-300)
+        det = torch.where(good, det, torch.ones_like(det))
+        du = (j[..., 1, 1] * err[..., 0] - j[..., 0, 1] * err[..., 1]) / det
+        dv = (-j[..., 1, 0] * err[..., 0] + j[..., 0, 0] * err[..., 1]) / det
+        step = torch.stack([du, dv], -1)
+        uv = torch.where(good[..., None], uv - step, uv)
+    p, v = _stop_hit(lens, uv, fields, field_type, wavelength)
+    ok = v & ((p - target).abs().amax(-1) <= 1e-9 * max(1.0, float(target.abs().max())))
+    return uv, ok
+
+
+def aim_chief_rays(lens, fields, field_type, wavelength) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entrance-plane crossing (F, W, 1, 2) of each chief ray, aimed at the stop centre; with continuation
+    in field (0 → full) for wide-angle lenses where the paraxial guess misses."""
+    F = fields.shape[0]
+    W = torch.as_tensor(wavelength).numel()
+    r_ep = 0.5 * lens.paraxial().epd
+    h = 1e-7 * max(r_ep, 1e-3)
+    uv = torch.zeros((F, W, 1, 2), dtype=torch.float64, device=lens.device)
+    target = torch.zeros_like(uv)
+    uv1, ok = _newton_aim(lens, uv, target, fields, field_type, wavelength, h)
+    if bool(ok.all()):
+        return uv1, ok
+    uv_c = uv.clone()
+    for frac in (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 1.0):
+        uv_c, ok = _newton_aim(lens, uv_c, target, fields * frac, field_type, wavelength, h)
+    return uv_c, ok
+
+
+def point_source_rays(
+    lens,
+    field=(0.0, 0.0),
+    wavelength=None,
+    pupil=("grid", 21),
+    field_type: str | None = None,
+    aim: str = "full",
+    generator: torch.Generator | None = None,
+    dtype=torch.float64,
+) -> RayBundle:
+    """Rays from field point(s) through the pupil, shape (F, W, N).
+
+    Args:
+        field: (x, y) or (F, 2): degrees (angle fields) or mm (object heights), see the module docstring.
+        wavelength: µm, scalar or (W,) (default: the lens's primary wavelength).
+        pupil: ``(pattern, n)`` (see :func:`raywave.rays.pupil.sample`) or explicit ``(px, py)`` tensors.
+        aim: "full" (every ray aimed at its stop point), "chief" (chief ray aimed, pupil mapped linearly
+            around it), or "paraxial" (paraxial entrance pupil).
+    Rays whose aiming fails (vignetted in front of the stop) are returned invalid.
+    """
+    field_type = field_type or lens.field_type
+    fields = _as_fields(field, torch.float64, lens.device)
+    wl = torch.as_tensor(lens.primary_wavelength if wavelength is None else wavelength, dtype=torch.float64).reshape(-1)
+    if isinstance(pupil[0], str):
+        px, py = pupil_patterns.sample(pupil[0], pupil[1], generator=generator, device=lens.device)
+    else:
+        px, py = (torch.as_tensor(p, dtype=torch.float64, device=lens.device).reshape(-1) for p in pupil)
+    F, W, N = fields.shape[0], wl.numel(), px.numel()
+    pdata = lens.paraxial()
+    r_ep = 0.5 * pdata.epd
+    r_stop = lens.stop_radius()
+    pn = torch.stack([px, py], -1)[None, None].expand(F, W, N, 2)
+    valid = torch.ones((F, W, N), dtype=torch.bool, device=lens.device)
+    with torch.no_grad():
+        if aim == "paraxial":
+            uv = pn * r_ep
+        elif aim in ("full", "chief"):
+            uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl)
+            h = 1e-6 * max(r_ep, 1e-3)
+            # Linear map pupil -> entrance plane from the chief ray's Jacobian.
+            p0, _ = _stop_hit(lens, uv_c, fields, field_type, wl)
+            p1, _ = _stop_hit(lens, uv_c + torch.tensor([h, 0.0], dtype=torch.float64), fields, field_type, wl)
+            p2, _ = _stop_hit(lens, uv_c + torch.tensor([0.0, h], dtype=torch.float64), fields, field_type, wl)
+            j = torch.stack([(p1 - p0) / h, (p2 - p0) / h], -1)  # (F, W, 1, 2, 2)
+            jinv = torch.linalg.inv(j)
+            uv = uv_c + torch.einsum("fwnij,fwmj->fwmi", jinv, pn * r_stop)
+            if aim == "full":
+                uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h)
+                valid = valid & ok
+            valid = valid & ok_c
+        else:
+            raise ValueError(f"aim must be 'full', 'chief' or 'paraxial', got {aim!r}")
+    rays = rays_through(lens, uv.detach(), fields, field_type, wl, dtype=dtype)
+    if not bool(valid.all()):
+        rays = rays.replace(valid=rays.valid & valid)
+    return rays
+
+
+def chief_ray(lens, field=(0.0, 0.0), wavelength=None, field_type: str | None = None) -> RayBundle:
+    """The chief ray(s) (F, W, 1): aimed at the centre of the stop."""
+    return point_source_rays(lens, field, wavelength, pupil=(torch.zeros(1), torch.zeros(1)), field_type=field_type, aim="full")
+
+
+def marginal_rays(lens, field=(0.0, 0.0), wavelength=None, field_type: str | None = None) -> RayBundle:
+    """The four marginal rays (F, W, 4) at pupil (0, 1), (0, -1), (1, 0), (-1, 0) (edge of the stop)."""
+    px = torch.tensor([0.0, 0.0, 1.0, -1.0])
+    py = torch.tensor([1.0, -1.0, 0.0, 0.0])
+    return point_source_rays(lens, field, wavelength, pupil=(px, py), field_type=field_type, aim="full")

@@ -1,0 +1,66 @@
+"""Sampling patterns in the normalised pupil (the unit disk, or the unit square).
+
+Each function returns ``(px, py)``: float64 tensors of shape (N,) with px² + py² <= 1 (disk patterns).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def grid(n: int, shape: str = "circle", dtype=torch.float64, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """An n×n square grid over [-1, 1]² (pixel centres), keeping the points inside the unit circle
+    (``shape="circle"``) or all of them (``shape="square"``)."""
+    if n < 1:
+        raise ValueError(f"pupil grid needs n >= 1, got {n}")
+    c = (torch.arange(n, dtype=dtype, device=device) + 0.5) / n * 2 - 1
+    py, px = torch.meshgrid(c, c, indexing="ij")
+    px, py = px.reshape(-1), py.reshape(-1)
+    if shape == "circle":
+        keep = px * px + py * py <= 1.0
+        px, py = px[keep], py[keep]
+    elif shape != "square":
+        raise ValueError(f"pupil grid shape must be 'circle' or 'square', got {shape!r}")
+    return px, py
+
+
+def hexapolar(rings: int, dtype=torch.float64, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The centre plus ``rings`` rings of 6, 12, 18, ... points at radii k/rings (Zemax hexapolar)."""
+    xs, ys = [0.0], [0.0]
+    for k in range(1, rings + 1):
+        r = k / rings
+        for j in range(6 * k):
+            a = 2 * math.pi * j / (6 * k)
+            xs.append(r * math.cos(a))
+            ys.append(r * math.sin(a))
+    return torch.tensor(xs, dtype=dtype, device=device), torch.tensor(ys, dtype=dtype, device=device)
+
+
+def random(n: int, generator: torch.Generator | None = None, dtype=torch.float64, device=None):
+    """``n`` points uniform in the unit disk. Pass a seeded ``generator`` for replayable samples."""
+    u = torch.rand(n, generator=generator, dtype=dtype, device=device)
+    a = torch.rand(n, generator=generator, dtype=dtype, device=device) * (2 * math.pi)
+    r = torch.sqrt(u)
+    return r * torch.cos(a), r * torch.sin(a)
+
+
+def fans(n: int, dtype=torch.float64, device=None):
+    """Tangential (y) fan and sagittal (x) fan of ``n`` points each across [-1, 1] (for layouts)."""
+    t = torch.linspace(-1, 1, n, dtype=dtype, device=device)
+    z = torch.zeros_like(t)
+    return (z, t), (t, z)
+
+
+def sample(pattern: str = "grid", n: int = 21, generator=None, dtype=torch.float64, device=None):
+    """Dispatch by name: 'grid' (n per side), 'square', 'hexapolar' (n rings), 'random' (n points)."""
+    if pattern == "grid":
+        return grid(n, "circle", dtype, device)
+    if pattern == "square":
+        return grid(n, "square", dtype, device)
+    if pattern == "hexapolar":
+        return hexapolar(n, dtype, device)
+    if pattern == "random":
+        return random(n, generator, dtype, device)
+    raise ValueError(f"unknown pupil pattern {pattern!r}: use 'grid', 'square', 'hexapolar' or 'random'")

@@ -1,0 +1,1 @@
+"""Small numerical helpers shared by the physics sub-packages (no plotting, no I/O)."""

@@ -1,0 +1,42 @@
+import math
+
+import pytest
+import torch
+
+from raywave.lens.lens import Lens
+from raywave.materials.base import Air, ConstantIndex
+from raywave.surfaces.aperture import CircularAperture
+from raywave.surfaces.geometry import EvenAsphere, Standard
+from raywave.surfaces.surface import Surface
+
+
+def std(radius, thickness, n=1.0, stop=False, ap=None, conic=0.0):
+    """A standard surface with a constant-index medium after it (test helper)."""
+    c = 0.0 if radius == math.inf else 1.0 / radius
+    mat = Air() if n == 1.0 else ConstantIndex(n)
+    return Surface(Standard(c, conic), mat, thickness, aperture=CircularAperture(ap) if ap else None, is_stop=stop)
+
+
+@pytest.fixture
+def cooke_const():
+    """The classic Cooke triplet (Zemax sample prescription) with constant indices n_d."""
+    s = [
+        std(22.01359, 3.25896, 1.6204),
+        std(-435.7604, 6.007551),
+        std(-22.21328, 0.9994, 1.6034),
+        std(20.29192, 4.750409, stop=True, ap=4.5),
+        std(79.68364, 2.952076, 1.6204),
+        std(-18.3783, 42.20778),
+    ]
+    return Lens(s, fields=[0.0, 14.0, 20.0])
+
+
+@pytest.fixture
+def asphere_const():
+    """An aspheric singlet (n = 1.5) with a stop in front."""
+    s = [
+        std(math.inf, 0.1, stop=True, ap=1.0),
+        Surface(EvenAsphere(1 / 4.7531, -1.2051, [0.0, 5.33e-4, 1.12e-5, -3.75e-7]), ConstantIndex(1.5), 7.5),
+        std(-15.65, 5.0),
+    ]
+    return Lens(s, fields=[0.0, 5.0])
