@@ -167,6 +167,25 @@ class Lens(nn.Module):
             stop.aperture.set_radius(radius)
         self.epd = float(epd)
 
+    def set_sensor(self, size, resolution=None) -> None:
+        """Set the sensor: ``size`` (w, h) in mm and ``resolution`` (nx, ny) pixels (pixel pitch = w / nx)."""
+        w, h = (float(v) for v in size)
+        if not (w > 0 and h > 0):
+            raise ValueError(f"sensor size must be positive (mm), got {size!r}")
+        if resolution is not None:
+            nx, ny = (int(v) for v in resolution)
+            if nx <= 0 or ny <= 0:
+                raise ValueError(f"sensor resolution must be positive, got {resolution!r}")
+            self.sensor_resolution = (nx, ny)
+        self.sensor_size = (w, h)
+
+    @property
+    def pixel_pitch(self) -> float | None:
+        """Sensor pixel pitch (mm), or None without a sensor resolution."""
+        if self.sensor_size is None or self.sensor_resolution is None:
+            return None
+        return self.sensor_size[0] / self.sensor_resolution[0]
+
     def stop_radius(self) -> float:
         stop = self.surfaces[self.stop_index]
         r = stop.clear_radius()

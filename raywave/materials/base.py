@@ -57,7 +57,8 @@ class ConstantIndex(Material):
         self.register_buffer("index", torch.tensor(float(index), dtype=torch.float64))
 
     def n(self, wavelength: torch.Tensor) -> torch.Tensor:
-        wavelength = torch.as_tensor(wavelength, dtype=torch.float64)
+        if not isinstance(wavelength, torch.Tensor) or not wavelength.is_floating_point():
+            wavelength = torch.as_tensor(wavelength, dtype=torch.float64)
         return self.index.to(device=wavelength.device, dtype=wavelength.dtype).expand(wavelength.shape)
 
     @property

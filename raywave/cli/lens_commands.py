@@ -1,0 +1,192 @@
+"""Lens commands: info, layout, spot, convert, demo."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import torch
+
+
+def _load(name_or_path):
+    from raywave.lens.build import load_lens, resolve_lens_path
+
+    return load_lens(resolve_lens_path(name_or_path))
+
+
+def _floats(text: str | None):
+    if text is None:
+        return None
+    return [float(v) for v in text.replace(",", " ").split()]
+
+
+# ---------------------------------------------------------------------------- info
+INFO_KEYS = ["efl", "efl_real", "bfl", "ffl", "fnum", "epd", "ep_z", "xpd", "xp_z", "fov_deg", "image_height", "total_track"]
+INFO_LABELS = {
+    "efl": ("Effective focal length (paraxial)", "mm"),
+    "efl_real": ("Effective focal length (real ray)", "mm"),
+    "bfl": ("Back focal length (last vertex to focus)", "mm"),
+    "ffl": ("Front focal point z", "mm"),
+    "fnum": ("F-number (EFL / EPD)", ""),
+    "working_fnum": ("Working F-number", ""),
+    "epd": ("Entrance pupil diameter", "mm"),
+    "ep_z": ("Entrance pupil z", "mm"),
+    "xpd": ("Exit pupil diameter", "mm"),
+    "xp_z": ("Exit pupil z", "mm"),
+    "fov_deg": ("Full field of view", "deg"),
+    "image_height": ("Paraxial image height", "mm"),
+    "total_track": ("Total track (first vertex to image)", "mm"),
+    "image_z_paraxial": ("Paraxial image z", "mm"),
+}
+
+
+def lens_info(lens, wavelength: float | None = None) -> dict:
+    """The paraxial table plus the real-ray EFL (mm, degrees; z from the first vertex)."""
+    from raywave.lens.analysis import real_ray_efl
+
+    p = lens.paraxial(wavelength)
+    d = p.as_dict()
+    with torch.no_grad():
+        d["efl_real"] = float(real_ray_efl(lens, wavelength))
+    out = {k: d[k] for k in INFO_KEYS}
+    out.update({k: d[k] for k in ("working_fnum", "image_z_paraxial", "wavelength")})
+    out["name"] = lens.name
+    return out
+
+
+def format_info(info: dict) -> str:
+    lines = [f"{info.get('name') or 'lens'} at {info['wavelength']:g} µm (z from the first vertex)"]
+    for k in INFO_KEYS + ["working_fnum", "image_z_paraxial"]:
+        label, unit = INFO_LABELS[k]
+        v = info[k]
+        lines.append(f"  {label:<42s} {v:>14.6f} {unit}" if math.isfinite(v) else f"  {label:<42s} {'inf':>14s} {unit}")
+    return "\n".join(lines)
+
+
+def cmd_info(args) -> int:
+    lens = _load(args.lens)
+    info = lens_info(lens, args.wavelength)
+    if args.json:
+        print(json.dumps({k: info[k] for k in INFO_KEYS}))
+    else:
+        print(format_info(info))
+    return 0
+
+
+# ---------------------------------------------------------------------------- layout / spot
+def cmd_layout(args) -> int:
+    from raywave.plotting import plot_layout
+
+    lens = _load(args.lens)
+    plot_layout(lens, args.output, fields=_floats(args.fields), n_rays=args.rays)
+    print(f"wrote {args.output}")
+    return 0
+
+
+def spot_table(lens, fields=None) -> dict:
+    """RMS spot radius (µm) per field and wavelength, about each spot's centroid."""
+    from raywave.lens.analysis import rms_spot_radius
+
+    fields = list(lens.fields) if fields is None else list(fields)
+    with torch.no_grad():
+        rms = rms_spot_radius(lens, fields, lens.wavelengths)
+    return {
+        "unit": "um",
+        "fields": fields,
+        "field_type": lens.field_type,
+        "wavelengths": list(lens.wavelengths),
+        "rms_radius": (rms * 1e3).tolist(),
+    }
+
+
+def cmd_spot(args) -> int:
+    lens = _load(args.lens)
+    fields = _floats(args.fields)
+    table = spot_table(lens, fields)
+    if args.json:
+        print(json.dumps(table))
+    else:
+        unit = "deg" if lens.field_type == "angle" else "mm"
+        print("RMS spot radius (µm), centroid reference")
+        print(f"  {'field (' + unit + ')':>12s}" + "".join(f"{w:>12.4g}" for w in table["wavelengths"]))
+        for f, row in zip(table["fields"], table["rms_radius"]):
+            print(f"  {f:>12g}" + "".join(f"{r:>12.4f}" for r in row))
+    if args.output:
+        from raywave.plotting import plot_spots
+
+        plot_spots(lens, args.output, fields=fields)
+        if not args.json:
+            print(f"wrote {args.output}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- convert
+def cmd_convert(args) -> int:
+    from raywave.io import read_lens_spec, write_lens_spec
+    from raywave.lens.build import lens_from_spec, resolve_lens_path
+
+    spec = read_lens_spec(resolve_lens_path(args.input))
+    lens_from_spec(spec)  # validates glasses and geometry before anything is written
+    write_lens_spec(spec, args.output)
+    print(f"wrote {args.output}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- demo
+def run_demo(out_dir: Path, lens_name: str = "cooke_triplet") -> dict:
+    """Analyse a bundled lens: paraxial table (txt + json), layout and spot diagram PNGs."""
+    from raywave.plotting import plot_layout, plot_spots
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lens = _load(lens_name)
+    info = lens_info(lens)
+    (out_dir / "paraxial.txt").write_text(format_info(info) + "\n")
+    spots = spot_table(lens)
+    (out_dir / "paraxial.json").write_text(json.dumps({"paraxial": info, "spot": spots}, indent=2) + "\n")
+    plot_layout(lens, out_dir / "layout.png")
+    plot_spots(lens, out_dir / "spot.png")
+    return {"info": info, "spot": spots}
+
+
+def cmd_demo(args) -> int:
+    out = Path(args.output)
+    res = run_demo(out, args.lens)
+    print(format_info(res["info"]))
+    print(f"wrote {out / 'paraxial.txt'}, {out / 'paraxial.json'}, {out / 'layout.png'}, {out / 'spot.png'}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- registration
+def register(sub) -> None:
+    lens_help = "lens file (.json raywave or DeepLens-style, .zmx) or a bundled lens name"
+    p = sub.add_parser("info", help="paraxial table and real-ray EFL of a lens")
+    p.add_argument("lens", help=lens_help)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--wavelength", type=float, default=None, help="µm (default: the lens's primary)")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("layout", help="2D section with ray fans (PNG)")
+    p.add_argument("lens", help=lens_help)
+    p.add_argument("-o", "--output", required=True, help="PNG file")
+    p.add_argument("--fields", default=None, help="field values, e.g. '0,10,14' (default: the lens's)")
+    p.add_argument("--rays", type=int, default=7, help="rays per fan")
+    p.set_defaults(func=cmd_layout)
+
+    p = sub.add_parser("spot", help="RMS spot radius per field and wavelength")
+    p.add_argument("lens", help=lens_help)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("-o", "--output", default=None, help="spot diagram PNG")
+    p.add_argument("--fields", default=None, help="field values (default: the lens's)")
+    p.set_defaults(func=cmd_spot)
+
+    p = sub.add_parser("convert", help="convert a lens file (.json <-> .zmx; DeepLens .json in)")
+    p.add_argument("input")
+    p.add_argument("output")
+    p.set_defaults(func=cmd_convert)
+
+    p = sub.add_parser("demo", help="analyse a bundled lens: table, layout and spot diagram")
+    p.add_argument("-o", "--output", default="raywave-demo", help="output folder")
+    p.add_argument("--lens", default="cooke_triplet", help="bundled lens name or lens file")
+    p.set_defaults(func=cmd_demo)

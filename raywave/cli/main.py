@@ -1,0 +1,49 @@
+"""Entry point of the ``raywave`` command."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from raywave.cli import lens_commands
+
+#: Modules that add sub-commands: each has ``register(subparsers)``.
+COMMAND_MODULES = [lens_commands]
+
+
+class CommandError(Exception):
+    """An error to report to the user as one line, without a traceback."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="raywave",
+        description="End-to-end design of hybrid refractive-diffractive lenses (differentiable ray-wave model). "
+        "Lengths in mm, wavelengths in µm.",
+    )
+    parser.add_argument("--traceback", action="store_true", help="show the full traceback on errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for module in COMMAND_MODULES:
+        module.register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Run the CLI; returns the exit status (0 ok, 2 user error)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("raywave: interrupted", file=sys.stderr)
+        return 130
+    except (CommandError, ValueError, FileNotFoundError, LookupError, OSError) as err:
+        if args.traceback:
+            raise
+        print(f"raywave: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

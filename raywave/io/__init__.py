@@ -1,0 +1,83 @@
+"""Lens files <-> lens specs (plain dicts; no torch here).
+
+A *spec* is the dict form of a lens (docs/lens-format.md); :mod:`raywave.lens.build` turns it into a
+:class:`~raywave.lens.lens.Lens` and back. Formats:
+
+* ``.json`` — raywave's own format ("raywave-lens", version 1), read strictly and written exactly;
+  a ``.json`` file without ``"format"`` that looks like a DeepLens lens file is imported from DeepLens.
+* ``.zmx`` — Zemax OpticStudio sequential files (STANDARD, EVENASPH, PARAXIAL surfaces), read and written.
+
+Every problem is a :class:`LensFileError` (a ValueError) whose message starts with ``path:line:``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from raywave.io.deeplens import looks_like_deeplens, read_deeplens
+from raywave.io.errors import LensFileError, LensFileWarning
+from raywave.io.json_format import (parse_json_text, read_json_spec, read_text, validate_spec,
+                                    write_json_spec)
+from raywave.io.spec import canonical_spec
+from raywave.io.zmx import read_zmx, write_zmx
+
+__all__ = [
+    "LensFileError",
+    "LensFileWarning",
+    "canonical_spec",
+    "detect_format",
+    "read_deeplens",
+    "read_json_spec",
+    "read_lens_spec",
+    "read_zmx",
+    "validate_spec",
+    "write_json_spec",
+    "write_lens_spec",
+    "write_zmx",
+]
+
+#: Extensions and the formats they hold.
+READ_EXTENSIONS = {".json": "raywave JSON or DeepLens JSON", ".zmx": "Zemax OpticStudio"}
+WRITE_EXTENSIONS = {".json": "raywave JSON", ".zmx": "Zemax OpticStudio"}
+
+
+def detect_format(path) -> str:
+    """'raywave', 'deeplens' or 'zmx' for a lens file, by extension and (for .json) content."""
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext == ".zmx":
+        return "zmx"
+    if ext != ".json":
+        raise LensFileError(f"unknown lens file extension {p.suffix or '(none)'!r}; raywave reads "
+                            + ", ".join(f"{e} ({d})" for e, d in READ_EXTENSIONS.items()), p)
+    data, _ = parse_json_text(read_text(p), str(p))
+    if isinstance(data, dict) and "format" in data:
+        return "raywave"
+    if looks_like_deeplens(data):
+        return "deeplens"
+    raise LensFileError("not a lens file raywave knows: no \"format\": \"raywave-lens\" and not a DeepLens "
+                        "lens file", p, 1)
+
+
+def read_lens_spec(path) -> dict:
+    """Read any lens file raywave knows into a validated spec (format chosen by :func:`detect_format`)."""
+    if not Path(path).exists():
+        raise FileNotFoundError(f"lens file {str(path)!r} not found")
+    fmt = detect_format(path)
+    if fmt == "zmx":
+        return read_zmx(path)
+    if fmt == "deeplens":
+        return read_deeplens(path)
+    return read_json_spec(path)
+
+
+def write_lens_spec(spec: dict, path, **kwargs) -> None:
+    """Write ``spec`` as raywave JSON (``.json``) or Zemax (``.zmx``; ``kwargs`` go to :func:`write_zmx`)."""
+    ext = Path(path).suffix.lower()
+    if ext == ".json":
+        write_json_spec(spec, path)
+    elif ext == ".zmx":
+        write_zmx(spec, path, **kwargs)
+    else:
+        raise LensFileError(f"cannot write lens files with extension {Path(path).suffix or '(none)'!r}; use "
+                            + " or ".join(WRITE_EXTENSIONS), path)

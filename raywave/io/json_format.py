@@ -1,0 +1,532 @@
+"""The raywave JSON lens format ("raywave-lens", version 1): strict reading, validation, exact writing.
+
+Everything here works on plain dicts ("specs", see docs/lens-format.md) and never imports torch.
+:func:`validate_spec` checks a spec against the schema and reports *every* problem at once, each with
+its key path (``surfaces[3].radus``) and, for a file, its line number.
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import math
+import re
+from json.decoder import scanstring
+from json.scanner import NUMBER_RE
+from pathlib import Path
+
+from raywave.io.errors import LensFileError, suggestion
+
+FORMAT_NAME = "raywave-lens"
+FORMAT_VERSION = 1
+UNITS = {"length": "mm", "wavelength": "um"}
+
+TOP_KEYS = ("format", "version", "units", "name", "description", "catalogs", "object", "system_aperture",
+            "fields", "wavelengths", "sensor", "surfaces")
+SURFACE_TYPES = ("standard", "even_asphere", "paraxial")
+COMMON_SURFACE_KEYS = ("type", "thickness", "material", "aperture", "semi_diameter", "stop", "comment")
+TYPE_KEYS = {
+    "standard": ("radius", "curvature", "conic"),
+    "even_asphere": ("radius", "curvature", "conic", "aspheric"),
+    "paraxial": ("focal_length",),
+}
+ALL_SURFACE_KEYS = tuple(dict.fromkeys(COMMON_SURFACE_KEYS + sum(TYPE_KEYS.values(), ())))
+ASPHERIC_KEYS = tuple(f"a{p}" for p in range(2, 21, 2))
+FIELD_TYPES = ("angle", "object_height")
+APERTURE_SHAPES = {"circle": "radius", "square": "half_width"}
+#: Wavelengths above this (µm) are taken for a unit mistake (nm given instead of µm).
+MAX_WAVELENGTH_UM = 100.0
+
+
+# --------------------------------------------------------------------------------------- locating keys
+_WS = re.compile(r"[ \t\n\r]*")
+_LITERALS = ("true", "false", "null", "NaN", "Infinity", "-Infinity")
+
+
+def locate_keys(text: str) -> tuple[dict, list]:
+    """Line numbers of every key and array element of a JSON text that ``json.loads`` accepts.
+
+    Returns ``(lines, duplicates)``: ``lines`` maps a key path (tuple of str keys and int indices) to the
+    1-based line where that key (or array element) starts; ``duplicates`` lists ``(path, line)`` of keys
+    that occur twice in the same object.
+    """
+    starts = [0] + [m.end() for m in re.finditer("\n", text)]
+    lines: dict = {}
+    dups: list = []
+
+    def line_of(pos):
+        return bisect.bisect_right(starts, pos)
+
+    def ws(i):
+        return _WS.match(text, i).end()
+
+    def value(i, path):
+        i = ws(i)
+        lines.setdefault(path, line_of(i))
+        c = text[i]
+        if c == "{":
+            i = ws(i + 1)
+            if text[i] == "}":
+                return i + 1
+            seen = set()
+            while True:
+                i = ws(i)
+                key_line = line_of(i)
+                key, i = scanstring(text, i + 1)
+                kpath = path + (key,)
+                if key in seen:
+                    dups.append((kpath, key_line))
+                else:
+                    lines[kpath] = key_line
+                seen.add(key)
+                i = ws(i)  # the ':'
+                i = value(i + 1, kpath)
+                i = ws(i)
+                if text[i] == ",":
+                    i += 1
+                    continue
+                return i + 1
+        if c == "[":
+            i = ws(i + 1)
+            if text[i] == "]":
+                return i + 1
+            k = 0
+            while True:
+                i = value(i, path + (k,))
+                k += 1
+                i = ws(i)
+                if text[i] == ",":
+                    i += 1
+                    continue
+                return i + 1
+        if c == '"':
+            return scanstring(text, i + 1)[1]
+        m = NUMBER_RE.match(text, i)
+        if m:
+            return m.end()
+        for lit in _LITERALS:
+            if text.startswith(lit, i):
+                return i + len(lit)
+        raise ValueError(f"unexpected character {c!r} at offset {i}")  # json.loads accepted it: cannot happen
+
+    value(0, ())
+    return lines, dups
+
+
+def key_path(path) -> str:
+    """('surfaces', 3, 'radius') -> 'surfaces[3].radius'."""
+    out = ""
+    for p in path:
+        if isinstance(p, int):
+            out += f"[{p}]"
+        else:
+            out += f".{p}" if out else str(p)
+    return out or "(top level)"
+
+
+# --------------------------------------------------------------------------------------- validation
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _typename(x) -> str:
+    if x is None:
+        return "null"
+    if isinstance(x, bool):
+        return "a boolean"
+    if isinstance(x, (int, float)):
+        return f"the number {x!r}"
+    if isinstance(x, str):
+        return f"the string {x!r}"
+    if isinstance(x, list):
+        return "a list"
+    if isinstance(x, dict):
+        return "an object"
+    return type(x).__name__
+
+
+class _Validator:
+    def __init__(self, source, lines: dict | None):
+        self.source = source
+        self.lines = lines or {}
+        self.errors: list[tuple[int | None, str]] = []
+
+    def line(self, path):
+        path = tuple(path)
+        while path:
+            if path in self.lines:
+                return self.lines[path]
+            path = path[:-1]
+        return None
+
+    def err(self, path, msg):
+        where = key_path(path)
+        self.errors.append((self.line(path), f"{where}: {msg}" if path else msg))
+
+    # ----- generic checks
+    def keys(self, obj, path, allowed, misplaced: dict | None = None):
+        for k in obj:
+            if k in allowed:
+                continue
+            if misplaced and k in misplaced:
+                self.err(tuple(path) + (k,), misplaced[k])
+            else:
+                self.err(tuple(path) + (k,), f"unknown key {k!r}{suggestion(str(k), allowed)}")
+
+    def obj(self, x, path, what="an object") -> bool:
+        if not isinstance(x, dict):
+            self.err(path, f"must be {what}, got {_typename(x)}")
+            return False
+        return True
+
+    def number(self, x, path, positive=False, nonzero=False, nonneg=False) -> bool:
+        if not _is_number(x):
+            extra = " (write infinity as the string \"inf\")" if isinstance(x, float) and math.isinf(x) else ""
+            self.err(path, f"must be a number, got {_typename(x)}{extra}")
+            return False
+        if positive and not x > 0:
+            self.err(path, f"must be > 0, got {x!r}")
+            return False
+        if nonneg and x < 0:
+            self.err(path, f"must be >= 0, got {x!r}")
+            return False
+        if nonzero and x == 0:
+            self.err(path, "must not be 0")
+            return False
+        return True
+
+    def string(self, x, path, nonempty=False) -> bool:
+        if not isinstance(x, str):
+            self.err(path, f"must be a string, got {_typename(x)}")
+            return False
+        if nonempty and not x.strip():
+            self.err(path, "must not be empty")
+            return False
+        return True
+
+    def number_list(self, x, path, n=None, positive=False, integer=False) -> bool:
+        if not isinstance(x, list):
+            self.err(path, f"must be a list, got {_typename(x)}")
+            return False
+        if n is not None and len(x) != n:
+            self.err(path, f"must have {n} entries, got {len(x)}")
+            return False
+        if n is None and not x:
+            self.err(path, "must not be empty")
+            return False
+        ok = True
+        for i, v in enumerate(x):
+            p = tuple(path) + (i,)
+            if integer:
+                if not _is_int(v) or (positive and v <= 0):
+                    self.err(p, f"must be a {'positive ' if positive else ''}integer, got {_typename(v)}")
+                    ok = False
+            else:
+                ok = self.number(v, p, positive=positive) and ok
+        return ok
+
+    # ----- the schema
+    def spec(self, spec):
+        if not self.obj(spec, ()):
+            return
+        self.keys(spec, (), TOP_KEYS)
+        if "format" in spec and spec["format"] != FORMAT_NAME:
+            self.err(("format",), f"must be {FORMAT_NAME!r}, got {_typename(spec['format'])}")
+        if "version" in spec:
+            v = spec["version"]
+            if not _is_int(v):
+                self.err(("version",), f"must be an integer, got {_typename(v)}")
+            elif v > FORMAT_VERSION:
+                self.err(("version",), f"format version {v} is newer than this raywave reads "
+                                       f"(version {FORMAT_VERSION}); upgrade raywave")
+            elif v < 1:
+                self.err(("version",), f"must be >= 1, got {v}")
+        if "units" in spec and self.obj(spec["units"], ("units",)):
+            u = spec["units"]
+            self.keys(u, ("units",), tuple(UNITS))
+            for k, want in UNITS.items():
+                if k in u and u[k] != want:
+                    self.err(("units", k), f"must be {want!r} (the only {k} unit of format version 1), "
+                                           f"got {_typename(u[k])}")
+        for k in ("name", "description"):
+            if k in spec:
+                self.string(spec[k], (k,))
+        if "catalogs" in spec:
+            c = spec["catalogs"]
+            if not isinstance(c, list):
+                self.err(("catalogs",), f"must be a list of catalog names, got {_typename(c)}")
+            else:
+                for i, name in enumerate(c):
+                    self.string(name, ("catalogs", i), nonempty=True)
+        if "object" in spec and self.obj(spec["object"], ("object",)):
+            o = spec["object"]
+            self.keys(o, ("object",), ("distance",))
+            if "distance" in o:
+                d = o["distance"]
+                if d != "inf":
+                    if isinstance(d, str):
+                        self.err(("object", "distance"), f"must be a number or \"inf\", got {_typename(d)}")
+                    else:
+                        self.number(d, ("object", "distance"), positive=True)
+        if "system_aperture" in spec and self.obj(spec["system_aperture"], ("system_aperture",)):
+            a = spec["system_aperture"]
+            self.keys(a, ("system_aperture",), ("epd",))
+            if "epd" not in a:
+                self.err(("system_aperture",), "missing 'epd' (entrance pupil diameter, mm)")
+            else:
+                self.number(a["epd"], ("system_aperture", "epd"), positive=True)
+        if "fields" in spec and self.obj(spec["fields"], ("fields",)):
+            f = spec["fields"]
+            self.keys(f, ("fields",), ("type", "values"))
+            if "type" in f and f["type"] not in FIELD_TYPES:
+                self.err(("fields", "type"), f"must be one of {', '.join(map(repr, FIELD_TYPES))}, got "
+                                             f"{_typename(f['type'])}"
+                         + (suggestion(f["type"], FIELD_TYPES) if isinstance(f["type"], str) else ""))
+            if "values" not in f:
+                self.err(("fields",), "missing 'values'")
+            else:
+                self.number_list(f["values"], ("fields", "values"))
+        if "wavelengths" in spec and self.obj(spec["wavelengths"], ("wavelengths",)):
+            w = spec["wavelengths"]
+            self.keys(w, ("wavelengths",), ("values", "primary"))
+            if "values" not in w:
+                self.err(("wavelengths",), "missing 'values' (µm)")
+            elif self.number_list(w["values"], ("wavelengths", "values"), positive=True):
+                for i, v in enumerate(w["values"]):
+                    if v > MAX_WAVELENGTH_UM:
+                        self.err(("wavelengths", "values", i),
+                                 f"{v!r} µm is not a plausible wavelength: wavelengths are in µm, not nm")
+                if "primary" in w:
+                    p = w["primary"]
+                    if not _is_int(p):
+                        self.err(("wavelengths", "primary"), f"must be an integer index, got {_typename(p)}")
+                    elif not 0 <= p < len(w["values"]):
+                        self.err(("wavelengths", "primary"),
+                                 f"index {p} out of range for {len(w['values'])} wavelengths (0-based)")
+        if "sensor" in spec and self.obj(spec["sensor"], ("sensor",)):
+            s = spec["sensor"]
+            self.keys(s, ("sensor",), ("size", "resolution"))
+            if "size" not in s:
+                self.err(("sensor",), "missing 'size' ([width, height] mm)")
+            else:
+                self.number_list(s["size"], ("sensor", "size"), n=2, positive=True)
+            if "resolution" in s:
+                self.number_list(s["resolution"], ("sensor", "resolution"), n=2, positive=True, integer=True)
+        if "surfaces" not in spec:
+            self.err((), "missing 'surfaces' (the list of surfaces)")
+            return
+        surfs = spec["surfaces"]
+        if not isinstance(surfs, list):
+            self.err(("surfaces",), f"must be a list, got {_typename(surfs)}")
+            return
+        if not surfs:
+            self.err(("surfaces",), "the lens has no surfaces (empty list)")
+            return
+        stops = []
+        for i, s in enumerate(surfs):
+            self.surface(s, ("surfaces", i))
+            if isinstance(s, dict) and s.get("stop") is True:
+                stops.append(i)
+        if len(stops) > 1:
+            for i in stops[1:]:
+                self.err(("surfaces", i, "stop"), f"a lens has one aperture stop; surfaces {stops} are all "
+                                                  "marked as stop")
+
+    def surface(self, s, path):
+        if not self.obj(s, path):
+            return
+        kind = s.get("type", "standard")
+        if kind not in SURFACE_TYPES:
+            hint = suggestion(kind, SURFACE_TYPES) if isinstance(kind, str) else ""
+            self.err(path + ("type",), f"unknown surface type {kind!r}{hint}; known types: "
+                                       f"{', '.join(SURFACE_TYPES)}")
+            self.keys(s, path, ALL_SURFACE_KEYS)
+            return
+        allowed = COMMON_SURFACE_KEYS + TYPE_KEYS[kind]
+        misplaced = {k: f"{k!r} is not allowed on a {kind!r} surface (it belongs to "
+                        f"{' / '.join(t for t, ks in TYPE_KEYS.items() if k in ks)} surfaces)"
+                     for k in ALL_SURFACE_KEYS if k not in allowed}
+        self.keys(s, path, allowed, misplaced)
+        if "thickness" not in s:
+            self.err(path, "missing 'thickness' (mm to the next surface, or to the image for the last one)")
+        else:
+            self.number(s["thickness"], path + ("thickness",))
+        if "radius" in s and "curvature" in s:
+            self.err(path + ("curvature",), "give either 'radius' or 'curvature', not both")
+        if "radius" in s:
+            r = s["radius"]
+            if r != "inf":
+                if isinstance(r, str):
+                    self.err(path + ("radius",), f"must be a number or \"inf\", got {_typename(r)}")
+                elif self.number(r, path + ("radius",)) and r == 0:
+                    self.err(path + ("radius",), "radius 0 is not a surface; write \"inf\" for a flat surface")
+        if "curvature" in s:
+            self.number(s["curvature"], path + ("curvature",))
+        if "conic" in s:
+            self.number(s["conic"], path + ("conic",))
+        if "aspheric" in s and self.obj(s["aspheric"], path + ("aspheric",)):
+            a = s["aspheric"]
+            self.keys(a, path + ("aspheric",), ASPHERIC_KEYS)
+            for k in ASPHERIC_KEYS:
+                if k in a:
+                    self.number(a[k], path + ("aspheric", k))
+        if kind == "paraxial":
+            if "focal_length" not in s:
+                self.err(path, "a paraxial surface needs 'focal_length' (mm)")
+            else:
+                self.number(s["focal_length"], path + ("focal_length",), nonzero=True)
+        if "material" in s:
+            self.material(s["material"], path + ("material",))
+        if "aperture" in s:
+            self.aperture(s["aperture"], path + ("aperture",))
+        if "semi_diameter" in s and s["semi_diameter"] is not None:
+            self.number(s["semi_diameter"], path + ("semi_diameter",), positive=True)
+        if "stop" in s and not isinstance(s["stop"], bool):
+            self.err(path + ("stop",), f"must be true or false, got {_typename(s['stop'])}")
+        if "comment" in s:
+            self.string(s["comment"], path + ("comment",))
+
+    def material(self, m, path):
+        if isinstance(m, str):
+            self.string(m, path, nonempty=True)
+            return
+        if not isinstance(m, dict):
+            self.err(path, f"must be a glass name or an object ({{\"index\": n}}, {{\"model\": {{\"nd\": .., "
+                           f"\"vd\": ..}}}} or {{\"name\": .., \"catalog\": ..}}), got {_typename(m)}")
+            return
+        forms = (("index",), ("model",), ("name", "catalog"), ("name",))
+        if "index" in m:
+            self.keys(m, path, ("index",))
+            self.number(m["index"], path + ("index",), positive=True)
+        elif "model" in m:
+            self.keys(m, path, ("model",))
+            if self.obj(m["model"], path + ("model",)):
+                md = m["model"]
+                self.keys(md, path + ("model",), ("nd", "vd"))
+                for k in ("nd", "vd"):
+                    if k not in md:
+                        self.err(path + ("model",), f"a model glass needs {k!r}")
+                if "nd" in md:
+                    self.number(md["nd"], path + ("model", "nd"), positive=True)
+                if "vd" in md:
+                    self.number(md["vd"], path + ("model", "vd"), positive=True)
+        elif "name" in m:
+            self.keys(m, path, ("name", "catalog"))
+            self.string(m["name"], path + ("name",), nonempty=True)
+            if "catalog" in m:
+                self.string(m["catalog"], path + ("catalog",), nonempty=True)
+        else:
+            allowed = sorted({k for f in forms for k in f})
+            if not m:
+                self.err(path, "empty material object; expected \"index\", \"model\" or \"name\"")
+            self.keys(m, path, allowed)
+
+    def aperture(self, a, path):
+        if a is None:
+            return
+        if not self.obj(a, path, what="null or an object {\"shape\": ...}"):
+            return
+        shape = a.get("shape")
+        if shape not in APERTURE_SHAPES:
+            hint = suggestion(shape, APERTURE_SHAPES) if isinstance(shape, str) else ""
+            self.err(path + ("shape",) if "shape" in a else path,
+                     f"aperture shape must be 'circle' or 'square', got {_typename(shape)}{hint}")
+            return
+        size_key = APERTURE_SHAPES[shape]
+        misplaced = {k: f"{k!r} belongs to a {s!r} aperture, not a {shape!r} one"
+                     for s, k in APERTURE_SHAPES.items() if s != shape}
+        self.keys(a, path, ("shape", size_key), misplaced)
+        if size_key not in a:
+            self.err(path, f"a {shape} aperture needs {size_key!r} (mm)")
+            return
+        v = a[size_key]
+        if self.number(v, path + (size_key,)) and not v > 0:
+            self.err(path + (size_key,), f"empty aperture: {size_key} must be > 0 mm, got {v!r}")
+
+
+def validate_spec(spec, source="<spec>", lines: dict | None = None) -> dict:
+    """Check ``spec`` against the lens format (docs/lens-format.md); return it unchanged.
+
+    Raises :class:`LensFileError` listing every problem, each as ``source:line: key.path: message``
+    (the line only when ``lines``, a map from key path to line as made by :func:`locate_keys`, is given).
+    """
+    v = _Validator(source, lines)
+    v.spec(spec)
+    if v.errors:
+        raise LensFileError.collect(v.errors, source)
+    return spec
+
+
+# --------------------------------------------------------------------------------------- read / write
+def _reject_constant(name):
+    raise ValueError(f"{name} is not a valid JSON number (write infinity as the string \"inf\")")
+
+
+def parse_json_text(text: str, source) -> tuple[object, dict]:
+    """Parse JSON text -> (data, key lines); syntax errors become :class:`LensFileError` with line/column."""
+    try:
+        data = json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as e:
+        raise LensFileError(f"invalid JSON: {e.msg}", source, e.lineno, e.colno) from None
+    except ValueError as e:  # NaN / Infinity
+        m = re.search(r"(?<![\w\"])(-?Infinity|NaN)(?![\w\"])", text)
+        line = text.count("\n", 0, m.start()) + 1 if m else None
+        raise LensFileError(f"invalid JSON: {e}", source, line) from None
+    lines, dups = locate_keys(text)
+    if dups:
+        raise LensFileError.collect([(ln, f"{key_path(p)}: duplicate key {p[-1]!r}") for p, ln in dups], source)
+    return data, lines
+
+
+def read_text(path) -> str:
+    """A text file as str (UTF-8, with or without BOM); decoding errors become :class:`LensFileError`."""
+    raw = Path(path).read_bytes()
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = raw[: e.start].count(b"\n") + 1
+        raise LensFileError(f"not UTF-8 text ({e.reason} at byte {e.start})", path, line) from None
+
+
+def read_json_spec(path) -> dict:
+    """Read and strictly validate a raywave JSON lens file; return its spec dict.
+
+    Raises :class:`LensFileError` (``path:line: message``) on invalid JSON, on a file that is not a
+    raywave lens file, and on any schema violation (unknown keys, with a suggestion; wrong types; ranges).
+    """
+    path = str(path)
+    data, lines = parse_json_text(read_text(path), path)
+    if not isinstance(data, dict):
+        raise LensFileError(f"a lens file must hold a JSON object, got {_typename(data)}", path, 1)
+    if "format" not in data:
+        raise LensFileError(f"missing \"format\": {FORMAT_NAME!r} (not a raywave lens file; DeepLens files "
+                            "are read by raywave.io.read_lens_spec / read_deeplens)", path, 1)
+    return validate_spec(data, path, lines)
+
+
+def with_header(spec: dict) -> dict:
+    """``spec`` with "format", "version" and "units" first (added when missing)."""
+    out = {"format": spec.get("format", FORMAT_NAME), "version": spec.get("version", FORMAT_VERSION),
+           "units": spec.get("units", dict(UNITS))}
+    out.update((k, v) for k, v in spec.items() if k not in out)
+    return out
+
+
+def dumps_spec(spec: dict) -> str:
+    """The JSON text :func:`write_json_spec` writes (floats by repr, so they read back identical)."""
+    return json.dumps(with_header(spec), indent=2, ensure_ascii=False, allow_nan=False) + "\n"
+
+
+def write_json_spec(spec: dict, path) -> None:
+    """Validate ``spec`` and write it as indented UTF-8 JSON that :func:`read_json_spec` reads back equal.
+
+    "format", "version" and "units" are added in front when missing. Floats are written with ``repr``
+    (shortest exact form), so every number round-trips bit for bit; infinity stays the string "inf".
+    """
+    validate_spec(spec, str(path))
+    text = dumps_spec(spec)
+    Path(path).write_text(text, encoding="utf-8")

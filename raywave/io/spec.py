@@ -1,0 +1,126 @@
+"""Helpers shared by the lens-file formats: the canonical form of a spec, radius <-> curvature."""
+
+from __future__ import annotations
+
+import math
+
+from raywave.io.json_format import FORMAT_NAME, FORMAT_VERSION, UNITS
+
+#: Wavelengths (µm) used when a spec gives none: F, d, C lines, primary d (as raywave.lens.build).
+DEFAULT_WAVELENGTHS = {"values": [0.4861327, 0.5875618, 0.6562725], "primary": 1}
+
+
+def radius_from_curvature(c: float):
+    """The radius to write for curvature ``c``: "inf" for 0, else the float ``r`` with ``1/r == c``
+    exactly and the shortest decimal form (so 1/22.01359 gives back 22.01359); None if no float
+    within a few ulps of ``1/c`` inverts exactly to ``c`` (then keep the curvature)."""
+    c = float(c)
+    if c == 0.0:
+        return "inf"
+    r = 1.0 / c
+    cands = [r]
+    lo = hi = r
+    for _ in range(4):
+        lo = math.nextafter(lo, -math.inf)
+        hi = math.nextafter(hi, math.inf)
+        cands += [lo, hi]
+    good = [x for x in cands if math.isfinite(x) and 1.0 / x == c]
+    if not good:
+        return None
+    return min(good, key=lambda x: (len(repr(x)), abs(x - r)))
+
+
+def curvature_of(s: dict) -> float:
+    """Curvature (1/mm) of a standard / even-asphere surface spec."""
+    if "curvature" in s:
+        return float(s["curvature"])
+    r = s.get("radius", "inf")
+    if r == "inf":
+        return 0.0
+    return 1.0 / float(r)
+
+
+def shape_entry(c: float) -> dict:
+    """``{"radius": r}`` when a radius stores ``c`` exactly, else ``{"curvature": c}``."""
+    r = radius_from_curvature(c)
+    return {"curvature": float(c)} if r is None else {"radius": r}
+
+
+def aspheric_canonical(asph: dict | None) -> dict:
+    """a2..a_max with missing lower terms as 0.0 and trailing zero terms dropped ({} if all zero)."""
+    asph = asph or {}
+    vals = [float(asph.get(f"a{p}", 0.0)) for p in range(2, 21, 2)]
+    while vals and vals[-1] == 0.0:
+        vals.pop()
+    return {f"a{2 * (i + 1)}": v for i, v in enumerate(vals)}
+
+
+def material_canonical(m):
+    if m is None:
+        return "air"
+    if isinstance(m, str):
+        return "air" if m.strip().lower() == "air" else m
+    if "index" in m:
+        return {"index": float(m["index"])}
+    if "model" in m:
+        return {"model": {"nd": float(m["model"]["nd"]), "vd": float(m["model"]["vd"])}}
+    return dict(m)
+
+
+def aperture_canonical(a):
+    if a is None:
+        return None
+    if a["shape"] == "circle":
+        return {"shape": "circle", "radius": float(a["radius"])}
+    return {"shape": "square", "half_width": float(a["half_width"])}
+
+
+def surface_canonical(s: dict) -> dict:
+    kind = s.get("type", "standard")
+    out: dict = {"type": kind}
+    if kind == "paraxial":
+        out["focal_length"] = float(s["focal_length"])
+    else:
+        out.update(shape_entry(curvature_of(s)))
+        out["conic"] = float(s.get("conic", 0.0))
+        if kind == "even_asphere":
+            out["aspheric"] = aspheric_canonical(s.get("aspheric"))
+    out["thickness"] = float(s["thickness"])
+    out["material"] = material_canonical(s.get("material", "air"))
+    out["aperture"] = aperture_canonical(s.get("aperture"))
+    if s.get("semi_diameter") is not None:
+        out["semi_diameter"] = float(s["semi_diameter"])
+    out["stop"] = bool(s.get("stop", False))
+    if s.get("comment"):
+        out["comment"] = s["comment"]
+    return out
+
+
+def canonical_spec(spec: dict) -> dict:
+    """The spec with every default written out, in the form the importers (.zmx, DeepLens) produce.
+
+    Numbers become floats (except sensor resolution and the primary index), radii are written as the
+    shortest float that inverts exactly to the curvature, aspheric terms are a2..a_max without trailing
+    zeros, "air" materials are the string "air". ``canonical_spec(s)`` builds the same lens as ``s``.
+    """
+    out: dict = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "units": dict(UNITS)}
+    for k in ("name", "description"):
+        if spec.get(k):
+            out[k] = spec[k]
+    if spec.get("catalogs"):
+        out["catalogs"] = list(spec["catalogs"])
+    d = (spec.get("object") or {}).get("distance", "inf")
+    out["object"] = {"distance": "inf" if d == "inf" else float(d)}
+    if spec.get("system_aperture"):
+        out["system_aperture"] = {"epd": float(spec["system_aperture"]["epd"])}
+    f = spec.get("fields") or {"type": "angle", "values": [0.0]}
+    out["fields"] = {"type": f.get("type", "angle"), "values": [float(v) for v in f["values"]]}
+    w = spec.get("wavelengths") or DEFAULT_WAVELENGTHS
+    out["wavelengths"] = {"values": [float(v) for v in w["values"]], "primary": int(w.get("primary", 0))}
+    if spec.get("sensor"):
+        s = spec["sensor"]
+        out["sensor"] = {"size": [float(v) for v in s["size"]]}
+        if s.get("resolution") is not None:
+            out["sensor"]["resolution"] = [int(v) for v in s["resolution"]]
+    out["surfaces"] = [surface_canonical(s) for s in spec["surfaces"]]
+    return out

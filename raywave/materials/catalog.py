@@ -1,0 +1,176 @@
+"""Glass lookup: the bundled table, the vendor catalogs of the refractiveindex.info database, and AGF
+catalogs users bring — resolved as OpticStudio does (exact name, in the listed catalogs, in order)."""
+
+from __future__ import annotations
+
+import difflib
+import json
+from functools import cached_property
+from pathlib import Path
+
+from raywave.materials.agf import Catalog, GlassRecord, read_agf
+from raywave.materials.base import Air, ConstantIndex, Material
+from raywave.materials.glass import DispersiveGlass, ModelGlass
+from raywave.materials.rii import database_root, read_rii_file
+
+TABLE_PATH = Path(__file__).resolve().parent.parent / "data" / "glasses" / "table.json"
+#: Vendor catalogs searched (in this order) when a lens names no catalogs.
+VENDOR_ORDER = ["SCHOTT", "OHARA", "CDGM", "HOYA", "HIKARI", "SUMITA"]
+#: The bundled table answers to this catalog name too (OpticStudio keeps fused silica, plastics in MISC).
+TABLE_CATALOG = "MISC"
+
+
+class GlassNotFoundError(ValueError):
+    """A glass name that no searched catalog holds."""
+
+
+def _vendor_index() -> dict[str, dict[str, Path]]:
+    """{CATALOG: {NAME: yml path}} over specs/<vendor>/** of the database (optical/ wins duplicates)."""
+    root = database_root() / "specs"
+    out: dict[str, dict[str, Path]] = {}
+    for vendor in sorted(p for p in root.iterdir() if p.is_dir()):
+        files = sorted(vendor.rglob("*.yml"), key=lambda f: (f.parent.name != "optical", str(f)))
+        idx: dict[str, Path] = {}
+        for f in files:
+            if f.name != "about.yml":
+                idx.setdefault(f.stem.upper(), f)
+        if idx:
+            out[vendor.name.upper()] = idx
+    return out
+
+
+class GlassLibrary:
+    """Where glasses come from: the bundled table, the vendor database and user catalogs.
+
+    The module's default library (``DEFAULT_LIBRARY``) is read-only; make your own to add AGF catalogs::
+
+        lib = GlassLibrary()
+        lib.add_catalog("my_vendor.agf")
+        glass = get_material("MYGLASS", catalogs=["MY_VENDOR"], library=lib)
+    """
+
+    def __init__(self, read_only: bool = False):
+        self._user: dict[str, Catalog] = {}
+        self._read_only = read_only
+
+    # ------------------------------------------------------------------ sources
+    @cached_property
+    def table(self) -> Catalog:
+        """The bundled glass table (raywave/data/glasses/table.json), with aliases."""
+        data = json.loads(TABLE_PATH.read_text(encoding="utf-8"))
+        cat = Catalog(TABLE_CATALOG)
+        for g in data["glasses"]:
+            rec = GlassRecord(g["name"], g["family"], g["formula"], g["coefficients"], tuple(g["wavelength_range"]),
+                              g.get("catalog", TABLE_CATALOG), g["provenance"])
+            for key in [g["name"]] + g.get("aliases", []):
+                cat.records[key.upper()] = rec
+        return cat
+
+    @cached_property
+    def vendor_index(self) -> dict[str, dict[str, Path]]:
+        """Lazy: built on the first lookup that needs the vendor database."""
+        return _vendor_index()
+
+    def add_catalog(self, catalog, name: str | None = None) -> Catalog:
+        """Add a user catalog (an AGF path or a :class:`Catalog`); it is searched before the others."""
+        if self._read_only:
+            raise RuntimeError("the default glass library is read-only: create GlassLibrary() and add catalogs to it")
+        cat = catalog if isinstance(catalog, Catalog) else read_agf(catalog, name)
+        self._user[cat.name.upper()] = cat
+        return cat
+
+    def catalogs(self) -> list[str]:
+        """Every catalog name this library knows."""
+        return list(self._user) + [TABLE_CATALOG] + [c for c in VENDOR_ORDER if c in self.vendor_index] + \
+            [c for c in self.vendor_index if c not in VENDOR_ORDER]
+
+    def glasses(self, catalog: str) -> list[str]:
+        """Glass names in ``catalog``."""
+        c = catalog.upper()
+        if c in self._user:
+            return self._user[c].names()
+        if c == TABLE_CATALOG:
+            return sorted({r.name for r in self.table.records.values()})
+        if c in self.vendor_index:
+            return sorted(p.stem for p in self.vendor_index[c].values())
+        raise GlassNotFoundError(f"unknown glass catalog {catalog!r}; known: {', '.join(self.catalogs())}")
+
+    # ------------------------------------------------------------------ lookup
+    def _find_in(self, catalog: str, name: str) -> GlassRecord | None:
+        c, key = catalog.upper(), name.upper()
+        if c in self._user:
+            return self._user[c].get(key)
+        if c == TABLE_CATALOG:
+            return self.table.get(key)
+        path = self.vendor_index.get(c, {}).get(key)
+        if path is None:
+            return None
+        d = read_rii_file(str(path))
+        rel = path.relative_to(database_root())
+        return GlassRecord(path.stem, d["family"], d["formula"], d["coefficients"], d["wavelength_range"], c,
+                           f"refractiveindex.info database (CC0), {rel}: {d['reference']}")
+
+    def find(self, name: str, catalogs=None) -> GlassRecord:
+        """The record of glass ``name``: in ``catalogs`` (in order) if given, else in the user catalogs, the
+        bundled table, then the vendor catalogs (SCHOTT, OHARA, CDGM, HOYA, HIKARI, SUMITA, others)."""
+        if catalogs:
+            order = [c.upper() for c in catalogs]
+            known = set(self.catalogs())
+            unknown = [c for c in order if c not in known]
+            if unknown:
+                raise GlassNotFoundError(f"glass {name!r}: unknown glass catalog(s) {', '.join(unknown)}; "
+                                         f"known: {', '.join(self.catalogs())}")
+        else:
+            order = self.catalogs()
+        for c in order:
+            rec = self._find_in(c, name)
+            if rec is not None:
+                return rec
+        pool = sorted({g for c in order for g in self.glasses(c)})
+        close = difflib.get_close_matches(name.upper(), [g.upper() for g in pool], n=5, cutoff=0.6)
+        by_upper = {g.upper(): g for g in pool}
+        hint = f"; did you mean {', '.join(by_upper[c] for c in close)}?" if close else ""
+        raise GlassNotFoundError(f"unknown glass {name!r} (searched catalogs: {', '.join(order)}){hint}")
+
+    def material(self, name: str, catalogs=None, catalog: str | None = None) -> DispersiveGlass:
+        """A fresh :class:`DispersiveGlass` module for ``name``."""
+        rec = self.find(name, [catalog] if catalog else catalogs)
+        return DispersiveGlass(rec.name, rec.family, rec.formula, rec.coefficients, rec.wavelength_range,
+                               catalog=rec.catalog, provenance=rec.provenance, explicit_catalog=catalog is not None)
+
+
+DEFAULT_LIBRARY = GlassLibrary(read_only=True)
+
+
+def get_material(spec, catalogs=None, library: GlassLibrary | None = None) -> Material:
+    """A material from its lens-file form (docs/lens-format.md).
+
+    ``spec``: a :class:`Material` (returned as is); ``"air"`` (or None / ""); a glass name; ``{"index": n}``
+    (constant index); ``{"model": {"nd": .., "vd": ..}}`` (model glass); ``{"name": .., "catalog": ..}``.
+    ``catalogs``: the catalog search order (a .zmx GCAT line), default: see :meth:`GlassLibrary.find`.
+    Raises :class:`GlassNotFoundError` (naming the glass and suggesting close names) or ValueError.
+    """
+    lib = library or DEFAULT_LIBRARY
+    if isinstance(spec, Material):
+        return spec
+    if spec is None or (isinstance(spec, str) and spec.strip().lower() in ("", "air")):
+        return Air()
+    if isinstance(spec, str):
+        return lib.material(spec.strip(), catalogs)
+    if isinstance(spec, dict):
+        if set(spec) == {"index"}:
+            return ConstantIndex(float(spec["index"]))
+        if set(spec) == {"model"} and isinstance(spec["model"], dict) and set(spec["model"]) == {"nd", "vd"}:
+            return ModelGlass(float(spec["model"]["nd"]), float(spec["model"]["vd"]))
+        if set(spec) == {"name", "catalog"}:
+            return lib.material(str(spec["name"]), catalog=str(spec["catalog"]))
+    raise ValueError(f"material {spec!r} is not a glass name, 'air', {{'index': n}}, {{'model': {{'nd', 'vd'}}}} "
+                     "or {'name', 'catalog'}")
+
+
+def list_catalogs(library: GlassLibrary | None = None) -> list[str]:
+    return (library or DEFAULT_LIBRARY).catalogs()
+
+
+def list_glasses(catalog: str, library: GlassLibrary | None = None) -> list[str]:
+    return (library or DEFAULT_LIBRARY).glasses(catalog)

@@ -1,0 +1,6 @@
+"""Figures (matplotlib, PNG). Physics modules never import this package (tests/test_layering.py)."""
+
+from raywave.plotting.layout import plot_layout
+from raywave.plotting.spot import plot_spots
+
+__all__ = ["plot_layout", "plot_spots"]

@@ -1,0 +1,72 @@
+"""The raywave command line: info, layout, spot, convert, demo; user errors are one line, exit 2."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from raywave.cli.main import main
+
+INFO_KEYS = {"efl", "efl_real", "bfl", "ffl", "fnum", "epd", "ep_z", "xpd", "xp_z", "fov_deg", "image_height", "total_track"}
+
+
+def test_info_json_keys_and_values(capsys):
+    assert main(["info", "cooke_triplet", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert set(info) == INFO_KEYS
+    assert info["efl"] == pytest.approx(50.0, rel=0.02)
+    assert info["efl_real"] == pytest.approx(info["efl"], rel=1e-5)
+    assert info["epd"] == pytest.approx(10.0, rel=1e-12)
+    assert info["fnum"] == pytest.approx(info["efl"] / 10.0)
+    assert info["fov_deg"] == pytest.approx(40.0)
+
+
+def test_info_table_text(capsys):
+    assert main(["info", "double_gauss"]) == 0
+    out = capsys.readouterr().out
+    assert "Effective focal length" in out and "Exit pupil" in out
+
+
+def test_layout_and_spot_png(tmp_path, capsys):
+    png = tmp_path / "layout.png"
+    assert main(["layout", "double_gauss", "-o", str(png)]) == 0
+    assert png.stat().st_size > 10_000
+    capsys.readouterr()
+    spng = tmp_path / "spot.png"
+    assert main(["spot", "singlet", "--json", "-o", str(spng)]) == 0
+    table = json.loads(capsys.readouterr().out)
+    assert len(table["rms_radius"]) == 3 and len(table["rms_radius"][0]) == 3
+    assert spng.stat().st_size > 10_000
+
+
+def test_convert_round_trip(tmp_path, capsys):
+    zmx = tmp_path / "cooke.zmx"
+    back = tmp_path / "cooke.json"
+    assert main(["convert", "cooke_triplet", str(zmx)]) == 0
+    assert main(["convert", str(zmx), str(back)]) == 0
+    assert main(["info", str(back), "--json"]) == 0
+    capsys.readouterr()
+    assert main(["info", "cooke_triplet", "--json"]) == 0
+    a = json.loads(capsys.readouterr().out)
+    assert main(["info", str(back), "--json"]) == 0
+    b = json.loads(capsys.readouterr().out)
+    assert b["efl"] == pytest.approx(a["efl"], rel=1e-12)
+
+
+def test_demo_writes_outputs(tmp_path):
+    assert main(["demo", "-o", str(tmp_path)]) == 0
+    for name in ("paraxial.txt", "paraxial.json", "layout.png", "spot.png"):
+        assert (tmp_path / name).stat().st_size > 100
+
+
+def test_missing_file_is_one_line_error(capsys):
+    assert main(["info", "no_such_lens.json"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("raywave: error:") and "no_such_lens.json" in err and "Traceback" not in err
+
+
+def test_entry_point_runs():
+    out = subprocess.run([sys.executable, "-m", "raywave.cli.main", "info", "singlet", "--json"],
+                         capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout)["efl"] == pytest.approx(100.0, rel=0.02)

@@ -1,0 +1,27 @@
+"""Architecture guards (cf. prysm): physics never imports plotting, matplotlib or the CLI, and importing
+raywave does not change torch's global state."""
+
+import subprocess
+import sys
+
+PHYSICS = ["raywave.materials", "raywave.surfaces", "raywave.rays", "raywave.lens", "raywave.io"]
+
+
+def _modules_after_import(mods):
+    code = "import sys\n" + "".join(f"import {m}\n" for m in mods) + "print('\\n'.join(sorted(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return set(out.stdout.split())
+
+
+def test_physics_does_not_import_plotting_or_cli():
+    loaded = _modules_after_import(PHYSICS)
+    assert "matplotlib" not in loaded
+    assert not any(m.startswith("raywave.plotting") or m.startswith("raywave.cli") for m in loaded)
+
+
+def test_import_leaves_torch_defaults_alone():
+    code = (
+        "import torch; d = torch.get_default_dtype(); import raywave, raywave.lens.lens, raywave.materials;"
+        "from raywave.lens.build import load_lens; assert torch.get_default_dtype() == d == torch.float32"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
