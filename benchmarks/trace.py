@@ -18,8 +18,32 @@ import sys
 import time
 
 
+def _reset_peak() -> None:
+    """Reset the kernel's peak-RSS counter (Linux: writing 5 to clear_refs), so the peak is this case's."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+    except OSError:
+        pass
+
+
+def _status_mb(key: str) -> float:
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def _rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+    return _status_mb("VmRSS")
+
+
+def _peak_mb() -> float:
+    return _status_mb("VmHWM")
 
 
 def run_case(dtype_name: str, mode: str, n_rays: int, threads: int, repeat: int) -> dict:
@@ -37,7 +61,6 @@ def run_case(dtype_name: str, mode: str, n_rays: int, threads: int, repeat: int)
                                  aim="paraxial", generator=gen, dtype=dtype)
     rays = rays.replace(wavelength=torch.as_tensor(rays.wavelength, dtype=dtype))
     n_surf = len(lens.surfaces)
-    base = _rss_mb()
 
     def once():
         if mode == "forward":
@@ -50,15 +73,18 @@ def run_case(dtype_name: str, mode: str, n_rays: int, threads: int, repeat: int)
         loss.backward()
         return out
 
+    base = _rss_mb()  # rays and lens in memory; the peak counts what tracing adds on top
+    _reset_peak()
     out = once()  # warm-up
     valid_fraction = float(out.valid.double().mean())
+    del out
     times = []
     for _ in range(repeat):
         t0 = time.perf_counter()
         once()
         times.append(time.perf_counter() - t0)
     best = min(times)
-    peak = _rss_mb() - base
+    peak = _peak_mb() - base
     return {
         "dtype": dtype_name, "mode": mode, "rays": n_rays, "surfaces": n_surf,
         "seconds": best, "ray_surfaces_per_s": n_rays * n_surf / best,

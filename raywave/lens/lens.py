@@ -129,7 +129,7 @@ class Lens(nn.Module):
         z = self.vertex_z().detach()
         for i, s in enumerate(self.surfaces):
             if not torch.isfinite(s.thickness).all():
-                raise ValueError(f"surface {i}: thickness {float(s.thickness)!r} is not finite")
+                raise ValueError(f"surface {i}: thickness {float(s.thickness.detach())!r} is not finite")
         for i in range(len(self.surfaces) - 1):
             a, b = self.surfaces[i], self.surfaces[i + 1]
             r = min(x for x in (a.clear_radius(), b.clear_radius(), 1e30) if x is not None)
@@ -143,12 +143,12 @@ class Lens(nn.Module):
                 ok = a.geometry.in_domain(rs, zero) & b.geometry.in_domain(rs, zero)
             gap = (zb - za)[ok]
             if float(a.thickness.detach()) < 0 and not a.material.is_air:
-                raise ValueError(f"surface {i}: negative thickness {float(a.thickness)} mm inside glass {a.material.name!r}")
+                raise ValueError(f"surface {i}: negative thickness {float(a.thickness.detach())} mm inside glass {a.material.name!r}")
             if gap.numel() and float(gap.min()) < -1e-9:
                 where = float(rs[ok][int(torch.argmin(gap))])
                 raise ValueError(
                     f"surfaces {i} and {i + 1} overlap: at radius {where:.4g} mm surface {i + 1} lies "
-                    f"{-float(gap.min()):.4g} mm before surface {i} (thickness {float(a.thickness):.6g} mm too small)"
+                    f"{-float(gap.min()):.4g} mm before surface {i} (thickness {float(a.thickness.detach()):.6g} mm too small)"
                 )
 
     def set_entrance_pupil_diameter(self, epd: float) -> None:
@@ -159,7 +159,7 @@ class Lens(nn.Module):
         if not epd > 0:
             raise ValueError(f"entrance pupil diameter must be > 0 mm, got {epd!r}")
         stop = self.surfaces[self.stop_index]
-        m = float(paraxial.stop_to_entrance_pupil(self, self.primary_wavelength)[1])
+        m = float(paraxial.stop_to_entrance_pupil(self, self.primary_wavelength)[1].detach())
         radius = 0.5 * epd * abs(m)
         if stop.aperture is None:
             stop.aperture = CircularAperture(radius).to(self.device)

@@ -127,7 +127,7 @@ def paraxial_data(lens, wavelength: float) -> ParaxialData:
     r_stop = lens.stop_radius()
     epd = 2.0 * r_stop / abs(float(m_ep))
     xpd = 2.0 * r_stop * abs(float(m_xp))
-    z_img_par = float(paraxial_image_distance(lens, wavelength))
+    z_img_par = float(paraxial_image_distance(lens, wavelength).detach())
     if math.isinf(lens.object_distance):
         fnum = abs(efl) / epd
         mag = 0.0

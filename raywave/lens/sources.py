@@ -19,6 +19,7 @@ For a distant object the starting OPL is measured from the plane wavefront throu
 from __future__ import annotations
 
 import math
+import warnings
 
 import torch
 
@@ -27,6 +28,12 @@ from raywave.rays import pupil as pupil_patterns
 from raywave.rays.bundle import RayBundle
 
 AIM_MAX_ITER = 30
+
+
+class VignettingWarning(UserWarning):
+    """Every ray of a point source is vignetted or misses the lens."""
+
+
 AIM_TOL = 1e-12  # mm, on the stop
 
 
@@ -173,7 +180,13 @@ def point_source_rays(
             p1, _ = _stop_hit(lens, uv_c + torch.tensor([h, 0.0], dtype=torch.float64), fields, field_type, wl)
             p2, _ = _stop_hit(lens, uv_c + torch.tensor([0.0, h], dtype=torch.float64), fields, field_type, wl)
             j = torch.stack([(p1 - p0) / h, (p2 - p0) / h], -1)  # (F, W, 1, 2, 2)
+            # A field whose chief ray cannot be aimed (e.g. beyond the lens's field) has no usable Jacobian.
+            det = torch.linalg.det(j)
+            bad = ~torch.isfinite(det) | (det.abs() < 1e-12) | ~ok_c.reshape(det.shape)
+            eye = torch.eye(2, dtype=j.dtype, device=j.device).expand_as(j)
+            j = torch.where(bad[..., None, None], eye, torch.nan_to_num(j))
             jinv = torch.linalg.inv(j)
+            valid = valid & ~bad
             uv = uv_c + torch.einsum("fwnij,fwmj->fwmi", jinv, pn * r_stop)
             if aim == "full":
                 uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h)
@@ -181,9 +194,15 @@ def point_source_rays(
             valid = valid & ok_c
         else:
             raise ValueError(f"aim must be 'full', 'chief' or 'paraxial', got {aim!r}")
-    rays = rays_through(lens, uv.detach(), fields, field_type, wl, dtype=dtype)
+    uv = torch.nan_to_num(uv.detach())
+    rays = rays_through(lens, uv, fields, field_type, wl, dtype=dtype)
     if not bool(valid.all()):
         rays = rays.replace(valid=rays.valid & valid)
+    dead = ~rays.valid.reshape(F, W, -1).any(-1)
+    if bool(dead.any()):
+        fi, wi = (int(v) for v in dead.nonzero()[0])
+        warnings.warn(f"field {fields[fi].tolist()} at {float(wl[wi]):g} µm: every ray is vignetted or misses the "
+                      "lens (none reaches the stop); results for it are empty", VignettingWarning, stacklevel=2)
     return rays
 
 

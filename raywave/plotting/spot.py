@@ -23,7 +23,7 @@ def plot_spots(lens, path=None, fields=None, wavelengths=None, pupil=("hexapolar
     x = (dx + ref[..., None, 0] - ref[:, ip, None, None, 0]).numpy() * 1e3
     y = (dy + ref[..., None, 1] - ref[:, ip, None, None, 1]).numpy() * 1e3
     v = v.numpy()
-    fig, axes = plt.subplots(1, len(fields), figsize=(3.2 * len(fields), 3.4), constrained_layout=True, squeeze=False)
+    fig, axes = plt.subplots(1, len(fields), figsize=(3.2 * len(fields), 3.9), constrained_layout=True, squeeze=False)
     w = v.astype(float)
     rms = np.sqrt(((dx.numpy() ** 2 + dy.numpy() ** 2) * w).sum(-1) / np.maximum(w.sum(-1), 1)) * 1e3
     lim = max(float(np.abs(np.concatenate([x[v], y[v]])).max()) if v.any() else 1.0, 1e-3) * 1.1

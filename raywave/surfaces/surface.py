@@ -66,7 +66,7 @@ class Surface(nn.Module):
 
     def extra_repr(self):
         stop = ", stop" if self.is_stop else ""
-        return f"thickness={float(self.thickness):.6g}, material={self.material.name!r}{stop}"
+        return f"thickness={float(self.thickness.detach()):.6g}, material={self.material.name!r}{stop}"
 
 
 def plane_surface(material: Material, thickness: float, **kwargs) -> Surface:
