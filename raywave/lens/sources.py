@@ -70,7 +70,7 @@ def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=t
     """Rays from each field point crossing the entrance-pupil plane at ``uv`` (F, W, N, 2) (mm)."""
     device = lens.device
     wl = torch.as_tensor(wavelength, dtype=dtype, device=device).reshape(1, -1, 1)
-    ep_z = float(paraxial.stop_to_entrance_pupil(lens, lens.primary_wavelength)[0])
+    ep_z = float(paraxial.stop_to_entrance_pupil(lens, lens.primary_wavelength)[0].detach())
     d_inf, pts = _directions_and_points(lens, fields, field_type, ep_z, dtype)
     F, W, N = uv.shape[:3]
     target = torch.cat([uv, torch.full_like(uv[..., :1], ep_z)], -1)
