@@ -97,7 +97,8 @@ def plot_layout(lens, path=None, fields=None, n_rays: int = 7, wavelength: float
                 ax.plot([prev[0][end], zp[end]], [prev[1][end], yp[end]], color="k", lw=1.0)
         prev = (zp, yp)
     zi = float(lens.image_z().detach())
-    hi = max(heights) if lens.sensor_size is None else 0.5 * lens.sensor_size[1]
+    # The sensor is drawn to its half-diagonal: field points are radial, so they land within it.
+    hi = max(heights) if lens.sensor_size is None else 0.5 * math.hypot(*lens.sensor_size)
     ax.plot([zi, zi], [-hi, hi], color="0.3", lw=2)
     ax.set_aspect("equal")
     ax.set_xlabel("z (mm)")
