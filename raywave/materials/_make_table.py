@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 
 from raywave.materials.catalog import TABLE_PATH
-from raywave.materials.glass import LINE_C, LINE_D, LINE_F
 from raywave.materials.rii import database_root, read_rii_file
 
 # (name, catalog, path in the database, aliases)
@@ -30,30 +29,29 @@ ENTRIES = [
     ("POLYCARB", "MISC", "organic/(C16H14O3)n - polycarbonate/nk/Sultanova.yml", ["POLYCARBONATE", "PC"]),
 ]
 
-# Zeonex E48R is not in the database: a Cauchy model n = A + B/λ² through the maker's nd = 1.5310 and
-# νd = 56.0 (Zeon datasheet values), labelled "E48R-like" (a model, not measured dispersion).
-E48R_ND, E48R_VD = 1.5310, 56.0
+# The database holds Zeonex E48R (Zeon cyclo-olefin polymer) itself, under other/commercial polymers.
+POLYMER_ENTRIES = [
+    ("E48R", "MISC", "other/commercial polymers/ZeonexE48R/nk/Sultanova.yml",
+     ["ZEONEX_E48R", "ZEONEXE48R", "E48R-LIKE", "COP"]),
+]
 
-
-def _e48r_entry() -> dict:
-    b = (E48R_ND - 1) / E48R_VD / (1 / LINE_F**2 - 1 / LINE_C**2)
-    a = E48R_ND - b / LINE_D**2
-    return {"name": "E48R", "aliases": ["E48R-LIKE", "COP", "ZEONEX_E48R"], "catalog": "MISC", "family": "rii",
-            "formula": 5, "coefficients": [a, b, -2.0], "wavelength_range": [0.4, 1.1],
-            "provenance": "E48R-like cyclo-olefin polymer: Cauchy model n = A + B/λ² through nd = 1.5310, "
-                          "νd = 56.0 (Zeon Zeonex E48R datasheet values); not measured dispersion data"}
+AIR_ENTRY = {"name": "AIR", "aliases": [], "catalog": "MISC", "family": "constant", "formula": 0,
+             "coefficients": [1.0], "wavelength_range": [0.0, 1.0e6], "source": None, "reference": None,
+             "license": None, "provenance": "air: n = 1 by definition (catalog indices are relative to air)"}
 
 
 def build() -> dict:
     root = database_root()
     glasses = []
-    for name, catalog, rel, aliases in ENTRIES:
+    for name, catalog, rel, aliases in ENTRIES + POLYMER_ENTRIES:
         d = read_rii_file(str(root / rel))
         glasses.append({"name": name, "aliases": aliases, "catalog": catalog, "family": d["family"],
                         "formula": d["formula"], "coefficients": d["coefficients"],
                         "wavelength_range": list(d["wavelength_range"]),
+                        "source": f"refractiveindex.info database: data/{rel}", "reference": d["reference"],
+                        "license": "CC0 1.0",
                         "provenance": f"refractiveindex.info database (CC0 1.0), {rel}: {d['reference']}"})
-    glasses.append(_e48r_entry())
+    glasses.append(AIR_ENTRY)
     return {"about": "raywave bundled glass table; regenerate with python -m raywave.materials._make_table. "
                      "Data: refractiveindex.info database (CC0 1.0) unless a glass's provenance says otherwise.",
             "glasses": glasses}

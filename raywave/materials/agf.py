@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from raywave.materials.base import Air, ConstantIndex, Material
+from raywave.materials.glass import DispersiveGlass
 
 
 class AGFError(ValueError):
@@ -24,19 +28,50 @@ class GlassRecord:
     nd: float | None = None
     vd: float | None = None
 
+    def to_material(self, explicit_catalog: bool = False) -> Material:
+        """A fresh material module for this record (family "constant": a :class:`ConstantIndex` / :class:`Air`)."""
+        if self.family == "constant":
+            index = float(self.coefficients[0])
+            return Air() if index == 1.0 and self.name.lower() == "air" else ConstantIndex(index, name=self.name)
+        return DispersiveGlass(self.name, self.family, self.formula, self.coefficients, self.wavelength_range,
+                               catalog=self.catalog, provenance=self.provenance, explicit_catalog=explicit_catalog)
 
-@dataclass
-class Catalog:
-    """A named collection of glass records (one AGF file, or one vendor of the bundled database)."""
+
+@dataclass(eq=False)
+class Catalog(Mapping):
+    """A named glass catalog (one AGF file, or the bundled table): a read-only mapping glass name ->
+    :class:`~raywave.materials.glass.DispersiveGlass` (a fresh module per lookup; names case-insensitive).
+
+    ``records`` holds the raw data (upper-case name or alias -> :class:`GlassRecord`).
+    """
 
     name: str
     records: dict = field(default_factory=dict)  # upper-case name -> GlassRecord
 
     def names(self) -> list[str]:
-        return [r.name for r in self.records.values()]
+        """Glass names (aliases not repeated), in file order."""
+        return list(dict.fromkeys(r.name for r in self.records.values()))
 
-    def get(self, name: str) -> GlassRecord | None:
-        return self.records.get(name.upper())
+    def record(self, name: str) -> GlassRecord | None:
+        return self.records.get(str(name).upper())
+
+    def __getitem__(self, name: str) -> Material:
+        rec = self.record(name)
+        if rec is None:
+            raise KeyError(name)
+        return rec.to_material()
+
+    def __contains__(self, name) -> bool:
+        return isinstance(name, str) and name.upper() in self.records
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names())
+
+    def __len__(self) -> int:
+        return len(self.names())
+
+    def __repr__(self) -> str:
+        return f"Catalog({self.name!r}, {len(self)} glasses)"
 
 
 def decode_text(raw: bytes) -> str:

@@ -10,14 +10,17 @@ from pathlib import Path
 
 from raywave.materials.agf import Catalog, GlassRecord, read_agf
 from raywave.materials.base import Air, ConstantIndex, Material
-from raywave.materials.glass import DispersiveGlass, ModelGlass
-from raywave.materials.rii import database_root, read_rii_file
+from raywave.materials.glass import ModelGlass
+from raywave.materials.rii import book_index, database_root, read_rii_file
 
 TABLE_PATH = Path(__file__).resolve().parent.parent / "data" / "glasses" / "table.json"
 #: Vendor catalogs searched (in this order) when a lens names no catalogs.
 VENDOR_ORDER = ["SCHOTT", "OHARA", "CDGM", "HOYA", "HIKARI", "SUMITA"]
 #: The bundled table answers to this catalog name too (OpticStudio keeps fused silica, plastics in MISC).
 TABLE_CATALOG = "MISC"
+#: Research-data shelves of the database, searched last: a book id (e.g. "CaF2", "SiO2", "ZeonexE48R")
+#: gives the book's first page with index data; "BOOK/PAGE" (e.g. "SiO2/Malitson") a given page.
+BOOK_ORDER = ["MAIN", "ORGANIC", "OTHER"]
 
 
 class GlassNotFoundError(ValueError):
@@ -60,8 +63,8 @@ class GlassLibrary:
         data = json.loads(TABLE_PATH.read_text(encoding="utf-8"))
         cat = Catalog(TABLE_CATALOG)
         for g in data["glasses"]:
-            rec = GlassRecord(g["name"], g["family"], g["formula"], g["coefficients"], tuple(g["wavelength_range"]),
-                              g.get("catalog", TABLE_CATALOG), g["provenance"])
+            rec = GlassRecord(g["name"], g["family"], g.get("formula", 0), g["coefficients"],
+                              tuple(g["wavelength_range"]), g.get("catalog", TABLE_CATALOG), g["provenance"])
             for key in [g["name"]] + g.get("aliases", []):
                 cat.records[key.upper()] = rec
         return cat
@@ -71,6 +74,12 @@ class GlassLibrary:
         """Lazy: built on the first lookup that needs the vendor database."""
         return _vendor_index()
 
+    @cached_property
+    def book_lookup(self) -> dict[str, dict[str, tuple[str, list]]]:
+        """Lazy: {SHELF: {BOOK upper: (book id, [(page, path), ...])}} of the main/organic/other shelves."""
+        return {shelf: {b.upper(): (b, pages) for b, pages in books.items()}
+                for shelf, books in book_index().items()}
+
     def add_catalog(self, catalog, name: str | None = None) -> Catalog:
         """Add a user catalog (an AGF path or a :class:`Catalog`); it is searched before the others."""
         if self._read_only:
@@ -79,10 +88,17 @@ class GlassLibrary:
         self._user[cat.name.upper()] = cat
         return cat
 
+    register_catalog = add_catalog
+
+    @property
+    def read_only(self) -> bool:
+        return self._read_only
+
     def catalogs(self) -> list[str]:
         """Every catalog name this library knows."""
         return list(self._user) + [TABLE_CATALOG] + [c for c in VENDOR_ORDER if c in self.vendor_index] + \
-            [c for c in self.vendor_index if c not in VENDOR_ORDER]
+            [c for c in self.vendor_index if c not in VENDOR_ORDER] + \
+            [c for c in BOOK_ORDER if c in self.book_lookup]
 
     def glasses(self, catalog: str) -> list[str]:
         """Glass names in ``catalog``."""
@@ -93,15 +109,19 @@ class GlassLibrary:
             return sorted({r.name for r in self.table.records.values()})
         if c in self.vendor_index:
             return sorted(p.stem for p in self.vendor_index[c].values())
+        if c in self.book_lookup:
+            return sorted(book for book, _ in self.book_lookup[c].values())
         raise GlassNotFoundError(f"unknown glass catalog {catalog!r}; known: {', '.join(self.catalogs())}")
 
     # ------------------------------------------------------------------ lookup
     def _find_in(self, catalog: str, name: str) -> GlassRecord | None:
         c, key = catalog.upper(), name.upper()
         if c in self._user:
-            return self._user[c].get(key)
+            return self._user[c].record(key)
         if c == TABLE_CATALOG:
-            return self.table.get(key)
+            return self.table.record(key)
+        if c in BOOK_ORDER:
+            return self._find_in_books(c, name)
         path = self.vendor_index.get(c, {}).get(key)
         if path is None:
             return None
@@ -110,9 +130,29 @@ class GlassLibrary:
         return GlassRecord(path.stem, d["family"], d["formula"], d["coefficients"], d["wavelength_range"], c,
                            f"refractiveindex.info database (CC0), {rel}: {d['reference']}")
 
+    def _find_in_books(self, shelf: str, name: str) -> GlassRecord | None:
+        book_key, _, page_key = name.partition("/")
+        hit = self.book_lookup.get(shelf, {}).get(book_key.strip().upper())
+        if hit is None:
+            return None
+        book, pages = hit
+        if page_key:
+            pages = [(p, rel) for p, rel in pages if p.upper() == page_key.strip().upper()]
+        root = database_root()
+        for page, rel in pages:
+            try:
+                d = read_rii_file(str(root / rel))
+            except (ValueError, KeyError, OSError):
+                continue  # a page with extinction data only, or unreadable: try the next one
+            return GlassRecord(f"{book}/{page}" if page_key else book, d["family"], d["formula"], d["coefficients"],
+                               d["wavelength_range"], shelf,
+                               f"refractiveindex.info database (CC0), {rel}: {d['reference']}")
+        return None
+
     def find(self, name: str, catalogs=None) -> GlassRecord:
         """The record of glass ``name``: in ``catalogs`` (in order) if given, else in the user catalogs, the
-        bundled table, then the vendor catalogs (SCHOTT, OHARA, CDGM, HOYA, HIKARI, SUMITA, others)."""
+        bundled table (MISC), the vendor catalogs (SCHOTT, OHARA, CDGM, HOYA, HIKARI, SUMITA, then the
+        database's other vendors), then the database's MAIN, ORGANIC and OTHER shelves."""
         if catalogs:
             order = [c.upper() for c in catalogs]
             known = set(self.catalogs())
@@ -132,11 +172,10 @@ class GlassLibrary:
         hint = f"; did you mean {', '.join(by_upper[c] for c in close)}?" if close else ""
         raise GlassNotFoundError(f"unknown glass {name!r} (searched catalogs: {', '.join(order)}){hint}")
 
-    def material(self, name: str, catalogs=None, catalog: str | None = None) -> DispersiveGlass:
-        """A fresh :class:`DispersiveGlass` module for ``name``."""
+    def material(self, name: str, catalogs=None, catalog: str | None = None) -> Material:
+        """A fresh material module (a :class:`DispersiveGlass`, or air) for glass ``name``."""
         rec = self.find(name, [catalog] if catalog else catalogs)
-        return DispersiveGlass(rec.name, rec.family, rec.formula, rec.coefficients, rec.wavelength_range,
-                               catalog=rec.catalog, provenance=rec.provenance, explicit_catalog=catalog is not None)
+        return rec.to_material(explicit_catalog=catalog is not None)
 
 
 DEFAULT_LIBRARY = GlassLibrary(read_only=True)

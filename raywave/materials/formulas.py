@@ -206,8 +206,12 @@ RII_FORMULAS = {
 
 
 def tabulated(wl, table):
-    """Linear interpolation of a (K, 2) table [λ, n] (differentiable in λ; clamped at the ends)."""
-    x, y = table[:, 0], table[:, 1]
+    """Refractiveindex.info ``tabulated n`` / ``tabulated nk`` (n column only): linear interpolation of a
+    (K, 2) table of rows [λ, n] with λ ascending. Differentiable in λ (piecewise-constant slope) and in the
+    table values; outside the table the end values are held (constant extrapolation)."""
+    x, y = table[:, 0].contiguous(), table[:, 1].contiguous()
+    if x.shape[0] == 1:
+        return y[0] + torch.zeros_like(wl)
     idx = torch.clamp(torch.searchsorted(x, wl.detach().contiguous()), 1, x.shape[0] - 1)
     x0, x1, y0, y1 = x[idx - 1], x[idx], y[idx - 1], y[idx]
     t = torch.clamp((wl - x0) / (x1 - x0), 0.0, 1.0)

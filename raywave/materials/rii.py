@@ -37,7 +37,45 @@ def read_rii_file(path: str) -> dict:
             return {"family": "rii", "formula": formula, "coefficients": coeffs,
                     "wavelength_range": (lo, hi), "reference": _strip_html(doc.get("REFERENCES", ""))}
         if kind in ("tabulated n", "tabulated nk"):
-            rows = [[float(v) for v in line.split()[:2]] for line in str(entry["data"]).strip().splitlines()]
+            rows = [[float(v) for v in line.split()[:2]] for line in str(entry["data"]).strip().splitlines()
+                    if line.strip()]
+            # Ascending, one row per wavelength (searchsorted and the interpolation need it).
+            rows = sorted({r[0]: r for r in rows}.values())
             return {"family": "tabulated", "formula": 0, "coefficients": rows,
                     "wavelength_range": (rows[0][0], rows[-1][0]), "reference": _strip_html(doc.get("REFERENCES", ""))}
     raise ValueError(f"{path}: no refractive-index data (formula or tabulated n) in this file")
+
+
+#: Shelves of the database's research-data part that :func:`book_index` exposes as catalogs.
+BOOK_SHELVES = ("main", "organic", "other")
+
+
+@lru_cache(maxsize=1)
+def book_index() -> dict[str, dict[str, list[tuple[str, str]]]]:
+    """{SHELF: {BOOK id: [(page id, data path relative to data/), ...]}} from ``catalog-nk.yml``.
+
+    Pages are in the database's order; the first page with refractive-index data is the book's default
+    (as on the refractiveindex.info site). Read with a line scan (the file is ~0.5 MB of YAML).
+    """
+    path = database_root().parent / "catalog-nk.yml"
+    out: dict[str, dict[str, list[tuple[str, str]]]] = {}
+    shelf = book = page = None
+    with open(path, encoding="utf-8") as fh:
+        for line in fh:
+            s = line.strip()
+            if s.startswith("- SHELF:"):
+                shelf = s.split(":", 1)[1].strip()
+                book = page = None
+                if shelf in BOOK_SHELVES:
+                    out[shelf.upper()] = {}
+            elif shelf not in BOOK_SHELVES:
+                continue
+            elif s.startswith("- BOOK:"):
+                book = s.split(":", 1)[1].strip().strip('"')
+                out[shelf.upper()].setdefault(book, [])
+            elif s.startswith("- PAGE:"):
+                page = s.split(":", 1)[1].strip().strip('"')
+            elif s.startswith("data:") and book is not None and page is not None:
+                out[shelf.upper()][book].append((page, s.split(":", 1)[1].strip().strip('"')))
+                page = None
+    return out
