@@ -48,15 +48,27 @@ def _as_fields(field, dtype, device) -> torch.Tensor:
     return f  # (F, 2)
 
 
-def _directions_and_points(lens, fields, field_type, ep_z, dtype):
+def object_distance(lens, depth=None) -> float:
+    """The object distance (mm from the first vertex, ``inf`` for a distant object): ``depth`` when given,
+    else the lens's own."""
+    if depth is None:
+        return lens.object_distance
+    depth = float(depth)
+    if not depth > 0:
+        raise ValueError(f"object depth must be > 0 mm (or inf), got {depth!r}")
+    return depth
+
+
+def _directions_and_points(lens, fields, field_type, ep_z, dtype, depth=None):
     """Per field: chief-ray direction (F,3) for distant objects, or object point (F,3) for finite ones."""
-    if math.isinf(lens.object_distance):
+    dist = object_distance(lens, depth)
+    if math.isinf(dist):
         if field_type != "angle":
             raise ValueError("a distant object (object distance inf) needs angle fields, not object heights")
         t = torch.tan(torch.deg2rad(fields))
         d = torch.stack([t[:, 0], t[:, 1], torch.ones_like(t[:, 0])], -1)
         return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True), None
-    z_obj = -lens.object_distance
+    z_obj = -dist
     if field_type == "angle":
         t = torch.tan(torch.deg2rad(fields))
         xy = t * (z_obj - ep_z)
@@ -66,12 +78,30 @@ def _directions_and_points(lens, fields, field_type, ep_z, dtype):
     return None, pts
 
 
-def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=torch.float64) -> RayBundle:
+def entrance_plane_z(lens) -> float:
+    """z (mm) of the paraxial entrance-pupil plane, where ``uv`` coordinates of :func:`rays_through` live."""
+    return float(paraxial.stop_to_entrance_pupil(lens, lens.primary_wavelength)[0].detach())
+
+
+def source_weight(lens, rays: RayBundle, depth=None) -> torch.Tensor:
+    """Power per unit area of the entrance-pupil plane carried by each ray of :func:`rays_through` (relative).
+
+    A distant object is a plane wave: uniform, ∝ the direction cosine d_z. A point source radiating
+    isotropically gives ∝ cos θ / r² on a plane at distance r along the ray, i.e. d_z³ / Δz². Shape S."""
+    dz = rays.d[..., 2]
+    dist = object_distance(lens, depth)
+    if math.isinf(dist):
+        return dz
+    gap = entrance_plane_z(lens) + dist
+    return dz**3 / gap**2
+
+
+def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=torch.float64, depth=None) -> RayBundle:
     """Rays from each field point crossing the entrance-pupil plane at ``uv`` (F, W, N, 2) (mm)."""
     device = lens.device
     wl = torch.as_tensor(wavelength, dtype=dtype, device=device).reshape(1, -1, 1)
     ep_z = float(paraxial.stop_to_entrance_pupil(lens, lens.primary_wavelength)[0].detach())
-    d_inf, pts = _directions_and_points(lens, fields, field_type, ep_z, dtype)
+    d_inf, pts = _directions_and_points(lens, fields, field_type, ep_z, dtype, depth)
     F, W, N = uv.shape[:3]
     target = torch.cat([uv, torch.full_like(uv[..., :1], ep_z)], -1)
     n0 = lens.object_material.n(wl).to(dtype)
@@ -88,23 +118,23 @@ def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=t
     return RayBundle.create(o, d, wl, opl=opl, dtype=dtype, device=device)
 
 
-def _stop_hit(lens, uv, fields, field_type, wavelength):
-    rays = rays_through(lens, uv, fields, field_type, wavelength)
+def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None):
+    rays = rays_through(lens, uv, fields, field_type, wavelength, depth=depth)
     out = lens.trace(rays, stop=lens.stop_index + 1, apertures=False)
     return out.o[..., :2], out.valid
 
 
-def _newton_aim(lens, uv, target, fields, field_type, wavelength, h):
+def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None):
     """Solve stop_hit(uv) = target for uv (F, W, N, 2) by Newton with a finite-difference Jacobian."""
     ok = torch.ones(uv.shape[:-1], dtype=torch.bool, device=uv.device)
     for _ in range(AIM_MAX_ITER):
-        p, v = _stop_hit(lens, uv, fields, field_type, wavelength)
+        p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth)
         err = p - target
         conv = err.abs().amax(-1) <= AIM_TOL * max(1.0, float(target.abs().max()))
         if bool((conv | ~v).all()):
             break
-        px, _ = _stop_hit(lens, uv + torch.tensor([h, 0.0], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength)
-        py, _ = _stop_hit(lens, uv + torch.tensor([0.0, h], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength)
+        px, _ = _stop_hit(lens, uv + torch.tensor([h, 0.0], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength, depth)
+        py, _ = _stop_hit(lens, uv + torch.tensor([0.0, h], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength, depth)
         j = torch.stack([(px - p) / h, (py - p) / h], -1)  # (..., 2 out, 2 in)
         det = j[..., 0, 0] * j[..., 1, 1] - j[..., 0, 1] * j[..., 1, 0]
         good = v & (det.abs() > 1e-300)
@@ -113,12 +143,12 @@ def _newton_aim(lens, uv, target, fields, field_type, wavelength, h):
         dv = (-j[..., 1, 0] * err[..., 0] + j[..., 0, 0] * err[..., 1]) / det
         step = torch.stack([du, dv], -1)
         uv = torch.where(good[..., None], uv - step, uv)
-    p, v = _stop_hit(lens, uv, fields, field_type, wavelength)
+    p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth)
     ok = v & ((p - target).abs().amax(-1) <= 1e-9 * max(1.0, float(target.abs().max())))
     return uv, ok
 
 
-def aim_chief_rays(lens, fields, field_type, wavelength) -> tuple[torch.Tensor, torch.Tensor]:
+def aim_chief_rays(lens, fields, field_type, wavelength, depth=None) -> tuple[torch.Tensor, torch.Tensor]:
     """Entrance-plane crossing (F, W, 1, 2) of each chief ray, aimed at the stop centre; with continuation
     in field (0 → full) for wide-angle lenses where the paraxial guess misses."""
     F = fields.shape[0]
@@ -127,12 +157,12 @@ def aim_chief_rays(lens, fields, field_type, wavelength) -> tuple[torch.Tensor, 
     h = 1e-7 * max(r_ep, 1e-3)
     uv = torch.zeros((F, W, 1, 2), dtype=torch.float64, device=lens.device)
     target = torch.zeros_like(uv)
-    uv1, ok = _newton_aim(lens, uv, target, fields, field_type, wavelength, h)
+    uv1, ok = _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth)
     if bool(ok.all()):
         return uv1, ok
     uv_c = uv.clone()
     for frac in (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 1.0):
-        uv_c, ok = _newton_aim(lens, uv_c, target, fields * frac, field_type, wavelength, h)
+        uv_c, ok = _newton_aim(lens, uv_c, target, fields * frac, field_type, wavelength, h, depth)
     return uv_c, ok
 
 
@@ -145,6 +175,7 @@ def point_source_rays(
     aim: str = "full",
     generator: torch.Generator | None = None,
     dtype=torch.float64,
+    depth: float | None = None,
 ) -> RayBundle:
     """Rays from field point(s) through the pupil, shape (F, W, N).
 
@@ -152,6 +183,7 @@ def point_source_rays(
         field: (x, y) or (F, 2): degrees (angle fields) or mm (object heights), see the module docstring.
         wavelength: µm, scalar or (W,) (default: the lens's primary wavelength).
         pupil: ``(pattern, n)`` (see :func:`raywave.rays.pupil.sample`) or explicit ``(px, py)`` tensors.
+        depth: object distance (mm from the first vertex; ``inf``: distant) overriding the lens's own.
         aim: "full" (every ray aimed at its stop point), "chief" (chief ray aimed, pupil mapped linearly
             around it), or "paraxial" (paraxial entrance pupil).
     Rays whose aiming fails (vignetted in front of the stop) are returned invalid.
@@ -173,12 +205,12 @@ def point_source_rays(
         if aim == "paraxial":
             uv = pn * r_ep
         elif aim in ("full", "chief"):
-            uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl)
+            uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth)
             h = 1e-6 * max(r_ep, 1e-3)
             # Linear map pupil -> entrance plane from the chief ray's Jacobian.
-            p0, _ = _stop_hit(lens, uv_c, fields, field_type, wl)
-            p1, _ = _stop_hit(lens, uv_c + torch.tensor([h, 0.0], dtype=torch.float64), fields, field_type, wl)
-            p2, _ = _stop_hit(lens, uv_c + torch.tensor([0.0, h], dtype=torch.float64), fields, field_type, wl)
+            p0, _ = _stop_hit(lens, uv_c, fields, field_type, wl, depth)
+            p1, _ = _stop_hit(lens, uv_c + torch.tensor([h, 0.0], dtype=torch.float64), fields, field_type, wl, depth)
+            p2, _ = _stop_hit(lens, uv_c + torch.tensor([0.0, h], dtype=torch.float64), fields, field_type, wl, depth)
             j = torch.stack([(p1 - p0) / h, (p2 - p0) / h], -1)  # (F, W, 1, 2, 2)
             # A field whose chief ray cannot be aimed (e.g. beyond the lens's field) has no usable Jacobian.
             det = torch.linalg.det(j)
@@ -189,13 +221,13 @@ def point_source_rays(
             valid = valid & ~bad
             uv = uv_c + torch.einsum("fwnij,fwmj->fwmi", jinv, pn * r_stop)
             if aim == "full":
-                uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h)
+                uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h, depth)
                 valid = valid & ok
             valid = valid & ok_c
         else:
             raise ValueError(f"aim must be 'full', 'chief' or 'paraxial', got {aim!r}")
     uv = torch.nan_to_num(uv.detach())
-    rays = rays_through(lens, uv, fields, field_type, wl, dtype=dtype)
+    rays = rays_through(lens, uv, fields, field_type, wl, dtype=dtype, depth=depth)
     if not bool(valid.all()):
         rays = rays.replace(valid=rays.valid & valid)
     dead = ~rays.valid.reshape(F, W, -1).any(-1)
@@ -206,9 +238,10 @@ def point_source_rays(
     return rays
 
 
-def chief_ray(lens, field=(0.0, 0.0), wavelength=None, field_type: str | None = None) -> RayBundle:
+def chief_ray(lens, field=(0.0, 0.0), wavelength=None, field_type: str | None = None, depth=None) -> RayBundle:
     """The chief ray(s) (F, W, 1): aimed at the centre of the stop."""
-    return point_source_rays(lens, field, wavelength, pupil=(torch.zeros(1), torch.zeros(1)), field_type=field_type, aim="full")
+    return point_source_rays(lens, field, wavelength, pupil=(torch.zeros(1), torch.zeros(1)), field_type=field_type,
+                             aim="full", depth=depth)
 
 
 def marginal_rays(lens, field=(0.0, 0.0), wavelength=None, field_type: str | None = None) -> RayBundle:

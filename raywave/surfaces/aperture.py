@@ -14,6 +14,11 @@ class Aperture(nn.Module):
     def contains(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
+    def slack(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Signed distance (mm) from (x, y) to the aperture edge: > 0 inside, < 0 outside. Smooth across
+        the edge, so the ray-wave model can place a vignetting edge with sub-pixel accuracy."""
+        raise NotImplementedError
+
     @property
     def extent(self) -> float:
         raise NotImplementedError
@@ -36,6 +41,9 @@ class CircularAperture(Aperture):
     def contains(self, x, y):
         r = self.radius.to(x.dtype)
         return x * x + y * y <= r * r
+
+    def slack(self, x, y):
+        return self.radius.to(x.dtype) - torch.sqrt((x * x + y * y).clamp_min(1e-300))  # finite gradient at 0
 
     @property
     def extent(self) -> float:
@@ -65,6 +73,9 @@ class SquareAperture(Aperture):
     def contains(self, x, y):
         h = self.half_width.to(x.dtype)
         return (x.abs() <= h) & (y.abs() <= h)
+
+    def slack(self, x, y):
+        return self.half_width.to(x.dtype) - torch.maximum(x.abs(), y.abs())
 
     @property
     def extent(self) -> float:

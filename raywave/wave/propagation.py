@@ -305,6 +305,7 @@ def propagate_window(
     carrier=(0.0, 0.0),
     margin: float = 0.5,
     guard: float = 2.0,
+    shift: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Propagate an envelope from an input window to an output window (shifted band-limited ASM).
 
@@ -336,6 +337,11 @@ def propagate_window(
             aperture whose edge lies within a Fresnel zone of the window extremes it reaches ~6e-3 of the peak
             amplitude, against ~1e-4 with ``guard=2`` (see tests/test_propagation.py).
 
+        shift: optional ``(2,)`` tensor (mm), an extra translation of the output window added to
+            ``out_origin`` through a phase ramp on the spectrum; pass a zero-valued tensor that carries a
+            derivative to make the result differentiable with respect to where the window sits (a PSF crop
+            that follows a chief ray). Keep it well below the margin (sub-sample).
+
     Returns:
         The output envelope ``(..., Ny_out, Nx_out)`` (true field divided by ``exp(i k n (α x + β y))`` at the
         output coordinates), same dtype as ``u``.
@@ -346,7 +352,16 @@ def propagate_window(
         u.shape[-2:], (noy, nox), pitch, wavelength, z, in_origin, out_origin, n, carrier, margin, guard, u.device
     )
     spec = torch.fft.fft2(u, s=(my, mx))
-    out = torch.fft.ifft2(spec * h.to(u.dtype))
+    h = h.to(u.dtype)
+    if shift is not None:
+        px, py = _pair(pitch, "pitch")
+        fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=u.device)
+        fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=u.device)
+        sx, sy = shift.to(torch.float64).reshape(2).unbind()
+        ramp = torch.polar(torch.ones((), dtype=torch.float64, device=u.device),
+                           _TWO_PI * (fy[:, None] * sy + fx[None, :] * sx))
+        h = h * ramp.to(u.dtype)
+    out = torch.fft.ifft2(spec * h)
     return out[..., :noy, :nox]
 
 
@@ -484,7 +499,8 @@ def pixel_integrate(
     Args:
         intensity: real ``(..., Ny, Nx)``.
         in_pitch, out_pitch: mm (float or ``(px, py)``); any ratio (non-integer allowed).
-        in_origin, out_origin: ``(x0, y0)`` mm of the centres of the respective pixels (0, 0).
+        in_origin, out_origin: ``(x0, y0)`` mm of the centres of the respective pixels (0, 0); a
+            ``out_origin`` tensor that requires grad stays differentiable.
         out_shape: ``(Ny_out, Nx_out)``.
         mode: ``"integral"`` (default): input is irradiance, output is the irradiance integrated over each
             output pixel (energy per pixel, ``Σ out = Σ I·p_in²`` over the common area); ``"sum"``: input is
@@ -503,7 +519,12 @@ def pixel_integrate(
     for v in (ipx, ipy, opx, opy):
         _positive(v, "pitch")
     xi0, yi0 = _xy(in_origin, "in_origin")
-    xo0, yo0 = _xy(out_origin, "out_origin")
+    if isinstance(out_origin, torch.Tensor) and out_origin.requires_grad:
+        # keep the output origin in the graph: d(out)/d(origin) is the exact derivative of the overlaps
+        # (the intensity at the moving pixel edges), so a PSF crop that follows a chief ray differentiates
+        xo0, yo0 = out_origin.reshape(2).to(torch.float64).unbind()
+    else:
+        xo0, yo0 = _xy(out_origin, "out_origin")
     noy, nox = (int(s) for s in out_shape)
     niy, nix = intensity.shape[-2:]
     if not intensity.is_floating_point():
