@@ -88,7 +88,8 @@ class DOEField:
 
     def detach(self) -> "DOEField":
         """A copy cut from the autograd graph (for caching with a frozen refractive lens)."""
-        return replace(self, envelope=self.envelope.detach())
+        center = tuple(c.detach() if isinstance(c, torch.Tensor) else c for c in self.center)
+        return replace(self, envelope=self.envelope.detach(), center=center)
 
     def to(self, dtype) -> "DOEField":
         """A copy with the envelope cast to ``dtype`` (e.g. complex64 for propagation only)."""
@@ -290,16 +291,19 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     if bbox is None:
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, 0, "accurate")
 
-    # ---- node grid (aligned with the simulation grid, stride s pixels), covering the footprint + margin
+    # ---- node grid: spacing h, symmetric about the chief ray's landing point (so a symmetric lens gives an
+    # exactly symmetric field), covering the footprint + margin; nodes need not sit on simulation pixels
+    xcd, ycd = (float(v) for v in chief_doe.o[:2].detach())
     extent = max(bbox[1] - bbox[0], bbox[3] - bbox[2], p)
-    stride = max(1, int(round(extent / max(nodes - 1, 2) / p)))
-    h_node = stride * p
-    jy0, jy1, jx0, jx1 = _window_for_bbox(bbox, 2.5 * h_node + 2 * p, p, x0, y0, sy, sx)
-    ky = max(3, math.ceil((jy1 - jy0) / stride) + 1)
-    kx = max(3, math.ceil((jx1 - jx0) / stride) + 1)
+    h_node = extent / max(nodes - 1, 2)
+    margin = 2.5 * h_node + 2 * p
+    half_x = max(xcd - bbox[0], bbox[1] - xcd) + margin
+    half_y = max(ycd - bbox[2], bbox[3] - ycd) + margin
+    kx = 2 * math.ceil(half_x / h_node) + 1
+    ky = 2 * math.ceil(half_y / h_node) + 1
     dev = lens.device
-    gx = x0 + (jx0 + stride * torch.arange(kx, dtype=torch.float64, device=dev)) * p
-    gy = y0 + (jy0 + stride * torch.arange(ky, dtype=torch.float64, device=dev)) * p
+    gx = xcd + (torch.arange(kx, dtype=torch.float64, device=dev) - (kx - 1) / 2) * h_node
+    gy = ycd + (torch.arange(ky, dtype=torch.float64, device=dev) - (ky - 1) / 2) * h_node
     tx, ty = torch.meshgrid(gx, gy, indexing="xy")  # (ky, kx)
     targets = torch.stack([tx, ty], -1).reshape(-1, 2)
 
@@ -373,16 +377,18 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     # ---- reference removal (chief OPL, carrier), interpolation to the fine grid
     phi_c = phi_g[ky // 2, kx // 2].detach()
     phi_env = phi_g - phi_c - n * (alpha * tx + beta * ty)
-    fine = upsample_nodes(torch.stack([phi_env, torch.sqrt(amp2.clamp_min(0)), dist]), stride)
-    fy0, fx0 = jy0, jx0  # sim index of fine pixel (0, 0)
-    # clamp to the DOE simulation grid
-    r0, c0 = max(0, -fy0), max(0, -fx0)
-    r1 = min(fine.shape[1], sy - fy0)
-    c1 = min(fine.shape[2], sx - fx0)
-    if r1 <= r0 or c1 <= c0:
+    # fine window: the simulation pixels inside the node span, clamped to the DOE grid
+    jx0 = max(0, math.ceil((float(gx[0]) - x0) / p))
+    jx1 = min(sx - 1, math.floor((float(gx[-1]) - x0) / p))
+    jy0 = max(0, math.ceil((float(gy[0]) - y0) / p))
+    jy1 = min(sy - 1, math.floor((float(gy[-1]) - y0) / p))
+    if jx1 < jx0 or jy1 < jy0:
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
-    fine = fine[:, r0:r1, c0:c1]
-    win = (fy0 + r0, fx0 + c0, r1 - r0, c1 - c0)
+    pos_x = (x0 + torch.arange(jx0, jx1 + 1, dtype=torch.float64, device=dev) * p - float(gx[0])) / h_node
+    pos_y = (y0 + torch.arange(jy0, jy1 + 1, dtype=torch.float64, device=dev) * p - float(gy[0])) / h_node
+    fine = upsample_nodes(torch.stack([phi_env, torch.sqrt(amp2.clamp_min(0)), dist]),
+                          pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
+    win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
     cov = edge_coverage(fine[2], p) * doe.coverage(win, oversample, device=dev)
     b = _crop_to_lit(cov)
     if b is None:

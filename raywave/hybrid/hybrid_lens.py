@@ -29,9 +29,25 @@ from torch import nn
 from raywave.doe import DOE
 from raywave.hybrid.coherent import DOEField, accurate_field, chief_rays, faithful_field
 from raywave.lens.sources import VignettingWarning, _as_fields
+from raywave.wave.field import fourier_upsample2
 from raywave.wave.propagation import angular_spectrum, pixel_integrate, propagate_window
 
 __all__ = ["HybridLens", "PSFResult", "SensorCropWarning"]
+
+
+_OUT_MARGIN = 8  # samples around the PSF window (keeps the periodic upsampling's edge effects out of it)
+
+
+def _edge_taper(shape, width: int, device) -> torch.Tensor:
+    """Separable raised-cosine taper (ny, nx): 1 inside, → 0 over the outer ``width`` samples, so that the
+    periodic Fourier upsampling sees no jump at the window's edges (the taper lies outside the PSF crop)."""
+    def ramp(n):
+        w = torch.ones(n, dtype=torch.float64, device=device)
+        if width > 0 and n > 2 * width:
+            t = 0.5 - 0.5 * torch.cos(math.pi * (torch.arange(width, dtype=torch.float64, device=device) + 0.5) / width)
+            w[:width], w[-width:] = t, t.flip(0)
+        return w
+    return ramp(shape[0])[:, None] * ramp(shape[1])[None, :]
 
 
 class SensorCropWarning(UserWarning):
@@ -166,9 +182,11 @@ class HybridLens(nn.Module):
             z = torch.zeros((ks, ks), dtype=torch.float64, device=u.device)
             return z, center_t, torch.ones((), dtype=torch.float64)
         u = u.to(propagation_dtype)
-        # output window on the simulation pitch covering the ks×ks sensor pixels (+1 sample each side)
-        lo_x, lo_y = psf_origin[0] - 0.5 * ps, psf_origin[1] - 0.5 * ps
-        n_out = int(math.ceil(ks * ps / p)) + 2
+        # output window on the simulation pitch covering the ks×ks sensor pixels, plus a margin for the
+        # 2× Fourier upsampling of the field (its intensity needs the p/2 grid)
+        m = _OUT_MARGIN
+        lo_x, lo_y = psf_origin[0] - 0.5 * ps - m * p, psf_origin[1] - 0.5 * ps - m * p
+        n_out = int(math.ceil(ks * ps / p)) + 2 + 2 * m
         if full_grid:
             full = angular_spectrum(u, p, fd.wavelength, fd.z, fd.n, pad=2)
             jx0 = int(math.floor((lo_x - fd.origin[0]) / p))
@@ -182,13 +200,18 @@ class HybridLens(nn.Module):
                 out = full[a0:a1, b0:b1]
                 out_origin = (fd.origin[0] + b0 * p, fd.origin[1] + a0 * p)
         else:
-            out_origin = (lo_x - 0.5 * p, lo_y - 0.5 * p)
+            # samples on the lattice through the chief ray's image point (a symmetric PSF stays symmetric)
+            kk = max(math.ceil((xc - lo_x) / p), math.ceil((lo_x + n_out * p - xc) / p))
+            out_origin = (xc - kk * p, yc - kk * p)
+            n_out = 2 * kk + 1
             # the window moves with the chief ray: a zero-valued shift carries d(center)/dθ into the field
             shift = crop_origin - crop_origin.detach() if crop_origin.requires_grad else None
             out = propagate_window(u, p, fd.wavelength, fd.z, fd.origin, out_origin, (n_out, n_out),
                                    n=fd.n, carrier=fd.carrier, shift=shift)
-        inten = (out.abs() ** 2).to(torch.float64)
-        crop = pixel_integrate(inten, p, ps, out_origin, integrate_origin, (ks, ks), mode="integral")
+        inten = (fourier_upsample2(out * _edge_taper(out.shape[-2:], _OUT_MARGIN - 2, out.device)).abs() ** 2)
+        inten = inten.to(torch.float64)
+        crop = pixel_integrate(inten, 0.5 * p, ps, out_origin, integrate_origin, (ks, ks), mode="integral",
+                               kernel="cubic")
         total = crop.sum()
         outside = 1.0 - total / power.to(torch.float64)
         psf = crop / total.clamp_min(1e-300)

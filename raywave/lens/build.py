@@ -182,3 +182,21 @@ def resolve_lens_path(name_or_path: str | Path) -> Path:
     raise FileNotFoundError(f"lens file {str(name_or_path)!r} not found (nor a bundled lens of that name)")
 
 
+
+
+def ideal_lens(focal_length: float, f_number: float | None = None, radius: float | None = None,
+               wavelengths=(0.55,), sensor_distance: float | None = None, **lens_kwargs) -> Lens:
+    """A perfect thin lens (Zemax paraxial surface) of ``focal_length`` mm, which is also the stop.
+
+    Give the pupil as ``f_number`` (= f / D) or ``radius`` (mm). The sensor sits ``sensor_distance`` after
+    it (default: at the focus). Its PSF for a distant on-axis point is the aberration-free Airy/Debye pattern,
+    a ground truth for the ray-wave model (phase-exact for collimated light at any field angle)."""
+    if (f_number is None) == (radius is None):
+        raise ValueError("give exactly one of f_number and radius")
+    r = radius if radius is not None else abs(focal_length) / (2.0 * f_number)
+    from raywave.surfaces.aperture import CircularAperture
+
+    surf = Surface(Plane(), get_material("AIR"), focal_length if sensor_distance is None else sensor_distance,
+                   aperture=CircularAperture(r), interaction=IdealLens(focal_length), is_stop=True,
+                   comment="ideal lens")
+    return Lens([surf], wavelengths=wavelengths, primary=0, name=f"ideal f={focal_length:g}", **lens_kwargs)

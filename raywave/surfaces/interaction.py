@@ -93,4 +93,4 @@ class IdealLens(Interaction):
         return tx * inv, ty * inv, inv, extra, ok
 
     def extra_repr(self):
-        return f"focal_length={float(self.focal_length)}"
+        return f"focal_length={float(self.focal_length.detach())}"

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["keys_matrix", "upsample_nodes", "splat_bilinear", "edge_coverage"]
+__all__ = ["cubic_matrix", "fourier_upsample2", "keys_matrix", "upsample_nodes", "splat_bilinear", "edge_coverage"]
 
 
 def _keys(t: torch.Tensor) -> torch.Tensor:
@@ -28,24 +28,21 @@ def _keys(t: torch.Tensor) -> torch.Tensor:
     return torch.where(t <= 1, inner, torch.where(t < 2, outer, torch.zeros_like(t)))
 
 
-def keys_matrix(n_nodes: int, stride: int, dtype=torch.float64, device=None) -> torch.Tensor:
-    """Interpolation matrix ``(N_fine, n_nodes)`` from nodes at every ``stride``-th fine sample to all
-    ``N_fine = (n_nodes − 1)·stride + 1`` samples (node k at fine index k·stride).
+def cubic_matrix(pos: torch.Tensor, n_nodes: int) -> torch.Tensor:
+    """Interpolation matrix ``(len(pos), n_nodes)`` from values at nodes 0..n_nodes−1 to the positions
+    ``pos`` (in node units, within [0, n_nodes − 1]).
 
     Cubic convolution with a = −1/2; beyond the ends the node values are extrapolated quadratically
     (f₋₁ = 3f₀ − 3f₁ + f₂), which keeps the scheme exact for quadratics up to the boundary."""
     if n_nodes < 3:
         raise ValueError("need at least 3 nodes to interpolate")
-    n_fine = (n_nodes - 1) * stride + 1
-    pos = torch.arange(n_fine, dtype=dtype, device=device) / stride  # in node units
-    base = torch.floor(pos).clamp(max=n_nodes - 2)
-    m = torch.zeros((n_fine, n_nodes + 2), dtype=dtype, device=device)  # columns: ghost, nodes..., ghost
-    rows = torch.arange(n_fine, device=device)
+    n = pos.numel()
+    base = torch.floor(pos).clamp(0, n_nodes - 2)
+    m = torch.zeros((n, n_nodes + 2), dtype=pos.dtype, device=pos.device)  # columns: ghost, nodes..., ghost
+    rows = torch.arange(n, device=pos.device)
     for off in (-1, 0, 1, 2):
         k = base + off
-        w = _keys(pos - k)
-        m.index_put_((rows, (k + 1).long()), w, accumulate=True)
-    # ghost nodes: f(-1) = 3 f(0) - 3 f(1) + f(2), and the mirror image at the far end
+        m.index_put_((rows, (k + 1).long()), _keys(pos - k), accumulate=True)
     out = m[:, 1:-1].clone()
     for ghost, (a, b, c) in ((m[:, 0], (0, 1, 2)), (m[:, -1], (-1, -2, -3))):
         out[:, a] += 3 * ghost
@@ -54,13 +51,25 @@ def keys_matrix(n_nodes: int, stride: int, dtype=torch.float64, device=None) -> 
     return out
 
 
-def upsample_nodes(values: torch.Tensor, stride: int) -> torch.Tensor:
-    """Interpolate ``(..., Ky, Kx)`` node values to the fine grid ``(..., (Ky−1)·s+1, (Kx−1)·s+1)``.
+def keys_matrix(n_nodes: int, stride: int, dtype=torch.float64, device=None) -> torch.Tensor:
+    """:func:`cubic_matrix` for nodes at every ``stride``-th fine sample: ``((n_nodes − 1)·stride + 1, n_nodes)``."""
+    n_fine = (n_nodes - 1) * stride + 1
+    return cubic_matrix(torch.arange(n_fine, dtype=dtype, device=device) / stride, n_nodes)
 
-    Separable cubic convolution (:func:`keys_matrix`), two small matrix products; differentiable."""
+
+def upsample_nodes(values: torch.Tensor, stride: int | None = None, pos_y: torch.Tensor | None = None,
+                   pos_x: torch.Tensor | None = None) -> torch.Tensor:
+    """Interpolate ``(..., Ky, Kx)`` node values to a fine grid; differentiable.
+
+    Either ``stride`` (nodes at every stride-th fine sample: output ``((Ky−1)·s+1, (Kx−1)·s+1)``) or the fine
+    samples' positions ``pos_y`` (Ny,), ``pos_x`` (Nx,) in node units (any offset and spacing). Separable
+    cubic convolution (:func:`cubic_matrix`), two small matrix products."""
     ky, kx = values.shape[-2:]
-    my = keys_matrix(ky, stride, values.dtype, values.device)
-    mx = keys_matrix(kx, stride, values.dtype, values.device)
+    if stride is not None:
+        my = keys_matrix(ky, stride, values.dtype, values.device)
+        mx = keys_matrix(kx, stride, values.dtype, values.device)
+    else:
+        my, mx = cubic_matrix(pos_y.to(values.dtype), ky), cubic_matrix(pos_x.to(values.dtype), kx)
     return my @ values @ mx.T
 
 
@@ -91,3 +100,19 @@ def edge_coverage(distance: torch.Tensor, pitch: float) -> torch.Tensor:
     """Fraction of a pixel inside an edge from the signed distance (mm, > 0 inside) of its centre:
     ``clamp(0.5 + d/pitch, 0, 1)`` (exact for a straight edge along a pixel axis)."""
     return (0.5 + distance / pitch).clamp(0.0, 1.0)
+
+
+def fourier_upsample2(u: torch.Tensor) -> torch.Tensor:
+    """Band-limited (sinc) 2× upsampling of a complex field ``(..., Ny, Nx)`` → ``(..., 2Ny, 2Nx)``.
+
+    Output sample ``[2i, 2j]`` coincides with input ``[i, j]``; the others lie half-way between. A field
+    sampled at pitch p carries frequencies up to 1/(2p), so |u|² reaches 1/p: its intensity is only
+    correctly sampled on the p/2 grid. The window is treated as periodic: keep a few samples of margin
+    where the field is not ~0 at the edges."""
+    ny, nx = u.shape[-2:]
+    spec = torch.fft.fftshift(torch.fft.fft2(u), dim=(-2, -1))
+    py0, px0 = ny // 2 + (ny % 2), nx // 2 + (nx % 2)  # puts the zero frequency at the new centre
+    pad = (nx - px0 + (nx % 2), px0 - (nx % 2), ny - py0 + (ny % 2), py0 - (ny % 2))
+    big = torch.nn.functional.pad(spec, (pad[0] - (nx % 2) * 0, pad[1], pad[2], pad[3]))
+    big = torch.fft.ifftshift(big, dim=(-2, -1))
+    return torch.fft.ifft2(big) * 4.0

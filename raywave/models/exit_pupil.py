@@ -1,0 +1,226 @@
+"""Exit-pupil (Huygens) diffraction PSF from traced rays: an independent reference for the ray-wave engine.
+
+The model (Zemax "Huygens PSF"; Chen et al. 2021):
+
+1. A regular n_pupil × n_pupil grid of cells over the normalised stop [-1, 1]² is traced from the field
+   point (rays aimed at the cell centres on the stop, ``aim="full"``), with the stop's aperture switched
+   off: instead, each cell is weighted by the fraction of it that lies inside the stop (a circular stop
+   gets an anti-aliased edge; cells fully outside carry nothing). Every other aperture clips hard: a
+   vignetted ray carries nothing.
+2. Each ray is carried (straight, in the image medium, keeping its float64 OPL) to the **reference
+   sphere**: centred on the chief ray's intersection C with the sensor plane, through the point E where
+   the chief ray crosses the paraxial exit-pupil plane (radius R = |E − C|, as in
+   :func:`raywave.lens.analysis.wavefront_opd`; the sphere may be virtual, i.e. reached backwards).
+3. Power: a ray's cell carries dP ∝ (power per unit entrance-pupil-plane area,
+   :func:`raywave.lens.sources.source_weight`: uniform for a distant object, cos³/r² for a near one) ×
+   (the cell's entrance-plane area) × (its stop coverage). Its area dS on the sphere comes from central
+   finite differences of the ray positions over the pupil grid. The field amplitude on the sphere is
+   A = sqrt(dP/dS), so each sample contributes A·dS = sqrt(dP·dS).
+4. Huygens–Fresnel sum over the sphere samples Q_j to every sensor sample P:
+
+       U(P) = (n/λ) Σ_j sqrt(dP_j dS_j) · K_j · exp(i k₀ (OPL_j + n |P − Q_j|)) / |P − Q_j|
+
+   with the Fresnel–Kirchhoff obliquity K = (1 + cos χ)/2, χ the angle between P − Q and the inward
+   sphere normal (for a sensor near the focus K differs from 1 by < 1e-4).
+
+The sensor is sampled with ``oversample``² midpoint-rule points per pixel; the PSF is the pixel-integrated
+|U|², normalised to sum 1. ``energy_fraction`` = crop power / Σ_j dP_j / cos γ_j (γ_j: ray angle to the
+axis), the Parseval total of |U|² over the whole plane in the Debye approximation — the same convention
+as :mod:`raywave.models.debye`.
+
+Sampling limits: the discrete sum replicates the PSF with period λ/(n Δ(sinθ)) ≈ λ·n_pupil/(2·NA) on the
+sensor, so n_pupil must exceed 2·NA·(crop width + PSF extent)/λ; and the wavefront must change by less than
+about half a wave per pupil cell. Cost ∝ (ks·oversample)² × n_pupil² (the sum is chunked, < ~0.5 GB).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from raywave.lens import paraxial
+from raywave.lens.sources import chief_ray, entrance_plane_z, point_source_rays, source_weight
+from raywave.models.debye import pixel_integrate, sensor_offsets
+
+#: Largest (sensor points × sphere points) block of the Huygens sum (≈ 100 bytes each in temporaries).
+_BLOCK = 1 << 22
+#: Sub-samples per axis used to measure how much of an edge cell lies inside a circular stop.
+_COVER_SUB = 16
+
+
+@dataclass
+class HuygensPSF:
+    """Result of :func:`huygens_psf`.
+
+    psf: (ks, ks) float64, pixel-integrated irradiance normalised to sum 1, [iy, ix] increasing with y, x.
+    center: (x, y) mm of the centre of pixel [ks//2, ks//2] on the sensor.
+    sensor_z: z of the sensor plane (mm); pitch: pixel size (mm).
+    energy_fraction: power in the crop / power through the whole plane (see the module docstring).
+    sphere_center: (x, y, z) mm, the chief ray's sensor intercept; sphere_radius: R (mm).
+    n_rays: rays that contributed.
+    """
+
+    psf: torch.Tensor
+    center: tuple[float, float]
+    sensor_z: float
+    pitch: float
+    energy_fraction: float
+    sphere_center: tuple[float, float, float]
+    sphere_radius: float
+    n_rays: int
+
+
+def _stop_coverage(lens, n: int, dtype, device):
+    """Pupil cell centres (n, n) px, py over [-1, 1]² and the fraction (n, n) of each cell inside the stop."""
+    h = 2.0 / n
+    c = (torch.arange(n, dtype=dtype, device=device) + 0.5) * h - 1
+    py, px = torch.meshgrid(c, c, indexing="ij")
+    aperture = lens.surfaces[lens.stop_index].aperture
+    if aperture is not None and aperture.shape == "square":
+        return px, py, torch.ones_like(px)  # the cells tile the square exactly
+    r = torch.hypot(px, py)
+    cover = (r <= 1).to(dtype)
+    edge = (r - 1).abs() <= h / math.sqrt(2)
+    s = ((torch.arange(_COVER_SUB, dtype=dtype, device=device) + 0.5) / _COVER_SUB - 0.5) * h
+    sx = px[edge][:, None, None] + s[None, None, :]
+    sy = py[edge][:, None, None] + s[None, :, None]
+    cover[edge] = (sx * sx + sy * sy <= 1).to(dtype).mean((1, 2))
+    return px, py, cover
+
+
+def _grid_derivative(p: torch.Tensor, ok: torch.Tensor, dim: int):
+    """Derivative per grid step of p (n, n, C) along ``dim`` (0: rows, 1: columns), central where both
+    neighbours are ``ok``, one-sided where one is. Returns (derivative, defined mask)."""
+    n = p.shape[dim]
+    idx = torch.arange(n, device=p.device)
+    nxt, prv = idx.clamp(max=n - 2) + 1, (idx - 1).clamp(min=0)
+    p_n, p_p = p.index_select(dim, nxt), p.index_select(dim, prv)
+    ok_n = ok.index_select(dim, nxt) & ok & (idx < n - 1).reshape((-1, 1) if dim == 0 else (1, -1))
+    ok_p = ok.index_select(dim, prv) & ok & (idx > 0).reshape((-1, 1) if dim == 0 else (1, -1))
+    d = torch.where((ok_n & ok_p)[..., None], 0.5 * (p_n - p_p),
+                    torch.where(ok_n[..., None], p_n - p, torch.where(ok_p[..., None], p - p_p, 0.0)))
+    return d, ok_n | ok_p
+
+
+def _cell_area(p: torch.Tensor, ok: torch.Tensor):
+    """Area (n, n) of each grid cell mapped to the points p (n, n, 3): |∂p/∂i × ∂p/∂j| (per unit cell)."""
+    du, ok_u = _grid_derivative(p, ok, 1)
+    dv, ok_v = _grid_derivative(p, ok, 0)
+    return torch.linalg.vector_norm(torch.linalg.cross(du, dv, dim=-1), dim=-1), ok & ok_u & ok_v
+
+
+def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: float | None = None, center=None,
+                n_pupil: int = 256, depth: float | None = None, sensor_z: float | None = None, oversample: int = 3,
+                obliquity: bool = True) -> HuygensPSF:
+    """Huygens PSF of ``lens`` for one field point and wavelength (model in the module docstring).
+
+    Args:
+        field: (x, y) field point (degrees or mm, the lens's field type); ``wavelength``: µm (default primary).
+        ks: crop size (pixels); ``pitch``: pixel size (mm, default the sensor's pixel pitch, else 1 µm).
+        center: (x, y) mm of pixel [ks//2, ks//2] (default: the chief ray's sensor intercept).
+        n_pupil: pupil grid cells per side over the stop diameter.
+        depth: object distance (mm) overriding the lens's own; ``sensor_z``: sensor plane z (mm, default
+            ``lens.image_z()``).
+        oversample: midpoint-rule samples per pixel and axis.
+        obliquity: apply the Fresnel–Kirchhoff factor (1 + cos χ)/2.
+    Returns: :class:`HuygensPSF` (float64 psf (ks, ks) summing to 1, centre, sensor z, energy fraction).
+    """
+    dtype, device = torch.float64, lens.device
+    wl = float(lens.primary_wavelength if wavelength is None else wavelength)
+    if pitch is None:
+        pitch = lens.pixel_pitch or 1e-3
+    with torch.no_grad():
+        z_s = float(lens.image_z() if sensor_z is None else sensor_z)
+        n_img = float(lens.surfaces[-1].material.n(torch.tensor(wl, dtype=dtype)))
+        k0 = 2 * math.pi / (wl * 1e-3)
+
+        # Reference sphere: centre C on the sensor (chief ray), through the chief ray's exit-pupil point E.
+        ch = lens.trace_to_image(chief_ray(lens, field, wl, depth=depth), z=z_s)
+        if not bool(ch.valid.all()):
+            raise ValueError(f"the chief ray of field {field} is vignetted; no reference sphere")
+        cen, d_ch, opl_ch = ch.o.reshape(3), ch.d.reshape(3), float(ch.opl.reshape(()))
+        xp_z = float(paraxial.exit_pupil(lens, wl)[0])
+        if not math.isfinite(xp_z) or xp_z == z_s:
+            raise ValueError(f"the paraxial exit pupil (z = {xp_z}) gives no reference sphere")
+        radius = abs((xp_z - z_s) / float(d_ch[2]))
+        side = math.copysign(1.0, xp_z - z_s)  # the sphere lies on the exit-pupil side of the sensor
+        opl_ref = opl_ch + n_img * side * radius
+
+        # Pupil grid: trace every cell that touches the stop plus one ring for the finite differences.
+        px, py, cover = _stop_coverage(lens, n_pupil, dtype, device)
+        h = 2.0 / n_pupil
+        traced = torch.hypot(px, py) <= 1 + 1.5 * math.sqrt(2) * h
+        if float(cover.min()) == 1.0:
+            traced = torch.ones_like(traced)
+        rays = point_source_rays(lens, field, wl, pupil=(px[traced], py[traced]), aim="full", depth=depth)
+        out, rec = lens.trace(rays, record=True, apertures=False)
+        vig = torch.ones_like(out.valid)
+        for i, s in enumerate(lens.surfaces):
+            if s.aperture is not None and i != lens.stop_index:
+                vig = vig & s.aperture.contains(rec.points[i + 1][0], rec.points[i + 1][1])
+        out = out.propagate_to_z(z_s, n_img)
+        w = out.o - cen
+        b = (w * out.d).sum(-1)
+        disc = b * b - ((w * w).sum(-1) - radius * radius)
+        t = -b + side * torch.sqrt(disc.clamp_min(0))
+        q = out.o + t[..., None] * out.d
+        opl = out.opl + n_img * t - opl_ref
+        geom = out.valid & (disc >= 0)
+
+        # Entrance-plane crossings (power per cell) and everything else back onto the (n, n) grid.
+        ep = rays.o + rays.d * ((entrance_plane_z(lens) - rays.o[..., 2]) / rays.d[..., 2])[..., None]
+        ep = torch.cat([ep[..., :2], torch.zeros_like(ep[..., :1])], -1)
+
+        def grid(v, fill=0.0):
+            g = torch.full(px.shape + v.shape[3:], fill, dtype=v.dtype, device=device)
+            g[traced] = v.reshape((-1,) + v.shape[3:])
+            return g
+
+        ok = grid(geom, False)
+        ds, ok_s = _cell_area(grid(q), ok)
+        da, ok_a = _cell_area(grid(ep), ok)
+        # A partly covered cell keeps the irradiance of a full one on a fraction `cover` of its area.
+        dp = grid(source_weight(lens, rays, depth)) * da * cover
+        ds = ds * cover
+        use = ok_s & ok_a & grid(vig, False) & (cover > 0) & (dp > 0)
+        amp = torch.sqrt(dp * ds)[use]
+        q, opl, dz = (grid(q) - cen)[use], grid(opl)[use], grid(out.d[..., 2])[use]
+        if amp.numel() == 0:
+            raise ValueError(f"field {field} at {wl} µm: every ray is vignetted")
+
+        # Sensor samples relative to C (the sensor plane contains C, so their z offset is 0).
+        if center is None:
+            center = (float(cen[0]), float(cen[1]))
+        off = torch.as_tensor(sensor_offsets(ks, pitch, oversample), dtype=dtype, device=device)
+        gy, gx = torch.meshgrid(off + (center[1] - float(cen[1])), off + (center[0] - float(cen[0])), indexing="ij")
+        pxy = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
+        u = _huygens_sum(pxy, q, opl, amp, radius, k0, n_img, obliquity)
+        u = u * (n_img / (wl * 1e-3))
+        power = pixel_integrate(u.abs().square().reshape(ks * oversample, ks * oversample), ks, oversample, pitch)
+        total = float(power.sum())
+        plane_total = float((amp.square() / ds[use] / dz.abs()).sum())  # Σ dP / cos γ
+    return HuygensPSF(power / total, (float(center[0]), float(center[1])), z_s, float(pitch), total / plane_total,
+                      tuple(float(v) for v in cen), radius, int(amp.numel()))
+
+
+def _huygens_sum(p: torch.Tensor, q: torch.Tensor, opl: torch.Tensor, amp: torch.Tensor, radius: float,
+                 k0: float, n: float, obliquity: bool) -> torch.Tensor:
+    """Σ_j amp_j K_j exp(i k0 (opl_j + n (r − R))) / r for sensor points p (M, 2) (relative to the sphere
+    centre, z offset 0) and sphere points q (N, 3) (relative to the centre). r − R is formed as
+    (r² − R²)/(r + R) so that the phase keeps full float64 precision. Returns (M,) complex128."""
+    qq = (q * q).sum(-1)
+    out = torch.empty(p.shape[0], dtype=torch.complex128, device=p.device)
+    step = max(1, _BLOCK // q.shape[0])
+    for i in range(0, p.shape[0], step):
+        pc = p[i:i + step]
+        g = pc @ q[:, :2].T  # P'·Q'
+        num = (pc * pc).sum(-1, keepdim=True) - 2 * g + (qq - radius * radius)
+        r = torch.sqrt(radius * radius + num)
+        w = amp / r
+        if obliquity:
+            w = w * (0.5 + 0.5 * (qq - g) / (r * radius))
+        phase = k0 * (opl + n * num / (r + radius))
+        out[i:i + step] = torch.complex((w * torch.cos(phase)).sum(-1), (w * torch.sin(phase)).sum(-1))
+    return out
