@@ -408,14 +408,16 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
 # ---------------------------------------------------------------------------------------------------------
 def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
                    n_rays: int = 100_000, oversample: int = 1, full_grid: bool = False, generator=None,
-                   field_type: str | None = None, check: bool = True) -> DOEField:
+                   field_type: str | None = None, check: bool = True, dtype=torch.float64) -> DOEField:
     """The paper's DOE-plane field: ``n_rays`` rays sampled uniformly at random over the pupil (slightly
     overfilled so that the real apertures cut the beam), each ray's complex amplitude ``d_z · exp(i k OPL)``
     spread bilinearly into its four neighbouring pixels.
 
     ``full_grid=True`` returns the whole DOE simulation grid with no carrier removed (as the paper's full
     angular-spectrum propagation needs); otherwise the lit window, demodulated by the chief-ray carrier.
-    ``generator`` (torch.Generator) makes the ray sample replayable."""
+    ``generator`` (torch.Generator) makes the ray sample replayable. ``dtype`` is the tracing precision:
+    float32 reproduces the precision failure of the paper's Fig. S2 (the optical paths of ~10⁴ waves lose
+    a sizeable fraction of a wave); the field is always assembled in complex128 afterwards."""
     field_type = field_type or lens.field_type
     field = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
     wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device)
@@ -429,7 +431,8 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     t = 2 * math.pi * torch.rand(n_rays, generator=generator, dtype=torch.float64)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        rays = point_source_rays(lens, field, wl, pupil=(r * torch.cos(t), r * torch.sin(t)), aim="chief", depth=depth)
+        rays = point_source_rays(lens, field, wl, pupil=(r * torch.cos(t), r * torch.sin(t)), aim="chief", depth=depth,
+                                 dtype=dtype)
     out = lens.trace(rays)
     _check_beyond_last_surface(out, z_doe)
     nn_ = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
@@ -446,7 +449,9 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     xy, dvec, opl = xy[valid], dvec[valid], opl[valid]
     k = 2 * math.pi / (wavelength * 1e-3)
     ref = opl.detach().min()
-    vals = torch.polar(dvec[:, 2], k * (opl - ref))
+    phase = (k * (opl - ref)).to(torch.float64)  # formed in the tracing precision
+    xy, dvec = xy.to(torch.float64), dvec.to(torch.float64)
+    vals = torch.polar(dvec[:, 2], phase)
     if full_grid:
         win = (0, 0, sy, sx)
         carrier = (0.0, 0.0)

@@ -117,7 +117,8 @@ class HybridLens(nn.Module):
 
     # ------------------------------------------------------------------ step 1-2: the DOE-plane field
     def doe_fields(self, fields=(0.0, 0.0), wavelengths=None, depth=None, mode: str = "accurate",
-                   rays: int | None = None, full_grid: bool = False, generator=None, check: bool = True):
+                   rays: int | None = None, full_grid: bool = False, generator=None, check: bool = True,
+                   trace_dtype=torch.float64):
         """The fields arriving at the DOE plane, a nested list ``[F][W]`` of :class:`DOEField`.
 
         Depends on the refractive lens only (not on the DOE phase): call ``.detach()`` on each to cache
@@ -132,9 +133,13 @@ class HybridLens(nn.Module):
                 (default 100 000).
             full_grid: faithful only: keep the whole DOE grid for the paper's full 2×-padded propagation.
             generator: torch.Generator for the faithful mode's random pupil samples.
+            trace_dtype: faithful only: the ray-tracing precision (float64; float32 only to study its failure,
+                see examples/precision_study.py). The accurate mode always traces in float64.
         """
         if mode not in ("accurate", "faithful"):
             raise ValueError(f"mode must be 'accurate' or 'faithful', got {mode!r}")
+        if mode == "accurate" and trace_dtype != torch.float64:
+            raise ValueError("the accurate mode traces in float64 only (its rays land on their nodes to 1e-10 mm)")
         f = _as_fields(fields, torch.float64, self.lens.device)
         wls = self._wavelengths(wavelengths)
         z_doe, z_sen = self.doe_z(), self.sensor_z()
@@ -150,7 +155,7 @@ class HybridLens(nn.Module):
                     fd = accurate_field(*args, nodes=rays or 64, oversample=self.oversample, check=check)
                 else:
                     fd = faithful_field(*args, n_rays=rays or 100_000, oversample=self.oversample,
-                                        full_grid=full_grid, generator=generator, check=check)
+                                        full_grid=full_grid, generator=generator, check=check, dtype=trace_dtype)
                 if float(fd.power.detach()) == 0.0:
                     warnings.warn(f"field {f[i].tolist()} at {wl:g} µm: no light reaches the DOE (every ray is "
                                   "vignetted or misses the DOE aperture); its PSF is all zeros",
@@ -218,16 +223,16 @@ class HybridLens(nn.Module):
         return psf, center_t, outside
 
     def psf_result(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None, mode: str = "accurate",
-                   rays: int | None = None, cache=None, full_grid: bool = False, generator=None,
-                   propagation_dtype=torch.complex128) -> PSFResult:
+                   rays: int | None = None, cache=None, propagation_dtype=torch.complex128, **field_kw) -> PSFResult:
         """PSFs with their centres and the energy outside the crop (see :class:`PSFResult`).
 
-        ``cache``: the output of :meth:`doe_fields` (e.g. detached, for a frozen refractive lens); then
-        ``fields``, ``wavelengths``, ``depth``, ``mode`` and ``rays`` are taken from it."""
-        if ks < 1:
+        Args: as :meth:`doe_fields` (``field_kw``: ``full_grid``, ``generator``, ``trace_dtype``, ``check``),
+        plus ``ks`` (PSF size in sensor pixels), ``cache`` (the output of :meth:`doe_fields`, e.g. detached
+        for a frozen refractive lens; then the field arguments are taken from it) and ``propagation_dtype``
+        (see :meth:`propagate`)."""
+        if int(ks) < 1:
             raise ValueError(f"ks must be >= 1, got {ks}")
-        fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, full_grid,
-                                                              generator)
+        fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw)
         psfs, centers, outs, nr = [], [], [], []
         for row in fds:
             pr, cr, orow, rr = [], [], [], []
