@@ -451,11 +451,14 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     ref = opl.detach().min()
     phase = (k * (opl - ref)).to(torch.float64)  # formed in the tracing precision
     xy, dvec = xy.to(torch.float64), dvec.to(torch.float64)
-    vals = torch.polar(dvec[:, 2], phase)
     if full_grid:
         win = (0, 0, sy, sx)
         carrier = (0.0, 0.0)
     else:
+        # the lit window: each ray's phasor is demodulated by the chief ray's carrier *before* it is spread,
+        # so the spread envelope varies slowly even for off-axis light (the paper's full grid spreads the
+        # carrier itself and aliases once the local fringe frequency passes Nyquist: see the warning)
+        phase = phase - k * n * (alpha * xy[:, 0] + beta * xy[:, 1])
         xs = xy.detach()
         bbox = (float(xs[:, 0].min()), float(xs[:, 0].max()), float(xs[:, 1].min()), float(xs[:, 1].max()))
         jy0, jy1, jx0, jx1 = _window_for_bbox(bbox, 2 * p, p, x0, y0, sy, sx)
@@ -463,16 +466,10 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
         carrier = (alpha, beta)
     origin = (x0 + win[1] * p, y0 + win[0] * p)
-    u = splat_bilinear(xy[:, 0], xy[:, 1], vals, origin, p, win[2:])
+    u = splat_bilinear(xy[:, 0], xy[:, 1], torch.polar(dvec[:, 2], phase), origin, p, win[2:])
     if check:
         slope = n * torch.sqrt((dvec[:, 0] - carrier[0]) ** 2 + (dvec[:, 1] - carrier[1]) ** 2)
         ratio = slope * (2 * p) / (wavelength * 1e-3)
         _warn_nyquist(ratio, torch.ones_like(ratio, dtype=torch.bool), xy, field.tolist(), wavelength, p)
-    if not full_grid:
-        xs = origin[0] + p * torch.arange(win[3], dtype=torch.float64, device=dev)
-        ys = origin[1] + p * torch.arange(win[2], dtype=torch.float64, device=dev)
-        demod = torch.polar(torch.ones((), dtype=torch.float64, device=dev),
-                            -k * n * (alpha * xs[None, :] + beta * ys[:, None]))
-        u = u * demod
     u = u * doe.coverage(win, oversample, device=dev).to(u.dtype)
     return DOEField(u, win, origin, p, carrier, n, float(wavelength), zprop, center, n_rays, "faithful", full_grid)

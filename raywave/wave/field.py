@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["cubic_matrix", "fourier_upsample2", "keys_matrix", "upsample_nodes", "splat_bilinear", "edge_coverage"]
+__all__ = ["cubic_matrix", "fourier_upsample", "fourier_upsample2", "keys_matrix", "upsample_nodes", "splat_bilinear", "edge_coverage"]
 
 
 def _keys(t: torch.Tensor) -> torch.Tensor:
@@ -102,17 +102,27 @@ def edge_coverage(distance: torch.Tensor, pitch: float) -> torch.Tensor:
     return (0.5 + distance / pitch).clamp(0.0, 1.0)
 
 
-def fourier_upsample2(u: torch.Tensor) -> torch.Tensor:
-    """Band-limited (sinc) 2× upsampling of a complex field ``(..., Ny, Nx)`` → ``(..., 2Ny, 2Nx)``.
+def fourier_upsample(u: torch.Tensor, factor: int = 2) -> torch.Tensor:
+    """Band-limited (sinc) upsampling of a complex field ``(..., Ny, Nx)`` → ``(..., q·Ny, q·Nx)``.
 
-    Output sample ``[2i, 2j]`` coincides with input ``[i, j]``; the others lie half-way between. A field
-    sampled at pitch p carries frequencies up to 1/(2p), so |u|² reaches 1/p: its intensity is only
-    correctly sampled on the p/2 grid. The window is treated as periodic: keep a few samples of margin
-    where the field is not ~0 at the edges."""
+    Output sample ``[q·i, q·j]`` coincides with input ``[i, j]``. A field sampled at pitch p carries
+    frequencies up to 1/(2p), so |u|² reaches 1/p: its intensity is only correctly sampled on the p/2 grid
+    (q = 2); a larger q makes a following low-order quadrature of the intensity accurate. The window is
+    treated as periodic: taper the field to ~0 at the edges first."""
+    q = int(factor)
+    if q == 1:
+        return u
     ny, nx = u.shape[-2:]
-    spec = torch.fft.fftshift(torch.fft.fft2(u), dim=(-2, -1))
-    py0, px0 = ny // 2 + (ny % 2), nx // 2 + (nx % 2)  # puts the zero frequency at the new centre
-    pad = (nx - px0 + (nx % 2), px0 - (nx % 2), ny - py0 + (ny % 2), py0 - (ny % 2))
-    big = torch.nn.functional.pad(spec, (pad[0] - (nx % 2) * 0, pad[1], pad[2], pad[3]))
-    big = torch.fft.ifftshift(big, dim=(-2, -1))
-    return torch.fft.ifft2(big) * 4.0
+    spec = torch.fft.fft2(u)
+    big = torch.zeros(u.shape[:-2] + (q * ny, q * nx), dtype=spec.dtype, device=spec.device)
+    ky, kx = (ny + 1) // 2, (nx + 1) // 2  # non-negative frequencies (incl. 0) of each axis
+    big[..., :ky, :kx] = spec[..., :ky, :kx]
+    big[..., :ky, q * nx - (nx - kx):] = spec[..., :ky, kx:]
+    big[..., q * ny - (ny - ky):, :kx] = spec[..., ky:, :kx]
+    big[..., q * ny - (ny - ky):, q * nx - (nx - kx):] = spec[..., ky:, kx:]
+    return torch.fft.ifft2(big) * float(q * q)
+
+
+def fourier_upsample2(u: torch.Tensor) -> torch.Tensor:
+    """:func:`fourier_upsample` by 2."""
+    return fourier_upsample(u, 2)
