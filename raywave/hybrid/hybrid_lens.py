@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import torch
@@ -29,8 +30,8 @@ from torch import nn
 from raywave.doe import DOE
 from raywave.hybrid.coherent import DOEField, accurate_field, chief_rays, faithful_field
 from raywave.lens.sources import VignettingWarning, _as_fields
-from raywave.wave.field import fourier_upsample
-from raywave.wave.propagation import angular_spectrum, pixel_integrate, propagate_window
+from raywave.wave.field import upsampled_intensity
+from raywave.wave.propagation import angular_spectrum, pixel_integrate, propagate_window, window_transfer
 
 __all__ = ["HybridLens", "PSFResult", "SensorCropWarning"]
 
@@ -108,6 +109,9 @@ class HybridLens(nn.Module):
             raise ValueError(f"intensity_upsample must be >= 2 (|U|² has twice the field's bandwidth), got "
                              f"{intensity_upsample!r}")
         self.intensity_upsample = int(intensity_upsample)
+        # transfer functions of recent window pairs (a training loop with a frozen lens reuses them); plain
+        # per-instance memo, never part of the state_dict
+        self._transfer_cache: OrderedDict = OrderedDict()
 
     # ------------------------------------------------------------------ geometry
     def doe_z(self) -> float:
@@ -190,7 +194,8 @@ class HybridLens(nn.Module):
         integrate_origin = crop_origin if full_grid else psf_origin
         phase = self.doe.phase(fd.wavelength, fd.window, self.oversample)
         u = fd.envelope * torch.polar(torch.ones_like(phase), phase)
-        power = (u.abs() ** 2).sum() * p * p
+        with torch.no_grad():  # a diagnostic (energy outside the crop); the DOE's phase does not change it
+            power = torch.view_as_real(fd.envelope).square().sum() * p * p
         if float(power.detach()) == 0.0:
             z = torch.zeros((ks, ks), dtype=torch.float64, device=u.device)
             return z, center_t, torch.ones((), dtype=torch.float64)
@@ -220,18 +225,33 @@ class HybridLens(nn.Module):
             # the window moves with the chief ray: a zero-valued shift carries d(center)/dθ into the field
             shift = crop_origin - crop_origin.detach() if crop_origin.requires_grad else None
             out = propagate_window(u, p, fd.wavelength, fd.z, fd.origin, out_origin, (n_out, n_out),
-                                   n=fd.n, carrier=fd.carrier, shift=shift)
+                                   n=fd.n, carrier=fd.carrier, shift=shift,
+                                   transfer=self._transfer(u, p, fd, out_origin, n_out))
         # intensity on a q-times finer grid (q ≥ 2: |U|² has twice the field's bandwidth), then integrated over
         # the sensor pixels through its cubic interpolant
         q = self.intensity_upsample
-        inten = (fourier_upsample(out * _edge_taper(out.shape[-2:], _OUT_MARGIN - 2, out.device), q).abs() ** 2)
-        inten = inten.to(torch.float64)
+        inten = upsampled_intensity(out, q, _edge_taper(out.shape[-2:], _OUT_MARGIN - 2, out.device)).to(torch.float64)
         crop = pixel_integrate(inten, p / q, ps, out_origin, integrate_origin, (ks, ks), mode="integral",
                                kernel="cubic")
         total = crop.sum()
         outside = 1.0 - total / power.to(torch.float64)
         psf = crop / total.clamp_min(1e-300)
         return psf, center_t, outside
+
+    def _transfer(self, u, p, fd: DOEField, out_origin, n_out: int):
+        """The window transfer function for this geometry, memoised (the 8 most recent window pairs, ≤ ~30 MB each)."""
+        key = (tuple(u.shape[-2:]), n_out, p, fd.wavelength, float(fd.z), fd.n, fd.carrier,
+               round((out_origin[0] - fd.origin[0]) / p, 9), round((out_origin[1] - fd.origin[1]) / p, 9), u.device)
+        hit = self._transfer_cache.get(key)
+        if hit is None:
+            hit = window_transfer(u.shape[-2:], (n_out, n_out), p, fd.wavelength, fd.z, fd.origin, out_origin, fd.n,
+                                  fd.carrier, device=u.device)
+            self._transfer_cache[key] = hit
+            while len(self._transfer_cache) > 8:
+                self._transfer_cache.popitem(last=False)
+        else:
+            self._transfer_cache.move_to_end(key)
+        return hit
 
     def psf_result(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None, mode: str = "accurate",
                    rays: int | None = None, cache=None, propagation_dtype=torch.complex128, **field_kw) -> PSFResult:

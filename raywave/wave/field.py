@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["cubic_matrix", "fourier_upsample", "fourier_upsample2", "keys_matrix", "upsample_nodes", "splat_bilinear", "edge_coverage"]
+__all__ = ["cubic_matrix", "fourier_upsample", "fourier_upsample2", "upsampled_intensity", "keys_matrix", "upsample_nodes", "splat_bilinear", "edge_coverage"]
 
 
 def _keys(t: torch.Tensor) -> torch.Tensor:
@@ -126,3 +126,23 @@ def fourier_upsample(u: torch.Tensor, factor: int = 2) -> torch.Tensor:
 def fourier_upsample2(u: torch.Tensor) -> torch.Tensor:
     """:func:`fourier_upsample` by 2."""
     return fourier_upsample(u, 2)
+
+
+def upsampled_intensity(u: torch.Tensor, factor: int, window: torch.Tensor | None = None) -> torch.Tensor:
+    """``|fourier_upsample(u·window, q)|²`` (float), computed without building the centred padded spectrum.
+
+    The spectrum is rolled by half its length through a modulation of the input (folded into ``window``)
+    and zero-padded at its end by the inverse FFT itself; the output is then the upsampled field times a
+    linear phase, which the modulus removes."""
+    q = int(factor)
+    ny, nx = u.shape[-2:]
+    mod_y = torch.polar(torch.ones(ny, dtype=torch.float64, device=u.device),
+                        2 * torch.pi * (ny // 2) * torch.arange(ny, dtype=torch.float64, device=u.device) / ny)
+    mod_x = torch.polar(torch.ones(nx, dtype=torch.float64, device=u.device),
+                        2 * torch.pi * (nx // 2) * torch.arange(nx, dtype=torch.float64, device=u.device) / nx)
+    mod = mod_y[:, None] * mod_x[None, :] * float(q * q)
+    if window is not None:
+        mod = mod * window
+    spec = torch.fft.fft2(u * mod.to(u.dtype))
+    up = torch.fft.ifft2(spec, s=(q * ny, q * nx))
+    return torch.view_as_real(up).square().sum(-1)

@@ -306,6 +306,7 @@ def propagate_window(
     margin: float = 0.5,
     guard: float = 2.0,
     shift: torch.Tensor | None = None,
+    transfer: tuple | None = None,
 ) -> torch.Tensor:
     """Propagate an envelope from an input window to an output window (shifted band-limited ASM).
 
@@ -341,6 +342,8 @@ def propagate_window(
             ``out_origin`` through a phase ramp on the spectrum; pass a zero-valued tensor that carries a
             derivative to make the result differentiable with respect to where the window sits (a PSF crop
             that follows a chief ray). Keep it well below the margin (sub-sample).
+        transfer: a precomputed ``window_transfer(...)`` result for exactly these arguments (a caller that
+            propagates many fields between the same windows builds it once).
 
     Returns:
         The output envelope ``(..., Ny_out, Nx_out)`` (true field divided by ``exp(i k n (α x + β y))`` at the
@@ -348,9 +351,10 @@ def propagate_window(
     """
     u = _as_field(u)
     noy, nox = (int(s) for s in out_shape)
-    h, (my, mx) = window_transfer(
-        u.shape[-2:], (noy, nox), pitch, wavelength, z, in_origin, out_origin, n, carrier, margin, guard, u.device
-    )
+    if transfer is None:
+        transfer = window_transfer(u.shape[-2:], (noy, nox), pitch, wavelength, z, in_origin, out_origin, n, carrier,
+                                   margin, guard, u.device)
+    h, (my, mx) = transfer
     spec = torch.fft.fft2(u, s=(my, mx))
     h = h.to(u.dtype)
     if shift is not None:

@@ -1,0 +1,271 @@
+"""Ray-wave PSF benchmark: accuracy against ray count, time and peak memory, for both field modes.
+
+Case (issue 3): the bundled asphere (EFL 7.93 mm, F/3.97) + a 3 mm square DOE at 1 µm pitch (3000×3000
+pixels, a trainable pixel phase map) 0.7 mm after the last surface, sensor at focus (3 µm pixels), ks = 128,
+λ = 0.489 and 0.55 µm, on axis and at 0.7 of the full field (along the sensor diagonal).
+
+* **error vs rays**: L1 distance ``Σ|psf − ref|`` (0 … 2) of both modes against (a) the ground truth of an
+  ideal lens of the same EFL and F-number (the non-paraxial Debye PSF, on axis) and (b) a converged
+  reference for the asphere (the accurate mode at 256 nodes, itself checked against the faithful mode);
+* **time and peak memory per PSF**, forward and forward + backward (gradient w.r.t. the 9 M DOE pixels), for
+  the accurate mode and for the faithful mode at 1e6 rays on the paper's full 2×-padded grid (6000² FFTs),
+  each in its own process (peak resident memory above the process's baseline), with the time the FFTs of
+  each take (the FFT calls are recorded during the forward pass and replayed forward + backward alone).
+
+Prints one JSON object (and writes it with ``-o``).
+
+    python benchmarks/psf.py [--threads 2] [--quick] [-o psf.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import subprocess
+import sys
+import time
+
+WAVELENGTHS = (0.489, 0.55)
+KS = 128
+DOE_N, DOE_PITCH, DOE_DIST = 3000, 1e-3, 0.7
+
+
+def _status_mb(key: str) -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def _reset_peak() -> None:
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+    except OSError:
+        pass
+
+
+def _fields(lens):
+    """On axis and 0.7 of the full field along the sensor diagonal (degrees)."""
+    full = max(lens.fields)
+    w, h = lens.sensor_size
+    phi = math.atan2(h, w)
+    t = math.tan(math.radians(0.7 * full))
+    return [(0.0, 0.0), (math.degrees(math.atan(t * math.cos(phi))), math.degrees(math.atan(t * math.sin(phi))))]
+
+
+def _setup(pixel_doe: bool = False):
+    import torch
+
+    from raywave.doe import BlankDOE, PixelDOE
+    from raywave.hybrid import HybridLens
+    from raywave.lens.build import bundled_lens_path, load_lens
+
+    lens = load_lens(bundled_lens_path("asphere_hk51"))
+    doe = PixelDOE(torch.zeros(DOE_N, DOE_N), DOE_PITCH) if pixel_doe else BlankDOE(DOE_N, DOE_PITCH)
+    return HybridLens(lens, doe, DOE_DIST), lens
+
+
+def _l1(a, b) -> float:
+    return float((a - b).abs().sum())
+
+
+def accuracy(quick: bool) -> dict:
+    """Error against ray count for both modes (window propagation; identical to the full grid, see tests)."""
+    import torch
+
+    from raywave.doe import BlankDOE
+    from raywave.hybrid import HybridLens
+    from raywave.lens.build import ideal_lens
+    from raywave.models.debye import debye_psf
+
+    hl, lens = _setup()
+    fields = _fields(lens)
+    nodes = [8, 12, 16, 24, 32, 48, 64] if not quick else [8, 16, 32]
+    rays = [10_000, 30_000, 100_000, 300_000, 1_000_000] if not quick else [10_000, 100_000]
+    out = {"fields_deg": fields, "wavelengths_um": list(WAVELENGTHS), "metric": "L1 = sum|psf - ref| (0..2)"}
+
+    # (a) ground truth: an ideal lens of the same EFL and F-number, DOE at the same distance from the sensor
+    efl = float(lens.paraxial().efl)
+    fno = efl / float(lens.paraxial().epd)
+    z_doe_sensor = float(lens.surfaces[-1].thickness.detach()) - DOE_DIST
+    ideal = HybridLens(ideal_lens(efl, f_number=fno, wavelengths=WAVELENGTHS), BlankDOE(DOE_N, DOE_PITCH),
+                       efl - z_doe_sensor, sensor_pitch=hl.sensor_pitch)
+    truth = {}
+    for wl in WAVELENGTHS:
+        na = math.sin(math.atan(0.5 / fno))
+        res = debye_psf(na, wl, KS, hl.sensor_pitch)
+        truth[wl] = (res[0] if isinstance(res, tuple) else getattr(res, "psf", res)).to(torch.float64)
+    rows = []
+    for wl in WAVELENGTHS:
+        for n in nodes:
+            r = ideal.psf_result((0, 0), wl, ks=KS, rays=n)
+            rows.append({"mode": "accurate", "wavelength": wl, "nodes": n, "rays": int(r.rays[0, 0]),
+                         "l1": _l1(r.psf[0, 0].detach(), truth[wl])})
+        for nr in rays:
+            p = ideal.psf((0, 0), wl, ks=KS, mode="faithful", rays=nr, generator=torch.Generator().manual_seed(0))
+            rows.append({"mode": "faithful", "wavelength": wl, "rays": nr, "l1": _l1(p[0, 0].detach(), truth[wl])})
+    out["ideal_lens_vs_debye"] = rows
+
+    # (b) the asphere against a converged reference
+    rows = []
+    for fi, fld in enumerate(fields):
+        for wl in WAVELENGTHS:
+            ref = hl.psf(fld, wl, ks=KS, rays=256)[0, 0].detach()
+            for n in nodes:
+                r = hl.psf_result(fld, wl, ks=KS, rays=n)
+                rows.append({"mode": "accurate", "field": fi, "wavelength": wl, "nodes": n, "rays": int(r.rays[0, 0]),
+                             "l1": _l1(r.psf[0, 0].detach(), ref)})
+            for nr in rays:
+                p = hl.psf(fld, wl, ks=KS, mode="faithful", rays=nr, generator=torch.Generator().manual_seed(0))
+                rows.append({"mode": "faithful", "field": fi, "wavelength": wl, "rays": nr,
+                             "l1": _l1(p[0, 0].detach(), ref)})
+    out["asphere_vs_converged"] = rows
+    return out
+
+
+def _rays_to_match(rows, key_filter, target: float):
+    """Fewest accurate-mode rays whose error is at most ``target`` for every field/wavelength."""
+    import collections
+
+    worst = collections.defaultdict(float)
+    for r in rows:
+        if r["mode"] == "accurate" and key_filter(r):
+            worst[r["nodes"]] = max(worst[r["nodes"]], r["l1"])
+    rays = {r["nodes"]: r["rays"] for r in rows if r["mode"] == "accurate"}
+    ok = [n for n in sorted(worst) if worst[n] <= target]
+    return (ok[0], rays[ok[0]]) if ok else (None, None)
+
+
+def _fft_seconds(fn) -> float:
+    """Self CPU time of the FFT kernels (forward and backward) while ``fn`` runs (torch.profiler)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    return sum(e.self_cpu_time_total for e in prof.key_averages() if "fft" in e.key.lower()) / 1e6
+
+
+def timing_case(mode: str, backward: bool, nodes: int, threads: int, repeat: int, cached: bool = False) -> dict:
+    """Wall time, FFT time and peak memory of one PSF (λ = 0.55, 0.7 field) in this process.
+
+    ``cached``: the DOE-training step of a frozen refractive lens (the DOE-plane field is traced once and
+    reused, as ``HybridLens.psf(cache=...)`` does); otherwise the whole pipeline runs every time."""
+    import torch
+
+    torch.set_num_threads(threads)
+    hl, lens = _setup(pixel_doe=True)
+    fld = _fields(lens)[1]
+    if mode == "accurate":
+        kw = dict(rays=nodes)
+    else:
+        kw = dict(mode="faithful", rays=1_000_000, full_grid=True, generator=torch.Generator().manual_seed(0))
+    cache = [[f.detach() for f in row] for row in hl.doe_fields(fld, 0.55, **kw)] if cached else None
+    weight = torch.linspace(0, 1, KS * KS, dtype=torch.float64).reshape(KS, KS)
+
+    def once():
+        hl.zero_grad(set_to_none=True)
+        if cached:
+            psf = hl.psf(ks=KS, cache=cache)
+        else:
+            if "generator" in kw:
+                kw["generator"].manual_seed(0)
+            psf = hl.psf(fld, 0.55, ks=KS, **kw)
+        if backward:
+            (psf * weight).sum().backward()
+        else:
+            psf = psf.detach()
+        return psf
+
+    base = _status_mb("VmRSS")
+    _reset_peak()
+    with torch.set_grad_enabled(backward):
+        once()  # warm-up (and the peak)
+        peak = _status_mb("VmHWM") - base
+        times = []
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            once()
+            times.append(time.perf_counter() - t0)
+        fft = min(_fft_seconds(once) for _ in range(repeat))
+    return {"mode": mode, "backward": backward, "cached_doe_field": cached,
+            ("nodes" if mode == "accurate" else "rays"): nodes if mode == "accurate" else 1_000_000,
+            "seconds": min(times), "fft_seconds": fft, "peak_extra_memory_mb": peak, "threads": threads}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--quick", action="store_true", help="fewer ray counts, no faithful full-grid timing")
+    ap.add_argument("--nodes", type=int, default=None, help="accurate-mode nodes for the timing (default: the "
+                    "fewest that reach the faithful mode's 1e6-ray error)")
+    ap.add_argument("-o", "--output", default=None)
+    ap.add_argument("--case", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.case:
+        mode, bwd, nodes, cached = args.case.split(",")
+        print(json.dumps(timing_case(mode, bwd == "1", int(nodes), args.threads, args.repeat, cached == "1")))
+        return
+    import torch
+
+    torch.set_num_threads(args.threads)
+    acc = accuracy(args.quick)
+    rows = acc["asphere_vs_converged"]
+    faithful_1e6 = max((r["l1"] for r in rows if r["mode"] == "faithful" and r["rays"] == max(
+        x["rays"] for x in rows if x["mode"] == "faithful")), default=float("nan"))
+    n_match, rays_match = _rays_to_match(rows, lambda r: True, faithful_1e6)
+    nodes = args.nodes or n_match or 32
+    timings = []
+    cases = [("accurate", 0, 0), ("accurate", 1, 0), ("accurate", 0, 1), ("accurate", 1, 1)]
+    if not args.quick:
+        cases += [("faithful", 0, 0), ("faithful", 1, 0), ("faithful", 1, 1)]
+    for mode, bwd, cached in cases:
+        cmd = [sys.executable, __file__, "--case", f"{mode},{bwd},{nodes},{cached}", "--threads", str(args.threads),
+               "--repeat", str(args.repeat)]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            timings.append({"mode": mode, "backward": bool(bwd), "error": res.stderr.strip().splitlines()[-1]})
+        else:
+            timings.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    t = {(x["mode"], x["backward"], x.get("cached_doe_field", False)): x for x in timings}
+    acc_fb, fai_fb = t.get(("accurate", True, False), {}), t.get(("faithful", True, False), {})
+    acc_fb_c, fai_fb_c = t.get(("accurate", True, True), {}), t.get(("faithful", True, True), {})
+
+    def ratio(a, b, key_a="seconds", key_b="seconds"):
+        return (a[key_a] / b[key_b]) if key_a in a and key_b in b else None
+
+    max_faithful_rays = max(r["rays"] for r in rows if r["mode"] == "faithful")
+    summary = {
+        "benchmark": "psf", "lens": "asphere_hk51 + 3 mm square DOE, 1 µm pitch (3000²), 0.7 mm after the lens",
+        "ks": KS, "sensor_pitch_um": 3.0, "threads": args.threads, "torch": torch.__version__,
+        "machine": platform.processor() or platform.machine(),
+        "accuracy": acc,
+        "timing": timings,
+        "goals": {
+            "faithful_error_at_max_rays": faithful_1e6, "faithful_max_rays": max_faithful_rays,
+            "accurate_nodes_to_match": n_match, "accurate_rays_to_match": rays_match,
+            "ray_ratio (goal >= 10)": (max_faithful_rays / rays_match) if rays_match else None,
+            "fwd_bwd_speedup_vs_faithful_full_grid (goal >= 20)": ratio(fai_fb, acc_fb),
+            "fwd_bwd_speedup_vs_faithful_full_grid, cached DOE field": ratio(fai_fb_c, acc_fb_c),
+            "accurate_fwd_bwd_time_over_its_fft_time (goal <= 2.5)": ratio(acc_fb, acc_fb, "seconds", "fft_seconds"),
+            "accurate_fwd_bwd_time_over_its_fft_time, cached DOE field": ratio(acc_fb_c, acc_fb_c, "seconds",
+                                                                               "fft_seconds"),
+            "accurate_fwd_time_over_its_fft_time": ratio(t.get(("accurate", False, False), {}),
+                                                         t.get(("accurate", False, False), {}), "seconds", "fft_seconds"),
+            "accurate_peak_memory_mb (goal < 1024)": max(x.get("peak_extra_memory_mb", 0) for x in timings
+                                                         if x["mode"] == "accurate"),
+        },
+    }
+    text = json.dumps(summary, indent=2)
+    print(text)
+    if args.output:
+        with open(args.output, "w") as fh:
+            fh.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
