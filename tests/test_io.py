@@ -260,9 +260,10 @@ def test_zmx_unsupported_surface_type_names_surface(tmp_path):
         read_zmx(p)
     assert str(e.value).startswith(f"{p}:{line}: surface 2: surface type TOROIDAL is not supported")
     assert "STANDARD, EVENASPH, PARAXIAL" in str(e.value)
-    for typ in ("COORDBRK", "BINARY_2"):
+    for typ, msg in (("COORDBRK", "surface type COORDBRK is not supported"),
+                     ("BINARY_2", "diffractive surface type BINARY_2 is supported only as the last surface")):
         bad = cooke_zmx_text().replace("SURF 3\r\n  TYPE STANDARD", f"SURF 3\r\n  TYPE {typ}")
-        with pytest.raises(LensFileError, match=f"surface 3: surface type {typ} is not supported"):
+        with pytest.raises(LensFileError, match=f"surface 3: {msg}"):
             read_zmx(write_bytes(tmp_path, "b.zmx", bad, "utf-8"))
 
 
@@ -507,10 +508,10 @@ def test_bundled_lenses_read_and_round_trip(tmp_path, path):
     write_json_spec(spec, tmp_path / "b.json")
     assert read_json_spec(tmp_path / "b.json") == spec
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", LensFileWarning)  # sensor / description are not stored in .zmx
+        warnings.simplefilter("ignore", LensFileWarning)  # sensor / description / doe are not stored in .zmx
         write_zmx(spec, tmp_path / "b.zmx")
     back = read_zmx(tmp_path / "b.zmx")
     expected = canonical_spec(spec)
-    for k in ("sensor", "description"):
+    for k in ("sensor", "description", "doe"):
         expected.pop(k, None)
     assert back == expected

@@ -4,7 +4,8 @@ raywave does not change torch's global state."""
 import subprocess
 import sys
 
-PHYSICS = ["raywave.materials", "raywave.surfaces", "raywave.rays", "raywave.lens", "raywave.io"]
+PHYSICS = ["raywave.materials", "raywave.surfaces", "raywave.rays", "raywave.lens", "raywave.io", "raywave.doe",
+           "raywave.wave", "raywave.hybrid", "raywave.hybrid.build", "raywave.hybrid.metrics"]
 
 
 def _modules_after_import(mods):
@@ -17,6 +18,11 @@ def test_physics_does_not_import_plotting_or_cli():
     loaded = _modules_after_import(PHYSICS)
     assert "matplotlib" not in loaded
     assert not any(m.startswith("raywave.plotting") or m.startswith("raywave.cli") for m in loaded)
+
+
+def test_io_does_not_import_torch():
+    loaded = _modules_after_import(["raywave.io"])
+    assert "torch" not in loaded
 
 
 def test_import_leaves_torch_defaults_alone():

@@ -124,11 +124,13 @@ def cmd_spot(args) -> int:
 
 # ---------------------------------------------------------------------------- convert
 def cmd_convert(args) -> int:
-    from raywave.io import read_lens_spec, write_lens_spec
+    from raywave.io import read_lens_spec, rebase_phase_path, write_lens_spec
     from raywave.lens.build import lens_from_spec, resolve_lens_path
 
-    spec = read_lens_spec(resolve_lens_path(args.input))
+    src = resolve_lens_path(args.input)
+    spec = read_lens_spec(src)
     lens_from_spec(spec)  # validates glasses and geometry before anything is written
+    spec = rebase_phase_path(spec, src.parent, Path(args.output).parent)  # a DOE phase map stays findable
     write_lens_spec(spec, args.output)
     print(f"wrote {args.output}")
     return 0

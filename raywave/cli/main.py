@@ -5,14 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from raywave.cli import lens_commands
+from raywave.cli import lens_commands, psf_commands
+from raywave.cli.errors import CommandError
+
+__all__ = ["COMMAND_MODULES", "CommandError", "build_parser", "main"]
 
 #: Modules that add sub-commands: each has ``register(subparsers)``.
-COMMAND_MODULES = [lens_commands]
-
-
-class CommandError(Exception):
-    """An error to report to the user as one line, without a traceback."""
+COMMAND_MODULES = [lens_commands, psf_commands]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -15,6 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from raywave.io.deeplens import looks_like_deeplens, read_deeplens
+from raywave.io.doe import DOEData, rebase_phase_path, resolve_doe
 from raywave.io.errors import LensFileError, LensFileWarning
 from raywave.io.json_format import (parse_json_text, read_json_spec, read_text, validate_spec,
                                     write_json_spec)
@@ -22,14 +23,18 @@ from raywave.io.spec import canonical_spec
 from raywave.io.zmx import read_zmx, write_zmx
 
 __all__ = [
+    "DOEData",
     "LensFileError",
     "LensFileWarning",
     "canonical_spec",
     "detect_format",
     "read_deeplens",
+    "read_hybrid_spec",
     "read_json_spec",
     "read_lens_spec",
     "read_zmx",
+    "rebase_phase_path",
+    "resolve_doe",
     "validate_spec",
     "write_json_spec",
     "write_lens_spec",
@@ -69,6 +74,21 @@ def read_lens_spec(path) -> dict:
     if fmt == "deeplens":
         return read_deeplens(path)
     return read_json_spec(path)
+
+
+def read_hybrid_spec(path) -> tuple[dict, DOEData | None]:
+    """Read a lens file and its DOE: ``(spec, doe)``, ``doe`` None when the file names no DOE.
+
+    The DOE's phase map (``doe.phase``, relative to the lens file) is read in full and checked (2-D, finite,
+    shape agreeing with ``shape`` / ``size`` and the pitch); errors are :class:`LensFileError` with the line of
+    the key in the lens file."""
+    spec = read_lens_spec(path)
+    if spec.get("doe") is None:
+        return spec, None
+    lines = None
+    if detect_format(path) == "raywave":
+        _, lines = parse_json_text(read_text(path), str(path))
+    return spec, resolve_doe(spec, str(path), Path(path).parent, lines, load=True)
 
 
 def write_lens_spec(spec: dict, path, **kwargs) -> None:

@@ -15,6 +15,7 @@ from json.decoder import scanstring
 from json.scanner import NUMBER_RE
 from pathlib import Path
 
+from raywave.io.doe import check_doe_files, validate_doe
 from raywave.io.errors import LensFileError, suggestion
 
 FORMAT_NAME = "raywave-lens"
@@ -22,7 +23,7 @@ FORMAT_VERSION = 1
 UNITS = {"length": "mm", "wavelength": "um"}
 
 TOP_KEYS = ("format", "version", "units", "name", "description", "catalogs", "object", "system_aperture",
-            "fields", "wavelengths", "sensor", "surfaces")
+            "fields", "wavelengths", "sensor", "surfaces", "doe")
 SURFACE_TYPES = ("standard", "even_asphere", "paraxial")
 COMMON_SURFACE_KEYS = ("type", "thickness", "material", "aperture", "semi_diameter", "stop", "comment")
 TYPE_KEYS = {
@@ -316,6 +317,8 @@ class _Validator:
                 self.number_list(s["size"], ("sensor", "size"), n=2, positive=True)
             if "resolution" in s:
                 self.number_list(s["resolution"], ("sensor", "resolution"), n=2, positive=True, integer=True)
+        if "doe" in spec and spec["doe"] is not None:
+            validate_doe(self, spec["doe"], spec)
         if "surfaces" not in spec:
             self.err((), "missing 'surfaces' (the list of surfaces)")
             return
@@ -505,7 +508,9 @@ def read_json_spec(path) -> dict:
     if "format" not in data:
         raise LensFileError(f"missing \"format\": {FORMAT_NAME!r} (not a raywave lens file; DeepLens files "
                             "are read by raywave.io.read_lens_spec / read_deeplens)", path, 1)
-    return validate_spec(data, path, lines)
+    validate_spec(data, path, lines)
+    check_doe_files(data, path, lines)  # the phase map file: exists, 2-D, shape (read in full when built)
+    return data
 
 
 def with_header(spec: dict) -> dict:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+from raywave.io.doe import doe_canonical
 from raywave.io.json_format import FORMAT_NAME, FORMAT_VERSION, UNITS
 
 #: Wavelengths (µm) used when a spec gives none: F, d, C lines, primary d (as raywave.lens.build).
@@ -123,4 +124,6 @@ def canonical_spec(spec: dict) -> dict:
         if s.get("resolution") is not None:
             out["sensor"]["resolution"] = [int(v) for v in s["resolution"]]
     out["surfaces"] = [surface_canonical(s) for s in spec["surfaces"]]
+    if spec.get("doe") is not None:
+        out["doe"] = doe_canonical(spec["doe"])
     return out

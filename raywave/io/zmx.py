@@ -4,7 +4,9 @@ What is read (see docs/lens-format.md, "Zemax .zmx"): system data (NAME, UNIT, E
 XFLN/YFLN, WAVM/WAVL, PWAV) and the surfaces ``SURF n`` of types STANDARD, EVENASPH and PARAXIAL with
 STOP, CURV, DISZ, GLAS, DIAM, CONI, PARM, COMM and CLAP / SQAP / FLAP apertures. Surface 0 is the object
 (its DISZ is the object distance), the last surface is the image plane (dropped: the thickness before it
-is the distance to the image). Anything raywave cannot model (other surface types, mirrors, tilted or
+is the distance to the image). A diffractive surface (BINARY_2, DGRATING, ...) as the last surface before the
+image becomes the spec's "doe" (the DOE plane of a hybrid lens; BINARY_2 coefficients kept as its
+``phase_model``). Anything raywave cannot model (other surface types, mirrors, tilted or
 decentred apertures, curved object or image, F/# or NA system apertures, non-sequential mode) raises
 :class:`LensFileError` naming the surface and line; known bookkeeping keys are skipped and unknown keys
 give one :class:`LensFileWarning` listing them.
@@ -26,6 +28,23 @@ from raywave.io.spec import DEFAULT_WAVELENGTHS, aspheric_canonical, curvature_o
 
 #: Zemax surface types raywave models, and their spec type.
 SURFACE_TYPES = {"STANDARD": "standard", "EVENASPH": "even_asphere", "PARAXIAL": "paraxial"}
+#: Zemax diffractive surface types: as the last surface before the image, such a surface is the DOE plane of
+#: a hybrid lens (spec "doe"); anywhere else it is an error. Also any type whose name says diffractive.
+DIFFRACTIVE_TYPES = {"BINARY_1", "BINARY_2", "BINARY_3", "BINARY_4", "DGRATING", "RADGRATI", "ELGRATIN", "ELGRAT2",
+                     "TOROGRAT", "HOLOGRM1", "HOLOGRM2", "VLSGRATI"}
+#: ... and any type whose name contains one of these.
+DIFFRACTIVE_NAME_PARTS = ("BINARY", "GRAT", "HOLOG", "DIFFRACT", "PHAS")
+#: BINARY_2: PARM 0 = diffraction order, PARM 1..8 = even-asphere substrate terms (must be 0: the DOE is a plane);
+#: XDAT 1 = number of terms N, XDAT 2 = normalisation radius, XDAT 3.. = A_i on (r / R_norm)^(2i), radians.
+MAX_BINARY2_TERMS = 230
+
+
+def is_diffractive_type(typ: str) -> bool:
+    """A Zemax surface type that adds a diffractive phase (binary optics, gratings, holograms, phase maps)."""
+    t = typ.upper()
+    return t in DIFFRACTIVE_TYPES or any(part in t for part in DIFFRACTIVE_NAME_PARTS)
+
+
 #: Lens units -> mm.
 UNIT_SCALE = {"MM": 1.0, "CM": 10.0, "IN": 25.4, "INCH": 25.4, "M": 1000.0, "METER": 1000.0, "METERS": 1000.0}
 #: EVENASPH: PARM i multiplies r^(2i) (PARM 1 = a2, ..., PARM 8 = a16).
@@ -248,6 +267,20 @@ def _interpret(text: str, path: str) -> dict:
     parsed = [_surface(s, path, scale, unknown) for s in surfs]
     obj, img, lens = parsed[0], parsed[-1], parsed[1:-1]
 
+    # a diffractive surface right before the image is the DOE plane of a hybrid lens
+    doe = None
+    for p in parsed[:-1]:
+        if p["kind"] == "diffractive" and p is not parsed[-2]:
+            raise err(f"surface {p['number']}: diffractive surface type {p['zemax_type']} is supported only as the "
+                      "last surface before the image (the DOE plane of a hybrid lens)", p["line"])
+    if lens and lens[-1]["kind"] == "diffractive":
+        if len(lens) < 2 or parsed[-2] is obj:
+            raise err(f"surface {lens[-1]['number']}: a DOE plane needs a refractive lens in front of it",
+                      lens[-1]["line"])
+        d, lens = lens[-1], lens[:-1]
+        doe = _doe_from_surface(d, lens[-1], path, scale)
+        lens[-1] = dict(lens[-1], disz=lens[-1]["disz"] + d["disz"])  # the refractive lens reaches the sensor
+
     # object and image surfaces: flat, in air
     for p, what in ((obj, "object"), (img, "image")):
         if p["kind"] != "standard" or p["curv"] != 0.0:
@@ -343,6 +376,8 @@ def _interpret(text: str, path: str) -> dict:
             s["comment"] = p["comment"]
         surfaces.append(s)
     spec["surfaces"] = surfaces
+    if doe is not None:
+        spec["doe"] = doe
     if floating and epd is not None:
         warnings.warn(LensFileWarning(f"{path}: both ENPD and FLOA given; using ENPD"), stacklevel=3)
 
@@ -355,7 +390,7 @@ def _interpret(text: str, path: str) -> dict:
 def _surface(s: _Surf, path, scale, unknown) -> dict:
     p = {"number": s.number, "line": s.line, "kind": "standard", "curv": 0.0, "disz": None, "material": "air",
          "diam": None, "conic": 0.0, "parms": {}, "stop": False, "comment": "", "aperture": None,
-         "focal": None, "aspheric": {}}
+         "focal": None, "aspheric": {}, "xdat": {}, "zemax_type": None}
     where = f"surface {s.number}"
     typ_line = s.line
     for ln, key, rest in s.entries:
@@ -369,6 +404,11 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
 
         if key == "TYPE":
             typ = toks[0].upper() if toks else "STANDARD"
+            if is_diffractive_type(typ):
+                p["kind"] = "diffractive"
+                p["zemax_type"] = typ
+                typ_line = ln
+                continue
             if typ not in SURFACE_TYPES:
                 raise LensFileError(f"{where}: surface type {typ} is not supported by raywave (supported: "
                                     f"{', '.join(SURFACE_TYPES)})", path, ln)
@@ -421,6 +461,10 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
             vals = [_float(t, path, ln, f"{where}: OBDC") for t in toks[:2]]
             if any(v != 0.0 for v in vals):
                 raise LensFileError(f"{where}: decentred aperture (OBDC {rest}) is not supported", path, ln)
+        elif key == "XDAT" and p["kind"] == "diffractive":
+            if len(toks) < 2:
+                raise LensFileError(f"{where}: XDAT needs an index and a value", path, ln)
+            p["xdat"][int(float(toks[0]))] = _float(toks[1], path, ln, f"{where}: XDAT")
         elif key in UNSUPPORTED_APERTURES:
             raise LensFileError(f"{where}: {UNSUPPORTED_APERTURES[key]} ({key}) is not supported", path, ln)
         elif key in IGNORED_SURFACE_KEYS:
@@ -446,12 +490,74 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
     elif p["kind"] == "paraxial":
         if 1 in parms:
             p["focal"] = parms[1][0] * scale
+    elif p["kind"] == "diffractive":
+        pass  # checked and read by _doe_from_surface once its position is known to be right
     else:
         bad = [(i, ln) for i, (v, ln) in parms.items() if v != 0.0]
         if bad:
             raise LensFileError(f"{where}: STANDARD surface with non-zero PARM {bad[0][0]}", path, bad[0][1])
     p["line"] = typ_line if typ_line else s.line
     return p
+
+
+def _diffractive_phase(p, where, path, scale, line):
+    """The phase model of a diffractive surface (BINARY_2 only; None for the other types, with a warning)."""
+    typ = p["zemax_type"]
+    if p["curv"] != 0.0:
+        raise LensFileError(f"{where}: {typ} surface with curvature {p['curv']!r}: raywave's DOE is a thin phase "
+                            "element on a plane (CURV 0)", path, line)
+    if typ != "BINARY_2":
+        warnings.warn(LensFileWarning(f"{path}:{line}: {where}: the phase of a {typ} surface is not read; its plane "
+                                      "becomes the DOE plane with a blank DOE"), stacklevel=4)
+        return None
+    bad = [(i, ln) for i, (v, ln) in p["parms"].items() if 1 <= i <= 8 and v != 0.0]
+    if bad:
+        raise LensFileError(f"{where}: BINARY_2 with an aspheric substrate (PARM {bad[0][0]} != 0) is not supported: "
+                            "raywave's DOE is a thin phase element on a plane", path, bad[0][1])
+    order = p["parms"].get(0, (1.0, None))[0]
+    xdat = p["xdat"]
+    n_terms = int(xdat.get(1, 0.0))
+    if not 0 <= n_terms <= MAX_BINARY2_TERMS:
+        raise LensFileError(f"{where}: BINARY_2 number of terms (XDAT 1) must be 0..{MAX_BINARY2_TERMS}, got "
+                            f"{n_terms}", path, line)
+    norm = xdat.get(2, 1.0)
+    if not (math.isfinite(norm) and norm > 0):
+        raise LensFileError(f"{where}: BINARY_2 normalisation radius (XDAT 2) must be > 0, got {norm!r}", path, line)
+    coeffs = [xdat.get(3 + i, 0.0) for i in range(n_terms)]
+    return {"type": "binary_2", "order": order, "norm_radius": norm * scale, "coefficients": coeffs}
+
+
+def _doe_from_surface(d, before, path, scale) -> dict:
+    """The spec "doe" of the diffractive surface ``d`` (the last before the image) after surface ``before``."""
+    where = f"surface {d['number']}"
+    model = _diffractive_phase(d, where, path, scale, d["line"])
+    if d["stop"]:
+        raise LensFileError(f"{where}: the diffractive surface cannot be the stop (raywave's DOE plane lies after "
+                            "the refractive lens)", path, d["line"])
+    if d["material"] != before["material"]:
+        raise LensFileError(f"{where}: the diffractive surface changes the medium ({before['material']!r} before, "
+                            f"{d['material']!r} after): raywave's DOE is a thin element in one medium", path, d["line"])
+    if d["disz"] is None or not math.isfinite(d["disz"]) or not d["disz"] > 0:
+        raise LensFileError(f"{where}: the DOE plane must lie before the image: its thickness (DISZ) must be > 0 mm, "
+                            f"got {d['disz']!r}", path, d["line"])
+    t = before["disz"]
+    if t is None or not math.isfinite(t) or t < 0:
+        raise LensFileError(f"surface {before['number']}: the distance to the DOE plane (DISZ) must be >= 0 mm, got "
+                            f"{t!r}", path, before["line"])
+    doe: dict = {"distance": t}
+    ap = d["aperture"]
+    if ap is None:
+        doe["aperture"] = "square"
+    elif ap["shape"] == "circle":
+        doe["aperture"] = "circle"
+        doe["size"] = [2.0 * ap["radius"], 2.0 * ap["radius"]]
+    else:
+        doe["aperture"] = "square"
+        doe["size"] = [2.0 * ap["half_width"], 2.0 * ap["half_width"]]
+    doe["phase"] = None
+    if model is not None:
+        doe["phase_model"] = model
+    return doe
 
 
 def _glass(toks, where, path, ln):
@@ -558,7 +664,7 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     sensor = spec.get("sensor")
     if sensor:
         w(f'  DIAM {_num(0.5 * math.hypot(*sensor["size"]))} 1 0 0 1 ""')
-    lost = [k for k in ("sensor", "description") if spec.get(k)]
+    lost = [k for k in ("sensor", "description", "doe") if spec.get(k)]
     if lost:
         warnings.warn(LensFileWarning(f"{source}: .zmx files do not store {' and '.join(lost)}; "
                                       "they are left out"), stacklevel=3)

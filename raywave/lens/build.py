@@ -160,11 +160,22 @@ def save_lens(lens: Lens, path: str | Path) -> None:
     write_lens_spec(lens_to_spec(lens), path)
 
 
+def load_hybrid(path: str | Path, doe_pitch: float | None = None, doe_size=None, doe_distance: float | None = None,
+                **kwargs):
+    """Read a lens file into a :class:`~raywave.hybrid.HybridLens`: the refractive lens and the file's DOE (a
+    ``"doe"`` section, or a .zmx diffractive last surface), or a default blank DOE for a lens file without one.
+    See :func:`raywave.hybrid.build.load_hybrid`."""
+    from raywave.hybrid.build import load_hybrid as _load_hybrid
+
+    return _load_hybrid(path, doe_pitch, doe_size, doe_distance, **kwargs)
+
+
 BUNDLED = Path(__file__).resolve().parent.parent / "data" / "lenses"
 
 
 def bundled_lens_path(name: str) -> Path:
-    """Path of a bundled example lens ('singlet', 'cooke_triplet', 'double_gauss', 'asphere_hk51')."""
+    """Path of a bundled example lens ('singlet', 'cooke_triplet', 'double_gauss', 'asphere_hk51',
+    'hybrid_asphere')."""
     p = BUNDLED / f"{name}.json"
     if not p.exists():
         avail = sorted(q.stem for q in BUNDLED.glob("*.json"))

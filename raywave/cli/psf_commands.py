@@ -1,0 +1,286 @@
+"""The ``psf`` command: the ray-wave PSF of a hybrid lens (refractive lens + DOE) for one point source.
+
+    raywave psf LENS [--field X [Y]] [--depth Z] [--wavelength W] [--ks N] [-o psf.npy|psf.npz] [--png psf.png]
+                [--log] [--json] [--mode accurate|faithful] [--rays N] [--doe-pitch P] [--doe-size W [H]]
+                [--doe-distance D] [--sensor-pitch P] [--oversample Q]
+
+LENS is a lens file (.json with or without a "doe" section, .zmx with or without a diffractive last surface,
+DeepLens .json) or a bundled lens name. A lens without a DOE gets a blank one (see
+:mod:`raywave.hybrid.build` for the default distance, pitch and size). Warnings (sampling, vignetting, a DOE
+phase not applied) are printed to stderr as one line each.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import warnings
+from pathlib import Path
+
+from raywave.cli.errors import CommandError
+
+OUTPUT_EXTENSIONS = (".npy", ".npz")
+_MAX_WAVELENGTH_UM = 100.0
+
+
+# ---------------------------------------------------------------------------- argument parsing
+def _number(text: str, flag: str, positive: bool = False, nonneg: bool = False, allow_inf: bool = False) -> float:
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        raise CommandError(f"{flag}: {text!r} is not a number") from None
+    if math.isnan(v) or (math.isinf(v) and not allow_inf):
+        raise CommandError(f"{flag}: {text!r} is not a finite number")
+    if positive and not v > 0:
+        raise CommandError(f"{flag}: must be > 0, got {text}")
+    if nonneg and v < 0:
+        raise CommandError(f"{flag}: must be >= 0, got {text}")
+    return v
+
+
+def _integer(text: str, flag: str, minimum: int = 1) -> int:
+    try:
+        v = int(text)
+    except (TypeError, ValueError):
+        raise CommandError(f"{flag}: {text!r} is not an integer") from None
+    if v < minimum:
+        raise CommandError(f"{flag}: must be >= {minimum}, got {v}")
+    return v
+
+
+def parse_psf_args(args) -> dict:
+    """Check and convert the command's arguments (strings) -> a dict; bad input raises :class:`CommandError`."""
+    from raywave.lens.build import resolve_lens_path
+
+    try:
+        path = resolve_lens_path(args.lens)
+    except FileNotFoundError as e:
+        raise CommandError(str(e)) from None
+    out: dict = {"path": path}
+    f = args.field if args.field is not None else ["0", "0"]
+    if len(f) not in (1, 2):
+        raise CommandError(f"--field: give X Y (degrees) or one value Y, got {len(f)} values")
+    vals = [_number(t, "--field") for t in f]
+    out["field"] = (0.0, vals[0]) if len(vals) == 1 else (vals[0], vals[1])
+    if any(abs(v) >= 90 for v in out["field"]):
+        raise CommandError(f"--field: angles must lie within (-90, 90) degrees, got {list(out['field'])}")
+    out["depth"] = None if args.depth is None else _number(args.depth, "--depth", positive=True, allow_inf=True)
+    out["wavelength"] = None
+    if args.wavelength is not None:
+        w = _number(args.wavelength, "--wavelength", positive=True)
+        if w > _MAX_WAVELENGTH_UM:
+            raise CommandError(f"--wavelength: {args.wavelength} µm is not a plausible wavelength (µm, not nm)")
+        out["wavelength"] = w
+    out["ks"] = _integer(args.ks, "--ks")
+    out["rays"] = None if args.rays is None else _integer(args.rays, "--rays")
+    out["doe_pitch"] = None if args.doe_pitch is None else _number(args.doe_pitch, "--doe-pitch", positive=True)
+    if args.doe_size is not None:
+        if len(args.doe_size) not in (1, 2):
+            raise CommandError(f"--doe-size: give W [H] (mm), got {len(args.doe_size)} values")
+        out["doe_size"] = tuple(_number(t, "--doe-size", positive=True) for t in args.doe_size)
+    else:
+        out["doe_size"] = None
+    out["doe_distance"] = (None if args.doe_distance is None
+                           else _number(args.doe_distance, "--doe-distance", nonneg=True))
+    out["sensor_pitch"] = (None if args.sensor_pitch is None
+                           else _number(args.sensor_pitch, "--sensor-pitch", positive=True))
+    out["oversample"] = None if args.oversample is None else _integer(args.oversample, "--oversample")
+    if args.output is not None and Path(args.output).suffix.lower() not in OUTPUT_EXTENSIONS:
+        raise CommandError(f"-o: the PSF is written as .npy (the array) or .npz (psf, center, pitch, "
+                           f"energy_outside, ...), got {args.output!r}")
+    if args.png is not None and Path(args.png).suffix.lower() != ".png":
+        raise CommandError(f"--png: the image is a .png file, got {args.png!r}")
+    return out
+
+
+# ---------------------------------------------------------------------------- the computation
+def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 64, mode: str = "accurate",
+                rays: int | None = None, doe_pitch=None, doe_size=None, doe_distance=None, sensor_pitch=None,
+                oversample=None) -> dict:
+    """The PSF of one point source through the hybrid lens of ``path`` and its metrics.
+
+    Field angles in degrees (whatever the file's field type), ``depth`` object distance in mm (None: the lens
+    file's, ``inf``: distant), ``wavelength`` µm (None: the lens's primary). Returns a dict with ``psf``
+    (ks, ks) float64 numpy, ``center`` (2,) mm, ``pitch`` mm, ``energy_outside``, ``rays``, ``metrics``
+    (:func:`raywave.hybrid.metrics.psf_metrics`, lengths in mm), ``wavelength``, ``depth``, ``hybrid``."""
+    import torch
+
+    from raywave.hybrid.build import load_hybrid
+    from raywave.hybrid.metrics import psf_metrics
+
+    # the default DOE must hold the requested source's beam (and the on-axis one)
+    wl_list = None if wavelength is None else [wavelength]
+    hl = load_hybrid(path, doe_pitch, doe_size, doe_distance, sensor_pitch=sensor_pitch, oversample=oversample,
+                     fields=[list(field), [0.0, 0.0]], wavelengths=wl_list, depth=depth, field_type="angle")
+    wl = hl.lens.primary_wavelength if wavelength is None else float(wavelength)
+    with torch.no_grad():
+        res = hl.psf_result(fields=tuple(field), wavelengths=wl, ks=ks, depth=depth, mode=mode, rays=rays)
+    psf = res.psf[0, 0].detach().cpu()
+    if not float(psf.sum()) > 0:
+        raise CommandError(f"no light reaches the sensor for field {list(field)} deg at {wl:g} µm (every ray is "
+                           "vignetted or misses the DOE aperture)")
+    metrics = psf_metrics(psf, res.pitch)
+    d = hl.lens.object_distance if depth is None else float(depth)
+    return {
+        "psf": psf.numpy(),
+        "center": [float(v) for v in res.center[0, 0].detach()],
+        "pitch": float(res.pitch),
+        "energy_outside": float(res.energy_outside[0, 0].detach()),
+        "rays": int(res.rays[0, 0]),
+        "metrics": metrics,
+        "wavelength": wl,
+        "depth": d,
+        "field": [float(field[0]), float(field[1])],
+        "mode": mode,
+        "ks": ks,
+        "hybrid": hl,
+    }
+
+
+def summary(result: dict, lens_name: str) -> dict:
+    """The JSON summary: centre and pitch in mm, radii and offsets in µm (keys carry their unit)."""
+    m = result["metrics"]
+    info = result["hybrid"].doe_info
+    um = 1e3
+    out = {
+        "lens": lens_name,
+        "field_deg": result["field"],
+        "depth_mm": "inf" if math.isinf(result["depth"]) else result["depth"],
+        "wavelength_um": result["wavelength"],
+        "mode": result["mode"],
+        "rays": result["rays"],
+        "ks": result["ks"],
+        "center_mm": result["center"],
+        "pitch_mm": result["pitch"],
+        "energy_outside": result["energy_outside"],
+        "rms_radius_um": m["rms_radius"] * um,
+        "centroid_offset_um": [v * um for v in m["centroid"]],
+        "r50_um": m["r50"] * um,
+        "r80_um": m["r80"] * um,
+        "r90_um": m["r90"] * um,
+        "peak": m["peak"],
+        "doe": {
+            "source": info["source"],
+            "distance_mm": info["distance"],
+            "pitch_mm": info["pitch"],
+            "shape": info["shape"],
+            "size_mm": info["size"],
+            "aperture": info["aperture"],
+            "phase": info["phase"],
+            "oversample": info["oversample"],
+        },
+    }
+    return out
+
+
+def _write_array(result: dict, path: Path) -> None:
+    import numpy as np
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".npy":
+        np.save(path, result["psf"])
+    else:
+        np.savez(path, psf=result["psf"], center=np.array(result["center"]), pitch=np.float64(result["pitch"]),
+                 energy_outside=np.float64(result["energy_outside"]), wavelength=np.float64(result["wavelength"]),
+                 field=np.array(result["field"]), depth=np.float64(result["depth"]), rays=np.int64(result["rays"]),
+                 mode=np.str_(result["mode"]))
+
+
+def _format_text(s: dict) -> str:
+    d = s["doe"]
+    lines = [
+        f"PSF of {s['lens']}: field ({s['field_deg'][0]:g}, {s['field_deg'][1]:g}) deg, depth {s['depth_mm']} mm, "
+        f"{s['wavelength_um']:g} µm, {s['mode']} mode, {s['rays']} rays",
+        f"  DOE ({d['source']}): {d['shape'][1]} × {d['shape'][0]} pixels of {d['pitch_mm'] * 1e3:g} µm, "
+        f"{d['distance_mm']:g} mm after the last vertex, {d['aperture']}, "
+        + ("blank" if d["phase"] is None else f"phase {d['phase']}"),
+        f"  centre (chief ray)       ({s['center_mm'][0]:.6f}, {s['center_mm'][1]:.6f}) mm",
+        f"  pixel pitch              {s['pitch_mm'] * 1e3:g} µm, {s['ks']} × {s['ks']} pixels",
+        f"  centroid offset          ({s['centroid_offset_um'][0]:.4f}, {s['centroid_offset_um'][1]:.4f}) µm",
+        f"  RMS radius (centroid)    {s['rms_radius_um']:.4f} µm",
+        f"  EE radii r50 r80 r90     {s['r50_um']:.4f} {s['r80_um']:.4f} {s['r90_um']:.4f} µm",
+        f"  peak pixel               {s['peak']:.6g}",
+        f"  energy outside the crop  {s['energy_outside']:.3g}",
+    ]
+    return "\n".join(lines)
+
+
+def cmd_psf(args) -> int:
+    a = parse_psf_args(args)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
+                                 a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"])
+        finally:
+            seen = set()
+            for w in caught:
+                msg = " ".join(str(w.message).split())
+                if msg not in seen and not issubclass(w.category, DeprecationWarning):
+                    seen.add(msg)
+                    print(f"raywave: warning: {msg}", file=sys.stderr)
+    s = summary(result, str(args.lens))
+    wrote = []
+    if args.output is not None:
+        _write_array(result, Path(args.output))
+        wrote.append(args.output)
+        s["output"] = args.output
+    if args.png is not None:
+        from raywave.plotting.psf import plot_psf
+
+        f = s["field_deg"]
+        title = (f"{Path(str(args.lens)).stem}: field ({f[0]:g}, {f[1]:g})°, {s['wavelength_um']:g} µm, depth "
+                 f"{s['depth_mm']} mm\nRMS {s['rms_radius_um']:.3g} µm, r80 {s['r80_um']:.3g} µm")
+        plot_psf(result["psf"], result["pitch"], args.png, log=args.log, title=title, metrics=result["metrics"])
+        wrote.append(args.png)
+        s["png"] = args.png
+    if args.json:
+        print(json.dumps(s))
+    else:
+        print(_format_text(s))
+        for w in wrote:
+            print(f"wrote {w}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- registration
+def register(sub) -> None:
+    p = sub.add_parser(
+        "psf", help="ray-wave PSF of a hybrid lens (refractive lens + DOE) for one point source",
+        description="Ray-wave PSF of one point source through a hybrid lens: the refractive lens, the DOE of the "
+        "lens file (a blank one if it has none) and the sensor. Writes the (ks, ks) float64 PSF [iy, ix] (sum 1, "
+        "pixel [ks//2, ks//2] centred on the chief ray, both indices increasing with the coordinate).")
+    p.add_argument("lens", help="lens file (.json raywave with an optional \"doe\", .zmx, DeepLens .json) or a "
+                                "bundled lens name (e.g. hybrid_asphere)")
+    p.add_argument("--field", nargs="+", default=None, metavar="DEG",
+                   help="field angle X Y in degrees (one value: Y); OpticStudio signs, +Y images at +y (default 0 0)")
+    p.add_argument("--depth", default=None, metavar="MM",
+                   help="object distance in mm from the first vertex, or 'inf' (default: the lens file's, inf for "
+                        "the bundled lenses)")
+    p.add_argument("--wavelength", default=None, metavar="UM", help="µm (default: the lens's primary wavelength)")
+    p.add_argument("--ks", default="64", metavar="N", help="PSF size in sensor pixels (default 64)")
+    p.add_argument("-o", "--output", default=None, metavar="FILE",
+                   help=".npy (the PSF array) or .npz (psf, center, pitch, energy_outside, wavelength, field, depth, "
+                        "rays, mode)")
+    p.add_argument("--png", default=None, metavar="FILE", help="PSF image (µm about the centre, origin lower)")
+    p.add_argument("--log", action="store_true", help="logarithmic colour scale for --png")
+    p.add_argument("--json", action="store_true", help="print one JSON object (centre, pitch, radii, ...)")
+    p.add_argument("--mode", choices=("accurate", "faithful"), default="accurate",
+                   help="DOE-plane field: accurate (exactly aimed rays, interpolated; default) or faithful (the "
+                        "paper's ray splatting)")
+    p.add_argument("--rays", default=None, metavar="N",
+                   help="accurate: traced nodes across the beam (default 64); faithful: number of rays (default 1e5)")
+    p.add_argument("--doe-pitch", default=None, metavar="MM",
+                   help="DOE pixel pitch in mm (overrides the file's; default for a lens without a DOE: 0.001)")
+    p.add_argument("--doe-size", nargs="+", default=None, metavar="MM",
+                   help="DOE width [height] in mm (overrides the file's; default for a lens without a DOE: a square "
+                        "1.2 × the beam's extent on the DOE plane)")
+    p.add_argument("--doe-distance", default=None, metavar="MM",
+                   help="last vertex to DOE plane in mm (overrides the file's; default for a lens without a DOE: half "
+                        "way to the sensor)")
+    p.add_argument("--sensor-pitch", default=None, metavar="MM",
+                   help="PSF pixel pitch in mm (default: the lens's sensor pixel pitch, else the DOE pitch)")
+    p.add_argument("--oversample", default=None, metavar="Q",
+                   help="simulation samples per DOE pixel per axis (default: the file's, else 1)")
+    p.set_defaults(func=cmd_psf)
