@@ -56,8 +56,12 @@ def test_convert_round_trip(tmp_path, capsys):
 
 def test_demo_writes_outputs(tmp_path):
     assert main(["demo", "-o", str(tmp_path)]) == 0
-    for name in ("paraxial.txt", "paraxial.json", "layout.png", "spot.png"):
+    for name in ("paraxial.txt", "paraxial.json", "layout.png", "spot.png", "psf.png", "psf.json"):
         assert (tmp_path / name).stat().st_size > 100
+    import json
+
+    psfs = json.loads((tmp_path / "psf.json").read_text())["psfs"]
+    assert len(psfs) == 6 and all(0 <= p["energy_outside"] < 0.2 for p in psfs)
 
 
 def test_missing_file_is_one_line_error(capsys):

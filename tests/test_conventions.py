@@ -74,3 +74,25 @@ def test_z_grows_along_the_lens():
     z = lens.vertex_z()
     assert torch.equal(z, torch.tensor([0.0, 3.0, 13.0, 15.0], dtype=torch.float64))
     assert float(lens.image_z()) == 20.0
+
+
+def test_psf_array_and_doe_sign_conventions():
+    """[iy, ix] with both increasing; +y field → PSF centre at +y; a DOE phase rising toward +x moves the PSF
+    toward +x; the chief ray is the centre of pixel [ks//2, ks//2] (also for an odd ks)."""
+    from raywave.doe import PixelDOE
+    from raywave.hybrid import HybridLens
+    from raywave.lens.build import ideal_lens
+
+    n, p = 500, 2e-3
+    x = (torch.arange(n, dtype=torch.float64) - (n - 1) / 2) * p
+    tilt = (2 * math.pi * x / 0.04)[None, :].expand(n, n)  # 40 µm period, rising toward +x
+    lens = ideal_lens(5.0, f_number=8, wavelengths=(0.55,))
+    flat = HybridLens(lens, PixelDOE(torch.zeros(n, n), p), 2.0, sensor_pitch=2e-3)
+    tilted = HybridLens(lens, PixelDOE(tilt, p), 2.0, sensor_pitch=2e-3)
+    res = flat.psf_result((0.0, 1.0), 0.55, ks=15, rays=24)
+    assert float(res.center[0, 0, 1]) > 0
+    a = res.psf[0, 0].detach()
+    assert int(a.argmax()) == 7 * 15 + 7
+    b = tilted.psf((0.0, 1.0), 0.55, ks=15, rays=24)[0, 0].detach()
+    cols = torch.arange(15, dtype=torch.float64)
+    assert float((b.sum(0) * cols).sum()) > float((a.sum(0) * cols).sum()) + 1  # toward +x (increasing ix)

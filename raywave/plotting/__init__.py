@@ -1,7 +1,7 @@
 """Figures (matplotlib, PNG). Physics modules never import this package (tests/test_layering.py)."""
 
 from raywave.plotting.layout import plot_layout
-from raywave.plotting.psf import plot_psf
+from raywave.plotting.psf import plot_psf, plot_psf_grid
 from raywave.plotting.spot import plot_spots
 
-__all__ = ["plot_layout", "plot_psf", "plot_spots"]
+__all__ = ["plot_layout", "plot_psf", "plot_psf_grid", "plot_spots"]

@@ -59,3 +59,40 @@ def plot_psf(psf, pitch: float, path=None, log: bool = False, log_range: float =
     if path is not None:
         save(fig, path)
     return fig
+
+
+def plot_psf_grid(psfs, pitch: float, row_labels, col_labels, path=None, log: bool = True, log_range: float = 1e-5,
+                  title: str | None = None, cmap: str = "inferno"):
+    """A grid of PSF images ``psfs[r][c]`` (each (ks, ks), ``[iy, ix]``, ``origin="lower"``), axes in µm about
+    the centre pixel; rows e.g. field points, columns wavelengths. Returns the figure."""
+    import matplotlib.pyplot as plt
+
+    rows, cols = len(psfs), len(psfs[0])
+    fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols + 0.6, 2.9 * rows), constrained_layout=True,
+                             squeeze=False)
+    for r in range(rows):
+        for c in range(cols):
+            a = np.asarray(torch.as_tensor(psfs[r][c]).detach().to(torch.float64).cpu().numpy())
+            ny, nx = a.shape
+            um = pitch * 1e3
+            extent = [(-(nx // 2) - 0.5) * um, (nx - 1 - nx // 2 + 0.5) * um,
+                      (-(ny // 2) - 0.5) * um, (ny - 1 - ny // 2 + 0.5) * um]
+            peak = float(a.max())
+            ax = axes[r][c]
+            if log and peak > 0:
+                im = ax.imshow(np.clip(a, peak * log_range, None), origin="lower", extent=extent, cmap=cmap,
+                               norm=LogNorm(vmin=peak * log_range, vmax=peak), interpolation="nearest")
+            else:
+                im = ax.imshow(a, origin="lower", extent=extent, cmap=cmap, interpolation="nearest", vmin=0.0)
+            ax.set_title(f"{row_labels[r]}, {col_labels[c]}", fontsize=8)
+            ax.tick_params(labelsize=7)
+            if r == rows - 1:
+                ax.set_xlabel("x − x₀ (µm)", fontsize=8)
+            if c == 0:
+                ax.set_ylabel("y − y₀ (µm)", fontsize=8)
+        fig.colorbar(im, ax=axes[r][-1], shrink=0.85).ax.tick_params(labelsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    if path is not None:
+        save(fig, path)
+    return fig
