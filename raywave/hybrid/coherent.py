@@ -34,7 +34,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from raywave.lens.sources import point_source_rays, rays_through, source_weight
+from raywave.lens.sources import entrance_plane_z, point_source_rays, rays_through, source_weight
 from raywave.wave.field import edge_coverage, splat_bilinear, upsample_nodes
 
 __all__ = ["DOEField", "SamplingWarning", "accurate_fields", "faithful_fields", "chief_rays"]
@@ -226,10 +226,11 @@ def _solve2(j, r):
     return torch.where(ok[:, None], torch.stack([s0, s1], -1), torch.zeros_like(r)), ok
 
 
-def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h):
+def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h, max_step):
     """Newton: entrance-plane uv (N, 2) whose rays land on ``targets`` (N, 2) on the DOE plane.
 
-    Returns (uv, converged (N,), last Jacobian (N, 2, 2)); all detached."""
+    Steps longer than ``max_step`` (mm on the entrance plane) are shortened, which keeps the iteration inside
+    the traceable region. Returns (uv, converged (N,), last Jacobian (N, 2, 2)); all detached."""
     with torch.no_grad():
         step0, _ = _solve2(jac_c.expand(targets.shape[0], 2, 2), targets - x_c)
         uv = uv_c + step0
@@ -245,9 +246,8 @@ def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, f
                 break
             jac = _fd_jacobian(lens, uv, x, field, wl, depth, z_doe, field_type, h)
             step, ok = _solve2(jac, err)
-            # damp steps that would jump across most of the pupil (keeps Newton inside the traceable region)
             big = step.abs().amax(-1, keepdim=True)
-            step = torch.where(big > 0.25 * h * 1e6, step * (0.25 * h * 1e6 / big), step)
+            step = torch.where(big > max_step, step * (max_step / big), step)
             uv = torch.where((valid & ok & ~conv)[:, None], uv - step, uv)
         return uv, conv, jac
 
@@ -310,8 +310,6 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     # ---- chief ray's entrance-plane point and Jacobian: the linear first guess
     ep_rays = point_source_rays(lens, field, wl, pupil=(torch.zeros(1), torch.zeros(1)), aim="full", depth=depth)
     o, d = ep_rays.o[0, 0, 0].detach(), ep_rays.d[0, 0, 0].detach()
-    from raywave.lens.sources import entrance_plane_z
-
     ep_z = entrance_plane_z(lens)
     uv_c = (o[:2] + d[:2] * (ep_z - o[2]) / d[2])[None]
     r_ep = 0.5 * float(lens.paraxial().epd)
@@ -320,7 +318,8 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         _, _, at_c, _ = _trace_uv(lens, uv_c, field, wl, depth, z_doe, field_type)
         x_c = at_c.o[0, 0, :, :2]
         jac_c = _fd_jacobian(lens, uv_c, x_c, field, wl, depth, z_doe, field_type, h)
-    uv, conv, jac = _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h)
+    uv, conv, jac = _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h,
+                                     max_step=0.25 * r_ep)
 
     # ---- the differentiable trace of the node rays. The landing point of a node's ray must stay on its node
     # when the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals
