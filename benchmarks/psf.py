@@ -7,10 +7,12 @@ pixels, a trainable pixel phase map) 0.7 mm after the last surface, sensor at fo
 * **error vs rays**: L1 distance ``Σ|psf − ref|`` (0 … 2) of both modes against (a) the ground truth of an
   ideal lens of the same EFL and F-number (the non-paraxial Debye PSF, on axis) and (b) a converged
   reference for the asphere (the accurate mode at 256 nodes, itself checked against the faithful mode);
-* **time and peak memory per PSF**, forward and forward + backward (gradient w.r.t. the 9 M DOE pixels), for
+* **time and peak memory per PSF**, forward and forward + backward (gradient w.r.t. the 9 M DOE pixels; the
+  refractive lens frozen), for
   the accurate mode and for the faithful mode at 1e6 rays on the paper's full 2×-padded grid (6000² FFTs),
-  each in its own process (peak resident memory above the process's baseline), with the time the FFTs of
-  each take (the FFT calls are recorded during the forward pass and replayed forward + backward alone).
+  each in its own process (peak resident memory above the process's baseline), with the time its FFT kernels
+  take (forward and backward, from torch.profiler); also with the DOE-plane field cached (a frozen lens
+  traced once, the DOE-training step).
 
 Prints one JSON object (and writes it with ``-o``).
 
@@ -97,7 +99,7 @@ def accuracy(quick: bool) -> dict:
     truth = {}
     for wl in WAVELENGTHS:
         na = math.sin(math.atan(0.5 / fno))
-        res = debye_psf(na, wl, KS, hl.sensor_pitch)
+        res = debye_psf(na, wl, KS, hl.sensor_pitch, oversample=15)  # 0.2 µm sub-samples: converged to ~1e-4
         truth[wl] = (res[0] if isinstance(res, tuple) else getattr(res, "psf", res)).to(torch.float64)
     rows = []
     for wl in WAVELENGTHS:
@@ -158,6 +160,7 @@ def timing_case(mode: str, backward: bool, nodes: int, threads: int, repeat: int
 
     torch.set_num_threads(threads)
     hl, lens = _setup(pixel_doe=True)
+    lens.requires_grad_(False)  # gradients w.r.t. the DOE pixels only (the case)
     fld = _fields(lens)[1]
     if mode == "accurate":
         kw = dict(rays=nodes)

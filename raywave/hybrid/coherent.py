@@ -115,13 +115,16 @@ def _check_beyond_last_surface(out, z_doe: float) -> None:
 def chief_rays(lens, fields, wavelengths, depth, z_doe: float, z_sensor: float):
     """Chief rays (aimed at the stop centre, through the refractive lens only) at the DOE and the sensor.
 
-    Returns ``(at_doe, at_sensor)`` bundles of shape (F, W)."""
+    Returns ``(at_doe, at_sensor, uv)``: bundles of shape (F, W) and the chief rays' entrance-plane points
+    (F, W, 2) mm (detached)."""
     cr = point_source_rays(lens, fields, wavelengths, pupil=(torch.zeros(1), torch.zeros(1)), aim="full", depth=depth)
+    o, d = cr.o[:, :, 0].detach(), cr.d[:, :, 0].detach()
+    uv = o[..., :2] + d[..., :2] * ((entrance_plane_z(lens) - o[..., 2:]) / d[..., 2:])
     out = lens.trace(cr, apertures=False)
     n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
     at_doe = out.propagate_to_z(z_doe, n)
     at_sensor = out.propagate_to_z(z_sensor, n)
-    return at_doe[:, :, 0], at_sensor[:, :, 0]
+    return at_doe[:, :, 0], at_sensor[:, :, 0], uv
 
 
 def _footprint(lens, field, wavelength, depth, z_doe: float, n_grid: int = 15, n_rim: int = 72):
@@ -197,9 +200,9 @@ def _crop_to_lit(weight: torch.Tensor, *tensors):
 # ---------------------------------------------------------------------------------------------------------
 # accurate mode
 # ---------------------------------------------------------------------------------------------------------
-def _trace_uv(lens, uv, field, wavelength, depth, z_doe, field_type, record=False):
+def _trace_uv(lens, uv, field, wavelength, depth, z_doe, field_type, record=False, ep_z=None):
     """Trace rays crossing the entrance plane at ``uv`` (N, 2) to the DOE plane (apertures ignored)."""
-    rays = rays_through(lens, uv[None, None], field[None], field_type, wavelength.reshape(1), depth=depth)
+    rays = rays_through(lens, uv[None, None], field[None], field_type, wavelength.reshape(1), depth=depth, ep_z=ep_z)
     res = lens.trace(rays, apertures=False, record=record)
     out, rec = res if record else (res, None)
     n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
@@ -207,13 +210,17 @@ def _trace_uv(lens, uv, field, wavelength, depth, z_doe, field_type, record=Fals
     return rays, out, at, rec
 
 
-def _fd_jacobian(lens, uv, x_of_uv, field, wl, depth, z_doe, field_type, h):
-    """∂X/∂uv (N, 2, 2) by forward differences (rows: X components, columns: u, v)."""
-    cols = []
-    for e in (torch.tensor([h, 0.0], dtype=uv.dtype), torch.tensor([0.0, h], dtype=uv.dtype)):
-        _, _, at, _ = _trace_uv(lens, uv + e.to(uv.device), field, wl, depth, z_doe, field_type)
-        cols.append((at.o[0, 0, :, :2] - x_of_uv) / h)
-    return torch.stack(cols, -1)
+def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z):
+    """Landing points X (N, 2), validity (N,) and ∂X/∂uv (N, 2, 2) (forward differences, step h), from one
+    batched trace of the 3N rays uv, uv + h·e_u, uv + h·e_v."""
+    n = uv.shape[0]
+    du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
+    allv = torch.cat([uv, uv + du[0], uv + du[1]])
+    _, _, at, _ = _trace_uv(lens, allv, field, wl, depth, z_doe, field_type, ep_z=ep_z)
+    x = at.o[0, 0, :, :2]
+    x0, xu, xv = x[:n], x[n:2 * n], x[2 * n:]
+    jac = torch.stack([(xu - x0) / h, (xv - x0) / h], -1)
+    return x0, at.valid[0, 0, :n], jac
 
 
 def _solve2(j, r):
@@ -226,25 +233,21 @@ def _solve2(j, r):
     return torch.where(ok[:, None], torch.stack([s0, s1], -1), torch.zeros_like(r)), ok
 
 
-def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h, max_step):
+def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h, max_step, ep_z):
     """Newton: entrance-plane uv (N, 2) whose rays land on ``targets`` (N, 2) on the DOE plane.
 
-    Steps longer than ``max_step`` (mm on the entrance plane) are shortened, which keeps the iteration inside
-    the traceable region. Returns (uv, converged (N,), last Jacobian (N, 2, 2)); all detached."""
+    Every iteration is one batched trace (the rays and their two finite-difference neighbours). Steps longer
+    than ``max_step`` (mm on the entrance plane) are shortened, which keeps the iteration inside the traceable
+    region. Returns (uv, converged (N,), Jacobian at the last iterate (N, 2, 2)); all detached."""
     with torch.no_grad():
         step0, _ = _solve2(jac_c.expand(targets.shape[0], 2, 2), targets - x_c)
         uv = uv_c + step0
-        conv = torch.zeros(targets.shape[0], dtype=torch.bool, device=targets.device)
-        jac = jac_c.expand(targets.shape[0], 2, 2).clone()
         for _ in range(_NEWTON_ITERS):
-            _, _, at, _ = _trace_uv(lens, uv, field, wl, depth, z_doe, field_type)
-            x = at.o[0, 0, :, :2]
+            x, valid, jac = _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z)
             err = x - targets
-            valid = at.valid[0, 0]
             conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL)
             if bool((conv | ~valid).all()):
                 break
-            jac = _fd_jacobian(lens, uv, x, field, wl, depth, z_doe, field_type, h)
             step, ok = _solve2(jac, err)
             big = step.abs().amax(-1, keepdim=True)
             step = torch.where(big > max_step, step * (max_step / big), step)
@@ -271,13 +274,15 @@ def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, gr
 
 
 def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
-                   nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True) -> DOEField:
+                   nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
+                   chief_uv=None) -> DOEField:
     """The accurate DOE-plane field for one field point (2,) and one wavelength (µm).
 
     Args:
         nodes: number of traced nodes across the larger side of the lit footprint (the ray budget is about
             ``nodes²``); the field is smooth, so 32–64 are plenty for most lenses.
         chief_doe, chief_sensor: the chief ray (RayBundle, scalar batch) at the DOE and at the sensor.
+        chief_uv: its entrance-plane point (2,) mm, if known (saves aiming it again).
     """
     field_type = field_type or lens.field_type
     field = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
@@ -308,27 +313,27 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     targets = torch.stack([tx, ty], -1).reshape(-1, 2)
 
     # ---- chief ray's entrance-plane point and Jacobian: the linear first guess
-    ep_rays = point_source_rays(lens, field, wl, pupil=(torch.zeros(1), torch.zeros(1)), aim="full", depth=depth)
-    o, d = ep_rays.o[0, 0, 0].detach(), ep_rays.d[0, 0, 0].detach()
     ep_z = entrance_plane_z(lens)
-    uv_c = (o[:2] + d[:2] * (ep_z - o[2]) / d[2])[None]
+    if chief_uv is None:
+        ep_rays = point_source_rays(lens, field, wl, pupil=(torch.zeros(1), torch.zeros(1)), aim="full", depth=depth)
+        o, d = ep_rays.o[0, 0, 0].detach(), ep_rays.d[0, 0, 0].detach()
+        chief_uv = o[:2] + d[:2] * (ep_z - o[2]) / d[2]
+    uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device).reshape(1, 2)
     r_ep = 0.5 * float(lens.paraxial().epd)
     h = 1e-6 * max(r_ep, 1e-3)
     with torch.no_grad():
-        _, _, at_c, _ = _trace_uv(lens, uv_c, field, wl, depth, z_doe, field_type)
-        x_c = at_c.o[0, 0, :, :2]
-        jac_c = _fd_jacobian(lens, uv_c, x_c, field, wl, depth, z_doe, field_type, h)
+        x_c, _, jac_c = _landing_and_jacobian(lens, uv_c, field, wl, depth, z_doe, field_type, h, ep_z)
     uv, conv, jac = _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h,
-                                     max_step=0.25 * r_ep)
+                                     max_step=0.25 * r_ep, ep_z=ep_z)
 
     # ---- the differentiable trace of the node rays. The landing point of a node's ray must stay on its node
     # when the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals
     # uv in value and carries d(uv)/dθ = −J⁻¹ ∂X/∂θ, so everything traced at uv_lin (path, directions, aperture
     # slacks, ray density) has its exact first-order derivative with respect to the lens parameters.
-    _, _, at0, _ = _trace_uv(lens, uv, field, wl, depth, z_doe, field_type)
+    _, _, at0, _ = _trace_uv(lens, uv, field, wl, depth, z_doe, field_type, ep_z=ep_z)
     jinv_step, _ = _solve2(jac, (at0.o[0, 0, :, :2] - targets))
     uv_lin = uv - jinv_step
-    rays, out, at, rec = _trace_uv(lens, uv_lin, field, wl, depth, z_doe, field_type, record=True)
+    rays, out, at, rec = _trace_uv(lens, uv_lin, field, wl, depth, z_doe, field_type, record=True, ep_z=ep_z)
     X = at.o[0, 0, :, :2]
     dvec = at.d[0, 0]
     good = conv & at.valid[0, 0]

@@ -157,14 +157,15 @@ class HybridLens(nn.Module):
         z_doe, z_sen = self.doe_z(), self.sensor_z()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", VignettingWarning)
-            cd, cs = chief_rays(self.lens, f, torch.tensor(wls, dtype=torch.float64), depth, z_doe, z_sen)
+            cd, cs, cuv = chief_rays(self.lens, f, torch.tensor(wls, dtype=torch.float64), depth, z_doe, z_sen)
         out = []
         for i in range(f.shape[0]):
             row = []
             for j, wl in enumerate(wls):
                 args = (self.lens, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j])
                 if mode == "accurate":
-                    fd = accurate_field(*args, nodes=rays or 64, oversample=self.oversample, check=check)
+                    fd = accurate_field(*args, nodes=rays or 64, oversample=self.oversample, check=check,
+                                        chief_uv=cuv[i, j])
                 else:
                     fd = faithful_field(*args, n_rays=rays or 100_000, oversample=self.oversample,
                                         full_grid=full_grid, generator=generator, check=check, dtype=trace_dtype)

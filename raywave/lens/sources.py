@@ -96,11 +96,15 @@ def source_weight(lens, rays: RayBundle, depth=None) -> torch.Tensor:
     return dz**3 / gap**2
 
 
-def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=torch.float64, depth=None) -> RayBundle:
-    """Rays from each field point crossing the entrance-pupil plane at ``uv`` (F, W, N, 2) (mm)."""
+def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=torch.float64, depth=None,
+                 ep_z: float | None = None) -> RayBundle:
+    """Rays from each field point crossing the entrance-pupil plane at ``uv`` (F, W, N, 2) (mm).
+
+    ``ep_z``: the entrance-plane z (:func:`entrance_plane_z`) when the caller already has it (it costs a
+    paraxial trace)."""
     device = lens.device
     wl = torch.as_tensor(wavelength, dtype=dtype, device=device).reshape(1, -1, 1)
-    ep_z = float(paraxial.stop_to_entrance_pupil(lens, lens.primary_wavelength)[0].detach())
+    ep_z = entrance_plane_z(lens) if ep_z is None else float(ep_z)
     d_inf, pts = _directions_and_points(lens, fields, field_type, ep_z, dtype, depth)
     F, W, N = uv.shape[:3]
     target = torch.cat([uv, torch.full_like(uv[..., :1], ep_z)], -1)
@@ -118,23 +122,23 @@ def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=t
     return RayBundle.create(o, d, wl, opl=opl, dtype=dtype, device=device)
 
 
-def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None):
-    rays = rays_through(lens, uv, fields, field_type, wavelength, depth=depth)
+def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None, ep_z=None):
+    rays = rays_through(lens, uv, fields, field_type, wavelength, depth=depth, ep_z=ep_z)
     out = lens.trace(rays, stop=lens.stop_index + 1, apertures=False)
     return out.o[..., :2], out.valid
 
 
-def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None):
+def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None, ep_z=None):
     """Solve stop_hit(uv) = target for uv (F, W, N, 2) by Newton with a finite-difference Jacobian."""
     ok = torch.ones(uv.shape[:-1], dtype=torch.bool, device=uv.device)
     for _ in range(AIM_MAX_ITER):
-        p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth)
+        p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth, ep_z)
         err = p - target
         conv = err.abs().amax(-1) <= AIM_TOL * max(1.0, float(target.abs().max()))
         if bool((conv | ~v).all()):
             break
-        px, _ = _stop_hit(lens, uv + torch.tensor([h, 0.0], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength, depth)
-        py, _ = _stop_hit(lens, uv + torch.tensor([0.0, h], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength, depth)
+        px, _ = _stop_hit(lens, uv + torch.tensor([h, 0.0], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength, depth, ep_z)
+        py, _ = _stop_hit(lens, uv + torch.tensor([0.0, h], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength, depth, ep_z)
         j = torch.stack([(px - p) / h, (py - p) / h], -1)  # (..., 2 out, 2 in)
         det = j[..., 0, 0] * j[..., 1, 1] - j[..., 0, 1] * j[..., 1, 0]
         good = v & (det.abs() > 1e-300)
@@ -143,12 +147,12 @@ def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None)
         dv = (-j[..., 1, 0] * err[..., 0] + j[..., 0, 0] * err[..., 1]) / det
         step = torch.stack([du, dv], -1)
         uv = torch.where(good[..., None], uv - step, uv)
-    p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth)
+    p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth, ep_z)
     ok = v & ((p - target).abs().amax(-1) <= 1e-9 * max(1.0, float(target.abs().max())))
     return uv, ok
 
 
-def aim_chief_rays(lens, fields, field_type, wavelength, depth=None) -> tuple[torch.Tensor, torch.Tensor]:
+def aim_chief_rays(lens, fields, field_type, wavelength, depth=None, ep_z=None) -> tuple[torch.Tensor, torch.Tensor]:
     """Entrance-plane crossing (F, W, 1, 2) of each chief ray, aimed at the stop centre; with continuation
     in field (0 → full) for wide-angle lenses where the paraxial guess misses."""
     F = fields.shape[0]
@@ -157,12 +161,12 @@ def aim_chief_rays(lens, fields, field_type, wavelength, depth=None) -> tuple[to
     h = 1e-7 * max(r_ep, 1e-3)
     uv = torch.zeros((F, W, 1, 2), dtype=torch.float64, device=lens.device)
     target = torch.zeros_like(uv)
-    uv1, ok = _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth)
+    uv1, ok = _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth, ep_z)
     if bool(ok.all()):
         return uv1, ok
     uv_c = uv.clone()
     for frac in (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 1.0):
-        uv_c, ok = _newton_aim(lens, uv_c, target, fields * frac, field_type, wavelength, h, depth)
+        uv_c, ok = _newton_aim(lens, uv_c, target, fields * frac, field_type, wavelength, h, depth, ep_z)
     return uv_c, ok
 
 
@@ -198,6 +202,7 @@ def point_source_rays(
     F, W, N = fields.shape[0], wl.numel(), px.numel()
     pdata = lens.paraxial()
     r_ep = 0.5 * pdata.epd
+    ep_z = entrance_plane_z(lens)  # once: every aiming iteration needs it
     r_stop = lens.stop_radius()
     pn = torch.stack([px, py], -1)[None, None].expand(F, W, N, 2)
     valid = torch.ones((F, W, N), dtype=torch.bool, device=lens.device)
@@ -205,12 +210,12 @@ def point_source_rays(
         if aim == "paraxial":
             uv = pn * r_ep
         elif aim in ("full", "chief"):
-            uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth)
+            uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth, ep_z)
             h = 1e-6 * max(r_ep, 1e-3)
             # Linear map pupil -> entrance plane from the chief ray's Jacobian.
-            p0, _ = _stop_hit(lens, uv_c, fields, field_type, wl, depth)
-            p1, _ = _stop_hit(lens, uv_c + torch.tensor([h, 0.0], dtype=torch.float64), fields, field_type, wl, depth)
-            p2, _ = _stop_hit(lens, uv_c + torch.tensor([0.0, h], dtype=torch.float64), fields, field_type, wl, depth)
+            p0, _ = _stop_hit(lens, uv_c, fields, field_type, wl, depth, ep_z)
+            p1, _ = _stop_hit(lens, uv_c + torch.tensor([h, 0.0], dtype=torch.float64), fields, field_type, wl, depth, ep_z)
+            p2, _ = _stop_hit(lens, uv_c + torch.tensor([0.0, h], dtype=torch.float64), fields, field_type, wl, depth, ep_z)
             j = torch.stack([(p1 - p0) / h, (p2 - p0) / h], -1)  # (F, W, 1, 2, 2)
             # A field whose chief ray cannot be aimed (e.g. beyond the lens's field) has no usable Jacobian.
             det = torch.linalg.det(j)
@@ -221,13 +226,13 @@ def point_source_rays(
             valid = valid & ~bad
             uv = uv_c + torch.einsum("fwnij,fwmj->fwmi", jinv, pn * r_stop)
             if aim == "full":
-                uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h, depth)
+                uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h, depth, ep_z)
                 valid = valid & ok
             valid = valid & ok_c
         else:
             raise ValueError(f"aim must be 'full', 'chief' or 'paraxial', got {aim!r}")
     uv = torch.nan_to_num(uv.detach())
-    rays = rays_through(lens, uv, fields, field_type, wl, dtype=dtype, depth=depth)
+    rays = rays_through(lens, uv, fields, field_type, wl, dtype=dtype, depth=depth, ep_z=ep_z)
     if not bool(valid.all()):
         rays = rays.replace(valid=rays.valid & valid)
     dead = ~rays.valid.reshape(F, W, -1).any(-1)
