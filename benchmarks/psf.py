@@ -10,7 +10,8 @@ pixels, a trainable pixel phase map) 0.7 mm after the last surface, sensor at fo
 * **time and peak memory per PSF**, forward and forward + backward (gradient w.r.t. the 9 M DOE pixels; the
   refractive lens frozen), for
   the accurate mode and for the faithful mode at 1e6 rays on the paper's full 2×-padded grid (6000² FFTs),
-  each in its own process (peak resident memory above the process's baseline), with the time its FFT kernels
+  each in its own process (median wall time; peak resident memory above the process's baseline), with the time
+  its FFT kernels
   take (forward and backward, from torch.profiler); also with the DOE-plane field cached (a frozen lens
   traced once, the DOE-training step).
 
@@ -193,16 +194,20 @@ def timing_case(mode: str, backward: bool, nodes: int, threads: int, repeat: int
             t0 = time.perf_counter()
             once()
             times.append(time.perf_counter() - t0)
-        fft = min(_fft_seconds(once) for _ in range(repeat))
+        ffts = sorted(_fft_seconds(once) for _ in range(repeat))
+    times.sort()
+    median = times[len(times) // 2]
+    fft = ffts[len(ffts) // 2]
     return {"mode": mode, "backward": backward, "cached_doe_field": cached,
             ("nodes" if mode == "accurate" else "rays"): nodes if mode == "accurate" else 1_000_000,
-            "seconds": min(times), "fft_seconds": fft, "peak_extra_memory_mb": peak, "threads": threads}
+            "seconds": median, "seconds_min": times[0], "fft_seconds": fft, "peak_extra_memory_mb": peak,
+            "repeat": repeat, "threads": threads}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=5, help="timed repetitions per case (median reported)")
     ap.add_argument("--quick", action="store_true", help="fewer ray counts, no faithful full-grid timing")
     ap.add_argument("--nodes", type=int, default=None, help="accurate-mode nodes for the timing (default: the "
                     "fewest that reach the faithful mode's 1e6-ray error)")

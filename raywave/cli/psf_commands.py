@@ -255,9 +255,8 @@ def register(sub) -> None:
                                 "bundled lens name (e.g. hybrid_asphere)")
     p.add_argument("--field", nargs="+", default=None, metavar="DEG",
                    help="field angle X Y in degrees (one value: Y); OpticStudio signs, +Y images at +y (default 0 0)")
-    p.add_argument("--depth", default=None, metavar="MM",
-                   help="object distance in mm from the first vertex, or 'inf' (default: the lens file's, inf for "
-                        "the bundled lenses)")
+    p.add_argument("--depth", default="inf", metavar="MM",
+                   help="object distance in mm from the first vertex, or 'inf' (default: inf, a distant object)")
     p.add_argument("--wavelength", default=None, metavar="UM", help="µm (default: the lens's primary wavelength)")
     p.add_argument("--ks", default="64", metavar="N", help="PSF size in sensor pixels (default 64)")
     p.add_argument("-o", "--output", default=None, metavar="FILE",
