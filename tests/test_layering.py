@@ -5,7 +5,7 @@ import subprocess
 import sys
 
 PHYSICS = ["raywave.materials", "raywave.surfaces", "raywave.rays", "raywave.lens", "raywave.io", "raywave.doe",
-           "raywave.wave", "raywave.hybrid", "raywave.hybrid.build", "raywave.hybrid.metrics"]
+           "raywave.doe.fabrication", "raywave.wave", "raywave.hybrid", "raywave.hybrid.build", "raywave.hybrid.metrics"]
 
 
 def _modules_after_import(mods):

@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from raywave.cli import lens_commands, psf_commands
+from raywave.cli import doe_commands, lens_commands, psf_commands
 from raywave.cli.errors import CommandError
 
 __all__ = ["COMMAND_MODULES", "CommandError", "build_parser", "main"]
 
 #: Modules that add sub-commands: each has ``register(subparsers)``.
-COMMAND_MODULES = [lens_commands, psf_commands]
+COMMAND_MODULES = [lens_commands, psf_commands, doe_commands]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -3,11 +3,17 @@
     raywave psf LENS [--field X [Y]] [--depth Z] [--wavelength W] [--ks N] [-o psf.npy|psf.npz] [--png psf.png]
                 [--log] [--json] [--mode accurate|faithful] [--rays N] [--doe-pitch P] [--doe-size W [H]]
                 [--doe-distance D] [--sensor-pitch P] [--oversample Q]
+                [--doe-levels L] [--doe-wavelength W0] [--doe-material NAME]
 
 LENS is a lens file (.json with or without a "doe" section, .zmx with or without a diffractive last surface,
 DeepLens .json) or a bundled lens name. A lens without a DOE gets a blank one (see
 :mod:`raywave.hybrid.build` for the default distance, pitch and size). Warnings (sampling, vignetting, a DOE
 phase not applied) are printed to stderr as one line each.
+
+``--doe-levels L --doe-wavelength W0 --doe-material NAME`` fabricate the DOE on the fly (any one of them is
+enough): its phase at W0 (µm, default 0.55) is wrapped to [0, 2π), quantised to L levels (default: not
+quantised, a continuous kinoform) and becomes a dispersive height map in NAME (default FUSED_SILICA), see
+:meth:`raywave.doe.DOE.fabricate`.
 """
 
 from __future__ import annotations
@@ -18,35 +24,18 @@ import sys
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError
+from raywave.cli.errors import CommandError, integer_arg as _integer, number_arg as _number
 
 OUTPUT_EXTENSIONS = (".npy", ".npz")
 _MAX_WAVELENGTH_UM = 100.0
 
 
 # ---------------------------------------------------------------------------- argument parsing
-def _number(text: str, flag: str, positive: bool = False, nonneg: bool = False, allow_inf: bool = False) -> float:
-    try:
-        v = float(text)
-    except (TypeError, ValueError):
-        raise CommandError(f"{flag}: {text!r} is not a number") from None
-    if math.isnan(v) or (math.isinf(v) and not allow_inf):
-        raise CommandError(f"{flag}: {text!r} is not a finite number")
-    if positive and not v > 0:
-        raise CommandError(f"{flag}: must be > 0, got {text}")
-    if nonneg and v < 0:
-        raise CommandError(f"{flag}: must be >= 0, got {text}")
-    return v
-
-
-def _integer(text: str, flag: str, minimum: int = 1) -> int:
-    try:
-        v = int(text)
-    except (TypeError, ValueError):
-        raise CommandError(f"{flag}: {text!r} is not an integer") from None
-    if v < minimum:
-        raise CommandError(f"{flag}: must be >= {minimum}, got {v}")
-    return v
+def _wavelength(text: str, flag: str) -> float:
+    w = _number(text, flag, positive=True)
+    if w > _MAX_WAVELENGTH_UM:
+        raise CommandError(f"{flag}: {text} µm is not a plausible wavelength (µm, not nm)")
+    return w
 
 
 def parse_psf_args(args) -> dict:
@@ -66,12 +55,7 @@ def parse_psf_args(args) -> dict:
     if any(abs(v) >= 90 for v in out["field"]):
         raise CommandError(f"--field: angles must lie within (-90, 90) degrees, got {list(out['field'])}")
     out["depth"] = None if args.depth is None else _number(args.depth, "--depth", positive=True, allow_inf=True)
-    out["wavelength"] = None
-    if args.wavelength is not None:
-        w = _number(args.wavelength, "--wavelength", positive=True)
-        if w > _MAX_WAVELENGTH_UM:
-            raise CommandError(f"--wavelength: {args.wavelength} µm is not a plausible wavelength (µm, not nm)")
-        out["wavelength"] = w
+    out["wavelength"] = None if args.wavelength is None else _wavelength(args.wavelength, "--wavelength")
     out["ks"] = _integer(args.ks, "--ks")
     out["rays"] = None if args.rays is None else _integer(args.rays, "--rays")
     out["doe_pitch"] = None if args.doe_pitch is None else _number(args.doe_pitch, "--doe-pitch", positive=True)
@@ -86,6 +70,14 @@ def parse_psf_args(args) -> dict:
     out["sensor_pitch"] = (None if args.sensor_pitch is None
                            else _number(args.sensor_pitch, "--sensor-pitch", positive=True))
     out["oversample"] = None if args.oversample is None else _integer(args.oversample, "--oversample")
+    out["doe_levels"] = None if args.doe_levels is None else _integer(args.doe_levels, "--doe-levels", minimum=2)
+    out["doe_wavelength"] = (None if args.doe_wavelength is None
+                             else _wavelength(args.doe_wavelength, "--doe-wavelength"))
+    out["doe_material"] = None
+    if args.doe_material is not None:
+        if not args.doe_material.strip():
+            raise CommandError("--doe-material: give a glass name (e.g. FUSED_SILICA)")
+        out["doe_material"] = args.doe_material.strip()
     if args.output is not None and Path(args.output).suffix.lower() not in OUTPUT_EXTENSIONS:
         raise CommandError(f"-o: the PSF is written as .npy (the array) or .npz (psf, center, pitch, "
                            f"energy_outside, ...), got {args.output!r}")
@@ -97,13 +89,14 @@ def parse_psf_args(args) -> dict:
 # ---------------------------------------------------------------------------- the computation
 def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 64, mode: str = "accurate",
                 rays: int | None = None, doe_pitch=None, doe_size=None, doe_distance=None, sensor_pitch=None,
-                oversample=None) -> dict:
+                oversample=None, doe_levels=None, doe_wavelength=None, doe_material=None) -> dict:
     """The PSF of one point source through the hybrid lens of ``path`` and its metrics.
 
     Field angles in degrees (whatever the file's field type), ``depth`` object distance in mm (None: the lens
     file's, ``inf``: distant), ``wavelength`` µm (None: the lens's primary). Returns a dict with ``psf``
     (ks, ks) float64 numpy, ``center`` (2,) mm, ``pitch`` mm, ``energy_outside``, ``rays``, ``metrics``
-    (:func:`raywave.hybrid.metrics.psf_metrics`, lengths in mm), ``wavelength``, ``depth``, ``hybrid``."""
+    (:func:`raywave.hybrid.metrics.psf_metrics`, lengths in mm), ``wavelength``, ``depth``, ``hybrid``.
+    ``doe_levels`` / ``doe_wavelength`` / ``doe_material``: fabricate the DOE first (see the module docstring)."""
     import torch
 
     from raywave.hybrid.build import load_hybrid
@@ -113,6 +106,8 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
     wl_list = None if wavelength is None else [wavelength]
     hl = load_hybrid(path, doe_pitch, doe_size, doe_distance, sensor_pitch=sensor_pitch, oversample=oversample,
                      fields=[list(field), [0.0, 0.0]], wavelengths=wl_list, depth=depth, field_type="angle")
+    if doe_levels is not None or doe_wavelength is not None or doe_material is not None:
+        fabricate_doe(hl, doe_levels, doe_wavelength, doe_material)
     wl = hl.lens.primary_wavelength if wavelength is None else float(wavelength)
     with torch.no_grad():
         res = hl.psf_result(fields=tuple(field), wavelengths=wl, ks=ks, depth=depth, mode=mode, rays=rays)
@@ -136,6 +131,21 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
         "ks": ks,
         "hybrid": hl,
     }
+
+
+def fabricate_doe(hl, levels=None, wavelength=None, material=None) -> None:
+    """Make ``hl.doe`` the fabricated element: wrapped at ``wavelength`` (µm, default 0.55), quantised to ``levels``
+    (None: continuous), a height map in ``material`` (default FUSED_SILICA); records it in ``hl.doe_info``."""
+    from raywave.doe import DEFAULT_DESIGN_WAVELENGTH, DEFAULT_MATERIAL
+    from raywave.materials import GlassNotFoundError
+
+    try:
+        hl.doe.fabricate(levels=levels, wavelength=DEFAULT_DESIGN_WAVELENGTH if wavelength is None else wavelength,
+                         material=DEFAULT_MATERIAL if material is None else material)
+    except GlassNotFoundError as e:
+        raise CommandError(f"--doe-material: {e}") from None
+    hl.doe_info.update(levels=hl.doe.quant_levels, material=hl.doe.material_name,
+                       design_wavelength=hl.doe.design_wavelength, dispersion=hl.doe.dispersion)
 
 
 def summary(result: dict, lens_name: str) -> dict:
@@ -169,6 +179,11 @@ def summary(result: dict, lens_name: str) -> dict:
             "aperture": info["aperture"],
             "phase": info["phase"],
             "oversample": info["oversample"],
+            "phase_model": info.get("phase_model"),
+            "material": info.get("material"),
+            "levels": info.get("levels"),
+            "design_wavelength_um": info.get("design_wavelength"),
+            "dispersion": info.get("dispersion"),
         },
     }
     return out
@@ -194,7 +209,10 @@ def _format_text(s: dict) -> str:
         f"{s['wavelength_um']:g} µm, {s['mode']} mode, {s['rays']} rays",
         f"  DOE ({d['source']}): {d['shape'][1]} × {d['shape'][0]} pixels of {d['pitch_mm'] * 1e3:g} µm, "
         f"{d['distance_mm']:g} mm after the last vertex, {d['aperture']}, "
-        + ("blank" if d["phase"] is None else f"phase {d['phase']}"),
+        + (f"phase {d['phase']}" if d["phase"] is not None else f"{d['phase_model']} phase"
+           if d.get("phase_model") else "blank")
+        + (f", {d['levels']} levels" if d.get("levels") else "")
+        + (f", height map in {d['material']} at {d['design_wavelength_um']:g} µm" if d.get("material") else ""),
         f"  centre (chief ray)       ({s['center_mm'][0]:.6f}, {s['center_mm'][1]:.6f}) mm",
         f"  pixel pitch              {s['pitch_mm'] * 1e3:g} µm, {s['ks']} × {s['ks']} pixels",
         f"  centroid offset          ({s['centroid_offset_um'][0]:.4f}, {s['centroid_offset_um'][1]:.4f}) µm",
@@ -212,7 +230,8 @@ def cmd_psf(args) -> int:
         warnings.simplefilter("always")
         try:
             result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
-                                 a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"])
+                                 a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"],
+                                 a["doe_levels"], a["doe_wavelength"], a["doe_material"])
         finally:
             seen = set()
             for w in caught:
@@ -282,4 +301,11 @@ def register(sub) -> None:
                    help="PSF pixel pitch in mm (default: the lens's sensor pixel pitch, else the DOE pitch)")
     p.add_argument("--oversample", default=None, metavar="Q",
                    help="simulation samples per DOE pixel per axis (default: the file's, else 1)")
+    p.add_argument("--doe-levels", default=None, metavar="L",
+                   help="fabricate the DOE: wrap its phase at --doe-wavelength to [0, 2π) and quantise it to L levels")
+    p.add_argument("--doe-wavelength", default=None, metavar="UM",
+                   help="fabricate the DOE: design wavelength λ0 in µm of the kinoform and height map (default 0.55)")
+    p.add_argument("--doe-material", default=None, metavar="NAME",
+                   help="fabricate the DOE: a dispersive height map in this glass (default FUSED_SILICA), "
+                        "φ(λ) = 2π(n(λ) − 1)h/λ")
     p.set_defaults(func=cmd_psf)

@@ -8,11 +8,31 @@ light outside the aperture is blocked, so the DOE's edge diffracts.
 The ray-wave model samples the field on a *simulation grid* that may subdivide every DOE pixel into
 ``oversample × oversample`` samples (a DOE pixel is a flat-topped step; resolving it captures its high
 diffraction orders). Every method that returns maps takes a ``window = (iy0, ix0, ny, nx)`` in
-simulation-grid indices so that only the lit part of a large DOE is ever materialised.
+simulation-grid indices so that only the lit part of a large DOE is ever materialised. The DOE pitch is the
+*fabrication* pitch (one level per DOE pixel); the simulation pitch is ``pitch / oversample``.
 
-Phases are float64 radians; ``phase(wavelength, ...)`` is differentiable with respect to the DOE's
-parameters. Subclasses implement :meth:`DOE.phase_pixels` (one value per DOE pixel); parametrised DOEs
-(Fresnel lens, Zernike, binary-2, ...) are added in the same way.
+**Phase, height and wavelength** (docs/ray-wave.md, "DOEs"). Every DOE describes a *design phase* p (rad,
+float64) at its ``design_wavelength`` λ0 (µm, default 0.55): subclasses implement
+:meth:`DOE.design_phase_pixels` (one value per DOE pixel). The base class turns it into
+
+* the **fabricated profile** (:meth:`DOE.profile_pixels`): ``phase_scale · p``, optionally wrapped to
+  [0, 2π) (a kinoform) and quantised to ``L`` levels (nearest level, level L folded to 0) with a
+  straight-through gradient (forward: the quantised profile; backward: the identity), see :meth:`fabricate`;
+* the **phase at any wavelength** (:meth:`DOE.phase_pixels`), by the DOE's ``dispersion`` model:
+
+  - ``"none"``: the same phase (rad) at every wavelength (Zemax's diffractive-surface model, the ideal
+    first-order element; the default without a material);
+  - ``"air"``: a fixed optical path, ``φ(λ) = φ(λ0)·λ0/λ`` (``PixelDOE(..., design_wavelength=λ0)``);
+  - ``"material"``: a surface-relief **height map** h in a material (default FUSED_SILICA) in a medium of
+    index ``n_medium`` (1: air), ``φ(λ) = 2π (n(λ) − n_medium) h / λ``, so
+    ``φ(λ) = φ(λ0) · λ0 (n(λ) − n_medium) / (λ (n(λ0) − n_medium))``;
+
+* the **height map** (:meth:`DOE.height_pixels`, µm): ``h = φ(λ0) λ0 / (2π (n(λ0) − n_medium))`` of the
+  fabricated profile (in the DOE's material, FUSED_SILICA if it has none);
+* the **level map** (:meth:`DOE.levels`): the integer level (0..L−1, torch.long) of every DOE pixel, what a
+  fabrication process etches.
+
+All phases are differentiable with respect to the DOE's parameters (``nn.Parameter``).
 """
 
 from __future__ import annotations
@@ -22,28 +42,90 @@ import math
 import torch
 from torch import nn
 
-__all__ = ["DOE", "BlankDOE", "PixelDOE", "Window"]
+__all__ = ["DEFAULT_DESIGN_WAVELENGTH", "DEFAULT_LEVELS", "DEFAULT_MATERIAL", "DISPERSIONS", "DOE", "BlankDOE",
+           "PixelDOE", "Window", "check_levels", "quantize_phase"]
 
 Window = tuple  # (iy0, ix0, ny, nx) in simulation-grid indices
 
+#: Design wavelength (µm) of a DOE that does not name one.
+DEFAULT_DESIGN_WAVELENGTH = 0.55
+#: Material of a DOE's height map when none is named.
+DEFAULT_MATERIAL = "FUSED_SILICA"
+#: Default number of fabrication levels (4 binary masks).
+DEFAULT_LEVELS = 16
+#: Dispersion models: how the phase at the design wavelength becomes the phase at another wavelength.
+DISPERSIONS = ("none", "air", "material")
+_TWO_PI = 2.0 * math.pi
+_MAX_WAVELENGTH_UM = 100.0
+
+
+def check_levels(levels, name: str = "levels") -> int:
+    """``levels`` as an int >= 2, else a ValueError saying why."""
+    if hasattr(levels, "item") and getattr(levels, "ndim", None) == 0:  # numpy / torch scalar
+        levels = levels.item()
+    if isinstance(levels, bool) or not isinstance(levels, (int, float)) or (
+            isinstance(levels, float) and not (math.isfinite(levels) and levels == int(levels))):
+        raise ValueError(f"{name} must be an integer number of phase levels (>= 2), got {levels!r}")
+    if levels < 2:
+        raise ValueError(f"{name} must be an integer number of phase levels >= 2, got {levels!r}")
+    return int(levels)
+
+
+def _check_wavelength(w, name: str) -> float:
+    try:
+        w = float(w)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a wavelength in µm, got {w!r}") from None
+    if not (math.isfinite(w) and 0 < w <= _MAX_WAVELENGTH_UM):
+        raise ValueError(f"{name} must be a wavelength in µm (0 < λ <= {_MAX_WAVELENGTH_UM:g}), got {w!r}")
+    return w
+
+
+def quantize_phase(phase: torch.Tensor, levels: int | None = None, wrap: bool = True) -> torch.Tensor:
+    """Wrap ``phase`` (rad) to [0, 2π) and, with ``levels`` = L, round it to the nearest of the L levels
+    ``2πk/L`` (level L folds to 0), with a straight-through gradient: the forward value is the wrapped /
+    quantised phase exactly, the gradient is that of ``phase`` (identity)."""
+    if levels is None and not wrap:
+        return phase
+    q = torch.remainder(phase.detach(), _TWO_PI)
+    if levels is not None:
+        L = check_levels(levels)
+        q = torch.remainder(torch.round(q * (L / _TWO_PI)), L) * (_TWO_PI / L)
+    return q + (phase - phase.detach())
+
+
+def _level_indices(phase: torch.Tensor, levels: int) -> torch.Tensor:
+    w = torch.remainder(phase.detach(), _TWO_PI)
+    return torch.remainder(torch.round(w * (levels / _TWO_PI)), levels).to(torch.long)
+
 
 class DOE(nn.Module):
-    """Base class: grid geometry, aperture and the windowed phase map.
+    """Base class: grid geometry, aperture, the windowed phase map, dispersion and fabrication.
 
     Args:
         shape: ``(ny, nx)`` number of DOE pixels (or an int for a square grid).
         pitch: DOE pixel pitch in mm.
         aperture: ``"square"`` (the whole grid transmits) or ``"circle"`` (the inscribed circle).
+        design_wavelength: λ0 (µm) at which :meth:`design_phase_pixels` gives the phase (default 0.55).
+        material: the height map's material (a glass name, e.g. "FUSED_SILICA", or a Material); giving one
+            makes the DOE dispersive (``dispersion="material"``). Unknown names raise GlassNotFoundError.
+        dispersion: "none", "air" or "material" (see the module docstring); default "material" with a
+            material, else "none".
+        n_medium: refractive index of the medium around the relief (1: air).
     """
 
-    def __init__(self, shape, pitch: float, aperture: str = "square"):
+    #: the ``type`` of :meth:`to_spec` (None: the class cannot be described by a spec)
+    spec_type: str | None = None
+
+    def __init__(self, shape, pitch: float, aperture: str = "square", design_wavelength: float | None = None,
+                 material=None, dispersion: str | None = None, n_medium: float = 1.0):
         super().__init__()
         if isinstance(shape, int):
             shape = (shape, shape)
         ny, nx = (int(s) for s in shape)
         if ny < 1 or nx < 1:
             raise ValueError(f"DOE shape must be positive, got {shape}")
-        if not (pitch > 0 and math.isfinite(pitch)):
+        if not (isinstance(pitch, (int, float)) and pitch > 0 and math.isfinite(pitch)):
             raise ValueError(f"DOE pitch must be > 0 mm, got {pitch!r}")
         if aperture not in ("square", "circle"):
             raise ValueError(f"DOE aperture must be 'square' or 'circle', got {aperture!r}")
@@ -52,12 +134,92 @@ class DOE(nn.Module):
         self.aperture = aperture
         # follows .to(device): tells parameter-free DOEs where to build their maps
         self.register_buffer("_anchor", torch.zeros((), dtype=torch.float64), persistent=False)
+        self.design_wavelength = (DEFAULT_DESIGN_WAVELENGTH if design_wavelength is None
+                                  else _check_wavelength(design_wavelength, "design_wavelength"))
+        if not (math.isfinite(float(n_medium)) and float(n_medium) >= 1.0):
+            raise ValueError(f"n_medium must be a refractive index >= 1, got {n_medium!r}")
+        self.n_medium = float(n_medium)
+        self.material = None
+        self.dispersion = "none"
+        self._set_dispersion(dispersion if dispersion is not None else ("material" if material is not None
+                                                                        else "none"), material)
+        #: multiplies the subclass's design phase (kept 1 unless :meth:`fabricate` moved the design wavelength)
+        self.phase_scale = 1.0
+        #: fabrication: wrap the profile to [0, 2π) at λ0, and quantise it to this many levels (None: continuous)
+        self.wrap = False
+        self.quant_levels: int | None = None
 
+    # ------------------------------------------------------------------ optics settings
+    def _set_dispersion(self, dispersion: str, material=None) -> None:
+        if dispersion not in DISPERSIONS:
+            raise ValueError(f"dispersion must be one of {', '.join(map(repr, DISPERSIONS))}, got {dispersion!r}")
+        if dispersion == "material" or material is not None:
+            from raywave.materials import get_material
+
+            m = get_material(DEFAULT_MATERIAL if material is None else material)  # GlassNotFoundError
+            if m.is_air:
+                raise ValueError("a DOE's material cannot be air")
+            dn = float(m.n(torch.tensor(self.design_wavelength, dtype=torch.float64)).detach()) - self.n_medium
+            if not dn > 0:
+                raise ValueError(f"the DOE material {m.name} (n = {dn + self.n_medium:.6g} at "
+                                 f"{self.design_wavelength:g} µm) must be denser than the medium "
+                                 f"(n = {self.n_medium:g})")
+            self.material = m.to(self.device)
+        self.dispersion = dispersion
+
+    @property
+    def material_name(self) -> str | None:
+        return None if self.material is None else str(self.material.name)
+
+    def _height_material(self):
+        if self.material is not None:
+            return self.material
+        from raywave.materials import get_material
+
+        return get_material(DEFAULT_MATERIAL)
+
+    def _delta_n(self, wavelength, material=None) -> torch.Tensor:
+        m = material if material is not None else self._height_material()
+        wl = torch.as_tensor(wavelength, dtype=torch.float64, device=self.device)
+        return m.to(self.device).n(wl) - self.n_medium
+
+    def dispersion_ratio(self, wavelength):
+        """``φ(λ) / φ(λ0)`` of the dispersion model (None for "none": the phase is the same at every λ)."""
+        if self.dispersion == "none":
+            return None
+        lam0 = self.design_wavelength
+        if self.dispersion == "air":
+            return lam0 / float(wavelength)
+        return (lam0 / torch.as_tensor(wavelength, dtype=torch.float64, device=self.device)) * (
+            self._delta_n(wavelength, self.material) / self._delta_n(lam0, self.material))
+
+    def fabricate(self, levels: int | None = DEFAULT_LEVELS, wavelength: float | None = None, material=None,
+                  wrap: bool = True) -> "DOE":
+        """Make this DOE the fabricated element: its phase at ``wavelength`` λ0 (µm; default the design
+        wavelength) wrapped to [0, 2π) and quantised to ``levels`` (None: continuous kinoform) there, with a
+        straight-through gradient; with ``material`` (a glass name) it becomes a dispersive height map in it.
+        The phase at λ0 is kept: when λ0 differs from the design wavelength, the design phase is rescaled by
+        the DOE's (old) dispersion model first. Returns ``self``."""
+        lam0 = self.design_wavelength if wavelength is None else _check_wavelength(wavelength, "wavelength")
+        L = None if levels is None else check_levels(levels)
+        if lam0 != self.design_wavelength:
+            r = self.dispersion_ratio(lam0)
+            if r is not None:
+                self.phase_scale *= float(r.detach()) if isinstance(r, torch.Tensor) else float(r)
+            self.design_wavelength = lam0
+        if material is not None:
+            self._set_dispersion("material", material)
+        elif self.dispersion == "material":
+            self._set_dispersion("material", self.material)  # re-check at the new λ0
+        self.quant_levels = L
+        self.wrap = bool(wrap) or L is not None
+        return self
+
+    # ------------------------------------------------------------------ geometry
     @property
     def device(self) -> torch.device:
         return self._anchor.device
 
-    # ------------------------------------------------------------------ geometry
     @property
     def size(self) -> tuple[float, float]:
         """(width, height) of the grid in mm."""
@@ -72,6 +234,15 @@ class DOE(nn.Module):
         p = self.pitch / oversample
         ny, nx = self.sim_shape(oversample)
         return -(nx - 1) / 2 * p, -(ny - 1) / 2 * p
+
+    def pixel_xy(self, rows: slice = slice(None), cols: slice = slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
+        """Centres (mm, float64) of the DOE pixels ``[rows, cols]``: ``x`` (nx,), ``y`` (ny,)."""
+        iy = torch.arange(*rows.indices(self.shape[0]), dtype=torch.float64, device=self.device)
+        ix = torch.arange(*cols.indices(self.shape[1]), dtype=torch.float64, device=self.device)
+        return (ix - (self.shape[1] - 1) / 2) * self.pitch, (iy - (self.shape[0] - 1) / 2) * self.pitch
+
+    def _count(self, rows: slice, cols: slice) -> tuple[int, int]:
+        return len(range(*rows.indices(self.shape[0]))), len(range(*cols.indices(self.shape[1])))
 
     def coverage(self, window: Window, oversample: int = 1, device=None) -> torch.Tensor:
         """Fraction (0..1) of every simulation pixel of ``window`` inside the DOE aperture, (ny, nx) float64.
@@ -90,9 +261,58 @@ class DOE(nn.Module):
         return (0.5 + (radius - r) / p).clamp(0.0, 1.0)
 
     # ------------------------------------------------------------------ phase
+    def design_phase_pixels(self, rows: slice, cols: slice) -> torch.Tensor:
+        """Design phase (rad, float64, unwrapped) of the DOE pixels ``[rows, cols]`` at the design wavelength
+        (before ``phase_scale``, wrapping and quantisation). Subclasses implement this."""
+        raise NotImplementedError
+
+    def profile_pixels(self, rows: slice = slice(None), cols: slice = slice(None)) -> torch.Tensor:
+        """The fabricated profile: phase (rad) at the design wavelength of the DOE pixels ``[rows, cols]``,
+        wrapped / quantised when the DOE is fabricated (straight-through gradient)."""
+        p = self.design_phase_pixels(rows, cols)
+        if self.phase_scale != 1.0:
+            p = p * self.phase_scale
+        return quantize_phase(p, self.quant_levels, self.wrap)
+
     def phase_pixels(self, wavelength: float, rows: slice, cols: slice) -> torch.Tensor:
         """Phase (rad, float64) of the DOE pixels ``[rows, cols]`` at ``wavelength`` (µm)."""
-        raise NotImplementedError
+        p = self.profile_pixels(rows, cols)
+        r = self.dispersion_ratio(wavelength)
+        return p if r is None else p * r
+
+    def height_pixels(self, rows: slice = slice(None), cols: slice = slice(None)) -> torch.Tensor:
+        """Surface-relief height (µm, float64) of the DOE pixels ``[rows, cols]``:
+        ``h = φ(λ0) λ0 / (2π (n(λ0) − n_medium))`` of the fabricated profile, in the DOE's material (FUSED_SILICA
+        when it has none)."""
+        lam0 = self.design_wavelength
+        return self.profile_pixels(rows, cols) * (lam0 / _TWO_PI) / self._delta_n(lam0)
+
+    def height_2pi(self, wavelength: float | None = None) -> float:
+        """The height (µm) of a 2π phase step at ``wavelength`` (default λ0): ``λ0 / (n(λ0) − n_medium)``."""
+        lam0 = self.design_wavelength if wavelength is None else _check_wavelength(wavelength, "wavelength")
+        return lam0 / float(self._delta_n(lam0).detach())
+
+    def levels(self, L: int = DEFAULT_LEVELS, wavelength0: float | None = None, window=None) -> torch.Tensor:
+        """Integer level map (torch.long, values 0..L−1) of the DOE pixels: the (continuous, unquantised) phase at
+        ``wavelength0`` (µm; default the design wavelength) wrapped to [0, 2π) and rounded to the nearest of
+        the L levels 2πk/L, level L folded to 0. ``window = (iy0, ix0, ny, nx)`` in DOE-pixel indices (default:
+        the whole DOE, (ny, nx)). Level k is a phase of 2πk/L at λ0, a height of k·h_2π/L."""
+        L = check_levels(L, "L")
+        lam0 = self.design_wavelength if wavelength0 is None else _check_wavelength(wavelength0, "wavelength0")
+        if window is None:
+            rows, cols = slice(None), slice(None)
+        else:
+            iy0, ix0, ny, nx = (int(v) for v in window)
+            if iy0 < 0 or ix0 < 0 or ny < 1 or nx < 1 or iy0 + ny > self.shape[0] or ix0 + nx > self.shape[1]:
+                raise ValueError(f"window {tuple(window)} lies outside the DOE grid {self.shape[0]}×{self.shape[1]}")
+            rows, cols = slice(iy0, iy0 + ny), slice(ix0, ix0 + nx)
+        with torch.no_grad():
+            p = self.design_phase_pixels(rows, cols) * self.phase_scale
+            if lam0 != self.design_wavelength:
+                r = self.dispersion_ratio(lam0)
+                if r is not None:
+                    p = p * r
+            return _level_indices(p, L)
 
     def phase(self, wavelength: float, window: Window | None = None, oversample: int = 1) -> torch.Tensor:
         """Phase map (rad, float64) on the simulation pixels of ``window`` (default: the whole grid).
@@ -113,52 +333,104 @@ class DOE(nn.Module):
             ph = ph[iy0 - r0 * q: iy0 - r0 * q + ny, ix0 - c0 * q: ix0 - c0 * q + nx]
         return ph
 
+    # ------------------------------------------------------------------ specs
+    def model_spec(self) -> dict:
+        """The parameters of this DOE's phase model as a plain dict (``{"type": ..., ...}``)."""
+        raise NotImplementedError(f"{type(self).__name__} has no phase-model spec")
+
+    def to_spec(self) -> dict:
+        """The whole DOE as a plain dict (grid, phase model, dispersion, fabrication); parameters that do not fit
+        a small dict (pixel maps) are zeros here and live in the ``state_dict`` (see :func:`raywave.doe.save_doe`)."""
+        out = {"shape": list(self.shape), "pitch": self.pitch, "aperture": self.aperture,
+               "model": self.model_spec(), "design_wavelength": self.design_wavelength,
+               "dispersion": self.dispersion, "material": self.material_name, "n_medium": self.n_medium,
+               "phase_scale": self.phase_scale, "wrap": self.wrap, "levels": self.quant_levels}
+        return out
+
+    def _load_optics(self, spec: dict) -> "DOE":
+        """Apply the dispersion / fabrication keys of a :meth:`to_spec` dict."""
+        self.phase_scale = float(spec.get("phase_scale", 1.0))
+        self.wrap = bool(spec.get("wrap", False))
+        lv = spec.get("levels")
+        self.quant_levels = None if lv is None else check_levels(lv)
+        return self
+
+    def __add__(self, other: "DOE") -> "DOE":
+        from raywave.doe.params import SumDOE
+
+        return SumDOE(self, other)
+
     def extra_repr(self) -> str:
-        return f"shape={self.shape}, pitch={self.pitch:g} mm, aperture={self.aperture!r}"
+        s = f"shape={self.shape}, pitch={self.pitch:g} mm, aperture={self.aperture!r}"
+        if self.dispersion != "none":
+            s += f", design_wavelength={self.design_wavelength:g} µm, dispersion={self.dispersion!r}"
+            if self.material is not None:
+                s += f", material={self.material_name!r}"
+        if self.wrap or self.quant_levels:
+            s += f", levels={self.quant_levels}, wrap={self.wrap}"
+        return s
 
 
 class BlankDOE(DOE):
     """A DOE with zero phase: only its aperture (a clear window of the given size)."""
 
-    def phase_pixels(self, wavelength, rows, cols):
-        ny = len(range(*rows.indices(self.shape[0])))
-        nx = len(range(*cols.indices(self.shape[1])))
-        return torch.zeros((ny, nx), dtype=torch.float64, device=self.device)
+    spec_type = "blank"
+
+    def design_phase_pixels(self, rows, cols):
+        return torch.zeros(self._count(rows, cols), dtype=torch.float64, device=self.device)
+
+    def model_spec(self) -> dict:
+        return {"type": "blank"}
 
 
 class PixelDOE(DOE):
-    """A free pixel phase map: one trainable phase value (rad) per DOE pixel.
+    """A free pixel phase map: one trainable phase value (rad) per DOE pixel (the most general DOE).
+
+    The DOE pitch is the fabrication pitch: the map is held constant over the ``oversample²`` simulation
+    samples of each pixel, so a coarse fabrication grid is simulated on a finer one at no extra parameters.
 
     Args:
         phase: ``(ny, nx)`` phase in radians at ``design_wavelength`` (a tensor or array).
         pitch: pixel pitch (mm).
-        design_wavelength: µm. ``None``: the same phase at every wavelength. Otherwise the DOE is a fixed
-            optical-path profile in air, ``φ(λ) = φ · λ_d / λ`` (the material dispersion of a real surface
-            relief is added by the DOE issue's models).
+        design_wavelength: µm. ``None``: the same phase at every wavelength (``dispersion="none"``; λ0 = 0.55 µm
+            for fabrication). Otherwise, without a material, the DOE is a fixed optical-path profile in air,
+            ``φ(λ) = φ · λ_d / λ`` (``dispersion="air"``); with ``material`` a height map in it.
         aperture: "square" or "circle".
         trainable: register the map as an ``nn.Parameter`` (default) or a buffer.
+        material, dispersion, n_medium: see :class:`DOE`.
     """
 
+    spec_type = "pixel"
+
     def __init__(self, phase, pitch: float, design_wavelength: float | None = None, aperture: str = "square",
-                 trainable: bool = True):
+                 trainable: bool = True, material=None, dispersion: str | None = None, n_medium: float = 1.0):
         ph = torch.as_tensor(phase, dtype=torch.float64)
         if ph.ndim != 2:
             raise ValueError(f"a DOE phase map must be 2-D (ny, nx), got shape {tuple(ph.shape)}")
         if not bool(torch.isfinite(ph).all()):
             raise ValueError("the DOE phase map contains NaN or inf values")
-        super().__init__(tuple(ph.shape), pitch, aperture)
+        if dispersion is None and material is None and design_wavelength is not None:
+            dispersion = "air"
+        super().__init__(tuple(ph.shape), pitch, aperture, design_wavelength, material, dispersion, n_medium)
         if trainable:
             self.phase_map = nn.Parameter(ph.clone())
         else:
             self.register_buffer("phase_map", ph.clone())
-        self.design_wavelength = None if design_wavelength is None else float(design_wavelength)
+        self.trainable = bool(trainable)
 
-    def phase_pixels(self, wavelength, rows, cols):
-        ph = self.phase_map[rows, cols]
-        if self.design_wavelength is not None:
-            ph = ph * (self.design_wavelength / float(wavelength))
-        return ph
+    @classmethod
+    def from_height(cls, height_um, pitch: float, material=DEFAULT_MATERIAL,
+                    design_wavelength: float = DEFAULT_DESIGN_WAVELENGTH, **kw) -> "PixelDOE":
+        """A dispersive DOE from a height map (µm) in ``material``: ``φ(λ0) = 2π (n(λ0) − n_medium) h / λ0``."""
+        h = torch.as_tensor(height_um, dtype=torch.float64)
+        probe = BlankDOE(1, 1.0, design_wavelength=design_wavelength, material=material,
+                         n_medium=kw.get("n_medium", 1.0))
+        dn = float(probe._delta_n(probe.design_wavelength).detach())
+        return cls(h * (_TWO_PI * dn / probe.design_wavelength), pitch, design_wavelength=design_wavelength,
+                   material=material, **kw)
 
-    def extra_repr(self) -> str:
-        dw = "" if self.design_wavelength is None else f", design_wavelength={self.design_wavelength:g} µm"
-        return super().extra_repr() + dw
+    def design_phase_pixels(self, rows, cols):
+        return self.phase_map[rows, cols]
+
+    def model_spec(self) -> dict:
+        return {"type": "pixel", "trainable": self.trainable}

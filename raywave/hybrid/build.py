@@ -15,6 +15,9 @@ Grid rules (``load_hybrid`` / ``hybrid_from_spec``; explicit arguments override 
   reaches on the DOE plane (pupil rim and a hexapolar grid, for the given fields — default: the lens's
   fields and (0, 0) — and wavelengths). Sizes are rounded up to whole pixels. A DOE in the file without a
   size or shape (a .zmx diffractive surface without CLAP / SQAP) is an error unless ``doe_size`` is given.
+* **phase**: the file's phase map (``PixelDOE``), else its ``phase_model`` (``raywave.doe.doe_from_phase_model``:
+  BINARY_2, radial, Zernike, Fresnel, grating, cubic, sums), else blank; ``material`` / ``levels`` make it a
+  fabricated, dispersive height map (``DOE.fabricate``).
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from raywave.doe import BlankDOE, PixelDOE
+from raywave.doe import BlankDOE, PixelDOE, doe_from_phase_model
 from raywave.hybrid.hybrid_lens import HybridLens
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "DOEPhaseWarning", "beam_half_extent",
@@ -42,7 +45,8 @@ _PIXEL_TOL = 1e-6
 
 
 class DOEPhaseWarning(UserWarning):
-    """A lens file describes a DOE phase (e.g. a Zemax BINARY_2 surface) that raywave does not apply yet."""
+    """A lens file describes a DOE phase that raywave does not apply (kept for compatibility: every
+    ``phase_model`` type of :mod:`raywave.io.doe`, Zemax BINARY_2 included, is now applied)."""
 
 
 def _pixels(length: float, pitch: float) -> int:
@@ -186,20 +190,26 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         shape = (max(_pixels(h, pitch), _MIN_PIXELS), max(_pixels(w, pitch), _MIN_PIXELS))
 
     aperture = data.aperture if from_file else "square"
+    model = data.phase_model if from_file else None
+    material = data.material if from_file else None
+    levels = data.levels if from_file else None
     if phase is not None:
-        doe = PixelDOE(phase, pitch, design_wavelength=data.design_wavelength, aperture=aperture)
+        doe = PixelDOE(phase, pitch, design_wavelength=data.design_wavelength, aperture=aperture, material=material)
+        if levels is not None:
+            doe.fabricate(levels=levels)
+    elif model is not None:
+        doe = doe_from_phase_model(model, shape, pitch, aperture, design_wavelength=data.design_wavelength,
+                                   material=material, levels=levels)
+    elif material is not None or levels is not None:
+        doe = BlankDOE(shape, pitch, aperture=aperture, design_wavelength=data.design_wavelength, material=material)
     else:
         doe = BlankDOE(shape, pitch, aperture=aperture)
-    model = data.phase_model if from_file else None
-    if model is not None and any(c != 0.0 for c in model.get("coefficients", ())):
-        warnings.warn(f"{source}: the DOE's {model['type'].upper()} phase (order {model['order']:g}, "
-                      f"{len(model['coefficients'])} coefficients, normalisation radius {model['norm_radius']:g} mm) "
-                      "is not yet applied: the DOE is built blank (zero phase)", DOEPhaseWarning, stacklevel=3)
     q = int(oversample) if oversample is not None else (data.oversample if from_file else 1)
     hl = HybridLens(lens, doe, distance, sensor_pitch=sensor_pitch, oversample=q)
     info.update(distance=distance, pitch=pitch, shape=list(doe.shape), size=list(doe.size), aperture=aperture,
                 phase=data.phase_path if from_file else None, oversample=q,
-                phase_model=None if model is None else model["type"])
+                phase_model=None if model is None else model["type"], material=doe.material_name,
+                levels=doe.quant_levels, design_wavelength=doe.design_wavelength, dispersion=doe.dispersion)
     hl.doe_info = info
     return hl
 

@@ -3,7 +3,8 @@
 A hybrid lens file names its diffractive optical element (DOE) in an optional top-level ``"doe"`` object
 (docs/lens-format.md, "DOE"): the plane's distance after the last vertex, the pixel grid (pitch and size or
 shape), the aperture and the phase (``null`` = a blank DOE, or a path to a ``.npy`` / ``.npz`` phase map in
-radians, relative to the lens file). Everything here works on plain dicts and numpy arrays and never imports
+radians, relative to the lens file, or a parametric ``phase_model``), and optionally a ``material`` and
+``levels`` (a fabricated, dispersive height map). Everything here works on plain dicts and numpy arrays and never imports
 torch; :mod:`raywave.hybrid.build` turns a :class:`DOEData` into a :class:`~raywave.doe.DOE`.
 """
 
@@ -18,11 +19,22 @@ from raywave.io.errors import LensFileError, suggestion
 
 #: Keys of the "doe" object.
 DOE_KEYS = ("distance", "pitch", "size", "shape", "aperture", "phase", "design_wavelength", "oversample",
-            "phase_model")
+            "phase_model", "material", "levels")
 DOE_APERTURES = ("square", "circle")
 PHASE_EXTENSIONS = (".npy", ".npz")
-#: Parametric phase models read from other formats (kept, not yet applied: the DOE is built blank).
-PHASE_MODEL_KEYS = {"binary_2": ("type", "order", "norm_radius", "coefficients")}
+#: Parametric phase models (raywave.doe: Binary2DOE, RadialDOE, ZernikeDOE, FresnelDOE, GratingDOE, CubicDOE,
+#: SumDOE): type -> (required keys, optional keys). Lengths in mm, phases in rad, wavelengths in µm, angles in deg.
+PHASE_MODELS = {
+    "binary_2": (("order", "norm_radius", "coefficients"), ()),
+    "radial": (("radius", "profile"), ()),
+    "zernike": (("coefficients",), ("radius",)),
+    "fresnel": (("focal_length",), ("wavelength",)),
+    "grating": (("period",), ("angle",)),
+    "cubic": (("alpha",), ("radius",)),
+    "sum": (("terms",), ()),
+}
+#: Allowed keys of each phase-model type.
+PHASE_MODEL_KEYS = {k: ("type",) + req + opt for k, (req, opt) in PHASE_MODELS.items()}
 #: A size must be this close (in pixels) to a whole number of pixels.
 PIXEL_TOLERANCE = 1e-6
 #: Wavelengths above this (µm) are taken for a unit mistake (as raywave.io.json_format).
@@ -43,7 +55,9 @@ class DOEData:
         phase_path: the phase file (absolute) or None.
         design_wavelength: µm or None.
         oversample: simulation samples per DOE pixel per axis.
-        phase_model: a parametric phase read from another format (e.g. Zemax BINARY_2), or None.
+        phase_model: a parametric phase (``{"type": "binary_2", ...}``, see :data:`PHASE_MODELS`), or None.
+        material: the DOE's material (a glass name): the DOE is a dispersive height map in it; None: not given.
+        levels: fabricate the DOE: wrap its phase at the design wavelength and quantise it to this many levels.
     """
 
     distance: float | None = None
@@ -56,6 +70,8 @@ class DOEData:
     design_wavelength: float | None = None
     oversample: int = 1
     phase_model: dict | None = None
+    material: str | None = None
+    levels: int | None = None
 
 
 # --------------------------------------------------------------------------------------- schema
@@ -110,32 +126,78 @@ def validate_doe(v, doe, spec) -> None:
             v.err(path + ("oversample",), f"must be a positive integer, got {_describe(o)}")
     if "phase_model" in doe and doe["phase_model"] is not None:
         _validate_phase_model(v, doe["phase_model"], path + ("phase_model",))
+    if doe.get("material") is not None:
+        v.string(doe["material"], path + ("material",), nonempty=True)
+    if doe.get("levels") is not None:
+        lv = doe["levels"]
+        if not (isinstance(lv, int) and not isinstance(lv, bool) and lv >= 2):
+            v.err(path + ("levels",), f"must be an integer number of phase levels >= 2, got {_describe(lv)}")
 
 
-def _validate_phase_model(v, m, path) -> None:
+def _validate_phase_model(v, m, path, depth: int = 0) -> None:
     if not v.obj(m, path):
         return
     kind = m.get("type")
-    if kind not in PHASE_MODEL_KEYS:
-        hint = suggestion(kind, PHASE_MODEL_KEYS) if isinstance(kind, str) else ""
+    if kind not in PHASE_MODELS:
+        hint = suggestion(kind, PHASE_MODELS) if isinstance(kind, str) else ""
         v.err(path + ("type",) if "type" in m else path,
-              f"phase model type must be one of {', '.join(map(repr, PHASE_MODEL_KEYS))}, got {_describe(kind)}{hint}")
+              f"phase model type must be one of {', '.join(map(repr, PHASE_MODELS))}, got {_describe(kind)}{hint}")
         return
     v.keys(m, path, PHASE_MODEL_KEYS[kind])
-    for k in ("order", "norm_radius", "coefficients"):
+    for k in PHASE_MODELS[kind][0]:
         if k not in m:
             v.err(path, f"a {kind} phase model needs {k!r}")
-    if "order" in m:
-        v.number(m["order"], path + ("order",))
-    if "norm_radius" in m:
-        v.number(m["norm_radius"], path + ("norm_radius",), positive=True)
-    if "coefficients" in m:
-        c = m["coefficients"]
-        if not isinstance(c, list):
-            v.err(path + ("coefficients",), f"must be a list, got {_describe(c)}")
+    for k in ("order", "alpha", "angle"):
+        if k in m:
+            v.number(m[k], path + (k,))
+    for k in ("norm_radius", "radius", "period"):
+        if k in m:
+            v.number(m[k], path + (k,), positive=True)
+    if "focal_length" in m:
+        v.number(m["focal_length"], path + ("focal_length",), nonzero=True)
+    if "wavelength" in m and v.number(m["wavelength"], path + ("wavelength",), positive=True) \
+            and m["wavelength"] > _MAX_WAVELENGTH_UM:
+        v.err(path + ("wavelength",), f"{m['wavelength']!r} µm is not a plausible wavelength: wavelengths are in µm, "
+                                      "not nm")
+    for k in ("coefficients", "profile"):
+        if k in m:
+            c = m[k]
+            if not isinstance(c, list):
+                v.err(path + (k,), f"must be a list, got {_describe(c)}")
+            else:
+                for i, x in enumerate(c):
+                    v.number(x, path + (k, i))
+                if k == "profile" and len(c) < 2:
+                    v.err(path + (k,), f"a radial profile needs at least 2 samples, got {len(c)}")
+                if k == "coefficients" and kind == "zernike" and not c:
+                    v.err(path + (k,), "must not be empty")
+    if "terms" in m:
+        t = m["terms"]
+        if not isinstance(t, list) or not t:
+            v.err(path + ("terms",), f"must be a non-empty list of phase models, got {_describe(t)}")
+        elif depth > 4:
+            v.err(path + ("terms",), "phase models nest too deep")
         else:
-            for i, x in enumerate(c):
-                v.number(x, path + ("coefficients", i))
+            for i, x in enumerate(t):
+                _validate_phase_model(v, x, path + ("terms", i), depth + 1)
+
+
+def phase_model_canonical(m: dict) -> dict:
+    """A phase model with numbers as floats (and, for binary_2, the order written out)."""
+    out: dict = {"type": m["type"]}
+    if m["type"] == "binary_2":
+        return {"type": "binary_2", "order": float(m.get("order", 1.0)), "norm_radius": float(m["norm_radius"]),
+                "coefficients": [float(c) for c in m["coefficients"]]}
+    for k, x in m.items():
+        if k == "type":
+            continue
+        if k == "terms":
+            out[k] = [phase_model_canonical(t) for t in x]
+        elif isinstance(x, list):
+            out[k] = [float(c) for c in x]
+        else:
+            out[k] = float(x)
+    return out
 
 
 def _is_pos(x) -> bool:
@@ -177,9 +239,11 @@ def doe_canonical(doe: dict) -> dict:
         out["design_wavelength"] = float(doe["design_wavelength"])
     out["oversample"] = int(doe.get("oversample", 1))
     if doe.get("phase_model") is not None:
-        m = doe["phase_model"]
-        out["phase_model"] = {"type": m["type"], "order": float(m["order"]), "norm_radius": float(m["norm_radius"]),
-                              "coefficients": [float(c) for c in m["coefficients"]]}
+        out["phase_model"] = phase_model_canonical(doe["phase_model"])
+    if doe.get("material") is not None:
+        out["material"] = str(doe["material"])
+    if doe.get("levels") is not None:
+        out["levels"] = int(doe["levels"])
     return out
 
 
@@ -272,6 +336,8 @@ def resolve_doe(spec: dict, source="<spec>", base_dir=None, lines: dict | None =
         design_wavelength=float(doe["design_wavelength"]) if doe.get("design_wavelength") is not None else None,
         oversample=int(doe.get("oversample", 1)),
         phase_model=doe.get("phase_model"),
+        material=doe.get("material"),
+        levels=int(doe["levels"]) if doe.get("levels") is not None else None,
     )
     if doe.get("shape") is not None:
         data.shape = (int(doe["shape"][0]), int(doe["shape"][1]))

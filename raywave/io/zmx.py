@@ -5,8 +5,9 @@ XFLN/YFLN, WAVM/WAVL, PWAV) and the surfaces ``SURF n`` of types STANDARD, EVENA
 STOP, CURV, DISZ, GLAS, DIAM, CONI, PARM, COMM and CLAP / SQAP / FLAP apertures. Surface 0 is the object
 (its DISZ is the object distance), the last surface is the image plane (dropped: the thickness before it
 is the distance to the image). A diffractive surface (BINARY_2, DGRATING, ...) as the last surface before the
-image becomes the spec's "doe" (the DOE plane of a hybrid lens; BINARY_2 coefficients kept as its
-``phase_model``). Anything raywave cannot model (other surface types, mirrors, tilted or
+image becomes the spec's "doe" (the DOE plane of a hybrid lens; BINARY_2 coefficients become its
+``phase_model``, and :func:`write_zmx` writes such a DOE back as a BINARY_2 surface). Anything raywave
+cannot model (other surface types, mirrors, tilted or
 decentred apertures, curved object or image, F/# or NA system apertures, non-sequential mode) raises
 :class:`LensFileError` naming the surface and line; known bookkeeping keys are skipped and unknown keys
 give one :class:`LensFileWarning` listing them.
@@ -622,6 +623,10 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     w("  TYPE STANDARD")
     w("  CURV 0.0")
     w("  DISZ " + ("INFINITY" if d == "inf" else _num(d)))
+    doe = spec.get("doe")
+    model = (doe or {}).get("phase_model")
+    binary2 = doe is not None and model is not None and model.get("type") == "binary_2" and doe.get("phase") is None
+    nsurf = len(spec["surfaces"])
     for i, s in enumerate(spec["surfaces"], start=1):
         w(f"SURF {i}")
         kind = s.get("type", "standard")
@@ -632,7 +637,7 @@ def zmx_text(spec: dict, source="<spec>") -> str:
         w("  TYPE " + {"standard": "STANDARD", "even_asphere": "EVENASPH", "paraxial": "PARAXIAL"}[kind])
         if kind != "paraxial":
             w(f"  CURV {_num(curvature_of(s))}")
-        w(f"  DISZ {_num(s['thickness'])}")
+        w(f"  DISZ {_num(doe['distance'] if binary2 and i == nsurf else s['thickness'])}")
         g = _glas_line(s.get("material", "air"))
         if g:
             w("  " + g)
@@ -657,6 +662,9 @@ def zmx_text(spec: dict, source="<spec>") -> str:
             else:
                 w(f"  SQAP {_num(ap['half_width'])} {_num(ap['half_width'])}")
     n = len(spec["surfaces"]) + 1
+    if binary2:
+        _write_binary2(w, n, doe, spec["surfaces"][-1], source)
+        n += 1
     w(f"SURF {n}")
     w("  TYPE STANDARD")
     w("  CURV 0.0")
@@ -664,11 +672,48 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     sensor = spec.get("sensor")
     if sensor:
         w(f'  DIAM {_num(0.5 * math.hypot(*sensor["size"]))} 1 0 0 1 ""')
-    lost = [k for k in ("sensor", "description", "doe") if spec.get(k)]
+    lost = [k for k in ("sensor", "description") if spec.get(k)]
+    if doe is not None and not binary2:
+        lost.append("doe (only a binary_2 phase model becomes a BINARY_2 surface)")
+    elif doe is not None:
+        extra = [k for k in ("pitch", "shape", "design_wavelength", "material", "levels") if doe.get(k) is not None]
+        if doe.get("oversample", 1) != 1:
+            extra.append("oversample")
+        if extra:
+            lost.append(f"the DOE's {', '.join(extra)}")
     if lost:
         warnings.warn(LensFileWarning(f"{source}: .zmx files do not store {' and '.join(lost)}; "
                                       "they are left out"), stacklevel=3)
     return "\r\n".join(out) + "\r\n"
+
+
+def _write_binary2(w, number: int, doe: dict, last: dict, source) -> None:
+    """The DOE plane as a BINARY_2 surface (PARM 0 = diffraction order, XDAT 1 = N, XDAT 2 = normalisation
+    radius, XDAT 3.. = A_i in rad) between the last lens surface and the image."""
+    model = doe["phase_model"]
+    coeffs = [float(c) for c in model["coefficients"]]
+    if len(coeffs) > MAX_BINARY2_TERMS:
+        raise LensFileError(f"doe.phase_model: a .zmx BINARY_2 surface holds at most {MAX_BINARY2_TERMS} terms, got "
+                            f"{len(coeffs)}", source)
+    rest = float(last["thickness"]) - float(doe["distance"])
+    w(f"SURF {number}")
+    w("  TYPE BINARY_2")
+    w("  CURV 0.0")
+    w(f"  DISZ {_num(rest)}")
+    g = _glas_line(last.get("material", "air"))
+    if g:
+        w("  " + g)
+    size = doe.get("size")
+    if size is not None and size[0] == size[1]:
+        if doe.get("aperture", "square") == "circle":
+            w(f"  CLAP 0 {_num(0.5 * size[0])} 0")
+        else:
+            w(f"  SQAP {_num(0.5 * size[0])} {_num(0.5 * size[1])}")
+    w(f"  PARM 0 {_num(model.get('order', 1.0))}")
+    for j in range(1, 9):
+        w(f"  PARM {j} 0.0")
+    for j, v in enumerate([float(len(coeffs)), float(model["norm_radius"])] + coeffs, start=1):
+        w(f'  XDAT {j} {_num(v)} 0 0 1 0 0 ""')
 
 
 def _glas_line(m) -> str | None:

@@ -1,7 +1,8 @@
 """Figures (matplotlib, PNG). Physics modules never import this package (tests/test_layering.py)."""
 
 from raywave.plotting.layout import plot_layout
+from raywave.plotting.masks import plot_mask, plot_masks
 from raywave.plotting.psf import plot_psf, plot_psf_grid
 from raywave.plotting.spot import plot_spots
 
-__all__ = ["plot_layout", "plot_psf", "plot_psf_grid", "plot_spots"]
+__all__ = ["plot_layout", "plot_mask", "plot_masks", "plot_psf", "plot_psf_grid", "plot_spots"]

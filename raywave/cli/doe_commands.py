@@ -1,0 +1,274 @@
+"""The ``doe`` commands: fabrication of a DOE.
+
+    raywave doe export DOE [--levels 16] [--material NAME] [--wavelength UM] [-o masks/] [--pitch MM]
+                           [--format gds|oas] [--min-feature UM] [--name NAME] [--json]
+
+DOE is a phase map (``.npy``: the (ny, nx) phase in radians at the design wavelength, with ``--pitch``; ``.npz``:
+the phase under ``phase`` and optionally the pitch (mm) under ``pitch``) or a lens file with a DOE (raywave .json
+with a ``"doe"`` section, .zmx with a diffractive last surface). The design wavelength and material default to the
+DOE's own (a lens file's DOE), else 0.55 µm and fused silica. The DOE's phase at the design wavelength is
+quantised to L = 2^k levels (nearest level of the wrapped phase, L folding to 0) and split into k binary masks
+(:mod:`raywave.doe.fabrication`: conventions, layers, etch depths). Writes ``masks.gds`` (or ``.oas``),
+``mask_<j>.png`` previews and ``report.json`` into the output folder and prints a one-line summary.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+import warnings
+from pathlib import Path
+
+from raywave.cli.errors import CommandError, number_arg
+
+PHASE_EXTENSIONS = (".npy", ".npz")
+LENS_EXTENSIONS = (".json", ".zmx")
+_MAX_WAVELENGTH_UM = 100.0
+DEFAULT_WAVELENGTH = 0.55
+DEFAULT_MATERIAL = "fused_silica"
+
+
+def _number(text, flag: str) -> float:
+    return number_arg(text, flag, positive=True)
+
+
+# ---------------------------------------------------------------------------- loading the DOE
+def _load_phase_map(path: Path):
+    """-> (phase float64 (ny, nx), pitch mm or None)."""
+    import numpy as np
+
+    pitch = None
+    try:
+        if path.suffix.lower() == ".npy":
+            arr = np.load(path, allow_pickle=False)
+        else:
+            with np.load(path, allow_pickle=False) as z:
+                if "phase" not in z.files:
+                    raise CommandError(f"{path}: holds no array 'phase' (found: {', '.join(z.files) or 'nothing'})")
+                arr = z["phase"]
+                if "pitch" in z.files:
+                    pv = z["pitch"]
+                    if pv.size != 1 or not np.issubdtype(pv.dtype, np.number):
+                        raise CommandError(f"{path}: 'pitch' must be one number (mm)")
+                    pitch = float(pv.reshape(()))
+                    if not (math.isfinite(pitch) and pitch > 0):
+                        raise CommandError(f"{path}: 'pitch' must be > 0 mm, got {pitch!r}")
+    except CommandError:
+        raise
+    except (OSError, ValueError, EOFError) as e:
+        raise CommandError(f"{path}: cannot read the phase map: {' '.join(str(e).split())}") from None
+    if arr.ndim != 2 or arr.shape[0] < 1 or arr.shape[1] < 1:
+        raise CommandError(f"{path}: a phase map must be a non-empty 2-D (ny, nx) array, got shape {arr.shape}")
+    if arr.dtype == bool or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise CommandError(f"{path}: the phase map must hold real numbers (radians), got dtype {arr.dtype}")
+    arr = np.asarray(arr, dtype=np.float64)
+    if not np.isfinite(arr).all():
+        bad = np.argwhere(~np.isfinite(arr))[0]
+        raise CommandError(f"{path}: the phase map contains NaN or inf (first at [{bad[0]}, {bad[1]}])")
+    return arr, pitch
+
+
+def load_doe(source: str, pitch: float | None = None, wavelength0: float = 0.55):
+    """The DOE (a :class:`~raywave.doe.DOE`) of a phase map (radians at ``wavelength0``, µm) or a lens file, and a
+    description of where it came from. ``pitch`` (mm) overrides the file's (a .npy needs it)."""
+    from raywave.doe import BlankDOE, PixelDOE
+
+    path = Path(source)
+    ext = path.suffix.lower()
+    if ext in PHASE_EXTENSIONS:
+        if not path.is_file():
+            raise CommandError(f"DOE file {source!r} not found")
+        phase, file_pitch = _load_phase_map(path)
+        p = pitch if pitch is not None else file_pitch
+        if p is None:
+            raise CommandError(f"{source}: the phase map has no pitch: give --pitch MM (or store 'pitch' in a .npz)")
+        doe = PixelDOE(phase, p, design_wavelength=wavelength0, trainable=False)
+        return doe, {"source": str(source), "kind": "phase map"}
+    from raywave.lens.build import resolve_lens_path
+
+    try:
+        lens_path = resolve_lens_path(source)
+    except FileNotFoundError:
+        raise CommandError(f"DOE file {source!r} not found (a .npy / .npz phase map or a lens file with a DOE)") \
+            from None
+    if lens_path.suffix.lower() not in LENS_EXTENSIONS:
+        raise CommandError(f"{source}: a DOE is a phase map ({' or '.join(PHASE_EXTENSIONS)}) or a lens file "
+                           f"({' or '.join(LENS_EXTENSIONS)}) with a DOE")
+    from raywave.hybrid.build import DOEPhaseWarning, load_hybrid
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DOEPhaseWarning)
+        try:
+            hl = load_hybrid(lens_path, doe_pitch=pitch)
+        except DOEPhaseWarning as w:
+            raise CommandError(f"cannot export: {' '.join(str(w).split())}") from None
+    if hl.doe_info.get("source") != "file":
+        raise CommandError(f"{source}: the lens file has no DOE (a \"doe\" section or a .zmx diffractive surface)")
+    if isinstance(hl.doe, BlankDOE):
+        raise CommandError(f"{source}: the lens file's DOE is blank (no phase): nothing to fabricate")
+    return hl.doe, {"source": str(source), "kind": "lens file", "aperture": hl.doe.aperture}
+
+
+def doe_levels(doe, levels: int, wavelength0: float):
+    """The DOE's (ny, nx) level map at ``wavelength0``: ``doe.levels`` where the DOE has it, else the nearest
+    level of its wrapped phase (:func:`raywave.doe.fabrication.quantise_phase`)."""
+    import numpy as np
+    import torch
+
+    from raywave.doe.fabrication import quantise_phase
+
+    with torch.no_grad():
+        if callable(getattr(doe, "levels", None)):
+            return np.asarray(doe.levels(levels, wavelength0).detach().cpu().numpy(), dtype=np.int64)
+        return quantise_phase(doe.phase(wavelength0).detach().cpu().numpy(), levels)
+
+
+# ---------------------------------------------------------------------------- export
+def export_masks(doe, levels: int = 16, material: str = "fused_silica", wavelength0: float = 0.55,
+                 folder="masks", fmt: str = "gds", name: str = "DOE", min_feature: float | None = None,
+                 png: bool = True, info: dict | None = None) -> dict:
+    """Quantise ``doe``, split it into masks, write ``folder/masks.<fmt>``, ``mask_<j>.png`` and ``report.json``;
+    returns the report (a dict)."""
+    import numpy as np
+
+    from raywave.doe import fabrication as fab
+    from raywave.materials import get_material
+
+    k = fab.mask_bits(levels)          # L not a power of two: error before any work
+    mat = get_material(material)
+    depths = fab.etch_depths(levels, mat, wavelength0)
+    n0 = fab._index(mat, wavelength0)
+    t0 = time.perf_counter()
+    level_map = doe_levels(doe, levels, wavelength0)
+    masks = fab.masks_from_levels(level_map, levels)
+    features = [fab.min_features(masks[j]) for j in range(k)]
+    if min_feature is not None:
+        fab.check_min_feature(masks, doe.pitch, min_feature, features)
+    report = fab.mask_report(masks, doe.pitch, depths, features)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = folder / f"masks.{fmt}"
+    label = (f"{levels} levels, {k} masks, lambda0 {wavelength0:g} um, {mat.name} (n {n0:.5f}), "
+             f"pitch {doe.pitch * 1e3:g} um\netch " + ", ".join(f"L{j + 1} {d * 1e6:.1f}" for j, d in
+                                                               enumerate(depths)) + " nm; polygons = etched")
+    t1 = time.perf_counter()
+    written = fab.write_mask_file(out, masks, doe.pitch, name=name, label=label, fmt=fmt)
+    t_write = time.perf_counter() - t1
+    pngs = []
+    if png:
+        from raywave.plotting.masks import plot_masks
+
+        pngs = [str(p) for p in plot_masks(masks, doe.pitch, folder, depths_nm=[d * 1e6 for d in depths])]
+    for j, c in enumerate(written["rectangles"]):
+        report["per_mask"][j]["rectangles"] = c
+    hist = [int(c) for c in np.bincount(level_map.reshape(-1), minlength=levels)]
+    full = {
+        "name": name,
+        **(info or {}),
+        "material": mat.name,
+        "wavelength_um": float(wavelength0),
+        "n_at_wavelength": n0,
+        "h_2pi_nm": fab.height_2pi(mat, wavelength0) * 1e6,
+        **report,
+        "level_histogram": hist,
+        "min_feature_limit_um": min_feature,
+        "file": str(out),
+        "format": written["format"],
+        "file_bytes": written["bytes"],
+        "rectangles": sum(written["rectangles"]),
+        "write_seconds": t_write,
+        "export_seconds": time.perf_counter() - t0,
+        "previews": pngs,
+    }
+    rp = folder / "report.json"
+    rp.write_text(json.dumps(full, indent=2) + "\n", encoding="utf-8")
+    full["report"] = str(rp)
+    return full
+
+
+def cmd_export(args) -> int:
+    from raywave.doe.fabrication import MASK_FORMATS, mask_bits
+
+    try:
+        L = int(args.levels)
+    except ValueError:
+        raise CommandError(f"--levels: {args.levels!r} is not an integer") from None
+    try:
+        mask_bits(L)
+    except ValueError as e:
+        raise CommandError(f"--levels: {e}") from None
+    w = None if args.wavelength is None else _number(args.wavelength, "--wavelength")
+    if w is not None and w > _MAX_WAVELENGTH_UM:
+        raise CommandError(f"--wavelength: {args.wavelength} µm is not a plausible wavelength (µm, not nm)")
+    pitch = None if args.pitch is None else _number(args.pitch, "--pitch")
+    min_feature = None if args.min_feature is None else _number(args.min_feature, "--min-feature")
+    fmt = args.format.lower()
+    if fmt not in MASK_FORMATS:
+        raise CommandError(f"--format: gds or oas, got {args.format!r}")
+    from raywave.materials import GlassNotFoundError, get_material
+
+    if args.material is not None:
+        try:
+            get_material(args.material)
+        except GlassNotFoundError as e:
+            raise CommandError(f"--material: {' '.join(str(e).split())}") from None
+    doe, info = load_doe(args.doe, pitch, DEFAULT_WAVELENGTH if w is None else w)
+    # defaults: the DOE's own design wavelength and material (a lens file's DOE), else 0.55 µm, fused silica
+    if w is None:
+        w = float(getattr(doe, "design_wavelength", None) or DEFAULT_WAVELENGTH)
+    material = args.material or getattr(doe, "material_name", None) or DEFAULT_MATERIAL
+    name = args.name or Path(str(args.doe)).stem
+    try:
+        r = export_masks(doe, L, material, w, args.output, fmt, name, min_feature, png=not args.no_png,
+                         info=info)
+    except ValueError as e:
+        raise CommandError(" ".join(str(e).split())) from None
+    if args.json:
+        print(json.dumps(r))
+        return 0
+    mf = r["min_feature_um"]
+    depths = "/".join(f"{d:.1f}" for d in r["depths_nm"])
+    ny, nx = r["shape"]
+    print(f"wrote {r['file']} ({r['format']}, {r['file_bytes'] / 1e6:.3g} MB, {r['rectangles']} rectangles): "
+          f"{r['levels']} levels = {r['masks']} masks, etch {depths} nm in {r['material']} at "
+          f"{r['wavelength_um']:g} µm, {nx} × {ny} pixels of {r['pitch_um']:g} µm, min feature "
+          f"{'none' if mf is None else f'{mf:g} µm'}; {len(r['previews'])} previews and {r['report']}",
+          file=sys.stdout)
+    return 0
+
+
+# ---------------------------------------------------------------------------- registration
+def register(sub) -> None:
+    p = sub.add_parser("doe", help="DOE fabrication (mask export)",
+                       description="Diffractive optical elements: fabrication.")
+    dsub = p.add_subparsers(dest="doe_command", metavar="SUBCOMMAND")
+    dsub.required = True
+    e = dsub.add_parser(
+        "export", help="lithography masks (GDSII / OASIS), previews and a report for an L-level DOE",
+        description="Quantise a DOE's phase at the design wavelength to L = 2^k levels and write its k binary "
+        "masks: OUT/masks.gds (or .oas; mask j on layer j, polygons = etched areas, mask 1 the deepest etch "
+        "h_2pi/2; alignment crosses in the corners; label on layer 100), OUT/mask_<j>.png and OUT/report.json "
+        "(depths, pitch, minimum feature and fill factor per mask). See docs/fabrication.md.")
+    e.add_argument("doe", metavar="DOE",
+                   help=".npy phase map (radians at the design wavelength; needs --pitch), .npz (phase, optional "
+                        "pitch in mm) or a lens file with a DOE (.json \"doe\" section, .zmx)")
+    e.add_argument("--levels", default="16", metavar="L", help="number of phase levels, a power of two (default 16)")
+    e.add_argument("--material", default=None, metavar="NAME",
+                   help="substrate material (glass table / catalog name; default: the DOE's material, else "
+                        "fused_silica)")
+    e.add_argument("--wavelength", default=None, metavar="UM",
+                   help="design wavelength λ0 in µm: the phase map's wavelength and the etch depths' (default: the "
+                        "DOE's design wavelength, else 0.55)")
+    e.add_argument("-o", "--output", default="masks", metavar="DIR", help="output folder (default masks/)")
+    e.add_argument("--pitch", default=None, metavar="MM",
+                   help="DOE pixel pitch in mm (required for a .npy; overrides the file's otherwise)")
+    e.add_argument("--format", default="gds", metavar="gds|oas", help="mask file format: gds (GDSII, default) or "
+                                                                      "oas (OASIS)")
+    e.add_argument("--min-feature", default=None, metavar="UM",
+                   help="the fab's minimum feature (µm): error if a mask has a narrower line or space")
+    e.add_argument("--name", default=None, help="design name for the label (default: the file name)")
+    e.add_argument("--no-png", action="store_true", help="do not write the mask previews")
+    e.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    e.set_defaults(func=cmd_export)
