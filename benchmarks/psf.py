@@ -30,25 +30,11 @@ import subprocess
 import sys
 import time
 
+from _memory import reset_peak, status_mb  # noqa: E402  (benchmarks/ is on sys.path)
+
 WAVELENGTHS = (0.489, 0.55)
 KS = 128
 DOE_N, DOE_PITCH, DOE_DIST = 3000, 1e-3, 0.7
-
-
-def _status_mb(key: str) -> float:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
-
-
-def _reset_peak() -> None:
-    try:
-        with open("/proc/self/clear_refs", "w") as fh:
-            fh.write("5")
-    except OSError:
-        pass
 
 
 def _fields(lens):
@@ -184,11 +170,11 @@ def timing_case(mode: str, backward: bool, nodes: int, threads: int, repeat: int
             psf = psf.detach()
         return psf
 
-    base = _status_mb("VmRSS")
-    _reset_peak()
+    base = status_mb("VmRSS")
+    reset_peak()
     with torch.set_grad_enabled(backward):
         once()  # warm-up (and the peak)
-        peak = _status_mb("VmHWM") - base
+        peak = status_mb("VmHWM") - base
         times = []
         for _ in range(repeat):
             t0 = time.perf_counter()

@@ -12,38 +12,11 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import resource
 import subprocess
 import sys
 import time
 
-
-def _reset_peak() -> None:
-    """Reset the kernel's peak-RSS counter (Linux: writing 5 to clear_refs), so the peak is this case's."""
-    try:
-        with open("/proc/self/clear_refs", "w") as fh:
-            fh.write("5")
-    except OSError:
-        pass
-
-
-def _status_mb(key: str) -> float:
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith(key + ":"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def _rss_mb() -> float:
-    return _status_mb("VmRSS")
-
-
-def _peak_mb() -> float:
-    return _status_mb("VmHWM")
+from _memory import peak_mb, reset_peak, rss_mb  # noqa: E402  (benchmarks/ is on sys.path)
 
 
 def run_case(dtype_name: str, mode: str, n_rays: int, threads: int, repeat: int) -> dict:
@@ -73,8 +46,8 @@ def run_case(dtype_name: str, mode: str, n_rays: int, threads: int, repeat: int)
         loss.backward()
         return out
 
-    base = _rss_mb()  # rays and lens in memory; the peak counts what tracing adds on top
-    _reset_peak()
+    base = rss_mb()  # rays and lens in memory; the peak counts what tracing adds on top
+    reset_peak()
     out = once()  # warm-up
     valid_fraction = float(out.valid.double().mean())
     del out
@@ -84,7 +57,7 @@ def run_case(dtype_name: str, mode: str, n_rays: int, threads: int, repeat: int)
         once()
         times.append(time.perf_counter() - t0)
     best = min(times)
-    peak = _peak_mb() - base
+    peak = peak_mb() - base
     return {
         "dtype": dtype_name, "mode": mode, "rays": n_rays, "surfaces": n_surf,
         "seconds": best, "ray_surfaces_per_s": n_rays * n_surf / best,

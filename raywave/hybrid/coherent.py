@@ -197,6 +197,16 @@ def _crop_to_lit(weight: torch.Tensor, *tensors):
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
+def _common_setup(lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type):
+    """What both field constructions start from: field type, field (2,), wavelength (1,), medium index,
+    simulation grid (p, x0, y0, sy, sx), carrier (α, β), chief-ray centre on the sensor, DOE → sensor distance."""
+    field = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
+    wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device)
+    carrier = tuple(float(v) for v in chief_doe.d[:2].detach())
+    return (field_type or lens.field_type, field, wl, _medium_index(lens, wavelength), _sim_grid(doe, oversample),
+            carrier, (chief_sensor.o[0], chief_sensor.o[1]), z_sensor - z_doe)
+
+
 # ---------------------------------------------------------------------------------------------------------
 # accurate mode
 # ---------------------------------------------------------------------------------------------------------
@@ -284,14 +294,8 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         chief_doe, chief_sensor: the chief ray (RayBundle, scalar batch) at the DOE and at the sensor.
         chief_uv: its entrance-plane point (2,) mm, if known (saves aiming it again).
     """
-    field_type = field_type or lens.field_type
-    field = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
-    wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device)
-    n = _medium_index(lens, wavelength)
-    p, x0, y0, sy, sx = _sim_grid(doe, oversample)
-    alpha, beta = (float(v) for v in chief_doe.d[:2].detach())
-    center = (chief_sensor.o[0], chief_sensor.o[1])
-    zprop = z_sensor - z_doe
+    field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
+        lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
     bbox = _footprint(lens, field, wl, depth, z_doe)
     if bbox is None:
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, 0, "accurate")
@@ -422,14 +426,8 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     ``generator`` (torch.Generator) makes the ray sample replayable. ``dtype`` is the tracing precision:
     float32 reproduces the precision failure of the paper's Fig. S2 (the optical paths of ~10⁴ waves lose
     a sizeable fraction of a wave); the field is always assembled in complex128 afterwards."""
-    field_type = field_type or lens.field_type
-    field = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
-    wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device)
-    n = _medium_index(lens, wavelength)
-    p, x0, y0, sy, sx = _sim_grid(doe, oversample)
-    alpha, beta = (float(v) for v in chief_doe.d[:2].detach())
-    center = (chief_sensor.o[0], chief_sensor.o[1])
-    zprop = z_sensor - z_doe
+    field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
+        lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
     dev = lens.device
     r = 1.05 * torch.sqrt(torch.rand(n_rays, generator=generator, dtype=torch.float64))
     t = 2 * math.pi * torch.rand(n_rays, generator=generator, dtype=torch.float64)
