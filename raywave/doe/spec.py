@@ -70,12 +70,14 @@ def load_doe(path, map_location="cpu") -> DOE:
 
 
 def doe_from_phase_model(model: dict, shape, pitch: float, aperture: str = "square",
-                         design_wavelength: float | None = None, material=None, levels: int | None = None) -> DOE:
+                         design_wavelength: float | None = None, material=None, levels: int | None = None,
+                         wrap: bool = False) -> DOE:
     """The DOE of a lens file's ``doe.phase_model`` (checked by :mod:`raywave.io.doe`) on the grid
     ``shape`` × ``pitch``. Without a material and a design wavelength the phase is the same at every wavelength
     (as OpticStudio's BINARY_2); a design wavelength alone makes it a fixed optical path in air; a material a
     dispersive height map designed at ``design_wavelength`` (default 0.55 µm). ``levels``: fabricate it (wrap
-    and quantise at the design wavelength)."""
+    and quantise at the design wavelength); ``wrap`` alone: wrap it to [0, 2π) there without quantising (a
+    continuous kinoform)."""
     optics = {"design_wavelength": design_wavelength, "material": material,
               "dispersion": "material" if material is not None else ("air" if design_wavelength is not None
                                                                       else "none")}
@@ -86,4 +88,6 @@ def doe_from_phase_model(model: dict, shape, pitch: float, aperture: str = "squa
         doe = _build(model, shape, pitch, aperture, optics)
     if levels is not None:
         doe.fabricate(levels=check_levels(levels))
+    elif wrap:
+        doe.fabricate(levels=None)
     return doe

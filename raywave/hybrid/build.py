@@ -17,7 +17,7 @@ Grid rules (``load_hybrid`` / ``hybrid_from_spec``; explicit arguments override 
   size or shape (a .zmx diffractive surface without CLAP / SQAP) is an error unless ``doe_size`` is given.
 * **phase**: the file's phase map (``PixelDOE``), else its ``phase_model`` (``raywave.doe.doe_from_phase_model``:
   BINARY_2, radial, Zernike, Fresnel, grating, cubic, sums), else blank; ``material`` / ``levels`` make it a
-  fabricated, dispersive height map (``DOE.fabricate``).
+  fabricated, dispersive height map (``DOE.fabricate``); ``wrap`` wraps it to [0, 2π) without quantising.
 """
 
 from __future__ import annotations
@@ -193,13 +193,16 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     model = data.phase_model if from_file else None
     material = data.material if from_file else None
     levels = data.levels if from_file else None
+    wrap = bool(data.wrap) if from_file else False
     if phase is not None:
         doe = PixelDOE(phase, pitch, design_wavelength=data.design_wavelength, aperture=aperture, material=material)
         if levels is not None:
             doe.fabricate(levels=levels)
+        elif wrap:
+            doe.fabricate(levels=None)
     elif model is not None:
         doe = doe_from_phase_model(model, shape, pitch, aperture, design_wavelength=data.design_wavelength,
-                                   material=material, levels=levels)
+                                   material=material, levels=levels, wrap=wrap)
     elif material is not None or levels is not None:
         doe = BlankDOE(shape, pitch, aperture=aperture, design_wavelength=data.design_wavelength, material=material)
     else:

@@ -1,4 +1,4 @@
-"""Lens files <-> lens specs (plain dicts; no torch here).
+"""Lens files <-> lens specs (plain dicts; torch only to read a DeepLens Pixel2D .pth map).
 
 A *spec* is the dict form of a lens (docs/lens-format.md); :mod:`raywave.lens.build` turns it into a
 :class:`~raywave.lens.lens.Lens` and back. Formats:
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from raywave.io.deeplens import looks_like_deeplens, read_deeplens
+from raywave.io.deeplens import looks_like_deeplens, read_deeplens, read_deeplens_hybrid
 from raywave.io.doe import DOEData, rebase_phase_path, resolve_doe
 from raywave.io.errors import LensFileError, LensFileWarning
 from raywave.io.json_format import (parse_json_text, read_json_spec, read_text, validate_spec,
@@ -29,6 +29,7 @@ __all__ = [
     "canonical_spec",
     "detect_format",
     "read_deeplens",
+    "read_deeplens_hybrid",
     "read_hybrid_spec",
     "read_json_spec",
     "read_lens_spec",
@@ -81,7 +82,9 @@ def read_hybrid_spec(path) -> tuple[dict, DOEData | None]:
 
     The DOE's phase map (``doe.phase``, relative to the lens file) is read in full and checked (2-D, finite,
     shape agreeing with ``shape`` / ``size`` and the pitch); errors are :class:`LensFileError` with the line of
-    the key in the lens file."""
+    the key in the lens file. A DeepLens hybrid lens's ``"DOE"`` is read by :func:`read_deeplens_hybrid`."""
+    if Path(path).exists() and detect_format(path) == "deeplens":
+        return read_deeplens_hybrid(path)  # a Pixel2D map lives in a torch / numpy file the spec cannot name
     spec = read_lens_spec(path)
     if spec.get("doe") is None:
         return spec, None

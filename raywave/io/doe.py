@@ -4,8 +4,9 @@ A hybrid lens file names its diffractive optical element (DOE) in an optional to
 (docs/lens-format.md, "DOE"): the plane's distance after the last vertex, the pixel grid (pitch and size or
 shape), the aperture and the phase (``null`` = a blank DOE, or a path to a ``.npy`` / ``.npz`` phase map in
 radians, relative to the lens file, or a parametric ``phase_model``), and optionally a ``material`` and
-``levels`` (a fabricated, dispersive height map). Everything here works on plain dicts and numpy arrays and never imports
-torch; :mod:`raywave.hybrid.build` turns a :class:`DOEData` into a :class:`~raywave.doe.DOE`.
+``levels`` (a fabricated, dispersive height map) or ``wrap`` (a continuous kinoform). Everything here works on
+plain dicts and numpy arrays and never imports torch; :mod:`raywave.hybrid.build` turns a :class:`DOEData`
+into a :class:`~raywave.doe.DOE`.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from raywave.io.errors import LensFileError, suggestion
 
 #: Keys of the "doe" object.
 DOE_KEYS = ("distance", "pitch", "size", "shape", "aperture", "phase", "design_wavelength", "oversample",
-            "phase_model", "material", "levels")
+            "phase_model", "material", "levels", "wrap")
 DOE_APERTURES = ("square", "circle")
 PHASE_EXTENSIONS = (".npy", ".npz")
 #: Parametric phase models (raywave.doe: Binary2DOE, RadialDOE, ZernikeDOE, FresnelDOE, GratingDOE, CubicDOE,
@@ -58,6 +59,8 @@ class DOEData:
         phase_model: a parametric phase (``{"type": "binary_2", ...}``, see :data:`PHASE_MODELS`), or None.
         material: the DOE's material (a glass name): the DOE is a dispersive height map in it; None: not given.
         levels: fabricate the DOE: wrap its phase at the design wavelength and quantise it to this many levels.
+        wrap: wrap the phase to [0, 2π) at the design wavelength without quantising it (a continuous kinoform;
+            implied by ``levels``).
     """
 
     distance: float | None = None
@@ -72,6 +75,7 @@ class DOEData:
     phase_model: dict | None = None
     material: str | None = None
     levels: int | None = None
+    wrap: bool = False
 
 
 # --------------------------------------------------------------------------------------- schema
@@ -132,6 +136,8 @@ def validate_doe(v, doe, spec) -> None:
         lv = doe["levels"]
         if not (isinstance(lv, int) and not isinstance(lv, bool) and lv >= 2):
             v.err(path + ("levels",), f"must be an integer number of phase levels >= 2, got {_describe(lv)}")
+    if "wrap" in doe and not isinstance(doe["wrap"], bool):
+        v.err(path + ("wrap",), f"must be true or false, got {_describe(doe['wrap'])}")
 
 
 def _validate_phase_model(v, m, path, depth: int = 0) -> None:
@@ -244,6 +250,8 @@ def doe_canonical(doe: dict) -> dict:
         out["material"] = str(doe["material"])
     if doe.get("levels") is not None:
         out["levels"] = int(doe["levels"])
+    if doe.get("wrap"):
+        out["wrap"] = True
     return out
 
 
@@ -338,6 +346,7 @@ def resolve_doe(spec: dict, source="<spec>", base_dir=None, lines: dict | None =
         phase_model=doe.get("phase_model"),
         material=doe.get("material"),
         levels=int(doe["levels"]) if doe.get("levels") is not None else None,
+        wrap=bool(doe.get("wrap", False)),
     )
     if doe.get("shape") is not None:
         data.shape = (int(doe["shape"][0]), int(doe["shape"][1]))

@@ -676,7 +676,7 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     if doe is not None and not binary2:
         lost.append("doe (only a binary_2 phase model becomes a BINARY_2 surface)")
     elif doe is not None:
-        extra = [k for k in ("pitch", "shape", "design_wavelength", "material", "levels") if doe.get(k) is not None]
+        extra = [k for k in ("pitch", "shape", "design_wavelength", "material", "levels", "wrap") if doe.get(k)]
         if doe.get("oversample", 1) != 1:
             extra.append("oversample")
         if extra:
