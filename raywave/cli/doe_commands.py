@@ -1,7 +1,10 @@
-"""The ``doe`` commands: fabrication of a DOE.
+"""The ``doe`` commands: fabrication of a DOE and its tolerance.
 
     raywave doe export DOE [--levels 16] [--material NAME] [--wavelength UM] [-o masks/] [--pitch MM]
                            [--format gds|oas] [--min-feature UM] [--name NAME] [--json]
+    raywave doe report DOE [--levels 16] [--material NAME] [--wavelength UM] [--pitch MM] [--depth-error 5]
+                           [--misalignment 0.1] [--distribution normal|uniform] [--samples 100] [--seed 0]
+                           [--wavelengths UM ...] [--orders M ...] [--lens LENS] [--ks 64] [-o report/] [--json]
 
 DOE is a phase map (``.npy``: the (ny, nx) phase in radians at the design wavelength, with ``--pitch``; ``.npz``:
 the phase under ``phase`` and optionally the pitch (mm) under ``pitch``) or a lens file with a DOE (raywave .json
@@ -10,6 +13,12 @@ DOE's own (a lens file's DOE), else 0.55 µm and fused silica. The DOE's phase a
 quantised to L = 2^k levels (nearest level of the wrapped phase, L folding to 0) and split into k binary masks
 (:mod:`raywave.doe.fabrication`: conventions, layers, etch depths). Writes ``masks.gds`` (or ``.oas``),
 ``mask_<j>.png`` previews and ``report.json`` into the output folder and prints a one-line summary.
+
+``report`` loads the DOE the same way and runs the fabrication tolerance Monte Carlo of
+:mod:`raywave.doe.tolerance` (etch-depth errors ±x % per step, mask misalignment ±m DOE pixels per mask and axis,
+±x = 2σ of a normal distribution by default): it prints the levels, etch depths, minimum feature, the nominal
+efficiency per order and wavelength and the statistics of the perturbed elements (and, with ``--lens``, of their
+PSFs), and writes ``report.json`` and PNG histograms into the output folder.
 """
 
 from __future__ import annotations
@@ -21,7 +30,7 @@ import time
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, number_arg
+from raywave.cli.errors import CommandError, integer_arg, number_arg
 
 PHASE_EXTENSIONS = (".npy", ".npz")
 LENS_EXTENSIONS = (".json", ".zmx")
@@ -239,10 +248,178 @@ def cmd_export(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- tolerance report
+def tolerance_report(doe, levels: int = 16, material: str = "fused_silica", wavelength0: float = 0.55,
+                     depth_error: float = 5.0, misalignment: float = 0.1, samples: int = 100, seed: int = 0,
+                     distribution: str = "normal", wavelengths=None, orders=(0, 1, 2, -1), lens=None,
+                     field=(0.0, 0.0), ks: int = 64, oversample: int = 1, folder="report", png: bool = True,
+                     progress: bool = False, info: dict | None = None) -> dict:
+    """Fabrication description + tolerance Monte Carlo of ``doe``; writes ``folder/report.json`` (and PNGs) and
+    returns the report (a dict). ``lens``: a :class:`~raywave.hybrid.HybridLens` for the PSF statistics."""
+    from raywave.doe import fabrication as fab
+    from raywave.doe.tolerance import tolerance_monte_carlo
+    from raywave.materials import get_material
+
+    k = fab.mask_bits(levels)
+    mat = get_material(material)
+    depths = fab.etch_depths(levels, mat, wavelength0)
+    t0 = time.perf_counter()
+    level_map = doe_levels(doe, levels, wavelength0)
+    masks = fab.masks_from_levels(level_map, levels)
+    masks_rep = fab.mask_report(masks, doe.pitch, depths)
+    wls = [wavelength0] if wavelengths is None else [float(w) for w in wavelengths]
+    res = tolerance_monte_carlo(doe, levels, depth_error, misalignment, samples, seed=seed, wavelengths=wls,
+                                orders=orders, material=mat, wavelength0=wavelength0, distribution=distribution,
+                                oversample=oversample, lens=lens, fields=tuple(field), ks=ks, progress=progress)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    pngs = []
+    if png:
+        from raywave.plotting.tolerance import plot_tolerance
+
+        pngs = [str(p) for p in plot_tolerance(res, folder)]
+    report = {
+        **(info or {}),
+        "material": mat.name,
+        "wavelength_um": float(wavelength0),
+        "n_at_wavelength": fab._index(mat, wavelength0),
+        "h_2pi_nm": fab.height_2pi(mat, wavelength0) * 1e6,
+        "fabrication": {key: masks_rep[key] for key in ("levels", "masks", "depths_nm", "total_depth_nm", "pitch_um",
+                                                         "shape", "size_mm", "min_feature_um", "per_mask")},
+        "tolerance": res.summary(),
+        "seconds": time.perf_counter() - t0,
+        "previews": pngs,
+    }
+    if lens is not None:
+        report["tolerance"]["lens"] = {"doe_distance_mm": lens.doe_distance, "sensor_pitch_um": lens.sensor_pitch * 1e3,
+                                       "oversample": lens.oversample, "field_deg": [float(v) for v in field],
+                                       "ks": int(ks)}
+    rp = folder / "report.json"
+    rp.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    report["report"] = str(rp)
+    return report
+
+
+def _um(v) -> str:
+    return "-" if v is None else f"{v:g} µm"
+
+
+def format_report(r: dict) -> str:
+    """The readable summary of a :func:`tolerance_report` dict."""
+    f, t = r["fabrication"], r["tolerance"]
+    ny, nx = f["shape"]
+    mf = f["min_feature_um"]
+    lines = [
+        f"DOE {r.get('source', '')}: {nx} × {ny} pixels of {f['pitch_um']:g} µm, {f['levels']} levels = "
+        f"{f['masks']} masks in {r['material']} (n = {r['n_at_wavelength']:.5f} at λ0 = {r['wavelength_um']:g} µm, "
+        f"h_2π = {r['h_2pi_nm']:.1f} nm)",
+        "  etch depths: " + ", ".join(f"mask {j + 1} {d:.1f} nm" for j, d in enumerate(f["depths_nm"]))
+        + f"; min feature {'none' if mf is None else f'{mf:g} µm'} ("
+        + ", ".join(f"mask {m['mask']} {_um(m['min_feature_um'])}" for m in f["per_mask"]) + ")",
+        f"tolerance: etch depth ±{t['depth_error_percent']:g} % per step, misalignment ±{t['misalignment_px']:g} px "
+        f"(= {t['misalignment_px'] * f['pitch_um']:.4g} µm) per mask and axis ({t['tolerance_meaning']}), "
+        f"{t['samples']} samples, seed {t['seed']}",
+        "  efficiency per order (theory: ideal L-level staircase; nominal: this DOE; samples mean ± std [p5, p95]):",
+    ]
+    for e in t["efficiency"]:
+        lines.append(f"    λ {e['wavelength_um']:.4g} µm  order {e['order']:+d}: theory {e['theory']:.4f}  nominal "
+                     f"{e['nominal']:.4f}  samples {e['mean']:.4f} ± {e['std']:.4f} [{e['p5']:.4f}, {e['p95']:.4f}]")
+    for e in t.get("relative", []):
+        lines.append(f"    λ {e['wavelength_um']:.4g} µm  overlap with the nominal element: {e['mean']:.4f} ± "
+                     f"{e['std']:.4f} [{e['p5']:.4f}, {e['p95']:.4f}]")
+    if "psf" in t:
+        lines.append(f"  PSF (vs nominal; worst sample #{t['worst_sample']}):")
+        for e in t["psf"]:
+            lines.append(f"    λ {e['wavelength_um']:.4g} µm  {e['metric']:<14s} nominal {e['nominal']:.4g}  samples "
+                         f"{e['mean']:.4g} ± {e['std']:.3g} [{e['p5']:.4g}, {e['p95']:.4g}]")
+    lines.append(f"wrote {r['report']}" + (f" and {len(r['previews'])} PNGs" if r["previews"] else ""))
+    return "\n".join(lines)
+
+
+def cmd_report(args) -> int:
+    from raywave.doe.fabrication import mask_bits
+    from raywave.doe.tolerance import DISTRIBUTIONS
+
+    try:
+        L = int(args.levels)
+    except ValueError:
+        raise CommandError(f"--levels: {args.levels!r} is not an integer") from None
+    try:
+        mask_bits(L)
+    except ValueError as e:
+        raise CommandError(f"--levels: {e}") from None
+    w = None if args.wavelength is None else _number(args.wavelength, "--wavelength")
+    if w is not None and w > _MAX_WAVELENGTH_UM:
+        raise CommandError(f"--wavelength: {args.wavelength} µm is not a plausible wavelength (µm, not nm)")
+    pitch = None if args.pitch is None else _number(args.pitch, "--pitch")
+    depth_error = number_arg(args.depth_error, "--depth-error", nonneg=True)
+    mis_text = str(args.misalignment).strip()
+    mis_um = mis_text.lower().endswith(("um", "µm"))
+    misalignment = number_arg(mis_text[:-2] if mis_um else mis_text, "--misalignment", nonneg=True)
+    samples = integer_arg(args.samples, "--samples", 1)
+    try:
+        seed = int(args.seed)
+    except ValueError:
+        raise CommandError(f"--seed: {args.seed!r} is not an integer") from None
+    if args.distribution not in DISTRIBUTIONS:
+        raise CommandError(f"--distribution: one of {', '.join(DISTRIBUTIONS)}, got {args.distribution!r}")
+    wls = None
+    if args.wavelengths:
+        wls = [_number(v, "--wavelengths") for v in args.wavelengths]
+        bad = [v for v in wls if v > _MAX_WAVELENGTH_UM]
+        if bad:
+            raise CommandError(f"--wavelengths: {bad[0]:g} µm is not a plausible wavelength (µm, not nm)")
+    try:
+        orders = [int(v) for v in args.orders]
+    except ValueError:
+        raise CommandError(f"--orders: integers, got {' '.join(args.orders)}") from None
+    ks = integer_arg(args.ks, "--ks", 1)
+    oversample = integer_arg(args.oversample, "--oversample", 1)
+    field = number_arg(args.field, "--field")
+    from raywave.materials import GlassNotFoundError, get_material
+
+    if args.material is not None:
+        try:
+            get_material(args.material)
+        except GlassNotFoundError as e:
+            raise CommandError(f"--material: {' '.join(str(e).split())}") from None
+    doe, info = load_doe(args.doe, pitch, DEFAULT_WAVELENGTH if w is None else w)
+    if w is None:
+        w = float(getattr(doe, "design_wavelength", None) or DEFAULT_WAVELENGTH)
+    material = args.material or getattr(doe, "material_name", None) or DEFAULT_MATERIAL
+    if mis_um:  # µm on the substrate -> DOE pixels
+        misalignment = misalignment / (doe.pitch * 1e3)
+    hl = None
+    if args.lens is not None:
+        from raywave.hybrid.build import load_hybrid
+        from raywave.lens.build import resolve_lens_path
+
+        try:
+            lens_path = resolve_lens_path(args.lens)
+        except FileNotFoundError:
+            raise CommandError(f"--lens: lens file {args.lens!r} not found") from None
+        hl = load_hybrid(lens_path, field_type="angle")
+        if wls is None:
+            wls = [float(v) for v in hl.lens.wavelengths]
+    if wls is None:
+        wls = [w]
+    try:
+        r = tolerance_report(doe, L, material, w, depth_error, misalignment, samples, seed, args.distribution, wls,
+                             orders, hl, (0.0, field), ks, oversample, args.output, png=not args.no_png,
+                             progress=args.progress, info=info)
+    except ValueError as e:
+        raise CommandError(" ".join(str(e).split())) from None
+    if args.json:
+        print(json.dumps(r))
+    else:
+        print(format_report(r), file=sys.stdout)
+    return 0
+
+
 # ---------------------------------------------------------------------------- registration
 def register(sub) -> None:
-    p = sub.add_parser("doe", help="DOE fabrication (mask export)",
-                       description="Diffractive optical elements: fabrication.")
+    p = sub.add_parser("doe", help="DOE fabrication (mask export, tolerance report)",
+                       description="Diffractive optical elements: fabrication and its tolerance.")
     dsub = p.add_subparsers(dest="doe_command", metavar="SUBCOMMAND")
     dsub.required = True
     e = dsub.add_parser(
@@ -272,3 +449,45 @@ def register(sub) -> None:
     e.add_argument("--no-png", action="store_true", help="do not write the mask previews")
     e.add_argument("--json", action="store_true", help="print the report as one JSON object")
     e.set_defaults(func=cmd_export)
+
+    r = dsub.add_parser(
+        "report", help="fabrication tolerance: etch-depth errors and mask misalignment by Monte Carlo",
+        description="Fabrication description and tolerance of an L = 2^k level DOE: etch depths, minimum feature, "
+        "nominal diffraction efficiency per order and wavelength, and by Monte Carlo the efficiency (and, with "
+        "--lens, the PSF) of elements made with random etch-depth errors (one per etch step) and mask "
+        "misalignments (mask 1 the reference). Tolerances ±x are 2σ of a normal distribution (or the bounds of a "
+        "uniform one). Prints a summary; writes OUT/report.json and PNG histograms. See docs/fabrication.md.")
+    r.add_argument("doe", metavar="DOE", help="as for 'raywave doe export': .npy (with --pitch), .npz or a lens file "
+                                              "with a DOE")
+    r.add_argument("--levels", default="16", metavar="L", help="number of phase levels, a power of two (default 16)")
+    r.add_argument("--material", default=None, metavar="NAME",
+                   help="substrate material (default: the DOE's material, else fused_silica)")
+    r.add_argument("--wavelength", default=None, metavar="UM",
+                   help="design wavelength λ0 in µm (default: the DOE's design wavelength, else 0.55)")
+    r.add_argument("--pitch", default=None, metavar="MM", help="DOE pixel pitch in mm (required for a .npy)")
+    r.add_argument("--depth-error", default="5", metavar="PCT",
+                   help="etch-depth tolerance ±x in percent of each step's depth (default 5)")
+    r.add_argument("--misalignment", default="0.1", metavar="PX",
+                   help="mask misalignment tolerance ±m in DOE pixels, per mask and axis (default 0.1); with the "
+                        "suffix um (e.g. 0.2um) in µm")
+    r.add_argument("--distribution", default="normal", metavar="normal|uniform",
+                   help="normal: ±x = ±2σ (default); uniform: errors uniform in [−x, x]")
+    r.add_argument("--samples", default="100", metavar="N", help="Monte Carlo samples (default 100)")
+    r.add_argument("--seed", default="0", metavar="S", help="random seed (default 0)")
+    r.add_argument("--wavelengths", nargs="+", default=None, metavar="UM",
+                   help="wavelengths (µm) of the efficiencies (default: the lens's with --lens, else λ0)")
+    r.add_argument("--orders", nargs="+", default=["0", "1", "2", "-1"], metavar="M",
+                   help="diffraction orders (default 0 1 2 -1)")
+    r.add_argument("--lens", default=None, metavar="LENS",
+                   help="lens file (raywave .json / .zmx, or a bundled name) for the PSF statistics: its lens, DOE "
+                        "distance, sensor pitch and oversampling, with this DOE")
+    r.add_argument("--field", default="0", metavar="DEG", help="field angle (y, degrees) of the PSF (default 0)")
+    r.add_argument("--ks", default="64", metavar="PX", help="PSF crop in sensor pixels (default 64)")
+    r.add_argument("--oversample", default="1", metavar="Q",
+                   help="samples per DOE pixel of the efficiency overlap (exact at 1 for a square aperture; "
+                        "refines a circular aperture's edge)")
+    r.add_argument("-o", "--output", default="report", metavar="DIR", help="output folder (default report/)")
+    r.add_argument("--no-png", action="store_true", help="do not write the PNG figures")
+    r.add_argument("--progress", action="store_true", help="show a progress bar (stderr)")
+    r.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    r.set_defaults(func=cmd_report)
