@@ -290,7 +290,7 @@ class HybridLens(nn.Module):
         bad = (center[..., 0].abs() > hw) | (center[..., 1].abs() > hh)
         if bool(bad.any()):
             i = tuple(int(v) for v in bad.nonzero()[0])
-            x, y = (float(v) for v in center[i])
+            x, y = (float(v) for v in center[i].detach())
             warnings.warn(f"PSF {i} is centred at ({x:.4g}, {y:.4g}) mm, outside the {size[0]:g}×{size[1]:g} mm "
                           "sensor: the crop lies (partly) off the sensor", SensorCropWarning, stacklevel=3)
 

@@ -105,7 +105,16 @@ def _radius_entry(surface: Surface) -> dict:
 
 
 def surface_to_spec(surface: Surface) -> dict:
-    """One surface as its spec dict."""
+    """One surface as its spec dict.
+
+    Raises:
+        ValueError: the surface carries an interaction a lens file cannot describe (a ray-tracing
+            ``Diffraction`` phase: save its DOE separately, see docs/lens-format.md "DOE").
+    """
+    if surface.interaction.kind not in ("refraction", "ideal_lens"):
+        raise ValueError(f"surface {surface.comment or ''!s}: its {surface.interaction.kind!r} interaction has no "
+                         "lens-file form; writing it would silently drop the phase (save the DOE on its own, or "
+                         "describe it in the file's \"doe\" section)")
     out: dict = {"type": surface.kind}
     g = surface.geometry
     if surface.kind == "paraxial":

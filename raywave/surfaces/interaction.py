@@ -1,4 +1,4 @@
-"""What a surface does to a ray that reaches it: refraction, an ideal thin lens, (later) diffraction.
+"""What a surface does to a ray that reaches it: refraction, an ideal thin lens, diffraction (local grating).
 
 A surface is geometry × material × interaction (as in Optiland): a new kind of surface physics is a new
 interaction, not a new surface class. Every interaction maps the incoming direction (unit, components) at
@@ -6,6 +6,8 @@ the hit point to the outgoing direction, adds any optical path it introduces, an
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import nn
@@ -94,3 +96,66 @@ class IdealLens(Interaction):
 
     def extra_repr(self):
         return f"focal_length={float(self.focal_length.detach())}"
+
+
+class Diffraction(Interaction):
+    """A thin diffractive phase φ(x, y) on the surface, traced with the local grating approximation (Zemax's
+    diffractive surfaces, Zhu et al. 2023): the ray is bent by the local phase gradient,
+
+        n2·d2_t = n1·d1_t + (m λ / 2π) ∇φ          (tangential components, vector form)
+
+    i.e. n2 sin θ2 − n1 sin θ1 = m λ (∂φ/∂x) / 2π along the grating vector, which *includes* the refraction
+    from n1 to n2 (φ = 0 is Snell's law); the normal component follows from |d2| = 1 (evanescent: ``ok`` False).
+    The optical path gains ``m λ φ / 2π`` (mm): the DOE multiplies the field by ``exp(+i m φ)``, so OPL and ray
+    direction agree (Malus–Dupin: the OPL's gradient along the surface is the tangential n·d after it).
+
+    Args:
+        phase: callable ``(x, y, wavelength) -> (φ, ∂φ/∂x, ∂φ/∂y)``: rad and rad/mm at the hit points
+            (mm; the wavelength in µm, a tensor broadcastable with x). ∇φ = (∂φ/∂x, ∂φ/∂y, 0) is projected
+            onto the tangent plane (exact for a plane surface).
+        order: diffraction order m.
+
+    ``paraxial_power`` is the refraction's only: the diffractive power depends on the wavelength and on φ's
+    curvature, which the (y, nu) model does not see.
+    """
+
+    kind = "diffraction"
+
+    def __init__(self, phase, order: float = 1.0):
+        super().__init__()
+        if not callable(phase):
+            raise TypeError("Diffraction needs a callable phase(x, y, wavelength) -> (phi, dphi_dx, dphi_dy)")
+        order = float(order)
+        if not math.isfinite(order):
+            raise ValueError(f"the diffraction order must be finite, got {order!r}")
+        self.phase = phase
+        self.order = order
+
+    def paraxial_power(self, curvature, n1, n2):
+        return (n2 - n1) * curvature
+
+    def forward(self, x, y, dx, dy, dz, nx, ny, nz, n1, n2, wavelength):
+        phi, gx, gy = self.phase(x, y, wavelength)
+        s = self.order * wavelength * 1e-3 / (2 * math.pi)  # mm per radian
+        ax, ay, az = n1 * dx + s * gx, n1 * dy + s * gy, n1 * dz  # n1·d + G (G with zero z component)
+        c = ax * nx + ay * ny + az * nz
+        tx, ty, tz = ax - c * nx, ay - c * ny, az - c * nz  # tangential part: conserved across the surface
+        k = n2 * n2 - (tx * tx + ty * ty + tz * tz)
+        ok = k >= 0
+        g = safe_sqrt(k, ok)
+        return (tx + g * nx) / n2, (ty + g * ny) / n2, (tz + g * nz) / n2, s * phi, ok
+
+    def extra_repr(self):
+        return f"order={self.order:g}"
+
+
+def linear_grating_phase(period: float, angle: float = 0.0):
+    """A linear phase ``φ = 2π (x cos a + y sin a) / period`` (period mm, ``angle`` a in degrees from +x) as a
+    :class:`Diffraction` phase callable."""
+    a = math.radians(angle)
+    kx, ky = 2 * math.pi * math.cos(a) / period, 2 * math.pi * math.sin(a) / period
+
+    def phase(x, y, wavelength):
+        return kx * x + ky * y, torch.full_like(x, kx), torch.full_like(y, ky)
+
+    return phase
