@@ -1,0 +1,183 @@
+"""Imaging benchmark: PSF maps of the bundled hybrid lens and spatially-varying rendering from them.
+
+Cases (each in its own process: wall time and peak resident memory above the process's baseline):
+
+* **PSF map**: the bundled ``hybrid_asphere`` (aspheric singlet + 3 mm blank DOE at 1 µm pitch, 3000² pixels, 3 µm
+  sensor pixels), N×N nodes (3×3, 5×5, 10×10) × 3 wavelengths (the R, G, B channel centres 0.66 / 0.53 / 0.47 µm),
+  distant object, ks = 64, accurate ray-wave mode, no autograd (the paper's first, non-differentiable pass);
+  and (3×3) with the DOE-plane fields cached (frozen refractive lens: the second and later maps of a DOE-training
+  run).
+* **render**: a 1-megapixel RGB image (1344 × 756, 16:9 like the sensor, 4.29 µm pixels; the 3 µm PSFs resampled
+  to it) through the N×N map, float32, forward and forward + backward (gradient w.r.t. the image and the PSFs);
+  and the training batch 4 × 3 × 256² through a 5×5 map.
+
+Wall time (median) and CPU time (``process_time``, all threads: less sensitive to other processes on a shared
+machine). Prints one JSON object (and writes it with ``-o``).
+
+    python benchmarks/imaging.py [--threads 2] [--quick] [-o imaging.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import subprocess
+import sys
+import time
+
+from _memory import reset_peak, status_mb  # noqa: E402  (benchmarks/ is on sys.path)
+
+KS = 64
+WAVELENGTHS = (0.66, 0.53, 0.47)
+MP_SHAPE = (756, 1344)
+
+
+def _lens():
+    from raywave.hybrid.build import load_hybrid
+    from raywave.lens.build import bundled_lens_path
+
+    return load_hybrid(bundled_lens_path("hybrid_asphere"))
+
+
+def map_case(n: int, threads: int, cached: bool) -> dict:
+    import warnings
+
+    import torch
+
+    from raywave.imaging import DOEFieldCache, psf_map
+
+    torch.set_num_threads(threads)
+    hl = _lens()
+    warnings.simplefilter("ignore")
+    base = status_mb("VmRSS")
+    reset_peak()
+    cache = DOEFieldCache(max_bytes=None) if cached else None
+    t0, c0 = time.perf_counter(), time.process_time()
+    m = psf_map(hl, (n, n), wavelengths=WAVELENGTHS, ks=KS, cache=cache)
+    first, cpu = time.perf_counter() - t0, time.process_time() - c0
+    out = {"case": "psf_map", "grid": [n, n], "wavelengths": list(WAVELENGTHS), "ks": KS, "psfs": n * n * 3,
+           "seconds": first, "seconds_per_psf": first / (n * n * 3), "cpu_seconds": cpu,
+           "peak_mb": status_mb("VmHWM") - base, "energy_outside_max": float(m.energy_outside.max()),
+           "energy_outside_median": float(m.energy_outside.median())}
+    if cached:
+        t0, c0 = time.perf_counter(), time.process_time()
+        m2 = psf_map(hl, (n, n), wavelengths=WAVELENGTHS, ks=KS, cache=cache)
+        out["cached_seconds"] = time.perf_counter() - t0
+        out["cached_cpu_seconds"] = time.process_time() - c0
+        out["cache_mb"] = cache.nbytes / 1e6
+        out["cached_max_diff"] = float((m2.psf - m.psf).abs().max())
+        out["peak_mb"] = status_mb("VmHWM") - base
+    torch.save(m, f"/tmp/raywave_bench_map_{n}.pt")
+    return out
+
+
+def render_case(n: int, threads: int, repeat: int, training: bool) -> dict:
+    import torch
+
+    from raywave.imaging import render_map
+
+    torch.set_num_threads(threads)
+    m = torch.load(f"/tmp/raywave_bench_map_{n}.pt", weights_only=False)
+    g = torch.Generator().manual_seed(0)
+    shape = (4, 3, 256, 256) if training else (1, 3) + MP_SHAPE
+    img = torch.rand(shape, generator=g, dtype=torch.float32)
+    psf = m.psf[0].clone()
+    extent = (-1.0, 1.0, -1.0, 1.0)
+    if training:  # a 256² crop at the sensor's own pitch (3 µm) from the centre of the field
+        w, h = m.sensor_size
+        extent = (-256 * m.pitch / w, 256 * m.pitch / w, -256 * m.pitch / h, 256 * m.pitch / h)
+    base = status_mb("VmRSS")
+
+    def fwd():
+        return render_map(img, m, 0, extent=extent)
+
+    def fwd_bwd():
+        x = img.clone().requires_grad_(True)
+        p = psf.clone().requires_grad_(True)
+        from raywave.imaging import render
+
+        y = render(x, p, positions=m.positions, centers=m.centers[0], sensor_size=m.sensor_size, pitch=m.pitch,
+                   extent=extent)
+        y.square().mean().backward()
+        return p.grad
+
+    res = {"case": "render_training" if training else "render_1mp", "grid": list(m.grid), "image": list(shape),
+           "dtype": "float32", "repeat": repeat}
+    for name, fn in (("forward", fwd), ("forward_backward", fwd_bwd)):
+        fn()  # warm-up
+        reset_peak()
+        times, cpus = [], []
+        for _ in range(repeat):
+            t0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            times.append(time.perf_counter() - t0)
+            cpus.append(time.process_time() - c0)
+        res[f"{name}_seconds"] = sorted(times)[len(times) // 2]
+        res[f"{name}_cpu_seconds"] = sorted(cpus)[len(cpus) // 2]
+        res[f"{name}_peak_mb"] = status_mb("VmHWM") - base
+    return res
+
+
+def _run(args_list, threads):
+    cmd = [sys.executable, __file__, "--case", ",".join(str(a) for a in args_list), "--threads", str(threads)]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise RuntimeError(f"case {args_list} failed:\n{res.stderr[-3000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=2, help="timed repetitions per render case (median reported)")
+    ap.add_argument("--quick", action="store_true", help="3×3 and 5×5 maps only")
+    ap.add_argument("-o", "--output", default=None)
+    ap.add_argument("--case", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.case:
+        kind, *rest = args.case.split(",")
+        if kind == "map":
+            out = map_case(int(rest[0]), args.threads, rest[1] == "1")
+        else:
+            out = render_case(int(rest[0]), args.threads, int(rest[1]), kind == "train")
+        print(json.dumps(out))
+        return
+
+    import torch
+
+    grids = (3, 5) if args.quick else (3, 5, 10)
+    maps = [_run(["map", n, 0], args.threads) for n in grids]
+    cached = _run(["map", 3, 1], args.threads)
+    renders = [_run(["render", n, args.repeat], args.threads) for n in grids]
+    training = _run(["train", 5, args.repeat], args.threads)
+    by = {m["grid"][0]: m for m in maps}
+    big = max(grids)
+    summary = {
+        "benchmark": "imaging", "lens": "hybrid_asphere", "ks": KS, "wavelengths_um": list(WAVELENGTHS),
+        "threads": args.threads, "torch": torch.__version__, "python": platform.python_version(),
+        "machine": platform.machine(),
+        "psf_maps": maps, "psf_map_cached_3x3": cached, "render_1mp": renders, "render_training_5x5": training,
+        "scaling": {
+            "map_seconds_per_psf": {f"{n}x{n}": by[n]["seconds_per_psf"] for n in grids},
+            "map_cpu_seconds_per_psf": {f"{n}x{n}": by[n]["cpu_seconds"] / (3 * n * n) for n in grids},
+            "map_seconds_ratio_vs_nodes": {f"{n}x{n}": by[n]["seconds"] / by[grids[0]]["seconds"] for n in grids},
+            "nodes_ratio": {f"{n}x{n}": n * n / grids[0] ** 2 for n in grids},
+            "render_forward_seconds": {f"{r['grid'][0]}x{r['grid'][1]}": r["forward_seconds"] for r in renders},
+        },
+        "headline": {
+            f"psf_map_{big}x{big}x3_seconds": by[big]["seconds"], f"psf_map_{big}x{big}x3_peak_mb": by[big]["peak_mb"],
+            f"render_1mp_{big}x{big}_forward_seconds": renders[-1]["forward_seconds"],
+            f"render_1mp_{big}x{big}_forward_peak_mb": renders[-1]["forward_peak_mb"],
+        },
+    }
+    text = json.dumps(summary, indent=2)
+    print(text)
+    if args.output:
+        with open(args.output, "w") as fh:
+            fh.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
