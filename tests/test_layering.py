@@ -5,7 +5,15 @@ import subprocess
 import sys
 
 PHYSICS = ["raywave.materials", "raywave.surfaces", "raywave.rays", "raywave.lens", "raywave.io", "raywave.doe",
-           "raywave.doe.fabrication", "raywave.wave", "raywave.hybrid", "raywave.hybrid.build", "raywave.hybrid.metrics"]
+           "raywave.doe.fabrication", "raywave.doe.tolerance", "raywave.wave", "raywave.hybrid", "raywave.hybrid.build",
+           "raywave.hybrid.metrics",
+           "raywave.models", "raywave.models.interface", "raywave.models.paraxial", "raywave.models.pupil",
+           "raywave.models.local_grating",
+           "raywave.imaging", "raywave.imaging.psfmap", "raywave.imaging.render", "raywave.imaging.sensor",
+           "raywave.imaging.color",
+           "raywave.imaging.data", "raywave.training.networks", "raywave.training.replay", "raywave.training.config",
+           "raywave.training.schedule", "raywave.training.losses", "raywave.training.metrics", "raywave.training.checkpoint",
+           "raywave.training.trainer", "raywave.training.distributed"]
 
 
 def _modules_after_import(mods):

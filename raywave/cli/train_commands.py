@@ -1,0 +1,165 @@
+"""The ``train`` and ``eval`` commands: end-to-end design runs.
+
+    raywave train CONFIG.yaml [-o RUN_DIR] [--no-baseline] [--restart] [--max-steps N] [--quiet]
+    raywave eval RUN_DIR [--no-noise] [--quiet]
+
+``train`` runs (or resumes, from the run folder's latest checkpoint) the stages of CONFIG (see
+:mod:`raywave.training.trainer`), then the baseline (the same lens with a blank DOE, the same network training)
+in ``RUN_DIR/baseline``, evaluates both on the held-out images and writes into RUN_DIR: ``config.yaml``,
+``checkpoints/``, ``log.jsonl``, ``metrics.json`` (PSNR/SSIM per depth and field zone, designed vs baseline),
+``final/`` (lens JSON + DOE phase, ``doe.pt``, 4-level fabrication masks) and ``figures/`` (loss curves, PSF maps
+before/after, sample reconstructions). RUN_DIR defaults to ``runs/<config name>``. ``--max-steps N`` caps every
+stage at N optimizer steps (a quick look). ``eval`` re-evaluates a finished run folder.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from raywave.cli.errors import CommandError, integer_arg as _integer
+
+__all__ = ["register"]
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("train", help="end-to-end design: train lens/DOE + network from a YAML config",
+                              description=__doc__.split("\n\n")[2])
+    p.add_argument("config", help="YAML config (configs/*.yaml)")
+    p.add_argument("-o", "--output", help="run folder (default runs/<config name>)")
+    p.add_argument("--no-baseline", action="store_true", help="skip the blank-DOE baseline")
+    p.add_argument("--restart", action="store_true", help="ignore existing checkpoints in the run folder")
+    p.add_argument("--max-steps", default=None, metavar="N", help="cap every stage at N optimizer steps")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_train)
+    e = subparsers.add_parser("eval", help="evaluate a training run folder (metrics and figures)")
+    e.add_argument("run_dir", help="run folder written by raywave train")
+    e.add_argument("--no-noise", action="store_true", help="evaluate without sensor noise")
+    e.add_argument("--quiet", action="store_true", help="no progress bars")
+    e.set_defaults(func=_eval)
+
+
+def _load(path):
+    from raywave.training.config import ConfigError, load_config
+
+    try:
+        return load_config(path)
+    except ConfigError as err:
+        raise CommandError(str(err)) from None
+
+
+def _cap(cfg, n: int | None):
+    if n is None:
+        return cfg
+    cfg.pre_stage.steps = min(cfg.pre_stage.steps, n)
+    for sc in (cfg.stage1, cfg.stage2):
+        sc.max_steps = n if sc.max_steps is None else min(sc.max_steps, n)
+    return cfg
+
+
+def _train(args) -> int:
+    from raywave.training.trainer import Trainer
+
+    cfg = _load(args.config)
+    cap = _integer(args.max_steps, "--max-steps", minimum=0) if args.max_steps is not None else None
+    cfg = _cap(cfg, cap)
+    run_dir = Path(args.output) if args.output else Path("runs") / cfg.name
+    designed = Trainer(cfg, run_dir, progress=not args.quiet)
+    designed.run(resume=not args.restart)
+    trainers = {"designed": designed}
+    if not args.no_baseline:
+        base = Trainer(cfg, run_dir / "baseline", baseline=True, progress=not args.quiet)
+        base.run(resume=not args.restart)
+        trainers["baseline"] = base
+    designed.export()
+    _report(run_dir, trainers, noise=True)
+    return 0
+
+
+def _eval(args) -> int:
+    from raywave.training.checkpoint import latest_checkpoint
+    from raywave.training.trainer import Trainer
+
+    run_dir = Path(args.run_dir)
+    if not (run_dir / "config.yaml").is_file():
+        raise CommandError(f"{run_dir} is not a run folder (no config.yaml)")
+    cfg = _load(run_dir / "config.yaml")
+    trainers = {}
+    for name, folder, baseline in (("designed", run_dir, False), ("baseline", run_dir / "baseline", True)):
+        if latest_checkpoint(folder) is None:
+            if name == "designed":
+                raise CommandError(f"{run_dir}: no checkpoint to evaluate")
+            continue
+        t = Trainer(cfg, folder, baseline=baseline, progress=not args.quiet)
+        t.restore()
+        trainers[name] = t
+    _report(run_dir, trainers, noise=not args.no_noise)
+    return 0
+
+
+def _report(run_dir: Path, trainers: dict, noise: bool) -> None:
+    metrics = {name: t.evaluate(noise=noise) for name, t in trainers.items()}
+    if "baseline" in metrics:
+        metrics["gain_db"] = {k: metrics["designed"][k]["psnr"] - metrics["baseline"][k]["psnr"]
+                              for k in metrics["designed"]}
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    _figures(run_dir, trainers)
+    m = metrics["designed"]["mean"]
+    line = f"designed: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}"
+    if "baseline" in metrics:
+        b = metrics["baseline"]["mean"]
+        line += f"; baseline: PSNR {b['psnr']:.2f} dB, SSIM {b['ssim']:.4f}"
+    print(line)
+    print(f"run folder: {run_dir}")
+
+
+def _figures(run_dir: Path, trainers: dict) -> None:
+    import torch
+
+    from raywave.plotting._mpl import plt, save
+
+    fig_dir = run_dir / "figures"
+    # loss curves
+    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    for name, t in trainers.items():
+        if not t.log_path.is_file():
+            continue
+        recs = [json.loads(line) for line in t.log_path.read_text().splitlines() if line.strip()]
+        for stage in ("pre", "stage1", "stage2"):
+            ys = [r["loss"] for r in recs if r["stage"] == stage]
+            if ys:
+                ax.plot(range(1, len(ys) + 1), ys, label=f"{name} {stage}")
+    ax.set_xlabel("step"), ax.set_ylabel("loss"), ax.set_yscale("log"), ax.legend(fontsize=7)
+    save(fig, fig_dir / "loss.png")
+    # PSF maps (evaluation maps, channel-averaged, first depth)
+    maps = {name: t.stage2_map for name, t in trainers.items() if t.stage2_map is not None}
+    for d, depth in enumerate(next(iter(trainers.values())).depths):
+        fig, axes = plt.subplots(1, len(maps), figsize=(5 * len(maps), 5), constrained_layout=True, squeeze=False)
+        for ax, (name, pm) in zip(axes[0], maps.items()):
+            psf = pm.psf[d]  # (3, N, M, ks, ks)
+            C, N, M, ks, _ = psf.shape
+            mosaic = psf.permute(1, 3, 2, 4, 0).reshape(N * ks, M * ks, C)
+            mosaic = mosaic / mosaic.amax(dim=(0, 1), keepdim=True).clamp_min(1e-30)
+            ax.imshow(mosaic.clamp(0, 1).sqrt().numpy(), origin="lower")
+            ax.set_title(f"{name}: PSF map at {depth:g} mm (√, per-channel max)")
+            ax.set_xticks([]), ax.set_yticks([])
+        save(fig, fig_dir / f"psf_map_depth{d}.png")
+    # sample reconstructions (centre of the sensor, first depth, first held-out image)
+    from raywave.imaging.data import linear_to_srgb
+    from raywave.imaging.render import render
+
+    cols = []
+    for name, t in trainers.items():
+        img = t.eval_images_tensor()[:1]
+        pm = t.stage2_map
+        with torch.no_grad():
+            sim = render(img, pm.psf[0], positions=pm.positions, centers=pm.centers[0], sensor_size=pm.sensor_size,
+                         pitch=pm.pitch, extent=t._extent(img.shape[-2:], (0.8, 0.8)))
+            rec = t.net(sim).clamp(0, 1)
+        cols.append((f"{name}: simulated", sim[0])), cols.append((f"{name}: reconstructed", rec[0]))
+    cols.insert(0, ("ground truth", img[0]))
+    fig, axes = plt.subplots(1, len(cols), figsize=(3.2 * len(cols), 3.4), constrained_layout=True)
+    for ax, (title, im) in zip(axes, cols):
+        ax.imshow(linear_to_srgb(im.double().clamp(0, 1)).permute(1, 2, 0).numpy())
+        ax.set_title(title, fontsize=8), ax.set_xticks([]), ax.set_yticks([])
+    save(fig, fig_dir / "reconstructions_edge.png")

@@ -1,0 +1,293 @@
+"""Training configuration: nested dataclasses ↔ YAML.
+
+A run is described by one :class:`TrainConfig`; :func:`load_config` reads it from YAML, where any key left out
+keeps its default and any **unknown key is an error naming the key (with its dotted path) and the file** (a
+typo must never be silently ignored). :func:`dump_config` writes the fully resolved config (every field), which
+is what a run folder stores. Distances in mm (``inf`` = distant object: YAML ``.inf`` or the string ``inf``),
+wavelengths in µm, DOE pitch in mm, learning rates per parameter group.
+
+Two sizes per application: the shipped ``configs/*.yaml`` are small CPU demos; the paper's sizes are given in
+the comments of each file (and the field docstrings here).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Union
+
+__all__ = ["ConfigError", "LensConfig", "OpticsConfig", "DataConfig", "NetworkConfig", "PreStageConfig",
+           "StageConfig", "TrainConfig", "from_dict", "to_dict", "load_config", "dump_config"]
+
+
+class ConfigError(ValueError):
+    """A config file is invalid: the message names the file and the key."""
+
+
+@dataclass
+class LensConfig:
+    """The hybrid lens.
+
+    Attributes:
+        file: bundled lens name (``raywave lens list``) or path of a lens JSON/.zmx (with or without a DOE).
+        doe: DOE parametrisation to learn: ``"pixel"`` (a free phase map), or ``"file"`` (the lens file's DOE).
+        doe_pitch: DOE pixel pitch (mm); None: the file's or the default of :func:`raywave.hybrid.load_hybrid`.
+        doe_size: DOE side (mm); None: as the file / sized to the beam.
+        doe_distance: mm after the last vertex; None: the file's.
+        train_lens: learn the refractive surfaces too (lr ``lr_lens``); False freezes the lens and caches the
+            DOE-plane fields (the paper's aberration-correction set-up).
+        focus_depth: refocus the sensor for an object at this distance (mm) before training (EDoF: 300 mm);
+            None keeps the file's sensor position.
+        sensor_pitch: PSF / image pixel pitch (mm); None: the lens's sensor pixel.
+    """
+
+    file: str = "hybrid_asphere"
+    doe: str = "pixel"
+    doe_pitch: Optional[float] = None
+    doe_size: Optional[float] = None
+    doe_distance: Optional[float] = None
+    train_lens: bool = False
+    focus_depth: Optional[float] = None
+    sensor_pitch: Optional[float] = None
+
+
+@dataclass
+class OpticsConfig:
+    """PSF maps used in training.
+
+    Attributes:
+        grid: PSF-map grid (rows, columns) in stage 1 (paper: 10×10; 5×5 for EDoF).
+        eval_grid: grid for stage 2 and evaluation (paper: 40×40).
+        depths: object distances (mm; ``inf`` distant). EDoF: [200, 300, 10000].
+        ks: PSF size (sensor pixels).
+        rays: traced nodes per PSF (None: the engine default).
+        wavelengths: per colour channel R, G, B the candidate wavelengths (µm), one drawn per channel and
+            iteration in stage 1, all averaged in stage 2 / evaluation.
+        chunk: PSFs (field points) recomputed together in the replay (memory ∝ chunk).
+        replay: use the memory-saving replay (False: one full autograd graph; small maps only).
+    """
+
+    grid: list = field(default_factory=lambda: [10, 10])
+    eval_grid: list = field(default_factory=lambda: [40, 40])
+    depths: list = field(default_factory=lambda: [math.inf])
+    ks: int = 32
+    rays: Optional[int] = None
+    wavelengths: dict = field(default_factory=lambda: {"R": [0.62, 0.66, 0.70], "G": [0.50, 0.53, 0.56],
+                                                       "B": [0.45, 0.47, 0.49]})
+    chunk: int = 1
+    replay: bool = True
+
+
+@dataclass
+class DataConfig:
+    """Training / evaluation images.
+
+    Attributes:
+        source: ``"samples"`` (the offline photo pool, fixed split), ``"folder"`` (``root``, DIV2K-style
+            ``train``/``valid`` sub-folders) or ``"dead_leaves"`` (procedural, evaluation on the photo pool).
+        root: image folder for ``source: folder``.
+        patch_size: training crop (pixels).
+        patches_per_image: crops per photo and epoch.
+        eval_size: evaluation crop (centre crop, pixels).
+        linear: train on linear intensities (sRGB-decoded); see :mod:`raywave.imaging.data`.
+        dead_leaves_count: patches per epoch for ``source: dead_leaves``.
+    """
+
+    source: str = "samples"
+    root: Optional[str] = None
+    patch_size: int = 128
+    patches_per_image: int = 8
+    eval_size: int = 256
+    linear: bool = True
+    dead_leaves_count: int = 256
+
+
+@dataclass
+class NetworkConfig:
+    """Reconstruction network: ``kind`` ``"unet"`` or ``"nafnet"``; ``width``; ``depth`` (UNet levels) or
+    ``enc_blocks``/``middle_blocks`` (NAFNet)."""
+
+    kind: str = "nafnet"
+    width: int = 16
+    depth: int = 3
+    enc_blocks: list = field(default_factory=lambda: [1, 1, 1])
+    middle_blocks: int = 1
+
+
+@dataclass
+class PreStageConfig:
+    """PSF-only optimisation before end-to-end training: minimise the PSF size (second moment), plus the
+    dissimilarity across depths (EDoF) with weight ``similarity_weight``. ``steps: 0`` skips it."""
+
+    steps: int = 0
+    lr_doe: float = 1e-1
+    lr_lens: float = 1e-4
+    similarity_weight: float = 0.0
+
+
+@dataclass
+class StageConfig:
+    """One training stage (1: end-to-end without noise; 2: optics frozen, network fine-tuned with noise).
+
+    Attributes:
+        epochs, batch_size: as usual; ``micro_batches`` splits a batch for gradient accumulation.
+        max_steps: stop after this many optimizer steps (None: epochs decide).
+        lr_lens, lr_doe, lr_network: Adam learning rates per parameter group (paper: 1e-4, 1e-1, 1e-4).
+        warmup_steps: linear warm-up, then cosine annealing to ``min_lr_ratio`` × lr at the last step.
+        noise: add sensor noise (stage 2).
+        read_noise, full_well: Poisson–Gaussian sensor noise: read noise (electrons) and full-well capacity.
+        loss: ``"l1"``, ``"mse"`` or ``"edof"`` (issue 7's cross-depth loss with mean-square-root errors).
+        edof_alpha: weight α of the EDoF loss's fidelity term (paper 0.3).
+    """
+
+    epochs: int = 1
+    batch_size: int = 4
+    micro_batches: int = 1
+    max_steps: Optional[int] = None
+    lr_lens: float = 1e-4
+    lr_doe: float = 1e-1
+    lr_network: float = 1e-4
+    warmup_steps: int = 10
+    min_lr_ratio: float = 0.0
+    noise: bool = False
+    read_noise: float = 2.0
+    full_well: float = 10000.0
+    loss: str = "l1"
+    edof_alpha: float = 0.3
+
+
+@dataclass
+class TrainConfig:
+    """A whole run (see the module docstring). ``dtype``: network and rendering precision ("float32" or
+    "float64"; the optics is always float64). ``checkpoint_every``: optimizer steps between checkpoints.
+    ``baseline``: "blank" (the same lens with a zero-phase DOE, same network training)."""
+
+    name: str = "run"
+    seed: int = 0
+    device: str = "cpu"
+    dtype: str = "float32"
+    lens: LensConfig = field(default_factory=LensConfig)
+    optics: OpticsConfig = field(default_factory=OpticsConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    pre_stage: PreStageConfig = field(default_factory=PreStageConfig)
+    stage1: StageConfig = field(default_factory=StageConfig)
+    stage2: StageConfig = field(default_factory=lambda: StageConfig(lr_doe=0.0, lr_lens=0.0, noise=True))
+    checkpoint_every: int = 50
+    baseline: str = "blank"
+
+
+# ------------------------------------------------------------------ dict ↔ dataclass
+def _check_value(value, tp, where: str, source: str):
+    """Validate (and lightly coerce: int → float, 'inf' → inf) ``value`` against the annotation ``tp``."""
+    origin = typing.get_origin(tp)
+    if origin in (Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _check_value(value, a, where, source)
+            except ConfigError as e:
+                errors.append(str(e))
+        raise ConfigError(errors[0] if errors else f"{source}: {where}: invalid value {value!r}")
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{source}: {where} must be a mapping, got {value!r}")
+        return from_dict(tp, value, source, where)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{source}: {where} must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{source}: {where} must be an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "infinity"):
+            return math.inf
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{source}: {where} must be a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{source}: {where} must be a string, got {value!r}")
+        return value
+    if tp is list or origin is list:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{source}: {where} must be a list, got {value!r}")
+        return [_inf(v) for v in value]
+    if tp is dict or origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{source}: {where} must be a mapping, got {value!r}")
+        return {k: [_inf(x) for x in v] if isinstance(v, list) else _inf(v) for k, v in value.items()}
+    return value
+
+
+def _inf(v):
+    if isinstance(v, str) and v.strip().lower() in ("inf", "+inf", "infinity"):
+        return math.inf
+    return v
+
+
+def from_dict(cls, data: dict, source: str = "<dict>", prefix: str = ""):
+    """Build dataclass ``cls`` from a (nested) dict; unknown keys and wrongly typed values are
+    :class:`ConfigError` naming ``source`` and the dotted key."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: {prefix or 'the config'} must be a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        where = f"{prefix}.{key}" if prefix else str(key)
+        if key not in names:
+            raise ConfigError(f"{source}: unknown key {where!r} (known keys{' of ' + prefix if prefix else ''}: "
+                              f"{', '.join(sorted(names))})")
+        kwargs[key] = _check_value(value, hints[key], where, source)
+    return cls(**kwargs)
+
+
+def to_dict(cfg) -> dict[str, Any]:
+    """The config as plain dicts/lists (every field), for YAML/JSON."""
+    return dataclasses.asdict(cfg)
+
+
+def _yaml_safe(x):
+    if isinstance(x, float) and math.isinf(x):
+        return x  # PyYAML writes .inf / -.inf and reads them back
+    if isinstance(x, dict):
+        return {k: _yaml_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_yaml_safe(v) for v in x]
+    return x
+
+
+def load_config(path) -> TrainConfig:
+    """Read a YAML config (missing keys: defaults; unknown keys: :class:`ConfigError` naming key and file)."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    return from_dict(TrainConfig, data or {}, str(path))
+
+
+def dump_config(cfg: TrainConfig, path=None) -> str:
+    """The resolved config as YAML text (written to ``path`` if given)."""
+    import yaml
+
+    text = yaml.safe_dump(_yaml_safe(to_dict(cfg)), sort_keys=False, default_flow_style=None)
+    if path is not None:
+        Path(path).write_text(text, encoding="utf-8")
+    return text

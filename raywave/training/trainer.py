@@ -1,0 +1,523 @@
+"""End-to-end training of lens + DOE + reconstruction network (paper section 2.3, 2.5, 2.6).
+
+Stages (each optional through its step count):
+
+* **pre-stage**: optimise the PSFs directly: the mean RMS radius of the map's PSFs (aberration correction)
+  plus ``similarity_weight`` × the mean L1 distance between the PSFs of different depths (EDoF);
+* **stage 1** (end-to-end): per iteration one wavelength per colour channel is drawn, the PSF map
+  (``optics.grid`` × ``optics.depths``) is computed **without autograd**, training patches are rendered with the
+  PSFs as leaf tensors at a random place on the sensor (at the sensor's pixel pitch), reconstructed by the
+  network and compared with the sharp patches (L1/MSE, or the EDoF loss across depths); the loss is
+  backpropagated to the network and to ∂L/∂PSF, then the map is **replayed** chunk by chunk with autograd
+  (:class:`~raywave.training.replay.OpticsStep`) to get the lens/DOE gradients; no sensor noise;
+* **stage 2** (fine-tuning): optics frozen, the ``optics.eval_grid`` map with all wavelengths averaged per
+  channel (sensor-response weights), sensor noise (Poisson–Gaussian), only the network trains.
+
+Everything random (wavelength draws, patch positions on the sensor, noise) comes from one ``torch.Generator``
+(``seed``); the data order is a function of (seed, epoch). A checkpoint (every ``checkpoint_every`` steps and at
+each stage's end) stores the modules, optimizer, scheduler, step and all random states, so a killed run resumes
+bit-identically (:meth:`Trainer.run` resumes from the run folder's latest checkpoint).
+
+Run folder: ``config.yaml`` (resolved), ``checkpoints/``, ``log.jsonl`` (loss per step), ``metrics.json``
+(:meth:`Trainer.evaluate`), ``final/`` (lens JSON with its DOE phase, the DOE, fabrication masks).
+The figures are written by the CLI (``raywave train``), which may import matplotlib; this module does not.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+from raywave.training.checkpoint import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
+from raywave.training.config import TrainConfig, dump_config
+from raywave.training.losses import edof_loss, image_loss, psf_similarity_loss, psf_size_loss
+from raywave.training.networks import build_network
+from raywave.training.replay import OpticsStep, chunk_ranges
+from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
+
+__all__ = ["Trainer", "build_hybrid", "STAGES"]
+
+STAGES = ("pre", "stage1", "stage2", "done")
+
+
+def build_hybrid(lc):
+    """The :class:`~raywave.hybrid.HybridLens` of a :class:`~raywave.training.config.LensConfig`: the lens file
+    (bundled name or path), its DOE replaced by a zero-phase :class:`~raywave.doe.PixelDOE` of the same grid
+    (``doe: pixel``), refocused to ``focus_depth``, the refractive lens frozen unless ``train_lens``."""
+    from raywave.doe import PixelDOE
+    from raywave.hybrid import HybridLens
+    from raywave.hybrid.build import load_hybrid
+    from raywave.lens.build import resolve_lens_path
+
+    path = resolve_lens_path(lc.file)
+    hl = load_hybrid(path, doe_pitch=lc.doe_pitch, doe_size=lc.doe_size, doe_distance=lc.doe_distance,
+                     sensor_pitch=lc.sensor_pitch)
+    if lc.focus_depth is not None:
+        from raywave.lens.analysis import refocus
+
+        refocus(hl.lens, float(lc.focus_depth))
+    if lc.doe == "pixel":
+        doe = hl.doe
+        new = PixelDOE(torch.zeros(doe.shape, dtype=torch.float64), doe.pitch, aperture=doe.aperture)
+        hl = HybridLens(hl.lens, new, hl.doe_distance, sensor_pitch=hl.sensor_pitch, oversample=hl.oversample,
+                        intensity_upsample=hl.intensity_upsample)
+    elif lc.doe != "file":
+        raise ValueError(f"lens.doe must be 'pixel' or 'file', got {lc.doe!r}")
+    hl.lens.requires_grad_(bool(lc.train_lens))
+    return hl
+
+
+def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
+    g = torch.Generator()
+    g.manual_seed((int(seed) * 7919 + int(epoch) * 104729 + 17) % (2 ** 62))
+    return g
+
+
+class Trainer:
+    """One training run (see the module docstring).
+
+    Args:
+        cfg: the configuration.
+        run_dir: the run folder (created).
+        hybrid: a ready :class:`~raywave.hybrid.HybridLens` instead of ``cfg.lens`` (tests, scripts).
+        baseline: train the baseline: the DOE phase is set to zero and frozen, no pre-stage, the same network
+            training (the "blank DOE" baseline of the aberration-correction application).
+        progress: show tqdm progress bars.
+        train_data, eval_data: datasets / image tensors instead of ``cfg.data`` (tests).
+    """
+
+    def __init__(self, cfg: TrainConfig, run_dir, hybrid=None, baseline: bool = False, progress: bool = True,
+                 train_data=None, eval_images=None):
+        from raywave.imaging.color import ColorSpec
+        from raywave.imaging.psfmap import DOEFieldCache, field_grid, normalised_grid, sensor_size_of
+
+        self.cfg, self.run_dir, self.baseline, self.progress = cfg, Path(run_dir), bool(baseline), progress
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
+        self.device = torch.device(cfg.device)
+        self.hl = hybrid if hybrid is not None else build_hybrid(cfg.lens)
+        if self.baseline:
+            with torch.no_grad():
+                for p in self.hl.doe.parameters():
+                    p.zero_()
+            self.hl.doe.requires_grad_(False)
+        self.train_lens = any(p.requires_grad for p in self.hl.lens.parameters())
+        self.cache = None if self.train_lens else DOEFieldCache()
+        wl = cfg.optics.wavelengths
+        missing = [c for c in ("R", "G", "B") if c not in wl]
+        if missing or set(wl) - {"R", "G", "B"}:
+            raise ValueError(f"optics.wavelengths needs exactly the channels R, G, B, got {sorted(wl)}")
+        self.color = ColorSpec([list(wl["R"]), list(wl["G"]), list(wl["B"])])
+        self.depths = [float(d) for d in cfg.optics.depths]
+        self.grid = tuple(int(v) for v in cfg.optics.grid)
+        self.sensor_size = sensor_size_of(self.hl)
+        with torch.no_grad():
+            self.fields = field_grid(self.hl, self.grid, depth=self.depths[0]).reshape(-1, 2)
+        self.positions = normalised_grid(self.grid)
+        self.pitch = self.hl.sensor_pitch
+        with torch.random.fork_rng(devices=[]):  # the initial weights depend on the seed only (global RNG untouched)
+            torch.manual_seed(int(cfg.seed))
+            self.net = build_network(cfg.network.kind, **self._net_kwargs()).to(self.dtype)
+        self.gen = torch.Generator().manual_seed(int(cfg.seed))
+        self.train_data = train_data if train_data is not None else self._dataset("train")
+        self.eval_images = eval_images
+        self.loss_fn = image_loss(cfg.stage1.loss if cfg.stage1.loss != "edof" else "rmse")
+        self.log_path = self.run_dir / "log.jsonl"
+        self.stage2_map = None
+        self._frozen_maps: dict = {}
+        dump_config(cfg, self.run_dir / "config.yaml")
+
+    # ------------------------------------------------------------------ set-up helpers
+    def _net_kwargs(self) -> dict:
+        n = self.cfg.network
+        if n.kind == "unet":
+            return {"width": n.width, "depth": n.depth}
+        return {"width": n.width, "enc_blocks": tuple(n.enc_blocks), "middle_blocks": n.middle_blocks}
+
+    def _dataset(self, split: str):
+        from raywave.imaging import data as D
+
+        dc = self.cfg.data
+        if dc.source == "samples":
+            return D.SamplePhotoDataset(split, patch_size=dc.patch_size, patches_per_image=dc.patches_per_image,
+                                        linear=dc.linear, seed=self.cfg.seed)
+        if dc.source == "folder":
+            if not dc.root:
+                raise ValueError("data.source 'folder' needs data.root")
+            return D.ImageFolderDataset(dc.root, "train" if split == "train" else "valid", patch_size=dc.patch_size,
+                                        patches_per_image=dc.patches_per_image, linear=dc.linear, seed=self.cfg.seed)
+        if dc.source == "dead_leaves":
+            if split == "train":
+                return D.DeadLeavesDataset(dc.patch_size, length=dc.dead_leaves_count, seed=self.cfg.seed)
+            return D.SamplePhotoDataset("eval", patch_size=None, linear=dc.linear)
+        raise ValueError(f"data.source must be 'samples', 'folder' or 'dead_leaves', got {dc.source!r}")
+
+    def _stage_cfg(self, stage: str):
+        return {"stage1": self.cfg.stage1, "stage2": self.cfg.stage2}[stage]
+
+    def total_steps(self, stage: str) -> int:
+        if stage == "pre":
+            return 0 if self.baseline else int(self.cfg.pre_stage.steps)
+        sc = self._stage_cfg(stage)
+        per_epoch = max(len(self.train_data) // sc.batch_size, 1)
+        n = sc.epochs * per_epoch
+        return min(n, sc.max_steps) if sc.max_steps is not None else n
+
+    def _optimizer(self, stage: str):
+        if stage == "pre":
+            pc = self.cfg.pre_stage
+            groups = param_groups(self.hl.lens, self.hl.doe, None, lr_lens=pc.lr_lens, lr_doe=pc.lr_doe)
+            total, warm, minr = self.total_steps("pre"), 0, 0.0
+        else:
+            sc = self._stage_cfg(stage)
+            optics = stage == "stage1"
+            groups = param_groups(self.hl.lens if optics else None, self.hl.doe if optics else None, self.net,
+                                  lr_lens=sc.lr_lens, lr_doe=sc.lr_doe, lr_network=sc.lr_network)
+            total, warm, minr = self.total_steps(stage), sc.warmup_steps, sc.min_lr_ratio
+        opt = build_optimizer(groups)
+        return opt, warmup_cosine_scheduler(opt, max(total, 1), min(warm, max(total - 1, 0)), minr)
+
+    # ------------------------------------------------------------------ data
+    def _batch(self, stage: str, step: int) -> torch.Tensor:
+        sc = self._stage_cfg(stage)
+        n = len(self.train_data)
+        per_epoch = max(n // sc.batch_size, 1)
+        epoch, b = divmod(step, per_epoch)
+        epoch += 1000 if stage == "stage2" else 0  # other crops than stage 1's
+        perm = torch.randperm(n, generator=_epoch_generator(self.cfg.seed, epoch))
+        if hasattr(self.train_data, "set_epoch"):
+            self.train_data.set_epoch(epoch)
+        idx = [int(perm[(b * sc.batch_size + i) % n]) for i in range(sc.batch_size)]
+        return torch.stack([self.train_data[i] for i in idx]).to(self.device, self.dtype)
+
+    def _extent(self, size_px, centre_uv) -> tuple:
+        """Normalised extent (u0, u1, v0, v1) of an h×w patch at the sensor pitch centred at ``centre_uv``."""
+        h, w = size_px
+        du, dv = w * self.pitch / (0.5 * self.sensor_size[0]), h * self.pitch / (0.5 * self.sensor_size[1])
+        if du > 2 or dv > 2:
+            raise ValueError(f"a {h}×{w} patch at {self.pitch * 1e3:g} µm pixels is larger than the "
+                             f"{self.sensor_size[0]:g}×{self.sensor_size[1]:g} mm sensor")
+        u = min(max(centre_uv[0], -1 + du / 2), 1 - du / 2)
+        v = min(max(centre_uv[1], -1 + dv / 2), 1 - dv / 2)
+        return (u - du / 2, u + du / 2, v - dv / 2, v + dv / 2)
+
+    def _random_extent(self, size_px) -> tuple:
+        uv = torch.rand(2, generator=self.gen, dtype=torch.float64) * 2 - 1
+        return self._extent(size_px, (float(uv[0]), float(uv[1])))
+
+    # ------------------------------------------------------------------ optics
+    def optics_step(self, grid_fields=None) -> OpticsStep:
+        """The step's PSF map as an :class:`OpticsStep`: chunks = (depth, ``optics.chunk`` field points); outputs
+        psf ``(D·F, 3, ks, ks)`` and centres ``(D·F, 3, 2)``; one wavelength per channel drawn from the run's
+        generator."""
+        from raywave.imaging.psfmap import psf_map_points
+
+        fields = self.fields if grid_fields is None else grid_fields
+        ranges = chunk_ranges(fields.shape[0], int(self.cfg.optics.chunk))
+        nf = len(ranges)
+        oc = self.cfg.optics
+
+        def compute(ctx):
+            d, c = divmod(ctx.index, nf)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # sampling / vignetting warnings: once per run, not per step
+                res = psf_map_points(self.hl, fields[ranges[c].start:ranges[c].stop], ctx.draws, self.depths[d],
+                                     oc.ks, self.cache, **({"rays": oc.rays} if oc.rays else {}))
+            return res.psf, res.center
+
+        return OpticsStep.draw(compute, nf * len(self.depths), lambda g: self.color.sample(g), self.gen)
+
+    def _as_map(self, psf, cen):
+        """(D·F, 3, ks, ks), (D·F, 3, 2) → (D, 3, N, M, ks, ks), (D, 3, N, M, 2)."""
+        D, (N, M), ks = len(self.depths), self.grid, psf.shape[-1]
+        p = psf.reshape(D, N, M, 3, ks, ks).permute(0, 3, 1, 2, 4, 5)
+        c = cen.reshape(D, N, M, 3, 2).permute(0, 3, 1, 2, 4)
+        return p, c
+
+    def simulate(self, img, psf_d, cen_d, extent, positions=None):
+        """Render one object plane: ``img (B, 3, h, w)`` linear, PSFs ``(3, N, M, ks, ks)``, centres
+        ``(3, N, M, 2)`` mm, the patch's normalised sensor ``extent``."""
+        from raywave.imaging.render import render
+
+        return render(img, psf_d, positions=self.positions if positions is None else positions, centers=cen_d,
+                      sensor_size=self.sensor_size, pitch=self.pitch, extent=extent)
+
+    # ------------------------------------------------------------------ one iteration per stage
+    def _pre_step(self, opt, sched) -> float:
+        pc = self.cfg.pre_stage
+        step = self.optics_step()
+        psf, cen = step.leaves()
+        p, _ = self._as_map(psf, cen)
+        loss = psf_size_loss(p)
+        if pc.similarity_weight and len(self.depths) > 1:
+            loss = loss + pc.similarity_weight * psf_similarity_loss(p)
+        loss.backward()
+        step.backward()
+        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
+        return float(loss.detach())
+
+    def _stage1_step(self, step_idx, opt, sched) -> float:
+        sc = self.cfg.stage1
+        img = self._batch("stage1", step_idx)
+        extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
+        ostep = self.optics_step()
+        frozen = not any(p.requires_grad for p in self.hl.parameters())
+        if frozen:
+            # nothing optical trains (the baseline): the map depends on the wavelength draw only, memoise it
+            key = tuple(ostep.draws.tolist())
+            if key not in self._frozen_maps:
+                self._frozen_maps[key] = tuple(t.detach() for t in ostep.forward())
+            psf, cen = self._frozen_maps[key]
+        elif self.cfg.optics.replay:
+            psf, cen = ostep.leaves()
+        else:
+            psf, cen = ostep.full_graph()
+        p, c = self._as_map(psf, cen)
+        micro = max(1, min(int(sc.micro_batches), img.shape[0]))
+        parts = torch.arange(img.shape[0]).chunk(micro)
+        total = 0.0
+        for j, idx in enumerate(parts):
+            loss = self._recon_loss(img[idx], p, c, [extents[i] for i in idx.tolist()], sc) * (len(idx) / img.shape[0])
+            loss.backward(retain_graph=not (self.cfg.optics.replay or frozen) and j < len(parts) - 1)
+            total += float(loss.detach())
+        if self.cfg.optics.replay and not frozen:
+            ostep.backward()
+        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
+        return total
+
+    def _recon_loss(self, img, p, c, extents, sc, noise=None):
+        recon = []
+        for d in range(p.shape[0]):
+            sims = torch.cat([self.simulate(img[i:i + 1], p[d], c[d], extents[i]) for i in range(img.shape[0])])
+            if noise is not None:
+                sims = noise(sims, generator=self.gen)
+            recon.append(self.net(sims))
+        if sc.loss == "edof":
+            return edof_loss(recon, img, alpha=sc.edof_alpha)
+        return sum(self.loss_fn(r, img) for r in recon) / len(recon)
+
+    def _stage2_step(self, step_idx, opt, sched) -> float:
+        sc = self.cfg.stage2
+        if self.stage2_map is None:
+            self.stage2_map = self.evaluation_map()
+        pm, sensor = self.stage2_map, self._sensor() if sc.noise else None
+        img = self._batch("stage2", step_idx)
+        extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
+        loss = self._recon_loss_map(img, pm, extents, sc, sensor)
+        loss.backward()
+        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
+        return float(loss.detach())
+
+    def _recon_loss_map(self, img, pm, extents, sc, sensor):
+        from raywave.imaging.render import render
+
+        recon = []
+        for d in range(pm.psf.shape[0]):
+            sims = torch.cat([render(img[i:i + 1], pm.psf[d], positions=pm.positions, centers=pm.centers[d],
+                                     sensor_size=pm.sensor_size, pitch=pm.pitch, extent=extents[i])
+                              for i in range(img.shape[0])])
+            if sensor is not None:
+                sims = sensor(sims, generator=self.gen)
+            recon.append(self.net(sims))
+        if sc.loss == "edof":
+            return edof_loss(recon, img, alpha=sc.edof_alpha)
+        return sum(image_loss(sc.loss)(r, img) for r in recon) / len(recon)
+
+    def _sensor(self):
+        from raywave.imaging.sensor import Sensor
+
+        sc = self.cfg.stage2
+        return Sensor.from_electrons(full_well=sc.full_well, read_noise=sc.read_noise)
+
+    def evaluation_map(self):
+        """The stage-2 / evaluation PSF map: ``optics.eval_grid``, all wavelengths averaged per channel."""
+        from raywave.imaging.psfmap import psf_map
+
+        oc = self.cfg.optics
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            pm = psf_map(self.hl, grid=tuple(oc.eval_grid), depths=self.depths, wavelengths=self.color.all_wavelengths(),
+                         ks=oc.ks, cache=self.cache, progress=self.progress, **({"rays": oc.rays} if oc.rays else {}))
+        return pm.channel_average(self.color).detach()
+
+
+    # ------------------------------------------------------------------ the loop
+    def _modules(self) -> dict:
+        return {"hybrid": self.hl, "net": self.net}
+
+    def _log(self, rec: dict) -> None:
+        with open(self.log_path, "a") as fh:
+            fh.write(json.dumps(rec) + "\n")
+
+    def run(self, resume: bool = True, stop_after: int | None = None) -> dict:
+        """Run (or resume) all stages; returns ``{"stage": ..., "step": ...}`` where it stopped.
+        ``stop_after``: stop after this many optimizer steps in this call (tests)."""
+        from tqdm.auto import tqdm
+
+        stage, step = "pre", 0
+        ck = latest_checkpoint(self.run_dir) if resume else None
+        info = None
+        if ck is not None:
+            extra = torch.load(ck, map_location="cpu", weights_only=True)["extra"]
+            stage, step = extra["stage"], int(extra["stage_step"])
+        done_here = 0
+        while stage != "done":
+            total = self.total_steps(stage)
+            if stage == "stage2" and total > 0 and self.stage2_map is None:
+                self.hl.requires_grad_(False)
+            opt, sched = self._optimizer(stage) if total > 0 else (None, None)
+            if ck is not None and info is None:
+                fresh = step == 0  # a stage-boundary checkpoint: the next stage starts with a new optimizer
+                info = load_checkpoint(ck, modules=self._modules(), optimizer=None if fresh else opt,
+                                       scheduler=None if fresh else sched, generators={"train": self.gen})
+            else:
+                info = info or {}
+            bar = tqdm(total=total, initial=step, desc=f"{'baseline ' if self.baseline else ''}{stage}",
+                       disable=not self.progress)
+            while step < total:
+                if stop_after is not None and done_here >= stop_after:
+                    bar.close()
+                    return {"stage": stage, "step": step}
+                t0 = time.perf_counter()
+                if stage == "pre":
+                    loss = self._pre_step(opt, sched)
+                elif stage == "stage1":
+                    loss = self._stage1_step(step, opt, sched)
+                else:
+                    loss = self._stage2_step(step, opt, sched)
+                if not math.isfinite(loss):
+                    raise FloatingPointError(f"{stage} step {step}: the loss is {loss} (check the learning rates)")
+                step += 1
+                done_here += 1
+                self._log({"stage": stage, "step": step, "loss": loss, "time_s": time.perf_counter() - t0})
+                bar.set_postfix(loss=f"{loss:.4g}")
+                bar.update(1)
+                if step % int(self.cfg.checkpoint_every) == 0 or step == total:
+                    self._save(stage, step, opt, sched)
+            bar.close()
+            stage, step = STAGES[STAGES.index(stage) + 1], 0
+            if stage != "done":
+                info = {}
+        self.hl.requires_grad_(False)
+        return {"stage": "done", "step": 0}
+
+    def _save(self, stage, step, opt, sched) -> None:
+        keep = sorted((self.run_dir / "checkpoints").glob("step_*.pt"))[-1:]  # the previous one stays too
+        for old in set((self.run_dir / "checkpoints").glob("step_*.pt")) - set(keep):
+            old.unlink()
+        end = step >= self.total_steps(stage)
+        save_checkpoint(checkpoint_path(self.run_dir, self._global_step(stage, step)), modules=self._modules(),
+                        optimizer=None if end else opt, scheduler=None if end else sched, step=step,
+                        generators={"train": self.gen},
+                        extra={"stage": stage, "stage_step": step} if step < self.total_steps(stage)
+                        else {"stage": STAGES[STAGES.index(stage) + 1], "stage_step": 0})
+
+    def _global_step(self, stage, step) -> int:
+        off = 0
+        for s in STAGES[:STAGES.index(stage)]:
+            off += self.total_steps(s)
+        return off + step
+
+    def restore(self, path=None) -> dict:
+        """Load the modules (lens, DOE, network) of ``path`` (default the run folder's latest checkpoint), for
+        evaluation; optimizer and random states are not touched."""
+        path = latest_checkpoint(self.run_dir) if path is None else Path(path)
+        if path is None:
+            raise FileNotFoundError(f"{self.run_dir}: no checkpoint")
+        return load_checkpoint(path, modules=self._modules(), restore_rng=False)
+
+    # ------------------------------------------------------------------ evaluation and export
+    def eval_images_tensor(self) -> torch.Tensor:
+        """Held-out images ``(B, 3, S, S)``: centre crops (``data.eval_size``) of the evaluation photos (the
+        sample pool's eval split, or the folder's ``valid`` split), linear if ``data.linear``; smaller photos
+        are skipped."""
+        from raywave.imaging.data import SamplePhotoDataset, srgb_to_linear
+
+        if self.eval_images is not None:
+            return self.eval_images.to(self.device, self.dtype)
+        if self.cfg.data.source == "folder":
+            ds = self._dataset("eval")
+        else:
+            ds = SamplePhotoDataset("eval", patch_size=None, linear=False)
+        s = int(self.cfg.data.eval_size)
+        out = []
+        for i in range(ds.n_images):
+            im = ds._image(i)  # sRGB-encoded, whole photo
+            H, W = im.shape[-2:]
+            if H < s or W < s:
+                continue
+            r, c = (H - s) // 2, (W - s) // 2
+            im = im[:, r:r + s, c:c + s]
+            out.append(srgb_to_linear(im) if self.cfg.data.linear else im)
+        if not out:
+            raise ValueError(f"no evaluation image is at least {s}×{s} pixels (data.eval_size)")
+        return torch.stack(out).to(self.device, self.dtype)
+
+    @torch.no_grad()
+    def evaluate(self, noise: bool = True) -> dict:
+        """PSNR/SSIM of the reconstructions of the held-out images per depth and field zone (the image placed at
+        the sensor centre and at a corner), with the evaluation map and (``noise``) a fixed-seed noise draw.
+        Also the metrics of the simulated (unreconstructed) images."""
+        from raywave.imaging.render import render
+        from raywave.training.metrics import psnr, ssim
+
+        pm = self.stage2_map if self.stage2_map is not None else self.evaluation_map()
+        self.stage2_map = pm
+        img = self.eval_images_tensor()
+        sensor = self._sensor() if noise else None
+        g = torch.Generator().manual_seed(12345)
+        zones = {"centre": (0.0, 0.0), "edge": (0.8, 0.8)}
+        out = {}
+        for d, depth in enumerate(self.depths):
+            for zone, uv in zones.items():
+                ext = self._extent(img.shape[-2:], uv)
+                sim = render(img, pm.psf[d], positions=pm.positions, centers=pm.centers[d],
+                             sensor_size=pm.sensor_size, pitch=pm.pitch, extent=ext)
+                if sensor is not None:
+                    sim = sensor(sim, generator=g)
+                rec = self.net(sim).clamp(0, 1)
+                key = f"depth={depth:g}/{zone}"
+                out[key] = {"psnr": float(psnr(rec.double(), img.double()).mean()),
+                            "ssim": float(ssim(rec.double(), img.double()).mean()),
+                            "psnr_input": float(psnr(sim.clamp(0, 1).double(), img.double()).mean()),
+                            "ssim_input": float(ssim(sim.clamp(0, 1).double(), img.double()).mean())}
+        out["mean"] = {k: sum(v[k] for v in out.values()) / len(out) for k in ("psnr", "ssim", "psnr_input",
+                                                                              "ssim_input")}
+        return out
+
+    def export(self, folder=None) -> Path:
+        """Write the final lens JSON (with its DOE phase map), the DOE (``doe.pt``), the phase (``.npy``) and
+        4-level fabrication masks into ``run_dir/final``."""
+        import numpy as np
+
+        from raywave.doe import save_doe
+        from raywave.doe.fabrication import masks_from_levels, quantise_phase
+        from raywave.io import write_lens_spec
+        from raywave.lens.build import lens_to_spec
+
+        folder = Path(folder) if folder is not None else self.run_dir / "final"
+        folder.mkdir(parents=True, exist_ok=True)
+        doe = self.hl.doe
+        phase = _phase_map(doe)
+        np.save(folder / "doe_phase.npy", phase)
+        save_doe(doe, folder / "doe.pt")
+        spec = lens_to_spec(self.hl.lens)
+        spec["doe"] = {"distance": self.hl.doe_distance, "pitch": doe.pitch, "shape": list(doe.shape),
+                       "aperture": doe.aperture, "phase": "doe_phase.npy"}
+        write_lens_spec(spec, folder / "lens.json")
+        levels = 4
+        np.save(folder / "doe_masks.npy", masks_from_levels(quantise_phase(phase, levels), levels))
+        return folder
+
+
+def _phase_map(doe):
+    """The DOE's phase map (rad) on its pixel grid as float64 numpy (pixel DOEs: the parameter itself)."""
+    pm = getattr(doe, "phase_map", None)
+    if pm is None:
+        raise ValueError(f"export: {type(doe).__name__} has no pixel phase map")
+    return pm.detach().cpu().double().numpy()
