@@ -329,3 +329,20 @@ def test_psf_metrics_single_pixel_and_bad_input():
         psf_metrics(torch.zeros(4, 4), 1.0)
     with pytest.raises(ValueError, match="2-D"):
         psf_metrics(torch.ones(2, 4, 4), 1.0)
+
+
+def test_psf_stop_edge_option(tmp_path):
+    """--stop-edge exit_pupil reaches the engine (and a bad value is an argparse error)."""
+    import numpy as np
+
+    from raywave.cli.main import main
+
+    outs = {}
+    for edge in ("doe", "exit_pupil"):
+        out = tmp_path / f"{edge}.npy"
+        assert main(["psf", "hybrid_asphere", "--field", "0", "7", "--ks", "16", "--stop-edge", edge, "-o", str(out)]) == 0
+        outs[edge] = np.load(out)
+        assert abs(outs[edge].sum() - 1) < 1e-9
+    assert np.abs(outs["doe"] - outs["exit_pupil"]).sum() > 1e-6  # the two models differ off axis
+    with pytest.raises(SystemExit):
+        main(["psf", "singlet", "--stop-edge", "pupil"])

@@ -190,13 +190,13 @@ def cmd_compare(args) -> int:
             hl = load_hybrid(a["path"], a["doe_pitch"], a["doe_size"], a["doe_distance"],
                              sensor_pitch=a["sensor_pitch"], oversample=a["oversample"],
                              fields=[list(f) for f in fields] + [[0.0, 0.0]], wavelengths=wl_list, depth=a["depth"],
-                             field_type="angle")
+                             field_type="angle", stop_edge=a["stop_edge"])
             if args.doe is not None:
                 from raywave.cli.doe_commands import load_doe
 
                 doe, _ = load_doe(args.doe, a["doe_pitch"])
                 hl = HybridLens(hl.lens, doe, hl.doe_distance, sensor_pitch=a["sensor_pitch"] or hl.sensor_pitch,
-                                oversample=hl.oversample)
+                                oversample=hl.oversample, stop_edge=a["stop_edge"])
                 hl.doe_info = {"source": str(args.doe)}
             if a["doe_levels"] is not None or a["doe_wavelength"] is not None or a["doe_material"] is not None:
                 if not hasattr(hl, "doe_info"):
@@ -282,4 +282,7 @@ def register(sub) -> None:
             ("--doe-material", "NAME", "fabricate the DOE: height map in this glass (default FUSED_SILICA)")):
         p.add_argument(flag, default=None, metavar=meta, help=text)
     p.add_argument("--doe-size", nargs="+", default=None, metavar="MM", help="DOE width [height] in mm")
+    p.add_argument("--stop-edge", choices=("doe", "exit_pupil"), default="doe",
+                   help="ray-wave engine: sharp stop edge at the DOE plane (the paper's model; default) or at the exit "
+                        "pupil (agrees with exit_pupil off axis; docs/ray-wave.md)")
     p.set_defaults(func=cmd_compare)

@@ -78,6 +78,7 @@ def parse_psf_args(args) -> dict:
         if not args.doe_material.strip():
             raise CommandError("--doe-material: give a glass name (e.g. FUSED_SILICA)")
         out["doe_material"] = args.doe_material.strip()
+    out["stop_edge"] = getattr(args, "stop_edge", "doe")
     if args.output is not None and Path(args.output).suffix.lower() not in OUTPUT_EXTENSIONS:
         raise CommandError(f"-o: the PSF is written as .npy (the array) or .npz (psf, center, pitch, "
                            f"energy_outside, ...), got {args.output!r}")
@@ -89,7 +90,7 @@ def parse_psf_args(args) -> dict:
 # ---------------------------------------------------------------------------- the computation
 def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 64, mode: str = "accurate",
                 rays: int | None = None, doe_pitch=None, doe_size=None, doe_distance=None, sensor_pitch=None,
-                oversample=None, doe_levels=None, doe_wavelength=None, doe_material=None) -> dict:
+                oversample=None, doe_levels=None, doe_wavelength=None, doe_material=None, stop_edge="doe") -> dict:
     """The PSF of one point source through the hybrid lens of ``path`` and its metrics.
 
     Field angles in degrees (whatever the file's field type), ``depth`` object distance in mm (None: the lens
@@ -105,7 +106,8 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
     # the default DOE must hold the requested source's beam (and the on-axis one)
     wl_list = None if wavelength is None else [wavelength]
     hl = load_hybrid(path, doe_pitch, doe_size, doe_distance, sensor_pitch=sensor_pitch, oversample=oversample,
-                     fields=[list(field), [0.0, 0.0]], wavelengths=wl_list, depth=depth, field_type="angle")
+                     fields=[list(field), [0.0, 0.0]], wavelengths=wl_list, depth=depth, field_type="angle",
+                     stop_edge=stop_edge)
     if doe_levels is not None or doe_wavelength is not None or doe_material is not None:
         fabricate_doe(hl, doe_levels, doe_wavelength, doe_material)
     wl = hl.lens.primary_wavelength if wavelength is None else float(wavelength)
@@ -231,7 +233,7 @@ def cmd_psf(args) -> int:
         try:
             result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
                                  a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"],
-                                 a["doe_levels"], a["doe_wavelength"], a["doe_material"])
+                                 a["doe_levels"], a["doe_wavelength"], a["doe_material"], a["stop_edge"])
         finally:
             seen = set()
             for w in caught:
@@ -297,6 +299,10 @@ def register(sub) -> None:
     p.add_argument("--doe-distance", default=None, metavar="MM",
                    help="last vertex to DOE plane in mm (overrides the file's; default for a lens without a DOE: half "
                         "way to the sensor)")
+    p.add_argument("--stop-edge", choices=("doe", "exit_pupil"), default="doe",
+                   help="where the accurate field's sharp stop edge sits: doe (the paper's model, fast; default) or "
+                        "exit_pupil (the stop's image: off-axis PSFs independent of the DOE distance, ~3 s more per "
+                        "field; docs/ray-wave.md)")
     p.add_argument("--sensor-pitch", default=None, metavar="MM",
                    help="PSF pixel pitch in mm (default: the lens's sensor pixel pitch, else the DOE pitch)")
     p.add_argument("--oversample", default=None, metavar="Q",

@@ -36,8 +36,10 @@ import torch
 
 from raywave.lens.sources import entrance_plane_z, point_source_rays, rays_through, source_weight
 from raywave.wave.field import edge_coverage, splat_bilinear, upsample_nodes
+from raywave.wave.propagation import propagate_window
 
-__all__ = ["DOEField", "SamplingWarning", "accurate_fields", "faithful_fields", "chief_rays"]
+__all__ = ["DOEField", "SamplingWarning", "accurate_field", "chief_rays", "doe_clipping", "exit_pupil_field",
+           "faithful_field"]
 
 _NEWTON_TOL = 1e-10  # mm on the DOE plane
 _NEWTON_ITERS = 25
@@ -66,6 +68,11 @@ class DOEField:
         mode: "accurate" or "faithful".
         full_grid: the envelope is the whole DOE grid with no carrier removed, for the paper's full 2×-padded
             angular-spectrum propagation.
+        clipped: fraction of the beam's power (leaving the lens) that falls outside the DOE aperture and is
+            blocked there (from traced rays; :func:`doe_clipping`).
+        beam_half: largest |x| or |y| (mm) of the beam's geometric footprint on the DOE plane.
+        stop_edge: where the field's geometric-optics edge was formed: "doe" (at the DOE plane) or
+            "exit_pupil" (at the exit pupil, then propagated to the DOE plane by the angular spectrum).
     """
 
     envelope: torch.Tensor
@@ -80,6 +87,9 @@ class DOEField:
     rays: int
     mode: str
     full_grid: bool = False
+    clipped: float = 0.0
+    beam_half: float = 0.0
+    stop_edge: str = "doe"
 
     @property
     def power(self) -> torch.Tensor:
@@ -127,8 +137,11 @@ def chief_rays(lens, fields, wavelengths, depth, z_doe: float, z_sensor: float):
     return at_doe[:, :, 0], at_sensor[:, :, 0], uv
 
 
-def _footprint(lens, field, wavelength, depth, z_doe: float, n_grid: int = 15, n_rim: int = 72):
-    """Lit bounding box ``(xmin, xmax, ymin, ymax)`` on the DOE plane (None if every ray is vignetted)."""
+def _footprint(lens, field, wavelength, depth, z_doe: float, n_grid: int = 15, n_rim: int = 72, virtual: bool = False):
+    """Lit bounding box ``(xmin, xmax, ymin, ymax)`` on the DOE plane (None if every ray is vignetted).
+
+    ``virtual``: the plane may lie inside the lens (a virtual plane reached by extending the rays that leave
+    the last surface backwards along straight lines, e.g. the exit pupil)."""
     t = torch.linspace(0, 2 * math.pi, n_rim + 1, dtype=torch.float64)[:-1]
     g = torch.linspace(-1, 1, n_grid, dtype=torch.float64)
     gx, gy = torch.meshgrid(g, g, indexing="xy")
@@ -139,7 +152,8 @@ def _footprint(lens, field, wavelength, depth, z_doe: float, n_grid: int = 15, n
         warnings.simplefilter("ignore")  # the caller reports vignetting once
         rays = point_source_rays(lens, field, wavelength, pupil=(px, py), aim="full", depth=depth)
         out = lens.trace(rays)
-        _check_beyond_last_surface(out, z_doe)
+        if not virtual:
+            _check_beyond_last_surface(out, z_doe)
         n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(z_doe, n)
     v = at.valid.reshape(-1)
@@ -147,6 +161,45 @@ def _footprint(lens, field, wavelength, depth, z_doe: float, n_grid: int = 15, n
         return None
     xy = at.o.reshape(-1, 3)[v, :2]
     return float(xy[:, 0].min()), float(xy[:, 0].max()), float(xy[:, 1].min()), float(xy[:, 1].max())
+
+
+def inside_doe(doe, xy: torch.Tensor) -> torch.Tensor:
+    """Whether points ``xy`` (..., 2) mm on the DOE plane fall inside the DOE aperture (square grid or the
+    inscribed circle), bool (...)."""
+    w, h = doe.size
+    if doe.aperture == "circle":
+        return xy[..., 0] ** 2 + xy[..., 1] ** 2 <= (0.5 * min(w, h)) ** 2
+    return (xy[..., 0].abs() <= 0.5 * w) & (xy[..., 1].abs() <= 0.5 * h)
+
+
+def doe_clipping(lens, doe, field, wavelength, depth, z_doe: float, n_grid: int = 48) -> tuple[float, float]:
+    """Fraction of the beam's power blocked by the DOE aperture, and the beam's half extent on the DOE plane.
+
+    Rays on a regular ``n_grid``² grid over the stop (every ray aimed at its stop point, so each carries
+    about the same power) are traced through the lens with its apertures (vignetted rays leave the beam
+    before the DOE) to the plane ``z_doe``; each ray is weighted by :func:`source_weight`. Returns
+    ``(blocked, half)``: the blocked power fraction (0..1) of the rays that leave the lens, and the largest
+    |x| or |y| (mm) of their landing points (the half side of a centred square DOE that holds them all);
+    ``(0, 0)`` if every ray is vignetted. Cheap (one batched trace of ~0.8·n_grid² rays); a diagnostic,
+    not differentiable.
+
+    Args: field (2,) in the lens's field type, wavelength (1,) µm tensor, depth (mm or None)."""
+    g = (torch.arange(n_grid, dtype=torch.float64) + 0.5) / n_grid * 2 - 1
+    gx, gy = torch.meshgrid(g, g, indexing="xy")
+    inside = gx**2 + gy**2 <= 1
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the caller reports vignetting once
+        rays = point_source_rays(lens, field, wavelength, pupil=(gx[inside], gy[inside]), aim="full", depth=depth)
+        out = lens.trace(rays)
+        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(z_doe, n)
+        v = at.valid.reshape(-1)
+        if not bool(v.any()):
+            return 0.0, 0.0
+        xy = at.o.reshape(-1, 3)[v, :2]
+        w = source_weight(lens, rays, depth).reshape(-1)[v]
+        blocked = float(w[~inside_doe(doe, xy)].sum() / w.sum().clamp_min(1e-300))
+        return blocked, float(xy.abs().max())
 
 
 def _sim_grid(doe, oversample: int):
@@ -285,10 +338,14 @@ def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, gr
 
 def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
                    nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
-                   chief_uv=None) -> DOEField:
+                   chief_uv=None, virtual: bool = False) -> DOEField:
     """The accurate DOE-plane field for one field point (2,) and one wavelength (µm).
 
     Args:
+        virtual: build the field on a plane ``z_doe`` that may lie inside the lens (reached by extending the
+            rays leaving the last surface along straight lines in the image medium, e.g. the exit pupil),
+            on the DOE's simulation lattice extended without bound and without the DOE aperture (the
+            returned window indices may be negative or beyond the DOE grid).
         nodes: number of traced nodes across the larger side of the lit footprint (the ray budget is about
             ``nodes²``); the field is smooth, so 32–64 are plenty for most lenses.
         chief_doe, chief_sensor: the chief ray (RayBundle, scalar batch) at the DOE and at the sensor.
@@ -296,7 +353,7 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     """
     field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
-    bbox = _footprint(lens, field, wl, depth, z_doe)
+    bbox = _footprint(lens, field, wl, depth, z_doe, virtual=virtual)
     if bbox is None:
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, 0, "accurate")
 
@@ -386,10 +443,10 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     phi_c = phi_g[ky // 2, kx // 2].detach()
     phi_env = phi_g - phi_c - n * (alpha * tx + beta * ty)
     # fine window: the simulation pixels inside the node span, clamped to the DOE grid
-    jx0 = max(0, math.ceil((float(gx[0]) - x0) / p))
-    jx1 = min(sx - 1, math.floor((float(gx[-1]) - x0) / p))
-    jy0 = max(0, math.ceil((float(gy[0]) - y0) / p))
-    jy1 = min(sy - 1, math.floor((float(gy[-1]) - y0) / p))
+    jx0, jy0 = math.ceil((float(gx[0]) - x0) / p), math.ceil((float(gy[0]) - y0) / p)
+    jx1, jy1 = math.floor((float(gx[-1]) - x0) / p), math.floor((float(gy[-1]) - y0) / p)
+    if not virtual:
+        jx0, jy0, jx1, jy1 = max(0, jx0), max(0, jy0), min(sx - 1, jx1), min(sy - 1, jy1)
     if jx1 < jx0 or jy1 < jy0:
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
     pos_x = (x0 + torch.arange(jx0, jx1 + 1, dtype=torch.float64, device=dev) * p - float(gx[0])) / h_node
@@ -397,7 +454,9 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     fine = upsample_nodes(torch.stack([phi_env, torch.sqrt(amp2.clamp_min(0)), dist]),
                           pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
     win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
-    cov = edge_coverage(fine[2], p) * doe.coverage(win, oversample, device=dev)
+    cov = edge_coverage(fine[2], p)
+    if not virtual:
+        cov = cov * doe.coverage(win, oversample, device=dev)
     b = _crop_to_lit(cov)
     if b is None:
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
@@ -409,6 +468,63 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     origin = (x0 + win[1] * p, y0 + win[0] * p)
     return DOEField(env, win, origin, p, (alpha, beta), n, float(wavelength), zprop, center, targets.shape[0] + 1,
                     "accurate")
+
+
+#: default width (Fresnel zones of the exit pupil → DOE distance) of the band around the geometric footprint
+#: on the DOE plane that keeps the stop edge's diffraction ripples (see :func:`exit_pupil_field`)
+RIPPLE_ZONES = 4.0
+#: largest beam extent (simulation samples a side) on the exit-pupil plane that :func:`exit_pupil_field` accepts
+MAX_XP_SAMPLES = 8192
+
+
+def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_doe: float, z_sensor: float,
+                     chief_xp, chief_doe, chief_sensor, nodes: int = 64, oversample: int = 1,
+                     field_type: str | None = None, check: bool = True, chief_uv=None,
+                     ripple_zones: float = RIPPLE_ZONES) -> DOEField:
+    """The accurate DOE-plane field with the stop's sharp edge formed where it belongs: at the exit pupil.
+
+    The geometric-optics field is built by :func:`accurate_field` on the exit-pupil plane ``z_xp`` (usually a
+    virtual plane inside the lens: the rays leaving the last surface travel on straight lines in the image
+    medium, so extending them backwards is exact), where the image of the stop's edge is sharp; it is then
+    propagated to the DOE plane by the windowed angular spectrum (:func:`raywave.wave.propagate_window`,
+    chief-ray carrier removed), which adds the Fresnel diffraction of the edge between the two planes (that
+    the DOE-plane construction, with its hard edge at the DOE, leaves out). The output window is the DOE-plane
+    footprint plus ``ripple_zones`` Fresnel zones ``sqrt(λ (z_doe − z_xp)/n)`` for the edge's ripples,
+    clamped to the DOE grid; the DOE aperture is applied there. Differentiable like :func:`accurate_field`.
+
+    Args: as :func:`accurate_field`, plus ``z_xp`` (mm) and ``chief_xp`` (the chief ray on that plane).
+    Raises ValueError when the beam on the exit-pupil plane spans more than :data:`MAX_XP_SAMPLES` simulation
+    samples (an exit pupil far from the lens: the field there would not fit in memory)."""
+    p_sim = doe.pitch / oversample
+    xb = _footprint(lens, torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2),
+                    torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device), depth, z_xp,
+                    virtual=True)
+    if xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > MAX_XP_SAMPLES:
+        raise ValueError(f"stop_edge='exit_pupil': the beam is {xb[1] - xb[0]:.3g}×{xb[3] - xb[2]:.3g} mm on the "
+                         f"exit-pupil plane z = {z_xp:.4g} mm, over {MAX_XP_SAMPLES} samples of {p_sim * 1e3:g} µm "
+                         "a side; the exit pupil is too far from the lens for this construction: use stop_edge='doe'")
+    fx = accurate_field(lens, doe, field, wavelength, depth, z_xp, z_sensor, chief_xp, chief_sensor, nodes=nodes,
+                        oversample=oversample, field_type=field_type, check=check, chief_uv=chief_uv, virtual=True)
+    _, fld, wl, n, (p, x0, y0, sy, sx), _, center, zprop = _common_setup(
+        lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
+    carrier = fx.carrier  # the chief ray's direction: the same on both planes
+    bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
+    if bbox is None or float(fx.power.detach()) == 0.0:
+        return replace(_empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays, "accurate"),
+                       stop_edge="exit_pupil")
+    dz = z_doe - z_xp
+    margin = ripple_zones * math.sqrt(wavelength * 1e-3 * abs(dz) / n) + 4 * p
+    jy0, jy1, jx0, jx1 = _window_for_bbox(bbox, margin, p, x0, y0, sy, sx)
+    jy0, jx0, jy1, jx1 = max(jy0, 0), max(jx0, 0), min(jy1, sy - 1), min(jx1, sx - 1)
+    if jy1 < jy0 or jx1 < jx0:
+        return replace(_empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays, "accurate"),
+                       stop_edge="exit_pupil")
+    win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
+    origin = (x0 + jx0 * p, y0 + jy0 * p)
+    u = propagate_window(fx.envelope, p, wavelength, dz, fx.origin, origin, win[2:], n=n, carrier=carrier)
+    u = u * doe.coverage(win, oversample, device=u.device).to(u.dtype)
+    return DOEField(u, win, origin, p, carrier, n, float(wavelength), zprop, center, fx.rays, "accurate",
+                    stop_edge="exit_pupil")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -440,14 +556,15 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     nn_ = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
     at = out.propagate_to_z(z_doe, nn_)
     xy, dvec, opl = at.o[0, 0, :, :2], at.d[0, 0], at.opl[0, 0]
-    half_w, half_h = 0.5 * sx * p, 0.5 * sy * p
-    if doe.aperture == "circle":
-        inside = xy[:, 0] ** 2 + xy[:, 1] ** 2 <= (0.5 * min(doe.size)) ** 2
-    else:
-        inside = (xy[:, 0].abs() <= half_w) & (xy[:, 1].abs() <= half_h)
-    valid = at.valid[0, 0] & inside
+    inside = inside_doe(doe, xy)
+    passed = at.valid[0, 0]
+    valid = passed & inside
+    # the rays sample the pupil uniformly: the blocked power fraction is the blocked ray fraction
+    clipped = float((passed & ~inside).sum()) / max(int(passed.sum()), 1)
+    beam_half = float(xy.detach()[passed].abs().max()) if bool(passed.any()) else 0.0
     if not bool(valid.any()):
-        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, n_rays, "faithful")
+        return replace(_empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, n_rays, "faithful"),
+                       clipped=clipped, beam_half=beam_half)
     xy, dvec, opl = xy[valid], dvec[valid], opl[valid]
     k = 2 * math.pi / (wavelength * 1e-3)
     ref = opl.detach().min()
@@ -474,4 +591,5 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         ratio = slope * (2 * p) / (wavelength * 1e-3)
         _warn_nyquist(ratio, torch.ones_like(ratio, dtype=torch.bool), xy, field.tolist(), wavelength, p)
     u = u * doe.coverage(win, oversample, device=dev).to(u.dtype)
-    return DOEField(u, win, origin, p, carrier, n, float(wavelength), zprop, center, n_rays, "faithful", full_grid)
+    return DOEField(u, win, origin, p, carrier, n, float(wavelength), zprop, center, n_rays, "faithful", full_grid,
+                    clipped=clipped, beam_half=beam_half)

@@ -4,7 +4,9 @@
 ``doe_distance`` mm after the lens's last vertex + the lens's sensor (its image plane). The PSF of a point
 source is computed by
 
-1. coherent float64 ray tracing to the DOE plane and the field there (:mod:`raywave.hybrid.coherent`);
+1. coherent float64 ray tracing to the DOE plane and the field there (:mod:`raywave.hybrid.coherent`; with
+   ``stop_edge="exit_pupil"`` the field is built on the exit-pupil plane, where the stop's edge is sharp, and
+   propagated to the DOE plane by the angular spectrum);
 2. multiplication by the DOE's ``exp(i φ(x, y; λ))``;
 3. band-limited angular-spectrum propagation to the sensor (:func:`raywave.wave.propagate_window`: only the
    lit DOE window to the ks×ks PSF window, with the chief-ray carrier removed; or the paper's full-grid
@@ -28,12 +30,18 @@ import torch
 from torch import nn
 
 from raywave.doe import DOE
-from raywave.hybrid.coherent import DOEField, accurate_field, chief_rays, faithful_field
+from raywave.hybrid.coherent import DOEField, accurate_field, chief_rays, doe_clipping, exit_pupil_field, faithful_field
+from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
 from raywave.wave.field import upsampled_intensity
 from raywave.wave.propagation import angular_spectrum, pixel_integrate, propagate_window, window_transfer
 
-__all__ = ["HybridLens", "PSFResult", "SensorCropWarning"]
+__all__ = ["DOEApertureWarning", "HybridLens", "PSFResult", "SensorCropWarning"]
+
+#: blocked power fraction above which :class:`DOEApertureWarning` is raised
+CLIP_WARN = 0.01
+#: the accepted values of ``HybridLens(stop_edge=...)``
+STOP_EDGES = ("doe", "exit_pupil")
 
 
 _OUT_MARGIN = 8  # samples around the PSF window (keeps the periodic upsampling's edge effects out of it)
@@ -55,6 +63,11 @@ class SensorCropWarning(UserWarning):
     """The PSF crop is centred outside the sensor."""
 
 
+class DOEApertureWarning(UserWarning):
+    """The DOE aperture blocks part of the beam (more than 1 % of its power); ``energy_outside`` does not show
+    it, since it is measured against the power that reaches the DOE."""
+
+
 @dataclass
 class PSFResult:
     """PSFs of a batch of point sources.
@@ -65,6 +78,9 @@ class PSFResult:
         energy_outside: ``(F, W)`` fraction of the power reaching the DOE that falls outside the crop.
         pitch: sensor pixel pitch (mm).
         rays: ``(F, W)`` number of rays traced per PSF.
+        doe_clipped: ``(F, W)`` fraction of the beam's power leaving the lens that the DOE aperture blocks
+            (from traced rays; not in ``energy_outside``, whose reference is the power through the DOE).
+            None where not computed.
     """
 
     psf: torch.Tensor
@@ -72,6 +88,7 @@ class PSFResult:
     energy_outside: torch.Tensor
     pitch: float
     rays: torch.Tensor
+    doe_clipped: torch.Tensor | None = None
 
 
 class HybridLens(nn.Module):
@@ -86,10 +103,17 @@ class HybridLens(nn.Module):
         intensity_upsample: the sensor-plane field is Fourier-interpolated to pitch p/q before |U|² is
             integrated over the sensor pixels (q ≥ 2 samples the intensity exactly; 4 makes the pixel
             quadrature accurate to ~1e-4 for PSFs as sharp as the simulation grid allows).
+        stop_edge: where the accurate mode forms the geometric field's sharp edge. "doe" (default, the paper's
+            method): on the DOE plane. "exit_pupil": on the exit-pupil plane (:meth:`exit_pupil_z`, the stop's
+            image, where its edge is physically sharp), then the field is propagated to the DOE plane by the angular
+            spectrum, which adds the edge's Fresnel diffraction between the two planes: off-axis PSFs no longer
+            depend on the DOE distance and agree with the Huygens exit-pupil model (docs/ray-wave.md,
+            Accuracy). Costs one extra large angular-spectrum propagation per field and wavelength (cached
+            with the DOE-plane field). The faithful mode ignores it.
     """
 
     def __init__(self, lens, doe: DOE, doe_distance: float, sensor_pitch: float | None = None, oversample: int = 1,
-                 intensity_upsample: int = 4):
+                 intensity_upsample: int = 4, stop_edge: str = "doe"):
         super().__init__()
         self.lens = lens
         self.doe = doe
@@ -109,6 +133,9 @@ class HybridLens(nn.Module):
             raise ValueError(f"intensity_upsample must be >= 2 (|U|² has twice the field's bandwidth), got "
                              f"{intensity_upsample!r}")
         self.intensity_upsample = int(intensity_upsample)
+        if stop_edge not in STOP_EDGES:
+            raise ValueError(f"stop_edge must be one of {STOP_EDGES}, got {stop_edge!r}")
+        self.stop_edge = stop_edge
         # transfer functions of recent window pairs (a training loop with a frozen lens reuses them); plain
         # per-instance memo, never part of the state_dict
         self._transfer_cache: OrderedDict = OrderedDict()
@@ -121,6 +148,27 @@ class HybridLens(nn.Module):
     def sensor_z(self) -> float:
         """z (mm) of the sensor plane (the lens's image plane)."""
         return float(self.lens.image_z().detach())
+
+    def exit_pupil_z(self, wavelength: float | None = None) -> float:
+        """z (mm) of the refractive lens's exit pupil at ``wavelength`` µm (default primary), the image of the
+        stop's centre: where a real chief ray of a small field (1e-3 of the largest field), extended as a
+        straight line in the image medium, crosses the axis (the paraxial exit pupil, but also right for
+        surfaces the paraxial trace does not model, e.g. phase surfaces); usually a virtual plane inside the
+        lens. Falls back to :func:`raywave.lens.paraxial.exit_pupil` when that ray cannot be traced."""
+        from raywave.lens.sources import chief_ray
+
+        wl = self.lens.primary_wavelength if wavelength is None else float(wavelength)
+        fmax = max([abs(float(f)) for f in getattr(self.lens, "fields", [])] + [0.0]) or 1.0
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out = self.lens.trace(chief_ray(self.lens, (0.0, 1e-3 * fmax), wl), apertures=False)
+            o, d = out.o.reshape(-1)[:3], out.d.reshape(-1)[:3]
+            ok = bool(out.valid.all()) and abs(float(d[1])) > 1e-15
+            z = float(o[2] - o[1] * d[2] / d[1]) if ok else float(exit_pupil(self.lens, wl)[0])
+        if not math.isfinite(z) or abs(z - self.doe_z()) > 1e3:
+            raise ValueError(f"stop_edge='exit_pupil': the lens's exit pupil lies at z = {z:g} mm (at or near "
+                             "infinity: image-space telecentric), where no field can be built; use stop_edge='doe'")
+        return z
 
     def _wavelengths(self, wavelengths) -> list[float]:
         if wavelengths is None:
@@ -158,12 +206,23 @@ class HybridLens(nn.Module):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", VignettingWarning)
             cd, cs, cuv = chief_rays(self.lens, f, torch.tensor(wls, dtype=torch.float64), depth, z_doe, z_sen)
+        xp = mode == "accurate" and self.stop_edge == "exit_pupil"
+        if xp:  # the chief rays on every wavelength's exit-pupil plane (straight lines in the image medium)
+            z_xps = [self.exit_pupil_z(wl) for wl in wls]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", VignettingWarning)
+                cx = [chief_rays(self.lens, f, torch.tensor([wl], dtype=torch.float64), depth, zx, z_sen)[0][:, 0]
+                      for wl, zx in zip(wls, z_xps)]
         out = []
         for i in range(f.shape[0]):
             row = []
             for j, wl in enumerate(wls):
                 args = (self.lens, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j])
-                if mode == "accurate":
+                if xp:
+                    fd = exit_pupil_field(self.lens, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i],
+                                          cd[i, j], cs[i, j], nodes=rays or 64, oversample=self.oversample,
+                                          check=check, chief_uv=cuv[i, j])
+                elif mode == "accurate":
                     fd = accurate_field(*args, nodes=rays or 64, oversample=self.oversample, check=check,
                                         chief_uv=cuv[i, j])
                 else:
@@ -173,10 +232,27 @@ class HybridLens(nn.Module):
                     warnings.warn(f"field {f[i].tolist()} at {wl:g} µm: no light reaches the DOE (every ray is "
                                   "vignetted or misses the DOE aperture); its PSF is all zeros",
                                   VignettingWarning, stacklevel=2)
+                if fd.mode == "accurate":  # the faithful mode measures it from its own rays
+                    wl_t = torch.tensor([wl], dtype=torch.float64, device=self.lens.device)
+                    clipped, half = doe_clipping(self.lens, self.doe, f[i], wl_t, depth, z_doe)
+                    fd.clipped, fd.beam_half = clipped, half
+                self._warn_clipped(fd, f[i])
                 row.append(fd)
             out.append(row)
         del caught  # chief-ray vignetting is reported per PSF above
         return out
+
+    def _warn_clipped(self, fd: DOEField, field) -> None:
+        if fd.clipped <= CLIP_WARN:
+            return
+        from raywave.hybrid.build import BEAM_MARGIN  # (build imports this module)
+        w, h = self.doe.size
+        need = 2.0 * fd.beam_half
+        warnings.warn(f"field {[float(v) for v in field]} at {fd.wavelength:g} µm: the {w:g}×{h:g} mm DOE "
+                      f"aperture blocks {100 * fd.clipped:.1f} % of the beam's power (not counted in "
+                      f"energy_outside); the beam needs a DOE of at least {need:.3g} mm square "
+                      f"({BEAM_MARGIN * need:.3g} mm with the usual {BEAM_MARGIN:g}× margin, see "
+                      "raywave.hybrid.build.default_doe_size)", DOEApertureWarning, stacklevel=3)
 
     # ------------------------------------------------------------------ steps 3-4: DOE, propagation, sensor
     def propagate(self, fd: DOEField, ks: int, propagation_dtype=torch.complex128):
@@ -265,17 +341,18 @@ class HybridLens(nn.Module):
         if int(ks) < 1:
             raise ValueError(f"ks must be >= 1, got {ks}")
         fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw)
-        psfs, centers, outs, nr = [], [], [], []
+        psfs, centers, outs, nr, clip = [], [], [], [], []
         for row in fds:
             pr, cr, orow, rr = [], [], [], []
             for fd in row:
                 psf, c, o = self.propagate(fd, ks, propagation_dtype)
                 pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays)
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
-            nr.append(rr)
+            nr.append(rr), clip.append([fd.clipped for fd in row])
         center = torch.stack(centers)
         self._check_sensor(center)
-        return PSFResult(torch.stack(psfs), center, torch.stack(outs), self.sensor_pitch, torch.tensor(nr))
+        return PSFResult(torch.stack(psfs), center, torch.stack(outs), self.sensor_pitch, torch.tensor(nr),
+                         torch.tensor(clip, dtype=torch.float64, device=center.device))
 
     def psf(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None, mode: str = "accurate",
             rays: int | None = None, cache=None, **kw) -> torch.Tensor:
@@ -296,4 +373,4 @@ class HybridLens(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"doe_distance={self.doe_distance:g} mm, sensor_pitch={self.sensor_pitch * 1e3:g} µm, "
-                f"oversample={self.oversample}")
+                f"oversample={self.oversample}, stop_edge={self.stop_edge!r}")

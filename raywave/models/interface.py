@@ -112,7 +112,7 @@ class RayWaveModel(PSFModel):
 
     def psf_result(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None) -> ModelPSFResult:
         r = self.hybrid.psf_result(fields, wavelengths, self._check_ks(ks), depth, rays=self.rays)
-        return ModelPSFResult(r.psf, r.center, r.energy_outside, r.pitch, r.rays, model=self.name)
+        return ModelPSFResult(r.psf, r.center, r.energy_outside, r.pitch, r.rays, r.doe_clipped, model=self.name)
 
 
 def make_model(name: str, hybrid: HybridLens, **options) -> PSFModel:
