@@ -33,6 +33,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+# one implementation of the sRGB curves (IEC 61966-2-1), shared with the sensor's display path
+from raywave.imaging.sensor import linear_to_srgb, srgb_to_linear
+
 __all__ = [
     "srgb_to_linear", "linear_to_srgb", "read_image", "random_crop_flip", "list_images", "ImageFolderDataset",
     "SAMPLE_PHOTOS", "SAMPLE_SPLIT", "sample_photo_paths", "load_sample_photo", "SamplePhotoDataset",
@@ -44,19 +47,6 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 class MissingSampleWarning(UserWarning):
     """A sample photo of the offline pool is not installed (it is skipped, never downloaded)."""
-
-
-# ------------------------------------------------------------------ sRGB
-def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
-    """sRGB-encoded values in [0, 1] → linear intensity in [0, 1] (IEC 61966-2-1 piecewise curve)."""
-    x = x.clamp(0.0, 1.0)
-    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055).clamp_min(1e-12) ** 2.4)
-
-
-def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
-    """Linear intensity in [0, 1] → sRGB-encoded values in [0, 1] (inverse of :func:`srgb_to_linear`)."""
-    x = x.clamp(0.0, 1.0)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
 
 
 # ------------------------------------------------------------------ files
