@@ -13,7 +13,8 @@ PHYSICS = ["raywave.materials", "raywave.surfaces", "raywave.rays", "raywave.len
            "raywave.imaging.color",
            "raywave.imaging.data", "raywave.training.networks", "raywave.training.replay", "raywave.training.config",
            "raywave.training.schedule", "raywave.training.losses", "raywave.training.metrics", "raywave.training.checkpoint",
-           "raywave.training.trainer", "raywave.training.distributed"]
+           "raywave.training.trainer", "raywave.training.distributed",
+           "raywave.training.baselines", "raywave.training.parallel"]
 
 
 def _modules_after_import(mods):

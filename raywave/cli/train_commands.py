@@ -1,20 +1,24 @@
 """The ``train`` and ``eval`` commands: end-to-end design runs.
 
-    raywave train CONFIG.yaml [-o RUN_DIR] [--no-baseline] [--restart] [--max-steps N] [--quiet]
+    raywave train CONFIG.yaml [-o RUN_DIR] [--no-baseline] [--restart] [--max-steps N] [--nproc N] [--quiet]
     raywave eval RUN_DIR [--no-noise] [--quiet]
 
 ``train`` runs (or resumes, from the run folder's latest checkpoint) the stages of CONFIG (see
-:mod:`raywave.training.trainer`), then the baseline (the same lens with a blank DOE, the same network training)
-in ``RUN_DIR/baseline``, evaluates both on the held-out images and writes into RUN_DIR: ``config.yaml``,
+:mod:`raywave.training.trainer`), then the baseline (config ``baseline``: the same lens with a blank DOE, or with
+a DOE designed with the paraxial wave model; the same network training) in ``RUN_DIR/baseline``, evaluates both
+on the held-out images and writes into RUN_DIR: ``config.yaml``,
 ``checkpoints/``, ``log.jsonl``, ``metrics.json`` (PSNR/SSIM per depth and field zone, designed vs baseline),
 ``final/`` (lens JSON + DOE phase, ``doe.pt``, 4-level fabrication masks) and ``figures/`` (loss curves, PSF maps
 before/after, sample reconstructions). RUN_DIR defaults to ``runs/<config name>``. ``--max-steps N`` caps every
-stage at N optimizer steps (a quick look). ``eval`` re-evaluates a finished run folder.
+stage at N optimizer steps (a quick look). ``--nproc N`` trains on N local gloo processes (the steps of one
+process, split: :mod:`raywave.training.parallel`); under ``torchrun`` the ranks train together and rank 0
+evaluates. ``eval`` re-evaluates a finished run folder.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from raywave.cli.errors import CommandError, integer_arg as _integer
@@ -27,7 +31,8 @@ def register(subparsers) -> None:
                               description=__doc__.split("\n\n")[2])
     p.add_argument("config", help="YAML config (configs/*.yaml)")
     p.add_argument("-o", "--output", help="run folder (default runs/<config name>)")
-    p.add_argument("--no-baseline", action="store_true", help="skip the blank-DOE baseline")
+    p.add_argument("--no-baseline", action="store_true", help="skip the baseline (config key baseline)")
+    p.add_argument("--nproc", default=None, metavar="N", help="train on N local gloo processes (CPU)")
     p.add_argument("--restart", action="store_true", help="ignore existing checkpoints in the run folder")
     p.add_argument("--max-steps", default=None, metavar="N", help="cap every stage at N optimizer steps")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -64,6 +69,9 @@ def _train(args) -> int:
     cap = _integer(args.max_steps, "--max-steps", minimum=0) if args.max_steps is not None else None
     cfg = _cap(cfg, cap)
     run_dir = Path(args.output) if args.output else Path("runs") / cfg.name
+    nproc = _integer(args.nproc, "--nproc", minimum=1) if args.nproc is not None else 1
+    if nproc > 1 or int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        return _train_parallel(args, cfg, run_dir, nproc)
     designed = Trainer(cfg, run_dir, progress=not args.quiet)
     designed.run(resume=not args.restart)
     trainers = {"designed": designed}
@@ -72,6 +80,37 @@ def _train(args) -> int:
         base.run(resume=not args.restart)
         trainers["baseline"] = base
     designed.export()
+    _report(run_dir, trainers, noise=True)
+    return 0
+
+
+def _train_parallel(args, cfg, run_dir: Path, nproc: int) -> int:
+    """Train on ``nproc`` spawned gloo processes (or the ranks of torchrun), then evaluate and export in this
+    process (rank 0 under torchrun) from the final checkpoints."""
+    import torch.distributed as dist
+
+    from raywave.training.parallel import init_from_env, rank_and_world, spawn, train_ranks
+    from raywave.training.trainer import Trainer
+
+    resume, baseline = not args.restart, not args.no_baseline
+    if nproc > 1 and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        raise CommandError("--nproc: torchrun already started the processes (WORLD_SIZE is set); drop --nproc")
+    if nproc > 1:
+        spawn(nproc, train_ranks, cfg, str(run_dir), resume, baseline, not args.quiet)
+    else:
+        init_from_env()
+        train_ranks(cfg, run_dir, resume, baseline, not args.quiet)
+        rank, _ = rank_and_world()
+        dist.barrier()
+        dist.destroy_process_group()
+        if rank != 0:
+            return 0
+    trainers = {"designed": Trainer(cfg, run_dir, progress=not args.quiet)}
+    if baseline:
+        trainers["baseline"] = Trainer(cfg, run_dir / "baseline", baseline=True, progress=not args.quiet)
+    for t in trainers.values():
+        t.restore()
+    trainers["designed"].export()
     _report(run_dir, trainers, noise=True)
     return 0
 

@@ -164,7 +164,9 @@ class StageConfig:
 class TrainConfig:
     """A whole run (see the module docstring). ``dtype``: network and rendering precision ("float32" or
     "float64"; the optics is always float64). ``checkpoint_every``: optimizer steps between checkpoints.
-    ``baseline``: "blank" (the same lens with a zero-phase DOE, same network training)."""
+    ``baseline``: "blank" (the same lens with a zero-phase DOE, same network training) or "paraxial" (a DOE
+    designed with the paraxial wave model in ``baseline_steps`` Adam steps of the pre-stage objective, evaluated
+    with the ray-wave model; :mod:`raywave.training.baselines`)."""
 
     name: str = "run"
     seed: int = 0
@@ -179,6 +181,7 @@ class TrainConfig:
     stage2: StageConfig = field(default_factory=lambda: StageConfig(lr_doe=0.0, lr_lens=0.0, noise=True))
     checkpoint_every: int = 50
     baseline: str = "blank"
+    baseline_steps: int = 50
 
 
 # ------------------------------------------------------------------ dict ↔ dataclass

@@ -35,7 +35,7 @@ import torch
 
 from raywave.training.checkpoint import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
 from raywave.training.config import TrainConfig, dump_config
-from raywave.training.losses import edof_loss, image_loss, psf_similarity_loss, psf_size_loss
+from raywave.training.losses import edof_loss, image_loss, psf_similarity_loss, psf_size, psf_size_loss
 from raywave.training.networks import build_network
 from raywave.training.replay import OpticsStep, chunk_ranges
 from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
@@ -86,7 +86,8 @@ class Trainer:
         run_dir: the run folder (created).
         hybrid: a ready :class:`~raywave.hybrid.HybridLens` instead of ``cfg.lens`` (tests, scripts).
         baseline: train the baseline: the DOE phase is set to zero and frozen, no pre-stage, the same network
-            training (the "blank DOE" baseline of the aberration-correction application).
+            training (the "blank DOE" baseline of the aberration-correction application; ``cfg.baseline:
+            paraxial``: the DOE designed with the paraxial wave model, :mod:`raywave.training.baselines`).
         progress: show tqdm progress bars.
         train_data, eval_data: datasets / image tensors instead of ``cfg.data`` (tests).
     """
@@ -131,6 +132,11 @@ class Trainer:
         self.stage2_map = None
         self._frozen_maps: dict = {}
         dump_config(cfg, self.run_dir / "config.yaml")
+        self.baseline_design = None
+        if self.baseline:  # cfg.baseline "paraxial": design the (frozen) DOE with the paraxial model
+            from raywave.training.baselines import prepare_baseline
+
+            self.baseline_design = prepare_baseline(self)
 
     # ------------------------------------------------------------------ set-up helpers
     def _net_kwargs(self) -> dict:
@@ -462,7 +468,10 @@ class Trainer:
     def evaluate(self, noise: bool = True) -> dict:
         """PSNR/SSIM of the reconstructions of the held-out images per depth and field zone (the image placed at
         the sensor centre and at a corner), with the evaluation map and (``noise``) a fixed-seed noise draw.
-        Also the metrics of the simulated (unreconstructed) images."""
+        Also the metrics of the simulated (unreconstructed) images (``psnr_input``, ``ssim_input``: the optics'
+        share, apart from the network's) and ``psf_rms_px``: the RMS radius (sensor pixels, about the centroid,
+        mean of the three channels) of the evaluation map's PSF nearest the zone's centre; ``mean`` also has
+        ``psf_rms_px_map``, the mean over the whole evaluation map."""
         from raywave.imaging.render import render
         from raywave.training.metrics import psnr, ssim
 
@@ -485,9 +494,11 @@ class Trainer:
                 out[key] = {"psnr": float(psnr(rec.double(), img.double()).mean()),
                             "ssim": float(ssim(rec.double(), img.double()).mean()),
                             "psnr_input": float(psnr(sim.clamp(0, 1).double(), img.double()).mean()),
-                            "ssim_input": float(ssim(sim.clamp(0, 1).double(), img.double()).mean())}
+                            "ssim_input": float(ssim(sim.clamp(0, 1).double(), img.double()).mean()),
+                            "psf_rms_px": _nearest_psf_size(pm.psf[d], pm.positions, uv)}
         out["mean"] = {k: sum(v[k] for v in out.values()) / len(out) for k in ("psnr", "ssim", "psnr_input",
-                                                                              "ssim_input")}
+                                                                              "ssim_input", "psf_rms_px")}
+        out["mean"]["psf_rms_px_map"] = float(psf_size(pm.psf.double()).mean())
         return out
 
     def export(self, folder=None) -> Path:
@@ -513,6 +524,14 @@ class Trainer:
         levels = 4
         np.save(folder / "doe_masks.npy", masks_from_levels(quantise_phase(phase, levels), levels))
         return folder
+
+
+def _nearest_psf_size(psf_d, positions, uv) -> float:
+    """RMS radius (pixels; :func:`~raywave.training.losses.psf_size`, mean over the channels) of the PSF of
+    ``psf_d (C, N, M, ks, ks)`` whose node in ``positions (N, M, 2)`` is nearest the normalised point ``uv``."""
+    d2 = (positions - torch.tensor(uv, dtype=positions.dtype, device=positions.device)).square().sum(-1)
+    i, j = divmod(int(torch.argmin(d2)), d2.shape[1])
+    return float(psf_size(psf_d[:, i, j].double()).mean())
 
 
 def _phase_map(doe):
