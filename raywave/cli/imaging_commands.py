@@ -26,7 +26,7 @@ import warnings
 from pathlib import Path
 
 from raywave.cli.errors import CommandError, integer_arg as _integer, number_arg as _number
-from raywave.cli.psf_commands import _wavelength, fabricate_doe
+from raywave.cli.psf_commands import _wavelength, fabricate_doe, parse_doe_options
 
 IMAGE_OUTPUTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
@@ -84,24 +84,7 @@ def parse_lens_args(args) -> dict:
     out = {"path": path, "ks": _integer(args.ks, "--ks"), "mode": args.mode, "mapping": args.mapping,
            "batch": None if args.batch is None else _integer(args.batch, "--batch"),
            "rays": None if args.rays is None else _integer(args.rays, "--rays")}
-    out["doe_pitch"] = None if args.doe_pitch is None else _number(args.doe_pitch, "--doe-pitch", positive=True)
-    if args.doe_size is not None:
-        if len(args.doe_size) not in (1, 2):
-            raise CommandError(f"--doe-size: give W [H] (mm), got {len(args.doe_size)} values")
-        out["doe_size"] = tuple(_number(t, "--doe-size", positive=True) for t in args.doe_size)
-    else:
-        out["doe_size"] = None
-    out["doe_distance"] = (None if args.doe_distance is None
-                           else _number(args.doe_distance, "--doe-distance", nonneg=True))
-    out["sensor_pitch"] = (None if args.sensor_pitch is None
-                           else _number(args.sensor_pitch, "--sensor-pitch", positive=True))
-    out["oversample"] = None if args.oversample is None else _integer(args.oversample, "--oversample")
-    out["doe_levels"] = None if args.doe_levels is None else _integer(args.doe_levels, "--doe-levels", minimum=2)
-    out["doe_wavelength"] = (None if args.doe_wavelength is None
-                             else _wavelength(args.doe_wavelength, "--doe-wavelength"))
-    out["doe_material"] = args.doe_material.strip() if args.doe_material else None
-    if args.doe_material is not None and not out["doe_material"]:
-        raise CommandError("--doe-material: give a glass name (e.g. FUSED_SILICA)")
+    out.update(parse_doe_options(args))
     return out
 
 

@@ -38,26 +38,11 @@ def _wavelength(text: str, flag: str) -> float:
     return w
 
 
-def parse_psf_args(args) -> dict:
-    """Check and convert the command's arguments (strings) -> a dict; bad input raises :class:`CommandError`."""
-    from raywave.lens.build import resolve_lens_path
-
-    try:
-        path = resolve_lens_path(args.lens)
-    except FileNotFoundError as e:
-        raise CommandError(str(e)) from None
-    out: dict = {"path": path}
-    f = args.field if args.field is not None else ["0", "0"]
-    if len(f) not in (1, 2):
-        raise CommandError(f"--field: give X Y (degrees) or one value Y, got {len(f)} values")
-    vals = [_number(t, "--field") for t in f]
-    out["field"] = (0.0, vals[0]) if len(vals) == 1 else (vals[0], vals[1])
-    if any(abs(v) >= 90 for v in out["field"]):
-        raise CommandError(f"--field: angles must lie within (-90, 90) degrees, got {list(out['field'])}")
-    out["depth"] = None if args.depth is None else _number(args.depth, "--depth", positive=True, allow_inf=True)
-    out["wavelength"] = None if args.wavelength is None else _wavelength(args.wavelength, "--wavelength")
-    out["ks"] = _integer(args.ks, "--ks")
-    out["rays"] = None if args.rays is None else _integer(args.rays, "--rays")
+def parse_doe_options(args) -> dict:
+    """The DOE and sensor options shared by ``psf``, ``psfmap``, ``render`` and ``compare`` (``--doe-pitch``,
+    ``--doe-size``, ``--doe-distance``, ``--sensor-pitch``, ``--oversample``, ``--doe-levels``, ``--doe-wavelength``,
+    ``--doe-material``), checked: lengths in mm, wavelengths in µm; absent options are None."""
+    out = {}
     out["doe_pitch"] = None if args.doe_pitch is None else _number(args.doe_pitch, "--doe-pitch", positive=True)
     if args.doe_size is not None:
         if len(args.doe_size) not in (1, 2):
@@ -78,6 +63,30 @@ def parse_psf_args(args) -> dict:
         if not args.doe_material.strip():
             raise CommandError("--doe-material: give a glass name (e.g. FUSED_SILICA)")
         out["doe_material"] = args.doe_material.strip()
+    return out
+
+
+def parse_psf_args(args) -> dict:
+    """Check and convert the command's arguments (strings) -> a dict; bad input raises :class:`CommandError`."""
+    from raywave.lens.build import resolve_lens_path
+
+    try:
+        path = resolve_lens_path(args.lens)
+    except FileNotFoundError as e:
+        raise CommandError(str(e)) from None
+    out: dict = {"path": path}
+    f = args.field if args.field is not None else ["0", "0"]
+    if len(f) not in (1, 2):
+        raise CommandError(f"--field: give X Y (degrees) or one value Y, got {len(f)} values")
+    vals = [_number(t, "--field") for t in f]
+    out["field"] = (0.0, vals[0]) if len(vals) == 1 else (vals[0], vals[1])
+    if any(abs(v) >= 90 for v in out["field"]):
+        raise CommandError(f"--field: angles must lie within (-90, 90) degrees, got {list(out['field'])}")
+    out["depth"] = None if args.depth is None else _number(args.depth, "--depth", positive=True, allow_inf=True)
+    out["wavelength"] = None if args.wavelength is None else _wavelength(args.wavelength, "--wavelength")
+    out["ks"] = _integer(args.ks, "--ks")
+    out["rays"] = None if args.rays is None else _integer(args.rays, "--rays")
+    out.update(parse_doe_options(args))
     out["stop_edge"] = getattr(args, "stop_edge", "doe")
     if args.output is not None and Path(args.output).suffix.lower() not in OUTPUT_EXTENSIONS:
         raise CommandError(f"-o: the PSF is written as .npy (the array) or .npz (psf, center, pitch, "
