@@ -73,6 +73,9 @@ class DOEField:
         beam_half: largest |x| or |y| (mm) of the beam's geometric footprint on the DOE plane.
         stop_edge: where the field's geometric-optics edge was formed: "doe" (at the DOE plane) or
             "exit_pupil" (at the exit pupil, then propagated to the DOE plane by the angular spectrum).
+        chief_tan: ``(d_x/d_z, d_y/d_z)`` of the chief ray between the DOE and the sensor (how far ``center``
+            moves per mm of sensor displacement), set by ``HybridLens.doe_fields``; None (fields built elsewhere,
+            or detached for a cache): the PSF is not differentiated with respect to the sensor distance.
     """
 
     envelope: torch.Tensor
@@ -90,6 +93,7 @@ class DOEField:
     clipped: float = 0.0
     beam_half: float = 0.0
     stop_edge: str = "doe"
+    chief_tan: tuple | None = None
 
     @property
     def power(self) -> torch.Tensor:
@@ -97,9 +101,10 @@ class DOEField:
         return (self.envelope.abs() ** 2).sum() * self.pitch**2
 
     def detach(self) -> "DOEField":
-        """A copy cut from the autograd graph (for caching with a frozen refractive lens)."""
+        """A copy cut from the autograd graph (for caching with a frozen refractive lens): its PSF is not
+        differentiated with respect to the lens, the sensor distance included (``chief_tan`` dropped)."""
         center = tuple(c.detach() if isinstance(c, torch.Tensor) else c for c in self.center)
-        return replace(self, envelope=self.envelope.detach(), center=center)
+        return replace(self, envelope=self.envelope.detach(), center=center, chief_tan=None)
 
     def to(self, dtype) -> "DOEField":
         """A copy with the envelope cast to ``dtype`` (e.g. complex64 for propagation only)."""

@@ -149,6 +149,17 @@ class HybridLens(nn.Module):
         """z (mm) of the sensor plane (the lens's image plane)."""
         return float(self.lens.image_z().detach())
 
+    def sensor_distance(self) -> torch.Tensor:
+        """DOE → sensor distance (mm), a 0-d float64 tensor differentiable with respect to the lens's
+        thicknesses: the DOE sits ``doe_distance`` after the last vertex, so only the last thickness (the
+        focus) changes it."""
+        return self.lens.image_z() - (self.lens.vertex_z()[-1] + self.doe_distance)
+
+    def _sensor_dz(self) -> torch.Tensor | None:
+        """Zero-valued 0-d tensor carrying d(DOE → sensor distance)/dθ, or None for a frozen lens."""
+        d = self.sensor_distance()
+        return d - d.detach() if d.requires_grad else None
+
     def exit_pupil_z(self, wavelength: float | None = None) -> float:
         """z (mm) of the refractive lens's exit pupil at ``wavelength`` µm (default primary), the image of the
         stop's centre: where a real chief ray of a small field (1e-3 of the largest field), extended as a
@@ -237,6 +248,8 @@ class HybridLens(nn.Module):
                     clipped, half = doe_clipping(self.lens, self.doe, f[i], wl_t, depth, z_doe)
                     fd.clipped, fd.beam_half = clipped, half
                 self._warn_clipped(fd, f[i])
+                d_c = cd[i, j].d.detach()
+                fd.chief_tan = (float(d_c[0] / d_c[2]), float(d_c[1] / d_c[2]))
                 row.append(fd)
             out.append(row)
         del caught  # chief-ray vignetting is reported per PSF above
@@ -259,9 +272,23 @@ class HybridLens(nn.Module):
         """PSF ``(ks, ks)``, centre (2,) and energy outside the crop for one :class:`DOEField`.
 
         ``propagation_dtype=torch.complex64`` propagates in single precision after the phase was formed in
-        float64 (safe: the measured PSF error is ~1e-6, see tests/test_hybrid_precision.py)."""
+        float64 (safe: the measured PSF error is ~1e-6, see tests/test_hybrid_precision.py).
+
+        Differentiable with respect to the DOE → sensor distance (:meth:`sensor_distance`, i.e. the lens's
+        last thickness: focus) for fields built by :meth:`doe_fields` (not detached ones: a cache stands for a
+        frozen lens): a zero-valued ``dz`` enters the propagation (``propagate_window(dz=)``, or ``z + dz`` on
+        the full grid) and moves the crop centre along the chief ray by ``chief_tan·dz``; exact to first order
+        (the discrete choices — windows, FFT sizes, band rows — are those of the current distance)."""
         ps, p = self.sensor_pitch, fd.pitch
         center_t = torch.stack([torch.as_tensor(c, dtype=torch.float64) for c in fd.center])
+        # the sensor distance: fd.z (a float, used for every discrete choice) plus a zero-valued dz that carries
+        # d(distance)/dθ (the last thickness) into the propagation and into the chief ray's image point, which
+        # slides along the chief ray by tan·dz. Only for live fields from doe_fields (they record chief_tan);
+        # detached (cached) fields and other models' fields (raywave.models) keep a fixed sensor.
+        dz = self._sensor_dz() if fd.chief_tan is not None else None
+        if dz is not None:
+            dz = dz.to(center_t.device)
+            center_t = center_t + torch.tensor(fd.chief_tan, dtype=torch.float64, device=center_t.device) * dz
         xc, yc = (float(c) for c in center_t.detach())
         half = ks // 2
         psf_origin = (xc - half * ps, yc - half * ps)
@@ -283,7 +310,7 @@ class HybridLens(nn.Module):
         lo_x, lo_y = psf_origin[0] - 0.5 * ps - m * p, psf_origin[1] - 0.5 * ps - m * p
         n_out = int(math.ceil(ks * ps / p)) + 2 + 2 * m
         if full_grid:
-            full = angular_spectrum(u, p, fd.wavelength, fd.z, fd.n, pad=2)
+            full = angular_spectrum(u, p, fd.wavelength, fd.z if dz is None else fd.z + dz, fd.n, pad=2)
             jx0 = int(math.floor((lo_x - fd.origin[0]) / p))
             jy0 = int(math.floor((lo_y - fd.origin[1]) / p))
             a0, b0 = max(jy0, 0), max(jx0, 0)
@@ -302,8 +329,9 @@ class HybridLens(nn.Module):
             # the window moves with the chief ray: a zero-valued shift carries d(center)/dθ into the field
             shift = crop_origin - crop_origin.detach() if crop_origin.requires_grad else None
             out = propagate_window(u, p, fd.wavelength, fd.z, fd.origin, out_origin, (n_out, n_out),
-                                   n=fd.n, carrier=fd.carrier, shift=shift,
-                                   transfer=self._transfer(u, p, fd, out_origin, n_out))
+                                   n=fd.n, carrier=fd.carrier, shift=shift, dz=dz,
+                                   transfer=self._transfer(u, p, fd, out_origin, n_out,
+                                                           dz is not None or shift is not None))
         # intensity on a q-times finer grid (q ≥ 2: |U|² has twice the field's bandwidth), then integrated over
         # the sensor pixels through its cubic interpolant
         q = self.intensity_upsample
@@ -315,14 +343,16 @@ class HybridLens(nn.Module):
         psf = crop / total.clamp_min(1e-300)
         return psf, center_t, outside
 
-    def _transfer(self, u, p, fd: DOEField, out_origin, n_out: int):
-        """The window transfer function for this geometry, memoised (the 8 most recent window pairs, ≤ ~30 MB each)."""
+    def _transfer(self, u, p, fd: DOEField, out_origin, n_out: int, weight_derivative: bool = False):
+        """The window transfer function for this geometry, memoised (the 8 most recent window pairs, ≤ ~30 MB each;
+        ~2.5× that with ``weight_derivative``, for a PSF differentiated with respect to the sensor distance)."""
         key = (tuple(u.shape[-2:]), n_out, p, fd.wavelength, float(fd.z), fd.n, fd.carrier,
-               round((out_origin[0] - fd.origin[0]) / p, 9), round((out_origin[1] - fd.origin[1]) / p, 9), u.device)
+               round((out_origin[0] - fd.origin[0]) / p, 9), round((out_origin[1] - fd.origin[1]) / p, 9), u.device,
+               weight_derivative)
         hit = self._transfer_cache.get(key)
         if hit is None:
             hit = window_transfer(u.shape[-2:], (n_out, n_out), p, fd.wavelength, fd.z, fd.origin, out_origin, fd.n,
-                                  fd.carrier, device=u.device)
+                                  fd.carrier, device=u.device, weight_derivative=weight_derivative)
             self._transfer_cache[key] = hit
             while len(self._transfer_cache) > 8:
                 self._transfer_cache.popitem(last=False)

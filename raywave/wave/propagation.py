@@ -209,7 +209,8 @@ def window_transfer(
     margin: float = 0.5,
     guard: float = 2.0,
     device=None,
-) -> tuple[torch.Tensor, tuple[int, int]]:
+    weight_derivative: bool = False,
+) -> tuple:
     """Transfer function used by :func:`propagate_window` (float64-accurate, complex128).
 
     Returns ``(G, (My, Mx))`` with, on the ``fftfreq`` grid of the FFT size ``(My, Mx)``,
@@ -229,6 +230,12 @@ def window_transfer(
     circular convolution equals the linear one for the whole (rolled-off) kernel. Only the rows/columns that
     can be non-zero are evaluated (a 1-D pre-selection), so building ``G`` costs little beyond the FFTs.
     Exposed so that a caller propagating many fields between the same windows can reuse ``G``.
+
+    ``weight_derivative=True`` returns ``(G, (My, Mx), R)`` with ``R`` float64 ``(3, My, Mx)`` (1/mm), the
+    relative first-order changes ``(∂W/∂z, ∂W/∂s_x, ∂W/∂s_y) / W`` of the roll-off weights (0 where ``W = 0``,
+    where the derivatives vanish too) with the distance (Δ ∝ z, T ∝ sqrt|z|) and with a translation ``s`` of
+    the output window (the band follows it): :func:`propagate_window` adds ``(dz·R_z + s·R_s)·G`` for its
+    ``dz`` and ``shift`` so that their derivatives are those of the whole discrete model.
     """
     px, py = _pair(pitch, "pitch")
     _positive(px, "pitch"), _positive(py, "pitch")
@@ -272,25 +279,51 @@ def window_transfer(
 
     cols, rows = candidates(gx, *bx), candidates(gy, *by)
     out = torch.zeros((my, mx), dtype=torch.complex128, device=device)
+    d_out = torch.zeros((3, my, mx), dtype=torch.float64, device=device) if weight_derivative else None
     if cols.numel() == 0 or rows.numel() == 0:
-        return out, (my, mx)
+        return (out, (my, mx), d_out) if weight_derivative else (out, (my, mx))
     gxs, gys = gx[cols], gy[rows]
     arg = k * k - gxs[None, :] ** 2 - gys[:, None] ** 2
     prop = arg > 0
     w = _sqrt_kz(arg, prop)  # (n/λ)·cosθ; 1 on evanescent entries
     inv_w = 1.0 / w
     weight = prop.to(torch.float64)  # evanescent: exactly 0
+    factors = []  # per axis (roll-off factor, its z-derivative) for weight_derivative
     for shift, (lo, hi, taper) in (((zf * gxs)[None, :] * inv_w, bx), ((zf * gys)[:, None] * inv_w, by)):
+        if weight_derivative:
+            # Δ ∝ z and T ∝ sqrt|z|: ∂dist/∂z = sign(Δ − mid)·Δ/z and ∂T/∂z = T/(2z) where dist > 0
+            sgn = torch.sign(shift - 0.5 * (lo + hi))
+            dshift = sgn * shift / zf if zf != 0 else torch.zeros_like(shift)
         # how far Δ lies outside [lo, hi] (0 inside)
         dist = shift.sub_(0.5 * (lo + hi)).abs_().sub_(0.5 * (hi - lo)).clamp_(min=0.0)
         if taper > 0:
+            if weight_derivative:
+                ramp = (dist > 0) & (dist < taper)
+                dt_z = torch.where(ramp, (dshift - dist / (2.0 * zf)) / taper, torch.zeros_like(dist))
+                dt_s = torch.where(ramp, -sgn / taper, torch.zeros_like(dist))  # the band moves with the window
             t = dist.div_(taper).clamp_(max=1.0)
-            weight.sub_(weight * (t * t * t * (10.0 + t * (6.0 * t - 15.0))))  # quintic smoothstep roll-off
+            s = t * t * t * (10.0 + t * (6.0 * t - 15.0))  # quintic smoothstep roll-off
+            if weight_derivative:
+                # d(log(1 − S))/dt, S' = 30 t²(1 − t)², 1 − S = (1 − t)³(1 + 3t + 6t²): finite up to t = 1
+                dlog = torch.where(t < 1, -30.0 * t * t / ((1.0 - t) * (1.0 + t * (3.0 + 6.0 * t))).clamp_min(1e-300),
+                                   torch.zeros_like(t))
+                factors.append((dlog * dt_z, dlog * dt_s))
+            weight.sub_(weight * s)
         else:
+            if weight_derivative:
+                factors.append((torch.zeros_like(dist), torch.zeros_like(dist)))
             weight.mul_(dist <= 0)
     phase = _TWO_PI * zt * w + _TWO_PI * ((fx[cols] * dx)[None, :] + (fy[rows] * dy)[:, None])
-    out.index_put_((rows[:, None], cols[None, :]), torch.polar(weight, phase))
-    return out, (my, mx)
+    idx = (rows[:, None], cols[None, :])
+    out.index_put_(idx, torch.polar(weight, phase))
+    if not weight_derivative:
+        return out, (my, mx)
+    (rz_x, rs_x), (rz_y, rs_y) = factors
+    live = weight > 0
+    zero = torch.zeros((), dtype=torch.float64, device=weight.device)
+    for i, r in enumerate((rz_x + rz_y, rs_x.expand_as(weight), rs_y.expand_as(weight))):
+        d_out[i].index_put_(idx, torch.where(live, r, zero))
+    return out, (my, mx), d_out
 
 
 def propagate_window(
@@ -307,6 +340,7 @@ def propagate_window(
     guard: float = 2.0,
     shift: torch.Tensor | None = None,
     transfer: tuple | None = None,
+    dz: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Propagate an envelope from an input window to an output window (shifted band-limited ASM).
 
@@ -341,9 +375,19 @@ def propagate_window(
         shift: optional ``(2,)`` tensor (mm), an extra translation of the output window added to
             ``out_origin`` through a phase ramp on the spectrum; pass a zero-valued tensor that carries a
             derivative to make the result differentiable with respect to where the window sits (a PSF crop
-            that follows a chief ray). Keep it well below the margin (sub-sample).
+            that follows a chief ray). Keep it well below the margin (sub-sample). With a ``transfer`` built by
+            ``weight_derivative=True`` (the default when ``transfer`` is None) the derivative includes the band
+            limit's roll-off following the window.
         transfer: a precomputed ``window_transfer(...)`` result for exactly these arguments (a caller that
             propagates many fields between the same windows builds it once).
+        dz: optional 0-d tensor (mm), an extra propagation distance added to ``z``: the transfer function
+            becomes ``(G + dz·D)·exp(i2π·dz·w)``, ``w = sqrt((n/λ)² − |f + f_c|²)`` the axial frequency at the
+            true spatial frequency (0 where evanescent) and ``D`` the first-order change of the roll-off weights
+            (:func:`window_transfer` ``weight_derivative=True``; the FFT size and the band's rows/columns stay
+            those of ``z``). Pass a zero-valued tensor that carries a derivative (``d − d.detach()``): the result
+            is unchanged and differentiable with respect to the distance, exactly to first order, while reusing
+            a cached ``transfer`` (a sensor plane that moves with the lens). ``transfer`` must then be the
+            3-tuple of ``weight_derivative=True`` (a 2-tuple is rebuilt).
 
     Returns:
         The output envelope ``(..., Ny_out, Nx_out)`` (true field divided by ``exp(i k n (α x + β y))`` at the
@@ -351,22 +395,85 @@ def propagate_window(
     """
     u = _as_field(u)
     noy, nox = (int(s) for s in out_shape)
-    if transfer is None:
+    if transfer is None or (dz is not None and len(transfer) < 3):
         transfer = window_transfer(u.shape[-2:], (noy, nox), pitch, wavelength, z, in_origin, out_origin, n, carrier,
-                                   margin, guard, u.device)
-    h, (my, mx) = transfer
+                                   margin, guard, u.device, weight_derivative=dz is not None or shift is not None)
+    h, (my, mx) = transfer[:2]
+    rel = transfer[2] if len(transfer) > 2 else None
     spec = torch.fft.fft2(u, s=(my, mx))
     h = h.to(u.dtype)
-    if shift is not None:
+    if shift is not None or dz is not None:
         px, py = _pair(pitch, "pitch")
         fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=u.device)
         fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=u.device)
-        sx, sy = shift.to(torch.float64).reshape(2).unbind()
-        ramp = torch.polar(torch.ones((), dtype=torch.float64, device=u.device),
-                           _TWO_PI * (fy[:, None] * sy + fx[None, :] * sx))
-        h = h * ramp.to(u.dtype)
+        zero = torch.zeros((), dtype=torch.float64, device=u.device)
+        sx, sy = (zero, zero) if shift is None else shift.to(device=u.device, dtype=torch.float64).reshape(2).unbind()
+        dz = _dz_tensor(dz, u.device) if dz is not None else zero
+        w = _axial_frequency(fx, fy, wavelength, n, carrier) if dz.requires_grad or float(dz) != 0 else None
+        h = _Perturbed.apply(h, sx, sy, dz, fx, fy, w, rel)
     out = torch.fft.ifft2(spec * h)
     return out[..., :noy, :nox]
+
+
+class _Perturbed(torch.autograd.Function):
+    """``h·a·exp(iφ)`` with ``φ = 2π(f_x s_x + f_y s_y + w·dz)`` and ``a = 1 + s_x R_x + s_y R_y + dz R_z`` (the
+    window shift, the extra distance and the roll-off weights' first-order change), with a hand-written
+    backward: the scalars' gradients are a few reductions instead of autograd's chain of full-size complex
+    temporaries. ``w`` None: no distance term; ``rel`` None: no weight terms (a = 1)."""
+
+    @staticmethod
+    def forward(ctx, h, sx, sy, dz, fx, fy, w, rel):
+        phase = _TWO_PI * (fy[:, None] * sy + fx[None, :] * sx)
+        if w is not None:
+            phase = phase + _TWO_PI * dz * w
+        e = torch.polar(torch.ones_like(phase), phase).to(h.dtype)  # exp(iφ)
+        amp = None if rel is None else 1.0 + (sx * rel[1] + sy * rel[2] + dz * rel[0])
+        ctx.save_for_backward(h, e, amp, fx, fy, w, rel)
+        return h * e if amp is None else h * e * amp.to(h.real.dtype)
+
+    @staticmethod
+    def backward(ctx, g):
+        h, e, amp, fx, fy, w, rel = ctx.saved_tensors
+        grads = [None] * 8
+        if ctx.needs_input_grad[0]:
+            grads[0] = g * e.conj() if amp is None else g * e.conj() * amp.to(g.real.dtype)
+        if any(ctx.needs_input_grad[1:4]):
+            # the real gradient of s is Re Σ conj(g)·∂(h·a·e^{iφ})/∂s = Re Σ conj(g)·h·e^{iφ}·(∂a/∂s + i a ∂φ/∂s)
+            q = (g.conj() * h * e).to(torch.complex128)
+            qa = q.imag if amp is None else q.imag * amp
+
+            def red(r_chan, freq):
+                out = -_TWO_PI * (qa * freq).sum() if freq is not None else q.real.new_zeros(())
+                return out + (q.real * rel[r_chan]).sum() if rel is not None else out
+
+            if ctx.needs_input_grad[1]:
+                grads[1] = red(1, fx[None, :])
+            if ctx.needs_input_grad[2]:
+                grads[2] = red(2, fy[:, None])
+            if ctx.needs_input_grad[3]:
+                grads[3] = red(0, w)
+        return tuple(grads)
+
+
+def _dz_tensor(dz, device) -> torch.Tensor:
+    """A scalar ``dz`` (mm) as a 0-d float64 tensor on ``device`` (keeps its graph)."""
+    if not isinstance(dz, torch.Tensor):
+        raise TypeError("dz must be a 0-d torch.Tensor (a zero-valued tensor that carries a derivative)")
+    if dz.numel() != 1:
+        raise ValueError(f"dz must be a scalar, got shape {tuple(dz.shape)}")
+    if not math.isfinite(float(dz.detach())):
+        raise ValueError(f"dz must be finite, got {float(dz.detach())}")
+    return dz.to(device=device, dtype=torch.float64).reshape(())
+
+
+def _axial_frequency(fx: torch.Tensor, fy: torch.Tensor, wavelength: float, n: float, carrier) -> torch.Tensor:
+    """``w = sqrt((n/λ)² − |f + f_c|²)`` (cycles/mm) on the ``fftfreq`` grid ``fy[:, None], fx[None, :]`` of an
+    envelope whose carrier ``f_c = n·carrier/λ`` was removed; 0 on evanescent components. λ in µm, f in 1/mm."""
+    k = _positive(n, "n") / (_positive(wavelength, "wavelength") * _UM_TO_MM)
+    ax, ay = _xy(carrier, "carrier")
+    arg = k * k - (fx[None, :] + k * ax) ** 2 - (fy[:, None] + k * ay) ** 2
+    ok = arg > 0
+    return torch.where(ok, _sqrt_kz(arg, ok), torch.zeros((), dtype=arg.dtype, device=arg.device))
 
 
 # ----------------------------------------------------------------------------------------------------------
