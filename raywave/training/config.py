@@ -121,12 +121,16 @@ class NetworkConfig:
 @dataclass
 class PreStageConfig:
     """PSF-only optimisation before end-to-end training: minimise the PSF size (second moment), plus the
-    dissimilarity across depths (EDoF) with weight ``similarity_weight``. ``steps: 0`` skips it."""
+    dissimilarity across depths (EDoF) with weight ``similarity_weight``. ``steps: 0`` skips it. ``about``: the
+    PSF size is the RMS radius about the PSF's ``"centroid"`` (sharpness only) or about the chief-ray pixel
+    (``"center"``: also penalises a DOE that displaces the image point, i.e. adds distortion, which the
+    evaluation against the undistorted scene counts as error)."""
 
     steps: int = 0
     lr_doe: float = 1e-1
     lr_lens: float = 1e-4
     similarity_weight: float = 0.0
+    about: str = "centroid"
 
 
 @dataclass

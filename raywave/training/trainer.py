@@ -128,6 +128,8 @@ class Trainer:
         self.train_data = train_data if train_data is not None else self._dataset("train")
         self.eval_images = eval_images
         self.loss_fn = image_loss(cfg.stage1.loss if cfg.stage1.loss != "edof" else "rmse")
+        if cfg.pre_stage.about not in ("centroid", "center"):
+            raise ValueError(f"pre_stage.about must be 'centroid' or 'center', got {cfg.pre_stage.about!r}")
         self.log_path = self.run_dir / "log.jsonl"
         self.stage2_map = None
         self._frozen_maps: dict = {}
@@ -259,7 +261,7 @@ class Trainer:
         step = self.optics_step()
         psf, cen = step.leaves()
         p, _ = self._as_map(psf, cen)
-        loss = psf_size_loss(p)
+        loss = psf_size_loss(p, about=pc.about)
         if pc.similarity_weight and len(self.depths) > 1:
             loss = loss + pc.similarity_weight * psf_similarity_loss(p)
         loss.backward()
