@@ -197,8 +197,10 @@ def export_masks(doe, levels: int = 16, material: str = "fused_silica", waveleng
     return full
 
 
-def cmd_export(args) -> int:
-    from raywave.doe.fabrication import MASK_FORMATS, mask_bits
+def _fabrication_args(args):
+    """``--levels`` (a power of two), ``--wavelength`` (µm) and ``--pitch`` (mm) shared by ``doe export`` and
+    ``doe report``, checked: returns ``(levels, wavelength or None, pitch or None)``."""
+    from raywave.doe.fabrication import mask_bits
 
     try:
         L = int(args.levels)
@@ -212,6 +214,13 @@ def cmd_export(args) -> int:
     if w is not None and w > _MAX_WAVELENGTH_UM:
         raise CommandError(f"--wavelength: {args.wavelength} µm is not a plausible wavelength (µm, not nm)")
     pitch = None if args.pitch is None else _number(args.pitch, "--pitch")
+    return L, w, pitch
+
+
+def cmd_export(args) -> int:
+    from raywave.doe.fabrication import MASK_FORMATS
+
+    L, w, pitch = _fabrication_args(args)
     min_feature = None if args.min_feature is None else _number(args.min_feature, "--min-feature")
     fmt = args.format.lower()
     if fmt not in MASK_FORMATS:
@@ -337,21 +346,9 @@ def format_report(r: dict) -> str:
 
 
 def cmd_report(args) -> int:
-    from raywave.doe.fabrication import mask_bits
     from raywave.doe.tolerance import DISTRIBUTIONS
 
-    try:
-        L = int(args.levels)
-    except ValueError:
-        raise CommandError(f"--levels: {args.levels!r} is not an integer") from None
-    try:
-        mask_bits(L)
-    except ValueError as e:
-        raise CommandError(f"--levels: {e}") from None
-    w = None if args.wavelength is None else _number(args.wavelength, "--wavelength")
-    if w is not None and w > _MAX_WAVELENGTH_UM:
-        raise CommandError(f"--wavelength: {args.wavelength} µm is not a plausible wavelength (µm, not nm)")
-    pitch = None if args.pitch is None else _number(args.pitch, "--pitch")
+    L, w, pitch = _fabrication_args(args)
     depth_error = number_arg(args.depth_error, "--depth-error", nonneg=True)
     mis_text = str(args.misalignment).strip()
     mis_um = mis_text.lower().endswith(("um", "µm"))
