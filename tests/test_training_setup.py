@@ -58,8 +58,48 @@ def test_shipped_configs_load():
     from pathlib import Path
 
     files = sorted(Path(__file__).parent.parent.joinpath("configs").glob("*.yaml"))
+    assert {f.name for f in files} >= {"aberration_demo.yaml", "aberration_paper.yaml", "edof_demo.yaml",
+                                       "edof_paper.yaml"}
     for f in files:
         load_config(f)
+
+
+def test_paper_configs_have_the_papers_sizes():
+    """Supplement 2.3/2.5/2.6: 10×10 maps (5×5 for EDoF) in stage 1, 40×40 in stage 2, 50 + 50 epochs, Adam at
+    1e-4 (lens) / 1e-1 (DOE) / 1e-4 (network), DIV2K, EDoF at 200 / 300 / 10000 mm focused at 300 mm, α = 0.3."""
+    from pathlib import Path
+
+    root = Path(__file__).parent.parent / "configs"
+    ab, ed = load_config(root / "aberration_paper.yaml"), load_config(root / "edof_paper.yaml")
+    assert ab.optics.grid == [10, 10] and ed.optics.grid == [5, 5]
+    for c in (ab, ed):
+        assert c.optics.eval_grid == [40, 40] and c.lens.doe_pitch == 0.001 and c.data.source == "folder"
+        assert (c.stage1.epochs, c.stage2.epochs) == (50, 50) and c.stage1.max_steps is None
+        assert (c.stage1.lr_lens, c.stage1.lr_doe, c.stage1.lr_network) == (1e-4, 1e-1, 1e-4)
+        assert c.stage2.lr_network == 1e-4 and c.stage2.noise and not c.stage1.noise
+    assert ab.baseline == "blank" and ab.optics.depths == [math.inf]
+    assert ed.baseline == "paraxial" and ed.optics.depths == [200, 300, 10000] and ed.lens.focus_depth == 300
+    assert ed.stage1.loss == "edof" and ed.stage1.edof_alpha == 0.3 and ed.pre_stage.similarity_weight > 0
+
+
+def test_config_overrides():
+    from raywave.training.config import apply_overrides
+
+    cfg = TrainConfig()
+    new = apply_overrides(cfg, ["data.root=/data/DIV2K", "optics.grid=[5, 5]", "optics.depths=[.inf, 300]",
+                                "stage1.max_steps=7", "device=cuda"])
+    assert new.data.root == "/data/DIV2K" and new.optics.grid == [5, 5] and new.optics.depths == [math.inf, 300]
+    assert new.stage1.max_steps == 7 and new.device == "cuda"
+    assert cfg.data.root is None and cfg.optics.grid == [10, 10]  # the original is untouched
+    # PyYAML reads "1e-3" (no dot) as a string; a number field takes it as the number it spells
+    assert apply_overrides(cfg, ["stage2.lr_network=1e-3"]).stage2.lr_network == 1e-3
+    assert from_dict(TrainConfig, {"stage1": {"lr_doe": "5e-2"}}).stage1.lr_doe == 0.05
+    for bad, match in [("data.rot=1", "unknown key 'data.rot'"), ("optics=3", "is a section"),
+                       ("stage1.max_steps=abc", "stage1.max_steps must be an integer"), ("seed", "KEY=VALUE"),
+                       ("stage1.lr_doe=fast", "stage1.lr_doe must be a number"),
+                       ("stage1.lr_doe=nan", "must be a finite number")]:
+        with pytest.raises(ConfigError, match=match):
+            apply_overrides(cfg, [bad])
 
 
 # ------------------------------------------------------------------ schedule and optimizer

@@ -93,6 +93,21 @@ def test_config_errors_reach_the_cli(tiny, tmp_path):
     assert r.returncode == 2 and "unknown key 'stage1.lr_dOE'" in r.stderr and "bad.yaml" in r.stderr
 
 
+def test_cli_overrides_and_a_missing_data_folder(tmp_path):
+    """``--set`` reaches the config (a typo is named); the paper configs' DIV2K folder, when absent, is an error
+    that names the folder (nothing is trained, no traceback)."""
+    from pathlib import Path
+
+    paper = Path(__file__).parent.parent / "configs" / "edof_paper.yaml"
+    cmd = [sys.executable, "-m", "raywave.cli.main", "train", str(paper), "-o", str(tmp_path / "run")]
+    r = subprocess.run(cmd + ["--set", "data.rot=/x"], capture_output=True, text=True)
+    assert r.returncode == 2 and "unknown key 'data.rot'" in r.stderr
+    missing = tmp_path / "no_DIV2K"
+    r = subprocess.run(cmd + ["--set", f"data.root={missing}"], capture_output=True, text=True)
+    assert r.returncode == 2 and str(missing) in r.stderr and "Traceback" not in r.stderr
+    assert not list((tmp_path / "run").glob("checkpoints/*"))
+
+
 def _cli(*args, **kw):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.Popen([sys.executable, "-m", "raywave.cli.main", *args], env=env, stdout=subprocess.PIPE,

@@ -1,6 +1,7 @@
 """The ``train`` and ``eval`` commands: end-to-end design runs.
 
-    raywave train CONFIG.yaml [-o RUN_DIR] [--no-baseline] [--restart] [--max-steps N] [--nproc N] [--quiet]
+    raywave train CONFIG.yaml [-o RUN_DIR] [--set KEY=VALUE ...] [--no-baseline] [--restart] [--max-steps N]
+                  [--nproc N] [--quiet]
     raywave eval RUN_DIR [--no-noise] [--quiet]
 
 ``train`` runs (or resumes, from the run folder's latest checkpoint) the stages of CONFIG (see
@@ -10,7 +11,8 @@ on the held-out images and writes into RUN_DIR: ``config.yaml``,
 ``checkpoints/``, ``log.jsonl``, ``metrics.json`` (PSNR/SSIM per depth and field zone, designed vs baseline),
 ``final/`` (lens JSON + DOE phase, ``doe.pt``, 4-level fabrication masks) and ``figures/`` (loss curves, PSF maps
 before/after, sample reconstructions). RUN_DIR defaults to ``runs/<config name>``. ``--max-steps N`` caps every
-stage at N optimizer steps (a quick look). ``--nproc N`` trains on N local gloo processes (the steps of one
+stage at N optimizer steps (a quick look). ``--set KEY=VALUE`` (repeatable) overrides a config key, e.g.
+``--set data.root=/data/DIV2K`` (the value is YAML; unknown keys are errors). ``--nproc N`` trains on N local gloo processes (the steps of one
 process, split: :mod:`raywave.training.parallel`); under ``torchrun`` the ranks train together and rank 0
 evaluates. ``eval`` re-evaluates a finished run folder.
 """
@@ -31,6 +33,8 @@ def register(subparsers) -> None:
                               description=__doc__.split("\n\n")[2])
     p.add_argument("config", help="YAML config (configs/*.yaml)")
     p.add_argument("-o", "--output", help="run folder (default runs/<config name>)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key (repeatable; the value is YAML), e.g. --set data.root=/data/DIV2K")
     p.add_argument("--no-baseline", action="store_true", help="skip the baseline (config key baseline)")
     p.add_argument("--nproc", default=None, metavar="N", help="train on N local gloo processes (CPU)")
     p.add_argument("--restart", action="store_true", help="ignore existing checkpoints in the run folder")
@@ -44,11 +48,12 @@ def register(subparsers) -> None:
     e.set_defaults(func=_eval)
 
 
-def _load(path):
-    from raywave.training.config import ConfigError, load_config
+def _load(path, overrides=()):
+    from raywave.training.config import ConfigError, apply_overrides, load_config
 
     try:
-        return load_config(path)
+        cfg = load_config(path)
+        return apply_overrides(cfg, overrides) if overrides else cfg
     except ConfigError as err:
         raise CommandError(str(err)) from None
 
@@ -65,7 +70,7 @@ def _cap(cfg, n: int | None):
 def _train(args) -> int:
     from raywave.training.trainer import Trainer
 
-    cfg = _load(args.config)
+    cfg = _load(args.config, args.overrides)
     cap = _integer(args.max_steps, "--max-steps", minimum=0) if args.max_steps is not None else None
     cfg = _cap(cfg, cap)
     run_dir = Path(args.output) if args.output else Path("runs") / cfg.name

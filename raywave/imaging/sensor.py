@@ -135,15 +135,18 @@ class Sensor(nn.Module):
         """Poisson–Gaussian noise per ``noise`` (no clip, no quantisation)."""
         if self.noise == "none" or (self.shot == 0 and self.read == 0):
             return x
+        # the draws are made on the generator's device (a CPU generator with a CUDA image: the same noise as on
+        # the CPU, so a seeded run does not depend on where it runs) and then moved to the image's device
+        dev = generator.device if generator is not None else x.device
         if self.noise == "gaussian":
-            n = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
+            n = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=dev).to(x.device)
             return x + torch.sqrt(self.variance(x)) * n
         xd = x.detach().clamp_min(0)
         y = xd
         if self.shot > 0:
-            y = self.shot * torch.poisson(xd / self.shot, generator=generator)
+            y = self.shot * torch.poisson((xd / self.shot).to(dev), generator=generator).to(x.device)
         if self.read > 0:
-            y = y + self.read * torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
+            y = y + self.read * torch.randn(x.shape, generator=generator, dtype=x.dtype, device=dev).to(x.device)
         return _straight_through(x, y)
 
     def quantise(self, y: torch.Tensor) -> torch.Tensor:

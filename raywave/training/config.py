@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Optional, Union
 
 __all__ = ["ConfigError", "LensConfig", "OpticsConfig", "DataConfig", "NetworkConfig", "PreStageConfig",
-           "StageConfig", "TrainConfig", "from_dict", "to_dict", "load_config", "dump_config"]
+           "StageConfig", "TrainConfig", "from_dict", "to_dict", "load_config", "dump_config", "apply_overrides"]
 
 
 class ConfigError(ValueError):
@@ -220,6 +220,14 @@ def _check_value(value, tp, where: str, source: str):
     if tp is float:
         if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "infinity"):
             return math.inf
+        if isinstance(value, str):  # PyYAML reads 1e-3 (no dot) as a string: accept what float() reads
+            try:
+                value = float(value.strip())
+            except ValueError:
+                raise ConfigError(f"{source}: {where} must be a number, got {value!r}") from None
+            if not math.isfinite(value):
+                raise ConfigError(f"{source}: {where} must be a finite number or inf, got {value!r}")
+            return value
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{source}: {where} must be a number, got {value!r}")
         return float(value)
@@ -298,3 +306,35 @@ def dump_config(cfg: TrainConfig, path=None) -> str:
     if path is not None:
         Path(path).write_text(text, encoding="utf-8")
     return text
+
+
+def apply_overrides(cfg: TrainConfig, overrides, source: str = "--set") -> TrainConfig:
+    """Return a copy of ``cfg`` with ``overrides`` applied: strings ``"dotted.key=value"`` (the value is read as
+    YAML: ``data.root=/data/DIV2K``, ``optics.grid=[5, 5]``, ``stage1.max_steps=10``, ``optics.depths=[.inf]``).
+    An unknown key, a key that names a whole section, or a wrongly typed value is a :class:`ConfigError` that
+    names the override."""
+    import yaml
+
+    data = to_dict(cfg)
+    for item in overrides or ():
+        key, sep, text = str(item).partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"{source} {item!r}: expected KEY=VALUE, e.g. data.root=/data/DIV2K")
+        try:
+            value = yaml.safe_load(text) if text.strip() else None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{source} {item!r}: the value is not valid YAML: {exc}") from exc
+        node, parts = data, key.split(".")
+        for i, part in enumerate(parts):
+            if not isinstance(node, dict) or part not in node:
+                where = ".".join(parts[:i + 1])
+                known = ", ".join(sorted(node)) if isinstance(node, dict) else "none"
+                raise ConfigError(f"{source} {item!r}: unknown key {where!r} (known keys here: {known})")
+            if i < len(parts) - 1:
+                node = node[part]
+        if isinstance(node[parts[-1]], dict) and parts[-1] != "wavelengths":
+            raise ConfigError(f"{source} {item!r}: {key!r} is a section; set one of its keys "
+                              f"({', '.join(sorted(node[parts[-1]]))})")
+        node[parts[-1]] = value
+    return from_dict(TrainConfig, data, source)

@@ -121,12 +121,10 @@ class DistributedTrainer(Trainer):
     def _params(self) -> list:
         return list(self.hl.parameters()) + list(self.net.parameters())
 
-    def _sum(self, value: float) -> float:
-        t = torch.tensor([value], dtype=torch.float64, device=self.device)  # nccl reduces device tensors only
-        return float(allreduce_(t)[0])
-
-    def _my_parts(self, batch: int, micro: int, loss: str) -> list[torch.Tensor]:
+    def _parts(self, batch: int, micro: int, loss: str) -> list[torch.Tensor]:
         """The index sets of the batch this rank renders (whole micro-batches when there are enough)."""
+        if self.world == 1:
+            return super()._parts(batch, micro, loss)
         micro = max(1, min(int(micro), batch))
         if micro >= self.world:
             parts = torch.arange(batch).chunk(micro)
@@ -139,72 +137,29 @@ class DistributedTrainer(Trainer):
                               "micro_batches >= the number of ranks makes it exact)", stacklevel=3)
         return [torch.arange(batch)[batch_share(batch, self.rank, self.world)]]
 
-    # ------------------------------------------------------------------ the split steps
-    def _pre_step(self, opt, sched) -> float:
+    def _replay(self, step: OpticsStep, leaf_grads_partial: bool) -> None:
+        """Replay only this rank's share of the chunks; a partial ∂L/∂PSF (stage 1: each rank rendered its
+        share of the batch) is first summed over the ranks."""
         if self.world == 1:
-            return super()._pre_step(opt, sched)
-        from raywave.training.baselines import psf_objective
-
-        step = self.optics_step()
-        psf, cen = step.leaves()
-        p, _ = self._as_map(psf, cen)
-        loss = psf_objective(p, self.cfg.pre_stage.similarity_weight)
-        loss.backward()  # the same ∂L/∂PSF on every rank: nothing to sum
-        step.backward(chunks=shard(step.n_chunks, self.rank, self.world))
-        allreduce_grads(self._params())
-        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
-        return float(loss.detach())
-
-    def _stage1_step(self, step_idx, opt, sched) -> float:
-        if self.world == 1:
-            return super()._stage1_step(step_idx, opt, sched)
-        sc, replay = self.cfg.stage1, self.cfg.optics.replay
-        img = self._batch("stage1", step_idx)
-        extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
-        ostep = self.optics_step()
-        frozen = not any(p.requires_grad for p in self.hl.parameters())
-        if frozen:
-            key = tuple(ostep.draws.tolist())
-            if key not in self._frozen_maps:
-                self._frozen_maps[key] = tuple(t.detach() for t in ostep.forward())
-            psf, cen = self._frozen_maps[key]
-        elif replay:
-            psf, cen = ostep.leaves()
-        else:
-            psf, cen = ostep.full_graph()
-        p, c = self._as_map(psf, cen)
-        B = img.shape[0]
-        parts = self._my_parts(B, sc.micro_batches, sc.loss)
-        total = 0.0
-        for j, idx in enumerate(parts):
-            loss = self._recon_loss(img[idx], p, c, [extents[i] for i in idx.tolist()], sc) * (len(idx) / B)
-            loss.backward(retain_graph=not (replay or frozen) and j < len(parts) - 1)
-            total += float(loss.detach())
-        if replay and not frozen:
-            for leaf in (psf, cen):  # ∂L/∂PSF of the whole batch on every rank
+            return super()._replay(step, leaf_grads_partial)
+        if leaf_grads_partial:
+            for leaf in step.leaves():
                 if leaf.grad is None:
                     leaf.grad = torch.zeros_like(leaf)
                 allreduce_(leaf.grad)
-            ostep.backward(chunks=shard(ostep.n_chunks, self.rank, self.world))
-        allreduce_grads(self._params())
-        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
-        return self._sum(total)
+        step.backward(chunks=shard(step.n_chunks, self.rank, self.world))
 
-    def _stage2_step(self, step_idx, opt, sched) -> float:
+    def _sync_grads(self) -> None:
+        if self.world > 1:
+            allreduce_grads(self._params())
+
+    def _sum(self, value: float) -> float:
         if self.world == 1:
-            return super()._stage2_step(step_idx, opt, sched)
-        sc = self.cfg.stage2  # the single-process step (trainer.py) with the batch split and the gradient sum
-        if self.stage2_map is None:
-            self.stage2_map = self.evaluation_map()
-        pm, sensor = self.stage2_map, self._sensor() if sc.noise else None
-        img = self._batch("stage2", step_idx)
-        extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
-        loss = self._recon_loss_map(img, pm, extents, sc, sensor)
-        loss.backward()
-        allreduce_grads(self._params())
-        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
-        return self._sum(float(loss.detach()))
+            return value
+        t = torch.tensor([value], dtype=torch.float64, device=self.device)  # nccl reduces device tensors only
+        return float(allreduce_(t)[0])
 
+    # ------------------------------------------------------------------ stage 2: the batch split, noise shared
     def _recon_loss_map(self, img, pm, extents, sc, sensor):
         if self.world == 1:
             return super()._recon_loss_map(img, pm, extents, sc, sensor)
@@ -212,7 +167,7 @@ class DistributedTrainer(Trainer):
         from raywave.training.losses import edof_loss, image_loss
 
         B = img.shape[0]
-        mine = self._my_parts(B, 1, sc.loss)[0]
+        mine = self._parts(B, 1, sc.loss)[0]
         share = batch_share(B, self.rank, self.world)
         recon = []
         for d in range(pm.psf.shape[0]):

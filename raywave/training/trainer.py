@@ -101,7 +101,7 @@ class Trainer:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
         self.device = torch.device(cfg.device)
-        self.hl = hybrid if hybrid is not None else build_hybrid(cfg.lens)
+        self.hl = (hybrid if hybrid is not None else build_hybrid(cfg.lens)).to(self.device)
         if self.baseline:
             with torch.no_grad():
                 for p in self.hl.doe.parameters():
@@ -119,11 +119,11 @@ class Trainer:
         self.sensor_size = sensor_size_of(self.hl)
         with torch.no_grad():
             self.fields = field_grid(self.hl, self.grid, depth=self.depths[0]).reshape(-1, 2)
-        self.positions = normalised_grid(self.grid)
+        self.positions = normalised_grid(self.grid).to(self.device)
         self.pitch = self.hl.sensor_pitch
         with torch.random.fork_rng(devices=[]):  # the initial weights depend on the seed only (global RNG untouched)
             torch.manual_seed(int(cfg.seed))
-            self.net = build_network(cfg.network.kind, **self._net_kwargs()).to(self.dtype)
+            self.net = build_network(cfg.network.kind, **self._net_kwargs()).to(self.device, self.dtype)
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
         self.train_data = train_data if train_data is not None else self._dataset("train")
         self.eval_images = eval_images
@@ -256,6 +256,28 @@ class Trainer:
                       sensor_size=self.sensor_size, pitch=self.pitch, extent=extent)
 
     # ------------------------------------------------------------------ one iteration per stage
+    # ------------------------------------------------------------------ hooks (one process: trivial; several:
+    # raywave.training.parallel.DistributedTrainer splits the work and sums the gradients through these)
+    def _parts(self, batch: int, micro: int, loss: str) -> list:
+        """The index sets (micro-batches) of a batch of ``batch`` images that this process renders."""
+        return list(torch.arange(batch).chunk(max(1, min(int(micro), batch))))
+
+    def _replay(self, step: OpticsStep, leaf_grads_partial: bool) -> None:
+        """Replay ``step``'s chunks with autograd (``leaf_grads_partial``: ∂L/∂PSF holds this process's share
+        of the batch only)."""
+        step.backward()
+
+    def _sync_grads(self) -> None:
+        """Make the parameters' gradients those of the whole step (one process: they are)."""
+
+    def _sum(self, value: float) -> float:
+        """The step's loss from this process's share (one process: the loss itself)."""
+        return value
+
+    def _optimizer_step(self, opt, sched) -> None:
+        self._sync_grads()
+        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
+
     def _pre_step(self, opt, sched) -> float:
         pc = self.cfg.pre_stage
         step = self.optics_step()
@@ -264,9 +286,9 @@ class Trainer:
         loss = psf_size_loss(p, about=pc.about)
         if pc.similarity_weight and len(self.depths) > 1:
             loss = loss + pc.similarity_weight * psf_similarity_loss(p)
-        loss.backward()
-        step.backward()
-        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
+        loss.backward()  # the whole map's ∂L/∂PSF (the same in every process)
+        self._replay(step, leaf_grads_partial=False)
+        self._optimizer_step(opt, sched)
         return float(loss.detach())
 
     def _stage1_step(self, step_idx, opt, sched) -> float:
@@ -286,17 +308,17 @@ class Trainer:
         else:
             psf, cen = ostep.full_graph()
         p, c = self._as_map(psf, cen)
-        micro = max(1, min(int(sc.micro_batches), img.shape[0]))
-        parts = torch.arange(img.shape[0]).chunk(micro)
+        B = img.shape[0]
+        parts = self._parts(B, sc.micro_batches, sc.loss)
         total = 0.0
         for j, idx in enumerate(parts):
-            loss = self._recon_loss(img[idx], p, c, [extents[i] for i in idx.tolist()], sc) * (len(idx) / img.shape[0])
+            loss = self._recon_loss(img[idx], p, c, [extents[i] for i in idx.tolist()], sc) * (len(idx) / B)
             loss.backward(retain_graph=not (self.cfg.optics.replay or frozen) and j < len(parts) - 1)
             total += float(loss.detach())
         if self.cfg.optics.replay and not frozen:
-            ostep.backward()
-        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
-        return total
+            self._replay(ostep, leaf_grads_partial=True)
+        self._optimizer_step(opt, sched)
+        return self._sum(total)
 
     def _recon_loss(self, img, p, c, extents, sc, noise=None):
         recon = []
@@ -318,8 +340,8 @@ class Trainer:
         extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
         loss = self._recon_loss_map(img, pm, extents, sc, sensor)
         loss.backward()
-        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
-        return float(loss.detach())
+        self._optimizer_step(opt, sched)
+        return self._sum(float(loss.detach()))
 
     def _recon_loss_map(self, img, pm, extents, sc, sensor):
         from raywave.imaging.render import render
