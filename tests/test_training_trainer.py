@@ -67,6 +67,12 @@ def test_all_stages_run_and_write_the_run_folder(tiny, tmp_path):
     hl = load_hybrid(final / "lens.json")  # the exported lens file reads back with its DOE
     assert torch.allclose(hl.doe.phase(0.55, None, 1).detach(), tr.hl.doe.phase(0.55, None, 1).detach())
     assert load_config(tmp_path / "run" / "config.yaml") == cfg
+    # a finished run run again (raywave train on its folder) holds the trained modules, not fresh ones
+    again = Trainer(cfg, tmp_path / "run", progress=False)
+    assert again.run() == {"stage": "done", "step": 0}
+    for a, b in zip(params(again), params(tr)):
+        assert torch.equal(a, b)
+    assert len((tmp_path / "run" / "log.jsonl").read_text().splitlines()) == len(recs)  # nothing re-trained
 
 
 def test_replay_and_full_graph_give_the_same_step(tiny, tmp_path):

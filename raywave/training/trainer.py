@@ -395,6 +395,8 @@ class Trainer:
         if ck is not None:
             extra = torch.load(ck, map_location="cpu", weights_only=True)["extra"]
             stage, step = extra["stage"], int(extra["stage_step"])
+            if stage == "done":  # a finished run: continue with its trained modules (nothing is left to train)
+                load_checkpoint(ck, modules=self._modules(), generators={"train": self.gen})
         done_here = 0
         while stage != "done":
             total = self.total_steps(stage)
