@@ -12,8 +12,8 @@ on the held-out images and writes into RUN_DIR: ``config.yaml``,
 ``final/`` (lens JSON + DOE phase, ``doe.pt``, 4-level fabrication masks) and ``figures/`` (loss curves, PSF maps
 before/after, sample reconstructions). RUN_DIR defaults to ``runs/<config name>``. ``--max-steps N`` caps every
 stage at N optimizer steps (a quick look). ``--set KEY=VALUE`` (repeatable) overrides a config key, e.g.
-``--set data.root=/data/DIV2K`` (the value is YAML; unknown keys are errors). ``--nproc N`` trains on N local gloo processes (the steps of one
-process, split: :mod:`raywave.training.parallel`); under ``torchrun`` the ranks train together and rank 0
+``--set data.root=/data/DIV2K`` (the value is YAML; unknown keys are errors). ``--nproc N`` trains on N local
+gloo processes (the steps of one process, split: :mod:`raywave.training.parallel`); under ``torchrun`` the ranks train together and rank 0
 evaluates. ``eval`` re-evaluates a finished run folder.
 """
 

@@ -34,10 +34,11 @@ __all__ = ["BASELINES", "psf_objective", "model_objective", "design_paraxial_doe
 BASELINES = ("blank", "paraxial")
 
 
-def psf_objective(psf: torch.Tensor, similarity_weight: float = 0.0) -> torch.Tensor:
-    """The pre-stage objective of PSFs ``(D, ..., ks, ks)`` (D depths first): mean RMS radius (pixels) plus
-    ``similarity_weight`` × mean L1 distance across depths (when D > 1). Scalar."""
-    loss = psf_size_loss(psf)
+def psf_objective(psf: torch.Tensor, similarity_weight: float = 0.0, about: str = "centroid") -> torch.Tensor:
+    """The pre-stage objective of PSFs ``(D, ..., ks, ks)`` (D depths first): mean RMS radius (pixels, about
+    each PSF's ``about``: ``"centroid"`` or ``"center"``) plus ``similarity_weight`` × mean L1 distance across
+    depths (when D > 1). Scalar."""
+    loss = psf_size_loss(psf, about=about)
     if similarity_weight and psf.shape[0] > 1:
         loss = loss + similarity_weight * psf_similarity_loss(psf)
     return loss

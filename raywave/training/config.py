@@ -325,15 +325,16 @@ def apply_overrides(cfg: TrainConfig, overrides, source: str = "--set") -> Train
             value = yaml.safe_load(text) if text.strip() else None
         except yaml.YAMLError as exc:
             raise ConfigError(f"{source} {item!r}: the value is not valid YAML: {exc}") from exc
-        node, parts = data, key.split(".")
+        node, obj, parts = data, cfg, key.split(".")
         for i, part in enumerate(parts):
-            if not isinstance(node, dict) or part not in node:
+            if not dataclasses.is_dataclass(obj) or part not in node:
                 where = ".".join(parts[:i + 1])
-                known = ", ".join(sorted(node)) if isinstance(node, dict) else "none"
+                known = ", ".join(sorted(node)) if dataclasses.is_dataclass(obj) else "none"
                 raise ConfigError(f"{source} {item!r}: unknown key {where!r} (known keys here: {known})")
+            obj = getattr(obj, part)
             if i < len(parts) - 1:
                 node = node[part]
-        if isinstance(node[parts[-1]], dict) and parts[-1] != "wavelengths":
+        if dataclasses.is_dataclass(obj):
             raise ConfigError(f"{source} {item!r}: {key!r} is a section; set one of its keys "
                               f"({', '.join(sorted(node[parts[-1]]))})")
         node[parts[-1]] = value

@@ -35,7 +35,8 @@ import torch
 
 from raywave.training.checkpoint import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
 from raywave.training.config import TrainConfig, dump_config
-from raywave.training.losses import edof_loss, image_loss, psf_similarity_loss, psf_size, psf_size_loss
+from raywave.training.baselines import psf_objective
+from raywave.training.losses import edof_loss, image_loss, psf_size
 from raywave.training.networks import build_network
 from raywave.training.replay import OpticsStep, chunk_ranges
 from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
@@ -255,7 +256,6 @@ class Trainer:
         return render(img, psf_d, positions=self.positions if positions is None else positions, centers=cen_d,
                       sensor_size=self.sensor_size, pitch=self.pitch, extent=extent)
 
-    # ------------------------------------------------------------------ one iteration per stage
     # ------------------------------------------------------------------ hooks (one process: trivial; several:
     # raywave.training.parallel.DistributedTrainer splits the work and sums the gradients through these)
     def _parts(self, batch: int, micro: int, loss: str) -> list:
@@ -278,14 +278,13 @@ class Trainer:
         self._sync_grads()
         opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
 
+    # ------------------------------------------------------------------ one iteration per stage
     def _pre_step(self, opt, sched) -> float:
         pc = self.cfg.pre_stage
         step = self.optics_step()
         psf, cen = step.leaves()
         p, _ = self._as_map(psf, cen)
-        loss = psf_size_loss(p, about=pc.about)
-        if pc.similarity_weight and len(self.depths) > 1:
-            loss = loss + pc.similarity_weight * psf_similarity_loss(p)
+        loss = psf_objective(p, pc.similarity_weight, about=pc.about)
         loss.backward()  # the whole map's ∂L/∂PSF (the same in every process)
         self._replay(step, leaf_grads_partial=False)
         self._optimizer_step(opt, sched)
