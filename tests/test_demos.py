@@ -1,10 +1,9 @@
-"""The two shipped demo configs run to completion (issue 7's "must show"); the aberration-correction demo's
-learned DOE beats its blank-DOE baseline on the held-out photos. Slow (about 8 and 22 minutes on 2 CPU cores):
-``python -m pytest -m slow``.
+"""The two shipped demo configs run to completion (issue 7's "must show") and their learned DOEs beat their
+baselines on the held-out photos: the aberration-correction demo its blank DOE, the EDoF demo the DOE designed
+with the paraxial wave model. Slow (about 9 and 26 minutes on 2 CPU cores): ``python -m pytest -m slow``.
 
-The EDoF demo is checked for completion and its outputs only: at the demo's size its reconstruction network
-does not yet improve on its input (see docs/training.md, "Demo results"), so a PSNR difference between the
-designed and the paraxial DOE there says little about the optics, and no test pins one."""
+Both demos' networks are small (width 12) and trained briefly: they change their inputs little, so the gains
+are optical, and the tests check the unrestored sensor images as well (docs/training.md, "Demo results")."""
 
 import json
 import os
@@ -36,8 +35,17 @@ def test_aberration_demo_beats_its_baseline(tmp_path):
 
 
 @pytest.mark.slow
-def test_edof_demo_runs_to_completion(tmp_path):
+def test_edof_demo_beats_the_paraxially_designed_doe(tmp_path):
+    """Measured: designed 19.82 dB / SSIM 0.523 vs paraxial 19.37 / 0.511 (+0.45 dB); the gain is off axis
+    (edge +1.16, +1.02, +0.65 dB at 200 mm, 300 mm, 10 m; centre within ±0.08 dB), where the paraxial model
+    cannot see the lens's aberrations."""
     m = _train("edof_demo", tmp_path / "edof_demo")
     keys = {f"depth={d}/{z}" for d in ("200", "300", "10000") for z in ("centre", "edge")} | {"mean"}
     assert set(m["designed"]) == keys and set(m["baseline"]) == keys
     assert (tmp_path / "edof_demo" / "baseline" / "baseline_design.json").is_file()
+    assert m["gain_db"]["mean"] > 0, m["gain_db"]
+    assert m["designed"]["mean"]["ssim"] > m["baseline"]["mean"]["ssim"]
+    assert all(m["gain_db"][f"depth={d}/edge"] > 0 for d in ("200", "300", "10000")), m["gain_db"]
+    assert m["designed"]["mean"]["psnr_input"] > m["baseline"]["mean"]["psnr_input"]  # optical
+    for arm in ("designed", "baseline"):  # the fine-tuned networks do not make their inputs worse
+        assert m[arm]["mean"]["psnr"] >= m[arm]["mean"]["psnr_input"], m[arm]["mean"]

@@ -113,3 +113,24 @@ def test_cli_trains_the_paraxial_baseline_and_writes_its_metrics(tiny, tmp_path)
     phase = torch.load(ck, weights_only=True)["modules"]["hybrid"]
     key = next(k for k in phase if k.endswith("phase_map"))
     assert float(phase[key].abs().max()) > 0  # the baseline trained with the paraxial DOE (not a blank one)
+
+
+def test_the_paraxial_design_measures_psf_size_about_the_pre_stages_point(tiny, tmp_path, monkeypatch):
+    """The paraxial baseline minimises the pre-stage's own objective: with ``pre_stage.about: center`` its
+    PSF sizes are measured about the chief-ray pixel (a DOE that shifts the image is penalised), as in the
+    pre-stage of the designed run; the setting is part of the stored design's settings."""
+    import raywave.training.baselines as B
+
+    seen = []
+    real = B.psf_objective
+
+    def spy(psf, similarity_weight=0.0, about="centroid"):
+        seen.append(about)
+        return real(psf, similarity_weight, about=about)
+
+    monkeypatch.setattr(B, "psf_objective", spy)
+    cfg = load_config(tiny / "paraxial.yaml")
+    cfg.pre_stage.about, cfg.baseline_steps = "center", 2
+    tr = Trainer(cfg, tmp_path, baseline=True, progress=False)
+    assert seen and set(seen) == {"center"}  # design steps and the before/after objectives alike
+    assert tr.baseline_design["settings"]["about"] == "center"

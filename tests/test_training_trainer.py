@@ -75,12 +75,15 @@ def test_all_stages_run_and_write_the_run_folder(tiny, tmp_path):
     assert len((tmp_path / "run" / "log.jsonl").read_text().splitlines()) == len(recs)  # nothing re-trained
 
 
-def test_replay_and_full_graph_give_the_same_step(tiny, tmp_path):
+@pytest.mark.parametrize("jitter", [0.0, 1.0])
+def test_replay_and_full_graph_give_the_same_step(tiny, tmp_path, jitter):
     """One stage-1 step (two micro-batches) through the replay and through the full graph: same DOE and
-    network after the Adam update (to 1e-9: Adam divides by √v, which amplifies rounding where g ≈ 0)."""
+    network after the Adam update (to 1e-9: Adam divides by √v, which amplifies rounding where g ≈ 0); also
+    with jittered nodes (the replay recomputes the PSFs at the step's shifted nodes)."""
     cfg = load_config(tiny / "tiny.yaml")
     cfg.pre_stage.steps = 0
     cfg.stage1.max_steps = 1
+    cfg.optics.field_jitter = jitter
     out = []
     for replay in (True, False):
         cfg.optics.replay = replay
@@ -174,4 +177,49 @@ def test_resume_in_process_at_a_stage_boundary_and_mid_stage(tiny, tmp_path, sto
     second = Trainer(cfg, tmp_path / "b", progress=False)
     second.run()
     for a, b in zip(straight_params, params(second)):
+        assert torch.allclose(a, b, rtol=0, atol=1e-12)
+
+
+def test_field_jitter_shifts_the_whole_grid_within_a_cell(tiny, tmp_path):
+    """``optics.field_jitter``: each step's nodes are the cell centres shifted by one offset (within ±jitter/2
+    of a cell), their field angles those of the shifted sensor points; the same generator state gives the same
+    nodes (replayable); 0 gives the fixed grid; a value outside [0, 1] is an error naming the key."""
+    from raywave.imaging.psfmap import fields_at, normalised_grid
+
+    cfg = load_config(tiny / "tiny.yaml")
+    fixed = Trainer(cfg, tmp_path / "fixed", progress=False)
+    f0, p0 = fixed.step_nodes()
+    assert torch.equal(f0, fixed.fields) and torch.equal(p0, fixed.positions)
+    cfg.optics.field_jitter = 0.5
+    tr = Trainer(cfg, tmp_path / "jit", progress=False)
+    base = normalised_grid(tr.grid)
+    seen = []
+    for seed in range(6):
+        fields, pos = tr.step_nodes(torch.Generator().manual_seed(seed))
+        off = pos - base
+        assert torch.allclose(off, off[:1, :1].expand_as(off), atol=1e-15)  # one shift for the whole grid
+        assert float(off.abs().max()) <= 0.25 * 2 / 2  # ±jitter/2 of a cell (cells 1 wide on a 2×2 grid)
+        half = torch.tensor([0.5 * tr.sensor_size[0], 0.5 * tr.sensor_size[1]], dtype=torch.float64)
+        expect = fields_at(tr.hl, pos * half, depth=tr.depths[0]).reshape(-1, 2)
+        assert torch.allclose(fields, expect, rtol=0, atol=1e-12)
+        seen.append(off[0, 0])
+        again, _ = tr.step_nodes(torch.Generator().manual_seed(seed))
+        assert torch.equal(again, fields)
+    assert len({tuple(o.tolist()) for o in seen}) == 6
+    cfg.optics.field_jitter = 1.5
+    with pytest.raises(ValueError, match="optics.field_jitter must be in"):
+        Trainer(cfg, tmp_path / "bad", progress=False)
+
+
+def test_a_jittered_run_resumes_with_identical_results(tiny, tmp_path):
+    """The node offsets come from the run's generator, so a run stopped mid-stage resumes exactly."""
+    cfg = load_config(tiny / "tiny.yaml")
+    cfg.optics.field_jitter = 1.0
+    straight = Trainer(cfg, tmp_path / "a", progress=False)
+    straight.run()
+    first = Trainer(cfg, tmp_path / "b", progress=False)
+    first.run(stop_after=5)
+    second = Trainer(cfg, tmp_path / "b", progress=False)
+    second.run()
+    for a, b in zip(params(straight), params(second)):
         assert torch.allclose(a, b, rtol=0, atol=1e-12)

@@ -7,9 +7,11 @@
   (supplement section 2.6), i.e. what a conventional paraxial "deep optics" design delivers on the real lens.
 
 The paraxial design minimises the pre-stage's PSF objective (:mod:`raywave.training.losses`): the mean RMS
-radius of the PSFs of the stage-1 field grid at every depth plus ``pre_stage.similarity_weight`` × the mean L1
+radius (measured about ``pre_stage.about``) of the PSFs of the stage-1 field grid at every depth plus
+``pre_stage.similarity_weight`` × the mean L1
 distance between the PSFs of different depths, with Adam (``pre_stage.lr_doe``) for ``baseline_steps`` steps,
-one wavelength per colour channel drawn per step from a generator seeded with ``seed`` (as the pre-stage). The
+one wavelength per colour channel drawn per step from a generator seeded with ``seed`` (as the pre-stage), and
+with ``optics.field_jitter`` the grid's nodes shifted at random each step (as in the pre-stage). The
 paraxial model acts on the same :class:`~raywave.doe.PixelDOE` module as the hybrid lens, so the designed phase
 is the ray-wave lens's DOE as it stands. The DOE is then frozen and the baseline's network is trained exactly
 like the blank baseline's.
@@ -45,30 +47,33 @@ def psf_objective(psf: torch.Tensor, similarity_weight: float = 0.0, about: str 
 
 
 def model_objective(model, fields, depths, wavelengths, ks: int, similarity_weight: float = 0.0,
-                    **psf_kw) -> torch.Tensor:
+                    about: str = "centroid", **psf_kw) -> torch.Tensor:
     """:func:`psf_objective` of ``model``'s PSFs (``psf_result``) at ``fields`` ``(F, 2)`` (deg), each of
     ``depths`` (mm) and ``wavelengths`` (µm); differentiable w.r.t. the model's DOE. Scalar."""
     wls = [float(w) for w in wavelengths]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # sampling / crop warnings: the caller's business, not per step
         psf = torch.stack([model.psf_result(fields, wls, ks=ks, depth=d, **psf_kw).psf for d in depths])
-    return psf_objective(psf, similarity_weight)
+    return psf_objective(psf, similarity_weight, about=about)
 
 
 def design_paraxial_doe(hybrid, fields, depths, sample_wavelengths, ks: int, steps: int, lr: float,
-                        similarity_weight: float = 0.0, generator: torch.Generator | None = None) -> list[float]:
+                        similarity_weight: float = 0.0, generator: torch.Generator | None = None,
+                        about: str = "centroid") -> list[float]:
     """Optimise ``hybrid``'s DOE **in place** with the paraxial wave model.
 
     Args:
         hybrid: the :class:`~raywave.hybrid.HybridLens`; only its DOE's parameters change (the refractive
             lens gives the paraxial model its EFL, pupil and field points).
-        fields: ``(F, 2)`` field angles (deg).
+        fields: ``(F, 2)`` field angles (deg), or ``f(generator) -> (F, 2)``: each step's (e.g. the jittered
+            nodes of :meth:`~raywave.training.trainer.Trainer.step_nodes`), drawn after the wavelengths.
         depths: object distances (mm; ``inf`` distant).
         sample_wavelengths: ``f(generator) -> (C,)`` wavelengths (µm) of one step (e.g. ``ColorSpec.sample``).
         ks: PSF size (sensor pixels).
         steps, lr: Adam steps and learning rate (rad per step, roughly).
         similarity_weight: weight of the cross-depth similarity term.
         generator: the wavelength draws' generator.
+        about: where the PSF size is measured from (:func:`psf_objective`; the pre-stage's ``about``).
 
     Returns:
         the objective (paraxial model) at each step, before that step's update.
@@ -88,7 +93,8 @@ def design_paraxial_doe(hybrid, fields, depths, sample_wavelengths, ks: int, ste
     try:
         for _ in range(int(steps)):
             wls = sample_wavelengths(generator)
-            loss = model_objective(model, fields, depths, wls, ks, similarity_weight)
+            step_fields = fields(generator) if callable(fields) else fields
+            loss = model_objective(model, step_fields, depths, wls, ks, similarity_weight, about)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"paraxial baseline design: the objective is {float(loss)} "
                                          "(check pre_stage.lr_doe)")
@@ -106,11 +112,12 @@ def design_paraxial_doe(hybrid, fields, depths, sample_wavelengths, ks: int, ste
 def _objectives(trainer, models: dict, wls) -> dict:
     """The objective of each model at all the run's wavelengths (no autograd)."""
     cfg = trainer.cfg
-    w = cfg.pre_stage.similarity_weight
+    w, about = cfg.pre_stage.similarity_weight, cfg.pre_stage.about
     out = {}
     with torch.no_grad():
         for name, (model, kw) in models.items():
-            out[name] = float(model_objective(model, trainer.fields, trainer.depths, wls, cfg.optics.ks, w, **kw))
+            out[name] = float(model_objective(model, trainer.fields, trainer.depths, wls, cfg.optics.ks, w, about,
+                                              **kw))
     return out
 
 
@@ -119,8 +126,10 @@ def _settings(cfg) -> dict:
     from raywave.training.config import to_dict
 
     d = {"seed": cfg.seed, "steps": cfg.baseline_steps, "lr_doe": cfg.pre_stage.lr_doe,
-         "similarity_weight": cfg.pre_stage.similarity_weight, "lens": to_dict(cfg.lens),
-         "grid": cfg.optics.grid, "depths": cfg.optics.depths, "ks": cfg.optics.ks,
+         "similarity_weight": cfg.pre_stage.similarity_weight, "about": cfg.pre_stage.about,
+         "lens": to_dict(cfg.lens),
+         "grid": cfg.optics.grid, "field_jitter": cfg.optics.field_jitter, "depths": cfg.optics.depths,
+         "ks": cfg.optics.ks,
          "wavelengths": cfg.optics.wavelengths}
     return json.loads(json.dumps(d))
 
@@ -176,8 +185,10 @@ def prepare_baseline(trainer) -> dict | None:
     before = _objectives(trainer, models, wls)
     gen = torch.Generator().manual_seed(int(cfg.seed) * 31 + 7)
     t0 = time.perf_counter()
-    history = design_paraxial_doe(hl, trainer.fields, trainer.depths, trainer.color.sample, cfg.optics.ks,
-                                  cfg.baseline_steps, cfg.pre_stage.lr_doe, cfg.pre_stage.similarity_weight, gen)
+    nodes = trainer.fields if cfg.optics.field_jitter <= 0 else (lambda g: trainer.step_nodes(g)[0])
+    history = design_paraxial_doe(hl, nodes, trainer.depths, trainer.color.sample, cfg.optics.ks,
+                                  cfg.baseline_steps, cfg.pre_stage.lr_doe, cfg.pre_stage.similarity_weight, gen,
+                                  about=cfg.pre_stage.about)
     seconds = time.perf_counter() - t0
     after = _objectives(trainer, models, wls)
     rec = {"baseline": kind, "design_seconds": seconds, "objective_blank": before, "objective_designed": after,

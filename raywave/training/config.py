@@ -69,6 +69,12 @@ class OpticsConfig:
             iteration in stage 1, all averaged in stage 2 / evaluation.
         chunk: PSFs (field points) recomputed together in the replay (memory ∝ chunk).
         replay: use the memory-saving replay (False: one full autograd graph; small maps only).
+        field_jitter: shift the whole ``grid`` of nodes by a random offset each pre-stage / stage-1 step,
+            uniform in ±``field_jitter``/2 of a grid cell along x and y (drawn from the run's generator, so a
+            resumed run replays it). 0: the fixed cell centres. 1: over the steps the nodes visit the whole
+            sensor, so a pixel DOE cannot fit the PSFs at a few field points at the expense of the points
+            between them (a coarse grid such as 3×3 otherwise invites that). The DOE-field cache then holds one
+            step's fields only (the frozen lens is traced again each step: slower steps).
     """
 
     grid: list = field(default_factory=lambda: [10, 10])
@@ -80,6 +86,7 @@ class OpticsConfig:
                                                        "B": [0.45, 0.47, 0.49]})
     chunk: int = 1
     replay: bool = True
+    field_jitter: float = 0.0
 
 
 @dataclass

@@ -129,6 +129,9 @@ class Trainer:
         self.train_data = train_data if train_data is not None else self._dataset("train")
         self.eval_images = eval_images
         self.loss_fn = image_loss(cfg.stage1.loss if cfg.stage1.loss != "edof" else "rmse")
+        jit = float(cfg.optics.field_jitter)
+        if not 0.0 <= jit <= 1.0:
+            raise ValueError(f"optics.field_jitter must be in [0, 1] (a fraction of a grid cell), got {jit:g}")
         if cfg.pre_stage.about not in ("centroid", "center"):
             raise ValueError(f"pre_stage.about must be 'centroid' or 'center', got {cfg.pre_stage.about!r}")
         self.log_path = self.run_dir / "log.jsonl"
@@ -220,6 +223,28 @@ class Trainer:
         return self._extent(size_px, (float(uv[0]), float(uv[1])))
 
     # ------------------------------------------------------------------ optics
+    def step_nodes(self, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """This step's PSF-map nodes: field angles ``(F, 2)`` (deg) and normalised sensor positions ``(N, M, 2)``.
+
+        ``optics.field_jitter`` 0: the fixed cell centres. Otherwise the whole grid is shifted by one offset drawn
+        from ``generator`` (default the run's), uniform in ±field_jitter/2 of a cell, and the field angles of
+        the shifted nodes are found (chief-ray mapping at the first depth, as for the fixed grid); the
+        DOE-field cache is emptied (the shifted nodes' fields are never asked for again)."""
+        from raywave.imaging.psfmap import fields_at, normalised_grid
+
+        jit = float(self.cfg.optics.field_jitter)
+        if jit <= 0:
+            return self.fields, self.positions
+        n, m = self.grid
+        r = torch.rand(2, generator=self.gen if generator is None else generator, dtype=torch.float64) - 0.5
+        pos = normalised_grid(self.grid) + r * jit * torch.tensor([2.0 / m, 2.0 / n], dtype=torch.float64)
+        half = torch.tensor([0.5 * self.sensor_size[0], 0.5 * self.sensor_size[1]], dtype=torch.float64)
+        with torch.no_grad():
+            fields = fields_at(self.hl, pos * half, depth=self.depths[0]).reshape(-1, 2)
+        if self.cache is not None:
+            self.cache.clear()
+        return fields, pos.to(self.device)
+
     def optics_step(self, grid_fields=None) -> OpticsStep:
         """The step's PSF map as an :class:`OpticsStep`: chunks = (depth, ``optics.chunk`` field points); outputs
         psf ``(D·F, 3, ks, ks)`` and centres ``(D·F, 3, 2)``; one wavelength per channel drawn from the run's
@@ -281,7 +306,8 @@ class Trainer:
     # ------------------------------------------------------------------ one iteration per stage
     def _pre_step(self, opt, sched) -> float:
         pc = self.cfg.pre_stage
-        step = self.optics_step()
+        fields, _ = self.step_nodes()
+        step = self.optics_step(fields)
         psf, cen = step.leaves()
         p, _ = self._as_map(psf, cen)
         loss = psf_objective(p, pc.similarity_weight, about=pc.about)
@@ -294,9 +320,12 @@ class Trainer:
         sc = self.cfg.stage1
         img = self._batch("stage1", step_idx)
         extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
-        ostep = self.optics_step()
+        fields, positions = self.step_nodes()
+        ostep = self.optics_step(fields)
         frozen = not any(p.requires_grad for p in self.hl.parameters())
-        if frozen:
+        if frozen and float(self.cfg.optics.field_jitter) > 0:
+            psf, cen = (t.detach() for t in ostep.forward())  # the nodes move every step: nothing to memoise
+        elif frozen:
             # nothing optical trains (the baseline): the map depends on the wavelength draw only, memoise it
             key = tuple(ostep.draws.tolist())
             if key not in self._frozen_maps:
@@ -311,7 +340,8 @@ class Trainer:
         parts = self._parts(B, sc.micro_batches, sc.loss)
         total = 0.0
         for j, idx in enumerate(parts):
-            loss = self._recon_loss(img[idx], p, c, [extents[i] for i in idx.tolist()], sc) * (len(idx) / B)
+            loss = self._recon_loss(img[idx], p, c, [extents[i] for i in idx.tolist()], sc,
+                                    positions=positions) * (len(idx) / B)
             loss.backward(retain_graph=not (self.cfg.optics.replay or frozen) and j < len(parts) - 1)
             total += float(loss.detach())
         if self.cfg.optics.replay and not frozen:
@@ -319,10 +349,11 @@ class Trainer:
         self._optimizer_step(opt, sched)
         return self._sum(total)
 
-    def _recon_loss(self, img, p, c, extents, sc, noise=None):
+    def _recon_loss(self, img, p, c, extents, sc, noise=None, positions=None):
         recon = []
         for d in range(p.shape[0]):
-            sims = torch.cat([self.simulate(img[i:i + 1], p[d], c[d], extents[i]) for i in range(img.shape[0])])
+            sims = torch.cat([self.simulate(img[i:i + 1], p[d], c[d], extents[i], positions)
+                              for i in range(img.shape[0])])
             if noise is not None:
                 sims = noise(sims, generator=self.gen)
             recon.append(self.net(sims))
