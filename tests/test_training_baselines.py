@@ -78,6 +78,12 @@ def test_the_stored_design_is_reused_and_redone_when_its_settings_change(tiny, d
     again = Trainer(load_config(tiny / "paraxial.yaml"), tmp_path, baseline=True, progress=False)
     assert torch.equal(again.hl.doe.phase_map, tr.hl.doe.phase_map)
     assert again.baseline_design["design_seconds"] == tr.baseline_design["design_seconds"]  # loaded, not redone
+    # a record from before `about` and `field_jitter` were settings (designed about the centroid, fixed nodes)
+    rec = json.loads((tmp_path / "baseline_design.json").read_text())
+    del rec["settings"]["about"], rec["settings"]["field_jitter"]
+    (tmp_path / "baseline_design.json").write_text(json.dumps(rec))
+    old = Trainer(load_config(tiny / "paraxial.yaml"), tmp_path, baseline=True, progress=False)
+    assert old.baseline_design["design_seconds"] == tr.baseline_design["design_seconds"]
     cfg = load_config(tiny / "paraxial.yaml")
     cfg.baseline_steps = 1
     other = Trainer(cfg, tmp_path, baseline=True, progress=False)

@@ -142,13 +142,17 @@ def _write_atomic(path, write) -> None:
     os.replace(tmp, path)
 
 
+_OLD_DEFAULTS = {"about": "centroid", "field_jitter": 0.0}
+
+
 def _stored_design(trainer, settings: dict) -> dict | None:
     """The run folder's ``baseline_design.json`` record with its DOE loaded into the trainer's hybrid lens, when
     it was made with ``settings``; else None."""
     folder = trainer.run_dir
     try:
         rec = json.loads((folder / "baseline_design.json").read_text())
-        if rec.get("settings") != settings:
+        # records written before these settings existed were designed with their present defaults
+        if {**_OLD_DEFAULTS, **rec.get("settings", {})} != settings:
             return None
         state = torch.load(folder / "baseline_doe.pt", map_location="cpu", weights_only=True)
         trainer.hl.doe.load_state_dict(state)
