@@ -8,13 +8,12 @@
 
 The paraxial design minimises the pre-stage's PSF objective (:mod:`raywave.training.losses`): the mean RMS
 radius (measured about ``pre_stage.about``) of the PSFs of the stage-1 field grid at every depth plus
-``pre_stage.similarity_weight`` × the mean L1
-distance between the PSFs of different depths, with Adam (``pre_stage.lr_doe``) for ``baseline_steps`` steps,
-one wavelength per colour channel drawn per step from a generator seeded with ``seed`` (as the pre-stage), and
-with ``optics.field_jitter`` the grid's nodes shifted at random each step (as in the pre-stage). The
-paraxial model acts on the same :class:`~raywave.doe.PixelDOE` module as the hybrid lens, so the designed phase
-is the ray-wave lens's DOE as it stands. The DOE is then frozen and the baseline's network is trained exactly
-like the blank baseline's.
+``pre_stage.similarity_weight`` × the mean L1 distance between the PSFs of different depths, with Adam
+(``pre_stage.lr_doe``) for ``baseline_steps`` steps, one wavelength per colour channel drawn per step from a
+generator seeded with ``seed`` (as the pre-stage), and with ``optics.field_jitter`` the grid's nodes shifted at
+random each step (as in the pre-stage). The paraxial model acts on the same :class:`~raywave.doe.PixelDOE`
+module as the hybrid lens, so the designed phase is the ray-wave lens's DOE as it stands. The DOE is then frozen
+and the baseline's network is trained exactly like the blank baseline's.
 
 :func:`prepare_baseline` (called by the :class:`~raywave.training.trainer.Trainer` of a baseline run) writes
 ``baseline_design.json`` into the run folder: the objective before (blank DOE) and after the design, under the
@@ -127,10 +126,8 @@ def _settings(cfg) -> dict:
 
     d = {"seed": cfg.seed, "steps": cfg.baseline_steps, "lr_doe": cfg.pre_stage.lr_doe,
          "similarity_weight": cfg.pre_stage.similarity_weight, "about": cfg.pre_stage.about,
-         "lens": to_dict(cfg.lens),
-         "grid": cfg.optics.grid, "field_jitter": cfg.optics.field_jitter, "depths": cfg.optics.depths,
-         "ks": cfg.optics.ks,
-         "wavelengths": cfg.optics.wavelengths}
+         "lens": to_dict(cfg.lens), "grid": cfg.optics.grid, "field_jitter": cfg.optics.field_jitter,
+         "depths": cfg.optics.depths, "ks": cfg.optics.ks, "wavelengths": cfg.optics.wavelengths}
     return json.loads(json.dumps(d))
 
 
@@ -189,10 +186,9 @@ def prepare_baseline(trainer) -> dict | None:
     before = _objectives(trainer, models, wls)
     gen = torch.Generator().manual_seed(int(cfg.seed) * 31 + 7)
     t0 = time.perf_counter()
-    nodes = trainer.fields if cfg.optics.field_jitter <= 0 else (lambda g: trainer.step_nodes(g)[0])
-    history = design_paraxial_doe(hl, nodes, trainer.depths, trainer.color.sample, cfg.optics.ks,
-                                  cfg.baseline_steps, cfg.pre_stage.lr_doe, cfg.pre_stage.similarity_weight, gen,
-                                  about=cfg.pre_stage.about)
+    history = design_paraxial_doe(hl, lambda g: trainer.step_nodes(g)[0], trainer.depths, trainer.color.sample,
+                                  cfg.optics.ks, cfg.baseline_steps, cfg.pre_stage.lr_doe,
+                                  cfg.pre_stage.similarity_weight, gen, about=cfg.pre_stage.about)
     seconds = time.perf_counter() - t0
     after = _objectives(trainer, models, wls)
     rec = {"baseline": kind, "design_seconds": seconds, "objective_blank": before, "objective_designed": after,
