@@ -61,7 +61,10 @@ def test_all_stages_run_and_write_the_run_folder(tiny, tmp_path):
     assert set(m) == {"depth=inf/centre", "depth=inf/edge", "mean"}
     assert 0 < m["mean"]["ssim"] <= 1 and m["mean"]["psnr"] > 5
     final = tr.export()
-    assert {p.name for p in final.iterdir()} >= {"lens.json", "doe_phase.npy", "doe.pt", "doe_masks.npy"}
+    assert {p.name for p in final.iterdir()} >= {"lens.json", "doe_phase.npy", "doe.pt", "masks"}
+    assert (final / "masks" / "masks.gds").is_file()
+    report = json.loads((final / "masks" / "report.json").read_text())
+    assert report["levels"] == 16 and report["evaluated_as_fabricated"] is False  # a continuous design
     from raywave.hybrid.build import load_hybrid
 
     hl = load_hybrid(final / "lens.json")  # the exported lens file reads back with its DOE

@@ -138,60 +138,24 @@ def doe_levels(doe, levels: int, wavelength0: float):
 def export_masks(doe, levels: int = 16, material: str = "fused_silica", wavelength0: float = 0.55,
                  folder="masks", fmt: str = "gds", name: str = "DOE", min_feature: float | None = None,
                  png: bool = True, info: dict | None = None) -> dict:
-    """Quantise ``doe``, split it into masks, write ``folder/masks.<fmt>``, ``mask_<j>.png`` and ``report.json``;
-    returns the report (a dict)."""
-    import numpy as np
-
-    from raywave.doe import fabrication as fab
+    """:func:`raywave.doe.export.export_design` (``folder/masks.<fmt>``, ``report.json``) plus ``mask_<j>.png``
+    previews; returns the report (a dict)."""
+    from raywave.doe.export import export_design
+    from raywave.doe.fabrication import etch_depths
     from raywave.materials import get_material
 
-    k = fab.mask_bits(levels)          # L not a power of two: error before any work
-    mat = get_material(material)
-    depths = fab.etch_depths(levels, mat, wavelength0)
-    n0 = fab._index(mat, wavelength0)
-    t0 = time.perf_counter()
-    level_map = doe_levels(doe, levels, wavelength0)
-    masks = fab.masks_from_levels(level_map, levels)
-    features = [fab.min_features(masks[j]) for j in range(k)]
-    if min_feature is not None:
-        fab.check_min_feature(masks, doe.pitch, min_feature, features)
-    report = fab.mask_report(masks, doe.pitch, depths, features)
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    out = folder / f"masks.{fmt}"
-    label = (f"{levels} levels, {k} masks, lambda0 {wavelength0:g} um, {mat.name} (n {n0:.5f}), "
-             f"pitch {doe.pitch * 1e3:g} um\netch " + ", ".join(f"L{j + 1} {d * 1e6:.1f}" for j, d in
-                                                               enumerate(depths)) + " nm; polygons = etched")
-    t1 = time.perf_counter()
-    written = fab.write_mask_file(out, masks, doe.pitch, name=name, label=label, fmt=fmt)
-    t_write = time.perf_counter() - t1
+    full = export_design(doe, levels, material, wavelength0, folder, fmt, name, min_feature, info)
     pngs = []
     if png:
+        from raywave.doe.fabrication import masks_from_levels
+        from raywave.doe.export import level_map
         from raywave.plotting.masks import plot_masks
 
-        pngs = [str(p) for p in plot_masks(masks, doe.pitch, folder, depths_nm=[d * 1e6 for d in depths])]
-    for j, c in enumerate(written["rectangles"]):
-        report["per_mask"][j]["rectangles"] = c
-    hist = [int(c) for c in np.bincount(level_map.reshape(-1), minlength=levels)]
-    full = {
-        "name": name,
-        **(info or {}),
-        "material": mat.name,
-        "wavelength_um": float(wavelength0),
-        "n_at_wavelength": n0,
-        "h_2pi_nm": fab.height_2pi(mat, wavelength0) * 1e6,
-        **report,
-        "level_histogram": hist,
-        "min_feature_limit_um": min_feature,
-        "file": str(out),
-        "format": written["format"],
-        "file_bytes": written["bytes"],
-        "rectangles": sum(written["rectangles"]),
-        "write_seconds": t_write,
-        "export_seconds": time.perf_counter() - t0,
-        "previews": pngs,
-    }
-    rp = folder / "report.json"
+        masks = masks_from_levels(level_map(doe, levels, wavelength0), levels)
+        depths = etch_depths(levels, get_material(material), wavelength0)
+        pngs = [str(p) for p in plot_masks(masks, doe.pitch, Path(folder), depths_nm=[d * 1e6 for d in depths])]
+    full["previews"] = pngs
+    rp = Path(full.pop("report"))
     rp.write_text(json.dumps(full, indent=2) + "\n", encoding="utf-8")
     full["report"] = str(rp)
     return full

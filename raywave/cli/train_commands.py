@@ -84,6 +84,9 @@ def _train(args) -> int:
         base = Trainer(cfg, run_dir / "baseline", baseline=True, progress=not args.quiet)
         base.run(resume=not args.restart)
         trainers["baseline"] = base
+    if cfg.network.ablation:
+        for t in trainers.values():
+            t.train_plain_network()
     designed.export()
     _report(run_dir, trainers, noise=True)
     return 0
@@ -115,6 +118,8 @@ def _train_parallel(args, cfg, run_dir: Path, nproc: int) -> int:
         trainers["baseline"] = Trainer(cfg, run_dir / "baseline", baseline=True, progress=not args.quiet)
     for t in trainers.values():
         t.restore()
+        if cfg.network.ablation:
+            t.train_plain_network()
     trainers["designed"].export()
     _report(run_dir, trainers, noise=True)
     return 0
@@ -136,9 +141,50 @@ def _eval(args) -> int:
             continue
         t = Trainer(cfg, folder, baseline=baseline, progress=not args.quiet)
         t.restore()
+        if cfg.network.ablation and latest_checkpoint(folder / "plain_network") is not None:
+            t.train_plain_network()  # finished: restores the plain network (nothing left to train)
         trainers[name] = t
     _report(run_dir, trainers, noise=not args.no_noise)
     return 0
+
+
+#: the ablation table's reconstructions: metrics.json suffix → row label
+ABLATION_ROWS = {"_input": "sensor image", "_network_only": "network only", "_deconv": "deconvolution only",
+                 "": "reconstruction"}
+
+
+def ablation_table(metrics: dict) -> dict:
+    """``{doe: {reconstruction: {zone key: {"psnr", "ssim"}}}}`` from the metrics of each trainer (the rows
+    present: sensor image, network only, deconvolution only, the trained reconstruction)."""
+    table = {}
+    for name in ("baseline", "designed"):
+        if name not in metrics:
+            continue
+        m = metrics[name]
+        rows = {}
+        for suffix, label in ABLATION_ROWS.items():
+            if f"psnr{suffix}" not in m["mean"]:
+                continue
+            rows[label] = {k: {"psnr": v[f"psnr{suffix}"], "ssim": v[f"ssim{suffix}"]} for k, v in m.items()}
+        table[name] = rows
+    return table
+
+
+def format_ablation(table: dict, deconv: str) -> str:
+    """The ablation table as Markdown: rows = DOE × reconstruction, columns = zones (PSNR dB / SSIM)."""
+    zones = None
+    lines = []
+    for doe, rows in table.items():
+        for label, cols in rows.items():
+            if zones is None:
+                zones = list(cols)
+                lines.append("| DOE | reconstruction | " + " | ".join(zones) + " |")
+                lines.append("|---|---|" + "---|" * len(zones))
+            name = "deconvolution + network" if (label == "reconstruction" and deconv == "wiener") else \
+                ("network" if label == "reconstruction" else label)
+            lines.append(f"| {doe} | {name} | " + " | ".join(f"{cols[z]['psnr']:.2f} / {cols[z]['ssim']:.3f}"
+                                                              for z in zones) + " |")
+    return "\n".join(lines)
 
 
 def _report(run_dir: Path, trainers: dict, noise: bool) -> None:
@@ -146,14 +192,19 @@ def _report(run_dir: Path, trainers: dict, noise: bool) -> None:
     if "baseline" in metrics:
         metrics["gain_db"] = {k: metrics["designed"][k]["psnr"] - metrics["baseline"][k]["psnr"]
                               for k in metrics["designed"]}
+    deconv = next(iter(trainers.values())).cfg.network.deconv
+    metrics["ablation"] = ablation_table(metrics)
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    (run_dir / "ablation.md").write_text("PSNR (dB) / SSIM on the held-out images\n\n"
+                                         + format_ablation(metrics["ablation"], deconv) + "\n")
     _figures(run_dir, trainers)
     m = metrics["designed"]["mean"]
-    line = f"designed: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}"
+    line = f"designed: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} (sensor image {m['psnr_input']:.2f} dB)"
     if "baseline" in metrics:
         b = metrics["baseline"]["mean"]
-        line += f"; baseline: PSNR {b['psnr']:.2f} dB, SSIM {b['ssim']:.4f}"
+        line += f"; baseline: PSNR {b['psnr']:.2f} dB, SSIM {b['ssim']:.4f} (sensor image {b['psnr_input']:.2f} dB)"
     print(line)
+    print(format_ablation(metrics["ablation"], deconv))
     print(f"run folder: {run_dir}")
 
 
@@ -170,7 +221,7 @@ def _figures(run_dir: Path, trainers: dict) -> None:
             continue
         recs = [json.loads(line) for line in t.log_path.read_text().splitlines() if line.strip()]
         for stage in ("pre", "stage1", "stage2"):
-            ys = [r["loss"] for r in recs if r["stage"] == stage]
+            ys = [r["loss"] for r in recs if r.get("stage") == stage and "loss" in r]
             if ys:
                 ax.plot(range(1, len(ys) + 1), ys, label=f"{name} {stage}")
     ax.set_xlabel("step"), ax.set_ylabel("loss"), ax.set_yscale("log"), ax.legend(fontsize=7)
@@ -188,22 +239,34 @@ def _figures(run_dir: Path, trainers: dict) -> None:
             ax.set_title(f"{name}: PSF map at {depth:g} mm (√, per-channel max)")
             ax.set_xticks([]), ax.set_yticks([])
         save(fig, fig_dir / f"psf_map_depth{d}.png")
-    # sample reconstructions (centre of the sensor, first depth, first held-out image)
+    # sample reconstructions: per zone (centre, edge) and depth, the first held-out image as evaluated (noise)
     from raywave.imaging.data import linear_to_srgb
     from raywave.imaging.render import render
+    from raywave.training.metrics import psnr
 
-    cols = []
-    for name, t in trainers.items():
-        img = t.eval_images_tensor()[:1]
-        pm = t.stage2_map
-        with torch.no_grad():
-            sim = render(img, pm.psf[0], positions=pm.positions, centers=pm.centers[0], sensor_size=pm.sensor_size,
-                         pitch=pm.pitch, extent=t._extent(img.shape[-2:], (0.8, 0.8)))
-            rec = t.net(sim).clamp(0, 1)
-        cols.append((f"{name}: simulated", sim[0])), cols.append((f"{name}: reconstructed", rec[0]))
-    cols.insert(0, ("ground truth", img[0]))
-    fig, axes = plt.subplots(1, len(cols), figsize=(3.2 * len(cols), 3.4), constrained_layout=True)
-    for ax, (title, im) in zip(axes, cols):
-        ax.imshow(linear_to_srgb(im.double().clamp(0, 1)).permute(1, 2, 0).numpy())
-        ax.set_title(title, fontsize=8), ax.set_xticks([]), ax.set_yticks([])
-    save(fig, fig_dir / "reconstructions_edge.png")
+    first = next(iter(trainers.values()))
+    zones = {"centre": (0.0, 0.0), "edge": (0.8, 0.8)}
+    for d, depth in enumerate(first.depths):
+        for zone, uv in zones.items():
+            rows = []
+            for name, t in trainers.items():
+                img = t.eval_images_tensor()[:1]
+                pm = t.stage2_map
+                ext = t._extent(img.shape[-2:], uv)
+                with torch.no_grad():
+                    sim = render(img, pm.psf[d], positions=pm.positions, centers=pm.centers[d],
+                                 sensor_size=pm.sensor_size, pitch=pm.pitch, extent=ext)
+                    sim = t._sensor()(sim, generator=torch.Generator().manual_seed(12345)).clamp(0, 1)
+                    rec = t.reconstruct(sim, pm.psf, pm.centers, [ext], pm.positions).clamp(0, 1)
+                rows.append([("ground truth", img[0]),
+                             (f"{name}: sensor image {float(psnr(sim.double(), img.double())):.2f} dB", sim[0]),
+                             (f"{name}: restored {float(psnr(rec.double(), img.double())):.2f} dB", rec[0])])
+            fig, axes = plt.subplots(len(rows), 3, figsize=(9.6, 3.4 * len(rows)), constrained_layout=True,
+                                     squeeze=False)
+            for r, row in enumerate(rows):
+                for ax, (title, im) in zip(axes[r], row):
+                    ax.imshow(linear_to_srgb(im.double().clamp(0, 1)).permute(1, 2, 0).numpy())
+                    ax.set_title(title, fontsize=8), ax.set_xticks([]), ax.set_yticks([])
+            fig.suptitle(f"{zone} of the sensor, object at {depth:g} mm", fontsize=9)
+            suffix = f"_depth{d}" if len(first.depths) > 1 else ""
+            save(fig, fig_dir / f"reconstructions_{zone}{suffix}.png")

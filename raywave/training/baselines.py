@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import time
-import warnings
 
 import torch
 
@@ -50,9 +49,8 @@ def model_objective(model, fields, depths, wavelengths, ks: int, similarity_weig
     """:func:`psf_objective` of ``model``'s PSFs (``psf_result``) at ``fields`` ``(F, 2)`` (deg), each of
     ``depths`` (mm) and ``wavelengths`` (µm); differentiable w.r.t. the model's DOE. Scalar."""
     wls = [float(w) for w in wavelengths]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # sampling / crop warnings: the caller's business, not per step
-        psf = torch.stack([model.psf_result(fields, wls, ks=ks, depth=d, **psf_kw).psf for d in depths])
+    # sampling / crop warnings propagate: the Trainer surfaces them once per run (Trainer.surface_warnings)
+    psf = torch.stack([model.psf_result(fields, wls, ks=ks, depth=d, **psf_kw).psf for d in depths])
     return psf_objective(psf, similarity_weight, about=about)
 
 
@@ -128,6 +126,9 @@ def _settings(cfg) -> dict:
          "similarity_weight": cfg.pre_stage.similarity_weight, "about": cfg.pre_stage.about,
          "lens": to_dict(cfg.lens), "grid": cfg.optics.grid, "field_jitter": cfg.optics.field_jitter,
          "depths": cfg.optics.depths, "ks": cfg.optics.ks, "wavelengths": cfg.optics.wavelengths}
+    for key in ("doe_wavelength", "doe_material", "doe_levels"):  # the continuous design's dispersion (only when
+        if getattr(cfg.optics, key) is not None:                  # set: older stored designs stay reusable)
+            d[key] = getattr(cfg.optics, key)
     return json.loads(json.dumps(d))
 
 
@@ -183,14 +184,15 @@ def prepare_baseline(trainer) -> dict | None:
     models = {"paraxial": (make_model("paraxial", hl), {}),
               "ray_wave": (make_model("raywave", hl, rays=cfg.optics.rays), {})}
     wls = trainer.color.all_wavelengths().tolist()
-    before = _objectives(trainer, models, wls)
-    gen = torch.Generator().manual_seed(int(cfg.seed) * 31 + 7)
-    t0 = time.perf_counter()
-    history = design_paraxial_doe(hl, lambda g: trainer.step_nodes(g)[0], trainer.depths, trainer.color.sample,
-                                  cfg.optics.ks, cfg.baseline_steps, cfg.pre_stage.lr_doe,
-                                  cfg.pre_stage.similarity_weight, gen, about=cfg.pre_stage.about)
-    seconds = time.perf_counter() - t0
-    after = _objectives(trainer, models, wls)
+    with trainer.surface_warnings():
+        before = _objectives(trainer, models, wls)
+        gen = torch.Generator().manual_seed(int(cfg.seed) * 31 + 7)
+        t0 = time.perf_counter()
+        history = design_paraxial_doe(hl, lambda g: trainer.step_nodes(g)[0], trainer.depths, trainer.color.sample,
+                                      cfg.optics.ks, cfg.baseline_steps, cfg.pre_stage.lr_doe,
+                                      cfg.pre_stage.similarity_weight, gen, about=cfg.pre_stage.about)
+        seconds = time.perf_counter() - t0
+        after = _objectives(trainer, models, wls)
     rec = {"baseline": kind, "design_seconds": seconds, "objective_blank": before, "objective_designed": after,
            "history_paraxial": history, "settings": settings,
            "note": "objective = mean RMS PSF radius (pixels) + similarity_weight × mean L1 PSF distance across "

@@ -75,6 +75,17 @@ class OpticsConfig:
             sensor, so a pixel DOE cannot fit the PSFs at a few field points at the expense of the points
             between them (a coarse grid such as 3×3 otherwise invites that). The DOE-field cache then holds one
             step's fields only (the frozen lens is traced again each step: slower steps).
+        eval_ks: PSF size (sensor pixels) of the stage-2 / evaluation map (None: ``ks``); large enough for the
+            widest PSF of the map: the evaluation reports the energy outside the crop and warns above 1 %.
+        doe_levels: train the DOE as the fabricated element (the path of ``raywave psf --doe-levels``): its
+            phase wrapped at ``doe_wavelength`` and quantised to ``doe_levels`` levels (straight-through
+            gradient), a dispersive height map in ``doe_material``; from stage-1 step ``fabricate_from`` on
+            (before it, and in the pre-stage, the continuous height map). Stage 2, the evaluation and the
+            export use the quantised element. None: a continuous phase throughout.
+        doe_wavelength: design wavelength λ0 (µm) of the fabricated DOE (None: 0.55 µm).
+        doe_material: the DOE's material (a glass name; None: FUSED_SILICA when the DOE is fabricated). Setting
+            it (or ``doe_wavelength``) without ``doe_levels`` makes the continuous DOE dispersive.
+        fabricate_from: stage-1 step from which the DOE is quantised (0: all of stage 1).
     """
 
     grid: list = field(default_factory=lambda: [10, 10])
@@ -87,6 +98,11 @@ class OpticsConfig:
     chunk: int = 1
     replay: bool = True
     field_jitter: float = 0.0
+    eval_ks: Optional[int] = None
+    doe_levels: Optional[int] = None
+    doe_wavelength: Optional[float] = None
+    doe_material: Optional[str] = None
+    fabricate_from: int = 0
 
 
 @dataclass
@@ -116,13 +132,25 @@ class DataConfig:
 @dataclass
 class NetworkConfig:
     """Reconstruction network: ``kind`` ``"unet"`` or ``"nafnet"``; ``width``; ``depth`` (UNet levels) or
-    ``enc_blocks``/``middle_blocks`` (NAFNet)."""
+    ``enc_blocks``/``middle_blocks`` (NAFNet).
+
+    ``deconv``: ``"wiener"``: the PSF-aware reconstruction: a multi-Wiener deconvolution with the current PSF
+    map (:mod:`raywave.imaging.deconv`; learned regularisation per channel, initial ``wiener_lambda`` and
+    ``wiener_mu``), refined by the network, differentiable w.r.t. the PSFs (so the optics learn to be
+    restorable); ``"none"``: the paper's plain network on the sensor image.
+    ``ablation``: after training, also train a plain network (``deconv: none``, stage 2's settings) on the final
+    optics, for the ablation table of the evaluation (sensor image / network only / deconvolution + network).
+    """
 
     kind: str = "nafnet"
     width: int = 16
     depth: int = 3
     enc_blocks: list = field(default_factory=lambda: [1, 1, 1])
     middle_blocks: int = 1
+    deconv: str = "none"
+    wiener_lambda: float = 1e-3
+    wiener_mu: float = 1e-2
+    ablation: bool = False
 
 
 @dataclass

@@ -14,7 +14,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["UNet", "NAFNet", "LayerNorm2d", "SimpleGate", "NAFBlock", "build_network", "count_parameters"]
+__all__ = ["UNet", "NAFNet", "LayerNorm2d", "SimpleGate", "NAFBlock", "PSFAwareNet", "build_network",
+           "count_parameters"]
 
 
 def count_parameters(module: nn.Module, trainable_only: bool = True) -> int:
@@ -189,3 +190,36 @@ def build_network(kind: str, **kw) -> nn.Module:
     if kind not in kinds:
         raise ValueError(f"unknown network {kind!r}; known: {', '.join(kinds)}")
     return kinds[kind](**kw)
+
+
+class PSFAwareNet(nn.Module):
+    """PSF-aware reconstruction: ``net(deconv(image, psf map))``, a multi-Wiener deconvolution with the current
+    PSF map (:class:`~raywave.imaging.deconv.WienerDeconv`, learned regularisation) refined by a network.
+
+    The deconvolution is differentiable w.r.t. the PSFs: in end-to-end training ∂loss/∂PSF flows through it
+    as well as through the rendering (so the optics learn to be restorable, not only small).
+
+    Args:
+        net: the refinement network (``(B, C, H, W) → (B, C, H, W)``, residual).
+        deconv: the deconvolution module.
+    """
+
+    def __init__(self, net: nn.Module, deconv: nn.Module):
+        super().__init__()
+        self.net, self.deconv = net, deconv
+
+    def forward(self, image: torch.Tensor, psf: torch.Tensor | None = None, extents=None, **kw) -> torch.Tensor:
+        """``image (B, C, H, W)`` blurred; ``psf (C, N, M, ks, ks)`` the map it was blurred with; ``extents``:
+        one normalised sensor extent per image (or one for all); ``kw``: positions, centers, sensor_size, pitch
+        (:func:`~raywave.imaging.deconv.wiener_deconvolve`)."""
+        if psf is None:
+            raise ValueError("PSFAwareNet needs the PSF map the image was blurred with (psf=...)")
+        return self.net(self.deconvolve(image, psf, extents, **kw))
+
+    def deconvolve(self, image, psf, extents=None, **kw) -> torch.Tensor:
+        """The deconvolution stage alone (the network's input)."""
+        if extents is None or (len(extents) == 4 and not hasattr(extents[0], "__len__")):
+            return self.deconv(image, psf, **({"extent": tuple(extents)} if extents is not None else {}), **kw)
+        if len(extents) != image.shape[0]:
+            raise ValueError(f"extents: one per image ({image.shape[0]}), got {len(extents)}")
+        return torch.cat([self.deconv(image[i:i + 1], psf, extent=tuple(e), **kw) for i, e in enumerate(extents)])

@@ -178,7 +178,8 @@ class DistributedTrainer(Trainer):
                 sims = self._gather_batch(own, B)
                 if sensor is not None:  # the whole batch's noise from the shared generator (ranks stay in step)
                     sims = sensor(sims, generator=self.gen)
-            recon.append(self.net(sims[share]))
+            recon.append(self.reconstruct(sims[share], pm.psf, pm.centers,
+                                          [extents[i] for i in range(share.start, share.stop)], pm.positions))
         target = img[share]
         if len(mine) == 0:
             return sum(r.sum() for r in recon) * 0.0  # nothing here: a zero that still reaches the network

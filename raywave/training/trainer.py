@@ -25,25 +25,33 @@ The figures are written by the CLI (``raywave train``), which may import matplot
 
 from __future__ import annotations
 
+import contextlib
+import copy
 import json
 import math
+import re
 import time
 import warnings
 from pathlib import Path
 
 import torch
 
+from raywave.doe.base import check_levels
 from raywave.training.checkpoint import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
 from raywave.training.config import TrainConfig, dump_config
 from raywave.training.baselines import psf_objective
 from raywave.training.losses import edof_loss, image_loss, psf_size
-from raywave.training.networks import build_network
+from raywave.training.networks import PSFAwareNet, build_network
 from raywave.training.replay import OpticsStep, chunk_ranges
 from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
 
-__all__ = ["Trainer", "build_hybrid", "STAGES"]
+__all__ = ["Trainer", "build_hybrid", "STAGES", "CropWarning"]
 
 STAGES = ("pre", "stage1", "stage2", "done")
+
+
+class CropWarning(UserWarning):
+    """A PSF window (``optics.ks`` / ``optics.eval_ks``) misses a noticeable part of a PSF's energy."""
 
 
 def build_hybrid(lc):
@@ -124,7 +132,7 @@ class Trainer:
         self.pitch = self.hl.sensor_pitch
         with torch.random.fork_rng(devices=[]):  # the initial weights depend on the seed only (global RNG untouched)
             torch.manual_seed(int(cfg.seed))
-            self.net = build_network(cfg.network.kind, **self._net_kwargs()).to(self.device, self.dtype)
+            self.net = self._build_net(cfg.network.deconv).to(self.device, self.dtype)
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
         self.train_data = train_data if train_data is not None else self._dataset("train")
         self.eval_images = eval_images
@@ -135,7 +143,11 @@ class Trainer:
         if cfg.pre_stage.about not in ("centroid", "center"):
             raise ValueError(f"pre_stage.about must be 'centroid' or 'center', got {cfg.pre_stage.about!r}")
         self.log_path = self.run_dir / "log.jsonl"
+        self._seen_warnings: set = set()
+        self.eval_ks = int(cfg.optics.eval_ks) if cfg.optics.eval_ks is not None else int(cfg.optics.ks)
+        self._init_fabrication()
         self.stage2_map = None
+        self.plain_net = None  # network.ablation: the plain network trained on the final optics
         self._frozen_maps: dict = {}
         dump_config(cfg, self.run_dir / "config.yaml")
         self.baseline_design = None
@@ -144,7 +156,81 @@ class Trainer:
 
             self.baseline_design = prepare_baseline(self)
 
+    # ------------------------------------------------------------------ fabrication-aware DOE
+    def _init_fabrication(self) -> None:
+        """``optics.doe_levels / doe_wavelength / doe_material``: make the DOE the continuous (unwrapped) height
+        map in its material now; :meth:`_fabrication` quantises it from ``optics.fabricate_from`` on."""
+        oc = self.cfg.optics
+        self.fab_levels = None if oc.doe_levels is None else check_levels(oc.doe_levels, "optics.doe_levels")
+        if self.fab_levels is not None:
+            from raywave.doe.fabrication import mask_bits
+
+            try:
+                mask_bits(self.fab_levels)
+            except ValueError as e:
+                raise ValueError(f"optics.doe_levels: {e}") from None
+        if int(oc.fabricate_from) < 0:
+            raise ValueError(f"optics.fabricate_from must be >= 0 (a stage-1 step), got {oc.fabricate_from}")
+        self.fab_on = oc.doe_levels is not None or oc.doe_wavelength is not None or oc.doe_material is not None
+        if not self.fab_on:
+            return
+        from raywave.doe import DEFAULT_DESIGN_WAVELENGTH, DEFAULT_MATERIAL
+
+        self.fab_wavelength = float(DEFAULT_DESIGN_WAVELENGTH if oc.doe_wavelength is None else oc.doe_wavelength)
+        self.fab_material = DEFAULT_MATERIAL if oc.doe_material is None else oc.doe_material
+        doe = self.hl.doe
+        if self.fab_levels is not None and doe.quant_levels == self.fab_levels and doe.material_name is not None:
+            self._fabricated = True  # a hybrid handed over already fabricated (train_plain_network)
+            return
+        doe.fabricate(levels=None, wavelength=self.fab_wavelength, material=self.fab_material, wrap=False)
+        self._fabricated = False
+
+    def fabricated_at(self, stage: str, step: int) -> bool:
+        """Whether the DOE is the quantised element at ``stage``'s ``step``: from stage-1 step
+        ``optics.fabricate_from`` on (and in stage 2, the evaluation and the export)."""
+        if self.fab_levels is None:
+            return False
+        if stage in ("stage2", "done"):
+            return True
+        return stage == "stage1" and step >= int(self.cfg.optics.fabricate_from)
+
+    def _fabrication(self, stage: str, step: int) -> None:
+        """Put the DOE in the state of ``stage``/``step`` (idempotent; a resumed run gets it back)."""
+        if not self.fab_on:
+            return
+        want = self.fabricated_at(stage, step)
+        if want != self._fabricated:
+            self.hl.doe.fabricate(levels=self.fab_levels if want else None, wavelength=self.fab_wavelength,
+                                  material=self.fab_material, wrap=want)
+            self._fabricated = want
+            self._frozen_maps.clear()
+            self.stage2_map = None
+
     # ------------------------------------------------------------------ set-up helpers
+    def _build_net(self, deconv: str):
+        """The reconstruction module: the network (``deconv: none``) or :class:`PSFAwareNet` (``wiener``)."""
+        net = build_network(self.cfg.network.kind, **self._net_kwargs())
+        if deconv == "none":
+            return net
+        if deconv == "wiener":
+            from raywave.imaging.deconv import WienerDeconv
+
+            n = self.cfg.network
+            return PSFAwareNet(net, WienerDeconv(3, init_lambda=n.wiener_lambda, init_mu=n.wiener_mu))
+        raise ValueError(f"network.deconv must be 'wiener' or 'none', got {deconv!r}")
+
+    def reconstruct(self, sims, psf, cen, extents, positions=None, net=None) -> torch.Tensor:
+        """The network's restoration of the simulated images ``sims (B, 3, h, w)`` at the normalised sensor
+        ``extents`` (one per image). With ``network.deconv: wiener`` the images are first deconvolved
+        (differentiably) with the PSF map ``psf (D, 3, N, M, ks, ks)`` (centres ``cen (D, 3, N, M, 2)``)
+        **averaged over the D depths**: the camera does not know the object's distance, so one deconvolution
+        serves every depth (with D = 1 it is the map the images were rendered with)."""
+        net = self.net if net is None else net
+        if not isinstance(net, PSFAwareNet):
+            return net(sims)
+        return net(sims, psf.mean(0), extents, positions=self.positions if positions is None else positions,
+                   centers=cen.mean(0), sensor_size=self.sensor_size, pitch=self.pitch)
+
     def _net_kwargs(self) -> dict:
         n = self.cfg.network
         if n.kind == "unet":
@@ -258,8 +344,7 @@ class Trainer:
 
         def compute(ctx):
             d, c = divmod(ctx.index, nf)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # sampling / vignetting warnings: once per run, not per step
+            with self.surface_warnings():  # sampling / vignetting warnings: once per run, not per step
                 res = psf_map_points(self.hl, fields[ranges[c].start:ranges[c].stop], ctx.draws, self.depths[d],
                                      oc.ks, self.cache, **({"rays": oc.rays} if oc.rays else {}))
             return res.psf, res.center
@@ -356,7 +441,7 @@ class Trainer:
                               for i in range(img.shape[0])])
             if noise is not None:
                 sims = noise(sims, generator=self.gen)
-            recon.append(self.net(sims))
+            recon.append(self.reconstruct(sims, p, c, extents, positions))
         if sc.loss == "edof":
             return edof_loss(recon, img, alpha=sc.edof_alpha)
         return sum(self.loss_fn(r, img) for r in recon) / len(recon)
@@ -383,7 +468,7 @@ class Trainer:
                               for i in range(img.shape[0])])
             if sensor is not None:
                 sims = sensor(sims, generator=self.gen)
-            recon.append(self.net(sims))
+            recon.append(self.reconstruct(sims, pm.psf, pm.centers, extents, pm.positions))
         if sc.loss == "edof":
             return edof_loss(recon, img, alpha=sc.edof_alpha)
         return sum(image_loss(sc.loss)(r, img) for r in recon) / len(recon)
@@ -399,11 +484,40 @@ class Trainer:
         from raywave.imaging.psfmap import psf_map
 
         oc = self.cfg.optics
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with self.surface_warnings():
             pm = psf_map(self.hl, grid=tuple(oc.eval_grid), depths=self.depths, wavelengths=self.color.all_wavelengths(),
-                         ks=oc.ks, cache=self.cache, progress=self.progress, **({"rays": oc.rays} if oc.rays else {}))
-        return pm.channel_average(self.color).detach()
+                         ks=self.eval_ks, cache=self.cache, progress=self.progress,
+                         **({"rays": oc.rays} if oc.rays else {}))
+        out = pm.channel_average(self.color).detach()
+        if pm.energy_outside is not None:
+            lost = float(pm.energy_outside.max())
+            out.info["energy_outside_max"] = lost
+            if lost > 0.01:
+                self._warn_once(f"the evaluation PSF window (optics.eval_ks = {self.eval_ks}) misses up to "
+                                f"{lost:.1%} of a PSF's energy: raise optics.eval_ks", CropWarning)
+        return out
+
+    # ------------------------------------------------------------------ warnings: surfaced once per run
+    @contextlib.contextmanager
+    def surface_warnings(self):
+        """Record the warnings raised inside (sampling, vignetting, crop, ...) and re-issue each kind once per
+        run (deduplicated by category and message with its numbers masked), also recording it in
+        ``warnings.jsonl`` of the run folder."""
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            yield
+        for w in caught:
+            self._warn_once(str(w.message), w.category)
+
+    def _warn_once(self, message: str, category=UserWarning) -> None:
+        key = (getattr(category, "__name__", str(category)), re.sub(r"[-+]?\d[\d.e+-]*", "#", message))
+        if key in self._seen_warnings:
+            return
+        self._seen_warnings.add(key)
+        path = self.run_dir / "warnings.jsonl"
+        with open(path, "a") as fh:
+            fh.write(json.dumps({"warning": key[0], "message": message}) + "\n")
+        warnings.warn_explicit(message, category, str(path), len(self._seen_warnings))
 
 
     # ------------------------------------------------------------------ the loop
@@ -446,6 +560,7 @@ class Trainer:
                     bar.close()
                     return {"stage": stage, "step": step}
                 t0 = time.perf_counter()
+                self._fabrication(stage, step)
                 if stage == "pre":
                     loss = self._pre_step(opt, sched)
                 elif stage == "stage1":
@@ -466,6 +581,7 @@ class Trainer:
             if stage != "done":
                 info = {}
         self.hl.requires_grad_(False)
+        self._fabrication("done", 0)
         return {"stage": "done", "step": 0}
 
     def _save(self, stage, step, opt, sched) -> None:
@@ -491,7 +607,10 @@ class Trainer:
         path = latest_checkpoint(self.run_dir) if path is None else Path(path)
         if path is None:
             raise FileNotFoundError(f"{self.run_dir}: no checkpoint")
-        return load_checkpoint(path, modules=self._modules(), restore_rng=False)
+        info = load_checkpoint(path, modules=self._modules(), restore_rng=False)
+        extra = torch.load(path, map_location="cpu", weights_only=True).get("extra", {})
+        self._fabrication(extra.get("stage", "done"), int(extra.get("stage_step", 0)))
+        return info
 
     # ------------------------------------------------------------------ evaluation and export
     def eval_images_tensor(self) -> torch.Tensor:
@@ -522,12 +641,23 @@ class Trainer:
 
     @torch.no_grad()
     def evaluate(self, noise: bool = True) -> dict:
-        """PSNR/SSIM of the reconstructions of the held-out images per depth and field zone (the image placed at
-        the sensor centre and at a corner), with the evaluation map and (``noise``) a fixed-seed noise draw.
-        Also the metrics of the simulated (unreconstructed) images (``psnr_input``, ``ssim_input``: the optics'
-        share, apart from the network's) and ``psf_rms_px``: the RMS radius (sensor pixels, about the centroid,
-        mean of the three channels) of the evaluation map's PSF nearest the zone's centre; ``mean`` also has
-        ``psf_rms_px_map``, the mean over the whole evaluation map."""
+        """PSNR/SSIM of the held-out images per depth and field zone (the image placed at the sensor centre and
+        at a corner), with the evaluation map and (``noise``) a fixed-seed noise draw, for each reconstruction:
+
+        * ``psnr`` / ``ssim``: the trained reconstruction (``network.deconv``: deconvolution + network, or the
+          network alone);
+        * ``psnr_input`` / ``ssim_input``: the simulated sensor image itself (the optics' share);
+        * ``psnr_deconv`` / ``ssim_deconv``: the multi-Wiener deconvolution alone (``deconv: wiener``);
+        * ``psnr_network_only`` / ``ssim_network_only``: a plain network trained on the same optics
+          (``network.ablation``, :meth:`train_plain_network`);
+
+        and ``psf_rms_px``: the RMS radius (sensor pixels, about the centroid, mean of the three channels) of the
+        evaluation map's PSF nearest the zone's centre; ``mean`` also has ``psf_rms_px_map`` (the whole map's
+        mean) and ``energy_outside_max`` (the largest fraction of a PSF's energy outside the evaluation crop)."""
+        with torch.no_grad():
+            return self._evaluate(noise)
+
+    def _evaluate(self, noise: bool) -> dict:
         from raywave.imaging.render import render
         from raywave.training.metrics import psnr, ssim
 
@@ -538,6 +668,11 @@ class Trainer:
         g = torch.Generator().manual_seed(12345)
         zones = {"centre": (0.0, 0.0), "edge": (0.8, 0.8)}
         out = {}
+
+        def scores(x, name):
+            x = x.clamp(0, 1).double()
+            return {f"psnr{name}": float(psnr(x, img.double()).mean()), f"ssim{name}": float(ssim(x, img.double()).mean())}
+
         for d, depth in enumerate(self.depths):
             for zone, uv in zones.items():
                 ext = self._extent(img.shape[-2:], uv)
@@ -545,41 +680,97 @@ class Trainer:
                              sensor_size=pm.sensor_size, pitch=pm.pitch, extent=ext)
                 if sensor is not None:
                     sim = sensor(sim, generator=g)
-                rec = self.net(sim).clamp(0, 1)
-                key = f"depth={depth:g}/{zone}"
-                out[key] = {"psnr": float(psnr(rec.double(), img.double()).mean()),
-                            "ssim": float(ssim(rec.double(), img.double()).mean()),
-                            "psnr_input": float(psnr(sim.clamp(0, 1).double(), img.double()).mean()),
-                            "ssim_input": float(ssim(sim.clamp(0, 1).double(), img.double()).mean()),
-                            "psf_rms_px": _nearest_psf_size(pm.psf[d], pm.positions, uv)}
-        out["mean"] = {k: sum(v[k] for v in out.values()) / len(out) for k in ("psnr", "ssim", "psnr_input",
-                                                                              "ssim_input", "psf_rms_px")}
+                exts = [ext] * img.shape[0]
+                rec = self.reconstruct(sim, pm.psf, pm.centers, exts, pm.positions)
+                row = {**scores(rec, ""), **scores(sim, "_input")}
+                if isinstance(self.net, PSFAwareNet):
+                    row.update(scores(self.net.deconvolve(sim, pm.psf.mean(0), exts, positions=pm.positions,
+                                                          centers=pm.centers.mean(0), sensor_size=self.sensor_size,
+                                                          pitch=self.pitch), "_deconv"))
+                if self.plain_net is not None:
+                    row.update(scores(self.plain_net(sim), "_network_only"))
+                row["psf_rms_px"] = _nearest_psf_size(pm.psf[d], pm.positions, uv)
+                out[f"depth={depth:g}/{zone}"] = row
+        keys = list(next(iter(out.values())))
+        out["mean"] = {k: sum(v[k] for v in out.values()) / len(out) for k in keys}
         out["mean"]["psf_rms_px_map"] = float(psf_size(pm.psf.double()).mean())
+        if "energy_outside_max" in pm.info:
+            out["mean"]["energy_outside_max"] = pm.info["energy_outside_max"]
         return out
 
+    # ------------------------------------------------------------------ ablation: a plain network, same optics
+    def train_plain_network(self, progress: bool | None = None) -> "Trainer":
+        """Train a plain network (``network.deconv: none``, stage 2's settings and steps, the same seed) on this
+        run's final optics, in ``run_dir/plain_network`` (resumable); it becomes :attr:`plain_net`, evaluated
+        as ``psnr_network_only``. Returns its Trainer."""
+        cfg = copy.deepcopy(self.cfg)
+        cfg.network.deconv, cfg.network.ablation = "none", False
+        cfg.pre_stage.steps, cfg.stage1.max_steps = 0, 0
+        self.hl.requires_grad_(False)
+        plain = Trainer(cfg, self.run_dir / "plain_network", hybrid=self.hl, baseline=False,
+                        progress=self.progress if progress is None else progress, train_data=self.train_data,
+                        eval_images=self.eval_images)
+        plain.stage2_map = self.stage2_map if self.stage2_map is not None else self.evaluation_map()
+        self.stage2_map = plain.stage2_map
+        plain.run()
+        self.plain_net = plain.net
+        return plain
+
     def export(self, folder=None) -> Path:
-        """Write the final lens JSON (with its DOE phase map), the DOE (``doe.pt``), the phase (``.npy``) and
-        4-level fabrication masks into ``run_dir/final``."""
+        """Write the element that was evaluated into ``run_dir/final`` (one fabrication code path,
+        :mod:`raywave.doe.export`):
+
+        * ``lens.json`` + ``doe_phase.npy``: the lens with its DOE: the phase at the design wavelength (the
+          fabricated profile: wrapped and quantised when ``optics.doe_levels`` is set) with its ``levels``,
+          ``material`` and ``design_wavelength``, so that loading the file gives the evaluated DOE;
+        * ``doe.pt``: the DOE module's state;
+        * ``masks/masks.gds`` + ``masks/report.json``: the L-level map (L = ``optics.doe_levels``, default 16
+          for a continuous design, which is then quantised for the masks only; the report says which) split
+          into log2(L) binary masks.
+        """
         import numpy as np
 
         from raywave.doe import save_doe
-        from raywave.doe.fabrication import masks_from_levels, quantise_phase
+        from raywave.doe.export import export_design
         from raywave.io import write_lens_spec
         from raywave.lens.build import lens_to_spec
 
         folder = Path(folder) if folder is not None else self.run_dir / "final"
         folder.mkdir(parents=True, exist_ok=True)
         doe = self.hl.doe
-        phase = _phase_map(doe)
+        if getattr(doe, "phase_map", None) is None:
+            raise ValueError(f"export: {type(doe).__name__} has no pixel phase map")
+        with torch.no_grad():
+            phase = doe.profile_pixels().detach().cpu().double().numpy()  # at λ0, as simulated
         np.save(folder / "doe_phase.npy", phase)
         save_doe(doe, folder / "doe.pt")
         spec = lens_to_spec(self.hl.lens)
-        spec["doe"] = {"distance": self.hl.doe_distance, "pitch": doe.pitch, "shape": list(doe.shape),
-                       "aperture": doe.aperture, "phase": "doe_phase.npy"}
+        section = {"distance": self.hl.doe_distance, "pitch": doe.pitch, "shape": list(doe.shape),
+                   "aperture": doe.aperture, "phase": "doe_phase.npy", "design_wavelength": doe.design_wavelength}
+        if self.hl.oversample != 1:
+            section["oversample"] = int(self.hl.oversample)
+        if doe.material_name is not None:
+            section["material"] = doe.material_name
+        if doe.quant_levels is not None:
+            section["levels"] = int(doe.quant_levels)
+        elif doe.wrap:
+            section["wrap"] = True
+        spec["doe"] = section
         write_lens_spec(spec, folder / "lens.json")
-        levels = 4
-        np.save(folder / "doe_masks.npy", masks_from_levels(quantise_phase(phase, levels), levels))
+        levels = doe.quant_levels if doe.quant_levels is not None else 16
+        export_design(doe, levels, doe.material_name or self._default_material(), doe.design_wavelength,
+                      folder / "masks", name=self.cfg.name,
+                      info={"evaluated_as_fabricated": doe.quant_levels is not None,
+                            "note": "the masks are the DOE that was evaluated" if doe.quant_levels is not None
+                            else "the design was trained and evaluated as a continuous phase (optics.doe_levels "
+                                 "unset); these masks quantise it for fabrication only"})
         return folder
+
+    @staticmethod
+    def _default_material() -> str:
+        from raywave.doe import DEFAULT_MATERIAL
+
+        return DEFAULT_MATERIAL
 
 
 def _nearest_psf_size(psf_d, positions, uv) -> float:
@@ -588,11 +779,3 @@ def _nearest_psf_size(psf_d, positions, uv) -> float:
     d2 = (positions - torch.tensor(uv, dtype=positions.dtype, device=positions.device)).square().sum(-1)
     i, j = divmod(int(torch.argmin(d2)), d2.shape[1])
     return float(psf_size(psf_d[:, i, j].double()).mean())
-
-
-def _phase_map(doe):
-    """The DOE's phase map (rad) on its pixel grid as float64 numpy (pixel DOEs: the parameter itself)."""
-    pm = getattr(doe, "phase_map", None)
-    if pm is None:
-        raise ValueError(f"export: {type(doe).__name__} has no pixel phase map")
-    return pm.detach().cpu().double().numpy()
