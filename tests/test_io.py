@@ -269,7 +269,8 @@ def test_zmx_unsupported_surface_type_names_surface(tmp_path):
 
 @pytest.mark.parametrize("edit, expected", [
     (("GLAS F2 0 0", "GLAS MIRROR 0 0"), "surface 3: mirrors (GLAS MIRROR) are not supported"),
-    (("ENPD 1.0E+1", "FNUM 4 0"), "FNUM: system aperture type image-space F/#"),
+    (("ENPD 1.0E+1", "OBNA 0.1 0"), "OBNA: an object-space NA needs an object at a finite distance"),
+    (("ENPD 1.0E+1", "FNUM 4 2"), "FNUM 4 2: unknown system aperture flag 2"),
     (("MODE SEQ", "MODE NSC"), "only sequential"),
     (("FTYP 0 0 3 3", "FTYP 3 0 3 3"), "real image height is not supported"),
     (("UNIT MM", "UNIT FURLONG"), "UNIT FURLONG: unknown lens unit"),

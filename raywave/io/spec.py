@@ -56,6 +56,14 @@ def aspheric_canonical(asph: dict | None) -> dict:
     return {f"a{2 * (i + 1)}": v for i, v in enumerate(vals)}
 
 
+def system_aperture_canonical(ap):
+    """``{kind: float}``, or None for no system aperture / float by stop size (the two are the same lens)."""
+    if not ap or ap.get("float_by_stop_size"):
+        return None
+    (kind, value), = ap.items()
+    return {kind: float(value)}
+
+
 def material_canonical(m):
     if m is None:
         return "air"
@@ -112,8 +120,9 @@ def canonical_spec(spec: dict) -> dict:
         out["catalogs"] = list(spec["catalogs"])
     d = (spec.get("object") or {}).get("distance", "inf")
     out["object"] = {"distance": "inf" if d == "inf" else float(d)}
-    if spec.get("system_aperture"):
-        out["system_aperture"] = {"epd": float(spec["system_aperture"]["epd"])}
+    ap = system_aperture_canonical(spec.get("system_aperture"))
+    if ap is not None:
+        out["system_aperture"] = ap
     f = spec.get("fields") or {"type": "angle", "values": [0.0]}
     out["fields"] = {"type": f.get("type", "angle"), "values": [float(v) for v in f["values"]]}
     w = spec.get("wavelengths") or DEFAULT_WAVELENGTHS

@@ -89,10 +89,12 @@ IGNORED_SYSTEM_KEYS = {
     "OPDX", "EFFL", "PUPD", "TCED", "FWGN", "FWGT", "VDXN", "VDYN", "VCXN", "VCYN", "VANN", "WWGN", "WWGT",
     "WAVN", "MNUM", "NOTE", "FIMP", "SCOL", "SCTH",
 }
-#: System aperture types other than an entrance pupil diameter or a floating stop.
-UNSUPPORTED_SYSTEM_APERTURES = {
-    "FNUM": "image-space F/# (or paraxial working F/#)",
-    "OBNA": "object-space NA (or object cone angle)",
+#: System aperture keys -> spec "system_aperture" key, by the flag after the value (FNUM v 0 = image-space F/#,
+#: FNUM v 1 = paraxial working F/#; OBNA v 0 = object-space NA, OBNA v 1 = object cone angle in degrees).
+SYSTEM_APERTURE_KEYS = {
+    "ENPD": {0: "epd"},
+    "FNUM": {0: "f_number", 1: "working_f_number"},
+    "OBNA": {0: "object_na", 1: "object_cone_angle"},
 }
 
 
@@ -202,7 +204,7 @@ def _interpret(text: str, path: str) -> dict:
     scale = 1.0
     name = ""
     mode_seq = None
-    epd = None
+    sys_ap = None  # (spec key, value in file units, line)
     floating = False
     catalogs: list[str] = []
     ftyp = None
@@ -225,13 +227,23 @@ def _interpret(text: str, path: str) -> dict:
             if u not in UNIT_SCALE:
                 raise err(f"UNIT {u}: unknown lens unit (known: {', '.join(UNIT_SCALE)})", ln)
             scale = UNIT_SCALE[u]
-        elif key == "ENPD":
-            epd = (_float(toks[0], path, ln, "ENPD"), ln)
+        elif key in SYSTEM_APERTURE_KEYS:
+            if not toks:
+                raise err(f"{key} needs a value", ln)
+            flag = int(float(toks[1])) if len(toks) > 1 and key != "ENPD" else 0
+            kinds = SYSTEM_APERTURE_KEYS[key]
+            if flag not in kinds:
+                raise err(f"{key} {rest}: unknown system aperture flag {flag} (known: "
+                          f"{', '.join(f'{f} = {k}' for f, k in kinds.items())})", ln)
+            value = _float(toks[0], path, ln, key)
+            if not (math.isfinite(value) and value > 0):
+                raise err(f"{key} {rest}: the system aperture value must be > 0", ln)
+            if sys_ap is not None and sys_ap[0] != kinds[flag]:
+                raise err(f"{key}: a second system aperture (line {sys_ap[2]} already gives {sys_ap[0]}); "
+                          "a .zmx file has one system aperture type", ln)
+            sys_ap = (kinds[flag], value, ln)
         elif key == "FLOA":
             floating = True
-        elif key in UNSUPPORTED_SYSTEM_APERTURES:
-            raise err(f"{key}: system aperture type {UNSUPPORTED_SYSTEM_APERTURES[key]} is not supported; "
-                      "raywave needs an entrance pupil diameter (ENPD) or a floating stop (FLOA)", ln)
         elif key == "GCAT":
             catalogs = toks
         elif key == "FTYP":
@@ -305,10 +317,17 @@ def _interpret(text: str, path: str) -> dict:
     if catalogs:
         spec["catalogs"] = catalogs
     spec["object"] = {"distance": distance}
-    if epd is not None:
-        if not epd[0] > 0:
-            raise err(f"ENPD {epd[0]!r}: the entrance pupil diameter must be > 0", epd[1])
-        spec["system_aperture"] = {"epd": epd[0] * scale}
+    if sys_ap is not None:
+        kind, value, ln = sys_ap
+        if kind in ("object_na", "object_cone_angle"):
+            if distance == "inf":
+                raise err(f"{'OBNA' if kind == 'object_na' else 'OBNA (cone angle)'}: an object-space "
+                          f"{'NA' if kind == 'object_na' else 'cone angle'} needs an object at a finite distance "
+                          "(surface 0 DISZ is INFINITY)", ln)
+            limit = 1.0 if kind == "object_na" else 90.0
+            if not value < limit:
+                raise err(f"OBNA {value!r}: must be < {limit:g} ({'NA in air' if limit == 1.0 else 'degrees'})", ln)
+        spec["system_aperture"] = {kind: value * scale if kind == "epd" else value}
 
     # fields
     nfld = ftyp[0][2] if ftyp and len(ftyp[0]) >= 3 else None
@@ -367,7 +386,7 @@ def _interpret(text: str, path: str) -> dict:
         s["thickness"] = p["disz"]
         s["material"] = p["material"]
         aperture = p["aperture"]
-        if aperture is None and p["stop"] and epd is None and p["diam"]:
+        if aperture is None and p["stop"] and "system_aperture" not in spec and p["diam"]:
             aperture = {"shape": "circle", "radius": p["diam"]}  # float by stop size: the stop's semi-diameter
         s["aperture"] = aperture
         if p["diam"] is not None:
@@ -379,8 +398,9 @@ def _interpret(text: str, path: str) -> dict:
     spec["surfaces"] = surfaces
     if doe is not None:
         spec["doe"] = doe
-    if floating and epd is not None:
-        warnings.warn(LensFileWarning(f"{path}: both ENPD and FLOA given; using ENPD"), stacklevel=3)
+    if floating and sys_ap is not None:
+        warnings.warn(LensFileWarning(f"{path}: both {sys_ap[0]} (line {sys_ap[2]}) and FLOA given; using "
+                                      f"{sys_ap[0]}"), stacklevel=3)
 
     if unknown:
         listed = ", ".join(f"{k} (line {ln})" for k, ln in sorted(unknown.items(), key=lambda kv: kv[1]))
@@ -596,8 +616,7 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     w("MODE SEQ")
     w(f"NAME {spec.get('name', '')}".rstrip())
     w("UNIT MM X W X CM MR CPMM")
-    epd = (spec.get("system_aperture") or {}).get("epd")
-    w(f"ENPD {_num(epd)}" if epd is not None else "FLOA")
+    w(_system_aperture_line(spec.get("system_aperture")))
     catalogs = list(spec.get("catalogs") or [])
     for s in spec["surfaces"]:
         m = s.get("material")
@@ -685,6 +704,17 @@ def zmx_text(spec: dict, source="<spec>") -> str:
         warnings.warn(LensFileWarning(f"{source}: .zmx files do not store {' and '.join(lost)}; "
                                       "they are left out"), stacklevel=3)
     return "\r\n".join(out) + "\r\n"
+
+
+def _system_aperture_line(ap) -> str:
+    """The .zmx line of a spec's "system_aperture" (FLOA without one)."""
+    if not ap or ap.get("float_by_stop_size"):
+        return "FLOA"
+    for key, kinds in SYSTEM_APERTURE_KEYS.items():
+        for flag, kind in kinds.items():
+            if kind in ap:
+                return f"ENPD {_num(ap[kind])}" if key == "ENPD" else f"{key} {_num(ap[kind])} {flag}"
+    raise ValueError(f"unknown system aperture {ap!r}")  # validate_spec rejects it first
 
 
 def _write_binary2(w, number: int, doe: dict, last: dict, source) -> None:

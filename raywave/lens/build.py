@@ -72,7 +72,7 @@ def lens_from_spec(spec: dict) -> Lens:
     fields = spec.get("fields") or {"type": "angle", "values": [0.0]}
     wls = spec.get("wavelengths") or {"values": [0.4861327, 0.5875618, 0.6562725], "primary": 1}
     sensor = spec.get("sensor") or {}
-    epd = (spec.get("system_aperture") or {}).get("epd")
+    ap = spec.get("system_aperture") or None
     lens = Lens(
         surfaces,
         object_distance=dist,
@@ -82,9 +82,9 @@ def lens_from_spec(spec: dict) -> Lens:
         primary=int(wls.get("primary", 0)),
         sensor_size=sensor.get("size"),
         sensor_resolution=sensor.get("resolution"),
-        epd=epd,
         name=spec.get("name", ""),
         catalogs=catalogs,
+        system_aperture=ap,
     )
     lens._spec_extra = {k: spec[k] for k in ("description",) if k in spec}
     return lens
@@ -145,7 +145,9 @@ def lens_to_spec(lens: Lens) -> dict:
     if lens.catalogs:
         spec["catalogs"] = list(lens.catalogs)
     spec["object"] = {"distance": "inf" if math.isinf(lens.object_distance) else lens.object_distance}
-    if lens.epd is not None:
+    if lens.system_aperture:
+        spec["system_aperture"] = dict(lens.system_aperture)
+    elif lens.epd is not None:
         spec["system_aperture"] = {"epd": lens.epd}
     spec["fields"] = {"type": lens.field_type, "values": list(lens.fields)}
     spec["wavelengths"] = {"values": list(lens.wavelengths), "primary": lens.primary}

@@ -59,6 +59,7 @@ class Lens(nn.Module):
         epd: float | None = None,
         name: str = "",
         catalogs=None,
+        system_aperture: dict | None = None,
     ):
         super().__init__()
         if len(surfaces) == 0:
@@ -86,9 +87,14 @@ class Lens(nn.Module):
         self.name = name
         self.catalogs = list(catalogs) if catalogs else None
         self.epd = None if epd is None else float(epd)
+        self.system_aperture = None
         self.check_geometry()
+        if system_aperture and self.epd is not None:
+            raise ValueError("give either epd or system_aperture, not both")
         if self.epd is not None:
             self.set_entrance_pupil_diameter(self.epd)
+        elif system_aperture:
+            self.set_system_aperture(system_aperture)
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -151,8 +157,37 @@ class Lens(nn.Module):
                     f"{-float(gap.min()):.4g} mm before surface {i} (thickness {float(a.thickness.detach()):.6g} mm too small)"
                 )
 
+    def set_system_aperture(self, aperture: dict | None) -> None:
+        """Size the stop from a system aperture, as OpticStudio does: ``{"epd": mm}``, ``{"f_number": F}``
+        (image space), ``{"working_f_number": F}`` (paraxial working F/#), ``{"object_na": NA}``,
+        ``{"object_cone_angle": degrees}`` or ``{"float_by_stop_size": True}`` / None (the stop's aperture stays).
+
+        The conversion to an entrance pupil diameter (:func:`raywave.lens.paraxial.epd_from_system_aperture`) is
+        done now, with the current prescription, at the primary wavelength; ``self.epd`` is the result and
+        ``self.system_aperture`` remembers the request (it is what :func:`raywave.lens.build.lens_to_spec`
+        writes)."""
+        from raywave.lens import paraxial
+
+        if not aperture or aperture.get("float_by_stop_size"):
+            self.system_aperture = None
+            self.epd = None
+            return
+        if len(aperture) != 1:
+            raise ValueError(f"a system aperture has one type, got {aperture!r}")
+        (kind, value), = aperture.items()
+        epd = paraxial.epd_from_system_aperture(self, kind, value)
+        self._size_stop(epd)
+        self.system_aperture = {kind: float(value)}
+
     def set_entrance_pupil_diameter(self, epd: float) -> None:
         """Size the stop so that the paraxial entrance pupil diameter is ``epd`` (mm)."""
+        if not epd > 0:
+            raise ValueError(f"entrance pupil diameter must be > 0 mm, got {epd!r}")
+        self._size_stop(epd)
+        self.system_aperture = {"epd": float(epd)}
+
+    def _size_stop(self, epd: float) -> None:
+        """Give the stop the circular radius that makes the paraxial entrance pupil ``epd`` mm wide."""
         from raywave.lens import paraxial
         from raywave.surfaces.aperture import CircularAperture
 

@@ -61,6 +61,68 @@ def stop_to_entrance_pupil(lens, wavelength: float) -> tuple[torch.Tensor, torch
     return b * n[0] / a, a
 
 
+def marginal_slope_per_epd(lens, wavelength: float) -> float:
+    """|n'·u'| of the paraxial marginal ray in image space for an entrance pupil of diameter 1 mm (it scales
+    with the EPD): the ray from the axial object point (or parallel to the axis) to the pupil's rim."""
+    m = system_matrix(lens, wavelength).detach()
+    n = [float(x.detach()) for x in surface_powers(lens, wavelength)[1]]
+    a, b, c, d = (float(v) for v in (m[0, 0], m[0, 1], m[1, 0], m[1, 1]))
+    if math.isinf(lens.object_distance):
+        return abs(c * 0.5)
+    s = lens.object_distance
+    ep_z = float(stop_to_entrance_pupil(lens, wavelength)[0].detach())
+    u0 = 0.5 / (s + ep_z)
+    return abs(c * s * u0 + d * n[0] * u0)
+
+
+def epd_from_system_aperture(lens, kind: str, value: float, wavelength: float | None = None) -> float:
+    """The paraxial entrance pupil diameter (mm) that a system aperture of type ``kind`` and ``value`` gives, as
+    OpticStudio converts it (at ``wavelength``, default the primary; docs/lens-format.md "System aperture"):
+
+    * ``epd``: the value;
+    * ``f_number`` (image-space F/#): |EFL| / F, EFL at infinite conjugates;
+    * ``working_f_number`` (paraxial working F/#): the EPD whose paraxial marginal ray leaves the lens with
+      1 / (2 |n'u'|) = the value (for a distant object in air the same as ``f_number``);
+    * ``object_na`` (n sin θ) and ``object_cone_angle`` (θ, degrees): the marginal ray from the axial object
+      point at angle θ reaches the rim of the paraxial entrance pupil: EPD = 2 |s + z_EP| tan θ (finite object).
+    """
+    wl = lens.primary_wavelength if wavelength is None else wavelength
+    value = float(value)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"system aperture {kind}: value must be > 0, got {value!r}")
+    if kind == "epd":
+        return value
+    if kind == "f_number":
+        c = float(system_matrix(lens, wl)[1, 0].detach())
+        if c == 0.0:
+            raise ValueError("system aperture f_number: the lens is afocal (no focal length); give an epd")
+        return abs(1.0 / c) / value
+    if kind == "working_f_number":
+        per = marginal_slope_per_epd(lens, wl)
+        if per == 0.0:
+            raise ValueError("system aperture working_f_number: the paraxial marginal ray leaves the lens parallel "
+                             "to the axis (image at infinity); give an epd")
+        return 1.0 / (2.0 * value * per)
+    if kind in ("object_na", "object_cone_angle"):
+        if math.isinf(lens.object_distance):
+            raise ValueError(f"system aperture {kind} needs an object at a finite distance")
+        if kind == "object_na":
+            n0 = float(lens.object_material.n(torch.tensor(float(wl), dtype=torch.float64)).detach())
+            if not value < n0:
+                raise ValueError(f"system aperture object_na {value!r} must be < the object-space index {n0!r}")
+            theta = math.asin(value / n0)
+        else:
+            if not value < 90.0:
+                raise ValueError(f"system aperture object_cone_angle {value!r} must be < 90 degrees")
+            theta = math.radians(value)
+        dist = lens.object_distance + float(stop_to_entrance_pupil(lens, wl)[0].detach())
+        if dist == 0.0:
+            raise ValueError(f"system aperture {kind}: the entrance pupil lies on the object plane")
+        return 2.0 * abs(dist) * math.tan(theta)
+    raise ValueError(f"unknown system aperture type {kind!r} (known: epd, f_number, working_f_number, object_na, "
+                     "object_cone_angle, float_by_stop_size)")
+
+
 @dataclass
 class ParaxialData:
     """First-order properties (mm, degrees). z values are measured from the first vertex."""
@@ -132,8 +194,8 @@ def paraxial_data(lens, wavelength: float) -> ParaxialData:
         fnum = abs(efl) / epd
         mag = 0.0
         # Working F/#: 1 / (2 n' sin u') of the paraxial marginal ray (image space)
-        u_img = (epd / 2) * float(c) / float(n[-1])
-        working = 1.0 / (2.0 * abs(u_img)) if u_img else math.inf
+        nu_img = (epd / 2) * float(c)  # n'·u' of the marginal ray
+        working = 1.0 / (2.0 * abs(nu_img)) if nu_img else math.inf
     else:
         s = lens.object_distance
         # Marginal ray from the axial object point to the edge of the entrance pupil.
