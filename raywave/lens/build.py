@@ -7,6 +7,7 @@ spec into modules with real parameters, and a lens back into a spec (exact round
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 from raywave.lens.lens import Lens
@@ -65,7 +66,15 @@ def surface_from_spec(s: dict, catalogs=None, where: str = "surface") -> Surface
 def lens_from_spec(spec: dict) -> Lens:
     """Build a :class:`Lens` from a (validated) lens spec."""
     catalogs = spec.get("catalogs")
-    surfaces = [surface_from_spec(s, catalogs, f"surfaces[{i}]") for i, s in enumerate(spec["surfaces"])]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        surfaces = [surface_from_spec(s, catalogs, f"surfaces[{i}]") for i, s in enumerate(spec["surfaces"])]
+    seen = set()
+    for w in caught:  # once per lens: a glass on several surfaces taken from an unnamed catalog warns once
+        key = (w.category, str(w.message))
+        if key not in seen:
+            seen.add(key)
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     obj = spec.get("object", {}) or {}
     dist = obj.get("distance", "inf")
     dist = math.inf if dist == "inf" else float(dist)
