@@ -24,15 +24,23 @@ UNITS = {"length": "mm", "wavelength": "um"}
 
 TOP_KEYS = ("format", "version", "units", "name", "description", "catalogs", "object", "system_aperture",
             "fields", "wavelengths", "sensor", "surfaces", "doe")
-SURFACE_TYPES = ("standard", "even_asphere", "paraxial")
+SURFACE_TYPES = ("standard", "even_asphere", "odd_asphere", "toroidal", "paraxial")
 COMMON_SURFACE_KEYS = ("type", "thickness", "material", "aperture", "semi_diameter", "stop", "comment")
 TYPE_KEYS = {
     "standard": ("radius", "curvature", "conic"),
     "even_asphere": ("radius", "curvature", "conic", "aspheric"),
+    "odd_asphere": ("radius", "curvature", "conic", "aspheric"),
+    "toroidal": ("radius", "curvature", "conic", "radius_of_rotation", "aspheric"),
     "paraxial": ("focal_length",),
 }
 ALL_SURFACE_KEYS = tuple(dict.fromkeys(COMMON_SURFACE_KEYS + sum(TYPE_KEYS.values(), ())))
 ASPHERIC_KEYS = tuple(f"a{p}" for p in range(2, 21, 2))
+#: The "aspheric" keys of each surface type: a_p multiplies r^p (toroidal: y^p, on the y–z curve).
+ASPHERIC_KEYS_BY_TYPE = {
+    "even_asphere": ASPHERIC_KEYS,
+    "odd_asphere": tuple(f"a{p}" for p in range(1, 9)),
+    "toroidal": tuple(f"a{p}" for p in range(2, 15, 2)),
+}
 FIELD_TYPES = ("angle", "object_height")
 APERTURE_SHAPES = {"circle": "radius", "square": "half_width"}
 #: System aperture types (one per lens; the key of the "system_aperture" object) and what their value is.
@@ -401,12 +409,21 @@ class _Validator:
                     self.err(path + ("radius",), "radius 0 is not a surface; write \"inf\" for a flat surface")
         if "curvature" in s:
             self.number(s["curvature"], path + ("curvature",))
+        if "radius_of_rotation" in s:
+            r = s["radius_of_rotation"]
+            if r != "inf":
+                if isinstance(r, str):
+                    self.err(path + ("radius_of_rotation",), f"must be a number or \"inf\", got {_typename(r)}")
+                elif self.number(r, path + ("radius_of_rotation",)) and r == 0:
+                    self.err(path + ("radius_of_rotation",), "0 is not a radius; write \"inf\" for a cylinder (no "
+                                                             "power in x)")
         if "conic" in s:
             self.number(s["conic"], path + ("conic",))
         if "aspheric" in s and self.obj(s["aspheric"], path + ("aspheric",)):
             a = s["aspheric"]
-            self.keys(a, path + ("aspheric",), ASPHERIC_KEYS)
-            for k in ASPHERIC_KEYS:
+            keys = ASPHERIC_KEYS_BY_TYPE.get(kind, ASPHERIC_KEYS)
+            self.keys(a, path + ("aspheric",), keys)
+            for k in keys:
                 if k in a:
                     self.number(a[k], path + ("aspheric", k))
         if kind == "paraxial":

@@ -25,10 +25,19 @@ from pathlib import Path
 
 from raywave.io.errors import LensFileError, LensFileWarning
 from raywave.io.json_format import FORMAT_NAME, FORMAT_VERSION, UNITS, validate_spec
-from raywave.io.spec import DEFAULT_WAVELENGTHS, aspheric_canonical, curvature_of, shape_entry
+from raywave.io.spec import (DEFAULT_WAVELENGTHS, aspheric_canonical, curvature_of, rotation_radius_canonical,
+                             shape_entry)
 
 #: Zemax surface types raywave models, and their spec type.
-SURFACE_TYPES = {"STANDARD": "standard", "EVENASPH": "even_asphere", "PARAXIAL": "paraxial"}
+SURFACE_TYPES = {"STANDARD": "standard", "EVENASPH": "even_asphere", "ODDASPHE": "odd_asphere",
+                 "TOROIDAL": "toroidal", "PARAXIAL": "paraxial"}
+#: Types raywave cannot trace yet, with what they are (a clearer error than "not supported").
+KNOWN_UNSUPPORTED_TYPES = {
+    "COORDBRK": "coordinate break (decentre / tilt of the following surfaces): raywave traces surfaces on one axis",
+    "BICONIC": "biconic", "SZERNSAG": "Zernike standard sag", "FZERNSAG": "Zernike fringe sag",
+    "XPOLYNOM": "extended polynomial", "POLYNOMI": "polynomial", "GRID_SAG": "grid sag", "CYLINDER": "cylinder",
+    "IRREGULA": "irregular", "USERSURF": "user-defined (DLL)", "GRADIENT": "gradient index",
+}
 #: Zemax diffractive surface types: as the last surface before the image, such a surface is the DOE plane of
 #: a hybrid lens (spec "doe"); anywhere else it is an error. Also any type whose name says diffractive.
 DIFFRACTIVE_TYPES = {"BINARY_1", "BINARY_2", "BINARY_3", "BINARY_4", "DGRATING", "RADGRATI", "ELGRATIN", "ELGRAT2",
@@ -50,6 +59,8 @@ def is_diffractive_type(typ: str) -> bool:
 UNIT_SCALE = {"MM": 1.0, "CM": 10.0, "IN": 25.4, "INCH": 25.4, "M": 1000.0, "METER": 1000.0, "METERS": 1000.0}
 #: EVENASPH: PARM i multiplies r^(2i) (PARM 1 = a2, ..., PARM 8 = a16).
 MAX_EVENASPH_PARM = 8
+#: ODDASPHE: PARM i multiplies r^i (PARM 1 = b1, ..., PARM 8 = b8).
+MAX_ODDASPHE_PARM = 8
 
 #: Surface keys skipped on purpose: they do not change the rays raywave traces.
 IGNORED_SURFACE_KEYS = {
@@ -379,7 +390,9 @@ def _interpret(text: str, path: str) -> dict:
         else:
             s.update(shape_entry(p["curv"]))
             s["conic"] = p["conic"]
-            if p["kind"] == "even_asphere":
+            if p["kind"] == "toroidal":
+                s["radius_of_rotation"] = p["rotation"]
+            if p["kind"] in ("even_asphere", "odd_asphere", "toroidal"):
                 s["aspheric"] = p["aspheric"]
         if p["disz"] is None or math.isinf(p["disz"]):
             raise err(f"surface {p['number']}: thickness (DISZ) must be finite", p["line"])
@@ -431,8 +444,9 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
                 typ_line = ln
                 continue
             if typ not in SURFACE_TYPES:
-                raise LensFileError(f"{where}: surface type {typ} is not supported by raywave (supported: "
-                                    f"{', '.join(SURFACE_TYPES)})", path, ln)
+                what = f" ({KNOWN_UNSUPPORTED_TYPES[typ]})" if typ in KNOWN_UNSUPPORTED_TYPES else ""
+                raise LensFileError(f"{where}: surface type {typ}{what} is not supported by raywave (supported: "
+                                    f"{', '.join(SURFACE_TYPES)}, and a diffractive last surface)", path, ln)
             p["kind"] = SURFACE_TYPES[typ]
             typ_line = ln
         elif key == "CURV":
@@ -508,6 +522,26 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
         coeffs = {f"a{2 * i}": v * scale ** (1 - 2 * i) for i, (v, _) in parms.items()
                   if 1 <= i <= MAX_EVENASPH_PARM}
         p["aspheric"] = aspheric_canonical(coeffs)
+    elif p["kind"] == "odd_asphere":
+        bad = [(i, ln) for i, (v, ln) in parms.items() if not 1 <= i <= MAX_ODDASPHE_PARM and v != 0.0]
+        if bad:
+            raise LensFileError(f"{where}: ODDASPHE PARM {bad[0][0]} is not an odd-asphere coefficient "
+                                f"(PARM 1..{MAX_ODDASPHE_PARM} = b1..b8 on r^1..r^8)", path, bad[0][1])
+        coeffs = {f"a{i}": v * scale ** (1 - i) for i, (v, _) in parms.items() if 1 <= i <= MAX_ODDASPHE_PARM}
+        p["aspheric"] = aspheric_canonical(coeffs, range(1, MAX_ODDASPHE_PARM + 1))
+    elif p["kind"] == "toroidal":
+        # PARM 0 = extrapolate flag (tracing only), 1 = radius of rotation (0: infinite), 2..8 = a2..a14 on y^2..y^14,
+        # 13 = number of Zernike terms (must be 0), 14 = their normalisation radius
+        bad = [(i, ln) for i, (v, ln) in parms.items() if i not in (0, 1, 14) and not 2 <= i <= 8 and v != 0.0]
+        if bad:
+            what = "Zernike sag terms on a TOROIDAL surface are" if bad[0][0] == 13 else \
+                f"TOROIDAL PARM {bad[0][0]} is"
+            raise LensFileError(f"{where}: {what} not supported (PARM 1 = radius of rotation, PARM 2..8 = "
+                                "a2..a14 on y^2..y^14)", path, bad[0][1])
+        r = parms.get(1, (0.0, None))[0]
+        p["rotation"] = "inf" if r == 0.0 or math.isinf(r) else r * scale
+        coeffs = {f"a{2 * (i - 1)}": v * scale ** (1 - 2 * (i - 1)) for i, (v, _) in parms.items() if 2 <= i <= 8}
+        p["aspheric"] = aspheric_canonical(coeffs, range(2, 15, 2))
     elif p["kind"] == "paraxial":
         if 1 in parms:
             p["focal"] = parms[1][0] * scale
@@ -653,7 +687,7 @@ def zmx_text(spec: dict, source="<spec>") -> str:
             w("  STOP")
         if s.get("comment"):
             w("  COMM " + " ".join(str(s["comment"]).split()))
-        w("  TYPE " + {"standard": "STANDARD", "even_asphere": "EVENASPH", "paraxial": "PARAXIAL"}[kind])
+        w("  TYPE " + {v: k for k, v in SURFACE_TYPES.items()}[kind])
         if kind != "paraxial":
             w(f"  CURV {_num(curvature_of(s))}")
         w(f"  DISZ {_num(doe['distance'] if binary2 and i == nsurf else s['thickness'])}")
@@ -672,6 +706,16 @@ def zmx_text(spec: dict, source="<spec>") -> str:
                                         "(PARM 8)", source)
             for j in range(1, MAX_EVENASPH_PARM + 1):
                 w(f"  PARM {j} {_num(asph.get(f'a{2 * j}', 0.0))}")
+        if kind == "odd_asphere":
+            asph = aspheric_canonical(s.get("aspheric"), range(1, MAX_ODDASPHE_PARM + 1))
+            for j in range(1, MAX_ODDASPHE_PARM + 1):
+                w(f"  PARM {j} {_num(asph.get(f'a{j}', 0.0))}")
+        if kind == "toroidal":
+            r = rotation_radius_canonical(s.get("radius_of_rotation"))
+            w(f"  PARM 1 {_num(0.0 if r == 'inf' else r)}")
+            asph = aspheric_canonical(s.get("aspheric"), range(2, 15, 2))
+            for j in range(2, 9):
+                w(f"  PARM {j} {_num(asph.get(f'a{2 * (j - 1)}', 0.0))}")
         if kind == "paraxial":
             w(f"  PARM 1 {_num(s['focal_length'])}")
         ap = s.get("aperture")

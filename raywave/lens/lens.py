@@ -30,7 +30,7 @@ class TraceRecord:
 
 
 class Lens(nn.Module):
-    """A rotationally symmetric sequential lens.
+    """A sequential lens on one axis (rotationally symmetric unless a surface is a toroid).
 
     Geometry: surface ``i`` has its vertex at ``z_i`` = sum of the thicknesses before it (the first vertex
     at z = 0); the image (sensor) plane is at ``z_image`` = sum of all thicknesses. Light travels toward +z.
@@ -143,10 +143,12 @@ class Lens(nn.Module):
                 r = 0.0
             rs = torch.linspace(0, r, 65, dtype=torch.float64)
             zero = torch.zeros_like(rs)
+            xs, ys = torch.cat([rs, zero]), torch.cat([zero, rs])  # along x and along y (toroids differ)
+            rs = torch.cat([rs, rs])
             with torch.no_grad():
-                za = z[i] + a.geometry.sag(rs, zero)
-                zb = z[i + 1] + b.geometry.sag(rs, zero)
-                ok = a.geometry.in_domain(rs, zero) & b.geometry.in_domain(rs, zero)
+                za = z[i] + a.geometry.sag(xs, ys)
+                zb = z[i + 1] + b.geometry.sag(xs, ys)
+                ok = a.geometry.in_domain(xs, ys) & b.geometry.in_domain(xs, ys)
             gap = (zb - za)[ok]
             if float(a.thickness.detach()) < 0 and not a.material.is_air:
                 raise ValueError(f"surface {i}: negative thickness {float(a.thickness.detach())} mm inside glass {a.material.name!r}")
