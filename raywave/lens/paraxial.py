@@ -3,7 +3,8 @@
 State vector (y, n·u): height (mm) and reduced slope. Refraction by a surface of power φ:
 [[1, 0], [-φ, 1]]; a gap of thickness t in index n: [[1, t/n], [0, 1]]. Both have determinant 1.
 Surface powers include the r² term of even aspheres (vertex curvature c + 2·a2), which tools that use only
-the base radius leave out, and the power of ideal (paraxial) lenses.
+the base radius leave out, and the power of ideal (paraxial) lenses. A lens with a toroid is modelled in its
+y–z section (``ParaxialData.section == "y-z"``), as OpticStudio does.
 
 Every length is measured in mm along z from the first vertex unless its name says otherwise.
 """
@@ -142,6 +143,9 @@ class ParaxialData:
     total_track: float
     image_z_paraxial: float
     magnification: float
+    #: "rotational", or "y-z" when a surface is not rotationally symmetric (a toroid): every value above is then
+    #: that of the y–z section (as OpticStudio reports it); the x–z section has other values.
+    section: str = "rotational"
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -217,7 +221,15 @@ def paraxial_data(lens, wavelength: float) -> ParaxialData:
         wavelength=float(wavelength), efl=efl, bfl=bfl, ffl=ffl, fnum=fnum, working_fnum=working,
         epd=epd, ep_z=float(ep_z), xpd=xpd, xp_z=float(xp_z), fov_deg=fov, image_height=img_h,
         total_track=lens.total_track(), image_z_paraxial=z_img_par, magnification=mag,
+        section=paraxial_section(lens),
     )
+
+
+def paraxial_section(lens) -> str:
+    """"rotational" for a rotationally symmetric lens, "y-z" when a surface (a toroid) is not: the paraxial model
+    then describes the y–z section only."""
+    symmetric = all(getattr(s.geometry, "rotationally_symmetric", True) for s in lens.surfaces)
+    return "rotational" if symmetric else "y-z"
 
 
 def field_of_view(lens, wavelength: float, efl: float, ep_z: float, mag: float) -> tuple[float, float]:
