@@ -1,14 +1,15 @@
 """Zemax OpticStudio .zmx files (sequential subset) <-> lens specs.
 
-What is read (see docs/lens-format.md, "Zemax .zmx"): system data (NAME, UNIT, ENPD / FLOA, GCAT, FTYP,
-XFLN/YFLN, WAVM/WAVL, PWAV) and the surfaces ``SURF n`` of types STANDARD, EVENASPH and PARAXIAL with
+What is read (see docs/lens-format.md, "Zemax .zmx"): system data (NAME, UNIT, the system aperture: ENPD, FNUM
+(image-space or paraxial working F/#), OBNA (object NA or cone angle), FLOA; GCAT, FTYP, XFLN/YFLN, WAVM/WAVL,
+PWAV) and the surfaces ``SURF n`` of types STANDARD, EVENASPH, ODDASPHE, TOROIDAL and PARAXIAL with
 STOP, CURV, DISZ, GLAS, DIAM, CONI, PARM, COMM and CLAP / SQAP / FLAP apertures. Surface 0 is the object
 (its DISZ is the object distance), the last surface is the image plane (dropped: the thickness before it
 is the distance to the image). A diffractive surface (BINARY_2, DGRATING, ...) as the last surface before the
 image becomes the spec's "doe" (the DOE plane of a hybrid lens; BINARY_2 coefficients become its
 ``phase_model``, and :func:`write_zmx` writes such a DOE back as a BINARY_2 surface). Anything raywave
-cannot model (other surface types, mirrors, tilted or
-decentred apertures, curved object or image, F/# or NA system apertures, non-sequential mode) raises
+cannot model (other surface types, coordinate breaks, mirrors, decentred
+apertures, curved object or image, non-sequential mode) raises
 :class:`LensFileError` naming the surface and line; known bookkeeping keys are skipped and unknown keys
 give one :class:`LensFileWarning` listing them.
 

@@ -43,6 +43,8 @@ class Lens(nn.Module):
         wavelengths: analysis wavelengths (µm); ``primary`` indexes the design wavelength.
         sensor_size: (w, h) of the sensor (mm); ``sensor_resolution``: (nx, ny) pixels.
         epd: entrance pupil diameter (mm). If given, the stop's aperture radius is set from it.
+        system_aperture: instead of ``epd``, any OpticStudio system aperture type as a one-key dict
+            (``{"f_number": 4}``, ``{"object_na": 0.1}``, ...; see :meth:`set_system_aperture`).
     """
 
     def __init__(
