@@ -135,6 +135,19 @@ class GlassLibrary:
         return GlassRecord(path.stem, d["family"], d["formula"], d["coefficients"], d["wavelength_range"], c,
                            f"refractiveindex.info database (CC0), {rel}: {d['reference']}")
 
+    def _find_unhyphenated(self, catalog: str, name: str) -> GlassRecord | None:
+        """The glass of ``catalog`` whose name without hyphens and spaces is ``name``'s (CODE V's form of vendor
+        names: NBK7 for N-BK7), when exactly one glass matches; vendor catalogs and user catalogs only."""
+        key = name.upper().replace("-", "").replace(" ", "")
+        if catalog.upper() in BOOK_ORDER:
+            return None
+        try:
+            names = self.glasses(catalog)
+        except GlassNotFoundError:
+            return None
+        hits = [g for g in names if g.upper().replace("-", "").replace(" ", "") == key]
+        return self._find_in(catalog, hits[0]) if len(hits) == 1 else None
+
     def _find_in_books(self, shelf: str, name: str) -> GlassRecord | None:
         book_key, _, page_key = name.partition("/")
         hit = self.book_lookup.get(shelf, {}).get(book_key.strip().upper())
@@ -173,6 +186,10 @@ class GlassLibrary:
             order = self.catalogs()
         for c in order:
             rec = self._find_in(c, name)
+            if rec is not None:
+                return rec
+        for c in order:  # CODE V writes vendor names without hyphens (NBK7_SCHOTT for N-BK7)
+            rec = self._find_unhyphenated(c, name)
             if rec is not None:
                 return rec
         if missing:
