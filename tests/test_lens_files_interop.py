@@ -223,3 +223,22 @@ def test_zmx_two_system_apertures_is_an_error(tmp_path):
         spec = read_zmx(_zmx(tmp_path, ["  TYPE STANDARD"], head=("FNUM 4 0", "FLOA")))
     assert spec["system_aperture"] == {"f_number": 4.0}
     assert any("f_number" in str(x.message) and "FLOA" in str(x.message) for x in w)
+
+
+def test_unbundled_catalog_warns_once_per_lens():
+    """GCAT naming only a catalog raywave lacks: each glass is looked up everywhere, with one warning per glass and
+    lens, however many surfaces use it."""
+    from raywave.materials import GlassCatalogWarning
+
+    surfaces = [{"radius": 50.0, "thickness": 4.0, "material": "SF5", "stop": True},
+                {"radius": -50.0, "thickness": 1.0},
+                {"radius": 50.0, "thickness": 4.0, "material": "SF5"},
+                {"radius": -50.0, "thickness": 40.0}]
+    spec = dict(_spec(surfaces, {"epd": 10.0}), catalogs=["INFRARED"])
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        lens = lens_from_spec(validate_spec(spec))
+    msgs = [str(x.message) for x in w if issubclass(x.category, GlassCatalogWarning)]
+    assert msgs == ["glass 'SF5': not in the named catalog(s) (none bundled), and INFRARED is not bundled with "
+                    "raywave; using SF5 from SCHOTT"]
+    assert lens.surfaces[0].material.catalog == lens.surfaces[2].material.catalog == "SCHOTT"
