@@ -183,8 +183,8 @@ def test_json_nan_and_duplicate_keys_rejected(tmp_path):
     (lambda s: s.update(surfaces=[]), "surfaces: the lens has no surfaces"),
     (lambda s: s["surfaces"][3].update(aperture={"shape": "circle", "radius": 0.0}),
      "surfaces[3].aperture.radius: empty aperture"),
-    (lambda s: s["surfaces"][1].update(type="toroidal"),
-     "unknown surface type 'toroidal'; known types: standard, even_asphere, paraxial"),
+    (lambda s: s["surfaces"][1].update(type="biconic"),
+     "unknown surface type 'biconic'; known types: standard, even_asphere, odd_asphere, toroidal, paraxial"),
     (lambda s: s["surfaces"][2].update(curvature=0.05), "give either 'radius' or 'curvature', not both"),
     (lambda s: s["surfaces"][2].update(thickness="3 mm"), "surfaces[2].thickness: must be a number"),
     (lambda s: s["surfaces"][2].pop("thickness"), "surfaces[2]: missing 'thickness'"),
@@ -253,14 +253,15 @@ def test_zmx_glass_forms(tmp_path):
 
 
 def test_zmx_unsupported_surface_type_names_surface(tmp_path):
-    text = cooke_zmx_text().replace("SURF 2\r\n  TYPE STANDARD", "SURF 2\r\n  TYPE TOROIDAL")
-    p = write_bytes(tmp_path, "toroid.zmx", text, "utf-16-bom")
-    line = text.split("\r\n").index("  TYPE TOROIDAL") + 1
+    text = cooke_zmx_text().replace("SURF 2\r\n  TYPE STANDARD", "SURF 2\r\n  TYPE SZERNSAG")
+    p = write_bytes(tmp_path, "zernike.zmx", text, "utf-16-bom")
+    line = text.split("\r\n").index("  TYPE SZERNSAG") + 1
     with pytest.raises(LensFileError) as e:
         read_zmx(p)
-    assert str(e.value).startswith(f"{p}:{line}: surface 2: surface type TOROIDAL is not supported")
-    assert "STANDARD, EVENASPH, PARAXIAL" in str(e.value)
-    for typ, msg in (("COORDBRK", "surface type COORDBRK is not supported"),
+    assert str(e.value).startswith(f"{p}:{line}: surface 2: surface type SZERNSAG (Zernike standard sag) is not "
+                                   "supported")
+    assert "STANDARD, EVENASPH, ODDASPHE, TOROIDAL, PARAXIAL" in str(e.value)
+    for typ, msg in (("COORDBRK", "surface type COORDBRK .coordinate break.* is not supported"),
                      ("BINARY_2", "diffractive surface type BINARY_2 is supported only as the last surface")):
         bad = cooke_zmx_text().replace("SURF 3\r\n  TYPE STANDARD", f"SURF 3\r\n  TYPE {typ}")
         with pytest.raises(LensFileError, match=f"surface 3: {msg}"):
@@ -269,7 +270,8 @@ def test_zmx_unsupported_surface_type_names_surface(tmp_path):
 
 @pytest.mark.parametrize("edit, expected", [
     (("GLAS F2 0 0", "GLAS MIRROR 0 0"), "surface 3: mirrors (GLAS MIRROR) are not supported"),
-    (("ENPD 1.0E+1", "FNUM 4 0"), "FNUM: system aperture type image-space F/#"),
+    (("ENPD 1.0E+1", "OBNA 0.1 0"), "OBNA: an object-space NA needs an object at a finite distance"),
+    (("ENPD 1.0E+1", "FNUM 4 2"), "FNUM 4 2: unknown system aperture flag 2"),
     (("MODE SEQ", "MODE NSC"), "only sequential"),
     (("FTYP 0 0 3 3", "FTYP 3 0 3 3"), "real image height is not supported"),
     (("UNIT MM", "UNIT FURLONG"), "UNIT FURLONG: unknown lens unit"),

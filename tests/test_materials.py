@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from raywave.materials import (AGFError, Air, Catalog, DispersiveGlass, GlassLibrary, GlassNotFoundError, ModelGlass,
-                               WavelengthRangeWarning, get_material, list_catalogs, list_glasses, read_agf)
+from raywave.materials import (AGFError, Air, Catalog, DispersiveGlass, GlassCatalogWarning, GlassLibrary,
+                               GlassNotFoundError, ModelGlass, WavelengthRangeWarning, get_material, list_catalogs, list_glasses, read_agf)
 from raywave.materials import formulas
 
 D, F, C = 0.5875618, 0.4861327, 0.6562725
@@ -356,8 +356,20 @@ def test_unknown_glass_suggests_close_names():
     with pytest.raises(GlassNotFoundError) as err:
         get_material("N-BK77")
     assert "N-BK77" in str(err.value) and "N-BK7" in str(err.value) and "did you mean" in str(err.value)
-    with pytest.raises(GlassNotFoundError, match="unknown glass catalog"):
-        get_material("N-BK7", ["NOSUCHVENDOR"])
+
+
+def test_catalog_not_bundled_searches_the_rest_and_warns():
+    """A GCAT catalog raywave does not bundle is skipped; a glass in none of the named catalogs it has is looked
+    up everywhere else (with a warning naming the catalog used); a glass found nowhere is an error."""
+    assert get_material("SF5", ["INFRARED", "SCHOTT"]).catalog == "SCHOTT"  # in a named catalog: no fallback
+    with pytest.warns(GlassCatalogWarning, match="INFRARED is not bundled.*SF5 from SCHOTT"):
+        assert get_material("SF5", ["INFRARED"]).catalog == "SCHOTT"
+    with pytest.warns(GlassCatalogWarning, match="not in the named catalog.*OHARA"):
+        get_material("N-BK7", ["NOSUCHVENDOR", "OHARA"])
+    with pytest.raises(GlassNotFoundError, match="NOT-A-GLASS"):
+        get_material("NOT-A-GLASS", ["INFRARED"])
+    with pytest.raises(GlassNotFoundError, match="N-BK7.*OHARA"):  # every named catalog present: not searched on
+        get_material("N-BK7", ["OHARA"])
 
 
 def test_wavelength_out_of_range_warns():

@@ -53,11 +53,14 @@ def lens_info(lens, wavelength: float | None = None) -> dict:
     out = {k: d[k] for k in INFO_KEYS}
     out.update({k: d[k] for k in ("working_fnum", "image_z_paraxial", "wavelength")})
     out["name"] = lens.name
+    out["section"] = p.section
     return out
 
 
 def format_info(info: dict) -> str:
     lines = [f"{info.get('name') or 'lens'} at {info['wavelength']:g} µm (z from the first vertex)"]
+    if info.get("section", "rotational") != "rotational":
+        lines.append("  (not rotationally symmetric: paraxial values of the y-z section; the x-z section differs)")
     for k in INFO_KEYS + ["working_fnum", "image_z_paraxial"]:
         label, unit = INFO_LABELS[k]
         v = info[k]

@@ -5,7 +5,9 @@ A *spec* is the dict form of a lens (docs/lens-format.md); :mod:`raywave.lens.bu
 
 * ``.json`` — raywave's own format ("raywave-lens", version 1), read strictly and written exactly;
   a ``.json`` file without ``"format"`` that looks like a DeepLens lens file is imported from DeepLens.
-* ``.zmx`` — Zemax OpticStudio sequential files (STANDARD, EVENASPH, PARAXIAL surfaces), read and written.
+* ``.zmx`` — Zemax OpticStudio sequential files (STANDARD, EVENASPH, ODDASPHE, TOROIDAL, PARAXIAL surfaces; every
+  system aperture type), read and written.
+* ``.seq`` — CODE V sequence files (spheres, conics, even aspheres; EPD / FNO / NAO), read.
 
 Every problem is a :class:`LensFileError` (a ValueError) whose message starts with ``path:line:``.
 """
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from raywave.io.codev import read_seq
 from raywave.io.deeplens import looks_like_deeplens, read_deeplens, read_deeplens_hybrid
 from raywave.io.doe import DOEData, rebase_phase_path, resolve_doe
 from raywave.io.errors import LensFileError, LensFileWarning
@@ -33,6 +36,7 @@ __all__ = [
     "read_hybrid_spec",
     "read_json_spec",
     "read_lens_spec",
+    "read_seq",
     "read_zmx",
     "rebase_phase_path",
     "resolve_doe",
@@ -43,16 +47,18 @@ __all__ = [
 ]
 
 #: Extensions and the formats they hold.
-READ_EXTENSIONS = {".json": "raywave JSON or DeepLens JSON", ".zmx": "Zemax OpticStudio"}
+READ_EXTENSIONS = {".json": "raywave JSON or DeepLens JSON", ".zmx": "Zemax OpticStudio", ".seq": "CODE V"}
 WRITE_EXTENSIONS = {".json": "raywave JSON", ".zmx": "Zemax OpticStudio"}
 
 
 def detect_format(path) -> str:
-    """'raywave', 'deeplens' or 'zmx' for a lens file, by extension and (for .json) content."""
+    """'raywave', 'deeplens', 'zmx' or 'codev' for a lens file, by extension and (for .json) content."""
     p = Path(path)
     ext = p.suffix.lower()
     if ext == ".zmx":
         return "zmx"
+    if ext == ".seq":
+        return "codev"
     if ext != ".json":
         raise LensFileError(f"unknown lens file extension {p.suffix or '(none)'!r}; raywave reads "
                             + ", ".join(f"{e} ({d})" for e, d in READ_EXTENSIONS.items()), p)
@@ -72,6 +78,8 @@ def read_lens_spec(path) -> dict:
     fmt = detect_format(path)
     if fmt == "zmx":
         return read_zmx(path)
+    if fmt == "codev":
+        return read_seq(path)
     if fmt == "deeplens":
         return read_deeplens(path)
     return read_json_spec(path)

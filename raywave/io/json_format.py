@@ -24,17 +24,34 @@ UNITS = {"length": "mm", "wavelength": "um"}
 
 TOP_KEYS = ("format", "version", "units", "name", "description", "catalogs", "object", "system_aperture",
             "fields", "wavelengths", "sensor", "surfaces", "doe")
-SURFACE_TYPES = ("standard", "even_asphere", "paraxial")
+SURFACE_TYPES = ("standard", "even_asphere", "odd_asphere", "toroidal", "paraxial")
 COMMON_SURFACE_KEYS = ("type", "thickness", "material", "aperture", "semi_diameter", "stop", "comment")
 TYPE_KEYS = {
     "standard": ("radius", "curvature", "conic"),
     "even_asphere": ("radius", "curvature", "conic", "aspheric"),
+    "odd_asphere": ("radius", "curvature", "conic", "aspheric"),
+    "toroidal": ("radius", "curvature", "conic", "radius_of_rotation", "aspheric"),
     "paraxial": ("focal_length",),
 }
 ALL_SURFACE_KEYS = tuple(dict.fromkeys(COMMON_SURFACE_KEYS + sum(TYPE_KEYS.values(), ())))
 ASPHERIC_KEYS = tuple(f"a{p}" for p in range(2, 21, 2))
+#: The "aspheric" keys of each surface type: a_p multiplies r^p (toroidal: y^p, on the y–z curve).
+ASPHERIC_KEYS_BY_TYPE = {
+    "even_asphere": ASPHERIC_KEYS,
+    "odd_asphere": tuple(f"a{p}" for p in range(1, 9)),
+    "toroidal": tuple(f"a{p}" for p in range(2, 15, 2)),
+}
 FIELD_TYPES = ("angle", "object_height")
 APERTURE_SHAPES = {"circle": "radius", "square": "half_width"}
+#: System aperture types (one per lens; the key of the "system_aperture" object) and what their value is.
+SYSTEM_APERTURE_TYPES = {
+    "epd": "entrance pupil diameter, mm",
+    "f_number": "image-space F/#: |EFL| / EPD",
+    "working_f_number": "paraxial working F/#: 1 / (2 n' |u'|) of the paraxial marginal ray in image space",
+    "object_na": "object-space NA n sin(theta) of the marginal ray (finite object)",
+    "object_cone_angle": "object-space marginal ray half-angle theta in degrees (finite object)",
+    "float_by_stop_size": "true: the stop's own aperture sets the pupil",
+}
 #: Wavelengths above this (µm) are taken for a unit mistake (nm given instead of µm).
 MAX_WAVELENGTH_UM = 100.0
 
@@ -274,12 +291,7 @@ class _Validator:
                     else:
                         self.number(d, ("object", "distance"), positive=True)
         if "system_aperture" in spec and self.obj(spec["system_aperture"], ("system_aperture",)):
-            a = spec["system_aperture"]
-            self.keys(a, ("system_aperture",), ("epd",))
-            if "epd" not in a:
-                self.err(("system_aperture",), "missing 'epd' (entrance pupil diameter, mm)")
-            else:
-                self.number(a["epd"], ("system_aperture", "epd"), positive=True)
+            self.system_aperture(spec["system_aperture"], spec)
         if "fields" in spec and self.obj(spec["fields"], ("fields",)):
             f = spec["fields"]
             self.keys(f, ("fields",), ("type", "values"))
@@ -339,6 +351,34 @@ class _Validator:
                 self.err(("surfaces", i, "stop"), f"a lens has one aperture stop; surfaces {stops} are all "
                                                   "marked as stop")
 
+    def system_aperture(self, a, spec):
+        path = ("system_aperture",)
+        self.keys(a, path, tuple(SYSTEM_APERTURE_TYPES))
+        given = [k for k in SYSTEM_APERTURE_TYPES if k in a]
+        if not given:
+            self.err(path, "needs one of " + ", ".join(f"{k!r} ({v})" for k, v in SYSTEM_APERTURE_TYPES.items()))
+            return
+        if len(given) > 1:
+            self.err(path, f"give exactly one system aperture type, got {', '.join(map(repr, given))}")
+            return
+        key = given[0]
+        v = a[key]
+        if key == "float_by_stop_size":
+            if v is not True:
+                self.err(path + (key,), f"must be true (the stop's own aperture sets the pupil), got {_typename(v)}")
+            return
+        if not self.number(v, path + (key,), positive=True):
+            return
+        if key == "object_na" and not v < 1.0:
+            self.err(path + (key,), f"an object-space NA in air must be < 1, got {v!r}")
+        if key == "object_cone_angle" and not v < 90.0:
+            self.err(path + (key,), f"the object cone half-angle must be < 90 degrees, got {v!r}")
+        if key in ("object_na", "object_cone_angle"):
+            d = (spec.get("object") or {}).get("distance", "inf") if isinstance(spec.get("object"), dict) else "inf"
+            if d == "inf":
+                self.err(path + (key,), f"{key!r} needs an object at a finite distance (object.distance), got "
+                                        "\"inf\" (use 'epd' or 'f_number' for a distant object)")
+
     def surface(self, s, path):
         if not self.obj(s, path):
             return
@@ -369,12 +409,21 @@ class _Validator:
                     self.err(path + ("radius",), "radius 0 is not a surface; write \"inf\" for a flat surface")
         if "curvature" in s:
             self.number(s["curvature"], path + ("curvature",))
+        if "radius_of_rotation" in s:
+            r = s["radius_of_rotation"]
+            if r != "inf":
+                if isinstance(r, str):
+                    self.err(path + ("radius_of_rotation",), f"must be a number or \"inf\", got {_typename(r)}")
+                elif self.number(r, path + ("radius_of_rotation",)) and r == 0:
+                    self.err(path + ("radius_of_rotation",), "0 is not a radius; write \"inf\" for a cylinder (no "
+                                                             "power in x)")
         if "conic" in s:
             self.number(s["conic"], path + ("conic",))
         if "aspheric" in s and self.obj(s["aspheric"], path + ("aspheric",)):
             a = s["aspheric"]
-            self.keys(a, path + ("aspheric",), ASPHERIC_KEYS)
-            for k in ASPHERIC_KEYS:
+            keys = ASPHERIC_KEYS_BY_TYPE.get(kind, ASPHERIC_KEYS)
+            self.keys(a, path + ("aspheric",), keys)
+            for k in keys:
                 if k in a:
                     self.number(a[k], path + ("aspheric", k))
         if kind == "paraxial":

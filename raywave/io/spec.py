@@ -47,13 +47,34 @@ def shape_entry(c: float) -> dict:
     return {"curvature": float(c)} if r is None else {"radius": r}
 
 
-def aspheric_canonical(asph: dict | None) -> dict:
-    """a2..a_max with missing lower terms as 0.0 and trailing zero terms dropped ({} if all zero)."""
+def aspheric_canonical(asph: dict | None, powers=range(2, 21, 2)) -> dict:
+    """a2..a_max (``powers``: a1..a8 for odd aspheres) with missing lower terms as 0.0 and trailing zero terms
+    dropped ({} if all zero)."""
     asph = asph or {}
-    vals = [float(asph.get(f"a{p}", 0.0)) for p in range(2, 21, 2)]
+    powers = list(powers)
+    vals = [float(asph.get(f"a{p}", 0.0)) for p in powers]
     while vals and vals[-1] == 0.0:
         vals.pop()
-    return {f"a{2 * (i + 1)}": v for i, v in enumerate(vals)}
+    return {f"a{p}": v for p, v in zip(powers, vals)}
+
+
+#: Powers of the "aspheric" terms of each surface type.
+ASPHERIC_POWERS = {"even_asphere": range(2, 21, 2), "odd_asphere": range(1, 9), "toroidal": range(2, 15, 2)}
+
+
+def rotation_radius_canonical(r):
+    """A toroid's radius of rotation: "inf" (also for None or 0, as OpticStudio reads 0), else a float."""
+    if r is None or r == "inf" or r == 0 or (isinstance(r, float) and math.isinf(r)):
+        return "inf"
+    return float(r)
+
+
+def system_aperture_canonical(ap):
+    """``{kind: float}``, or None for no system aperture / float by stop size (the two are the same lens)."""
+    if not ap or ap.get("float_by_stop_size"):
+        return None
+    (kind, value), = ap.items()
+    return {kind: float(value)}
 
 
 def material_canonical(m):
@@ -84,8 +105,10 @@ def surface_canonical(s: dict) -> dict:
     else:
         out.update(shape_entry(curvature_of(s)))
         out["conic"] = float(s.get("conic", 0.0))
-        if kind == "even_asphere":
-            out["aspheric"] = aspheric_canonical(s.get("aspheric"))
+        if kind == "toroidal":
+            out["radius_of_rotation"] = rotation_radius_canonical(s.get("radius_of_rotation"))
+        if kind in ASPHERIC_POWERS:
+            out["aspheric"] = aspheric_canonical(s.get("aspheric"), ASPHERIC_POWERS[kind])
     out["thickness"] = float(s["thickness"])
     out["material"] = material_canonical(s.get("material", "air"))
     out["aperture"] = aperture_canonical(s.get("aperture"))
@@ -112,8 +135,9 @@ def canonical_spec(spec: dict) -> dict:
         out["catalogs"] = list(spec["catalogs"])
     d = (spec.get("object") or {}).get("distance", "inf")
     out["object"] = {"distance": "inf" if d == "inf" else float(d)}
-    if spec.get("system_aperture"):
-        out["system_aperture"] = {"epd": float(spec["system_aperture"]["epd"])}
+    ap = system_aperture_canonical(spec.get("system_aperture"))
+    if ap is not None:
+        out["system_aperture"] = ap
     f = spec.get("fields") or {"type": "angle", "values": [0.0]}
     out["fields"] = {"type": f.get("type", "angle"), "values": [float(v) for v in f["values"]]}
     w = spec.get("wavelengths") or DEFAULT_WAVELENGTHS

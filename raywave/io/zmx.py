@@ -1,14 +1,15 @@
 """Zemax OpticStudio .zmx files (sequential subset) <-> lens specs.
 
-What is read (see docs/lens-format.md, "Zemax .zmx"): system data (NAME, UNIT, ENPD / FLOA, GCAT, FTYP,
-XFLN/YFLN, WAVM/WAVL, PWAV) and the surfaces ``SURF n`` of types STANDARD, EVENASPH and PARAXIAL with
+What is read (see docs/lens-format.md, "Zemax .zmx"): system data (NAME, UNIT, the system aperture: ENPD, FNUM
+(image-space or paraxial working F/#), OBNA (object NA or cone angle), FLOA; GCAT, FTYP, XFLN/YFLN, WAVM/WAVL,
+PWAV) and the surfaces ``SURF n`` of types STANDARD, EVENASPH, ODDASPHE, TOROIDAL and PARAXIAL with
 STOP, CURV, DISZ, GLAS, DIAM, CONI, PARM, COMM and CLAP / SQAP / FLAP apertures. Surface 0 is the object
 (its DISZ is the object distance), the last surface is the image plane (dropped: the thickness before it
 is the distance to the image). A diffractive surface (BINARY_2, DGRATING, ...) as the last surface before the
 image becomes the spec's "doe" (the DOE plane of a hybrid lens; BINARY_2 coefficients become its
 ``phase_model``, and :func:`write_zmx` writes such a DOE back as a BINARY_2 surface). Anything raywave
-cannot model (other surface types, mirrors, tilted or
-decentred apertures, curved object or image, F/# or NA system apertures, non-sequential mode) raises
+cannot model (other surface types, coordinate breaks, mirrors, decentred
+apertures, curved object or image, non-sequential mode) raises
 :class:`LensFileError` naming the surface and line; known bookkeeping keys are skipped and unknown keys
 give one :class:`LensFileWarning` listing them.
 
@@ -25,10 +26,19 @@ from pathlib import Path
 
 from raywave.io.errors import LensFileError, LensFileWarning
 from raywave.io.json_format import FORMAT_NAME, FORMAT_VERSION, UNITS, validate_spec
-from raywave.io.spec import DEFAULT_WAVELENGTHS, aspheric_canonical, curvature_of, shape_entry
+from raywave.io.spec import (DEFAULT_WAVELENGTHS, aspheric_canonical, curvature_of, rotation_radius_canonical,
+                             shape_entry)
 
 #: Zemax surface types raywave models, and their spec type.
-SURFACE_TYPES = {"STANDARD": "standard", "EVENASPH": "even_asphere", "PARAXIAL": "paraxial"}
+SURFACE_TYPES = {"STANDARD": "standard", "EVENASPH": "even_asphere", "ODDASPHE": "odd_asphere",
+                 "TOROIDAL": "toroidal", "PARAXIAL": "paraxial"}
+#: Types raywave cannot trace yet, with what they are (a clearer error than "not supported").
+KNOWN_UNSUPPORTED_TYPES = {
+    "COORDBRK": "coordinate break (decentre / tilt of the following surfaces): raywave traces surfaces on one axis",
+    "BICONIC": "biconic", "SZERNSAG": "Zernike standard sag", "FZERNSAG": "Zernike fringe sag",
+    "XPOLYNOM": "extended polynomial", "POLYNOMI": "polynomial", "GRID_SAG": "grid sag", "CYLINDER": "cylinder",
+    "IRREGULA": "irregular", "USERSURF": "user-defined (DLL)", "GRADIENT": "gradient index",
+}
 #: Zemax diffractive surface types: as the last surface before the image, such a surface is the DOE plane of
 #: a hybrid lens (spec "doe"); anywhere else it is an error. Also any type whose name says diffractive.
 DIFFRACTIVE_TYPES = {"BINARY_1", "BINARY_2", "BINARY_3", "BINARY_4", "DGRATING", "RADGRATI", "ELGRATIN", "ELGRAT2",
@@ -50,6 +60,8 @@ def is_diffractive_type(typ: str) -> bool:
 UNIT_SCALE = {"MM": 1.0, "CM": 10.0, "IN": 25.4, "INCH": 25.4, "M": 1000.0, "METER": 1000.0, "METERS": 1000.0}
 #: EVENASPH: PARM i multiplies r^(2i) (PARM 1 = a2, ..., PARM 8 = a16).
 MAX_EVENASPH_PARM = 8
+#: ODDASPHE: PARM i multiplies r^i (PARM 1 = b1, ..., PARM 8 = b8).
+MAX_ODDASPHE_PARM = 8
 
 #: Surface keys skipped on purpose: they do not change the rays raywave traces.
 IGNORED_SURFACE_KEYS = {
@@ -89,10 +101,12 @@ IGNORED_SYSTEM_KEYS = {
     "OPDX", "EFFL", "PUPD", "TCED", "FWGN", "FWGT", "VDXN", "VDYN", "VCXN", "VCYN", "VANN", "WWGN", "WWGT",
     "WAVN", "MNUM", "NOTE", "FIMP", "SCOL", "SCTH",
 }
-#: System aperture types other than an entrance pupil diameter or a floating stop.
-UNSUPPORTED_SYSTEM_APERTURES = {
-    "FNUM": "image-space F/# (or paraxial working F/#)",
-    "OBNA": "object-space NA (or object cone angle)",
+#: System aperture keys -> spec "system_aperture" key, by the flag after the value (FNUM v 0 = image-space F/#,
+#: FNUM v 1 = paraxial working F/#; OBNA v 0 = object-space NA, OBNA v 1 = object cone angle in degrees).
+SYSTEM_APERTURE_KEYS = {
+    "ENPD": {0: "epd"},
+    "FNUM": {0: "f_number", 1: "working_f_number"},
+    "OBNA": {0: "object_na", 1: "object_cone_angle"},
 }
 
 
@@ -202,7 +216,7 @@ def _interpret(text: str, path: str) -> dict:
     scale = 1.0
     name = ""
     mode_seq = None
-    epd = None
+    sys_ap = None  # (spec key, value in file units, line)
     floating = False
     catalogs: list[str] = []
     ftyp = None
@@ -225,13 +239,23 @@ def _interpret(text: str, path: str) -> dict:
             if u not in UNIT_SCALE:
                 raise err(f"UNIT {u}: unknown lens unit (known: {', '.join(UNIT_SCALE)})", ln)
             scale = UNIT_SCALE[u]
-        elif key == "ENPD":
-            epd = (_float(toks[0], path, ln, "ENPD"), ln)
+        elif key in SYSTEM_APERTURE_KEYS:
+            if not toks:
+                raise err(f"{key} needs a value", ln)
+            flag = int(float(toks[1])) if len(toks) > 1 and key != "ENPD" else 0
+            kinds = SYSTEM_APERTURE_KEYS[key]
+            if flag not in kinds:
+                raise err(f"{key} {rest}: unknown system aperture flag {flag} (known: "
+                          f"{', '.join(f'{f} = {k}' for f, k in kinds.items())})", ln)
+            value = _float(toks[0], path, ln, key)
+            if not (math.isfinite(value) and value > 0):
+                raise err(f"{key} {rest}: the system aperture value must be > 0", ln)
+            if sys_ap is not None and sys_ap[0] != kinds[flag]:
+                raise err(f"{key}: a second system aperture (line {sys_ap[2]} already gives {sys_ap[0]}); "
+                          "a .zmx file has one system aperture type", ln)
+            sys_ap = (kinds[flag], value, ln)
         elif key == "FLOA":
             floating = True
-        elif key in UNSUPPORTED_SYSTEM_APERTURES:
-            raise err(f"{key}: system aperture type {UNSUPPORTED_SYSTEM_APERTURES[key]} is not supported; "
-                      "raywave needs an entrance pupil diameter (ENPD) or a floating stop (FLOA)", ln)
         elif key == "GCAT":
             catalogs = toks
         elif key == "FTYP":
@@ -305,10 +329,17 @@ def _interpret(text: str, path: str) -> dict:
     if catalogs:
         spec["catalogs"] = catalogs
     spec["object"] = {"distance": distance}
-    if epd is not None:
-        if not epd[0] > 0:
-            raise err(f"ENPD {epd[0]!r}: the entrance pupil diameter must be > 0", epd[1])
-        spec["system_aperture"] = {"epd": epd[0] * scale}
+    if sys_ap is not None:
+        kind, value, ln = sys_ap
+        if kind in ("object_na", "object_cone_angle"):
+            if distance == "inf":
+                raise err(f"{'OBNA' if kind == 'object_na' else 'OBNA (cone angle)'}: an object-space "
+                          f"{'NA' if kind == 'object_na' else 'cone angle'} needs an object at a finite distance "
+                          "(surface 0 DISZ is INFINITY)", ln)
+            limit = 1.0 if kind == "object_na" else 90.0
+            if not value < limit:
+                raise err(f"OBNA {value!r}: must be < {limit:g} ({'NA in air' if limit == 1.0 else 'degrees'})", ln)
+        spec["system_aperture"] = {kind: value * scale if kind == "epd" else value}
 
     # fields
     nfld = ftyp[0][2] if ftyp and len(ftyp[0]) >= 3 else None
@@ -360,14 +391,16 @@ def _interpret(text: str, path: str) -> dict:
         else:
             s.update(shape_entry(p["curv"]))
             s["conic"] = p["conic"]
-            if p["kind"] == "even_asphere":
+            if p["kind"] == "toroidal":
+                s["radius_of_rotation"] = p["rotation"]
+            if p["kind"] in ("even_asphere", "odd_asphere", "toroidal"):
                 s["aspheric"] = p["aspheric"]
         if p["disz"] is None or math.isinf(p["disz"]):
             raise err(f"surface {p['number']}: thickness (DISZ) must be finite", p["line"])
         s["thickness"] = p["disz"]
         s["material"] = p["material"]
         aperture = p["aperture"]
-        if aperture is None and p["stop"] and epd is None and p["diam"]:
+        if aperture is None and p["stop"] and "system_aperture" not in spec and p["diam"]:
             aperture = {"shape": "circle", "radius": p["diam"]}  # float by stop size: the stop's semi-diameter
         s["aperture"] = aperture
         if p["diam"] is not None:
@@ -379,8 +412,9 @@ def _interpret(text: str, path: str) -> dict:
     spec["surfaces"] = surfaces
     if doe is not None:
         spec["doe"] = doe
-    if floating and epd is not None:
-        warnings.warn(LensFileWarning(f"{path}: both ENPD and FLOA given; using ENPD"), stacklevel=3)
+    if floating and sys_ap is not None:
+        warnings.warn(LensFileWarning(f"{path}: both {sys_ap[0]} (line {sys_ap[2]}) and FLOA given; using "
+                                      f"{sys_ap[0]}"), stacklevel=3)
 
     if unknown:
         listed = ", ".join(f"{k} (line {ln})" for k, ln in sorted(unknown.items(), key=lambda kv: kv[1]))
@@ -411,8 +445,9 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
                 typ_line = ln
                 continue
             if typ not in SURFACE_TYPES:
-                raise LensFileError(f"{where}: surface type {typ} is not supported by raywave (supported: "
-                                    f"{', '.join(SURFACE_TYPES)})", path, ln)
+                what = f" ({KNOWN_UNSUPPORTED_TYPES[typ]})" if typ in KNOWN_UNSUPPORTED_TYPES else ""
+                raise LensFileError(f"{where}: surface type {typ}{what} is not supported by raywave (supported: "
+                                    f"{', '.join(SURFACE_TYPES)}, and a diffractive last surface)", path, ln)
             p["kind"] = SURFACE_TYPES[typ]
             typ_line = ln
         elif key == "CURV":
@@ -488,6 +523,26 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
         coeffs = {f"a{2 * i}": v * scale ** (1 - 2 * i) for i, (v, _) in parms.items()
                   if 1 <= i <= MAX_EVENASPH_PARM}
         p["aspheric"] = aspheric_canonical(coeffs)
+    elif p["kind"] == "odd_asphere":
+        bad = [(i, ln) for i, (v, ln) in parms.items() if not 1 <= i <= MAX_ODDASPHE_PARM and v != 0.0]
+        if bad:
+            raise LensFileError(f"{where}: ODDASPHE PARM {bad[0][0]} is not an odd-asphere coefficient "
+                                f"(PARM 1..{MAX_ODDASPHE_PARM} = b1..b8 on r^1..r^8)", path, bad[0][1])
+        coeffs = {f"a{i}": v * scale ** (1 - i) for i, (v, _) in parms.items() if 1 <= i <= MAX_ODDASPHE_PARM}
+        p["aspheric"] = aspheric_canonical(coeffs, range(1, MAX_ODDASPHE_PARM + 1))
+    elif p["kind"] == "toroidal":
+        # PARM 0 = extrapolate flag (tracing only), 1 = radius of rotation (0: infinite), 2..8 = a2..a14 on y^2..y^14,
+        # 13 = number of Zernike terms (must be 0), 14 = their normalisation radius
+        bad = [(i, ln) for i, (v, ln) in parms.items() if i not in (0, 1, 14) and not 2 <= i <= 8 and v != 0.0]
+        if bad:
+            what = "Zernike sag terms on a TOROIDAL surface are" if bad[0][0] == 13 else \
+                f"TOROIDAL PARM {bad[0][0]} is"
+            raise LensFileError(f"{where}: {what} not supported (PARM 1 = radius of rotation, PARM 2..8 = "
+                                "a2..a14 on y^2..y^14)", path, bad[0][1])
+        r = parms.get(1, (0.0, None))[0]
+        p["rotation"] = "inf" if r == 0.0 or math.isinf(r) else r * scale
+        coeffs = {f"a{2 * (i - 1)}": v * scale ** (1 - 2 * (i - 1)) for i, (v, _) in parms.items() if 2 <= i <= 8}
+        p["aspheric"] = aspheric_canonical(coeffs, range(2, 15, 2))
     elif p["kind"] == "paraxial":
         if 1 in parms:
             p["focal"] = parms[1][0] * scale
@@ -596,8 +651,7 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     w("MODE SEQ")
     w(f"NAME {spec.get('name', '')}".rstrip())
     w("UNIT MM X W X CM MR CPMM")
-    epd = (spec.get("system_aperture") or {}).get("epd")
-    w(f"ENPD {_num(epd)}" if epd is not None else "FLOA")
+    w(_system_aperture_line(spec.get("system_aperture")))
     catalogs = list(spec.get("catalogs") or [])
     for s in spec["surfaces"]:
         m = s.get("material")
@@ -634,7 +688,7 @@ def zmx_text(spec: dict, source="<spec>") -> str:
             w("  STOP")
         if s.get("comment"):
             w("  COMM " + " ".join(str(s["comment"]).split()))
-        w("  TYPE " + {"standard": "STANDARD", "even_asphere": "EVENASPH", "paraxial": "PARAXIAL"}[kind])
+        w("  TYPE " + {v: k for k, v in SURFACE_TYPES.items()}[kind])
         if kind != "paraxial":
             w(f"  CURV {_num(curvature_of(s))}")
         w(f"  DISZ {_num(doe['distance'] if binary2 and i == nsurf else s['thickness'])}")
@@ -653,6 +707,16 @@ def zmx_text(spec: dict, source="<spec>") -> str:
                                         "(PARM 8)", source)
             for j in range(1, MAX_EVENASPH_PARM + 1):
                 w(f"  PARM {j} {_num(asph.get(f'a{2 * j}', 0.0))}")
+        if kind == "odd_asphere":
+            asph = aspheric_canonical(s.get("aspheric"), range(1, MAX_ODDASPHE_PARM + 1))
+            for j in range(1, MAX_ODDASPHE_PARM + 1):
+                w(f"  PARM {j} {_num(asph.get(f'a{j}', 0.0))}")
+        if kind == "toroidal":
+            r = rotation_radius_canonical(s.get("radius_of_rotation"))
+            w(f"  PARM 1 {_num(0.0 if r == 'inf' else r)}")
+            asph = aspheric_canonical(s.get("aspheric"), range(2, 15, 2))
+            for j in range(2, 9):
+                w(f"  PARM {j} {_num(asph.get(f'a{2 * (j - 1)}', 0.0))}")
         if kind == "paraxial":
             w(f"  PARM 1 {_num(s['focal_length'])}")
         ap = s.get("aperture")
@@ -685,6 +749,17 @@ def zmx_text(spec: dict, source="<spec>") -> str:
         warnings.warn(LensFileWarning(f"{source}: .zmx files do not store {' and '.join(lost)}; "
                                       "they are left out"), stacklevel=3)
     return "\r\n".join(out) + "\r\n"
+
+
+def _system_aperture_line(ap) -> str:
+    """The .zmx line of a spec's "system_aperture" (FLOA without one)."""
+    if not ap or ap.get("float_by_stop_size"):
+        return "FLOA"
+    for key, kinds in SYSTEM_APERTURE_KEYS.items():
+        for flag, kind in kinds.items():
+            if kind in ap:
+                return f"ENPD {_num(ap[kind])}" if key == "ENPD" else f"{key} {_num(ap[kind])} {flag}"
+    raise ValueError(f"unknown system aperture {ap!r}")  # validate_spec rejects it first
 
 
 def _write_binary2(w, number: int, doe: dict, last: dict, source) -> None:

@@ -7,12 +7,13 @@ spec into modules with real parameters, and a lens back into a spec (exact round
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 from raywave.lens.lens import Lens
 from raywave.materials import get_material
 from raywave.surfaces.aperture import aperture_from_spec
-from raywave.surfaces.geometry import EvenAsphere, Plane, Standard
+from raywave.surfaces.geometry import EvenAsphere, OddAsphere, Plane, Standard, Toroidal
 from raywave.surfaces.interaction import IdealLens
 from raywave.surfaces.surface import Surface
 
@@ -26,12 +27,19 @@ def _curvature(s: dict) -> float:
     return 1.0 / float(r)
 
 
-def _aspheric_list(asph: dict) -> list[float]:
-    """{"a2":.., "a4":..} -> [a2, a4, ..., a_max] (zeros filled in)."""
+def _aspheric_list(asph: dict, first: int = 2, step: int = 2) -> list[float]:
+    """{"a2":.., "a4":..} -> [a2, a4, ..., a_max] (zeros filled in); ``first=1, step=1``: [a1, a2, a3, ...]."""
     if not asph:
         return [0.0]
     top = max(int(k[1:]) for k in asph)
-    return [float(asph.get(f"a{p}", 0.0)) for p in range(2, top + 1, 2)]
+    return [float(asph.get(f"a{p}", 0.0)) for p in range(first, top + 1, step)]
+
+
+def _rotation_curvature(r) -> float:
+    """1 / radius of rotation of a toroid spec ("inf" -> 0)."""
+    if r is None or r == "inf" or (isinstance(r, float) and math.isinf(r)):
+        return 0.0
+    return 1.0 / float(r)
 
 
 def surface_from_spec(s: dict, catalogs=None, where: str = "surface") -> Surface:
@@ -54,6 +62,14 @@ def surface_from_spec(s: dict, catalogs=None, where: str = "surface") -> Surface
     elif kind == "even_asphere":
         geom = EvenAsphere(_curvature(s), float(s.get("conic", 0.0)), _aspheric_list(s.get("aspheric", {})))
         surf = Surface(geom, material, **common)
+    elif kind == "odd_asphere":
+        geom = OddAsphere(_curvature(s), float(s.get("conic", 0.0)), _aspheric_list(s.get("aspheric", {}), 1, 1))
+        surf = Surface(geom, material, **common)
+    elif kind == "toroidal":
+        geom = Toroidal(_curvature(s), float(s.get("conic", 0.0)), _rotation_curvature(s.get("radius_of_rotation")),
+                        _aspheric_list(s.get("aspheric", {})))
+        surf = Surface(geom, material, **common)
+        surf._spec_rotation = s.get("radius_of_rotation")  # remembered for an exact round trip
     elif kind == "paraxial":
         surf = Surface(Plane(), material, interaction=IdealLens(float(s["focal_length"])), **common)
     else:
@@ -65,14 +81,22 @@ def surface_from_spec(s: dict, catalogs=None, where: str = "surface") -> Surface
 def lens_from_spec(spec: dict) -> Lens:
     """Build a :class:`Lens` from a (validated) lens spec."""
     catalogs = spec.get("catalogs")
-    surfaces = [surface_from_spec(s, catalogs, f"surfaces[{i}]") for i, s in enumerate(spec["surfaces"])]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        surfaces = [surface_from_spec(s, catalogs, f"surfaces[{i}]") for i, s in enumerate(spec["surfaces"])]
+    seen = set()
+    for w in caught:  # once per lens: a glass on several surfaces taken from an unnamed catalog warns once
+        key = (w.category, str(w.message))
+        if key not in seen:
+            seen.add(key)
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     obj = spec.get("object", {}) or {}
     dist = obj.get("distance", "inf")
     dist = math.inf if dist == "inf" else float(dist)
     fields = spec.get("fields") or {"type": "angle", "values": [0.0]}
     wls = spec.get("wavelengths") or {"values": [0.4861327, 0.5875618, 0.6562725], "primary": 1}
     sensor = spec.get("sensor") or {}
-    epd = (spec.get("system_aperture") or {}).get("epd")
+    ap = spec.get("system_aperture") or None
     lens = Lens(
         surfaces,
         object_distance=dist,
@@ -82,9 +106,9 @@ def lens_from_spec(spec: dict) -> Lens:
         primary=int(wls.get("primary", 0)),
         sensor_size=sensor.get("size"),
         sensor_resolution=sensor.get("resolution"),
-        epd=epd,
         name=spec.get("name", ""),
         catalogs=catalogs,
+        system_aperture=ap,
     )
     lens._spec_extra = {k: spec[k] for k in ("description",) if k in spec}
     return lens
@@ -122,9 +146,21 @@ def surface_to_spec(surface: Surface) -> dict:
     else:
         out.update(_radius_entry(surface))
         out["conic"] = float(g.conic.detach())
-        if surface.kind == "even_asphere":
+        if surface.kind == "toroidal":
+            cr = float(g.rotation_curvature.detach())
+            remembered = getattr(surface, "_spec_rotation", None)
+            if cr == 0.0:
+                out["radius_of_rotation"] = "inf"
+            elif isinstance(remembered, (int, float)) and remembered != 0 and 1.0 / float(remembered) == cr:
+                out["radius_of_rotation"] = float(remembered)
+            else:
+                out["radius_of_rotation"] = 1.0 / cr
+        if surface.kind in ("even_asphere", "toroidal"):
             coeffs = g.coefficients.detach().tolist()
             out["aspheric"] = {f"a{2 * (i + 1)}": float(a) for i, a in enumerate(coeffs)}
+        elif surface.kind == "odd_asphere":
+            coeffs = g.coefficients.detach().tolist()
+            out["aspheric"] = {f"a{i + 1}": float(a) for i, a in enumerate(coeffs)}
     out["thickness"] = float(surface.thickness.detach())
     out["material"] = surface.material.to_spec()
     out["aperture"] = None if surface.aperture is None else surface.aperture.to_spec()
@@ -145,7 +181,9 @@ def lens_to_spec(lens: Lens) -> dict:
     if lens.catalogs:
         spec["catalogs"] = list(lens.catalogs)
     spec["object"] = {"distance": "inf" if math.isinf(lens.object_distance) else lens.object_distance}
-    if lens.epd is not None:
+    if lens.system_aperture:
+        spec["system_aperture"] = dict(lens.system_aperture)
+    elif lens.epd is not None:
         spec["system_aperture"] = {"epd": lens.epd}
     spec["fields"] = {"type": lens.field_type, "values": list(lens.fields)}
     spec["wavelengths"] = {"values": list(lens.wavelengths), "primary": lens.primary}

@@ -30,7 +30,7 @@ class TraceRecord:
 
 
 class Lens(nn.Module):
-    """A rotationally symmetric sequential lens.
+    """A sequential lens on one axis (rotationally symmetric unless a surface is a toroid).
 
     Geometry: surface ``i`` has its vertex at ``z_i`` = sum of the thicknesses before it (the first vertex
     at z = 0); the image (sensor) plane is at ``z_image`` = sum of all thicknesses. Light travels toward +z.
@@ -43,6 +43,8 @@ class Lens(nn.Module):
         wavelengths: analysis wavelengths (µm); ``primary`` indexes the design wavelength.
         sensor_size: (w, h) of the sensor (mm); ``sensor_resolution``: (nx, ny) pixels.
         epd: entrance pupil diameter (mm). If given, the stop's aperture radius is set from it.
+        system_aperture: instead of ``epd``, any OpticStudio system aperture type as a one-key dict
+            (``{"f_number": 4}``, ``{"object_na": 0.1}``, ...; see :meth:`set_system_aperture`).
     """
 
     def __init__(
@@ -59,6 +61,7 @@ class Lens(nn.Module):
         epd: float | None = None,
         name: str = "",
         catalogs=None,
+        system_aperture: dict | None = None,
     ):
         super().__init__()
         if len(surfaces) == 0:
@@ -86,9 +89,14 @@ class Lens(nn.Module):
         self.name = name
         self.catalogs = list(catalogs) if catalogs else None
         self.epd = None if epd is None else float(epd)
+        self.system_aperture = None
         self.check_geometry()
+        if system_aperture and self.epd is not None:
+            raise ValueError("give either epd or system_aperture, not both")
         if self.epd is not None:
             self.set_entrance_pupil_diameter(self.epd)
+        elif system_aperture:
+            self.set_system_aperture(system_aperture)
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -137,10 +145,12 @@ class Lens(nn.Module):
                 r = 0.0
             rs = torch.linspace(0, r, 65, dtype=torch.float64)
             zero = torch.zeros_like(rs)
+            xs, ys = torch.cat([rs, zero]), torch.cat([zero, rs])  # along x and along y (toroids differ)
+            rs = torch.cat([rs, rs])
             with torch.no_grad():
-                za = z[i] + a.geometry.sag(rs, zero)
-                zb = z[i + 1] + b.geometry.sag(rs, zero)
-                ok = a.geometry.in_domain(rs, zero) & b.geometry.in_domain(rs, zero)
+                za = z[i] + a.geometry.sag(xs, ys)
+                zb = z[i + 1] + b.geometry.sag(xs, ys)
+                ok = a.geometry.in_domain(xs, ys) & b.geometry.in_domain(xs, ys)
             gap = (zb - za)[ok]
             if float(a.thickness.detach()) < 0 and not a.material.is_air:
                 raise ValueError(f"surface {i}: negative thickness {float(a.thickness.detach())} mm inside glass {a.material.name!r}")
@@ -151,8 +161,37 @@ class Lens(nn.Module):
                     f"{-float(gap.min()):.4g} mm before surface {i} (thickness {float(a.thickness.detach()):.6g} mm too small)"
                 )
 
+    def set_system_aperture(self, aperture: dict | None) -> None:
+        """Size the stop from a system aperture, as OpticStudio does: ``{"epd": mm}``, ``{"f_number": F}``
+        (image space), ``{"working_f_number": F}`` (paraxial working F/#), ``{"object_na": NA}``,
+        ``{"object_cone_angle": degrees}`` or ``{"float_by_stop_size": True}`` / None (the stop's aperture stays).
+
+        The conversion to an entrance pupil diameter (:func:`raywave.lens.paraxial.epd_from_system_aperture`) is
+        done now, with the current prescription, at the primary wavelength; ``self.epd`` is the result and
+        ``self.system_aperture`` remembers the request (it is what :func:`raywave.lens.build.lens_to_spec`
+        writes)."""
+        from raywave.lens import paraxial
+
+        if not aperture or aperture.get("float_by_stop_size"):
+            self.system_aperture = None
+            self.epd = None
+            return
+        if len(aperture) != 1:
+            raise ValueError(f"a system aperture has one type, got {aperture!r}")
+        (kind, value), = aperture.items()
+        epd = paraxial.epd_from_system_aperture(self, kind, value)
+        self._size_stop(epd)
+        self.system_aperture = {kind: float(value)}
+
     def set_entrance_pupil_diameter(self, epd: float) -> None:
         """Size the stop so that the paraxial entrance pupil diameter is ``epd`` (mm)."""
+        if not epd > 0:
+            raise ValueError(f"entrance pupil diameter must be > 0 mm, got {epd!r}")
+        self._size_stop(epd)
+        self.system_aperture = {"epd": float(epd)}
+
+    def _size_stop(self, epd: float) -> None:
+        """Give the stop the circular radius that makes the paraxial entrance pupil ``epd`` mm wide."""
         from raywave.lens import paraxial
         from raywave.surfaces.aperture import CircularAperture
 

@@ -3,7 +3,8 @@
 State vector (y, n·u): height (mm) and reduced slope. Refraction by a surface of power φ:
 [[1, 0], [-φ, 1]]; a gap of thickness t in index n: [[1, t/n], [0, 1]]. Both have determinant 1.
 Surface powers include the r² term of even aspheres (vertex curvature c + 2·a2), which tools that use only
-the base radius leave out, and the power of ideal (paraxial) lenses.
+the base radius leave out, and the power of ideal (paraxial) lenses. A lens with a toroid is modelled in its
+y–z section (``ParaxialData.section == "y-z"``), as OpticStudio does.
 
 Every length is measured in mm along z from the first vertex unless its name says otherwise.
 """
@@ -61,6 +62,68 @@ def stop_to_entrance_pupil(lens, wavelength: float) -> tuple[torch.Tensor, torch
     return b * n[0] / a, a
 
 
+def marginal_slope_per_epd(lens, wavelength: float) -> float:
+    """|n'·u'| of the paraxial marginal ray in image space for an entrance pupil of diameter 1 mm (it scales
+    with the EPD): the ray from the axial object point (or parallel to the axis) to the pupil's rim."""
+    m = system_matrix(lens, wavelength).detach()
+    n = [float(x.detach()) for x in surface_powers(lens, wavelength)[1]]
+    a, b, c, d = (float(v) for v in (m[0, 0], m[0, 1], m[1, 0], m[1, 1]))
+    if math.isinf(lens.object_distance):
+        return abs(c * 0.5)
+    s = lens.object_distance
+    ep_z = float(stop_to_entrance_pupil(lens, wavelength)[0].detach())
+    u0 = 0.5 / (s + ep_z)
+    return abs(c * s * u0 + d * n[0] * u0)
+
+
+def epd_from_system_aperture(lens, kind: str, value: float, wavelength: float | None = None) -> float:
+    """The paraxial entrance pupil diameter (mm) that a system aperture of type ``kind`` and ``value`` gives, as
+    OpticStudio converts it (at ``wavelength``, default the primary; docs/lens-format.md "System aperture"):
+
+    * ``epd``: the value;
+    * ``f_number`` (image-space F/#): |EFL| / F, EFL at infinite conjugates;
+    * ``working_f_number`` (paraxial working F/#): the EPD whose paraxial marginal ray leaves the lens with
+      1 / (2 |n'u'|) = the value (for a distant object in air the same as ``f_number``);
+    * ``object_na`` (n sin θ) and ``object_cone_angle`` (θ, degrees): the marginal ray from the axial object
+      point at angle θ reaches the rim of the paraxial entrance pupil: EPD = 2 |s + z_EP| tan θ (finite object).
+    """
+    wl = lens.primary_wavelength if wavelength is None else wavelength
+    value = float(value)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"system aperture {kind}: value must be > 0, got {value!r}")
+    if kind == "epd":
+        return value
+    if kind == "f_number":
+        c = float(system_matrix(lens, wl)[1, 0].detach())
+        if c == 0.0:
+            raise ValueError("system aperture f_number: the lens is afocal (no focal length); give an epd")
+        return abs(1.0 / c) / value
+    if kind == "working_f_number":
+        per = marginal_slope_per_epd(lens, wl)
+        if per == 0.0:
+            raise ValueError("system aperture working_f_number: the paraxial marginal ray leaves the lens parallel "
+                             "to the axis (image at infinity); give an epd")
+        return 1.0 / (2.0 * value * per)
+    if kind in ("object_na", "object_cone_angle"):
+        if math.isinf(lens.object_distance):
+            raise ValueError(f"system aperture {kind} needs an object at a finite distance")
+        if kind == "object_na":
+            n0 = float(lens.object_material.n(torch.tensor(float(wl), dtype=torch.float64)).detach())
+            if not value < n0:
+                raise ValueError(f"system aperture object_na {value!r} must be < the object-space index {n0!r}")
+            theta = math.asin(value / n0)
+        else:
+            if not value < 90.0:
+                raise ValueError(f"system aperture object_cone_angle {value!r} must be < 90 degrees")
+            theta = math.radians(value)
+        dist = lens.object_distance + float(stop_to_entrance_pupil(lens, wl)[0].detach())
+        if dist == 0.0:
+            raise ValueError(f"system aperture {kind}: the entrance pupil lies on the object plane")
+        return 2.0 * abs(dist) * math.tan(theta)
+    raise ValueError(f"unknown system aperture type {kind!r} (known: epd, f_number, working_f_number, object_na, "
+                     "object_cone_angle, float_by_stop_size)")
+
+
 @dataclass
 class ParaxialData:
     """First-order properties (mm, degrees). z values are measured from the first vertex."""
@@ -80,6 +143,9 @@ class ParaxialData:
     total_track: float
     image_z_paraxial: float
     magnification: float
+    #: "rotational", or "y-z" when a surface is not rotationally symmetric (a toroid): every value above is then
+    #: that of the y–z section (as OpticStudio reports it); the x–z section has other values.
+    section: str = "rotational"
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -132,8 +198,8 @@ def paraxial_data(lens, wavelength: float) -> ParaxialData:
         fnum = abs(efl) / epd
         mag = 0.0
         # Working F/#: 1 / (2 n' sin u') of the paraxial marginal ray (image space)
-        u_img = (epd / 2) * float(c) / float(n[-1])
-        working = 1.0 / (2.0 * abs(u_img)) if u_img else math.inf
+        nu_img = (epd / 2) * float(c)  # n'·u' of the marginal ray
+        working = 1.0 / (2.0 * abs(nu_img)) if nu_img else math.inf
     else:
         s = lens.object_distance
         # Marginal ray from the axial object point to the edge of the entrance pupil.
@@ -155,7 +221,15 @@ def paraxial_data(lens, wavelength: float) -> ParaxialData:
         wavelength=float(wavelength), efl=efl, bfl=bfl, ffl=ffl, fnum=fnum, working_fnum=working,
         epd=epd, ep_z=float(ep_z), xpd=xpd, xp_z=float(xp_z), fov_deg=fov, image_height=img_h,
         total_track=lens.total_track(), image_z_paraxial=z_img_par, magnification=mag,
+        section=paraxial_section(lens),
     )
+
+
+def paraxial_section(lens) -> str:
+    """"rotational" for a rotationally symmetric lens, "y-z" when a surface (a toroid) is not: the paraxial model
+    then describes the y–z section only."""
+    symmetric = all(getattr(s.geometry, "rotationally_symmetric", True) for s in lens.surfaces)
+    return "rotational" if symmetric else "y-z"
 
 
 def field_of_view(lens, wavelength: float, efl: float, ep_z: float, mag: float) -> tuple[float, float]:

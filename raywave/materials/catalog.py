@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import difflib
 import json
+import warnings
 from functools import cached_property
 from pathlib import Path
 
@@ -25,6 +26,10 @@ BOOK_ORDER = ["MAIN", "ORGANIC", "OTHER"]
 
 class GlassNotFoundError(ValueError):
     """A glass name that no searched catalog holds."""
+
+
+class GlassCatalogWarning(UserWarning):
+    """A glass taken from a catalog the lens does not name, because a catalog it names is not bundled."""
 
 
 def _vendor_index() -> dict[str, dict[str, Path]]:
@@ -130,6 +135,19 @@ class GlassLibrary:
         return GlassRecord(path.stem, d["family"], d["formula"], d["coefficients"], d["wavelength_range"], c,
                            f"refractiveindex.info database (CC0), {rel}: {d['reference']}")
 
+    def _find_unhyphenated(self, catalog: str, name: str) -> GlassRecord | None:
+        """The glass of ``catalog`` whose name without hyphens and spaces is ``name``'s (CODE V's form of vendor
+        names: NBK7 for N-BK7), when exactly one glass matches; vendor catalogs and user catalogs only."""
+        key = name.upper().replace("-", "").replace(" ", "")
+        if catalog.upper() in BOOK_ORDER:
+            return None
+        try:
+            names = self.glasses(catalog)
+        except GlassNotFoundError:
+            return None
+        hits = [g for g in names if g.upper().replace("-", "").replace(" ", "") == key]
+        return self._find_in(catalog, hits[0]) if len(hits) == 1 else None
+
     def _find_in_books(self, shelf: str, name: str) -> GlassRecord | None:
         book_key, _, page_key = name.partition("/")
         hit = self.book_lookup.get(shelf, {}).get(book_key.strip().upper())
@@ -152,20 +170,44 @@ class GlassLibrary:
     def find(self, name: str, catalogs=None) -> GlassRecord:
         """The record of glass ``name``: in ``catalogs`` (in order) if given, else in the user catalogs, the
         bundled table (MISC), the vendor catalogs (SCHOTT, OHARA, CDGM, HOYA, HIKARI, SUMITA, then the
-        database's other vendors), then the database's MAIN, ORGANIC and OTHER shelves."""
+        database's other vendors), then the database's MAIN, ORGANIC and OTHER shelves.
+
+        Named catalogs that this library does not have are skipped; when the glass is in none of the named
+        catalogs it has, and one of them was skipped, every other catalog is searched (in the order above) and
+        a :class:`GlassCatalogWarning` names the catalog used. Only a glass found nowhere is an error (or,
+        when every named catalog is present, a glass not in them: OpticStudio's rule)."""
+        missing: list[str] = []
         if catalogs:
-            order = [c.upper() for c in catalogs]
-            known = set(self.catalogs())
-            unknown = [c for c in order if c not in known]
-            if unknown:
-                raise GlassNotFoundError(f"glass {name!r}: unknown glass catalog(s) {', '.join(unknown)}; "
-                                         f"known: {', '.join(self.catalogs())}")
+            known = self.catalogs()
+            named = list(dict.fromkeys(c.upper() for c in catalogs))
+            missing = [c for c in named if c not in known]
+            order = [c for c in named if c in known]
         else:
             order = self.catalogs()
         for c in order:
             rec = self._find_in(c, name)
             if rec is not None:
                 return rec
+        for c in order:  # CODE V writes vendor names without hyphens (NBK7_SCHOTT for N-BK7)
+            rec = self._find_unhyphenated(c, name)
+            if rec is not None:
+                return rec
+        if missing:
+            # A named catalog raywave does not have may hold the glass: look in every other catalog, and say where
+            # the glass came from (OpticStudio would have searched the missing catalog first).
+            rest = [c for c in self.catalogs() if c not in order]
+            for c in rest:
+                rec = self._find_in(c, name)
+                if rec is not None:
+                    warnings.warn(GlassCatalogWarning(
+                        f"glass {name!r}: not in the named catalog(s) {', '.join(order) or '(none bundled)'}, and "
+                        f"{', '.join(missing)} {'is' if len(missing) == 1 else 'are'} not bundled with raywave; "
+                        f"using {rec.name} from {c}"), stacklevel=4)
+                    return rec
+            order = order + rest
+            if not order:
+                raise GlassNotFoundError(f"glass {name!r}: unknown glass catalog(s) {', '.join(missing)}; "
+                                         f"known: {', '.join(self.catalogs())}")
         pool = sorted({g for c in order for g in self.glasses(c)})
         close = difflib.get_close_matches(name.upper(), [g.upper() for g in pool], n=5, cutoff=0.6)
         by_upper = {g.upper(): g for g in pool}

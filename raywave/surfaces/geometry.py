@@ -26,7 +26,11 @@ def _param(value, requires_grad: bool = True) -> nn.Parameter:
 
 
 class Geometry(nn.Module):
-    """Base class: a rotationally symmetric surface z = sag(x, y) about the local z axis."""
+    """Base class: a surface z = sag(x, y) in the local frame (rotationally symmetric about the local z axis
+    unless ``rotationally_symmetric`` is False)."""
+
+    #: False for shapes whose paraxial data depend on the section (toroids): the paraxial model sees y–z only.
+    rotationally_symmetric = True
 
     def sag(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """Surface height z (mm) at (x, y) (mm)."""
@@ -177,30 +181,180 @@ class EvenAsphere(Standard):
     def normal(self, x, y, z):
         return Geometry.normal(self, x, y, z)
 
-    def _newton_step(self, t, ox, oy, oz, dx, dy, dz):
-        x, y = ox + t * dx, oy + t * dy
-        f = oz + t * dz - self.sag(x, y)
-        zx, zy = self.sag_gradient(x, y)
-        fp = dz - zx * dx - zy * dy
-        okp = fp.abs() > 1e-12
-        return t - f / torch.where(okp, fp, torch.ones_like(fp)), f, okp
+    def intersect(self, ox, oy, oz, dx, dy, dz):
+        return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz), ox, oy, oz, dx, dy, dz)
+
+
+def _newton_step(geom, t, ox, oy, oz, dx, dy, dz):
+    x, y = ox + t * dx, oy + t * dy
+    f = oz + t * dz - geom.sag(x, y)
+    zx, zy = geom.sag_gradient(x, y)
+    fp = dz - zx * dx - zy * dy
+    okp = fp.abs() > 1e-12
+    return t - f / torch.where(okp, fp, torch.ones_like(fp)), f, okp
+
+
+def newton_intersect(geom: Geometry, start, ox, oy, oz, dx, dy, dz):
+    """Ray parameter ``t`` and validity where o + t·d meets ``geom`` (any sag with a gradient), by Newton's method.
+
+    ``start``: (t0, ok0), a first guess (e.g. the base conic's intersection; the vertex plane where ok0 is
+    False). The iteration runs without autograd; one differentiable Newton step from the converged point then
+    gives the implicit-function gradient exactly. Rays whose residual stays above 1e-9 mm, or that land outside
+    the sag's domain, are invalid (t = 0).
+    """
+    t0, ok0 = start
+    plane_t = -oz / torch.where(dz != 0, dz, torch.ones_like(dz))
+    with torch.no_grad():
+        t = torch.where(ok0, t0, plane_t).detach()
+        args = [a.detach() for a in (ox, oy, oz, dx, dy, dz)]
+        for _ in range(NEWTON_MAX_ITER):
+            t_new, _, _ = _newton_step(geom, t, *args)
+            t_new = torch.where(torch.isfinite(t_new), t_new, t)
+            step = (t_new - t).abs()
+            t = t_new
+            if not bool((step > NEWTON_TOL).any()):
+                break
+    # One differentiable step at the converged point: gives the implicit-function gradient.
+    t_final, f, okp = _newton_step(geom, t, ox, oy, oz, dx, dy, dz)
+    x, y = ox + t * dx, oy + t * dy
+    ok = okp & geom.in_domain(x, y) & (f.detach().abs() < 1e-9) & torch.isfinite(t_final)
+    t_final = torch.where(ok, t_final, torch.zeros_like(t_final))
+    return t_final, ok
+
+
+class OddAsphere(Standard):
+    """Odd asphere (Zemax ODDASPHE): conic sag + b1 r + b2 r² + b3 r³ + … + b8 r⁸.
+
+    ``coefficients[i]`` multiplies r^(i+1) (b1, b2, b3, ...), in mm^(-i). b1 ≠ 0 makes the vertex a cone point
+    (its normal is taken along the axis there). Paraxial curvature: c + 2·b2 (b1 is a cone, not a power; as
+    raywave's even asphere, the r² term counts). Intersection: Newton from the conic solution, as
+    :class:`EvenAsphere`.
+    """
+
+    rotationally_symmetric = True
+
+    def __init__(self, curvature: float = 0.0, conic: float = 0.0, coefficients=(0.0,)):
+        super().__init__(curvature, conic)
+        coefficients = list(coefficients) or [0.0]
+        self.coefficients = _param(coefficients)
+
+    def paraxial_curvature(self):
+        b = self.coefficients
+        return self.curvature + (2.0 * b[1] if b.shape[0] > 1 else 0.0 * b[0])
+
+    def _r(self, x, y):
+        r2 = x * x + y * y
+        pos = r2 > 0
+        return safe_sqrt(r2, pos, fill=0.0), pos
+
+    def _poly(self, r):
+        """(Σ b_i r^i, Σ_{i>=2} i b_i r^(i-2)) by Horner's rule."""
+        b = self.coefficients
+        n = b.shape[0]
+        val = torch.zeros_like(r) + b[n - 1]
+        for i in range(n - 2, -1, -1):
+            val = val * r + b[i]
+        if n >= 2:
+            der = torch.zeros_like(r) + n * b[n - 1]
+            for i in range(n - 2, 0, -1):
+                der = der * r + (i + 1) * b[i]
+        else:
+            der = torch.zeros_like(r)
+        return val * r, der
+
+    def sag(self, x, y):
+        r, _ = self._r(x, y)
+        poly, _ = self._poly(r)
+        return super().sag(x, y) + poly
+
+    def sag_gradient(self, x, y):
+        gx, gy = super().sag_gradient(x, y)
+        r, pos = self._r(x, y)
+        _, der = self._poly(r)
+        # d/dr (b1 r) = b1, times x/r; 0 on the axis (the cone point)
+        cone = self.coefficients[0] / torch.where(pos, r, torch.ones_like(r))
+        cone = torch.where(pos, cone, torch.zeros_like(cone))
+        s = der + cone
+        return gx + s * x, gy + s * y
+
+    def normal(self, x, y, z):
+        return Geometry.normal(self, x, y, z)
 
     def intersect(self, ox, oy, oz, dx, dy, dz):
-        t0, ok0 = super().intersect(ox, oy, oz, dx, dy, dz)
-        plane_t = -oz / torch.where(dz != 0, dz, torch.ones_like(dz))
-        with torch.no_grad():
-            t = torch.where(ok0, t0, plane_t).detach()
-            args = [a.detach() for a in (ox, oy, oz, dx, dy, dz)]
-            for _ in range(NEWTON_MAX_ITER):
-                t_new, _, _ = self._newton_step(t, *args)
-                t_new = torch.where(torch.isfinite(t_new), t_new, t)
-                step = (t_new - t).abs()
-                t = t_new
-                if not bool((step > NEWTON_TOL).any()):
-                    break
-        # One differentiable step at the converged point: gives the implicit-function gradient.
-        t_final, f, okp = self._newton_step(t, ox, oy, oz, dx, dy, dz)
-        x, y = ox + t * dx, oy + t * dy
-        ok = okp & self.in_domain(x, y) & (f.detach().abs() < 1e-9) & torch.isfinite(t_final)
-        t_final = torch.where(ok, t_final, torch.zeros_like(t_final))
-        return t_final, ok
+        return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz), ox, oy, oz, dx, dy, dz)
+
+
+class Toroidal(Standard):
+    """Toroid (Zemax TOROIDAL): a curve in the y–z plane rotated about an axis parallel to y at distance R.
+
+    The y–z curve z_y(y) = c y² / (1 + sqrt(1 − (1+k) c² y²)) + a2 y² + a4 y⁴ + … + a14 y¹⁴ (``curvature`` c,
+    ``conic`` k, ``coefficients`` [a2, a4, ...]) turns about the axis (x = 0, z = R), R = 1/``rotation_curvature``
+    (0: R infinite, a cylinder with power in y only):
+
+        z(x, y) = z_y + (q − sqrt(q² − c_r² x²)) / c_r,   q = 1 − c_r z_y,   c_r = 1/R
+
+    (= R − sqrt((R − z_y)² − x²), written to stay exact as c_r → 0). Vertex curvatures: c + 2 a2 in y–z,
+    c_r in x–z. Not rotationally symmetric: paraxial data describe the y–z section (as OpticStudio).
+    Intersection: Newton from the y–z conic's intersection, as :class:`EvenAsphere`.
+    """
+
+    rotationally_symmetric = False
+
+    def __init__(self, curvature: float = 0.0, conic: float = 0.0, rotation_curvature: float = 0.0,
+                 coefficients=(0.0,)):
+        super().__init__(curvature, conic)
+        self.rotation_curvature = _param(rotation_curvature)
+        coefficients = list(coefficients) or [0.0]
+        self.coefficients = _param(coefficients)
+
+    def paraxial_curvature(self):
+        return self.curvature + 2.0 * self.coefficients[0]
+
+    def _profile(self, y):
+        """(z_y, dz_y/dy) of the y–z curve."""
+        c, k = self.curvature, self.conic
+        y2 = y * y
+        arg = 1.0 - (1.0 + k) * c * c * y2
+        ok = arg >= 0
+        root = safe_sqrt(arg, ok, fill=1.0)
+        z = c * y2 / (1.0 + root)
+        dz = c * y / torch.where(arg > 0, root, torch.ones_like(root))
+        a = self.coefficients
+        n = a.shape[0]
+        val = torch.zeros_like(y2) + a[n - 1]
+        der = torch.zeros_like(y2) + (n * a[n - 1])
+        for i in range(n - 2, -1, -1):
+            val = val * y2 + a[i]
+            der = der * y2 + (i + 1) * a[i]
+        return z + val * y2, dz + 2.0 * der * y
+
+    def _rotation(self, x, y):
+        zy, dzy = self._profile(y)
+        cr = self.rotation_curvature
+        q = 1.0 - cr * zy
+        arg = q * q - cr * cr * x * x
+        return zy, dzy, cr, q, arg
+
+    def in_domain(self, x, y):
+        c, k = self.curvature, self.conic
+        _, _, _, q, arg = self._rotation(x, y)
+        return (1.0 - (1.0 + k) * c * c * y * y >= 0) & (arg >= 0) & (q > 0)
+
+    def sag(self, x, y):
+        zy, _, cr, q, arg = self._rotation(x, y)
+        s = safe_sqrt(arg, arg >= 0, fill=0.0)
+        # (q - s) / c_r = c_r x² / (q + s): the second form is exact at c_r = 0
+        den = q + s
+        return zy + cr * x * x / torch.where(den != 0, den, torch.ones_like(den))
+
+    def sag_gradient(self, x, y):
+        zy, dzy, cr, q, arg = self._rotation(x, y)
+        ok = arg > 0
+        s = torch.where(ok, safe_sqrt(arg, ok, fill=1.0), torch.ones_like(arg))
+        return cr * x / s, q / s * dzy
+
+    def normal(self, x, y, z):
+        return Geometry.normal(self, x, y, z)
+
+    def intersect(self, ox, oy, oz, dx, dy, dz):
+        return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz), ox, oy, oz, dx, dy, dz)

@@ -49,13 +49,17 @@ class Surface(nn.Module):
 
     @property
     def kind(self) -> str:
-        """Lens-file type name: 'standard', 'even_asphere' or 'paraxial'."""
-        from raywave.surfaces.geometry import EvenAsphere
+        """Lens-file type name: 'standard', 'even_asphere', 'odd_asphere', 'toroidal' or 'paraxial'."""
+        from raywave.surfaces.geometry import EvenAsphere, OddAsphere, Toroidal
 
         if self.interaction.kind == "ideal_lens":
             return "paraxial"
         if isinstance(self.geometry, EvenAsphere):
             return "even_asphere"
+        if isinstance(self.geometry, OddAsphere):
+            return "odd_asphere"
+        if isinstance(self.geometry, Toroidal):
+            return "toroidal"
         return "standard"
 
     def clear_radius(self) -> float | None:

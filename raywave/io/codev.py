@@ -1,0 +1,331 @@
+"""CODE V sequence files (.seq, sequential subset) -> lens specs.
+
+What is read (docs/lens-format.md, "CODE V .seq"): ``RDM`` (radius mode; ``RDM N``: curvatures), ``TITLE``,
+``DIM`` (M / C / I), the pupil (``EPD``, ``FNO`` = image-space F/#, ``NAO`` = object-space NA), ``WL`` (nm),
+``REF``, fields ``XAN`` / ``YAN`` (degrees) or ``XOB`` / ``YOB`` (object heights), and the surfaces ``SO`` (object:
+its thickness is the object distance, ≥ 1e10 = infinity), ``S`` (radius, thickness, glass), ``STO`` (the stop:
+as a surface line, or alone after one), ``SI`` (image), with the qualifiers ``K`` (conic), ``A`` … ``J`` (aspheric
+terms on r⁴ … r²⁰), ``SLB`` (label → comment) and ``CIR`` (clear aperture → semi-diameter). Glasses:
+``NAME_CATALOG`` (CODE V writes vendor names without hyphens: NBK7_SCHOTT is N-BK7, resolved when the lens is
+built), a bare name, ``nd:vd`` and six-digit codes ``NNNVVV`` (model glasses). Everything raywave cannot model
+(mirrors ``REFL``, decentres and tilts ``XDE`` … ``CDE``, ``DAR`` / ``BEN`` / ``REV``, toroids ``YTO`` / ``XTO``,
+special surfaces ``SPS``, image-space ``NA``, image-height fields, a curved object or image) is a
+:class:`LensFileError` naming the surface and line. Commands that do not change the prescription (weights,
+vignetting factors, solves and variable flags, ``INI``, ``GO``, ...) are skipped; other unknown commands give
+one :class:`LensFileWarning`.
+
+Lines: ``!`` starts a comment, ``&`` at the end continues a line, ``;`` separates commands.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from decimal import Decimal, InvalidOperation
+import warnings
+from pathlib import Path
+
+from raywave.io.errors import LensFileError, LensFileWarning
+from raywave.io.json_format import FORMAT_NAME, FORMAT_VERSION, UNITS, validate_spec
+from raywave.io.spec import DEFAULT_WAVELENGTHS, aspheric_canonical, shape_entry
+
+#: Lens units (DIM) -> mm.
+DIM_SCALE = {"M": 1.0, "C": 10.0, "I": 25.4}
+#: Aspheric qualifiers and the power of r they multiply.
+ASPHERIC_LETTERS = {"A": 4, "B": 6, "C": 8, "D": 10, "E": 12, "F": 14, "G": 16, "H": 18, "J": 20}
+#: Object distances at or beyond this (lens units) are infinite (CODE V writes 1e10 or 1e13 for infinity).
+INFINITE_DISTANCE = 1e10
+#: Commands skipped on purpose (weights, vignetting, solves, variables, bookkeeping).
+IGNORED = {"LEN", "INI", "WTW", "WTF", "VUX", "VLX", "VUY", "VLY", "VCX", "VCY", "TEM", "PRE", "GO", "CWL", "DDM",
+           "DES", "CCY", "THC", "GLC", "PIM", "SPH", "CON", "ASP", "RSU", "EDG", "SELECT", "END", "PRV", "PWL", "DEL",
+           "AFO", "RMD", "HOT", "ZOO", "REX", "REY", "ADX", "ADY", "PWR", "CCA", "CCB", "CCC", "CCD", "CCE", "CCK",
+           "CCF", "CCG", "CCH", "CCJ", "TLE", "DNP", "NAM", "LNG", "XRI", "YRI", "CUY", "DIF", "HWL", "HOR", "HCT",
+           "HCO", "OBS"}
+#: Commands raywave cannot model, and what they are.
+UNSUPPORTED = {
+    "XDE": "decentre", "YDE": "decentre", "ZDE": "decentre", "ADE": "tilt", "BDE": "tilt", "CDE": "tilt",
+    "DAR": "decentre-and-return", "BEN": "bend (fold)", "REV": "reverse decentre", "YTO": "toroid (y)",
+    "XTO": "toroid (x)", "SPS": "special surface", "NA": "image-space NA pupil", "XIM": "image-height field",
+    "YIM": "image-height field", "XRI": "real image-height field", "YRI": "real image-height field",
+    "UDS": "user-defined surface", "HOE": "holographic surface", "GRT": "grating",
+}
+#: Commands that take effect only when non-zero (a zero decentre is written by some exports).
+_ZERO_OK = {"XDE", "YDE", "ZDE", "ADE", "BDE", "CDE"}
+_SURFACE_STARTS = ("SO", "S", "STO", "SI")
+
+
+def _number(tok: str) -> bool:
+    try:
+        float(tok)
+        return True
+    except ValueError:
+        return False
+
+
+#: A quoted string (kept whole, with its quotes), a command separator, or a plain token.
+_TOKEN = re.compile(r"'[^']*'|\"[^\"]*\"|;|[^\s;]+")
+
+
+def _commands(text: str):
+    """[(line, [tokens])]: comments dropped, continuations joined, ';' separated (quoted strings kept whole)."""
+    out = []
+    pending, start = "", None
+    for ln, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("!", 1)[0].rstrip()
+        if line.endswith("&"):
+            pending += " " + line[:-1]
+            start = start or ln
+            continue
+        line = (pending + " " + line).strip()
+        first, pending, start = start or ln, "", None
+        toks: list[str] = []
+        for m in _TOKEN.finditer(line):
+            if m.group(0) == ";":
+                if toks:
+                    out.append((first, toks))
+                toks = []
+            else:
+                toks.append(m.group(0))
+        if toks:
+            out.append((first, toks))
+    return out
+
+
+def _nm_to_um(tok: str, path, ln) -> float:
+    """A wavelength token in nm -> µm, decimally exact (587.5618 -> 0.5875618, not 0.5875617999999999)."""
+    try:
+        return float(Decimal(tok).scaleb(-3))
+    except InvalidOperation:
+        raise LensFileError(f"WL: {tok!r} is not a number", path, ln) from None
+
+
+def _glass(tok: str, where: str, path, ln):
+    """A CODE V glass token -> spec material."""
+    t = tok.strip("'\"")
+    up = t.upper()
+    if up in ("", "AIR"):
+        return "air"
+    if up == "REFL":
+        raise LensFileError(f"{where}: mirrors (REFL) are not supported; raywave traces refracting lenses on one "
+                            "axis", path, ln)
+    m = re.fullmatch(r"(\d+\.\d+):(\d+\.?\d*)", t)
+    if m:
+        return {"model": {"nd": float(m.group(1)), "vd": float(m.group(2))}}
+    if re.fullmatch(r"\d{6}", t):
+        return {"model": {"nd": 1.0 + int(t[:3]) / 1000.0, "vd": int(t[3:]) / 10.0}}
+    if re.fullmatch(r"\d{6}\.\d+", t):  # NNNVVV.vvvv: nd 1.NNN..., vd VV.V... (finer code)
+        nd_s, vd_s = t[:3] + t[7:11], t[3:6]
+        return {"model": {"nd": 1.0 + int(nd_s[:3]) / 1000.0, "vd": int(vd_s) / 10.0}}
+    if "_" in t:
+        name, cat = t.rsplit("_", 1)
+        if name and cat:
+            return {"name": name, "catalog": cat.upper()}
+    return t
+
+
+def read_seq(path) -> dict:
+    """Read a CODE V .seq file into a validated lens spec (see the module docstring for what is read)."""
+    path = str(path)
+    raw = Path(path).read_bytes()
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        text = raw.decode("latin-1")
+    spec = _interpret(_commands(text), path)
+    return validate_spec(spec, path)
+
+
+def _interpret(cmds, path) -> dict:
+    def err(msg, ln):
+        return LensFileError(msg, path, ln)
+
+    def num(tok, what, ln):
+        try:
+            return float(tok)
+        except ValueError:
+            raise err(f"{what}: {tok!r} is not a number", ln) from None
+
+    radius_mode = True
+    scale = 1.0
+    name = ""
+    pupil = None
+    wls: list[float] = []
+    ref = None
+    fields: dict[str, list[float]] = {}
+    field_type = None
+    surfs: list[dict] = []  # raw surfaces: kind (SO / S / SI), r, t, glass, line, stop, conic, asph, label, cir
+    unknown: dict[str, int] = {}
+    in_private = False
+    sto_label = None
+    for ln, toks in cmds:
+        cmd = toks[0].upper()
+        args = toks[1:]
+        if in_private:
+            in_private = cmd != "END"
+            continue
+        if cmd == "PRV":
+            in_private = True
+            warnings.warn(LensFileWarning(f"{path}:{ln}: private glass catalog (PRV) skipped: its glasses must be "
+                                          "in raywave's catalogs"), stacklevel=3)
+            continue
+        cur = surfs[-1] if surfs else None
+        starts_surface = cmd in ("SO", "S", "SI") or (cmd == "STO" and args and _number(args[0]))
+        if starts_surface:
+            if cmd != "SO" and not surfs:
+                surfs.append({"kind": "SO", "r": 0.0, "t": math.inf, "glass": "air", "line": ln, "stop": False,
+                              "conic": 0.0, "asph": {}, "label": "", "cir": None, "implicit": True})
+            vals = [num(a, f"{cmd} radius/thickness", ln) for a in args[:2] if _number(a)]
+            r = vals[0] if vals else 0.0
+            t = vals[1] if len(vals) > 1 else 0.0
+            rest = [a for a in args[len(vals):]]
+            glass = "air"
+            if rest:
+                glass = _glass(rest[0], f"surface {len(surfs)}", path, ln)
+            surfs.append({"kind": "S" if cmd == "STO" else cmd, "r": r, "t": t, "glass": glass, "line": ln,
+                          "stop": cmd == "STO", "conic": 0.0, "asph": {}, "label": "", "cir": None})
+            continue
+        if cmd == "STO":
+            if args and re.fullmatch(r"[Ss]\d+", args[0]):
+                sto_label = (int(args[0][1:]), ln)
+            elif cur is not None:
+                cur["stop"] = True
+            continue
+        if cur is not None:  # surface qualifiers
+            where = f"surface {len(surfs) - 1}"
+            if cmd == "K":
+                cur["conic"] = num(args[0], f"{where}: K", ln)
+                continue
+            if cmd in ASPHERIC_LETTERS and args and _number(args[0]):
+                cur["asph"][ASPHERIC_LETTERS[cmd]] = num(args[0], f"{where}: {cmd}", ln)
+                continue
+            if cmd == "SLB":
+                cur["label"] = " ".join(args).strip("'\"")
+                continue
+            if cmd == "CIR":
+                vals = [float(a) for a in args if _number(a)]
+                if vals and not any(a.upper() == "OBS" for a in args):
+                    cur["cir"] = vals[0]
+                    continue
+                raise err(f"{where}: CIR {' '.join(args)}: obscurations are not supported", ln)
+            if cmd in UNSUPPORTED:
+                if cmd in _ZERO_OK and args and _number(args[0]) and float(args[0]) == 0.0:
+                    continue
+                raise err(f"{where}: {UNSUPPORTED[cmd]} ({cmd}) is not supported by raywave", ln)
+        if cmd in ("RDM", "CUM"):
+            radius_mode = cmd == "RDM" and not (args and args[0].upper() in ("N", "NO"))
+        elif cmd in ("TITLE", "TIT"):
+            name = " ".join(args).strip().strip("'\"")
+        elif cmd == "DIM":
+            u = args[0].upper() if args else "M"
+            if u not in DIM_SCALE:
+                raise err(f"DIM {u}: unknown lens unit (known: M, C, I)", ln)
+            scale = DIM_SCALE[u]
+        elif cmd in ("EPD", "FNO", "NAO"):
+            v = num(args[0], cmd, ln) if args else None
+            if v is None or not v > 0:
+                raise err(f"{cmd}: the pupil value must be > 0", ln)
+            if pupil is not None and pupil[0] != cmd:
+                raise err(f"{cmd}: a second pupil specification (line {pupil[2]} gives {pupil[0]})", ln)
+            pupil = (cmd, v, ln)
+        elif cmd == "WL":
+            wls = [_nm_to_um(a, path, ln) for a in args]
+        elif cmd == "REF":
+            ref = (int(num(args[0], "REF", ln)), ln)
+        elif cmd in ("XAN", "YAN", "XOB", "YOB"):
+            kind = "angle" if cmd.endswith("AN") else "object_height"
+            if field_type is not None and field_type != kind:
+                raise err(f"{cmd}: fields of two types (angles and object heights)", ln)
+            field_type = kind
+            fields[cmd[0]] = [num(a, cmd, ln) for a in args]
+        elif cmd in UNSUPPORTED:
+            raise err(f"{UNSUPPORTED[cmd]} ({cmd}) is not supported by raywave", ln)
+        elif cmd in IGNORED or cmd in ("K", "SLB", "CIR") or cmd in ASPHERIC_LETTERS:
+            pass
+        else:
+            unknown.setdefault(cmd, ln)
+
+    if len(surfs) < 3 or surfs[0]["kind"] != "SO" or surfs[-1]["kind"] != "SI":
+        raise err("a lens needs an object surface (SO), at least one surface (S) and an image surface (SI)",
+                  surfs[-1]["line"] if surfs else None)
+    obj, img, lens = surfs[0], surfs[-1], surfs[1:-1]
+    if sto_label is not None:
+        k, ln = sto_label
+        if not 1 <= k <= len(lens):
+            raise err(f"STO S{k}: no such surface (1..{len(lens)})", ln)
+        for s in lens:
+            s["stop"] = False
+        lens[k - 1]["stop"] = True
+    for s, what in ((obj, "object"), (img, "image")):
+        if s["r"] != 0.0:
+            raise err(f"{what} surface ({'SO' if what == 'object' else 'SI'}): a curved {what} is not supported",
+                      s["line"])
+    if obj["glass"] != "air":
+        raise err("object surface (SO): the object space must be air", obj["line"])
+    stops = [i for i, s in enumerate(lens) if s["stop"]]
+    if len(stops) > 1:
+        raise err(f"surfaces {[i + 1 for i in stops]} are all marked as the stop", lens[stops[1]]["line"])
+
+    spec: dict = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "units": dict(UNITS)}
+    if name:
+        spec["name"] = name
+    dist = obj["t"]
+    distance = "inf" if (math.isinf(dist) or abs(dist) >= INFINITE_DISTANCE) else dist * scale
+    if distance != "inf" and not distance > 0:
+        raise err(f"object surface (SO): object distance {dist!r} must be > 0", obj["line"])
+    spec["object"] = {"distance": distance}
+    if pupil is not None:
+        cmd, v, ln = pupil
+        if cmd == "EPD":
+            spec["system_aperture"] = {"epd": v * scale}
+        elif cmd == "FNO":
+            spec["system_aperture"] = {"f_number": v}
+        else:
+            if distance == "inf":
+                raise err("NAO: an object-space NA needs an object at a finite distance", ln)
+            if not v < 1.0:
+                raise err(f"NAO {v!r}: must be < 1 (NA in air)", ln)
+            spec["system_aperture"] = {"object_na": v}
+    ys = fields.get("Y", [])
+    xs = fields.get("X", [])
+    n = max(len(xs), len(ys), 1)
+    xs, ys = xs + [0.0] * (n - len(xs)), ys + [0.0] * (n - len(ys))
+    if any(xs):
+        warnings.warn(LensFileWarning(f"{path}: fields with an x component are folded to radial fields "
+                                      "sqrt(x² + y²) (raywave lenses are rotationally symmetric)"), stacklevel=3)
+    values = [math.hypot(x, y) if x else y for x, y in zip(xs, ys)]
+    if field_type == "object_height":
+        values = [v * scale for v in values]
+    spec["fields"] = {"type": field_type or "angle", "values": values}
+    if wls:
+        primary = (ref[0] - 1) if ref else 0
+        if not 0 <= primary < len(wls):
+            raise err(f"REF {ref[0]}: reference wavelength out of range 1..{len(wls)}", ref[1])
+        spec["wavelengths"] = {"values": wls, "primary": primary}
+    else:
+        spec["wavelengths"] = dict(DEFAULT_WAVELENGTHS)
+    surfaces = []
+    for i, s in enumerate(lens, start=1):
+        r = s["r"]
+        c = 0.0 if r == 0.0 else ((1.0 / r) if radius_mode else r)
+        c /= scale
+        out: dict = {"type": "even_asphere" if any(s["asph"].values()) else "standard"}
+        out.update(shape_entry(c))
+        out["conic"] = s["conic"]
+        if out["type"] == "even_asphere":
+            out["aspheric"] = aspheric_canonical({f"a{p}": v * scale ** (1 - p) for p, v in s["asph"].items()})
+        if not math.isfinite(s["t"]):
+            raise err(f"surface {i}: thickness must be finite", s["line"])
+        out["thickness"] = s["t"] * scale
+        out["material"] = s["glass"]
+        out["aperture"] = None
+        if s["cir"]:
+            out["semi_diameter"] = s["cir"] * scale
+        out["stop"] = bool(s["stop"])
+        if s["label"]:
+            out["comment"] = s["label"]
+        surfaces.append(out)
+    spec["surfaces"] = surfaces
+    if unknown:
+        listed = ", ".join(f"{k} (line {ln})" for k, ln in sorted(unknown.items(), key=lambda kv: kv[1]))
+        warnings.warn(LensFileWarning(f"{path}: ignored unknown CODE V commands: {listed}"), stacklevel=3)
+    return spec
