@@ -169,10 +169,17 @@ class HybridLens(nn.Module):
         from raywave.lens.sources import chief_ray
 
         wl = self.lens.primary_wavelength if wavelength is None else float(wavelength)
-        fmax = max([abs(float(f)) for f in getattr(self.lens, "fields", [])] + [0.0]) or 1.0
+        # the exit pupil is the stop's image by the lens behind it: it does not depend on the object, so the
+        # ray comes from a distant object at a small angle whatever the lens's field type and object distance
+        # (object-height fields cannot describe a distant object)
+        if self.lens.field_type == "angle":
+            angle = 1e-3 * (max([abs(float(f)) for f in getattr(self.lens, "fields", [])] + [0.0]) or 1.0)
+        else:
+            angle = 1e-2
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            out = self.lens.trace(chief_ray(self.lens, (0.0, 1e-3 * fmax), wl), apertures=False)
+            ray = chief_ray(self.lens, (0.0, angle), wl, field_type="angle", depth=math.inf)
+            out = self.lens.trace(ray, apertures=False)
             o, d = out.o.reshape(-1)[:3], out.d.reshape(-1)[:3]
             ok = bool(out.valid.all()) and abs(float(d[1])) > 1e-15
             z = float(o[2] - o[1] * d[2] / d[1]) if ok else float(exit_pupil(self.lens, wl)[0])
