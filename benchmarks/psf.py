@@ -353,8 +353,7 @@ def main() -> None:
         print(text)
         if args.output:
             with open(args.output, "w") as fh:
-                fh.write(text + "
-")
+                fh.write(text + "\n")
         return
     if args.case:
         mode, bwd, nodes, cached = args.case.split(",")
