@@ -21,6 +21,11 @@ Two constructions of the sampled field on the DOE simulation grid are provided:
     The paper's method: rays sampled over the pupil, each ray's complex amplitude ``d_z · exp(i k OPL)``
     spread bilinearly into its four neighbouring pixels (:func:`raywave.wave.field.splat_bilinear`).
 
+With the stop's edge at the exit pupil (``HybridLens(stop_edge="exit_pupil")``, :func:`exit_pupil_field`) the
+accurate field either is built on the exit-pupil plane and propagated to the DOE plane by the angular spectrum
+(``method="asm"``, exact), or carries on the DOE plane the knife-edge Fresnel factor of the edge diffracting
+from the exit pupil (``method="fresnel"``, :func:`stop_edge_factor`: any beam size, the DOE grid only).
+
 Both return :class:`DOEField` objects: the field's *envelope* on a window of the simulation grid (the
 carrier ``exp(i k n (α x + β y))`` of the chief ray removed, so off-axis light stays far below Nyquist), with
 the DOE aperture applied and the DOE phase not yet applied. Phases are formed from float64 optical paths.
