@@ -15,9 +15,18 @@ pixels, a trainable pixel phase map) 0.7 mm after the last surface, sensor at fo
   take (forward and backward, from torch.profiler); also with the DOE-plane field cached (a frozen lens
   traced once, the DOE-training step).
 
+* **both stop edges** (issue 19, ``--edges``; bundled hybrid_asphere: 3 mm DOE at 1 µm, 0.7 mm after the
+  lens, ks 128, λ 0.53 µm, default 64 nodes): ``stop_edge="doe"`` (the paper's model), ``"exit_pupil"`` with the
+  exact angular-spectrum construction (``edge_step="asm"``) and with the Fresnel step (``"fresnel"``): time and
+  peak memory per PSF (a fresh ``HybridLens`` per call: no transfer function reused), uncached and with the
+  DOE-plane field cached, forward and forward + backward (gradient w.r.t. the DOE pixels, lens frozen; and,
+  uncached, w.r.t. the lens too); L1 error against the exit-pupil Huygens PSF (``raywave.models.exit_pupil``,
+  n_pupil 192) on axis and at 0.7 and 1.0 of the full field (17.5°), and against the Debye truth of an ideal
+  lens of the same EFL and F-number on axis (off axis: against its Huygens PSF).
+
 Prints one JSON object (and writes it with ``-o``).
 
-    python benchmarks/psf.py [--threads 2] [--quick] [-o psf.json]
+    python benchmarks/psf.py [--threads 2] [--quick] [--edges] [-o psf.json]
 """
 
 from __future__ import annotations
@@ -190,6 +199,136 @@ def timing_case(mode: str, backward: bool, nodes: int, threads: int, repeat: int
             "repeat": repeat, "threads": threads}
 
 
+EDGE_CASES = (("doe", "auto"), ("exit_pupil", "asm"), ("exit_pupil", "fresnel"))
+EDGE_WL, EDGE_FIELDS = 0.53, (0.0, 0.7, 1.0)
+
+
+def _edge_lens(edge: str, step: str, pixel_doe: bool = False):
+    import torch
+
+    from raywave.doe import BlankDOE, PixelDOE
+    from raywave.hybrid import HybridLens
+    from raywave.lens.build import bundled_lens_path, load_lens
+
+    lens = load_lens(bundled_lens_path("asphere_hk51"))
+    doe = PixelDOE(torch.zeros(DOE_N, DOE_N), DOE_PITCH) if pixel_doe else BlankDOE(DOE_N, DOE_PITCH)
+    return HybridLens(lens, doe, DOE_DIST, stop_edge=edge, edge_step=step), lens
+
+
+def edge_timing_case(edge: str, step: str, backward: bool, cached: bool, lens_grad: bool, threads: int,
+                     repeat: int, field: float) -> dict:
+    """Median wall time and peak memory of one PSF (ks 128, λ 0.53) with a fresh HybridLens per call."""
+    import torch
+
+    torch.set_num_threads(threads)
+    weight = torch.linspace(0, 1, KS * KS, dtype=torch.float64).reshape(KS, KS)
+    fld = (0.0, field)
+    cache = None
+    if cached:
+        hl, lens = _edge_lens(edge, step, pixel_doe=True)
+        lens.requires_grad_(False)
+        cache = [[f.detach() for f in row] for row in hl.doe_fields(fld, EDGE_WL)]
+
+    def once():
+        hl, lens = _edge_lens(edge, step, pixel_doe=True)
+        lens.requires_grad_(lens_grad)
+        psf = hl.psf(ks=KS, cache=cache) if cached else hl.psf(fld, EDGE_WL, ks=KS)
+        if backward:
+            (psf * weight).sum().backward()
+        return psf.detach()
+
+    base = status_mb("VmRSS")
+    reset_peak()
+    with torch.set_grad_enabled(backward):
+        once()
+        peak = status_mb("VmHWM") - base
+        times = []
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            once()
+            times.append(time.perf_counter() - t0)
+    times.sort()
+    return {"stop_edge": edge, "edge_step": step if edge == "exit_pupil" else None, "field_deg": field,
+            "backward": backward, "lens_grad": lens_grad, "cached_doe_field": cached,
+            "seconds": times[len(times) // 2], "seconds_min": times[0], "peak_extra_memory_mb": peak,
+            "repeat": repeat, "threads": threads}
+
+
+def edge_errors() -> dict:
+    """L1 of each edge against the Huygens PSF (asphere) and the Debye truth (ideal lens, on axis)."""
+    import torch
+
+    from raywave.doe import BlankDOE
+    from raywave.hybrid import HybridLens
+    from raywave.lens.build import ideal_lens
+    from raywave.models import huygens_psf
+    from raywave.models.debye import debye_psf
+
+    out = {"metric": "L1 = sum|psf - ref| (0..2)", "wavelength_um": EDGE_WL, "ks": KS, "rows": []}
+    _, lens = _edge_lens("doe", "auto")
+    full = max(lens.fields)
+    efl, epd = float(lens.paraxial().efl), float(lens.paraxial().epd)
+    ideal = ideal_lens(efl, f_number=efl / epd, wavelengths=(EDGE_WL,))
+    z_doe_sensor = float(lens.surfaces[-1].thickness.detach()) - DOE_DIST
+    ps = 3e-3
+    for name, base in (("asphere_hk51", lens), ("ideal", ideal)):
+        for fr in EDGE_FIELDS:
+            fld = (0.0, fr * full)
+            ref = huygens_psf(base, fld, EDGE_WL, ks=KS, pitch=ps, n_pupil=192).psf.to(torch.float64)
+            debye = None
+            if name == "ideal" and fr == 0.0:
+                res = debye_psf(math.sin(math.atan(0.5 * epd / efl)), EDGE_WL, KS, ps, oversample=15)
+                debye = (res[0] if isinstance(res, tuple) else getattr(res, "psf", res)).to(torch.float64)
+            for edge, step in EDGE_CASES:
+                d = DOE_DIST if name == "asphere_hk51" else efl - z_doe_sensor
+                hl = HybridLens(base, BlankDOE(6000, DOE_PITCH), d, sensor_pitch=ps, stop_edge=edge, edge_step=step)
+                t0 = time.perf_counter()
+                p = hl.psf(fld, EDGE_WL, ks=KS)[0, 0].detach()
+                row = {"lens": name, "field": fr, "field_deg": fld[1], "stop_edge": edge,
+                       "edge_step": step if edge == "exit_pupil" else None, "l1_vs_huygens": _l1(p, ref),
+                       "seconds": time.perf_counter() - t0}
+                if debye is not None:
+                    row["l1_vs_debye"] = _l1(p, debye)
+                    row["huygens_l1_vs_debye"] = _l1(ref, debye)
+                out["rows"].append(row)
+                print(json.dumps(row), file=sys.stderr, flush=True)
+    return out
+
+
+def edges_main(args) -> dict:
+    timings = []
+    cases = []
+    for edge, step in EDGE_CASES:
+        for bwd, cached, lens_grad in ((0, 0, 0), (1, 0, 0), (1, 0, 1), (0, 1, 0), (1, 1, 0)):
+            cases.append((edge, step, bwd, cached, lens_grad))
+    for edge, step, bwd, cached, lens_grad in cases:
+        cmd = [sys.executable, __file__, "--edge-case", f"{edge},{step},{bwd},{cached},{lens_grad},{args.edge_field}",
+               "--threads", str(args.threads), "--repeat", str(args.repeat)]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            timings.append({"stop_edge": edge, "edge_step": step, "error": res.stderr.strip().splitlines()[-1]})
+        else:
+            timings.append(json.loads(res.stdout.strip().splitlines()[-1]))
+        print(json.dumps(timings[-1]), file=sys.stderr, flush=True)
+    t = {(x["stop_edge"], x.get("edge_step"), x.get("backward"), x.get("cached_doe_field"), x.get("lens_grad")): x
+         for x in timings}
+    ratios = {}
+    for step in ("asm", "fresnel"):
+        for key in ((False, False, False), (True, False, False), (True, False, True), (False, True, False),
+                    (True, True, False)):
+            a, b = t.get(("exit_pupil", step) + key, {}), t.get(("doe", None) + key, {})
+            if "seconds" in a and "seconds" in b:
+                name = f"{step}: {'fwd+bwd' if key[0] else 'fwd'}{', cached' if key[1] else ''}{', lens grad' if key[2] else ''}"
+                ratios[name] = {"time": a["seconds"] / b["seconds"],
+                                "memory": a["peak_extra_memory_mb"] / max(b["peak_extra_memory_mb"], 1e-9)}
+    out = {"benchmark": "psf stop edges", "lens": "hybrid_asphere (3 mm DOE, 1 µm, 0.7 mm)", "ks": KS,
+           "threads": args.threads, "timing_field_deg": args.edge_field, "timing": timings,
+           "exit_pupil_over_doe (goal: time <= 2, memory <= 1.5)": ratios}
+    if not args.no_errors:
+        out["errors"] = edge_errors()
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
@@ -199,7 +338,23 @@ def main() -> None:
                     "fewest that reach the faithful mode's 1e6-ray error)")
     ap.add_argument("-o", "--output", default=None)
     ap.add_argument("--case", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--edges", action="store_true", help="only the stop-edge comparison (issue 19)")
+    ap.add_argument("--edge-field", type=float, default=12.25, help="field (deg) of the stop-edge timing")
+    ap.add_argument("--no-errors", action="store_true", help="stop-edge comparison: timings only")
+    ap.add_argument("--edge-case", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.edge_case:
+        edge, step, bwd, cached, lens_grad, fld = args.edge_case.split(",")
+        print(json.dumps(edge_timing_case(edge, step, bwd == "1", cached == "1", lens_grad == "1", args.threads,
+                                          args.repeat, float(fld))))
+        return
+    if args.edges:
+        text = json.dumps(edges_main(args), indent=2)
+        print(text)
+        if args.output:
+            with open(args.output, "w") as fh:
+                fh.write(text + "\n")
+        return
     if args.case:
         mode, bwd, nodes, cached = args.case.split(",")
         print(json.dumps(timing_case(mode, bwd == "1", int(nodes), args.threads, args.repeat, cached == "1")))

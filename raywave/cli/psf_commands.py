@@ -185,6 +185,7 @@ def summary(result: dict, lens_name: str) -> dict:
             "source": info["source"],
             "distance_mm": info["distance"],
             "pitch_mm": info["pitch"],
+            "pitch_rule": info.get("pitch_rule"),
             "shape": info["shape"],
             "size_mm": info["size"],
             "aperture": info["aperture"],

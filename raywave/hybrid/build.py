@@ -8,7 +8,12 @@ Grid rules (``load_hybrid`` / ``hybrid_from_spec``; explicit arguments override 
 * **distance**: ``doe_distance``, else the file's ``doe.distance``, else (a lens file without a DOE) half
   way between the last vertex and the sensor (:data:`DEFAULT_DISTANCE_FRACTION` of the last thickness).
 * **pitch**: ``doe_pitch``, else the file's (``doe.pitch`` or the .npz's ``pitch``); a lens file without a
-  DOE gets :data:`DEFAULT_DOE_PITCH` (1 µm). A DOE in the file without a pitch (e.g. from a .zmx) is an error.
+  DOE gets the pitch that samples its wavefront (:func:`nyquist_doe_pitch`: :data:`NYQUIST_FILL` of the
+  Nyquist pitch of the steepest phase slope, relative to the chief ray, that any traced ray reaches on the DOE
+  plane, for the given fields and wavelengths, rounded down to 2 significant digits and at most
+  :data:`MAX_DEFAULT_PITCH`): finer than 1 µm for a fast lens, coarser for a slow one (a 100 mm F/10 singlet
+  gets ~4 µm instead of 16 600² pixels at 1 µm). ``hl.doe_info["pitch_rule"]`` says which rule chose it.
+  A DOE in the file without a pitch (e.g. from a .zmx) is an error.
 * **grid**: a phase map fixes it (``(ny, nx)`` of the map; a ``doe_size`` that disagrees is an error). Otherwise
   ``doe_size`` (mm, width and height), else the file's ``shape`` or ``size``, else (no DOE in the file) a
   square that holds the beam: :data:`BEAM_MARGIN` × twice the largest ``|x|`` or ``|y|`` any traced ray
@@ -32,10 +37,15 @@ from raywave.doe import BlankDOE, PixelDOE, doe_from_phase_model
 from raywave.hybrid.hybrid_lens import HybridLens
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "DOEPhaseWarning", "beam_half_extent",
-           "default_doe_size", "hybrid_from_spec", "load_hybrid"]
+           "default_doe_size", "hybrid_from_spec", "load_hybrid", "nyquist_doe_pitch"]
 
-#: Pixel pitch (mm) of the blank DOE given to a lens file without a DOE.
+#: Pixel pitch (mm) of the blank DOE given to a lens file without a DOE when no ray can size it (before issue 19
+#: every lens file without a DOE got it; now :func:`nyquist_doe_pitch` chooses).
 DEFAULT_DOE_PITCH = 1e-3
+#: the default pitch is this fraction of the Nyquist pitch of the steepest wavefront slope (a 25 % margin)
+NYQUIST_FILL = 0.8
+#: the largest default pitch (mm): the simulation grid also samples the DOE's own phase
+MAX_DEFAULT_PITCH = 1e-2
 #: Default DOE size: this factor times the beam's extent on the DOE plane.
 BEAM_MARGIN = 1.2
 #: Default DOE plane of a lens file without a DOE: this fraction of the way from the last vertex to the sensor.
@@ -90,6 +100,48 @@ def beam_half_extent(lens, z: float, fields=None, wavelengths=None, depth=None) 
         return None
     xy = at.o[..., :2][v]
     return float(xy[:, 0].abs().max()), float(xy[:, 1].abs().max())
+
+
+def _slopes(lens, z: float, fields, wavelengths, depth):
+    """Per (field, wavelength): the largest ``n·|d⊥ − d⊥_chief|`` of the traced rays on the plane z (a tensor
+    (F, W), 0 where nothing reaches it) and the wavelengths (W,) µm."""
+    from raywave.lens.sources import point_source_rays
+    from raywave.rays.pupil import hexapolar
+
+    t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
+    hx, hy = hexapolar(6)
+    px = torch.cat([torch.zeros(1, dtype=torch.float64), torch.cos(t), hx.to(torch.float64)])
+    py = torch.cat([torch.zeros(1, dtype=torch.float64), torch.sin(t), hy.to(torch.float64)])
+    wls = lens.wavelengths if wavelengths is None else [float(w) for w in torch.as_tensor(wavelengths).reshape(-1)]
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rays = point_source_rays(lens, _field_points(lens, fields), wls, pupil=(px, py), aim="full", depth=depth)
+        out = lens.trace(rays)
+        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(z, n)
+    d = at.d[..., :2]
+    rel = n * torch.linalg.vector_norm(d - d[..., :1, :], dim=-1)  # pupil sample 0 is the chief ray
+    ok = at.valid & at.valid[..., :1] & torch.isfinite(rel)
+    return torch.where(ok, rel, torch.zeros_like(rel)).amax(-1), torch.tensor(wls, dtype=torch.float64)
+
+
+def nyquist_doe_pitch(lens, distance: float, fields=None, wavelengths=None, depth=None,
+                      fill: float = NYQUIST_FILL) -> float | None:
+    """The DOE pitch (mm) that samples the wavefront arriving ``distance`` mm after the last vertex: ``fill`` ×
+    the Nyquist pitch ``λ / (2 n |d⊥ − d⊥_chief|)`` of the steepest slope (relative to the chief ray, whose
+    carrier the field construction removes) over every traced ray (pupil rim and a hexapolar grid), field
+    and wavelength (defaults as :func:`beam_half_extent`), rounded down to 2 significant digits and at most
+    :data:`MAX_DEFAULT_PITCH`. None when no ray reaches the plane."""
+    z = float(lens.vertex_z()[-1].detach()) + distance
+    slope, wls = _slopes(lens, z, fields, wavelengths, depth)
+    ok = slope > 0
+    if not bool(ok.any()):
+        return None
+    pitch = float((fill * wls[None, :] * 1e-3 / (2 * slope)).masked_fill(~ok, math.inf).min())
+    if not math.isfinite(pitch):
+        return None
+    digits = 10 ** (math.floor(math.log10(pitch)) - 1)
+    return min(float(f"{math.floor(pitch / digits * (1 + 1e-9)) * digits:.2g}"), MAX_DEFAULT_PITCH)
 
 
 def default_doe_size(lens, distance: float, fields=None, wavelengths=None, depth=None,
@@ -148,13 +200,18 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     # ---- pitch
     if doe_pitch is not None:
         pitch = float(doe_pitch)
+        info["pitch_rule"] = "given"
     elif from_file and data.pitch is not None:
         pitch = data.pitch
+        info["pitch_rule"] = "file"
     elif from_file:
         raise ValueError(f"{source}: the DOE has no pixel pitch (the file does not give one): pass doe_pitch "
                          "(raywave psf: --doe-pitch MM)")
     else:
-        pitch = DEFAULT_DOE_PITCH
+        pitch = nyquist_doe_pitch(lens, distance, fields, wavelengths, depth)
+        info["pitch_rule"] = "nyquist" if pitch is not None else "default"
+        info["nyquist_fill"] = NYQUIST_FILL
+        pitch = DEFAULT_DOE_PITCH if pitch is None else pitch
     if not (math.isfinite(pitch) and pitch > 0):
         raise ValueError(f"the DOE pitch must be > 0 mm, got {pitch!r}")
 

@@ -21,6 +21,11 @@ Two constructions of the sampled field on the DOE simulation grid are provided:
     The paper's method: rays sampled over the pupil, each ray's complex amplitude ``d_z · exp(i k OPL)``
     spread bilinearly into its four neighbouring pixels (:func:`raywave.wave.field.splat_bilinear`).
 
+With the stop's edge at the exit pupil (``HybridLens(stop_edge="exit_pupil")``, :func:`exit_pupil_field`) the
+accurate field either is built on the exit-pupil plane and propagated to the DOE plane by the angular spectrum
+(``method="asm"``, exact), or carries on the DOE plane the knife-edge Fresnel factor of the edge diffracting
+from the exit pupil (``method="fresnel"``, :func:`stop_edge_factor`: any beam size, the DOE grid only).
+
 Both return :class:`DOEField` objects: the field's *envelope* on a window of the simulation grid (the
 carrier ``exp(i k n (α x + β y))`` of the chief ray removed, so off-axis light stays far below Nyquist), with
 the DOE aperture applied and the DOE phase not yet applied. Phases are formed from float64 optical paths.
@@ -341,9 +346,132 @@ def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, gr
     return out
 
 
+# ---- the stop's edge diffracting from the exit pupil: the Fresnel (knife-edge) step to the DOE plane
+class _FresnelCS(torch.autograd.Function):
+    """Fresnel integrals ``C(ν) = ∫₀^ν cos(πt²/2) dt`` and ``S(ν)`` (scipy, ~1e-15) of a real tensor, with the
+    exact derivatives ``cos(πν²/2)``, ``sin(πν²/2)``."""
+
+    @staticmethod
+    def forward(ctx, nu):
+        from scipy.special import fresnel
+
+        s_, c_ = fresnel(nu.detach().cpu().numpy())
+        ctx.save_for_backward(nu)
+        return torch.from_numpy(c_).to(nu), torch.from_numpy(s_).to(nu)
+
+    @staticmethod
+    def backward(ctx, gc, gs):
+        (nu,) = ctx.saved_tensors
+        ph = 0.5 * math.pi * nu * nu
+        out = torch.zeros_like(nu)
+        if gc is not None:
+            out = out + gc * torch.cos(ph)
+        if gs is not None:
+            out = out + gs * torch.sin(ph)
+        return out
+
+
+def _smoothstep(t: torch.Tensor) -> torch.Tensor:
+    t = t.clamp(0.0, 1.0)
+    return t * t * t * (10.0 + t * (6.0 * t - 15.0))
+
+
+#: the edge wave's tail inside the beam is kept up to this many times the outer band's Fresnel parameter
+INNER_TAIL = 1.0
+
+
+def _nu_inner(ripple_zones: float) -> float:
+    """Fresnel parameter inside the beam beyond which the edge wave's tail is dropped."""
+    return INNER_TAIL * math.sqrt(2.0) * ripple_zones
+
+
+def _zone_estimate(wavelength: float, n: float, dz: float, dz_focus: float, alpha: float, beta: float) -> float:
+    """Upper estimate (mm) of the stop edge's Fresnel zone on the DOE plane ``sqrt(λ/n·|L|)`` (see
+    :func:`_fresnel_scale`) from the chief ray: ``L = dz·M/cos³θ`` with the convergence ``M`` towards a focus
+    ``dz_focus`` beyond the edge's plane (at least 0.1, at most 1), 30 % wider for the marginal rays' tilt."""
+    m = min(max(abs(dz_focus - dz) / max(abs(dz_focus), 1e-12), 0.1), 1.0)
+    cos2 = max(1.0 - alpha * alpha - beta * beta, 0.1)
+    return 1.3 * math.sqrt(wavelength * 1e-3 / n * abs(dz) * m / cos2**1.5)
+
+
+def _fresnel_scale(slopes, nx, ny, h_node: float, dz: float, lam_m: float, pitch: float) -> torch.Tensor:
+    """Fresnel scale ``g = sqrt(2 / (λ_m L))`` (1/mm) of the stop's edge at the DOE-plane nodes (ky, kx), so that
+    ``ν = g · s`` (s: signed DOE-plane distance to the edge's geometric shadow) is the knife-edge's Fresnel
+    parameter.
+
+    The edge is sharp on a plane ``dz`` mm before the DOE plane (the exit pupil); the wave runs along the local
+    ray (direction cosines ``t``, ``γ``; straight lines in the image medium of wavelength ``λ_m = λ/n``). In the
+    DOE-plane coordinates along the edge's normal ``n̂`` the knife-edge diffracts over the effective length
+
+        ``L = dz · q · M``,  ``q = (1 − (n̂ × t)²) / γ³``,  ``M = |K⁻ᵀ n̂|``,  ``K = ∂x_edge/∂x_doe = I − dz ∇(t/γ)``:
+
+    ``q`` the tilted plane wave's Fresnel length in plane coordinates (the angular spectrum's second order about
+    the ray: ``1/γ³`` across the tilt, ``1/γ`` along it), ``M`` the local magnification of the edge's normal
+    distance from the edge's plane to the DOE plane (a converging wave: the Fresnel scaling theorem,
+    ``L = d (R − d)/R`` for a sphere of radius R). ``L`` is kept ≥ ``(1.5 p)²/λ_m`` so that the edge is never
+    sharper than 1.5 pixels (anti-aliasing when the DOE sits at the exit pupil). Args: ``slopes`` (4, ky, kx):
+    ``t_x/γ, t_y/γ, t_x, t_y`` at the nodes; ``nx, ny`` (ky, kx) the edge normal; ``h_node`` node spacing (mm).
+    Differentiable with respect to the ray directions."""
+    a, b, tx, ty = slopes
+    da_dy, da_dx = torch.gradient(a, spacing=h_node, dim=(0, 1))
+    db_dy, db_dx = torch.gradient(b, spacing=h_node, dim=(0, 1))
+    k00, k01, k10, k11 = 1 - dz * da_dx, -dz * da_dy, -dz * db_dx, 1 - dz * db_dy
+    det = k00 * k11 - k01 * k10
+    det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, 1e-12))
+    mx = (k11 * nx - k10 * ny) / det
+    my = (-k01 * nx + k00 * ny) / det
+    m_n = torch.sqrt(mx * mx + my * my + 1e-300)
+    g2 = (1 - tx * tx - ty * ty).clamp_min(1e-6)
+    q = (1 - (nx * ty - ny * tx) ** 2) / (g2 * torch.sqrt(g2))
+    length = (abs(dz) * q * m_n).clamp_min((1.5 * pitch) ** 2 / lam_m)
+    return torch.sqrt(2.0 / (lam_m * length))
+
+
+def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.Tensor, pitch: float,
+                     curvature: torch.Tensor | None = None) -> torch.Tensor:
+    """The knife-edge Fresnel diffraction factor (complex128, same shape as ``nu``) that multiplies the
+    geometric-optics field near the stop edge's shadow on the DOE plane.
+
+    ``D(ν) = ((1 − i)/2)·[(C(ν) + ½) + i(S(ν) + ½)]`` (Fresnel integrals; ``exp(−iωt)``: the kernel
+    ``exp(+iπν²/2)``): 1 deep in the beam, ½ on the geometric edge (¼ of the intensity), → 0 in the shadow;
+    its complex conjugate when the DOE plane lies before the edge's plane (``dz < 0``). Kept: the band
+    ``ν ≥ −ν_max``, ``ν_max = ripple_zones·√2`` (ripple_zones Fresnel zones outside the shadow's edge, rolled off
+    over the last zone), and the edge wave's tail inside the beam up to ``ν_b = min(3 ν_max, 0.6/(g p))`` (beyond,
+    its fringes near the grid's Nyquist frequency and it leaves the PSF crop), blended smoothly to 1 from
+    ``ν_b/2``. ``curvature``: ``s·κ`` (signed distance to the edge times the curvature ``−∇·n̂`` of the edge's
+    level lines, > 0 for a convex aperture): the edge wave ``D − step`` of a curved edge converges (inside) or
+    spreads (outside) like a cylindrical wave, amplitude ``sqrt(1 + s κ)``. Evaluated on the band only (1 inside,
+    0 outside). Differentiable with respect to ``ν`` (exactly)."""
+    nu_max = math.sqrt(2.0) * ripple_zones
+    if isinstance(g, torch.Tensor):
+        nu_b = torch.clamp(0.6 / (g.detach() * pitch), max=_nu_inner(ripple_zones)).clamp_min(2.0)
+    else:
+        nu_b = torch.full_like(nu.detach(), max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0))
+    inside = nu.detach() >= nu_b
+    band = (nu.detach() > -nu_max) & ~inside
+    out = inside.to(torch.complex128)
+    idx = band.nonzero(as_tuple=True)
+    if idx[0].numel() == 0:
+        return out
+    v = nu[idx]
+    c_, s_ = _FresnelCS.apply(v)
+    d = torch.complex(c_ + 0.5, s_ + 0.5)
+    d = d * complex(0.5, -0.5) if dz >= 0 else d.conj() * complex(0.5, 0.5)
+    w_out = _smoothstep((v + nu_max) / math.sqrt(2.0))
+    nb = nu_b[idx]
+    w_in = 1.0 - _smoothstep((v - 0.5 * nb) / (0.5 * nb))
+    if curvature is not None:
+        f = torch.sqrt(1.0 + curvature[idx].clamp(-0.9, 3.0))  # noqa: the edge wave's cylindrical spreading
+        val = torch.where(v > 0, 1.0 + (d - 1.0) * f * w_in, d * f) * w_out
+    else:
+        val = (1.0 + (d - 1.0) * w_in) * w_out
+    return out.index_put(idx, val)
+
+
 def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
                    nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
-                   chief_uv=None, virtual: bool = False) -> DOEField:
+                   chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
+                   ripple_zones: float | None = None) -> DOEField:
     """The accurate DOE-plane field for one field point (2,) and one wavelength (µm).
 
     Args:
@@ -355,6 +483,11 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
             ``nodes²``); the field is smooth, so 32–64 are plenty for most lenses.
         chief_doe, chief_sensor: the chief ray (RayBundle, scalar batch) at the DOE and at the sensor.
         chief_uv: its entrance-plane point (2,) mm, if known (saves aiming it again).
+        stop_plane: z (mm) of the plane where the stop's edge is sharp (the exit pupil): the stop's edge is then
+            not cut sharply on this plane but carries its Fresnel diffraction from that plane (the knife-edge
+            factor of :func:`stop_edge_factor`); None: the paper's sharp edge on this plane.
+        ripple_zones: with ``stop_plane``: Fresnel zones of the edge's ripples kept outside the geometric
+            footprint (default :data:`RIPPLE_ZONES`).
     """
     field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
@@ -368,6 +501,10 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     extent = max(bbox[1] - bbox[0], bbox[3] - bbox[2], p)
     h_node = extent / max(nodes - 1, 2)
     margin = 2.5 * h_node + 2 * p
+    if stop_plane is not None:
+        ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
+        margin += (ripple_zones + 1) * _zone_estimate(wavelength, n, z_doe - stop_plane, z_sensor - stop_plane, alpha,
+                                                      beta)
     half_x = max(xcd - bbox[0], bbox[1] - xcd) + margin
     half_y = max(ycd - bbox[2], bbox[3] - ycd) + margin
     kx = 2 * math.ceil(half_x / h_node) + 1
@@ -408,13 +545,16 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     gamma = dvec[:, 2]
     slacks = [s.aperture.slack(*(c[0, 0] for c in rec.points[i + 1][:2]))
               for i, s in enumerate(lens.surfaces) if s.aperture is not None]
+    is_stop = [i == lens.stop_index for i, s in enumerate(lens.surfaces) if s.aperture is not None]
+    diffracting = stop_plane is not None and any(is_stop)
+    slopes = [dvec[:, 0] / dvec[:, 2], dvec[:, 1] / dvec[:, 2], dvec[:, 0], dvec[:, 1]] if diffracting else []
 
     # ---- nodes whose ray failed (missed a surface, TIR, Newton) take their nearest good neighbour's values
     if not bool(good.any()):
         warnings.warn(f"no ray could be traced to the DOE plane for field {field.tolist()} at {wavelength:g} µm",
                       SamplingWarning, stacklevel=3)
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
-    chan = torch.stack([phi, w0, gamma, uv_lin[:, 0], uv_lin[:, 1]] + slacks, -1)
+    chan = torch.stack([phi, w0, gamma, uv_lin[:, 0], uv_lin[:, 1]] + slacks + slopes, -1)
     chan = _nearest_fill(chan, good, targets, grad_xy=n * dvec[:, :2])
     grid = chan.T.reshape(-1, ky, kx)
     phi_g, w0_g, gamma_g, u_g, v_g = grid[:5]
@@ -425,14 +565,35 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     amp2 = w0_g * det.abs() / gamma_g
     # distance (DOE-plane mm) to the nearest aperture edge: slack / |∇_x slack|
     dist = None
-    for sl in grid[5:]:
+    stop_edge = None  # (distance, edge normal) of the stop's edge when it diffracts from stop_plane
+    other = None  # distance to the nearest other edge
+    for j, sl in enumerate(grid[5:5 + len(slacks)]):
         gy_, gx_ = torch.gradient(sl.detach(), spacing=h_node, dim=(0, 1))
-        dj = sl / torch.sqrt(gx_**2 + gy_**2).clamp_min(1e-12)
+        gn = torch.sqrt(gx_**2 + gy_**2).clamp_min(1e-12)
+        dj = sl / gn
         dist = dj if dist is None else torch.minimum(dist, dj)
+        if diffracting and is_stop[j]:
+            stop_edge = (dj, gx_ / gn, gy_ / gn)
+        elif diffracting:
+            other = dj if other is None else torch.minimum(other, dj)
     # only the distance near an edge matters; clamping keeps the cubic interpolation from ringing where
     # the slack has a kink (a circular aperture's centre) or far from any edge
     lim = 3.0 * h_node
     dist = torch.full_like(phi_g, lim) if dist is None else dist.clamp(-lim, lim)
+    if diffracting:  # the stop's edge gets its own channels: distance and Fresnel scale
+        g_s = _fresnel_scale(grid[5 + len(slacks):], stop_edge[1], stop_edge[2], h_node, z_doe - stop_plane,
+                             wavelength * 1e-3 / n, p)
+        # ν = g·s and s·κ vary smoothly: interpolated as they are (clamped where the factor is 1 or 0 anyway)
+        nu_lim = _nu_inner(ripple_zones) + 4.0
+        s_stop = stop_edge[0]
+        ndy = torch.gradient(stop_edge[2], spacing=h_node, dim=0)[0]
+        ndx = torch.gradient(stop_edge[1], spacing=h_node, dim=1)[0]
+        near = (s_stop * g_s).detach().abs() < nu_lim
+        g_max = float(g_s.detach()[near].max()) if bool(near.any()) else float(g_s.detach().max())
+        edge_chan = ([] if other is None else [other.clamp(-lim, lim)]) + [
+            (s_stop * g_s).clamp(-nu_lim, nu_lim), (s_stop.detach() * -(ndx + ndy)).clamp(-0.9, 3.0)]
+    else:
+        edge_chan = []
     lit_nodes = (dist > -h_node) & good.reshape(ky, kx)
     fold = (det.detach() * det.detach()[ky // 2, kx // 2] <= 0) & lit_nodes
     if check and bool(fold.any()):
@@ -456,20 +617,33 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
     pos_x = (x0 + torch.arange(jx0, jx1 + 1, dtype=torch.float64, device=dev) * p - float(gx[0])) / h_node
     pos_y = (y0 + torch.arange(jy0, jy1 + 1, dtype=torch.float64, device=dev) * p - float(gy[0])) / h_node
-    fine = upsample_nodes(torch.stack([phi_env, torch.sqrt(amp2.clamp_min(0)), dist]),
+    fine = upsample_nodes(torch.stack([phi_env, torch.sqrt(amp2.clamp_min(0))] + ([] if diffracting else [dist])
+                                      + edge_chan),
                           pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
     win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
-    cov = edge_coverage(fine[2], p)
+    if diffracting:
+        edge = stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, g_max, p, curvature=fine[-1].detach())
+        cov = edge_coverage(fine[2], p) if other is not None else None
+    else:
+        edge = None
+        cov = edge_coverage(fine[2], p)
     if not virtual:
-        cov = cov * doe.coverage(win, oversample, device=dev)
-    b = _crop_to_lit(cov)
+        dcov = doe.coverage(win, oversample, device=dev)
+        cov = dcov if cov is None else cov * dcov
+    if edge is not None:  # the Fresnel factor is 0 beyond the ripple band
+        band = (fine[-2].detach() > -math.sqrt(2.0) * ripple_zones).to(torch.float64)
+        b = _crop_to_lit(band if cov is None else cov * band)
+    else:
+        b = _crop_to_lit(cov)
     if b is None:
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
     a0, a1, b0, b1 = b
-    fine, cov = fine[:, a0:a1, b0:b1], cov[a0:a1, b0:b1]
+    fine = fine[:, a0:a1, b0:b1]
     win = (win[0] + a0, win[1] + b0, a1 - a0, b1 - b0)
     k = 2 * math.pi / (wavelength * 1e-3)
-    env = torch.polar(fine[1] * cov, k * fine[0])
+    env = torch.polar(fine[1] if cov is None else fine[1] * cov[a0:a1, b0:b1], k * fine[0])
+    if edge is not None:
+        env = env * edge[a0:a1, b0:b1]
     origin = (x0 + win[1] * p, y0 + win[0] * p)
     return DOEField(env, win, origin, p, (alpha, beta), n, float(wavelength), zprop, center, targets.shape[0] + 1,
                     "accurate")
@@ -480,15 +654,26 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
 RIPPLE_ZONES = 4.0
 #: largest beam extent (simulation samples a side) on the exit-pupil plane that :func:`exit_pupil_field` accepts
 MAX_XP_SAMPLES = 8192
+#: ``method="auto"`` of :func:`exit_pupil_field`: the exact angular-spectrum construction up to this beam extent
+#: (simulation samples a side on the exit-pupil plane), the Fresnel step beyond
+AUTO_ASM_SAMPLES = 3072
 
 
 def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_doe: float, z_sensor: float,
                      chief_xp, chief_doe, chief_sensor, nodes: int = 64, oversample: int = 1,
                      field_type: str | None = None, check: bool = True, chief_uv=None,
-                     ripple_zones: float = RIPPLE_ZONES) -> DOEField:
+                     ripple_zones: float | None = None, method: str = "auto") -> DOEField:
     """The accurate DOE-plane field with the stop's sharp edge formed where it belongs: at the exit pupil.
 
-    The geometric-optics field is built by :func:`accurate_field` on the exit-pupil plane ``z_xp`` (usually a
+    ``method="fresnel"`` (default): the analytic step. The geometric-optics field is built on the DOE plane
+    itself (:func:`accurate_field`, rays traced past the stop's edge without apertures), and the stop's edge,
+    instead of being cut sharply there, is multiplied by the knife-edge Fresnel factor of the edge sharp on the
+    exit-pupil plane (:func:`stop_edge_factor`, with the local Fresnel length of :func:`_fresnel_scale`: the
+    distance from the exit pupil along the ray, the ray's tilt and the wave's local convergence). Costs about
+    what the DOE-plane edge costs, on the DOE's grid, for a beam of any size. Other apertures' edges stay on
+    the DOE plane. ``chief_xp`` is not used.
+
+    ``method="asm"``: the exact construction (the reference the Fresnel step is measured against). The geometric-optics field is built by :func:`accurate_field` on the exit-pupil plane ``z_xp`` (usually a
     virtual plane inside the lens: the rays leaving the last surface travel on straight lines in the image
     medium, so extending them backwards is exact), where the image of the stop's edge is sharp; it is then
     propagated to the DOE plane by the windowed angular spectrum (:func:`raywave.wave.propagate_window`,
@@ -498,16 +683,31 @@ def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_
     clamped to the DOE grid; the DOE aperture is applied there. Differentiable like :func:`accurate_field`.
 
     Args: as :func:`accurate_field`, plus ``z_xp`` (mm) and ``chief_xp`` (the chief ray on that plane).
-    Raises ValueError when the beam on the exit-pupil plane spans more than :data:`MAX_XP_SAMPLES` simulation
-    samples (an exit pupil far from the lens: the field there would not fit in memory)."""
+    ``method="asm"`` raises ValueError when the beam on the exit-pupil plane spans more than
+    :data:`MAX_XP_SAMPLES` simulation samples (a large beam: the field there would not fit in memory).
+    ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel"."""
+    ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
-    xb = _footprint(lens, torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2),
-                    torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device), depth, z_xp,
-                    virtual=True)
+    xb = None
+    if method in ("auto", "asm"):
+        xb = _footprint(lens, torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2),
+                        torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device), depth, z_xp,
+                        virtual=True)
+    if method == "auto":
+        big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
+        method = "fresnel" if big else "asm"
+    if method == "fresnel":
+        fd = accurate_field(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe, chief_sensor, nodes=nodes,
+                            oversample=oversample, field_type=field_type, check=check, chief_uv=chief_uv,
+                            stop_plane=z_xp, ripple_zones=ripple_zones)
+        return replace(fd, stop_edge="exit_pupil")
+    if method != "asm":
+        raise ValueError(f"method must be 'auto', 'fresnel' or 'asm', got {method!r}")
     if xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > MAX_XP_SAMPLES:
         raise ValueError(f"stop_edge='exit_pupil': the beam is {xb[1] - xb[0]:.3g}×{xb[3] - xb[2]:.3g} mm on the "
                          f"exit-pupil plane z = {z_xp:.4g} mm, over {MAX_XP_SAMPLES} samples of {p_sim * 1e3:g} µm "
-                         "a side; the exit pupil is too far from the lens for this construction: use stop_edge='doe'")
+                         "a side, too large for the exact angular-spectrum construction: use the Fresnel step "
+                         "(HybridLens(edge_step='fresnel'), the default) or stop_edge='doe'")
     fx = accurate_field(lens, doe, field, wavelength, depth, z_xp, z_sensor, chief_xp, chief_sensor, nodes=nodes,
                         oversample=oversample, field_type=field_type, check=check, chief_uv=chief_uv, virtual=True)
     _, fld, wl, n, (p, x0, y0, sy, sx), _, center, zprop = _common_setup(

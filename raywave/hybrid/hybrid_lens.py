@@ -42,6 +42,8 @@ __all__ = ["DOEApertureWarning", "HybridLens", "PSFResult", "SensorCropWarning"]
 CLIP_WARN = 0.01
 #: the accepted values of ``HybridLens(stop_edge=...)``
 STOP_EDGES = ("doe", "exit_pupil")
+#: the accepted values of ``HybridLens(edge_step=...)``: how the exit-pupil edge reaches the DOE plane
+EDGE_STEPS = ("auto", "fresnel", "asm")
 
 
 _OUT_MARGIN = 8  # samples around the PSF window (keeps the periodic upsampling's edge effects out of it)
@@ -110,10 +112,18 @@ class HybridLens(nn.Module):
             depend on the DOE distance and agree with the Huygens exit-pupil model (docs/ray-wave.md,
             Accuracy). Costs one extra large angular-spectrum propagation per field and wavelength (cached
             with the DOE-plane field). The faithful mode ignores it.
+        edge_step: with ``stop_edge="exit_pupil"``, how the edge's diffraction reaches the DOE plane. "asm": the
+            exact construction, the field built on the exit-pupil plane and propagated to the DOE plane by the
+            angular spectrum (~10× the DOE-plane edge's cost; only for beams that span at most
+            :data:`raywave.hybrid.coherent.AUTO_ASM_SAMPLES` simulation samples on the exit-pupil plane).
+            "fresnel": the analytic knife-edge step on the DOE plane's own grid (a few times the DOE-plane edge's
+            cost, any beam size; :func:`raywave.hybrid.coherent.stop_edge_factor`; 1e-3 … 5e-3 L1 from the exact
+            construction on the bundled asphere, docs/ray-wave.md). "auto" (default): "asm" where the beam fits,
+            else "fresnel".
     """
 
     def __init__(self, lens, doe: DOE, doe_distance: float, sensor_pitch: float | None = None, oversample: int = 1,
-                 intensity_upsample: int = 4, stop_edge: str = "doe"):
+                 intensity_upsample: int = 4, stop_edge: str = "doe", edge_step: str = "auto"):
         super().__init__()
         self.lens = lens
         self.doe = doe
@@ -136,6 +146,9 @@ class HybridLens(nn.Module):
         if stop_edge not in STOP_EDGES:
             raise ValueError(f"stop_edge must be one of {STOP_EDGES}, got {stop_edge!r}")
         self.stop_edge = stop_edge
+        if edge_step not in EDGE_STEPS:
+            raise ValueError(f"edge_step must be one of {EDGE_STEPS}, got {edge_step!r}")
+        self.edge_step = edge_step
         # transfer functions of recent window pairs (a training loop with a frozen lens reuses them); plain
         # per-instance memo, never part of the state_dict
         self._transfer_cache: OrderedDict = OrderedDict()
@@ -169,10 +182,17 @@ class HybridLens(nn.Module):
         from raywave.lens.sources import chief_ray
 
         wl = self.lens.primary_wavelength if wavelength is None else float(wavelength)
-        fmax = max([abs(float(f)) for f in getattr(self.lens, "fields", [])] + [0.0]) or 1.0
+        # the exit pupil is the stop's image by the lens behind it: it does not depend on the object, so the
+        # ray comes from a distant object at a small angle whatever the lens's field type and object distance
+        # (object-height fields cannot describe a distant object)
+        if self.lens.field_type == "angle":
+            angle = 1e-3 * (max([abs(float(f)) for f in getattr(self.lens, "fields", [])] + [0.0]) or 1.0)
+        else:
+            angle = 1e-2
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            out = self.lens.trace(chief_ray(self.lens, (0.0, 1e-3 * fmax), wl), apertures=False)
+            ray = chief_ray(self.lens, (0.0, angle), wl, field_type="angle", depth=math.inf)
+            out = self.lens.trace(ray, apertures=False)
             o, d = out.o.reshape(-1)[:3], out.d.reshape(-1)[:3]
             ok = bool(out.valid.all()) and abs(float(d[1])) > 1e-15
             z = float(o[2] - o[1] * d[2] / d[1]) if ok else float(exit_pupil(self.lens, wl)[0])
@@ -220,6 +240,9 @@ class HybridLens(nn.Module):
         xp = mode == "accurate" and self.stop_edge == "exit_pupil"
         if xp:  # the chief rays on every wavelength's exit-pupil plane (straight lines in the image medium)
             z_xps = [self.exit_pupil_z(wl) for wl in wls]
+        if xp and self.edge_step == "fresnel":
+            cx = [[None] * f.shape[0] for _ in wls]
+        elif xp:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", VignettingWarning)
                 cx = [chief_rays(self.lens, f, torch.tensor([wl], dtype=torch.float64), depth, zx, z_sen)[0][:, 0]
@@ -232,7 +255,7 @@ class HybridLens(nn.Module):
                 if xp:
                     fd = exit_pupil_field(self.lens, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i],
                                           cd[i, j], cs[i, j], nodes=rays or 64, oversample=self.oversample,
-                                          check=check, chief_uv=cuv[i, j])
+                                          check=check, chief_uv=cuv[i, j], method=self.edge_step)
                 elif mode == "accurate":
                     fd = accurate_field(*args, nodes=rays or 64, oversample=self.oversample, check=check,
                                         chief_uv=cuv[i, j])
@@ -403,4 +426,5 @@ class HybridLens(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"doe_distance={self.doe_distance:g} mm, sensor_pitch={self.sensor_pitch * 1e3:g} µm, "
-                f"oversample={self.oversample}, stop_edge={self.stop_edge!r}")
+                f"oversample={self.oversample}, stop_edge={self.stop_edge!r}"
+                + (f", edge_step={self.edge_step!r}" if self.stop_edge == "exit_pupil" else ""))
