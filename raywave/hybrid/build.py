@@ -30,6 +30,8 @@ import torch
 
 from raywave.doe import BlankDOE, PixelDOE, doe_from_phase_model
 from raywave.hybrid.hybrid_lens import HybridLens
+from raywave.io.errors import LensFileError
+from raywave.utils.errors import NonFiniteError
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "DOEPhaseWarning", "beam_half_extent",
            "default_doe_size", "hybrid_from_spec", "load_hybrid"]
@@ -201,8 +203,11 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         elif wrap:
             doe.fabricate(levels=None)
     elif model is not None:
-        doe = doe_from_phase_model(model, shape, pitch, aperture, design_wavelength=data.design_wavelength,
-                                   material=material, levels=levels, wrap=wrap)
+        try:
+            doe = doe_from_phase_model(model, shape, pitch, aperture, design_wavelength=data.design_wavelength,
+                                       material=material, levels=levels, wrap=wrap)
+        except NonFiniteError as e:
+            raise LensFileError(f"doe.phase_model: {e}", source) from None
     elif material is not None or levels is not None:
         doe = BlankDOE(shape, pitch, aperture=aperture, design_wavelength=data.design_wavelength, material=material)
     else:
