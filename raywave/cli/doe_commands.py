@@ -30,7 +30,7 @@ import time
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, integer_arg, number_arg
+from raywave.cli.errors import CommandError, integer_arg, number_arg, json_dumps
 
 PHASE_EXTENSIONS = (".npy", ".npz")
 LENS_EXTENSIONS = (".json", ".zmx")
@@ -192,7 +192,7 @@ def export_masks(doe, levels: int = 16, material: str = "fused_silica", waveleng
         "previews": pngs,
     }
     rp = folder / "report.json"
-    rp.write_text(json.dumps(full, indent=2) + "\n", encoding="utf-8")
+    rp.write_text(json_dumps(full, indent=2) + "\n", encoding="utf-8")
     full["report"] = str(rp)
     return full
 
@@ -244,7 +244,7 @@ def cmd_export(args) -> int:
     except ValueError as e:
         raise CommandError(" ".join(str(e).split())) from None
     if args.json:
-        print(json.dumps(r))
+        print(json_dumps(r))
         return 0
     mf = r["min_feature_um"]
     depths = "/".join(f"{d:.1f}" for d in r["depths_nm"])
@@ -304,7 +304,7 @@ def tolerance_report(doe, levels: int = 16, material: str = "fused_silica", wave
                                        "oversample": lens.oversample, "field_deg": [float(v) for v in field],
                                        "ks": int(ks)}
     rp = folder / "report.json"
-    rp.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    rp.write_text(json_dumps(report, indent=2) + "\n", encoding="utf-8")
     report["report"] = str(rp)
     return report
 
@@ -407,7 +407,7 @@ def cmd_report(args) -> int:
     except ValueError as e:
         raise CommandError(" ".join(str(e).split())) from None
     if args.json:
-        print(json.dumps(r))
+        print(json_dumps(r))
     else:
         print(format_report(r), file=sys.stdout)
     return 0

@@ -23,7 +23,7 @@ import json
 import os
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, integer_arg as _integer
+from raywave.cli.errors import CommandError, integer_arg as _integer, json_dumps
 
 __all__ = ["register"]
 
@@ -146,7 +146,7 @@ def _report(run_dir: Path, trainers: dict, noise: bool) -> None:
     if "baseline" in metrics:
         metrics["gain_db"] = {k: metrics["designed"][k]["psnr"] - metrics["baseline"][k]["psnr"]
                               for k in metrics["designed"]}
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    (run_dir / "metrics.json").write_text(json_dumps(metrics, indent=2) + "\n")
     _figures(run_dir, trainers)
     m = metrics["designed"]["mean"]
     line = f"designed: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}"

@@ -33,6 +33,7 @@ from raywave.doe import DOE
 from raywave.hybrid.coherent import DOEField, accurate_field, chief_rays, doe_clipping, exit_pupil_field, faithful_field
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
+from raywave.utils.safe import safe_div
 from raywave.wave.field import upsampled_intensity
 from raywave.wave.propagation import angular_spectrum, pixel_integrate, propagate_window, window_transfer
 
@@ -340,7 +341,7 @@ class HybridLens(nn.Module):
                                kernel="cubic")
         total = crop.sum()
         outside = 1.0 - total / power.to(torch.float64)
-        psf = crop / total.clamp_min(1e-300)
+        psf = safe_div(crop, total, total > 0)  # a crop with no light stays 0, with finite gradients
         return psf, center_t, outside
 
     def _transfer(self, u, p, fd: DOEField, out_origin, n_out: int, weight_derivative: bool = False):

@@ -77,6 +77,10 @@ class Lens(nn.Module):
             raise ValueError(f"field_type must be 'angle' or 'object_height', got {field_type!r}")
         self.field_type = field_type
         self.fields = [float(f) for f in fields]
+        if field_type == "angle":
+            from raywave.lens.sources import check_field_angles
+
+            check_field_angles(self.fields)
         self.wavelengths = [float(w) for w in wavelengths]
         if not 0 <= primary < len(self.wavelengths):
             raise ValueError(f"primary wavelength index {primary} out of range for {len(self.wavelengths)} wavelengths")

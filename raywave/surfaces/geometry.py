@@ -198,9 +198,15 @@ class EvenAsphere(Standard):
                 t = t_new
                 if not bool((step > NEWTON_TOL).any()):
                     break
+            # rays whose iterate is unusable (diverged, outside the sag's domain, not on the surface) restart
+            # the differentiable step from t = 0 (their own, finite origin): a huge or non-finite t there would
+            # overflow the polynomial and put 0·inf = NaN into the gradients of the valid rays' parameters
+            x, y = args[0] + t * args[3], args[1] + t * args[4]
+            f_d = args[2] + t * args[5] - self.sag(x, y)
+            pre = torch.isfinite(t) & self.in_domain(x, y) & (f_d.abs() < 1e-9)
+            t = torch.where(pre, t, torch.zeros_like(t))
         # One differentiable step at the converged point: gives the implicit-function gradient.
         t_final, f, okp = self._newton_step(t, ox, oy, oz, dx, dy, dz)
-        x, y = ox + t * dx, oy + t * dy
-        ok = okp & self.in_domain(x, y) & (f.detach().abs() < 1e-9) & torch.isfinite(t_final)
+        ok = pre & okp & torch.isfinite(t_final)
         t_final = torch.where(ok, t_final, torch.zeros_like(t_final))
         return t_final, ok
