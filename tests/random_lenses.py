@@ -41,9 +41,9 @@ def _sag(c: float, k: float, a4: float, r: float) -> float:
     return c * r * r / (1 + math.sqrt(max(arg, 0.0))) + a4 * r**4
 
 
-def _surface(rng, semi: float, asphere_prob: float = 0.3) -> dict:
-    """A random surface dict (radius, maybe even asphere) that is defined out to 1.25×``semi``."""
-    c_max = 1.0 / (2.2 * semi)
+def _surface(rng, semi: float, asphere_prob: float = 0.3, r_min: float = 2.2) -> dict:
+    """A random surface dict (radius, maybe even asphere) with |radius| >= ``r_min``×``semi``."""
+    c_max = 1.0 / (r_min * semi)
     c = float(rng.uniform(-c_max, c_max))
     if abs(c) < 1e-4:
         c = 0.0
@@ -60,18 +60,18 @@ def _geom(s: dict):
     return c, s.get("conic", 0.0), s.get("aspheric", {}).get("a4", 0.0)
 
 
-def random_lens_spec(rng: np.random.Generator) -> tuple[dict, str]:
+def random_lens_spec(rng: np.random.Generator, epd_range=(2.0, 8.0), r_min: float = 2.2) -> tuple[dict, str]:
     """A random lens spec (last thickness a placeholder) and its stop mode."""
     n_el = int(rng.integers(1, 5))
     stop_mode = str(rng.choice(STOP_MODES))
-    epd = float(rng.uniform(2.0, 8.0))
+    epd = float(rng.uniform(*epd_range))
     semi = 0.75 * epd + 0.5  # clear radius every surface must reach (beam + field growth)
     surfaces: list[dict] = []
     if stop_mode == "flat":
         surfaces.append({"type": "standard", "radius": "inf", "thickness": float(rng.uniform(0.5, 3.0)),
                          "material": "air", "stop": True, "aperture": {"shape": "circle", "radius": 0.5 * epd}})
     for _ in range(n_el):
-        front, back = _surface(rng, semi), _surface(rng, semi)
+        front, back = _surface(rng, semi, r_min=r_min), _surface(rng, semi, r_min=r_min)
         # centre thickness: edge thickness ≥ 0.8 mm at the clear radius
         edge = _sag(*_geom(front), semi) - _sag(*_geom(back), semi)
         front.update(thickness=max(float(rng.uniform(1.5, 6.0)), edge + 0.8),
@@ -94,8 +94,13 @@ def random_lens_spec(rng: np.random.Generator) -> tuple[dict, str]:
     return spec, stop_mode
 
 
-def random_hybrid(seed: int, max_tries: int = 50) -> RandomHybrid:
-    """A random physical hybrid lens (see the module docstring), reproducible from ``seed``."""
+def random_hybrid(seed: int, max_tries: int = 50, sampled: bool = False) -> RandomHybrid:
+    """A random physical hybrid lens (see the module docstring), reproducible from ``seed``.
+
+    ``sampled``: a slow, weakly curved lens (EPD 1–2 mm, |R| >= 10× the clear radius) with the DOE at 0.3–0.6 of
+    the back focus, so that the 256² DOE grid resolves the wavefront (the model is then smooth in the lens
+    parameters, for finite differences); otherwise EPD 2–8 mm, |R| >= 2.2× the clear radius and the DOE
+    anywhere in 0.2–0.8 of the back focus (often aliased: the PSFs are wrong, but must stay finite)."""
     from raywave.doe import PixelDOE
     from raywave.hybrid import HybridLens
     from raywave.hybrid.build import beam_half_extent
@@ -103,7 +108,7 @@ def random_hybrid(seed: int, max_tries: int = 50) -> RandomHybrid:
 
     rng = np.random.default_rng(seed)
     for _ in range(max_tries):
-        spec, mode = random_lens_spec(rng)
+        spec, mode = random_lens_spec(rng, (1.0, 2.0) if sampled else (2.0, 8.0), 10.0 if sampled else 2.2)
         wl = float(rng.uniform(0.45, 0.65))
         spec["wavelengths"] = {"values": [wl], "primary": 0}
         try:
@@ -116,7 +121,7 @@ def random_hybrid(seed: int, max_tries: int = 50) -> RandomHybrid:
         spec["surfaces"][-1]["thickness"] = bfl
         lens = lens_from_spec(spec)
         fields = [(0.0, 0.0), (0.0, float(rng.uniform(1.0, 10.0)))]
-        distance = float(rng.uniform(0.2, 0.8)) * bfl
+        distance = float(rng.uniform(*((0.3, 0.6) if sampled else (0.2, 0.8)))) * bfl
         z = float(lens.vertex_z()[-1].detach()) + distance
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
