@@ -30,7 +30,7 @@ import torch
 
 from raywave.doe import BlankDOE, PixelDOE, doe_from_phase_model
 from raywave.hybrid.hybrid_lens import HybridLens
-from raywave.io.errors import LensFileError
+from raywave.io.errors import LensFileError, with_location
 from raywave.utils.errors import NonFiniteError
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "DOEPhaseWarning", "beam_half_extent",
@@ -126,7 +126,10 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     """
     from raywave.lens.build import lens_from_spec
 
-    lens = lens_from_spec(spec)
+    try:
+        lens = lens_from_spec(spec)
+    except ValueError as err:  # a spec that validates but builds no lens: name the file
+        raise with_location(err, source)
     if field_type is not None:
         if field_type not in ("angle", "object_height"):
             raise ValueError(f"field_type must be 'angle' or 'object_height', got {field_type!r}")
@@ -235,6 +238,10 @@ def load_hybrid(path: str | Path, doe_pitch: float | None = None, doe_size=None,
     from raywave.io import read_hybrid_spec
 
     spec, data = read_hybrid_spec(path)
-    return hybrid_from_spec(spec, data, doe_pitch=doe_pitch, doe_size=doe_size, doe_distance=doe_distance,
-                            sensor_pitch=sensor_pitch, oversample=oversample, fields=fields, wavelengths=wavelengths,
-                            depth=depth, field_type=field_type, source=str(path), stop_edge=stop_edge)
+    try:
+        return hybrid_from_spec(spec, data, doe_pitch=doe_pitch, doe_size=doe_size, doe_distance=doe_distance,
+                                sensor_pitch=sensor_pitch, oversample=oversample, fields=fields,
+                                wavelengths=wavelengths, depth=depth, field_type=field_type, source=str(path),
+                                stop_edge=stop_edge)
+    except ValueError as err:  # every refusal names the file
+        raise with_location(err, path)

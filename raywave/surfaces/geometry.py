@@ -126,8 +126,8 @@ class Standard(Geometry):
         b = c * (ox * dx + oy * dy + kp1 * oz * dz) - dz
         cc = c * (ox * ox + oy * oy + kp1 * oz * oz) - 2.0 * oz
         disc = b * b - a * cc
-        ok = disc >= 0
-        den = safe_sqrt(disc, ok, fill=0.0) - b  # stable root, continuous with the plane as c -> 0
+        ok = disc > 0  # a tangent ray (disc = 0) has an infinite derivative: it is vignetted
+        den = safe_sqrt(disc, ok, fill=1.0) - b  # stable root, continuous with the plane as c -> 0
         ok = ok & (den != 0)
         t = cc / torch.where(ok, den, torch.ones_like(den))
         # Keep the branch through the vertex (excludes the far half of a sphere / other hyperbola sheet).
