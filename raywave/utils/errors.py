@@ -1,4 +1,4 @@
-"""Error types shared by the physics sub-packages (no I/O, no torch).
+"""Error types shared by the physics sub-packages, and the memory check (no I/O besides /proc/meminfo).
 
 Every error raywave raises on purpose is a ``ValueError`` subclass whose message names the problem and where
 it is (the CLI prints it as one line and exits with status 2). See docs/conventions.md, "Errors".
