@@ -57,7 +57,7 @@ def _try_file(path: Path, psf: bool = False) -> str:
             out = lens.trace_to_image(rays)
             if psf:
                 res = hl.psf((0.0, 0.0), ks=8, rays=8)
-        except ValueError as err:  # a raywave error at trace time (e.g. a stop without aperture)
+        except ValueError:  # a raywave error at trace time (e.g. a stop without aperture)
             return "refused"
         except Exception as err:  # noqa: BLE001
             raise AssertionError(f"{path.name}: loaded, then {type(err).__name__}: {err}") from err
@@ -172,9 +172,27 @@ def _file_cases(tmp: Path, seed: int, n: int):
             zmx[name] = p.read_text(encoding="utf-8")
     out = []
     for i in range(n):
-        kind = rng.choice(["json", "json", "json", "zmx", "zmx", "bytes"])
+        kind = rng.choice(["json", "json", "json", "zmx", "zmx", "bytes", "npy"])
         name = rng.choice(sorted(bases))
-        if kind == "json":
+        if kind == "npy":  # the DOE's phase map file itself
+            name = "hybrid_map"
+            spec = json.loads(json.dumps(bases[name]))
+            spec["doe"]["phase"] = f"phase{seed}_{i}.npy"
+            q = tmp / spec["doe"]["phase"]
+            bad = rng.choice(["nan", "inf", "huge", "3d", "1d", "empty", "shape", "truncated", "text"])
+            arr = {"nan": np.full((64, 64), np.nan), "inf": np.full((64, 64), np.inf), "huge": np.full((64, 64), 1e300),
+                   "3d": np.zeros((2, 64, 64)), "1d": np.zeros(64), "empty": np.zeros((0, 0)),
+                   "shape": np.zeros((63, 65))}.get(bad)
+            if arr is not None:
+                np.save(q, arr)
+            elif bad == "truncated":
+                np.save(q, np.zeros((64, 64)))
+                q.write_bytes(q.read_bytes()[:100])
+            else:
+                q.write_text("not a numpy file")
+            p = tmp / f"case{seed}_{i}.json"
+            p.write_text(json.dumps(spec), encoding="utf-8")
+        elif kind == "json":
             p = tmp / f"case{seed}_{i}.json"
             text = json.dumps(_mutate_json(bases[name], rng), indent=1)  # NaN / Infinity tokens included
             p.write_text(text, encoding="utf-8")

@@ -21,7 +21,6 @@ L1 between models) and prints the table.
 from __future__ import annotations
 
 import csv
-import json
 import math
 import sys
 import warnings

@@ -23,7 +23,6 @@ PSFs), and writes ``report.json`` and PNG histograms into the output folder.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time

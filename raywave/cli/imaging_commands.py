@@ -19,7 +19,6 @@ per channel averaged with the sensor-response weights (evaluation) instead of on
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import warnings

@@ -18,7 +18,6 @@ quantised, a continuous kinoform) and becomes a dispersive height map in NAME (d
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import warnings

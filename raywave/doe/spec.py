@@ -24,7 +24,8 @@ MAX_PHASE = 1e12
 _CHECK_SAMPLES = 192  # pixels a side of the sub-grid on which check_phase_finite evaluates the phase
 
 
-def check_phase_finite(doe: DOE, what: str = "the DOE phase") -> None:
+def check_phase_finite(doe: DOE, what: str = "the DOE phase",
+                       hint: str = "check its coefficients, order and normalisation radius") -> None:
     """Raise :class:`~raywave.utils.errors.NonFiniteError` when ``doe``'s design phase is NaN, infinite or beyond
     :data:`MAX_PHASE` rad on its grid (e.g. a BINARY_2 order of 1e308, a normalisation radius of 1e-300 mm).
 
@@ -44,8 +45,7 @@ def check_phase_finite(doe: DOE, what: str = "the DOE phase") -> None:
                 ix = range(*cols.indices(nx))[ix]
                 v = float(ph[bad][0])
                 raise NonFiniteError(f"{what} is {v:g} rad at pixel [{iy}, {ix}] of the {ny}×{nx} DOE (allowed: "
-                                     f"finite, |phase| <= {MAX_PHASE:g} rad): check its coefficients, order and "
-                                     f"normalisation radius; {doe.extra_repr()}")
+                                     f"finite, |phase| <= {MAX_PHASE:g} rad): {hint}; {doe.extra_repr()}")
 
 
 def _build(model: dict, shape, pitch, aperture, optics: dict) -> DOE:

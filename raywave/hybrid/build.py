@@ -29,6 +29,7 @@ from pathlib import Path
 import torch
 
 from raywave.doe import BlankDOE, PixelDOE, doe_from_phase_model
+from raywave.doe.spec import check_phase_finite
 from raywave.hybrid.hybrid_lens import HybridLens
 from raywave.io.errors import LensFileError, with_location
 from raywave.utils.errors import NonFiniteError
@@ -201,6 +202,10 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     wrap = bool(data.wrap) if from_file else False
     if phase is not None:
         doe = PixelDOE(phase, pitch, design_wavelength=data.design_wavelength, aperture=aperture, material=material)
+        try:
+            check_phase_finite(doe, f"the phase map {data.phase_path!r}", "its values are radians")
+        except NonFiniteError as e:
+            raise LensFileError(f"doe.phase: {e}", source) from None
         if levels is not None:
             doe.fabricate(levels=levels)
         elif wrap:
