@@ -219,9 +219,9 @@ def _run_files(tmp: Path, seeds, n: int) -> dict:
 
 
 def test_fuzzed_lens_and_doe_files_load_or_are_refused_cleanly(tmp_path):
-    counts = _run_files(tmp_path, range(2), 80)
+    counts = _run_files(tmp_path, range(2), 60)
     print(f"\nfuzzed files: {counts}")
-    assert counts["loaded"] > 10 and counts["refused"] > 100, counts
+    assert counts["loaded"] > 5 and counts["refused"] > 60, counts
 
 
 @pytest.mark.slow
@@ -455,9 +455,9 @@ def _run_cli(tmp: Path, seeds, n: int) -> dict:
 
 
 def test_fuzzed_cli_arguments_exit_0_or_2_with_one_line(tmp_path):
-    counts = _run_cli(tmp_path, range(2), 40)
+    counts = _run_cli(tmp_path, range(2), 25)
     print(f"\nfuzzed CLI calls: {counts}")
-    assert counts["refused"] > 40
+    assert counts["refused"] > 25
 
 
 @pytest.mark.slow
