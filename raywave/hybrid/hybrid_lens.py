@@ -382,7 +382,7 @@ class HybridLens(nn.Module):
             nr.append(rr), clip.append([fd.clipped for fd in row])
         center = torch.stack(centers)
         self._check_sensor(center)
-        psf = self._checked(torch.stack(psfs), fds)
+        psf = self._checked(torch.stack(psfs), fds, connect=cache is None)
         return PSFResult(psf, center, torch.stack(outs), self.sensor_pitch, torch.tensor(nr),
                          torch.tensor(clip, dtype=torch.float64, device=center.device))
 
@@ -391,11 +391,12 @@ class HybridLens(nn.Module):
         """PSFs ``(F, W, ks, ks)`` (float64, each summing to 1); see :meth:`psf_result` for the arguments."""
         return self.psf_result(fields, wavelengths, ks, depth, mode, rays, cache, **kw).psf
 
-    def _checked(self, psf: torch.Tensor, fds) -> torch.Tensor:
+    def _checked(self, psf: torch.Tensor, fds, connect: bool = True) -> torch.Tensor:
         """``psf`` (F, W, ks, ks) refused when not finite (:class:`~raywave.utils.errors.NonFiniteError` naming the
-        source), and kept connected to the autograd graph when no light reached the sensor in any source (all
-        zeros): a zero-valued term in every trainable parameter, so ``backward()`` works and gives zero
-        gradients instead of failing inside torch."""
+        source), and (``connect``: fields traced now, not a cache, which stands for a frozen lens) kept connected
+        to the autograd graph when no light reached the sensor in any source (all zeros): a zero-valued term in
+        every trainable parameter, so ``backward()`` works and gives zero gradients instead of failing inside
+        torch."""
         from raywave.utils.errors import NonFiniteError
 
         bad = ~torch.isfinite(psf).all(-1).all(-1)
@@ -406,7 +407,7 @@ class HybridLens(nn.Module):
                 f"the PSF of source {i} at {fd.wavelength:g} µm is not finite (NaN or inf): the DOE's phase is not "
                 f"finite on its grid (check its phase model: coefficients, order, normalisation radius) or the lens "
                 f"gives non-finite optical paths; DOE: {self.doe.extra_repr()}")
-        if torch.is_grad_enabled() and not psf.requires_grad:
+        if connect and torch.is_grad_enabled() and not psf.requires_grad:
             live = [q for q in self.parameters() if q.requires_grad]
             if live:
                 psf = psf + sum(q.sum() for q in live).to(psf.dtype) * 0.0
