@@ -103,6 +103,7 @@ def random_hybrid(seed: int, max_tries: int = 50, sampled: bool = False) -> Rand
     anywhere in 0.2–0.8 of the back focus (often aliased: the PSFs are wrong, but must stay finite)."""
     from raywave.doe import PixelDOE
     from raywave.hybrid import HybridLens
+    from raywave.hybrid.build import beam_half_extent
     from raywave.lens.build import lens_from_spec
 
     rng = np.random.default_rng(seed)
@@ -122,10 +123,12 @@ def random_hybrid(seed: int, max_tries: int = 50, sampled: bool = False) -> Rand
         fields = [(0.0, 0.0), (0.0, float(rng.uniform(1.0, 10.0)))]
         distance = float(rng.uniform(*((0.3, 0.6) if sampled else (0.2, 0.8)))) * bfl
         z = float(lens.vertex_z()[-1].detach()) + distance
-        ext = _beam_half(lens, z, fields, wl)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ext = beam_half_extent(lens, z, fields=fields, wavelengths=[wl])
         if ext is None:
             continue
-        size = 2.4 * ext
+        size = 2.4 * max(ext)
         if rng.random() < 0.5:
             phase = torch.zeros(DOE_PIXELS, DOE_PIXELS, dtype=torch.float64)
         else:  # a smooth random phase: a few low-order terms, up to a few waves across the DOE
@@ -136,20 +139,6 @@ def random_hybrid(seed: int, max_tries: int = 50, sampled: bool = False) -> Rand
         doe = PixelDOE(phase, size / DOE_PIXELS)
         return RandomHybrid(seed, HybridLens(lens, doe, distance), spec, fields, wl, mode)
     raise RuntimeError(f"seed {seed}: no physical lens in {max_tries} draws")
-
-
-def _beam_half(lens, z: float, fields, wl: float) -> float | None:
-    """Largest |x| or |y| (mm) of the pupil rim's rays (32 per field, aimed through the chief ray) on the plane z."""
-    from raywave.lens.sources import point_source_rays
-
-    t = torch.linspace(0, 2 * math.pi, 33, dtype=torch.float64)[:-1]
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        rays = point_source_rays(lens, fields, [wl], pupil=(torch.cos(t), torch.sin(t)), aim="chief")
-        out = lens.trace(rays)
-        at = out.propagate_to_z(z, lens.surfaces[-1].material.n(out.wavelength).to(out.dtype))
-    v = at.valid & torch.isfinite(at.o).all(-1)
-    return float(at.o[..., :2][v].abs().max()) if bool(v.any()) else None
 
 
 def loss_weights(ks: int, seed: int) -> torch.Tensor:
