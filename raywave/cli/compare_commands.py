@@ -21,13 +21,12 @@ L1 between models) and prints the table.
 from __future__ import annotations
 
 import csv
-import json
 import math
 import sys
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, number_arg as _number
+from raywave.cli.errors import CommandError, number_arg as _number, json_dumps
 
 DEFAULT_FIELDS = ("0",)
 
@@ -227,7 +226,7 @@ def cmd_compare(args) -> int:
     report = {"lens": str(args.lens), "doe": args.doe, "wavelength_um": wl,
               "depth_mm": "inf" if math.isinf(depth) else depth, "ks": ks, "pitch_mm": hl.sensor_pitch,
               "models": models, "reference": reference, "notes": notes, "rows": rows, "pairs": table["pairs"]}
-    (out_dir / "compare.json").write_text(json.dumps(report, indent=1))
+    (out_dir / "compare.json").write_text(json_dumps(report, indent=1))
     from raywave.plotting.psf import plot_psf_grid
 
     res = table["results"]
@@ -240,7 +239,7 @@ def cmd_compare(args) -> int:
                         title=title)
     plt.close(fig)
     if args.json:
-        print(json.dumps(report))
+        print(json_dumps(report))
     else:
         for n in notes:
             print(f"note: {n}")

@@ -23,14 +23,13 @@ PSFs), and writes ``report.json`` and PNG histograms into the output folder.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, integer_arg, number_arg
+from raywave.cli.errors import CommandError, integer_arg, number_arg, json_dumps
 
 PHASE_EXTENSIONS = (".npy", ".npz")
 LENS_EXTENSIONS = (".json", ".zmx")
@@ -156,7 +155,7 @@ def export_masks(doe, levels: int = 16, material: str = "fused_silica", waveleng
         pngs = [str(p) for p in plot_masks(masks, doe.pitch, Path(folder), depths_nm=[d * 1e6 for d in depths])]
     full["previews"] = pngs
     rp = Path(full.pop("report"))
-    rp.write_text(json.dumps(full, indent=2) + "\n", encoding="utf-8")
+    rp.write_text(json_dumps(full, indent=2) + "\n", encoding="utf-8")
     full["report"] = str(rp)
     return full
 
@@ -208,7 +207,7 @@ def cmd_export(args) -> int:
     except ValueError as e:
         raise CommandError(" ".join(str(e).split())) from None
     if args.json:
-        print(json.dumps(r))
+        print(json_dumps(r))
         return 0
     mf = r["min_feature_um"]
     depths = "/".join(f"{d:.1f}" for d in r["depths_nm"])
@@ -268,7 +267,7 @@ def tolerance_report(doe, levels: int = 16, material: str = "fused_silica", wave
                                        "oversample": lens.oversample, "field_deg": [float(v) for v in field],
                                        "ks": int(ks)}
     rp = folder / "report.json"
-    rp.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    rp.write_text(json_dumps(report, indent=2) + "\n", encoding="utf-8")
     report["report"] = str(rp)
     return report
 
@@ -371,7 +370,7 @@ def cmd_report(args) -> int:
     except ValueError as e:
         raise CommandError(" ".join(str(e).split())) from None
     if args.json:
-        print(json.dumps(r))
+        print(json_dumps(r))
     else:
         print(format_report(r), file=sys.stdout)
     return 0

@@ -31,3 +31,29 @@ def integer_arg(text: str, flag: str, minimum: int = 1) -> int:
     if v < minimum:
         raise CommandError(f"{flag}: must be >= {minimum}, got {v}")
     return v
+
+
+def finite_json(obj, where: str = "output"):
+    """``obj`` with every infinite float written as the string ``"inf"`` / ``"-inf"`` (as the lens format does);
+    a NaN anywhere is a :class:`CommandError` naming its key (JSON has no NaN or Infinity)."""
+    if isinstance(obj, float) or (hasattr(obj, "dtype") and getattr(obj, "ndim", 1) == 0 and hasattr(obj, "item")):
+        v = obj.item() if hasattr(obj, "item") else obj
+        if isinstance(v, float):
+            if math.isnan(v):
+                raise CommandError(f"{where} is NaN (not a number): the computation failed for these inputs")
+            if math.isinf(v):
+                return "inf" if v > 0 else "-inf"
+        return v
+    if isinstance(obj, dict):
+        return {k: finite_json(v, f"{where}.{k}" if where != "output" else str(k)) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v, f"{where}[{i}]") for i, v in enumerate(obj)]
+    return obj
+
+
+def json_dumps(obj, **kwargs) -> str:
+    """``json.dumps`` for everything the CLI prints or writes: strict JSON (never NaN or Infinity, see
+    :func:`finite_json`; ``allow_nan=False`` as the last guard)."""
+    import json
+
+    return json.dumps(finite_json(obj), allow_nan=False, **kwargs)

@@ -19,13 +19,12 @@ per channel averaged with the sensor-response weights (evaluation) instead of on
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, integer_arg as _integer, number_arg as _number
+from raywave.cli.errors import CommandError, integer_arg as _integer, number_arg as _number, json_dumps
 from raywave.cli.psf_commands import _wavelength, fabricate_doe, parse_doe_options
 
 IMAGE_OUTPUTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -180,7 +179,7 @@ def cmd_psfmap(args) -> int:
             wrote.append(str(p))
         s["png"] = wrote[-len(depths):]
     if args.json:
-        print(json.dumps(s))
+        print(json_dumps(s))
     else:
         print(f"PSF map of {s['lens']}: {grid[0]}×{grid[1]} nodes, depths {s['depths_mm']} mm, wavelengths "
               f"{s['wavelengths_um']} µm, {s['ks']}×{s['ks']} px of {s['pitch_mm'] * 1e3:g} µm")
@@ -317,7 +316,7 @@ def cmd_render(args) -> int:
          "image_pitch_mm": [sw / w, sh / h], "depth_mm": "inf" if math.isinf(depth) else depth,
          "average": bool(args.average), "noise": bool(args.noise), "output": args.output}
     if args.json:
-        print(json.dumps(s))
+        print(json_dumps(s))
     else:
         colour = ("3-wavelength average" if args.average
                   else f"wavelengths {[round(v, 4) for v in pmap.wavelengths.tolist()]} µm")

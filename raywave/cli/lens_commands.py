@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from pathlib import Path
 
 import torch
+
+from raywave.cli.errors import CommandError, integer_arg, json_dumps, number_arg
 
 
 def _load(name_or_path):
@@ -16,10 +17,18 @@ def _load(name_or_path):
     return load_lens(resolve_lens_path(name_or_path))
 
 
-def _floats(text: str | None):
+def _floats(text: str | None, flag: str = "--fields"):
+    """Comma- or space-separated finite numbers, or a one-line :class:`CommandError` naming ``flag``."""
     if text is None:
         return None
-    return [float(v) for v in text.replace(",", " ").split()]
+    vals = [number_arg(v, flag) for v in text.replace(",", " ").split()]
+    if not vals:
+        raise CommandError(f"{flag}: no values given")
+    return vals
+
+
+def _wavelength(text):
+    return None if text is None else number_arg(text, "--wavelength", positive=True)
 
 
 # ---------------------------------------------------------------------------- info
@@ -70,9 +79,9 @@ def format_info(info: dict) -> str:
 
 def cmd_info(args) -> int:
     lens = _load(args.lens)
-    info = lens_info(lens, args.wavelength)
+    info = lens_info(lens, _wavelength(args.wavelength))
     if args.json:
-        print(json.dumps({k: info[k] for k in INFO_KEYS}))
+        print(json_dumps({k: info[k] for k in INFO_KEYS}))
     else:
         print(format_info(info))
     return 0
@@ -83,7 +92,7 @@ def cmd_layout(args) -> int:
     from raywave.plotting import plot_layout
 
     lens = _load(args.lens)
-    plot_layout(lens, args.output, fields=_floats(args.fields), n_rays=args.rays)
+    plot_layout(lens, args.output, fields=_floats(args.fields), n_rays=integer_arg(args.rays, "--rays"))
     print(f"wrote {args.output}")
     return 0
 
@@ -109,7 +118,7 @@ def cmd_spot(args) -> int:
     fields = _floats(args.fields)
     table = spot_table(lens, fields)
     if args.json:
-        print(json.dumps(table))
+        print(json_dumps(table))
     else:
         unit = "deg" if lens.field_type == "angle" else "mm"
         print("RMS spot radius (µm), centroid reference")
@@ -149,7 +158,7 @@ def run_demo(out_dir: Path, lens_name: str = "cooke_triplet") -> dict:
     info = lens_info(lens)
     (out_dir / "paraxial.txt").write_text(format_info(info) + "\n")
     spots = spot_table(lens)
-    (out_dir / "paraxial.json").write_text(json.dumps({"paraxial": info, "spot": spots}, indent=2) + "\n")
+    (out_dir / "paraxial.json").write_text(json_dumps({"paraxial": info, "spot": spots}, indent=2) + "\n")
     plot_layout(lens, out_dir / "layout.png")
     plot_spots(lens, out_dir / "spot.png")
     return {"info": info, "spot": spots}
@@ -177,7 +186,7 @@ def run_psf_demo(out_dir: Path, lens_name: str = "hybrid_asphere", ks: int = 64)
             rows.append({"field_deg": list(f), "wavelength_um": wl, "center_mm": res.center[i, j].tolist(),
                          "energy_outside": float(res.energy_outside[i, j]), "rms_radius_um": m["rms_radius"] * 1e3,
                          "r80_um": m["r80"] * 1e3})
-    (out_dir / "psf.json").write_text(json.dumps({"lens": lens_name, "ks": ks, "pitch_mm": res.pitch,
+    (out_dir / "psf.json").write_text(json_dumps({"lens": lens_name, "ks": ks, "pitch_mm": res.pitch,
                                                   "psfs": rows}, indent=2) + "\n")
     plot_psf_grid(res.psf, res.pitch, [f"field ({f[0]:g}°, {f[1]:g}°)" for f in fields], [f"{w:g} µm" for w in lens.wavelengths],
                   out_dir / "psf.png", title=f"{lens_name}: ray-wave PSFs (log scale, {res.pitch * 1e3:g} µm pixels)")
@@ -203,14 +212,14 @@ def register(sub) -> None:
     p = sub.add_parser("info", help="paraxial table and real-ray EFL of a lens")
     p.add_argument("lens", help=lens_help)
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--wavelength", type=float, default=None, help="µm (default: the lens's primary)")
+    p.add_argument("--wavelength", default=None, help="µm (default: the lens's primary)")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("layout", help="2D section with ray fans (PNG)")
     p.add_argument("lens", help=lens_help)
     p.add_argument("-o", "--output", required=True, help="PNG file")
     p.add_argument("--fields", default=None, help="field values, e.g. '0,10,14' (default: the lens's)")
-    p.add_argument("--rays", type=int, default=7, help="rays per fan")
+    p.add_argument("--rays", default="7", help="rays per fan")
     p.set_defaults(func=cmd_layout)
 
     p = sub.add_parser("spot", help="RMS spot radius per field and wavelength")

@@ -18,13 +18,12 @@ quantised, a continuous kinoform) and becomes a dispersive height map in NAME (d
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, integer_arg as _integer, number_arg as _number
+from raywave.cli.errors import CommandError, integer_arg as _integer, number_arg as _number, json_dumps
 
 OUTPUT_EXTENSIONS = (".npy", ".npz")
 _MAX_WAVELENGTH_UM = 100.0
@@ -267,7 +266,7 @@ def cmd_psf(args) -> int:
         wrote.append(args.png)
         s["png"] = args.png
     if args.json:
-        print(json.dumps(s))
+        print(json_dumps(s))
     else:
         print(_format_text(s))
         for w in wrote:

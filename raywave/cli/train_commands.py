@@ -23,7 +23,7 @@ import json
 import os
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, integer_arg as _integer
+from raywave.cli.errors import CommandError, integer_arg as _integer, json_dumps
 
 __all__ = ["register"]
 
@@ -194,7 +194,7 @@ def _report(run_dir: Path, trainers: dict, noise: bool) -> None:
                               for k in metrics["designed"]}
     deconv = next(iter(trainers.values())).cfg.network.deconv
     metrics["ablation"] = ablation_table(metrics)
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    (run_dir / "metrics.json").write_text(json_dumps(metrics, indent=2) + "\n")
     (run_dir / "ablation.md").write_text("PSNR (dB) / SSIM on the held-out images\n\n"
                                          + format_ablation(metrics["ablation"], deconv) + "\n")
     _figures(run_dir, trainers)

@@ -335,6 +335,29 @@ def _cross(cx, cy, arm, width, layer):
     return gdstk.Polygon([(cx + x, cy + y) for x, y in pts], layer=layer)
 
 
+#: GDSII stores coordinates as signed 32-bit integers of the database unit
+_GDS_MAX_INT = 2**31 - 1
+
+
+def _check_database_grid(p_um: float, ny: int, nx: int, fmt: str) -> None:
+    """Refuse a pixel pitch (µm) that the mask file cannot represent: finer than the database unit (1 nm: the
+    pixels would collapse to zero-area polygons), or (GDSII) a layout whose outermost coordinate — the DOE, its
+    alignment crosses and label — overflows the 32-bit integer coordinates."""
+    db_um = _PRECISION / _UNIT  # database unit in µm
+    if p_um < db_um:
+        raise ValueError(f"the DOE pitch {p_um * 1e-3:g} mm is finer than the mask file's database unit "
+                         f"({db_um * 1e3:g} nm): its pixels would be zero-area polygons; resample the DOE to a pitch "
+                         f">= {db_um * 1e-3:g} mm")
+    if fmt == "gds":
+        side = max(nx, ny) * p_um
+        arm = max(20.0, 0.02 * side)
+        reach = side / 2 + 2 * arm + 3 * max(10.0, 0.015 * side) + 1.0  # crosses and label lines beyond the DOE
+        if reach / db_um > _GDS_MAX_INT:
+            raise ValueError(f"the {nx}×{ny}-pixel DOE at pitch {p_um * 1e-3:g} mm spans ±{reach * 1e-3:.4g} mm with its "
+                             f"marks, beyond GDSII's 32-bit coordinates (±{_GDS_MAX_INT * db_um * 1e-3:.4g} mm at the "
+                             f"{db_um * 1e3:g} nm database unit); use a finer pitch or write OASIS (.oas)")
+
+
 def write_mask_file(path, masks, pitch: float, *, name: str = "DOE", label: str | None = None,
                     fmt: str | None = None) -> dict:
     """Write the masks as a GDSII (``.gds``) or OASIS (``.oas``) file (module docstring: layers, cells, units).
@@ -357,6 +380,7 @@ def write_mask_file(path, masks, pitch: float, *, name: str = "DOE", label: str 
         raise ValueError(f"mask files are {' or '.join('.' + f for f in MASK_FORMATS)} "
                          f"({', '.join(MASK_FORMATS.values())}), got {str(path)!r}")
     k, ny, nx = m.shape
+    _check_database_grid(p, ny, nx, fmt)
     x0, y0 = -nx / 2 * p, -ny / 2 * p      # lower-left corner of pixel [0, 0]; the DOE is centred at 0
     lib = gdstk.Library(name=str(name)[:60] or "DOE", unit=_UNIT, precision=_PRECISION)
     doe = lib.new_cell("DOE")

@@ -10,14 +10,42 @@ import torch
 
 from raywave.doe.base import DOE, BlankDOE, PixelDOE, check_levels
 from raywave.doe.params import Binary2DOE, CubicDOE, FresnelDOE, GratingDOE, RadialDOE, SumDOE, ZernikeDOE
+from raywave.utils.errors import NonFiniteError
 
-__all__ = ["MODEL_TYPES", "doe_from_phase_model", "doe_from_spec", "load_doe", "save_doe"]
+__all__ = ["MAX_PHASE", "MODEL_TYPES", "check_phase_finite", "doe_from_phase_model", "doe_from_spec", "load_doe", "save_doe"]
 
 #: phase-model ``type`` -> DOE class
 MODEL_TYPES = {"blank": BlankDOE, "pixel": PixelDOE, "radial": RadialDOE, "binary_2": Binary2DOE,
                "zernike": ZernikeDOE, "fresnel": FresnelDOE, "grating": GratingDOE, "cubic": CubicDOE,
                "sum": SumDOE}
 _FORMAT = "raywave-doe"
+#: largest |phase| (rad) a DOE may reach: beyond it float64 resolves the phase to worse than ~1e-4 rad
+MAX_PHASE = 1e12
+_CHECK_SAMPLES = 192  # pixels a side of the sub-grid on which check_phase_finite evaluates the phase
+
+
+def check_phase_finite(doe: DOE, what: str = "the DOE phase",
+                       hint: str = "check its coefficients, order and normalisation radius") -> None:
+    """Raise :class:`~raywave.utils.errors.NonFiniteError` when ``doe``'s design phase is NaN, infinite or beyond
+    :data:`MAX_PHASE` rad on its grid (e.g. a BINARY_2 order of 1e308, a normalisation radius of 1e-300 mm).
+
+    The phase is evaluated on a strided sub-grid of at most ~192² pixels plus the outer rows and columns (where
+    polynomial phases peak), so the check is cheap for any grid size."""
+    ny, nx = doe.shape
+    sy, sx = max(1, ny // _CHECK_SAMPLES), max(1, nx // _CHECK_SAMPLES)
+    picks = [(slice(0, ny, sy), slice(0, nx, sx)), (slice(ny - 1, ny), slice(0, nx, sx)),
+             (slice(0, ny, sy), slice(nx - 1, nx)), (slice(ny - 1, ny), slice(nx - 1, nx))]
+    with torch.no_grad():
+        for rows, cols in picks:
+            ph = doe.design_phase_pixels(rows, cols) * doe.phase_scale
+            bad = ~torch.isfinite(ph) | (ph.abs() > MAX_PHASE)
+            if bool(bad.any()):
+                iy, ix = (int(v) for v in bad.nonzero()[0])
+                iy = range(*rows.indices(ny))[iy]
+                ix = range(*cols.indices(nx))[ix]
+                v = float(ph[bad][0])
+                raise NonFiniteError(f"{what} is {v:g} rad at pixel [{iy}, {ix}] of the {ny}×{nx} DOE (allowed: "
+                                     f"finite, |phase| <= {MAX_PHASE:g} rad): {hint}; {doe.extra_repr()}")
 
 
 def _build(model: dict, shape, pitch, aperture, optics: dict) -> DOE:
@@ -86,6 +114,7 @@ def doe_from_phase_model(model: dict, shape, pitch: float, aperture: str = "squa
         doe = SumDOE(*terms, aperture=aperture)
     else:
         doe = _build(model, shape, pitch, aperture, optics)
+    check_phase_finite(doe, f"the {model.get('type')} phase model's phase")
     if levels is not None:
         doe.fabricate(levels=check_levels(levels))
     elif wrap:

@@ -34,7 +34,10 @@ from pathlib import Path
 import torch
 
 from raywave.doe import BlankDOE, PixelDOE, doe_from_phase_model
+from raywave.doe.spec import check_phase_finite
 from raywave.hybrid.hybrid_lens import HybridLens
+from raywave.io.errors import LensFileError, with_location
+from raywave.utils.errors import NonFiniteError
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "DOEPhaseWarning", "beam_half_extent",
            "default_doe_size", "hybrid_from_spec", "load_hybrid", "nyquist_doe_pitch"]
@@ -176,7 +179,10 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     """
     from raywave.lens.build import lens_from_spec
 
-    lens = lens_from_spec(spec)
+    try:
+        lens = lens_from_spec(spec)
+    except ValueError as err:  # a spec that validates but builds no lens: name the file
+        raise with_location(err, source)
     if field_type is not None:
         if field_type not in ("angle", "object_height"):
             raise ValueError(f"field_type must be 'angle' or 'object_height', got {field_type!r}")
@@ -253,13 +259,20 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     wrap = bool(data.wrap) if from_file else False
     if phase is not None:
         doe = PixelDOE(phase, pitch, design_wavelength=data.design_wavelength, aperture=aperture, material=material)
+        try:
+            check_phase_finite(doe, f"the phase map {data.phase_path!r}", "its values are radians")
+        except NonFiniteError as e:
+            raise LensFileError(f"doe.phase: {e}", source) from None
         if levels is not None:
             doe.fabricate(levels=levels)
         elif wrap:
             doe.fabricate(levels=None)
     elif model is not None:
-        doe = doe_from_phase_model(model, shape, pitch, aperture, design_wavelength=data.design_wavelength,
-                                   material=material, levels=levels, wrap=wrap)
+        try:
+            doe = doe_from_phase_model(model, shape, pitch, aperture, design_wavelength=data.design_wavelength,
+                                       material=material, levels=levels, wrap=wrap)
+        except NonFiniteError as e:
+            raise LensFileError(f"doe.phase_model: {e}", source) from None
     elif material is not None or levels is not None:
         doe = BlankDOE(shape, pitch, aperture=aperture, design_wavelength=data.design_wavelength, material=material)
     else:
@@ -287,6 +300,10 @@ def load_hybrid(path: str | Path, doe_pitch: float | None = None, doe_size=None,
     from raywave.io import read_hybrid_spec
 
     spec, data = read_hybrid_spec(path)
-    return hybrid_from_spec(spec, data, doe_pitch=doe_pitch, doe_size=doe_size, doe_distance=doe_distance,
-                            sensor_pitch=sensor_pitch, oversample=oversample, fields=fields, wavelengths=wavelengths,
-                            depth=depth, field_type=field_type, source=str(path), stop_edge=stop_edge)
+    try:
+        return hybrid_from_spec(spec, data, doe_pitch=doe_pitch, doe_size=doe_size, doe_distance=doe_distance,
+                                sensor_pitch=sensor_pitch, oversample=oversample, fields=fields,
+                                wavelengths=wavelengths, depth=depth, field_type=field_type, source=str(path),
+                                stop_edge=stop_edge)
+    except ValueError as err:  # every refusal names the file
+        raise with_location(err, path)

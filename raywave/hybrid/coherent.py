@@ -40,6 +40,8 @@ from dataclasses import dataclass, replace
 import torch
 
 from raywave.lens.sources import entrance_plane_z, point_source_rays, rays_through, source_weight
+from raywave.utils.errors import check_allocation
+from raywave.utils.safe import safe_sqrt
 from raywave.wave.field import edge_coverage, splat_bilinear, upsample_nodes
 from raywave.wave.propagation import propagate_window
 
@@ -233,6 +235,20 @@ def _warn_nyquist(slope_ratio: torch.Tensor, lit: torch.Tensor, xy: torch.Tensor
             f"slope reaches {ratio:.2f}× the Nyquist limit of the {pitch * 1e3:g} µm simulation pitch at "
             f"(x, y) = ({x:.4g}, {y:.4g}) mm on the DOE plane; the field aliases. Use a finer DOE pitch or "
             f"oversample ≥ {math.ceil(ratio * 1.05)}.", SamplingWarning, stacklevel=4)
+
+
+#: peak bytes per simulation sample of building and propagating a DOE-plane field window (float64 interpolated
+#: channels and coverage, the complex128 envelope, the DOE phase and the propagation's FFT buffers)
+WINDOW_BYTES_PER_SAMPLE = 192
+
+
+def check_window_memory(ny: int, nx: int, p: float, device=None) -> None:
+    """Refuse (:class:`~raywave.utils.errors.MemoryLimitError`) a field window of ny×nx simulation samples of
+    pitch ``p`` mm that would not fit in memory, before anything of that size is allocated."""
+    check_allocation(float(ny) * float(nx) * WINDOW_BYTES_PER_SAMPLE,
+                     f"the {ny}×{nx}-sample DOE-plane field (simulation pitch {p * 1e3:.3g} µm)",
+                     "use a coarser DOE pitch (doe pitch / --doe-pitch), a lower oversample (--oversample) or a "
+                     "smaller DOE", device)
 
 
 def _window_for_bbox(bbox, margin: float, p, x0, y0, sy, sx):
@@ -615,9 +631,14 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         jx0, jy0, jx1, jy1 = max(0, jx0), max(0, jy0), min(sx - 1, jx1), min(sy - 1, jy1)
     if jx1 < jx0 or jy1 < jy0:
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
+    check_window_memory(jy1 - jy0 + 1, jx1 - jx0 + 1, p, dev)
     pos_x = (x0 + torch.arange(jx0, jx1 + 1, dtype=torch.float64, device=dev) * p - float(gx[0])) / h_node
     pos_y = (y0 + torch.arange(jy0, jy1 + 1, dtype=torch.float64, device=dev) * p - float(gy[0])) / h_node
-    fine = upsample_nodes(torch.stack([phi_env, torch.sqrt(amp2.clamp_min(0))] + ([] if diffracting else [dist])
+    # amplitude sqrt(amp2): zero where the ray density vanishes (a dead or degenerate node), with a finite
+    # (zero) gradient there: sqrt's derivative at 0 is infinite, so the double-where keeps it out of the graph
+    lit_amp = amp2 > 0
+    amp = torch.where(lit_amp, safe_sqrt(amp2, lit_amp), torch.zeros_like(amp2))
+    fine = upsample_nodes(torch.stack([phi_env, amp] + ([] if diffracting else [dist])
                                       + edge_chan),
                           pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
     win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
@@ -725,6 +746,7 @@ def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_
         return replace(_empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays, "accurate"),
                        stop_edge="exit_pupil")
     win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
+    check_window_memory(win[2], win[3], p, lens.device)
     origin = (x0 + jx0 * p, y0 + jy0 * p)
     u = propagate_window(fx.envelope, p, wavelength, dz, fx.origin, origin, win[2:], n=n, carrier=carrier)
     u = u * doe.coverage(win, oversample, device=u.device).to(u.dtype)
@@ -789,6 +811,7 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         jy0, jx0, jy1, jx1 = max(jy0, 0), max(jx0, 0), min(jy1, sy - 1), min(jx1, sx - 1)
         win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
         carrier = (alpha, beta)
+    check_window_memory(win[2] * (2 if full_grid else 1), win[3] * (2 if full_grid else 1), p, dev)
     origin = (x0 + win[1] * p, y0 + win[0] * p)
     u = splat_bilinear(xy[:, 0], xy[:, 1], torch.polar(dvec[:, 2], phase), origin, p, win[2:])
     if check:

@@ -33,6 +33,7 @@ from raywave.doe import DOE
 from raywave.hybrid.coherent import DOEField, accurate_field, chief_rays, doe_clipping, exit_pupil_field, faithful_field
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
+from raywave.utils.safe import safe_div
 from raywave.wave.field import upsampled_intensity
 from raywave.wave.propagation import angular_spectrum, pixel_integrate, propagate_window, window_transfer
 
@@ -363,7 +364,7 @@ class HybridLens(nn.Module):
                                kernel="cubic")
         total = crop.sum()
         outside = 1.0 - total / power.to(torch.float64)
-        psf = crop / total.clamp_min(1e-300)
+        psf = safe_div(crop, total, total > 0)  # a crop with no light stays 0, with finite gradients
         return psf, center_t, outside
 
     def _transfer(self, u, p, fd: DOEField, out_origin, n_out: int, weight_derivative: bool = False):
@@ -404,13 +405,36 @@ class HybridLens(nn.Module):
             nr.append(rr), clip.append([fd.clipped for fd in row])
         center = torch.stack(centers)
         self._check_sensor(center)
-        return PSFResult(torch.stack(psfs), center, torch.stack(outs), self.sensor_pitch, torch.tensor(nr),
+        psf = self._checked(torch.stack(psfs), fds, connect=cache is None)
+        return PSFResult(psf, center, torch.stack(outs), self.sensor_pitch, torch.tensor(nr),
                          torch.tensor(clip, dtype=torch.float64, device=center.device))
 
     def psf(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None, mode: str = "accurate",
             rays: int | None = None, cache=None, **kw) -> torch.Tensor:
         """PSFs ``(F, W, ks, ks)`` (float64, each summing to 1); see :meth:`psf_result` for the arguments."""
         return self.psf_result(fields, wavelengths, ks, depth, mode, rays, cache, **kw).psf
+
+    def _checked(self, psf: torch.Tensor, fds, connect: bool = True) -> torch.Tensor:
+        """``psf`` (F, W, ks, ks) refused when not finite (:class:`~raywave.utils.errors.NonFiniteError` naming the
+        source), and (``connect``: fields traced now, not a cache, which stands for a frozen lens) kept connected
+        to the autograd graph when no light reached the sensor in any source (all zeros): a zero-valued term in
+        every trainable parameter, so ``backward()`` works and gives zero gradients instead of failing inside
+        torch."""
+        from raywave.utils.errors import NonFiniteError
+
+        bad = ~torch.isfinite(psf).all(-1).all(-1)
+        if bool(bad.any()):
+            i, j = (int(v) for v in bad.nonzero()[0])
+            fd = fds[i][j]
+            raise NonFiniteError(
+                f"the PSF of source {i} at {fd.wavelength:g} µm is not finite (NaN or inf): the DOE's phase is not "
+                f"finite on its grid (check its phase model: coefficients, order, normalisation radius) or the lens "
+                f"gives non-finite optical paths; DOE: {self.doe.extra_repr()}")
+        if connect and torch.is_grad_enabled() and not psf.requires_grad:
+            live = [q for q in self.parameters() if q.requires_grad]
+            if live:
+                psf = psf + sum(q.sum() for q in live).to(psf.dtype) * 0.0
+        return psf
 
     def _check_sensor(self, center: torch.Tensor) -> None:
         size = self.lens.sensor_size

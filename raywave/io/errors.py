@@ -64,3 +64,13 @@ def suggestion(word: str, choices: Iterable[str]) -> str:
         if word.lower() in lowered:
             close = [lowered[word.lower()]]
     return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def with_location(err: Exception, path) -> Exception:
+    """``err`` with its message prefixed by ``path: `` (unless it names the file already), same type: errors
+    raised while building a lens from a file's spec (overlapping surfaces, an unknown glass) name the file."""
+    where = str(path)
+    if isinstance(err, LensFileError) or where in str(err) or not err.args or not isinstance(err.args[0], str):
+        return err
+    err.args = (f"{where}: {err.args[0]}",) + tuple(err.args[1:])
+    return err

@@ -54,6 +54,8 @@ SYSTEM_APERTURE_TYPES = {
 }
 #: Wavelengths above this (µm) are taken for a unit mistake (nm given instead of µm).
 MAX_WAVELENGTH_UM = 100.0
+#: Field angles (degrees) must be smaller than this in magnitude.
+MAX_FIELD_ANGLE = 90.0
 
 
 # --------------------------------------------------------------------------------------- locating keys
@@ -301,8 +303,11 @@ class _Validator:
                          + (suggestion(f["type"], FIELD_TYPES) if isinstance(f["type"], str) else ""))
             if "values" not in f:
                 self.err(("fields",), "missing 'values'")
-            else:
-                self.number_list(f["values"], ("fields", "values"))
+            elif self.number_list(f["values"], ("fields", "values")) and f.get("type", "angle") == "angle":
+                for i, v in enumerate(f["values"]):
+                    if not abs(v) < MAX_FIELD_ANGLE:
+                        self.err(("fields", "values", i), f"field angle {v!r}° must lie between "
+                                                          f"-{MAX_FIELD_ANGLE:g}° and {MAX_FIELD_ANGLE:g}°")
         if "wavelengths" in spec and self.obj(spec["wavelengths"], ("wavelengths",)):
             w = spec["wavelengths"]
             self.keys(w, ("wavelengths",), ("values", "primary"))

@@ -141,6 +141,21 @@ def _float(tok: str, path, line, what) -> float:
         raise LensFileError(f"{what}: {tok!r} is not a number", path, line) from None
 
 
+def _int(tok: str, path, line, what, lo: int | None = None, hi: int | None = None) -> int:
+    """An integer token (``3`` or ``3.0``) in ``lo..hi``, or a :class:`LensFileError` naming ``what``."""
+    try:
+        v = float(tok)
+    except ValueError:
+        raise LensFileError(f"{what}: {tok!r} is not a number", path, line) from None
+    if not (math.isfinite(v) and v == int(v)):
+        raise LensFileError(f"{what}: {tok!r} is not an integer", path, line)
+    v = int(v)
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        rng = f"{lo if lo is not None else '-inf'}..{hi if hi is not None else 'inf'}"
+        raise LensFileError(f"{what}: {v} is out of range {rng}", path, line)
+    return v
+
+
 class _Surf:
     def __init__(self, number: int, line: int):
         self.number = number
@@ -190,7 +205,7 @@ def read_zmx(path) -> dict:
         if e.path == "<spec>":  # raised below without the path
             raise LensFileError(e.reason, path, e.line, e.column) from None
         raise
-    except (ValueError, IndexError) as e:  # a malformed value that no check above caught
+    except (ValueError, IndexError, ArithmeticError) as e:  # a malformed value that no check above caught
         ln, key, rest = _state.line or (None, "", "")
         raise LensFileError(f"cannot read {key} {rest!r}: {e}", path, ln) from None
     return validate_spec(spec, path)
@@ -259,7 +274,8 @@ def _interpret(text: str, path: str) -> dict:
         elif key == "GCAT":
             catalogs = toks
         elif key == "FTYP":
-            ftyp = ([int(float(t)) for t in toks], ln)
+            # FTYP type, telecentric, number of fields, number of wavelengths, ...
+            ftyp = ([_int(t, path, ln, f"FTYP entry {i + 1}", 0, 10**6) for i, t in enumerate(toks)], ln)
         elif key in ("XFLN", "XFLD"):
             xfln = [_float(t, path, ln, key) for t in toks]
         elif key in ("YFLN", "YFLD"):
@@ -267,11 +283,11 @@ def _interpret(text: str, path: str) -> dict:
         elif key == "WAVM":
             if len(toks) < 2:
                 raise err("WAVM needs an index and a wavelength", ln)
-            wavm[int(toks[0])] = _float(toks[1], path, ln, "WAVM")
+            wavm[_int(toks[0], path, ln, "WAVM index", 1, 10**6)] = _float(toks[1], path, ln, "WAVM")
         elif key == "WAVL":
             wavl = [_float(t, path, ln, "WAVL") for t in toks]
         elif key == "PWAV":
-            pwav = int(toks[0])
+            pwav = _int(toks[0], path, ln, "PWAV", 1, 10**6) if toks else 1
         elif key == "MNUM" and toks and toks[0].isdigit() and int(toks[0]) > 1:
             warnings.warn(LensFileWarning(f"{path}:{ln}: multi-configuration file ({toks[0]} configurations); "
                                           "the prescription as written (current configuration) is read"),
@@ -452,6 +468,9 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
             typ_line = ln
         elif key == "CURV":
             p["curv"] = num(0) / scale
+            if not math.isfinite(p["curv"]):
+                raise LensFileError(f"{where}: curvature CURV {toks[0]} is not a finite number (a flat surface "
+                                    "is CURV 0)", path, ln)
         elif key == "DISZ":
             p["disz"] = num(0) * scale
         elif key == "CONI":
@@ -466,7 +485,8 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
         elif key == "PARM":
             if len(toks) < 2:
                 raise LensFileError(f"{where}: PARM needs an index and a value", path, ln)
-            p["parms"][int(float(toks[0]))] = (_float(toks[1], path, ln, f"{where}: PARM"), ln)
+            p["parms"][_int(toks[0], path, ln, f"{where}: PARM index", 0, 10**6)] = (
+                _float(toks[1], path, ln, f"{where}: PARM"), ln)
         elif key == "GLAS":
             p["material"] = _glass(toks, where, path, ln)
         elif key in ("CLAP", "FLAP"):
@@ -500,7 +520,9 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
         elif key == "XDAT" and p["kind"] == "diffractive":
             if len(toks) < 2:
                 raise LensFileError(f"{where}: XDAT needs an index and a value", path, ln)
-            p["xdat"][int(float(toks[0]))] = _float(toks[1], path, ln, f"{where}: XDAT")
+            # XDAT 1 = N, 2 = normalisation radius, 3.. = coefficients: any other index would be dropped
+            p["xdat"][_int(toks[0], path, ln, f"{where}: XDAT index", 1, MAX_BINARY2_TERMS + 2)] = _float(
+                toks[1], path, ln, f"{where}: XDAT")
         elif key in UNSUPPORTED_APERTURES:
             raise LensFileError(f"{where}: {UNSUPPORTED_APERTURES[key]} ({key}) is not supported", path, ln)
         elif key in IGNORED_SURFACE_KEYS:
@@ -572,13 +594,19 @@ def _diffractive_phase(p, where, path, scale, line):
                             "raywave's DOE is a thin phase element on a plane", path, bad[0][1])
     order = p["parms"].get(0, (1.0, None))[0]
     xdat = p["xdat"]
-    n_terms = int(xdat.get(1, 0.0))
-    if not 0 <= n_terms <= MAX_BINARY2_TERMS:
+    n_terms = xdat.get(1, 0.0)
+    if not (math.isfinite(n_terms) and n_terms == int(n_terms) and 0 <= n_terms <= MAX_BINARY2_TERMS):
         raise LensFileError(f"{where}: BINARY_2 number of terms (XDAT 1) must be 0..{MAX_BINARY2_TERMS}, got "
                             f"{n_terms}", path, line)
     norm = xdat.get(2, 1.0)
     if not (math.isfinite(norm) and norm > 0):
         raise LensFileError(f"{where}: BINARY_2 normalisation radius (XDAT 2) must be > 0, got {norm!r}", path, line)
+    n_terms = int(n_terms)
+    extra = sorted(i for i, v in xdat.items() if i > 2 + n_terms and v != 0.0)
+    if extra:
+        raise LensFileError(f"{where}: BINARY_2 XDAT {extra[0]} = {xdat[extra[0]]!r} lies beyond the {n_terms} "
+                            f"terms that XDAT 1 declares (XDAT 3..{2 + n_terms}); raise XDAT 1 or remove it", path,
+                            line)
     coeffs = [xdat.get(3 + i, 0.0) for i in range(n_terms)]
     return {"type": "binary_2", "order": order, "norm_radius": norm * scale, "coefficients": coeffs}
 

@@ -14,6 +14,7 @@ import torch
 from raywave.lens import paraxial
 from raywave.lens.sources import chief_ray, point_source_rays
 from raywave.rays.bundle import RayBundle
+from raywave.utils.safe import safe_sqrt
 
 
 # ---------------------------------------------------------------------------- first order, real rays
@@ -102,7 +103,14 @@ def rms_spot_radius(lens, fields=None, wavelengths=None, pupil=("hexapolar", 6),
     """RMS spot radius (mm), shape (F, W), over the valid rays of each field and wavelength."""
     dx, dy, v, _ = spot(lens, fields, wavelengths, pupil, reference)
     w = v.to(dx.dtype)
-    return torch.sqrt(((dx * dx + dy * dy) * w).sum(-1) / w.sum(-1).clamp_min(1))
+    return _sqrt0(((dx * dx + dy * dy) * w).sum(-1) / w.sum(-1).clamp_min(1))
+
+
+def _sqrt0(x: torch.Tensor) -> torch.Tensor:
+    """sqrt(max(x, 0)) with a zero (not infinite, not NaN) gradient where x <= 0: an RMS of zero (a perfect
+    focus) or a tangent ray stays differentiable (double where, raywave.utils.safe)."""
+    ok = x > 0
+    return torch.where(ok, safe_sqrt(x, ok), torch.zeros_like(x))
 
 
 def _fields(lens, fields):
@@ -152,9 +160,9 @@ def wavefront_opd(lens, field=(0.0, 0.0), wavelength=None, pupil=("grid", 33), a
     w = out.o - centre
     b = (w * out.d).sum(-1)
     c = (w * w).sum(-1) - radius * radius
-    disc = (b * b - c).clamp_min(0)
+    disc = b * b - c
     sign = torch.sign(xp_z - out.o[..., 2]) * torch.sign(out.d[..., 2])
-    t = -b + sign * torch.sqrt(disc)
+    t = -b + sign * _sqrt0(disc)
     opl = out.opl + n_img * t
     opd = opl[..., :1] - opl
     wl_t = torch.as_tensor(wl, dtype=torch.float64).reshape(-1)[None, :, None]
@@ -168,7 +176,7 @@ def rms_wavefront_error(lens, field=(0.0, 0.0), wavelength=None, n: int = 33) ->
     w = v.to(opd.dtype)
     m = w.sum(-1).clamp_min(1)
     mean = (opd * w).sum(-1) / m
-    return torch.sqrt((((opd - mean[..., None]) ** 2) * w).sum(-1) / m)
+    return _sqrt0((((opd - mean[..., None]) ** 2) * w).sum(-1) / m)
 
 
 # ---------------------------------------------------------------------------- geometric PSF

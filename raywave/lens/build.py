@@ -196,8 +196,13 @@ def lens_to_spec(lens: Lens) -> dict:
 def load_lens(path: str | Path) -> Lens:
     """Read any lens file raywave knows (.json raywave or DeepLens-style, .zmx) into a :class:`Lens`."""
     from raywave.io import read_lens_spec
+    from raywave.io.errors import with_location
 
-    return lens_from_spec(read_lens_spec(path))
+    spec = read_lens_spec(path)
+    try:
+        return lens_from_spec(spec)
+    except ValueError as err:  # a spec that validates but builds no lens: name the file
+        raise with_location(err, path)
 
 
 def save_lens(lens: Lens, path: str | Path) -> None:

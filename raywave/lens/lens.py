@@ -80,6 +80,10 @@ class Lens(nn.Module):
             raise ValueError(f"field_type must be 'angle' or 'object_height', got {field_type!r}")
         self.field_type = field_type
         self.fields = [float(f) for f in fields]
+        if field_type == "angle":
+            from raywave.lens.sources import check_field_angles
+
+            check_field_angles(self.fields)
         self.wavelengths = [float(w) for w in wavelengths]
         if not 0 <= primary < len(self.wavelengths):
             raise ValueError(f"primary wavelength index {primary} out of range for {len(self.wavelengths)} wavelengths")
@@ -294,8 +298,11 @@ class Lens(nn.Module):
                 opl = opl + extra
             valid = valid & ok & ok_i
             z = zl + zs[i]
-            # Park dead rays on the axis so that later surfaces see harmless numbers (no NaN, no inf).
+            # Park dead rays on the axis, at this vertex, so that later surfaces see harmless numbers (no NaN, no
+            # inf, no huge z whose quadratic cancels to an exactly zero discriminant: an infinite sqrt derivative)
             x, y = torch.where(valid, x, 0.0), torch.where(valid, y, 0.0)
+            z = torch.where(valid, z, zs[i].expand_as(z))
+            opl = torch.where(valid, opl, 0.0)
             dx, dy, dz = torch.where(valid, dx, 0.0), torch.where(valid, dy, 0.0), torch.where(valid, dz, 1.0)
             if record:
                 rec.points.append((x, y, z))

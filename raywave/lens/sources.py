@@ -59,9 +59,25 @@ def object_distance(lens, depth=None) -> float:
     return depth
 
 
+#: field angles (degrees) must be smaller than this in magnitude: at 90° the chief ray travels across the axis
+MAX_FIELD_ANGLE = 90.0
+
+
+def check_field_angles(fields) -> None:
+    """Raise ValueError for a field angle (degrees, any shape) that is not finite or not below 90° in magnitude
+    (tan θ: 90° is a ray parallel to the object plane, and 180° would silently trace like 0°)."""
+    f = torch.as_tensor(fields, dtype=torch.float64).detach().reshape(-1)
+    bad = ~torch.isfinite(f) | (f.abs() >= MAX_FIELD_ANGLE)
+    if bool(bad.any()):
+        raise ValueError(f"field angle {float(f[bad][0])!r}° is not a field angle: angles must be finite and "
+                         f"between -{MAX_FIELD_ANGLE:g}° and {MAX_FIELD_ANGLE:g}° (exclusive)")
+
+
 def _directions_and_points(lens, fields, field_type, ep_z, dtype, depth=None):
     """Per field: chief-ray direction (F,3) for distant objects, or object point (F,3) for finite ones."""
     dist = object_distance(lens, depth)
+    if field_type == "angle":
+        check_field_angles(fields)
     if math.isinf(dist):
         if field_type != "angle":
             raise ValueError("a distant object (object distance inf) needs angle fields, not object heights")

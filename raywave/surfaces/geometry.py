@@ -130,8 +130,8 @@ class Standard(Geometry):
         b = c * (ox * dx + oy * dy + kp1 * oz * dz) - dz
         cc = c * (ox * ox + oy * oy + kp1 * oz * oz) - 2.0 * oz
         disc = b * b - a * cc
-        ok = disc >= 0
-        den = safe_sqrt(disc, ok, fill=0.0) - b  # stable root, continuous with the plane as c -> 0
+        ok = disc > 0  # a tangent ray (disc = 0) has an infinite derivative: it is vignetted
+        den = safe_sqrt(disc, ok, fill=1.0) - b  # stable root, continuous with the plane as c -> 0
         ok = ok & (den != 0)
         t = cc / torch.where(ok, den, torch.ones_like(den))
         # Keep the branch through the vertex (excludes the far half of a sphere / other hyperbola sheet).
@@ -214,10 +214,16 @@ def newton_intersect(geom: Geometry, start, ox, oy, oz, dx, dy, dz):
             t = t_new
             if not bool((step > NEWTON_TOL).any()):
                 break
+        # rays whose iterate is unusable (diverged, outside the sag's domain, not on the surface) restart the
+        # differentiable step from t = 0 (their own, finite origin): a huge or non-finite t there would overflow
+        # the polynomial and put 0·inf = NaN into the gradients of the valid rays' parameters
+        x, y = args[0] + t * args[3], args[1] + t * args[4]
+        f_d = args[2] + t * args[5] - geom.sag(x, y)
+        pre = torch.isfinite(t) & geom.in_domain(x, y) & (f_d.abs() < 1e-9)
+        t = torch.where(pre, t, torch.zeros_like(t))
     # One differentiable step at the converged point: gives the implicit-function gradient.
     t_final, f, okp = _newton_step(geom, t, ox, oy, oz, dx, dy, dz)
-    x, y = ox + t * dx, oy + t * dy
-    ok = okp & geom.in_domain(x, y) & (f.detach().abs() < 1e-9) & torch.isfinite(t_final)
+    ok = pre & okp & torch.isfinite(t_final)
     t_final = torch.where(ok, t_final, torch.zeros_like(t_final))
     return t_final, ok
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Union
 
-__all__ = ["ConfigError", "LensConfig", "OpticsConfig", "DataConfig", "NetworkConfig", "PreStageConfig",
+__all__ = ["ConfigError", "RULES", "Rule", "LensConfig", "OpticsConfig", "DataConfig", "NetworkConfig", "PreStageConfig",
            "StageConfig", "TrainConfig", "from_dict", "to_dict", "load_config", "dump_config", "apply_overrides"]
 
 
@@ -223,6 +223,135 @@ class TrainConfig:
     baseline_steps: int = 50
 
 
+# ------------------------------------------------------------------ value rules
+@dataclass(frozen=True)
+class Rule:
+    """What a numeric (or string) setting may hold, checked by :func:`from_dict` before anything runs.
+
+    Attributes:
+        lo, hi: bounds (None: unbounded); ``lo_open``: ``lo`` itself excluded (``> lo`` instead of ``>= lo``).
+        inf: ``inf`` allowed (distances: a distant object); otherwise every number must be finite.
+        length: exact list length (lists); ``nonempty``: a list or mapping must not be empty.
+        choices: the allowed strings.
+    """
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    inf: bool = False
+    length: int | None = None
+    nonempty: bool = False
+    choices: tuple | None = None
+
+
+_POS = Rule(lo=0, lo_open=True)  # > 0, finite
+_NONNEG = Rule(lo=0)  # >= 0, finite
+_COUNT = Rule(lo=1)  # integer >= 1
+_UNIT = Rule(lo=0, hi=1)  # a fraction in [0, 1]
+
+#: the rule of every numeric (and enumerated string) setting, by "Class.field"; a list's rule applies to each
+#: entry (and its length). Every int / float / list field of the config dataclasses must be listed here
+#: (tests/test_reliability_config.py checks it), so a new setting cannot slip in unchecked.
+RULES: dict[str, Rule] = {
+    "LensConfig.doe": Rule(choices=("pixel", "file")),
+    "LensConfig.doe_pitch": _POS,
+    "LensConfig.doe_size": _POS,
+    "LensConfig.doe_distance": _NONNEG,
+    "LensConfig.focus_depth": Rule(lo=0, lo_open=True, inf=True),
+    "LensConfig.sensor_pitch": _POS,
+    "OpticsConfig.grid": Rule(lo=1, length=2),
+    "OpticsConfig.eval_grid": Rule(lo=1, length=2),
+    "OpticsConfig.depths": Rule(lo=0, lo_open=True, inf=True, nonempty=True),
+    "OpticsConfig.ks": _COUNT,
+    "OpticsConfig.rays": Rule(lo=2),
+    "OpticsConfig.wavelengths": Rule(lo=0, lo_open=True, hi=100.0, nonempty=True),
+    "OpticsConfig.chunk": _COUNT,
+    "OpticsConfig.field_jitter": _UNIT,
+    "DataConfig.source": Rule(choices=("samples", "folder", "dead_leaves")),
+    "DataConfig.patch_size": _COUNT,
+    "DataConfig.patches_per_image": _COUNT,
+    "DataConfig.eval_size": _COUNT,
+    "DataConfig.dead_leaves_count": _COUNT,
+    "NetworkConfig.kind": Rule(choices=("unet", "nafnet")),
+    "NetworkConfig.width": _COUNT,
+    "NetworkConfig.depth": _COUNT,
+    "NetworkConfig.enc_blocks": Rule(lo=0, nonempty=True),
+    "NetworkConfig.middle_blocks": _NONNEG,
+    "PreStageConfig.steps": _NONNEG,
+    "PreStageConfig.lr_doe": _NONNEG,
+    "PreStageConfig.lr_lens": _NONNEG,
+    "PreStageConfig.similarity_weight": _NONNEG,
+    "PreStageConfig.about": Rule(choices=("centroid", "center")),
+    "StageConfig.epochs": _NONNEG,
+    "StageConfig.batch_size": _COUNT,
+    "StageConfig.micro_batches": _COUNT,
+    "StageConfig.max_steps": _NONNEG,
+    "StageConfig.lr_lens": _NONNEG,
+    "StageConfig.lr_doe": _NONNEG,
+    "StageConfig.lr_network": _NONNEG,
+    "StageConfig.warmup_steps": _NONNEG,
+    "StageConfig.min_lr_ratio": _UNIT,
+    "StageConfig.read_noise": _NONNEG,
+    "StageConfig.full_well": _POS,
+    "StageConfig.loss": Rule(choices=("l1", "mse", "edof")),
+    "StageConfig.edof_alpha": _UNIT,
+    "TrainConfig.seed": _NONNEG,
+    "TrainConfig.dtype": Rule(choices=("float32", "float64")),
+    "TrainConfig.checkpoint_every": _COUNT,
+    "TrainConfig.baseline": Rule(choices=("blank", "paraxial")),
+    "TrainConfig.baseline_steps": _NONNEG,
+}
+
+
+def _check_number(v, rule: Rule, where: str, source: str) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(f"{source}: {where} must be a number, got {v!r}")
+    if math.isnan(v) or (math.isinf(v) and not (rule.inf and v > 0)):
+        allowed = "a finite number or inf" if rule.inf else "a finite number"
+        raise ConfigError(f"{source}: {where} must be {allowed}, got {v!r}")
+    if rule.lo is not None and (v <= rule.lo if rule.lo_open else v < rule.lo):
+        raise ConfigError(f"{source}: {where} must be {'>' if rule.lo_open else '>='} {rule.lo:g}, got {v!r}")
+    if rule.hi is not None and v > rule.hi:
+        raise ConfigError(f"{source}: {where} must be <= {rule.hi:g}, got {v!r}")
+
+
+def _check_rule(cls, name: str, value, tp, where: str, source: str) -> None:
+    """Check a converted ``value`` of field ``cls.name`` against :data:`RULES` (every float finite by default)."""
+    rule = RULES.get(f"{cls.__name__}.{name}")
+    if value is None:
+        return
+    if rule is None:
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"{source}: {where} must be a finite number, got {value!r}")
+        return
+    if isinstance(value, str):
+        if rule.choices is not None and value not in rule.choices:
+            raise ConfigError(f"{source}: {where} must be one of {', '.join(map(repr, rule.choices))}, got {value!r}")
+        return
+    if isinstance(value, (list, tuple)):
+        if rule.length is not None and len(value) != rule.length:
+            raise ConfigError(f"{source}: {where} must have {rule.length} entries, got {len(value)}")
+        if rule.nonempty and not value:
+            raise ConfigError(f"{source}: {where} must not be empty")
+        integer = cls.__name__ in ("OpticsConfig", "NetworkConfig") and name in ("grid", "eval_grid", "enc_blocks")
+        for i, v in enumerate(value):
+            if integer and (isinstance(v, bool) or not isinstance(v, int)):
+                raise ConfigError(f"{source}: {where}[{i}] must be an integer, got {v!r}")
+            _check_number(v, rule, f"{where}[{i}]", source)
+        return
+    if isinstance(value, dict):
+        if rule.nonempty and not value:
+            raise ConfigError(f"{source}: {where} must not be empty")
+        for k, vs in value.items():
+            vs = vs if isinstance(vs, list) else [vs]
+            if rule.nonempty and not vs:
+                raise ConfigError(f"{source}: {where}.{k} must not be empty")
+            for i, v in enumerate(vs):
+                _check_number(v, rule, f"{where}.{k}[{i}]", source)
+        return
+    _check_number(value, rule, where, source)
+
+
 # ------------------------------------------------------------------ dict ↔ dataclass
 def _check_value(value, tp, where: str, source: str):
     """Validate (and lightly coerce: int → float, 'inf' → inf) ``value`` against the annotation ``tp``."""
@@ -301,6 +430,7 @@ def from_dict(cls, data: dict, source: str = "<dict>", prefix: str = ""):
             raise ConfigError(f"{source}: unknown key {where!r} (known keys{' of ' + prefix if prefix else ''}: "
                               f"{', '.join(sorted(names))})")
         kwargs[key] = _check_value(value, hints[key], where, source)
+        _check_rule(cls, key, kwargs[key], hints[key], where, source)
     return cls(**kwargs)
 
 
@@ -328,9 +458,15 @@ def load_config(path) -> TrainConfig:
         raise ConfigError(f"config file {path} does not exist")
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
-    return from_dict(TrainConfig, data or {}, str(path))
+    except yaml.YAMLError as exc:  # one line: file:line: the problem
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{where}: not valid YAML: {problem}") from None
+    if data is None:
+        raise ConfigError(f"{path}: the config file is empty (write at least one setting, e.g. 'name: run'; "
+                          "see configs/*.yaml)")
+    return from_dict(TrainConfig, data, str(path))
 
 
 def dump_config(cfg: TrainConfig, path=None) -> str:

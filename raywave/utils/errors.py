@@ -1,0 +1,71 @@
+"""Error types shared by the physics sub-packages, and the memory check (no I/O besides /proc/meminfo).
+
+Every error raywave raises on purpose is a ``ValueError`` subclass whose message names the problem and where
+it is (the CLI prints it as one line and exits with status 2). See docs/conventions.md, "Errors".
+"""
+
+from __future__ import annotations
+
+import os
+
+__all__ = ["MemoryLimitError", "NonFiniteError", "available_memory", "check_allocation", "format_bytes"]
+
+
+class NonFiniteError(ValueError):
+    """A computation produced NaN or infinite values from inputs that were accepted (e.g. a DOE phase model
+    whose phase overflows float64 on its grid); the message names the quantity and the input to change."""
+
+
+class MemoryLimitError(ValueError):
+    """An array that would not fit in memory was about to be allocated; the message gives the size needed,
+    the memory available and the setting to change."""
+
+
+def format_bytes(n: float) -> str:
+    """``1.5e9`` -> ``"1.4 GiB"``."""
+    n = float(n)
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(n) < 1024 or unit == "PiB":
+            return f"{n:.3g} {unit}" if unit != "B" else f"{n:.0f} B"
+        n /= 1024
+    return f"{n:.3g} PiB"  # pragma: no cover
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to new allocations (MemAvailable of /proc/meminfo, else physical pages from
+    ``os.sysconf``), or None when neither is known."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_allocation(nbytes: float, what: str, knob: str, device=None, fraction: float = 0.8) -> None:
+    """Raise :class:`MemoryLimitError` when ``nbytes`` (an estimate, bytes) exceeds ``fraction`` of the memory
+    available on ``device`` (CPU: :func:`available_memory`; CUDA: the device's free memory).
+
+    Args: ``what`` names the array (e.g. "the 1e6×1e6 DOE simulation grid"), ``knob`` the setting that shrinks it
+    (e.g. "raise the DOE pitch or lower oversample")."""
+    avail = None
+    dev = str(device) if device is not None else "cpu"
+    if dev.startswith("cuda"):
+        try:
+            import torch
+
+            avail = int(torch.cuda.mem_get_info(device)[0])
+        except Exception:  # noqa: BLE001 - no CUDA: fall back to host memory
+            avail = None
+    if avail is None:
+        avail = available_memory()
+    if avail is None:
+        avail = 1 << 50  # unknown: only refuse what no machine has (1 PiB)
+    if not nbytes <= fraction * avail:
+        raise MemoryLimitError(f"{what} needs about {format_bytes(nbytes)} of memory, but only {format_bytes(avail)} "
+                               f"is available{' on ' + dev if dev != 'cpu' else ''}: {knob}")
