@@ -16,7 +16,7 @@ PINS = Path(__file__).resolve().parent / "data" / "psf_pins.npz"
 
 
 def _hybrid_asphere(**kw):
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
     from raywave.lens.build import bundled_lens_path
 
     return load_hybrid(bundled_lens_path("hybrid_asphere"), **kw)
@@ -34,7 +34,7 @@ def _fresnel_on_asphere():
 
 
 def _cooke():
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
     from raywave.lens.build import bundled_lens_path
 
     return load_hybrid(bundled_lens_path("cooke_triplet"), doe_pitch=4e-3, sensor_pitch=4e-3)

@@ -62,7 +62,7 @@ def test_all_stages_run_and_write_the_run_folder(tiny, tmp_path):
     assert 0 < m["mean"]["ssim"] <= 1 and m["mean"]["psnr"] > 5
     final = tr.export()
     assert {p.name for p in final.iterdir()} >= {"lens.json", "doe_phase.npy", "doe.pt", "doe_masks.npy"}
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
 
     hl = load_hybrid(final / "lens.json")  # the exported lens file reads back with its DOE
     assert torch.allclose(hl.doe.phase(0.55, None, 1).detach(), tr.hl.doe.phase(0.55, None, 1).detach())

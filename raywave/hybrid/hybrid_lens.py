@@ -40,6 +40,9 @@ __all__ = ["DOEApertureWarning", "HybridLens", "PSFResult", "SensorCropWarning"]
 
 #: blocked power fraction above which :class:`DOEApertureWarning` is raised
 CLIP_WARN = 0.01
+#: Default DOE size: this factor times the beam's extent on the DOE plane (raywave.assembly.build.default_doe_size;
+#: quoted by :class:`DOEApertureWarning`).
+BEAM_MARGIN = 1.2
 #: the accepted values of ``HybridLens(stop_edge=...)``
 STOP_EDGES = ("doe", "exit_pupil")
 
@@ -258,14 +261,13 @@ class HybridLens(nn.Module):
     def _warn_clipped(self, fd: DOEField, field) -> None:
         if fd.clipped <= CLIP_WARN:
             return
-        from raywave.hybrid.build import BEAM_MARGIN  # (build imports this module)
         w, h = self.doe.size
         need = 2.0 * fd.beam_half
         warnings.warn(f"field {[float(v) for v in field]} at {fd.wavelength:g} µm: the {w:g}×{h:g} mm DOE "
                       f"aperture blocks {100 * fd.clipped:.1f} % of the beam's power (not counted in "
                       f"energy_outside); the beam needs a DOE of at least {need:.3g} mm square "
                       f"({BEAM_MARGIN * need:.3g} mm with the usual {BEAM_MARGIN:g}× margin, see "
-                      "raywave.hybrid.build.default_doe_size)", DOEApertureWarning, stacklevel=3)
+                      "raywave.assembly.build.default_doe_size)", DOEApertureWarning, stacklevel=3)
 
     # ------------------------------------------------------------------ steps 3-4: DOE, propagation, sensor
     def propagate(self, fd: DOEField, ks: int, propagation_dtype=torch.complex128):
@@ -302,7 +304,7 @@ class HybridLens(nn.Module):
             power = torch.view_as_real(fd.envelope).square().sum() * p * p
         if float(power.detach()) == 0.0:
             z = torch.zeros((ks, ks), dtype=torch.float64, device=u.device)
-            return z, center_t, torch.ones((), dtype=torch.float64)
+            return z, center_t, torch.ones((), dtype=torch.float64, device=u.device)
         u = u.to(propagation_dtype)
         # output window on the simulation pitch covering the ks×ks sensor pixels, plus a margin for the
         # 2× Fourier upsampling of the field (its intensity needs the p/2 grid)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from raywave.io.doe import check_doe_files, validate_doe
 from raywave.io.errors import LensFileError, suggestion
+from raywave.utils.checks import MAX_WAVELENGTH_UM
 
 FORMAT_NAME = "raywave-lens"
 FORMAT_VERSION = 1
@@ -35,8 +36,6 @@ ALL_SURFACE_KEYS = tuple(dict.fromkeys(COMMON_SURFACE_KEYS + sum(TYPE_KEYS.value
 ASPHERIC_KEYS = tuple(f"a{p}" for p in range(2, 21, 2))
 FIELD_TYPES = ("angle", "object_height")
 APERTURE_SHAPES = {"circle": "radius", "square": "half_width"}
-#: Wavelengths above this (µm) are taken for a unit mistake (nm given instead of µm).
-MAX_WAVELENGTH_UM = 100.0
 
 
 # --------------------------------------------------------------------------------------- locating keys

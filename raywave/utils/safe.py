@@ -15,10 +15,3 @@ def safe_sqrt(x: torch.Tensor, ok: torch.Tensor | None = None, fill: float = 1.0
     if ok is None:
         ok = x > 0
     return torch.sqrt(torch.where(ok, x, torch.full_like(x, fill)))
-
-
-def safe_div(num: torch.Tensor, den: torch.Tensor, ok: torch.Tensor | None = None, fill: float = 1.0) -> torch.Tensor:
-    """num/den where ``ok`` (default: den != 0), num/fill elsewhere."""
-    if ok is None:
-        ok = den != 0
-    return num / torch.where(ok, den, torch.full_like(den, fill))
