@@ -184,10 +184,14 @@ class HybridLens(nn.Module):
                              "infinity: image-space telecentric), where no field can be built; use stop_edge='doe'")
         return z
 
-    def _wavelengths(self, wavelengths) -> list[float]:
+    def wavelength_list(self, wavelengths=None) -> list[float]:
+        """``wavelengths`` (µm: None → the lens's primary, a scalar or any (W,)) as a list of floats: how every PSF
+        model (this engine and :mod:`raywave.models`) reads its ``wavelengths`` argument."""
         if wavelengths is None:
             return [self.lens.primary_wavelength]
         return [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
+
+    _wavelengths = wavelength_list  # the pre-issue-17 private name
 
     # ------------------------------------------------------------------ step 1-2: the DOE-plane field
     def doe_fields(self, fields=(0.0, 0.0), wavelengths=None, depth=None, mode: str = "accurate",
@@ -215,7 +219,7 @@ class HybridLens(nn.Module):
         if mode == "accurate" and trace_dtype != torch.float64:
             raise ValueError("the accurate mode traces in float64 only (its rays land on their nodes to 1e-10 mm)")
         f = _as_fields(fields, torch.float64, self.lens.device)
-        wls = self._wavelengths(wavelengths)
+        wls = self.wavelength_list(wavelengths)
         z_doe, z_sen = self.doe_z(), self.sensor_z()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", VignettingWarning)
@@ -373,18 +377,26 @@ class HybridLens(nn.Module):
         if int(ks) < 1:
             raise ValueError(f"ks must be >= 1, got {ks}")
         fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw)
-        psfs, centers, outs, nr, clip = [], [], [], [], []
+        psf, center, outside, nr = self.propagate_fields(fds, ks, propagation_dtype)
+        clip = [[fd.clipped for fd in row] for row in fds]
+        self._check_sensor(center)
+        return PSFResult(psf, center, outside, self.sensor_pitch, nr,
+                         torch.tensor(clip, dtype=torch.float64, device=center.device))
+
+    def propagate_fields(self, fds, ks: int, propagation_dtype=torch.complex128):
+        """Steps 3–4 for a nested list ``[F][W]`` of :class:`DOEField` (this engine's, or a comparison model's):
+        PSFs ``(F, W, ks, ks)``, centres ``(F, W, 2)``, energy outside ``(F, W)`` and rays ``(F, W)``
+        (:meth:`propagate` per field; the one loop over PSFs that :meth:`psf_result` and
+        :func:`raywave.models.base.propagate_fields` share)."""
+        psfs, centers, outs, nr = [], [], [], []
         for row in fds:
             pr, cr, orow, rr = [], [], [], []
             for fd in row:
                 psf, c, o = self.propagate(fd, ks, propagation_dtype)
                 pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays)
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
-            nr.append(rr), clip.append([fd.clipped for fd in row])
-        center = torch.stack(centers)
-        self._check_sensor(center)
-        return PSFResult(torch.stack(psfs), center, torch.stack(outs), self.sensor_pitch, torch.tensor(nr),
-                         torch.tensor(clip, dtype=torch.float64, device=center.device))
+            nr.append(rr)
+        return torch.stack(psfs), torch.stack(centers), torch.stack(outs), torch.tensor(nr)
 
     def psf(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None, mode: str = "accurate",
             rays: int | None = None, cache=None, **kw) -> torch.Tensor:

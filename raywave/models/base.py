@@ -52,7 +52,7 @@ class PSFModel(nn.Module):
         return self.hybrid.doe
 
     def _wavelengths(self, wavelengths) -> list[float]:
-        return self.hybrid._wavelengths(wavelengths)
+        return self.hybrid.wavelength_list(wavelengths)
 
     @property
     def doe_field_source(self):
@@ -132,14 +132,7 @@ def window_xy(window, origin, pitch: float, device=None):
 
 def propagate_fields(hybrid: HybridLens, doe_fields, ks: int, name: str, info=None) -> ModelPSFResult:
     """Apply the DOE, propagate to the sensor and crop (the engine's steps 3–4, :meth:`HybridLens.propagate`)
-    for a nested list ``[F][W]`` of :class:`~raywave.hybrid.DOEField` built by another model."""
-    psfs, centers, outs, nr = [], [], [], []
-    for row in doe_fields:
-        pr, cr, orow, rr = [], [], [], []
-        for fd in row:
-            psf, c, o = hybrid.propagate(fd, ks)
-            pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays)
-        psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
-        nr.append(rr)
-    return ModelPSFResult(torch.stack(psfs), torch.stack(centers), torch.stack(outs), hybrid.sensor_pitch,
-                          torch.tensor(nr), model=name, info=info or {})
+    for a nested list ``[F][W]`` of :class:`~raywave.hybrid.DOEField` built by another model
+    (:meth:`HybridLens.propagate_fields`)."""
+    psf, center, outside, nr = hybrid.propagate_fields(doe_fields, ks)
+    return ModelPSFResult(psf, center, outside, hybrid.sensor_pitch, nr, model=name, info=info or {})

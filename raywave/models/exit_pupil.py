@@ -365,7 +365,7 @@ class ExitPupilModel(PSFModel):
 
         ks = self._check_ks(ks)
         hl = self.hybrid
-        wls = hl._wavelengths(wavelengths)
+        wls = hl.wavelength_list(wavelengths)
         self._check_blank(wls)
         f = _as_fields(fields, torch.float64, hl.lens.device)
         self._check_clear(f, wls, depth)
