@@ -57,7 +57,9 @@ per step); ``misalignment`` in DOE pixels, independent in x and y for every mask
 come from a CPU ``torch.Generator`` (``seed`` or ``generator``) in a fixed order, so a seed reproduces a run
 exactly on any device.
 
-**PSF.** With ``lens`` (a :class:`~raywave.hybrid.HybridLens`) every sample's perturbed element replaces the DOE and
+**PSF** (:func:`raywave.assembly.tolerance.tolerance_monte_carlo`, in the assembly layer above
+:mod:`raywave.hybrid`; this module's loop tells it about every draw through an ``observer``). With ``lens`` (a
+:class:`~raywave.hybrid.HybridLens`) every sample's perturbed element replaces the DOE and
 the ray-wave PSF is compared with the nominal element's (the field arriving at the DOE depends on the lens only
 and is computed once). The element enters as its sample-averaged transmittance on the lens's simulation grid
 (``oversample``): its phase through :meth:`PerturbedDOE.phase`, its amplitude (< 1 on samples that a shifted
