@@ -35,7 +35,7 @@ MP_SHAPE = (756, 1344)
 
 
 def _lens():
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
     from raywave.lens.build import bundled_lens_path
 
     return load_hybrid(bundled_lens_path("hybrid_asphere"))

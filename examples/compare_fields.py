@@ -29,7 +29,7 @@ import torch  # noqa: E402
 
 from raywave.doe import BlankDOE  # noqa: E402
 from raywave.hybrid import HybridLens, SensorCropWarning  # noqa: E402
-from raywave.hybrid.build import default_doe_size  # noqa: E402
+from raywave.assembly.build import default_doe_size  # noqa: E402
 from raywave.lens.build import bundled_lens_path, load_lens  # noqa: E402
 from raywave.models.interface import make_model, relative_l1  # noqa: E402
 from raywave.plotting.psf import plot_psf_grid  # noqa: E402

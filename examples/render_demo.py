@@ -29,7 +29,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from raywave.hybrid.build import load_hybrid  # noqa: E402
+from raywave.assembly.build import load_hybrid  # noqa: E402
 from raywave.imaging import Sensor, linear_to_srgb, psf_map, render_map, render_rgbd, srgb_to_linear  # noqa: E402
 from raywave.lens.build import bundled_lens_path  # noqa: E402
 from raywave.plotting.psfmap import plot_psf_map  # noqa: E402

@@ -40,3 +40,14 @@ def asphere_const():
         std(-15.65, 5.0),
     ]
     return Lens(s, fields=[0.0, 5.0])
+
+
+def _devices():
+    return ["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"]
+
+
+@pytest.fixture(params=_devices())
+def device(request):
+    """The torch devices to run a core test on: "cpu", and "cuda" where a GPU is present (cf. Optiland's
+    backend fixture)."""
+    return request.param

@@ -50,7 +50,7 @@ def test_psfmap_lens_without_a_doe_gets_a_blank_one_holding_every_node(tmp_path,
     assert s["grid"] == [1, 2]
     # the default DOE holds the beams of the corner nodes of a 3×3 map, not only the lens file's fields
     from raywave.cli.imaging_commands import load_lens_for_map
-    from raywave.hybrid.build import beam_half_extent
+    from raywave.assembly.build import beam_half_extent
     from raywave.lens.build import bundled_lens_path
 
     a = {"path": bundled_lens_path("asphere_hk51"), "doe_pitch": 0.002, "doe_size": None, "doe_distance": None,

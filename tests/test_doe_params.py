@@ -323,7 +323,7 @@ def test_quantised_grating_efficiency_at_and_away_from_the_design_wavelength(lev
 def test_json_doe_section_with_phase_model_material_and_levels(tmp_path):
     import json
 
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
     from raywave.io import LensFileError, read_json_spec, write_json_spec
     from raywave.lens.build import bundled_lens_path
 

@@ -254,6 +254,7 @@ def test_psf_peak_follows_the_first_order_efficiency():
     """A 4-level diffractive lens (f_DOE = 10 mm) after an ideal lens, sensor at the combined focus: the other
     orders are far out of focus, so the in-focus PSF peak (a fraction of the incident power) scales with η₁ for a
     common depth error; the nominal sample equals the DOE fabricated in its material."""
+    from raywave.assembly.tolerance import tolerance_monte_carlo  # the PSF part sits above raywave.hybrid
     from raywave.hybrid import HybridLens
     from raywave.lens.build import ideal_lens
 
@@ -282,6 +283,7 @@ def test_subpixel_misalignment_psf_converges_on_the_coarse_grid():
     the exact mean transmittance) vs a 4× grid (every edge on a sample boundary: the sharp staircase): the same
     peak to < 1 % and the same PSF to ~1 % (L1), below the nominal PSF's own difference between the two grids.
     (Averaging the height instead would give a peak ~13 % too high here.)"""
+    from raywave.assembly.tolerance import tolerance_monte_carlo  # the PSF part sits above raywave.hybrid
     from raywave.hybrid import HybridLens
     from raywave.lens.build import ideal_lens
 
@@ -303,3 +305,10 @@ def test_subpixel_misalignment_psf_converges_on_the_coarse_grid():
     l1 = np.abs(worst1 - worst4).sum() / worst4.sum()
     l1_nominal = np.abs(r1.nominal_psf[0] - r4.nominal_psf[0]).sum() / r4.nominal_psf[0].sum()
     assert l1 < 0.012 and l1 < l1_nominal
+
+
+def test_the_doe_layer_computes_no_psf():
+    """The PSF change needs a hybrid lens, so it lives in the assembly layer (raywave.assembly.tolerance); the DOE
+    layer's Monte Carlo says where it went instead of importing raywave.hybrid."""
+    with pytest.raises(TypeError, match="raywave.assembly.tolerance"):
+        tolerance_monte_carlo(PixelDOE(torch.zeros(4, 4), 1e-3), 4, lens=object(), n_samples=1)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from raywave.hybrid import HybridLens
-from raywave.hybrid.build import load_hybrid
+from raywave.assembly.build import load_hybrid
 from raywave.imaging import (ColorSpec, DOEFieldCache, PSFMap, field_grid, normalised_grid, psf_map, psf_map_points,
                              shift_psf)
 from raywave.lens.build import bundled_lens_path

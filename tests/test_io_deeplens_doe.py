@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from raywave.hybrid.build import load_hybrid
+from raywave.assembly.build import load_hybrid
 from raywave.io import LensFileError, LensFileWarning, read_deeplens, read_hybrid_spec
 from raywave.materials import get_material
 

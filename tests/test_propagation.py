@@ -46,8 +46,8 @@ LAM, P, W0 = 0.5, 2e-3, 0.05
 
 
 @pytest.mark.parametrize("z", [1.0, 5.0])
-def test_gaussian_beam_angular_spectrum(z):
-    c = centred(384, P)
+def test_gaussian_beam_angular_spectrum(z, device):
+    c = centred(384, P).to(device)
     u0 = gaussian(c, c, 0.0, LAM, W0)
     out = angular_spectrum(u0, P, LAM, z)
     ref = gaussian(c, c, z, LAM, W0)
@@ -55,7 +55,29 @@ def test_gaussian_beam_angular_spectrum(z):
     lit = ref.abs() > 1e-2 * ref.abs().max()
     ph_err = float(torch.angle(out * ref.conj())[lit].abs().max())
     assert amp_err < 3e-6 and ph_err < 3e-6, (amp_err, ph_err)
-    assert out.dtype == C128 and out.shape == u0.shape
+    assert out.dtype == C128 and out.shape == u0.shape and out.device.type == device
+
+
+@pytest.mark.parametrize("q", [2, 4])
+def test_upsampled_intensity_of_a_band_limited_field_is_exact(q, device):
+    """A periodic field made of a few plane waves below Nyquist, sampled on (ny, nx): its q-times upsampled
+    intensity equals |u|² of the analytic field on the q-times finer grid (sample [q·i, q·j] on input [i, j])."""
+    from raywave.wave.field import upsampled_intensity
+
+    ny, nx = 12, 16
+    waves = [(1.0 + 0.5j, 0, 0), (0.7 - 0.2j, 3, -5), (0.3j, -5, 7), (0.4, 2, 1)]  # (amplitude, ky, kx) cycles
+
+    def field(ty, tx):
+        return sum(a * torch.exp(2j * math.pi * (ky * ty[:, None] + kx * tx[None, :])) for a, ky, kx in waves)
+
+    def axis(n, m):
+        return torch.arange(m, dtype=F64, device=device) / m
+
+    u = field(axis(ny, ny), axis(nx, nx))
+    want = field(axis(ny, q * ny), axis(nx, q * nx)).abs().square()
+    got = upsampled_intensity(u, q)
+    assert got.shape == (q * ny, q * nx) and got.device.type == device
+    assert torch.allclose(got, want, atol=1e-12, rtol=0)
 
 
 def test_gaussian_beam_window_subpixel_offset():

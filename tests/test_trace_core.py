@@ -88,10 +88,10 @@ def test_total_internal_reflection_is_invalid_not_nan():
     assert torch.isfinite(out.o).all() and torch.isfinite(out.opl).all()
 
 
-def test_missing_and_vignetted_rays_no_nan_forward_backward(cooke_const):
-    lens = cooke_const
-    o = torch.tensor([[0.0, y, -5.0] for y in (0.0, 3.0, 50.0, 1e4)], dtype=torch.float64)
-    d = torch.tensor([[0.0, 0.0, 1.0]] * 4, dtype=torch.float64)
+def test_missing_and_vignetted_rays_no_nan_forward_backward(cooke_const, device):
+    lens = cooke_const.to(device)
+    o = torch.tensor([[0.0, y, -5.0] for y in (0.0, 3.0, 50.0, 1e4)], dtype=torch.float64, device=device)
+    d = torch.tensor([[0.0, 0.0, 1.0]] * 4, dtype=torch.float64, device=device)
     rays = RayBundle.create(o, d, 0.55)
     out = lens.trace_to_image(rays)
     assert out.valid.tolist() == [True, True, False, False]
@@ -184,11 +184,13 @@ def test_overlapping_and_negative_thickness_rejected():
         Lens([std(math.inf, 1.0, stop=True), std(math.inf, 1.0, stop=True)])
 
 
-def test_ray_aiming_hits_stop_points(cooke_const):
-    px = torch.tensor([0.0, 0.5, -0.7, 0.0, 0.99], dtype=torch.float64)
-    py = torch.tensor([0.0, 0.5, 0.2, -1.0, 0.0], dtype=torch.float64)
+def test_ray_aiming_hits_stop_points(cooke_const, device):
+    cooke_const = cooke_const.to(device)
+    px = torch.tensor([0.0, 0.5, -0.7, 0.0, 0.99], dtype=torch.float64, device=device)
+    py = torch.tensor([0.0, 0.5, 0.2, -1.0, 0.0], dtype=torch.float64, device=device)
     rays = point_source_rays(cooke_const, [[0.0, 20.0], [5.0, 12.0]], [0.48, 0.65], pupil=(px, py))
     out = cooke_const.trace(rays, stop=cooke_const.stop_index + 1)
+    assert out.o.device.type == device
     r = cooke_const.stop_radius()
     assert torch.allclose(out.o[..., 0], px * r, atol=1e-10)
     assert torch.allclose(out.o[..., 1], py * r, atol=1e-10)

@@ -65,7 +65,7 @@ def test_all_stages_run_and_write_the_run_folder(tiny, tmp_path):
     assert (final / "masks" / "masks.gds").is_file()
     report = json.loads((final / "masks" / "report.json").read_text())
     assert report["levels"] == 16 and report["evaluated_as_fabricated"] is False  # a continuous design
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
 
     hl = load_hybrid(final / "lens.json")  # the exported lens file reads back with its DOE
     assert torch.allclose(hl.doe.phase(0.55, None, 1).detach(), tr.hl.doe.phase(0.55, None, 1).detach())

@@ -175,7 +175,7 @@ def format_table(rows, reference: str) -> str:
 def cmd_compare(args) -> int:
     from raywave.cli.psf_commands import fabricate_doe, parse_psf_args
     from raywave.hybrid import HybridLens
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
 
     args.field, args.output, args.png, args.rays = None, None, None, None  # not options of compare
     a = parse_psf_args(args)  # the lens and DOE options shared with `raywave psf`

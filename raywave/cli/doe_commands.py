@@ -26,14 +26,13 @@ from __future__ import annotations
 import math
 import sys
 import time
-import warnings
 from pathlib import Path
 
 from raywave.cli.errors import CommandError, integer_arg, number_arg, json_dumps
+from raywave.utils.checks import MAX_WAVELENGTH_UM as _MAX_WAVELENGTH_UM
 
 PHASE_EXTENSIONS = (".npy", ".npz")
 LENS_EXTENSIONS = (".json", ".zmx")
-_MAX_WAVELENGTH_UM = 100.0
 DEFAULT_WAVELENGTH = 0.55
 DEFAULT_MATERIAL = "fused_silica"
 
@@ -104,14 +103,9 @@ def load_doe(source: str, pitch: float | None = None, wavelength0: float = 0.55)
     if lens_path.suffix.lower() not in LENS_EXTENSIONS:
         raise CommandError(f"{source}: a DOE is a phase map ({' or '.join(PHASE_EXTENSIONS)}) or a lens file "
                            f"({' or '.join(LENS_EXTENSIONS)}) with a DOE")
-    from raywave.hybrid.build import DOEPhaseWarning, load_hybrid
+    from raywave.assembly.build import load_hybrid
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", DOEPhaseWarning)
-        try:
-            hl = load_hybrid(lens_path, doe_pitch=pitch)
-        except DOEPhaseWarning as w:
-            raise CommandError(f"cannot export: {' '.join(str(w).split())}") from None
+    hl = load_hybrid(lens_path, doe_pitch=pitch)
     if hl.doe_info.get("source") != "file":
         raise CommandError(f"{source}: the lens file has no DOE (a \"doe\" section or a .zmx diffractive surface)")
     if isinstance(hl.doe, BlankDOE):
@@ -229,7 +223,7 @@ def tolerance_report(doe, levels: int = 16, material: str = "fused_silica", wave
     """Fabrication description + tolerance Monte Carlo of ``doe``; writes ``folder/report.json`` (and PNGs) and
     returns the report (a dict). ``lens``: a :class:`~raywave.hybrid.HybridLens` for the PSF statistics."""
     from raywave.doe import fabrication as fab
-    from raywave.doe.tolerance import tolerance_monte_carlo
+    from raywave.assembly.tolerance import tolerance_monte_carlo
     from raywave.materials import get_material
 
     k = fab.mask_bits(levels)
@@ -351,7 +345,7 @@ def cmd_report(args) -> int:
         misalignment = misalignment / (doe.pitch * 1e3)
     hl = None
     if args.lens is not None:
-        from raywave.hybrid.build import load_hybrid
+        from raywave.assembly.build import load_hybrid
         from raywave.lens.build import resolve_lens_path
 
         try:

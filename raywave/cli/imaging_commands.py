@@ -90,7 +90,7 @@ def parse_lens_args(args) -> dict:
 def load_lens_for_map(a: dict, grid, depth, wavelengths):
     """The HybridLens of the parsed arguments, and the map's field grid (deg). A lens file without a DOE gets a
     default blank DOE sized to hold the beams of every node of the map."""
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
     from raywave.imaging.psfmap import field_grid
 
     common = dict(sensor_pitch=a["sensor_pitch"], oversample=a["oversample"], wavelengths=wavelengths, depth=depth,

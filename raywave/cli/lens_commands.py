@@ -169,7 +169,7 @@ def run_psf_demo(out_dir: Path, lens_name: str = "hybrid_asphere", ks: int = 64)
     ``psf.png`` (log scale) and ``psf.json`` (centre, energy outside the crop, RMS and EE80 radii)."""
     import torch
 
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
     from raywave.hybrid.metrics import psf_metrics
     from raywave.lens.build import resolve_lens_path
     from raywave.plotting import plot_psf_grid

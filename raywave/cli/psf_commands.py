@@ -7,7 +7,7 @@
 
 LENS is a lens file (.json with or without a "doe" section, .zmx with or without a diffractive last surface,
 DeepLens .json) or a bundled lens name. A lens without a DOE gets a blank one (see
-:mod:`raywave.hybrid.build` for the default distance, pitch and size). Warnings (sampling, vignetting, a DOE
+:mod:`raywave.assembly.build` for the default distance, pitch and size). Warnings (sampling, vignetting, a DOE
 phase not applied) are printed to stderr as one line each.
 
 ``--doe-levels L --doe-wavelength W0 --doe-material NAME`` fabricate the DOE on the fly (any one of them is
@@ -24,9 +24,9 @@ import warnings
 from pathlib import Path
 
 from raywave.cli.errors import CommandError, integer_arg as _integer, number_arg as _number, json_dumps
+from raywave.utils.checks import MAX_WAVELENGTH_UM as _MAX_WAVELENGTH_UM
 
 OUTPUT_EXTENSIONS = (".npy", ".npz")
-_MAX_WAVELENGTH_UM = 100.0
 
 
 # ---------------------------------------------------------------------------- argument parsing
@@ -108,7 +108,7 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
     ``doe_levels`` / ``doe_wavelength`` / ``doe_material``: fabricate the DOE first (see the module docstring)."""
     import torch
 
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
     from raywave.hybrid.metrics import psf_metrics
 
     # the default DOE must hold the requested source's beam (and the on-axis one)

@@ -42,8 +42,10 @@ import math
 import torch
 from torch import nn
 
+from raywave.utils.checks import wavelength_um
+
 __all__ = ["DEFAULT_DESIGN_WAVELENGTH", "DEFAULT_LEVELS", "DEFAULT_MATERIAL", "DISPERSIONS", "DOE", "BlankDOE",
-           "PixelDOE", "Window", "check_levels", "quantize_phase"]
+           "PixelDOE", "SumDOE", "Window", "check_levels", "phase_levels", "quantize_phase"]
 
 Window = tuple  # (iy0, ix0, ny, nx) in simulation-grid indices
 
@@ -56,7 +58,6 @@ DEFAULT_LEVELS = 16
 #: Dispersion models: how the phase at the design wavelength becomes the phase at another wavelength.
 DISPERSIONS = ("none", "air", "material")
 _TWO_PI = 2.0 * math.pi
-_MAX_WAVELENGTH_UM = 100.0
 
 
 def check_levels(levels, name: str = "levels") -> int:
@@ -72,31 +73,31 @@ def check_levels(levels, name: str = "levels") -> int:
 
 
 def _check_wavelength(w, name: str) -> float:
-    try:
-        w = float(w)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a wavelength in µm, got {w!r}") from None
-    if not (math.isfinite(w) and 0 < w <= _MAX_WAVELENGTH_UM):
-        raise ValueError(f"{name} must be a wavelength in µm (0 < λ <= {_MAX_WAVELENGTH_UM:g}), got {w!r}")
-    return w
+    return wavelength_um(w, name)
+
+
+def phase_levels(phase: torch.Tensor, levels: int) -> torch.Tensor:
+    """The one phase quantiser: the level index (torch.long, 0..L−1) of every value of ``phase`` (rad): the phase
+    wrapped to [0, 2π) and rounded to the nearest of the L levels ``2πk/L`` (round half to even), level L folded
+    to 0. No gradient (an index). :func:`quantize_phase`, :meth:`DOE.levels` and
+    :func:`raywave.doe.fabrication.quantise_phase` are this function."""
+    L = check_levels(levels)
+    w = torch.remainder(phase.detach(), _TWO_PI)
+    return torch.remainder(torch.round(w * (L / _TWO_PI)), L).to(torch.long)
 
 
 def quantize_phase(phase: torch.Tensor, levels: int | None = None, wrap: bool = True) -> torch.Tensor:
     """Wrap ``phase`` (rad) to [0, 2π) and, with ``levels`` = L, round it to the nearest of the L levels
-    ``2πk/L`` (level L folds to 0), with a straight-through gradient: the forward value is the wrapped /
-    quantised phase exactly, the gradient is that of ``phase`` (identity)."""
+    ``2πk/L`` (level L folds to 0; :func:`phase_levels`), with a straight-through gradient: the forward value is
+    the wrapped / quantised phase exactly, the gradient is that of ``phase`` (identity)."""
     if levels is None and not wrap:
         return phase
-    q = torch.remainder(phase.detach(), _TWO_PI)
-    if levels is not None:
+    if levels is None:
+        q = torch.remainder(phase.detach(), _TWO_PI)
+    else:
         L = check_levels(levels)
-        q = torch.remainder(torch.round(q * (L / _TWO_PI)), L) * (_TWO_PI / L)
+        q = phase_levels(phase, L).to(phase.dtype) * (_TWO_PI / L)
     return q + (phase - phase.detach())
-
-
-def _level_indices(phase: torch.Tensor, levels: int) -> torch.Tensor:
-    w = torch.remainder(phase.detach(), _TWO_PI)
-    return torch.remainder(torch.round(w * (levels / _TWO_PI)), levels).to(torch.long)
 
 
 class DOE(nn.Module):
@@ -312,7 +313,7 @@ class DOE(nn.Module):
                 r = self.dispersion_ratio(lam0)
                 if r is not None:
                     p = p * r
-            return _level_indices(p, L)
+            return phase_levels(p, L)
 
     def phase(self, wavelength: float, window: Window | None = None, oversample: int = 1) -> torch.Tensor:
         """Phase map (rad, float64) on the simulation pixels of ``window`` (default: the whole grid).
@@ -356,8 +357,6 @@ class DOE(nn.Module):
         return self
 
     def __add__(self, other: "DOE") -> "DOE":
-        from raywave.doe.params import SumDOE
-
         return SumDOE(self, other)
 
     def extra_repr(self) -> str:
@@ -434,3 +433,48 @@ class PixelDOE(DOE):
 
     def model_spec(self) -> dict:
         return {"type": "pixel", "trainable": self.trainable}
+
+
+class SumDOE(DOE):
+    """The sum of DOEs on the same grid (shape and pitch): their phases add at every wavelength (and so do their
+    heights when they share a material). The sum's design phase is the terms' phases at its design wavelength
+    (default the first term's, fixed at construction); its dispersion model is the terms' common one (pass
+    ``dispersion`` / ``material`` when they differ). The sum can itself be fabricated (quantising the total).
+    ``doe_a + doe_b`` builds one."""
+
+    spec_type = "sum"
+
+    def __init__(self, *terms: DOE, aperture: str | None = None, design_wavelength: float | None = None,
+                 material=None, dispersion: str | None = None, n_medium: float | None = None):
+        if len(terms) == 1 and isinstance(terms[0], (list, tuple)):
+            terms = tuple(terms[0])
+        if not terms or not all(isinstance(t, DOE) for t in terms):
+            raise ValueError("SumDOE needs one or more DOEs")
+        first = terms[0]
+        for t in terms[1:]:
+            if t.shape != first.shape or abs(t.pitch - first.pitch) > 1e-12 * first.pitch:
+                raise ValueError(f"DOEs summed must share the grid: {first.shape} of {first.pitch:g} mm vs "
+                                 f"{t.shape} of {t.pitch:g} mm")
+        if dispersion is None and material is None:
+            models = {(t.dispersion, t.material_name, t.design_wavelength if t.dispersion != "none" else None)
+                      for t in terms}
+            if len(models) > 1:
+                raise ValueError("the summed DOEs have different dispersion models "
+                                 f"({sorted(map(str, models))}): give the sum's dispersion / material")
+            dispersion, mat = first.dispersion, first.material
+            material = mat
+        super().__init__(first.shape, first.pitch, aperture or first.aperture,
+                         first.design_wavelength if design_wavelength is None else design_wavelength,
+                         material, dispersion, first.n_medium if n_medium is None else n_medium)
+        self.terms = nn.ModuleList(terms)
+        self._term_wavelength = self.design_wavelength
+
+    def design_phase_pixels(self, rows, cols):
+        out = None
+        for t in self.terms:
+            p = t.phase_pixels(self._term_wavelength, rows, cols)
+            out = p if out is None else out + p
+        return out
+
+    def model_spec(self):
+        return {"type": "sum", "terms": [t.to_spec() for t in self.terms], "term_wavelength": self._term_wavelength}

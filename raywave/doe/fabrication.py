@@ -136,17 +136,17 @@ def _check_level_map(level_map, levels: int) -> np.ndarray:
 
 
 def quantise_phase(phase, levels: int) -> np.ndarray:
-    """Level map (int64, values in [0, L)) of a phase map (rad): the nearest level of the phase wrapped to
-    [0, 2π), level L folding to 0 (the DOE issue's quantisation)."""
+    """Level map (int64 numpy array, values in [0, L)) of a phase map (rad, array-like): the nearest level of the
+    phase wrapped to [0, 2π), level L folding to 0 — :func:`raywave.doe.base.phase_levels` (the one quantiser)
+    on numpy arrays."""
+    import torch
+
+    from raywave.doe.base import phase_levels
+
     ph = np.asarray(phase, dtype=np.float64)
     if not np.isfinite(ph).all():
         raise ValueError("the phase map contains NaN or inf values")
-    L = int(levels)
-    if L < 2:
-        raise ValueError(f"the number of levels must be >= 2, got {levels!r}")
-    q = np.rint(np.mod(ph, 2 * np.pi) * (L / (2 * np.pi))).astype(np.int64)
-    q[q >= L] -= L
-    return q
+    return phase_levels(torch.from_numpy(ph), levels).numpy()
 
 
 def masks_from_levels(level_map, levels: int) -> np.ndarray:

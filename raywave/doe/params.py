@@ -16,7 +16,7 @@ import math
 import torch
 from torch import nn
 
-from raywave.doe.base import DOE
+from raywave.doe.base import DOE, SumDOE  # SumDOE lives in base (DOE.__add__ builds it); re-exported here
 from raywave.utils.checks import positive_float
 
 __all__ = ["Binary2DOE", "CubicDOE", "FresnelDOE", "GratingDOE", "RadialDOE", "SumDOE", "ZernikeDOE", "noll_to_nm",
@@ -238,48 +238,3 @@ class CubicDOE(_Analytic):
 
     def model_spec(self):
         return {"type": "cubic", "alpha": float(self.alpha.detach()), "radius": self.radius}
-
-
-class SumDOE(DOE):
-    """The sum of DOEs on the same grid (shape and pitch): their phases add at every wavelength (and so do their
-    heights when they share a material). The sum's design phase is the terms' phases at its design wavelength
-    (default the first term's, fixed at construction); its dispersion model is the terms' common one (pass
-    ``dispersion`` / ``material`` when they differ). The sum can itself be fabricated (quantising the total).
-    ``doe_a + doe_b`` builds one."""
-
-    spec_type = "sum"
-
-    def __init__(self, *terms: DOE, aperture: str | None = None, design_wavelength: float | None = None,
-                 material=None, dispersion: str | None = None, n_medium: float | None = None):
-        if len(terms) == 1 and isinstance(terms[0], (list, tuple)):
-            terms = tuple(terms[0])
-        if not terms or not all(isinstance(t, DOE) for t in terms):
-            raise ValueError("SumDOE needs one or more DOEs")
-        first = terms[0]
-        for t in terms[1:]:
-            if t.shape != first.shape or abs(t.pitch - first.pitch) > 1e-12 * first.pitch:
-                raise ValueError(f"DOEs summed must share the grid: {first.shape} of {first.pitch:g} mm vs "
-                                 f"{t.shape} of {t.pitch:g} mm")
-        if dispersion is None and material is None:
-            models = {(t.dispersion, t.material_name, t.design_wavelength if t.dispersion != "none" else None)
-                      for t in terms}
-            if len(models) > 1:
-                raise ValueError("the summed DOEs have different dispersion models "
-                                 f"({sorted(map(str, models))}): give the sum's dispersion / material")
-            dispersion, mat = first.dispersion, first.material
-            material = mat
-        super().__init__(first.shape, first.pitch, aperture or first.aperture,
-                         first.design_wavelength if design_wavelength is None else design_wavelength,
-                         material, dispersion, first.n_medium if n_medium is None else n_medium)
-        self.terms = nn.ModuleList(terms)
-        self._term_wavelength = self.design_wavelength
-
-    def design_phase_pixels(self, rows, cols):
-        out = None
-        for t in self.terms:
-            p = t.phase_pixels(self._term_wavelength, rows, cols)
-            out = p if out is None else out + p
-        return out
-
-    def model_spec(self):
-        return {"type": "sum", "terms": [t.to_spec() for t in self.terms], "term_wavelength": self._term_wavelength}

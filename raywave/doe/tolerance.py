@@ -57,7 +57,9 @@ per step); ``misalignment`` in DOE pixels, independent in x and y for every mask
 come from a CPU ``torch.Generator`` (``seed`` or ``generator``) in a fixed order, so a seed reproduces a run
 exactly on any device.
 
-**PSF.** With ``lens`` (a :class:`~raywave.hybrid.HybridLens`) every sample's perturbed element replaces the DOE and
+**PSF** (:func:`raywave.assembly.tolerance.tolerance_monte_carlo`, in the assembly layer above
+:mod:`raywave.hybrid`; this module's loop tells it about every draw through an ``observer``). With ``lens`` (a
+:class:`~raywave.hybrid.HybridLens`) every sample's perturbed element replaces the DOE and
 the ray-wave PSF is compared with the nominal element's (the field arriving at the DOE depends on the lens only
 and is computed once). The element enters as its sample-averaged transmittance on the lens's simulation grid
 (``oversample``): its phase through :meth:`PerturbedDOE.phase`, its amplitude (< 1 on samples that a shifted
@@ -79,6 +81,7 @@ import torch
 from raywave.doe.base import DOE, check_levels
 from raywave.doe.efficiency import staircase_efficiency
 from raywave.doe.fabrication import mask_bits, masks_from_levels
+from raywave.utils.checks import wavelength_um
 
 __all__ = ["DISTRIBUTIONS", "PSF_METRICS", "FabricationErrors", "PerturbedDOE", "ToleranceResult", "ToleranceWarning",
            "blazed_grating_levels", "design_maps", "doe_efficiency", "grating_efficiency", "grating_efficiency_fft",
@@ -705,39 +708,15 @@ class ToleranceResult:
         return out
 
 
-def _psf_numbers(psf: torch.Tensor, pitch_um: float):
-    from raywave.hybrid.metrics import psf_metrics
-
-    m = psf_metrics(psf, pitch_um, fractions=(0.8,))
-    return m["peak"], m["rms_radius"], m["r80"]
-
-
-def _perturbed_psf(work, pdoe: PerturbedDOE, fds, ks: int) -> torch.Tensor:
-    """PSFs (W, ks, ks) of the first field of ``fds`` with ``pdoe`` in ``work``, as **fractions of the power
-    incident on the DOE** (not normalised to 1: light diffracted out of the crop is lost): the DOE's phase, and the
-    amplitude of its sample-averaged transmittance applied to the incident field."""
-    from dataclasses import replace
-
-    work.doe = pdoe
-    row, ratio = [], []
-    for fd in fds[0]:
-        amp = pdoe.transmittance(fd.wavelength, fd.window, work.oversample).abs()
-        env = fd.envelope * amp
-        p_in = float(fd.envelope.detach().abs().square().sum())
-        ratio.append(float(env.detach().abs().square().sum()) / p_in if p_in > 0 else 0.0)
-        row.append(replace(fd, envelope=env))
-    res = work.psf_result(cache=[row], ks=ks)
-    keep = (1.0 - res.energy_outside[0]).detach().cpu() * torch.tensor(ratio, dtype=torch.float64)
-    return res.psf[0].detach().cpu() * keep[:, None, None]
-
-
 def tolerance_monte_carlo(doe, levels: int = 16, depth_error: float = 5.0, misalignment: float = 0.1,
                           n_samples: int = 100, seed: int | None = 0, generator: torch.Generator | None = None,
                           wavelengths=None, orders=(1,), material=None, wavelength0: float | None = None,
-                          distribution: str = "normal", oversample: int = 1, lens=None, fields=(0.0, 0.0),
-                          ks: int = 64, rays: int | None = None, errors=None, periodic: bool = False,
-                          progress: bool = False) -> ToleranceResult:
-    """Monte Carlo of the fabrication tolerance (module docstring).
+                          distribution: str = "normal", oversample: int = 1, lens=None, errors=None,
+                          periodic: bool = False, progress: bool = False, observer=None) -> ToleranceResult:
+    """Monte Carlo of the fabrication tolerance's diffraction efficiency (module docstring). The PSF change
+    through a hybrid lens is :func:`raywave.assembly.tolerance.tolerance_monte_carlo` (same arguments plus
+    ``lens``, ``fields``, ``ks``, ``rays``), which sits above :mod:`raywave.hybrid` and runs this loop with an
+    ``observer``.
 
     Args:
         doe: a :class:`~raywave.doe.DOE` (general element, efficiency relative to its design), or one period of a
@@ -751,17 +730,23 @@ def tolerance_monte_carlo(doe, levels: int = 16, depth_error: float = 5.0, misal
             (default the DOE's design wavelength; a grating: 0.55 µm).
         oversample: samples per DOE pixel of the efficiency overlap (general DOE; exact at any value for a square
             aperture, finer only resolves a circular aperture's edge).
-        lens: a :class:`~raywave.hybrid.HybridLens` for the PSF change (its lens, DOE distance, sensor pitch and
-            oversample; ``doe`` replaces its DOE); fields, ks, rays: the PSF's source (one field point, in the
-            lens's field type), crop (sensor pixels) and node count.
+        lens: not taken here (a TypeError naming :func:`raywave.assembly.tolerance.tolerance_monte_carlo`, where
+            the PSF part lives).
         errors: a list of :class:`FabricationErrors` to evaluate instead of random draws (then ``n_samples``,
             ``seed`` and the tolerances are only recorded).
         periodic: shifted masks wrap around the DOE grid (a DOE that is whole periods of a grating).
         progress: show a tqdm progress bar.
-    Returns a :class:`ToleranceResult`; its PSFs are fractions of the power incident on the DOE (the light a
-    fabrication error diffracts out of the ``ks × ks`` crop is lost), the metrics are defined in its docstring.
+        observer: an object told about the run: ``observer.start(probe, wavelengths)`` (the nominal
+            :class:`PerturbedDOE`, after the nominal efficiency), ``observer.sample(s, perturbed_doe)`` for every
+            draw (after its efficiency), ``observer.finish(result)``; how the PSF part hooks in.
+    Returns a :class:`ToleranceResult` (``psf`` fields None: no PSF here).
     """
     from tqdm.auto import tqdm
+
+    if lens is not None:
+        raise TypeError("raywave.doe.tolerance.tolerance_monte_carlo computes efficiencies only; the PSF change "
+                        "through a HybridLens (lens=...) is raywave.assembly.tolerance.tolerance_monte_carlo "
+                        "(the same arguments)")
 
     k = mask_bits(levels)
     L = int(levels)
@@ -772,8 +757,6 @@ def tolerance_monte_carlo(doe, levels: int = 16, depth_error: float = 5.0, misal
         period = np.asarray(doe)
         if period.ndim != 1:
             raise ValueError("doe must be a DOE or one grating period (a 1-D array of levels)")
-        if lens is not None:
-            raise ValueError("a PSF (lens=...) needs a DOE, not a grating period")
         lam0 = 0.55 if wavelength0 is None else float(wavelength0)
         probe = PerturbedDOE(_LevelsDOE(period[None, :], L, lam0), L,
                              material="FUSED_SILICA" if material is None else material, wavelength0=lam0)
@@ -782,8 +765,7 @@ def tolerance_monte_carlo(doe, levels: int = 16, depth_error: float = 5.0, misal
         lam0 = probe.design_wavelength
     wls = [lam0] if wavelengths is None else [float(w) for w in np.atleast_1d(np.asarray(wavelengths, float))]
     for w in wls:
-        if not (math.isfinite(w) and 0 < w <= 100):
-            raise ValueError(f"wavelengths must be in µm (0 < λ <= 100), got {w!r}")
+        wavelength_um(w, "wavelengths")
     alphas = [probe.alpha(w) for w in wls]
     if errors is None:
         errs = sample_errors(k, depth_error, misalignment, n, seed, generator, distribution)
@@ -805,24 +787,10 @@ def tolerance_monte_carlo(doe, levels: int = 16, depth_error: float = 5.0, misal
 
     nominal_eta, _ = eff(FabricationErrors.nominal(k))
 
-    work = fds = None
-    if lens is not None:
-        from raywave.hybrid import HybridLens
-
-        work = HybridLens(lens.lens, probe, lens.doe_distance, sensor_pitch=lens.sensor_pitch,
-                          oversample=lens.oversample, intensity_upsample=lens.intensity_upsample)
-        with torch.no_grad():
-            fds = work.doe_fields(fields, wls, rays=rays)
-            if len(fds) != 1:
-                raise ValueError(f"the PSF tolerance takes one field point, got {len(fds)}")
-            for row in fds:
-                for fd in row:
-                    fd.envelope = fd.envelope.detach()
-            nominal_psf = _perturbed_psf(work, probe, fds, ks)
-        pitch_um = work.sensor_pitch * 1e3
-        nom_m = [_psf_numbers(nominal_psf[i], pitch_um) for i in range(len(wls))]
-        psf_vals = {name: np.zeros((n, len(wls))) for name in PSF_METRICS}
-        worst_val, worst_i, worst_psf = math.inf, None, None
+    if observer is not None:
+        if grating:
+            raise ValueError("a PSF (lens=...) needs a DOE, not a grating period")
+        observer.start(probe, wls)
 
     etas = np.zeros((n, len(wls), len(ords)))
     rel = None if grating else np.zeros((n, len(wls)))
@@ -831,19 +799,8 @@ def tolerance_monte_carlo(doe, levels: int = 16, depth_error: float = 5.0, misal
         etas[s] = e
         if rel is not None:
             rel[s] = r
-        if work is not None:
-            with torch.no_grad():
-                p = _perturbed_psf(work, probe.with_errors(errs[s]), fds, ks)
-            for i in range(len(wls)):
-                peak, rms, r80 = _psf_numbers(p[i], pitch_um)
-                psf_vals["peak_ratio"][s, i] = peak / nom_m[i][0]
-                psf_vals["l1"][s, i] = float((p[i] - nominal_psf[i]).abs().sum() / nominal_psf[i].sum())
-                psf_vals["rms_radius_um"][s, i] = rms
-                psf_vals["r80_um"][s, i] = r80
-                psf_vals["crop_energy"][s, i] = float(p[i].sum())
-            v = float(psf_vals["peak_ratio"][s].mean())
-            if v < worst_val:
-                worst_val, worst_i, worst_psf = v, s, p.numpy()
+        if observer is not None:
+            observer.sample(s, probe.with_errors(errs[s]))
 
     res = ToleranceResult(
         levels=L, masks=k, depth_error=float(depth_error), misalignment=float(misalignment),
@@ -852,16 +809,8 @@ def tolerance_monte_carlo(doe, levels: int = 16, depth_error: float = 5.0, misal
         depth=np.stack([e.depth for e in errs]), shift=np.stack([e.shift for e in errs]), efficiency=etas,
         nominal_efficiency=nominal_eta, theory_efficiency=theory, kind="grating" if grating else "doe",
         relative=rel, info={"oversample": None if grating else int(oversample)})
-    if work is not None:
-        res.psf = psf_vals
-        res.nominal_psf_metrics = {"peak_ratio": np.ones(len(wls)), "l1": np.zeros(len(wls)),
-                                   "rms_radius_um": np.array([v[1] for v in nom_m]),
-                                   "r80_um": np.array([v[2] for v in nom_m]),
-                                   "crop_energy": np.array([float(nominal_psf[i].sum()) for i in range(len(wls))])}
-        res.nominal_psf = nominal_psf.numpy()
-        res.worst_psf = worst_psf
-        res.worst_sample = worst_i
-        res.psf_pitch_um = pitch_um
+    if observer is not None:
+        observer.finish(res)
     return res
 
 

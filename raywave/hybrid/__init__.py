@@ -1,9 +1,22 @@
-"""The ray-wave model: coherent tracing to the DOE plane, DOE modulation, propagation to the sensor."""
+"""The ray-wave model: coherent tracing to the DOE plane, DOE modulation, propagation to the sensor.
 
-from raywave.hybrid.build import DOEPhaseWarning, hybrid_from_spec, load_hybrid
+Building a :class:`HybridLens` from a lens file is the assembly layer's (:mod:`raywave.assembly.build`, or
+``raywave.load_hybrid``); ``raywave.hybrid.load_hybrid`` / ``hybrid_from_spec`` remain as lazy aliases of it.
+"""
+
 from raywave.hybrid.coherent import DOEField, SamplingWarning
 from raywave.hybrid.hybrid_lens import DOEApertureWarning, HybridLens, PSFResult, SensorCropWarning
 from raywave.hybrid.metrics import psf_metrics
 
-__all__ = ["DOEApertureWarning", "DOEField", "DOEPhaseWarning", "HybridLens", "PSFResult", "SamplingWarning", "SensorCropWarning",
-           "hybrid_from_spec", "load_hybrid", "psf_metrics"]
+__all__ = ["DOEApertureWarning", "DOEField", "HybridLens", "PSFResult", "SamplingWarning", "SensorCropWarning",
+           "psf_metrics"]
+
+_MOVED = {"load_hybrid", "hybrid_from_spec"}  # compatibility aliases of raywave.assembly.build (issue 17)
+
+
+def __getattr__(name):
+    if name in _MOVED:
+        from raywave.assembly import build
+
+        return getattr(build, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

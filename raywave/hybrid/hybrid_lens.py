@@ -41,6 +41,9 @@ __all__ = ["DOEApertureWarning", "HybridLens", "PSFResult", "SensorCropWarning"]
 
 #: blocked power fraction above which :class:`DOEApertureWarning` is raised
 CLIP_WARN = 0.01
+#: Default DOE size: this factor times the beam's extent on the DOE plane (raywave.assembly.build.default_doe_size;
+#: quoted by :class:`DOEApertureWarning`).
+BEAM_MARGIN = 1.2
 #: the accepted values of ``HybridLens(stop_edge=...)``
 STOP_EDGES = ("doe", "exit_pupil")
 #: the accepted values of ``HybridLens(edge_step=...)``: how the exit-pupil edge reaches the DOE plane
@@ -202,10 +205,14 @@ class HybridLens(nn.Module):
                              "infinity: image-space telecentric), where no field can be built; use stop_edge='doe'")
         return z
 
-    def _wavelengths(self, wavelengths) -> list[float]:
+    def wavelength_list(self, wavelengths=None) -> list[float]:
+        """``wavelengths`` (µm: None → the lens's primary, a scalar or any (W,)) as a list of floats: how every PSF
+        model (this engine and :mod:`raywave.models`) reads its ``wavelengths`` argument."""
         if wavelengths is None:
             return [self.lens.primary_wavelength]
         return [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
+
+    _wavelengths = wavelength_list  # the pre-issue-17 private name
 
     # ------------------------------------------------------------------ step 1-2: the DOE-plane field
     def doe_fields(self, fields=(0.0, 0.0), wavelengths=None, depth=None, mode: str = "accurate",
@@ -233,7 +240,7 @@ class HybridLens(nn.Module):
         if mode == "accurate" and trace_dtype != torch.float64:
             raise ValueError("the accurate mode traces in float64 only (its rays land on their nodes to 1e-10 mm)")
         f = _as_fields(fields, torch.float64, self.lens.device)
-        wls = self._wavelengths(wavelengths)
+        wls = self.wavelength_list(wavelengths)
         z_doe, z_sen = self.doe_z(), self.sensor_z()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", VignettingWarning)
@@ -282,14 +289,13 @@ class HybridLens(nn.Module):
     def _warn_clipped(self, fd: DOEField, field) -> None:
         if fd.clipped <= CLIP_WARN:
             return
-        from raywave.hybrid.build import BEAM_MARGIN  # (build imports this module)
         w, h = self.doe.size
         need = 2.0 * fd.beam_half
         warnings.warn(f"field {[float(v) for v in field]} at {fd.wavelength:g} µm: the {w:g}×{h:g} mm DOE "
                       f"aperture blocks {100 * fd.clipped:.1f} % of the beam's power (not counted in "
                       f"energy_outside); the beam needs a DOE of at least {need:.3g} mm square "
                       f"({BEAM_MARGIN * need:.3g} mm with the usual {BEAM_MARGIN:g}× margin, see "
-                      "raywave.hybrid.build.default_doe_size)", DOEApertureWarning, stacklevel=3)
+                      "raywave.assembly.build.default_doe_size)", DOEApertureWarning, stacklevel=3)
 
     # ------------------------------------------------------------------ steps 3-4: DOE, propagation, sensor
     def propagate(self, fd: DOEField, ks: int, propagation_dtype=torch.complex128):
@@ -326,7 +332,7 @@ class HybridLens(nn.Module):
             power = torch.view_as_real(fd.envelope).square().sum() * p * p
         if float(power.detach()) == 0.0:
             z = torch.zeros((ks, ks), dtype=torch.float64, device=u.device)
-            return z, center_t, torch.ones((), dtype=torch.float64)
+            return z, center_t, torch.ones((), dtype=torch.float64, device=u.device)
         u = u.to(propagation_dtype)
         # output window on the simulation pitch covering the ks×ks sensor pixels, plus a margin for the
         # 2× Fourier upsampling of the field (its intensity needs the p/2 grid)
@@ -395,19 +401,27 @@ class HybridLens(nn.Module):
         if int(ks) < 1:
             raise ValueError(f"ks must be >= 1, got {ks}")
         fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw)
-        psfs, centers, outs, nr, clip = [], [], [], [], []
+        psf, center, outside, nr = self.propagate_fields(fds, ks, propagation_dtype)
+        clip = [[fd.clipped for fd in row] for row in fds]
+        self._check_sensor(center)
+        psf = self._checked(psf, fds, connect=cache is None)
+        return PSFResult(psf, center, outside, self.sensor_pitch, nr,
+                         torch.tensor(clip, dtype=torch.float64, device=center.device))
+
+    def propagate_fields(self, fds, ks: int, propagation_dtype=torch.complex128):
+        """Steps 3–4 for a nested list ``[F][W]`` of :class:`DOEField` (this engine's, or a comparison model's):
+        PSFs ``(F, W, ks, ks)``, centres ``(F, W, 2)``, energy outside ``(F, W)`` and rays ``(F, W)``
+        (:meth:`propagate` per field; the one loop over PSFs that :meth:`psf_result` and
+        :func:`raywave.models.base.propagate_fields` share)."""
+        psfs, centers, outs, nr = [], [], [], []
         for row in fds:
             pr, cr, orow, rr = [], [], [], []
             for fd in row:
                 psf, c, o = self.propagate(fd, ks, propagation_dtype)
                 pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays)
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
-            nr.append(rr), clip.append([fd.clipped for fd in row])
-        center = torch.stack(centers)
-        self._check_sensor(center)
-        psf = self._checked(torch.stack(psfs), fds, connect=cache is None)
-        return PSFResult(psf, center, torch.stack(outs), self.sensor_pitch, torch.tensor(nr),
-                         torch.tensor(clip, dtype=torch.float64, device=center.device))
+            nr.append(rr)
+        return torch.stack(psfs), torch.stack(centers), torch.stack(outs), torch.tensor(nr)
 
     def psf(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None, mode: str = "accurate",
             rays: int | None = None, cache=None, **kw) -> torch.Tensor:

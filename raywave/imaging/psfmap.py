@@ -451,12 +451,12 @@ def _warn_crop(eo: torch.Tensor, fields: torch.Tensor, ds, wls, ks: int) -> None
 
 
 def _cache_target(model):
-    """The HybridLens whose DOE fields a cache holds: the model itself, or the engine behind the ray-wave
-    comparison model (``raywave.models.RayWaveModel``)."""
+    """The HybridLens whose DOE fields a cache holds: the model itself, or the engine a PSF model names as the
+    source of its DOE-plane fields (``doe_field_source``, e.g. ``raywave.models.RayWaveModel``'s)."""
     if hasattr(model, "doe_fields"):
         return model
-    hybrid = getattr(model, "hybrid", None)
-    if getattr(model, "name", None) == "raywave" and hasattr(hybrid, "doe_fields"):
+    hybrid = getattr(model, "doe_field_source", None)
+    if hasattr(hybrid, "doe_fields"):
         return hybrid
     raise TypeError(f"{type(model).__name__} has no DOE-plane fields to cache (cache= needs a HybridLens or the "
                     "ray-wave model)")

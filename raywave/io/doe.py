@@ -5,7 +5,7 @@ A hybrid lens file names its diffractive optical element (DOE) in an optional to
 shape), the aperture and the phase (``null`` = a blank DOE, or a path to a ``.npy`` / ``.npz`` phase map in
 radians, relative to the lens file, or a parametric ``phase_model``), and optionally a ``material`` and
 ``levels`` (a fabricated, dispersive height map) or ``wrap`` (a continuous kinoform). Everything here works on
-plain dicts and numpy arrays and never imports torch; :mod:`raywave.hybrid.build` turns a :class:`DOEData`
+plain dicts and numpy arrays and never imports torch; :mod:`raywave.assembly.build` turns a :class:`DOEData`
 into a :class:`~raywave.doe.DOE`.
 """
 
@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from raywave.io.errors import LensFileError, suggestion
+from raywave.utils.checks import MAX_WAVELENGTH_UM as _MAX_WAVELENGTH_UM
 
 #: Keys of the "doe" object.
 DOE_KEYS = ("distance", "pitch", "size", "shape", "aperture", "phase", "design_wavelength", "oversample",
@@ -39,7 +40,6 @@ PHASE_MODEL_KEYS = {k: ("type",) + req + opt for k, (req, opt) in PHASE_MODELS.i
 #: A size must be this close (in pixels) to a whole number of pixels.
 PIXEL_TOLERANCE = 1e-6
 #: Wavelengths above this (µm) are taken for a unit mistake (as raywave.io.json_format).
-_MAX_WAVELENGTH_UM = 100.0
 
 
 @dataclass

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from raywave.io.doe import check_doe_files, validate_doe
 from raywave.io.errors import LensFileError, suggestion
+from raywave.utils.checks import MAX_FIELD_ANGLE, MAX_WAVELENGTH_UM
 
 FORMAT_NAME = "raywave-lens"
 FORMAT_VERSION = 1
@@ -52,10 +53,6 @@ SYSTEM_APERTURE_TYPES = {
     "object_cone_angle": "object-space marginal ray half-angle theta in degrees (finite object)",
     "float_by_stop_size": "true: the stop's own aperture sets the pupil",
 }
-#: Wavelengths above this (µm) are taken for a unit mistake (nm given instead of µm).
-MAX_WAVELENGTH_UM = 100.0
-#: Field angles (degrees) must be smaller than this in magnitude.
-MAX_FIELD_ANGLE = 90.0
 
 
 # --------------------------------------------------------------------------------------- locating keys

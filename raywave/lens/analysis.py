@@ -8,12 +8,14 @@ Batch shapes follow :mod:`raywave.lens.sources`: (F, W, N) = (fields, wavelength
 from __future__ import annotations
 
 import math
+import warnings
 
 import torch
 
 from raywave.lens import paraxial
 from raywave.lens.sources import chief_ray, point_source_rays
 from raywave.rays.bundle import RayBundle
+from raywave.rays.pupil import hexapolar
 from raywave.utils.safe import safe_sqrt
 
 
@@ -32,6 +34,44 @@ def real_ray_efl(lens, wavelength: float | None = None, height: float | None = N
     if not bool(out.valid.all()):
         raise ValueError(f"the real-ray EFL ray at height {height} mm is vignetted")
     return -height / (out.d[0, 1] / out.d[0, 2])
+
+
+# ---------------------------------------------------------------------------- beam extent
+def _beam_field_points(lens, fields):
+    """Field points (F, 2) float64 for the beam extent: ``fields`` ((2,), (F, 2) or one y value), default the
+    lens's fields along y and (0, 0)."""
+    if fields is None:
+        pts = [(0.0, float(f)) for f in lens.fields] + [(0.0, 0.0)]
+    else:
+        f = torch.as_tensor(fields, dtype=torch.float64)
+        if f.ndim == 0:
+            f = torch.stack([torch.zeros_like(f), f])
+        pts = [tuple(float(v) for v in row) for row in f.reshape(-1, 2)]
+    return torch.tensor(pts, dtype=torch.float64)
+
+
+def beam_half_extent(lens, z: float, fields=None, wavelengths=None, depth=None) -> tuple[float, float] | None:
+    """Largest ``|x|`` and ``|y|`` (mm) the beam reaches on the plane ``z`` (mm from the first vertex).
+
+    Rays: the pupil rim (72 points) and a hexapolar grid (6 rings), fully aimed, for every field point
+    (``fields``: (2,) or (F, 2) in the lens's field type; default the lens's fields along y and (0, 0)) and
+    wavelength (default: all of the lens's). None when every ray is vignetted."""
+    t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
+    hx, hy = hexapolar(6)
+    px = torch.cat([torch.cos(t), hx])
+    py = torch.cat([torch.sin(t), hy])
+    wls = lens.wavelengths if wavelengths is None else [float(w) for w in torch.as_tensor(wavelengths).reshape(-1)]
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # vignetted fields are simply left out
+        rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full", depth=depth)
+        out = lens.trace(rays)
+        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(z, n)
+    v = at.valid & torch.isfinite(at.o).all(-1)
+    if not bool(v.any()):
+        return None
+    xy = at.o[..., :2][v]
+    return float(xy[:, 0].abs().max()), float(xy[:, 1].abs().max())
 
 
 # ---------------------------------------------------------------------------- focus
@@ -194,7 +234,7 @@ def geometric_psf(lens, field=(0.0, 0.0), wavelength=None, n_rays: int = 101, si
     dx, dy, v = dx.reshape(-1), dy.reshape(-1), v.reshape(-1)
     fx = dx / pixel + size / 2 - 0.5
     fy = dy / pixel + size / 2 - 0.5
-    img = torch.zeros(size * size, dtype=torch.float64)
+    img = torch.zeros(size * size, dtype=torch.float64, device=dx.device)
     x0, y0 = torch.floor(fx), torch.floor(fy)
     for ox in (0, 1):
         for oy in (0, 1):

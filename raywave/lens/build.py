@@ -194,10 +194,12 @@ def lens_to_spec(lens: Lens) -> dict:
 
 
 def load_lens(path: str | Path) -> Lens:
-    """Read any lens file raywave knows (.json raywave or DeepLens-style, .zmx) into a :class:`Lens`."""
+    """Read any lens file raywave knows (.json raywave or DeepLens-style, .zmx), or a bundled lens by name
+    (``"cooke_triplet"``, see :func:`bundled_lens_path`), into a :class:`Lens`."""
     from raywave.io import read_lens_spec
     from raywave.io.errors import with_location
 
+    path = resolve_lens_path(path)
     spec = read_lens_spec(path)
     try:
         return lens_from_spec(spec)
@@ -210,16 +212,6 @@ def save_lens(lens: Lens, path: str | Path) -> None:
     from raywave.io import write_lens_spec
 
     write_lens_spec(lens_to_spec(lens), path)
-
-
-def load_hybrid(path: str | Path, doe_pitch: float | None = None, doe_size=None, doe_distance: float | None = None,
-                **kwargs):
-    """Read a lens file into a :class:`~raywave.hybrid.HybridLens`: the refractive lens and the file's DOE (a
-    ``"doe"`` section, or a .zmx diffractive last surface), or a default blank DOE for a lens file without one.
-    See :func:`raywave.hybrid.build.load_hybrid`."""
-    from raywave.hybrid.build import load_hybrid as _load_hybrid
-
-    return _load_hybrid(path, doe_pitch, doe_size, doe_distance, **kwargs)
 
 
 BUNDLED = Path(__file__).resolve().parent.parent / "data" / "lenses"
@@ -243,8 +235,6 @@ def resolve_lens_path(name_or_path: str | Path) -> Path:
     if p.suffix == "" and (BUNDLED / f"{p.name}.json").exists():
         return BUNDLED / f"{p.name}.json"
     raise FileNotFoundError(f"lens file {str(name_or_path)!r} not found (nor a bundled lens of that name)")
-
-
 
 
 def ideal_lens(focal_length: float, f_number: float | None = None, radius: float | None = None,

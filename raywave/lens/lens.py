@@ -17,10 +17,6 @@ from raywave.surfaces.surface import Surface
 TRACE_CHUNK = 65536
 
 
-class RayTraceError(ValueError):
-    """A trace that cannot be done (e.g. every ray of a point source is vignetted)."""
-
-
 @dataclass
 class TraceRecord:
     """Positions of the rays at every surface, for layout plots: lists of (x, y, z) tensors and masks."""

@@ -26,6 +26,7 @@ import torch
 from raywave.lens import paraxial
 from raywave.rays import pupil as pupil_patterns
 from raywave.rays.bundle import RayBundle
+from raywave.utils.checks import MAX_FIELD_ANGLE
 
 AIM_MAX_ITER = 30
 
@@ -59,8 +60,6 @@ def object_distance(lens, depth=None) -> float:
     return depth
 
 
-#: field angles (degrees) must be smaller than this in magnitude: at 90° the chief ray travels across the axis
-MAX_FIELD_ANGLE = 90.0
 
 
 def check_field_angles(fields) -> None:

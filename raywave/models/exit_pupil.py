@@ -52,7 +52,7 @@ import torch
 
 from raywave.lens import paraxial
 from raywave.lens.sources import chief_ray, entrance_plane_z, point_source_rays, source_weight
-from raywave.models.interface import ModelPSFResult, PSFModel
+from raywave.models.base import ModelPSFResult, PSFModel
 
 #: Largest (sensor points × sphere points) block of the Huygens sum (~50 bytes each in temporaries).
 _BLOCK = 1 << 20
@@ -342,7 +342,7 @@ class ExitPupilModel(PSFModel):
                         "aperture) or the ray-wave model")
 
     def _check_clear(self, fields, wavelengths, depth) -> None:
-        from raywave.hybrid.build import beam_half_extent
+        from raywave.lens.analysis import beam_half_extent
 
         hl = self.hybrid
         ext = beam_half_extent(hl.lens, hl.doe_z(), fields, wavelengths, depth)
@@ -365,7 +365,7 @@ class ExitPupilModel(PSFModel):
 
         ks = self._check_ks(ks)
         hl = self.hybrid
-        wls = hl._wavelengths(wavelengths)
+        wls = hl.wavelength_list(wavelengths)
         self._check_blank(wls)
         f = _as_fields(fields, torch.float64, hl.lens.device)
         self._check_clear(f, wls, depth)

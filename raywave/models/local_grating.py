@@ -32,7 +32,7 @@ import torch
 
 from raywave.hybrid.coherent import chief_rays
 from raywave.lens.sources import VignettingWarning, point_source_rays, source_weight
-from raywave.models.interface import ModelPSFResult, PSFModel
+from raywave.models.base import ModelPSFResult, PSFModel
 from raywave.rays import pupil as pupil_patterns
 from raywave.surfaces.interaction import Diffraction
 

@@ -38,7 +38,7 @@ import torch
 
 from raywave.hybrid.coherent import DOEField, SamplingWarning
 from raywave.lens.sources import object_distance
-from raywave.models.interface import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_xy
+from raywave.models.base import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_xy
 
 __all__ = ["ParaxialModel", "thin_lens_plane"]
 

@@ -31,7 +31,7 @@ import torch
 from raywave.doe.params import zernike_noll
 from raywave.hybrid.coherent import DOEField, chief_rays
 from raywave.lens.sources import VignettingWarning, point_source_rays
-from raywave.models.interface import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_xy
+from raywave.models.base import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_xy
 from raywave.rays import pupil as pupil_patterns
 
 __all__ = ["PupilModel", "ZernikeFit", "fit_zernike", "zernike_basis"]

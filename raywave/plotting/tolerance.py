@@ -1,4 +1,4 @@
-"""Figures of a fabrication tolerance Monte Carlo (:func:`raywave.doe.tolerance.tolerance_monte_carlo`):
+"""Figures of a fabrication tolerance Monte Carlo (:func:`raywave.assembly.tolerance.tolerance_monte_carlo`):
 efficiency histograms, PSF-metric histograms, and the nominal vs the worst sample's PSF."""
 
 from __future__ import annotations

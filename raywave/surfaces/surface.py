@@ -7,7 +7,7 @@ from torch import nn
 
 from raywave.materials.base import Material
 from raywave.surfaces.aperture import Aperture
-from raywave.surfaces.geometry import Geometry, Plane
+from raywave.surfaces.geometry import Geometry
 from raywave.surfaces.interaction import Interaction, Refraction
 
 
@@ -71,8 +71,3 @@ class Surface(nn.Module):
     def extra_repr(self):
         stop = ", stop" if self.is_stop else ""
         return f"thickness={float(self.thickness.detach()):.6g}, material={self.material.name!r}{stop}"
-
-
-def plane_surface(material: Material, thickness: float, **kwargs) -> Surface:
-    """A flat surface (e.g. a stop or a window face)."""
-    return Surface(Plane(), material, thickness, **kwargs)

@@ -60,7 +60,7 @@ def build_hybrid(lc):
     (``doe: pixel``), refocused to ``focus_depth``, the refractive lens frozen unless ``train_lens``."""
     from raywave.doe import PixelDOE
     from raywave.hybrid import HybridLens
-    from raywave.hybrid.build import load_hybrid
+    from raywave.assembly.build import load_hybrid
     from raywave.lens.build import resolve_lens_path
 
     path = resolve_lens_path(lc.file)

@@ -18,7 +18,7 @@ def safe_sqrt(x: torch.Tensor, ok: torch.Tensor | None = None, fill: float = 1.0
 
 
 def safe_div(num: torch.Tensor, den: torch.Tensor, ok: torch.Tensor | None = None, fill: float = 1.0) -> torch.Tensor:
-    """num/den where ``ok`` (default: den != 0), num/fill elsewhere."""
+    """num/den where ``ok`` (default: den != 0), num/fill elsewhere (finite gradients where ``den`` is 0)."""
     if ok is None:
         ok = den != 0
     return num / torch.where(ok, den, torch.full_like(den, fill))

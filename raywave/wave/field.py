@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["cubic_matrix", "fourier_upsample", "fourier_upsample2", "upsampled_intensity", "keys_matrix", "upsample_nodes", "splat_bilinear", "edge_coverage"]
+__all__ = ["cubic_matrix", "upsampled_intensity", "keys_matrix", "upsample_nodes", "splat_bilinear", "edge_coverage"]
 
 
 def _keys(t: torch.Tensor) -> torch.Tensor:
@@ -102,34 +102,12 @@ def edge_coverage(distance: torch.Tensor, pitch: float) -> torch.Tensor:
     return (0.5 + distance / pitch).clamp(0.0, 1.0)
 
 
-def fourier_upsample(u: torch.Tensor, factor: int = 2) -> torch.Tensor:
-    """Band-limited (sinc) upsampling of a complex field ``(..., Ny, Nx)`` → ``(..., q·Ny, q·Nx)``.
-
-    Output sample ``[q·i, q·j]`` coincides with input ``[i, j]``. A field sampled at pitch p carries
-    frequencies up to 1/(2p), so |u|² reaches 1/p: its intensity is only correctly sampled on the p/2 grid
-    (q = 2); a larger q makes a following low-order quadrature of the intensity accurate. The window is
-    treated as periodic: taper the field to ~0 at the edges first."""
-    q = int(factor)
-    if q == 1:
-        return u
-    ny, nx = u.shape[-2:]
-    spec = torch.fft.fft2(u)
-    big = torch.zeros(u.shape[:-2] + (q * ny, q * nx), dtype=spec.dtype, device=spec.device)
-    ky, kx = (ny + 1) // 2, (nx + 1) // 2  # non-negative frequencies (incl. 0) of each axis
-    big[..., :ky, :kx] = spec[..., :ky, :kx]
-    big[..., :ky, q * nx - (nx - kx):] = spec[..., :ky, kx:]
-    big[..., q * ny - (ny - ky):, :kx] = spec[..., ky:, :kx]
-    big[..., q * ny - (ny - ky):, q * nx - (nx - kx):] = spec[..., ky:, kx:]
-    return torch.fft.ifft2(big) * float(q * q)
-
-
-def fourier_upsample2(u: torch.Tensor) -> torch.Tensor:
-    """:func:`fourier_upsample` by 2."""
-    return fourier_upsample(u, 2)
-
-
 def upsampled_intensity(u: torch.Tensor, factor: int, window: torch.Tensor | None = None) -> torch.Tensor:
-    """``|fourier_upsample(u·window, q)|²`` (float), computed without building the centred padded spectrum.
+    """The intensity of the band-limited (sinc) ``q``-times upsampled field ``u·window`` ``(..., Ny, Nx)`` →
+    ``(..., q·Ny, q·Nx)`` (float; output sample ``[q·i, q·j]`` coincides with input ``[i, j]``; the window is
+    treated as periodic: taper the field to ~0 at its edges). A field sampled at pitch p carries frequencies up
+    to 1/(2p), so |u|² reaches 1/p: its intensity is only sampled correctly on the p/2 grid (q ≥ 2).
+    Computed without building the centred padded spectrum.
 
     The spectrum is rolled by half its length through a modulation of the input (folded into ``window``)
     and zero-padded at its end by the inverse FFT itself; the output is then the upsampled field times a

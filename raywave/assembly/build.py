@@ -1,0 +1,267 @@
+"""Hybrid lenses from lens files: the refractive lens + the file's DOE, or a default blank DOE.
+
+:mod:`raywave.io` reads a lens file's ``"doe"`` section into a :class:`~raywave.io.DOEData` (plain numbers and
+a numpy phase map); this module builds the torch side, a :class:`~raywave.hybrid.HybridLens`. It sits in the
+assembly layer, above :mod:`raywave.hybrid` (docs/architecture.md); ``raywave.hybrid.build`` re-exports it.
+
+Grid rules (``load_hybrid`` / ``hybrid_from_spec``; explicit arguments override the file):
+
+* **distance**: ``doe_distance``, else the file's ``doe.distance``, else (a lens file without a DOE) half
+  way between the last vertex and the sensor (:data:`DEFAULT_DISTANCE_FRACTION` of the last thickness).
+* **pitch**: ``doe_pitch``, else the file's (``doe.pitch`` or the .npz's ``pitch``); a lens file without a
+  DOE gets the pitch that samples its wavefront (:func:`nyquist_doe_pitch`: :data:`NYQUIST_FILL` of the
+  Nyquist pitch of the steepest phase slope, relative to the chief ray, that any traced ray reaches on the DOE
+  plane, for the given fields and wavelengths, rounded down to 2 significant digits and at most
+  :data:`MAX_DEFAULT_PITCH`): finer than 1 µm for a fast lens, coarser for a slow one (a 100 mm F/10 singlet
+  gets ~4 µm instead of 16 600² pixels at 1 µm). ``hl.doe_info["pitch_rule"]`` says which rule chose it.
+  A DOE in the file without a pitch (e.g. from a .zmx) is an error.
+* **grid**: a phase map fixes it (``(ny, nx)`` of the map; a ``doe_size`` that disagrees is an error). Otherwise
+  ``doe_size`` (mm, width and height), else the file's ``shape`` or ``size``, else (no DOE in the file) a
+  square that holds the beam: :data:`BEAM_MARGIN` × twice the largest ``|x|`` or ``|y|`` any traced ray
+  reaches on the DOE plane (pupil rim and a hexapolar grid, for the given fields — default: the lens's
+  fields and (0, 0) — and wavelengths). Sizes are rounded up to whole pixels. A DOE in the file without a
+  size or shape (a .zmx diffractive surface without CLAP / SQAP) is an error unless ``doe_size`` is given.
+* **phase**: the file's phase map (``PixelDOE``), else its ``phase_model`` (``raywave.doe.doe_from_phase_model``:
+  BINARY_2, radial, Zernike, Fresnel, grating, cubic, sums), else blank; ``material`` / ``levels`` make it a
+  fabricated, dispersive height map (``DOE.fabricate``); ``wrap`` wraps it to [0, 2π) without quantising.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import torch
+
+from raywave.doe import BlankDOE, PixelDOE, doe_from_phase_model
+from raywave.doe.spec import check_phase_finite
+from raywave.hybrid.hybrid_lens import BEAM_MARGIN, HybridLens
+from raywave.io.errors import LensFileError, with_location
+from raywave.lens.analysis import _beam_field_points, beam_half_extent
+from raywave.lens.build import lens_from_spec, resolve_lens_path
+from raywave.lens.sources import point_source_rays
+from raywave.rays.pupil import hexapolar
+from raywave.utils.errors import NonFiniteError
+
+__all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "MAX_DEFAULT_PITCH", "NYQUIST_FILL",
+           "beam_half_extent", "default_doe_size", "hybrid_from_spec", "load_hybrid", "nyquist_doe_pitch"]
+
+#: Pixel pitch (mm) of the blank DOE given to a lens file without a DOE when no ray can size it (before issue 19
+#: every lens file without a DOE got it; now :func:`nyquist_doe_pitch` chooses).
+DEFAULT_DOE_PITCH = 1e-3
+#: the default pitch is this fraction of the Nyquist pitch of the steepest wavefront slope (a 25 % margin)
+NYQUIST_FILL = 0.8
+#: the largest default pitch (mm): the simulation grid also samples the DOE's own phase
+MAX_DEFAULT_PITCH = 1e-2
+#: Default DOE plane of a lens file without a DOE: this fraction of the way from the last vertex to the sensor.
+DEFAULT_DISTANCE_FRACTION = 0.5
+_MIN_PIXELS = 16
+_PIXEL_TOL = 1e-6
+
+
+def _pixels(length: float, pitch: float) -> int:
+    """Whole pixels covering ``length`` mm (rounded up, tolerating float noise)."""
+    return max(1, math.ceil(length / pitch - _PIXEL_TOL))
+
+
+def _slopes(lens, z: float, fields, wavelengths, depth):
+    """Per (field, wavelength): the largest ``n·|d⊥ − d⊥_chief|`` of the traced rays on the plane z (a tensor
+    (F, W), 0 where nothing reaches it) and the wavelengths (W,) µm."""
+    t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
+    hx, hy = hexapolar(6)
+    px = torch.cat([torch.zeros(1, dtype=torch.float64), torch.cos(t), hx.to(torch.float64)])
+    py = torch.cat([torch.zeros(1, dtype=torch.float64), torch.sin(t), hy.to(torch.float64)])
+    wls = lens.wavelengths if wavelengths is None else [float(w) for w in torch.as_tensor(wavelengths).reshape(-1)]
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full",
+                                 depth=depth)
+        out = lens.trace(rays)
+        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(z, n)
+    d = at.d[..., :2]
+    rel = n * torch.linalg.vector_norm(d - d[..., :1, :], dim=-1)  # pupil sample 0 is the chief ray
+    ok = at.valid & at.valid[..., :1] & torch.isfinite(rel)
+    return torch.where(ok, rel, torch.zeros_like(rel)).amax(-1), torch.tensor(wls, dtype=torch.float64)
+
+
+def nyquist_doe_pitch(lens, distance: float, fields=None, wavelengths=None, depth=None,
+                      fill: float = NYQUIST_FILL) -> float | None:
+    """The DOE pitch (mm) that samples the wavefront arriving ``distance`` mm after the last vertex: ``fill`` ×
+    the Nyquist pitch ``λ / (2 n |d⊥ − d⊥_chief|)`` of the steepest slope (relative to the chief ray, whose
+    carrier the field construction removes) over every traced ray (pupil rim and a hexapolar grid), field
+    and wavelength (defaults as :func:`beam_half_extent`), rounded down to 2 significant digits and at most
+    :data:`MAX_DEFAULT_PITCH`. None when no ray reaches the plane."""
+    z = float(lens.vertex_z()[-1].detach()) + distance
+    slope, wls = _slopes(lens, z, fields, wavelengths, depth)
+    ok = slope > 0
+    if not bool(ok.any()):
+        return None
+    pitch = float((fill * wls[None, :] * 1e-3 / (2 * slope)).masked_fill(~ok, math.inf).min())
+    if not math.isfinite(pitch):
+        return None
+    digits = 10 ** (math.floor(math.log10(pitch)) - 1)
+    return min(float(f"{math.floor(pitch / digits * (1 + 1e-9)) * digits:.2g}"), MAX_DEFAULT_PITCH)
+
+
+def default_doe_size(lens, distance: float, fields=None, wavelengths=None, depth=None,
+                     margin: float = BEAM_MARGIN) -> tuple[float, float]:
+    """(w, h) mm of a square DOE centred on the axis that holds the beam ``distance`` mm after the last vertex:
+    ``margin`` × twice the largest |x| or |y| of :func:`beam_half_extent`."""
+    z = float(lens.vertex_z()[-1].detach()) + distance
+    ext = beam_half_extent(lens, z, fields, wavelengths, depth)
+    if ext is None:
+        raise ValueError("no ray reaches the DOE plane (every ray is vignetted), so the beam cannot size the DOE; "
+                         "give the DOE size")
+    side = 2.0 * margin * max(ext)
+    return side, side
+
+
+def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, doe_size=None,
+                     doe_distance: float | None = None, sensor_pitch: float | None = None,
+                     oversample: int | None = None, fields=None, wavelengths=None, depth=None,
+                     field_type: str | None = None, source: str = "<spec>", stop_edge: str = "doe") -> HybridLens:
+    """A :class:`HybridLens` from a lens spec and its resolved DOE (:func:`raywave.io.resolve_doe`, None: the
+    spec has no DOE, a blank one is made). See the module docstring for how the grid is chosen.
+
+    Args:
+        doe_pitch: DOE pixel pitch (mm), overriding the file's.
+        doe_size: (width, height) mm or one number (square), overriding the file's size / shape (blank DOEs).
+        doe_distance: mm from the last vertex to the DOE plane, overriding the file's.
+        sensor_pitch: PSF pixel pitch (mm); default the lens's sensor pixel pitch, else the DOE pitch.
+        oversample: simulation samples per DOE pixel per axis (default: the file's, else 1).
+        fields, wavelengths, depth: the sources the default DOE size must hold (see :func:`beam_half_extent`).
+        field_type: "angle" or "object_height": overrides the lens file's field type (how ``fields`` given to
+            the hybrid lens are read).
+    """
+    try:
+        lens = lens_from_spec(spec)
+    except ValueError as err:  # a spec that validates but builds no lens: name the file
+        raise with_location(err, source)
+    if field_type is not None:
+        if field_type not in ("angle", "object_height"):
+            raise ValueError(f"field_type must be 'angle' or 'object_height', got {field_type!r}")
+        lens.field_type = field_type
+    last = float(lens.surfaces[-1].thickness.detach())
+    from_file = doe_data is not None
+    data = doe_data
+    info: dict = {"source": "file" if from_file else "default"}
+
+    # ---- distance
+    if doe_distance is not None:
+        distance = float(doe_distance)
+    elif from_file and data.distance is not None:
+        distance = data.distance
+    else:
+        distance = DEFAULT_DISTANCE_FRACTION * last
+    if not (math.isfinite(distance) and 0 <= distance < last):
+        raise ValueError(f"{source}: the DOE distance must lie between the last surface and the sensor "
+                         f"(0 <= d < {last:g} mm, the last thickness), got {distance!r}")
+
+    # ---- pitch
+    if doe_pitch is not None:
+        pitch = float(doe_pitch)
+        info["pitch_rule"] = "given"
+    elif from_file and data.pitch is not None:
+        pitch = data.pitch
+        info["pitch_rule"] = "file"
+    elif from_file:
+        raise ValueError(f"{source}: the DOE has no pixel pitch (the file does not give one): pass doe_pitch "
+                         "(raywave psf: --doe-pitch MM)")
+    else:
+        pitch = nyquist_doe_pitch(lens, distance, fields, wavelengths, depth)
+        info["pitch_rule"] = "nyquist" if pitch is not None else "default"
+        info["nyquist_fill"] = NYQUIST_FILL
+        pitch = DEFAULT_DOE_PITCH if pitch is None else pitch
+    if not (math.isfinite(pitch) and pitch > 0):
+        raise ValueError(f"the DOE pitch must be > 0 mm, got {pitch!r}")
+
+    # ---- grid
+    if doe_size is not None:
+        size = tuple(float(s) for s in (doe_size if isinstance(doe_size, (list, tuple)) else (doe_size,)))
+        if len(size) == 1:
+            size = (size[0], size[0])
+        if len(size) != 2 or not all(math.isfinite(s) and s > 0 for s in size):
+            raise ValueError(f"the DOE size must be one or two lengths > 0 mm (width, height), got {doe_size!r}")
+    phase = data.phase if from_file else None
+    if from_file and data.phase_path is not None and phase is None:
+        raise ValueError(f"{source}: the DOE phase map {data.phase_path!r} was not loaded (resolve_doe(load=True))")
+    if phase is not None:
+        shape = tuple(phase.shape)
+        if doe_size is not None:
+            want = (shape[1] * pitch, shape[0] * pitch)
+            if any(abs(s - w) > 0.5 * pitch for s, w in zip(size, want)):
+                raise ValueError(f"{source}: the DOE phase map ({shape[1]} × {shape[0]} pixels of {pitch:g} mm = "
+                                 f"{want[0]:g} × {want[1]:g} mm) fixes the DOE size; a size of {size[0]:g} × "
+                                 f"{size[1]:g} mm does not apply")
+    elif doe_size is not None:
+        shape = (_pixels(size[1], pitch), _pixels(size[0], pitch))
+    elif from_file and data.shape is not None and (data.size is None or doe_pitch is None):
+        shape = data.shape
+    elif from_file and data.size is not None:
+        shape = (_pixels(data.size[1], pitch), _pixels(data.size[0], pitch))
+    elif from_file:
+        raise ValueError(f"{source}: the DOE has no size (the file gives neither 'size' nor 'shape', nor a .zmx "
+                         "CLAP / SQAP): pass doe_size (raywave psf: --doe-size MM [MM])")
+    else:
+        w, h = default_doe_size(lens, distance, fields, wavelengths, depth)
+        shape = (max(_pixels(h, pitch), _MIN_PIXELS), max(_pixels(w, pitch), _MIN_PIXELS))
+
+    aperture = data.aperture if from_file else "square"
+    model = data.phase_model if from_file else None
+    material = data.material if from_file else None
+    levels = data.levels if from_file else None
+    wrap = bool(data.wrap) if from_file else False
+    if phase is not None:
+        doe = PixelDOE(phase, pitch, design_wavelength=data.design_wavelength, aperture=aperture, material=material)
+        try:
+            check_phase_finite(doe, f"the phase map {data.phase_path!r}", "its values are radians")
+        except NonFiniteError as e:
+            raise LensFileError(f"doe.phase: {e}", source) from None
+        if levels is not None:
+            doe.fabricate(levels=levels)
+        elif wrap:
+            doe.fabricate(levels=None)
+    elif model is not None:
+        try:
+            doe = doe_from_phase_model(model, shape, pitch, aperture, design_wavelength=data.design_wavelength,
+                                       material=material, levels=levels, wrap=wrap)
+        except NonFiniteError as e:
+            raise LensFileError(f"doe.phase_model: {e}", source) from None
+    elif material is not None or levels is not None:
+        doe = BlankDOE(shape, pitch, aperture=aperture, design_wavelength=data.design_wavelength, material=material)
+    else:
+        doe = BlankDOE(shape, pitch, aperture=aperture)
+    q = int(oversample) if oversample is not None else (data.oversample if from_file else 1)
+    hl = HybridLens(lens, doe, distance, sensor_pitch=sensor_pitch, oversample=q, stop_edge=stop_edge)
+    info.update(distance=distance, pitch=pitch, shape=list(doe.shape), size=list(doe.size), aperture=aperture,
+                phase=data.phase_path if from_file else None, oversample=q,
+                phase_model=None if model is None else model["type"], material=doe.material_name,
+                levels=doe.quant_levels, design_wavelength=doe.design_wavelength, dispersion=doe.dispersion)
+    hl.doe_info = info
+    return hl
+
+
+def load_hybrid(path: str | Path, doe_pitch: float | None = None, doe_size=None, doe_distance: float | None = None,
+                *, sensor_pitch: float | None = None, oversample: int | None = None, fields=None, wavelengths=None,
+                depth=None, field_type: str | None = None, stop_edge: str = "doe") -> HybridLens:
+    """Read a lens file (raywave .json with its ``"doe"``, .zmx with a diffractive last surface, or any lens
+    file, which gets a default blank DOE), or a bundled lens by name (``"hybrid_asphere"``, see
+    :func:`raywave.lens.build.bundled_lens_path`), into a :class:`HybridLens`.
+
+    ``hl.doe_info`` records the DOE used (distance, pitch, shape, size, aperture, phase file, and whether it
+    came from the file or the defaults). ``stop_edge``: where the accurate field's sharp edge sits ("doe" or
+    "exit_pupil", see :class:`HybridLens`). See :func:`hybrid_from_spec` and the module docstring for the rules.
+    """
+    from raywave.io import read_hybrid_spec
+
+    path = resolve_lens_path(path)
+    spec, data = read_hybrid_spec(path)
+    try:
+        return hybrid_from_spec(spec, data, doe_pitch=doe_pitch, doe_size=doe_size, doe_distance=doe_distance,
+                                sensor_pitch=sensor_pitch, oversample=oversample, fields=fields,
+                                wavelengths=wavelengths, depth=depth, field_type=field_type, source=str(path),
+                                stop_edge=stop_edge)
+    except ValueError as err:  # every refusal names the file
+        raise with_location(err, path)

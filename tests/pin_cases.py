@@ -1,0 +1,97 @@
+"""The PSF pin cases of tests/test_psf_pins.py (issue 17: refactors must not change the numerics).
+
+Each case builds a hybrid lens and the arguments of one ``HybridLens.psf_result`` call. The reference PSFs in
+tests/data/psf_pins.npz were computed with these cases from the code at commit 17ade15 (before the issue-17
+refactor); regenerate them (``python tests/pin_cases.py``) only for a deliberate, documented numeric change.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+PINS = Path(__file__).resolve().parent / "data" / "psf_pins.npz"
+
+
+def _hybrid_asphere(**kw):
+    from raywave.assembly.build import load_hybrid
+    from raywave.lens.build import bundled_lens_path
+
+    return load_hybrid(bundled_lens_path("hybrid_asphere"), **kw)
+
+
+def _fresnel_on_asphere():
+    """hybrid_asphere with a 16-level Fresnel DOE (f = 200 mm, fused silica) on a 1.2 mm grid."""
+    from raywave.doe.params import FresnelDOE
+    from raywave.hybrid.hybrid_lens import HybridLens
+
+    hl = _hybrid_asphere()
+    doe = FresnelDOE(200.0, (1200, 1200), 1e-3, material="FUSED_SILICA")
+    doe.fabricate(levels=16)
+    return HybridLens(hl.lens, doe, hl.doe_distance, sensor_pitch=hl.sensor_pitch)
+
+
+def _cooke():
+    from raywave.assembly.build import load_hybrid
+    from raywave.lens.build import bundled_lens_path
+
+    return load_hybrid(bundled_lens_path("cooke_triplet"), doe_pitch=4e-3, sensor_pitch=4e-3)
+
+
+def _ideal_exit_pupil():
+    from raywave.doe.params import Binary2DOE
+    from raywave.hybrid.hybrid_lens import HybridLens
+    from raywave.lens.build import ideal_lens
+
+    lens = ideal_lens(20.0, f_number=8, wavelengths=(0.55,))
+    doe = Binary2DOE([-5.0, 1.0], 1.0, (800, 800), 2e-3)
+    return HybridLens(lens, doe, 10.0, sensor_pitch=2e-3, stop_edge="exit_pupil")
+
+
+#: name -> (builder, psf_result kwargs)
+CASES = {
+    "hybrid_asphere": (_hybrid_asphere, dict(fields=[(0.0, 0.0), (0.0, 7.0), (0.0, 14.0), (3.0, 10.0)],
+                                             wavelengths=[0.47, 0.53, 0.66], ks=32)),
+    "hybrid_asphere_fresnel": (_fresnel_on_asphere, dict(fields=[(0.0, 0.0), (0.0, 3.0)],
+                                                         wavelengths=[0.47, 0.66], ks=32)),
+    "hybrid_asphere_exit_pupil": (lambda: _hybrid_asphere(stop_edge="exit_pupil"),
+                                  dict(fields=[(0.0, 14.0)], wavelengths=[0.53], ks=32)),
+    "hybrid_asphere_faithful": (_hybrid_asphere, dict(fields=[(0.0, 7.0)], wavelengths=[0.53], ks=32,
+                                                      mode="faithful", rays=20000, seed=1)),
+    "cooke_triplet": (_cooke, dict(fields=[(0.0, 0.0), (0.0, 14.0)], wavelengths=[0.5875618], ks=24)),
+    "ideal_binary2_exit_pupil": (_ideal_exit_pupil, dict(fields=[(0.0, 0.0), (0.0, 2.0)], wavelengths=[0.55],
+                                                         ks=32)),
+}
+
+
+def compute(name: str, device: str = "cpu") -> dict[str, np.ndarray]:
+    """PSF, centre and energy outside of one case, as numpy arrays."""
+    import warnings
+
+    build, kw = CASES[name]
+    kw = dict(kw)
+    seed = kw.pop("seed", None)
+    hl = build().to(device)
+    if seed is not None:
+        kw["generator"] = torch.Generator(device=device).manual_seed(seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with torch.no_grad():
+            r = hl.psf_result(**kw)
+    return {"psf": r.psf.cpu().numpy(), "center": r.center.detach().cpu().numpy(),
+            "energy_outside": r.energy_outside.detach().cpu().numpy()}
+
+
+if __name__ == "__main__":
+    import time
+
+    out = {}
+    for name in CASES:
+        t = time.time()
+        for k, v in compute(name).items():
+            out[f"{name}/{k}"] = v
+        print(f"{name}: {time.time() - t:.2f} s")
+    np.savez_compressed(PINS, **out)
+    print(f"wrote {PINS} ({PINS.stat().st_size / 1e3:.0f} kB)")

@@ -1,0 +1,30 @@
+"""Pinned PSFs (issue 17): the PSFs of the bundled hybrid lens and of a few test lenses, computed before the
+core's refactor (tests/data/psf_pins.npz, from tests/pin_cases.py at 17ade15), must not change by more than
+1e-12. A refactor that changes the numerics fails here; a deliberate numeric change regenerates the pins (and
+says so in its commit)."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import pin_cases  # noqa: E402
+
+SLOW = {"hybrid_asphere_exit_pupil"}  # ~10 s; the ideal-lens case covers stop_edge="exit_pupil" by default
+
+CASES = [pytest.param(name, marks=pytest.mark.slow) if name in SLOW else name for name in pin_cases.CASES]
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_psfs_match_their_pins(name, device):
+    ref = np.load(pin_cases.PINS)
+    got = pin_cases.compute(name, device)
+    # CUDA's FFTs round differently from pocketfft's: the pins hold to 1e-12 on the CPU, ~1e-9 on a GPU
+    tol = 1e-12 if device == "cpu" else 1e-9
+    for key, value in got.items():
+        want = ref[f"{name}/{key}"]
+        assert value.shape == want.shape, key
+        err = float(np.abs(value - want).max())
+        assert err <= tol, f"{name}/{key}: max |Δ| = {err:.3g} > {tol:g}"
