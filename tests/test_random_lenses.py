@@ -112,8 +112,7 @@ def _lens_params(h):
     return out
 
 
-@pytest.mark.parametrize("seed", [1, 9, pytest.param(5, marks=pytest.mark.slow),
-                                  pytest.param(17, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("seed", [1, 9, pytest.param(5, marks=pytest.mark.slow)])
 def test_random_lens_gradients_agree_with_finite_differences(seed):
     """Curvatures, an aspheric coefficient, the last thickness (focus) and a DOE pixel: autograd equals central
     differences to 1 % (relative, or of 1 % of the largest gradient) at one of two steps. The model's node grid
