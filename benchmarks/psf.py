@@ -318,7 +318,8 @@ def edges_main(args) -> dict:
                     (True, True, False)):
             a, b = t.get(("exit_pupil", step) + key, {}), t.get(("doe", None) + key, {})
             if "seconds" in a and "seconds" in b:
-                name = f"{step}: {'fwd+bwd' if key[0] else 'fwd'}{', cached' if key[1] else ''}{', lens grad' if key[2] else ''}"
+                name = (f"{step}: {'fwd+bwd' if key[0] else 'fwd'}{', cached' if key[1] else ''}"
+                        f"{', lens grad' if key[2] else ''}")
                 ratios[name] = {"time": a["seconds"] / b["seconds"],
                                 "memory": a["peak_extra_memory_mb"] / max(b["peak_extra_memory_mb"], 1e-9)}
     out = {"benchmark": "psf stop edges", "lens": "hybrid_asphere (3 mm DOE, 1 µm, 0.7 mm)", "ks": KS,

@@ -7,7 +7,6 @@ import math
 import warnings
 
 import pytest
-import torch
 
 from raywave.cli.main import main
 from raywave.doe import BlankDOE

@@ -173,7 +173,8 @@ def test_fresnel_step_knife_edge_factor():
     d.real.sum().backward()
     eps = 1e-6
     with torch.no_grad():
-        fd = (stop_edge_factor(nu + eps, 1.0, 4.0, g, 1e-3).real - stop_edge_factor(nu - eps, 1.0, 4.0, g, 1e-3).real) / (2 * eps)
+        fd = (stop_edge_factor(nu + eps, 1.0, 4.0, g, 1e-3).real
+              - stop_edge_factor(nu - eps, 1.0, 4.0, g, 1e-3).real) / (2 * eps)
     assert torch.allclose(nu.grad, fd, atol=1e-7)
 
 

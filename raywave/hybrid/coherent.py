@@ -686,15 +686,16 @@ def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_
                      ripple_zones: float | None = None, method: str = "auto") -> DOEField:
     """The accurate DOE-plane field with the stop's sharp edge formed where it belongs: at the exit pupil.
 
-    ``method="fresnel"`` (default): the analytic step. The geometric-optics field is built on the DOE plane
+    ``method="fresnel"``: the analytic step. The geometric-optics field is built on the DOE plane
     itself (:func:`accurate_field`, rays traced past the stop's edge without apertures), and the stop's edge,
     instead of being cut sharply there, is multiplied by the knife-edge Fresnel factor of the edge sharp on the
     exit-pupil plane (:func:`stop_edge_factor`, with the local Fresnel length of :func:`_fresnel_scale`: the
     distance from the exit pupil along the ray, the ray's tilt and the wave's local convergence). Costs about
-    what the DOE-plane edge costs, on the DOE's grid, for a beam of any size. Other apertures' edges stay on
-    the DOE plane. ``chief_xp`` is not used.
+    what the DOE-plane edge costs (a few times), on the DOE's grid, for a beam of any size. Other apertures'
+    edges stay on the DOE plane. ``chief_xp`` is not used.
 
-    ``method="asm"``: the exact construction (the reference the Fresnel step is measured against). The geometric-optics field is built by :func:`accurate_field` on the exit-pupil plane ``z_xp`` (usually a
+    ``method="asm"``: the exact construction (the reference the Fresnel step is measured against). The
+    geometric-optics field is built by :func:`accurate_field` on the exit-pupil plane ``z_xp`` (usually a
     virtual plane inside the lens: the rays leaving the last surface travel on straight lines in the image
     medium, so extending them backwards is exact), where the image of the stop's edge is sharp; it is then
     propagated to the DOE plane by the windowed angular spectrum (:func:`raywave.wave.propagate_window`,
