@@ -3,8 +3,7 @@ photos (issues 7 and 15). Slow: ``python -m pytest -m slow``.
 
 * The aberration-correction demo (the README's main command) trains the DOE as the fabricated 16-level element,
   reconstructs with the PSF-aware multi-Wiener deconvolution + network and trains the ablation's plain networks;
-  measured numbers in docs/training.md ("Demo results"). Its guards assert what the demo delivers today; the
-  margins issue 15 asks for and the demo does not reach yet are ``xfail`` (not strict) so that they show up.
+  measured numbers in docs/training.md ("Demo results"); the tests assert issue 15's margins.
 * The EDoF demo keeps the paper's plain network (its config has not been re-measured with the deconvolution)."""
 
 import json
@@ -49,8 +48,9 @@ def test_aberration_demo_restores_and_beats_its_baseline(aberration):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="issue 15's margins, not reached yet by the CPU demo (docs/training.md)", strict=False)
 def test_aberration_demo_reaches_the_issue_margins(aberration):
+    """Issue 15: restored >= sensor image + 3 dB (measured +3.15); the designed 16-level DOE, as exported, beats
+    the blank DOE under the same reconstruction by >= 0.5 dB mean (+1.67) and >= 1 dB at the edge (+2.26)."""
     _, m = aberration
     d = m["designed"]["mean"]
     assert d["psnr"] >= d["psnr_input"] + 3.0
