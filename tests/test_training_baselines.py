@@ -96,7 +96,7 @@ def test_blank_and_unknown_baselines(tiny, tmp_path):
     tr = Trainer(load_config(tiny / "blank.yaml"), tmp_path / "b", baseline=True, progress=False)
     assert tr.baseline_design is None and float(tr.hl.doe.phase_map.abs().max()) == 0
     assert not (tmp_path / "b" / "baseline_design.json").exists()
-    with pytest.raises(ValueError, match="baseline must be one of blank, paraxial, got 'nonsense'"):
+    with pytest.raises(ValueError, match="baseline must be one of 'blank', 'paraxial', got 'nonsense'"):
         Trainer(load_config(tiny / "nonsense.yaml"), tmp_path / "n", baseline=True, progress=False)
     with pytest.raises(ConfigError, match="baseline_steps"):
         bad = tmp_path / "bad.yaml"
