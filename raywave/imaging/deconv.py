@@ -24,8 +24,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from raywave.imaging.render import (_GRID_PADDING, _PADDING, _check_image, _check_psf, _fast, _hat_weights,
-                                    _image_pitch, _node_coords, _node_grid, _windows, resample_psf)
+from raywave.imaging.render import (_GRID_PADDING, _PADDING, _fast, _hat_weights, _image_pitch, _node_grid, _windows,
+                                    prepare_map_arguments)
 
 __all__ = ["wiener_deconvolve", "WienerDeconv", "laplacian_power"]
 
@@ -116,36 +116,10 @@ def wiener_deconvolve(image: torch.Tensor, psf: torch.Tensor, reg=1e-3, *, posit
         the PSFs, the centres and ``reg``.
     """
     squeeze = image.ndim == 3
-    x = _check_image(image)
-    B, C, H, W = x.shape
-    k = _check_psf(psf, C).to(x.dtype)
-    N, M = k.shape[1:3]
-    if orientation not in ("picture", "sensor"):
-        raise ValueError(f"orientation must be 'picture' or 'sensor', got {orientation!r}")
-    if padding not in _PADDING:
-        raise ValueError(f"padding must be one of {sorted(_PADDING)}, got {padding!r}")
-    extent = tuple(float(v) for v in extent)
-    if len(extent) != 4 or not (extent[1] > extent[0] and extent[3] > extent[2]):
-        raise ValueError(f"extent: give (u0, u1, v0, v1) with u1 > u0 and v1 > v0, got {extent!r}")
-    if positions is None:
-        from raywave.imaging.psfmap import normalised_grid
-
-        positions = normalised_grid((N, M), device=x.device)
-    positions = torch.as_tensor(positions).detach().to(device=x.device)
-    if tuple(positions.shape) != (N, M, 2):
-        raise ValueError(f"positions: expected ({N}, {M}, 2) for {N}×{M} node PSFs, got {tuple(positions.shape)}")
-    if sensor_size is not None:
-        sensor_size = tuple(float(v) for v in sensor_size)
-    if pitch is not None and sensor_size is not None:
-        qx, qy = _image_pitch(extent, sensor_size, (H, W))
-        if abs(qx / pitch - 1) > 1e-9 or abs(qy / pitch - 1) > 1e-9:
-            k = resample_psf(k, pitch, (qx, qy))
-    lam, mu = _regulariser(reg, C, x.dtype, x.device)
+    x, k, positions, sensor_size, extent, cy, cx = prepare_map_arguments(
+        image, psf, positions, sensor_size, pitch, extent, orientation, padding)
+    lam, mu = _regulariser(reg, x.shape[1], x.dtype, x.device)
     flip = orientation == "picture"
-    if flip:
-        x = x.flip(-1)
-    cy, cx = _node_coords(positions, extent, (H, W), orientation)
-    cy, cx = cy.to(x.dtype), cx.to(x.dtype)
     out = _multi_wiener(x, k, lam, mu, cy, cx, padding)
     if centers is not None:
         if sensor_size is None:

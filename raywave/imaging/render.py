@@ -221,7 +221,30 @@ def render(image: torch.Tensor, psf: torch.Tensor, *, positions: torch.Tensor | 
         the blurred image, same shape, dtype and orientation as ``image``; differentiable w.r.t. the image, the
         PSFs and the centres.
     """
+    if blend not in ("bilinear", "none"):
+        raise ValueError(f"blend must be 'bilinear' or 'none', got {blend!r}")
     squeeze = image.ndim == 3
+    x, k, positions, sensor_size, extent, cy, cx = prepare_map_arguments(
+        image, psf, positions, sensor_size, pitch, extent, orientation, padding)
+    flip = orientation == "picture"
+    if centers is not None:
+        if sensor_size is None:
+            raise ValueError("centers: give sensor_size (mm) to convert the PSF centres to pixels")
+        x = _warp(x, centers, positions, sensor_size, extent, cy, cx, padding)
+    out = _blur(x, k, cy, cx, padding, blend)
+    if flip:
+        out = out.flip(-1)
+    return out[0] if squeeze else out
+
+
+def prepare_map_arguments(image, psf, positions, sensor_size, pitch, extent, orientation, padding):
+    """Validate and normalise the arguments shared by :func:`render` and
+    :func:`~raywave.imaging.deconv.wiener_deconvolve`.
+
+    Returns ``(x, k, positions, sensor_size, extent, cy, cx)``: the image as ``(B, C, H, W)`` in **sensor**
+    orientation (flipped from "picture"), the node kernels ``(C, N, M, ks, ks)`` resampled to the image's pixel
+    pitch (when ``pitch`` and ``sensor_size`` are given), the ``(N, M, 2)`` node positions, the sensor size (w, h)
+    mm or None, the extent as a 4-tuple and the node pixel coordinates ``cy (N,)``, ``cx (M,)``."""
     x = _check_image(image)
     B, C, H, W = x.shape
     k = _check_psf(psf, C).to(x.dtype)
@@ -230,8 +253,6 @@ def render(image: torch.Tensor, psf: torch.Tensor, *, positions: torch.Tensor | 
         raise ValueError(f"orientation must be 'picture' or 'sensor', got {orientation!r}")
     if padding not in _PADDING:
         raise ValueError(f"padding must be one of {sorted(_PADDING)}, got {padding!r}")
-    if blend not in ("bilinear", "none"):
-        raise ValueError(f"blend must be 'bilinear' or 'none', got {blend!r}")
     extent = tuple(float(v) for v in extent)
     if len(extent) != 4 or not (extent[1] > extent[0] and extent[3] > extent[2]):
         raise ValueError(f"extent: give (u0, u1, v0, v1) with u1 > u0 and v1 > v0, got {extent!r}")
@@ -248,19 +269,10 @@ def render(image: torch.Tensor, psf: torch.Tensor, *, positions: torch.Tensor | 
         qx, qy = _image_pitch(extent, sensor_size, (H, W))
         if abs(qx / pitch - 1) > 1e-9 or abs(qy / pitch - 1) > 1e-9:
             k = resample_psf(k, pitch, (qx, qy))
-    flip = orientation == "picture"
-    if flip:
+    if orientation == "picture":
         x = x.flip(-1)  # picture → sensor orientation [iy, ix]
     cy, cx = _node_coords(positions, extent, (H, W), orientation)
-    cy, cx = cy.to(x.dtype), cx.to(x.dtype)
-    if centers is not None:
-        if sensor_size is None:
-            raise ValueError("centers: give sensor_size (mm) to convert the PSF centres to pixels")
-        x = _warp(x, centers, positions, sensor_size, extent, cy, cx, padding)
-    out = _blur(x, k, cy, cx, padding, blend)
-    if flip:
-        out = out.flip(-1)
-    return out[0] if squeeze else out
+    return x, k, positions, sensor_size, extent, cy.to(x.dtype), cx.to(x.dtype)
 
 
 _WARP_ITERATIONS = 4
@@ -331,7 +343,6 @@ def _blur(x, k, cy, cx, padding, blend):
     ix = torch.nonzero(has_x).reshape(-1)
     wy, lo_y, wx, lo_x = wy[iy], lo_y[iy], wx[ix], lo_x[ix]
     k = k[:, iy][:, :, ix]  # (C, n, m, ky, kx)
-    n, m = iy.numel(), ix.numel()
     ry = lo_y[:, None] + torch.arange(Ly, device=dev)  # (n, Ly) padded row indices
     rx = lo_x[:, None] + torch.arange(Lx, device=dev)  # (m, Lx)
     win = xp[:, :, ry[:, None, :, None], rx[None, :, None, :]]  # (B, C, n, m, Ly, Lx)
