@@ -131,7 +131,10 @@ class Standard(Geometry):
         cc = c * (ox * ox + oy * oy + kp1 * oz * oz) - 2.0 * oz
         disc = b * b - a * cc
         ok = disc > 0  # a tangent ray (disc = 0) has an infinite derivative: it is vignetted
-        den = safe_sqrt(disc, ok, fill=1.0) - b  # stable root, continuous with the plane as c -> 0
+        # stable root, continuous with the plane as c -> 0; a ray travelling toward -z (after a mirror) takes the
+        # root of the other sign
+        root = safe_sqrt(disc, ok, fill=1.0)
+        den = torch.where(dz < 0, -root, root) - b
         ok = ok & (den != 0)
         t = cc / torch.where(ok, den, torch.ones_like(den))
         # Keep the branch through the vertex (excludes the far half of a sphere / other hyperbola sheet).
