@@ -147,6 +147,25 @@ class Lens(nn.Module):
             out.append(sign)
         return out
 
+    def wave_support_problem(self) -> str | None:
+        """Why the ray-wave engine (:class:`~raywave.hybrid.hybrid_lens.HybridLens`, ``raywave psf``) cannot model
+        this lens, or None. It models refracting lenses on one axis with the DOE plane and the sensor
+        perpendicular to it; a coordinate break that decentres or tilts, or a mirror, is refused rather than
+        given wrong numbers."""
+        for i, s in enumerate(self.surfaces):
+            if s.interaction.kind == "coordinate_break" and not s.interaction.is_identity:
+                return (f"surface {i} is a coordinate break (decentre {s.interaction.decenter_x:g}, "
+                        f"{s.interaction.decenter_y:g} mm, tilt {s.interaction.tilt_x:g}, {s.interaction.tilt_y:g}, "
+                        f"{s.interaction.tilt_z:g} deg): the ray-wave engine (HybridLens, raywave psf) does not "
+                        "support folded, decentred or tilted systems yet (its DOE plane and sensor would have to "
+                        "lie perpendicular to the local axis after the last coordinate break); trace real rays "
+                        "with Lens.trace_to_image instead")
+            if s.interaction.kind == "reflection":
+                return (f"surface {i} is a mirror: the ray-wave engine (HybridLens, raywave psf) does not support "
+                        "reflecting systems yet (it assumes light travelling toward +z through refracting "
+                        "surfaces); trace real rays with Lens.trace_to_image instead")
+        return None
+
     def surface_frames(self) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], tuple[torch.Tensor, torch.Tensor]]:
         """Global frames of the surfaces and of the image plane: ([(R_i, t_i)], (R_img, t_img)).
 
@@ -438,6 +457,24 @@ class Lens(nn.Module):
     def image_frame(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(R (3, 3), t (3,)): the image plane's global frame (its vertex ``t``, its normal ``R[:, 2]``)."""
         return self.surface_frames()[1]
+
+    def image_coordinates(self, rays: RayBundle) -> RayBundle:
+        """``rays`` (global coordinates, e.g. from :meth:`trace_to_image`) in the image plane's local frame: x, y
+        on the sensor, z along its normal. The identity for a lens without coordinate breaks."""
+        if not self.is_folded:
+            return rays
+        rot, tv = (v.to(rays.dtype) for v in self.image_frame())
+        return rays.replace(o=(rays.o - tv) @ rot, d=rays.d @ rot)
+
+    def require_unfolded(self, what: str) -> None:
+        """Raise a ValueError naming ``what`` if the lens has a coordinate break that decentres or tilts (for
+        analyses written for one straight axis)."""
+        if self.is_folded:
+            i = next(i for i, s in enumerate(self.surfaces)
+                     if s.interaction.kind == "coordinate_break" and not s.interaction.is_identity)
+            raise ValueError(f"{what} is not supported for a lens with coordinate breaks (surface {i} decentres or "
+                             "tilts the axis): it assumes one straight optical axis; trace real rays with "
+                             "Lens.trace_to_image (and Lens.image_coordinates) instead")
 
     def trace_to_image(self, rays: RayBundle, z: float | torch.Tensor | None = None, record: bool = False):
         """Trace through all surfaces and on to the image plane (or to the plane ``z``).
