@@ -53,6 +53,8 @@ def surface_from_spec(s: dict, catalogs=None, where: str = "surface", medium_bef
     (``"material": "mirror"``) and a coordinate break keep it as the medium after them."""
     kind = s.get("type", "standard")
     if kind == "coordinate_break":
+        if s.get("stop"):
+            raise ValueError(f"{where}: a coordinate break cannot be the aperture stop")
         dec = s.get("decenter", [0.0, 0.0])
         tilt = s.get("tilt", [0.0, 0.0, 0.0])
         medium = medium_before if medium_before is not None else get_material("air")
