@@ -211,6 +211,10 @@ class Lens(nn.Module):
             if not torch.isfinite(s.thickness).all():
                 raise ValueError(f"surface {i}: thickness {float(s.thickness.detach())!r} is not finite")
         signs = self.direction_signs()
+        for i, s in enumerate(self.surfaces):
+            if s.interaction.kind == "ideal_lens" and signs[i] < 0:
+                raise ValueError(f"surface {i}: an ideal (paraxial) lens after an odd number of mirrors is not "
+                                 "supported (it is defined for light travelling toward +z)")
         for i in range(len(self.surfaces) - 1):
             a, b = self.surfaces[i], self.surfaces[i + 1]
             sign = signs[i + 1]

@@ -253,7 +253,11 @@ def epd_from_system_aperture(lens, kind: str, value: float, wavelength: float | 
 
 @dataclass
 class ParaxialData:
-    """First-order properties (mm, degrees). z values are measured from the first vertex."""
+    """First-order properties (mm, degrees). z values are measured from the first vertex (along the unfolded axis
+    when coordinate breaks fold it). ``efl`` is the image-space EFL as OpticStudio and Optiland report it: negative
+    after an odd number of mirrors (n' = −1: a concave mirror of radius R < 0 has efl = R/2); ``fnum`` uses |efl|.
+    ``bfl`` runs from the last surface (a coordinate break: its origin) to the paraxial image, signed like the
+    thicknesses (negative after an odd number of mirrors)."""
 
     wavelength: float
     efl: float
