@@ -60,6 +60,8 @@ def test_single_mirror_first_order(radius):
     lens = lens_from_spec(_mirror_spec(radius))
     p = lens.paraxial()
     assert p.efl == pytest.approx(radius / 2, rel=1e-14) and abs(p.efl) == pytest.approx(abs(radius) / 2, rel=1e-14)
+    with torch.no_grad():
+        assert float(analysis.real_ray_efl(lens)) == pytest.approx(radius / 2, rel=1e-6)  # the same sign from rays
     assert p.bfl == pytest.approx(radius / 2, rel=1e-14)
     assert p.image_z_paraxial == pytest.approx(radius / 2, rel=1e-14)
     assert p.fnum == pytest.approx(abs(radius) / 2 / 10.0, rel=1e-14)
@@ -182,6 +184,8 @@ def test_fold_mirror_is_the_unfolded_lens_on_the_image_plane():
     assert pf.efl == pytest.approx(-ps.efl, rel=1e-14) and pf.fnum == pytest.approx(ps.fnum, rel=1e-14)
     assert pf.epd == ps.epd and pf.ep_z == ps.ep_z and pf.xpd == pytest.approx(ps.xpd, rel=1e-14)
     assert pf.bfl == pytest.approx(-(ps.bfl - spec["surfaces"][2]["thickness"]), rel=1e-12)
+    with torch.no_grad():
+        assert float(analysis.real_ray_efl(folded)) == pytest.approx(pf.efl, rel=1e-6)  # in the image frame
     x = torch.tensor([0.0, 0.3, -0.5, 0.2], dtype=torch.float64)
     y = torch.tensor([0.0, 0.6, 0.4, -0.7], dtype=torch.float64)
     d = torch.tensor([[0.0, 0.0, 1.0], [0.004, 0.008, 1.0], [0.012, -0.01, 1.0], [-0.008, 0.006, 1.0]],

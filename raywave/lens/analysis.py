@@ -30,7 +30,7 @@ def real_ray_efl(lens, wavelength: float | None = None, height: float | None = N
     if height is None:
         height = 1e-3 * 0.5 * lens.paraxial(wl).epd
     rays = RayBundle.create([[0.0, height, -1.0]], [[0.0, 0.0, 1.0]], wl, device=lens.device)
-    out = lens.trace(rays)
+    out = lens.image_coordinates(lens.trace(rays))  # directions in the image plane's frame (folded lenses)
     if not bool(out.valid.all()):
         raise ValueError(f"the real-ray EFL ray at height {height} mm is vignetted")
     return -height / (out.d[0, 1] / out.d[0, 2])
