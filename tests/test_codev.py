@@ -125,7 +125,6 @@ def test_first_order_and_skew_rays_match_optiland(models, name):
 
 @pytest.mark.parametrize("edit, msg", [
     (("  K   -0.9", "  K   -0.9\n  XDE 0.1"), "surface 2: decentre (XDE) is not supported"),
-    (("S     40.0 4.0 517642", "S     40.0 4.0 REFL"), "surface 4: mirrors (REFL) are not supported"),
     (("NAO   0.08", "NA    0.2"), "image-space NA pupil (NA) is not supported"),
     (("YOB   0.0 1.0 2.0", "YIM   0.0 1.0 2.0"), "image-height field (YIM) is not supported"),
     (("  K   -0.9", "  K   -0.9\n  YTO"), "surface 2: toroid (y) (YTO) is not supported"),

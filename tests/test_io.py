@@ -261,7 +261,7 @@ def test_zmx_unsupported_surface_type_names_surface(tmp_path):
     assert str(e.value).startswith(f"{p}:{line}: surface 2: surface type SZERNSAG (Zernike standard sag) is not "
                                    "supported")
     assert "STANDARD, EVENASPH, ODDASPHE, TOROIDAL, PARAXIAL" in str(e.value)
-    for typ, msg in (("COORDBRK", "surface type COORDBRK .coordinate break.* is not supported"),
+    for typ, msg in (("BICONIC", "surface type BICONIC .biconic. is not supported"),
                      ("BINARY_2", "diffractive surface type BINARY_2 is supported only as the last surface")):
         bad = cooke_zmx_text().replace("SURF 3\r\n  TYPE STANDARD", f"SURF 3\r\n  TYPE {typ}")
         with pytest.raises(LensFileError, match=f"surface 3: {msg}"):
@@ -269,7 +269,8 @@ def test_zmx_unsupported_surface_type_names_surface(tmp_path):
 
 
 @pytest.mark.parametrize("edit, expected", [
-    (("GLAS F2 0 0", "GLAS MIRROR 0 0"), "surface 3: mirrors (GLAS MIRROR) are not supported"),
+    (("SURF 3\r\n  TYPE STANDARD", "SURF 3\r\n  STOP\r\n  TYPE COORDBRK"),
+     "surface 3: a coordinate break cannot be the stop"),
     (("ENPD 1.0E+1", "OBNA 0.1 0"), "OBNA: an object-space NA needs an object at a finite distance"),
     (("ENPD 1.0E+1", "FNUM 4 2"), "FNUM 4 2: unknown system aperture flag 2"),
     (("MODE SEQ", "MODE NSC"), "only sequential"),

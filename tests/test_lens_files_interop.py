@@ -1,6 +1,6 @@
 """Toroidal and odd-asphere surfaces (sag and normal against Optiland's geometries, intersection gradients against
 finite differences), system aperture types (conversion to the EPD, JSON and .zmx round trips), and the errors
-for what raywave does not model yet (coordinate breaks, mirrors)."""
+for what raywave does not model (other surface types, malformed coordinate breaks, a mirror on an ideal lens)."""
 
 import math
 import warnings
@@ -188,8 +188,8 @@ def _zmx(tmp_path, surf_lines, head=("ENPD 10",)):
 
 
 @pytest.mark.parametrize("lines, msg", [
-    (["  TYPE COORDBRK", "  PARM 1 0.5"], "surface 2: surface type COORDBRK (coordinate break"),
-    (["  TYPE STANDARD", "  CURV -0.01", "  GLAS MIRROR"], "surface 2: mirrors (GLAS MIRROR) are not supported"),
+    (["  TYPE COORDBRK", "  PARM 7 0.5"], "surface 2: COORDBRK PARM 7 is not a coordinate-break parameter"),
+    (["  TYPE PARAXIAL", "  PARM 1 50", "  GLAS MIRROR"], "surface 2: a PARAXIAL surface cannot be a mirror"),
     (["  TYPE BICONIC"], "surface 2: surface type BICONIC (biconic) is not supported"),
     (["  TYPE TOROIDAL", "  CURV 0.01", "  PARM 13 4"], "surface 2: Zernike sag terms on a TOROIDAL surface"),
     (["  TYPE ODDASPHE", "  PARM 9 1e-3"], "surface 2: ODDASPHE PARM 9 is not an odd-asphere coefficient"),

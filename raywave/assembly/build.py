@@ -139,6 +139,9 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         lens = lens_from_spec(spec)
     except ValueError as err:  # a spec that validates but builds no lens: name the file
         raise with_location(err, source)
+    problem = lens.wave_support_problem()
+    if problem is not None:
+        raise ValueError(f"{source}: {problem}")
     if field_type is not None:
         if field_type not in ("angle", "object_height"):
             raise ValueError(f"field_type must be 'angle' or 'object_height', got {field_type!r}")

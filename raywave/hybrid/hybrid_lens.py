@@ -129,6 +129,9 @@ class HybridLens(nn.Module):
     def __init__(self, lens, doe: DOE, doe_distance: float, sensor_pitch: float | None = None, oversample: int = 1,
                  intensity_upsample: int = 4, stop_edge: str = "doe", edge_step: str = "auto"):
         super().__init__()
+        problem = lens.wave_support_problem()
+        if problem is not None:
+            raise ValueError(problem)
         self.lens = lens
         self.doe = doe
         last = float(lens.surfaces[-1].thickness.detach())

@@ -7,8 +7,9 @@ its thickness is the object distance, ≥ 1e10 = infinity), ``S`` (radius, thick
 as a surface line, or alone after one), ``SI`` (image), with the qualifiers ``K`` (conic), ``A`` … ``J`` (aspheric
 terms on r⁴ … r²⁰), ``SLB`` (label → comment) and ``CIR`` (clear aperture → semi-diameter). Glasses:
 ``NAME_CATALOG`` (CODE V writes vendor names without hyphens: NBK7_SCHOTT is N-BK7, resolved when the lens is
-built), a bare name, ``nd:vd`` and six-digit codes ``NNNVVV`` (model glasses). Everything raywave cannot model
-(mirrors ``REFL``, decentres and tilts ``XDE`` … ``CDE``, ``DAR`` / ``BEN`` / ``REV``, toroids ``YTO`` / ``XTO``,
+built), a bare name, ``nd:vd`` and six-digit codes ``NNNVVV`` (model glasses). A mirror is ``REFL`` as the glass (the
+medium after it is the one before it; CODE V, like OpticStudio, writes the thicknesses after it negative).
+Everything raywave cannot model (decentres and tilts ``XDE`` … ``CDE``, ``DAR`` / ``BEN`` / ``REV``, toroids ``YTO`` / ``XTO``,
 special surfaces ``SPS``, image-space ``NA``, image-height fields, a curved object or image) is a
 :class:`LensFileError` naming the surface and line. Commands that do not change the prescription (weights,
 vignetting factors, solves and variable flags, ``INI``, ``GO``, ...) are skipped; other unknown commands give
@@ -106,8 +107,7 @@ def _glass(tok: str, where: str, path, ln):
     if up in ("", "AIR"):
         return "air"
     if up == "REFL":
-        raise LensFileError(f"{where}: mirrors (REFL) are not supported; raywave traces refracting lenses on one "
-                            "axis", path, ln)
+        return "mirror"  # as OpticStudio's GLAS MIRROR: thicknesses after it are negative in CODE V too
     m = re.fullmatch(r"(\d+\.\d+):(\d+\.?\d*)", t)
     if m:
         return {"model": {"nd": float(m.group(1)), "vd": float(m.group(2))}}

@@ -25,7 +25,11 @@ UNITS = {"length": "mm", "wavelength": "um"}
 
 TOP_KEYS = ("format", "version", "units", "name", "description", "catalogs", "object", "system_aperture",
             "fields", "wavelengths", "sensor", "surfaces", "doe")
-SURFACE_TYPES = ("standard", "even_asphere", "odd_asphere", "toroidal", "paraxial")
+SURFACE_TYPES = ("standard", "even_asphere", "odd_asphere", "toroidal", "paraxial", "coordinate_break")
+#: The keys of a coordinate break (it has no shape, medium, aperture or stop).
+COORDINATE_BREAK_KEYS = ("type", "thickness", "decenter", "tilt", "order", "comment")
+#: The material string of a reflecting surface (Zemax GLAS MIRROR): the medium after it is the one before it.
+MIRROR = "mirror"
 COMMON_SURFACE_KEYS = ("type", "thickness", "material", "aperture", "semi_diameter", "stop", "comment")
 TYPE_KEYS = {
     "standard": ("radius", "curvature", "conic"),
@@ -33,6 +37,7 @@ TYPE_KEYS = {
     "odd_asphere": ("radius", "curvature", "conic", "aspheric"),
     "toroidal": ("radius", "curvature", "conic", "radius_of_rotation", "aspheric"),
     "paraxial": ("focal_length",),
+    "coordinate_break": ("decenter", "tilt", "order"),
 }
 ALL_SURFACE_KEYS = tuple(dict.fromkeys(COMMON_SURFACE_KEYS + sum(TYPE_KEYS.values(), ())))
 ASPHERIC_KEYS = tuple(f"a{p}" for p in range(2, 21, 2))
@@ -391,6 +396,9 @@ class _Validator:
                                        f"{', '.join(SURFACE_TYPES)}")
             self.keys(s, path, ALL_SURFACE_KEYS)
             return
+        if kind == "coordinate_break":
+            self.coordinate_break(s, path)
+            return
         allowed = COMMON_SURFACE_KEYS + TYPE_KEYS[kind]
         misplaced = {k: f"{k!r} is not allowed on a {kind!r} surface (it belongs to "
                         f"{' / '.join(t for t, ks in TYPE_KEYS.items() if k in ks)} surfaces)"
@@ -435,12 +443,32 @@ class _Validator:
                 self.number(s["focal_length"], path + ("focal_length",), nonzero=True)
         if "material" in s:
             self.material(s["material"], path + ("material",))
+            if kind == "paraxial" and isinstance(s["material"], str) and s["material"].lower() == MIRROR:
+                self.err(path + ("material",), "a paraxial (ideal lens) surface cannot be a mirror")
         if "aperture" in s:
             self.aperture(s["aperture"], path + ("aperture",))
         if "semi_diameter" in s and s["semi_diameter"] is not None:
             self.number(s["semi_diameter"], path + ("semi_diameter",), positive=True)
         if "stop" in s and not isinstance(s["stop"], bool):
             self.err(path + ("stop",), f"must be true or false, got {_typename(s['stop'])}")
+        if "comment" in s:
+            self.string(s["comment"], path + ("comment",))
+
+    def coordinate_break(self, s, path):
+        misplaced = {k: f"{k!r} is not allowed on a coordinate break (it has no shape, medium, aperture or stop)"
+                     for k in ALL_SURFACE_KEYS if k not in COORDINATE_BREAK_KEYS}
+        self.keys(s, path, COORDINATE_BREAK_KEYS, misplaced)
+        if "thickness" not in s:
+            self.err(path, "missing 'thickness' (mm along the new local z to the next surface)")
+        else:
+            self.number(s["thickness"], path + ("thickness",))
+        if "decenter" in s:
+            self.number_list(s["decenter"], path + ("decenter",), n=2)
+        if "tilt" in s:
+            self.number_list(s["tilt"], path + ("tilt",), n=3)
+        if "order" in s and s["order"] not in (0, 1):
+            self.err(path + ("order",), f"must be 0 (decentre, then tilt x, y, z) or 1 (tilt z, y, x, then "
+                                        f"decentre), got {s['order']!r}")
         if "comment" in s:
             self.string(s["comment"], path + ("comment",))
 

@@ -81,6 +81,8 @@ def material_canonical(m):
     if m is None:
         return "air"
     if isinstance(m, str):
+        if m.strip().lower() == "mirror":
+            return "mirror"
         return "air" if m.strip().lower() == "air" else m
     if "index" in m:
         return {"index": float(m["index"])}
@@ -100,6 +102,14 @@ def aperture_canonical(a):
 def surface_canonical(s: dict) -> dict:
     kind = s.get("type", "standard")
     out: dict = {"type": kind}
+    if kind == "coordinate_break":
+        out["decenter"] = [float(v) for v in s.get("decenter", [0.0, 0.0])]
+        out["tilt"] = [float(v) for v in s.get("tilt", [0.0, 0.0, 0.0])]
+        out["order"] = int(s.get("order", 0))
+        out["thickness"] = float(s["thickness"])
+        if s.get("comment"):
+            out["comment"] = s["comment"]
+        return out
     if kind == "paraxial":
         out["focal_length"] = float(s["focal_length"])
     else:

@@ -3,12 +3,13 @@
 What is read (see docs/lens-format.md, "Zemax .zmx"): system data (NAME, UNIT, the system aperture: ENPD, FNUM
 (image-space or paraxial working F/#), OBNA (object NA or cone angle), FLOA; GCAT, FTYP, XFLN/YFLN, WAVM/WAVL,
 PWAV) and the surfaces ``SURF n`` of types STANDARD, EVENASPH, ODDASPHE, TOROIDAL and PARAXIAL with
-STOP, CURV, DISZ, GLAS, DIAM, CONI, PARM, COMM and CLAP / SQAP / FLAP apertures. Surface 0 is the object
+STOP, CURV, DISZ, GLAS (``GLAS MIRROR``: a mirror), DIAM, CONI, PARM, COMM and CLAP / SQAP / FLAP apertures, and
+coordinate breaks (``TYPE COORDBRK``: PARM 1..6 = decentre x, decentre y, tilt x, tilt y, tilt z, order flag). Surface 0 is the object
 (its DISZ is the object distance), the last surface is the image plane (dropped: the thickness before it
 is the distance to the image). A diffractive surface (BINARY_2, DGRATING, ...) as the last surface before the
 image becomes the spec's "doe" (the DOE plane of a hybrid lens; BINARY_2 coefficients become its
 ``phase_model``, and :func:`write_zmx` writes such a DOE back as a BINARY_2 surface). Anything raywave
-cannot model (other surface types, coordinate breaks, mirrors, decentred
+cannot model (other surface types, decentred
 apertures, curved object or image, non-sequential mode) raises
 :class:`LensFileError` naming the surface and line; known bookkeeping keys are skipped and unknown keys
 give one :class:`LensFileWarning` listing them.
@@ -31,10 +32,9 @@ from raywave.io.spec import (DEFAULT_WAVELENGTHS, aspheric_canonical, curvature_
 
 #: Zemax surface types raywave models, and their spec type.
 SURFACE_TYPES = {"STANDARD": "standard", "EVENASPH": "even_asphere", "ODDASPHE": "odd_asphere",
-                 "TOROIDAL": "toroidal", "PARAXIAL": "paraxial"}
+                 "TOROIDAL": "toroidal", "PARAXIAL": "paraxial", "COORDBRK": "coordinate_break"}
 #: Types raywave cannot trace yet, with what they are (a clearer error than "not supported").
 KNOWN_UNSUPPORTED_TYPES = {
-    "COORDBRK": "coordinate break (decentre / tilt of the following surfaces): raywave traces surfaces on one axis",
     "BICONIC": "biconic", "SZERNSAG": "Zernike standard sag", "FZERNSAG": "Zernike fringe sag",
     "XPOLYNOM": "extended polynomial", "POLYNOMI": "polynomial", "GRID_SAG": "grid sag", "CYLINDER": "cylinder",
     "IRREGULA": "irregular", "USERSURF": "user-defined (DLL)", "GRADIENT": "gradient index",
@@ -319,6 +319,12 @@ def _interpret(text: str, path: str) -> dict:
             raise err(f"surface {lens[-1]['number']}: a DOE plane needs a refractive lens in front of it",
                       lens[-1]["line"])
         d, lens = lens[-1], lens[:-1]
+        if lens[-1]["kind"] == "coordinate_break" or lens[-1]["material"] == "mirror":
+            what = "a coordinate break" if lens[-1]["kind"] == "coordinate_break" else "a mirror"
+            raise err(f"surface {d['number']}: the DOE plane follows {what} (surface {lens[-1]['number']}); "
+                      "raywave's DOE plane lies a distance after the last refractive surface on its axis, so a DOE "
+                      "after a coordinate break or a mirror is not supported (put the break before a refractive "
+                      "surface)", d["line"])
         doe = _doe_from_surface(d, lens[-1], path, scale)
         lens[-1] = dict(lens[-1], disz=lens[-1]["disz"] + d["disz"])  # the refractive lens reaches the sensor
 
@@ -329,6 +335,8 @@ def _interpret(text: str, path: str) -> dict:
                       "supported (raywave's object and image are planes)", p["line"])
         if p["stop"]:
             raise err(f"surface {p['number']} ({what}) cannot be the stop", p["line"])
+    if img["material"] == "mirror":
+        raise err(f"surface {img['number']} (image): the image surface cannot be a mirror", img["line"])
     if obj["material"] != "air":
         raise err("surface 0 (object): the object space must be air", obj["line"])
     dist = obj["disz"]
@@ -399,6 +407,17 @@ def _interpret(text: str, path: str) -> dict:
     surfaces = []
     for p in lens:
         s: dict = {"type": p["kind"]}
+        if p["kind"] == "coordinate_break":
+            if p["stop"]:
+                raise err(f"surface {p['number']}: a coordinate break cannot be the stop", p["line"])
+            if p["disz"] is None or math.isinf(p["disz"]):
+                raise err(f"surface {p['number']}: thickness (DISZ) must be finite", p["line"])
+            s.update(p["break"])
+            s["thickness"] = p["disz"]
+            if p["comment"]:
+                s["comment"] = p["comment"]
+            surfaces.append(s)
+            continue
         if p["kind"] == "paraxial":
             if p["focal"] is None or p["focal"] == 0.0:
                 raise err(f"surface {p['number']}: a PARAXIAL surface needs a non-zero focal length (PARM 1)",
@@ -415,6 +434,8 @@ def _interpret(text: str, path: str) -> dict:
             raise err(f"surface {p['number']}: thickness (DISZ) must be finite", p["line"])
         s["thickness"] = p["disz"]
         s["material"] = p["material"]
+        if p["material"] == "mirror" and p["kind"] == "paraxial":
+            raise err(f"surface {p['number']}: a PARAXIAL surface cannot be a mirror (GLAS MIRROR)", p["line"])
         aperture = p["aperture"]
         if aperture is None and p["stop"] and "system_aperture" not in spec and p["diam"]:
             aperture = {"shape": "circle", "radius": p["diam"]}  # float by stop size: the stop's semi-diameter
@@ -565,6 +586,15 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
         p["rotation"] = "inf" if r == 0.0 or math.isinf(r) else r * scale
         coeffs = {f"a{2 * (i - 1)}": v * scale ** (1 - 2 * (i - 1)) for i, (v, _) in parms.items() if 2 <= i <= 8}
         p["aspheric"] = aspheric_canonical(coeffs, range(2, 15, 2))
+    elif p["kind"] == "coordinate_break":
+        bad = [(i, ln) for i, (v, ln) in parms.items() if not 1 <= i <= 6 and v != 0.0]
+        if bad:
+            raise LensFileError(f"{where}: COORDBRK PARM {bad[0][0]} is not a coordinate-break parameter (PARM 1..6 = "
+                                "decentre x, decentre y, tilt x, tilt y, tilt z, order)", path, bad[0][1])
+        v = {i: parms.get(i, (0.0, None))[0] for i in range(1, 7)}
+        p["material"] = "air"  # OpticStudio ignores a coordinate break's glass: the medium before it continues
+        p["break"] = {"decenter": [v[1] * scale, v[2] * scale], "tilt": [v[3], v[4], v[5]],
+                      "order": 0 if v[6] == 0.0 else 1}
     elif p["kind"] == "paraxial":
         if 1 in parms:
             p["focal"] = parms[1][0] * scale
@@ -649,8 +679,7 @@ def _glass(toks, where, path, ln):
         raise LensFileError(f"{where}: GLAS without a glass name", path, ln)
     name = toks[0]
     if name.upper() == "MIRROR":
-        raise LensFileError(f"{where}: mirrors (GLAS MIRROR) are not supported; raywave traces refracting "
-                            "sequential lenses", path, ln)
+        return "mirror"
     flag = toks[1] if len(toks) > 1 else "0"
     if name == "___BLANK" or flag == "1":
         if len(toks) < 5:
@@ -717,6 +746,12 @@ def zmx_text(spec: dict, source="<spec>") -> str:
         if s.get("comment"):
             w("  COMM " + " ".join(str(s["comment"]).split()))
         w("  TYPE " + {v: k for k, v in SURFACE_TYPES.items()}[kind])
+        if kind == "coordinate_break":
+            dec, tilt = s.get("decenter", [0.0, 0.0]), s.get("tilt", [0.0, 0.0, 0.0])
+            for j, v in enumerate(list(dec) + list(tilt) + [s.get("order", 0)], start=1):
+                w(f"  PARM {j} {_num(v)}")
+            w(f"  DISZ {_num(s['thickness'])}")
+            continue
         if kind != "paraxial":
             w(f"  CURV {_num(curvature_of(s))}")
         w(f"  DISZ {_num(doe['distance'] if binary2 and i == nsurf else s['thickness'])}")
@@ -822,6 +857,8 @@ def _write_binary2(w, number: int, doe: dict, last: dict, source) -> None:
 def _glas_line(m) -> str | None:
     if m is None or (isinstance(m, str) and m.lower() == "air"):
         return None
+    if isinstance(m, str) and m.lower() == "mirror":
+        return "GLAS MIRROR 0 0 1.5 40 0 0 0 0 0 0"
     if isinstance(m, str):
         return f"GLAS {m} 0 0 0 0 0 0 0 0 0 0"
     if "index" in m:

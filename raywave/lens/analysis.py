@@ -30,7 +30,7 @@ def real_ray_efl(lens, wavelength: float | None = None, height: float | None = N
     if height is None:
         height = 1e-3 * 0.5 * lens.paraxial(wl).epd
     rays = RayBundle.create([[0.0, height, -1.0]], [[0.0, 0.0, 1.0]], wl, device=lens.device)
-    out = lens.trace(rays)
+    out = lens.image_coordinates(lens.trace(rays))  # directions in the image plane's frame (folded lenses)
     if not bool(out.valid.all()):
         raise ValueError(f"the real-ray EFL ray at height {height} mm is vignetted")
     return -height / (out.d[0, 1] / out.d[0, 2])
@@ -56,6 +56,7 @@ def beam_half_extent(lens, z: float, fields=None, wavelengths=None, depth=None) 
     Rays: the pupil rim (72 points) and a hexapolar grid (6 rings), fully aimed, for every field point
     (``fields``: (2,) or (F, 2) in the lens's field type; default the lens's fields along y and (0, 0)) and
     wavelength (default: all of the lens's). None when every ray is vignetted."""
+    lens.require_unfolded("beam_half_extent")
     t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
     hx, hy = hexapolar(6)
     px = torch.cat([torch.cos(t), hx])
@@ -79,6 +80,7 @@ def refocus(lens, object_distance: float | None = None, method: str = "paraxial"
     """Set the last thickness so that the sensor is at the focus of an object at ``object_distance``
     (mm; default: the lens's own). ``method``: "paraxial" (paraxial image plane) or "rms" (plane of least
     RMS on-axis spot over the full pupil, from real rays, closed form). Returns the new image z (mm)."""
+    lens.require_unfolded("refocus")
     if object_distance is not None:
         lens.object_distance = float(object_distance)
     wl = lens.primary_wavelength if wavelength is None else wavelength
@@ -97,6 +99,7 @@ def refocus(lens, object_distance: float | None = None, method: str = "paraxial"
 def best_focus_z(lens, wavelength=None, field=(0.0, 0.0), n: int = 41) -> torch.Tensor:
     """z (mm) of the plane minimising the RMS spot radius of a full-pupil grid (closed form: the spot
     radius² is quadratic in z)."""
+    lens.require_unfolded("best_focus_z")
     wl = lens.primary_wavelength if wavelength is None else wavelength
     rays = point_source_rays(lens, field, wl, pupil=("grid", n))
     out = lens.trace(rays)
@@ -125,14 +128,14 @@ def spot(lens, fields=None, wavelengths=None, pupil=("hexapolar", 6), reference:
     fields = _fields(lens, fields)
     wls = lens.wavelengths if wavelengths is None else wavelengths
     rays = point_source_rays(lens, fields, wls, pupil=pupil)
-    out = lens.trace_to_image(rays)
+    out = lens.image_coordinates(lens.trace_to_image(rays))  # on the (possibly tilted) image plane
     x, y, v = out.o[..., 0], out.o[..., 1], out.valid
     if reference == "centroid":
         w = v.to(x.dtype)
         m = w.sum(-1).clamp_min(1)
         ref = torch.stack([(x * w).sum(-1) / m, (y * w).sum(-1) / m], -1)
     elif reference == "chief":
-        c = lens.trace_to_image(chief_ray(lens, fields, wls))
+        c = lens.image_coordinates(lens.trace_to_image(chief_ray(lens, fields, wls)))
         ref = c.o[..., 0, :2]
     else:
         raise ValueError(f"spot reference must be 'centroid' or 'chief', got {reference!r}")
@@ -174,6 +177,7 @@ def wavefront_opd(lens, field=(0.0, 0.0), wavelength=None, pupil=("grid", 33), a
     positive singlet has positive spherical aberration (W040 > 0, like its Seidel S_I).
     Returns (opd_waves (F, W, N), px, py (N,), valid (F, W, N)).
     """
+    lens.require_unfolded("wavefront_opd")
     wl = lens.primary_wavelength if wavelength is None else wavelength
     if isinstance(pupil[0], str):
         from raywave.rays import pupil as patterns
@@ -251,6 +255,7 @@ def geometric_psf(lens, field=(0.0, 0.0), wavelength=None, n_rays: int = 101, si
 def distortion(lens, fields=None, wavelength=None) -> torch.Tensor:
     """Percent distortion per field: 100·(y_real − y_parax)/y_parax, with y_real the chief ray height on
     the image plane and y_parax = EFL·tan θ (distant object) or m·h (finite object). Shape (F,)."""
+    lens.require_unfolded("distortion")
     wl = lens.primary_wavelength if wavelength is None else wavelength
     f = _fields(lens, fields)
     c = lens.trace_to_image(chief_ray(lens, f, [wl]))
@@ -273,6 +278,7 @@ def field_curvature(lens, fields=None, wavelength=None, delta: float = 1e-3):
 
     Each focus is where a ray at pupil ±``delta`` (normalised, y for tangential, x for sagittal) crosses
     its partner near the chief ray (the limit of Coddington's equations), measured along z."""
+    lens.require_unfolded("field_curvature")
     wl = lens.primary_wavelength if wavelength is None else wavelength
     f = _fields(lens, fields)
     px = torch.tensor([0.0, 0.0, delta, -delta], dtype=torch.float64)

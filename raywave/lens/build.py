@@ -14,7 +14,7 @@ from raywave.lens.lens import Lens
 from raywave.materials import get_material
 from raywave.surfaces.aperture import aperture_from_spec
 from raywave.surfaces.geometry import EvenAsphere, OddAsphere, Plane, Standard, Toroidal
-from raywave.surfaces.interaction import IdealLens
+from raywave.surfaces.interaction import CoordinateBreak, IdealLens, Reflection
 from raywave.surfaces.surface import Surface
 
 
@@ -42,11 +42,32 @@ def _rotation_curvature(r) -> float:
     return 1.0 / float(r)
 
 
-def surface_from_spec(s: dict, catalogs=None, where: str = "surface") -> Surface:
-    """Build one :class:`Surface` from its spec dict."""
+def _is_mirror(m) -> bool:
+    return isinstance(m, str) and m.lower() == "mirror"
+
+
+def surface_from_spec(s: dict, catalogs=None, where: str = "surface", medium_before=None) -> Surface:
+    """Build one :class:`Surface` from its spec dict.
+
+    ``medium_before``: the :class:`~raywave.materials.base.Material` in front of the surface (default air). A mirror
+    (``"material": "mirror"``) and a coordinate break keep it as the medium after them."""
     kind = s.get("type", "standard")
+    if kind == "coordinate_break":
+        if s.get("stop"):
+            raise ValueError(f"{where}: a coordinate break cannot be the aperture stop")
+        dec = s.get("decenter", [0.0, 0.0])
+        tilt = s.get("tilt", [0.0, 0.0, 0.0])
+        medium = medium_before if medium_before is not None else get_material("air")
+        surf = Surface(Plane(), medium, float(s.get("thickness", 0.0)),
+                       interaction=CoordinateBreak(dec[0], dec[1], tilt[0], tilt[1], tilt[2], s.get("order", 0)),
+                       comment=s.get("comment", ""))
+        return surf
+    mirror = _is_mirror(s.get("material"))
     try:
-        material = get_material(s.get("material", "air"), catalogs=catalogs)
+        if mirror:
+            material = medium_before if medium_before is not None else get_material("air")
+        else:
+            material = get_material(s.get("material", "air"), catalogs=catalogs)
     except (KeyError, ValueError) as err:
         raise type(err)(f"{where}: {err}") from None
     common = dict(
@@ -74,6 +95,10 @@ def surface_from_spec(s: dict, catalogs=None, where: str = "surface") -> Surface
         surf = Surface(Plane(), material, interaction=IdealLens(float(s["focal_length"])), **common)
     else:
         raise ValueError(f"{where}: unknown surface type {kind!r}")
+    if mirror:
+        if kind == "paraxial":
+            raise ValueError(f"{where}: a paraxial (ideal lens) surface cannot be a mirror")
+        surf.interaction = Reflection()
     surf._spec_radius = s.get("radius")  # remembered for an exact round trip
     return surf
 
@@ -83,7 +108,10 @@ def lens_from_spec(spec: dict) -> Lens:
     catalogs = spec.get("catalogs")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        surfaces = [surface_from_spec(s, catalogs, f"surfaces[{i}]") for i, s in enumerate(spec["surfaces"])]
+        surfaces = []
+        for i, s in enumerate(spec["surfaces"]):
+            before = surfaces[-1].material if surfaces else None
+            surfaces.append(surface_from_spec(s, catalogs, f"surfaces[{i}]", medium_before=before))
     seen = set()
     for w in caught:  # once per lens: a glass on several surfaces taken from an unnamed catalog warns once
         key = (w.category, str(w.message))
@@ -135,7 +163,13 @@ def surface_to_spec(surface: Surface) -> dict:
         ValueError: the surface carries an interaction a lens file cannot describe (a ray-tracing
             ``Diffraction`` phase: save its DOE separately, see docs/lens-format.md "DOE").
     """
-    if surface.interaction.kind not in ("refraction", "ideal_lens"):
+    if surface.interaction.kind == "coordinate_break":
+        out = {"type": "coordinate_break", **surface.interaction.to_spec(),
+               "thickness": float(surface.thickness.detach())}
+        if surface.comment:
+            out["comment"] = surface.comment
+        return out
+    if surface.interaction.kind not in ("refraction", "ideal_lens", "reflection"):
         raise ValueError(f"surface {surface.comment or ''!s}: its {surface.interaction.kind!r} interaction has no "
                          "lens-file form; writing it would silently drop the phase (save the DOE on its own, or "
                          "describe it in the file's \"doe\" section)")
@@ -162,7 +196,7 @@ def surface_to_spec(surface: Surface) -> dict:
             coeffs = g.coefficients.detach().tolist()
             out["aspheric"] = {f"a{i + 1}": float(a) for i, a in enumerate(coeffs)}
     out["thickness"] = float(surface.thickness.detach())
-    out["material"] = surface.material.to_spec()
+    out["material"] = "mirror" if surface.interaction.kind == "reflection" else surface.material.to_spec()
     out["aperture"] = None if surface.aperture is None else surface.aperture.to_spec()
     if surface.semi_diameter is not None:
         out["semi_diameter"] = float(surface.semi_diameter)

@@ -26,10 +26,16 @@ class TraceRecord:
 
 
 class Lens(nn.Module):
-    """A sequential lens on one axis (rotationally symmetric unless a surface is a toroid).
+    """A sequential lens (rotationally symmetric unless a surface is a toroid, a coordinate break or a mirror
+    makes it otherwise).
 
     Geometry: surface ``i`` has its vertex at ``z_i`` = sum of the thicknesses before it (the first vertex
-    at z = 0); the image (sensor) plane is at ``z_image`` = sum of all thicknesses. Light travels toward +z.
+    at z = 0); the image (sensor) plane is at ``z_image`` = sum of all thicknesses. Light travels toward +z,
+    and toward −z after a mirror (an odd number of mirrors), where thicknesses are negative (OpticStudio's
+    convention). Coordinate breaks (:class:`~raywave.surfaces.interaction.CoordinateBreak` surfaces) decentre
+    and tilt the local frames of the surfaces after them (:meth:`surface_frames`); the tracer then works in
+    global coordinates, transforming the rays into each surface's local frame. ``vertex_z`` and ``image_z``
+    are then positions along the *unfolded* thickness axis, not global z.
 
     Args:
         surfaces: the surfaces in order; each carries the medium after it and its thickness.
@@ -65,8 +71,14 @@ class Lens(nn.Module):
         stops = [i for i, s in enumerate(surfaces) if s.is_stop]
         if len(stops) > 1:
             raise ValueError(f"a lens has one aperture stop; surfaces {stops} are all marked as stop")
+        breaks = [i for i in stops if surfaces[i].interaction.kind == "coordinate_break"]
+        if breaks:
+            raise ValueError(f"surface {breaks[0]}: a coordinate break cannot be the aperture stop")
         if not stops:
-            surfaces[0].is_stop = True
+            first = next((s for s in surfaces if s.interaction.kind != "coordinate_break"), None)
+            if first is None:
+                raise ValueError("a lens needs at least one surface that is not a coordinate break")
+            first.is_stop = True
         self.surfaces = nn.ModuleList(surfaces)
         if not (object_distance > 0):
             raise ValueError(f"object distance must be > 0 mm (or inf), got {object_distance!r}")
@@ -115,6 +127,66 @@ class Lens(nn.Module):
     def device(self) -> torch.device:
         return self.surfaces[0].thickness.device
 
+    @property
+    def has_mirrors(self) -> bool:
+        """Whether a surface reflects (``GLAS MIRROR``)."""
+        return any(s.interaction.kind == "reflection" for s in self.surfaces)
+
+    @property
+    def is_folded(self) -> bool:
+        """Whether a coordinate break decentres or tilts a frame (the tracer then uses :meth:`surface_frames`)."""
+        return any(s.interaction.kind == "coordinate_break" and not s.interaction.is_identity for s in self.surfaces)
+
+    def direction_signs(self) -> list[int]:
+        """+1 / −1 for the object space and the medium after each surface: −1 after an odd number of mirrors
+        (light travels toward −z of the local frames, thicknesses are negative)."""
+        out, sign = [1], 1
+        for s in self.surfaces:
+            if s.interaction.kind == "reflection":
+                sign = -sign
+            out.append(sign)
+        return out
+
+    def wave_support_problem(self) -> str | None:
+        """Why the ray-wave engine (:class:`~raywave.hybrid.hybrid_lens.HybridLens`, ``raywave psf``) cannot model
+        this lens, or None. It models refracting lenses on one axis with the DOE plane and the sensor
+        perpendicular to it; a coordinate break that decentres or tilts, or a mirror, is refused rather than
+        given wrong numbers."""
+        for i, s in enumerate(self.surfaces):
+            if s.interaction.kind == "coordinate_break" and not s.interaction.is_identity:
+                return (f"surface {i} is a coordinate break (decentre {s.interaction.decenter_x:g}, "
+                        f"{s.interaction.decenter_y:g} mm, tilt {s.interaction.tilt_x:g}, {s.interaction.tilt_y:g}, "
+                        f"{s.interaction.tilt_z:g} deg): the ray-wave engine (HybridLens, raywave psf) does not "
+                        "support folded, decentred or tilted systems yet (its DOE plane and sensor would have to "
+                        "lie perpendicular to the local axis after the last coordinate break); trace real rays "
+                        "with Lens.trace_to_image instead")
+            if s.interaction.kind == "reflection":
+                return (f"surface {i} is a mirror: the ray-wave engine (HybridLens, raywave psf) does not support "
+                        "reflecting systems yet (it assumes light travelling toward +z through refracting "
+                        "surfaces); trace real rays with Lens.trace_to_image instead")
+        return None
+
+    def surface_frames(self) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], tuple[torch.Tensor, torch.Tensor]]:
+        """Global frames of the surfaces and of the image plane: ([(R_i, t_i)], (R_img, t_img)).
+
+        ``R`` (3, 3) turns local into global directions, ``t`` (3,) is the vertex in global coordinates (mm); a
+        point ``p_local`` of surface ``i`` is at ``R_i @ p_local + t_i``. The first vertex is the origin. A
+        coordinate break's own frame is the one it starts from; it then applies its decentre and tilts
+        (:meth:`~raywave.surfaces.interaction.CoordinateBreak.transform`), and every surface's thickness moves the
+        origin along its local z. Differentiable in the thicknesses."""
+        dev = self.device
+        rot = torch.eye(3, dtype=torch.float64, device=dev)
+        t = torch.zeros(3, dtype=torch.float64, device=dev)
+        frames = []
+        for s in self.surfaces:
+            frames.append((rot, t))
+            if s.interaction.kind == "coordinate_break":
+                rc, tc = (v.to(dev) for v in s.interaction.transform())
+                t = t + rot @ tc
+                rot = rot @ rc
+            t = t + rot[:, 2] * s.thickness
+        return frames, (rot, t)
+
     def thicknesses(self) -> torch.Tensor:
         """(n_surfaces,) thicknesses (mm)."""
         return torch.stack([s.thickness for s in self.surfaces])
@@ -138,8 +210,25 @@ class Lens(nn.Module):
         for i, s in enumerate(self.surfaces):
             if not torch.isfinite(s.thickness).all():
                 raise ValueError(f"surface {i}: thickness {float(s.thickness.detach())!r} is not finite")
+        signs = self.direction_signs()
+        for i, s in enumerate(self.surfaces):
+            if s.interaction.kind == "ideal_lens" and signs[i] < 0:
+                raise ValueError(f"surface {i}: an ideal (paraxial) lens after an odd number of mirrors is not "
+                                 "supported (it is defined for light travelling toward +z)")
         for i in range(len(self.surfaces) - 1):
             a, b = self.surfaces[i], self.surfaces[i + 1]
+            sign = signs[i + 1]
+            if "coordinate_break" in (a.interaction.kind, b.interaction.kind):
+                if a.interaction.kind == "coordinate_break" and not a.interaction.is_identity:
+                    continue  # the next surface lies in another frame: no overlap test
+                if b.interaction.kind == "coordinate_break":
+                    continue
+            if sign < 0:  # light travels toward -z: surface i+1 must lie at smaller z
+                if float(a.thickness.detach()) > 0 and not a.material.is_air:
+                    raise ValueError(f"surface {i}: positive thickness {float(a.thickness.detach())} mm inside glass "
+                                     f"{a.material.name!r} after a mirror (light travels toward -z there: thicknesses "
+                                     "after an odd number of mirrors are negative)")
+                continue
             r = min(x for x in (a.clear_radius(), b.clear_radius(), 1e30) if x is not None)
             if r >= 1e30:
                 r = 0.0
@@ -272,7 +361,10 @@ class Lens(nn.Module):
                          torch.cat([o.opl for o in outs]).reshape(shape))
 
     def _trace_kernel(self, rays: RayBundle, start: int, stop: int, record: bool, apertures: bool):
+        if self.is_folded:
+            return self._trace_kernel_frames(rays, start, stop, record, apertures)
         wl = rays.wavelength
+        mirrors = self.has_mirrors
         n_all = self.indices(wl)
         zs = self.vertex_z().to(rays.dtype)
         x, y, z = rays.o.unbind(-1)
@@ -281,6 +373,11 @@ class Lens(nn.Module):
         rec = TraceRecord([(x, y, rays.o[..., 2])], [valid]) if record else None
         for i in range(start, stop):
             s = self.surfaces[i]
+            if s.interaction.kind == "coordinate_break":  # an identity break: nothing happens
+                if record:
+                    rec.points.append((x, y, z))
+                    rec.valid.append(valid)
+                continue
             n1, n2 = n_all[i].to(rays.dtype), n_all[i + 1].to(rays.dtype)
             zl = z - zs[i]
             t, ok = s.geometry.intersect(x, y, zl, dx, dy, dz)
@@ -289,6 +386,9 @@ class Lens(nn.Module):
             if apertures and s.aperture is not None:
                 ok = ok & s.aperture.contains(x, y)
             nx, ny, nz = s.geometry.normal(x, y, zl)
+            if mirrors:  # rays travelling toward -z meet the normal from behind: turn it to the ray's side
+                flip = torch.where(dx * nx + dy * ny + dz * nz < 0, -1.0, 1.0)
+                nx, ny, nz = nx * flip, ny * flip, nz * flip
             dx, dy, dz, extra, ok_i = s.interaction(x, y, dx, dy, dz, nx, ny, nz, n1, n2, wl)
             if extra is not None:
                 opl = opl + extra
@@ -306,12 +406,98 @@ class Lens(nn.Module):
         out = RayBundle(torch.stack([x, y, z], -1), torch.stack([dx, dy, dz], -1), wl, valid, opl)
         return (out, rec) if record else out
 
+    def _trace_kernel_frames(self, rays: RayBundle, start: int, stop: int, record: bool, apertures: bool):
+        """The tracer for a lens with coordinate breaks: rays in global coordinates, each surface met in its local
+        frame (:meth:`surface_frames`)."""
+        wl = rays.wavelength
+        n_all = self.indices(wl)
+        frames, _ = self.surface_frames()
+        x, y, z = rays.o.unbind(-1)
+        dx, dy, dz = rays.d.unbind(-1)
+        valid, opl = rays.valid, rays.opl
+        rec = TraceRecord([(x, y, z)], [valid]) if record else None
+        for i in range(start, stop):
+            s = self.surfaces[i]
+            if s.interaction.kind == "coordinate_break":
+                if record:
+                    rec.points.append((x, y, z))
+                    rec.valid.append(valid)
+                continue
+            rot, tv = (v.to(rays.dtype) for v in frames[i])
+            r = rot.unbind(0)
+            (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = (row.unbind(0) for row in r)
+            px, py, pz = x - tv[0], y - tv[1], z - tv[2]
+            # into the local frame: R^T (p - t), R^T d
+            xl, yl, zl = r00 * px + r10 * py + r20 * pz, r01 * px + r11 * py + r21 * pz, r02 * px + r12 * py + r22 * pz
+            ex, ey, ez = r00 * dx + r10 * dy + r20 * dz, r01 * dx + r11 * dy + r21 * dz, r02 * dx + r12 * dy + r22 * dz
+            n1, n2 = n_all[i].to(rays.dtype), n_all[i + 1].to(rays.dtype)
+            t, ok = s.geometry.intersect(xl, yl, zl, ex, ey, ez)
+            xl, yl, zl = xl + t * ex, yl + t * ey, zl + t * ez
+            opl = opl + n1 * t
+            if apertures and s.aperture is not None:
+                ok = ok & s.aperture.contains(xl, yl)
+            nx, ny, nz = s.geometry.normal(xl, yl, zl)
+            flip = torch.where(ex * nx + ey * ny + ez * nz < 0, -1.0, 1.0)
+            nx, ny, nz = nx * flip, ny * flip, nz * flip
+            ex, ey, ez, extra, ok_i = s.interaction(xl, yl, ex, ey, ez, nx, ny, nz, n1, n2, wl)
+            if extra is not None:
+                opl = opl + extra
+            valid = valid & ok & ok_i
+            # dead rays: parked at the vertex, along the local axis (finite, harmless numbers)
+            xl, yl, zl = torch.where(valid, xl, 0.0), torch.where(valid, yl, 0.0), torch.where(valid, zl, 0.0)
+            ex, ey, ez = torch.where(valid, ex, 0.0), torch.where(valid, ey, 0.0), torch.where(valid, ez, 1.0)
+            opl = torch.where(valid, opl, 0.0)
+            # back to global coordinates
+            x = r00 * xl + r01 * yl + r02 * zl + tv[0]
+            y = r10 * xl + r11 * yl + r12 * zl + tv[1]
+            z = r20 * xl + r21 * yl + r22 * zl + tv[2]
+            dx, dy, dz = r00 * ex + r01 * ey + r02 * ez, r10 * ex + r11 * ey + r12 * ez, r20 * ex + r21 * ey + r22 * ez
+            if record:
+                rec.points.append((x, y, z))
+                rec.valid.append(valid)
+        out = RayBundle(torch.stack([x, y, z], -1), torch.stack([dx, dy, dz], -1), wl, valid, opl)
+        return (out, rec) if record else out
+
+    def image_frame(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(R (3, 3), t (3,)): the image plane's global frame (its vertex ``t``, its normal ``R[:, 2]``)."""
+        return self.surface_frames()[1]
+
+    def image_coordinates(self, rays: RayBundle) -> RayBundle:
+        """``rays`` (global coordinates, e.g. from :meth:`trace_to_image`) in the image plane's local frame: x, y
+        on the sensor, z along its normal. The identity for a lens without coordinate breaks."""
+        if not self.is_folded:
+            return rays
+        rot, tv = (v.to(rays.dtype) for v in self.image_frame())
+        return rays.replace(o=(rays.o - tv) @ rot, d=rays.d @ rot)
+
+    def require_unfolded(self, what: str) -> None:
+        """Raise a ValueError naming ``what`` if the lens has a coordinate break that decentres or tilts (for
+        analyses written for one straight axis)."""
+        if self.is_folded:
+            i = next(i for i, s in enumerate(self.surfaces)
+                     if s.interaction.kind == "coordinate_break" and not s.interaction.is_identity)
+            raise ValueError(f"{what} is not supported for a lens with coordinate breaks (surface {i} decentres or "
+                             "tilts the axis): it assumes one straight optical axis; trace real rays with "
+                             "Lens.trace_to_image (and Lens.image_coordinates) instead")
+
     def trace_to_image(self, rays: RayBundle, z: float | torch.Tensor | None = None, record: bool = False):
-        """Trace through all surfaces and on to the image plane (or to the plane ``z``)."""
+        """Trace through all surfaces and on to the image plane (or to the plane ``z``).
+
+        For a lens with coordinate breaks the result is in global coordinates, on the (possibly tilted) image
+        plane of :meth:`image_frame`; ``z`` is then refused."""
         res = self.trace(rays, record=record)
         out, rec = res if record else (res, None)
         n_img = self.surfaces[-1].material.n(rays.wavelength).to(rays.dtype)
-        out = out.propagate_to_z(self.image_z().to(rays.dtype) if z is None else z, n_img)
+        if self.is_folded:
+            if z is not None:
+                raise ValueError("trace_to_image(z=...): a lens with coordinate breaks has no global image z; "
+                                 "the rays stop on the image plane of lens.image_frame()")
+            rot, tv = (v.to(rays.dtype) for v in self.image_frame())
+            normal = rot[:, 2]
+            s = ((tv - out.o) @ normal) / (out.d @ normal)
+            out = out.replace(o=out.o + s.unsqueeze(-1) * out.d, opl=out.opl + n_img * s)
+        else:
+            out = out.propagate_to_z(self.image_z().to(rays.dtype) if z is None else z, n_img)
         if record:
             x, y, zz = out.o.unbind(-1)
             rec.points.append((x, y, zz))

@@ -7,6 +7,17 @@ the base radius leave out, and the power of ideal (paraxial) lenses. A lens with
 y–z section (``ParaxialData.section == "y-z"``), as OpticStudio does.
 
 Every length is measured in mm along z from the first vertex unless its name says otherwise.
+
+Mirrors: the index changes sign at every reflection (n' = −n) and the thicknesses after an odd number of mirrors
+are negative, so t / n stays positive and a mirror's power is the refraction formula's (n' − n) c = −2 n c
+(:func:`signed_indices`). z values then run along the lens's thickness axis (global z for a lens without
+coordinate breaks: after a mirror the image lies at smaller z).
+
+Coordinate breaks: the paraxial model follows the *unfolded* optical axis (the ray from the object along the
+first vertex's axis, reflected by fold mirrors), with gaps measured along it (:func:`axial_gaps`); z values are
+positions along that unfolded axis. It is defined only while every surface with power is centred on that axis and
+perpendicular to it (plane mirrors may fold it at any angle); otherwise the quantities that depend on such a
+surface raise :class:`ParaxialUndefinedError`, which names it.
 """
 
 from __future__ import annotations
@@ -21,10 +32,125 @@ def _m(a, b, c, d):
     return torch.stack([torch.stack([a, b]), torch.stack([c, d])])
 
 
+class ParaxialUndefinedError(ValueError):
+    """A first-order quantity asked of a lens whose decentred or tilted surfaces leave it undefined."""
+
+
+def signed_indices(lens, wl: torch.Tensor) -> list[torch.Tensor]:
+    """[n_obj, n_1, ..., n_N] at ``wl`` (µm tensor), negative after an odd number of mirrors."""
+    return [n if sg > 0 else -n for n, sg in zip(lens.indices(wl), lens.direction_signs())]
+
+
+def _is_flat(geom) -> bool:
+    from raywave.surfaces.geometry import Plane
+
+    if isinstance(geom, Plane):
+        return True
+    if float(geom.paraxial_curvature().detach()) != 0.0 or float(getattr(geom, "curvature", torch.zeros(())).detach()):
+        return False
+    coeffs = getattr(geom, "coefficients", None)
+    if coeffs is not None and bool((coeffs.detach() != 0).any()):
+        return False
+    rc = getattr(geom, "rotation_curvature", None)
+    return rc is None or float(rc.detach()) == 0.0
+
+
+def _axis_walk(lens, wavelength: float | None = None):
+    """Follow the optical axis through a lens with coordinate breaks.
+
+    Returns (gaps, problem): ``gaps[i]`` the signed distance (mm, a tensor) along the unfolded axis from surface
+    ``i`` to the next surface (or the image plane), for every surface before the first that leaves the paraxial
+    model undefined; ``problem`` None or (index of that surface, what is wrong). A surface's place on the axis is
+    where the axis meets it; a coordinate break's is its origin projected onto the axis (so that, as in
+    OpticStudio, the last thickness, the BFL and the paraxial image are measured from it)."""
+    frames, (r_img, t_img) = lens.surface_frames()
+    wl = torch.tensor(float(lens.primary_wavelength if wavelength is None else wavelength), dtype=torch.float64,
+                      device=lens.device)
+    n = [float(v.detach()) for v in lens.indices(wl)]
+    p = torch.zeros(3, dtype=torch.float64, device=lens.device)
+    d = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=lens.device)
+    gaps: list = []
+    surfaces = list(lens.surfaces)
+    a_prev = None  # the previous surface's position along the unfolded axis (signed, mm)
+    a_hit = torch.zeros((), dtype=torch.float64, device=lens.device)  # that of the last axis point p
+    sign = 1  # +1 / -1: direction of travel along the unfolded coordinate after an even / odd number of mirrors
+
+    def place(a):
+        nonlocal a_prev
+        if a_prev is not None:
+            gaps.append(a - a_prev)
+        a_prev = a
+
+    def hit(rot, t):
+        normal = rot[:, 2]
+        dn = d @ normal
+        if abs(float(dn.detach())) < 1e-12:
+            return None, normal, dn
+        return p + ((t - p) @ normal / dn) * d, normal, dn
+
+    for i, s in enumerate(surfaces + [None]):
+        kind = "image" if s is None else s.interaction.kind
+        if kind == "coordinate_break":
+            place(a_hit + sign * ((frames[i][1] - p) @ d))
+            continue
+        rot, t = (r_img, t_img) if s is None else frames[i]
+        h, normal, dn = hit(rot, t)
+        where = "the image plane" if s is None else f"surface {i}"
+        if h is None:
+            return gaps, (i, f"{where} is parallel to the optical axis")
+        a_hit = a_hit + sign * ((h - p) @ d)
+        place(a_hit)
+        if s is None:
+            break
+        tilt = math.degrees(math.acos(min(1.0, abs(float(dn.detach())))))
+        off = float(torch.linalg.vector_norm((h - t).detach()))
+        scale = max(1.0, float(torch.linalg.vector_norm(t.detach())))
+        flat = _is_flat(s.geometry) and kind in ("reflection", "refraction")
+        if kind == "refraction" and flat and n[i] != n[i + 1] and tilt > 1e-9:
+            return gaps, (i, f"{where} is a plane tilted by {tilt:.6g} degrees to the optical axis between different "
+                             "media (a tilted plate: the system is not rotationally symmetric)")
+        if not flat:
+            if tilt > 1e-9:
+                return gaps, (i, f"{where} is tilted by {tilt:.6g} degrees to the optical axis")
+            if off > 1e-9 * scale:
+                return gaps, (i, f"{where} is decentred by {off:.6g} mm from the optical axis")
+        p = h
+        if kind == "reflection":
+            d = d - 2.0 * (d @ normal) * normal
+            sign = -sign
+    return gaps, None
+
+
+def axial_gaps(lens, need: int | None = None, wavelength: float | None = None) -> list[torch.Tensor]:
+    """Signed distances (mm) from each surface to the next (the last: to the image plane) along the unfolded axis:
+    the thicknesses for a lens without coordinate breaks. ``need``: how many leading surfaces the caller uses
+    (default all); raises :class:`ParaxialUndefinedError` if one of them leaves the paraxial model undefined."""
+    if not lens.is_folded:
+        return [s.thickness for s in lens.surfaces]
+    gaps, problem = _axis_walk(lens, wavelength)
+    need = len(lens.surfaces) if need is None else need
+    if problem is not None and problem[0] <= need:
+        i, what = problem
+        raise ParaxialUndefinedError(
+            f"paraxial quantities are undefined for this lens: {what}, so it is not rotationally symmetric about "
+            "the (unfolded) optical axis; EFL, BFL, F/#, pupils and the paraxial image are not defined (trace real "
+            "rays instead)")
+    return gaps
+
+
+def axial_vertex_positions(lens) -> torch.Tensor:
+    """(n_surfaces,) vertex positions (mm) along the unfolded axis: ``lens.vertex_z()`` without coordinate breaks."""
+    if not lens.is_folded:
+        return lens.vertex_z()
+    g = torch.stack(axial_gaps(lens))
+    return torch.cat([g.new_zeros(1), torch.cumsum(g[:-1], 0)])
+
+
 def surface_powers(lens, wavelength: float) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-    """Powers φ_i (1/mm) of each surface and indices [n_obj, n_1, ..., n_N] at ``wavelength`` (µm)."""
+    """Powers φ_i (1/mm) of each surface and indices [n_obj, n_1, ..., n_N] at ``wavelength`` (µm), signed:
+    negative after an odd number of mirrors."""
     wl = torch.tensor(float(wavelength), dtype=torch.float64, device=lens.device)
-    n = lens.indices(wl)
+    n = signed_indices(lens, wl) if lens.has_mirrors else lens.indices(wl)
     phis = []
     for i, s in enumerate(lens.surfaces):
         phis.append(s.interaction.paraxial_power(s.geometry.paraxial_curvature(), n[i], n[i + 1]))
@@ -35,12 +161,13 @@ def system_matrix(lens, wavelength: float, first: int = 0, last: int | None = No
     """2×2 matrix from just before surface ``first`` (at its vertex) to just after surface ``last - 1``."""
     last = len(lens.surfaces) if last is None else last
     phis, n = surface_powers(lens, wavelength)
+    gaps = axial_gaps(lens, last)
     one = torch.ones((), dtype=torch.float64, device=lens.device)
     zero = torch.zeros_like(one)
     m = _m(one, zero, zero, one)
     for i in range(first, last):
         if i > first:
-            t = lens.surfaces[i - 1].thickness
+            t = gaps[i - 1]
             m = _m(one, t / n[i], zero, one) @ m
         m = _m(one, zero, -phis[i], one) @ m
     return m
@@ -54,7 +181,7 @@ def stop_to_entrance_pupil(lens, wavelength: float) -> tuple[torch.Tensor, torch
         one = torch.ones((), dtype=torch.float64, device=lens.device)
         return torch.zeros_like(one), one
     m = system_matrix(lens, wavelength, 0, s)
-    t = lens.surfaces[s - 1].thickness
+    t = axial_gaps(lens, s)[s - 1]
     one = torch.ones_like(t)
     m = torch.stack([torch.stack([one, t / n[s]]), torch.stack([torch.zeros_like(t), one])]) @ m
     a, b = m[0, 0], m[0, 1]
@@ -126,7 +253,11 @@ def epd_from_system_aperture(lens, kind: str, value: float, wavelength: float | 
 
 @dataclass
 class ParaxialData:
-    """First-order properties (mm, degrees). z values are measured from the first vertex."""
+    """First-order properties (mm, degrees). z values are measured from the first vertex (along the unfolded axis
+    when coordinate breaks fold it). ``efl`` is the image-space EFL as OpticStudio and Optiland report it: negative
+    after an odd number of mirrors (n' = −1: a concave mirror of radius R < 0 has efl = R/2); ``fnum`` uses |efl|.
+    ``bfl`` runs from the last surface (a coordinate break: its origin) to the paraxial image, signed like the
+    thicknesses (negative after an odd number of mirrors)."""
 
     wavelength: float
     efl: float
@@ -157,7 +288,7 @@ def exit_pupil(lens, wavelength: float) -> tuple[torch.Tensor, torch.Tensor]:
     phis, n = surface_powers(lens, wavelength)
     m = system_matrix(lens, wavelength, s, None)
     b, d = m[0, 1], m[1, 1]
-    z_last = lens.vertex_z()[-1]
+    z_last = axial_vertex_positions(lens)[-1]
     n_img = n[-1]
     return z_last - b * n_img / d, 1.0 / d
 
@@ -166,7 +297,7 @@ def paraxial_image_distance(lens, wavelength: float) -> torch.Tensor:
     """z of the paraxial image of the lens's object plane (mm from the first vertex)."""
     m = system_matrix(lens, wavelength)
     phis, n = surface_powers(lens, wavelength)
-    z_last = lens.vertex_z()[-1]
+    z_last = axial_vertex_positions(lens)[-1]
     if math.isinf(lens.object_distance):
         a, c = m[0, 0], m[1, 0]
         return z_last - a * n[-1] / c
@@ -183,9 +314,10 @@ def paraxial_data(lens, wavelength: float) -> ParaxialData:
     m = system_matrix(lens, wavelength).detach()
     n = [x.detach() for x in surface_powers(lens, wavelength)[1]]
     a, b, c, d = m[0, 0], m[0, 1], m[1, 0], m[1, 1]
-    z_last = float(lens.vertex_z()[-1].detach())
+    z_last = float(axial_vertex_positions(lens)[-1].detach())
     power = -float(c)
-    efl = 1.0 / power if power != 0 else math.inf
+    # image-space EFL as OpticStudio / Optiland give it: negative after an odd number of mirrors (n' = -n there)
+    efl = lens.direction_signs()[-1] / power if power != 0 else math.inf
     bfl = -float(a) * float(n[-1]) / float(c) if power != 0 else math.inf
     ffl = float(d) * float(n[0]) / float(c) if power != 0 else math.inf
     ep_z, m_ep = (v.detach() for v in stop_to_entrance_pupil(lens, wavelength))

@@ -56,6 +56,7 @@ def plot_layout(lens, path=None, fields=None, n_rays: int = 7, wavelength: float
         n_rays: rays per fan.
     Returns the matplotlib figure.
     """
+    lens.require_unfolded("plot_layout")
     fields = list(lens.fields) if fields is None else list(fields)
     wl = lens.primary_wavelength if wavelength is None else wavelength
     zs, ys, ok = _trace_fans(lens, fields, n_rays, wl)

@@ -131,9 +131,18 @@ class Standard(Geometry):
         cc = c * (ox * ox + oy * oy + kp1 * oz * oz) - 2.0 * oz
         disc = b * b - a * cc
         ok = disc > 0  # a tangent ray (disc = 0) has an infinite derivative: it is vignetted
-        den = safe_sqrt(disc, ok, fill=1.0) - b  # stable root, continuous with the plane as c -> 0
-        ok = ok & (den != 0)
-        t = cc / torch.where(ok, den, torch.ones_like(den))
+        # The root continuous with the plane as c -> 0: t = (-b - s·root) / a with s = +1 for a ray travelling toward
+        # +z, -1 toward -z (after a mirror). Written as cc / (-b + s·root) it has no cancellation where -b and s·root
+        # share a sign (the usual case, and the plane limit a -> 0); where they do not (an origin far from the
+        # vertex, e.g. on the other sheet of a hyperboloid) the quotient by a is the stable form.
+        root = safe_sqrt(disc, ok, fill=1.0)
+        sroot = torch.where(dz < 0, -root, root)
+        den = sroot - b
+        by_a = (b * sroot > 0) & (a != 0)  # -b and s·root of opposite signs: den cancels
+        ok = ok & ((den != 0) | by_a)
+        by_a = by_a & ok
+        t = cc / torch.where(ok & ~by_a, den, torch.ones_like(den))
+        t = torch.where(by_a, (-b - sroot) / torch.where(by_a, a, torch.ones_like(a)), t)
         # Keep the branch through the vertex (excludes the far half of a sphere / other hyperbola sheet).
         ok = ok & (kp1 * c * (oz + t * dz) <= 1.0)
         return t, ok

@@ -159,3 +159,95 @@ def linear_grating_phase(period: float, angle: float = 0.0):
         return kx * x + ky * y, torch.full_like(x, kx), torch.full_like(y, ky)
 
     return phase
+
+
+class Reflection(Interaction):
+    """A mirror (Zemax ``GLAS MIRROR``): the ray is reflected, ``d' = d − 2 (d·N) N``.
+
+    The medium after a mirror is the medium before it (the surface's ``material`` is that medium); the light then
+    travels back along the local axis, and the thickness after the mirror is negative (OpticStudio's convention).
+    In the paraxial (y, n·u) model the index changes sign at every reflection (n' = −n), so that the power is the
+    refraction formula's ``(n' − n) c = −2 n c`` and thickness / index stays positive (see
+    :func:`raywave.lens.paraxial.signed_indices`). ``paraxial_power`` receives those signed indices.
+    """
+
+    kind = "reflection"
+
+    def forward(self, x, y, dx, dy, dz, nx, ny, nz, n1, n2, wavelength):
+        c = dx * nx + dy * ny + dz * nz
+        ok = torch.ones_like(c, dtype=torch.bool)
+        return dx - 2.0 * c * nx, dy - 2.0 * c * ny, dz - 2.0 * c * nz, None, ok
+
+    def paraxial_power(self, curvature, n1, n2):
+        return (n2 - n1) * curvature
+
+
+def _rotation(axis: str, degrees: float) -> torch.Tensor:
+    """Right-handed rotation matrix (3×3, float64) by ``degrees`` about the local ``axis`` ('x', 'y' or 'z')."""
+    a = math.radians(degrees)
+    c, s = math.cos(a), math.sin(a)
+    if axis == "x":
+        m = [[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]
+    elif axis == "y":
+        m = [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
+    else:
+        m = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    return torch.tensor(m, dtype=torch.float64)
+
+
+class CoordinateBreak(Interaction):
+    """A coordinate break (Zemax ``TYPE COORDBRK``): no optical effect on the rays; it moves and turns the local
+    frame of every surface after it.
+
+    OpticStudio's semantics: with ``order`` 0 the frame is first decentred by (``decenter_x``, ``decenter_y``)
+    (mm, along the current local x and y), then tilted about the local x axis by ``tilt_x``, then about the *new*
+    local y by ``tilt_y``, then about the new local z by ``tilt_z`` (degrees, right-handed). With ``order`` ≠ 0
+    the same steps run in reverse: tilt about z, then the new y, then the new x, then decentre. The surface's
+    thickness then moves the origin along the new local z. A coordinate break has no geometry, no aperture and
+    no power; its medium is the medium before it.
+
+    The frame step is ``x_parent = R · x_new + t`` (:meth:`transform`).
+    """
+
+    kind = "coordinate_break"
+
+    def __init__(self, decenter_x: float = 0.0, decenter_y: float = 0.0, tilt_x: float = 0.0, tilt_y: float = 0.0,
+                 tilt_z: float = 0.0, order: int = 0):
+        super().__init__()
+        vals = dict(decenter_x=decenter_x, decenter_y=decenter_y, tilt_x=tilt_x, tilt_y=tilt_y, tilt_z=tilt_z)
+        for k, v in vals.items():
+            if not math.isfinite(float(v)):
+                raise ValueError(f"coordinate break {k} must be finite, got {v!r}")
+        self.decenter_x, self.decenter_y = float(decenter_x), float(decenter_y)
+        self.tilt_x, self.tilt_y, self.tilt_z = float(tilt_x), float(tilt_y), float(tilt_z)
+        if not math.isfinite(float(order)):
+            raise ValueError(f"coordinate break order flag must be a finite number, got {order!r}")
+        self.order = 0 if float(order) == 0.0 else 1
+
+    @property
+    def is_identity(self) -> bool:
+        return not any((self.decenter_x, self.decenter_y, self.tilt_x, self.tilt_y, self.tilt_z))
+
+    def transform(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(R (3, 3), t (3,)), float64: a point with coordinates ``x_new`` in the frame after the break has
+        coordinates ``R @ x_new + t`` in the frame before it (thickness not included)."""
+        rx, ry, rz = _rotation("x", self.tilt_x), _rotation("y", self.tilt_y), _rotation("z", self.tilt_z)
+        dec = torch.tensor([self.decenter_x, self.decenter_y, 0.0], dtype=torch.float64)
+        if self.order == 0:
+            return rx @ ry @ rz, dec  # decentre, then tilt x, new y, new z
+        rot = rz @ ry @ rx  # tilt z, new y, new x, then decentre along the tilted axes
+        return rot, rot @ dec
+
+    def forward(self, x, y, dx, dy, dz, nx, ny, nz, n1, n2, wavelength):
+        raise RuntimeError("a coordinate break does not interact with rays (the lens tracer skips it)")
+
+    def paraxial_power(self, curvature, n1, n2):
+        return torch.zeros_like(torch.as_tensor(n1, dtype=torch.float64))
+
+    def to_spec(self) -> dict:
+        return {"decenter": [self.decenter_x, self.decenter_y], "tilt": [self.tilt_x, self.tilt_y, self.tilt_z],
+                "order": self.order}
+
+    def extra_repr(self):
+        return (f"decenter=({self.decenter_x:g}, {self.decenter_y:g}), tilt=({self.tilt_x:g}, {self.tilt_y:g}, "
+                f"{self.tilt_z:g}), order={self.order}")

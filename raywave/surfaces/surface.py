@@ -49,11 +49,14 @@ class Surface(nn.Module):
 
     @property
     def kind(self) -> str:
-        """Lens-file type name: 'standard', 'even_asphere', 'odd_asphere', 'toroidal' or 'paraxial'."""
+        """Lens-file type name: 'standard', 'even_asphere', 'odd_asphere', 'toroidal', 'paraxial' or 'coordinate_break'
+        (a mirror is any of the shapes with a reflecting interaction)."""
         from raywave.surfaces.geometry import EvenAsphere, OddAsphere, Toroidal
 
         if self.interaction.kind == "ideal_lens":
             return "paraxial"
+        if self.interaction.kind == "coordinate_break":
+            return "coordinate_break"
         if isinstance(self.geometry, EvenAsphere):
             return "even_asphere"
         if isinstance(self.geometry, OddAsphere):

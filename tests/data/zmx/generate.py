@@ -149,7 +149,41 @@ def lenses():
     out["caf2_doublet_infrared_gcat"] = (dict(
         name="CaF2 / SF5 air-spaced doublet", note="GCAT names INFRARED, which raywave does not bundle",
         aperture="ENPD 12", gcat="INFRARED SCHOTT", surfaces=apo, fields=(0.0, 1.0)), "utf-8")
+    # ---- mirrors and coordinate breaks (issue 18): OpticStudio's conventions, thicknesses negative after a mirror
+    fold = achromat(last=40.0)
+    fold[0]["stop"] = True
+    fold += [CB(tilt_x=45.0, comm="fold in"), S(math.inf, 0.0, MIRROR, diam=12.0, comm="fold mirror"),
+             CB(tilt_x=45.0, t=-60.0, comm="fold out")]
+    out["fold_mirror_doublet"] = (dict(
+        name="AC254-100 with a 45 degree fold mirror", note="COORDBRK pair around a flat mirror", aperture="ENPD 10",
+        gcat="SCHOTT", surfaces=fold, fields=(0.0, 1.0, 2.0)), "utf-8")
+    newt = [S(-1200.0, -500.0, MIRROR, diam=80.0, stop=True, coni=-1.0, comm="parabolic primary"),
+            CB(tilt_x=45.0, comm="diagonal in"), S(math.inf, 0.0, MIRROR, diam=30.0, comm="diagonal"),
+            CB(tilt_x=45.0, t=100.0, comm="diagonal out")]
+    out["newtonian_telescope"] = (dict(
+        name="Newtonian telescope 150 mm F/4", note="parabola + flat diagonal, COORDBRK fold", aperture="ENPD 150",
+        gcat="SCHOTT", surfaces=newt, fields=(0.0, 0.2, 0.4)), "utf-8")
+    cass = [S(-800.0, -300.0, MIRROR, diam=100.0, stop=True, coni=-1.0, comm="primary (paraboloid)"),
+            S(-266.6666666666667, 400.0, MIRROR, diam=30.0, coni=-2.7777777777777777, comm="secondary (hyperboloid)")]
+    out["cassegrain"] = (dict(
+        name="Classical Cassegrain 200 mm F/8", note="two mirrors on axis, thickness negative after the primary",
+        aperture="ENPD 200", gcat="SCHOTT", surfaces=cass, fields=(0.0, 0.1, 0.2)), "utf-8")
+    dec = [S(math.inf, 5.0, None, diam=6.0, stop=True, comm="stop"),
+           CB(dy=0.5, tilt_x=2.0, comm="element decentre and tilt")] + achromat(0.5, last=3.0) + \
+        [CB(tilt_x=-2.0, comm="undo tilt"), CB(dy=-0.5, t=45.0, comm="undo decentre")]
+    out["decentered_tilted_doublet"] = (dict(
+        name="Achromat f=50 decentred 0.5 mm and tilted 2 degrees", note="tolerancing case: COORDBRK before and after",
+        aperture="ENPD 6", gcat="SCHOTT", surfaces=dec, fields=(0.0, 1.0, 2.0)), "utf-8")
     return out
+
+
+MIRROR = ("MIRROR", 1.5, 40.0)
+
+
+def CB(dx=0.0, dy=0.0, tilt_x=0.0, tilt_y=0.0, tilt_z=0.0, order=0, t=0.0, comm=""):
+    """An OpticStudio coordinate break: PARM 1..6 = decentre x, y, tilt x, y, z (degrees), order flag."""
+    return dict(type="COORDBRK", curv=0.0, disz=t, glas=None, diam=0.0, comm=comm,
+                parm={1: dx, 2: dy, 3: tilt_x, 4: tilt_y, 5: tilt_z, 6: order})
 
 
 def finish(kw):
@@ -157,16 +191,30 @@ def finish(kw):
     import warnings
 
     from raywave.io.zmx import read_zmx
+    from raywave.lens import paraxial
     from raywave.lens.build import lens_from_spec
 
+    if kw["name"].startswith("Achromat f=50 decentred"):
+        # no paraxial image for a decentred element: the image distance of the same doublet centred
+        centred = [dict(s) for s in kw["surfaces"] if s.get("type") != "COORDBRK"]
+        bfl = finish(dict(kw, name="centred", surfaces=centred))["surfaces"][-1]["disz"]
+        kw["surfaces"][-1]["disz"] = round(bfl - kw["surfaces"][-3]["disz"], 3)
+        return kw
     tmp = HERE / "_tmp.zmx"
     tmp.write_text(zmx_text(**kw), encoding="utf-8")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             lens = lens_from_spec(read_zmx(tmp))
+        if kw["name"].startswith("Classical Cassegrain"):
+            return kw  # the image distance is the design's (400 mm after the secondary)
         p = lens.paraxial()
-        kw["surfaces"][-1]["disz"] = round(p.image_z_paraxial - float(lens.vertex_z()[-1].detach()), 3)
+        if lens.is_folded or lens.has_mirrors:  # along the unfolded axis; thickness and gap change alike
+            pos = float(paraxial.axial_vertex_positions(lens)[-1].detach())
+            gap = float(paraxial.axial_gaps(lens)[-1].detach())
+            kw["surfaces"][-1]["disz"] = round(kw["surfaces"][-1]["disz"] + p.image_z_paraxial - pos - gap, 3)
+        else:
+            kw["surfaces"][-1]["disz"] = round(p.image_z_paraxial - float(lens.vertex_z()[-1].detach()), 3)
     finally:
         tmp.unlink()
     return kw
