@@ -51,19 +51,17 @@ def test_exit_pupil_edge_lens_gradients_match_central_differences(edge_step):
         if name == "glass thickness":  # the DOE and sensor planes stay where they are (see the module docstring)
             z_sen = hl.sensor_z()
             hl.doe_z, hl.sensor_z = (lambda: z_doe), (lambda: z_sen)
-        fds = []
-        for rel in (1e-7, 3e-6):  # a difference straddling a window's pixel step is off: one of two must agree
-            eps = rel * abs(float(param.detach()))
-            with torch.no_grad():
-                param += eps
-                lp = float(loss())
-                param -= 2 * eps
-                lm = float(loss())
-                param += eps
-            fds.append((lp - lm) / (2 * eps))
+        eps = 1e-6 * abs(float(param.detach()))
+        with torch.no_grad():
+            param += eps
+            lp = float(loss())
+            param -= 2 * eps
+            lm = float(loss())
+            param += eps
+        fd = (lp - lm) / (2 * eps)
         if name == "glass thickness":
             del hl.doe_z, hl.sensor_z  # back to the methods
         g = grads[name]
-        print(f"{edge_step} {name}: autograd {g:.8e}, central differences {fds}")
+        print(f"{edge_step} {name}: autograd {g:.8e}, central difference {fd:.8e}")
         assert abs(g) > 1e-6 * max(abs(v) for v in grads.values())
-        assert any(g == pytest.approx(fd, rel=1e-4) for fd in fds), (name, g, fds)
+        assert g == pytest.approx(fd, rel=1e-4), (name, g, fd)

@@ -80,9 +80,10 @@ def data():
     return patches, target, weight
 
 
-@pytest.mark.parametrize("stop_edge", ["doe", "exit_pupil"])
+@pytest.mark.parametrize("stop_edge", ["doe", pytest.param("exit_pupil", marks=pytest.mark.slow)])
 def test_replayed_gradient_equals_full_graph_gradient(data, stop_edge):
-    """Also with the stop's edge at the exit pupil (the field built there and propagated to the DOE plane)."""
+    """Also with the stop's edge at the exit pupil (the field built on the exit-pupil plane and propagated to the
+    DOE plane by the angular spectrum; ~10 s, slow)."""
     patches, target, weight = data
     hl = small_hybrid(stop_edge=stop_edge)
     with warnings.catch_warnings():
