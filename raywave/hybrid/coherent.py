@@ -593,7 +593,9 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
             # normal (Fresnel length, curvature): both differentiated, |∇ slack| (the ray map's magnification of
             # the stop) included; same values as the detached ones
             gy_l, gx_l = torch.gradient(sl, spacing=h_node, dim=(0, 1))
-            gn_l = torch.sqrt(gx_l**2 + gy_l**2).clamp_min(1e-12)
+            n2 = gx_l**2 + gy_l**2
+            ok = n2 > 1e-24  # = the clamp at 1e-12 below, with a finite derivative at the stop's centre (kink)
+            gn_l = torch.where(ok, safe_sqrt(n2, ok), torch.full_like(n2, 1e-12))
             stop_edge = (sl / gn_l, gx_l / gn_l, gy_l / gn_l)
         elif diffracting:
             other = dj if other is None else torch.minimum(other, dj)
