@@ -1,5 +1,5 @@
-"""Lens-parameter gradients with ``HybridLens(stop_edge="exit_pupil")`` against central finite differences, and
-the training replay (raywave.training.replay) exact with that stop edge.
+"""Lens-parameter gradients with ``HybridLens(stop_edge="exit_pupil")`` against central finite differences (the
+training replay with this stop edge: tests/test_training_replay.py, slow).
 
 A small case so that it runs in the default suite: the bundled asphere stopped down to a 0.8 mm stop (F/10, a
 ~1 mm beam on its virtual exit-pupil plane 6 mm inside the lens), a blank 3 µm DOE 0.7 mm after the lens, 3 µm
@@ -17,9 +17,9 @@ import warnings
 import pytest
 import torch
 
-from raywave.doe import BlankDOE, PixelDOE
+from raywave.doe import BlankDOE
 from raywave.hybrid import HybridLens
-from raywave.lens.build import bundled_lens_path, ideal_lens, load_lens
+from raywave.lens.build import bundled_lens_path, load_lens
 
 WL, PS, KS = 0.53, 3e-3, 12
 
