@@ -16,11 +16,11 @@ KS = 16
 CHOICES = torch.tensor([[0.62, 0.66, 0.70], [0.50, 0.53, 0.56], [0.45, 0.47, 0.49]], dtype=torch.float64)
 
 
-def small_hybrid(seed=0):
+def small_hybrid(seed=0, stop_edge="doe"):
     """f = 2 mm ideal lens at F/8, 128² random-phase pixel DOE (2 µm) 0.5 mm behind it: PSFs in ~10 ms."""
     lens = ideal_lens(2.0, f_number=8.0, wavelengths=(0.55,))
     phase = 0.5 * torch.randn(128, 128, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
-    return HybridLens(lens, PixelDOE(phase, 2e-3), 0.5, sensor_pitch=2e-3)
+    return HybridLens(lens, PixelDOE(phase, 2e-3), 0.5, sensor_pitch=2e-3, stop_edge=stop_edge)
 
 
 def field_grid(n):
@@ -80,9 +80,12 @@ def data():
     return patches, target, weight
 
 
-def test_replayed_gradient_equals_full_graph_gradient(data):
+@pytest.mark.parametrize("stop_edge", ["doe", pytest.param("exit_pupil", marks=pytest.mark.slow)])
+def test_replayed_gradient_equals_full_graph_gradient(data, stop_edge):
+    """Also with the stop's edge at the exit pupil (the field built on the exit-pupil plane and propagated to the
+    DOE plane by the angular spectrum; ~10 s, slow)."""
     patches, target, weight = data
-    hl = small_hybrid()
+    hl = small_hybrid(stop_edge=stop_edge)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         # reference: the full autograd graph

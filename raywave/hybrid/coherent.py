@@ -589,7 +589,14 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         dj = sl / gn
         dist = dj if dist is None else torch.minimum(dist, dj)
         if diffracting and is_stop[j]:
-            stop_edge = (dj, gx_ / gn, gy_ / gn)
+            # the Fresnel step reads the distance far from the edge (ν = g·s over several zones) and the edge's
+            # normal (Fresnel length, curvature): both differentiated, |∇ slack| (the ray map's magnification of
+            # the stop) included; same values as the detached ones
+            gy_l, gx_l = torch.gradient(sl, spacing=h_node, dim=(0, 1))
+            n2 = gx_l**2 + gy_l**2
+            ok = n2 > 1e-24  # = the clamp at 1e-12 below, with a finite derivative at the stop's centre (kink)
+            gn_l = torch.where(ok, safe_sqrt(n2, ok), torch.full_like(n2, 1e-12))
+            stop_edge = (sl / gn_l, gx_l / gn_l, gy_l / gn_l)
         elif diffracting:
             other = dj if other is None else torch.minimum(other, dj)
     # only the distance near an edge matters; clamping keeps the cubic interpolation from ringing where
@@ -607,7 +614,7 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         near = (s_stop * g_s).detach().abs() < nu_lim
         g_max = float(g_s.detach()[near].max()) if bool(near.any()) else float(g_s.detach().max())
         edge_chan = ([] if other is None else [other.clamp(-lim, lim)]) + [
-            (s_stop * g_s).clamp(-nu_lim, nu_lim), (s_stop.detach() * -(ndx + ndy)).clamp(-0.9, 3.0)]
+            (s_stop * g_s).clamp(-nu_lim, nu_lim), (s_stop * -(ndx + ndy)).clamp(-0.9, 3.0)]
     else:
         edge_chan = []
     lit_nodes = (dist > -h_node) & good.reshape(ky, kx)
@@ -643,7 +650,7 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
                           pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
     win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
     if diffracting:
-        edge = stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, g_max, p, curvature=fine[-1].detach())
+        edge = stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, g_max, p, curvature=fine[-1])
         cov = edge_coverage(fine[2], p) if other is not None else None
     else:
         edge = None

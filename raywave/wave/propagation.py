@@ -302,13 +302,19 @@ def window_transfer(
                 dt_z = torch.where(ramp, (dshift - dist / (2.0 * zf)) / taper, torch.zeros_like(dist))
                 dt_s = torch.where(ramp, -sgn / taper, torch.zeros_like(dist))  # the band moves with the window
             t = dist.div_(taper).clamp_(max=1.0)
-            s = t * t * t * (10.0 + t * (6.0 * t - 15.0))  # quintic smoothstep roll-off
             if weight_derivative:
                 # d(log(1 − S))/dt, S' = 30 t²(1 − t)², 1 − S = (1 − t)³(1 + 3t + 6t²): finite up to t = 1
                 dlog = torch.where(t < 1, -30.0 * t * t / ((1.0 - t) * (1.0 + t * (3.0 + 6.0 * t))).clamp_min(1e-300),
                                    torch.zeros_like(t))
                 factors.append((dlog * dt_z, dlog * dt_s))
-            weight.sub_(weight * s)
+            # the quintic smoothstep roll-off S(t) = t³(10 + t(6t − 15)), W ← W − W·S, evaluated only where it
+            # changes W (0 < t: S(0) = 0; at t = 1, S = 1 exactly): most of the band lies inside (t = 0)
+            ramp_idx = (t > 0).nonzero(as_tuple=True)
+            if ramp_idx[0].numel():
+                tr = t[ramp_idx]
+                s = tr * tr * tr * (10.0 + tr * (6.0 * tr - 15.0))
+                wr = weight[ramp_idx]
+                weight.index_put_(ramp_idx, wr - wr * s)
         else:
             if weight_derivative:
                 factors.append((torch.zeros_like(dist), torch.zeros_like(dist)))
