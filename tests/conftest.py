@@ -51,3 +51,16 @@ def device(request):
     """The torch devices to run a core test on: "cpu", and "cuda" where a GPU is present (cf. Optiland's
     backend fixture)."""
     return request.param
+
+
+@pytest.fixture(scope="session")
+def tiny_lens_file(tmp_path_factory):
+    """A tiny lens file for training tests: ideal f = 2 mm, F/8, a 0.2 mm sensor of 2 µm pixels (tiny.json)."""
+    from raywave.io import write_lens_spec
+    from raywave.lens.build import ideal_lens, lens_to_spec
+
+    d = tmp_path_factory.mktemp("tiny_lens")
+    lens = ideal_lens(2.0, f_number=8.0, wavelengths=(0.55,))
+    lens.set_sensor((0.2, 0.2), (100, 100))
+    write_lens_spec(lens_to_spec(lens), d / "tiny.json")
+    return d / "tiny.json"

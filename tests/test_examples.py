@@ -4,6 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -24,6 +26,7 @@ def test_precision_study_example(tmp_path):
     assert report["float32_phase_error_rms_rad"] > 0.1  # float32 breaks the phase at a 1 m object
 
 
+@pytest.mark.slow  # CI time (README: Slow suite)
 def test_compare_examples_quick(tmp_path):
     """Figs. S3–S5 in their quick modes (~5–10 s each)."""
     import json
@@ -42,6 +45,7 @@ def test_compare_examples_quick(tmp_path):
     assert max(ep["ideal_f4"]["l1_exit_pupil_vs_raywave"]) < 1e-2
 
 
+@pytest.mark.slow  # CI time (README: Slow suite)
 def test_render_demo_example(tmp_path):
     import json
 

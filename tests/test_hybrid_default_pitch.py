@@ -27,6 +27,7 @@ def test_an_ideal_fast_lens_gets_the_nyquist_pitch_of_its_marginal_ray():
     assert p < 1e-3
 
 
+@pytest.mark.slow  # CI time (README: Slow suite)
 def test_the_chosen_pitch_samples_every_field_and_wavelength_without_warning():
     """A fast lens: the bundled asphere with its stop opened to F/2 (1 µm would alias: the former default).
     At the chosen pitch no field of the lens at any of its wavelengths warns; at 1 µm the edge of the field does."""

@@ -106,6 +106,7 @@ def test_an_exit_pupil_too_far_from_the_lens_is_a_clear_error(lens):
         hl.psf((0.0, 0.0), WL, ks=8)
 
 
+@pytest.mark.slow  # CI time (README: Slow suite)
 def test_exit_pupil_edge_makes_the_off_axis_psf_independent_of_the_doe_distance(lens):
     """At 14° (5 mm DOE: nothing clipped) the DOE-plane edge gives PSFs that change with the DOE distance
     (measured L1 0.024 between d = 0.05 and 0.7 mm, 0.144 between 0.7 and 2.5 mm); with the edge at the exit
@@ -128,7 +129,7 @@ def _huygens(lens, fld, ks=KS):
     return huygens_psf(lens, (0.0, fld), WL, ks=ks, pitch=PS, n_pupil=128).psf
 
 
-@pytest.mark.parametrize("fld", [0.0, 14.0, pytest.param(7.0, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("fld", [0.0, pytest.param(14.0, marks=pytest.mark.slow), pytest.param(7.0, marks=pytest.mark.slow)])
 def test_exit_pupil_edge_agrees_with_the_huygens_exit_pupil_psf(lens, fld):
     """Ray-wave (edge at the exit pupil, DOE at 0.7 mm) vs the Huygens exit-pupil PSF, both at the native
     3 µm pixels. Measured L1 (ks 32): exit-pupil edge 0.0010 (0°), 0.0014 (14°); DOE-plane edge 0.0040, 0.061

@@ -32,16 +32,11 @@ stage2: {{max_steps: 1, batch_size: 2, warmup_steps: 0, lr_doe: 0.0, lr_lens: 0.
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    from raywave.io import write_lens_spec
-    from raywave.lens.build import ideal_lens, lens_to_spec
+def tiny(tmp_path_factory, tiny_lens_file):
 
     d = tmp_path_factory.mktemp("tiny_edof")
-    lens = ideal_lens(2.0, f_number=8.0, wavelengths=(0.55,))
-    lens.set_sensor((0.2, 0.2), (100, 100))
-    write_lens_spec(lens_to_spec(lens), d / "tiny.json")
     for kind in ("paraxial", "blank", "nonsense"):
-        (d / f"{kind}.yaml").write_text(CFG.format(lens=d / "tiny.json", baseline=kind))
+        (d / f"{kind}.yaml").write_text(CFG.format(lens=tiny_lens_file, baseline=kind))
     return d
 
 
@@ -104,6 +99,7 @@ def test_blank_and_unknown_baselines(tiny, tmp_path):
         load_config(bad)
 
 
+@pytest.mark.slow  # CI time (README: Slow suite)
 def test_cli_trains_the_paraxial_baseline_and_writes_its_metrics(tiny, tmp_path):
     run = tmp_path / "run"
     r = subprocess.run([sys.executable, "-m", "raywave.cli.main", "train", str(tiny / "paraxial.yaml"), "-o", str(run),

@@ -29,15 +29,8 @@ stage2: {{max_steps: 1, batch_size: 2, warmup_steps: 0, lr_doe: 0.0, lr_lens: 0.
 
 
 @pytest.fixture(scope="module")
-def tiny_lens(tmp_path_factory):
-    from raywave.io import write_lens_spec
-    from raywave.lens.build import ideal_lens, lens_to_spec
-
-    d = tmp_path_factory.mktemp("tiny_e2e")
-    lens = ideal_lens(2.0, f_number=8.0, wavelengths=(0.55,))
-    lens.set_sensor((0.2, 0.2), (100, 100))
-    write_lens_spec(lens_to_spec(lens), d / "tiny.json")
-    return d / "tiny.json"
+def tiny_lens(tiny_lens_file):
+    return tiny_lens_file
 
 
 def _cfg(tmp_path, lens, deconv="wiener", ablation="false"):

@@ -50,16 +50,11 @@ def _worker(cfg_path, out):
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    from raywave.io import write_lens_spec
-    from raywave.lens.build import ideal_lens, lens_to_spec
+def runs(tmp_path_factory, tiny_lens_file):
     from raywave.training.parallel import spawn
 
     d = tmp_path_factory.mktemp("par")
-    lens = ideal_lens(2.0, f_number=8.0, wavelengths=(0.55,))
-    lens.set_sensor((0.2, 0.2), (100, 100))
-    write_lens_spec(lens_to_spec(lens), d / "tiny.json")
-    (d / "tiny.yaml").write_text(CFG.format(lens=d / "tiny.json"))
+    (d / "tiny.yaml").write_text(CFG.format(lens=tiny_lens_file))
     spawn(2, _worker, str(d / "tiny.yaml"), str(d / "multi"))
     cfg = load_config(d / "tiny.yaml")
     cfg.pre_stage.steps = 0

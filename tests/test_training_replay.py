@@ -197,6 +197,7 @@ def _peak_graph_bytes(n, replay):
         return mem.peak, None
 
 
+@pytest.mark.slow  # CI time (README: Slow suite)
 def test_replay_autograd_memory_does_not_grow_with_the_number_of_psfs():
     """Optics part of the peak autograd memory (bytes saved for backward): with replay it is one PSF's graph,
     the same for 2×2 and 4×4 maps; the full graph grows ~4× from 4 to 16 PSFs."""

@@ -30,17 +30,12 @@ stage2: {{max_steps: 2, batch_size: 2, warmup_steps: 0, lr_doe: 0.0, lr_lens: 0.
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tmp_path_factory, tiny_lens_file):
     """A tiny lens file (ideal f = 2 mm, F/8, 0.2 mm sensor of 2 µm pixels) and its config."""
-    from raywave.io import write_lens_spec
-    from raywave.lens.build import ideal_lens, lens_to_spec
 
     d = tmp_path_factory.mktemp("tiny")
-    lens = ideal_lens(2.0, f_number=8.0, wavelengths=(0.55,))
-    lens.set_sensor((0.2, 0.2), (100, 100))
-    write_lens_spec(lens_to_spec(lens), d / "tiny.json")
-    (d / "tiny.yaml").write_text(CFG.format(lens=d / "tiny.json", s1=3))
-    (d / "tiny_long.yaml").write_text(CFG.format(lens=d / "tiny.json", s1=8))
+    (d / "tiny.yaml").write_text(CFG.format(lens=tiny_lens_file, s1=3))
+    (d / "tiny_long.yaml").write_text(CFG.format(lens=tiny_lens_file, s1=8))
     return d
 
 
@@ -214,6 +209,7 @@ def test_field_jitter_shifts_the_whole_grid_within_a_cell(tiny, tmp_path):
         Trainer(cfg, tmp_path / "bad", progress=False)
 
 
+@pytest.mark.slow  # CI time (README: Slow suite)
 def test_a_jittered_run_resumes_with_identical_results(tiny, tmp_path):
     """The node offsets come from the run's generator, so a run stopped mid-stage resumes exactly."""
     cfg = load_config(tiny / "tiny.yaml")
