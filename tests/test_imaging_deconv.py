@@ -110,3 +110,45 @@ def test_module_learns_positive_regularisation_and_rejects_bad_input():
 def test_laplacian_power_is_normalised():
     lp = laplacian_power(16, 16)
     assert lp.shape == (16, 9) and float(lp[0, 0]) == 0.0 and math.isclose(float(lp.max()), 1.0)
+
+
+def test_a_set_of_one_map_or_of_equal_maps_is_the_plain_filter():
+    x = _image(3)
+    k = _kernel()
+    y = render(x, k, padding="zero")
+    a = wiener_deconvolve(y, k, 1e-3)
+    kk = k.expand(3, 1, 1, 9, 9)
+    assert torch.allclose(wiener_deconvolve(y, kk[None], 1e-3), a, atol=1e-12)
+    assert torch.allclose(wiener_deconvolve(y, torch.stack([kk, kk]), 1e-3), a, atol=1e-12)
+
+
+def _box(n, k=9):
+    w = torch.zeros(k, k, dtype=torch.float64)
+    c = k // 2
+    w[c - n:c + n + 1, c - n:c + n + 1] = 1.0
+    return w / w.sum()
+
+
+def test_unknown_depth_filter_has_less_expected_error_than_the_mean_psf():
+    """Two depths: one in focus (a near-delta kernel), one defocused (a 7×7 box). Deconvolving with the depth-
+    averaged PSF boosts frequencies that neither depth has and over-sharpens the in-focus image; the
+    expected-error filter ``mean conj(K) / (mean |K|² + λ)`` has the smaller error averaged over the depths
+    (it is the per-frequency minimiser of that error), and its gradient reaches both maps."""
+    x = _image(4, (2, 3, 64, 64))
+    maps = torch.stack([_kernel(), _box(3)])  # (S, ks, ks)
+    g = torch.Generator().manual_seed(0)
+    sims = [render(x, m, padding="zero") for m in maps]
+    sims = [s + 1e-3 * torch.randn(s.shape, generator=g, dtype=s.dtype) for s in sims]
+    lam = 1e-3
+    inner = (slice(None), slice(None), slice(12, -12), slice(12, -12))
+
+    def err(rec):
+        return float((rec - x)[inner].square().mean())
+
+    mean_psf = sum(err(wiener_deconvolve(s, maps.mean(0), lam, padding="zero")) for s in sims) / 2
+    mset = maps[:, None, None, None].expand(2, 3, 1, 1, 9, 9).clone().requires_grad_(True)
+    robust = [wiener_deconvolve(s, mset, lam, padding="zero") for s in sims]
+    expected = sum(err(r.detach()) for r in robust) / 2
+    assert expected < 0.8 * mean_psf
+    sum(r.square().sum() for r in robust).backward()
+    assert bool(mset.grad[0].abs().sum() > 0) and bool(mset.grad[1].abs().sum() > 0)

@@ -12,6 +12,16 @@ Laplacian's transfer function, |L̂| ≤ 1), then blend the node results with th
 differentiable with respect to the image, the PSFs (so a lens / DOE can learn to be *restorable*) and the
 regularisation (learned per channel by :class:`WienerDeconv`).
 
+**Unknown depth (EDoF).** When the blur is one of S maps (the PSFs of S object distances; the camera does not
+know which), the filter that minimises the *expected* squared error over the S maps (equal priors) is
+
+    G_n(f) = mean_s conj(K̂_sn(f)) / (mean_s |K̂_sn(f)|² + R_c(f)),
+
+i.e. the mean transfer function over the mean power, ``mean|K̂|² = |mean K̂|² + Var K̂``: frequencies where the
+depths disagree are damped instead of being boosted for a PSF that none of the depths has (deconvolving with
+the depth-averaged PSF over-sharpens the in-focus depth). Give ``psf`` as ``(S, C, N, M, ks, ks)`` for it;
+S = 1 is the ordinary filter.
+
 Orientation, extents, pitches and centres are those of :func:`~raywave.imaging.render.render`; the image is
 reflect-padded by the PSF size before the FFTs (no wrap-around ringing from the frame).
 """
@@ -106,7 +116,8 @@ def wiener_deconvolve(image: torch.Tensor, psf: torch.Tensor, reg=1e-3, *, posit
     Args:
         image: ``(B, C, H, W)`` or ``(C, H, W)`` the blurred (and possibly noisy) image, linear irradiance.
         psf: ``(C, N, M, ks, ks)`` node PSFs as given to :func:`~raywave.imaging.render.render` (also the
-            shorter forms it takes).
+            shorter forms it takes), or ``(S, C, N, M, ks, ks)``: S candidate maps (e.g. one per object distance)
+            for the expected-error filter of the module docstring.
         reg: Tikhonov regularisation: a float λ, a pair (λ, μ), or tensors (C,) / (2, C) per channel (λ > 0 is
             about the noise-to-signal power ratio; μ weights the Laplacian smoothness term).
         positions, centers, sensor_size, pitch, extent, orientation, padding: as :func:`render`.
@@ -116,8 +127,14 @@ def wiener_deconvolve(image: torch.Tensor, psf: torch.Tensor, reg=1e-3, *, posit
         the PSFs, the centres and ``reg``.
     """
     squeeze = image.ndim == 3
+    maps = psf if torch.is_tensor(psf) and psf.ndim == 6 else None
     x, k, positions, sensor_size, extent, cy, cx = prepare_map_arguments(
-        image, psf, positions, sensor_size, pitch, extent, orientation, padding)
+        image, psf if maps is None else maps[0], positions, sensor_size, pitch, extent, orientation, padding)
+    if maps is not None:
+        if maps.shape[0] < 1:
+            raise ValueError("psf: an (S, C, N, M, ks, ks) set of maps needs S >= 1")
+        k = torch.stack([k] + [prepare_map_arguments(image, m, positions, sensor_size, pitch, extent, orientation,
+                                                     padding)[1] for m in maps[1:]])
     lam, mu = _regulariser(reg, x.shape[1], x.dtype, x.device)
     flip = orientation == "picture"
     out = _multi_wiener(x, k, lam, mu, cy, cx, padding)
@@ -131,8 +148,11 @@ def wiener_deconvolve(image: torch.Tensor, psf: torch.Tensor, reg=1e-3, *, posit
 
 
 def _multi_wiener(x, k, lam, mu, cy, cx, padding):
-    """Deconvolve ``x (B, C, H, W)`` (sensor orientation) with each node kernel of ``k (C, N, M, ky, kx)`` whose
-    weight reaches the image, and blend with the renderer's bilinear weights."""
+    """Deconvolve ``x (B, C, H, W)`` (sensor orientation) with each node kernel of ``k (C, N, M, ky, kx)`` (or the
+    expected-error filter of a set ``k (S, C, N, M, ky, kx)``) whose weight reaches the image, and blend with the
+    renderer's bilinear weights."""
+    if k.ndim == 5:
+        k = k[None]
     B, C, H, W = x.shape
     ky, kx = k.shape[-2:]
     dev, dt = x.device, x.dtype
@@ -142,7 +162,7 @@ def _multi_wiener(x, k, lam, mu, cy, cx, padding):
     _, _, has_x = _windows(wx)
     iy, ix = torch.nonzero(has_y).reshape(-1), torch.nonzero(has_x).reshape(-1)
     wy, wx = wy[iy], wx[ix]
-    k = k[:, iy][:, :, ix]  # (C, n, m, ky, kx)
+    k = k[:, :, iy][:, :, :, ix]  # (S, C, n, m, ky, kx)
     py, px = ky, kx  # a PSF's reach on every side
     mode = _PADDING[padding]
     if mode == "reflect" and (py >= H or px >= W):
@@ -151,10 +171,10 @@ def _multi_wiener(x, k, lam, mu, cy, cx, padding):
     Hp, Wp = xp.shape[-2:]
     fy, fx = _fast(Hp), _fast(Wp)
     Y = torch.fft.rfft2(xp, s=(fy, fx))  # (B, C, fy, fx//2+1)
-    K = _kernel_spectrum(k, fy, fx)  # (C, n, m, fy, fx//2+1)
+    K = _kernel_spectrum(k, fy, fx)  # (S, C, n, m, fy, fx//2+1)
     lap = laplacian_power(fy, fx, dtype=dt, device=dev)
     R = lam[:, None, None, None, None] + mu[:, None, None, None, None] * lap  # (C, 1, 1, fy, fx')
-    G = K.conj() / (K.real.square() + K.imag.square() + R)
+    G = K.conj().mean(0) / ((K.real.square() + K.imag.square()).mean(0) + R)  # expected-error filter over S
     X = torch.fft.irfft2(Y[:, :, None, None] * G[None], s=(fy, fx))[..., py:py + H, px:px + W]  # (B, C, n, m, H, W)
     return torch.einsum("bcnmhw,nh,mw->bchw", X, wy, wx)
 
@@ -181,7 +201,8 @@ class WienerDeconv(nn.Module):
         return torch.stack([self.log_lambda.exp(), self.log_mu.exp()])
 
     def forward(self, image: torch.Tensor, psf: torch.Tensor, **kw) -> torch.Tensor:
-        """Deconvolve ``image (B, C, H, W)`` with the map ``psf (C, N, M, ks, ks)``; ``kw`` as
+        """Deconvolve ``image (B, C, H, W)`` with the map ``psf (C, N, M, ks, ks)`` (or a set of maps
+        ``(S, C, N, M, ks, ks)``, e.g. one per depth: the expected-error filter); ``kw`` as
         :func:`wiener_deconvolve` (positions, centers, sensor_size, pitch, extent, ...)."""
         reg = self.regularisation().to(image.dtype)
         return wiener_deconvolve(image, psf, reg, **kw)

@@ -209,7 +209,8 @@ class PSFAwareNet(nn.Module):
         self.net, self.deconv = net, deconv
 
     def forward(self, image: torch.Tensor, psf: torch.Tensor | None = None, extents=None, **kw) -> torch.Tensor:
-        """``image (B, C, H, W)`` blurred; ``psf (C, N, M, ks, ks)`` the map it was blurred with; ``extents``:
+        """``image (B, C, H, W)`` blurred; ``psf (C, N, M, ks, ks)`` the map it was blurred with (or
+        ``(S, C, N, M, ks, ks)``: the candidate maps, e.g. one per depth); ``extents``:
         one normalised sensor extent per image (or one for all); ``kw``: positions, centers, sensor_size, pitch
         (:func:`~raywave.imaging.deconv.wiener_deconvolve`)."""
         if psf is None:

@@ -222,13 +222,15 @@ class Trainer:
     def reconstruct(self, sims, psf, cen, extents, positions=None, net=None) -> torch.Tensor:
         """The network's restoration of the simulated images ``sims (B, 3, h, w)`` at the normalised sensor
         ``extents`` (one per image). With ``network.deconv: wiener`` the images are first deconvolved
-        (differentiably) with the PSF map ``psf (D, 3, N, M, ks, ks)`` (centres ``cen (D, 3, N, M, 2)``)
-        **averaged over the D depths**: the camera does not know the object's distance, so one deconvolution
-        serves every depth (with D = 1 it is the map the images were rendered with)."""
+        (differentiably) with the PSF maps ``psf (D, 3, N, M, ks, ks)`` of the D depths (centres
+        ``cen (D, 3, N, M, 2)``, averaged over the depths for the distortion): the camera does not know the
+        object's distance, so one filter serves every depth, the one with the least expected error over the D
+        maps (:mod:`raywave.imaging.deconv`; with D = 1 the Wiener filter of the map the images were rendered
+        with)."""
         net = self.net if net is None else net
         if not isinstance(net, PSFAwareNet):
             return net(sims)
-        return net(sims, psf.mean(0), extents, positions=self.positions if positions is None else positions,
+        return net(sims, psf, extents, positions=self.positions if positions is None else positions,
                    centers=cen.mean(0), sensor_size=self.sensor_size, pitch=self.pitch)
 
     def _net_kwargs(self) -> dict:
@@ -684,7 +686,7 @@ class Trainer:
                 rec = self.reconstruct(sim, pm.psf, pm.centers, exts, pm.positions)
                 row = {**scores(rec, ""), **scores(sim, "_input")}
                 if isinstance(self.net, PSFAwareNet):
-                    row.update(scores(self.net.deconvolve(sim, pm.psf.mean(0), exts, positions=pm.positions,
+                    row.update(scores(self.net.deconvolve(sim, pm.psf, exts, positions=pm.positions,
                                                           centers=pm.centers.mean(0), sensor_size=self.sensor_size,
                                                           pitch=self.pitch), "_deconv"))
                 if self.plain_net is not None:
