@@ -4,7 +4,8 @@ photos (issues 7 and 15). Slow: ``python -m pytest -m slow``.
 * The aberration-correction demo (the README's main command) trains the DOE as the fabricated 16-level element,
   reconstructs with the PSF-aware multi-Wiener deconvolution + network and trains the ablation's plain networks;
   measured numbers in docs/training.md ("Demo results"); the tests assert issue 15's margins.
-* The EDoF demo keeps the paper's plain network (its config has not been re-measured with the deconvolution)."""
+* The EDoF demo reconstructs with the expected-error filter over the three depths' maps + network; the test
+  asserts the margins it measured (issue 15's EDoF bars are not met yet: docs/training.md)."""
 
 import json
 import os
@@ -38,7 +39,7 @@ def aberration(tmp_path_factory):
 @pytest.mark.slow
 def test_aberration_demo_restores_and_beats_its_baseline(aberration):
     run, m = aberration
-    d, b = m["designed"]["mean"], m["baseline"]["mean"]
+    d = m["designed"]["mean"]
     assert d["psnr"] > d["psnr_input"] + 2.0, d            # the PSF-aware reconstruction restores (+2.85 dB measured)
     assert d["psnr_deconv"] > d["psnr_input"] + 2.5, d
     assert d["psnr"] > d["psnr_network_only"] + 1.5, d     # the deconvolution is what restores, not the small network
@@ -60,17 +61,22 @@ def test_aberration_demo_reaches_the_issue_margins(aberration):
 
 
 @pytest.mark.slow
-def test_edof_demo_beats_the_paraxially_designed_doe(tmp_path):
-    """Measured: designed 19.82 dB / SSIM 0.523 vs paraxial 19.37 / 0.511 (+0.45 dB); the gain is off axis
-    (edge +1.16, +1.02, +0.65 dB at 200 mm, 300 mm, 10 m; centre within ±0.08 dB), where the paraxial model
-    cannot see the lens's aberrations."""
-    m = _train("edof_demo", tmp_path / "edof_demo")
+def test_edof_demo_restores_every_depth_and_beats_the_paraxially_designed_doe(tmp_path):
+    """Measured (2026-11-26): restored vs sensor image +2.34 / +3.45 / +1.55 dB at 200 mm / 300 mm / 10 m;
+    designed vs paraxial design under the same reconstruction +0.36 dB mean, at the field edge +0.63 / +0.93 /
+    +1.27 dB (the paraxial model cannot see the lens's off-axis aberrations), centre −0.15 to −0.50 dB."""
+    run = tmp_path / "edof_demo"
+    m = _train("edof_demo", run)
     keys = {f"depth={d}/{z}" for d in ("200", "300", "10000") for z in ("centre", "edge")} | {"mean"}
     assert set(m["designed"]) == keys and set(m["baseline"]) == keys
-    assert (tmp_path / "edof_demo" / "baseline" / "baseline_design.json").is_file()
-    assert m["gain_db"]["mean"] > 0, m["gain_db"]
-    assert m["designed"]["mean"]["ssim"] > m["baseline"]["mean"]["ssim"]
-    assert all(m["gain_db"][f"depth={d}/edge"] > 0 for d in ("200", "300", "10000")), m["gain_db"]
-    assert m["designed"]["mean"]["psnr_input"] > m["baseline"]["mean"]["psnr_input"]  # optical
-    for arm in ("designed", "baseline"):  # the fine-tuned networks do not make their inputs worse
-        assert m[arm]["mean"]["psnr"] >= m[arm]["mean"]["psnr_input"], m[arm]["mean"]
+    assert (run / "baseline" / "baseline_design.json").is_file()
+    d = m["designed"]
+    for depth in ("200", "300", "10000"):
+        gain = sum(d[f"depth={depth}/{z}"]["psnr"] - d[f"depth={depth}/{z}"]["psnr_input"]
+                   for z in ("centre", "edge")) / 2
+        assert gain > 1.2, (depth, gain)                    # the reconstruction restores at every depth
+        assert m["gain_db"][f"depth={depth}/edge"] > 0.3, m["gain_db"]
+    assert m["gain_db"]["mean"] > 0.2, m["gain_db"]         # designed 16-level DOE vs the paraxial design
+    assert d["mean"]["psnr_deconv"] > d["mean"]["psnr_network_only"] + 1.5, d["mean"]
+    report = json.loads((run / "final" / "masks" / "report.json").read_text())
+    assert report["levels"] == 16 and report["evaluated_as_fabricated"] is True
