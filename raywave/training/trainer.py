@@ -40,7 +40,7 @@ from raywave.doe.base import check_levels
 from raywave.training.checkpoint import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
 from raywave.training.config import TrainConfig, dump_config
 from raywave.training.baselines import psf_objective
-from raywave.training.losses import edof_loss, image_loss, psf_size
+from raywave.training.losses import edof_loss, image_loss
 from raywave.training.networks import PSFAwareNet, build_network
 from raywave.training.replay import OpticsStep, chunk_ranges
 from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
@@ -614,91 +614,19 @@ class Trainer:
         self._fabrication(extra.get("stage", "done"), int(extra.get("stage_step", 0)))
         return info
 
-    # ------------------------------------------------------------------ evaluation and export
+    # ------------------------------------------------------------------ evaluation and export (training/evaluation.py)
     def eval_images_tensor(self) -> torch.Tensor:
-        """Held-out images ``(B, 3, S, S)``: centre crops (``data.eval_size``) of the evaluation photos (the
-        sample pool's eval split, or the folder's ``valid`` split), linear if ``data.linear``; smaller photos
-        are skipped."""
-        from raywave.imaging.data import SamplePhotoDataset, srgb_to_linear
+        """Held-out images ``(B, 3, S, S)`` (:func:`raywave.training.evaluation.eval_images`)."""
+        from raywave.training.evaluation import eval_images
 
-        if self.eval_images is not None:
-            return self.eval_images.to(self.device, self.dtype)
-        if self.cfg.data.source == "folder":
-            ds = self._dataset("eval")
-        else:
-            ds = SamplePhotoDataset("eval", patch_size=None, linear=False)
-        s = int(self.cfg.data.eval_size)
-        out = []
-        for i in range(ds.n_images):
-            im = ds._image(i)  # sRGB-encoded, whole photo
-            H, W = im.shape[-2:]
-            if H < s or W < s:
-                continue
-            r, c = (H - s) // 2, (W - s) // 2
-            im = im[:, r:r + s, c:c + s]
-            out.append(srgb_to_linear(im) if self.cfg.data.linear else im)
-        if not out:
-            raise ValueError(f"no evaluation image is at least {s}×{s} pixels (data.eval_size)")
-        return torch.stack(out).to(self.device, self.dtype)
+        return eval_images(self)
 
-    @torch.no_grad()
     def evaluate(self, noise: bool = True) -> dict:
-        """PSNR/SSIM of the held-out images per depth and field zone (the image placed at the sensor centre and
-        at a corner), with the evaluation map and (``noise``) a fixed-seed noise draw, for each reconstruction:
+        """PSNR/SSIM of the held-out images per depth and field zone for every reconstruction
+        (:func:`raywave.training.evaluation.evaluate`, which lists the keys)."""
+        from raywave.training.evaluation import evaluate
 
-        * ``psnr`` / ``ssim``: the trained reconstruction (``network.deconv``: deconvolution + network, or the
-          network alone);
-        * ``psnr_input`` / ``ssim_input``: the simulated sensor image itself (the optics' share);
-        * ``psnr_deconv`` / ``ssim_deconv``: the multi-Wiener deconvolution alone (``deconv: wiener``);
-        * ``psnr_network_only`` / ``ssim_network_only``: a plain network trained on the same optics
-          (``network.ablation``, :meth:`train_plain_network`);
-
-        and ``psf_rms_px``: the RMS radius (sensor pixels, about the centroid, mean of the three channels) of the
-        evaluation map's PSF nearest the zone's centre; ``mean`` also has ``psf_rms_px_map`` (the whole map's
-        mean) and ``energy_outside_max`` (the largest fraction of a PSF's energy outside the evaluation crop)."""
-        with torch.no_grad():
-            return self._evaluate(noise)
-
-    def _evaluate(self, noise: bool) -> dict:
-        from raywave.imaging.render import render
-        from raywave.training.metrics import psnr, ssim
-
-        pm = self.stage2_map if self.stage2_map is not None else self.evaluation_map()
-        self.stage2_map = pm
-        img = self.eval_images_tensor()
-        sensor = self._sensor() if noise else None
-        g = torch.Generator().manual_seed(12345)
-        zones = {"centre": (0.0, 0.0), "edge": (0.8, 0.8)}
-        out = {}
-
-        def scores(x, name):
-            x = x.clamp(0, 1).double()
-            return {f"psnr{name}": float(psnr(x, img.double()).mean()), f"ssim{name}": float(ssim(x, img.double()).mean())}
-
-        for d, depth in enumerate(self.depths):
-            for zone, uv in zones.items():
-                ext = self._extent(img.shape[-2:], uv)
-                sim = render(img, pm.psf[d], positions=pm.positions, centers=pm.centers[d],
-                             sensor_size=pm.sensor_size, pitch=pm.pitch, extent=ext)
-                if sensor is not None:
-                    sim = sensor(sim, generator=g)
-                exts = [ext] * img.shape[0]
-                rec = self.reconstruct(sim, pm.psf, pm.centers, exts, pm.positions)
-                row = {**scores(rec, ""), **scores(sim, "_input")}
-                if isinstance(self.net, PSFAwareNet):
-                    row.update(scores(self.net.deconvolve(sim, pm.psf, exts, positions=pm.positions,
-                                                          centers=pm.centers.mean(0), sensor_size=self.sensor_size,
-                                                          pitch=self.pitch), "_deconv"))
-                if self.plain_net is not None:
-                    row.update(scores(self.plain_net(sim), "_network_only"))
-                row["psf_rms_px"] = _nearest_psf_size(pm.psf[d], pm.positions, uv)
-                out[f"depth={depth:g}/{zone}"] = row
-        keys = list(next(iter(out.values())))
-        out["mean"] = {k: sum(v[k] for v in out.values()) / len(out) for k in keys}
-        out["mean"]["psf_rms_px_map"] = float(psf_size(pm.psf.double()).mean())
-        if "energy_outside_max" in pm.info:
-            out["mean"]["energy_outside_max"] = pm.info["energy_outside_max"]
-        return out
+        return evaluate(self, noise)
 
     # ------------------------------------------------------------------ ablation: a plain network, same optics
     def train_plain_network(self, progress: bool | None = None) -> "Trainer":
@@ -719,65 +647,8 @@ class Trainer:
         return plain
 
     def export(self, folder=None) -> Path:
-        """Write the element that was evaluated into ``run_dir/final`` (one fabrication code path,
-        :mod:`raywave.doe.export`):
+        """Write the element that was evaluated into ``run_dir/final`` (or ``folder``):
+        :func:`raywave.training.evaluation.export` lists the files."""
+        from raywave.training.evaluation import export
 
-        * ``lens.json`` + ``doe_phase.npy``: the lens with its DOE: the phase at the design wavelength (the
-          fabricated profile: wrapped and quantised when ``optics.doe_levels`` is set) with its ``levels``,
-          ``material`` and ``design_wavelength``, so that loading the file gives the evaluated DOE;
-        * ``doe.pt``: the DOE module's state;
-        * ``masks/masks.gds`` + ``masks/report.json``: the L-level map (L = ``optics.doe_levels``, default 16
-          for a continuous design, which is then quantised for the masks only; the report says which) split
-          into log2(L) binary masks.
-        """
-        import numpy as np
-
-        from raywave.doe import save_doe
-        from raywave.doe.export import export_design
-        from raywave.io import write_lens_spec
-        from raywave.lens.build import lens_to_spec
-
-        folder = Path(folder) if folder is not None else self.run_dir / "final"
-        folder.mkdir(parents=True, exist_ok=True)
-        doe = self.hl.doe
-        if getattr(doe, "phase_map", None) is None:
-            raise ValueError(f"export: {type(doe).__name__} has no pixel phase map")
-        with torch.no_grad():
-            phase = doe.profile_pixels().detach().cpu().double().numpy()  # at λ0, as simulated
-        np.save(folder / "doe_phase.npy", phase)
-        save_doe(doe, folder / "doe.pt")
-        spec = lens_to_spec(self.hl.lens)
-        section = {"distance": self.hl.doe_distance, "pitch": doe.pitch, "shape": list(doe.shape),
-                   "aperture": doe.aperture, "phase": "doe_phase.npy", "design_wavelength": doe.design_wavelength}
-        if self.hl.oversample != 1:
-            section["oversample"] = int(self.hl.oversample)
-        if doe.material_name is not None:
-            section["material"] = doe.material_name
-        if doe.quant_levels is not None:
-            section["levels"] = int(doe.quant_levels)
-        elif doe.wrap:
-            section["wrap"] = True
-        spec["doe"] = section
-        write_lens_spec(spec, folder / "lens.json")
-        levels = doe.quant_levels if doe.quant_levels is not None else 16
-        export_design(doe, levels, doe.material_name or self._default_material(), doe.design_wavelength,
-                      folder / "masks", name=self.cfg.name,
-                      info={"evaluated_as_fabricated": doe.quant_levels is not None,
-                            "note": "the masks are the DOE that was evaluated" if doe.quant_levels is not None
-                            else "the design was trained and evaluated as a continuous phase (optics.doe_levels "
-                                 "unset); these masks quantise it for fabrication only"})
-        return folder
-
-    @staticmethod
-    def _default_material() -> str:
-        from raywave.doe import DEFAULT_MATERIAL
-
-        return DEFAULT_MATERIAL
-
-
-def _nearest_psf_size(psf_d, positions, uv) -> float:
-    """RMS radius (pixels; :func:`~raywave.training.losses.psf_size`, mean over the channels) of the PSF of
-    ``psf_d (C, N, M, ks, ks)`` whose node in ``positions (N, M, 2)`` is nearest the normalised point ``uv``."""
-    d2 = (positions - torch.tensor(uv, dtype=positions.dtype, device=positions.device)).square().sum(-1)
-    i, j = divmod(int(torch.argmin(d2)), d2.shape[1])
-    return float(psf_size(psf_d[:, i, j].double()).mean())
+        return export(self, folder)
