@@ -1,0 +1,84 @@
+"""The .zmx vocabulary raywave knows: surface types (modelled, known but unsupported, diffractive), lens units,
+asphere term limits, and the surface / system keys that are skipped, unsupported or name the system aperture."""
+
+from __future__ import annotations
+
+#: Zemax surface types raywave models, and their spec type.
+SURFACE_TYPES = {"STANDARD": "standard", "EVENASPH": "even_asphere", "ODDASPHE": "odd_asphere",
+                 "TOROIDAL": "toroidal", "PARAXIAL": "paraxial", "COORDBRK": "coordinate_break"}
+#: Types raywave cannot trace yet, with what they are (a clearer error than "not supported").
+KNOWN_UNSUPPORTED_TYPES = {
+    "BICONIC": "biconic", "SZERNSAG": "Zernike standard sag", "FZERNSAG": "Zernike fringe sag",
+    "XPOLYNOM": "extended polynomial", "POLYNOMI": "polynomial", "GRID_SAG": "grid sag", "CYLINDER": "cylinder",
+    "IRREGULA": "irregular", "USERSURF": "user-defined (DLL)", "GRADIENT": "gradient index",
+}
+#: Zemax diffractive surface types: as the last surface before the image, such a surface is the DOE plane of
+#: a hybrid lens (spec "doe"); anywhere else it is an error. Also any type whose name says diffractive.
+DIFFRACTIVE_TYPES = {"BINARY_1", "BINARY_2", "BINARY_3", "BINARY_4", "DGRATING", "RADGRATI", "ELGRATIN", "ELGRAT2",
+                     "TOROGRAT", "HOLOGRM1", "HOLOGRM2", "VLSGRATI"}
+#: ... and any type whose name contains one of these.
+DIFFRACTIVE_NAME_PARTS = ("BINARY", "GRAT", "HOLOG", "DIFFRACT", "PHAS")
+#: BINARY_2: PARM 0 = diffraction order, PARM 1..8 = even-asphere substrate terms (must be 0: the DOE is a plane);
+#: XDAT 1 = number of terms N, XDAT 2 = normalisation radius, XDAT 3.. = A_i on (r / R_norm)^(2i), radians.
+MAX_BINARY2_TERMS = 230
+
+
+def is_diffractive_type(typ: str) -> bool:
+    """A Zemax surface type that adds a diffractive phase (binary optics, gratings, holograms, phase maps)."""
+    t = typ.upper()
+    return t in DIFFRACTIVE_TYPES or any(part in t for part in DIFFRACTIVE_NAME_PARTS)
+
+
+#: Lens units -> mm.
+UNIT_SCALE = {"MM": 1.0, "CM": 10.0, "IN": 25.4, "INCH": 25.4, "M": 1000.0, "METER": 1000.0, "METERS": 1000.0}
+#: EVENASPH: PARM i multiplies r^(2i) (PARM 1 = a2, ..., PARM 8 = a16).
+MAX_EVENASPH_PARM = 8
+#: ODDASPHE: PARM i multiplies r^i (PARM 1 = b1, ..., PARM 8 = b8).
+MAX_ODDASPHE_PARM = 8
+
+#: Surface keys skipped on purpose: they do not change the rays raywave traces.
+IGNORED_SURFACE_KEYS = {
+    "HIDE": "drawing visibility",
+    "MIRR": "mirror substrate drawing (a reflecting surface is GLAS MIRROR)",
+    "SLAB": "surface label",
+    "POPS": "physical optics settings",
+    "MAZH": "mechanical aperture settings",
+    "COAT": "coating (raywave traces uncoated surfaces)",
+    "PPAR": "extra parameter data",
+    "VPAR": "variable flags",
+    "VCON": "variable flags",
+    "EDGE": "edge drawing",
+    "BLNK": "blank line",
+    "PZUP": "pickup data",
+    "PKUP": "pickup solve (the solved values are in the file)",
+    "FLWR": "glass weight data",
+    "TCE": "thermal expansion",
+    "MEMA": "mechanical semi-diameter",
+    "NOTE": "note text",
+}
+#: Surface apertures raywave has no model for.
+UNSUPPORTED_APERTURES = {
+    "ELAP": "elliptical aperture",
+    "OBSC": "circular obscuration",
+    "OBSQ": "rectangular obscuration",
+    "ELOB": "elliptical obscuration",
+    "UDAP": "user-defined aperture",
+    "USAP": "user-defined aperture",
+    "SPID": "spider obscuration",
+}
+#: System keys skipped on purpose (settings that do not change the prescription raywave reads).
+IGNORED_SYSTEM_KEYS = {
+    "VERS", "PFIL", "LANG", "ENVD", "GFAC", "RAIM", "PUSH", "SDMA", "ROPD", "PICB", "POLS", "GLRS", "GSTD",
+    "NSCD", "COFN", "BLNK", "TOL", "TOLE", "MOFF", "CONF", "DMFS", "ISNA", "VDSZ", "ZVDX", "ZVDY", "ZVCX",
+    "ZVCY", "ZVAN", "MNCA", "MNEA", "MNCG", "MNEG", "MXCA", "MXCG", "RGLA", "TRAC", "TCMM", "PMAG", "TOTR",
+    "OPDX", "EFFL", "PUPD", "TCED", "FWGN", "FWGT", "VDXN", "VDYN", "VCXN", "VCYN", "VANN", "WWGN", "WWGT",
+    "WAVN", "MNUM", "NOTE", "FIMP", "SCOL", "SCTH",
+}
+#: System aperture keys -> spec "system_aperture" key, by the flag after the value (FNUM v 0 = image-space F/#,
+#: FNUM v 1 = paraxial working F/#; OBNA v 0 = object-space NA, OBNA v 1 = object cone angle in degrees).
+SYSTEM_APERTURE_KEYS = {
+    "ENPD": {0: "epd"},
+    "FNUM": {0: "f_number", 1: "working_f_number"},
+    "OBNA": {0: "object_na", 1: "object_cone_angle"},
+}
+

@@ -1,0 +1,228 @@
+"""Lens specs -> .zmx text and files (:func:`zmx_text`, :func:`write_zmx`): UTF-16 LE with BOM and CRLF line
+ends by default, as OpticStudio writes; a binary_2 DOE becomes a BINARY_2 surface."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+from raywave.io.errors import LensFileError, LensFileWarning
+from raywave.io.json_format import validate_spec
+from raywave.io.spec import DEFAULT_WAVELENGTHS, aspheric_canonical, curvature_of, rotation_radius_canonical
+from raywave.io.zmx.tables import MAX_BINARY2_TERMS, MAX_EVENASPH_PARM, MAX_ODDASPHE_PARM, SURFACE_TYPES, \
+    SYSTEM_APERTURE_KEYS
+
+
+def _num(x) -> str:
+    return repr(float(x))
+
+
+def zmx_text(spec: dict, source="<spec>") -> str:
+    """The .zmx text for ``spec`` (see :func:`write_zmx`)."""
+    validate_spec(spec, source)
+    out: list[str] = []
+    w = out.append
+    _system_lines(w, spec)
+    d = (spec.get("object") or {}).get("distance", "inf")
+    w("SURF 0")
+    w("  TYPE STANDARD")
+    w("  CURV 0.0")
+    w("  DISZ " + ("INFINITY" if d == "inf" else _num(d)))
+    doe = spec.get("doe")
+    model = (doe or {}).get("phase_model")
+    binary2 = doe is not None and model is not None and model.get("type") == "binary_2" and doe.get("phase") is None
+    nsurf = len(spec["surfaces"])
+    for i, s in enumerate(spec["surfaces"], start=1):
+        _surface_lines(w, i, s, doe if binary2 and i == nsurf else None, source)
+    n = len(spec["surfaces"]) + 1
+    if binary2:
+        _write_binary2(w, n, doe, spec["surfaces"][-1], source)
+        n += 1
+    w(f"SURF {n}")
+    w("  TYPE STANDARD")
+    w("  CURV 0.0")
+    w("  DISZ 0.0")
+    sensor = spec.get("sensor")
+    if sensor:
+        w(f'  DIAM {_num(0.5 * math.hypot(*sensor["size"]))} 1 0 0 1 ""')
+    _warn_left_out(spec, doe, binary2, source)
+    return "\r\n".join(out) + "\r\n"
+
+
+def _system_lines(w, spec: dict) -> None:
+    """The system data (version, mode, name, units, system aperture, glass catalogs, fields, wavelengths) through
+    ``w`` (one line per call)."""
+    w("VERS 190513 80 123457 L123457")
+    w("MODE SEQ")
+    w(f"NAME {spec.get('name', '')}".rstrip())
+    w("UNIT MM X W X CM MR CPMM")
+    w(_system_aperture_line(spec.get("system_aperture")))
+    catalogs = list(spec.get("catalogs") or [])
+    for s in spec["surfaces"]:
+        m = s.get("material")
+        if isinstance(m, dict) and "catalog" in m and m["catalog"] not in catalogs:
+            catalogs.append(m["catalog"])
+    if catalogs:
+        w("GCAT " + " ".join(catalogs))
+    fields = spec.get("fields") or {"type": "angle", "values": [0.0]}
+    wls = spec.get("wavelengths") or DEFAULT_WAVELENGTHS
+    fv = [float(v) for v in fields["values"]]
+    wv = [float(v) for v in wls["values"]]
+    w(f"FTYP {0 if fields.get('type', 'angle') == 'angle' else 1} 0 {len(fv)} {len(wv)} 0 0 0")
+    pad = [0.0] * max(0, 12 - len(fv))
+    w("XFLN " + " ".join(_num(0.0) for _ in fv + pad))
+    w("YFLN " + " ".join(_num(v) for v in fv + pad))
+    w("FWGN " + " ".join("1" for _ in fv + pad))
+    for i, v in enumerate(wv, start=1):
+        w(f"WAVM {i} {_num(v)} 1")
+    w(f"PWAV {int(wls.get('primary', 0)) + 1}")
+
+
+def _surface_lines(w, i: int, s: dict, doe_after: dict | None, source) -> None:
+    """The SURF block of spec surface ``s`` (number ``i``) through ``w``; ``doe_after``: the spec's DOE when a
+    BINARY_2 DOE plane follows ``s`` (then its thickness is the DOE's distance, mm)."""
+    w(f"SURF {i}")
+    kind = s.get("type", "standard")
+    if s.get("stop"):
+        w("  STOP")
+    if s.get("comment"):
+        w("  COMM " + " ".join(str(s["comment"]).split()))
+    w("  TYPE " + {v: k for k, v in SURFACE_TYPES.items()}[kind])
+    if kind == "coordinate_break":
+        dec, tilt = s.get("decenter", [0.0, 0.0]), s.get("tilt", [0.0, 0.0, 0.0])
+        for j, v in enumerate(list(dec) + list(tilt) + [s.get("order", 0)], start=1):
+            w(f"  PARM {j} {_num(v)}")
+        w(f"  DISZ {_num(s['thickness'])}")
+        return
+    if kind != "paraxial":
+        w(f"  CURV {_num(curvature_of(s))}")
+    w(f"  DISZ {_num(doe_after['distance'] if doe_after is not None else s['thickness'])}")
+    g = _glas_line(s.get("material", "air"))
+    if g:
+        w("  " + g)
+    if s.get("semi_diameter") is not None:
+        w(f'  DIAM {_num(s["semi_diameter"])} 1 0 0 1 ""')
+    if kind != "paraxial":
+        w(f"  CONI {_num(s.get('conic', 0.0))}")
+    _parm_lines(w, i, kind, s, source)
+    ap = s.get("aperture")
+    if ap is not None:
+        if ap["shape"] == "circle":
+            w(f"  CLAP 0 {_num(ap['radius'])} 0")
+        else:
+            w(f"  SQAP {_num(ap['half_width'])} {_num(ap['half_width'])}")
+
+
+def _parm_lines(w, i: int, kind: str, s: dict, source) -> None:
+    """The PARM lines of surface ``i`` by kind: even (a2..a16) / odd (b1..b8) aspheric terms, a toroid's radius of
+    rotation (mm) and a2..a14, a paraxial focal length (mm)."""
+    if kind == "even_asphere":
+        asph = aspheric_canonical(s.get("aspheric"))
+        for k in ("a18", "a20"):
+            if k in asph:
+                raise LensFileError(f"surfaces[{i - 1}].aspheric.{k}: .zmx EVENASPH surfaces stop at a16 "
+                                    "(PARM 8)", source)
+        for j in range(1, MAX_EVENASPH_PARM + 1):
+            w(f"  PARM {j} {_num(asph.get(f'a{2 * j}', 0.0))}")
+    if kind == "odd_asphere":
+        asph = aspheric_canonical(s.get("aspheric"), range(1, MAX_ODDASPHE_PARM + 1))
+        for j in range(1, MAX_ODDASPHE_PARM + 1):
+            w(f"  PARM {j} {_num(asph.get(f'a{j}', 0.0))}")
+    if kind == "toroidal":
+        r = rotation_radius_canonical(s.get("radius_of_rotation"))
+        w(f"  PARM 1 {_num(0.0 if r == 'inf' else r)}")
+        asph = aspheric_canonical(s.get("aspheric"), range(2, 15, 2))
+        for j in range(2, 9):
+            w(f"  PARM {j} {_num(asph.get(f'a{2 * (j - 1)}', 0.0))}")
+    if kind == "paraxial":
+        w(f"  PARM 1 {_num(s['focal_length'])}")
+
+
+def _warn_left_out(spec: dict, doe, binary2: bool, source) -> None:
+    """One :class:`LensFileWarning` naming what a .zmx file cannot store (sensor, description, a DOE that is not a
+    binary_2 model, or the DOE's grid and fabrication data)."""
+    lost = [k for k in ("sensor", "description") if spec.get(k)]
+    if doe is not None and not binary2:
+        lost.append("doe (only a binary_2 phase model becomes a BINARY_2 surface)")
+    elif doe is not None:
+        extra = [k for k in ("pitch", "shape", "design_wavelength", "material", "levels", "wrap") if doe.get(k)]
+        if doe.get("oversample", 1) != 1:
+            extra.append("oversample")
+        if extra:
+            lost.append(f"the DOE's {', '.join(extra)}")
+    if lost:
+        warnings.warn(LensFileWarning(f"{source}: .zmx files do not store {' and '.join(lost)}; "
+                                      "they are left out"), stacklevel=4)
+
+
+def _system_aperture_line(ap) -> str:
+    """The .zmx line of a spec's "system_aperture" (FLOA without one)."""
+    if not ap or ap.get("float_by_stop_size"):
+        return "FLOA"
+    for key, kinds in SYSTEM_APERTURE_KEYS.items():
+        for flag, kind in kinds.items():
+            if kind in ap:
+                return f"ENPD {_num(ap[kind])}" if key == "ENPD" else f"{key} {_num(ap[kind])} {flag}"
+    raise ValueError(f"unknown system aperture {ap!r}")  # validate_spec rejects it first
+
+
+def _write_binary2(w, number: int, doe: dict, last: dict, source) -> None:
+    """The DOE plane as a BINARY_2 surface (PARM 0 = diffraction order, XDAT 1 = N, XDAT 2 = normalisation
+    radius, XDAT 3.. = A_i in rad) between the last lens surface and the image."""
+    model = doe["phase_model"]
+    coeffs = [float(c) for c in model["coefficients"]]
+    if len(coeffs) > MAX_BINARY2_TERMS:
+        raise LensFileError(f"doe.phase_model: a .zmx BINARY_2 surface holds at most {MAX_BINARY2_TERMS} terms, got "
+                            f"{len(coeffs)}", source)
+    rest = float(last["thickness"]) - float(doe["distance"])
+    w(f"SURF {number}")
+    w("  TYPE BINARY_2")
+    w("  CURV 0.0")
+    w(f"  DISZ {_num(rest)}")
+    g = _glas_line(last.get("material", "air"))
+    if g:
+        w("  " + g)
+    size = doe.get("size")
+    if size is not None and size[0] == size[1]:
+        if doe.get("aperture", "square") == "circle":
+            w(f"  CLAP 0 {_num(0.5 * size[0])} 0")
+        else:
+            w(f"  SQAP {_num(0.5 * size[0])} {_num(0.5 * size[1])}")
+    w(f"  PARM 0 {_num(model.get('order', 1.0))}")
+    for j in range(1, 9):
+        w(f"  PARM {j} 0.0")
+    for j, v in enumerate([float(len(coeffs)), float(model["norm_radius"])] + coeffs, start=1):
+        w(f'  XDAT {j} {_num(v)} 0 0 1 0 0 ""')
+
+
+def _glas_line(m) -> str | None:
+    if m is None or (isinstance(m, str) and m.lower() == "air"):
+        return None
+    if isinstance(m, str) and m.lower() == "mirror":
+        return "GLAS MIRROR 0 0 1.5 40 0 0 0 0 0 0"
+    if isinstance(m, str):
+        return f"GLAS {m} 0 0 0 0 0 0 0 0 0 0"
+    if "index" in m:
+        return f"GLAS ___BLANK 1 0 {_num(m['index'])} 0 0 0 0 0 0 0"
+    if "model" in m:
+        return f"GLAS ___BLANK 1 0 {_num(m['model']['nd'])} {_num(m['model']['vd'])} 0 0 0 0 0 0"
+    return f"GLAS {m['name']} 0 0 0 0 0 0 0 0 0 0"
+
+
+def write_zmx(spec: dict, path, encoding: str = "utf-16") -> None:
+    """Write ``spec`` as a Zemax .zmx file that :func:`read_zmx` reads back to ``canonical_spec(spec)``.
+
+    ``encoding``: "utf-16" (default; UTF-16 LE with BOM, as OpticStudio writes) or "utf-8".
+    Lines end with CRLF. The sensor and description are not stored (a :class:`LensFileWarning` says so);
+    the image surface gets the sensor half-diagonal as its semi-diameter.
+    """
+    text = zmx_text(spec, str(path))
+    enc = encoding.lower().replace("_", "-")
+    if enc in ("utf-16", "utf-16-le", "utf16"):
+        data = b"\xff\xfe" + text.encode("utf-16-le")
+    elif enc in ("utf-8", "utf8"):
+        data = text.encode("utf-8")
+    else:
+        raise ValueError(f"encoding must be 'utf-16' or 'utf-8', got {encoding!r}")
+    Path(path).write_bytes(data)
