@@ -232,6 +232,10 @@ class HybridLens(nn.Module):
         Depends on the refractive lens only (not on the DOE phase): call ``.detach()`` on each to cache
         them when only the DOE is trained (see :meth:`psf` ``cache=``).
 
+        Accurate mode: the F×W fields are built together, their ray traces batched across fields
+        (:func:`raywave.hybrid.coherent.run_batched`; each field equals the one a call for that source alone
+        builds). Holds all F×W fields (and, with autograd, their traces' graph) at once: a map limits F per call.
+
         Args:
             fields: (2,) or (F, 2) field points in the lens's field type (degrees for angles).
             wavelengths: µm, scalar or (W,) (default: the lens's primary wavelength).
