@@ -15,6 +15,9 @@ Wall time (median) and CPU time (``process_time``, all threads: less sensitive t
 machine). Prints one JSON object (and writes it with ``-o``).
 
     python benchmarks/imaging.py [--threads 2] [--quick] [-o imaging.json]
+
+``--per-psf`` (issue 17, the batched engine): only the PSF-map cost per PSF at 1, 10, 100 and 300 PSFs
+(1×1×1λ, 2×5×1λ, 10×10×1λ and the 10×10×3λ map; no autograd, ks = 64), each in its own process.
 """
 
 from __future__ import annotations
@@ -71,6 +74,26 @@ def map_case(n: int, threads: int, cached: bool) -> dict:
         out["peak_mb"] = status_mb("VmHWM") - base
     torch.save(m, f"/tmp/raywave_bench_map_{n}.pt")
     return out
+
+
+def psfs_case(n: int, m: int, n_wl: int, threads: int) -> dict:
+    """Time per PSF of an n×m map at the first ``n_wl`` of the R, G, B wavelengths (after a 1-PSF warm-up)."""
+    import warnings
+
+    import torch
+
+    from raywave.imaging import psf_map
+
+    torch.set_num_threads(threads)
+    hl = _lens()
+    warnings.simplefilter("ignore")
+    psf_map(hl, (1, 1), wavelengths=WAVELENGTHS[:1], ks=KS)  # warm-up (allocator, first-call costs)
+    t0, c0 = time.perf_counter(), time.process_time()
+    psf_map(hl, (n, m), wavelengths=WAVELENGTHS[:n_wl], ks=KS)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    k = n * m * n_wl
+    return {"case": "psfs", "grid": [n, m], "wavelengths": list(WAVELENGTHS[:n_wl]), "psfs": k, "seconds": wall,
+            "seconds_per_psf": wall / k, "cpu_seconds_per_psf": cpu / k}
 
 
 def render_case(n: int, threads: int, repeat: int, training: bool) -> dict:
@@ -134,11 +157,15 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2, help="timed repetitions per render case (median reported)")
     ap.add_argument("--quick", action="store_true", help="3×3 and 5×5 maps only")
     ap.add_argument("-o", "--output", default=None)
+    ap.add_argument("--per-psf", action="store_true", help="only the map's time per PSF at 1/10/100/300 PSFs")
+    ap.add_argument("--max-psfs", type=int, default=300, help="--per-psf: skip the cases with more PSFs")
     ap.add_argument("--case", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.case:
         kind, *rest = args.case.split(",")
-        if kind == "map":
+        if kind == "psfs":
+            out = psfs_case(int(rest[0]), int(rest[1]), int(rest[2]), args.threads)
+        elif kind == "map":
             out = map_case(int(rest[0]), args.threads, rest[1] == "1")
         else:
             out = render_case(int(rest[0]), args.threads, int(rest[1]), kind == "train")
@@ -146,6 +173,21 @@ def main() -> None:
         return
 
     import torch
+
+    if args.per_psf:
+        cases = [c for c in ((1, 1, 1), (2, 5, 1), (10, 10, 1), (10, 10, 3)) if c[0] * c[1] * c[2] <= args.max_psfs]
+        runs = [_run(["psfs", *c], args.threads) for c in cases]
+        summary = {"benchmark": "imaging_per_psf", "lens": "hybrid_asphere", "ks": KS, "threads": args.threads,
+                   "torch": torch.__version__, "python": platform.python_version(), "machine": platform.machine(),
+                   "runs": runs,
+                   "seconds_per_psf": {str(r["psfs"]): r["seconds_per_psf"] for r in runs},
+                   "cpu_seconds_per_psf": {str(r["psfs"]): r["cpu_seconds_per_psf"] for r in runs}}
+        text = json.dumps(summary, indent=2)
+        print(text)
+        if args.output:
+            with open(args.output, "w") as fh:
+                fh.write(text + "\n")
+        return
 
     grids = (3, 5) if args.quick else (3, 5, 10)
     maps = [_run(["map", n, 0], args.threads) for n in grids]

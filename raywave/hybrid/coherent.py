@@ -45,7 +45,8 @@ from raywave.utils.safe import safe_sqrt
 from raywave.wave.field import edge_coverage, splat_bilinear, upsample_nodes
 from raywave.wave.propagation import propagate_window
 
-__all__ = ["DOEField", "SamplingWarning", "accurate_field", "chief_rays", "doe_clipping", "exit_pupil_field",
+__all__ = ["DOEField", "SamplingWarning", "accurate_field", "chief_rays", "doe_clipping", "doe_clippings",
+           "exit_pupil_field", "footprints",
            "faithful_field"]
 
 _NEWTON_TOL = 1e-10  # mm on the DOE plane
@@ -150,10 +151,20 @@ def chief_rays(lens, fields, wavelengths, depth, z_doe: float, z_sensor: float):
 
 
 def _footprint(lens, field, wavelength, depth, z_doe: float, n_grid: int = 15, n_rim: int = 72, virtual: bool = False):
-    """Lit bounding box ``(xmin, xmax, ymin, ymax)`` on the DOE plane (None if every ray is vignetted).
+    """Lit bounding box ``(xmin, xmax, ymin, ymax)`` on the DOE plane (None if every ray is vignetted) of one
+    field (2,) at one wavelength (1,) µm (:func:`footprints` of a 1×1 batch).
 
     ``virtual``: the plane may lie inside the lens (a virtual plane reached by extending the rays that leave
     the last surface backwards along straight lines, e.g. the exit pupil)."""
+    return footprints(lens, torch.as_tensor(field).reshape(1, 2), wavelength, depth, z_doe, n_grid, n_rim,
+                      virtual)[0][0]
+
+
+def footprints(lens, fields, wavelengths, depth, z_doe: float, n_grid: int = 15, n_rim: int = 72,
+               virtual: bool = False) -> list:
+    """Lit bounding boxes ``(xmin, xmax, ymin, ymax)`` (mm) on the plane ``z_doe`` of fields (F, 2) at wavelengths
+    (W,) µm, a nested list ``[F][W]`` (None where every ray is vignetted), from one trace of all F×W beams (~250
+    rays each: the rim of the pupil and a grid inside, every ray aimed at its stop point). See :func:`_footprint`."""
     t = torch.linspace(0, 2 * math.pi, n_rim + 1, dtype=torch.float64)[:-1]
     g = torch.linspace(-1, 1, n_grid, dtype=torch.float64)
     gx, gy = torch.meshgrid(g, g, indexing="xy")
@@ -162,17 +173,19 @@ def _footprint(lens, field, wavelength, depth, z_doe: float, n_grid: int = 15, n
     py = torch.cat([torch.sin(t), gy[inside]])
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the caller reports vignetting once
-        rays = point_source_rays(lens, field, wavelength, pupil=(px, py), aim="full", depth=depth)
+        rays = point_source_rays(lens, fields, wavelengths, pupil=(px, py), aim="full", depth=depth)
         out = lens.trace(rays)
         if not virtual:
             _check_beyond_last_surface(out, z_doe)
         n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(z_doe, n)
-    v = at.valid.reshape(-1)
-    if not bool(v.any()):
-        return None
-    xy = at.o.reshape(-1, 3)[v, :2]
-    return float(xy[:, 0].min()), float(xy[:, 0].max()), float(xy[:, 1].min()), float(xy[:, 1].max())
+        valid, x, y = at.valid, at.o[..., 0], at.o[..., 1]
+        inf = torch.full_like(x, math.inf)
+        box = torch.stack([torch.where(valid, x, inf).amin(-1), torch.where(valid, x, -inf).amax(-1),
+                           torch.where(valid, y, inf).amin(-1), torch.where(valid, y, -inf).amax(-1)], -1).cpu()
+        lit = valid.any(-1).cpu()
+    return [[tuple(float(v) for v in box[i, j]) if bool(lit[i, j]) else None for j in range(box.shape[1])]
+            for i in range(box.shape[0])]
 
 
 def inside_doe(doe, xy: torch.Tensor) -> torch.Tensor:
@@ -195,23 +208,34 @@ def doe_clipping(lens, doe, field, wavelength, depth, z_doe: float, n_grid: int 
     ``(0, 0)`` if every ray is vignetted. Cheap (one batched trace of ~0.8·n_grid² rays); a diagnostic,
     not differentiable.
 
-    Args: field (2,) in the lens's field type, wavelength (1,) µm tensor, depth (mm or None)."""
+    Args: field (2,) in the lens's field type, wavelength (1,) µm tensor, depth (mm or None). Many fields and
+    wavelengths at once: :func:`doe_clippings`."""
+    return doe_clippings(lens, doe, torch.as_tensor(field).reshape(1, 2), wavelength, depth, z_doe, n_grid)[0][0]
+
+
+def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: int = 48) -> list:
+    """:func:`doe_clipping` of fields (F, 2) at wavelengths (W,) µm from one trace of all F×W beams: a nested list
+    ``[F][W]`` of ``(blocked, half)``. (The rays' aiming iterates over the whole batch, so the values can differ
+    from single calls' in the last digits of the aim: ~1e-12 mm on the stop.)"""
     g = (torch.arange(n_grid, dtype=torch.float64) + 0.5) / n_grid * 2 - 1
     gx, gy = torch.meshgrid(g, g, indexing="xy")
     inside = gx**2 + gy**2 <= 1
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the caller reports vignetting once
-        rays = point_source_rays(lens, field, wavelength, pupil=(gx[inside], gy[inside]), aim="full", depth=depth)
+        rays = point_source_rays(lens, fields, wavelengths, pupil=(gx[inside], gy[inside]), aim="full", depth=depth)
         out = lens.trace(rays)
         n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(z_doe, n)
-        v = at.valid.reshape(-1)
-        if not bool(v.any()):
-            return 0.0, 0.0
-        xy = at.o.reshape(-1, 3)[v, :2]
-        w = source_weight(lens, rays, depth).reshape(-1)[v]
-        blocked = float(w[~inside_doe(doe, xy)].sum() / w.sum().clamp_min(1e-300))
-        return blocked, float(xy.abs().max())
+        v = at.valid
+        xy = at.o[..., :2]
+        w = torch.where(v, source_weight(lens, rays, depth).expand_as(v), torch.zeros((), dtype=xy.dtype,
+                                                                                        device=xy.device))
+        blocked = (w * ~inside_doe(doe, xy)).sum(-1) / w.sum(-1).clamp_min(1e-300)
+        half = torch.where(v[..., None], xy.abs(), torch.zeros((), dtype=xy.dtype, device=xy.device)).amax((-1, -2))
+        lit = v.any(-1)
+        blocked, half, lit = blocked.cpu(), half.cpu(), lit.cpu()
+    return [[(float(blocked[i, j]), float(half[i, j])) if bool(lit[i, j]) else (0.0, 0.0)
+             for j in range(v.shape[1])] for i in range(v.shape[0])]
 
 
 def _sim_grid(doe, oversample: int):
@@ -299,13 +323,117 @@ def _trace_uv(lens, uv, field, wavelength, depth, z_doe, field_type, record=Fals
     return rays, out, at, rec
 
 
+@dataclass
+class _TraceRequest:
+    """One :func:`_trace_uv` call that a field construction (a generator, see :func:`run_batched`) asks for:
+    rays through the entrance-plane points ``uv`` (N, 2) mm of field (2,) at wavelength (1,) µm, traced to the
+    plane ``z_doe`` mm. ``grad``: traced with autograd (when the caller has it on); else without."""
+
+    lens: object
+    uv: torch.Tensor
+    field: torch.Tensor
+    wavelength: torch.Tensor
+    depth: object
+    z_doe: float
+    field_type: str
+    record: bool
+    ep_z: float | None
+    grad: bool
+
+    def run(self):
+        with torch.set_grad_enabled(self.grad and torch.is_grad_enabled()):
+            return _trace_uv(self.lens, self.uv, self.field, self.wavelength, self.depth, self.z_doe, self.field_type,
+                             record=self.record, ep_z=self.ep_z)
+
+    def group_key(self) -> tuple:
+        d = self.depth
+        return (id(self.lens), float(self.wavelength.reshape(-1)[0]), float(self.z_doe), self.field_type, self.record,
+                self.ep_z, self.grad, None if d is None else float(d), self.uv.device)
+
+
+def _slice_bundle(b, g: int, n: int):
+    """Request ``g``'s first ``n`` rays of a batched bundle (G, 1, N_max), as a (1, 1, n) bundle."""
+    wl = b.wavelength if b.wavelength.ndim < 3 or b.wavelength.shape[0] == 1 else b.wavelength[g:g + 1]
+    return type(b)(b.o[g:g + 1, :, :n], b.d[g:g + 1, :, :n], wl, b.valid[g:g + 1, :, :n], b.opl[g:g + 1, :, :n])
+
+
+def _trace_group(reqs: list) -> list:
+    """The :func:`_trace_uv` results of requests that share lens, wavelength, plane, depth and mode, from one batched
+    trace: the rays of request g are row g of a (G, 1, N_max) bundle (the shorter requests padded with copies of
+    their first ray, traced and dropped). Every ray is traced on its own (elementwise), so each request gets the
+    values its own call would give (up to the last-bit rounding of vectorised transcendental functions)."""
+    if len(reqs) == 1:
+        return [reqs[0].run()]
+    r0 = reqs[0]
+    sizes = [r.uv.shape[0] for r in reqs]
+    n_max = max(sizes)
+    uv = torch.stack([torch.cat([r.uv, r.uv[:1].expand(n_max - r.uv.shape[0], 2)]) if r.uv.shape[0] < n_max
+                      else r.uv for r in reqs])[:, None]
+    fields = torch.stack([r.field.reshape(2) for r in reqs])
+    with torch.set_grad_enabled(r0.grad and torch.is_grad_enabled()):
+        rays = rays_through(r0.lens, uv, fields, r0.field_type, r0.wavelength.reshape(1), depth=r0.depth, ep_z=r0.ep_z)
+        res = r0.lens.trace(rays, apertures=False, record=r0.record)
+        out, rec = res if r0.record else (res, None)
+        n = r0.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(r0.z_doe, n)
+    results = []
+    for g, k in enumerate(sizes):
+        rec_g = None
+        if rec is not None:
+            rec_g = type(rec)([tuple(c[g:g + 1, :, :k] for c in pts) for pts in rec.points],
+                              [v[g:g + 1, :, :k] for v in rec.valid])
+        results.append((_slice_bundle(rays, g, k), _slice_bundle(out, g, k), _slice_bundle(at, g, k), rec_g))
+    return results
+
+
+def run_serial(gen):
+    """Run one field construction (a generator of :class:`_TraceRequest`, see :func:`run_batched`) with one trace
+    per request; returns its result."""
+    try:
+        req = next(gen)
+        while True:
+            req = gen.send(req.run())
+    except StopIteration as stop:
+        return stop.value
+
+
+def run_batched(gens: list) -> list:
+    """Run several field constructions (generators that yield :class:`_TraceRequest` and return a
+    :class:`DOEField`) together: in every round, the pending trace requests of all constructions that share a lens,
+    wavelength, plane and mode are traced as one batch (:func:`_trace_group`: one ray trace for all fields instead
+    of one per field, large enough for the elementwise kernels to use every thread). Each construction sees the
+    results its own calls would give, so the fields equal :func:`run_serial`'s. Returns their results in order."""
+    results = [None] * len(gens)
+    pending = {}
+    for i, g in enumerate(gens):
+        try:
+            pending[i] = next(g)
+        except StopIteration as stop:
+            results[i] = stop.value
+    while pending:
+        groups: dict = {}
+        for i, req in pending.items():
+            groups.setdefault(req.group_key(), []).append(i)
+        answers = {}
+        for idx in groups.values():
+            for i, res in zip(idx, _trace_group([pending[i] for i in idx])):
+                answers[i] = res
+        pending = {}
+        for i, res in answers.items():
+            try:
+                pending[i] = gens[i].send(res)
+            except StopIteration as stop:
+                results[i] = stop.value
+    return results
+
+
 def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z):
     """Landing points X (N, 2), validity (N,) and ∂X/∂uv (N, 2, 2) (forward differences, step h), from one
-    batched trace of the 3N rays uv, uv + h·e_u, uv + h·e_v."""
+    batched trace of the 3N rays uv, uv + h·e_u, uv + h·e_v (a generator: yields that trace's request)."""
     n = uv.shape[0]
     du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
     allv = torch.cat([uv, uv + du[0], uv + du[1]])
-    _, _, at, _ = _trace_uv(lens, allv, field, wl, depth, z_doe, field_type, ep_z=ep_z)
+    _, _, at, _ = yield _TraceRequest(lens, allv, field, wl, depth, z_doe, field_type, False, ep_z, False)
     x = at.o[0, 0, :, :2]
     x0, xu, xv = x[:n], x[n:2 * n], x[2 * n:]
     jac = torch.stack([(xu - x0) / h, (xv - x0) / h], -1)
@@ -327,21 +455,22 @@ def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, f
 
     Every iteration is one batched trace (the rays and their two finite-difference neighbours). Steps longer
     than ``max_step`` (mm on the entrance plane) are shortened, which keeps the iteration inside the traceable
-    region. Returns (uv, converged (N,), Jacobian at the last iterate (N, 2, 2)); all detached."""
-    with torch.no_grad():
-        step0, _ = _solve2(jac_c.expand(targets.shape[0], 2, 2), targets - x_c)
-        uv = uv_c + step0
-        for _ in range(_NEWTON_ITERS):
-            x, valid, jac = _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z)
-            err = x - targets
-            conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL)
-            if bool((conv | ~valid).all()):
-                break
-            step, ok = _solve2(jac, err)
-            big = step.abs().amax(-1, keepdim=True)
-            step = torch.where(big > max_step, step * (max_step / big), step)
-            uv = torch.where((valid & ok & ~conv)[:, None], uv - step, uv)
-        return uv, conv, jac
+    region. Converged rays stay where they are, so each ray's iterates do not depend on the others. Returns (uv,
+    converged (N,), Jacobian at the last iterate (N, 2, 2)); all detached (a generator: yields its traces)."""
+    targets, uv_c, x_c, jac_c = (t.detach() for t in (targets, uv_c, x_c, jac_c))
+    step0, _ = _solve2(jac_c.expand(targets.shape[0], 2, 2), targets - x_c)
+    uv = uv_c + step0
+    for _ in range(_NEWTON_ITERS):
+        x, valid, jac = yield from _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z)
+        err = x - targets
+        conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL)
+        if bool((conv | ~valid).all()):
+            break
+        step, ok = _solve2(jac, err)
+        big = step.abs().amax(-1, keepdim=True)
+        step = torch.where(big > max_step, step * (max_step / big), step)
+        uv = torch.where((valid & ok & ~conv)[:, None], uv - step, uv)
+    return uv, conv, jac
 
 
 def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, grad_xy: torch.Tensor | None = None):
@@ -505,9 +634,27 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         ripple_zones: with ``stop_plane``: Fresnel zones of the edge's ripples kept outside the geometric
             footprint (default :data:`RIPPLE_ZONES`).
     """
+    return run_serial(accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
+                                           chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
+                                           check=check, chief_uv=chief_uv, virtual=virtual, stop_plane=stop_plane,
+                                           ripple_zones=ripple_zones))
+
+
+def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
+                   nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
+                   chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
+                   ripple_zones: float | None = None, bbox=None):
+    """:func:`accurate_field` as a generator: yields the :class:`_TraceRequest` of every ray trace it needs and
+    receives its result, returns the :class:`DOEField` (run it with :func:`run_serial`, or many together with
+    :func:`run_batched`: one batched trace per round for all of them). ``bbox``: the lit footprint on the plane
+    (:func:`footprints`; ``False``: none, every ray vignetted) when the caller traced it already (None: traced
+    here)."""
     field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
-    bbox = _footprint(lens, field, wl, depth, z_doe, virtual=virtual)
+    if bbox is False:  # given: every ray is vignetted
+        bbox = None
+    elif bbox is None:
+        bbox = _footprint(lens, field, wl, depth, z_doe, virtual=virtual)
     if bbox is None:
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, 0, "accurate")
 
@@ -540,19 +687,18 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device).reshape(1, 2)
     r_ep = 0.5 * float(lens.paraxial().epd)
     h = 1e-6 * max(r_ep, 1e-3)
-    with torch.no_grad():
-        x_c, _, jac_c = _landing_and_jacobian(lens, uv_c, field, wl, depth, z_doe, field_type, h, ep_z)
-    uv, conv, jac = _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h,
+    x_c, _, jac_c = yield from _landing_and_jacobian(lens, uv_c, field, wl, depth, z_doe, field_type, h, ep_z)
+    uv, conv, jac = yield from _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h,
                                      max_step=0.25 * r_ep, ep_z=ep_z)
 
     # ---- the differentiable trace of the node rays. The landing point of a node's ray must stay on its node
     # when the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals
     # uv in value and carries d(uv)/dθ = −J⁻¹ ∂X/∂θ, so everything traced at uv_lin (path, directions, aperture
     # slacks, ray density) has its exact first-order derivative with respect to the lens parameters.
-    _, _, at0, _ = _trace_uv(lens, uv, field, wl, depth, z_doe, field_type, ep_z=ep_z)
+    _, _, at0, _ = yield _TraceRequest(lens, uv, field, wl, depth, z_doe, field_type, False, ep_z, True)
     jinv_step, _ = _solve2(jac, (at0.o[0, 0, :, :2] - targets))
     uv_lin = uv - jinv_step
-    rays, out, at, rec = _trace_uv(lens, uv_lin, field, wl, depth, z_doe, field_type, record=True, ep_z=ep_z)
+    rays, out, at, rec = yield _TraceRequest(lens, uv_lin, field, wl, depth, z_doe, field_type, True, ep_z, True)
     X = at.o[0, 0, :, :2]
     dvec = at.d[0, 0]
     good = conv & at.valid[0, 0]
@@ -715,6 +861,17 @@ def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_
     ``method="asm"`` raises ValueError when the beam on the exit-pupil plane spans more than
     :data:`MAX_XP_SAMPLES` simulation samples (a large beam: the field there would not fit in memory).
     ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel"."""
+    return run_serial(exit_pupil_field_steps(lens, doe, field, wavelength, depth, z_xp, z_doe, z_sensor, chief_xp,
+                                             chief_doe, chief_sensor, nodes=nodes, oversample=oversample,
+                                             field_type=field_type, check=check, chief_uv=chief_uv,
+                                             ripple_zones=ripple_zones, method=method))
+
+
+def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: float, z_doe: float, z_sensor: float,
+                     chief_xp, chief_doe, chief_sensor, nodes: int = 64, oversample: int = 1,
+                     field_type: str | None = None, check: bool = True, chief_uv=None,
+                     ripple_zones: float | None = None, method: str = "auto") -> DOEField:
+    """:func:`exit_pupil_field` as a generator of trace requests (see :func:`accurate_field_steps`)."""
     ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
     xb = None
@@ -726,9 +883,10 @@ def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_
         big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
         method = "fresnel" if big else "asm"
     if method == "fresnel":
-        fd = accurate_field(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe, chief_sensor, nodes=nodes,
-                            oversample=oversample, field_type=field_type, check=check, chief_uv=chief_uv,
-                            stop_plane=z_xp, ripple_zones=ripple_zones)
+        fd = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
+                                             chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
+                                             check=check, chief_uv=chief_uv, stop_plane=z_xp,
+                                             ripple_zones=ripple_zones)
         return replace(fd, stop_edge="exit_pupil")
     if method != "asm":
         raise ValueError(f"method must be 'auto', 'fresnel' or 'asm', got {method!r}")
@@ -737,8 +895,9 @@ def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_
                          f"exit-pupil plane z = {z_xp:.4g} mm, over {MAX_XP_SAMPLES} samples of {p_sim * 1e3:g} µm "
                          "a side, too large for the exact angular-spectrum construction: use the Fresnel step "
                          "(HybridLens(edge_step='fresnel'), the default) or stop_edge='doe'")
-    fx = accurate_field(lens, doe, field, wavelength, depth, z_xp, z_sensor, chief_xp, chief_sensor, nodes=nodes,
-                        oversample=oversample, field_type=field_type, check=check, chief_uv=chief_uv, virtual=True)
+    fx = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_xp, z_sensor, chief_xp, chief_sensor,
+                                         nodes=nodes, oversample=oversample, field_type=field_type, check=check,
+                                         chief_uv=chief_uv, virtual=True)
     _, fld, wl, n, (p, x0, y0, sy, sx), _, center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
     carrier = fx.carrier  # the chief ray's direction: the same on both planes

@@ -30,7 +30,8 @@ import torch
 from torch import nn
 
 from raywave.doe import DOE
-from raywave.hybrid.coherent import DOEField, accurate_field, chief_rays, doe_clipping, exit_pupil_field, faithful_field
+from raywave.hybrid.coherent import (DOEField, accurate_field_steps, chief_rays, doe_clippings, exit_pupil_field_steps,
+                                     faithful_field, footprints, run_batched)
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
 from raywave.utils.safe import safe_div
@@ -63,6 +64,11 @@ def _edge_taper(shape, width: int, device) -> torch.Tensor:
             w[:width], w[-width:] = t, t.flip(0)
         return w
     return ramp(shape[0])[:, None] * ramp(shape[1])[None, :]
+
+
+def _dark(fd: DOEField) -> bool:
+    """No light in the field (its power is 0): every envelope sample is 0 (a cheap test, no |U|² sum)."""
+    return not bool((fd.envelope.detach() != 0).any())
 
 
 class SensorCropWarning(UserWarning):
@@ -226,6 +232,10 @@ class HybridLens(nn.Module):
         Depends on the refractive lens only (not on the DOE phase): call ``.detach()`` on each to cache
         them when only the DOE is trained (see :meth:`psf` ``cache=``).
 
+        Accurate mode: the F×W fields are built together, their ray traces batched across fields
+        (:func:`raywave.hybrid.coherent.run_batched`; each field equals the one a call for that source alone
+        builds). Holds all F×W fields (and, with autograd, their traces' graph) at once: a map limits F per call.
+
         Args:
             fields: (2,) or (F, 2) field points in the lens's field type (degrees for angles).
             wavelengths: µm, scalar or (W,) (default: the lens's primary wavelength).
@@ -258,29 +268,46 @@ class HybridLens(nn.Module):
                 warnings.simplefilter("ignore", VignettingWarning)
                 cx = [chief_rays(self.lens, f, torch.tensor([wl], dtype=torch.float64), depth, zx, z_sen)[0][:, 0]
                       for wl, zx in zip(wls, z_xps)]
+        nf, nw = f.shape[0], len(wls)
+        wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
+        if mode == "accurate":
+            # every field and wavelength at once: the footprints in one trace, then the field constructions
+            # together, their ray traces batched per round (raywave.hybrid.coherent.run_batched)
+            boxes = None if xp else footprints(self.lens, f, wls_t, depth, z_doe)
+            gens = []
+            for i in range(nf):
+                for j, wl in enumerate(wls):
+                    args = (self.lens, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j])
+                    if xp:
+                        gens.append(exit_pupil_field_steps(
+                            self.lens, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i], cd[i, j], cs[i, j],
+                            nodes=rays or 64, oversample=self.oversample, check=check, chief_uv=cuv[i, j],
+                            method=self.edge_step))
+                    else:
+                        box = boxes[i][j]
+                        gens.append(accurate_field_steps(*args, nodes=rays or 64, oversample=self.oversample,
+                                                         check=check, chief_uv=cuv[i, j],
+                                                         bbox=False if box is None else box))
+            built = run_batched(gens)
+        else:
+            built = [faithful_field(self.lens, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j],
+                                    n_rays=rays or 100_000, oversample=self.oversample, full_grid=full_grid,
+                                    generator=generator, check=check, dtype=trace_dtype)
+                     for i in range(nf) for j, wl in enumerate(wls)]
+        # the DOE-aperture diagnostic of every accurate field, from one trace (the faithful mode measures it
+        # from its own rays)
+        clips = doe_clippings(self.lens, self.doe, f, wls_t, depth, z_doe) if mode == "accurate" else None
         out = []
-        for i in range(f.shape[0]):
+        for i in range(nf):
             row = []
             for j, wl in enumerate(wls):
-                args = (self.lens, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j])
-                if xp:
-                    fd = exit_pupil_field(self.lens, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i],
-                                          cd[i, j], cs[i, j], nodes=rays or 64, oversample=self.oversample,
-                                          check=check, chief_uv=cuv[i, j], method=self.edge_step)
-                elif mode == "accurate":
-                    fd = accurate_field(*args, nodes=rays or 64, oversample=self.oversample, check=check,
-                                        chief_uv=cuv[i, j])
-                else:
-                    fd = faithful_field(*args, n_rays=rays or 100_000, oversample=self.oversample,
-                                        full_grid=full_grid, generator=generator, check=check, dtype=trace_dtype)
-                if float(fd.power.detach()) == 0.0:
+                fd = built[i * nw + j]
+                if _dark(fd):
                     warnings.warn(f"field {f[i].tolist()} at {wl:g} µm: no light reaches the DOE (every ray is "
                                   "vignetted or misses the DOE aperture); its PSF is all zeros",
                                   VignettingWarning, stacklevel=2)
-                if fd.mode == "accurate":  # the faithful mode measures it from its own rays
-                    wl_t = torch.tensor([wl], dtype=torch.float64, device=self.lens.device)
-                    clipped, half = doe_clipping(self.lens, self.doe, f[i], wl_t, depth, z_doe)
-                    fd.clipped, fd.beam_half = clipped, half
+                if clips is not None:
+                    fd.clipped, fd.beam_half = clips[i][j]
                 self._warn_clipped(fd, f[i])
                 d_c = cd[i, j].d.detach()
                 fd.chief_tan = (float(d_c[0] / d_c[2]), float(d_c[1] / d_c[2]))

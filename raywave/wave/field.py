@@ -122,5 +122,8 @@ def upsampled_intensity(u: torch.Tensor, factor: int, window: torch.Tensor | Non
     if window is not None:
         mod = mod * window
     spec = torch.fft.fft2(u * mod.to(u.dtype))
-    up = torch.fft.ifft2(spec, s=(q * ny, q * nx))
-    return torch.view_as_real(up).square().sum(-1)
+    # ifft2(spec, s=(q·Ny, q·Nx)) one axis at a time: the first pass transforms only the Ny rows of the spectrum
+    # (the zero padding's rows stay zero through it)
+    up = torch.fft.ifft(torch.fft.ifft(spec, n=q * nx, dim=-1), n=q * ny, dim=-2)
+    r = torch.view_as_real(up)
+    return r[..., 0].square() + r[..., 1].square()

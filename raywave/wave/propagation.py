@@ -406,7 +406,8 @@ def propagate_window(
                                    margin, guard, u.device, weight_derivative=dz is not None or shift is not None)
     h, (my, mx) = transfer[:2]
     rel = transfer[2] if len(transfer) > 2 else None
-    spec = torch.fft.fft2(u, s=(my, mx))
+    # fft2(u, s=(my, mx)) one axis at a time: the first pass transforms only the Ny_in rows that hold data
+    spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1), n=my, dim=-2)
     h = h.to(u.dtype)
     if shift is not None or dz is not None:
         px, py = _pair(pitch, "pitch")
@@ -417,8 +418,9 @@ def propagate_window(
         dz = _dz_tensor(dz, u.device) if dz is not None else zero
         w = _axial_frequency(fx, fy, wavelength, n, carrier) if dz.requires_grad or float(dz) != 0 else None
         h = _Perturbed.apply(h, sx, sy, dz, fx, fy, w, rel)
-    out = torch.fft.ifft2(spec * h)
-    return out[..., :noy, :nox]
+    # ifft2(spec·h)[..., :Ny_out, :Nx_out] one axis at a time: the second pass transforms only the Ny_out rows kept
+    out = torch.fft.ifft(torch.fft.ifft(spec * h, dim=-2)[..., :noy, :], dim=-1)
+    return out[..., :nox]
 
 
 class _Perturbed(torch.autograd.Function):
