@@ -126,7 +126,7 @@ def random_hybrid(seed: int, max_tries: int = 50, sampled: bool = False) -> Rand
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             ext = beam_half_extent(lens, z, fields=fields, wavelengths=[wl])
-        if ext is None:
+        if ext is None or not max(ext) > 0:  # nothing (or a single ray) reaches the DOE plane: no beam to size
             continue
         size = 2.4 * max(ext)
         if rng.random() < 0.5:

@@ -72,3 +72,24 @@ def test_wavelength_outside_glass_range_warns_during_trace():
     lens = load_lens(bundled_lens_path("singlet"))
     with pytest.warns(WavelengthRangeWarning, match="N-BK7"):
         point_source_rays(lens, (0.0, 0.0), 0.25, pupil=("grid", 3))
+
+
+def test_a_doe_grid_beyond_any_size_is_refused_naming_the_file(tmp_path):
+    """The slow fuzz run found a mutated .zmx whose beam (a 1e307 mm semi-diameter) sized the default DOE at
+    4.7e307 mm: an OverflowError in the pixel count. Any DOE size that is no grid is a ValueError naming the file."""
+    from raywave.assembly.build import _pixels, load_hybrid
+
+    with pytest.raises(ValueError, match=r"case\.zmx: the DOE would span 1e\+308 mm"):
+        _pixels(1e308, 1e-3, "case.zmx")
+    with pytest.raises(ValueError, match="inf pixels"):
+        _pixels(float("inf"), 1e-3)
+    p = _write(tmp_path, json.loads(bundled_lens_path("singlet").read_text()), "huge.json")
+    with pytest.raises(ValueError, match=r"huge\.json: the DOE would span"):
+        load_hybrid(p, doe_size=(1e300, 1e300), doe_pitch=1e-3)
+
+
+def test_cli_psf_with_no_light_prints_only_the_error(capsys):
+    """The field's VignettingWarning repeated the error: an error exit prints one line (slow fuzz run)."""
+    assert main(["psf", "singlet", "--field", "0", "15", "--doe-size", "0.05", "--ks", "8", "--rays", "8"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("raywave: error: no light reaches the sensor"), err

@@ -60,9 +60,19 @@ _MIN_PIXELS = 16
 _PIXEL_TOL = 1e-6
 
 
-def _pixels(length: float, pitch: float) -> int:
-    """Whole pixels covering ``length`` mm (rounded up, tolerating float noise)."""
-    return max(1, math.ceil(length / pitch - _PIXEL_TOL))
+#: more DOE pixels on a side than this is no grid at all (the memory check refuses far smaller ones)
+_MAX_PIXELS_PER_SIDE = 2**31
+
+
+def _pixels(length: float, pitch: float, source: str = "the lens") -> int:
+    """Whole pixels covering ``length`` mm (rounded up, tolerating float noise); a ValueError naming ``source``
+    when the count is not finite or beyond any grid (e.g. a beam sized by a 1e308 mm semi-diameter)."""
+    n = length / pitch
+    if not (math.isfinite(n) and n <= _MAX_PIXELS_PER_SIDE):
+        raise ValueError(f"{source}: the DOE would span {length:g} mm = {n:g} pixels of {pitch:g} mm, not a usable "
+                         "grid: check the lens's apertures and semi-diameters, or give the DOE a size "
+                         "(doe_size; raywave psf: --doe-size MM [MM])")
+    return max(1, math.ceil(n - _PIXEL_TOL))
 
 
 def _slopes(lens, z: float, fields, wavelengths, depth):
@@ -199,17 +209,17 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
                                  f"{want[0]:g} × {want[1]:g} mm) fixes the DOE size; a size of {size[0]:g} × "
                                  f"{size[1]:g} mm does not apply")
     elif doe_size is not None:
-        shape = (_pixels(size[1], pitch), _pixels(size[0], pitch))
+        shape = (_pixels(size[1], pitch, source), _pixels(size[0], pitch, source))
     elif from_file and data.shape is not None and (data.size is None or doe_pitch is None):
         shape = data.shape
     elif from_file and data.size is not None:
-        shape = (_pixels(data.size[1], pitch), _pixels(data.size[0], pitch))
+        shape = (_pixels(data.size[1], pitch, source), _pixels(data.size[0], pitch, source))
     elif from_file:
         raise ValueError(f"{source}: the DOE has no size (the file gives neither 'size' nor 'shape', nor a .zmx "
                          "CLAP / SQAP): pass doe_size (raywave psf: --doe-size MM [MM])")
     else:
         w, h = default_doe_size(lens, distance, fields, wavelengths, depth)
-        shape = (max(_pixels(h, pitch), _MIN_PIXELS), max(_pixels(w, pitch), _MIN_PIXELS))
+        shape = (max(_pixels(h, pitch, source), _MIN_PIXELS), max(_pixels(w, pitch, source), _MIN_PIXELS))
 
     aperture = data.aperture if from_file else "square"
     model = data.phase_model if from_file else None

@@ -239,17 +239,17 @@ def cmd_psf(args) -> int:
     a = parse_psf_args(args)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        try:
-            result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
-                                 a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"],
-                                 a["doe_levels"], a["doe_wavelength"], a["doe_material"], a["stop_edge"])
-        finally:
-            seen = set()
-            for w in caught:
-                msg = " ".join(str(w.message).split())
-                if msg not in seen and not issubclass(w.category, DeprecationWarning):
-                    seen.add(msg)
-                    print(f"raywave: warning: {msg}", file=sys.stderr)
+        # an error leaves its warnings unprinted: the error names the problem in one line (e.g. a vignetted
+        # field's VignettingWarning would repeat "no light reaches the sensor")
+        result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
+                             a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"],
+                             a["doe_levels"], a["doe_wavelength"], a["doe_material"], a["stop_edge"])
+    seen = set()
+    for w in caught:
+        msg = " ".join(str(w.message).split())
+        if msg not in seen and not issubclass(w.category, DeprecationWarning):
+            seen.add(msg)
+            print(f"raywave: warning: {msg}", file=sys.stderr)
     s = summary(result, str(args.lens))
     wrote = []
     if args.output is not None:
