@@ -184,38 +184,37 @@ def cmd_compare(args) -> int:
     out_dir = Path(args.out)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        try:
-            wl_list = None if a["wavelength"] is None else [a["wavelength"]]
-            hl = load_hybrid(a["path"], a["doe_pitch"], a["doe_size"], a["doe_distance"],
-                             sensor_pitch=a["sensor_pitch"], oversample=a["oversample"],
-                             fields=[list(f) for f in fields] + [[0.0, 0.0]], wavelengths=wl_list, depth=a["depth"],
-                             field_type="angle", stop_edge=a["stop_edge"])
-            if args.doe is not None:
-                from raywave.cli.doe_commands import load_doe
+        # an error exit prints only the error (one line; its warnings would repeat it)
+        wl_list = None if a["wavelength"] is None else [a["wavelength"]]
+        hl = load_hybrid(a["path"], a["doe_pitch"], a["doe_size"], a["doe_distance"],
+                         sensor_pitch=a["sensor_pitch"], oversample=a["oversample"],
+                         fields=[list(f) for f in fields] + [[0.0, 0.0]], wavelengths=wl_list, depth=a["depth"],
+                         field_type="angle", stop_edge=a["stop_edge"])
+        if args.doe is not None:
+            from raywave.cli.doe_commands import load_doe
 
-                doe, _ = load_doe(args.doe, a["doe_pitch"])
-                hl = HybridLens(hl.lens, doe, hl.doe_distance, sensor_pitch=a["sensor_pitch"] or hl.sensor_pitch,
-                                oversample=hl.oversample, stop_edge=a["stop_edge"])
-                hl.doe_info = {"source": str(args.doe)}
-            if a["doe_levels"] is not None or a["doe_wavelength"] is not None or a["doe_material"] is not None:
-                if not hasattr(hl, "doe_info"):
-                    hl.doe_info = {}
-                fabricate_doe(hl, a["doe_levels"], a["doe_wavelength"], a["doe_material"])
-            if hl.lens.field_type != "angle":
-                raise CommandError("compare: the lens's fields are object heights; compare takes field angles")
-            models, notes = parse_models(args.models, _is_blank(hl.doe))
-            reference = args.reference.strip().lower()
-            if reference not in models:
-                raise CommandError(f"--reference: {reference!r} is not among the models compared ({', '.join(models)})")
-            wl = hl.lens.primary_wavelength if a["wavelength"] is None else a["wavelength"]
-            table = run_compare(hl, models, fields, wl, ks, a["depth"], reference)
-        finally:
-            seen = set()
-            for w in caught:
-                msg = " ".join(str(w.message).split())
-                if msg not in seen and not issubclass(w.category, DeprecationWarning):
-                    seen.add(msg)
-                    print(f"raywave: warning: {msg}", file=sys.stderr)
+            doe, _ = load_doe(args.doe, a["doe_pitch"])
+            hl = HybridLens(hl.lens, doe, hl.doe_distance, sensor_pitch=a["sensor_pitch"] or hl.sensor_pitch,
+                            oversample=hl.oversample, stop_edge=a["stop_edge"])
+            hl.doe_info = {"source": str(args.doe)}
+        if a["doe_levels"] is not None or a["doe_wavelength"] is not None or a["doe_material"] is not None:
+            if not hasattr(hl, "doe_info"):
+                hl.doe_info = {}
+            fabricate_doe(hl, a["doe_levels"], a["doe_wavelength"], a["doe_material"])
+        if hl.lens.field_type != "angle":
+            raise CommandError("compare: the lens's fields are object heights; compare takes field angles")
+        models, notes = parse_models(args.models, _is_blank(hl.doe))
+        reference = args.reference.strip().lower()
+        if reference not in models:
+            raise CommandError(f"--reference: {reference!r} is not among the models compared ({', '.join(models)})")
+        wl = hl.lens.primary_wavelength if a["wavelength"] is None else a["wavelength"]
+        table = run_compare(hl, models, fields, wl, ks, a["depth"], reference)
+        seen = set()
+        for w in caught:
+            msg = " ".join(str(w.message).split())
+            if msg not in seen and not issubclass(w.category, DeprecationWarning):
+                seen.add(msg)
+                print(f"raywave: warning: {msg}", file=sys.stderr)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = table["rows"]
     with open(out_dir / "compare.csv", "w", newline="") as fh:

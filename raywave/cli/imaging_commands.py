@@ -159,10 +159,9 @@ def cmd_psfmap(args) -> int:
         raise CommandError(f"--png: the image is a .png file, got {args.png!r}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        try:
-            _, pmap = _compute_map(a, grid, depths, wls, args.progress)
-        finally:
-            _report_warnings(caught)
+        # an error exit prints only the error (one line; its warnings would repeat it)
+        _, pmap = _compute_map(a, grid, depths, wls, args.progress)
+        _report_warnings(caught)
     s = _map_summary(pmap, str(args.lens))
     wrote = []
     if args.output is not None:
@@ -269,48 +268,47 @@ def cmd_render(args) -> int:
         wls = color.all_wavelengths().tolist() if args.average else color.centers().tolist()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        try:
-            if args.map is not None:
-                try:
-                    pmap = PSFMap.load(args.map)
-                except (OSError, KeyError, ValueError) as e:
-                    raise CommandError(f"--map: cannot read {args.map!r} ({e})") from None
-                lens_name = str(args.lens)
-                di = [i for i, d in enumerate(pmap.depths.tolist())
-                      if d == depth or (math.isinf(d) and math.isinf(depth))]
-                if not di:
-                    raise CommandError(f"--map: {args.map!r} has depths {pmap.depths.tolist()} mm, not --depth "
-                                       f"{depth:g}")
-                if pmap.psf.shape[1] == 9 and args.average:
-                    pmap = pmap.channel_average(color)
-                if pmap.psf.shape[1] != 3:
-                    raise CommandError(f"--map: {args.map!r} has {pmap.psf.shape[1]} wavelengths; the render needs 3 "
-                                       "(one per colour channel) or the 9 of --average")
-                d_index = di[0]
-            else:
-                a = parse_lens_args(args)
-                grid = _grid(args.grid, default=(5, 5))
-                lens_name = str(args.lens)
-                _, pmap = _compute_map(a, grid, [depth], wls, args.progress)
-                if args.average:
-                    pmap = pmap.channel_average(color)
-                d_index = 0
-                if args.save_map is not None:
-                    pmap.save(args.save_map)
-            h, w = img.shape[-2:]
-            if pmap.sensor_size is None:
-                raise CommandError("--map: the PSF map has no sensor size (write it with raywave psfmap)")
-            sw, sh = pmap.sensor_size
-            if abs((w / h) / (sw / sh) - 1) > 0.01:
-                warnings.warn(f"the image's aspect ratio {w / h:.3g} differs from the sensor's {sw / sh:.3g}: it is "
-                              "stretched over the whole sensor", UserWarning)
-            with torch.no_grad():
-                out = render_map(img[None], pmap, d_index)[0]
-                if args.noise:
-                    gen = torch.Generator().manual_seed(seed)
-                    out = Sensor(noise="poisson")(out, generator=gen)
-        finally:
-            _report_warnings(caught)
+        # an error exit prints only the error (one line; its warnings would repeat it)
+        if args.map is not None:
+            try:
+                pmap = PSFMap.load(args.map)
+            except (OSError, KeyError, ValueError) as e:
+                raise CommandError(f"--map: cannot read {args.map!r} ({e})") from None
+            lens_name = str(args.lens)
+            di = [i for i, d in enumerate(pmap.depths.tolist())
+                  if d == depth or (math.isinf(d) and math.isinf(depth))]
+            if not di:
+                raise CommandError(f"--map: {args.map!r} has depths {pmap.depths.tolist()} mm, not --depth "
+                                   f"{depth:g}")
+            if pmap.psf.shape[1] == 9 and args.average:
+                pmap = pmap.channel_average(color)
+            if pmap.psf.shape[1] != 3:
+                raise CommandError(f"--map: {args.map!r} has {pmap.psf.shape[1]} wavelengths; the render needs 3 "
+                                   "(one per colour channel) or the 9 of --average")
+            d_index = di[0]
+        else:
+            a = parse_lens_args(args)
+            grid = _grid(args.grid, default=(5, 5))
+            lens_name = str(args.lens)
+            _, pmap = _compute_map(a, grid, [depth], wls, args.progress)
+            if args.average:
+                pmap = pmap.channel_average(color)
+            d_index = 0
+            if args.save_map is not None:
+                pmap.save(args.save_map)
+        h, w = img.shape[-2:]
+        if pmap.sensor_size is None:
+            raise CommandError("--map: the PSF map has no sensor size (write it with raywave psfmap)")
+        sw, sh = pmap.sensor_size
+        if abs((w / h) / (sw / sh) - 1) > 0.01:
+            warnings.warn(f"the image's aspect ratio {w / h:.3g} differs from the sensor's {sw / sh:.3g}: it is "
+                          "stretched over the whole sensor", UserWarning)
+        with torch.no_grad():
+            out = render_map(img[None], pmap, d_index)[0]
+            if args.noise:
+                gen = torch.Generator().manual_seed(seed)
+                out = Sensor(noise="poisson")(out, generator=gen)
+        _report_warnings(caught)
     _write_image(out, args.output)
     s = {**_map_summary(pmap, lens_name), "image": str(args.image), "image_size": [int(w), int(h)],
          "image_pitch_mm": [sw / w, sh / h], "depth_mm": "inf" if math.isinf(depth) else depth,
