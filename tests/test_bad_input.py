@@ -93,3 +93,24 @@ def test_cli_psf_with_no_light_prints_only_the_error(capsys):
     assert main(["psf", "singlet", "--field", "0", "15", "--doe-size", "0.05", "--ks", "8", "--rays", "8"]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and err[0].startswith("raywave: error: no light reaches the sensor"), err
+
+
+def test_slow_fuzz_findings_are_clean_refusals(tmp_path, capsys):
+    """More cases the slow fuzz run found: a DOE pitch whose grid overflows (the CLI traced it into an
+    OverflowError), a JSON aperture shape or DOE phase-model type given as a list (TypeError: unhashable)."""
+    from raywave.doe import BlankDOE
+    from raywave.io import read_hybrid_spec
+
+    with pytest.raises(ValueError, match="DOE size must be finite"):
+        BlankDOE(16, 1e308)
+    assert main(["psf", "singlet", "--doe-pitch", "1e308", "--ks", "8", "--rays", "8"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "DOE size must be finite" in err[0], err
+    spec = json.loads(bundled_lens_path("singlet").read_text())
+    spec["surfaces"][0]["aperture"] = {"radius": 1.0, "shape": [1.0, 2.0]}
+    with pytest.raises(LensFileError, match=r"surfaces\[0\]\.aperture\.shape.*circle"):
+        load_lens(_write(tmp_path, spec, "list_shape.json"))
+    spec = json.loads(bundled_lens_path("singlet").read_text())
+    spec["doe"] = {"distance": 5.0, "pitch": 1e-3, "shape": [8, 8], "phase_model": {"type": ["fresnel"]}}
+    with pytest.raises(LensFileError, match=r"list_model\.json.*phase_model\.type"):
+        read_hybrid_spec(_write(tmp_path, spec, "list_model.json"))

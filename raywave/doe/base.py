@@ -128,6 +128,8 @@ class DOE(nn.Module):
             raise ValueError(f"DOE shape must be positive, got {shape}")
         if not (isinstance(pitch, (int, float)) and pitch > 0 and math.isfinite(pitch)):
             raise ValueError(f"DOE pitch must be > 0 mm, got {pitch!r}")
+        if not math.isfinite(float(pitch) * max(ny, nx)):
+            raise ValueError(f"DOE size must be finite: {nx}×{ny} pixels of {pitch:g} mm overflow")
         if aperture not in ("square", "circle"):
             raise ValueError(f"DOE aperture must be 'square' or 'circle', got {aperture!r}")
         self.shape = (ny, nx)

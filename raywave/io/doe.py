@@ -144,7 +144,7 @@ def _validate_phase_model(v, m, path, depth: int = 0) -> None:
     if not v.obj(m, path):
         return
     kind = m.get("type")
-    if kind not in PHASE_MODELS:
+    if not isinstance(kind, str) or kind not in PHASE_MODELS:
         hint = suggestion(kind, PHASE_MODELS) if isinstance(kind, str) else ""
         v.err(path + ("type",) if "type" in m else path,
               f"phase model type must be one of {', '.join(map(repr, PHASE_MODELS))}, got {_describe(kind)}{hint}")

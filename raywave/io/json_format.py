@@ -513,7 +513,7 @@ class _Validator:
         if not self.obj(a, path, what="null or an object {\"shape\": ...}"):
             return
         shape = a.get("shape")
-        if shape not in APERTURE_SHAPES:
+        if not isinstance(shape, str) or shape not in APERTURE_SHAPES:
             hint = suggestion(shape, APERTURE_SHAPES) if isinstance(shape, str) else ""
             self.err(path + ("shape",) if "shape" in a else path,
                      f"aperture shape must be 'circle' or 'square', got {_typename(shape)}{hint}")
