@@ -106,6 +106,9 @@ def test_slow_fuzz_findings_are_clean_refusals(tmp_path, capsys):
     assert main(["psf", "singlet", "--doe-pitch", "1e308", "--ks", "8", "--rays", "8"]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and "DOE size must be finite" in err[0], err
+    assert main(["psf", "singlet", "--sensor-pitch", "1e300", "--ks", "8", "--rays", "8"]) == 2  # inf crop window
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "not a usable window" in err[0], err
     spec = json.loads(bundled_lens_path("singlet").read_text())
     spec["surfaces"][0]["aperture"] = {"radius": 1.0, "shape": [1.0, 2.0]}
     with pytest.raises(LensFileError, match=r"surfaces\[0\]\.aperture\.shape.*circle"):

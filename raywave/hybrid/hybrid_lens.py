@@ -147,8 +147,8 @@ class HybridLens(nn.Module):
         self.doe_distance = float(doe_distance)
         pitch = sensor_pitch if sensor_pitch is not None else lens.pixel_pitch
         self.sensor_pitch = float(pitch if pitch is not None else doe.pitch)
-        if not self.sensor_pitch > 0:
-            raise ValueError(f"sensor pitch must be > 0 mm, got {self.sensor_pitch!r}")
+        if not (self.sensor_pitch > 0 and math.isfinite(self.sensor_pitch)):
+            raise ValueError(f"sensor pitch must be a finite number > 0 mm, got {self.sensor_pitch!r}")
         if int(oversample) < 1:
             raise ValueError(f"oversample must be a positive integer, got {oversample!r}")
         self.oversample = int(oversample)
@@ -368,7 +368,11 @@ class HybridLens(nn.Module):
         # 2× Fourier upsampling of the field (its intensity needs the p/2 grid)
         m = _OUT_MARGIN
         lo_x, lo_y = psf_origin[0] - 0.5 * ps - m * p, psf_origin[1] - 0.5 * ps - m * p
-        n_out = int(math.ceil(ks * ps / p)) + 2 + 2 * m
+        span = ks * ps / p
+        if not (math.isfinite(span) and span < 2**31):
+            raise ValueError(f"the {ks}×{ks} PSF crop of {ps:g} mm sensor pixels spans {span:g} simulation samples of "
+                             f"{p:g} mm: not a usable window (check the sensor pitch and the DOE pitch)")
+        n_out = int(math.ceil(span)) + 2 + 2 * m
         if full_grid:
             full = angular_spectrum(u, p, fd.wavelength, fd.z if dz is None else fd.z + dz, fd.n, pad=2)
             jx0 = int(math.floor((lo_x - fd.origin[0]) / p))
