@@ -22,11 +22,10 @@ from __future__ import annotations
 
 import csv
 import math
-import sys
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, number_arg as _number, json_dumps
+from raywave.cli.errors import CommandError, report_warnings, number_arg as _number, json_dumps
 
 DEFAULT_FIELDS = ("0",)
 
@@ -209,12 +208,7 @@ def cmd_compare(args) -> int:
             raise CommandError(f"--reference: {reference!r} is not among the models compared ({', '.join(models)})")
         wl = hl.lens.primary_wavelength if a["wavelength"] is None else a["wavelength"]
         table = run_compare(hl, models, fields, wl, ks, a["depth"], reference)
-        seen = set()
-        for w in caught:
-            msg = " ".join(str(w.message).split())
-            if msg not in seen and not issubclass(w.category, DeprecationWarning):
-                seen.add(msg)
-                print(f"raywave: warning: {msg}", file=sys.stderr)
+        report_warnings(caught)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = table["rows"]
     with open(out_dir / "compare.csv", "w", newline="") as fh:

@@ -1,10 +1,23 @@
 """The CLI's user-facing error and argument parsing helpers."""
 
 import math
+import sys
 
 
 class CommandError(Exception):
     """An error to report to the user as one line, without a traceback."""
+
+
+def report_warnings(caught) -> None:
+    """Print recorded warnings (``warnings.catch_warnings(record=True)``) to stderr as ``raywave: warning: …``
+    lines, each message once (whitespace folded), DeprecationWarnings left out. Commands call it after they
+    succeed: an error exit is one line."""
+    seen = set()
+    for w in caught:
+        msg = " ".join(str(w.message).split())
+        if msg not in seen and not issubclass(w.category, DeprecationWarning):
+            seen.add(msg)
+            print(f"raywave: warning: {msg}", file=sys.stderr)
 
 
 def number_arg(text: str, flag: str, positive: bool = False, nonneg: bool = False, allow_inf: bool = False) -> float:

@@ -20,11 +20,10 @@ per channel averaged with the sensor-response weights (evaluation) instead of on
 from __future__ import annotations
 
 import math
-import sys
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, integer_arg as _integer, number_arg as _number, json_dumps
+from raywave.cli.errors import CommandError, report_warnings, integer_arg as _integer, number_arg as _number, json_dumps
 from raywave.cli.psf_commands import _wavelength, fabricate_doe, parse_doe_options
 
 IMAGE_OUTPUTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -121,15 +120,6 @@ def _compute_map(a: dict, grid, depths, wavelengths, progress: bool):
     return hl, pmap
 
 
-def _report_warnings(caught) -> None:
-    seen = set()
-    for w in caught:
-        msg = " ".join(str(w.message).split())
-        if msg not in seen and not issubclass(w.category, DeprecationWarning):
-            seen.add(msg)
-            print(f"raywave: warning: {msg}", file=sys.stderr)
-
-
 def _map_summary(pmap, lens_name: str) -> dict:
     eo = pmap.energy_outside
     return {
@@ -161,7 +151,7 @@ def cmd_psfmap(args) -> int:
         warnings.simplefilter("always")
         # an error exit prints only the error (one line; its warnings would repeat it)
         _, pmap = _compute_map(a, grid, depths, wls, args.progress)
-        _report_warnings(caught)
+        report_warnings(caught)
     s = _map_summary(pmap, str(args.lens))
     wrote = []
     if args.output is not None:
@@ -308,7 +298,7 @@ def cmd_render(args) -> int:
             if args.noise:
                 gen = torch.Generator().manual_seed(seed)
                 out = Sensor(noise="poisson")(out, generator=gen)
-        _report_warnings(caught)
+        report_warnings(caught)
     _write_image(out, args.output)
     s = {**_map_summary(pmap, lens_name), "image": str(args.image), "image_size": [int(w), int(h)],
          "image_pitch_mm": [sw / w, sh / h], "depth_mm": "inf" if math.isinf(depth) else depth,

@@ -19,11 +19,10 @@ quantised, a continuous kinoform) and becomes a dispersive height map in NAME (d
 from __future__ import annotations
 
 import math
-import sys
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, integer_arg as _integer, number_arg as _number, json_dumps
+from raywave.cli.errors import CommandError, report_warnings, integer_arg as _integer, number_arg as _number, json_dumps
 from raywave.utils.checks import MAX_WAVELENGTH_UM as _MAX_WAVELENGTH_UM
 
 OUTPUT_EXTENSIONS = (".npy", ".npz")
@@ -244,12 +243,7 @@ def cmd_psf(args) -> int:
         result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
                              a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"],
                              a["doe_levels"], a["doe_wavelength"], a["doe_material"], a["stop_edge"])
-    seen = set()
-    for w in caught:
-        msg = " ".join(str(w.message).split())
-        if msg not in seen and not issubclass(w.category, DeprecationWarning):
-            seen.add(msg)
-            print(f"raywave: warning: {msg}", file=sys.stderr)
+    report_warnings(caught)
     s = summary(result, str(args.lens))
     wrote = []
     if args.output is not None:
