@@ -9,8 +9,8 @@
 a DOE designed with the paraxial wave model; the same network training) in ``RUN_DIR/baseline``, evaluates both
 on the held-out images and writes into RUN_DIR: ``config.yaml``,
 ``checkpoints/``, ``log.jsonl``, ``metrics.json`` (PSNR/SSIM per depth and field zone, designed vs baseline),
-``final/`` (lens JSON + DOE phase, ``doe.pt``, 4-level fabrication masks) and ``figures/`` (loss curves, PSF maps
-before/after, sample reconstructions). RUN_DIR defaults to ``runs/<config name>``. ``--max-steps N`` caps every
+``final/`` (lens JSON + DOE phase, ``doe.pt``, the fabrication masks of ``optics.doe_levels`` levels) and
+``figures/`` (loss curves, PSF maps before/after, sample reconstructions). RUN_DIR defaults to ``runs/<config name>``. ``--max-steps N`` caps every
 stage at N optimizer steps (a quick look). ``--set KEY=VALUE`` (repeatable) overrides a config key, e.g.
 ``--set data.root=/data/DIV2K`` (the value is YAML; unknown keys are errors). ``--nproc N`` trains on N local
 gloo processes (the steps of one process, split: :mod:`raywave.training.parallel`); under ``torchrun`` the ranks train together and rank 0

@@ -27,36 +27,52 @@ import time
 
 import torch
 
-from raywave.training.losses import psf_similarity_loss, psf_size_loss
+from raywave.training.losses import psf_restorability_loss, psf_similarity_loss, psf_size_loss
 
-__all__ = ["BASELINES", "psf_objective", "model_objective", "design_paraxial_doe", "prepare_baseline"]
+__all__ = ["BASELINES", "psf_objective", "objective_settings", "model_objective", "design_paraxial_doe",
+           "prepare_baseline"]
 
 BASELINES = ("blank", "paraxial")
 
 
-def psf_objective(psf: torch.Tensor, similarity_weight: float = 0.0, about: str = "centroid") -> torch.Tensor:
+def psf_objective(psf: torch.Tensor, similarity_weight: float = 0.0, about: str = "centroid",
+                  restore_weight: float = 0.0, restore_noise: float = 1e-3) -> torch.Tensor:
     """The pre-stage objective of PSFs ``(D, ..., ks, ks)`` (D depths first): mean RMS radius (pixels, about
     each PSF's ``about``: ``"centroid"`` or ``"center"``) plus ``similarity_weight`` × mean L1 distance across
-    depths (when D > 1). Scalar."""
+    depths (when D > 1) plus ``restore_weight`` × the restorability term (dB, the soft worst depth's expected
+    error of one Wiener filter for all depths at noise ``restore_noise``,
+    :func:`~raywave.training.losses.psf_restorability_loss`). Scalar."""
     loss = psf_size_loss(psf, about=about)
     if similarity_weight and psf.shape[0] > 1:
         loss = loss + similarity_weight * psf_similarity_loss(psf)
+    if restore_weight:
+        loss = loss + restore_weight * psf_restorability_loss(psf, noise=restore_noise)
     return loss
 
 
+def objective_settings(pre_stage) -> dict:
+    """The keyword arguments of :func:`psf_objective` that a :class:`~raywave.training.config.PreStageConfig`
+    sets (the designed run's pre-stage and the paraxial baseline share them)."""
+    kw = {"similarity_weight": float(pre_stage.similarity_weight), "about": pre_stage.about}
+    if pre_stage.restore_weight:  # only when used: older stored baseline designs stay reusable
+        kw.update(restore_weight=float(pre_stage.restore_weight), restore_noise=float(pre_stage.restore_noise))
+    return kw
+
+
 def model_objective(model, fields, depths, wavelengths, ks: int, similarity_weight: float = 0.0,
-                    about: str = "centroid", **psf_kw) -> torch.Tensor:
+                    about: str = "centroid", objective: dict | None = None, **psf_kw) -> torch.Tensor:
     """:func:`psf_objective` of ``model``'s PSFs (``psf_result``) at ``fields`` ``(F, 2)`` (deg), each of
-    ``depths`` (mm) and ``wavelengths`` (µm); differentiable w.r.t. the model's DOE. Scalar."""
+    ``depths`` (mm) and ``wavelengths`` (µm); differentiable w.r.t. the model's DOE. ``objective``: further
+    keyword arguments of :func:`psf_objective` (the restorability term). Scalar."""
     wls = [float(w) for w in wavelengths]
     # sampling / crop warnings propagate: the Trainer surfaces them once per run (Trainer.surface_warnings)
     psf = torch.stack([model.psf_result(fields, wls, ks=ks, depth=d, **psf_kw).psf for d in depths])
-    return psf_objective(psf, similarity_weight, about=about)
+    return psf_objective(psf, similarity_weight, about=about, **(objective or {}))
 
 
 def design_paraxial_doe(hybrid, fields, depths, sample_wavelengths, ks: int, steps: int, lr: float,
                         similarity_weight: float = 0.0, generator: torch.Generator | None = None,
-                        about: str = "centroid") -> list[float]:
+                        about: str = "centroid", objective: dict | None = None) -> list[float]:
     """Optimise ``hybrid``'s DOE **in place** with the paraxial wave model.
 
     Args:
@@ -71,6 +87,7 @@ def design_paraxial_doe(hybrid, fields, depths, sample_wavelengths, ks: int, ste
         similarity_weight: weight of the cross-depth similarity term.
         generator: the wavelength draws' generator.
         about: where the PSF size is measured from (:func:`psf_objective`; the pre-stage's ``about``).
+        objective: further keyword arguments of :func:`psf_objective` (``restore_weight``, ``restore_noise``).
 
     Returns:
         the objective (paraxial model) at each step, before that step's update.
@@ -91,7 +108,7 @@ def design_paraxial_doe(hybrid, fields, depths, sample_wavelengths, ks: int, ste
         for _ in range(int(steps)):
             wls = sample_wavelengths(generator)
             step_fields = fields(generator) if callable(fields) else fields
-            loss = model_objective(model, step_fields, depths, wls, ks, similarity_weight, about)
+            loss = model_objective(model, step_fields, depths, wls, ks, similarity_weight, about, objective)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"paraxial baseline design: the objective is {float(loss)} "
                                          "(check pre_stage.lr_doe)")
@@ -109,12 +126,13 @@ def design_paraxial_doe(hybrid, fields, depths, sample_wavelengths, ks: int, ste
 def _objectives(trainer, models: dict, wls) -> dict:
     """The objective of each model at all the run's wavelengths (no autograd)."""
     cfg = trainer.cfg
-    w, about = cfg.pre_stage.similarity_weight, cfg.pre_stage.about
+    kw_obj = objective_settings(cfg.pre_stage)
+    w, about = kw_obj.pop("similarity_weight"), kw_obj.pop("about")
     out = {}
     with torch.no_grad():
         for name, (model, kw) in models.items():
             out[name] = float(model_objective(model, trainer.fields, trainer.depths, wls, cfg.optics.ks, w, about,
-                                              **kw))
+                                              kw_obj, **kw))
     return out
 
 
@@ -123,7 +141,7 @@ def _settings(cfg) -> dict:
     from raywave.training.config import to_dict
 
     d = {"seed": cfg.seed, "steps": cfg.baseline_steps, "lr_doe": cfg.pre_stage.lr_doe,
-         "similarity_weight": cfg.pre_stage.similarity_weight, "about": cfg.pre_stage.about,
+         **objective_settings(cfg.pre_stage),
          "lens": to_dict(cfg.lens), "grid": cfg.optics.grid, "field_jitter": cfg.optics.field_jitter,
          "depths": cfg.optics.depths, "ks": cfg.optics.ks, "wavelengths": cfg.optics.wavelengths}
     for key in ("doe_wavelength", "doe_material", "doe_levels"):  # the continuous design's dispersion (only when
@@ -188,15 +206,18 @@ def prepare_baseline(trainer) -> dict | None:
         before = _objectives(trainer, models, wls)
         gen = torch.Generator().manual_seed(int(cfg.seed) * 31 + 7)
         t0 = time.perf_counter()
+        kw_obj = objective_settings(cfg.pre_stage)
+        w, about = kw_obj.pop("similarity_weight"), kw_obj.pop("about")
         history = design_paraxial_doe(hl, lambda g: trainer.step_nodes(g)[0], trainer.depths, trainer.color.sample,
-                                      cfg.optics.ks, cfg.baseline_steps, cfg.pre_stage.lr_doe,
-                                      cfg.pre_stage.similarity_weight, gen, about=cfg.pre_stage.about)
+                                      cfg.optics.ks, cfg.baseline_steps, cfg.pre_stage.lr_doe, w, gen,
+                                      about=about, objective=kw_obj)
         seconds = time.perf_counter() - t0
         after = _objectives(trainer, models, wls)
     rec = {"baseline": kind, "design_seconds": seconds, "objective_blank": before, "objective_designed": after,
            "history_paraxial": history, "settings": settings,
            "note": "objective = mean RMS PSF radius (pixels) + similarity_weight × mean L1 PSF distance across "
-                   "depths, at all the run's wavelengths on the stage-1 field grid"}
+                   "depths (+ restore_weight × the worst depth's expected Wiener error in dB when set), at all the "
+                   "run's wavelengths on the stage-1 field grid"}
     if not (dist.is_available() and dist.is_initialized() and dist.get_rank() != 0):  # one writer per run
         state = {k: v.detach().cpu() for k, v in hl.doe.state_dict().items()}
         _write_atomic(trainer.run_dir / "baseline_doe.pt", lambda p: torch.save(state, p))

@@ -159,13 +159,18 @@ class PreStageConfig:
     dissimilarity across depths (EDoF) with weight ``similarity_weight``. ``steps: 0`` skips it. ``about``: the
     PSF size is the RMS radius about the PSF's ``"centroid"`` (sharpness only) or about the chief-ray pixel
     (``"center"``: also penalises a DOE that displaces the image point, i.e. adds distortion, which the
-    evaluation against the undistorted scene counts as error)."""
+    evaluation against the undistorted scene counts as error). ``restore_weight`` (pixels per dB) adds the
+    restorability term: the soft worst depth's expected error (dB) of one Wiener filter for all depths, with a
+    natural-image spectrum and white noise of variance ``restore_noise`` relative to the image's
+    (:func:`raywave.training.losses.psf_restorability_loss`); the paraxial baseline minimises the same objective."""
 
     steps: int = 0
     lr_doe: float = 1e-1
     lr_lens: float = 1e-4
     similarity_weight: float = 0.0
     about: str = "centroid"
+    restore_weight: float = 0.0
+    restore_noise: float = 1e-3
 
 
 @dataclass
@@ -287,6 +292,8 @@ RULES: dict[str, Rule] = {
     "PreStageConfig.lr_doe": _NONNEG,
     "PreStageConfig.lr_lens": _NONNEG,
     "PreStageConfig.similarity_weight": _NONNEG,
+    "PreStageConfig.restore_weight": _NONNEG,
+    "PreStageConfig.restore_noise": _POS,
     "PreStageConfig.about": Rule(choices=("centroid", "center")),
     "StageConfig.epochs": _NONNEG,
     "StageConfig.batch_size": _COUNT,

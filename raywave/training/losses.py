@@ -1,5 +1,5 @@
 """Training losses: image losses (L1, MSE, RMSE), the EDoF loss of the paper (eq. 1 of the supplement), and the
-PSF-only losses of the pre-stage (PSF size; similarity across depths).
+PSF-only losses of the pre-stage (PSF size; similarity across depths; restorability).
 
 **Mean-square-root error.** The paper uses "mean-square-root errors" for both EDoF terms; we read it as the
 root-mean-square error ``sqrt(mean((a − b)²))`` (the square root of the MSE; it weights large errors less than
@@ -9,11 +9,12 @@ the MSE and, unlike the L1, is smooth). Its gradient at a zero error is made fin
 from __future__ import annotations
 
 import itertools
+import math
 
 import torch
 
 __all__ = ["l1_loss", "mse_loss", "rmse_loss", "image_loss", "edof_loss", "psf_size", "psf_size_loss",
-           "psf_similarity_loss"]
+           "psf_similarity_loss", "wiener_restoration_error", "psf_restorability_loss"]
 
 
 def l1_loss(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -94,3 +95,57 @@ def psf_similarity_loss(psf_by_depth: torch.Tensor) -> torch.Tensor:
     pairs = [(psf_by_depth[i] - psf_by_depth[j]).abs().sum((-2, -1)).mean()
              for i, j in itertools.combinations(range(d), 2)]
     return torch.stack(pairs).mean()
+
+
+def _image_spectrum(ky: int, kx: int, dtype, device) -> torch.Tensor:
+    """A natural-image power spectrum on the ``ky × kx`` DFT grid, ``P(f) ∝ 1/(|f|² + f0²)`` (f in cycles per
+    pixel, f0 = 1/max(ky, kx)), normalised to mean 1 (unit signal variance per pixel). Shape ``(ky, kx)``."""
+    fy = torch.fft.fftfreq(ky, dtype=dtype, device=device)
+    fx = torch.fft.fftfreq(kx, dtype=dtype, device=device)
+    f0 = 1.0 / max(ky, kx)
+    p = 1.0 / (fy[:, None].square() + fx[None, :].square() + f0 ** 2)
+    return p / p.mean()
+
+
+def wiener_restoration_error(psf_by_depth: torch.Tensor, noise: float = 1e-3) -> torch.Tensor:
+    """Expected error (dB, relative to the signal variance) of restoring each depth's image with **one** Wiener
+    filter, the one of least error averaged over the depths (the camera does not know the distance; the filter of
+    :func:`raywave.imaging.deconv.wiener_deconvolve` given a set of maps).
+
+    For OTFs ``K_d`` (the PSFs' DFTs about the chief-ray pixel ``[ks//2, ks//2]``), an image spectrum ``P``
+    (:func:`_image_spectrum`) and white noise of variance ``noise`` (relative to the image's):
+    ``G = mean_d conj(K_d) P / (mean_d |K_d|² P + noise)`` and depth d's error per frequency is
+    ``|G K_d − 1|² P + |G|² noise``; the result is ``10 log10`` of its mean over the frequencies.
+
+    Args:
+        psf_by_depth: ``(D, ..., ky, kx)`` PSFs (each normalised to sum 1), D depths first.
+        noise: noise variance relative to the image variance (> 0).
+
+    Returns:
+        ``(D, ...)`` errors in dB (lower is better; −PSNR-like).
+    """
+    if not noise > 0:
+        raise ValueError(f"noise must be > 0, got {noise}")
+    ky, kx = psf_by_depth.shape[-2:]
+    k = torch.fft.fft2(torch.fft.ifftshift(psf_by_depth, dim=(-2, -1)))
+    p = _image_spectrum(ky, kx, psf_by_depth.dtype, psf_by_depth.device)
+    a = k.abs().square().mean(0)
+    g = k.mean(0).conj() * p / (a * p + noise)
+    err = (g * k - 1).abs().square() * p + g.abs().square() * noise
+    return 10 * torch.log10(err.mean((-2, -1)))
+
+
+def psf_restorability_loss(psf_by_depth: torch.Tensor, noise: float = 1e-3, temperature: float = 1.0) -> torch.Tensor:
+    """The pre-stage's restorability term: a soft maximum over depths (log-mean-exp with ``temperature`` dB) of
+    :func:`wiener_restoration_error`, averaged over the other leading dimensions (fields, colours). It
+    favours PSFs that one deconvolution filter restores well at *every* depth, the worst depth most. dB, scalar.
+
+    Args:
+        psf_by_depth: ``(D, ..., ky, kx)`` normalised PSFs.
+        noise: noise variance relative to the image variance.
+        temperature: dB; → 0 gives the worst depth, large values the mean over depths.
+    """
+    e = wiener_restoration_error(psf_by_depth, noise)
+    d = e.shape[0]
+    soft = temperature * (torch.logsumexp(e / temperature, dim=0) - math.log(d))
+    return soft.mean()

@@ -3,7 +3,8 @@
 Stages (each optional through its step count):
 
 * **pre-stage**: optimise the PSFs directly: the mean RMS radius of the map's PSFs (aberration correction)
-  plus ``similarity_weight`` × the mean L1 distance between the PSFs of different depths (EDoF);
+  plus ``similarity_weight`` × the mean L1 distance between the PSFs of different depths (EDoF), plus
+  ``restore_weight`` × the worst depth's expected Wiener-restoration error (dB);
 * **stage 1** (end-to-end): per iteration one wavelength per colour channel is drawn, the PSF map
   (``optics.grid`` × ``optics.depths``) is computed **without autograd**, training patches are rendered with the
   PSFs as leaf tensors at a random place on the sensor (at the sensor's pixel pitch), reconstructed by the
@@ -39,7 +40,7 @@ import torch
 from raywave.doe.base import check_levels
 from raywave.training.checkpoint import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
 from raywave.training.config import TrainConfig, dump_config
-from raywave.training.baselines import psf_objective
+from raywave.training.baselines import objective_settings, psf_objective
 from raywave.training.losses import edof_loss, image_loss
 from raywave.training.networks import PSFAwareNet, build_network
 from raywave.training.replay import OpticsStep, chunk_ranges
@@ -397,7 +398,7 @@ class Trainer:
         step = self.optics_step(fields)
         psf, cen = step.leaves()
         p, _ = self._as_map(psf, cen)
-        loss = psf_objective(p, pc.similarity_weight, about=pc.about)
+        loss = psf_objective(p, **objective_settings(pc))
         loss.backward()  # the whole map's ∂L/∂PSF (the same in every process)
         self._replay(step, leaf_grads_partial=False)
         self._optimizer_step(opt, sched)
