@@ -244,16 +244,20 @@ def test_tilted_plate_is_undefined_but_a_tilted_flat_mirror_or_dummy_is_not():
     assert math.isinf(p.efl)
 
 
-def test_folded_systems_are_refused_by_the_ray_wave_engine(tmp_path):
+def test_ray_wave_engine_takes_folds_and_mirrors_but_refuses_an_undefined_paraxial_model():
+    """The engine models folded and mirrored lenses in their image-space frame (tests/test_folded_hybrid.py); a lens
+    whose paraxial entrance pupil is undefined (a tilted powered surface) is refused, naming the surface."""
     from raywave.assembly.build import hybrid_from_spec
-    from raywave.cli.main import main
 
-    for name, what in (("fold_mirror_doublet", "surface 3 is a coordinate break"),
-                       ("cassegrain", "surface 0 is a mirror")):
-        spec, _ = _read(name)
-        with pytest.raises(ValueError, match=what + r".*ray-wave engine.*does not support"):
-            hybrid_from_spec(spec)
-    assert main(["psf", str(ZMX / "newtonian_telescope.zmx"), "--ks", "16"]) == 2
+    for name in ("fold_mirror_doublet", "cassegrain", "newtonian_telescope"):
+        _, lens = _read(name)
+        assert lens.wave_support_problem() is None, name
+    spec, _ = _read("fold_mirror_doublet")
+    hl = hybrid_from_spec(spec, doe_pitch=0.01, doe_size=2.0, doe_distance=10.0)
+    assert hl.sensor_z() - hl.doe_z() == pytest.approx(24.513 - 10.0)
+    spec, _ = _read("decentered_tilted_doublet")
+    with pytest.raises(ValueError, match=r"ray-wave engine.*paraxial entrance pupil.*surface 2 is tilted by 2 degrees"):
+        hybrid_from_spec(spec)
     _, lens = _read("newtonian_telescope")
     with pytest.raises(ValueError, match="wavefront_opd is not supported for a lens with coordinate breaks"):
         analysis.wavefront_opd(lens)
