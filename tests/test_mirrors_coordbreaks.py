@@ -324,3 +324,15 @@ def test_gradients_flow_through_frames():
     g = [s.thickness.grad for s in lens.surfaces]
     assert all(x is not None and torch.isfinite(x) for x in g)
     assert float(g[-1].abs()) > 0
+
+
+def test_straight_axis_analyses_name_the_surface_that_breaks_their_axis():
+    """Analyses written for one straight +z axis refuse a fold by the coordinate break's index, and field_curvature
+    (focus positions measured along +z) refuses light leaving toward -z by the last mirror's index."""
+    _, folded = _read("fold_mirror_doublet")
+    for fn in (analysis.field_curvature, analysis.best_focus_z, analysis.distortion):
+        with pytest.raises(ValueError, match=r"not supported for a lens with coordinate breaks \(surface 3 "):
+            fn(folded)
+    with pytest.raises(ValueError, match=r"field_curvature is not supported for a lens whose light leaves toward -z "
+                                         r"\(surface 0 is the last of an odd number of mirrors\)"):
+        analysis.field_curvature(lens_from_spec(_mirror_spec(-100.0)))

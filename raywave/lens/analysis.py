@@ -280,7 +280,7 @@ def field_curvature(lens, fields=None, wavelength=None, delta: float = 1e-3):
 
     Each focus is where a ray at pupil ±``delta`` (normalised, y for tangential, x for sagittal) crosses
     its partner near the chief ray (the limit of Coddington's equations), measured along z."""
-    lens.require_unfolded("field_curvature")
+    lens.require_unfolded("field_curvature", toward_plus_z=True)
     wl = lens.primary_wavelength if wavelength is None else wavelength
     f = _fields(lens, fields)
     px = torch.tensor([0.0, 0.0, delta, -delta], dtype=torch.float64)

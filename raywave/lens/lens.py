@@ -485,15 +485,21 @@ class Lens(nn.Module):
         rot, tv = (v.to(rays.dtype) for v in self.surface_frames()[0][index])
         return rays.replace(o=(rays.o - tv) @ rot, d=rays.d @ rot)
 
-    def require_unfolded(self, what: str) -> None:
+    def require_unfolded(self, what: str, toward_plus_z: bool = False) -> None:
         """Raise a ValueError naming ``what`` if the lens has a coordinate break that decentres or tilts (for
-        analyses written for one straight axis)."""
+        analyses written for one straight axis); with ``toward_plus_z`` also if the light leaves toward −z (an odd
+        number of mirrors; for analyses that measure along +z), naming the last mirror."""
         if self.is_folded:
             i = next(i for i, s in enumerate(self.surfaces)
                      if s.interaction.kind == "coordinate_break" and not s.interaction.is_identity)
             raise ValueError(f"{what} is not supported for a lens with coordinate breaks (surface {i} decentres or "
                              "tilts the axis): it assumes one straight optical axis; trace real rays with "
                              "Lens.trace_to_image (and Lens.image_coordinates) instead")
+        if toward_plus_z and self.direction_signs()[-1] < 0:
+            i = max(i for i, s in enumerate(self.surfaces) if s.interaction.kind == "reflection")
+            raise ValueError(f"{what} is not supported for a lens whose light leaves toward -z (surface {i} is the "
+                             "last of an odd number of mirrors): it measures along +z; trace real rays with "
+                             "Lens.trace_to_image instead")
 
     def trace_to_image(self, rays: RayBundle, z: float | torch.Tensor | None = None, record: bool = False):
         """Trace through all surfaces and on to the image plane (or to the plane ``z``).
