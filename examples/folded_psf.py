@@ -2,7 +2,7 @@
 
 examples/folded_hybrid.json: an AC254-100 achromat, a 45° fold mirror 40 mm behind it (COORDBRK 45°, mirror,
 COORDBRK 45°: the light then travels toward −z of the local frame), and a DOE + sensor block decentred by 0.3 mm
-and tilted by 1.5° about y (one more COORDBRK). The DOE plane (a cubic phase) lies 18 mm after the fold,
+and tilted by 0.5° about y (one more COORDBRK). The DOE plane (a cubic phase) lies 18 mm after the fold,
 perpendicular to the local axis after the last coordinate break, and the sensor 24.513 mm after it: the engine
 works in that image-space frame (raywave/lens/frames.py). Chief rays are aimed at the stop; each PSF crop is
 centred where the real chief ray meets the tilted sensor (in the sensor's own x, y).
