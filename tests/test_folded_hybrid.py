@@ -151,7 +151,7 @@ def test_tilted_image_space_crop_follows_the_real_chief_ray():
     with torch.no_grad():
         out = view.trace(chief_ray(lens, f, 0.55), apertures=False)
         g = lens.trace(chief_ray(lens, f, 0.55), apertures=False)
-    z_doe = float(lens.vertex_z()[-1]) + 30.0
+    z_doe = float(lens.vertex_z()[-1].detach()) + 30.0
     at = out.propagate_to_z(z_doe, 1.0)
     p_global = g.o + g.d * ((at.opl - g.opl) / 1.0).unsqueeze(-1)  # the same point, reached in global coordinates
     local = (p_global - origin) @ rot
@@ -199,7 +199,6 @@ def test_trace_record_is_in_each_surfaces_frame():
     assert abs(float(local.o[0, 2])) < 1e-12  # on the plane surface's vertex plane
 
 
-@pytest.mark.slow
 def test_cli_psf_on_the_folded_example(tmp_path, capsys):
     """`raywave psf examples/folded_hybrid.json` (fold mirror + decentred, tilted DOE and sensor block): exit 0, the
     PSF centred on the tilted sensor where the real chief ray meets it."""
