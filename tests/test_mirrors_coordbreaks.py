@@ -244,16 +244,20 @@ def test_tilted_plate_is_undefined_but_a_tilted_flat_mirror_or_dummy_is_not():
     assert math.isinf(p.efl)
 
 
-def test_folded_systems_are_refused_by_the_ray_wave_engine(tmp_path):
+def test_ray_wave_engine_takes_folds_and_mirrors_but_refuses_an_undefined_paraxial_model():
+    """The engine models folded and mirrored lenses in their image-space frame (tests/test_folded_hybrid.py); a lens
+    whose paraxial entrance pupil is undefined (a tilted powered surface) is refused, naming the surface."""
     from raywave.assembly.build import hybrid_from_spec
-    from raywave.cli.main import main
 
-    for name, what in (("fold_mirror_doublet", "surface 3 is a coordinate break"),
-                       ("cassegrain", "surface 0 is a mirror")):
-        spec, _ = _read(name)
-        with pytest.raises(ValueError, match=what + r".*ray-wave engine.*does not support"):
-            hybrid_from_spec(spec)
-    assert main(["psf", str(ZMX / "newtonian_telescope.zmx"), "--ks", "16"]) == 2
+    for name in ("fold_mirror_doublet", "cassegrain", "newtonian_telescope"):
+        _, lens = _read(name)
+        assert lens.wave_support_problem() is None, name
+    spec, _ = _read("fold_mirror_doublet")
+    hl = hybrid_from_spec(spec, doe_pitch=0.01, doe_size=2.0, doe_distance=10.0)
+    assert hl.sensor_z() - hl.doe_z() == pytest.approx(24.513 - 10.0)
+    spec, _ = _read("decentered_tilted_doublet")
+    with pytest.raises(ValueError, match=r"ray-wave engine.*paraxial entrance pupil.*surface 2 is tilted by 2 degrees"):
+        hybrid_from_spec(spec)
     _, lens = _read("newtonian_telescope")
     with pytest.raises(ValueError, match="wavefront_opd is not supported for a lens with coordinate breaks"):
         analysis.wavefront_opd(lens)
@@ -320,3 +324,15 @@ def test_gradients_flow_through_frames():
     g = [s.thickness.grad for s in lens.surfaces]
     assert all(x is not None and torch.isfinite(x) for x in g)
     assert float(g[-1].abs()) > 0
+
+
+def test_straight_axis_analyses_name_the_surface_that_breaks_their_axis():
+    """Analyses written for one straight +z axis refuse a fold by the coordinate break's index, and field_curvature
+    (focus positions measured along +z) refuses light leaving toward -z by the last mirror's index."""
+    _, folded = _read("fold_mirror_doublet")
+    for fn in (analysis.field_curvature, analysis.best_focus_z, analysis.distortion):
+        with pytest.raises(ValueError, match=r"not supported for a lens with coordinate breaks \(surface 3 "):
+            fn(folded)
+    with pytest.raises(ValueError, match=r"field_curvature is not supported for a lens whose light leaves toward -z "
+                                         r"\(surface 0 is the last of an odd number of mirrors\)"):
+        analysis.field_curvature(lens_from_spec(_mirror_spec(-100.0)))

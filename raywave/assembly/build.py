@@ -40,6 +40,7 @@ from raywave.hybrid.hybrid_lens import BEAM_MARGIN, HybridLens
 from raywave.io.errors import LensFileError, with_location
 from raywave.lens.analysis import _beam_field_points, beam_half_extent
 from raywave.lens.build import lens_from_spec, resolve_lens_path
+from raywave.lens.frames import image_space
 from raywave.lens.sources import point_source_rays
 from raywave.rays.pupil import hexapolar
 from raywave.utils.errors import NonFiniteError
@@ -156,7 +157,9 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         if field_type not in ("angle", "object_height"):
             raise ValueError(f"field_type must be 'angle' or 'object_height', got {field_type!r}")
         lens.field_type = field_type
-    last = float(lens.surfaces[-1].thickness.detach())
+    # a folded, decentred or mirrored lens is sized in its image-space frame (z along the light, like the engine)
+    optics = image_space(lens)
+    last = float(lens.surfaces[-1].thickness.detach()) * lens.direction_signs()[-1]
     from_file = doe_data is not None
     data = doe_data
     info: dict = {"source": "file" if from_file else "default"}
@@ -183,7 +186,7 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         raise ValueError(f"{source}: the DOE has no pixel pitch (the file does not give one): pass doe_pitch "
                          "(raywave psf: --doe-pitch MM)")
     else:
-        pitch = nyquist_doe_pitch(lens, distance, fields, wavelengths, depth)
+        pitch = nyquist_doe_pitch(optics, distance, fields, wavelengths, depth)
         info["pitch_rule"] = "nyquist" if pitch is not None else "default"
         info["nyquist_fill"] = NYQUIST_FILL
         pitch = DEFAULT_DOE_PITCH if pitch is None else pitch
@@ -218,7 +221,7 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         raise ValueError(f"{source}: the DOE has no size (the file gives neither 'size' nor 'shape', nor a .zmx "
                          "CLAP / SQAP): pass doe_size (raywave psf: --doe-size MM [MM])")
     else:
-        w, h = default_doe_size(lens, distance, fields, wavelengths, depth)
+        w, h = default_doe_size(optics, distance, fields, wavelengths, depth)
         shape = (max(_pixels(h, pitch, source), _MIN_PIXELS), max(_pixels(w, pitch, source), _MIN_PIXELS))
 
     aperture = data.aperture if from_file else "square"

@@ -32,6 +32,7 @@ from torch import nn
 from raywave.doe import DOE
 from raywave.hybrid.coherent import (DOEField, accurate_field_steps, chief_rays, doe_clippings, exit_pupil_field_steps,
                                      faithful_field, footprints, run_batched)
+from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
 from raywave.utils.safe import safe_div
@@ -140,7 +141,7 @@ class HybridLens(nn.Module):
             raise ValueError(problem)
         self.lens = lens
         self.doe = doe
-        last = float(lens.surfaces[-1].thickness.detach())
+        last = float(lens.surfaces[-1].thickness.detach()) * lens.direction_signs()[-1]
         if not (0 <= doe_distance < last):
             raise ValueError(f"doe_distance must lie between the last surface and the sensor (0 ≤ d < {last:g} mm), "
                              f"got {doe_distance!r}")
@@ -167,19 +168,27 @@ class HybridLens(nn.Module):
         self._transfer_cache: OrderedDict = OrderedDict()
 
     # ------------------------------------------------------------------ geometry
+    @property
+    def optics(self):
+        """The refractive lens as the engine traces it: the lens itself, or for a folded, decentred, tilted or
+        mirrored lens its :class:`~raywave.lens.frames.ImageSpaceLens`, whose traces end in the image-space frame
+        (the local frame after the last coordinate break, z along the light): the DOE plane and the sensor lie
+        perpendicular to that axis, and every z and PSF centre of this class is in that frame."""
+        return image_space(self.lens)
+
     def doe_z(self) -> float:
         """z (mm) of the DOE plane."""
         return float(self.lens.vertex_z()[-1].detach()) + self.doe_distance
 
     def sensor_z(self) -> float:
         """z (mm) of the sensor plane (the lens's image plane)."""
-        return float(self.lens.image_z().detach())
+        return float(self.optics.image_z().detach())
 
     def sensor_distance(self) -> torch.Tensor:
         """DOE → sensor distance (mm), a 0-d float64 tensor differentiable with respect to the lens's
         thicknesses: the DOE sits ``doe_distance`` after the last vertex, so only the last thickness (the
         focus) changes it."""
-        return self.lens.image_z() - (self.lens.vertex_z()[-1] + self.doe_distance)
+        return self.optics.image_z() - (self.lens.vertex_z()[-1] + self.doe_distance)
 
     def _sensor_dz(self) -> torch.Tensor | None:
         """Zero-valued 0-d tensor carrying d(DOE → sensor distance)/dθ, or None for a frozen lens."""
@@ -204,11 +213,23 @@ class HybridLens(nn.Module):
             angle = 1e-2
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            ray = chief_ray(self.lens, (0.0, angle), wl, field_type="angle", depth=math.inf)
-            out = self.lens.trace(ray, apertures=False)
-            o, d = out.o.reshape(-1)[:3], out.d.reshape(-1)[:3]
-            ok = bool(out.valid.all()) and abs(float(d[1])) > 1e-15
-            z = float(o[2] - o[1] * d[2] / d[1]) if ok else float(exit_pupil(self.lens, wl)[0])
+            optics = self.optics
+            if optics is self.lens:
+                ray = chief_ray(self.lens, (0.0, angle), wl, field_type="angle", depth=math.inf)
+                out = self.lens.trace(ray, apertures=False)
+                o, d = out.o.reshape(-1)[:3], out.d.reshape(-1)[:3]
+                ok = bool(out.valid.all()) and abs(float(d[1])) > 1e-15
+                z = float(o[2] - o[1] * d[2] / d[1]) if ok else float(exit_pupil(self.lens, wl)[0])
+            else:  # image-space frame: where the small field's chief ray meets the axial chief ray (closest approach)
+                rays = chief_ray(self.lens, [(0.0, 0.0), (0.0, angle)], wl, field_type="angle", depth=math.inf)
+                out = optics.trace(rays, apertures=False)
+                o, d = out.o.reshape(2, 3), out.d.reshape(2, 3)
+                w = o[1] - o[0]
+                w_perp = w - (w @ d[0]) * d[0]  # components across the axial chief ray: no cancellation
+                u = d[1] - (d[1] @ d[0]) * d[0]
+                uu = float(u @ u)
+                ok = bool(out.valid.all()) and uu > 1e-30
+                z = float(o[1, 2] - d[1, 2] * (w_perp @ u) / uu) if ok else math.nan
         if not math.isfinite(z) or abs(z - self.doe_z()) > 1e3:
             raise ValueError(f"stop_edge='exit_pupil': the lens's exit pupil lies at z = {z:g} mm (at or near "
                              "infinity: image-space telecentric), where no field can be built; use stop_edge='doe'")
@@ -254,10 +275,11 @@ class HybridLens(nn.Module):
             raise ValueError("the accurate mode traces in float64 only (its rays land on their nodes to 1e-10 mm)")
         f = _as_fields(fields, torch.float64, self.lens.device)
         wls = self.wavelength_list(wavelengths)
+        optics = self.optics  # the lens, or its image-space view (one object for the whole call: run_batched groups by it)
         z_doe, z_sen = self.doe_z(), self.sensor_z()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", VignettingWarning)
-            cd, cs, cuv = chief_rays(self.lens, f, torch.tensor(wls, dtype=torch.float64), depth, z_doe, z_sen)
+            cd, cs, cuv = chief_rays(optics, f, torch.tensor(wls, dtype=torch.float64), depth, z_doe, z_sen)
         xp = mode == "accurate" and self.stop_edge == "exit_pupil"
         if xp:  # the chief rays on every wavelength's exit-pupil plane (straight lines in the image medium)
             z_xps = [self.exit_pupil_z(wl) for wl in wls]
@@ -266,21 +288,21 @@ class HybridLens(nn.Module):
         elif xp:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", VignettingWarning)
-                cx = [chief_rays(self.lens, f, torch.tensor([wl], dtype=torch.float64), depth, zx, z_sen)[0][:, 0]
+                cx = [chief_rays(optics, f, torch.tensor([wl], dtype=torch.float64), depth, zx, z_sen)[0][:, 0]
                       for wl, zx in zip(wls, z_xps)]
         nf, nw = f.shape[0], len(wls)
         wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
         if mode == "accurate":
             # every field and wavelength at once: the footprints in one trace, then the field constructions
             # together, their ray traces batched per round (raywave.hybrid.coherent.run_batched)
-            boxes = None if xp else footprints(self.lens, f, wls_t, depth, z_doe)
+            boxes = None if xp else footprints(optics, f, wls_t, depth, z_doe)
             gens = []
             for i in range(nf):
                 for j, wl in enumerate(wls):
-                    args = (self.lens, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j])
+                    args = (optics, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j])
                     if xp:
                         gens.append(exit_pupil_field_steps(
-                            self.lens, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i], cd[i, j], cs[i, j],
+                            optics, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i], cd[i, j], cs[i, j],
                             nodes=rays or 64, oversample=self.oversample, check=check, chief_uv=cuv[i, j],
                             method=self.edge_step))
                     else:
@@ -290,13 +312,13 @@ class HybridLens(nn.Module):
                                                          bbox=False if box is None else box))
             built = run_batched(gens)
         else:
-            built = [faithful_field(self.lens, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j],
+            built = [faithful_field(optics, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j],
                                     n_rays=rays or 100_000, oversample=self.oversample, full_grid=full_grid,
                                     generator=generator, check=check, dtype=trace_dtype)
                      for i in range(nf) for j, wl in enumerate(wls)]
         # the DOE-aperture diagnostic of every accurate field, from one trace (the faithful mode measures it
         # from its own rays)
-        clips = doe_clippings(self.lens, self.doe, f, wls_t, depth, z_doe) if mode == "accurate" else None
+        clips = doe_clippings(optics, self.doe, f, wls_t, depth, z_doe) if mode == "accurate" else None
         out = []
         for i in range(nf):
             row = []

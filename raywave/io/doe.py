@@ -92,7 +92,7 @@ def validate_doe(v, doe, spec) -> None:
         last = _last_thickness(spec)
         if last is not None and not doe["distance"] < last:
             v.err(path + ("distance",), f"the DOE plane must lie between the last surface and the sensor: "
-                                        f"0 <= distance < {last!r} mm (the last surface's thickness), got "
+                                        f"0 <= distance < {last!r} mm (the last surface's thickness, along the light), got "
                                         f"{doe['distance']!r}")
     if "pitch" in doe:
         v.number(doe["pitch"], path + ("pitch",), positive=True)
@@ -227,7 +227,13 @@ def _last_thickness(spec):
     if not isinstance(surfs, list) or not surfs or not isinstance(surfs[-1], dict):
         return None
     t = surfs[-1].get("thickness")
-    return t if isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) else None
+    if not (isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t)):
+        return None
+    # after an odd number of mirrors the light travels toward -z and the thickness is negative: the distance to
+    # the sensor along the light is -t (the DOE plane lies in the image-space frame, raywave.lens.frames)
+    mirrors = sum(1 for s in surfs if isinstance(s, dict) and isinstance(s.get("material"), str)
+                  and s["material"].lower() == "mirror")
+    return -t if mirrors % 2 else t
 
 
 def doe_canonical(doe: dict) -> dict:

@@ -55,8 +55,10 @@ def beam_half_extent(lens, z: float, fields=None, wavelengths=None, depth=None) 
 
     Rays: the pupil rim (72 points) and a hexapolar grid (6 rings), fully aimed, for every field point
     (``fields``: (2,) or (F, 2) in the lens's field type; default the lens's fields along y and (0, 0)) and
-    wavelength (default: all of the lens's). None when every ray is vignetted."""
-    lens.require_unfolded("beam_half_extent")
+    wavelength (default: all of the lens's). None when every ray is vignetted. A folded or mirrored lens: pass
+    its image-space view (:func:`raywave.lens.frames.image_space`); ``z`` is then in that frame."""
+    if not getattr(lens, "image_space_view", False):  # the image-space view's z axis is straight (lens.frames)
+        lens.require_unfolded("beam_half_extent")
     t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
     hx, hy = hexapolar(6)
     px = torch.cat([torch.cos(t), hx])
@@ -278,7 +280,7 @@ def field_curvature(lens, fields=None, wavelength=None, delta: float = 1e-3):
 
     Each focus is where a ray at pupil ±``delta`` (normalised, y for tangential, x for sagittal) crosses
     its partner near the chief ray (the limit of Coddington's equations), measured along z."""
-    lens.require_unfolded("field_curvature")
+    lens.require_unfolded("field_curvature", toward_plus_z=True)
     wl = lens.primary_wavelength if wavelength is None else wavelength
     f = _fields(lens, fields)
     px = torch.tensor([0.0, 0.0, delta, -delta], dtype=torch.float64)

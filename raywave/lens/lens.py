@@ -149,21 +149,28 @@ class Lens(nn.Module):
 
     def wave_support_problem(self) -> str | None:
         """Why the ray-wave engine (:class:`~raywave.hybrid.hybrid_lens.HybridLens`, ``raywave psf``) cannot model
-        this lens, or None. It models refracting lenses on one axis with the DOE plane and the sensor
-        perpendicular to it; a coordinate break that decentres or tilts, or a mirror, is refused rather than
-        given wrong numbers."""
-        for i, s in enumerate(self.surfaces):
-            if s.interaction.kind == "coordinate_break" and not s.interaction.is_identity:
-                return (f"surface {i} is a coordinate break (decentre {s.interaction.decenter_x:g}, "
-                        f"{s.interaction.decenter_y:g} mm, tilt {s.interaction.tilt_x:g}, {s.interaction.tilt_y:g}, "
-                        f"{s.interaction.tilt_z:g} deg): the ray-wave engine (HybridLens, raywave psf) does not "
-                        "support folded, decentred or tilted systems yet (its DOE plane and sensor would have to "
-                        "lie perpendicular to the local axis after the last coordinate break); trace real rays "
-                        "with Lens.trace_to_image instead")
-            if s.interaction.kind == "reflection":
-                return (f"surface {i} is a mirror: the ray-wave engine (HybridLens, raywave psf) does not support "
-                        "reflecting systems yet (it assumes light travelling toward +z through refracting "
-                        "surfaces); trace real rays with Lens.trace_to_image instead")
+        this lens, or None.
+
+        Folded, decentred, tilted and mirrored lenses are modelled in the image-space frame (the local frame after
+        the last coordinate break, :mod:`raywave.lens.frames`): the DOE plane and the sensor lie perpendicular to
+        its axis. The engine aims its chief rays with the paraxial entrance pupil and places the DOE by the
+        paraxial image space, so a lens whose paraxial model is undefined (a decentred or tilted powered surface,
+        :class:`~raywave.lens.paraxial.ParaxialUndefinedError`, which names the surface) is refused, as is a lens
+        whose light leaves the last surface away from the image plane."""
+        if not (self.is_folded or self.has_mirrors):
+            return None
+        from raywave.lens.paraxial import ParaxialUndefinedError
+
+        try:
+            self.paraxial()
+        except ParaxialUndefinedError as err:
+            return (f"the ray-wave engine (HybridLens, raywave psf) needs the paraxial entrance pupil and image "
+                    f"space to aim its chief rays, and {err}")
+        last = self.direction_signs()[-1] * float(self.surfaces[-1].thickness.detach())
+        if not last > 0:
+            return (f"surface {len(self.surfaces) - 1} (the last): the image plane lies {last:g} mm from it against "
+                    "the light's direction of travel (after an odd number of mirrors the last thickness must be "
+                    "negative): no DOE plane fits between them")
         return None
 
     def surface_frames(self) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], tuple[torch.Tensor, torch.Tensor]]:
@@ -470,15 +477,29 @@ class Lens(nn.Module):
         rot, tv = (v.to(rays.dtype) for v in self.image_frame())
         return rays.replace(o=(rays.o - tv) @ rot, d=rays.d @ rot)
 
-    def require_unfolded(self, what: str) -> None:
+    def surface_coordinates(self, rays: RayBundle, index: int) -> RayBundle:
+        """``rays`` (global coordinates) in the local frame of surface ``index`` (where its geometry and aperture
+        are defined). The identity for a lens without coordinate breaks."""
+        if not self.is_folded:
+            return rays
+        rot, tv = (v.to(rays.dtype) for v in self.surface_frames()[0][index])
+        return rays.replace(o=(rays.o - tv) @ rot, d=rays.d @ rot)
+
+    def require_unfolded(self, what: str, toward_plus_z: bool = False) -> None:
         """Raise a ValueError naming ``what`` if the lens has a coordinate break that decentres or tilts (for
-        analyses written for one straight axis)."""
+        analyses written for one straight axis); with ``toward_plus_z`` also if the light leaves toward −z (an odd
+        number of mirrors; for analyses that measure along +z), naming the last mirror."""
         if self.is_folded:
             i = next(i for i, s in enumerate(self.surfaces)
                      if s.interaction.kind == "coordinate_break" and not s.interaction.is_identity)
             raise ValueError(f"{what} is not supported for a lens with coordinate breaks (surface {i} decentres or "
                              "tilts the axis): it assumes one straight optical axis; trace real rays with "
                              "Lens.trace_to_image (and Lens.image_coordinates) instead")
+        if toward_plus_z and self.direction_signs()[-1] < 0:
+            i = max(i for i, s in enumerate(self.surfaces) if s.interaction.kind == "reflection")
+            raise ValueError(f"{what} is not supported for a lens whose light leaves toward -z (surface {i} is the "
+                             "last of an odd number of mirrors): it measures along +z; trace real rays with "
+                             "Lens.trace_to_image instead")
 
     def trace_to_image(self, rays: RayBundle, z: float | torch.Tensor | None = None, record: bool = False):
         """Trace through all surfaces and on to the image plane (or to the plane ``z``).

@@ -140,6 +140,8 @@ def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=t
 def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None, ep_z=None):
     rays = rays_through(lens, uv, fields, field_type, wavelength, depth=depth, ep_z=ep_z)
     out = lens.trace(rays, stop=lens.stop_index + 1, apertures=False)
+    if lens.is_folded:  # the stop's own frame: its centre is the origin of its local x, y
+        out = lens.surface_coordinates(out, lens.stop_index)
     return out.o[..., :2], out.valid
 
 
