@@ -222,3 +222,19 @@ def _example_spec(path):
     from raywave.io import read_hybrid_spec
 
     return read_hybrid_spec(path)[0]
+
+
+def test_straight_axis_models_and_the_map_grid_refuse_a_folded_lens():
+    """The comparison models and the PSF map's chief-ray field grid read the lens along one straight axis: on a
+    folded lens they refuse by name instead of returning a wrong PSF; the ray-wave model is accepted."""
+    from raywave.imaging.psfmap import field_grid
+    from raywave.models import make_model
+
+    folded = _lens(_cb(tx=45.0), MIRROR, _cb(tx=45.0, t=-39.0), last=10.0)
+    hl = HybridLens(folded, BlankDOE((64, 64), 0.004), 1.0, sensor_pitch=0.002)
+    for name in ("paraxial", "pupil", "raytrace", "exit_pupil"):
+        with pytest.raises(ValueError, match="straight optical axis"):
+            make_model(name, hl)
+    assert make_model("raywave", hl) is not None
+    with pytest.raises(ValueError, match="fields="):
+        field_grid(hl, (2, 2), sensor_size=(1.0, 1.0))

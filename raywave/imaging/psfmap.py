@@ -112,8 +112,12 @@ def sensor_size_of(model, sensor_size=None) -> tuple[float, float]:
 
 def _chief_heights(lens, theta_deg: torch.Tensor, wavelength: float, depth) -> torch.Tensor:
     """Real chief-ray image height (mm) at the sensor for fields (0, θ) (θ in degrees, (P,)), no autograd."""
+    from raywave.lens.frames import image_space
     from raywave.lens.sources import VignettingWarning, chief_ray
 
+    if image_space(lens) is not lens:  # sensor heights along one straight axis: give the fields instead
+        raise ValueError("the chief-ray mapping of sensor points to fields assumes one straight optical axis, but "
+                         "this lens has coordinate breaks or mirrors: pass the field angles explicitly (fields=)")
     f = torch.stack([torch.zeros_like(theta_deg), theta_deg], -1)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)
