@@ -2,6 +2,7 @@
 
 from raywave.wave.propagation import (
     NyquistReport,
+    WindowTransfer,
     angular_spectrum,
     fast_fft_size,
     grid_coordinates,
@@ -13,6 +14,7 @@ from raywave.wave.propagation import (
 
 __all__ = [
     "NyquistReport",
+    "WindowTransfer",
     "angular_spectrum",
     "fast_fft_size",
     "grid_coordinates",

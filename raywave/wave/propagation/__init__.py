@@ -27,11 +27,12 @@ from raywave.wave.propagation.full_grid import angular_spectrum
 from raywave.wave.propagation.resample import (_cubic_overlap_matrix, _keys_antiderivative, _overlap_matrix,
                                                pixel_integrate)
 from raywave.wave.propagation.sampling import NyquistReport, nyquist_check
-from raywave.wave.propagation.transfer import window_transfer
+from raywave.wave.propagation.transfer import WindowTransfer, window_transfer
 from raywave.wave.propagation.window import _axial_frequency, _dz_tensor, _Perturbed, propagate_window
 
 __all__ = [
     "NyquistReport",
+    "WindowTransfer",
     "angular_spectrum",
     "fast_fft_size",
     "grid_coordinates",

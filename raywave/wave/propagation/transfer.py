@@ -4,7 +4,8 @@ with a smooth roll-off of the band limit (see :func:`window_transfer`)."""
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 
@@ -127,6 +128,58 @@ def _band_values(geo: _Geometry, fx, fy, rows, cols, weight_derivative: bool):
     return g, rel
 
 
+class WindowTransfer(Sequence):
+    """The result of :func:`window_transfer`: the tuple ``(G, (My, Mx))`` (``(G, (My, Mx), R)`` with
+    ``weight_derivative``) it always was — index it, unpack it, take ``len`` — stored compactly as its band.
+
+    ``G`` and ``R`` are zero outside the rectangle ``rows × cols`` of the FFT grid (the 1-D pre-selection), so
+    only that rectangle is kept: ``band`` complex128 ``(R, C)`` and ``band_rel`` float64 ``(3, R, C)`` (or None),
+    with ``rows`` ``(R,)`` and ``cols`` ``(C,)`` int64 indices into the ``fftfreq`` grid of size ``size``. The
+    full-size ``G`` and ``R`` are built on first access (and kept); :func:`propagate_window` uses the band alone
+    and never builds them (and skips the FFT work on the columns that the band leaves at zero)."""
+
+    __slots__ = ("size", "rows", "cols", "band", "band_rel", "weight_derivative", "_full")
+
+    def __init__(self, size, rows, cols, band, band_rel=None, weight_derivative: bool = False):
+        self.size = (int(size[0]), int(size[1]))
+        self.rows, self.cols, self.band, self.band_rel = rows, cols, band, band_rel
+        self.weight_derivative = bool(weight_derivative)
+        self._full = None
+
+    def _items(self) -> tuple:
+        if self._full is None:
+            my, mx = self.size
+            dev = self.band.device
+            idx = (self.rows[:, None], self.cols[None, :])
+            g = torch.zeros((my, mx), dtype=torch.complex128, device=dev)
+            if self.band.numel():
+                g.index_put_(idx, self.band)
+            if not self.weight_derivative:
+                self._full = (g, self.size)
+            else:
+                r = torch.zeros((3, my, mx), dtype=torch.float64, device=dev)
+                if self.band.numel():
+                    for i in range(3):
+                        r[i].index_put_(idx, self.band_rel[i])
+                self._full = (g, self.size, r)
+        return self._full
+
+    def __len__(self) -> int:
+        return 3 if self.weight_derivative else 2
+
+    def __getitem__(self, i):
+        if isinstance(i, int) and i in (1, -2 if self.weight_derivative else -1):
+            return self.size  # the FFT size needs no full-size array
+        return self._items()[i]
+
+    def __iter__(self):
+        return iter(self._items())
+
+    def __repr__(self) -> str:
+        return (f"WindowTransfer(size={self.size}, band={tuple(self.band.shape)}, "
+                f"weight_derivative={self.weight_derivative})")
+
+
 def window_transfer(
     in_shape: Sequence[int],
     out_shape: Sequence[int],
@@ -141,10 +194,10 @@ def window_transfer(
     guard: float = 2.0,
     device=None,
     weight_derivative: bool = False,
-) -> tuple:
+) -> WindowTransfer:
     """Transfer function used by :func:`propagate_window` (float64-accurate, complex128).
 
-    Returns ``(G, (My, Mx))`` with, on the ``fftfreq`` grid of the FFT size ``(My, Mx)``,
+    Returns ``(G, (My, Mx))`` (a :class:`WindowTransfer`, which holds only the band where ``G`` can be non-zero) with, on the ``fftfreq`` grid of the FFT size ``(My, Mx)``,
     ``G = W(f) · H(f + f_c) · exp(i2π f·(out_origin − in_origin))`` with
     ``H(f) = exp(i2π z sqrt((n/λ)² − |f|²))`` and ``f_c = n·carrier/λ``. The band-limit weight ``W`` is a
     function of the geometric lateral shift per axis, ``Δ = z (f + f_c)/sqrt((n/λ)² − |f + f_c|²)``
@@ -174,15 +227,9 @@ def window_transfer(
     fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=device)
     cols = _candidates(fx + k * geo.carrier[0], k, geo.zf, *geo.bx)
     rows = _candidates(fy + k * geo.carrier[1], k, geo.zf, *geo.by)
-    out = torch.zeros((my, mx), dtype=torch.complex128, device=device)
-    d_out = torch.zeros((3, my, mx), dtype=torch.float64, device=device) if weight_derivative else None
     if cols.numel() == 0 or rows.numel() == 0:
-        return (out, (my, mx), d_out) if weight_derivative else (out, (my, mx))
+        empty = torch.zeros((rows.numel(), cols.numel()), dtype=torch.complex128, device=device)
+        rel = torch.zeros((3, *empty.shape), dtype=torch.float64, device=device) if weight_derivative else None
+        return WindowTransfer((my, mx), rows, cols, empty, rel, weight_derivative)
     g, rel = _band_values(geo, fx, fy, rows, cols, weight_derivative)
-    idx = (rows[:, None], cols[None, :])
-    out.index_put_(idx, g)
-    if not weight_derivative:
-        return out, (my, mx)
-    for i, r in enumerate(rel):
-        d_out[i].index_put_(idx, r)
-    return out, (my, mx), d_out
+    return WindowTransfer((my, mx), rows, cols, g, None if rel is None else torch.stack(rel), weight_derivative)

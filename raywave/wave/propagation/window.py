@@ -9,7 +9,7 @@ from typing import Sequence
 import torch
 
 from raywave.wave.propagation._common import _TWO_PI, _UM_TO_MM, _as_field, _pair, _positive, _sqrt_kz, _xy
-from raywave.wave.propagation.transfer import window_transfer
+from raywave.wave.propagation.transfer import WindowTransfer, window_transfer
 
 
 def propagate_window(
@@ -84,23 +84,59 @@ def propagate_window(
     if transfer is None or (dz is not None and len(transfer) < 3):
         transfer = window_transfer(u.shape[-2:], (noy, nox), pitch, wavelength, z, in_origin, out_origin, n, carrier,
                                    margin, guard, u.device, weight_derivative=dz is not None or shift is not None)
-    h, (my, mx) = transfer[:2]
-    rel = transfer[2] if len(transfer) > 2 else None
-    # fft2(u, s=(my, mx)) one axis at a time: the first pass transforms only the Ny_in rows that hold data
-    spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1), n=my, dim=-2)
-    h = h.to(u.dtype)
+    if isinstance(transfer, WindowTransfer):
+        h, rows, cols = transfer.band, transfer.rows.to(u.device), transfer.cols.to(u.device)
+        rel = transfer.band_rel
+    else:  # a plain (G, (My, Mx)[, R]) tuple: the full FFT grid
+        h, rel, rows, cols = transfer[0], transfer[2] if len(transfer) > 2 else None, None, None
+    my, mx = transfer[1]
     if shift is not None or dz is not None:
-        px, py = _pair(pitch, "pitch")
-        fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=u.device)
-        fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=u.device)
-        zero = torch.zeros((), dtype=torch.float64, device=u.device)
-        sx, sy = (zero, zero) if shift is None else shift.to(device=u.device, dtype=torch.float64).reshape(2).unbind()
-        dz = _dz_tensor(dz, u.device) if dz is not None else zero
-        w = _axial_frequency(fx, fy, wavelength, n, carrier) if dz.requires_grad or float(dz) != 0 else None
-        h = _Perturbed.apply(h, sx, sy, dz, fx, fy, w, rel)
-    # ifft2(spec·h)[..., :Ny_out, :Nx_out] one axis at a time: the second pass transforms only the Ny_out rows kept
+        h = _perturbed(h.to(u.dtype), rel, (my, mx), rows, cols, pitch, wavelength, n, carrier, shift, dz, u.device)
+    if rows is None:
+        return _convolve_full(u, h.to(u.dtype), (my, mx), noy, nox)
+    return _convolve_band(u, h.to(u.dtype), (my, mx), rows, cols, noy, nox)
+
+
+def _perturbed(h, rel, size, rows, cols, pitch, wavelength, n, carrier, shift, dz, device):
+    """``h`` times the first-order window shift and extra distance (:class:`_Perturbed`), on the band
+    ``rows × cols`` of the FFT grid ``size`` (or on the whole grid where ``rows`` is None)."""
+    my, mx = size
+    px, py = _pair(pitch, "pitch")
+    fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=device)
+    fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=device)
+    if rows is not None:
+        fx, fy = fx[cols], fy[rows]
+    zero = torch.zeros((), dtype=torch.float64, device=device)
+    sx, sy = (zero, zero) if shift is None else shift.to(device=device, dtype=torch.float64).reshape(2).unbind()
+    dz = _dz_tensor(dz, device) if dz is not None else zero
+    w = _axial_frequency(fx, fy, wavelength, n, carrier) if dz.requires_grad or float(dz) != 0 else None
+    return _Perturbed.apply(h, sx, sy, dz, fx, fy, w, rel)
+
+
+def _convolve_full(u, h, size, noy, nox):
+    """``ifft2(fft2(u, s=size)·h)[..., :noy, :nox]``, one axis at a time: the first pass transforms only the rows
+    of ``u`` that hold data, the last only the ``noy`` rows kept."""
+    my, mx = size
+    spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1), n=my, dim=-2)
     out = torch.fft.ifft(torch.fft.ifft(spec * h, dim=-2)[..., :noy, :], dim=-1)
     return out[..., :nox]
+
+
+def _convolve_band(u, h, size, rows, cols, noy, nox):
+    """:func:`_convolve_full` for an ``h`` that is zero outside the rectangle ``rows × cols`` (given as ``h`` on it,
+    ``(R, C)``): the transforms along y run only over the ``C`` columns of the band (the others are zero after the
+    product), and the product and the inverse transform along y only over the band's rows resp. columns. The
+    same FFTs on the same values as the full product, without the columns that are zero."""
+    my, mx = size
+    lead = u.shape[:-2]
+    if rows.numel() == 0 or cols.numel() == 0:
+        return torch.zeros((*lead, noy, nox), dtype=u.dtype, device=u.device) + 0 * u.sum()
+    spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1).index_select(-1, cols), n=my, dim=-2)
+    prod = spec.index_select(-2, rows) * h
+    full_y = torch.zeros((*lead, my, cols.numel()), dtype=prod.dtype, device=u.device).index_copy(-2, rows, prod)
+    part = torch.fft.ifft(full_y, dim=-2)[..., :noy, :]
+    full_x = torch.zeros((*lead, noy, mx), dtype=part.dtype, device=u.device).index_copy(-1, cols, part)
+    return torch.fft.ifft(full_x, dim=-1)[..., :nox]
 
 
 class _Perturbed(torch.autograd.Function):
