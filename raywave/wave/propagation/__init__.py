@@ -18,11 +18,13 @@ Pure functions on ``torch`` tensors; no state, no caching. Conventions shared by
 
 Split by concern (issue 17), every name importable from here as before: ``_common`` (argument checks, FFT sizes,
 coordinates), ``full_grid`` (:func:`angular_spectrum`), ``transfer`` (:func:`window_transfer`), ``window``
-(:func:`propagate_window`), ``sampling`` (:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`).
+(:func:`propagate_window`), ``sampling`` (:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`), ``fields`` (the same on :class:`~raywave.wave.grid.Field` values:
+:func:`propagate_field`, :func:`angular_spectrum_field`, :func:`field_transfer`).
 """
 
 from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _as_field, _pair, _positive, _sqrt_kz,
                                               _transfer, _xy, _z_value, fast_fft_size, grid_coordinates)
+from raywave.wave.propagation.fields import angular_spectrum_field, field_transfer, propagate_field
 from raywave.wave.propagation.full_grid import angular_spectrum
 from raywave.wave.propagation.resample import (_cubic_overlap_matrix, _keys_antiderivative, _overlap_matrix,
                                                pixel_integrate)
@@ -34,10 +36,13 @@ __all__ = [
     "NyquistReport",
     "WindowTransfer",
     "angular_spectrum",
+    "angular_spectrum_field",
+    "field_transfer",
     "fast_fft_size",
     "grid_coordinates",
     "nyquist_check",
     "pixel_integrate",
+    "propagate_field",
     "propagate_window",
     "window_transfer",
     # private names that were importable from the single module before the split (tests import _Perturbed)
