@@ -46,7 +46,7 @@ def test_grid_index_world_round_trips_and_half_open_windows():
 
 def test_field_validates_and_crops():
     g = Grid((0.0, 0.0), 1e-3, (6, 8))
-    f = Field(torch.ones(2, 6, 8), g, LAM, carrier=(0.1, 0.0))
+    f = Field(torch.ones(2, 6, 8, dtype=torch.float64), g, LAM, carrier=(0.1, 0.0))
     assert f.envelope.dtype == torch.complex128 and f.carrier == (0.1, 0.0)
     assert Field(torch.ones(6, 8, dtype=torch.float32), g, LAM).envelope.dtype == torch.complex64
     c = f.crop(1, 4, 2, 8)
