@@ -430,8 +430,9 @@ class HybridLens(nn.Module):
         return psf, center_t, outside
 
     def _transfer(self, u, p, fd: DOEField, out_origin, n_out: int, weight_derivative: bool = False):
-        """The window transfer function for this geometry, memoised (the 8 most recent window pairs, ≤ ~6 MB each as a band-only WindowTransfer;
-        ~2.5× that with ``weight_derivative``, for a PSF differentiated with respect to the sensor distance)."""
+        """The window transfer function for this geometry, memoised (the 8 most recent window pairs, each a
+        band-only :class:`~raywave.wave.propagation.WindowTransfer` of ≤ ~6 MB; ~2.5× that with
+        ``weight_derivative``, for a PSF differentiated with respect to the sensor distance)."""
         key = (tuple(u.shape[-2:]), n_out, p, fd.wavelength, float(fd.z), fd.n, fd.carrier,
                round((out_origin[0] - fd.origin[0]) / p, 9), round((out_origin[1] - fd.origin[1]) / p, 9), u.device,
                weight_derivative)
