@@ -626,15 +626,16 @@ def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | Non
     the image medium, usually extended backwards to a virtual point inside the lens): the exit pupil is the
     image of the stop's centre, but off axis and at the rim the pupil's own aberrations move it (pupil spherical
     aberration, astigmatism). The neighbouring source is displaced along the rim point's radial direction (the
-    edge's normal, the direction its Fresnel diffraction runs), to first order from two traced displacements;
+    edge's normal, the direction its Fresnel diffraction runs), to first order from central differences;
     the crossing is the closest approach of the two rays. Differentiable with respect to the lens (the rays are
     traced with autograd when it is on)."""
     field_type = field_type or lens.field_type
     f = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
     fmax = max([abs(float(v)) for v in getattr(lens, "fields", [])] + [0.0]) or 1.0
     eps = 1e-3 * fmax
-    fields = torch.stack([f, f + torch.tensor([eps, 0.0], dtype=f.dtype, device=f.device),
-                          f + torch.tensor([0.0, eps], dtype=f.dtype, device=f.device)])
+    ex = torch.tensor([eps, 0.0], dtype=f.dtype, device=f.device)
+    ey = torch.tensor([0.0, eps], dtype=f.dtype, device=f.device)
+    fields = torch.stack([f, f + ex, f + ey, f - ex, f - ey])  # central differences
     theta = torch.arange(k, dtype=torch.float64, device=lens.device) * (2 * math.pi / k)
     c, s = torch.cos(theta), torch.sin(theta)
     with warnings.catch_warnings():
@@ -642,11 +643,11 @@ def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | Non
         rays = point_source_rays(lens, fields, torch.tensor([float(wavelength)], dtype=torch.float64),
                                  pupil=(c, s), aim="full", depth=depth, field_type=field_type)
         out = lens.trace(rays, apertures=False)
-    o, d, v = out.o[:, 0], out.d[:, 0], out.valid[:, 0]  # (3, k, 3)
+    o, d, v = out.o[:, 0], out.d[:, 0], out.valid[:, 0]  # (5, k, 3)
     if not bool(v.all()):
         return None
-    do = c[:, None] * (o[1] - o[0]) + s[:, None] * (o[2] - o[0])  # (k, 3): the radially displaced source's ray
-    dd = c[:, None] * (d[1] - d[0]) + s[:, None] * (d[2] - d[0])
+    do = c[:, None] * (o[1] - o[3]) + s[:, None] * (o[2] - o[4])  # (k, 3): the radially displaced source's ray
+    dd = c[:, None] * (d[1] - d[3]) + s[:, None] * (d[2] - d[4])
     a = d[0]
 
     def perp(v_):
