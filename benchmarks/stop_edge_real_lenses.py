@@ -23,7 +23,7 @@ LENSES = {
 }
 
 
-def run_case(path, frac, ks=32, n_pupil=None):
+def run_case(path, frac, ks=32, n_pupil=None, sensor_pitch=None):
     from raywave.cli.psf_commands import compute_psf
     from raywave.lens.build import load_lens, resolve_lens_path
     from raywave.models.exit_pupil import ExitPupilModel
@@ -34,7 +34,7 @@ def run_case(path, frac, ks=32, n_pupil=None):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         t = time.perf_counter()
-        out = compute_psf(path, field=fld, ks=ks, stop_edge="exit_pupil")
+        out = compute_psf(path, field=fld, ks=ks, stop_edge="exit_pupil", sensor_pitch=sensor_pitch)
         dt = time.perf_counter() - t
         hl = out["hybrid"]
         m = ExitPupilModel(hl, **({} if n_pupil is None else {"n_pupil": n_pupil}))
@@ -45,7 +45,7 @@ def run_case(path, frac, ks=32, n_pupil=None):
     names = sorted({f"{w.category.__name__}: {str(w.message)[:120]}" for w in caught
                     if w.category.__name__ not in ("SensorCropWarning",)})
     return dict(field_deg=fld[1], rel_l1=err, time_s=dt, huygens_s=dt_ref, doe=hl.doe_info, warnings=names,
-                energy_outside=out["energy_outside"])
+                energy_outside=out["energy_outside"], sensor_pitch=out["pitch"])
 
 
 def main(argv=None):
@@ -53,12 +53,15 @@ def main(argv=None):
     ap.add_argument("--ks", type=int, default=32)
     ap.add_argument("--lens", nargs="*", default=list(LENSES))
     ap.add_argument("--fields", nargs="*", type=float, default=[0.0, 0.7, 1.0])
+    ap.add_argument("--n-pupil", type=int, default=None, help="Huygens pupil cells a side (default 192)")
+    ap.add_argument("--sensor-pitch", type=float, default=None, help="mm (default: the lens's, else the DOE pitch)")
     ap.add_argument("-o", "--output")
     a = ap.parse_args(argv)
     rows = []
     for name in a.lens:
         for frac in a.fields:
-            r = dict(lens=name, field_frac=frac, **run_case(LENSES[name], frac, a.ks))
+            r = dict(lens=name, field_frac=frac, ks=a.ks, n_pupil=a.n_pupil or 192,
+                     **run_case(LENSES[name], frac, a.ks, a.n_pupil, a.sensor_pitch))
             print(json.dumps(r), flush=True)
             rows.append(r)
             if a.output:
