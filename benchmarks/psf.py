@@ -254,7 +254,7 @@ def edge_timing_case(edge: str, step: str, backward: bool, cached: bool, lens_gr
             "repeat": repeat, "threads": threads}
 
 
-def edge_errors() -> dict:
+def edge_errors(cases=EDGE_CASES, fields=EDGE_FIELDS, lenses=("asphere_hk51", "ideal")) -> dict:
     """L1 of each edge against the Huygens PSF (asphere) and the Debye truth (ideal lens, on axis)."""
     import torch
 
@@ -272,14 +272,16 @@ def edge_errors() -> dict:
     z_doe_sensor = float(lens.surfaces[-1].thickness.detach()) - DOE_DIST
     ps = 3e-3
     for name, base in (("asphere_hk51", lens), ("ideal", ideal)):
-        for fr in EDGE_FIELDS:
+        if name not in lenses:
+            continue
+        for fr in fields:
             fld = (0.0, fr * full)
             ref = huygens_psf(base, fld, EDGE_WL, ks=KS, pitch=ps, n_pupil=192).psf.to(torch.float64)
             debye = None
             if name == "ideal" and fr == 0.0:
                 res = debye_psf(math.sin(math.atan(0.5 * epd / efl)), EDGE_WL, KS, ps, oversample=15)
                 debye = (res[0] if isinstance(res, tuple) else getattr(res, "psf", res)).to(torch.float64)
-            for edge, step in EDGE_CASES:
+            for edge, step in cases:
                 d = DOE_DIST if name == "asphere_hk51" else efl - z_doe_sensor
                 hl = HybridLens(base, BlankDOE(6000, DOE_PITCH), d, sensor_pitch=ps, stop_edge=edge, edge_step=step)
                 t0 = time.perf_counter()
@@ -298,8 +300,13 @@ def edge_errors() -> dict:
 def edges_main(args) -> dict:
     timings = []
     cases = []
-    for edge, step in EDGE_CASES:
-        for bwd, cached, lens_grad in ((0, 0, 0), (1, 0, 0), (1, 0, 1), (0, 1, 0), (1, 1, 0)):
+    steps = args.edge_steps.split(",")
+    edge_cases = [(e, s) for e, s in EDGE_CASES if (s if e == "exit_pupil" else "doe") in steps]
+    configs = ((0, 0, 0), (1, 0, 0), (1, 0, 1), (0, 1, 0), (1, 1, 0))
+    if args.edge_quick:  # uncached forward only
+        configs = ((0, 0, 0),)
+    for edge, step in edge_cases:
+        for bwd, cached, lens_grad in configs:
             cases.append((edge, step, bwd, cached, lens_grad))
     for edge, step, bwd, cached, lens_grad in cases:
         cmd = [sys.executable, __file__, "--edge-case", f"{edge},{step},{bwd},{cached},{lens_grad},{args.edge_field}",
@@ -326,7 +333,8 @@ def edges_main(args) -> dict:
            "threads": args.threads, "timing_field_deg": args.edge_field, "timing": timings,
            "exit_pupil_over_doe (goal: time <= 2, memory <= 1.5)": ratios}
     if not args.no_errors:
-        out["errors"] = edge_errors()
+        fields = tuple(float(f) for f in args.edge_error_fields.split(","))
+        out["errors"] = edge_errors(edge_cases, fields, args.edge_error_lenses.split(","))
     return out
 
 
@@ -343,6 +351,11 @@ def main() -> None:
     ap.add_argument("--edge-field", type=float, default=12.25, help="field (deg) of the stop-edge timing")
     ap.add_argument("--no-errors", action="store_true", help="stop-edge comparison: timings only")
     ap.add_argument("--edge-case", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--edge-steps", default="doe,asm,fresnel", help="stop-edge comparison: the cases, a subset of "
+                    "doe,asm,fresnel (cheap: doe,fresnel)")
+    ap.add_argument("--edge-quick", action="store_true", help="stop-edge timing: uncached forward only")
+    ap.add_argument("--edge-error-fields", default="0,0.7,1", help="stop-edge errors: fractions of the full field")
+    ap.add_argument("--edge-error-lenses", default="asphere_hk51,ideal", help="stop-edge errors: asphere_hk51, ideal")
     args = ap.parse_args()
     if args.edge_case:
         edge, step, bwd, cached, lens_grad, fld = args.edge_case.split(",")

@@ -46,7 +46,7 @@ from raywave.rays.pupil import hexapolar
 from raywave.utils.errors import NonFiniteError
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "MAX_DEFAULT_PITCH", "NYQUIST_FILL",
-           "beam_half_extent", "default_doe_size", "hybrid_from_spec", "load_hybrid", "nyquist_doe_pitch"]
+           "MAX_DEFAULT_BEAM_PIXELS", "beam_half_extent", "default_doe_size", "fit_doe_distance", "hybrid_from_spec", "load_hybrid", "nyquist_doe_pitch"]
 
 #: Pixel pitch (mm) of the blank DOE given to a lens file without a DOE when no ray can size it (before issue 19
 #: every lens file without a DOE got it; now :func:`nyquist_doe_pitch` chooses).
@@ -57,6 +57,9 @@ NYQUIST_FILL = 0.8
 MAX_DEFAULT_PITCH = 1e-2
 #: Default DOE plane of a lens file without a DOE: this fraction of the way from the last vertex to the sensor.
 DEFAULT_DISTANCE_FRACTION = 0.5
+#: a lens file without a DOE: the default DOE plane moves towards the sensor until every source's beam spans at most
+#: this many DOE pixels a side on it (:func:`fit_doe_distance`; a 25 mm beam at 0.6 µm would need 40 000²)
+MAX_DEFAULT_BEAM_PIXELS = 2048
 _MIN_PIXELS = 16
 _PIXEL_TOL = 1e-6
 
@@ -114,6 +117,63 @@ def nyquist_doe_pitch(lens, distance: float, fields=None, wavelengths=None, dept
         return None
     digits = 10 ** (math.floor(math.log10(pitch)) - 1)
     return min(float(f"{math.floor(pitch / digits * (1 + 1e-9)) * digits:.2g}"), MAX_DEFAULT_PITCH)
+
+
+def fit_doe_distance(lens, distance: float, pitch: float, fields=None, wavelengths=None, depth=None,
+                     max_pixels: int = MAX_DEFAULT_BEAM_PIXELS) -> float:
+    """The default DOE distance (mm after the last vertex) for a lens file without a DOE: ``distance`` when every
+    source's beam spans at most ``max_pixels`` pixels of ``pitch`` mm a side on that plane, else the nearest plane
+    towards the sensor where it does (the beam narrows towards focus while the Nyquist pitch, set by the rays'
+    directions, stays the same: a fast lens with a large beam, e.g. an F/1.3 lens with a 21 mm pupil, needs
+    20 000² pixels half way to the sensor and 2 000² a few mm before it). When no plane fits: the plane where the
+    widest beam is narrowest. With a blank DOE and ``stop_edge="exit_pupil"`` the PSF does not depend on the
+    plane (docs/ray-wave.md). Rays: pupil rim and a hexapolar grid per field and wavelength (defaults as
+    :func:`beam_half_extent`), traced once and carried along straight lines; a 1.1 margin for the window's edge
+    band."""
+    last = float(lens.surfaces[-1].thickness.detach())
+    z_last = float(lens.vertex_z()[-1].detach())
+    t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
+    hx, hy = hexapolar(6)
+    px = torch.cat([torch.cos(t), hx.to(torch.float64)])
+    py = torch.cat([torch.sin(t), hy.to(torch.float64)])
+    wls = lens.wavelengths if wavelengths is None else [float(w) for w in torch.as_tensor(wavelengths).reshape(-1)]
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full",
+                                 depth=depth)
+        out = lens.trace(rays)
+        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(z_last + distance, n)
+    ok = at.valid & torch.isfinite(at.o).all(-1)
+    if not bool(ok.any()):
+        return distance
+    xy0 = at.o[..., :2]
+    tan = at.d[..., :2] / at.d[..., 2:]
+    dz = torch.linspace(0.0, 0.995 * last - distance, 400, dtype=torch.float64)  # offsets from the default plane
+
+    def widest(xy):  # (Z, F, W, N, 2) -> (Z,) largest side of any source's footprint, pixels
+        big = torch.tensor(math.inf, dtype=xy.dtype)
+        hi = torch.where(ok[..., None], xy, -big).amax(-2)
+        lo = torch.where(ok[..., None], xy, big).amin(-2)
+        side = (hi - lo).amax(-1)
+        side = torch.where(ok.any(-1), side, torch.zeros_like(side))
+        return side.flatten(1).amax(1) * 1.1 / pitch
+
+    w = widest(xy0[None] + tan[None] * dz[:, None, None, None, None])
+    if float(w[0]) <= max_pixels or dz.numel() < 2 or float(dz[-1]) <= 0:
+        return distance
+    fits = torch.nonzero(w <= max_pixels).squeeze(1)
+    if fits.numel():
+        i = int(fits[0])
+        lo_, hi_ = float(dz[i - 1]), float(dz[i])  # refine the crossing by bisection
+        for _ in range(30):
+            mid = 0.5 * (lo_ + hi_)
+            if float(widest(xy0[None] + tan[None] * mid)[0]) <= max_pixels:
+                hi_ = mid
+            else:
+                lo_ = mid
+        return distance + hi_
+    return distance + float(dz[int(torch.argmin(w))])
 
 
 def default_doe_size(lens, distance: float, fields=None, wavelengths=None, depth=None,
@@ -192,6 +252,10 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         pitch = DEFAULT_DOE_PITCH if pitch is None else pitch
     if not (math.isfinite(pitch) and pitch > 0):
         raise ValueError(f"the DOE pitch must be > 0 mm, got {pitch!r}")
+    if doe_distance is None and not from_file:  # a beam too wide for the grid: move the default plane to focus
+        fitted = fit_doe_distance(lens, distance, pitch, fields, wavelengths, depth)
+        info["distance_rule"] = "half_way" if fitted == distance else "beam_fit"
+        distance = fitted
 
     # ---- grid
     if doe_size is not None:

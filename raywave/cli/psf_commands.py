@@ -184,6 +184,7 @@ def summary(result: dict, lens_name: str) -> dict:
             "distance_mm": info["distance"],
             "pitch_mm": info["pitch"],
             "pitch_rule": info.get("pitch_rule"),
+            "distance_rule": info.get("distance_rule"),
             "shape": info["shape"],
             "size_mm": info["size"],
             "aperture": info["aperture"],
@@ -301,7 +302,7 @@ def register(sub) -> None:
                         "1.2 × the beam's extent on the DOE plane)")
     p.add_argument("--doe-distance", default=None, metavar="MM",
                    help="last vertex to DOE plane in mm (overrides the file's; default for a lens without a DOE: half "
-                        "way to the sensor)")
+                        "way to the sensor, or nearer the sensor where the beam would span over 2048 DOE pixels)")
     p.add_argument("--stop-edge", choices=("doe", "exit_pupil"), default="doe",
                    help="where the accurate field's sharp stop edge sits: doe (the paper's model, fast; default) or "
                         "exit_pupil (the stop's image: off-axis PSFs independent of the DOE distance, ~3 s more per "

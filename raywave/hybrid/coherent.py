@@ -613,6 +613,68 @@ def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.
     return out.index_put(idx, val)
 
 
+#: stop-rim points at which :func:`stop_rim_images` finds the edge's image
+RIM_POINTS = 64
+
+
+def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | None = None, k: int = RIM_POINTS):
+    """Where the stop's rim is sharp, seen by one source: z (mm) of the image of every rim point along the ray
+    that the source sends through it, ``(theta (k,), z (k,))`` with ``theta`` the rim point's azimuth on the stop
+    (``atan2(y, x)`` of the stop coordinates); None when the rays cannot be traced.
+
+    The image of a stop point P is where the rays through P from neighbouring sources cross (straight lines in
+    the image medium, usually extended backwards to a virtual point inside the lens): the exit pupil is the
+    image of the stop's centre, but off axis and at the rim the pupil's own aberrations move it (pupil spherical
+    aberration, astigmatism). The neighbouring source is displaced along the rim point's radial direction (the
+    edge's normal, the direction its Fresnel diffraction runs), to first order from central differences;
+    the crossing is the closest approach of the two rays. Differentiable with respect to the lens (the rays are
+    traced with autograd when it is on)."""
+    field_type = field_type or lens.field_type
+    f = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
+    fmax = max([abs(float(v)) for v in getattr(lens, "fields", [])] + [0.0]) or 1.0
+    eps = 1e-3 * fmax
+    ex = torch.tensor([eps, 0.0], dtype=f.dtype, device=f.device)
+    ey = torch.tensor([0.0, eps], dtype=f.dtype, device=f.device)
+    fields = torch.stack([f, f + ex, f + ey, f - ex, f - ey])  # central differences
+    theta = torch.arange(k, dtype=torch.float64, device=lens.device) * (2 * math.pi / k)
+    c, s = torch.cos(theta), torch.sin(theta)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rays = point_source_rays(lens, fields, torch.tensor([float(wavelength)], dtype=torch.float64),
+                                 pupil=(c, s), aim="full", depth=depth, field_type=field_type)
+        out = lens.trace(rays, apertures=False)
+    o, d, v = out.o[:, 0], out.d[:, 0], out.valid[:, 0]  # (5, k, 3)
+    if not bool(v.all()):
+        return None
+    do = c[:, None] * (o[1] - o[3]) + s[:, None] * (o[2] - o[4])  # (k, 3): the radially displaced source's ray
+    dd = c[:, None] * (d[1] - d[3]) + s[:, None] * (d[2] - d[4])
+    a = d[0]
+
+    def perp(v_):
+        return v_ - (v_ * a).sum(-1, keepdim=True) * a
+
+    po, pd = perp(do), perp(dd)
+    t = -(po * pd).sum(-1) / (pd * pd).sum(-1).clamp_min(1e-300)
+    z = o[0, :, 2] + t * a[:, 2]
+    if not bool(torch.isfinite(z.detach()).all()):
+        return None
+    return theta, z
+
+
+def _rim_z(rim, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
+    """z of the stop rim's image (:func:`stop_rim_images`) at the azimuth of stop points (xs, ys), periodic linear
+    interpolation (differentiable; the stop's centre, where the azimuth is undefined, gets the image of azimuth 0)."""
+    theta, z = rim
+    k = theta.numel()
+    ok = (xs * xs + ys * ys).detach() > 0
+    az = torch.atan2(torch.where(ok, ys, torch.zeros_like(ys)), torch.where(ok, xs, torch.ones_like(xs)))
+    az = torch.remainder(az, 2 * math.pi)
+    u = az / (2 * math.pi / k)
+    i0 = torch.floor(u.detach()).long().clamp(0, k - 1)
+    w = u - i0
+    return z[i0] * (1 - w) + z[(i0 + 1) % k] * w
+
+
 def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
                    nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
                    chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
@@ -643,12 +705,14 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
 def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
                    nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
                    chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
-                   ripple_zones: float | None = None, bbox=None):
+                   ripple_zones: float | None = None, bbox=None, stop_rim=None):
     """:func:`accurate_field` as a generator: yields the :class:`_TraceRequest` of every ray trace it needs and
     receives its result, returns the :class:`DOEField` (run it with :func:`run_serial`, or many together with
     :func:`run_batched`: one batched trace per round for all of them). ``bbox``: the lit footprint on the plane
     (:func:`footprints`; ``False``: none, every ray vignetted) when the caller traced it already (None: traced
-    here)."""
+    here). ``stop_rim``: with ``stop_plane``, the images of the stop's rim (:func:`stop_rim_images`): the edge's
+    Fresnel step then runs from the rim point's own image at every node (its azimuth on the stop) instead of from
+    the plane ``stop_plane``."""
     field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
     if bbox is False:  # given: every ray is vignetted
@@ -666,8 +730,13 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
     margin = 2.5 * h_node + 2 * p
     if stop_plane is not None:
         ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
-        margin += (ripple_zones + 1) * _zone_estimate(wavelength, n, z_doe - stop_plane, z_sensor - stop_plane, alpha,
-                                                      beta)
+        z_edge = stop_plane
+        if stop_rim is not None:  # the rim image farthest from the DOE plane sets the widest band
+            zr = stop_rim[1].detach()
+            z_far = float(zr.min() if z_doe >= stop_plane else zr.max())
+            if (z_doe - z_far) * (z_doe - stop_plane) > 0 and abs(z_doe - z_far) > abs(z_doe - stop_plane):
+                z_edge = z_far
+        margin += (ripple_zones + 1) * _zone_estimate(wavelength, n, z_doe - z_edge, z_sensor - z_edge, alpha, beta)
     half_x = max(xcd - bbox[0], bbox[1] - xcd) + margin
     half_y = max(ycd - bbox[2], bbox[3] - ycd) + margin
     kx = 2 * math.ceil(half_x / h_node) + 1
@@ -750,7 +819,14 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
     lim = 3.0 * h_node
     dist = torch.full_like(phi_g, lim) if dist is None else dist.clamp(-lim, lim)
     if diffracting:  # the stop's edge gets its own channels: distance and Fresnel scale
-        g_s = _fresnel_scale(grid[5 + len(slacks):], stop_edge[1], stop_edge[2], h_node, z_doe - stop_plane,
+        dz_edge = z_doe - stop_plane
+        if stop_rim is not None:  # the rim point's own image, by the node ray's azimuth on the stop
+            sx_, sy_ = (c[0, 0] for c in rec.points[lens.stop_index + 1][:2])
+            dz_n = z_doe - _rim_z(stop_rim, sx_, sy_)
+            dz_n = _nearest_fill(dz_n[:, None], good, targets)[:, 0].reshape(ky, kx)
+            if bool((dz_n * dz_edge > 0).all()):  # same side of the DOE plane as the pupil (else: the plane)
+                dz_edge = dz_n
+        g_s = _fresnel_scale(grid[5 + len(slacks):], stop_edge[1], stop_edge[2], h_node, dz_edge,
                              wavelength * 1e-3 / n, p)
         # ν = g·s and s·κ vary smoothly: interpolated as they are (clamped where the factor is 1 or 0 anyway)
         nu_lim = _nu_inner(ripple_zones) + 4.0
@@ -826,6 +902,9 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
 #: default width (Fresnel zones of the exit pupil → DOE distance) of the band around the geometric footprint
 #: on the DOE plane that keeps the stop edge's diffraction ripples (see :func:`exit_pupil_field`)
 RIPPLE_ZONES = 4.0
+#: the Fresnel step runs from each stop-rim point's own image (:func:`stop_rim_images`; False: from the exit-pupil
+#: plane for every node, the step before issue 19's per-node distance)
+RIM_IMAGES = True
 #: largest beam extent (simulation samples a side) on the exit-pupil plane that :func:`exit_pupil_field` accepts
 MAX_XP_SAMPLES = 8192
 #: ``method="auto"`` of :func:`exit_pupil_field`: the exact angular-spectrum construction up to this beam extent
@@ -883,10 +962,11 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
         big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
         method = "fresnel" if big else "asm"
     if method == "fresnel":
+        rim = stop_rim_images(lens, field, wavelength, depth, field_type) if RIM_IMAGES else None
         fd = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
                                              chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
                                              check=check, chief_uv=chief_uv, stop_plane=z_xp,
-                                             ripple_zones=ripple_zones)
+                                             ripple_zones=ripple_zones, stop_rim=rim)
         return replace(fd, stop_edge="exit_pupil")
     if method != "asm":
         raise ValueError(f"method must be 'auto', 'fresnel' or 'asm', got {method!r}")

@@ -329,7 +329,11 @@ class ExitPupilModel(PSFModel):
         self.oversample = None if oversample is None else int(oversample)
 
     def _check_blank(self, wavelengths) -> None:
+        from raywave.doe import BlankDOE
+
         doe = self.hybrid.doe
+        if type(doe) is BlankDOE and doe.quant_levels is None:
+            return  # zero phase by construction (its full grid need not be allocated: a default DOE can be large)
         with torch.no_grad():
             for wl in wavelengths:
                 ph = doe.phase_pixels(wl, slice(None), slice(None))
