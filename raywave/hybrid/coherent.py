@@ -902,9 +902,6 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
 #: default width (Fresnel zones of the exit pupil → DOE distance) of the band around the geometric footprint
 #: on the DOE plane that keeps the stop edge's diffraction ripples (see :func:`exit_pupil_field`)
 RIPPLE_ZONES = 4.0
-#: the Fresnel step runs from each stop-rim point's own image (:func:`stop_rim_images`; False: from the exit-pupil
-#: plane for every node, the step before issue 19's per-node distance)
-RIM_IMAGES = True
 #: largest beam extent (simulation samples a side) on the exit-pupil plane that :func:`exit_pupil_field` accepts
 MAX_XP_SAMPLES = 8192
 #: ``method="auto"`` of :func:`exit_pupil_field`: the exact angular-spectrum construction up to this beam extent
@@ -915,7 +912,7 @@ AUTO_ASM_SAMPLES = 3072
 def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_doe: float, z_sensor: float,
                      chief_xp, chief_doe, chief_sensor, nodes: int = 64, oversample: int = 1,
                      field_type: str | None = None, check: bool = True, chief_uv=None,
-                     ripple_zones: float | None = None, method: str = "auto") -> DOEField:
+                     ripple_zones: float | None = None, method: str = "auto", rim_images: bool = True) -> DOEField:
     """The accurate DOE-plane field with the stop's sharp edge formed where it belongs: at the exit pupil.
 
     ``method="fresnel"``: the analytic step. The geometric-optics field is built on the DOE plane
@@ -939,17 +936,19 @@ def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_
     Args: as :func:`accurate_field`, plus ``z_xp`` (mm) and ``chief_xp`` (the chief ray on that plane).
     ``method="asm"`` raises ValueError when the beam on the exit-pupil plane spans more than
     :data:`MAX_XP_SAMPLES` simulation samples (a large beam: the field there would not fit in memory).
-    ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel"."""
+    ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel". ``rim_images`` (Fresnel step):
+    each node's step runs from its stop-rim point's own image (:func:`stop_rim_images`); False: from the
+    exit-pupil plane for every node (the step before the per-node distance)."""
     return run_serial(exit_pupil_field_steps(lens, doe, field, wavelength, depth, z_xp, z_doe, z_sensor, chief_xp,
                                              chief_doe, chief_sensor, nodes=nodes, oversample=oversample,
                                              field_type=field_type, check=check, chief_uv=chief_uv,
-                                             ripple_zones=ripple_zones, method=method))
+                                             ripple_zones=ripple_zones, method=method, rim_images=rim_images))
 
 
 def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: float, z_doe: float, z_sensor: float,
                      chief_xp, chief_doe, chief_sensor, nodes: int = 64, oversample: int = 1,
                      field_type: str | None = None, check: bool = True, chief_uv=None,
-                     ripple_zones: float | None = None, method: str = "auto") -> DOEField:
+                     ripple_zones: float | None = None, method: str = "auto", rim_images: bool = True) -> DOEField:
     """:func:`exit_pupil_field` as a generator of trace requests (see :func:`accurate_field_steps`)."""
     ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
@@ -962,7 +961,7 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
         big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
         method = "fresnel" if big else "asm"
     if method == "fresnel":
-        rim = stop_rim_images(lens, field, wavelength, depth, field_type) if RIM_IMAGES else None
+        rim = stop_rim_images(lens, field, wavelength, depth, field_type) if rim_images else None
         fd = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
                                              chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
                                              check=check, chief_uv=chief_uv, stop_plane=z_xp,
