@@ -182,7 +182,7 @@ def test_fresnel_step_knife_edge_factor():
 def test_auto_edge_step_takes_the_fresnel_step_for_a_large_beam(lens):
     """A beam too large for the exact construction (here: a tiny AUTO_ASM_SAMPLES) takes the Fresnel step
     instead of raising, and gives its PSF."""
-    import raywave.hybrid.coherent as coherent
+    import raywave.hybrid.coherent.exit_pupil as coherent  # where the limit is read
 
     hl = HybridLens(lens, BlankDOE(2600, 1e-3), 0.7, sensor_pitch=PS, stop_edge="exit_pupil")
     auto_limit = coherent.AUTO_ASM_SAMPLES

@@ -1,0 +1,244 @@
+"""The accurate construction (:func:`accurate_field`): exactly aimed rays at a coarse node grid, smooth
+quantities interpolated, the phase formed last."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+
+from raywave.lens.sources import entrance_plane_z, point_source_rays, source_weight
+from raywave.utils.safe import safe_sqrt
+from raywave.wave.field import edge_coverage, upsample_nodes
+from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _warn_nyquist,
+                                              check_window_memory)
+from raywave.hybrid.coherent.record import DOEField, SamplingWarning
+from raywave.hybrid.coherent.stop_edge import (RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_z, _zone_estimate,
+                                               stop_edge_factor)
+from raywave.hybrid.coherent.tracing import (_TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
+                                             _solve2, run_serial)
+
+
+def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
+                   nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
+                   chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
+                   ripple_zones: float | None = None) -> DOEField:
+    """The accurate DOE-plane field for one field point (2,) and one wavelength (µm).
+
+    Args:
+        virtual: build the field on a plane ``z_doe`` that may lie inside the lens (reached by extending the
+            rays leaving the last surface along straight lines in the image medium, e.g. the exit pupil),
+            on the DOE's simulation lattice extended without bound and without the DOE aperture (the
+            returned window indices may be negative or beyond the DOE grid).
+        nodes: number of traced nodes across the larger side of the lit footprint (the ray budget is about
+            ``nodes²``); the field is smooth, so 32–64 are plenty for most lenses.
+        chief_doe, chief_sensor: the chief ray (RayBundle, scalar batch) at the DOE and at the sensor.
+        chief_uv: its entrance-plane point (2,) mm, if known (saves aiming it again).
+        stop_plane: z (mm) of the plane where the stop's edge is sharp (the exit pupil): the stop's edge is then
+            not cut sharply on this plane but carries its Fresnel diffraction from that plane (the knife-edge
+            factor of :func:`stop_edge_factor`); None: the paper's sharp edge on this plane.
+        ripple_zones: with ``stop_plane``: Fresnel zones of the edge's ripples kept outside the geometric
+            footprint (default :data:`RIPPLE_ZONES`).
+    """
+    return run_serial(accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
+                                           chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
+                                           check=check, chief_uv=chief_uv, virtual=virtual, stop_plane=stop_plane,
+                                           ripple_zones=ripple_zones))
+
+
+def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
+                   nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
+                   chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
+                   ripple_zones: float | None = None, bbox=None, stop_rim=None):
+    """:func:`accurate_field` as a generator: yields the :class:`_TraceRequest` of every ray trace it needs and
+    receives its result, returns the :class:`DOEField` (run it with :func:`run_serial`, or many together with
+    :func:`run_batched`: one batched trace per round for all of them). ``bbox``: the lit footprint on the plane
+    (:func:`footprints`; ``False``: none, every ray vignetted) when the caller traced it already (None: traced
+    here). ``stop_rim``: with ``stop_plane``, the images of the stop's rim (:func:`stop_rim_images`): the edge's
+    Fresnel step then runs from the rim point's own image at every node (its azimuth on the stop) instead of from
+    the plane ``stop_plane``."""
+    field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
+        lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
+    if bbox is False:  # given: every ray is vignetted
+        bbox = None
+    elif bbox is None:
+        bbox = _footprint(lens, field, wl, depth, z_doe, virtual=virtual)
+    if bbox is None:
+        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, 0, "accurate")
+
+    # ---- node grid: spacing h, symmetric about the chief ray's landing point (so a symmetric lens gives an
+    # exactly symmetric field), covering the footprint + margin; nodes need not sit on simulation pixels
+    xcd, ycd = (float(v) for v in chief_doe.o[:2].detach())
+    extent = max(bbox[1] - bbox[0], bbox[3] - bbox[2], p)
+    h_node = extent / max(nodes - 1, 2)
+    margin = 2.5 * h_node + 2 * p
+    if stop_plane is not None:
+        ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
+        z_edge = stop_plane
+        if stop_rim is not None:  # the rim image farthest from the DOE plane sets the widest band
+            zr = stop_rim[1].detach()
+            z_far = float(zr.min() if z_doe >= stop_plane else zr.max())
+            if (z_doe - z_far) * (z_doe - stop_plane) > 0 and abs(z_doe - z_far) > abs(z_doe - stop_plane):
+                z_edge = z_far
+        margin += (ripple_zones + 1) * _zone_estimate(wavelength, n, z_doe - z_edge, z_sensor - z_edge, alpha, beta)
+    half_x = max(xcd - bbox[0], bbox[1] - xcd) + margin
+    half_y = max(ycd - bbox[2], bbox[3] - ycd) + margin
+    kx = 2 * math.ceil(half_x / h_node) + 1
+    ky = 2 * math.ceil(half_y / h_node) + 1
+    dev = lens.device
+    gx = xcd + (torch.arange(kx, dtype=torch.float64, device=dev) - (kx - 1) / 2) * h_node
+    gy = ycd + (torch.arange(ky, dtype=torch.float64, device=dev) - (ky - 1) / 2) * h_node
+    tx, ty = torch.meshgrid(gx, gy, indexing="xy")  # (ky, kx)
+    targets = torch.stack([tx, ty], -1).reshape(-1, 2)
+
+    # ---- chief ray's entrance-plane point and Jacobian: the linear first guess
+    ep_z = entrance_plane_z(lens)
+    if chief_uv is None:
+        ep_rays = point_source_rays(lens, field, wl, pupil=(torch.zeros(1), torch.zeros(1)), aim="full", depth=depth)
+        o, d = ep_rays.o[0, 0, 0].detach(), ep_rays.d[0, 0, 0].detach()
+        chief_uv = o[:2] + d[:2] * (ep_z - o[2]) / d[2]
+    uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device).reshape(1, 2)
+    r_ep = 0.5 * float(lens.paraxial().epd)
+    h = 1e-6 * max(r_ep, 1e-3)
+    x_c, _, jac_c = yield from _landing_and_jacobian(lens, uv_c, field, wl, depth, z_doe, field_type, h, ep_z)
+    uv, conv, jac = yield from _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h,
+                                     max_step=0.25 * r_ep, ep_z=ep_z)
+
+    # ---- the differentiable trace of the node rays. The landing point of a node's ray must stay on its node
+    # when the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals
+    # uv in value and carries d(uv)/dθ = −J⁻¹ ∂X/∂θ, so everything traced at uv_lin (path, directions, aperture
+    # slacks, ray density) has its exact first-order derivative with respect to the lens parameters.
+    _, _, at0, _ = yield _TraceRequest(lens, uv, field, wl, depth, z_doe, field_type, False, ep_z, True)
+    jinv_step, _ = _solve2(jac, (at0.o[0, 0, :, :2] - targets))
+    uv_lin = uv - jinv_step
+    rays, out, at, rec = yield _TraceRequest(lens, uv_lin, field, wl, depth, z_doe, field_type, True, ep_z, True)
+    X = at.o[0, 0, :, :2]
+    dvec = at.d[0, 0]
+    good = conv & at.valid[0, 0]
+    phi = at.opl[0, 0] + n * ((targets - X) * dvec[:, :2]).sum(-1)  # Malus–Dupin: Φ at the node itself
+    w0 = source_weight(lens, rays, depth)[0, 0]
+    gamma = dvec[:, 2]
+    slacks = [s.aperture.slack(*(c[0, 0] for c in rec.points[i + 1][:2]))
+              for i, s in enumerate(lens.surfaces) if s.aperture is not None]
+    is_stop = [i == lens.stop_index for i, s in enumerate(lens.surfaces) if s.aperture is not None]
+    diffracting = stop_plane is not None and any(is_stop)
+    slopes = [dvec[:, 0] / dvec[:, 2], dvec[:, 1] / dvec[:, 2], dvec[:, 0], dvec[:, 1]] if diffracting else []
+
+    # ---- nodes whose ray failed (missed a surface, TIR, Newton) take their nearest good neighbour's values
+    if not bool(good.any()):
+        warnings.warn(f"no ray could be traced to the DOE plane for field {field.tolist()} at {wavelength:g} µm",
+                      SamplingWarning, stacklevel=3)
+        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
+    chan = torch.stack([phi, w0, gamma, uv_lin[:, 0], uv_lin[:, 1]] + slacks + slopes, -1)
+    chan = _nearest_fill(chan, good, targets, grad_xy=n * dvec[:, :2])
+    grid = chan.T.reshape(-1, ky, kx)
+    phi_g, w0_g, gamma_g, u_g, v_g = grid[:5]
+    # ray density |det ∂uv/∂x| by central differences over the node grid
+    du_dy, du_dx = torch.gradient(u_g, spacing=h_node, dim=(0, 1))
+    dv_dy, dv_dx = torch.gradient(v_g, spacing=h_node, dim=(0, 1))
+    det = du_dx * dv_dy - du_dy * dv_dx
+    amp2 = w0_g * det.abs() / gamma_g
+    # distance (DOE-plane mm) to the nearest aperture edge: slack / |∇_x slack|
+    dist = None
+    stop_edge = None  # (distance, edge normal) of the stop's edge when it diffracts from stop_plane
+    other = None  # distance to the nearest other edge
+    for j, sl in enumerate(grid[5:5 + len(slacks)]):
+        gy_, gx_ = torch.gradient(sl.detach(), spacing=h_node, dim=(0, 1))
+        gn = torch.sqrt(gx_**2 + gy_**2).clamp_min(1e-12)
+        dj = sl / gn
+        dist = dj if dist is None else torch.minimum(dist, dj)
+        if diffracting and is_stop[j]:
+            # the Fresnel step reads the distance far from the edge (ν = g·s over several zones) and the edge's
+            # normal (Fresnel length, curvature): both differentiated, |∇ slack| (the ray map's magnification of
+            # the stop) included; same values as the detached ones
+            gy_l, gx_l = torch.gradient(sl, spacing=h_node, dim=(0, 1))
+            n2 = gx_l**2 + gy_l**2
+            ok = n2 > 1e-24  # = the clamp at 1e-12 below, with a finite derivative at the stop's centre (kink)
+            gn_l = torch.where(ok, safe_sqrt(n2, ok), torch.full_like(n2, 1e-12))
+            stop_edge = (sl / gn_l, gx_l / gn_l, gy_l / gn_l)
+        elif diffracting:
+            other = dj if other is None else torch.minimum(other, dj)
+    # only the distance near an edge matters; clamping keeps the cubic interpolation from ringing where
+    # the slack has a kink (a circular aperture's centre) or far from any edge
+    lim = 3.0 * h_node
+    dist = torch.full_like(phi_g, lim) if dist is None else dist.clamp(-lim, lim)
+    if diffracting:  # the stop's edge gets its own channels: distance and Fresnel scale
+        dz_edge = z_doe - stop_plane
+        if stop_rim is not None:  # the rim point's own image, by the node ray's azimuth on the stop
+            sx_, sy_ = (c[0, 0] for c in rec.points[lens.stop_index + 1][:2])
+            dz_n = z_doe - _rim_z(stop_rim, sx_, sy_)
+            dz_n = _nearest_fill(dz_n[:, None], good, targets)[:, 0].reshape(ky, kx)
+            if bool((dz_n * dz_edge > 0).all()):  # same side of the DOE plane as the pupil (else: the plane)
+                dz_edge = dz_n
+        g_s = _fresnel_scale(grid[5 + len(slacks):], stop_edge[1], stop_edge[2], h_node, dz_edge,
+                             wavelength * 1e-3 / n, p)
+        # ν = g·s and s·κ vary smoothly: interpolated as they are (clamped where the factor is 1 or 0 anyway)
+        nu_lim = _nu_inner(ripple_zones) + 4.0
+        s_stop = stop_edge[0]
+        ndy = torch.gradient(stop_edge[2], spacing=h_node, dim=0)[0]
+        ndx = torch.gradient(stop_edge[1], spacing=h_node, dim=1)[0]
+        near = (s_stop * g_s).detach().abs() < nu_lim
+        g_max = float(g_s.detach()[near].max()) if bool(near.any()) else float(g_s.detach().max())
+        edge_chan = ([] if other is None else [other.clamp(-lim, lim)]) + [
+            (s_stop * g_s).clamp(-nu_lim, nu_lim), (s_stop * -(ndx + ndy)).clamp(-0.9, 3.0)]
+    else:
+        edge_chan = []
+    lit_nodes = (dist > -h_node) & good.reshape(ky, kx)
+    fold = (det.detach() * det.detach()[ky // 2, kx // 2] <= 0) & lit_nodes
+    if check and bool(fold.any()):
+        warnings.warn(f"the ray map from the pupil to the DOE plane folds (a caustic lies between the lens and the "
+                      f"DOE) for field {field.tolist()} at {wavelength:g} µm; the accurate field is wrong there: "
+                      "use mode='faithful' or move the DOE", SamplingWarning, stacklevel=3)
+    if check:
+        slope = n * torch.sqrt((dvec[:, 0] - alpha) ** 2 + (dvec[:, 1] - beta) ** 2).reshape(ky, kx)
+        ratio = slope * (2 * p) / (wavelength * 1e-3)
+        _warn_nyquist(ratio, lit_nodes, targets, field.tolist(), wavelength, p)
+
+    # ---- reference removal (chief OPL, carrier), interpolation to the fine grid
+    phi_c = phi_g[ky // 2, kx // 2].detach()
+    phi_env = phi_g - phi_c - n * (alpha * tx + beta * ty)
+    # fine window: the simulation pixels inside the node span, clamped to the DOE grid
+    jx0, jy0 = math.ceil((float(gx[0]) - x0) / p), math.ceil((float(gy[0]) - y0) / p)
+    jx1, jy1 = math.floor((float(gx[-1]) - x0) / p), math.floor((float(gy[-1]) - y0) / p)
+    if not virtual:
+        jx0, jy0, jx1, jy1 = max(0, jx0), max(0, jy0), min(sx - 1, jx1), min(sy - 1, jy1)
+    if jx1 < jx0 or jy1 < jy0:
+        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
+    check_window_memory(jy1 - jy0 + 1, jx1 - jx0 + 1, p, dev)
+    pos_x = (x0 + torch.arange(jx0, jx1 + 1, dtype=torch.float64, device=dev) * p - float(gx[0])) / h_node
+    pos_y = (y0 + torch.arange(jy0, jy1 + 1, dtype=torch.float64, device=dev) * p - float(gy[0])) / h_node
+    # amplitude sqrt(amp2): zero where the ray density vanishes (a dead or degenerate node), with a finite
+    # (zero) gradient there: sqrt's derivative at 0 is infinite, so the double-where keeps it out of the graph
+    lit_amp = amp2 > 0
+    amp = torch.where(lit_amp, safe_sqrt(amp2, lit_amp), torch.zeros_like(amp2))
+    fine = upsample_nodes(torch.stack([phi_env, amp] + ([] if diffracting else [dist])
+                                      + edge_chan),
+                          pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
+    win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
+    if diffracting:
+        edge = stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, g_max, p, curvature=fine[-1])
+        cov = edge_coverage(fine[2], p) if other is not None else None
+    else:
+        edge = None
+        cov = edge_coverage(fine[2], p)
+    if not virtual:
+        dcov = doe.coverage(win, oversample, device=dev)
+        cov = dcov if cov is None else cov * dcov
+    if edge is not None:  # the Fresnel factor is 0 beyond the ripple band
+        band = (fine[-2].detach() > -math.sqrt(2.0) * ripple_zones).to(torch.float64)
+        b = _crop_to_lit(band if cov is None else cov * band)
+    else:
+        b = _crop_to_lit(cov)
+    if b is None:
+        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
+    a0, a1, b0, b1 = b
+    fine = fine[:, a0:a1, b0:b1]
+    win = (win[0] + a0, win[1] + b0, a1 - a0, b1 - b0)
+    k = 2 * math.pi / (wavelength * 1e-3)
+    env = torch.polar(fine[1] if cov is None else fine[1] * cov[a0:a1, b0:b1], k * fine[0])
+    if edge is not None:
+        env = env * edge[a0:a1, b0:b1]
+    origin = (x0 + win[1] * p, y0 + win[0] * p)
+    return DOEField(env, win, origin, p, (alpha, beta), n, float(wavelength), zprop, center, targets.shape[0] + 1,
+                    "accurate")

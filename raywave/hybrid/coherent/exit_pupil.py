@@ -1,0 +1,115 @@
+"""The stop's sharp edge at the exit pupil (:func:`exit_pupil_field`): the exact angular-spectrum step or the
+Fresnel step to the DOE plane."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import torch
+
+from raywave.wave.propagation import propagate_window
+from raywave.hybrid.coherent.accurate import accurate_field_steps
+from raywave.hybrid.coherent.geometry import (_common_setup, _empty_field, _footprint, _window_for_bbox,
+                                              check_window_memory)
+from raywave.hybrid.coherent.record import DOEField
+from raywave.hybrid.coherent.stop_edge import RIPPLE_ZONES, stop_rim_images
+from raywave.hybrid.coherent.tracing import run_serial
+
+
+#: largest beam extent (simulation samples a side) on the exit-pupil plane that :func:`exit_pupil_field` accepts
+MAX_XP_SAMPLES = 8192
+#: ``method="auto"`` of :func:`exit_pupil_field`: the exact angular-spectrum construction up to this beam extent
+#: (simulation samples a side on the exit-pupil plane), the Fresnel step beyond
+AUTO_ASM_SAMPLES = 3072
+
+
+def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_doe: float, z_sensor: float,
+                     chief_xp, chief_doe, chief_sensor, nodes: int = 64, oversample: int = 1,
+                     field_type: str | None = None, check: bool = True, chief_uv=None,
+                     ripple_zones: float | None = None, method: str = "auto", rim_images: bool = True) -> DOEField:
+    """The accurate DOE-plane field with the stop's sharp edge formed where it belongs: at the exit pupil.
+
+    ``method="fresnel"``: the analytic step. The geometric-optics field is built on the DOE plane
+    itself (:func:`accurate_field`, rays traced past the stop's edge without apertures), and the stop's edge,
+    instead of being cut sharply there, is multiplied by the knife-edge Fresnel factor of the edge sharp on the
+    exit-pupil plane (:func:`stop_edge_factor`, with the local Fresnel length of :func:`_fresnel_scale`: the
+    distance from the exit pupil along the ray, the ray's tilt and the wave's local convergence). Costs about
+    what the DOE-plane edge costs (a few times), on the DOE's grid, for a beam of any size. Other apertures'
+    edges stay on the DOE plane. ``chief_xp`` is not used.
+
+    ``method="asm"``: the exact construction (the reference the Fresnel step is measured against). The
+    geometric-optics field is built by :func:`accurate_field` on the exit-pupil plane ``z_xp`` (usually a
+    virtual plane inside the lens: the rays leaving the last surface travel on straight lines in the image
+    medium, so extending them backwards is exact), where the image of the stop's edge is sharp; it is then
+    propagated to the DOE plane by the windowed angular spectrum (:func:`raywave.wave.propagate_window`,
+    chief-ray carrier removed), which adds the Fresnel diffraction of the edge between the two planes (that
+    the DOE-plane construction, with its hard edge at the DOE, leaves out). The output window is the DOE-plane
+    footprint plus ``ripple_zones`` Fresnel zones ``sqrt(λ (z_doe − z_xp)/n)`` for the edge's ripples,
+    clamped to the DOE grid; the DOE aperture is applied there. Differentiable like :func:`accurate_field`.
+
+    Args: as :func:`accurate_field`, plus ``z_xp`` (mm) and ``chief_xp`` (the chief ray on that plane).
+    ``method="asm"`` raises ValueError when the beam on the exit-pupil plane spans more than
+    :data:`MAX_XP_SAMPLES` simulation samples (a large beam: the field there would not fit in memory).
+    ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel". ``rim_images`` (Fresnel step):
+    each node's step runs from its stop-rim point's own image (:func:`stop_rim_images`); False: from the
+    exit-pupil plane for every node (the step before the per-node distance)."""
+    return run_serial(exit_pupil_field_steps(lens, doe, field, wavelength, depth, z_xp, z_doe, z_sensor, chief_xp,
+                                             chief_doe, chief_sensor, nodes=nodes, oversample=oversample,
+                                             field_type=field_type, check=check, chief_uv=chief_uv,
+                                             ripple_zones=ripple_zones, method=method, rim_images=rim_images))
+
+
+def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: float, z_doe: float, z_sensor: float,
+                     chief_xp, chief_doe, chief_sensor, nodes: int = 64, oversample: int = 1,
+                     field_type: str | None = None, check: bool = True, chief_uv=None,
+                     ripple_zones: float | None = None, method: str = "auto", rim_images: bool = True) -> DOEField:
+    """:func:`exit_pupil_field` as a generator of trace requests (see :func:`accurate_field_steps`)."""
+    ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
+    p_sim = doe.pitch / oversample
+    xb = None
+    if method in ("auto", "asm"):
+        xb = _footprint(lens, torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2),
+                        torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device), depth, z_xp,
+                        virtual=True)
+    if method == "auto":
+        big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
+        method = "fresnel" if big else "asm"
+    if method == "fresnel":
+        rim = stop_rim_images(lens, field, wavelength, depth, field_type) if rim_images else None
+        fd = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
+                                             chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
+                                             check=check, chief_uv=chief_uv, stop_plane=z_xp,
+                                             ripple_zones=ripple_zones, stop_rim=rim)
+        return replace(fd, stop_edge="exit_pupil")
+    if method != "asm":
+        raise ValueError(f"method must be 'auto', 'fresnel' or 'asm', got {method!r}")
+    if xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > MAX_XP_SAMPLES:
+        raise ValueError(f"stop_edge='exit_pupil': the beam is {xb[1] - xb[0]:.3g}×{xb[3] - xb[2]:.3g} mm on the "
+                         f"exit-pupil plane z = {z_xp:.4g} mm, over {MAX_XP_SAMPLES} samples of {p_sim * 1e3:g} µm "
+                         "a side, too large for the exact angular-spectrum construction: use the Fresnel step "
+                         "(HybridLens(edge_step='fresnel'), the default) or stop_edge='doe'")
+    fx = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_xp, z_sensor, chief_xp, chief_sensor,
+                                         nodes=nodes, oversample=oversample, field_type=field_type, check=check,
+                                         chief_uv=chief_uv, virtual=True)
+    _, fld, wl, n, (p, x0, y0, sy, sx), _, center, zprop = _common_setup(
+        lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
+    carrier = fx.carrier  # the chief ray's direction: the same on both planes
+    bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
+    if bbox is None or float(fx.power.detach()) == 0.0:
+        return replace(_empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays, "accurate"),
+                       stop_edge="exit_pupil")
+    dz = z_doe - z_xp
+    margin = ripple_zones * math.sqrt(wavelength * 1e-3 * abs(dz) / n) + 4 * p
+    jy0, jy1, jx0, jx1 = _window_for_bbox(bbox, margin, p, x0, y0, sy, sx)
+    jy0, jx0, jy1, jx1 = max(jy0, 0), max(jx0, 0), min(jy1, sy - 1), min(jx1, sx - 1)
+    if jy1 < jy0 or jx1 < jx0:
+        return replace(_empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays, "accurate"),
+                       stop_edge="exit_pupil")
+    win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
+    check_window_memory(win[2], win[3], p, lens.device)
+    origin = (x0 + jx0 * p, y0 + jy0 * p)
+    u = propagate_window(fx.envelope, p, wavelength, dz, fx.origin, origin, win[2:], n=n, carrier=carrier)
+    u = u * doe.coverage(win, oversample, device=u.device).to(u.dtype)
+    return DOEField(u, win, origin, p, carrier, n, float(wavelength), zprop, center, fx.rays, "accurate",
+                    stop_edge="exit_pupil")

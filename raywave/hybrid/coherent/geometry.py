@@ -1,0 +1,201 @@
+"""Geometry shared by the field constructions: chief rays, beam footprints on the DOE plane, DOE clipping,
+the simulation grid and its windows."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+
+from raywave.lens.sources import entrance_plane_z, point_source_rays, source_weight
+from raywave.utils.errors import check_allocation
+from raywave.hybrid.coherent.record import DOEField, SamplingWarning
+
+
+def _medium_index(lens, wavelength: float) -> float:
+    wl = torch.tensor(wavelength, dtype=torch.float64, device=lens.device)
+    return float(lens.surfaces[-1].material.n(wl).detach())
+
+
+def _check_beyond_last_surface(out, z_doe: float) -> None:
+    z = out.o[..., 2].detach()
+    z = z[out.valid] if bool(out.valid.any()) else z.new_zeros(1) - math.inf
+    if z.numel() and float(z.max()) > z_doe + 1e-12:
+        raise ValueError(f"the DOE plane (z = {z_doe:.6g} mm) cuts the last lens surface: a ray leaves it at "
+                         f"z = {float(z.max()):.6g} mm; move the DOE further from the lens")
+
+
+def chief_rays(lens, fields, wavelengths, depth, z_doe: float, z_sensor: float):
+    """Chief rays (aimed at the stop centre, through the refractive lens only) at the DOE and the sensor.
+
+    Returns ``(at_doe, at_sensor, uv)``: bundles of shape (F, W) and the chief rays' entrance-plane points
+    (F, W, 2) mm (detached)."""
+    cr = point_source_rays(lens, fields, wavelengths, pupil=(torch.zeros(1), torch.zeros(1)), aim="full", depth=depth)
+    o, d = cr.o[:, :, 0].detach(), cr.d[:, :, 0].detach()
+    uv = o[..., :2] + d[..., :2] * ((entrance_plane_z(lens) - o[..., 2:]) / d[..., 2:])
+    out = lens.trace(cr, apertures=False)
+    n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+    at_doe = out.propagate_to_z(z_doe, n)
+    at_sensor = out.propagate_to_z(z_sensor, n)
+    return at_doe[:, :, 0], at_sensor[:, :, 0], uv
+
+
+def _footprint(lens, field, wavelength, depth, z_doe: float, n_grid: int = 15, n_rim: int = 72, virtual: bool = False):
+    """Lit bounding box ``(xmin, xmax, ymin, ymax)`` on the DOE plane (None if every ray is vignetted) of one
+    field (2,) at one wavelength (1,) µm (:func:`footprints` of a 1×1 batch).
+
+    ``virtual``: the plane may lie inside the lens (a virtual plane reached by extending the rays that leave
+    the last surface backwards along straight lines, e.g. the exit pupil)."""
+    return footprints(lens, torch.as_tensor(field).reshape(1, 2), wavelength, depth, z_doe, n_grid, n_rim,
+                      virtual)[0][0]
+
+
+def footprints(lens, fields, wavelengths, depth, z_doe: float, n_grid: int = 15, n_rim: int = 72,
+               virtual: bool = False) -> list:
+    """Lit bounding boxes ``(xmin, xmax, ymin, ymax)`` (mm) on the plane ``z_doe`` of fields (F, 2) at wavelengths
+    (W,) µm, a nested list ``[F][W]`` (None where every ray is vignetted), from one trace of all F×W beams (~250
+    rays each: the rim of the pupil and a grid inside, every ray aimed at its stop point). See :func:`_footprint`."""
+    t = torch.linspace(0, 2 * math.pi, n_rim + 1, dtype=torch.float64)[:-1]
+    g = torch.linspace(-1, 1, n_grid, dtype=torch.float64)
+    gx, gy = torch.meshgrid(g, g, indexing="xy")
+    inside = gx**2 + gy**2 <= 1
+    px = torch.cat([torch.cos(t), gx[inside]])
+    py = torch.cat([torch.sin(t), gy[inside]])
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the caller reports vignetting once
+        rays = point_source_rays(lens, fields, wavelengths, pupil=(px, py), aim="full", depth=depth)
+        out = lens.trace(rays)
+        if not virtual:
+            _check_beyond_last_surface(out, z_doe)
+        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(z_doe, n)
+        valid, x, y = at.valid, at.o[..., 0], at.o[..., 1]
+        inf = torch.full_like(x, math.inf)
+        box = torch.stack([torch.where(valid, x, inf).amin(-1), torch.where(valid, x, -inf).amax(-1),
+                           torch.where(valid, y, inf).amin(-1), torch.where(valid, y, -inf).amax(-1)], -1).cpu()
+        lit = valid.any(-1).cpu()
+    return [[tuple(float(v) for v in box[i, j]) if bool(lit[i, j]) else None for j in range(box.shape[1])]
+            for i in range(box.shape[0])]
+
+
+def inside_doe(doe, xy: torch.Tensor) -> torch.Tensor:
+    """Whether points ``xy`` (..., 2) mm on the DOE plane fall inside the DOE aperture (square grid or the
+    inscribed circle), bool (...)."""
+    w, h = doe.size
+    if doe.aperture == "circle":
+        return xy[..., 0] ** 2 + xy[..., 1] ** 2 <= (0.5 * min(w, h)) ** 2
+    return (xy[..., 0].abs() <= 0.5 * w) & (xy[..., 1].abs() <= 0.5 * h)
+
+
+def doe_clipping(lens, doe, field, wavelength, depth, z_doe: float, n_grid: int = 48) -> tuple[float, float]:
+    """Fraction of the beam's power blocked by the DOE aperture, and the beam's half extent on the DOE plane.
+
+    Rays on a regular ``n_grid``² grid over the stop (every ray aimed at its stop point, so each carries
+    about the same power) are traced through the lens with its apertures (vignetted rays leave the beam
+    before the DOE) to the plane ``z_doe``; each ray is weighted by :func:`source_weight`. Returns
+    ``(blocked, half)``: the blocked power fraction (0..1) of the rays that leave the lens, and the largest
+    |x| or |y| (mm) of their landing points (the half side of a centred square DOE that holds them all);
+    ``(0, 0)`` if every ray is vignetted. Cheap (one batched trace of ~0.8·n_grid² rays); a diagnostic,
+    not differentiable.
+
+    Args: field (2,) in the lens's field type, wavelength (1,) µm tensor, depth (mm or None). Many fields and
+    wavelengths at once: :func:`doe_clippings`."""
+    return doe_clippings(lens, doe, torch.as_tensor(field).reshape(1, 2), wavelength, depth, z_doe, n_grid)[0][0]
+
+
+def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: int = 48) -> list:
+    """:func:`doe_clipping` of fields (F, 2) at wavelengths (W,) µm from one trace of all F×W beams: a nested list
+    ``[F][W]`` of ``(blocked, half)``. (The rays' aiming iterates over the whole batch, so the values can differ
+    from single calls' in the last digits of the aim: ~1e-12 mm on the stop.)"""
+    g = (torch.arange(n_grid, dtype=torch.float64) + 0.5) / n_grid * 2 - 1
+    gx, gy = torch.meshgrid(g, g, indexing="xy")
+    inside = gx**2 + gy**2 <= 1
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the caller reports vignetting once
+        rays = point_source_rays(lens, fields, wavelengths, pupil=(gx[inside], gy[inside]), aim="full", depth=depth)
+        out = lens.trace(rays)
+        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(z_doe, n)
+        v = at.valid
+        xy = at.o[..., :2]
+        w = torch.where(v, source_weight(lens, rays, depth).expand_as(v), torch.zeros((), dtype=xy.dtype,
+                                                                                        device=xy.device))
+        blocked = (w * ~inside_doe(doe, xy)).sum(-1) / w.sum(-1).clamp_min(1e-300)
+        half = torch.where(v[..., None], xy.abs(), torch.zeros((), dtype=xy.dtype, device=xy.device)).amax((-1, -2))
+        lit = v.any(-1)
+        blocked, half, lit = blocked.cpu(), half.cpu(), lit.cpu()
+    return [[(float(blocked[i, j]), float(half[i, j])) if bool(lit[i, j]) else (0.0, 0.0)
+             for j in range(v.shape[1])] for i in range(v.shape[0])]
+
+
+def _sim_grid(doe, oversample: int):
+    p = doe.pitch / oversample
+    x0, y0 = doe.sim_origin(oversample)
+    sy, sx = doe.sim_shape(oversample)
+    return p, x0, y0, sy, sx
+
+
+def _warn_nyquist(slope_ratio: torch.Tensor, lit: torch.Tensor, xy: torch.Tensor, field, wavelength, pitch) -> None:
+    """Warn when the envelope's local phase slope exceeds Nyquist on lit samples."""
+    if not bool(lit.any()):
+        return
+    r = torch.where(lit, slope_ratio.detach(), torch.zeros_like(slope_ratio))
+    worst = int(torch.argmax(r))
+    ratio = float(r.reshape(-1)[worst])
+    if ratio > 1.0:
+        x, y = (float(v) for v in xy.reshape(-1, 2)[worst])
+        warnings.warn(
+            f"DOE grid too coarse for field {list(map(float, field))} at {wavelength:g} µm: the wavefront's phase "
+            f"slope reaches {ratio:.2f}× the Nyquist limit of the {pitch * 1e3:g} µm simulation pitch at "
+            f"(x, y) = ({x:.4g}, {y:.4g}) mm on the DOE plane; the field aliases. Use a finer DOE pitch or "
+            f"oversample ≥ {math.ceil(ratio * 1.05)}.", SamplingWarning, stacklevel=4)
+
+
+#: peak bytes per simulation sample of building and propagating a DOE-plane field window (float64 interpolated
+#: channels and coverage, the complex128 envelope, the DOE phase and the propagation's FFT buffers)
+WINDOW_BYTES_PER_SAMPLE = 192
+
+
+def check_window_memory(ny: int, nx: int, p: float, device=None) -> None:
+    """Refuse (:class:`~raywave.utils.errors.MemoryLimitError`) a field window of ny×nx simulation samples of
+    pitch ``p`` mm that would not fit in memory, before anything of that size is allocated."""
+    check_allocation(float(ny) * float(nx) * WINDOW_BYTES_PER_SAMPLE,
+                     f"the {ny}×{nx}-sample DOE-plane field (simulation pitch {p * 1e3:.3g} µm)",
+                     "use a coarser DOE pitch (doe pitch / --doe-pitch), a lower oversample (--oversample) or a "
+                     "smaller DOE", device)
+
+
+def _window_for_bbox(bbox, margin: float, p, x0, y0, sy, sx):
+    """Simulation-grid index ranges [j0, j1] (inclusive) covering bbox ± margin (unclamped)."""
+    xmin, xmax, ymin, ymax = bbox
+    jx0 = math.floor((xmin - margin - x0) / p)
+    jx1 = math.ceil((xmax + margin - x0) / p)
+    jy0 = math.floor((ymin - margin - y0) / p)
+    jy1 = math.ceil((ymax + margin - y0) / p)
+    return jy0, jy1, jx0, jx1
+
+
+def _empty_field(doe, oversample, carrier, n, wavelength, z, center, rays, mode) -> DOEField:
+    p, x0, y0, _, _ = _sim_grid(doe, oversample)
+    env = torch.zeros((1, 1), dtype=torch.complex128, device=doe.device)
+    return DOEField(env, (0, 0, 1, 1), (x0, y0), p, carrier, n, wavelength, z, center, rays, mode)
+
+
+def _crop_to_lit(weight: torch.Tensor, *tensors):
+    """Row/column bounds of the non-zero part of ``weight`` (ny, nx)."""
+    rows = torch.nonzero(weight.detach().amax(1) > 0).squeeze(1)
+    cols = torch.nonzero(weight.detach().amax(0) > 0).squeeze(1)
+    if rows.numel() == 0:
+        return None
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def _common_setup(lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type):
+    """What both field constructions start from: field type, field (2,), wavelength (1,), medium index,
+    simulation grid (p, x0, y0, sy, sx), carrier (α, β), chief-ray centre on the sensor, DOE → sensor distance."""
+    field = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
+    wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device)
+    carrier = tuple(float(v) for v in chief_doe.d[:2].detach())
+    return (field_type or lens.field_type, field, wl, _medium_index(lens, wavelength), _sim_grid(doe, oversample),
+            carrier, (chief_sensor.o[0], chief_sensor.o[1]), z_sensor - z_doe)

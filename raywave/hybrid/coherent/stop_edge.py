@@ -1,0 +1,200 @@
+"""The stop's edge diffracting from the exit pupil: the knife-edge Fresnel step to the DOE plane
+(:func:`stop_edge_factor`) and the images of the stop's rim (:func:`stop_rim_images`)."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+
+from raywave.lens.sources import point_source_rays
+
+
+#: default width (Fresnel zones of the exit pupil → DOE distance) of the band around the geometric footprint
+#: on the DOE plane that keeps the stop edge's diffraction ripples (see
+#: :func:`raywave.hybrid.coherent.exit_pupil.exit_pupil_field`)
+RIPPLE_ZONES = 4.0
+
+
+class _FresnelCS(torch.autograd.Function):
+    """Fresnel integrals ``C(ν) = ∫₀^ν cos(πt²/2) dt`` and ``S(ν)`` (scipy, ~1e-15) of a real tensor, with the
+    exact derivatives ``cos(πν²/2)``, ``sin(πν²/2)``."""
+
+    @staticmethod
+    def forward(ctx, nu):
+        from scipy.special import fresnel
+
+        s_, c_ = fresnel(nu.detach().cpu().numpy())
+        ctx.save_for_backward(nu)
+        return torch.from_numpy(c_).to(nu), torch.from_numpy(s_).to(nu)
+
+    @staticmethod
+    def backward(ctx, gc, gs):
+        (nu,) = ctx.saved_tensors
+        ph = 0.5 * math.pi * nu * nu
+        out = torch.zeros_like(nu)
+        if gc is not None:
+            out = out + gc * torch.cos(ph)
+        if gs is not None:
+            out = out + gs * torch.sin(ph)
+        return out
+
+
+def _smoothstep(t: torch.Tensor) -> torch.Tensor:
+    t = t.clamp(0.0, 1.0)
+    return t * t * t * (10.0 + t * (6.0 * t - 15.0))
+
+
+#: the edge wave's tail inside the beam is kept up to this many times the outer band's Fresnel parameter
+INNER_TAIL = 1.0
+
+
+def _nu_inner(ripple_zones: float) -> float:
+    """Fresnel parameter inside the beam beyond which the edge wave's tail is dropped."""
+    return INNER_TAIL * math.sqrt(2.0) * ripple_zones
+
+
+def _zone_estimate(wavelength: float, n: float, dz: float, dz_focus: float, alpha: float, beta: float) -> float:
+    """Upper estimate (mm) of the stop edge's Fresnel zone on the DOE plane ``sqrt(λ/n·|L|)`` (see
+    :func:`_fresnel_scale`) from the chief ray: ``L = dz·M/cos³θ`` with the convergence ``M`` towards a focus
+    ``dz_focus`` beyond the edge's plane (at least 0.1, at most 1), 30 % wider for the marginal rays' tilt."""
+    m = min(max(abs(dz_focus - dz) / max(abs(dz_focus), 1e-12), 0.1), 1.0)
+    cos2 = max(1.0 - alpha * alpha - beta * beta, 0.1)
+    return 1.3 * math.sqrt(wavelength * 1e-3 / n * abs(dz) * m / cos2**1.5)
+
+
+def _fresnel_scale(slopes, nx, ny, h_node: float, dz: float, lam_m: float, pitch: float) -> torch.Tensor:
+    """Fresnel scale ``g = sqrt(2 / (λ_m L))`` (1/mm) of the stop's edge at the DOE-plane nodes (ky, kx), so that
+    ``ν = g · s`` (s: signed DOE-plane distance to the edge's geometric shadow) is the knife-edge's Fresnel
+    parameter.
+
+    The edge is sharp on a plane ``dz`` mm before the DOE plane (the exit pupil); the wave runs along the local
+    ray (direction cosines ``t``, ``γ``; straight lines in the image medium of wavelength ``λ_m = λ/n``). In the
+    DOE-plane coordinates along the edge's normal ``n̂`` the knife-edge diffracts over the effective length
+
+        ``L = dz · q · M``,  ``q = (1 − (n̂ × t)²) / γ³``,  ``M = |K⁻ᵀ n̂|``,  ``K = ∂x_edge/∂x_doe = I − dz ∇(t/γ)``:
+
+    ``q`` the tilted plane wave's Fresnel length in plane coordinates (the angular spectrum's second order about
+    the ray: ``1/γ³`` across the tilt, ``1/γ`` along it), ``M`` the local magnification of the edge's normal
+    distance from the edge's plane to the DOE plane (a converging wave: the Fresnel scaling theorem,
+    ``L = d (R − d)/R`` for a sphere of radius R). ``L`` is kept ≥ ``(1.5 p)²/λ_m`` so that the edge is never
+    sharper than 1.5 pixels (anti-aliasing when the DOE sits at the exit pupil). Args: ``slopes`` (4, ky, kx):
+    ``t_x/γ, t_y/γ, t_x, t_y`` at the nodes; ``nx, ny`` (ky, kx) the edge normal; ``h_node`` node spacing (mm).
+    Differentiable with respect to the ray directions."""
+    a, b, tx, ty = slopes
+    da_dy, da_dx = torch.gradient(a, spacing=h_node, dim=(0, 1))
+    db_dy, db_dx = torch.gradient(b, spacing=h_node, dim=(0, 1))
+    k00, k01, k10, k11 = 1 - dz * da_dx, -dz * da_dy, -dz * db_dx, 1 - dz * db_dy
+    det = k00 * k11 - k01 * k10
+    det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, 1e-12))
+    mx = (k11 * nx - k10 * ny) / det
+    my = (-k01 * nx + k00 * ny) / det
+    m_n = torch.sqrt(mx * mx + my * my + 1e-300)
+    g2 = (1 - tx * tx - ty * ty).clamp_min(1e-6)
+    q = (1 - (nx * ty - ny * tx) ** 2) / (g2 * torch.sqrt(g2))
+    length = (abs(dz) * q * m_n).clamp_min((1.5 * pitch) ** 2 / lam_m)
+    return torch.sqrt(2.0 / (lam_m * length))
+
+
+def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.Tensor, pitch: float,
+                     curvature: torch.Tensor | None = None) -> torch.Tensor:
+    """The knife-edge Fresnel diffraction factor (complex128, same shape as ``nu``) that multiplies the
+    geometric-optics field near the stop edge's shadow on the DOE plane.
+
+    ``D(ν) = ((1 − i)/2)·[(C(ν) + ½) + i(S(ν) + ½)]`` (Fresnel integrals; ``exp(−iωt)``: the kernel
+    ``exp(+iπν²/2)``): 1 deep in the beam, ½ on the geometric edge (¼ of the intensity), → 0 in the shadow;
+    its complex conjugate when the DOE plane lies before the edge's plane (``dz < 0``). Kept: the band
+    ``ν ≥ −ν_max``, ``ν_max = ripple_zones·√2`` (ripple_zones Fresnel zones outside the shadow's edge, rolled off
+    over the last zone), and the edge wave's tail inside the beam up to ``ν_b = min(3 ν_max, 0.6/(g p))`` (beyond,
+    its fringes near the grid's Nyquist frequency and it leaves the PSF crop), blended smoothly to 1 from
+    ``ν_b/2``. ``curvature``: ``s·κ`` (signed distance to the edge times the curvature ``−∇·n̂`` of the edge's
+    level lines, > 0 for a convex aperture): the edge wave ``D − step`` of a curved edge converges (inside) or
+    spreads (outside) like a cylindrical wave, amplitude ``sqrt(1 + s κ)``. Evaluated on the band only (1 inside,
+    0 outside). Differentiable with respect to ``ν`` (exactly)."""
+    nu_max = math.sqrt(2.0) * ripple_zones
+    if isinstance(g, torch.Tensor):
+        nu_b = torch.clamp(0.6 / (g.detach() * pitch), max=_nu_inner(ripple_zones)).clamp_min(2.0)
+    else:
+        nu_b = torch.full_like(nu.detach(), max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0))
+    inside = nu.detach() >= nu_b
+    band = (nu.detach() > -nu_max) & ~inside
+    out = inside.to(torch.complex128)
+    idx = band.nonzero(as_tuple=True)
+    if idx[0].numel() == 0:
+        return out
+    v = nu[idx]
+    c_, s_ = _FresnelCS.apply(v)
+    d = torch.complex(c_ + 0.5, s_ + 0.5)
+    d = d * complex(0.5, -0.5) if dz >= 0 else d.conj() * complex(0.5, 0.5)
+    w_out = _smoothstep((v + nu_max) / math.sqrt(2.0))
+    nb = nu_b[idx]
+    w_in = 1.0 - _smoothstep((v - 0.5 * nb) / (0.5 * nb))
+    if curvature is not None:
+        f = torch.sqrt(1.0 + curvature[idx].clamp(-0.9, 3.0))  # noqa: the edge wave's cylindrical spreading
+        val = torch.where(v > 0, 1.0 + (d - 1.0) * f * w_in, d * f) * w_out
+    else:
+        val = (1.0 + (d - 1.0) * w_in) * w_out
+    return out.index_put(idx, val)
+
+
+#: stop-rim points at which :func:`stop_rim_images` finds the edge's image
+RIM_POINTS = 64
+
+
+def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | None = None, k: int = RIM_POINTS):
+    """Where the stop's rim is sharp, seen by one source: z (mm) of the image of every rim point along the ray
+    that the source sends through it, ``(theta (k,), z (k,))`` with ``theta`` the rim point's azimuth on the stop
+    (``atan2(y, x)`` of the stop coordinates); None when the rays cannot be traced.
+
+    The image of a stop point P is where the rays through P from neighbouring sources cross (straight lines in
+    the image medium, usually extended backwards to a virtual point inside the lens): the exit pupil is the
+    image of the stop's centre, but off axis and at the rim the pupil's own aberrations move it (pupil spherical
+    aberration, astigmatism). The neighbouring source is displaced along the rim point's radial direction (the
+    edge's normal, the direction its Fresnel diffraction runs), to first order from central differences;
+    the crossing is the closest approach of the two rays. Differentiable with respect to the lens (the rays are
+    traced with autograd when it is on)."""
+    field_type = field_type or lens.field_type
+    f = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
+    fmax = max([abs(float(v)) for v in getattr(lens, "fields", [])] + [0.0]) or 1.0
+    eps = 1e-3 * fmax
+    ex = torch.tensor([eps, 0.0], dtype=f.dtype, device=f.device)
+    ey = torch.tensor([0.0, eps], dtype=f.dtype, device=f.device)
+    fields = torch.stack([f, f + ex, f + ey, f - ex, f - ey])  # central differences
+    theta = torch.arange(k, dtype=torch.float64, device=lens.device) * (2 * math.pi / k)
+    c, s = torch.cos(theta), torch.sin(theta)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rays = point_source_rays(lens, fields, torch.tensor([float(wavelength)], dtype=torch.float64),
+                                 pupil=(c, s), aim="full", depth=depth, field_type=field_type)
+        out = lens.trace(rays, apertures=False)
+    o, d, v = out.o[:, 0], out.d[:, 0], out.valid[:, 0]  # (5, k, 3)
+    if not bool(v.all()):
+        return None
+    do = c[:, None] * (o[1] - o[3]) + s[:, None] * (o[2] - o[4])  # (k, 3): the radially displaced source's ray
+    dd = c[:, None] * (d[1] - d[3]) + s[:, None] * (d[2] - d[4])
+    a = d[0]
+
+    def perp(v_):
+        return v_ - (v_ * a).sum(-1, keepdim=True) * a
+
+    po, pd = perp(do), perp(dd)
+    t = -(po * pd).sum(-1) / (pd * pd).sum(-1).clamp_min(1e-300)
+    z = o[0, :, 2] + t * a[:, 2]
+    if not bool(torch.isfinite(z.detach()).all()):
+        return None
+    return theta, z
+
+
+def _rim_z(rim, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
+    """z of the stop rim's image (:func:`stop_rim_images`) at the azimuth of stop points (xs, ys), periodic linear
+    interpolation (differentiable; the stop's centre, where the azimuth is undefined, gets the image of azimuth 0)."""
+    theta, z = rim
+    k = theta.numel()
+    ok = (xs * xs + ys * ys).detach() > 0
+    az = torch.atan2(torch.where(ok, ys, torch.zeros_like(ys)), torch.where(ok, xs, torch.ones_like(xs)))
+    az = torch.remainder(az, 2 * math.pi)
+    u = az / (2 * math.pi / k)
+    i0 = torch.floor(u.detach()).long().clamp(0, k - 1)
+    w = u - i0
+    return z[i0] * (1 - w) + z[(i0 + 1) % k] * w

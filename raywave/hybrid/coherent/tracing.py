@@ -1,0 +1,189 @@
+"""Trace requests of the accurate construction (run one source at a time or batched per wavelength and
+plane), the Newton aiming of rays at the DOE-plane nodes, and nearest-node filling."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from raywave.lens.sources import rays_through
+from raywave.hybrid.coherent.record import _NEWTON_ITERS, _NEWTON_TOL
+
+
+def _trace_uv(lens, uv, field, wavelength, depth, z_doe, field_type, record=False, ep_z=None):
+    """Trace rays crossing the entrance plane at ``uv`` (N, 2) to the DOE plane (apertures ignored)."""
+    rays = rays_through(lens, uv[None, None], field[None], field_type, wavelength.reshape(1), depth=depth, ep_z=ep_z)
+    res = lens.trace(rays, apertures=False, record=record)
+    out, rec = res if record else (res, None)
+    n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+    at = out.propagate_to_z(z_doe, n)
+    return rays, out, at, rec
+
+
+@dataclass
+class _TraceRequest:
+    """One :func:`_trace_uv` call that a field construction (a generator, see :func:`run_batched`) asks for:
+    rays through the entrance-plane points ``uv`` (N, 2) mm of field (2,) at wavelength (1,) µm, traced to the
+    plane ``z_doe`` mm. ``grad``: traced with autograd (when the caller has it on); else without."""
+
+    lens: object
+    uv: torch.Tensor
+    field: torch.Tensor
+    wavelength: torch.Tensor
+    depth: object
+    z_doe: float
+    field_type: str
+    record: bool
+    ep_z: float | None
+    grad: bool
+
+    def run(self):
+        with torch.set_grad_enabled(self.grad and torch.is_grad_enabled()):
+            return _trace_uv(self.lens, self.uv, self.field, self.wavelength, self.depth, self.z_doe, self.field_type,
+                             record=self.record, ep_z=self.ep_z)
+
+    def group_key(self) -> tuple:
+        d = self.depth
+        return (id(self.lens), float(self.wavelength.reshape(-1)[0]), float(self.z_doe), self.field_type, self.record,
+                self.ep_z, self.grad, None if d is None else float(d), self.uv.device)
+
+
+def _slice_bundle(b, g: int, n: int):
+    """Request ``g``'s first ``n`` rays of a batched bundle (G, 1, N_max), as a (1, 1, n) bundle."""
+    wl = b.wavelength if b.wavelength.ndim < 3 or b.wavelength.shape[0] == 1 else b.wavelength[g:g + 1]
+    return type(b)(b.o[g:g + 1, :, :n], b.d[g:g + 1, :, :n], wl, b.valid[g:g + 1, :, :n], b.opl[g:g + 1, :, :n])
+
+
+def _trace_group(reqs: list) -> list:
+    """The :func:`_trace_uv` results of requests that share lens, wavelength, plane, depth and mode, from one batched
+    trace: the rays of request g are row g of a (G, 1, N_max) bundle (the shorter requests padded with copies of
+    their first ray, traced and dropped). Every ray is traced on its own (elementwise), so each request gets the
+    values its own call would give (up to the last-bit rounding of vectorised transcendental functions)."""
+    if len(reqs) == 1:
+        return [reqs[0].run()]
+    r0 = reqs[0]
+    sizes = [r.uv.shape[0] for r in reqs]
+    n_max = max(sizes)
+    uv = torch.stack([torch.cat([r.uv, r.uv[:1].expand(n_max - r.uv.shape[0], 2)]) if r.uv.shape[0] < n_max
+                      else r.uv for r in reqs])[:, None]
+    fields = torch.stack([r.field.reshape(2) for r in reqs])
+    with torch.set_grad_enabled(r0.grad and torch.is_grad_enabled()):
+        rays = rays_through(r0.lens, uv, fields, r0.field_type, r0.wavelength.reshape(1), depth=r0.depth, ep_z=r0.ep_z)
+        res = r0.lens.trace(rays, apertures=False, record=r0.record)
+        out, rec = res if r0.record else (res, None)
+        n = r0.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(r0.z_doe, n)
+    results = []
+    for g, k in enumerate(sizes):
+        rec_g = None
+        if rec is not None:
+            rec_g = type(rec)([tuple(c[g:g + 1, :, :k] for c in pts) for pts in rec.points],
+                              [v[g:g + 1, :, :k] for v in rec.valid])
+        results.append((_slice_bundle(rays, g, k), _slice_bundle(out, g, k), _slice_bundle(at, g, k), rec_g))
+    return results
+
+
+def run_serial(gen):
+    """Run one field construction (a generator of :class:`_TraceRequest`, see :func:`run_batched`) with one trace
+    per request; returns its result."""
+    try:
+        req = next(gen)
+        while True:
+            req = gen.send(req.run())
+    except StopIteration as stop:
+        return stop.value
+
+
+def run_batched(gens: list) -> list:
+    """Run several field constructions (generators that yield :class:`_TraceRequest` and return a
+    :class:`DOEField`) together: in every round, the pending trace requests of all constructions that share a lens,
+    wavelength, plane and mode are traced as one batch (:func:`_trace_group`: one ray trace for all fields instead
+    of one per field, large enough for the elementwise kernels to use every thread). Each construction sees the
+    results its own calls would give, so the fields equal :func:`run_serial`'s. Returns their results in order."""
+    results = [None] * len(gens)
+    pending = {}
+    for i, g in enumerate(gens):
+        try:
+            pending[i] = next(g)
+        except StopIteration as stop:
+            results[i] = stop.value
+    while pending:
+        groups: dict = {}
+        for i, req in pending.items():
+            groups.setdefault(req.group_key(), []).append(i)
+        answers = {}
+        for idx in groups.values():
+            for i, res in zip(idx, _trace_group([pending[i] for i in idx])):
+                answers[i] = res
+        pending = {}
+        for i, res in answers.items():
+            try:
+                pending[i] = gens[i].send(res)
+            except StopIteration as stop:
+                results[i] = stop.value
+    return results
+
+
+def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z):
+    """Landing points X (N, 2), validity (N,) and ∂X/∂uv (N, 2, 2) (forward differences, step h), from one
+    batched trace of the 3N rays uv, uv + h·e_u, uv + h·e_v (a generator: yields that trace's request)."""
+    n = uv.shape[0]
+    du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
+    allv = torch.cat([uv, uv + du[0], uv + du[1]])
+    _, _, at, _ = yield _TraceRequest(lens, allv, field, wl, depth, z_doe, field_type, False, ep_z, False)
+    x = at.o[0, 0, :, :2]
+    x0, xu, xv = x[:n], x[n:2 * n], x[2 * n:]
+    jac = torch.stack([(xu - x0) / h, (xv - x0) / h], -1)
+    return x0, at.valid[0, 0, :n], jac
+
+
+def _solve2(j, r):
+    """Solve j·s = r for 2×2 systems (N, 2, 2), (N, 2); singular systems give 0."""
+    det = j[:, 0, 0] * j[:, 1, 1] - j[:, 0, 1] * j[:, 1, 0]
+    ok = det.abs() > 1e-300
+    det = torch.where(ok, det, torch.ones_like(det))
+    s0 = (j[:, 1, 1] * r[:, 0] - j[:, 0, 1] * r[:, 1]) / det
+    s1 = (-j[:, 1, 0] * r[:, 0] + j[:, 0, 0] * r[:, 1]) / det
+    return torch.where(ok[:, None], torch.stack([s0, s1], -1), torch.zeros_like(r)), ok
+
+
+def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h, max_step, ep_z):
+    """Newton: entrance-plane uv (N, 2) whose rays land on ``targets`` (N, 2) on the DOE plane.
+
+    Every iteration is one batched trace (the rays and their two finite-difference neighbours). Steps longer
+    than ``max_step`` (mm on the entrance plane) are shortened, which keeps the iteration inside the traceable
+    region. Converged rays stay where they are, so each ray's iterates do not depend on the others. Returns (uv,
+    converged (N,), Jacobian at the last iterate (N, 2, 2)); all detached (a generator: yields its traces)."""
+    targets, uv_c, x_c, jac_c = (t.detach() for t in (targets, uv_c, x_c, jac_c))
+    step0, _ = _solve2(jac_c.expand(targets.shape[0], 2, 2), targets - x_c)
+    uv = uv_c + step0
+    for _ in range(_NEWTON_ITERS):
+        x, valid, jac = yield from _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z)
+        err = x - targets
+        conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL)
+        if bool((conv | ~valid).all()):
+            break
+        step, ok = _solve2(jac, err)
+        big = step.abs().amax(-1, keepdim=True)
+        step = torch.where(big > max_step, step * (max_step / big), step)
+        uv = torch.where((valid & ok & ~conv)[:, None], uv - step, uv)
+    return uv, conv, jac
+
+
+def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, grad_xy: torch.Tensor | None = None):
+    """Replace values (K, C) at ``~good`` nodes by their nearest good node's value, plus a first-order
+    extension ``grad_xy·(x − x_v)`` for the first channel when ``grad_xy`` (K, 2) is given."""
+    bad = ~good
+    if not bool(bad.any()) or not bool(good.any()):
+        return values
+    gi = torch.nonzero(good).squeeze(1)
+    bi = torch.nonzero(bad).squeeze(1)
+    d = torch.cdist(xy[bi].detach(), xy[gi].detach())
+    near = gi[d.argmin(1)]
+    filled = values[near].clone()
+    if grad_xy is not None:
+        filled[:, 0] = filled[:, 0] + (grad_xy[near] * (xy[bi] - xy[near])).sum(-1)
+    out = values.clone()
+    out[bi] = filled
+    return out
