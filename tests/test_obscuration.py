@@ -114,10 +114,10 @@ def test_psf_engine_power_of_obscured_pupil():
             r_stop = float(stop.aperture.radius)
             stop.aperture.obscuration = Obscuration("circle", radius=r_obs * r_stop)
         hl = HybridLens(lens, PixelDOE(torch.zeros(n, n, dtype=torch.float64), p), 2.0, sensor_pitch=2e-3)
-        fd = hl.doe_fields((0.0, 0.0), 0.55, rays=48)[0][0]
-        powers.append(float(fd.power))
+        fd = hl.doe_fields((0.0, 0.0), 0.55, rays=24)[0][0]
+        powers.append(float(fd.power.detach()))
     ratio = powers[1] / powers[0]
-    assert ratio == pytest.approx(1 - 0.4**2, rel=0.03)
+    assert ratio == pytest.approx(1 - 0.4**2, rel=0.01)  # measured 0.8380 (0.24 % low)
 
 
 def test_json_round_trip(tmp_path):
@@ -159,6 +159,7 @@ FTYP 0 0 1 1 0 0 0
 XFLN 0
 YFLN 0
 WAVM 1 0.5875618 1
+PWAV 1
 SURF 0
   TYPE STANDARD
   CURV 0.0
