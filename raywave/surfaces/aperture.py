@@ -104,6 +104,10 @@ class Aperture(nn.Module):
     def _slack(self, x, y):
         raise NotImplementedError
 
+    def clear_contains(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Bool tensor: inside the clear region, the obscuration not applied."""
+        return self._contains(x, y)
+
     def contains(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         ok = self._contains(x, y)
         if self.obscuration is not None:
