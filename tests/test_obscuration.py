@@ -268,3 +268,22 @@ def test_annular_clap_matches_optiland(tmp_path):
     ours = aperture_from_spec(read_lens_spec(p)["surfaces"][0]["aperture"])
     rw_ok = ours.contains(torch.tensor(x, dtype=torch.float64), torch.zeros(len(x), dtype=torch.float64)).tolist()
     assert rw_ok == ol_ok == [False, False, True, True, False]
+
+
+def test_exit_pupil_model_obscured_pupil():
+    """The exit-pupil (Huygens) model: an obscured stop (the chief ray blocked on axis) collects 1 − ε² of the power
+    (used pupil cells), and the on-axis peak irradiance per collected power scales as 1 − ε² (peak ∝ area²)."""
+    from raywave.lens.build import ideal_lens
+    from raywave.models.exit_pupil import huygens_psf
+
+    eps, out = 0.5, []
+    for obscured in (False, True):
+        lens = ideal_lens(5.0, f_number=8, wavelengths=(0.55,))
+        stop = lens.surfaces[lens.stop_index]
+        if obscured:
+            stop.aperture.obscuration = Obscuration("circle", radius=eps * float(stop.aperture.radius))
+        out.append(huygens_psf(lens, (0.0, 0.0), 0.55, ks=9, pitch=0.5e-3, n_pupil=96, oversample=1))
+    (h0, h1), want = out, 1 - eps**2
+    assert h1.n_rays / h0.n_rays == pytest.approx(want, rel=0.03)
+    peak = [float(h.psf[4, 4]) * h.energy_fraction for h in out]  # per unit power reaching the sensor plane
+    assert peak[1] / peak[0] == pytest.approx(want, rel=0.02)
