@@ -449,6 +449,9 @@ class _Validator:
                 self.err(path + ("material",), "a paraxial (ideal lens) surface cannot be a mirror")
         if "aperture" in s:
             self.aperture(s["aperture"], path + ("aperture",))
+            if s.get("stop") is True and isinstance(s["aperture"], dict) and s["aperture"].get("shape") == "none":
+                self.err(path + ("aperture", "shape"), "the stop needs a clear aperture ('circle' or 'square', "
+                                                       "with the obscuration), not 'none'")
         if "semi_diameter" in s and s["semi_diameter"] is not None:
             self.number(s["semi_diameter"], path + ("semi_diameter",), positive=True)
         if "stop" in s and not isinstance(s["stop"], bool):
