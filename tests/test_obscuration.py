@@ -298,3 +298,81 @@ def test_exit_pupil_model_obscured_pupil():
     assert h1.n_rays / h0.n_rays == pytest.approx(want, rel=0.03)
     peak = [float(h.psf[4, 4]) * h.energy_fraction for h in out]  # per unit power reaching the sensor plane
     assert peak[1] / peak[0] == pytest.approx(want, rel=0.02)
+
+
+_CASS_ZMX = """VERS 190513 80 123457
+MODE SEQ
+NAME CASSEGRAIN
+UNIT MM X W X CM MR CPMM
+ENPD 100
+FTYP 0 0 1 1 0 0 0
+XFLN 0
+YFLN 0
+WAVM 1 0.55 1
+PWAV 1
+SURF 0
+  TYPE STANDARD
+  CURV 0.0
+  DISZ INFINITY
+SURF 1
+  COMM "secondary shadow"
+  TYPE STANDARD
+  CURV 0.0
+  DISZ 150
+  OBSC 0 13
+SURF 2
+  STOP
+  TYPE STANDARD
+  CURV -2.5E-3
+  DISZ -150
+  GLAS MIRROR 0 0 0 0
+  DIAM 50 1 0 0 1 ""
+SURF 3
+  TYPE STANDARD
+  CURV -7.5E-3
+  DISZ 200
+  GLAS MIRROR 0 0 0 0
+  DIAM 13 1 0 0 1 ""
+SURF 4
+  TYPE STANDARD
+  CURV 0.0
+  DISZ 0
+"""
+
+_CASS_SEQ = """RDM
+TITLE 'CASSEGRAIN'
+EPD 100.0
+DIM M
+WL 550.0
+REF 1
+YAN 0.0
+SO 0.0 1e13
+S 0.0 150.0
+  CIR OBS 13.0
+STO -400.0 -150.0 REFL
+  CIR 50.0
+S -133.3333333333333 200.0 REFL
+  CIR 13.0
+SI 0.0 0.0
+GO
+"""
+
+
+def test_cassegrain_zmx_and_seq(tmp_path):
+    """A Cassegrain (spherical primary R −400, secondary R −133.3 at −150, EPD 100) with the secondary's shadow as
+    OBSC 0 13 / CIR OBS 13 on a dummy surface in front: both files give the same aperture and the same rays; the
+    fraction of an axial beam reaching the image is 1 − (13/50)²; EFL = f1·m = 200·4 = 800 mm (analytic)."""
+    want = {"shape": "none", "obscuration": {"shape": "circle", "radius": 13.0}}
+    n = 201
+    c = (torch.arange(n, dtype=torch.float64) + 0.5) / n * 100.0 - 50.0
+    yy, xx = torch.meshgrid(c, c, indexing="ij")
+    inside = xx**2 + yy**2 <= 50.0**2
+    valid = []
+    for name, text in (("c.zmx", _CASS_ZMX), ("c.seq", _CASS_SEQ)):
+        spec = _read(tmp_path, name, text)
+        assert spec["surfaces"][0]["aperture"] == want
+        lens = lens_from_spec(spec)
+        assert float(lens.paraxial().efl) == pytest.approx(800.0, rel=1e-9)
+        valid.append(lens.trace_to_image(_axial_rays(xx[inside], yy[inside])).valid)
+    assert torch.equal(valid[0], valid[1])
+    assert float(valid[0].double().mean()) == pytest.approx(1 - (13 / 50) ** 2, rel=3e-3)
