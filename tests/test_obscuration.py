@@ -376,3 +376,18 @@ def test_cassegrain_zmx_and_seq(tmp_path):
         valid.append(lens.trace_to_image(_axial_rays(xx[inside], yy[inside])).valid)
     assert torch.equal(valid[0], valid[1])
     assert float(valid[0].double().mean()) == pytest.approx(1 - (13 / 50) ** 2, rel=3e-3)
+
+
+def test_obscured_stop_from_zmx_and_seq(tmp_path):
+    """An obscuration on the stop: the stop keeps a clear circle (sized from the EPD) with the obscuration."""
+    zmx = _ZMX.format(obs="").replace('  STOP\n', '  STOP\n  OBSC 0 1.5\n')
+    seq = _SEQ.format(obs="").replace("STO 102.4 3.6 NBK7_SCHOTT\n  CIR 12.7", "STO 102.4 3.6 NBK7_SCHOTT\n  CIR 12.7\n"
+                                      "  CIR OBS 1.5")
+    for name, text in (("s.zmx", zmx), ("s.seq", seq)):
+        spec = _read(tmp_path, name, text)
+        ap = spec["surfaces"][1]["aperture"]
+        assert ap == {"shape": "circle", "radius": 12.7, "obscuration": {"shape": "circle", "radius": 1.5}}
+        lens = lens_from_spec(spec)
+        assert float(lens.surfaces[1].aperture.radius) == pytest.approx(R, rel=1e-6)  # from EPD 10 (stop in air)
+        out = lens.trace(_axial_rays([0.0, 1.4, 1.6, 4.9, 5.1]))
+        assert out.valid.tolist() == [False, False, True, True, False]
