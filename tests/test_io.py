@@ -297,7 +297,7 @@ def test_zmx_apertures_and_unknown_keys(tmp_path):
     assert read_zmx(write_bytes(tmp_path, "sq.zmx", sq, "utf-8"))["surfaces"][1]["aperture"] == {
         "shape": "square", "half_width": 2.0}
     for extra, msg in ((["  SQAP 2.0 3.0"], "rectangular aperture"), (["  CLAP 0 0 0"], "empty aperture"),
-                       (["  CLAP 1 3 0"], "annular"), (["  OBSC 0 1"], "obscuration"),
+                       (["  CLAP 3 1 0"], "minimum radius"), (["  OBSC 1 2"], "annular obscuration"),
                        (["  OBDC 0.5 0"], "decentred aperture")):
         bad = cooke_zmx_text(extra_surface_lines=extra)
         with pytest.raises(LensFileError, match=f"surface 2: .*{msg}"):

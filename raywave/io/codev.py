@@ -5,7 +5,8 @@ What is read (docs/lens-format.md, "CODE V .seq"): ``RDM`` (radius mode; ``RDM N
 ``REF``, fields ``XAN`` / ``YAN`` (degrees) or ``XOB`` / ``YOB`` (object heights), and the surfaces ``SO`` (object:
 its thickness is the object distance, ≥ 1e10 = infinity), ``S`` (radius, thickness, glass), ``STO`` (the stop:
 as a surface line, or alone after one), ``SI`` (image), with the qualifiers ``K`` (conic), ``A`` … ``J`` (aspheric
-terms on r⁴ … r²⁰), ``SLB`` (label → comment) and ``CIR`` (clear aperture → semi-diameter). Glasses:
+terms on r⁴ … r²⁰), ``SLB`` (label → comment) and ``CIR`` (clear aperture → semi-diameter; ``CIR OBS r``: a central circular
+obscuration, ``CIR Sk ...`` addresses surface k). Glasses:
 ``NAME_CATALOG`` (CODE V writes vendor names without hyphens: NBK7_SCHOTT is N-BK7, resolved when the lens is
 built), a bare name, ``nd:vd`` and six-digit codes ``NNNVVV`` (model glasses). A mirror is ``REFL`` as the glass (the
 medium after it is the one before it; CODE V, like OpticStudio, writes the thicknesses after it negative).
@@ -53,6 +54,31 @@ UNSUPPORTED = {
 #: Commands that take effect only when non-zero (a zero decentre is written by some exports).
 _ZERO_OK = {"XDE", "YDE", "ZDE", "ADE", "BDE", "CDE"}
 _SURFACE_STARTS = ("SO", "S", "STO", "SI")
+
+
+def _circle(surfs: list, cur: dict, where: str, args: list, ln: int, err) -> None:
+    """A ``CIR [Sk] [OBS] r`` qualifier: the clear aperture radius (-> semi-diameter) or, with ``OBS``, a central
+    circular obscuration of radius r, of surface k (``Sk``) or of the current surface."""
+    target = cur
+    rest = []
+    for a in args:
+        if re.fullmatch(r"[Ss]\d+", a):
+            k = int(a[1:])
+            if not 0 < k < len(surfs):
+                raise err(f"{where}: CIR {' '.join(args)}: no surface {k}", ln)
+            target, where = surfs[k], f"surface {k}"
+        else:
+            rest.append(a)
+    vals = [float(a) for a in rest if _number(a)]
+    words = [a.upper() for a in rest if not _number(a)]
+    if not vals:
+        raise err(f"{where}: CIR {' '.join(args)}: needs a radius", ln)
+    if "OBS" in words:
+        if not vals[0] > 0:
+            raise err(f"{where}: CIR {' '.join(args)}: the obscuration radius must be > 0", ln)
+        target["obs"] = vals[0]
+    else:
+        target["cir"] = vals[0]
 
 
 def _number(tok: str) -> bool:
@@ -202,11 +228,8 @@ def _interpret(cmds, path) -> dict:
                 cur["label"] = " ".join(args).strip("'\"")
                 continue
             if cmd == "CIR":
-                vals = [float(a) for a in args if _number(a)]
-                if vals and not any(a.upper() == "OBS" for a in args):
-                    cur["cir"] = vals[0]
-                    continue
-                raise err(f"{where}: CIR {' '.join(args)}: obscurations are not supported", ln)
+                _circle(surfs, cur, where, args, ln, err)
+                continue
             if cmd in UNSUPPORTED:
                 if cmd in _ZERO_OK and args and _number(args[0]) and float(args[0]) == 0.0:
                     continue
@@ -318,6 +341,14 @@ def _interpret(cmds, path) -> dict:
         out["thickness"] = s["t"] * scale
         out["material"] = s["glass"]
         out["aperture"] = None
+        if s.get("obs"):  # a circular obscuration: blocks r < obs; the clear CIR stays a semi-diameter
+            out["aperture"] = {"shape": "none", "obscuration": {"shape": "circle", "radius": s["obs"] * scale}}
+            if s["stop"]:  # the stop needs a clear radius (sized from the pupil): its CIR
+                if not s["cir"]:
+                    raise err(f"surface {i}: the stop has an obscuration (CIR OBS) but no clear aperture (CIR r)",
+                              s["line"])
+                out["aperture"] = {"shape": "circle", "radius": s["cir"] * scale,
+                                   "obscuration": out["aperture"]["obscuration"]}
         if s["cir"]:
             out["semi_diameter"] = s["cir"] * scale
         out["stop"] = bool(s["stop"])

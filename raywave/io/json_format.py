@@ -49,6 +49,8 @@ ASPHERIC_KEYS_BY_TYPE = {
 }
 FIELD_TYPES = ("angle", "object_height")
 APERTURE_SHAPES = {"circle": "radius", "square": "half_width"}
+#: Central obscuration shapes (an aperture's "obscuration" entry) and their size keys (mm).
+OBSCURATION_SHAPES = {"circle": ("radius",), "rectangle": ("half_width_x", "half_width_y")}
 #: System aperture types (one per lens; the key of the "system_aperture" object) and what their value is.
 SYSTEM_APERTURE_TYPES = {
     "epd": "entrance pupil diameter, mm",
@@ -447,6 +449,9 @@ class _Validator:
                 self.err(path + ("material",), "a paraxial (ideal lens) surface cannot be a mirror")
         if "aperture" in s:
             self.aperture(s["aperture"], path + ("aperture",))
+            if s.get("stop") is True and isinstance(s["aperture"], dict) and s["aperture"].get("shape") == "none":
+                self.err(path + ("aperture", "shape"), "the stop needs a clear aperture ('circle' or 'square', "
+                                                       "with the obscuration), not 'none'")
         if "semi_diameter" in s and s["semi_diameter"] is not None:
             self.number(s["semi_diameter"], path + ("semi_diameter",), positive=True)
         if "stop" in s and not isinstance(s["stop"], bool):
@@ -513,21 +518,66 @@ class _Validator:
         if not self.obj(a, path, what="null or an object {\"shape\": ...}"):
             return
         shape = a.get("shape")
-        if not isinstance(shape, str) or shape not in APERTURE_SHAPES:
-            hint = suggestion(shape, APERTURE_SHAPES) if isinstance(shape, str) else ""
+        shapes = tuple(APERTURE_SHAPES) + ("none",)
+        if not isinstance(shape, str) or shape not in shapes:
+            hint = suggestion(shape, shapes) if isinstance(shape, str) else ""
             self.err(path + ("shape",) if "shape" in a else path,
-                     f"aperture shape must be 'circle' or 'square', got {_typename(shape)}{hint}")
+                     f"aperture shape must be 'circle', 'square' or 'none' (an obscuration alone), got "
+                     f"{_typename(shape)}{hint}")
+            return
+        if shape == "none":
+            misplaced = {k: f"{k!r} belongs to a {s!r} aperture; a 'none' aperture has only an obscuration"
+                         for s, k in APERTURE_SHAPES.items()}
+            self.keys(a, path, ("shape", "obscuration"), misplaced)
+            if a.get("obscuration") is None:
+                self.err(path, "a 'none' aperture needs an \"obscuration\" (else write the aperture as null)")
+            else:
+                self.obscuration(a["obscuration"], path + ("obscuration",), None)
             return
         size_key = APERTURE_SHAPES[shape]
         misplaced = {k: f"{k!r} belongs to a {s!r} aperture, not a {shape!r} one"
                      for s, k in APERTURE_SHAPES.items() if s != shape}
-        self.keys(a, path, ("shape", size_key), misplaced)
+        self.keys(a, path, ("shape", size_key, "obscuration"), misplaced)
         if size_key not in a:
             self.err(path, f"a {shape} aperture needs {size_key!r} (mm)")
             return
         v = a[size_key]
         if self.number(v, path + (size_key,)) and not v > 0:
             self.err(path + (size_key,), f"empty aperture: {size_key} must be > 0 mm, got {v!r}")
+            return
+        if a.get("obscuration") is not None:
+            self.obscuration(a["obscuration"], path + ("obscuration",),
+                             v if shape == "circle" and _is_number(v) else None)
+
+    def obscuration(self, o, path, clear_radius):
+        """A central obscuration: {"shape": "circle", "radius": r} or {"shape": "rectangle", "half_width_x": ..,
+        "half_width_y": ..}, each with an optional "decenter": [dx, dy] (mm)."""
+        if not self.obj(o, path, what="an object {\"shape\": \"circle\", \"radius\": r} or a rectangle"):
+            return
+        shape = o.get("shape", "circle")
+        if not isinstance(shape, str) or shape not in OBSCURATION_SHAPES:
+            hint = suggestion(shape, OBSCURATION_SHAPES) if isinstance(shape, str) else ""
+            self.err(path + ("shape",), f"obscuration shape must be 'circle' or 'rectangle', got "
+                                        f"{_typename(shape)}{hint}")
+            return
+        size_keys = OBSCURATION_SHAPES[shape]
+        misplaced = {k: f"{k!r} belongs to a {s!r} obscuration, not a {shape!r} one"
+                     for s, ks in OBSCURATION_SHAPES.items() if s != shape for k in ks if k not in size_keys}
+        self.keys(o, path, ("shape", "decenter") + size_keys, misplaced)
+        ok = True
+        for k in size_keys:
+            if k not in o:
+                self.err(path, f"a {shape} obscuration needs {k!r} (mm)")
+                ok = False
+            elif not self.number(o[k], path + (k,), positive=True):
+                ok = False
+        if "decenter" in o and not self.number_list(o["decenter"], path + ("decenter",), n=2):
+            ok = False
+        if ok and shape == "circle" and clear_radius is not None:
+            d = o.get("decenter", [0.0, 0.0])
+            if not any(d) and o["radius"] >= clear_radius:
+                self.err(path + ("radius",), f"the obscuration (radius {o['radius']!r} mm) covers the whole "
+                                             f"clear aperture (radius {clear_radius!r} mm)")
 
 
 def validate_spec(spec, source="<spec>", lines: dict | None = None) -> dict:

@@ -107,6 +107,17 @@ class HuygensPSF:
     n_rays: int
 
 
+def _chief_past_obscurations(lens, rays, z_s: float, n_img: float):
+    """The chief ray on the sensor plane z_s, vignetted by the clear apertures only: an obscuration may block it
+    (an obscured pupil on axis), and the reference sphere needs only its path."""
+    out, rec = lens.trace(rays, record=True, apertures=False)
+    ok = out.valid
+    for i, s in enumerate(lens.surfaces):
+        if s.aperture is not None:
+            ok = ok & s.aperture.clear_contains(rec.points[i + 1][0], rec.points[i + 1][1])
+    return out.replace(valid=ok).propagate_to_z(z_s, n_img)
+
+
 def _stop_coverage(lens, n: int, dtype, device):
     """Pupil cell centres (n, n) px, py over [-1, 1]² and the fraction (n, n) of each cell inside the stop."""
     h = 2.0 / n
@@ -194,6 +205,9 @@ def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: fl
 
         # Reference sphere: centre C on the sensor (chief ray), through the chief ray's exit-pupil point E.
         ch = lens.trace_to_image(chief_ray(lens, field, wl, depth=depth), z=z_s)
+        if not bool(ch.valid.all()) and any(s.aperture is not None and s.aperture.obscuration is not None
+                                            for s in lens.surfaces):
+            ch = _chief_past_obscurations(lens, chief_ray(lens, field, wl, depth=depth), z_s, n_img)
         if not bool(ch.valid.all()):
             raise ValueError(f"the chief ray of field {field} is vignetted; no reference sphere")
         cen, d_ch, opl_ch = ch.o.reshape(3), ch.d.reshape(3), float(ch.opl.reshape(()))
@@ -216,6 +230,8 @@ def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: fl
         for i, s in enumerate(lens.surfaces):
             if s.aperture is not None and i != lens.stop_index:
                 vig = vig & s.aperture.contains(rec.points[i + 1][0], rec.points[i + 1][1])
+            elif s.aperture is not None and s.aperture.obscuration is not None:  # `cover` has the stop's clear edge
+                vig = vig & ~s.aperture.obscuration.blocks(rec.points[i + 1][0], rec.points[i + 1][1])
         out = out.propagate_to_z(z_s, n_img)
         w = out.o - cen
         b = (w * out.d).sum(-1)

@@ -1,48 +1,161 @@
-"""Clear apertures: which points (x, y) of a surface transmit light (local frame, mm)."""
+"""Clear apertures: which points (x, y) of a surface transmit light (local frame, mm).
+
+An aperture may carry a central :class:`Obscuration` (a circle or rectangle, optionally decentred): points
+inside it are blocked, so a circular aperture with a circular obscuration is an annulus. :class:`OpenAperture`
+is an obscuration alone (no clear limit: OpticStudio's ``OBSC`` aperture type)."""
 
 from __future__ import annotations
 
 import torch
 from torch import nn
 
+#: Obscuration shapes and their size keys (lens-file form).
+OBSCURATION_SHAPES = {"circle": ("radius",), "rectangle": ("half_width_x", "half_width_y")}
+
+
+def _positive(v, what: str) -> float:
+    v = float(v)
+    if not v > 0:
+        raise ValueError(f"{what} must be > 0 mm, got {v!r}")
+    return v
+
+
+class Obscuration(nn.Module):
+    """A central obscuration blocking the points inside it (local frame, mm).
+
+    Args:
+        shape: ``"circle"`` (``radius``) or ``"rectangle"`` (``half_width_x``, ``half_width_y``).
+        decenter: ``(dx, dy)`` mm, the obscuration's centre.
+    """
+
+    def __init__(self, shape: str = "circle", radius: float | None = None, half_width_x: float | None = None,
+                 half_width_y: float | None = None, decenter=(0.0, 0.0)):
+        super().__init__()
+        if shape not in OBSCURATION_SHAPES:
+            raise ValueError(f"unknown obscuration shape {shape!r} (expected 'circle' or 'rectangle')")
+        self.shape = shape
+        if shape == "circle":
+            self.register_buffer("radius", torch.tensor(_positive(radius if radius is not None else 0.0,
+                                                                  "obscuration radius"), dtype=torch.float64))
+        else:
+            hx = _positive(half_width_x if half_width_x is not None else 0.0, "obscuration half_width_x")
+            hy = _positive(half_width_y if half_width_y is not None else hx, "obscuration half_width_y")
+            self.register_buffer("half_widths", torch.tensor([hx, hy], dtype=torch.float64))
+        dx, dy = (float(v) for v in decenter)
+        if not all(abs(v) < float("inf") for v in (dx, dy)):
+            raise ValueError(f"obscuration decenter must be finite, got {decenter!r}")
+        self.register_buffer("decenter", torch.tensor([dx, dy], dtype=torch.float64))
+
+    def slack(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Signed distance (mm) to the obscuration's edge: > 0 outside (clear), < 0 inside (blocked)."""
+        u = x - self.decenter[0].to(x.dtype)
+        v = y - self.decenter[1].to(x.dtype)
+        if self.shape == "circle":
+            return torch.sqrt((u * u + v * v).clamp_min(1e-300)) - self.radius.to(x.dtype)
+        h = self.half_widths.to(x.dtype)
+        return torch.maximum(u.abs() - h[0], v.abs() - h[1])
+
+    def blocks(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Bool tensor: True where (x, y) lies strictly inside the obscuration."""
+        return self.slack(x, y) < 0
+
+    def to_spec(self) -> dict:
+        if self.shape == "circle":
+            out = {"shape": "circle", "radius": float(self.radius)}
+        else:
+            out = {"shape": "rectangle", "half_width_x": float(self.half_widths[0]),
+                   "half_width_y": float(self.half_widths[1])}
+        d = [float(v) for v in self.decenter]
+        if any(d):
+            out["decenter"] = d
+        return out
+
+    def extra_repr(self):
+        return ", ".join(f"{k}={v}" for k, v in self.to_spec().items())
+
+
+def obscuration_from_spec(spec: dict | None) -> Obscuration | None:
+    """Build an obscuration from ``{"shape": "circle", "radius": r, "decenter": [dx, dy]}`` (or rectangle)."""
+    if spec is None:
+        return None
+    shape = spec.get("shape", "circle")
+    kw = {k: spec[k] for k in OBSCURATION_SHAPES.get(shape, ()) if k in spec}
+    return Obscuration(shape, decenter=spec.get("decenter", (0.0, 0.0)), **kw)
+
 
 class Aperture(nn.Module):
-    """Base class. ``contains(x, y)`` -> bool tensor; ``extent`` = largest |x| or |y| reached (mm)."""
+    """Base class. ``contains(x, y)`` -> bool tensor; ``extent`` = largest |x| or |y| reached (mm).
+
+    Subclasses define the clear region (``_contains``, ``_slack``); an optional ``obscuration`` blocks the
+    points inside it, in ``contains`` and ``slack`` alike."""
 
     shape = "none"
 
-    def contains(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    def _set_obscuration(self, obscuration) -> None:
+        if isinstance(obscuration, dict):
+            obscuration = obscuration_from_spec(obscuration)
+        if obscuration is not None and not isinstance(obscuration, Obscuration):
+            raise TypeError(f"obscuration must be an Obscuration, a dict or None, got {type(obscuration).__name__}")
+        self.obscuration = obscuration
+
+    def _contains(self, x, y):
         raise NotImplementedError
+
+    def _slack(self, x, y):
+        raise NotImplementedError
+
+    def clear_contains(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Bool tensor: inside the clear region, the obscuration not applied."""
+        return self._contains(x, y)
+
+    def contains(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        ok = self._contains(x, y)
+        if self.obscuration is not None:
+            ok = ok & ~self.obscuration.blocks(x, y)
+        return ok
 
     def slack(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """Signed distance (mm) from (x, y) to the aperture edge: > 0 inside, < 0 outside. Smooth across
-        the edge, so the ray-wave model can place a vignetting edge with sub-pixel accuracy."""
-        raise NotImplementedError
+        the edge, so the ray-wave model can place a vignetting edge with sub-pixel accuracy. With an
+        obscuration: the smaller of the clear slack and the distance outside the obscuration."""
+        s = self._slack(x, y)
+        if self.obscuration is not None:
+            s = torch.minimum(s, self.obscuration.slack(x, y))
+        return s
 
     @property
-    def extent(self) -> float:
+    def extent(self) -> float | None:
         raise NotImplementedError
+
+    def _obscuration_spec(self, out: dict) -> dict:
+        if self.obscuration is not None:
+            out["obscuration"] = self.obscuration.to_spec()
+        return out
 
     def to_spec(self) -> dict:
         raise NotImplementedError
 
+    def _obs_repr(self) -> str:
+        return "" if self.obscuration is None else ", obscured"
+
 
 class CircularAperture(Aperture):
-    """A circle of ``radius`` (mm) about the axis."""
+    """A circle of ``radius`` (mm) about the axis, optionally with a central ``obscuration``."""
 
     shape = "circle"
 
-    def __init__(self, radius: float):
+    def __init__(self, radius: float, obscuration: Obscuration | dict | None = None):
         super().__init__()
         if not radius > 0:
             raise ValueError(f"circular aperture radius must be > 0 mm, got {radius!r}")
         self.register_buffer("radius", torch.tensor(float(radius), dtype=torch.float64))
+        self._set_obscuration(obscuration)
 
-    def contains(self, x, y):
+    def _contains(self, x, y):
         r = self.radius.to(x.dtype)
         return x * x + y * y <= r * r
 
-    def slack(self, x, y):
+    def _slack(self, x, y):
         return self.radius.to(x.dtype) - torch.sqrt((x * x + y * y).clamp_min(1e-300))  # finite gradient at 0
 
     @property
@@ -53,28 +166,29 @@ class CircularAperture(Aperture):
         self.radius.fill_(float(radius))
 
     def to_spec(self) -> dict:
-        return {"shape": "circle", "radius": float(self.radius)}
+        return self._obscuration_spec({"shape": "circle", "radius": float(self.radius)})
 
     def extra_repr(self):
         return f"radius={float(self.radius)}"
 
 
 class SquareAperture(Aperture):
-    """A square |x|, |y| <= ``half_width`` (mm) (e.g. a square DOE or sensor)."""
+    """A square |x|, |y| <= ``half_width`` (mm) (e.g. a square DOE or sensor), optionally with an obscuration."""
 
     shape = "square"
 
-    def __init__(self, half_width: float):
+    def __init__(self, half_width: float, obscuration: Obscuration | dict | None = None):
         super().__init__()
         if not half_width > 0:
             raise ValueError(f"square aperture half_width must be > 0 mm, got {half_width!r}")
         self.register_buffer("half_width", torch.tensor(float(half_width), dtype=torch.float64))
+        self._set_obscuration(obscuration)
 
-    def contains(self, x, y):
+    def _contains(self, x, y):
         h = self.half_width.to(x.dtype)
         return (x.abs() <= h) & (y.abs() <= h)
 
-    def slack(self, x, y):
+    def _slack(self, x, y):
         return self.half_width.to(x.dtype) - torch.maximum(x.abs(), y.abs())
 
     @property
@@ -85,18 +199,52 @@ class SquareAperture(Aperture):
         self.half_width.fill_(float(radius))
 
     def to_spec(self) -> dict:
-        return {"shape": "square", "half_width": float(self.half_width)}
+        return self._obscuration_spec({"shape": "square", "half_width": float(self.half_width)})
 
     def extra_repr(self):
         return f"half_width={float(self.half_width)}"
 
 
+class OpenAperture(Aperture):
+    """No clear limit, only an ``obscuration`` (OpticStudio's obscuration aperture types): everything outside
+    the obscuration transmits. ``extent`` is None (the surface's semi-diameter is its size)."""
+
+    shape = "none"
+
+    def __init__(self, obscuration: Obscuration | dict):
+        super().__init__()
+        self._set_obscuration(obscuration)
+        if self.obscuration is None:
+            raise ValueError("an open aperture ('shape': 'none') needs an obscuration")
+
+    def _contains(self, x, y):
+        return torch.ones_like(x, dtype=torch.bool)
+
+    def _slack(self, x, y):
+        return torch.full_like(x, float("inf"))
+
+    @property
+    def extent(self) -> None:
+        return None
+
+    def set_radius(self, radius: float) -> None:
+        raise ValueError("the stop has only an obscuration (aperture shape 'none'): give it a clear aperture "
+                         "('circle' or 'square') to size it from the entrance pupil")
+
+    def to_spec(self) -> dict:
+        return self._obscuration_spec({"shape": "none"})
+
+
 def aperture_from_spec(spec: dict | None) -> Aperture | None:
-    """Build an aperture from the lens-file form ``{"shape": "circle", "radius": r}`` (or square, or None)."""
+    """Build an aperture from the lens-file form ``{"shape": "circle", "radius": r}`` (or square, or
+    ``"none"``), with an optional ``"obscuration"`` entry (see :func:`obscuration_from_spec`); None -> None."""
     if spec is None:
         return None
+    obs = obscuration_from_spec(spec.get("obscuration"))
     if spec["shape"] == "circle":
-        return CircularAperture(spec["radius"])
+        return CircularAperture(spec["radius"], obs)
     if spec["shape"] == "square":
-        return SquareAperture(spec["half_width"])
-    raise ValueError(f"unknown aperture shape {spec['shape']!r} (expected 'circle' or 'square')")
+        return SquareAperture(spec["half_width"], obs)
+    if spec["shape"] == "none":
+        return OpenAperture(obs)
+    raise ValueError(f"unknown aperture shape {spec['shape']!r} (expected 'circle', 'square' or 'none')")

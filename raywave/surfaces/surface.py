@@ -67,7 +67,7 @@ class Surface(nn.Module):
 
     def clear_radius(self) -> float | None:
         """Largest radius that transmits (mm), from the aperture, else the semi-diameter, else None."""
-        if self.aperture is not None:
+        if self.aperture is not None and self.aperture.extent is not None:  # None: an obscuration alone
             return self.aperture.extent
         return self.semi_diameter
 

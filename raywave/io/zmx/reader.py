@@ -304,6 +304,11 @@ def _lens_surface(p: dict, has_system_aperture: bool, path: str) -> dict:
     aperture = p["aperture"]
     if aperture is None and p["stop"] and not has_system_aperture and p["diam"]:
         aperture = {"shape": "circle", "radius": p["diam"]}  # float by stop size: the stop's semi-diameter
+    elif aperture is not None and aperture["shape"] == "none" and p["stop"]:
+        if not p["diam"]:  # the stop needs a clear radius (sized from the pupil, or its own)
+            raise LensFileError(f"surface {p['number']}: the stop has an obscuration (OBSC / OBSQ) but no "
+                                "semi-diameter (DIAM) for its clear aperture", path, p["line"])
+        aperture = {"shape": "circle", "radius": p["diam"], "obscuration": aperture["obscuration"]}
     s["aperture"] = aperture
     if p["diam"] is not None:
         s["semi_diameter"] = p["diam"]

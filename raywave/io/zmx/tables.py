@@ -59,8 +59,6 @@ IGNORED_SURFACE_KEYS = {
 #: Surface apertures raywave has no model for.
 UNSUPPORTED_APERTURES = {
     "ELAP": "elliptical aperture",
-    "OBSC": "circular obscuration",
-    "OBSQ": "rectangular obscuration",
     "ELOB": "elliptical obscuration",
     "UDAP": "user-defined aperture",
     "USAP": "user-defined aperture",

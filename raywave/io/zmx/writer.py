@@ -108,10 +108,32 @@ def _surface_lines(w, i: int, s: dict, doe_after: dict | None, source) -> None:
     _parm_lines(w, i, kind, s, source)
     ap = s.get("aperture")
     if ap is not None:
-        if ap["shape"] == "circle":
-            w(f"  CLAP 0 {_num(ap['radius'])} 0")
+        _aperture_lines(w, i, ap, source)
+
+
+def _aperture_lines(w, i: int, ap: dict, source) -> None:
+    """The aperture lines of surface ``i``: CLAP / SQAP, an annulus as CLAP rmin rmax, an obscuration alone as
+    OBSC 0 r / OBSQ hx hy with OBDC for its decentre. OpticStudio has one aperture type per surface: a clear
+    aperture with a decentred or rectangular obscuration, or a square one with any obscuration, is an error."""
+    obs = ap.get("obscuration")
+    if ap["shape"] == "none":
+        if obs["shape"] == "circle":
+            w(f"  OBSC 0 {_num(obs['radius'])}")
         else:
-            w(f"  SQAP {_num(ap['half_width'])} {_num(ap['half_width'])}")
+            w(f"  OBSQ {_num(obs['half_width_x'])} {_num(obs['half_width_y'])}")
+        d = obs.get("decenter")
+        if d and any(d):
+            w(f"  OBDC {_num(d[0])} {_num(d[1])}")
+        return
+    if obs is not None and (ap["shape"] != "circle" or obs.get("shape", "circle") != "circle"
+                            or any(obs.get("decenter") or ())):
+        raise LensFileError(f"surfaces[{i - 1}].aperture: a .zmx surface has one aperture type; only a circle "
+                            "with a centred circular obscuration (CLAP rmin rmax) or an obscuration alone can be "
+                            "written", source)
+    if ap["shape"] == "circle":
+        w(f"  CLAP {_num(obs['radius']) if obs is not None else 0} {_num(ap['radius'])} 0")
+    else:
+        w(f"  SQAP {_num(ap['half_width'])} {_num(ap['half_width'])}")
 
 
 def _parm_lines(w, i: int, kind: str, s: dict, source) -> None:
