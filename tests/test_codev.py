@@ -129,6 +129,7 @@ def test_first_order_and_skew_rays_match_optiland(models, name):
     (("YOB   0.0 1.0 2.0", "YIM   0.0 1.0 2.0"), "image-height field (YIM) is not supported"),
     (("  K   -0.9", "  K   -0.9\n  YTO"), "surface 2: toroid (y) (YTO) is not supported"),
     (("SO    0.0 60.0", "SO    0.0 1e10"), "NAO: an object-space NA needs an object at a finite distance"),
+    (("  K   -0.9", "  K   -0.9\n  ADY 0.2"), "surface 2: aperture decentre (ADY) is not supported"),
 ])
 def test_unsupported_features_name_the_place(tmp_path, edit, msg):
     text = (DATA / "asphere_singlet_nao.seq").read_text()
@@ -144,7 +145,7 @@ def test_curvature_mode_units_and_zero_decentres(tmp_path):
     text = (DATA / "cooke_triplet.seq").read_text()
     p = tmp_path / "c.seq"
     p.write_text(text.replace("DIM   M", "DIM   C").replace("S     -435.7604 6.007551", "S     -435.7604 6.007551\n"
-                                                                                          "  XDE 0.0; ADE 0.0"))
+                                                                                          "  XDE 0.0; ADE 0.0; ADX 0.0"))
     spec = read_lens_spec(p)
     assert spec["surfaces"][0]["radius"] == pytest.approx(220.1359) and spec["system_aperture"]["epd"] == 100.0
     lines = []

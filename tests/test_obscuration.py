@@ -232,6 +232,9 @@ def test_zmx_and_seq_give_the_same_obscuration(tmp_path):
     # addressed form: CIR S1 OBS r after the surfaces
     seq2 = _read(tmp_path, "o2.seq", _SEQ.format(obs="").replace("GO", "CIR S1 OBS 2.0\nGO"))
     assert seq2["surfaces"][0]["aperture"] == want
+    # an obscuration addressed to the image surface (S4 here) is refused, not dropped
+    with pytest.raises(LensFileError, match="image surface"):
+        _read(tmp_path, "o3.seq", _SEQ.format(obs="").replace("GO", "CIR S4 OBS 2.0\nGO"))
     # the same rays are blocked by both lenses
     h = [0.0, 1.5, 2.5, 4.5]
     for spec in (zmx, seq):

@@ -40,7 +40,7 @@ INFINITE_DISTANCE = 1e10
 #: Commands skipped on purpose (weights, vignetting, solves, variables, bookkeeping).
 IGNORED = {"LEN", "INI", "WTW", "WTF", "VUX", "VLX", "VUY", "VLY", "VCX", "VCY", "TEM", "PRE", "GO", "CWL", "DDM",
            "DES", "CCY", "THC", "GLC", "PIM", "SPH", "CON", "ASP", "RSU", "EDG", "SELECT", "END", "PRV", "PWL", "DEL",
-           "AFO", "RMD", "HOT", "ZOO", "REX", "REY", "ADX", "ADY", "PWR", "CCA", "CCB", "CCC", "CCD", "CCE", "CCK",
+           "AFO", "RMD", "HOT", "ZOO", "REX", "REY", "PWR", "CCA", "CCB", "CCC", "CCD", "CCE", "CCK",
            "CCF", "CCG", "CCH", "CCJ", "TLE", "DNP", "NAM", "LNG", "XRI", "YRI", "CUY", "DIF", "HWL", "HOR", "HCT",
            "HCO", "OBS"}
 #: Commands raywave cannot model, and what they are.
@@ -50,9 +50,10 @@ UNSUPPORTED = {
     "XTO": "toroid (x)", "SPS": "special surface", "NA": "image-space NA pupil", "XIM": "image-height field",
     "YIM": "image-height field", "XRI": "real image-height field", "YRI": "real image-height field",
     "UDS": "user-defined surface", "HOE": "holographic surface", "GRT": "grating",
+    "ADX": "aperture decentre", "ADY": "aperture decentre",
 }
 #: Commands that take effect only when non-zero (a zero decentre is written by some exports).
-_ZERO_OK = {"XDE", "YDE", "ZDE", "ADE", "BDE", "CDE"}
+_ZERO_OK = {"XDE", "YDE", "ZDE", "ADE", "BDE", "CDE", "ADX", "ADY"}
 _SURFACE_STARTS = ("SO", "S", "STO", "SI")
 
 
@@ -271,6 +272,8 @@ def _interpret(cmds, path) -> dict:
         raise err("a lens needs an object surface (SO), at least one surface (S) and an image surface (SI)",
                   surfs[-1]["line"] if surfs else None)
     obj, img, lens = surfs[0], surfs[-1], surfs[1:-1]
+    if img.get("obs"):
+        raise err("image surface: an obscuration (CIR OBS) on the image surface is not supported", img["line"])
     if sto_label is not None:
         k, ln = sto_label
         if not 1 <= k <= len(lens):
