@@ -159,22 +159,14 @@ def test_json_stop_needs_clear_aperture():
         validate_spec(_spec({"shape": "none", "obscuration": {"radius": 1.0}}))
 
 
-_ZMX = """VERS 190513 80 123457
-MODE SEQ
-NAME OBSCURED SINGLET
-UNIT MM X W X CM MR CPMM
-ENPD 10
-GCAT SCHOTT
-FTYP 0 0 1 1 0 0 0
-XFLN 0
-YFLN 0
-WAVM 1 0.5875618 1
-PWAV 1
-SURF 0
-  TYPE STANDARD
-  CURV 0.0
-  DISZ INFINITY
-SURF 1
+def _zmx_head(name: str, enpd: float, wavelength: float, gcat: str = "") -> str:
+    """The system lines and the object surface of a .zmx with one on-axis field and one wavelength (µm)."""
+    return (f"VERS 190513 80 123457\nMODE SEQ\nNAME {name}\nUNIT MM X W X CM MR CPMM\nENPD {enpd:g}\n{gcat}"
+            f"FTYP 0 0 1 1 0 0 0\nXFLN 0\nYFLN 0\nWAVM 1 {wavelength} 1\nPWAV 1\n"
+            "SURF 0\n  TYPE STANDARD\n  CURV 0.0\n  DISZ INFINITY\n")
+
+
+_ZMX = _zmx_head("OBSCURED SINGLET", 10, 0.5875618, gcat="GCAT SCHOTT\n") + """SURF 1
   TYPE STANDARD
   CURV 0.0
   DISZ 10
@@ -303,21 +295,7 @@ def test_exit_pupil_model_obscured_pupil():
     assert peak[1] / peak[0] == pytest.approx(want, rel=0.02)
 
 
-_CASS_ZMX = """VERS 190513 80 123457
-MODE SEQ
-NAME CASSEGRAIN
-UNIT MM X W X CM MR CPMM
-ENPD 100
-FTYP 0 0 1 1 0 0 0
-XFLN 0
-YFLN 0
-WAVM 1 0.55 1
-PWAV 1
-SURF 0
-  TYPE STANDARD
-  CURV 0.0
-  DISZ INFINITY
-SURF 1
+_CASS_ZMX = _zmx_head("CASSEGRAIN", 100, 0.55) + """SURF 1
   COMM "secondary shadow"
   TYPE STANDARD
   CURV 0.0

@@ -41,7 +41,7 @@ from raywave.io.errors import LensFileError, with_location
 from raywave.lens.analysis import _beam_field_points, beam_half_extent
 from raywave.lens.build import lens_from_spec, resolve_lens_path
 from raywave.lens.frames import image_space
-from raywave.lens.sources import point_source_rays
+from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.rays.pupil import hexapolar
 from raywave.utils.errors import NonFiniteError
 
@@ -91,7 +91,7 @@ def _beam_rays_at(lens, z: float, fields, wavelengths, depth, chief: bool):
     py = torch.cat(head + [torch.sin(t), hy.to(torch.float64)])
     wls = lens.wavelengths if wavelengths is None else [float(w) for w in torch.as_tensor(wavelengths).reshape(-1)]
     with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+        warnings.simplefilter("ignore", VignettingWarning)  # vignetted rays are left out (valid mask)
         rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full",
                                  depth=depth)
         out = lens.trace(rays)

@@ -212,7 +212,7 @@ class HybridLens(nn.Module):
         else:
             angle = 1e-2
         with torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+            warnings.simplefilter("ignore", VignettingWarning)  # a locating ray (apertures off); the PSF reports
             optics = self.optics
             if optics is self.lens:
                 ray = chief_ray(self.lens, (0.0, angle), wl, field_type="angle", depth=math.inf)

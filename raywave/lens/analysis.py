@@ -13,7 +13,7 @@ import warnings
 import torch
 
 from raywave.lens import paraxial
-from raywave.lens.sources import chief_ray, point_source_rays
+from raywave.lens.sources import VignettingWarning, chief_ray, point_source_rays
 from raywave.rays.bundle import RayBundle
 from raywave.rays.pupil import hexapolar
 from raywave.utils.safe import safe_sqrt
@@ -65,7 +65,7 @@ def beam_half_extent(lens, z: float, fields=None, wavelengths=None, depth=None) 
     py = torch.cat([torch.sin(t), hy])
     wls = lens.wavelengths if wavelengths is None else [float(w) for w in torch.as_tensor(wavelengths).reshape(-1)]
     with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # vignetted fields are simply left out
+        warnings.simplefilter("ignore", VignettingWarning)  # vignetted fields are simply left out
         rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full", depth=depth)
         out = lens.trace(rays)
         n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)

@@ -8,7 +8,7 @@ import warnings
 
 import torch
 
-from raywave.lens.sources import entrance_plane_z, point_source_rays, source_weight
+from raywave.lens.sources import VignettingWarning, entrance_plane_z, point_source_rays, source_weight
 from raywave.utils.errors import check_allocation
 from raywave.hybrid.coherent.record import DOEField, SamplingWarning
 
@@ -63,7 +63,7 @@ def footprints(lens, fields, wavelengths, depth, z_doe: float, n_grid: int = 15,
     px = torch.cat([torch.cos(t), gx[inside]])
     py = torch.cat([torch.sin(t), gy[inside]])
     with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the caller reports vignetting once
+        warnings.simplefilter("ignore", VignettingWarning)  # the caller reports vignetting once
         rays = point_source_rays(lens, fields, wavelengths, pupil=(px, py), aim="full", depth=depth)
         out = lens.trace(rays)
         if not virtual:
@@ -112,7 +112,7 @@ def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: i
     gx, gy = torch.meshgrid(g, g, indexing="xy")
     inside = gx**2 + gy**2 <= 1
     with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the caller reports vignetting once
+        warnings.simplefilter("ignore", VignettingWarning)  # the caller reports vignetting once
         rays = point_source_rays(lens, fields, wavelengths, pupil=(gx[inside], gy[inside]), aim="full", depth=depth)
         out = lens.trace(rays)
         n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)

@@ -8,7 +8,7 @@ import warnings
 
 import torch
 
-from raywave.lens.sources import point_source_rays
+from raywave.lens.sources import VignettingWarning, point_source_rays
 
 
 #: default width (Fresnel zones of the exit pupil → DOE distance) of the band around the geometric footprint
@@ -164,7 +164,9 @@ def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | Non
     theta = torch.arange(k, dtype=torch.float64, device=lens.device) * (2 * math.pi / k)
     c, s = torch.cos(theta), torch.sin(theta)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+        # a diagnostic trace of nudged sources through the rim, apertures off: the field construction of the
+        # source itself reports its vignetting. Other warnings pass through.
+        warnings.simplefilter("ignore", VignettingWarning)
         rays = point_source_rays(lens, fields, torch.tensor([float(wavelength)], dtype=torch.float64),
                                  pupil=(c, s), aim="full", depth=depth, field_type=field_type)
         out = lens.trace(rays, apertures=False)
