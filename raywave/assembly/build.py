@@ -29,7 +29,6 @@ Grid rules (``load_hybrid`` / ``hybrid_from_spec``; explicit arguments override 
 from __future__ import annotations
 
 import math
-import warnings
 from pathlib import Path
 
 import torch
@@ -38,11 +37,9 @@ from raywave.doe import BlankDOE, PixelDOE, doe_from_phase_model
 from raywave.doe.spec import check_phase_finite
 from raywave.hybrid.hybrid_lens import BEAM_MARGIN, HybridLens
 from raywave.io.errors import LensFileError, with_location
-from raywave.lens.analysis import _beam_field_points, beam_half_extent
+from raywave.lens.analysis import beam_half_extent, beam_rays_at
 from raywave.lens.build import lens_from_spec, resolve_lens_path
 from raywave.lens.frames import image_space
-from raywave.lens.sources import VignettingWarning, point_source_rays
-from raywave.rays.pupil import hexapolar
 from raywave.utils.errors import NonFiniteError
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "MAX_DEFAULT_PITCH", "NYQUIST_FILL",
@@ -79,30 +76,10 @@ def _pixels(length: float, pitch: float, source: str = "the lens") -> int:
     return max(1, math.ceil(n - _PIXEL_TOL))
 
 
-def _beam_rays_at(lens, z: float, fields, wavelengths, depth, chief: bool):
-    """Rays of every field and wavelength (defaults as :func:`beam_half_extent`) through the pupil rim (72 points)
-    and a hexapolar grid (6 rings), led by the chief ray when ``chief`` (pupil sample 0), traced without autograd
-    (warnings muted: a diagnostic trace) and carried along straight lines to the plane z (mm). Returns the
-    bundle there, the image-space index and the wavelengths (µm)."""
-    t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
-    hx, hy = hexapolar(6)
-    head = [torch.zeros(1, dtype=torch.float64)] if chief else []
-    px = torch.cat(head + [torch.cos(t), hx.to(torch.float64)])
-    py = torch.cat(head + [torch.sin(t), hy.to(torch.float64)])
-    wls = lens.wavelengths if wavelengths is None else [float(w) for w in torch.as_tensor(wavelengths).reshape(-1)]
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", VignettingWarning)  # vignetted rays are left out (valid mask)
-        rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full",
-                                 depth=depth)
-        out = lens.trace(rays)
-        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
-        return out.propagate_to_z(z, n), n, wls
-
-
 def _slopes(lens, z: float, fields, wavelengths, depth):
     """Per (field, wavelength): the largest ``n·|d⊥ − d⊥_chief|`` of the traced rays on the plane z (a tensor
     (F, W), 0 where nothing reaches it) and the wavelengths (W,) µm."""
-    at, n, wls = _beam_rays_at(lens, z, fields, wavelengths, depth, chief=True)
+    at, n, wls = beam_rays_at(lens, z, fields, wavelengths, depth, chief=True)
     d = at.d[..., :2]
     rel = n * torch.linalg.vector_norm(d - d[..., :1, :], dim=-1)  # pupil sample 0 is the chief ray
     ok = at.valid & at.valid[..., :1] & torch.isfinite(rel)
@@ -141,7 +118,7 @@ def fit_doe_distance(lens, distance: float, pitch: float, fields=None, wavelengt
     band."""
     last = float(lens.surfaces[-1].thickness.detach())
     z_last = float(lens.vertex_z()[-1].detach())
-    at, n, _ = _beam_rays_at(lens, z_last + distance, fields, wavelengths, depth, chief=False)
+    at, n, _ = beam_rays_at(lens, z_last + distance, fields, wavelengths, depth)
     ok = at.valid & torch.isfinite(at.o).all(-1)
     if not bool(ok.any()):
         return distance

@@ -50,26 +50,38 @@ def _beam_field_points(lens, fields):
     return torch.tensor(pts, dtype=torch.float64)
 
 
-def beam_half_extent(lens, z: float, fields=None, wavelengths=None, depth=None) -> tuple[float, float] | None:
-    """Largest ``|x|`` and ``|y|`` (mm) the beam reaches on the plane ``z`` (mm from the first vertex).
+def beam_rays_at(lens, z: float, fields=None, wavelengths=None, depth=None, chief: bool = False):
+    """The beam bundle on the plane ``z`` (mm from the first vertex): rays of every field point (``fields``: (2,)
+    or (F, 2) in the lens's field type; default the lens's fields along y and (0, 0)) and wavelength (µm; default
+    all of the lens's) through the pupil rim (72 points) and a hexapolar grid (6 rings), fully aimed, led by the
+    chief ray (pupil sample 0) when ``chief``; traced without autograd and carried along straight lines to z.
+    Vignetted rays are left out through the ``valid`` mask (their warnings muted: a diagnostic trace). A folded or
+    mirrored lens: pass its image-space view (:func:`raywave.lens.frames.image_space`); ``z`` is then in that
+    frame.
 
-    Rays: the pupil rim (72 points) and a hexapolar grid (6 rings), fully aimed, for every field point
-    (``fields``: (2,) or (F, 2) in the lens's field type; default the lens's fields along y and (0, 0)) and
-    wavelength (default: all of the lens's). None when every ray is vignetted. A folded or mirrored lens: pass
-    its image-space view (:func:`raywave.lens.frames.image_space`); ``z`` is then in that frame."""
+    Returns:
+        (rays at z (F, W, P), the image-space index (F, W, 1), the wavelengths (list, µm)).
+    """
     if not getattr(lens, "image_space_view", False):  # the image-space view's z axis is straight (lens.frames)
         lens.require_unfolded("beam_half_extent")
     t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
     hx, hy = hexapolar(6)
-    px = torch.cat([torch.cos(t), hx])
-    py = torch.cat([torch.sin(t), hy])
+    head = [torch.zeros(1, dtype=torch.float64)] if chief else []
+    px = torch.cat(head + [torch.cos(t), hx])
+    py = torch.cat(head + [torch.sin(t), hy])
     wls = lens.wavelengths if wavelengths is None else [float(w) for w in torch.as_tensor(wavelengths).reshape(-1)]
     with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", VignettingWarning)  # vignetted fields are simply left out
+        warnings.simplefilter("ignore", VignettingWarning)  # vignetted rays are left out (valid mask)
         rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full", depth=depth)
         out = lens.trace(rays)
         n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
-        at = out.propagate_to_z(z, n)
+        return out.propagate_to_z(z, n), n, wls
+
+
+def beam_half_extent(lens, z: float, fields=None, wavelengths=None, depth=None) -> tuple[float, float] | None:
+    """Largest ``|x|`` and ``|y|`` (mm) the beam (:func:`beam_rays_at`: pupil rim and hexapolar grid, every field
+    and wavelength) reaches on the plane ``z`` (mm from the first vertex). None when every ray is vignetted."""
+    at = beam_rays_at(lens, z, fields, wavelengths, depth)[0]
     v = at.valid & torch.isfinite(at.o).all(-1)
     if not bool(v.any()):
         return None
