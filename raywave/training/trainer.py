@@ -37,14 +37,14 @@ from pathlib import Path
 
 import torch
 
-from raywave.doe.base import check_levels
 from raywave.training.checkpoint import checkpoint_path, latest_checkpoint, load_checkpoint, save_checkpoint
 from raywave.training.config import TrainConfig, dump_config
-from raywave.training.baselines import objective_settings, psf_objective
-from raywave.training.losses import edof_loss, image_loss
+from raywave.training.fabricating import FabricationSchedule
+from raywave.training.losses import image_loss
 from raywave.training.networks import PSFAwareNet, build_network
 from raywave.training.replay import OpticsStep, chunk_ranges
 from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
+from raywave.training.steps import StageSteps
 
 __all__ = ["Trainer", "build_hybrid", "STAGES", "CropWarning"]
 
@@ -88,7 +88,7 @@ def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
     return g
 
 
-class Trainer:
+class Trainer(FabricationSchedule, StageSteps):
     """One training run (see the module docstring).
 
     Args:
@@ -156,56 +156,6 @@ class Trainer:
             from raywave.training.baselines import prepare_baseline
 
             self.baseline_design = prepare_baseline(self)
-
-    # ------------------------------------------------------------------ fabrication-aware DOE
-    def _init_fabrication(self) -> None:
-        """``optics.doe_levels / doe_wavelength / doe_material``: make the DOE the continuous (unwrapped) height
-        map in its material now; :meth:`_fabrication` quantises it from ``optics.fabricate_from`` on."""
-        oc = self.cfg.optics
-        self.fab_levels = None if oc.doe_levels is None else check_levels(oc.doe_levels, "optics.doe_levels")
-        if self.fab_levels is not None:
-            from raywave.doe.fabrication import mask_bits
-
-            try:
-                mask_bits(self.fab_levels)
-            except ValueError as e:
-                raise ValueError(f"optics.doe_levels: {e}") from None
-        if int(oc.fabricate_from) < 0:
-            raise ValueError(f"optics.fabricate_from must be >= 0 (a stage-1 step), got {oc.fabricate_from}")
-        self.fab_on = oc.doe_levels is not None or oc.doe_wavelength is not None or oc.doe_material is not None
-        if not self.fab_on:
-            return
-        from raywave.doe import DEFAULT_DESIGN_WAVELENGTH, DEFAULT_MATERIAL
-
-        self.fab_wavelength = float(DEFAULT_DESIGN_WAVELENGTH if oc.doe_wavelength is None else oc.doe_wavelength)
-        self.fab_material = DEFAULT_MATERIAL if oc.doe_material is None else oc.doe_material
-        doe = self.hl.doe
-        if self.fab_levels is not None and doe.quant_levels == self.fab_levels and doe.material_name is not None:
-            self._fabricated = True  # a hybrid handed over already fabricated (train_plain_network)
-            return
-        doe.fabricate(levels=None, wavelength=self.fab_wavelength, material=self.fab_material, wrap=False)
-        self._fabricated = False
-
-    def fabricated_at(self, stage: str, step: int) -> bool:
-        """Whether the DOE is the quantised element at ``stage``'s ``step``: from stage-1 step
-        ``optics.fabricate_from`` on (and in stage 2, the evaluation and the export)."""
-        if self.fab_levels is None:
-            return False
-        if stage in ("stage2", "done"):
-            return True
-        return stage == "stage1" and step >= int(self.cfg.optics.fabricate_from)
-
-    def _fabrication(self, stage: str, step: int) -> None:
-        """Put the DOE in the state of ``stage``/``step`` (idempotent; a resumed run gets it back)."""
-        if not self.fab_on:
-            return
-        want = self.fabricated_at(stage, step)
-        if want != self._fabricated:
-            self.hl.doe.fabricate(levels=self.fab_levels if want else None, wavelength=self.fab_wavelength,
-                                  material=self.fab_material, wrap=want)
-            self._fabricated = want
-            self._frozen_maps.clear()
-            self.stage2_map = None
 
     # ------------------------------------------------------------------ set-up helpers
     def _build_net(self, deconv: str):
@@ -368,113 +318,6 @@ class Trainer:
 
         return render(img, psf_d, positions=self.positions if positions is None else positions, centers=cen_d,
                       sensor_size=self.sensor_size, pitch=self.pitch, extent=extent)
-
-    # ------------------------------------------------------------------ hooks (one process: trivial; several:
-    # raywave.training.parallel.DistributedTrainer splits the work and sums the gradients through these)
-    def _parts(self, batch: int, micro: int, loss: str) -> list:
-        """The index sets (micro-batches) of a batch of ``batch`` images that this process renders."""
-        return list(torch.arange(batch).chunk(max(1, min(int(micro), batch))))
-
-    def _replay(self, step: OpticsStep, leaf_grads_partial: bool) -> None:
-        """Replay ``step``'s chunks with autograd (``leaf_grads_partial``: ∂L/∂PSF holds this process's share
-        of the batch only)."""
-        step.backward()
-
-    def _sync_grads(self) -> None:
-        """Make the parameters' gradients those of the whole step (one process: they are)."""
-
-    def _sum(self, value: float) -> float:
-        """The step's loss from this process's share (one process: the loss itself)."""
-        return value
-
-    def _optimizer_step(self, opt, sched) -> None:
-        self._sync_grads()
-        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
-
-    # ------------------------------------------------------------------ one iteration per stage
-    def _pre_step(self, opt, sched) -> float:
-        pc = self.cfg.pre_stage
-        fields, _ = self.step_nodes()
-        step = self.optics_step(fields)
-        psf, cen = step.leaves()
-        p, _ = self._as_map(psf, cen)
-        loss = psf_objective(p, **objective_settings(pc))
-        loss.backward()  # the whole map's ∂L/∂PSF (the same in every process)
-        self._replay(step, leaf_grads_partial=False)
-        self._optimizer_step(opt, sched)
-        return float(loss.detach())
-
-    def _stage1_step(self, step_idx, opt, sched) -> float:
-        sc = self.cfg.stage1
-        img = self._batch("stage1", step_idx)
-        extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
-        fields, positions = self.step_nodes()
-        ostep = self.optics_step(fields)
-        frozen = not any(p.requires_grad for p in self.hl.parameters())
-        if frozen and float(self.cfg.optics.field_jitter) > 0:
-            psf, cen = (t.detach() for t in ostep.forward())  # the nodes move every step: nothing to memoise
-        elif frozen:
-            # nothing optical trains (the baseline): the map depends on the wavelength draw only, memoise it
-            key = tuple(ostep.draws.tolist())
-            if key not in self._frozen_maps:
-                self._frozen_maps[key] = tuple(t.detach() for t in ostep.forward())
-            psf, cen = self._frozen_maps[key]
-        elif self.cfg.optics.replay:
-            psf, cen = ostep.leaves()
-        else:
-            psf, cen = ostep.full_graph()
-        p, c = self._as_map(psf, cen)
-        B = img.shape[0]
-        parts = self._parts(B, sc.micro_batches, sc.loss)
-        total = 0.0
-        for j, idx in enumerate(parts):
-            loss = self._recon_loss(img[idx], p, c, [extents[i] for i in idx.tolist()], sc,
-                                    positions=positions) * (len(idx) / B)
-            loss.backward(retain_graph=not (self.cfg.optics.replay or frozen) and j < len(parts) - 1)
-            total += float(loss.detach())
-        if self.cfg.optics.replay and not frozen:
-            self._replay(ostep, leaf_grads_partial=True)
-        self._optimizer_step(opt, sched)
-        return self._sum(total)
-
-    def _recon_loss(self, img, p, c, extents, sc, noise=None, positions=None):
-        recon = []
-        for d in range(p.shape[0]):
-            sims = torch.cat([self.simulate(img[i:i + 1], p[d], c[d], extents[i], positions)
-                              for i in range(img.shape[0])])
-            if noise is not None:
-                sims = noise(sims, generator=self.gen)
-            recon.append(self.reconstruct(sims, p, c, extents, positions))
-        if sc.loss == "edof":
-            return edof_loss(recon, img, alpha=sc.edof_alpha)
-        return sum(self.loss_fn(r, img) for r in recon) / len(recon)
-
-    def _stage2_step(self, step_idx, opt, sched) -> float:
-        sc = self.cfg.stage2
-        if self.stage2_map is None:
-            self.stage2_map = self.evaluation_map()
-        pm, sensor = self.stage2_map, self._sensor() if sc.noise else None
-        img = self._batch("stage2", step_idx)
-        extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
-        loss = self._recon_loss_map(img, pm, extents, sc, sensor)
-        loss.backward()
-        self._optimizer_step(opt, sched)
-        return self._sum(float(loss.detach()))
-
-    def _recon_loss_map(self, img, pm, extents, sc, sensor):
-        from raywave.imaging.render import render
-
-        recon = []
-        for d in range(pm.psf.shape[0]):
-            sims = torch.cat([render(img[i:i + 1], pm.psf[d], positions=pm.positions, centers=pm.centers[d],
-                                     sensor_size=pm.sensor_size, pitch=pm.pitch, extent=extents[i])
-                              for i in range(img.shape[0])])
-            if sensor is not None:
-                sims = sensor(sims, generator=self.gen)
-            recon.append(self.reconstruct(sims, pm.psf, pm.centers, extents, pm.positions))
-        if sc.loss == "edof":
-            return edof_loss(recon, img, alpha=sc.edof_alpha)
-        return sum(image_loss(sc.loss)(r, img) for r in recon) / len(recon)
 
     def _sensor(self):
         from raywave.imaging.sensor import Sensor

@@ -1,0 +1,124 @@
+"""One optimizer iteration per stage of a :class:`~raywave.training.trainer.Trainer` (pre-stage, stage 1,
+stage 2) and the hooks through which :class:`~raywave.training.parallel.DistributedTrainer` splits the work over
+processes. A mixin: it reads the Trainer's configuration, data, optics and network."""
+
+from __future__ import annotations
+
+import torch
+
+from raywave.training.baselines import objective_settings, psf_objective
+from raywave.training.losses import edof_loss, image_loss
+from raywave.training.replay import OpticsStep
+
+__all__ = ["StageSteps"]
+
+
+class StageSteps:
+    """The per-stage iterations and the multi-process hooks (mixin of :class:`~raywave.training.trainer.Trainer`)."""
+
+    # ------------------------------------------------------------------ hooks (one process: trivial; several:
+    # raywave.training.parallel.DistributedTrainer splits the work and sums the gradients through these)
+    def _parts(self, batch: int, micro: int, loss: str) -> list:
+        """The index sets (micro-batches) of a batch of ``batch`` images that this process renders."""
+        return list(torch.arange(batch).chunk(max(1, min(int(micro), batch))))
+
+    def _replay(self, step: OpticsStep, leaf_grads_partial: bool) -> None:
+        """Replay ``step``'s chunks with autograd (``leaf_grads_partial``: ∂L/∂PSF holds this process's share
+        of the batch only)."""
+        step.backward()
+
+    def _sync_grads(self) -> None:
+        """Make the parameters' gradients those of the whole step (one process: they are)."""
+
+    def _sum(self, value: float) -> float:
+        """The step's loss from this process's share (one process: the loss itself)."""
+        return value
+
+    def _optimizer_step(self, opt, sched) -> None:
+        self._sync_grads()
+        opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
+
+    # ------------------------------------------------------------------ one iteration per stage
+    def _pre_step(self, opt, sched) -> float:
+        pc = self.cfg.pre_stage
+        fields, _ = self.step_nodes()
+        step = self.optics_step(fields)
+        psf, cen = step.leaves()
+        p, _ = self._as_map(psf, cen)
+        loss = psf_objective(p, **objective_settings(pc))
+        loss.backward()  # the whole map's ∂L/∂PSF (the same in every process)
+        self._replay(step, leaf_grads_partial=False)
+        self._optimizer_step(opt, sched)
+        return float(loss.detach())
+
+    def _stage1_step(self, step_idx, opt, sched) -> float:
+        sc = self.cfg.stage1
+        img = self._batch("stage1", step_idx)
+        extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
+        fields, positions = self.step_nodes()
+        ostep = self.optics_step(fields)
+        frozen = not any(p.requires_grad for p in self.hl.parameters())
+        if frozen and float(self.cfg.optics.field_jitter) > 0:
+            psf, cen = (t.detach() for t in ostep.forward())  # the nodes move every step: nothing to memoise
+        elif frozen:
+            # nothing optical trains (the baseline): the map depends on the wavelength draw only, memoise it
+            key = tuple(ostep.draws.tolist())
+            if key not in self._frozen_maps:
+                self._frozen_maps[key] = tuple(t.detach() for t in ostep.forward())
+            psf, cen = self._frozen_maps[key]
+        elif self.cfg.optics.replay:
+            psf, cen = ostep.leaves()
+        else:
+            psf, cen = ostep.full_graph()
+        p, c = self._as_map(psf, cen)
+        B = img.shape[0]
+        parts = self._parts(B, sc.micro_batches, sc.loss)
+        total = 0.0
+        for j, idx in enumerate(parts):
+            loss = self._recon_loss(img[idx], p, c, [extents[i] for i in idx.tolist()], sc,
+                                    positions=positions) * (len(idx) / B)
+            loss.backward(retain_graph=not (self.cfg.optics.replay or frozen) and j < len(parts) - 1)
+            total += float(loss.detach())
+        if self.cfg.optics.replay and not frozen:
+            self._replay(ostep, leaf_grads_partial=True)
+        self._optimizer_step(opt, sched)
+        return self._sum(total)
+
+    def _recon_loss(self, img, p, c, extents, sc, noise=None, positions=None):
+        recon = []
+        for d in range(p.shape[0]):
+            sims = torch.cat([self.simulate(img[i:i + 1], p[d], c[d], extents[i], positions)
+                              for i in range(img.shape[0])])
+            if noise is not None:
+                sims = noise(sims, generator=self.gen)
+            recon.append(self.reconstruct(sims, p, c, extents, positions))
+        if sc.loss == "edof":
+            return edof_loss(recon, img, alpha=sc.edof_alpha)
+        return sum(self.loss_fn(r, img) for r in recon) / len(recon)
+
+    def _stage2_step(self, step_idx, opt, sched) -> float:
+        sc = self.cfg.stage2
+        if self.stage2_map is None:
+            self.stage2_map = self.evaluation_map()
+        pm, sensor = self.stage2_map, self._sensor() if sc.noise else None
+        img = self._batch("stage2", step_idx)
+        extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
+        loss = self._recon_loss_map(img, pm, extents, sc, sensor)
+        loss.backward()
+        self._optimizer_step(opt, sched)
+        return self._sum(float(loss.detach()))
+
+    def _recon_loss_map(self, img, pm, extents, sc, sensor):
+        from raywave.imaging.render import render
+
+        recon = []
+        for d in range(pm.psf.shape[0]):
+            sims = torch.cat([render(img[i:i + 1], pm.psf[d], positions=pm.positions, centers=pm.centers[d],
+                                     sensor_size=pm.sensor_size, pitch=pm.pitch, extent=extents[i])
+                              for i in range(img.shape[0])])
+            if sensor is not None:
+                sims = sensor(sims, generator=self.gen)
+            recon.append(self.reconstruct(sims, pm.psf, pm.centers, extents, pm.positions))
+        if sc.loss == "edof":
+            return edof_loss(recon, img, alpha=sc.edof_alpha)
+        return sum(image_loss(sc.loss)(r, img) for r in recon) / len(recon)
