@@ -13,7 +13,8 @@ medium after it is the one before it; CODE V, like OpticStudio, writes the thick
 Surface decentres and tilts (``XDE`` / ``YDE`` / ``ZDE`` lens units, ``ADE`` / ``BDE`` / ``CDE`` degrees, optional
 ``Sk``) with CODE V's basic decentre or ``DAR`` / ``BEN`` / ``REV`` become coordinate breaks around the surface
 (:func:`_breaks`; a decentred image surface tilts the image plane). Everything raywave cannot model (a decentred
-object surface, ``REV`` on the image surface, toroids ``YTO`` / ``XTO``, special surfaces ``SPS``, image-space
+object surface, ``REV`` on the image surface, toroids ``YTO`` / ``XTO``, special surfaces ``SPS``, diffractive
+surfaces ``DIF``, image-space
 ``NA``, image-height fields, a curved object or image) is a :class:`LensFileError` naming the surface and line. Commands that do not change the prescription (weights,
 vignetting factors, solves and variable flags, ``INI``, ``GO``, ...) are skipped; other unknown commands give
 one :class:`LensFileWarning`.
@@ -43,7 +44,7 @@ INFINITE_DISTANCE = 1e10
 IGNORED = {"LEN", "INI", "WTW", "WTF", "VUX", "VLX", "VUY", "VLY", "VCX", "VCY", "TEM", "PRE", "GO", "CWL", "DDM",
            "DES", "CCY", "THC", "GLC", "PIM", "SPH", "CON", "ASP", "RSU", "EDG", "SELECT", "END", "PRV", "PWL", "DEL",
            "AFO", "RMD", "HOT", "ZOO", "REX", "REY", "PWR", "CCA", "CCB", "CCC", "CCD", "CCE", "CCK",
-           "CCF", "CCG", "CCH", "CCJ", "TLE", "DNP", "NAM", "LNG", "XRI", "YRI", "CUY", "DIF", "HWL", "HOR", "HCT",
+           "CCF", "CCG", "CCH", "CCJ", "TLE", "DNP", "NAM", "LNG", "XRI", "YRI", "CUY", "HWL", "HOR", "HCT",
            "HCO", "OBS"}
 #: Commands raywave cannot model, and what they are.
 UNSUPPORTED = {
@@ -51,6 +52,7 @@ UNSUPPORTED = {
     "XTO": "toroid (x)", "SPS": "special surface", "NA": "image-space NA pupil", "XIM": "image-height field",
     "YIM": "image-height field", "XRI": "real image-height field", "YRI": "real image-height field",
     "UDS": "user-defined surface", "HOE": "holographic surface", "GRT": "grating",
+    "DIF": "diffractive surface",  # its HWL / HOR / HCT / HCO data mean nothing without it (skipped)
     "ADX": "aperture decentre", "ADY": "aperture decentre",
 }
 #: Commands that take effect only when non-zero (a zero aperture decentre is written by some exports).
