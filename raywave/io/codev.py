@@ -14,10 +14,9 @@ Surface decentres and tilts (``XDE`` / ``YDE`` / ``ZDE`` lens units, ``ADE`` / `
 ``Sk``) with CODE V's basic decentre or ``DAR`` / ``BEN`` / ``REV`` become coordinate breaks around the surface
 (:func:`_breaks`; a decentred image surface tilts the image plane). Everything raywave cannot model (a decentred
 object surface, ``REV`` on the image surface, toroids ``YTO`` / ``XTO``, special surfaces ``SPS``, diffractive
-surfaces ``DIF``, image-space
-``NA``, image-height fields, a curved object or image) is a :class:`LensFileError` naming the surface and line. Commands that do not change the prescription (weights,
-vignetting factors, solves and variable flags, ``INI``, ``GO``, ...) are skipped; other unknown commands give
-one :class:`LensFileWarning`.
+surfaces ``DIF``, image-space ``NA``, image-height fields, a curved object or image) is a :class:`LensFileError`
+naming the surface and line. Commands that do not change the prescription (weights, vignetting factors, solves and
+variable flags, ``INI``, ``GO``, ...) are skipped; other unknown commands give one :class:`LensFileWarning`.
 
 Lines: ``!`` starts a comment, ``&`` at the end continues a line, ``;`` separates commands.
 """
