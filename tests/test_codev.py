@@ -124,7 +124,8 @@ def test_first_order_and_skew_rays_match_optiland(models, name):
 
 
 @pytest.mark.parametrize("edit, msg", [
-    (("  K   -0.9", "  K   -0.9\n  XDE 0.1"), "surface 2: decentre (XDE) is not supported"),
+    (("SO    0.0 60.0", "SO    0.0 60.0\n  XDE 0.1"), "object surface (SO): a decentred or tilted object is not "
+                                                        "supported"),  # surface decentres: test_codev_decentres.py
     (("NAO   0.08", "NA    0.2"), "image-space NA pupil (NA) is not supported"),
     (("YOB   0.0 1.0 2.0", "YIM   0.0 1.0 2.0"), "image-height field (YIM) is not supported"),
     (("  K   -0.9", "  K   -0.9\n  YTO"), "surface 2: toroid (y) (YTO) is not supported"),

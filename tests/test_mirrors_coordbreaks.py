@@ -281,14 +281,16 @@ def test_coordinate_break_spec_validation_and_zmx_errors(tmp_path):
     p.write_bytes(text.replace("  PARM 6 0", "  PARM 6 0\r\n  PARM 7 1.0", 1).encode())
     with pytest.raises(LensFileError, match="COORDBRK PARM 7 is not a coordinate-break parameter"):
         read_zmx(p)
-    # a DOE plane right after a coordinate break is refused by name
+    # a DOE plane right after a coordinate break is read (on the break's axis; tests/test_zmx_doe_after_fold.py),
+    # 5 mm along the light (negative thicknesses after the mirror), so DISZ 5.0 there is refused by name
     lines = text.split("\r\n")
     k = max(i for i, ln in enumerate(lines) if ln.startswith("SURF "))
     doe = ["SURF 99", "  TYPE BINARY_2", "  CURV 0.0", "  DISZ 5.0", "  XDAT 1 0", "  XDAT 2 5"]
     p.write_bytes("\r\n".join(lines[:k] + doe + lines[k:]).replace("SURF 99", f"SURF {lines[k].split()[1]}")
                  .replace(f"{lines[k]}\r\n  TYPE STANDARD", f"SURF {int(lines[k].split()[1]) + 1}\r\n  TYPE STANDARD")
                  .encode())
-    with pytest.raises(LensFileError, match="the DOE plane follows a coordinate break"):
+    with pytest.raises(LensFileError, match=r"the DOE plane must lie before the image: its thickness \(DISZ\) must "
+                                            r"be < 0 mm \(negative after an odd number of mirrors"):
         read_zmx(p)
 
 

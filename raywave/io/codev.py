@@ -10,11 +10,13 @@ obscuration, ``CIR Sk ...`` addresses surface k). Glasses:
 ``NAME_CATALOG`` (CODE V writes vendor names without hyphens: NBK7_SCHOTT is N-BK7, resolved when the lens is
 built), a bare name, ``nd:vd`` and six-digit codes ``NNNVVV`` (model glasses). A mirror is ``REFL`` as the glass (the
 medium after it is the one before it; CODE V, like OpticStudio, writes the thicknesses after it negative).
-Everything raywave cannot model (decentres and tilts ``XDE`` … ``CDE``, ``DAR`` / ``BEN`` / ``REV``, toroids ``YTO`` / ``XTO``,
-special surfaces ``SPS``, image-space ``NA``, image-height fields, a curved object or image) is a
-:class:`LensFileError` naming the surface and line. Commands that do not change the prescription (weights,
-vignetting factors, solves and variable flags, ``INI``, ``GO``, ...) are skipped; other unknown commands give
-one :class:`LensFileWarning`.
+Surface decentres and tilts (``XDE`` / ``YDE`` / ``ZDE`` lens units, ``ADE`` / ``BDE`` / ``CDE`` degrees, optional
+``Sk``) with CODE V's basic decentre or ``DAR`` / ``BEN`` / ``REV`` become coordinate breaks around the surface
+(:func:`_breaks`; a decentred image surface tilts the image plane). Everything raywave cannot model (a decentred
+object surface, ``REV`` on the image surface, toroids ``YTO`` / ``XTO``, special surfaces ``SPS``, diffractive
+surfaces ``DIF``, image-space ``NA``, image-height fields, a curved object or image) is a :class:`LensFileError`
+naming the surface and line. Commands that do not change the prescription (weights, vignetting factors, solves and
+variable flags, ``INI``, ``GO``, ...) are skipped; other unknown commands give one :class:`LensFileWarning`.
 
 Lines: ``!`` starts a comment, ``&`` at the end continues a line, ``;`` separates commands.
 """
@@ -41,19 +43,22 @@ INFINITE_DISTANCE = 1e10
 IGNORED = {"LEN", "INI", "WTW", "WTF", "VUX", "VLX", "VUY", "VLY", "VCX", "VCY", "TEM", "PRE", "GO", "CWL", "DDM",
            "DES", "CCY", "THC", "GLC", "PIM", "SPH", "CON", "ASP", "RSU", "EDG", "SELECT", "END", "PRV", "PWL", "DEL",
            "AFO", "RMD", "HOT", "ZOO", "REX", "REY", "PWR", "CCA", "CCB", "CCC", "CCD", "CCE", "CCK",
-           "CCF", "CCG", "CCH", "CCJ", "TLE", "DNP", "NAM", "LNG", "XRI", "YRI", "CUY", "DIF", "HWL", "HOR", "HCT",
+           "CCF", "CCG", "CCH", "CCJ", "TLE", "DNP", "NAM", "LNG", "XRI", "YRI", "CUY", "HWL", "HOR", "HCT",
            "HCO", "OBS"}
 #: Commands raywave cannot model, and what they are.
 UNSUPPORTED = {
-    "XDE": "decentre", "YDE": "decentre", "ZDE": "decentre", "ADE": "tilt", "BDE": "tilt", "CDE": "tilt",
-    "DAR": "decentre-and-return", "BEN": "bend (fold)", "REV": "reverse decentre", "YTO": "toroid (y)",
+    "YTO": "toroid (y)",
     "XTO": "toroid (x)", "SPS": "special surface", "NA": "image-space NA pupil", "XIM": "image-height field",
     "YIM": "image-height field", "XRI": "real image-height field", "YRI": "real image-height field",
     "UDS": "user-defined surface", "HOE": "holographic surface", "GRT": "grating",
+    "DIF": "diffractive surface",  # its HWL / HOR / HCT / HCO data mean nothing without it (skipped)
     "ADX": "aperture decentre", "ADY": "aperture decentre",
 }
-#: Commands that take effect only when non-zero (a zero decentre is written by some exports).
-_ZERO_OK = {"XDE", "YDE", "ZDE", "ADE", "BDE", "CDE", "ADX", "ADY"}
+#: Commands that take effect only when non-zero (a zero aperture decentre is written by some exports).
+_ZERO_OK = {"ADX", "ADY"}
+#: Surface decentre values (XDE, YDE, ZDE in lens units; ADE, BDE, CDE in degrees) and decentre types.
+DECENTRE_VALUES = {"XDE": "x", "YDE": "y", "ZDE": "z", "ADE": "a", "BDE": "b", "CDE": "c"}
+DECENTRE_TYPES = {"DAR": "decentre and return", "BEN": "bend", "REV": "reverse decentre"}
 _SURFACE_STARTS = ("SO", "S", "STO", "SI")
 
 
@@ -80,6 +85,90 @@ def _circle(surfs: list, cur: dict, where: str, args: list, ln: int, err) -> Non
         target["obs"] = vals[0]
     else:
         target["cir"] = vals[0]
+
+
+def _decentre(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int, err) -> None:
+    """A decentre qualifier of the current surface or of surface k (``Sk``): a value (``XDE`` / ``YDE`` / ``ZDE``
+    in lens units, ``ADE`` / ``BDE`` / ``CDE`` in degrees) or a decentre type (``DAR`` / ``BEN`` / ``REV``; none:
+    CODE V's basic decentre), kept in the surface's ``"dec"`` record (converted to coordinate breaks later)."""
+    target = cur
+    rest = []
+    for a in args:
+        if re.fullmatch(r"[Ss]\d+", a):
+            k = int(a[1:])
+            if not 0 <= k < len(surfs):
+                raise err(f"{where}: {cmd} {' '.join(args)}: no surface {k}", ln)
+            target, where = surfs[k], f"surface {k}"
+        else:
+            rest.append(a)
+    dec = target.setdefault("dec", {"x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0, "c": 0.0, "type": None,
+                                    "line": ln})
+    if cmd in DECENTRE_TYPES:
+        if rest:
+            raise err(f"{where}: {cmd} {' '.join(rest)}: the decentre type takes no value", ln)
+        if dec["type"] not in (None, cmd):
+            raise err(f"{where}: two decentre types on one surface ({dec['type']} and {cmd})", ln)
+        dec["type"] = cmd
+        return
+    if len(rest) != 1 or not _number(rest[0]) or not math.isfinite(float(rest[0])):
+        raise err(f"{where}: {cmd} {' '.join(args)}: needs one finite number "
+                  f"({'degrees' if cmd in ('ADE', 'BDE', 'CDE') else 'lens units'})", ln)
+    dec[DECENTRE_VALUES[cmd]] = float(rest[0])
+    dec["line"] = ln
+
+
+def _moves(dec) -> bool:
+    """Whether a surface's decentre record moves or turns anything."""
+    return bool(dec) and any(dec[k] != 0.0 for k in ("x", "y", "z", "a", "b", "c"))
+
+
+def _cb(decenter, tilt, thickness: float, order: int, comment: str) -> dict:
+    return {"type": "coordinate_break", "decenter": list(decenter), "tilt": list(tilt), "order": order,
+            "thickness": thickness, "comment": comment}
+
+
+def _breaks(dec, thickness: float, scale: float, label: str):
+    """``(breaks before, the surface's own thickness, breaks after)``: a CODE V surface decentre as OpticStudio
+    coordinate breaks (the spec's ``"coordinate_break"``; ``thickness`` mm is the CODE V surface's, ``scale`` lens
+    unit -> mm).
+
+    CODE V (``T``: the translation (XDE, YDE, ZDE), then ``R``: the tilts ADE about x, BDE about the new y, CDE
+    about the new z; ADE and BDE are left-handed, CDE right-handed, so that ADE, BDE, CDE are OpticStudio's
+    tilts about x, y, z of −ADE, −BDE, +CDE, whose tilts are all right-handed):
+
+    * basic decentre: ``T R`` before the surface; the surfaces after it stay in the new frame (its thickness runs
+      along the new z);
+    * ``DAR``: ``T R`` before the surface, ``(T R)⁻¹`` after it (back to the frame before the decentre, whose z
+      carries the thickness);
+    * ``BEN``: ``T R`` before the surface and ``R`` again after it (a fold mirror: the axis follows the reflected
+      light);
+    * ``REV``: nothing before the surface, ``(T R)⁻¹ = R⁻¹ T⁻¹`` after it.
+
+    ``T R`` is a break of order 0 (decentre x, y, then tilts; a ZDE adds a first break that carries it as its
+    thickness, along the z before the tilts); ``(T R)⁻¹`` is a break of order 1 with every value negated whose
+    thickness is the surface's minus ZDE (the inverse tilts end on the axes before the decentre)."""
+    if not _moves(dec):
+        return [], thickness, []
+    kind = dec["type"]
+    x, y, z = dec["x"] * scale, dec["y"] * scale, dec["z"] * scale
+    tilt = [-dec["a"] if dec["a"] else 0.0, -dec["b"] if dec["b"] else 0.0, dec["c"]]  # OpticStudio's signs
+    name = {None: "decentre", "DAR": "decentre and return (DAR)", "BEN": "bend (BEN)",
+            "REV": "reverse decentre (REV)"}[kind]
+    note = f"CODE V {label} {name}"
+    before = []
+    if kind != "REV":
+        if z != 0.0:
+            before.append(_cb([x, y], [0.0, 0.0, 0.0], z, 0, note))
+            if any(tilt):
+                before.append(_cb([0.0, 0.0], tilt, 0.0, 0, note))
+        else:
+            before.append(_cb([x, y], tilt, 0.0, 0, note))
+    if kind is None:
+        return before, thickness, []
+    if kind == "BEN":
+        return before, 0.0, [_cb([0.0, 0.0], tilt, thickness, 0, note)]
+    back = _cb([-x if x else 0.0, -y if y else 0.0], [-v if v else 0.0 for v in tilt], thickness - z, 1, note)
+    return before, 0.0, [back]
 
 
 def _number(tok: str) -> bool:
@@ -231,6 +320,9 @@ def _interpret(cmds, path) -> dict:
             if cmd == "CIR":
                 _circle(surfs, cur, where, args, ln, err)
                 continue
+            if cmd in DECENTRE_VALUES or cmd in DECENTRE_TYPES:
+                _decentre(surfs, cur, where, cmd, args, ln, err)
+                continue
             if cmd in UNSUPPORTED:
                 if cmd in _ZERO_OK and args and _number(args[0]) and float(args[0]) == 0.0:
                     continue
@@ -263,6 +355,8 @@ def _interpret(cmds, path) -> dict:
             fields[cmd[0]] = [num(a, cmd, ln) for a in args]
         elif cmd in UNSUPPORTED:
             raise err(f"{UNSUPPORTED[cmd]} ({cmd}) is not supported by raywave", ln)
+        elif cmd in DECENTRE_VALUES or cmd in DECENTRE_TYPES:
+            raise err(f"{cmd}: a decentre before the first surface (it qualifies the surface before it)", ln)
         elif cmd in IGNORED or cmd in ("K", "SLB", "CIR") or cmd in ASPHERIC_LETTERS:
             pass
         else:
@@ -274,6 +368,12 @@ def _interpret(cmds, path) -> dict:
     obj, img, lens = surfs[0], surfs[-1], surfs[1:-1]
     if img.get("obs"):
         raise err("image surface: an obscuration (CIR OBS) on the image surface is not supported", img["line"])
+    if _moves(obj.get("dec")):
+        raise err("object surface (SO): a decentred or tilted object is not supported (decentre surface 1 "
+                  "instead)", obj["dec"]["line"])
+    if _moves(img.get("dec")) and img["dec"]["type"] == "REV":
+        raise err("image surface (SI): a reverse decentre (REV) acts after its surface, i.e. after the image: "
+                  "not supported (put the tilt on the image surface without REV)", img["dec"]["line"])
     if sto_label is not None:
         k, ln = sto_label
         if not 1 <= k <= len(lens):
@@ -357,7 +457,11 @@ def _interpret(cmds, path) -> dict:
         out["stop"] = bool(s["stop"])
         if s["label"]:
             out["comment"] = s["label"]
-        surfaces.append(out)
+        before, out["thickness"], after = _breaks(s.get("dec"), out["thickness"], scale, f"S{i}")
+        surfaces += before + [out] + after
+    if _moves(img.get("dec")):  # a tilted / decentred image plane: the breaks before it (the image is no entry)
+        before, _, _ = _breaks(dict(img["dec"], type=None), 0.0, scale, "SI")
+        surfaces += before
     spec["surfaces"] = surfaces
     if unknown:
         listed = ", ".join(f"{k} (line {ln})" for k, ln in sorted(unknown.items(), key=lambda kv: kv[1]))

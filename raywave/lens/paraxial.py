@@ -102,7 +102,10 @@ def _axis_walk(lens, wavelength: float | None = None):
         place(a_hit)
         if s is None:
             break
-        tilt = math.degrees(math.acos(min(1.0, abs(float(dn.detach())))))
+        # the angle between the axis and the normal from atan2(|d × n|, |d · n|): accurate near 0 (acos of a dot
+        # product one rounding below 1 is already 1.2e-6 degrees, which refused a tilt undone by its inverse)
+        cross = float(torch.linalg.vector_norm(torch.linalg.cross(d, normal)).detach())
+        tilt = math.degrees(math.atan2(cross, abs(float(dn.detach()))))
         off = float(torch.linalg.vector_norm((h - t).detach()))
         scale = max(1.0, float(torch.linalg.vector_norm(t.detach())))
         flat = _is_flat(s.geometry) and kind in ("reflection", "refraction")

@@ -44,24 +44,30 @@ def _diffractive_phase(p, where, path, scale, line):
     return {"type": "binary_2", "order": order, "norm_radius": norm * scale, "coefficients": coeffs}
 
 
-def _doe_from_surface(d, before, path, scale) -> dict:
-    """The spec "doe" of the diffractive surface ``d`` (the last before the image) after surface ``before``."""
+def _doe_from_surface(d, before, path, scale, sign: float = 1.0, medium=None) -> dict:
+    """The spec "doe" of the diffractive surface ``d`` (the last before the image) after surface ``before`` (a
+    refractive surface, a mirror or a coordinate break).
+
+    ``sign``: −1 after an odd number of mirrors (the light travels toward −z: the thicknesses are negative and the
+    distances along the light are −DISZ); ``medium``: the medium in front of the DOE (default ``before``'s)."""
     where = f"surface {d['number']}"
     model = _diffractive_phase(d, where, path, scale, d["line"])
     if d["stop"]:
         raise LensFileError(f"{where}: the diffractive surface cannot be the stop (raywave's DOE plane lies after "
                             "the refractive lens)", path, d["line"])
-    if d["material"] != before["material"]:
-        raise LensFileError(f"{where}: the diffractive surface changes the medium ({before['material']!r} before, "
+    medium = before["material"] if medium is None else medium
+    if d["material"] != medium:
+        raise LensFileError(f"{where}: the diffractive surface changes the medium ({medium!r} before, "
                             f"{d['material']!r} after): raywave's DOE is a thin element in one medium", path, d["line"])
-    if d["disz"] is None or not math.isfinite(d["disz"]) or not d["disz"] > 0:
-        raise LensFileError(f"{where}: the DOE plane must lie before the image: its thickness (DISZ) must be > 0 mm, "
-                            f"got {d['disz']!r}", path, d["line"])
+    along = " (negative after an odd number of mirrors: the light travels toward -z)" if sign < 0 else ""
+    if d["disz"] is None or not math.isfinite(d["disz"]) or not sign * d["disz"] > 0:
+        raise LensFileError(f"{where}: the DOE plane must lie before the image: its thickness (DISZ) must be "
+                            f"{'< 0' if sign < 0 else '> 0'} mm{along}, got {d['disz']!r}", path, d["line"])
     t = before["disz"]
-    if t is None or not math.isfinite(t) or t < 0:
-        raise LensFileError(f"surface {before['number']}: the distance to the DOE plane (DISZ) must be >= 0 mm, got "
-                            f"{t!r}", path, before["line"])
-    doe: dict = {"distance": t}
+    if t is None or not math.isfinite(t) or sign * t < 0:
+        raise LensFileError(f"surface {before['number']}: the distance to the DOE plane (DISZ) must be "
+                            f"{'<= 0' if sign < 0 else '>= 0'} mm{along}, got {t!r}", path, before["line"])
+    doe: dict = {"distance": sign * t + 0.0}  # mm along the light (+ 0.0: no -0.0)
     ap = d["aperture"]
     if ap is None:
         doe["aperture"] = "square"

@@ -180,15 +180,26 @@ def _split_doe(parsed: list, path: str, scale: float):
             raise LensFileError(f"surface {lens[-1]['number']}: a DOE plane needs a refractive lens in front of it",
                                 path, lens[-1]["line"])
         d, lens = lens[-1], lens[:-1]
-        if lens[-1]["kind"] == "coordinate_break" or lens[-1]["material"] == "mirror":
-            what = "a coordinate break" if lens[-1]["kind"] == "coordinate_break" else "a mirror"
-            raise LensFileError(f"surface {d['number']}: the DOE plane follows {what} (surface "
-                                f"{lens[-1]['number']}); raywave's DOE plane lies a distance after the last refractive "
-                                "surface on its axis, so a DOE after a coordinate break or a mirror is not supported "
-                                "(put the break before a refractive surface)", path, d["line"])
-        doe = _doe_from_surface(d, lens[-1], path, scale)
+        if all(p["kind"] == "coordinate_break" for p in lens):
+            raise LensFileError(f"surface {d['number']}: a DOE plane needs a refractive lens in front of it (only "
+                                "coordinate breaks precede it)", path, d["line"])
+        # the DOE plane lies on the local axis after the surface before it (a coordinate break or a mirror too: the
+        # image-space frame of raywave.lens.frames); after an odd number of mirrors the light travels toward -z
+        # and the thicknesses are negative, the distances along the light -DISZ
+        sign = -1.0 if sum(p["material"] == "mirror" for p in lens) % 2 else 1.0
+        doe = _doe_from_surface(d, lens[-1], path, scale, sign=sign, medium=_medium_after(lens))
         lens[-1] = dict(lens[-1], disz=lens[-1]["disz"] + d["disz"])  # the refractive lens reaches the sensor
     return lens, doe
+
+
+def _medium_after(lens: list):
+    """The medium after the last of the parsed ``lens`` surfaces: a coordinate break and a mirror keep the medium
+    before them (the object space is air)."""
+    medium = "air"
+    for p in lens:
+        if p["kind"] != "coordinate_break" and p["material"] != "mirror":
+            medium = p["material"]
+    return medium
 
 
 def _object_distance(obj: dict, img: dict, path: str):

@@ -33,11 +33,13 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     model = (doe or {}).get("phase_model")
     binary2 = doe is not None and model is not None and model.get("type") == "binary_2" and doe.get("phase") is None
     nsurf = len(spec["surfaces"])
+    sign, medium = _doe_side(spec["surfaces"])
     for i, s in enumerate(spec["surfaces"], start=1):
-        _surface_lines(w, i, s, doe if binary2 and i == nsurf else None, source)
+        _surface_lines(w, i, s, dict(doe, distance=sign * float(doe["distance"]) + 0.0)
+                       if binary2 and i == nsurf else None, source)
     n = len(spec["surfaces"]) + 1
     if binary2:
-        _write_binary2(w, n, doe, spec["surfaces"][-1], source)
+        _write_binary2(w, n, doe, spec["surfaces"][-1], source, sign, medium)
         n += 1
     w(f"SURF {n}")
     w("  TYPE STANDARD")
@@ -79,9 +81,24 @@ def _system_lines(w, spec: dict) -> None:
     w(f"PWAV {int(wls.get('primary', 0)) + 1}")
 
 
+def _doe_side(surfaces: list) -> tuple[float, object]:
+    """``(sign, medium)`` after the last spec surface: −1 after an odd number of mirrors (the thicknesses there
+    are negative, the DOE's distance is along the light), and the medium there (a mirror or a coordinate break
+    keeps the medium before it)."""
+    mirrors, medium = 0, "air"
+    for s in surfaces:
+        m = s.get("material")
+        if isinstance(m, str) and m.lower() == "mirror":
+            mirrors += 1
+        elif s.get("type", "standard") != "coordinate_break":
+            medium = m if m is not None else "air"
+    return (-1.0 if mirrors % 2 else 1.0), medium
+
+
 def _surface_lines(w, i: int, s: dict, doe_after: dict | None, source) -> None:
     """The SURF block of spec surface ``s`` (number ``i``) through ``w``; ``doe_after``: the spec's DOE when a
-    BINARY_2 DOE plane follows ``s`` (then its thickness is the DOE's distance, mm)."""
+    BINARY_2 DOE plane follows ``s`` (then its thickness is the DOE's distance, mm, signed: negative after an odd
+    number of mirrors)."""
     w(f"SURF {i}")
     kind = s.get("type", "standard")
     if s.get("stop"):
@@ -93,7 +110,7 @@ def _surface_lines(w, i: int, s: dict, doe_after: dict | None, source) -> None:
         dec, tilt = s.get("decenter", [0.0, 0.0]), s.get("tilt", [0.0, 0.0, 0.0])
         for j, v in enumerate(list(dec) + list(tilt) + [s.get("order", 0)], start=1):
             w(f"  PARM {j} {_num(v)}")
-        w(f"  DISZ {_num(s['thickness'])}")
+        w(f"  DISZ {_num(doe_after['distance'] if doe_after is not None else s['thickness'])}")
         return
     if kind != "paraxial":
         w(f"  CURV {_num(curvature_of(s))}")
@@ -189,20 +206,21 @@ def _system_aperture_line(ap) -> str:
     raise ValueError(f"unknown system aperture {ap!r}")  # validate_spec rejects it first
 
 
-def _write_binary2(w, number: int, doe: dict, last: dict, source) -> None:
+def _write_binary2(w, number: int, doe: dict, last: dict, source, sign: float = 1.0, medium=None) -> None:
     """The DOE plane as a BINARY_2 surface (PARM 0 = diffraction order, XDAT 1 = N, XDAT 2 = normalisation
-    radius, XDAT 3.. = A_i in rad) between the last lens surface and the image."""
+    radius, XDAT 3.. = A_i in rad) between the last lens surface and the image (``sign``, ``medium``: see
+    :func:`_doe_side`)."""
     model = doe["phase_model"]
     coeffs = [float(c) for c in model["coefficients"]]
     if len(coeffs) > MAX_BINARY2_TERMS:
         raise LensFileError(f"doe.phase_model: a .zmx BINARY_2 surface holds at most {MAX_BINARY2_TERMS} terms, got "
                             f"{len(coeffs)}", source)
-    rest = float(last["thickness"]) - float(doe["distance"])
+    rest = float(last["thickness"]) - sign * float(doe["distance"])
     w(f"SURF {number}")
     w("  TYPE BINARY_2")
     w("  CURV 0.0")
     w(f"  DISZ {_num(rest)}")
-    g = _glas_line(last.get("material", "air"))
+    g = _glas_line(last.get("material", "air") if medium is None else medium)
     if g:
         w("  " + g)
     size = doe.get("size")
