@@ -163,3 +163,21 @@ def test_curvature_mode_units_and_zero_decentres(tmp_path):
         p.write_text(text.replace("INI   'RWV'", "FOO 1"))
         read_lens_spec(p)
     assert math.isinf(lens_from_spec(spec).object_distance)
+
+
+def test_cuy_and_rdy_set_the_surface_shape(tmp_path):
+    """``CUY c`` / ``RDY r`` on a surface (or ``Sk``) replace the radius of its surface line (they were skipped, so
+    a file that gives its curvatures this way lost them silently); bad values name the surface."""
+    text = (DATA / "cooke_triplet.seq").read_text()
+    ref = read_lens_spec(DATA / "cooke_triplet.seq")
+    p = tmp_path / "c.seq"
+    p.write_text(text.replace("S     -435.7604 6.007551", f"S     0 6.007551\n  CUY {1 / -435.7604!r}"))
+    spec = read_lens_spec(p)
+    assert spec["surfaces"][1]["radius"] == pytest.approx(ref["surfaces"][1]["radius"], rel=1e-14)
+    p.write_text(text.replace("S     -435.7604 6.007551", "S     0 6.007551\n  RDY S1 99.5"))
+    spec = read_lens_spec(p)
+    assert spec["surfaces"][0]["radius"] == pytest.approx(99.5, rel=1e-14)
+    assert spec["surfaces"][1]["radius"] == "inf"  # its own line says flat
+    p.write_text(text.replace("S     -435.7604 6.007551", "S     -435.7604 6.007551\n  CUY"))
+    with pytest.raises(LensFileError, match="surface 2: CUY"):
+        read_lens_spec(p)

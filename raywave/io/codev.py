@@ -5,7 +5,7 @@ What is read (docs/lens-format.md, "CODE V .seq"): ``RDM`` (radius mode; ``RDM N
 ``REF``, fields ``XAN`` / ``YAN`` (degrees) or ``XOB`` / ``YOB`` (object heights), and the surfaces ``SO`` (object:
 its thickness is the object distance, ≥ 1e10 = infinity), ``S`` (radius, thickness, glass), ``STO`` (the stop:
 as a surface line, or alone after one), ``SI`` (image), with the qualifiers ``K`` (conic), ``A`` … ``J`` (aspheric
-terms on r⁴ … r²⁰), ``SLB`` (label → comment) and ``CIR`` (clear aperture → semi-diameter; ``CIR OBS r``: a central circular
+terms on r⁴ … r²⁰), ``CUY`` / ``RDY`` (curvature / radius, replacing the surface line's), ``SLB`` (label → comment) and ``CIR`` (clear aperture → semi-diameter; ``CIR OBS r``: a central circular
 obscuration, ``CIR Sk ...`` addresses surface k). Glasses:
 ``NAME_CATALOG`` (CODE V writes vendor names without hyphens: NBK7_SCHOTT is N-BK7, resolved when the lens is
 built), a bare name, ``nd:vd`` and six-digit codes ``NNNVVV`` (model glasses). A mirror is ``REFL`` as the glass (the
@@ -43,7 +43,7 @@ INFINITE_DISTANCE = 1e10
 IGNORED = {"LEN", "INI", "WTW", "WTF", "VUX", "VLX", "VUY", "VLY", "VCX", "VCY", "TEM", "PRE", "GO", "CWL", "DDM",
            "DES", "CCY", "THC", "GLC", "PIM", "SPH", "CON", "ASP", "RSU", "EDG", "SELECT", "END", "PRV", "PWL", "DEL",
            "AFO", "RMD", "HOT", "ZOO", "REX", "REY", "PWR", "CCA", "CCB", "CCC", "CCD", "CCE", "CCK",
-           "CCF", "CCG", "CCH", "CCJ", "TLE", "DNP", "NAM", "LNG", "XRI", "YRI", "CUY", "HWL", "HOR", "HCT",
+           "CCF", "CCG", "CCH", "CCJ", "TLE", "DNP", "NAM", "LNG", "XRI", "YRI", "HWL", "HOR", "HCT",
            "HCO", "OBS"}
 #: Commands raywave cannot model, and what they are.
 UNSUPPORTED = {
@@ -115,6 +115,25 @@ def _decentre(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int,
                   f"({'degrees' if cmd in ('ADE', 'BDE', 'CDE') else 'lens units'})", ln)
     dec[DECENTRE_VALUES[cmd]] = float(rest[0])
     dec["line"] = ln
+
+
+def _shape(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int, err) -> None:
+    """``CUY [Sk] c`` (curvature, 1 / lens unit) or ``RDY [Sk] r`` (radius, lens units; 0: flat) of the current
+    surface or of surface k: it replaces the value the surface line gave, whatever ``RDM`` / ``CUM`` says."""
+    target, rest = cur, []
+    for a in args:
+        if re.fullmatch(r"[Ss]\d+", a):
+            k = int(a[1:])
+            if not 0 <= k < len(surfs):
+                raise err(f"{where}: {cmd} {' '.join(args)}: no surface {k}", ln)
+            target, where = surfs[k], f"surface {k}"
+        else:
+            rest.append(a)
+    if len(rest) != 1 or not _number(rest[0]) or not math.isfinite(float(rest[0])):
+        raise err(f"{where}: {cmd} {' '.join(args)}: needs one finite number "
+                  f"({'curvature, 1/lens unit' if cmd == 'CUY' else 'radius, lens units'})", ln)
+    v = float(rest[0])
+    target["curvature"] = v if cmd == "CUY" else (0.0 if v == 0.0 else 1.0 / v)
 
 
 def _moves(dec) -> bool:
@@ -323,6 +342,9 @@ def _interpret(cmds, path) -> dict:
             if cmd in DECENTRE_VALUES or cmd in DECENTRE_TYPES:
                 _decentre(surfs, cur, where, cmd, args, ln, err)
                 continue
+            if cmd in ("CUY", "RDY"):
+                _shape(surfs, cur, where, cmd, args, ln, err)
+                continue
             if cmd in UNSUPPORTED:
                 if cmd in _ZERO_OK and args and _number(args[0]) and float(args[0]) == 0.0:
                     continue
@@ -433,6 +455,8 @@ def _interpret(cmds, path) -> dict:
     for i, s in enumerate(lens, start=1):
         r = s["r"]
         c = 0.0 if r == 0.0 else ((1.0 / r) if radius_mode else r)
+        if s.get("curvature") is not None:  # CUY / RDY
+            c = s["curvature"]
         c /= scale
         out: dict = {"type": "even_asphere" if any(s["asph"].values()) else "standard"}
         out.update(shape_entry(c))
