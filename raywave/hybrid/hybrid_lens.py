@@ -30,8 +30,8 @@ import torch
 from torch import nn
 
 from raywave.doe import DOE
-from raywave.hybrid.coherent import (DOEField, accurate_field_steps, chief_rays, doe_clippings, exit_pupil_field_steps,
-                                     faithful_field, footprints, run_batched)
+from raywave.hybrid.coherent import (DOEField, accurate_field_steps, chief_rays, doe_clippings, entrance_pupil,
+                                     exit_pupil_field_steps, faithful_field, footprints, run_batched)
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
@@ -296,6 +296,7 @@ class HybridLens(nn.Module):
             # every field and wavelength at once: the footprints in one trace, then the field constructions
             # together, their ray traces batched per round (raywave.hybrid.coherent.run_batched)
             boxes = None if xp else footprints(optics, f, wls_t, depth, z_doe)
+            entrance = None if xp else entrance_pupil(optics)  # one lens: once for every field
             gens = []
             for i in range(nf):
                 for j, wl in enumerate(wls):
@@ -309,7 +310,7 @@ class HybridLens(nn.Module):
                         box = boxes[i][j]
                         gens.append(accurate_field_steps(*args, nodes=rays or 64, oversample=self.oversample,
                                                          check=check, chief_uv=cuv[i, j],
-                                                         bbox=False if box is None else box))
+                                                         bbox=False if box is None else box, entrance=entrance))
             built = run_batched(gens)
         else:
             built = [faithful_field(optics, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j],

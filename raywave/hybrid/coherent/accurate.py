@@ -47,17 +47,25 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
                                            ripple_zones=ripple_zones))
 
 
+def entrance_pupil(lens) -> tuple[float, float]:
+    """``(z, radius)`` mm of the lens's paraxial entrance pupil: the plane of the entrance-plane coordinates ``uv``
+    (:func:`raywave.lens.sources.entrance_plane_z`) and half the paraxial entrance-pupil diameter (which scales the
+    aiming's finite-difference step and its longest Newton step)."""
+    return entrance_plane_z(lens), 0.5 * float(lens.paraxial().epd)
+
+
 def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
                    nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
                    chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
-                   ripple_zones: float | None = None, bbox=None, stop_rim=None):
+                   ripple_zones: float | None = None, bbox=None, stop_rim=None, entrance=None):
     """:func:`accurate_field` as a generator: yields the :class:`_TraceRequest` of every ray trace it needs and
     receives its result, returns the :class:`DOEField` (run it with :func:`run_serial`, or many together with
     :func:`run_batched`: one batched trace per round for all of them). ``bbox``: the lit footprint on the plane
     (:func:`footprints`; ``False``: none, every ray vignetted) when the caller traced it already (None: traced
     here). ``stop_rim``: with ``stop_plane``, the images of the stop's rim (:func:`stop_rim_images`): the edge's
     Fresnel step then runs from the rim point's own image at every node (its azimuth on the stop) instead of from
-    the plane ``stop_plane``."""
+    the plane ``stop_plane``. ``entrance``: ``(z, radius)`` mm of the paraxial entrance pupil
+    (:func:`entrance_pupil`), when the caller knows it (one lens, many fields: it is computed once)."""
     field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
     if bbox is False:  # given: every ray is vignetted
@@ -93,24 +101,26 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
     targets = torch.stack([tx, ty], -1).reshape(-1, 2)
 
     # ---- chief ray's entrance-plane point and Jacobian: the linear first guess
-    ep_z = entrance_plane_z(lens)
+    ep_z, r_ep = entrance_pupil(lens) if entrance is None else entrance
     if chief_uv is None:
         ep_rays = point_source_rays(lens, field, wl, pupil=(torch.zeros(1), torch.zeros(1)), aim="full", depth=depth)
         o, d = ep_rays.o[0, 0, 0].detach(), ep_rays.d[0, 0, 0].detach()
         chief_uv = o[:2] + d[:2] * (ep_z - o[2]) / d[2]
     uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device).reshape(1, 2)
-    r_ep = 0.5 * float(lens.paraxial().epd)
     h = 1e-6 * max(r_ep, 1e-3)
     x_c, _, jac_c = yield from _landing_and_jacobian(lens, uv_c, field, wl, depth, z_doe, field_type, h, ep_z)
-    uv, conv, jac = yield from _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h,
-                                     max_step=0.25 * r_ep, ep_z=ep_z)
+    uv, conv, jac, x_at = yield from _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe,
+                                                      field_type, h, max_step=0.25 * r_ep, ep_z=ep_z)
 
     # ---- the differentiable trace of the node rays. The landing point of a node's ray must stay on its node
     # when the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals
     # uv in value and carries d(uv)/dθ = −J⁻¹ ∂X/∂θ, so everything traced at uv_lin (path, directions, aperture
     # slacks, ray density) has its exact first-order derivative with respect to the lens parameters.
-    _, _, at0, _ = yield _TraceRequest(lens, uv, field, wl, depth, z_doe, field_type, False, ep_z, True)
-    jinv_step, _ = _solve2(jac, (at0.o[0, 0, :, :2] - targets))
+    # (without autograd the landing points at uv are the Newton iteration's last ones: no trace)
+    if x_at is None or torch.is_grad_enabled():
+        _, _, at0, _ = yield _TraceRequest(lens, uv, field, wl, depth, z_doe, field_type, False, ep_z, True)
+        x_at = at0.o[0, 0, :, :2]
+    jinv_step, _ = _solve2(jac, (x_at - targets))
     uv_lin = uv - jinv_step
     rays, out, at, rec = yield _TraceRequest(lens, uv_lin, field, wl, depth, z_doe, field_type, True, ep_z, True)
     X = at.o[0, 0, :, :2]

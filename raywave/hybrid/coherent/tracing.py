@@ -151,24 +151,39 @@ def _solve2(j, r):
 def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h, max_step, ep_z):
     """Newton: entrance-plane uv (N, 2) whose rays land on ``targets`` (N, 2) on the DOE plane.
 
-    Every iteration is one batched trace (the rays and their two finite-difference neighbours). Steps longer
-    than ``max_step`` (mm on the entrance plane) are shortened, which keeps the iteration inside the traceable
-    region. Converged rays stay where they are, so each ray's iterates do not depend on the others. Returns (uv,
-    converged (N,), Jacobian at the last iterate (N, 2, 2)); all detached (a generator: yields its traces)."""
+    Every iteration is one batched trace (the rays and their two finite-difference neighbours) of the rays that
+    are still moving: a converged or dead ray keeps its uv, so its landing point and Jacobian are those it was
+    last traced with (each ray is traced on its own, so tracing it again would give the same values). Steps
+    longer than ``max_step`` (mm on the entrance plane) are shortened, which keeps the iteration inside the
+    traceable region. Returns (uv, converged (N,), Jacobian at the last iterate (N, 2, 2), landing points (N, 2)
+    at ``uv`` or None where some ray moved after its last trace, i.e. the iteration did not settle); all
+    detached (a generator: yields its traces)."""
     targets, uv_c, x_c, jac_c = (t.detach() for t in (targets, uv_c, x_c, jac_c))
     step0, _ = _solve2(jac_c.expand(targets.shape[0], 2, 2), targets - x_c)
     uv = uv_c + step0
+    n = targets.shape[0]
+    x = torch.zeros_like(targets)
+    valid = torch.zeros(n, dtype=torch.bool, device=targets.device)
+    jac = torch.zeros((n, 2, 2), dtype=targets.dtype, device=targets.device)
+    live = torch.arange(n, device=targets.device)  # the rays moved since their last trace
     for _ in range(_NEWTON_ITERS):
-        x, valid, jac = yield from _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z)
-        err = x - targets
-        conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL)
-        if bool((conv | ~valid).all()):
+        x_l, valid_l, jac_l = yield from _landing_and_jacobian(lens, uv[live], field, wl, depth, z_doe, field_type, h,
+                                                               ep_z)
+        x[live], valid[live], jac[live] = x_l, valid_l, jac_l
+        err = x_l - targets[live]
+        step, ok = _solve2(jac_l, err)
+        move = valid_l & ~(err.abs().amax(-1) <= _NEWTON_TOL) & ok
+        if not bool(move.any()):  # nothing moves any more (tracing the same rays again changes nothing)
+            stale = False
             break
-        step, ok = _solve2(jac, err)
         big = step.abs().amax(-1, keepdim=True)
         step = torch.where(big > max_step, step * (max_step / big), step)
-        uv = torch.where((valid & ok & ~conv)[:, None], uv - step, uv)
-    return uv, conv, jac
+        live = live[move]
+        uv[live] = uv[live] - step[move]
+    else:  # the last iteration moved some rays: their landing points are those of the previous uv
+        stale = True
+    conv = valid & ((x - targets).abs().amax(-1) <= _NEWTON_TOL)
+    return uv, conv, jac, (None if stale else x)
 
 
 def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, grad_xy: torch.Tensor | None = None):

@@ -1,0 +1,80 @@
+"""A/B timing of the PSF map per PSF (issue 17): two source trees, runs interleaved, one process per run.
+
+Each run builds the bundled ``hybrid_asphere``, warms up with a 1-PSF map, then times one N×N×3 map (R, G, B
+channel centres, ks = 64, accurate mode, no autograd) and reports wall and CPU seconds (``process_time``, all
+threads) per PSF. The trees alternate A, B, A, B, … so that a machine shared with other work loads both alike;
+the medians are reported. Prints one JSON object (and writes it with ``-o``).
+
+    python benchmarks/psf_ab.py --a /path/to/old/tree --b . [--grid 5] [--repeat 3] [--threads 1] [-o out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+
+_CHILD = r"""
+import json, sys, time, warnings
+import torch
+torch.set_num_threads(int(sys.argv[2]))
+from raywave.assembly.build import load_hybrid
+from raywave.lens.build import bundled_lens_path
+from raywave.imaging import psf_map
+n = int(sys.argv[1])
+wls = (0.66, 0.53, 0.47)
+hl = load_hybrid(bundled_lens_path("hybrid_asphere"))
+warnings.simplefilter("ignore")
+psf_map(hl, (1, 1), wavelengths=wls[:1], ks=64)
+t0, c0 = time.perf_counter(), time.process_time()
+m = psf_map(hl, (n, n), wavelengths=wls, ks=64)
+wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+torch.save(m.psf, sys.argv[3])
+k = n * n * len(wls)
+print(json.dumps({"wall_per_psf": wall / k, "cpu_per_psf": cpu / k}))
+"""
+
+
+def _run(tree: str, n: int, threads: int, out: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=os.path.abspath(tree), OMP_NUM_THREADS=str(threads))
+    res = subprocess.run([sys.executable, "-c", _CHILD, str(n), str(threads), out], capture_output=True, text=True,
+                         env=env)
+    if res.returncode != 0:
+        raise RuntimeError(res.stderr[-3000:])
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--a", required=True, help="tree A (the baseline; its raywave/ is imported)")
+    ap.add_argument("--b", default=".", help="tree B")
+    ap.add_argument("--grid", type=int, default=5)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("-o", "--output")
+    args = ap.parse_args()
+    import torch
+
+    runs = {"a": [], "b": []}
+    for r in range(args.repeat):
+        for key in ("a", "b"):
+            runs[key].append(_run(getattr(args, key), args.grid, args.threads, f"/tmp/raywave_psf_ab_{key}.pt"))
+            print(key, r, runs[key][-1], file=sys.stderr, flush=True)
+    diff = float((torch.load("/tmp/raywave_psf_ab_a.pt") - torch.load("/tmp/raywave_psf_ab_b.pt")).abs().max())
+    med = {k: {m: statistics.median(x[m] for x in v) for m in ("wall_per_psf", "cpu_per_psf")} for k, v in runs.items()}
+    out = {"benchmark": "psf_ab", "lens": "hybrid_asphere", "grid": [args.grid, args.grid], "wavelengths": 3, "ks": 64,
+           "threads": args.threads, "a": os.path.abspath(args.a), "b": os.path.abspath(args.b), "runs": runs,
+           "median": med, "speedup_wall": med["a"]["wall_per_psf"] / med["b"]["wall_per_psf"],
+           "speedup_cpu": med["a"]["cpu_per_psf"] / med["b"]["cpu_per_psf"], "max_abs_psf_diff": diff}
+    text = json.dumps(out, indent=2)
+    print(text)
+    if args.output:
+        with open(args.output, "w") as fh:
+            fh.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
