@@ -34,14 +34,16 @@ m = psf_map(hl, (n, n), wavelengths=wls, ks=64)
 wall, cpu = time.perf_counter() - t0, time.process_time() - c0
 torch.save(m.psf, sys.argv[3])
 k = n * n * len(wls)
-print(json.dumps({"wall_per_psf": wall / k, "cpu_per_psf": cpu / k}))
+import raywave
+print(json.dumps({"wall_per_psf": wall / k, "cpu_per_psf": cpu / k, "raywave": raywave.__file__}))
 """
 
 
 def _run(tree: str, n: int, threads: int, out: str) -> dict:
     env = dict(os.environ, PYTHONPATH=os.path.abspath(tree), OMP_NUM_THREADS=str(threads))
+    # run in the tree itself: ``python -c`` puts the working directory ahead of PYTHONPATH on sys.path
     res = subprocess.run([sys.executable, "-c", _CHILD, str(n), str(threads), out], capture_output=True, text=True,
-                         env=env)
+                         env=env, cwd=os.path.abspath(tree))
     if res.returncode != 0:
         raise RuntimeError(res.stderr[-3000:])
     return json.loads(res.stdout.strip().splitlines()[-1])
