@@ -87,12 +87,10 @@ def _circle(surfs: list, cur: dict, where: str, args: list, ln: int, err) -> Non
         target["cir"] = vals[0]
 
 
-def _decentre(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int, err) -> None:
-    """A decentre qualifier of the current surface or of surface k (``Sk``): a value (``XDE`` / ``YDE`` / ``ZDE``
-    in lens units, ``ADE`` / ``BDE`` / ``CDE`` in degrees) or a decentre type (``DAR`` / ``BEN`` / ``REV``; none:
-    CODE V's basic decentre), kept in the surface's ``"dec"`` record (converted to coordinate breaks later)."""
-    target = cur
-    rest = []
+def _addressed(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int, err):
+    """``(surface record, its name, the other arguments)`` of a qualifier that addresses the current surface or,
+    with ``Sk`` among its arguments, surface k."""
+    target, rest = cur, []
     for a in args:
         if re.fullmatch(r"[Ss]\d+", a):
             k = int(a[1:])
@@ -101,6 +99,14 @@ def _decentre(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int,
             target, where = surfs[k], f"surface {k}"
         else:
             rest.append(a)
+    return target, where, rest
+
+
+def _decentre(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int, err) -> None:
+    """A decentre qualifier of the current surface or of surface k (``Sk``): a value (``XDE`` / ``YDE`` / ``ZDE``
+    in lens units, ``ADE`` / ``BDE`` / ``CDE`` in degrees) or a decentre type (``DAR`` / ``BEN`` / ``REV``; none:
+    CODE V's basic decentre), kept in the surface's ``"dec"`` record (converted to coordinate breaks later)."""
+    target, where, rest = _addressed(surfs, cur, where, cmd, args, ln, err)
     dec = target.setdefault("dec", {"x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0, "c": 0.0, "type": None,
                                     "line": ln})
     if cmd in DECENTRE_TYPES:
@@ -120,15 +126,7 @@ def _decentre(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int,
 def _shape(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int, err) -> None:
     """``CUY [Sk] c`` (curvature, 1 / lens unit) or ``RDY [Sk] r`` (radius, lens units; 0: flat) of the current
     surface or of surface k: it replaces the value the surface line gave, whatever ``RDM`` / ``CUM`` says."""
-    target, rest = cur, []
-    for a in args:
-        if re.fullmatch(r"[Ss]\d+", a):
-            k = int(a[1:])
-            if not 0 <= k < len(surfs):
-                raise err(f"{where}: {cmd} {' '.join(args)}: no surface {k}", ln)
-            target, where = surfs[k], f"surface {k}"
-        else:
-            rest.append(a)
+    target, where, rest = _addressed(surfs, cur, where, cmd, args, ln, err)
     if len(rest) != 1 or not _number(rest[0]) or not math.isfinite(float(rest[0])):
         raise err(f"{where}: {cmd} {' '.join(args)}: needs one finite number "
                   f"({'curvature, 1/lens unit' if cmd == 'CUY' else 'radius, lens units'})", ln)
