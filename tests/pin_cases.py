@@ -16,9 +16,14 @@ PINS = Path(__file__).resolve().parent / "data" / "psf_pins.npz"
 
 
 def _hybrid_asphere(**kw):
+    """The bundled hybrid lens; the pins before issue 19's default flip were computed with the DOE-plane edge and
+    the exact ("auto") exit-pupil step, so the cases name them."""
     from raywave.assembly.build import load_hybrid
     from raywave.lens.build import bundled_lens_path
 
+    kw.setdefault("stop_edge", "doe")
+    if kw["stop_edge"] == "exit_pupil":
+        kw.setdefault("edge_step", "auto")
     return load_hybrid(bundled_lens_path("hybrid_asphere"), **kw)
 
 
@@ -30,14 +35,14 @@ def _fresnel_on_asphere():
     hl = _hybrid_asphere()
     doe = FresnelDOE(200.0, (1200, 1200), 1e-3, material="FUSED_SILICA")
     doe.fabricate(levels=16)
-    return HybridLens(hl.lens, doe, hl.doe_distance, sensor_pitch=hl.sensor_pitch)
+    return HybridLens(hl.lens, doe, hl.doe_distance, sensor_pitch=hl.sensor_pitch, stop_edge="doe")
 
 
 def _cooke():
     from raywave.assembly.build import load_hybrid
     from raywave.lens.build import bundled_lens_path
 
-    return load_hybrid(bundled_lens_path("cooke_triplet"), doe_pitch=4e-3, sensor_pitch=4e-3)
+    return load_hybrid(bundled_lens_path("cooke_triplet"), doe_pitch=4e-3, sensor_pitch=4e-3, stop_edge="doe")
 
 
 def _ideal_exit_pupil():
@@ -47,7 +52,7 @@ def _ideal_exit_pupil():
 
     lens = ideal_lens(20.0, f_number=8, wavelengths=(0.55,))
     doe = Binary2DOE([-5.0, 1.0], 1.0, (800, 800), 2e-3)
-    return HybridLens(lens, doe, 10.0, sensor_pitch=2e-3, stop_edge="exit_pupil")
+    return HybridLens(lens, doe, 10.0, sensor_pitch=2e-3, stop_edge="exit_pupil", edge_step="auto")
 
 
 #: name -> (builder, psf_result kwargs)
@@ -58,6 +63,9 @@ CASES = {
                                                          wavelengths=[0.47, 0.66], ks=32)),
     "hybrid_asphere_exit_pupil": (lambda: _hybrid_asphere(stop_edge="exit_pupil"),
                                   dict(fields=[(0.0, 14.0)], wavelengths=[0.53], ks=32)),
+    # the default since issue 19 (the exit-pupil edge, Fresnel step); pinned from commit 2026-11-26 (issue 19)
+    "hybrid_asphere_default": (lambda: _hybrid_asphere(stop_edge=None),
+                               dict(fields=[(0.0, 0.0), (0.0, 14.0)], wavelengths=[0.53], ks=32)),
     "hybrid_asphere_faithful": (_hybrid_asphere, dict(fields=[(0.0, 7.0)], wavelengths=[0.53], ks=32,
                                                       mode="faithful", rays=20000, seed=1)),
     "cooke_triplet": (_cooke, dict(fields=[(0.0, 0.0), (0.0, 14.0)], wavelengths=[0.5875618], ks=24)),
@@ -85,10 +93,13 @@ def compute(name: str, device: str = "cpu") -> dict[str, np.ndarray]:
 
 
 if __name__ == "__main__":
+    import sys
     import time
 
-    out = {}
-    for name in CASES:
+    # python tests/pin_cases.py [NAME ...]: recompute those cases only (default: all), keeping the other pins
+    names = sys.argv[1:] or list(CASES)
+    out = dict(np.load(PINS)) if PINS.exists() and sys.argv[1:] else {}
+    for name in names:
         t = time.time()
         for k, v in compute(name).items():
             out[f"{name}/{k}"] = v

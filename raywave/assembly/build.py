@@ -167,7 +167,8 @@ def default_doe_size(lens, distance: float, fields=None, wavelengths=None, depth
 def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, doe_size=None,
                      doe_distance: float | None = None, sensor_pitch: float | None = None,
                      oversample: int | None = None, fields=None, wavelengths=None, depth=None,
-                     field_type: str | None = None, source: str = "<spec>", stop_edge: str = "doe") -> HybridLens:
+                     field_type: str | None = None, source: str = "<spec>", stop_edge: str | None = None,
+                     edge_step: str | None = None) -> HybridLens:
     """A :class:`HybridLens` from a lens spec and its resolved DOE (:func:`raywave.io.resolve_doe`, None: the
     spec has no DOE, a blank one is made). See the module docstring for how the grid is chosen.
 
@@ -289,7 +290,8 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     else:
         doe = BlankDOE(shape, pitch, aperture=aperture)
     q = int(oversample) if oversample is not None else (data.oversample if from_file else 1)
-    hl = HybridLens(lens, doe, distance, sensor_pitch=sensor_pitch, oversample=q, stop_edge=stop_edge)
+    step = {} if edge_step is None else {"edge_step": edge_step}
+    hl = HybridLens(lens, doe, distance, sensor_pitch=sensor_pitch, oversample=q, stop_edge=stop_edge, **step)
     info.update(distance=distance, pitch=pitch, shape=list(doe.shape), size=list(doe.size), aperture=aperture,
                 phase=data.phase_path if from_file else None, oversample=q,
                 phase_model=None if model is None else model["type"], material=doe.material_name,
@@ -300,14 +302,16 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
 
 def load_hybrid(path: str | Path, doe_pitch: float | None = None, doe_size=None, doe_distance: float | None = None,
                 *, sensor_pitch: float | None = None, oversample: int | None = None, fields=None, wavelengths=None,
-                depth=None, field_type: str | None = None, stop_edge: str = "doe") -> HybridLens:
+                depth=None, field_type: str | None = None, stop_edge: str | None = None,
+                edge_step: str | None = None) -> HybridLens:
     """Read a lens file (raywave .json with its ``"doe"``, .zmx with a diffractive last surface, or any lens
     file, which gets a default blank DOE), or a bundled lens by name (``"hybrid_asphere"``, see
     :func:`raywave.lens.build.bundled_lens_path`), into a :class:`HybridLens`.
 
     ``hl.doe_info`` records the DOE used (distance, pitch, shape, size, aperture, phase file, and whether it
-    came from the file or the defaults). ``stop_edge``: where the accurate field's sharp edge sits ("doe" or
-    "exit_pupil", see :class:`HybridLens`). See :func:`hybrid_from_spec` and the module docstring for the rules.
+    came from the file or the defaults). ``stop_edge``, ``edge_step``: where the accurate field's sharp edge
+    sits ("exit_pupil" or "doe"; None: the default, see :class:`HybridLens`) and how the exit-pupil edge reaches
+    the DOE plane (None: the default step). See :func:`hybrid_from_spec` and the module docstring for the rules.
     """
     from raywave.io import read_hybrid_spec
 
@@ -317,6 +321,6 @@ def load_hybrid(path: str | Path, doe_pitch: float | None = None, doe_size=None,
         return hybrid_from_spec(spec, data, doe_pitch=doe_pitch, doe_size=doe_size, doe_distance=doe_distance,
                                 sensor_pitch=sensor_pitch, oversample=oversample, fields=fields,
                                 wavelengths=wavelengths, depth=depth, field_type=field_type, source=str(path),
-                                stop_edge=stop_edge)
+                                stop_edge=stop_edge, edge_step=edge_step)
     except ValueError as err:  # every refusal names the file
         raise with_location(err, path)

@@ -62,8 +62,7 @@ class PSFTolerance:
 
     def start(self, probe: PerturbedDOE, wavelengths) -> None:
         lens = self.lens
-        self.work = HybridLens(lens.lens, probe, lens.doe_distance, sensor_pitch=lens.sensor_pitch,
-                               oversample=lens.oversample, intensity_upsample=lens.intensity_upsample)
+        self.work = lens.with_doe(probe)
         with torch.no_grad():
             fds = self.work.doe_fields(self.fields, wavelengths, rays=self.rays)
             if len(fds) != 1:

@@ -156,7 +156,7 @@ def _fmt(v, spec=".3g"):
 
 
 def format_table(rows, reference: str) -> str:
-    head = f"{'field (deg)':>14}  {'model':<10} {'L1 vs ' + reference:>16} {'L1 vs truth':>12} {'Δcentre µm':>11} " \
+    head = f"{'field (deg)':>14}  {'model':<11} {'L1 vs ' + reference:>16} {'L1 vs truth':>12} {'Δcentre µm':>11} " \
            f"{'outside':>9} {'note':<s}"
     lines = [head]
     for r in rows:
@@ -166,14 +166,13 @@ def format_table(rows, reference: str) -> str:
         if r["rays_on_discontinuity"]:
             note = f"{100 * r['rays_on_discontinuity']:.1f} % rays on phase steps"
         lines.append(f"{'(' + format(r['field_x_deg'], 'g') + ', ' + format(r['field_y_deg'], 'g') + ')':>14}  "
-                     f"{r['model']:<10} {_fmt(r['l1_vs_' + reference]):>16} {_fmt(r['l1_vs_truth']):>12} "
+                     f"{r['model']:<11} {_fmt(r['l1_vs_' + reference]):>16} {_fmt(r['l1_vs_truth']):>12} "
                      f"{_fmt(r['center_offset_um'], '.3f'):>11} {_fmt(r['energy_outside'], '.2e'):>9} {note}")
     return "\n".join(lines)
 
 
 def cmd_compare(args) -> int:
     from raywave.cli.psf_commands import fabricate_doe, parse_psf_args
-    from raywave.hybrid import HybridLens
     from raywave.assembly.build import load_hybrid
 
     args.field, args.output, args.png, args.rays = None, None, None, None  # not options of compare
@@ -188,13 +187,12 @@ def cmd_compare(args) -> int:
         hl = load_hybrid(a["path"], a["doe_pitch"], a["doe_size"], a["doe_distance"],
                          sensor_pitch=a["sensor_pitch"], oversample=a["oversample"],
                          fields=[list(f) for f in fields] + [[0.0, 0.0]], wavelengths=wl_list, depth=a["depth"],
-                         field_type="angle", stop_edge=a["stop_edge"])
+                         field_type="angle", stop_edge=a["stop_edge"], edge_step=a["edge_step"])
         if args.doe is not None:
             from raywave.cli.doe_commands import load_doe
 
             doe, _ = load_doe(args.doe, a["doe_pitch"])
-            hl = HybridLens(hl.lens, doe, hl.doe_distance, sensor_pitch=a["sensor_pitch"] or hl.sensor_pitch,
-                            oversample=hl.oversample, stop_edge=a["stop_edge"])
+            hl = hl.with_doe(doe, sensor_pitch=a["sensor_pitch"] or hl.sensor_pitch)
             hl.doe_info = {"source": str(args.doe)}
         if a["doe_levels"] is not None or a["doe_wavelength"] is not None or a["doe_material"] is not None:
             if not hasattr(hl, "doe_info"):
@@ -242,19 +240,23 @@ def cmd_compare(args) -> int:
 
 
 def register(sub) -> None:
+    from raywave.cli.psf_commands import add_edge_arguments
+
     p = sub.add_parser(
         "compare", help="PSFs of one hybrid lens through the paper's simulation models, with a table of their errors",
         description="Simulate one hybrid lens with the comparison models of the paper (raywave: the ray-wave engine; "
         "paraxial: thin ideal lens + DOE + propagation; pupil: Zernike-fitted wavefront; raytrace: local grating "
         "approximation with ray binning; exit_pupil: Chen et al. 2021, blank DOE only) and write a PSF grid "
-        "(compare.png) and a table of relative L1 errors (compare.csv, compare.json).")
+        "(compare.png) and a table of relative L1 errors (compare.csv, compare.json). raywave uses the stop edge of "
+        "--stop-edge (default: the exit pupil); raywave_doe is the same engine with the paper's DOE-plane edge.")
     p.add_argument("lens", help="lens file or bundled lens name (as for 'raywave psf')")
     p.add_argument("--doe", default=None, metavar="DOE",
                    help="replace the lens's DOE: a phase map (.npy with --doe-pitch, .npz) or a lens file with a DOE")
     p.add_argument("--fields", nargs="+", default=None, metavar="DEG",
                    help="field angles in degrees, each Y or X,Y (default 0)")
     p.add_argument("--models", default="all", metavar="LIST",
-                   help="'all' (default) or a comma list of raywave, paraxial, pupil, raytrace, exit_pupil")
+                   help="'all' (default) or a comma list of raywave, raywave_doe, paraxial, pupil, raytrace, "
+                        "exit_pupil")
     p.add_argument("--reference", default="raywave", metavar="MODEL",
                    help="the model the L1 errors are measured against (default raywave)")
     p.add_argument("--wavelength", default=None, metavar="UM", help="µm (default: the lens's primary wavelength)")
@@ -274,7 +276,5 @@ def register(sub) -> None:
             ("--doe-material", "NAME", "fabricate the DOE: height map in this glass (default FUSED_SILICA)")):
         p.add_argument(flag, default=None, metavar=meta, help=text)
     p.add_argument("--doe-size", nargs="+", default=None, metavar="MM", help="DOE width [height] in mm")
-    p.add_argument("--stop-edge", choices=("doe", "exit_pupil"), default="doe",
-                   help="ray-wave engine: sharp stop edge at the DOE plane (the paper's model; default) or at the exit "
-                        "pupil (agrees with exit_pupil off axis; docs/ray-wave.md)")
+    add_edge_arguments(p)
     p.set_defaults(func=cmd_compare)

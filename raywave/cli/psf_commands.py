@@ -85,7 +85,8 @@ def parse_psf_args(args) -> dict:
     out["ks"] = _integer(args.ks, "--ks")
     out["rays"] = None if args.rays is None else _integer(args.rays, "--rays")
     out.update(parse_doe_options(args))
-    out["stop_edge"] = getattr(args, "stop_edge", "doe")
+    out["stop_edge"] = getattr(args, "stop_edge", None)
+    out["edge_step"] = getattr(args, "edge_step", None)
     if args.output is not None and Path(args.output).suffix.lower() not in OUTPUT_EXTENSIONS:
         raise CommandError(f"-o: the PSF is written as .npy (the array) or .npz (psf, center, pitch, "
                            f"energy_outside, ...), got {args.output!r}")
@@ -94,17 +95,33 @@ def parse_psf_args(args) -> dict:
     return out
 
 
+def add_edge_arguments(p) -> None:
+    """``--stop-edge`` and ``--edge-step`` (shared by ``psf`` and ``compare``)."""
+    p.add_argument("--stop-edge", choices=("exit_pupil", "doe"), default=None,
+                   help="where the accurate field's sharp stop edge sits: exit_pupil (default: the stop's image, where "
+                        "the edge is physically sharp; off-axis PSFs independent of the DOE distance) or doe (on the "
+                        "DOE plane: the paper's model, its off-axis PSFs depend on the DOE distance); "
+                        "docs/ray-wave.md")
+    p.add_argument("--edge-step", choices=("fresnel", "asm", "auto"), default=None,
+                   help="with the exit-pupil edge, how the edge's diffraction reaches the DOE plane: fresnel (default: "
+                        "the knife-edge step, any beam), asm (the exact angular-spectrum construction, ~4x the "
+                        "cost, beams up to 8192 samples), auto (asm where the beam fits)")
+
+
 # ---------------------------------------------------------------------------- the computation
 def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 64, mode: str = "accurate",
                 rays: int | None = None, doe_pitch=None, doe_size=None, doe_distance=None, sensor_pitch=None,
-                oversample=None, doe_levels=None, doe_wavelength=None, doe_material=None, stop_edge="doe") -> dict:
+                oversample=None, doe_levels=None, doe_wavelength=None, doe_material=None, stop_edge=None,
+                edge_step=None) -> dict:
     """The PSF of one point source through the hybrid lens of ``path`` and its metrics.
 
     Field angles in degrees (whatever the file's field type), ``depth`` object distance in mm (None: the lens
     file's, ``inf``: distant), ``wavelength`` µm (None: the lens's primary). Returns a dict with ``psf``
     (ks, ks) float64 numpy, ``center`` (2,) mm, ``pitch`` mm, ``energy_outside``, ``rays``, ``metrics``
     (:func:`raywave.hybrid.metrics.psf_metrics`, lengths in mm), ``wavelength``, ``depth``, ``hybrid``.
-    ``doe_levels`` / ``doe_wavelength`` / ``doe_material``: fabricate the DOE first (see the module docstring)."""
+    ``doe_levels`` / ``doe_wavelength`` / ``doe_material``: fabricate the DOE first (see the module docstring).
+    ``stop_edge`` / ``edge_step``: the engine's stop edge (None: the default, the exit pupil with the Fresnel step;
+    "doe": the paper's model), see :class:`raywave.hybrid.HybridLens`."""
     import torch
 
     from raywave.assembly.build import load_hybrid
@@ -114,7 +131,7 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
     wl_list = None if wavelength is None else [wavelength]
     hl = load_hybrid(path, doe_pitch, doe_size, doe_distance, sensor_pitch=sensor_pitch, oversample=oversample,
                      fields=[list(field), [0.0, 0.0]], wavelengths=wl_list, depth=depth, field_type="angle",
-                     stop_edge=stop_edge)
+                     stop_edge=stop_edge, edge_step=edge_step)
     if doe_levels is not None or doe_wavelength is not None or doe_material is not None:
         fabricate_doe(hl, doe_levels, doe_wavelength, doe_material)
     wl = hl.lens.primary_wavelength if wavelength is None else float(wavelength)
@@ -243,7 +260,8 @@ def cmd_psf(args) -> int:
         # field's VignettingWarning would repeat "no light reaches the sensor")
         result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
                              a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"],
-                             a["doe_levels"], a["doe_wavelength"], a["doe_material"], a["stop_edge"])
+                             a["doe_levels"], a["doe_wavelength"], a["doe_material"], a["stop_edge"],
+                             a["edge_step"])
     report_warnings(caught)
     s = summary(result, str(args.lens))
     wrote = []
@@ -303,10 +321,7 @@ def register(sub) -> None:
     p.add_argument("--doe-distance", default=None, metavar="MM",
                    help="last vertex to DOE plane in mm (overrides the file's; default for a lens without a DOE: half "
                         "way to the sensor, or nearer the sensor where the beam would span over 2048 DOE pixels)")
-    p.add_argument("--stop-edge", choices=("doe", "exit_pupil"), default="doe",
-                   help="where the accurate field's sharp stop edge sits: doe (the paper's model, fast; default) or "
-                        "exit_pupil (the stop's image: off-axis PSFs independent of the DOE distance, ~3 s more per "
-                        "field; docs/ray-wave.md)")
+    add_edge_arguments(p)
     p.add_argument("--sensor-pitch", default=None, metavar="MM",
                    help="PSF pixel pitch in mm (default: the lens's sensor pixel pitch, else the DOE pitch)")
     p.add_argument("--oversample", default=None, metavar="Q",

@@ -39,7 +39,8 @@ from raywave.utils.safe import safe_div
 from raywave.wave.field import upsampled_intensity
 from raywave.wave.propagation import angular_spectrum, pixel_integrate, propagate_window, window_transfer
 
-__all__ = ["DOEApertureWarning", "HybridLens", "PSFResult", "SensorCropWarning"]
+__all__ = ["DEFAULT_EDGE_STEP", "DEFAULT_STOP_EDGE", "DOEApertureWarning", "HybridLens", "PSFResult",
+           "SensorCropWarning", "StopEdgeWarning"]
 
 #: blocked power fraction above which :class:`DOEApertureWarning` is raised
 CLIP_WARN = 0.01
@@ -50,6 +51,21 @@ BEAM_MARGIN = 1.2
 STOP_EDGES = ("doe", "exit_pupil")
 #: the accepted values of ``HybridLens(edge_step=...)``: how the exit-pupil edge reaches the DOE plane
 EDGE_STEPS = ("auto", "fresnel", "asm")
+#: where the stop's sharp edge is formed unless a caller says otherwise: at the exit pupil, where it is physically
+#: sharp ("doe" is the paper's model; issue 19, docs/ray-wave.md)
+DEFAULT_STOP_EDGE = "exit_pupil"
+#: how the default exit-pupil edge reaches the DOE plane: the Fresnel step (1.3–1.8× the DOE-plane edge's cost, any
+#: beam size; "asm" is the exact construction at ~4×, "auto" takes it where the beam fits)
+DEFAULT_EDGE_STEP = "fresnel"
+
+
+class _PupilAtInfinity(ValueError):
+    """The exit pupil lies at (or near) infinity: no exit-pupil plane to form the stop's edge on."""
+
+
+class StopEdgeWarning(UserWarning):
+    """The default exit-pupil stop edge cannot be built for this lens (its exit pupil lies at infinity: image-space
+    telecentric), so the stop's edge is formed on the DOE plane (the paper's model) instead."""
 
 
 _OUT_MARGIN = 8  # samples around the PSF window (keeps the periodic upsampling's edge effects out of it)
@@ -116,25 +132,26 @@ class HybridLens(nn.Module):
         intensity_upsample: the sensor-plane field is Fourier-interpolated to pitch p/q before |U|² is
             integrated over the sensor pixels (q ≥ 2 samples the intensity exactly; 4 makes the pixel
             quadrature accurate to ~1e-4 for PSFs as sharp as the simulation grid allows).
-        stop_edge: where the accurate mode forms the geometric field's sharp edge. "doe" (default, the paper's
-            method): on the DOE plane. "exit_pupil": on the exit-pupil plane (:meth:`exit_pupil_z`, the stop's
-            image, where its edge is physically sharp), then the field is propagated to the DOE plane by the angular
-            spectrum, which adds the edge's Fresnel diffraction between the two planes: off-axis PSFs no longer
-            depend on the DOE distance and agree with the Huygens exit-pupil model (docs/ray-wave.md,
-            Accuracy). Costs one extra large angular-spectrum propagation per field and wavelength (cached
-            with the DOE-plane field). The faithful mode ignores it.
+        stop_edge: where the accurate mode forms the geometric field's sharp edge. "exit_pupil" (the default,
+            :data:`DEFAULT_STOP_EDGE`): at the exit pupil (:meth:`exit_pupil_z`, the stop's image, where its edge
+            is physically sharp); the edge's Fresnel diffraction between there and the DOE plane is added by
+            ``edge_step``, so off-axis PSFs do not depend on the DOE distance and agree with the Huygens exit-pupil
+            model (docs/ray-wave.md, Accuracy). "doe" (the paper's model): cut sharply on the DOE plane. None: the
+            default; a lens whose exit pupil lies at infinity (image-space telecentric) then falls back to "doe"
+            with a :class:`StopEdgeWarning` (an explicit "exit_pupil" raises instead). The faithful mode ignores
+            it.
         edge_step: with ``stop_edge="exit_pupil"``, how the edge's diffraction reaches the DOE plane. "asm": the
             exact construction, the field built on the exit-pupil plane and propagated to the DOE plane by the
             angular spectrum (~10× the DOE-plane edge's cost; only for beams that span at most
             :data:`raywave.hybrid.coherent.AUTO_ASM_SAMPLES` simulation samples on the exit-pupil plane).
             "fresnel": the analytic knife-edge step on the DOE plane's own grid (a few times the DOE-plane edge's
             cost, any beam size; :func:`raywave.hybrid.coherent.stop_edge_factor`; 1e-3 … 5e-3 L1 from the exact
-            construction on the bundled asphere, docs/ray-wave.md). "auto" (default): "asm" where the beam fits,
-            else "fresnel".
+            construction on the bundled asphere, docs/ray-wave.md; the default, :data:`DEFAULT_EDGE_STEP`).
+            "auto": "asm" where the beam fits, else "fresnel".
     """
 
     def __init__(self, lens, doe: DOE, doe_distance: float, sensor_pitch: float | None = None, oversample: int = 1,
-                 intensity_upsample: int = 4, stop_edge: str = "doe", edge_step: str = "auto"):
+                 intensity_upsample: int = 4, stop_edge: str | None = None, edge_step: str = DEFAULT_EDGE_STEP):
         super().__init__()
         problem = lens.wave_support_problem()
         if problem is not None:
@@ -157,15 +174,26 @@ class HybridLens(nn.Module):
             raise ValueError(f"intensity_upsample must be >= 2 (|U|² has twice the field's bandwidth), got "
                              f"{intensity_upsample!r}")
         self.intensity_upsample = int(intensity_upsample)
-        if stop_edge not in STOP_EDGES:
+        if stop_edge is not None and stop_edge not in STOP_EDGES:
             raise ValueError(f"stop_edge must be one of {STOP_EDGES}, got {stop_edge!r}")
-        self.stop_edge = stop_edge
+        self._edge_requested = stop_edge  # None: the default, which may fall back (see _exit_pupil_planes)
+        self.stop_edge = DEFAULT_STOP_EDGE if stop_edge is None else stop_edge
         if edge_step not in EDGE_STEPS:
             raise ValueError(f"edge_step must be one of {EDGE_STEPS}, got {edge_step!r}")
         self.edge_step = edge_step
         # transfer functions of recent window pairs (a training loop with a frozen lens reuses them); plain
         # per-instance memo, never part of the state_dict
         self._transfer_cache: OrderedDict = OrderedDict()
+
+    def with_doe(self, doe: DOE, **overrides) -> "HybridLens":
+        """A new :class:`HybridLens` on the same refractive lens (shared, not copied) with ``doe`` in place of
+        this one's and every setting kept (DOE distance, sensor pitch, oversample, intensity upsampling, stop edge
+        and edge step); ``overrides``: constructor arguments to change."""
+        kw = dict(doe_distance=self.doe_distance, sensor_pitch=self.sensor_pitch, oversample=self.oversample,
+                  intensity_upsample=self.intensity_upsample, stop_edge=self._edge_requested,
+                  edge_step=self.edge_step)
+        kw.update(overrides)
+        return HybridLens(self.lens, doe, **kw)
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -231,9 +259,24 @@ class HybridLens(nn.Module):
                 ok = bool(out.valid.all()) and uu > 1e-30
                 z = float(o[1, 2] - d[1, 2] * (w_perp @ u) / uu) if ok else math.nan
         if not math.isfinite(z) or abs(z - self.doe_z()) > 1e3:
-            raise ValueError(f"stop_edge='exit_pupil': the lens's exit pupil lies at z = {z:g} mm (at or near "
+            raise _PupilAtInfinity(f"stop_edge='exit_pupil': the lens's exit pupil lies at z = {z:g} mm (at or near "
                              "infinity: image-space telecentric), where no field can be built; use stop_edge='doe'")
         return z
+
+    def _exit_pupil_planes(self, wls: list[float]) -> list[float] | None:
+        """z (mm) of every wavelength's exit-pupil plane when the accurate field forms the stop's edge there, else
+        None: ``stop_edge="doe"``, or the default edge on a lens whose exit pupil lies at infinity (warns
+        :class:`StopEdgeWarning` and uses the DOE-plane edge; an explicit ``stop_edge="exit_pupil"`` raises)."""
+        if self.stop_edge != "exit_pupil":
+            return None
+        try:
+            return [self.exit_pupil_z(wl) for wl in wls]
+        except _PupilAtInfinity as err:
+            if self._edge_requested is not None:
+                raise
+            warnings.warn(f"{err.args[0].split(', where')[0]}: the stop's edge is formed on the DOE plane (the "
+                          "paper's model) instead of the default exit pupil", StopEdgeWarning, stacklevel=4)
+            return None
 
     def wavelength_list(self, wavelengths=None) -> list[float]:
         """``wavelengths`` (µm: None → the lens's primary, a scalar or any (W,)) as a list of floats: how every PSF
@@ -280,9 +323,8 @@ class HybridLens(nn.Module):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", VignettingWarning)
             cd, cs, cuv = chief_rays(optics, f, torch.tensor(wls, dtype=torch.float64), depth, z_doe, z_sen)
-        xp = mode == "accurate" and self.stop_edge == "exit_pupil"
-        if xp:  # the chief rays on every wavelength's exit-pupil plane (straight lines in the image medium)
-            z_xps = [self.exit_pupil_z(wl) for wl in wls]
+        z_xps = self._exit_pupil_planes(wls) if mode == "accurate" else None
+        xp = z_xps is not None
         if xp and self.edge_step == "fresnel":
             cx = [[None] * f.shape[0] for _ in wls]
         elif xp:

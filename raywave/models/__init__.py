@@ -11,12 +11,12 @@ models (Table S.I), all behind one interface (:mod:`raywave.models.interface`, :
 
 from raywave.models.debye import DebyePSF, debye_field, debye_psf, debye_total_power
 from raywave.models.exit_pupil import ExitPupilModel, HuygensPSF, huygens_psf
-from raywave.models.base import ModelPSFResult, PSFModel, RayWaveModel, relative_l1
+from raywave.models.base import ModelPSFResult, PaperRayWaveModel, PSFModel, RayWaveModel, relative_l1
 from raywave.models.interface import MODEL_NAMES, MODELS, make_model
 from raywave.models.local_grating import DiscontinuousPhaseWarning, LocalGratingModel
 from raywave.models.paraxial import ParaxialModel
 from raywave.models.pupil import PupilModel, fit_zernike
 
 __all__ = ["MODELS", "MODEL_NAMES", "DebyePSF", "DiscontinuousPhaseWarning", "ExitPupilModel", "HuygensPSF", "LocalGratingModel",
-           "ModelPSFResult", "PSFModel", "ParaxialModel", "PupilModel", "RayWaveModel", "debye_field", "debye_psf",
+           "ModelPSFResult", "PaperRayWaveModel", "PSFModel", "ParaxialModel", "PupilModel", "RayWaveModel", "debye_field", "debye_psf",
            "debye_total_power", "fit_zernike", "huygens_psf", "make_model", "relative_l1"]

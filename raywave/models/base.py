@@ -105,6 +105,17 @@ class RayWaveModel(PSFModel):
         return ModelPSFResult(r.psf, r.center, r.energy_outside, r.pitch, r.rays, r.doe_clipped, model=self.name)
 
 
+class PaperRayWaveModel(RayWaveModel):
+    """The ray-wave engine as the paper builds it: the stop's sharp edge cut on the DOE plane
+    (``HybridLens(stop_edge="doe")``), whatever the edge of the hybrid lens it is given (the default edge is the
+    exit pupil's). Shares that hybrid's refractive lens and DOE."""
+
+    name = "raywave_doe"
+
+    def __init__(self, hybrid: HybridLens, rays: int | None = None):
+        super().__init__(hybrid if hybrid.stop_edge == "doe" else hybrid.with_doe(hybrid.doe, stop_edge="doe"), rays)
+
+
 # ------------------------------------------------------------------ shared helpers of the wave models
 def lit_window(doe, oversample: int, bbox, margin: float):
     """Simulation-grid window ``(iy0, ix0, ny, nx)`` covering ``bbox = (xmin, xmax, ymin, ymax)`` ± ``margin``

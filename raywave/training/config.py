@@ -43,6 +43,10 @@ class LensConfig:
         focus_depth: refocus the sensor for an object at this distance (mm) before training (EDoF: 300 mm);
             None keeps the file's sensor position.
         sensor_pitch: PSF / image pixel pitch (mm); None: the lens's sensor pixel.
+        stop_edge: where the ray-wave engine forms the stop's sharp edge: None (default) / "exit_pupil" (the
+            stop's image, where it is physically sharp) or "doe" (the paper's model); see
+            :class:`raywave.hybrid.HybridLens`.
+        edge_step: with the exit-pupil edge, "fresnel" (None: the default), "asm" or "auto".
     """
 
     file: str = "hybrid_asphere"
@@ -53,6 +57,8 @@ class LensConfig:
     train_lens: bool = False
     focus_depth: Optional[float] = None
     sensor_pitch: Optional[float] = None
+    stop_edge: Optional[str] = None
+    edge_step: Optional[str] = None
 
 
 @dataclass

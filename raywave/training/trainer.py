@@ -60,13 +60,12 @@ def build_hybrid(lc):
     (bundled name or path), its DOE replaced by a zero-phase :class:`~raywave.doe.PixelDOE` of the same grid
     (``doe: pixel``), refocused to ``focus_depth``, the refractive lens frozen unless ``train_lens``."""
     from raywave.doe import PixelDOE
-    from raywave.hybrid import HybridLens
     from raywave.assembly.build import load_hybrid
     from raywave.lens.build import resolve_lens_path
 
     path = resolve_lens_path(lc.file)
     hl = load_hybrid(path, doe_pitch=lc.doe_pitch, doe_size=lc.doe_size, doe_distance=lc.doe_distance,
-                     sensor_pitch=lc.sensor_pitch)
+                     sensor_pitch=lc.sensor_pitch, stop_edge=lc.stop_edge, edge_step=lc.edge_step)
     if lc.focus_depth is not None:
         from raywave.lens.analysis import refocus
 
@@ -74,8 +73,7 @@ def build_hybrid(lc):
     if lc.doe == "pixel":
         doe = hl.doe
         new = PixelDOE(torch.zeros(doe.shape, dtype=torch.float64), doe.pitch, aperture=doe.aperture)
-        hl = HybridLens(hl.lens, new, hl.doe_distance, sensor_pitch=hl.sensor_pitch, oversample=hl.oversample,
-                        intensity_upsample=hl.intensity_upsample)
+        hl = hl.with_doe(new)
     elif lc.doe != "file":
         raise ValueError(f"lens.doe must be 'pixel' or 'file', got {lc.doe!r}")
     hl.lens.requires_grad_(bool(lc.train_lens))

@@ -191,6 +191,24 @@ def _crop_to_lit(weight: torch.Tensor, *tensors):
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
+def _near_nodes(keep: torch.Tensor, pos_y: torch.Tensor, pos_x: torch.Tensor, margin: int = 3):
+    """Half-open ranges ``((ya, yb), (xa, xb))`` of the fine samples (positions ``pos_y`` (Ny,), ``pos_x`` (Nx,) in
+    node units) within ``margin`` node spacings of the rows / columns of ``keep`` (ky, kx) that hold a kept node,
+    or None when no node is kept: the only samples whose interpolated values can be lit (cubic interpolation
+    reaches 2 nodes), so the rest of the node span is never interpolated."""
+    rows = torch.nonzero(keep.any(1)).squeeze(1)
+    cols = torch.nonzero(keep.any(0)).squeeze(1)
+    if rows.numel() == 0:
+        return None
+
+    def span(pos, lo, hi):
+        inside = torch.nonzero((pos >= lo - margin) & (pos <= hi + margin)).squeeze(1)
+        return (int(inside[0]), int(inside[-1]) + 1) if inside.numel() else None
+
+    ys, xs = span(pos_y, int(rows[0]), int(rows[-1])), span(pos_x, int(cols[0]), int(cols[-1]))
+    return None if ys is None or xs is None else (ys, xs)
+
+
 def _common_setup(lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type):
     """What both field constructions start from: field type, field (2,), wavelength (1,), medium index,
     simulation grid (p, x0, y0, sy, sx), carrier (α, β), chief-ray centre on the sensor, DOE → sensor distance."""
