@@ -27,13 +27,15 @@ def test_compare_writes_grid_and_table_with_ground_truth(ideal_file, tmp_path, c
     assert "L1 vs raywave" in text and "exit_pupil" in text
     assert (out / "compare.png").stat().st_size > 20_000
     rows = list(csv.DictReader(open(out / "compare.csv")))
-    assert len(rows) == 10 and {r["model"] for r in rows} == {"raywave", "paraxial", "pupil", "raytrace", "exit_pupil"}
+    assert len(rows) == 12 and {r["model"] for r in rows} == {"raywave", "raywave_doe", "paraxial", "pupil", "raytrace",
+                                                              "exit_pupil"}
     report = json.loads((out / "compare.json").read_text())
     truth = {r["model"]: r["l1_vs_truth"] for r in report["rows"] if r["field_y_deg"] == 0.0}
     # on axis the ideal lens has a ground truth (the Debye focus): the wave models are close to it
     assert truth["raywave"] < 5e-3 and truth["paraxial"] < 5e-3 and truth["exit_pupil"] < 2e-2
+    assert truth["raywave_doe"] < 5e-3  # the paper's DOE-plane edge: on axis as good
     assert all(r["l1_vs_truth"] is None for r in report["rows"] if r["field_y_deg"] == 2.0)
-    assert len(report["pairs"]) == 2 * 10
+    assert len(report["pairs"]) == 2 * 15
 
 
 def test_compare_with_a_doe_leaves_out_the_exit_pupil_model(ideal_file, tmp_path, capsys):
@@ -46,7 +48,8 @@ def test_compare_with_a_doe_leaves_out_the_exit_pupil_model(ideal_file, tmp_path
     assert rc == 0
     cap = capsys.readouterr()
     report = json.loads(cap.out)
-    assert report["models"] == ["raywave", "paraxial", "pupil", "raytrace"] and "exit_pupil" in report["notes"][0]
+    assert report["models"] == ["raywave", "raywave_doe", "paraxial", "pupil", "raytrace"]
+    assert "exit_pupil" in report["notes"][0]
     assert "discontinuous" in cap.err  # the ray model's warning, one line on stderr
     ray = [r for r in report["rows"] if r["model"] == "raytrace"][0]
     assert ray["rays_on_discontinuity"] > 0.05 and ray["l1_vs_raywave"] > 1.0

@@ -263,7 +263,10 @@ def test_psf_peak_follows_the_first_order_efficiency():
     x = (torch.arange(n, dtype=torch.float64) - (n - 1) / 2) * p
     doe = PixelDOE(-math.pi * (x[None, :] ** 2 + x[:, None] ** 2) / (lam * 1e-3 * f_doe), p, design_wavelength=lam,
                    trainable=False)
-    hl = HybridLens(lens, BlankDOE(n, p), 1.0, sensor_pitch=1e-3)
+    # the DOE-plane edge: the beam's edge stays inside the 0.48 mm DOE. With the exit-pupil edge its Fresnel ripples
+    # reach the DOE's hard aperture, and the defocused 0th order's axial value (which interferes with the in-focus
+    # peak) changes with that edge: the peak then follows η₁ to ~4 % only (0.992 / 0.835 vs 0.973 / 0.872)
+    hl = HybridLens(lens, BlankDOE(n, p), 1.0, sensor_pitch=1e-3, stop_edge="doe")
     errs = [FabricationErrors.common_depth(2, e) for e in (0.0, 0.1, -0.2)]
     r = tolerance_monte_carlo(doe, 4, lens=hl, errors=errs, ks=24, rays=24, orders=(1,))
     eta_ratio = r.efficiency[:, 0, 0] / r.nominal_efficiency[0, 0]
@@ -272,7 +275,7 @@ def test_psf_peak_follows_the_first_order_efficiency():
     assert r.psf["peak_ratio"][:, 0] == pytest.approx(eta_ratio, abs=0.015)
     assert r.psf["l1"][0, 0] == 0.0 and r.psf["l1"][2, 0] > 0.05
     fab = PixelDOE(doe.phase_map.detach(), p, design_wavelength=lam, trainable=False, material="FUSED_SILICA")
-    ref = HybridLens(lens, fab.fabricate(4), 1.0, sensor_pitch=1e-3).psf_result((0, 0), lam, ks=24, rays=24)
+    ref = hl.with_doe(fab.fabricate(4)).psf_result((0, 0), lam, ks=24, rays=24)
     ref_abs = ref.psf[0, 0].detach() * (1 - float(ref.energy_outside[0, 0].detach()))
     assert np.abs(r.nominal_psf[0] - ref_abs.numpy()).max() < 1e-12
     assert r.worst_sample == 2
@@ -295,7 +298,7 @@ def test_subpixel_misalignment_psf_converges_on_the_coarse_grid():
     e = FabricationErrors(np.zeros(3), np.array([[0, 0], [0.5, 0.25], [-0.5, 0.5]]))
     out = {}
     for q in (1, 4):
-        hl = HybridLens(lens, BlankDOE(n, p), 1.0, sensor_pitch=1e-3, oversample=q)
+        hl = HybridLens(lens, BlankDOE(n, p), 1.0, sensor_pitch=1e-3, oversample=q, stop_edge="doe")  # see above
         r = tolerance_monte_carlo(doe, 8, lens=hl, errors=[FabricationErrors.nominal(3), e], ks=24, rays=24)
         out[q] = r
     r1, r4 = out[1], out[4]

@@ -95,7 +95,9 @@ def test_stop_edge_argument_is_checked_and_shown(lens):
         HybridLens(lens, BlankDOE(100, 1e-3), 0.7, stop_edge="pupil")
     hl = HybridLens(lens, BlankDOE(100, 1e-3), 0.7, stop_edge="exit_pupil")
     assert "stop_edge='exit_pupil'" in repr(hl)
-    assert HybridLens(lens, BlankDOE(100, 1e-3), 0.7).stop_edge == "doe"
+    default = HybridLens(lens, BlankDOE(100, 1e-3), 0.7)
+    assert (default.stop_edge, default.edge_step) == ("exit_pupil", "fresnel")  # the default since issue 19
+    assert HybridLens(lens, BlankDOE(100, 1e-3), 0.7, stop_edge="doe").stop_edge == "doe"  # the paper's model
     assert hl.exit_pupil_z() == pytest.approx(7.6 - 6.03, abs=0.01)  # virtual, inside the lens
 
 

@@ -66,7 +66,7 @@ def test_compatibility_aliases_resolve_to_the_one_implementation():
 def test_model_registry_names_its_classes():
     from raywave.models.interface import MODEL_NAMES, MODELS
 
-    assert MODEL_NAMES == ("raywave", "paraxial", "pupil", "raytrace", "exit_pupil")
+    assert MODEL_NAMES == ("raywave", "raywave_doe", "paraxial", "pupil", "raytrace", "exit_pupil")
     assert all(cls.name == name for name, cls in MODELS.items())
     with pytest.raises(TypeError):
         MODELS["x"] = object  # read-only

@@ -30,8 +30,8 @@ import torch
 from torch import nn
 
 from raywave.doe import DOE
-from raywave.hybrid.coherent import (DOEField, accurate_field_steps, chief_rays, doe_clippings, entrance_pupil,
-                                     exit_pupil_field_steps, faithful_field, footprints, run_batched)
+from raywave.hybrid.coherent import (DOEField, StopEdgeWarning, accurate_field_steps, chief_rays, doe_clippings,
+                                     entrance_pupil, exit_pupil_field_steps, faithful_field, footprints, run_batched)
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
@@ -61,11 +61,6 @@ DEFAULT_EDGE_STEP = "fresnel"
 
 class _PupilAtInfinity(ValueError):
     """The exit pupil lies at (or near) infinity: no exit-pupil plane to form the stop's edge on."""
-
-
-class StopEdgeWarning(UserWarning):
-    """The default exit-pupil stop edge cannot be built for this lens (its exit pupil lies at infinity: image-space
-    telecentric), so the stop's edge is formed on the DOE plane (the paper's model) instead."""
 
 
 _OUT_MARGIN = 8  # samples around the PSF window (keeps the periodic upsampling's edge effects out of it)

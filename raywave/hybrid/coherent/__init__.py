@@ -39,7 +39,8 @@ are read where they are used (e.g. ``coherent.exit_pupil.AUTO_ASM_SAMPLES``).
 
 from __future__ import annotations
 
-from raywave.hybrid.coherent.record import (DOEField, SamplingWarning, _NEWTON_ITERS, _NEWTON_TOL)  # noqa: F401
+from raywave.hybrid.coherent.record import (DOEField, SamplingWarning, StopEdgeWarning, _NEWTON_ITERS,  # noqa: F401
+                                            _NEWTON_TOL)
 from raywave.hybrid.coherent.geometry import (WINDOW_BYTES_PER_SAMPLE, _check_beyond_last_surface, _common_setup,
                                               _crop_to_lit, _empty_field, _footprint, _medium_index, _sim_grid,
                                               _warn_nyquist, _window_for_bbox, check_window_memory, chief_rays,
@@ -55,5 +56,5 @@ from raywave.hybrid.coherent.exit_pupil import (AUTO_ASM_SAMPLES, MAX_XP_SAMPLES
                                                 exit_pupil_field_steps)  # noqa: F401
 from raywave.hybrid.coherent.faithful import (faithful_field)  # noqa: F401
 
-__all__ = ["DOEField", "SamplingWarning", "accurate_field", "chief_rays", "doe_clipping", "doe_clippings",
+__all__ = ["DOEField", "SamplingWarning", "StopEdgeWarning", "accurate_field", "chief_rays", "doe_clipping", "doe_clippings",
            "exit_pupil_field", "footprints", "faithful_field"]

@@ -13,7 +13,7 @@ from raywave.utils.safe import safe_sqrt
 from raywave.wave.field import edge_coverage, upsample_nodes
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _warn_nyquist, check_window_memory)
-from raywave.hybrid.coherent.record import DOEField, SamplingWarning
+from raywave.hybrid.coherent.record import DOEField, SamplingWarning, StopEdgeWarning
 from raywave.hybrid.coherent.stop_edge import (RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_z, _zone_estimate,
                                                stop_edge_factor)
 from raywave.hybrid.coherent.tracing import (_TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
@@ -45,6 +45,27 @@ def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
                                            chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
                                            check=check, chief_uv=chief_uv, virtual=virtual, stop_plane=stop_plane,
                                            ripple_zones=ripple_zones))
+
+
+#: largest (Fresnel zone on the DOE plane) / (radius of curvature of the stop edge's shadow) for which the Fresnel
+#: edge step is used without a warning: its local straight-edge expansion (with the cylindrical correction) holds
+#: while the zone is small against the radius (the bundled asphere on axis: 0.05; a 0.4 obscuration 2 mm before
+#: the DOE: 0.44, where the step gains 2 % of power that the exact construction conserves)
+EDGE_CURVATURE_LIMIT = 0.25
+
+
+def _warn_edge_curvature(div_n: torch.Tensor, g: torch.Tensor, near: torch.Tensor, field, wavelength: float) -> None:
+    """Warn (:class:`StopEdgeWarning`) where the Fresnel step's edge curves too much for its Fresnel zone.
+    ``div_n`` (ky, kx): divergence of the edge normal (−curvature, 1/mm); ``g``: Fresnel scale (1/mm, zone = √2/g);
+    ``near``: the nodes within 2 Fresnel parameters of the edge."""
+    if not bool(near.any()):
+        return
+    ratio = float((div_n.abs() * math.sqrt(2.0) / g)[near].max())
+    if ratio > EDGE_CURVATURE_LIMIT:
+        warnings.warn(f"field {field} at {wavelength:g} µm: the stop edge's Fresnel zone on the DOE plane is "
+                      f"{ratio:.2g} × its radius of curvature there (a small obscuration or stop, or a DOE far from "
+                      "the exit pupil): the Fresnel edge step is approximate (it can miss the power by a few %); "
+                      "use HybridLens(edge_step='asm'), the exact construction", StopEdgeWarning, stacklevel=3)
 
 
 def entrance_pupil(lens) -> tuple[float, float]:
@@ -190,6 +211,9 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
         ndx = torch.gradient(stop_edge[1], spacing=h_node, dim=1)[0]
         near = (s_stop * g_s).detach().abs() < nu_lim
         g_max = float(g_s.detach()[near].max()) if bool(near.any()) else float(g_s.detach().max())
+        if check:
+            _warn_edge_curvature((ndx + ndy).detach(), g_s.detach(), (s_stop * g_s).detach().abs() < 2.0,
+                                 field.tolist(), wavelength)
         edge_chan = ([] if other is None else [other.clamp(-lim, lim)]) + [
             (s_stop * g_s).clamp(-nu_lim, nu_lim), (s_stop * -(ndx + ndy)).clamp(-0.9, 3.0)]
     else:

@@ -16,6 +16,12 @@ class SamplingWarning(UserWarning):
     """A grid too coarse for the phase it must carry, or a ray map that cannot be interpolated."""
 
 
+class StopEdgeWarning(UserWarning):
+    """The exit-pupil stop edge is approximate or unavailable: the Fresnel edge step on an edge whose radius of
+    curvature is not large against its Fresnel zone (a small obscuration), or a lens whose exit pupil lies at
+    infinity (the DOE-plane edge is used instead)."""
+
+
 @dataclass
 class DOEField:
     """The field arriving at the DOE plane for one point source and one wavelength.

@@ -140,6 +140,10 @@ def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.
 
 #: stop-rim points at which :func:`stop_rim_images` finds the edge's image
 RIM_POINTS = 64
+#: the source nudge of :func:`stop_rim_images`' central differences, relative to the lens's largest field: small
+#: enough that the rim images do not depend on the field's units (an angle or an object height naming the same
+#: source agree to ~1e-10 in the PSF), large enough for float64 rays
+RIM_NUDGE = 1e-5
 
 
 def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | None = None, k: int = RIM_POINTS):
@@ -157,7 +161,7 @@ def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | Non
     field_type = field_type or lens.field_type
     f = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
     fmax = max([abs(float(v)) for v in getattr(lens, "fields", [])] + [0.0]) or 1.0
-    eps = 1e-3 * fmax
+    eps = RIM_NUDGE * fmax
     ex = torch.tensor([eps, 0.0], dtype=f.dtype, device=f.device)
     ey = torch.tensor([0.0, eps], dtype=f.dtype, device=f.device)
     fields = torch.stack([f, f + ex, f + ey, f - ex, f - ey])  # central differences
@@ -169,12 +173,16 @@ def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | Non
         warnings.simplefilter("ignore", VignettingWarning)
         rays = point_source_rays(lens, fields, torch.tensor([float(wavelength)], dtype=torch.float64),
                                  pupil=(c, s), aim="full", depth=depth, field_type=field_type)
-        out = lens.trace(rays, apertures=False)
+        out, rec = lens.trace(rays, apertures=False, record=True)
     o, d, v = out.o[:, 0], out.d[:, 0], out.valid[:, 0]  # (5, k, 3)
     if not bool(v.all()):
         return None
-    do = c[:, None] * (o[1] - o[3]) + s[:, None] * (o[2] - o[4])  # (k, 3): the radially displaced source's ray
-    dd = c[:, None] * (d[1] - d[3]) + s[:, None] * (d[2] - d[4])
+    w = _radial_nudge(rays, rec, lens.stop_index, c, s)
+    if w is None:
+        return None
+    # (k, 3): the ray of the source nudged so that its ray through the rim point turns along the rim's normal
+    do = w[:, :1] * (o[1] - o[3]) + w[:, 1:] * (o[2] - o[4])
+    dd = w[:, :1] * (d[1] - d[3]) + w[:, 1:] * (d[2] - d[4])
     a = d[0]
 
     def perp(v_):
@@ -186,6 +194,25 @@ def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | Non
     if not bool(torch.isfinite(z.detach()).all()):
         return None
     return theta, z
+
+
+def _radial_nudge(rays, rec, stop: int, c: torch.Tensor, s: torch.Tensor):
+    """Weights (k, 2) of the x and y source nudges (central differences, sources 1, 3 and 2, 4 of ``rays``) whose
+    combination turns the ray through each rim point along the rim's normal ``(c, s)`` as it arrives at the stop:
+    the edge's image for its normal diffraction, the same whatever units (angle, object height) the field takes;
+    None if the nudges do not turn the rays (a degenerate source)."""
+    if stop == 0:  # the rays' own directions reach the first surface
+        dv = rays.d[:, 0]
+    else:
+        dv = torch.stack(rec.points[stop + 1], -1)[:, 0] - torch.stack(rec.points[stop], -1)[:, 0]
+    slope = dv[..., :2] / dv[..., 2:3]  # (5, k, 2): the incoming ray's slopes at the stop
+    jac = torch.stack([slope[1] - slope[3], slope[2] - slope[4]], -1)  # (k, 2 slope, 2 nudge)
+    det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
+    if not bool((det.detach().abs() > 1e-300).all()):
+        return None
+    w0 = (jac[:, 1, 1] * c - jac[:, 0, 1] * s) / det
+    w1 = (-jac[:, 1, 0] * c + jac[:, 0, 0] * s) / det
+    return torch.stack([w0, w1], -1)
 
 
 def _rim_z(rim, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
