@@ -5,8 +5,9 @@ Two lenses with a blank DOE (a clear square aperture larger than every beam):
 * an ideal F/4 lens (f = 5 mm, DOE 1 mm behind it, 1 µm sensor pixels) at 0° and 5°: both models against each
   other and the on-axis Debye focus (the ground truth);
 * the bundled asphere (asphere_hk51, DOE 0.7 mm behind it, 1 µm pixels) at 0°, 7°, 14° (17.5° without
-  ``--quick``): the two models put the diffracting edge in different planes (the DOE plane vs the exit-pupil
-  sphere), which shows in the fine interference detail of strongly aberrated fields.
+  ``--quick``): with the default stop edge both models form the stop's edge at the exit pupil and agree to
+  ~1e-3; the paper's ray-wave model (``HybridLens(stop_edge="doe")``) cuts it on the DOE plane, which shows in the
+  fine interference detail of strongly aberrated fields (docs/ray-wave.md, "Where the stop's edge diffracts").
 
 Writes compare_exit_pupil.png (rows: model per lens, columns: fields; log scale) and compare_exit_pupil.json
 (relative L1 between the models per field, and to the Debye focus).

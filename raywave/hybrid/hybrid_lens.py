@@ -4,9 +4,10 @@
 ``doe_distance`` mm after the lens's last vertex + the lens's sensor (its image plane). The PSF of a point
 source is computed by
 
-1. coherent float64 ray tracing to the DOE plane and the field there (:mod:`raywave.hybrid.coherent`; with
-   ``stop_edge="exit_pupil"`` the field is built on the exit-pupil plane, where the stop's edge is sharp, and
-   propagated to the DOE plane by the angular spectrum);
+1. coherent float64 ray tracing to the DOE plane and the field there (:mod:`raywave.hybrid.coherent`; by default
+   (``stop_edge="exit_pupil"``) the stop's edge is sharp at the exit pupil and diffracts on the way to the DOE plane:
+   the knife-edge Fresnel step, or with ``edge_step="asm"`` the field built on the exit-pupil plane and propagated
+   by the angular spectrum; ``stop_edge="doe"``, the paper's model, cuts it on the DOE plane);
 2. multiplication by the DOE's ``exp(i φ(x, y; λ))``;
 3. band-limited angular-spectrum propagation to the sensor (:func:`raywave.wave.propagate_window`: only the
    lit DOE window to the ks×ks PSF window, with the chief-ray carrier removed; or the paper's full-grid

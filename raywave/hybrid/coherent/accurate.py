@@ -239,6 +239,7 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
         jx0, jy0, jx1, jy1 = max(0, jx0), max(0, jy0), min(sx - 1, jx1), min(sy - 1, jy1)
     if jx1 < jx0 or jy1 < jy0:
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
+    check_window_memory(jy1 - jy0 + 1, jx1 - jx0 + 1, p, dev)  # before any array of the window's size
     pos_x = (x0 + torch.arange(jx0, jx1 + 1, dtype=torch.float64, device=dev) * p - float(gx[0])) / h_node
     pos_y = (y0 + torch.arange(jy0, jy1 + 1, dtype=torch.float64, device=dev) * p - float(gy[0])) / h_node
     # interpolate only near the nodes that can be lit (inside the ripple band / the edges): the node span reaches
@@ -250,7 +251,6 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
     (ya, yb), (xa, xb) = near
     pos_y, pos_x = pos_y[ya:yb], pos_x[xa:xb]
     jy0, jy1, jx0, jx1 = jy0 + ya, jy0 + yb - 1, jx0 + xa, jx0 + xb - 1
-    check_window_memory(jy1 - jy0 + 1, jx1 - jx0 + 1, p, dev)
     # amplitude sqrt(amp2): zero where the ray density vanishes (a dead or degenerate node), with a finite
     # (zero) gradient there: sqrt's derivative at 0 is infinite, so the double-where keeps it out of the graph
     lit_amp = amp2 > 0
