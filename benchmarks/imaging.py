@@ -31,6 +31,7 @@ import sys
 import time
 
 from _memory import reset_peak, status_mb  # noqa: E402  (benchmarks/ is on sys.path)
+from _report import emit_json  # noqa: E402
 
 KS = 64
 WAVELENGTHS = (0.66, 0.53, 0.47)
@@ -182,11 +183,7 @@ def main() -> None:
                    "runs": runs,
                    "seconds_per_psf": {str(r["psfs"]): r["seconds_per_psf"] for r in runs},
                    "cpu_seconds_per_psf": {str(r["psfs"]): r["cpu_seconds_per_psf"] for r in runs}}
-        text = json.dumps(summary, indent=2)
-        print(text)
-        if args.output:
-            with open(args.output, "w") as fh:
-                fh.write(text + "\n")
+        emit_json(summary, args.output)
         return
 
     grids = (3, 5) if args.quick else (3, 5, 10)
@@ -214,11 +211,7 @@ def main() -> None:
             f"render_1mp_{big}x{big}_forward_peak_mb": renders[-1]["forward_peak_mb"],
         },
     }
-    text = json.dumps(summary, indent=2)
-    print(text)
-    if args.output:
-        with open(args.output, "w") as fh:
-            fh.write(text + "\n")
+    emit_json(summary, args.output)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ import statistics
 import sys
 import tempfile
 from pathlib import Path
+from _report import emit_json  # noqa: E402  (benchmarks/ is on sys.path)
 
 CFG = """name: bench_parallel
 seed: 0
@@ -94,10 +95,7 @@ def main(argv=None) -> int:
         r["speedup"] = base / r["step_s"]
     out = {"benchmark": "parallel_training", "config": args.config or "built-in", "cpu_count": os.cpu_count(),
            "python": platform.python_version(), "torch": torch.__version__, "results": results}
-    text = json.dumps(out, indent=2)
-    print(text)
-    if args.output:
-        Path(args.output).write_text(text + "\n")
+    emit_json(out, args.output)
     return 0
 
 

@@ -40,6 +40,7 @@ import sys
 import time
 
 from _memory import reset_peak, status_mb  # noqa: E402  (benchmarks/ is on sys.path)
+from _report import emit_json  # noqa: E402
 
 WAVELENGTHS = (0.489, 0.55)
 KS = 128
@@ -363,11 +364,7 @@ def main() -> None:
                                           args.repeat, float(fld))))
         return
     if args.edges:
-        text = json.dumps(edges_main(args), indent=2)
-        print(text)
-        if args.output:
-            with open(args.output, "w") as fh:
-                fh.write(text + "\n")
+        emit_json(edges_main(args), args.output)
         return
     if args.case:
         mode, bwd, nodes, cached = args.case.split(",")
@@ -423,11 +420,7 @@ def main() -> None:
                                                          if x["mode"] == "accurate"),
         },
     }
-    text = json.dumps(summary, indent=2)
-    print(text)
-    if args.output:
-        with open(args.output, "w") as fh:
-            fh.write(text + "\n")
+    emit_json(summary, args.output)
 
 
 if __name__ == "__main__":

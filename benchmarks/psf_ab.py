@@ -17,6 +17,8 @@ import statistics
 import subprocess
 import sys
 
+from _report import emit_json  # benchmarks/ is on sys.path
+
 _CHILD = r"""
 import json, sys, time, warnings
 import torch
@@ -71,11 +73,7 @@ def main() -> None:
            "threads": args.threads, "a": os.path.abspath(args.a), "b": os.path.abspath(args.b), "runs": runs,
            "median": med, "speedup_wall": med["a"]["wall_per_psf"] / med["b"]["wall_per_psf"],
            "speedup_cpu": med["a"]["cpu_per_psf"] / med["b"]["cpu_per_psf"], "max_abs_psf_diff": diff}
-    text = json.dumps(out, indent=2)
-    print(text)
-    if args.output:
-        with open(args.output, "w") as fh:
-            fh.write(text + "\n")
+    emit_json(out, args.output)
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ import sys
 import time
 
 from _memory import peak_mb, reset_peak, rss_mb  # noqa: E402  (benchmarks/ is on sys.path)
+from _report import emit_json  # noqa: E402
 
 KS, IMG, DOE_N, DOE_PITCH = 32, 480, 256, 2e-3
 WAVELENGTHS = (0.66, 0.53, 0.47)
@@ -121,11 +122,7 @@ def main(argv=None) -> None:
                                                "network": "UNet(width=8, depth=2), float64"},
               "threads": torch.get_num_threads(), "torch": torch.__version__, "platform": platform.platform(),
               "results": results}
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.output:
-        with open(args.output, "w") as fh:
-            fh.write(text + "\n")
+    emit_json(report, args.output)
 
 
 if __name__ == "__main__":

@@ -450,3 +450,27 @@ def test_huygens_default_pixel_integration_matches_the_debye_focus_at_3um_pixels
     assert l1(auto, ref) < 2e-3
     assert l1(via_model, ref) < 2e-3
     assert l1(mid3, ref) > 0.03  # why the default changed
+
+
+def test_a_telecentric_lens_falls_back_to_the_doe_plane_edge_with_a_warning():
+    """Stop in the front focal plane of an ideal lens: the exit pupil lies at infinity. The default edge warns
+    (StopEdgeWarning) and gives the paper's DOE-plane PSF; an explicit exit-pupil edge is an error."""
+    from raywave.hybrid import StopEdgeWarning
+    from raywave.lens.lens import Lens
+    from raywave.materials import get_material
+    from raywave.surfaces.aperture import CircularAperture
+    from raywave.surfaces.geometry import Plane
+    from raywave.surfaces.interaction import IdealLens
+    from raywave.surfaces.surface import Surface
+
+    f = 5.0
+    stop = Surface(Plane(), get_material("AIR"), f, aperture=CircularAperture(0.3), is_stop=True)
+    thin = Surface(Plane(), get_material("AIR"), f, aperture=CircularAperture(2.0), interaction=IdealLens(f))
+    lens = Lens([stop, thin], wavelengths=(0.55,), primary=0)
+    doe = BlankDOE(800, 1e-3)
+    with pytest.warns(StopEdgeWarning, match="telecentric"):
+        got = HybridLens(lens, doe, 1.0, sensor_pitch=1e-3).psf((0.0, 1.0), 0.55, ks=16, rays=24)
+    want = HybridLens(lens, doe, 1.0, sensor_pitch=1e-3, stop_edge="doe").psf((0.0, 1.0), 0.55, ks=16, rays=24)
+    assert torch.equal(got, want)
+    with pytest.raises(ValueError, match="telecentric"):
+        HybridLens(lens, doe, 1.0, sensor_pitch=1e-3, stop_edge="exit_pupil").psf((0.0, 1.0), 0.55, ks=16, rays=24)

@@ -267,11 +267,12 @@ class HybridLens(nn.Module):
             return None
         try:
             return [self.exit_pupil_z(wl) for wl in wls]
-        except _PupilAtInfinity as err:
+        except _PupilAtInfinity:
             if self._edge_requested is not None:
                 raise
-            warnings.warn(f"{err.args[0].split(', where')[0]}: the stop's edge is formed on the DOE plane (the "
-                          "paper's model) instead of the default exit pupil", StopEdgeWarning, stacklevel=4)
+            warnings.warn("the lens's exit pupil lies at or near infinity (image-space telecentric): the stop's edge "
+                          "is formed on the DOE plane (the paper's model) instead of the default exit pupil",
+                          StopEdgeWarning, stacklevel=4)
             return None
 
     def wavelength_list(self, wavelengths=None) -> list[float]:
