@@ -144,6 +144,32 @@ def test_frozen_lens_cache_gives_the_same_psfs_and_gradients(hl):
         psf_map_points(object(), fields, [0.53], None, KS, cache=cache)
 
 
+def test_one_cache_serves_every_doe_on_a_lens_and_empties_for_other_optics():
+    """The fields arrive before the DOE: a design and its baseline DOE on one frozen lens share a cache (the
+    training CLI does this), with PSFs equal to uncached ones; other optics (the DOE moved, the lens changed in
+    place) empty it instead of reading another lens's fields."""
+    from raywave.doe import Binary2DOE
+    from raywave.imaging.psfmap import field_signature
+
+    base = load_hybrid(bundled_lens_path("hybrid_asphere"))
+    a = base.with_doe(Binary2DOE(torch.tensor([-4.0, 1.5], dtype=D), 1.5, (3000, 3000), 1e-3))
+    b = base.with_doe(Binary2DOE(torch.tensor([2.0, -0.5], dtype=D), 1.5, (3000, 3000), 1e-3))
+    assert field_signature(a) == field_signature(b)
+    cache, fields = DOEFieldCache(), torch.tensor([[0.0, 3.0]], dtype=D)
+    psf_map_points(a, fields, [0.53], None, KS, cache=cache, rays=24)
+    shared = psf_map_points(b, fields, [0.53], None, KS, cache=cache, rays=24)
+    assert cache.misses == 1 and cache.hits == 1
+    assert torch.allclose(shared.psf, psf_map_points(b, fields, [0.53], None, KS, rays=24).psf, atol=1e-13)
+    moved = b.with_doe(b.doe, doe_distance=0.5)
+    assert field_signature(moved) != field_signature(b)
+    psf_map_points(moved, fields, [0.53], None, KS, cache=cache, rays=24)
+    assert cache.misses == 2 and len(cache) == 1  # emptied, then this source traced
+    with torch.no_grad():
+        moved.lens.surfaces[1].thickness += 0.01
+    psf_map_points(moved, fields, [0.53], None, KS, cache=cache, rays=24)
+    assert cache.misses == 3 and len(cache) == 1
+
+
 def test_progress_bar_and_bad_input(hl, capsys):
     m = psf_map(hl, (1, 1), wavelengths=[0.53], ks=8, rays=16, progress=True)
     assert m.psf.shape == (1, 1, 1, 1, 8, 8)

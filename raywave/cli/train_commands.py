@@ -81,7 +81,8 @@ def _train(args) -> int:
     designed.run(resume=not args.restart)
     trainers = {"designed": designed}
     if not args.no_baseline:
-        base = Trainer(cfg, run_dir / "baseline", baseline=True, progress=not args.quiet)
+        # the same frozen lens: the baseline reuses the designed run's DOE-plane fields
+        base = Trainer(cfg, run_dir / "baseline", baseline=True, progress=not args.quiet, field_cache=designed.cache)
         base.run(resume=not args.restart)
         trainers["baseline"] = base
     if cfg.network.ablation:
@@ -115,7 +116,8 @@ def _train_parallel(args, cfg, run_dir: Path, nproc: int) -> int:
             return 0
     trainers = {"designed": Trainer(cfg, run_dir, progress=not args.quiet)}
     if baseline:
-        trainers["baseline"] = Trainer(cfg, run_dir / "baseline", baseline=True, progress=not args.quiet)
+        trainers["baseline"] = Trainer(cfg, run_dir / "baseline", baseline=True, progress=not args.quiet,
+                                       field_cache=trainers["designed"].cache)
     for t in trainers.values():
         t.restore()
         if cfg.network.ablation:
@@ -133,13 +135,14 @@ def _eval(args) -> int:
     if not (run_dir / "config.yaml").is_file():
         raise CommandError(f"{run_dir} is not a run folder (no config.yaml)")
     cfg = _load(run_dir / "config.yaml")
-    trainers = {}
+    trainers, shared = {}, None
     for name, folder, baseline in (("designed", run_dir, False), ("baseline", run_dir / "baseline", True)):
         if latest_checkpoint(folder) is None:
             if name == "designed":
                 raise CommandError(f"{run_dir}: no checkpoint to evaluate")
             continue
-        t = Trainer(cfg, folder, baseline=baseline, progress=not args.quiet)
+        t = Trainer(cfg, folder, baseline=baseline, progress=not args.quiet, field_cache=shared)
+        shared = t.cache
         t.restore()
         if cfg.network.ablation and latest_checkpoint(folder / "plain_network") is not None:
             t.train_plain_network()  # finished: restores the plain network (nothing left to train)

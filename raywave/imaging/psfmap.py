@@ -309,18 +309,42 @@ class PSFMap:
                    energy_outside=t.get("energy_outside"))
 
 
+def field_signature(model) -> tuple:
+    """What a hybrid's DOE-plane fields depend on besides their sources: the refractive lens (the exact bytes of
+    its parameters and buffers, and its structure: surface types, materials), the DOE's grid and aperture (not
+    its phase: the fields arrive before it) and the hybrid's DOE distance, sensor pitch, oversampling and stop
+    edge. Two hybrids with equal signatures build equal fields (:class:`DOEFieldCache`)."""
+    import hashlib
+
+    lens, doe = getattr(model, "lens", None), getattr(model, "doe", None)
+    if not (isinstance(lens, torch.nn.Module) and doe is not None and hasattr(model, "doe_distance")):
+        return (type(model).__name__, id(model))  # not a HybridLens: only the same object matches
+    h = hashlib.blake2b(digest_size=16)
+    for name, t in sorted(lens.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return (type(model).__name__, repr(lens), h.hexdigest(), type(doe).__name__, tuple(doe.shape), float(doe.pitch),
+            getattr(doe, "aperture", None), float(model.doe_distance), float(model.sensor_pitch),
+            int(model.oversample), model.stop_edge, getattr(model, "edge_step", None),
+            getattr(model, "_edge_requested", None))
+
+
 class DOEFieldCache:
     """Detached DOE-plane fields of a **frozen** refractive lens, reused across :func:`psf_map` calls.
 
     Keys: (depth, θx, θy, wavelength, mode, rays) (a faithful-mode field keeps its first random draw). Least
     recently used fields are dropped beyond ``max_bytes``
-    (default 4 GB; the bundled hybrid lens's fields are ~7–9 MB each). Call :meth:`clear` whenever the refractive
-    lens (or the object depth set-up) changes: the cache does not notice.
+    (default 4 GB; the bundled hybrid lens's fields are ~7–9 MB each). The cache remembers the optics that
+    filled it (:func:`field_signature`: the refractive lens's exact parameters and structure, the DOE's grid
+    and aperture, the hybrid's distances and settings, not the DOE's phase) and empties itself when asked by
+    different optics, so two hybrids of one frozen lens (a design and its baseline DOE) can share it; a lens
+    changed in place changes the signature too.
     """
 
     def __init__(self, max_bytes: float | None = 4e9):
         self.max_bytes = max_bytes
         self._store: OrderedDict = OrderedDict()
+        self._signature: tuple | None = None
         self.hits = 0
         self.misses = 0
 
@@ -349,6 +373,10 @@ class DOEFieldCache:
         """Nested list ``[F][W]`` of detached DOE fields for these sources, tracing only the missing ones."""
         if not hasattr(model, "doe_fields"):
             raise TypeError(f"{type(model).__name__} has no doe_fields(): a DOE-field cache needs a HybridLens")
+        sig = field_signature(model)
+        if sig != self._signature:
+            self.clear()
+            self._signature = sig
         wls = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
         f = fields.detach().cpu().reshape(-1, 2)
         keys = [[self.key(depth, f[i], wl, mode, rays) for wl in wls] for i in range(f.shape[0])]

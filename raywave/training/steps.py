@@ -61,11 +61,7 @@ class StageSteps:
         if frozen and float(self.cfg.optics.field_jitter) > 0:
             psf, cen = (t.detach() for t in ostep.forward())  # the nodes move every step: nothing to memoise
         elif frozen:
-            # nothing optical trains (the baseline): the map depends on the wavelength draw only, memoise it
-            key = tuple(ostep.draws.tolist())
-            if key not in self._frozen_maps:
-                self._frozen_maps[key] = tuple(t.detach() for t in ostep.forward())
-            psf, cen = self._frozen_maps[key]
+            psf, cen = self._frozen_map(fields, ostep.draws)
         elif self.cfg.optics.replay:
             psf, cen = ostep.leaves()
         else:
@@ -83,6 +79,20 @@ class StageSteps:
             self._replay(ostep, leaf_grads_partial=True)
         self._optimizer_step(opt, sched)
         return self._sum(total)
+
+    def _frozen_map(self, fields, draws):
+        """The step's map ``(psf, centres)`` when nothing optical trains (a baseline) and the nodes stay put: the
+        PSFs of every wavelength of the colour table are computed once, as one map, and each step picks its
+        draw's (a channel's PSFs depend on its own wavelength only). Detached."""
+        table = self.color.wavelength_table()  # (C, K)
+        if "all" not in self._frozen_maps:
+            step = self.optics_step(fields, wavelengths=table.reshape(-1))
+            self._frozen_maps["all"] = tuple(t.detach() for t in step.forward())  # (D·F, C·K, ...)
+        psf, cen = self._frozen_maps["all"]
+        C, K = table.shape
+        d = torch.as_tensor(draws, dtype=torch.float64).reshape(C, 1)
+        idx = [c * K + int((table[c] - d[c]).abs().argmin()) for c in range(C)]
+        return psf[:, idx], cen[:, idx]
 
     def _recon_loss(self, img, p, c, extents, sc, noise=None, positions=None):
         recon = []

@@ -98,10 +98,13 @@ class Trainer(FabricationSchedule, StageSteps):
             paraxial``: the DOE designed with the paraxial wave model, :mod:`raywave.training.baselines`).
         progress: show tqdm progress bars.
         train_data, eval_data: datasets / image tensors instead of ``cfg.data`` (tests).
+        field_cache: a :class:`~raywave.imaging.psfmap.DOEFieldCache` to share (e.g. the designed run's, for its
+            baseline on the same frozen lens: the DOE-plane fields do not depend on the DOE's phase, and the
+            cache empties itself if the optics differ); used only while the refractive lens is frozen.
     """
 
     def __init__(self, cfg: TrainConfig, run_dir, hybrid=None, baseline: bool = False, progress: bool = True,
-                 train_data=None, eval_images=None):
+                 train_data=None, eval_images=None, field_cache=None):
         from raywave.imaging.color import ColorSpec
         from raywave.imaging.psfmap import DOEFieldCache, field_grid, normalised_grid, sensor_size_of
 
@@ -116,7 +119,7 @@ class Trainer(FabricationSchedule, StageSteps):
                     p.zero_()
             self.hl.doe.requires_grad_(False)
         self.train_lens = any(p.requires_grad for p in self.hl.lens.parameters())
-        self.cache = None if self.train_lens else DOEFieldCache()
+        self.cache = None if self.train_lens else (DOEFieldCache() if field_cache is None else field_cache)
         wl = cfg.optics.wavelengths
         missing = [c for c in ("R", "G", "B") if c not in wl]
         if missing or set(wl) - {"R", "G", "B"}:
@@ -282,10 +285,11 @@ class Trainer(FabricationSchedule, StageSteps):
             self.cache.clear()
         return fields, pos.to(self.device)
 
-    def optics_step(self, grid_fields=None) -> OpticsStep:
+    def optics_step(self, grid_fields=None, wavelengths=None) -> OpticsStep:
         """The step's PSF map as an :class:`OpticsStep`: chunks = (depth, ``optics.chunk`` field points); outputs
         psf ``(D·F, 3, ks, ks)`` and centres ``(D·F, 3, 2)``; one wavelength per channel drawn from the run's
-        generator."""
+        generator. ``wavelengths`` ``(W,)`` µm: these instead (outputs ``(D·F, W, ...)``), no draw (the
+        generator is not touched)."""
         from raywave.imaging.psfmap import psf_map_points
 
         fields = self.fields if grid_fields is None else grid_fields
@@ -300,6 +304,8 @@ class Trainer(FabricationSchedule, StageSteps):
                                      oc.ks, self.cache, **({"rays": oc.rays} if oc.rays else {}))
             return res.psf, res.center
 
+        if wavelengths is not None:
+            return OpticsStep(compute, nf * len(self.depths), draws=torch.as_tensor(wavelengths, dtype=torch.float64))
         return OpticsStep.draw(compute, nf * len(self.depths), lambda g: self.color.sample(g), self.gen)
 
     def _as_map(self, psf, cen):
@@ -479,7 +485,7 @@ class Trainer(FabricationSchedule, StageSteps):
         cfg.network.deconv, cfg.network.ablation = "none", False
         cfg.pre_stage.steps, cfg.stage1.max_steps = 0, 0
         self.hl.requires_grad_(False)
-        plain = Trainer(cfg, self.run_dir / "plain_network", hybrid=self.hl, baseline=False,
+        plain = Trainer(cfg, self.run_dir / "plain_network", hybrid=self.hl, baseline=False, field_cache=self.cache,
                         progress=self.progress if progress is None else progress, train_data=self.train_data,
                         eval_images=self.eval_images)
         plain.stage2_map = self.stage2_map if self.stage2_map is not None else self.evaluation_map()
