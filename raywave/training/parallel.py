@@ -112,10 +112,10 @@ class DistributedTrainer(Trainer):
             super()._save(stage, step, opt, sched)
 
     # ------------------------------------------------------------------ helpers
-    def optics_step(self, grid_fields=None):
+    def optics_step(self, grid_fields=None, wavelengths=None):
         """The Trainer's :class:`~raywave.training.replay.OpticsStep` whose forward pass is split over the ranks
         (each computes its chunks, then all ranks exchange them)."""
-        step = super().optics_step(grid_fields)
+        step = super().optics_step(grid_fields, wavelengths)
         return _ShardedStep(step, self.rank, self.world) if self.world > 1 else step
 
     def _params(self) -> list:
