@@ -47,8 +47,8 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
-__all__ = ["DOEFieldCache", "PSFCropWarning", "PSFMap", "field_grid", "fields_at", "node_values", "normalised_grid",
-           "psf_map", "psf_map_points", "sensor_size_of"]
+__all__ = ["DOEFieldCache", "PSFCropWarning", "PSFMap", "field_grid", "field_signature", "fields_at", "node_values",
+           "normalised_grid", "psf_map", "psf_map_points", "sensor_size_of"]
 
 class PSFCropWarning(UserWarning):
     """Some PSFs of a map lose much of their light outside the ks×ks crop (crop too small, or a beam clipped by
