@@ -191,6 +191,23 @@ class HybridLens(nn.Module):
         kw.update(overrides)
         return HybridLens(self.lens, doe, **kw)
 
+    def field_signature(self) -> tuple:
+        """What this hybrid's DOE-plane fields depend on besides their sources: the refractive lens (the exact
+        bytes of its parameters and buffers, and its structure), the DOE's grid and aperture (not its phase: the
+        fields arrive before it) and the settings :meth:`with_doe` keeps that shape them (not the intensity
+        upsampling, a propagation setting). Equal signatures build equal fields
+        (:class:`raywave.imaging.DOEFieldCache`)."""
+        import hashlib
+
+        h = hashlib.blake2b(digest_size=16)
+        for name, t in sorted(self.lens.state_dict().items()):
+            h.update(name.encode())
+            h.update(t.detach().cpu().contiguous().numpy().tobytes())
+        doe = self.doe
+        return (type(self).__name__, repr(self.lens), h.hexdigest(), type(doe).__name__, tuple(doe.shape),
+                float(doe.pitch), doe.aperture, self.doe_distance, self.sensor_pitch, self.oversample, self.stop_edge,
+                self.edge_step, self._edge_requested)
+
     # ------------------------------------------------------------------ geometry
     @property
     def optics(self):

@@ -310,23 +310,11 @@ class PSFMap:
 
 
 def field_signature(model) -> tuple:
-    """What a hybrid's DOE-plane fields depend on besides their sources: the refractive lens (the exact bytes of
-    its parameters and buffers, and its structure: surface types, materials), the DOE's grid and aperture (not
-    its phase: the fields arrive before it) and the hybrid's DOE distance, sensor pitch, oversampling and stop
-    edge. Two hybrids with equal signatures build equal fields (:class:`DOEFieldCache`)."""
-    import hashlib
-
-    lens, doe = getattr(model, "lens", None), getattr(model, "doe", None)
-    if not (isinstance(lens, torch.nn.Module) and doe is not None and hasattr(model, "doe_distance")):
-        return (type(model).__name__, id(model))  # not a HybridLens: only the same object matches
-    h = hashlib.blake2b(digest_size=16)
-    for name, t in sorted(lens.state_dict().items()):
-        h.update(name.encode())
-        h.update(t.detach().cpu().contiguous().numpy().tobytes())
-    return (type(model).__name__, repr(lens), h.hexdigest(), type(doe).__name__, tuple(doe.shape), float(doe.pitch),
-            getattr(doe, "aperture", None), float(model.doe_distance), float(model.sensor_pitch),
-            int(model.oversample), model.stop_edge, getattr(model, "edge_step", None),
-            getattr(model, "_edge_requested", None))
+    """What a model's DOE-plane fields depend on besides their sources: ``model.field_signature()`` for a
+    :class:`~raywave.hybrid.HybridLens` (lens, DOE grid and aperture, settings; not the DOE's phase); for any other
+    object only the object itself. Two models with equal signatures build equal fields (:class:`DOEFieldCache`)."""
+    own = getattr(model, "field_signature", None)
+    return own() if callable(own) else (type(model).__name__, id(model))
 
 
 class DOEFieldCache:
