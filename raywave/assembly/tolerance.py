@@ -11,7 +11,6 @@ why it is not in :mod:`raywave.doe`.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 import torch
@@ -37,11 +36,11 @@ def _perturbed_psf(work: HybridLens, pdoe: PerturbedDOE, fds, ks: int) -> torch.
     work.doe = pdoe
     row, ratio = [], []
     for fd in fds[0]:
-        amp = pdoe.transmittance(fd.wavelength, fd.window, work.oversample).abs()
+        amp = pdoe.transmittance(fd.wavelength, fd.grid, work.oversample).abs()
         env = fd.envelope * amp
         p_in = float(fd.envelope.detach().abs().square().sum())
         ratio.append(float(env.detach().abs().square().sum()) / p_in if p_in > 0 else 0.0)
-        row.append(replace(fd, envelope=env))
+        row.append(fd.with_envelope(env))
     res = work.psf_result(cache=[row], ks=ks)
     keep = (1.0 - res.energy_outside[0]).detach().cpu() * torch.tensor(ratio, dtype=torch.float64)
     return res.psf[0].detach().cpu() * keep[:, None, None]
@@ -69,7 +68,7 @@ class PSFTolerance:
                 raise ValueError(f"the PSF tolerance takes one field point, got {len(fds)}")
             for row in fds:
                 for fd in row:
-                    fd.envelope = fd.envelope.detach()
+                    fd.field = fd.field.with_envelope(fd.envelope.detach())
             self.fds = fds
             self.nominal_psf = _perturbed_psf(self.work, probe, fds, self.ks)
         self.n_wl = len(wavelengths)

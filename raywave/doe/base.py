@@ -8,8 +8,9 @@ light outside the aperture is blocked, so the DOE's edge diffracts.
 The ray-wave model samples the field on a *simulation grid* that may subdivide every DOE pixel into
 ``oversample × oversample`` samples (a DOE pixel is a flat-topped step; resolving it captures its high
 diffraction orders). Every method that returns maps takes a ``window = (iy0, ix0, ny, nx)`` in
-simulation-grid indices so that only the lit part of a large DOE is ever materialised. The DOE pitch is the
-*fabrication* pitch (one level per DOE pixel); the simulation pitch is ``pitch / oversample``.
+simulation-grid indices, or the sub-:class:`~raywave.wave.Grid` of :meth:`DOE.sim_grid` that the window is
+(a field's grid: :class:`raywave.hybrid.DOEField`), so that only the lit part of a large DOE is ever materialised.
+The DOE pitch is the *fabrication* pitch (one level per DOE pixel); the simulation pitch is ``pitch / oversample``.
 
 **Phase, height and wavelength** (docs/ray-wave.md, "DOEs"). Every DOE describes a *design phase* p (rad,
 float64) at its ``design_wavelength`` λ0 (µm, default 0.55): subclasses implement
@@ -43,11 +44,12 @@ import torch
 from torch import nn
 
 from raywave.utils.checks import wavelength_um
+from raywave.wave.grid import Grid
 
 __all__ = ["DEFAULT_DESIGN_WAVELENGTH", "DEFAULT_LEVELS", "DEFAULT_MATERIAL", "DISPERSIONS", "DOE", "BlankDOE",
            "PixelDOE", "SumDOE", "Window", "check_levels", "phase_levels", "quantize_phase"]
 
-Window = tuple  # (iy0, ix0, ny, nx) in simulation-grid indices
+Window = tuple  # (iy0, ix0, ny, nx) in simulation-grid indices, or a sub-Grid of DOE.sim_grid
 
 #: Design wavelength (µm) of a DOE that does not name one.
 DEFAULT_DESIGN_WAVELENGTH = 0.55
@@ -238,6 +240,26 @@ class DOE(nn.Module):
         ny, nx = self.sim_shape(oversample)
         return -(nx - 1) / 2 * p, -(ny - 1) / 2 * p
 
+    def sim_grid(self, oversample: int = 1) -> Grid:
+        """The simulation grid as a :class:`~raywave.wave.Grid` (pitch ``pitch / oversample``, centred on the
+        axis); a field's window on it is ``sim_grid(q).locate(field_grid)``."""
+        return Grid(self.sim_origin(oversample), self.pitch / oversample, self.sim_shape(oversample))
+
+    def sim_window(self, window, oversample: int = 1) -> tuple[int, int, int, int]:
+        """``window`` (``(iy0, ix0, ny, nx)`` simulation-grid indices, a sub-:class:`~raywave.wave.Grid` of
+        :meth:`sim_grid`, or None: the whole grid) as ``(iy0, ix0, ny, nx)``, checked to lie inside the grid."""
+        q = int(oversample)
+        sy, sx = self.sim_shape(q)
+        if window is None:
+            return 0, 0, sy, sx
+        if isinstance(window, Grid):
+            iy0, iy1, ix0, ix1 = self.sim_grid(q).locate(window)
+            return iy0, ix0, iy1 - iy0, ix1 - ix0
+        iy0, ix0, ny, nx = (int(v) for v in window)
+        if iy0 < 0 or ix0 < 0 or ny < 1 or nx < 1 or iy0 + ny > sy or ix0 + nx > sx:
+            raise ValueError(f"window {tuple(window)} lies outside the DOE simulation grid {sy}×{sx}")
+        return iy0, ix0, ny, nx
+
     def pixel_xy(self, rows: slice = slice(None), cols: slice = slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
         """Centres (mm, float64) of the DOE pixels ``[rows, cols]``: ``x`` (nx,), ``y`` (ny,)."""
         iy = torch.arange(*rows.indices(self.shape[0]), dtype=torch.float64, device=self.device)
@@ -251,8 +273,8 @@ class DOE(nn.Module):
         """Fraction (0..1) of every simulation pixel of ``window`` inside the DOE aperture, (ny, nx) float64.
 
         Square: 1 on the grid. Circle: an anti-aliased edge, ``clamp(0.5 + (R - r)/p, 0, 1)``, which places
-        the edge with sub-pixel accuracy."""
-        iy0, ix0, ny, nx = window
+        the edge with sub-pixel accuracy. ``window``: as :meth:`sim_window`."""
+        iy0, ix0, ny, nx = self.sim_window(window, oversample)
         p = self.pitch / oversample
         if self.aperture == "square":
             return torch.ones((ny, nx), dtype=torch.float64, device=device)
@@ -318,16 +340,12 @@ class DOE(nn.Module):
             return phase_levels(p, L)
 
     def phase(self, wavelength: float, window: Window | None = None, oversample: int = 1) -> torch.Tensor:
-        """Phase map (rad, float64) on the simulation pixels of ``window`` (default: the whole grid).
+        """Phase map (rad, float64) on the simulation pixels of ``window`` (default: the whole grid; as
+        :meth:`sim_window`: ``(iy0, ix0, ny, nx)`` or a sub-Grid of :meth:`sim_grid`).
 
         Every DOE pixel is held constant over its ``oversample²`` simulation pixels."""
         q = int(oversample)
-        if window is None:
-            window = (0, 0) + self.sim_shape(q)
-        iy0, ix0, ny, nx = window
-        sy, sx = self.sim_shape(q)
-        if iy0 < 0 or ix0 < 0 or iy0 + ny > sy or ix0 + nx > sx:
-            raise ValueError(f"window {window} lies outside the DOE simulation grid {sy}×{sx}")
+        iy0, ix0, ny, nx = self.sim_window(window, q)
         r0, r1 = iy0 // q, (iy0 + ny - 1) // q + 1
         c0, c1 = ix0 // q, (ix0 + nx - 1) // q + 1
         ph = self.phase_pixels(wavelength, slice(r0, r1), slice(c0, c1))

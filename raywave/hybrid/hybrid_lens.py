@@ -79,6 +79,20 @@ def _edge_taper(shape, width: int, device) -> torch.Tensor:
     return ramp(shape[0])[:, None] * ramp(shape[1])[None, :]
 
 
+def _full_grid_window(u, fd: DOEField, dz, lo, n_out: int):
+    """The paper's path: the whole DOE grid ``u`` propagated by the 2×-padded angular spectrum, then the
+    ``n_out + 1`` samples from ``lo = (x, y)`` mm cut out (clamped to the grid); returns ``(field, origin)``."""
+    p = fd.pitch
+    full = angular_spectrum(u, p, fd.wavelength, fd.z if dz is None else fd.z + dz, fd.n, pad=2)
+    jx0 = int(math.floor((lo[0] - fd.origin[0]) / p))
+    jy0 = int(math.floor((lo[1] - fd.origin[1]) / p))
+    a0, b0 = max(jy0, 0), max(jx0, 0)
+    a1, b1 = min(jy0 + n_out + 1, full.shape[-2]), min(jx0 + n_out + 1, full.shape[-1])
+    if a1 <= a0 or b1 <= b0:
+        return torch.zeros((1, 1), dtype=full.dtype, device=full.device), lo
+    return full[a0:a1, b0:b1], (fd.origin[0] + b0 * p, fd.origin[1] + a0 * p)
+
+
 def _dark(fd: DOEField) -> bool:
     """No light in the field (its power is 0): every envelope sample is 0 (a cheap test, no |U|² sum)."""
     return not bool((fd.envelope.detach() != 0).any())
@@ -337,37 +351,10 @@ class HybridLens(nn.Module):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", VignettingWarning)
             cd, cs, cuv = chief_rays(optics, f, torch.tensor(wls, dtype=torch.float64), depth, z_doe, z_sen)
-        z_xps = self._exit_pupil_planes(wls) if mode == "accurate" else None
-        xp = z_xps is not None
-        if xp and self.edge_step == "fresnel":
-            cx = [[None] * f.shape[0] for _ in wls]
-        elif xp:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", VignettingWarning)
-                cx = [chief_rays(optics, f, torch.tensor([wl], dtype=torch.float64), depth, zx, z_sen)[0][:, 0]
-                      for wl, zx in zip(wls, z_xps)]
         nf, nw = f.shape[0], len(wls)
         wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
         if mode == "accurate":
-            # every field and wavelength at once: the footprints in one trace, then the field constructions
-            # together, their ray traces batched per round (raywave.hybrid.coherent.run_batched)
-            boxes = None if xp else footprints(optics, f, wls_t, depth, z_doe)
-            entrance = None if xp else entrance_pupil(optics)  # one lens: once for every field
-            gens = []
-            for i in range(nf):
-                for j, wl in enumerate(wls):
-                    args = (optics, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j])
-                    if xp:
-                        gens.append(exit_pupil_field_steps(
-                            optics, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i], cd[i, j], cs[i, j],
-                            nodes=rays or 64, oversample=self.oversample, check=check, chief_uv=cuv[i, j],
-                            method=self.edge_step))
-                    else:
-                        box = boxes[i][j]
-                        gens.append(accurate_field_steps(*args, nodes=rays or 64, oversample=self.oversample,
-                                                         check=check, chief_uv=cuv[i, j],
-                                                         bbox=False if box is None else box, entrance=entrance))
-            built = run_batched(gens)
+            built = run_batched(self._accurate_constructions(f, wls, depth, (cd, cs, cuv), rays or 64, check))
         else:
             built = [faithful_field(optics, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j],
                                     n_rays=rays or 100_000, oversample=self.oversample, full_grid=full_grid,
@@ -394,6 +381,34 @@ class HybridLens(nn.Module):
             out.append(row)
         del caught  # chief-ray vignetting is reported per PSF above
         return out
+
+    def _accurate_constructions(self, f, wls, depth, chief, nodes: int, check: bool) -> list:
+        """The accurate field constructions (generators, :func:`raywave.hybrid.coherent.run_batched` runs them
+        together: their ray traces batched per round) of every field ``f (F, 2)`` × wavelength, field-major, with
+        the chief rays ``chief = (at the DOE, at the sensor, entrance-plane points)`` of :func:`chief_rays`: the
+        stop edge on the DOE plane (the footprints in one trace, the entrance pupil once) or at the exit pupil."""
+        optics, z_doe, z_sen = self.optics, self.doe_z(), self.sensor_z()
+        cd, cs, cuv = chief
+        z_xps = self._exit_pupil_planes(wls)
+        if z_xps is None:
+            wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
+            boxes = footprints(optics, f, wls_t, depth, z_doe)
+            entrance = entrance_pupil(optics)  # one lens: once for every field
+            return [accurate_field_steps(optics, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j],
+                                         nodes=nodes, oversample=self.oversample, check=check, chief_uv=cuv[i, j],
+                                         bbox=False if boxes[i][j] is None else boxes[i][j], entrance=entrance)
+                    for i in range(f.shape[0]) for j, wl in enumerate(wls)]
+        if self.edge_step == "fresnel":  # the step needs no chief ray on the exit-pupil plane
+            cx = [[None] * f.shape[0] for _ in wls]
+        else:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", VignettingWarning)
+                cx = [chief_rays(optics, f, torch.tensor([wl], dtype=torch.float64), depth, zx, z_sen)[0][:, 0]
+                      for wl, zx in zip(wls, z_xps)]
+        return [exit_pupil_field_steps(optics, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i], cd[i, j],
+                                       cs[i, j], nodes=nodes, oversample=self.oversample, check=check,
+                                       chief_uv=cuv[i, j], method=self.edge_step)
+                for i in range(f.shape[0]) for j, wl in enumerate(wls)]
 
     def _warn_clipped(self, fd: DOEField, field) -> None:
         if fd.clipped <= CLIP_WARN:
@@ -435,7 +450,7 @@ class HybridLens(nn.Module):
         full_grid = fd.full_grid
         # full-grid path: the crop's derivative goes through the pixel overlaps (piecewise-constant model)
         integrate_origin = crop_origin if full_grid else psf_origin
-        phase = self.doe.phase(fd.wavelength, fd.window, self.oversample)
+        phase = self.doe.phase(fd.wavelength, fd.grid, self.oversample)
         u = fd.envelope * torch.polar(torch.ones_like(phase), phase)
         with torch.no_grad():  # a diagnostic (energy outside the crop); the DOE's phase does not change it
             power = torch.view_as_real(fd.envelope).square().sum() * p * p
@@ -453,28 +468,9 @@ class HybridLens(nn.Module):
                              f"{p:g} mm: not a usable window (check the sensor pitch and the DOE pitch)")
         n_out = int(math.ceil(span)) + 2 + 2 * m
         if full_grid:
-            full = angular_spectrum(u, p, fd.wavelength, fd.z if dz is None else fd.z + dz, fd.n, pad=2)
-            jx0 = int(math.floor((lo_x - fd.origin[0]) / p))
-            jy0 = int(math.floor((lo_y - fd.origin[1]) / p))
-            a0, b0 = max(jy0, 0), max(jx0, 0)
-            a1, b1 = min(jy0 + n_out + 1, full.shape[-2]), min(jx0 + n_out + 1, full.shape[-1])
-            if a1 <= a0 or b1 <= b0:
-                out = torch.zeros((1, 1), dtype=full.dtype, device=full.device)
-                out_origin = (lo_x, lo_y)
-            else:
-                out = full[a0:a1, b0:b1]
-                out_origin = (fd.origin[0] + b0 * p, fd.origin[1] + a0 * p)
+            out, out_origin = _full_grid_window(u, fd, dz, (lo_x, lo_y), n_out)
         else:
-            # samples on the lattice through the chief ray's image point (a symmetric PSF stays symmetric)
-            kk = max(math.ceil((xc - lo_x) / p), math.ceil((lo_x + n_out * p - xc) / p))
-            out_origin = (xc - kk * p, yc - kk * p)
-            n_out = 2 * kk + 1
-            # the window moves with the chief ray: a zero-valued shift carries d(center)/dθ into the field
-            shift = crop_origin - crop_origin.detach() if crop_origin.requires_grad else None
-            out = propagate_window(u, p, fd.wavelength, fd.z, fd.origin, out_origin, (n_out, n_out),
-                                   n=fd.n, carrier=fd.carrier, shift=shift, dz=dz,
-                                   transfer=self._transfer(u, p, fd, out_origin, n_out,
-                                                           dz is not None or shift is not None))
+            out, out_origin = self._lattice_window(u, fd, dz, crop_origin, (xc, yc), lo_x, n_out)
         # intensity on a q-times finer grid (q ≥ 2: |U|² has twice the field's bandwidth), then integrated over
         # the sensor pixels through its cubic interpolant
         q = self.intensity_upsample
@@ -485,6 +481,21 @@ class HybridLens(nn.Module):
         outside = 1.0 - total / power.to(torch.float64)
         psf = safe_div(crop, total, total > 0)  # a crop with no light stays 0, with finite gradients
         return psf, center_t, outside
+
+    def _lattice_window(self, u, fd: DOEField, dz, crop_origin, center, lo_x: float, n_out: int):
+        """The field ``u`` (the DOE's phase applied) propagated to the sensor window of ≥ ``n_out`` samples from
+        ``lo_x`` on the simulation pitch, on the lattice through the chief ray's image point ``center`` (mm; a
+        symmetric PSF stays symmetric), band-limited windowed angular spectrum; returns ``(field, origin)``. The
+        window moves with the chief ray: a zero-valued shift carries d(center)/dθ (``crop_origin``) into it."""
+        p, (xc, yc) = fd.pitch, center
+        kk = max(math.ceil((xc - lo_x) / p), math.ceil((lo_x + n_out * p - xc) / p))
+        out_origin = (xc - kk * p, yc - kk * p)
+        n_out = 2 * kk + 1
+        shift = crop_origin - crop_origin.detach() if crop_origin.requires_grad else None
+        transfer = self._transfer(u, p, fd, out_origin, n_out, dz is not None or shift is not None)
+        out = propagate_window(u, p, fd.wavelength, fd.z, fd.origin, out_origin, (n_out, n_out), n=fd.n,
+                               carrier=fd.carrier, shift=shift, dz=dz, transfer=transfer)
+        return out, out_origin
 
     def _transfer(self, u, p, fd: DOEField, out_origin, n_out: int, weight_derivative: bool = False):
         """The window transfer function for this geometry, memoised (the 8 most recent window pairs, each a

@@ -8,12 +8,12 @@ fields through the engine's steps 3–4). The model modules import this module, 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import torch
 from torch import nn
 
+from raywave.hybrid.coherent.geometry import lit_box
 from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
 
 __all__ = ["ModelPSFResult", "PSFModel", "RayWaveModel", "lit_window", "propagate_fields", "relative_l1", "window_xy"]
@@ -120,17 +120,12 @@ class PaperRayWaveModel(RayWaveModel):
 def lit_window(doe, oversample: int, bbox, margin: float):
     """Simulation-grid window ``(iy0, ix0, ny, nx)`` covering ``bbox = (xmin, xmax, ymin, ymax)`` ± ``margin``
     (mm), clamped to the DOE grid, and the (x, y) mm centre of its pixel (0, 0); None if it misses the grid."""
-    p = doe.pitch / oversample
-    x0, y0 = doe.sim_origin(oversample)
-    sy, sx = doe.sim_shape(oversample)
-    xmin, xmax, ymin, ymax = bbox
-    jx0 = max(math.floor((xmin - margin - x0) / p), 0)
-    jx1 = min(math.ceil((xmax + margin - x0) / p), sx - 1)
-    jy0 = max(math.floor((ymin - margin - y0) / p), 0)
-    jy1 = min(math.ceil((ymax + margin - y0) / p), sy - 1)
-    if jx1 < jx0 or jy1 < jy0:
+    sim = doe.sim_grid(oversample)
+    box = lit_box(sim, bbox, margin)
+    if box is None:
         return None, None
-    return (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1), (x0 + jx0 * p, y0 + jy0 * p)
+    iy0, iy1, ix0, ix1 = box
+    return (iy0, ix0, iy1 - iy0, ix1 - ix0), sim.position(iy0, ix0)
 
 
 def window_xy(window, origin, pitch: float, device=None):

@@ -147,8 +147,8 @@ class PupilModel(PSFModel):
             win, origin = lit_window(doe, q, (ox - r, ox + r, oy - r, oy + r), 2 * p)
         if win is None:
             env = torch.zeros((1, 1), dtype=torch.complex128, device=dev)
-            return DOEField(env, (0, 0, 1, 1), doe.sim_origin(q), p, (alpha, beta), n, float(wavelength), z, center,
-                            0, "pupil")
+            return DOEField.on_window(env, (0, 0, 1, 1), doe.sim_origin(q), p, (alpha, beta), n,
+                                      float(wavelength), z, center, 0, "pupil")
         x, y = window_xy(win, origin, p, dev)
         k = 2 * math.pi / (wavelength * 1e-3)
         zc = hl.doe_z() - float(c3[2])
@@ -157,8 +157,8 @@ class PupilModel(PSFModel):
         phase = k * (-n * (sphere - s_c) + fit(x, y)) - k * n * (alpha * (x - cx) + beta * (y - cy))
         rho = torch.sqrt((x - fit.center[0]) ** 2 + (y - fit.center[1]) ** 2)
         cover = (0.5 + (fit.radius - rho) / p).clamp(0.0, 1.0) * doe.coverage(win, q, device=dev)
-        return DOEField(torch.polar(cover, phase), win, origin, p, (alpha, beta), n, float(wavelength), z, center,
-                        fit.n_samples, "pupil")
+        return DOEField.on_window(torch.polar(cover, phase), win, origin, p, (alpha, beta), n, float(wavelength), z,
+                                  center, fit.n_samples, "pupil")
 
     def psf_result(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None) -> ModelPSFResult:
         ks = self._check_ks(ks)

@@ -186,21 +186,12 @@ class PerturbedDOE(DOE):
         h = self.height_levels((r.start, c.start, len(r), len(c)), 1)
         return h * (_TWO_PI / self.L)
 
-    def _window(self, window, q: int):
-        if window is None:
-            window = (0, 0) + self.sim_shape(q)
-        iy0, ix0, ny, nx = window
-        sy, sx = self.sim_shape(q)
-        if iy0 < 0 or ix0 < 0 or iy0 + ny > sy or ix0 + nx > sx:
-            raise ValueError(f"window {window} lies outside the DOE simulation grid {sy}×{sx}")
-        return window
-
     def transmittance(self, wavelength: float, window=None, oversample: int = 1) -> torch.Tensor:
         """Complex transmittance (complex128) of the perturbed element at ``wavelength`` on the simulation samples
         of ``window`` (default: the whole grid): the exact mean of ``exp(iφ)`` over each sample
         (:func:`transmittance`), ``|t| < 1`` where a shifted mask edge crosses a sample."""
         q = int(oversample)
-        window = self._window(window, q)
+        window = self.sim_window(window, q)
         key = (float(wavelength), window, q)
         hit = self._memo.get(key)
         if hit is None:  # the last few are kept: tolerance_monte_carlo asks for the amplitude and the phase

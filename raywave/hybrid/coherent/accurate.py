@@ -5,15 +5,17 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import dataclass
 
 import torch
 
 from raywave.lens.sources import entrance_plane_z, point_source_rays, source_weight
 from raywave.utils.safe import safe_sqrt
 from raywave.wave.field import edge_coverage, upsample_nodes
+from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _warn_nyquist, check_window_memory)
-from raywave.hybrid.coherent.record import DOEField, SamplingWarning, StopEdgeWarning
+from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
 from raywave.hybrid.coherent.stop_edge import (RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_z, _zone_estimate,
                                                stop_edge_factor)
 from raywave.hybrid.coherent.tracing import (_TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
@@ -75,6 +77,24 @@ def entrance_pupil(lens) -> tuple[float, float]:
     return entrance_plane_z(lens), 0.5 * float(lens.paraxial().epd)
 
 
+@dataclass
+class _Nodes:
+    """The regular node grid on the plane: node ``[j, i]`` at ``(gx[i], gy[j])`` mm, spacing ``h`` mm."""
+
+    gx: torch.Tensor
+    gy: torch.Tensor
+    h: float
+
+    def __post_init__(self):
+        self.kx, self.ky = self.gx.numel(), self.gy.numel()
+        self.tx, self.ty = torch.meshgrid(self.gx, self.gy, indexing="xy")  # (ky, kx)
+        self.targets = torch.stack([self.tx, self.ty], -1).reshape(-1, 2)
+
+    def as_map(self, v: torch.Tensor) -> torch.Tensor:
+        """Per-node values ``(ky·kx, ...)`` → ``(..., ky, kx)`` maps."""
+        return v.T.reshape(-1, self.ky, self.kx) if v.ndim == 2 else v.reshape(self.ky, self.kx)
+
+
 def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
                    nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
                    chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
@@ -86,42 +106,86 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
     here). ``stop_rim``: with ``stop_plane``, the images of the stop's rim (:func:`stop_rim_images`): the edge's
     Fresnel step then runs from the rim point's own image at every node (its azimuth on the stop) instead of from
     the plane ``stop_plane``. ``entrance``: ``(z, radius)`` mm of the paraxial entrance pupil
-    (:func:`entrance_pupil`), when the caller knows it (one lens, many fields: it is computed once)."""
-    field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
+    (:func:`entrance_pupil`), when the caller knows it (one lens, many fields: it is computed once).
+
+    Steps: the node grid over the footprint (:func:`_node_layout`), exactly aimed rays to every node
+    (:func:`_trace_nodes`), the smooth per-node maps (:func:`_node_maps`: optical path, ray density, distances
+    to the edges; :func:`_stop_edge_maps`: the stop edge's Fresnel channels), the checks (:func:`_check_nodes`),
+    and the fine field (:func:`_fine_field`)."""
+    field_type, field, wl, n, (p, x0, y0, sy, sx), carrier, center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
+
+    def empty(rays):
+        return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, rays, "accurate")
+
     if bbox is False:  # given: every ray is vignetted
         bbox = None
     elif bbox is None:
         bbox = _footprint(lens, field, wl, depth, z_doe, virtual=virtual)
     if bbox is None:
-        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, 0, "accurate")
+        return empty(0)
+    if stop_plane is not None:
+        ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
+    nd = _node_layout(bbox, chief_doe, p, nodes, lens.device, z_doe, z_sensor, wavelength, n, carrier, stop_plane,
+                      stop_rim, ripple_zones)
+    uv_lin, rays, at, rec, good = yield from _trace_nodes(lens, nd, field, wl, depth, z_doe, field_type, chief_uv,
+                                                          entrance)
+    n_rays = nd.targets.shape[0]
+    if not bool(good.any()):
+        warnings.warn(f"no ray could be traced to the DOE plane for field {field.tolist()} at {wavelength:g} µm",
+                      SamplingWarning, stacklevel=3)
+        return empty(n_rays)
+    is_stop = [i == lens.stop_index for i, s in enumerate(lens.surfaces) if s.aperture is not None]
+    diffracting = stop_plane is not None and any(is_stop)
+    maps = _node_maps(lens, nd, uv_lin, rays, at, rec, good, n, depth, is_stop, diffracting, carrier)
+    if diffracting:
+        maps.update(_stop_edge_maps(lens, nd, rec, good, maps, z_doe, stop_plane, stop_rim, ripple_zones,
+                                    wavelength, n, p, check, field))
+    if check:
+        _check_nodes(nd, maps, good, at.d[0, 0], carrier, n, p, wavelength, field)
+    sim = doe.sim_grid(oversample)
+    out = _fine_field(nd, maps, sim, None if virtual else doe, oversample, wavelength, z_doe, stop_plane,
+                      ripple_zones)
+    if out is None:
+        return empty(n_rays)
+    env, box = out
+    # on the DOE's simulation lattice (a virtual plane's box may extend beyond the DOE grid)
+    grid = Grid(sim.position(box[0], box[2]), p, (box[1] - box[0], box[3] - box[2]))
+    return DOEField(Field(env, grid, float(wavelength), n, carrier), box, zprop, center,
+                    FieldInfo(n_rays + 1, "accurate"))
 
-    # ---- node grid: spacing h, symmetric about the chief ray's landing point (so a symmetric lens gives an
-    # exactly symmetric field), covering the footprint + margin; nodes need not sit on simulation pixels
+
+def _node_layout(bbox, chief_doe, p: float, nodes: int, dev, z_doe: float, z_sensor: float, wavelength: float,
+                 n: float, carrier, stop_plane, stop_rim, ripple_zones) -> _Nodes:
+    """The node grid: spacing h, symmetric about the chief ray's landing point (so a symmetric lens gives an
+    exactly symmetric field), covering the footprint ``bbox`` + a margin (with the stop edge diffracting from
+    ``stop_plane``, its ripple band too); nodes need not sit on simulation pixels."""
     xcd, ycd = (float(v) for v in chief_doe.o[:2].detach())
     extent = max(bbox[1] - bbox[0], bbox[3] - bbox[2], p)
     h_node = extent / max(nodes - 1, 2)
     margin = 2.5 * h_node + 2 * p
     if stop_plane is not None:
-        ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
         z_edge = stop_plane
         if stop_rim is not None:  # the rim image farthest from the DOE plane sets the widest band
             zr = stop_rim[1].detach()
             z_far = float(zr.min() if z_doe >= stop_plane else zr.max())
             if (z_doe - z_far) * (z_doe - stop_plane) > 0 and abs(z_doe - z_far) > abs(z_doe - stop_plane):
                 z_edge = z_far
-        margin += (ripple_zones + 1) * _zone_estimate(wavelength, n, z_doe - z_edge, z_sensor - z_edge, alpha, beta)
+        margin += (ripple_zones + 1) * _zone_estimate(wavelength, n, z_doe - z_edge, z_sensor - z_edge, *carrier)
     half_x = max(xcd - bbox[0], bbox[1] - xcd) + margin
     half_y = max(ycd - bbox[2], bbox[3] - ycd) + margin
     kx = 2 * math.ceil(half_x / h_node) + 1
     ky = 2 * math.ceil(half_y / h_node) + 1
-    dev = lens.device
     gx = xcd + (torch.arange(kx, dtype=torch.float64, device=dev) - (kx - 1) / 2) * h_node
     gy = ycd + (torch.arange(ky, dtype=torch.float64, device=dev) - (ky - 1) / 2) * h_node
-    tx, ty = torch.meshgrid(gx, gy, indexing="xy")  # (ky, kx)
-    targets = torch.stack([tx, ty], -1).reshape(-1, 2)
+    return _Nodes(gx, gy, h_node)
 
-    # ---- chief ray's entrance-plane point and Jacobian: the linear first guess
+
+def _trace_nodes(lens, nd: _Nodes, field, wl, depth, z_doe: float, field_type, chief_uv, entrance):
+    """Generator: aim a ray at every node (Newton on the entrance-plane point from the chief ray's linear
+    guess), then trace them differentiably. Returns ``(uv_lin, rays, at, rec, good)``: the entrance-plane points
+    (N, 2), the traced rays, their state on the plane, the per-surface record and the nodes whose ray converged
+    and passed (N,)."""
     ep_z, r_ep = entrance_pupil(lens) if entrance is None else entrance
     if chief_uv is None:
         ep_rays = point_source_rays(lens, field, wl, pupil=(torch.zeros(1), torch.zeros(1)), aim="full", depth=depth)
@@ -130,51 +194,59 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
     uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device).reshape(1, 2)
     h = 1e-6 * max(r_ep, 1e-3)
     x_c, _, jac_c = yield from _landing_and_jacobian(lens, uv_c, field, wl, depth, z_doe, field_type, h, ep_z)
-    uv, conv, jac, x_at = yield from _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe,
+    uv, conv, jac, x_at = yield from _invert_to_nodes(lens, nd.targets, uv_c, x_c, jac_c, field, wl, depth, z_doe,
                                                       field_type, h, max_step=0.25 * r_ep, ep_z=ep_z)
-
-    # ---- the differentiable trace of the node rays. The landing point of a node's ray must stay on its node
-    # when the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals
-    # uv in value and carries d(uv)/dθ = −J⁻¹ ∂X/∂θ, so everything traced at uv_lin (path, directions, aperture
+    # the differentiable trace of the node rays. The landing point of a node's ray must stay on its node when
+    # the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals uv
+    # in value and carries d(uv)/dθ = −J⁻¹ ∂X/∂θ, so everything traced at uv_lin (path, directions, aperture
     # slacks, ray density) has its exact first-order derivative with respect to the lens parameters.
     # (without autograd the landing points at uv are the Newton iteration's last ones: no trace)
     if x_at is None or torch.is_grad_enabled():
         _, _, at0, _ = yield _TraceRequest(lens, uv, field, wl, depth, z_doe, field_type, False, ep_z, True)
         x_at = at0.o[0, 0, :, :2]
-    jinv_step, _ = _solve2(jac, (x_at - targets))
+    jinv_step, _ = _solve2(jac, (x_at - nd.targets))
     uv_lin = uv - jinv_step
-    rays, out, at, rec = yield _TraceRequest(lens, uv_lin, field, wl, depth, z_doe, field_type, True, ep_z, True)
-    X = at.o[0, 0, :, :2]
-    dvec = at.d[0, 0]
-    good = conv & at.valid[0, 0]
-    phi = at.opl[0, 0] + n * ((targets - X) * dvec[:, :2]).sum(-1)  # Malus–Dupin: Φ at the node itself
+    rays, _, at, rec = yield _TraceRequest(lens, uv_lin, field, wl, depth, z_doe, field_type, True, ep_z, True)
+    return uv_lin, rays, at, rec, conv & at.valid[0, 0]
+
+
+def _node_maps(lens, nd: _Nodes, uv_lin, rays, at, rec, good, n: float, depth, is_stop, diffracting,
+               carrier) -> dict:
+    """The smooth real per-node maps ``(ky, kx)`` of the wave on the plane (nodes whose ray failed take their
+    nearest good neighbour's values): ``phi_env`` the optical path (Malus–Dupin to the node) less the chief
+    ray's and the carrier's, ``amp2`` the irradiance from the ray density, ``det`` the pupil → plane Jacobian,
+    ``dist`` the distance (mm) to the nearest aperture edge (clamped to ±3h), and with ``diffracting``:
+    ``stop`` (distance, normal x, normal y) of the stop's edge, ``other`` the distance to the other edges,
+    ``slopes`` the node rays' slopes."""
+    X, dvec = at.o[0, 0, :, :2], at.d[0, 0]
+    phi = at.opl[0, 0] + n * ((nd.targets - X) * dvec[:, :2]).sum(-1)  # Malus–Dupin: Φ at the node itself
     w0 = source_weight(lens, rays, depth)[0, 0]
-    gamma = dvec[:, 2]
     slacks = [s.aperture.slack(*(c[0, 0] for c in rec.points[i + 1][:2]))
               for i, s in enumerate(lens.surfaces) if s.aperture is not None]
-    is_stop = [i == lens.stop_index for i, s in enumerate(lens.surfaces) if s.aperture is not None]
-    diffracting = stop_plane is not None and any(is_stop)
     slopes = [dvec[:, 0] / dvec[:, 2], dvec[:, 1] / dvec[:, 2], dvec[:, 0], dvec[:, 1]] if diffracting else []
-
-    # ---- nodes whose ray failed (missed a surface, TIR, Newton) take their nearest good neighbour's values
-    if not bool(good.any()):
-        warnings.warn(f"no ray could be traced to the DOE plane for field {field.tolist()} at {wavelength:g} µm",
-                      SamplingWarning, stacklevel=3)
-        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
-    chan = torch.stack([phi, w0, gamma, uv_lin[:, 0], uv_lin[:, 1]] + slacks + slopes, -1)
-    chan = _nearest_fill(chan, good, targets, grad_xy=n * dvec[:, :2])
-    grid = chan.T.reshape(-1, ky, kx)
+    chan = torch.stack([phi, w0, dvec[:, 2], uv_lin[:, 0], uv_lin[:, 1]] + slacks + slopes, -1)
+    grid = nd.as_map(_nearest_fill(chan, good, nd.targets, grad_xy=n * dvec[:, :2]))
     phi_g, w0_g, gamma_g, u_g, v_g = grid[:5]
     # ray density |det ∂uv/∂x| by central differences over the node grid
-    du_dy, du_dx = torch.gradient(u_g, spacing=h_node, dim=(0, 1))
-    dv_dy, dv_dx = torch.gradient(v_g, spacing=h_node, dim=(0, 1))
+    du_dy, du_dx = torch.gradient(u_g, spacing=nd.h, dim=(0, 1))
+    dv_dy, dv_dx = torch.gradient(v_g, spacing=nd.h, dim=(0, 1))
     det = du_dx * dv_dy - du_dy * dv_dx
-    amp2 = w0_g * det.abs() / gamma_g
-    # distance (DOE-plane mm) to the nearest aperture edge: slack / |∇_x slack|
-    dist = None
-    stop_edge = None  # (distance, edge normal) of the stop's edge when it diffracts from stop_plane
-    other = None  # distance to the nearest other edge
-    for j, sl in enumerate(grid[5:5 + len(slacks)]):
+    ky, kx = nd.ky, nd.kx
+    phi_env = phi_g - phi_g[ky // 2, kx // 2].detach() - n * (carrier[0] * nd.tx + carrier[1] * nd.ty)
+    maps = {"phi_env": phi_env, "amp2": w0_g * det.abs() / gamma_g, "det": det, "slopes": grid[5 + len(slacks):]}
+    maps.update(_edge_distances(grid[5:5 + len(slacks)], is_stop, diffracting, nd.h))
+    if maps["dist"] is None:  # no aperture at all: far from every edge
+        maps["dist"] = torch.full_like(phi_g, 3.0 * nd.h)
+    return maps
+
+
+def _edge_distances(slack_maps, is_stop, diffracting: bool, h_node: float) -> dict:
+    """Distance (plane mm) to the nearest aperture edge, ``slack / |∇_x slack|``, clamped to ±3h (only the
+    distance near an edge matters; clamping keeps the cubic interpolation from ringing where the slack has a kink,
+    a circular aperture's centre, or far from any edge); with ``diffracting`` the stop's edge apart (``stop``:
+    distance and unit normal, differentiated) and ``other`` (the other edges)."""
+    dist, stop, other = None, None, None
+    for j, sl in enumerate(slack_maps):
         gy_, gx_ = torch.gradient(sl.detach(), spacing=h_node, dim=(0, 1))
         gn = torch.sqrt(gx_**2 + gy_**2).clamp_min(1e-12)
         dj = sl / gn
@@ -187,86 +259,101 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
             n2 = gx_l**2 + gy_l**2
             ok = n2 > 1e-24  # = the clamp at 1e-12 below, with a finite derivative at the stop's centre (kink)
             gn_l = torch.where(ok, safe_sqrt(n2, ok), torch.full_like(n2, 1e-12))
-            stop_edge = (sl / gn_l, gx_l / gn_l, gy_l / gn_l)
+            stop = (sl / gn_l, gx_l / gn_l, gy_l / gn_l)
         elif diffracting:
             other = dj if other is None else torch.minimum(other, dj)
-    # only the distance near an edge matters; clamping keeps the cubic interpolation from ringing where
-    # the slack has a kink (a circular aperture's centre) or far from any edge
     lim = 3.0 * h_node
-    dist = torch.full_like(phi_g, lim) if dist is None else dist.clamp(-lim, lim)
-    if diffracting:  # the stop's edge gets its own channels: distance and Fresnel scale
-        dz_edge = z_doe - stop_plane
-        if stop_rim is not None:  # the rim point's own image, by the node ray's azimuth on the stop
-            sx_, sy_ = (c[0, 0] for c in rec.points[lens.stop_index + 1][:2])
-            dz_n = z_doe - _rim_z(stop_rim, sx_, sy_)
-            dz_n = _nearest_fill(dz_n[:, None], good, targets)[:, 0].reshape(ky, kx)
-            if bool((dz_n * dz_edge > 0).all()):  # same side of the DOE plane as the pupil (else: the plane)
-                dz_edge = dz_n
-        g_s = _fresnel_scale(grid[5 + len(slacks):], stop_edge[1], stop_edge[2], h_node, dz_edge,
-                             wavelength * 1e-3 / n, p)
-        # ν = g·s and s·κ vary smoothly: interpolated as they are (clamped where the factor is 1 or 0 anyway)
-        nu_lim = _nu_inner(ripple_zones) + 4.0
-        s_stop = stop_edge[0]
-        ndy = torch.gradient(stop_edge[2], spacing=h_node, dim=0)[0]
-        ndx = torch.gradient(stop_edge[1], spacing=h_node, dim=1)[0]
-        near = (s_stop * g_s).detach().abs() < nu_lim
-        g_max = float(g_s.detach()[near].max()) if bool(near.any()) else float(g_s.detach().max())
-        if check:
-            _warn_edge_curvature((ndx + ndy).detach(), g_s.detach(), (s_stop * g_s).detach().abs() < 2.0,
-                                 field.tolist(), wavelength)
-        edge_chan = ([] if other is None else [other.clamp(-lim, lim)]) + [
-            (s_stop * g_s).clamp(-nu_lim, nu_lim), (s_stop * -(ndx + ndy)).clamp(-0.9, 3.0)]
-    else:
-        edge_chan = []
-    lit_nodes = (dist > -h_node) & good.reshape(ky, kx)
-    fold = (det.detach() * det.detach()[ky // 2, kx // 2] <= 0) & lit_nodes
-    if check and bool(fold.any()):
+    return {"dist": None if dist is None else dist.clamp(-lim, lim), "stop": stop,
+            "other": None if other is None else other.clamp(-lim, lim)}
+
+
+def _stop_edge_maps(lens, nd: _Nodes, rec, good, maps: dict, z_doe: float, stop_plane: float, stop_rim,
+                    ripple_zones: float, wavelength: float, n: float, p: float, check: bool, field) -> dict:
+    """The stop edge's channels when it diffracts from ``stop_plane`` (or from the rim's own images
+    ``stop_rim``): ``nu`` = g·s (the Fresnel parameter of the node's distance to the edge, clamped where the
+    factor is 1 or 0 anyway), ``curv`` = s·κ (the edge's curvature correction), ``g_max`` the largest Fresnel
+    scale near the edge. Warns (``check``) where the edge is too curved for the step."""
+    dz_edge = z_doe - stop_plane
+    if stop_rim is not None:  # the rim point's own image, by the node ray's azimuth on the stop
+        sx_, sy_ = (c[0, 0] for c in rec.points[lens.stop_index + 1][:2])
+        dz_n = z_doe - _rim_z(stop_rim, sx_, sy_)
+        dz_n = nd.as_map(_nearest_fill(dz_n[:, None], good, nd.targets)[:, 0])
+        if bool((dz_n * dz_edge > 0).all()):  # same side of the DOE plane as the pupil (else: the plane)
+            dz_edge = dz_n
+    s_stop, nx_, ny_ = maps["stop"]
+    g_s = _fresnel_scale(maps["slopes"], nx_, ny_, nd.h, dz_edge, wavelength * 1e-3 / n, p)
+    # ν = g·s and s·κ vary smoothly: interpolated as they are
+    nu_lim = _nu_inner(ripple_zones) + 4.0
+    div_n = torch.gradient(nx_, spacing=nd.h, dim=1)[0] + torch.gradient(ny_, spacing=nd.h, dim=0)[0]
+    nu = s_stop * g_s
+    near = nu.detach().abs() < nu_lim
+    g_max = float(g_s.detach()[near].max()) if bool(near.any()) else float(g_s.detach().max())
+    if check:
+        _warn_edge_curvature(div_n.detach(), g_s.detach(), nu.detach().abs() < 2.0, field.tolist(), wavelength)
+    return {"nu": nu.clamp(-nu_lim, nu_lim), "nu_raw": nu.detach(), "curv": (s_stop * -div_n).clamp(-0.9, 3.0),
+            "g_max": g_max}
+
+
+def _check_nodes(nd: _Nodes, maps: dict, good, dvec, carrier, n: float, p: float, wavelength: float, field) -> None:
+    """Warn where the pupil → plane map folds (a caustic) or the envelope's phase slope passes Nyquist."""
+    ky, kx = nd.ky, nd.kx
+    lit_nodes = (maps["dist"] > -nd.h) & good.reshape(ky, kx)
+    det = maps["det"].detach()
+    if bool(((det * det[ky // 2, kx // 2] <= 0) & lit_nodes).any()):
         warnings.warn(f"the ray map from the pupil to the DOE plane folds (a caustic lies between the lens and the "
                       f"DOE) for field {field.tolist()} at {wavelength:g} µm; the accurate field is wrong there: "
-                      "use mode='faithful' or move the DOE", SamplingWarning, stacklevel=3)
-    if check:
-        slope = n * torch.sqrt((dvec[:, 0] - alpha) ** 2 + (dvec[:, 1] - beta) ** 2).reshape(ky, kx)
-        ratio = slope * (2 * p) / (wavelength * 1e-3)
-        _warn_nyquist(ratio, lit_nodes, targets, field.tolist(), wavelength, p)
+                      "use mode='faithful' or move the DOE", SamplingWarning, stacklevel=4)
+    slope = n * torch.sqrt((dvec[:, 0] - carrier[0]) ** 2 + (dvec[:, 1] - carrier[1]) ** 2).reshape(ky, kx)
+    _warn_nyquist(slope * (2 * p) / (wavelength * 1e-3), lit_nodes, nd.targets, field.tolist(), wavelength, p)
 
-    # ---- reference removal (chief OPL, carrier), interpolation to the fine grid
-    phi_c = phi_g[ky // 2, kx // 2].detach()
-    phi_env = phi_g - phi_c - n * (alpha * tx + beta * ty)
-    # fine window: the simulation pixels inside the node span, clamped to the DOE grid
-    jx0, jy0 = math.ceil((float(gx[0]) - x0) / p), math.ceil((float(gy[0]) - y0) / p)
-    jx1, jy1 = math.floor((float(gx[-1]) - x0) / p), math.floor((float(gy[-1]) - y0) / p)
-    if not virtual:
-        jx0, jy0, jx1, jy1 = max(0, jx0), max(0, jy0), min(sx - 1, jx1), min(sy - 1, jy1)
-    if jx1 < jx0 or jy1 < jy0:
-        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
-    check_window_memory(jy1 - jy0 + 1, jx1 - jx0 + 1, p, dev)  # before any array of the window's size
-    pos_x = (x0 + torch.arange(jx0, jx1 + 1, dtype=torch.float64, device=dev) * p - float(gx[0])) / h_node
-    pos_y = (y0 + torch.arange(jy0, jy1 + 1, dtype=torch.float64, device=dev) * p - float(gy[0])) / h_node
+
+def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelength: float, z_doe: float,
+                stop_plane, ripple_zones):
+    """Interpolate the node maps to the simulation samples of the node span near the lit nodes, form the phase
+    and the edges there, crop to the lit part. ``doe``: the DOE whose aperture cuts the field (None on a virtual
+    plane, whose window may extend beyond the DOE grid). Returns ``(envelope, box)`` (box: half-open
+    ``(iy0, iy1, ix0, ix1)`` on ``sim``'s lattice) or None when nothing is lit."""
+    p = sim.pitch[0]
+    (x0, y0), (sy, sx) = sim.origin, sim.shape
+    gx, gy, h_node, ky, kx = nd.gx, nd.gy, nd.h, nd.ky, nd.kx
+    diffracting, dist = "nu" in maps, maps["dist"]
+    # fine window (half-open, simulation-grid indices): the samples inside the node span, clamped to the DOE grid
+    # (a virtual plane's window is not: it lies on the DOE grid's lattice extended)
+    iy0, ix0 = math.ceil((float(gy[0]) - y0) / p), math.ceil((float(gx[0]) - x0) / p)
+    iy1, ix1 = math.floor((float(gy[-1]) - y0) / p) + 1, math.floor((float(gx[-1]) - x0) / p) + 1
+    if doe is not None:
+        iy0, iy1, ix0, ix1 = max(0, iy0), min(sy, iy1), max(0, ix0), min(sx, ix1)
+    if iy1 <= iy0 or ix1 <= ix0:
+        return None
+    check_window_memory(iy1 - iy0, ix1 - ix0, p, gx.device)  # before any array of the window's size
+    pos_x = (x0 + torch.arange(ix0, ix1, dtype=torch.float64, device=gx.device) * p - float(gx[0])) / h_node
+    pos_y = (y0 + torch.arange(iy0, iy1, dtype=torch.float64, device=gx.device) * p - float(gy[0])) / h_node
     # interpolate only near the nodes that can be lit (inside the ripple band / the edges): the node span reaches
     # further (the traced margin), and the fine channels are the construction's largest arrays
-    keep = ((s_stop * g_s).detach() > -math.sqrt(2.0) * ripple_zones) if diffracting else dist.detach() > -2 * h_node
+    keep = (maps["nu_raw"] > -math.sqrt(2.0) * ripple_zones) if diffracting else dist.detach() > -2 * h_node
     near = _near_nodes(keep, pos_y, pos_x)
     if near is None:
-        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
+        return None
     (ya, yb), (xa, xb) = near
     pos_y, pos_x = pos_y[ya:yb], pos_x[xa:xb]
-    jy0, jy1, jx0, jx1 = jy0 + ya, jy0 + yb - 1, jx0 + xa, jx0 + xb - 1
+    iy0, iy1, ix0, ix1 = iy0 + ya, iy0 + yb, ix0 + xa, ix0 + xb
     # amplitude sqrt(amp2): zero where the ray density vanishes (a dead or degenerate node), with a finite
     # (zero) gradient there: sqrt's derivative at 0 is infinite, so the double-where keeps it out of the graph
+    amp2 = maps["amp2"]
     lit_amp = amp2 > 0
     amp = torch.where(lit_amp, safe_sqrt(amp2, lit_amp), torch.zeros_like(amp2))
-    fine = upsample_nodes(torch.stack([phi_env, amp] + ([] if diffracting else [dist])
-                                      + edge_chan),
+    other = maps["other"]
+    edge_chan = ([] if other is None else [other]) + [maps["nu"], maps["curv"]] if diffracting else []
+    fine = upsample_nodes(torch.stack([maps["phi_env"], amp] + ([] if diffracting else [dist]) + edge_chan),
                           pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
-    win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
     if diffracting:
-        edge = stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, g_max, p, curvature=fine[-1])
+        edge = stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, maps["g_max"], p, curvature=fine[-1])
         cov = edge_coverage(fine[2], p) if other is not None else None
     else:
         edge = None
         cov = edge_coverage(fine[2], p)
-    if not virtual:
-        dcov = doe.coverage(win, oversample, device=dev)
+    if doe is not None:
+        dcov = doe.coverage(sim.window(iy0, iy1, ix0, ix1), oversample, device=gx.device)
         cov = dcov if cov is None else cov * dcov
     if edge is not None:  # the Fresnel factor is 0 beyond the ripple band
         band = (fine[-2].detach() > -math.sqrt(2.0) * ripple_zones).to(torch.float64)
@@ -274,14 +361,11 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
     else:
         b = _crop_to_lit(cov)
     if b is None:
-        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, targets.shape[0], "accurate")
+        return None
     a0, a1, b0, b1 = b
     fine = fine[:, a0:a1, b0:b1]
-    win = (win[0] + a0, win[1] + b0, a1 - a0, b1 - b0)
     k = 2 * math.pi / (wavelength * 1e-3)
     env = torch.polar(fine[1] if cov is None else fine[1] * cov[a0:a1, b0:b1], k * fine[0])
     if edge is not None:
         env = env * edge[a0:a1, b0:b1]
-    origin = (x0 + win[1] * p, y0 + win[0] * p)
-    return DOEField(env, win, origin, p, (alpha, beta), n, float(wavelength), zprop, center, targets.shape[0] + 1,
-                    "accurate")
+    return env, (iy0 + a0, iy0 + a1, ix0 + b0, ix0 + b1)

@@ -4,15 +4,14 @@ Fresnel step to the DOE plane."""
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import torch
 
+from raywave.wave.grid import Field
 from raywave.wave.propagation import propagate_window
 from raywave.hybrid.coherent.accurate import accurate_field_steps
-from raywave.hybrid.coherent.geometry import (_common_setup, _empty_field, _footprint, _window_for_bbox,
-                                              check_window_memory)
-from raywave.hybrid.coherent.record import DOEField
+from raywave.hybrid.coherent.geometry import _common_setup, _empty_field, _footprint, check_window_memory, lit_box
+from raywave.hybrid.coherent.record import DOEField, FieldInfo
 from raywave.hybrid.coherent.stop_edge import RIPPLE_ZONES, stop_rim_images
 from raywave.hybrid.coherent.tracing import run_serial
 
@@ -81,7 +80,7 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
                                              chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
                                              check=check, chief_uv=chief_uv, stop_plane=z_xp,
                                              ripple_zones=ripple_zones, stop_rim=rim)
-        return replace(fd, stop_edge="exit_pupil")
+        return fd.with_info(stop_edge="exit_pupil")
     if method != "asm":
         raise ValueError(f"method must be 'auto', 'fresnel' or 'asm', got {method!r}")
     if xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > MAX_XP_SAMPLES:
@@ -97,19 +96,17 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
     carrier = fx.carrier  # the chief ray's direction: the same on both planes
     bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
     if bbox is None or float(fx.power.detach()) == 0.0:
-        return replace(_empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays, "accurate"),
-                       stop_edge="exit_pupil")
+        return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays,
+                            "accurate").with_info(stop_edge="exit_pupil")
     dz = z_doe - z_xp
     margin = ripple_zones * math.sqrt(wavelength * 1e-3 * abs(dz) / n) + 4 * p
-    jy0, jy1, jx0, jx1 = _window_for_bbox(bbox, margin, p, x0, y0, sy, sx)
-    jy0, jx0, jy1, jx1 = max(jy0, 0), max(jx0, 0), min(jy1, sy - 1), min(jx1, sx - 1)
-    if jy1 < jy0 or jx1 < jx0:
-        return replace(_empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays, "accurate"),
-                       stop_edge="exit_pupil")
-    win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
-    check_window_memory(win[2], win[3], p, lens.device)
-    origin = (x0 + jx0 * p, y0 + jy0 * p)
-    u = propagate_window(fx.envelope, p, wavelength, dz, fx.origin, origin, win[2:], n=n, carrier=carrier)
-    u = u * doe.coverage(win, oversample, device=u.device).to(u.dtype)
-    return DOEField(u, win, origin, p, carrier, n, float(wavelength), zprop, center, fx.rays, "accurate",
-                    stop_edge="exit_pupil")
+    box = lit_box(doe.sim_grid(oversample), bbox, margin)
+    if box is None:
+        return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays,
+                            "accurate").with_info(stop_edge="exit_pupil")
+    grid = doe.sim_grid(oversample).window(*box)
+    check_window_memory(*grid.shape, p, lens.device)
+    u = propagate_window(fx.envelope, p, wavelength, dz, fx.origin, grid.origin, grid.shape, n=n, carrier=carrier)
+    u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)
+    return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
+                    FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil"))

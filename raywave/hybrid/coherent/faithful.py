@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import replace
 
 import torch
 
 from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.wave.field import splat_bilinear
+from raywave.wave.grid import Field
 from raywave.hybrid.coherent.geometry import (_check_beyond_last_surface, _common_setup, _empty_field,
-                                              _warn_nyquist, _window_for_bbox, check_window_memory, inside_doe)
-from raywave.hybrid.coherent.record import DOEField
+                                              _warn_nyquist, check_window_memory, inside_doe, lit_box)
+from raywave.hybrid.coherent.record import DOEField, FieldInfo
 
 
 def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
@@ -50,15 +50,15 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     clipped = float((passed & ~inside).sum()) / max(int(passed.sum()), 1)
     beam_half = float(xy.detach()[passed].abs().max()) if bool(passed.any()) else 0.0
     if not bool(valid.any()):
-        return replace(_empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, n_rays, "faithful"),
-                       clipped=clipped, beam_half=beam_half)
+        return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, n_rays,
+                            "faithful").with_info(clipped=clipped, beam_half=beam_half)
     xy, dvec, opl = xy[valid], dvec[valid], opl[valid]
     k = 2 * math.pi / (wavelength * 1e-3)
     ref = opl.detach().min()
     phase = (k * (opl - ref)).to(torch.float64)  # formed in the tracing precision
     xy, dvec = xy.to(torch.float64), dvec.to(torch.float64)
     if full_grid:
-        win = (0, 0, sy, sx)
+        box = (0, sy, 0, sx)
         carrier = (0.0, 0.0)
     else:
         # the lit window: each ray's phasor is demodulated by the chief ray's carrier *before* it is spread,
@@ -67,17 +67,15 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         phase = phase - k * n * (alpha * xy[:, 0] + beta * xy[:, 1])
         xs = xy.detach()
         bbox = (float(xs[:, 0].min()), float(xs[:, 0].max()), float(xs[:, 1].min()), float(xs[:, 1].max()))
-        jy0, jy1, jx0, jx1 = _window_for_bbox(bbox, 2 * p, p, x0, y0, sy, sx)
-        jy0, jx0, jy1, jx1 = max(jy0, 0), max(jx0, 0), min(jy1, sy - 1), min(jx1, sx - 1)
-        win = (jy0, jx0, jy1 - jy0 + 1, jx1 - jx0 + 1)
+        box = lit_box(doe.sim_grid(oversample), bbox, 2 * p)  # valid rays lie inside the DOE: never None
         carrier = (alpha, beta)
-    check_window_memory(win[2] * (2 if full_grid else 1), win[3] * (2 if full_grid else 1), p, dev)
-    origin = (x0 + win[1] * p, y0 + win[0] * p)
-    u = splat_bilinear(xy[:, 0], xy[:, 1], torch.polar(dvec[:, 2], phase), origin, p, win[2:])
+    grid = doe.sim_grid(oversample).window(*box)
+    check_window_memory(grid.shape[0] * (2 if full_grid else 1), grid.shape[1] * (2 if full_grid else 1), p, dev)
+    u = splat_bilinear(xy[:, 0], xy[:, 1], torch.polar(dvec[:, 2], phase), grid.origin, p, grid.shape)
     if check:
         slope = n * torch.sqrt((dvec[:, 0] - carrier[0]) ** 2 + (dvec[:, 1] - carrier[1]) ** 2)
         ratio = slope * (2 * p) / (wavelength * 1e-3)
         _warn_nyquist(ratio, torch.ones_like(ratio, dtype=torch.bool), xy, field.tolist(), wavelength, p)
-    u = u * doe.coverage(win, oversample, device=dev).to(u.dtype)
-    return DOEField(u, win, origin, p, carrier, n, float(wavelength), zprop, center, n_rays, "faithful", full_grid,
-                    clipped=clipped, beam_half=beam_half)
+    u = u * doe.coverage(grid, oversample, device=dev).to(u.dtype)
+    return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
+                    FieldInfo(n_rays, "faithful", full_grid=full_grid, clipped=clipped, beam_half=beam_half))

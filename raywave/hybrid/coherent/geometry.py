@@ -10,6 +10,7 @@ import torch
 
 from raywave.lens.sources import VignettingWarning, entrance_plane_z, point_source_rays, source_weight
 from raywave.utils.errors import check_allocation
+from raywave.wave.grid import Grid
 from raywave.hybrid.coherent.record import DOEField, SamplingWarning
 
 
@@ -166,20 +167,25 @@ def check_window_memory(ny: int, nx: int, p: float, device=None) -> None:
                      "smaller DOE", device)
 
 
-def _window_for_bbox(bbox, margin: float, p, x0, y0, sy, sx):
-    """Simulation-grid index ranges [j0, j1] (inclusive) covering bbox ± margin (unclamped)."""
+def lit_box(grid: Grid, bbox, margin: float) -> tuple[int, int, int, int] | None:
+    """The half-open window ``(iy0, iy1, ix0, ix1)`` of ``grid`` (:class:`~raywave.wave.Grid`, e.g. a DOE's
+    :meth:`~raywave.doe.DOE.sim_grid`) whose samples cover ``bbox = (xmin, xmax, ymin, ymax)`` ± ``margin`` (mm),
+    clamped to the grid (``grid.window(*box)`` is its sub-grid); None when it misses the grid."""
     xmin, xmax, ymin, ymax = bbox
-    jx0 = math.floor((xmin - margin - x0) / p)
-    jx1 = math.ceil((xmax + margin - x0) / p)
-    jy0 = math.floor((ymin - margin - y0) / p)
-    jy1 = math.ceil((ymax + margin - y0) / p)
-    return jy0, jy1, jx0, jx1
+    (x0, y0), (px, py), (sy, sx) = grid.origin, grid.pitch, grid.shape
+    ix0 = max(math.floor((xmin - margin - x0) / px), 0)
+    ix1 = min(math.ceil((xmax + margin - x0) / px) + 1, sx)
+    iy0 = max(math.floor((ymin - margin - y0) / py), 0)
+    iy1 = min(math.ceil((ymax + margin - y0) / py) + 1, sy)
+    if ix1 <= ix0 or iy1 <= iy0:
+        return None
+    return iy0, iy1, ix0, ix1
 
 
 def _empty_field(doe, oversample, carrier, n, wavelength, z, center, rays, mode) -> DOEField:
     p, x0, y0, _, _ = _sim_grid(doe, oversample)
     env = torch.zeros((1, 1), dtype=torch.complex128, device=doe.device)
-    return DOEField(env, (0, 0, 1, 1), (x0, y0), p, carrier, n, wavelength, z, center, rays, mode)
+    return DOEField.on_window(env, (0, 0, 1, 1), (x0, y0), p, carrier, n, wavelength, z, center, rays, mode)
 
 
 def _crop_to_lit(weight: torch.Tensor, *tensors):

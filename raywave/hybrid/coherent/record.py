@@ -1,4 +1,6 @@
-"""The record of one DOE-plane field (:class:`DOEField`) and :class:`SamplingWarning`."""
+"""The record of one DOE-plane field (:class:`DOEField`: a :class:`~raywave.wave.Field` on a window of the
+DOE's simulation grid, where it is, and the :class:`FieldInfo` diagnostics of its construction) and
+:class:`SamplingWarning`."""
 
 from __future__ import annotations
 
@@ -6,7 +8,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-
+from raywave.wave.grid import Field, Grid
 
 _NEWTON_TOL = 1e-10  # mm on the DOE plane
 _NEWTON_ITERS = 25
@@ -23,62 +25,140 @@ class StopEdgeWarning(UserWarning):
 
 
 @dataclass
-class DOEField:
-    """The field arriving at the DOE plane for one point source and one wavelength.
+class FieldInfo:
+    """How a DOE-plane field was built (diagnostics; nothing here enters the PSF's numbers).
 
     Attributes:
-        envelope: complex128 ``(ny, nx)``: the field just before the DOE on the simulation-grid window,
-            divided by the carrier ``exp(i k n (α x + β y))``; DOE aperture applied, DOE phase not.
-        window: ``(iy0, ix0, ny, nx)`` in simulation-grid indices (for the DOE phase map).
-        origin: ``(x, y)`` mm of the centre of window pixel (0, 0).
-        pitch: simulation-grid pitch (mm).
-        carrier: ``(α, β)`` direction cosines of the chief ray after the lens.
-        n: refractive index between the DOE and the sensor.
-        wavelength: µm.
-        z: DOE → sensor distance (mm).
-        center: ``(x, y)`` mm where the chief ray (through the refractive lens only) meets the sensor.
         rays: number of rays traced to build the field.
-        mode: "accurate" or "faithful".
+        mode: "accurate", "faithful" or the comparison model's name (e.g. "paraxial").
         full_grid: the envelope is the whole DOE grid with no carrier removed, for the paper's full 2×-padded
             angular-spectrum propagation.
         clipped: fraction of the beam's power (leaving the lens) that falls outside the DOE aperture and is
             blocked there (from traced rays; :func:`doe_clipping`).
         beam_half: largest |x| or |y| (mm) of the beam's geometric footprint on the DOE plane.
         stop_edge: where the field's geometric-optics edge was formed: "doe" (at the DOE plane) or
-            "exit_pupil" (at the exit pupil, then propagated to the DOE plane by the angular spectrum).
-        chief_tan: ``(d_x/d_z, d_y/d_z)`` of the chief ray between the DOE and the sensor (how far ``center``
-            moves per mm of sensor displacement), set by ``HybridLens.doe_fields``; None (fields built elsewhere,
-            or detached for a cache): the PSF is not differentiated with respect to the sensor distance.
+            "exit_pupil" (at the exit pupil, then carried to the DOE plane).
     """
 
-    envelope: torch.Tensor
-    window: tuple
-    origin: tuple
-    pitch: float
-    carrier: tuple
-    n: float
-    wavelength: float
-    z: float
-    center: tuple
     rays: int
     mode: str
     full_grid: bool = False
     clipped: float = 0.0
     beam_half: float = 0.0
     stop_edge: str = "doe"
-    chief_tan: tuple | None = None
+
+
+def _box(window) -> tuple[int, int, int, int]:
+    """``(iy0, iy1, ix0, ix1)`` half-open from a legacy ``(iy0, ix0, ny, nx)``."""
+    iy0, ix0, ny, nx = (int(v) for v in window)
+    return iy0, iy0 + ny, ix0, ix0 + nx
+
+
+class DOEField:
+    """The field arriving at the DOE plane for one point source and one wavelength.
+
+    Data (the PSF is computed from these):
+
+    * :attr:`field`: a :class:`~raywave.wave.Field`: the complex128 envelope ``(ny, nx)`` just before the DOE
+      (DOE aperture applied, DOE phase not) on its :class:`~raywave.wave.Grid` (a window of the DOE's
+      simulation grid, :meth:`raywave.doe.DOE.sim_grid`), divided by the carrier ``exp(i k n (α x + β y))``
+      of the chief ray after the lens; wavelength (µm) and the index n between the DOE and the sensor;
+    * :attr:`box`: where the grid lies on the DOE's simulation grid, half-open ``(iy0, iy1, ix0, ix1)``
+      (:meth:`raywave.wave.Grid.locate`);
+    * :attr:`z`: DOE → sensor distance (mm); :attr:`center`: ``(x, y)`` mm where the chief ray (through the
+      refractive lens only) meets the sensor; :attr:`chief_tan`: ``(d_x/d_z, d_y/d_z)`` of that chief ray
+      between the DOE and the sensor (how far ``center`` moves per mm of sensor displacement), set by
+      ``HybridLens.doe_fields``; None (fields built elsewhere, or detached for a cache): the PSF is not
+      differentiated with respect to the sensor distance.
+
+    Diagnostics: :attr:`info` (:class:`FieldInfo`). The flat names of earlier versions (``envelope``,
+    ``origin``, ``pitch``, ``carrier``, ``n``, ``wavelength``, ``window`` = ``(iy0, ix0, ny, nx)``, ``rays``,
+    ``mode``, ``full_grid``, ``clipped``, ``beam_half``, ``stop_edge``) read through to these.
+    """
+
+    __slots__ = ("field", "box", "z", "center", "info", "chief_tan")
+
+    def __init__(self, field: Field, box, z: float, center: tuple, info: FieldInfo,
+                 chief_tan: tuple | None = None):
+        if not isinstance(field, Field):
+            raise TypeError(f"DOEField: field must be a raywave.wave.Field, got {type(field).__name__}")
+        iy0, iy1, ix0, ix1 = (int(v) for v in box)
+        if (iy1 - iy0, ix1 - ix0) != field.grid.shape:
+            raise ValueError(f"DOEField: box {(iy0, iy1, ix0, ix1)} does not have the field's shape {field.grid.shape}")
+        self.field, self.box, self.z, self.center = field, (iy0, iy1, ix0, ix1), z, center
+        self.info, self.chief_tan = info, chief_tan
+
+    @classmethod
+    def on_window(cls, envelope: torch.Tensor, window, origin, pitch: float, carrier, n: float, wavelength: float,
+                  z: float, center: tuple, rays: int, mode: str, **info) -> "DOEField":
+        """Build from an envelope on the simulation-grid window ``(iy0, ix0, ny, nx)`` whose sample (0, 0) is
+        centred at ``origin`` (mm); ``info``: the other :class:`FieldInfo` entries."""
+        grid = Grid(origin, pitch, tuple(envelope.shape[-2:]))
+        return cls(Field(envelope, grid, wavelength, n, carrier), _box(window), z, center,
+                   FieldInfo(int(rays), mode, **info))
+
+    def __repr__(self) -> str:
+        return (f"DOEField(λ={self.wavelength:g} µm, box={self.box}, pitch={self.pitch:g} mm, z={self.z:g} mm, "
+                f"carrier={self.carrier}, {self.info})")
+
+    # ---------------------------------------------------------------- the data, by their earlier names
+    envelope = property(lambda self: self.field.envelope, doc="complex ``(ny, nx)``: :attr:`field`'s envelope.")
+    grid = property(lambda self: self.field.grid, doc=":attr:`field`'s :class:`~raywave.wave.Grid`.")
+    origin = property(lambda self: self.field.grid.origin, doc="``(x, y)`` mm of the centre of sample (0, 0).")
+    pitch = property(lambda self: self.field.grid.pitch[0], doc="simulation-grid pitch (mm).")
+    carrier = property(lambda self: self.field.carrier, doc="``(α, β)`` direction cosines of the carrier.")
+    n = property(lambda self: self.field.n, doc="refractive index between the DOE and the sensor.")
+    wavelength = property(lambda self: self.field.wavelength, doc="µm.")
+
+    @property
+    def window(self) -> tuple[int, int, int, int]:
+        """``(iy0, ix0, ny, nx)`` in simulation-grid indices (the form :meth:`raywave.doe.DOE.phase` takes)."""
+        iy0, iy1, ix0, ix1 = self.box
+        return iy0, ix0, iy1 - iy0, ix1 - ix0
+
+    rays = property(lambda self: self.info.rays)
+    mode = property(lambda self: self.info.mode)
+    full_grid = property(lambda self: self.info.full_grid)
+    stop_edge = property(lambda self: self.info.stop_edge)
+
+    @property
+    def clipped(self) -> float:
+        return self.info.clipped
+
+    @clipped.setter
+    def clipped(self, value: float) -> None:
+        self.info.clipped = float(value)
+
+    @property
+    def beam_half(self) -> float:
+        return self.info.beam_half
+
+    @beam_half.setter
+    def beam_half(self, value: float) -> None:
+        self.info.beam_half = float(value)
 
     @property
     def power(self) -> torch.Tensor:
         """∫|U|² dA over the DOE plane (relative power reaching the DOE through its aperture)."""
         return (self.envelope.abs() ** 2).sum() * self.pitch**2
 
+    # ---------------------------------------------------------------- copies
+    def with_info(self, **changes) -> "DOEField":
+        """A copy whose :class:`FieldInfo` has ``changes`` (e.g. ``stop_edge="exit_pupil"``)."""
+        return DOEField(self.field, self.box, self.z, self.center, replace(self.info, **changes), self.chief_tan)
+
+    def with_envelope(self, envelope: torch.Tensor) -> "DOEField":
+        """A copy with another envelope of the same grid (the diagnostics copied)."""
+        return DOEField(self.field.with_envelope(envelope), self.box, self.z, self.center, replace(self.info),
+                        self.chief_tan)
+
     def detach(self) -> "DOEField":
         """A copy cut from the autograd graph (for caching with a frozen refractive lens): its PSF is not
         differentiated with respect to the lens, the sensor distance included (``chief_tan`` dropped)."""
         center = tuple(c.detach() if isinstance(c, torch.Tensor) else c for c in self.center)
-        return replace(self, envelope=self.envelope.detach(), center=center, chief_tan=None)
+        return DOEField(self.field.with_envelope(self.envelope.detach()), self.box, self.z, center,
+                        replace(self.info), None)
 
     def to(self, dtype) -> "DOEField":
         """A copy with the envelope cast to ``dtype`` (e.g. complex64 for propagation only)."""
-        return replace(self, envelope=self.envelope.to(dtype))
+        return self.with_envelope(self.envelope.to(dtype))
