@@ -268,120 +268,196 @@ def read_seq(path) -> dict:
     return validate_spec(spec, path)
 
 
+class _Seq:
+    """What the commands of a .seq file set, in lens units as written (converted to mm when the spec is made)."""
+
+    def __init__(self, path):
+        self.path = path
+        self.radius_mode = True  # RDM (radii) or CUM / RDM N (curvatures)
+        self.scale = 1.0  # lens unit -> mm (DIM)
+        self.name = ""
+        self.pupil = None  # (EPD / FNO / NAO, value, line)
+        self.wls: list[float] = []  # µm
+        self.ref = None  # (REF, 1-based, line)
+        self.fields: dict[str, list[float]] = {}  # "X" / "Y" -> values
+        self.field_type = None
+        # raw surfaces: kind (SO / S / SI), r, t, glass, line, stop, conic, asph, label, cir
+        self.surfs: list[dict] = []
+        self.unknown: dict[str, int] = {}  # unknown command -> its first line
+        self.in_private = False  # inside a PRV ... END private catalog
+        self.sto_label = None  # (k, line) of a ``STO Sk``
+
+    def err(self, msg, ln):
+        """A :class:`LensFileError` at line ``ln`` of the file."""
+        return LensFileError(msg, self.path, ln)
+
+
+def _num(tok, what, ln, err) -> float:
+    """``tok`` as a float; else the error ``what: 'tok' is not a number`` (``err(msg, ln)`` makes it)."""
+    try:
+        return float(tok)
+    except ValueError:
+        raise err(f"{what}: {tok!r} is not a number", ln) from None
+
+
 def _interpret(cmds, path) -> dict:
-    def err(msg, ln):
-        return LensFileError(msg, path, ln)
+    """The lens spec (not yet validated; lengths in mm) of the .seq commands ``cmds`` (from :func:`_commands`);
+    ``path`` names the file in errors and warnings."""
+    st = _Seq(path)
+    _read_commands(st, cmds)
+    obj, img, lens = _check_prescription(st)
 
-    def num(tok, what, ln):
-        try:
-            return float(tok)
-        except ValueError:
-            raise err(f"{what}: {tok!r} is not a number", ln) from None
+    spec: dict = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "units": dict(UNITS)}
+    if st.name:
+        spec["name"] = st.name
+    distance = _object_distance(obj, st)
+    spec["object"] = {"distance": distance}
+    if st.pupil is not None:
+        spec["system_aperture"] = _system_aperture(st.pupil, distance, st.scale, st.err)
+    spec["fields"] = _fields(st)
+    spec["wavelengths"] = _wavelengths(st)
+    spec["surfaces"] = _surfaces(lens, img, st)
+    if st.unknown:
+        listed = ", ".join(f"{k} (line {ln})" for k, ln in sorted(st.unknown.items(), key=lambda kv: kv[1]))
+        warnings.warn(LensFileWarning(f"{path}: ignored unknown CODE V commands: {listed}"), stacklevel=3)
+    return spec
 
-    radius_mode = True
-    scale = 1.0
-    name = ""
-    pupil = None
-    wls: list[float] = []
-    ref = None
-    fields: dict[str, list[float]] = {}
-    field_type = None
-    surfs: list[dict] = []  # raw surfaces: kind (SO / S / SI), r, t, glass, line, stop, conic, asph, label, cir
-    unknown: dict[str, int] = {}
-    in_private = False
-    sto_label = None
+
+def _read_commands(st: _Seq, cmds) -> None:
+    """Read the commands ``[(line, [tokens])]`` into ``st``: surfaces with their qualifiers, system settings."""
     for ln, toks in cmds:
         cmd = toks[0].upper()
         args = toks[1:]
-        if in_private:
-            in_private = cmd != "END"
+        if st.in_private:
+            st.in_private = cmd != "END"
             continue
         if cmd == "PRV":
-            in_private = True
-            warnings.warn(LensFileWarning(f"{path}:{ln}: private glass catalog (PRV) skipped: its glasses must be "
-                                          "in raywave's catalogs"), stacklevel=3)
+            st.in_private = True
+            # stacklevel 4: the caller of read_seq (_read_commands <- _interpret <- read_seq), as before the split
+            warnings.warn(LensFileWarning(f"{st.path}:{ln}: private glass catalog (PRV) skipped: its glasses must "
+                                          "be in raywave's catalogs"), stacklevel=4)
             continue
-        cur = surfs[-1] if surfs else None
-        starts_surface = cmd in ("SO", "S", "SI") or (cmd == "STO" and args and _number(args[0]))
-        if starts_surface:
-            if cmd != "SO" and not surfs:
-                surfs.append({"kind": "SO", "r": 0.0, "t": math.inf, "glass": "air", "line": ln, "stop": False,
-                              "conic": 0.0, "asph": {}, "label": "", "cir": None, "implicit": True})
-            vals = [num(a, f"{cmd} radius/thickness", ln) for a in args[:2] if _number(a)]
-            r = vals[0] if vals else 0.0
-            t = vals[1] if len(vals) > 1 else 0.0
-            rest = [a for a in args[len(vals):]]
-            glass = "air"
-            if rest:
-                glass = _glass(rest[0], f"surface {len(surfs)}", path, ln)
-            surfs.append({"kind": "S" if cmd == "STO" else cmd, "r": r, "t": t, "glass": glass, "line": ln,
-                          "stop": cmd == "STO", "conic": 0.0, "asph": {}, "label": "", "cir": None})
+        cur = st.surfs[-1] if st.surfs else None
+        if _surface_line(st, cmd, args, ln) or _stop_command(st, cur, cmd, args, ln):
             continue
-        if cmd == "STO":
-            if args and re.fullmatch(r"[Ss]\d+", args[0]):
-                sto_label = (int(args[0][1:]), ln)
-            elif cur is not None:
-                cur["stop"] = True
+        if cur is not None and _qualifier(st, cur, cmd, args, ln):
             continue
-        if cur is not None:  # surface qualifiers
-            where = f"surface {len(surfs) - 1}"
-            if cmd == "K":
-                cur["conic"] = num(args[0], f"{where}: K", ln)
-                continue
-            if cmd in ASPHERIC_LETTERS and args and _number(args[0]):
-                cur["asph"][ASPHERIC_LETTERS[cmd]] = num(args[0], f"{where}: {cmd}", ln)
-                continue
-            if cmd == "SLB":
-                cur["label"] = " ".join(args).strip("'\"")
-                continue
-            if cmd == "CIR":
-                _circle(surfs, cur, where, args, ln, err)
-                continue
-            if cmd in DECENTRE_VALUES or cmd in DECENTRE_TYPES:
-                _decentre(surfs, cur, where, cmd, args, ln, err)
-                continue
-            if cmd in ("CUY", "RDY"):
-                _shape(surfs, cur, where, cmd, args, ln, err)
-                continue
-            if cmd in UNSUPPORTED:
-                if cmd in _ZERO_OK and args and _number(args[0]) and float(args[0]) == 0.0:
-                    continue
-                raise err(f"{where}: {UNSUPPORTED[cmd]} ({cmd}) is not supported by raywave", ln)
-        if cmd in ("RDM", "CUM"):
-            radius_mode = cmd == "RDM" and not (args and args[0].upper() in ("N", "NO"))
-        elif cmd in ("TITLE", "TIT"):
-            name = " ".join(args).strip().strip("'\"")
-        elif cmd == "DIM":
-            u = args[0].upper() if args else "M"
-            if u not in DIM_SCALE:
-                raise err(f"DIM {u}: unknown lens unit (known: M, C, I)", ln)
-            scale = DIM_SCALE[u]
-        elif cmd in ("EPD", "FNO", "NAO"):
-            v = num(args[0], cmd, ln) if args else None
-            if v is None or not v > 0:
-                raise err(f"{cmd}: the pupil value must be > 0", ln)
-            if pupil is not None and pupil[0] != cmd:
-                raise err(f"{cmd}: a second pupil specification (line {pupil[2]} gives {pupil[0]})", ln)
-            pupil = (cmd, v, ln)
-        elif cmd == "WL":
-            wls = [_nm_to_um(a, path, ln) for a in args]
-        elif cmd == "REF":
-            ref = (int(num(args[0], "REF", ln)), ln)
-        elif cmd in ("XAN", "YAN", "XOB", "YOB"):
-            kind = "angle" if cmd.endswith("AN") else "object_height"
-            if field_type is not None and field_type != kind:
-                raise err(f"{cmd}: fields of two types (angles and object heights)", ln)
-            field_type = kind
-            fields[cmd[0]] = [num(a, cmd, ln) for a in args]
-        elif cmd in UNSUPPORTED:
-            raise err(f"{UNSUPPORTED[cmd]} ({cmd}) is not supported by raywave", ln)
-        elif cmd in DECENTRE_VALUES or cmd in DECENTRE_TYPES:
-            raise err(f"{cmd}: a decentre before the first surface (it qualifies the surface before it)", ln)
-        elif cmd in IGNORED or cmd in ("K", "SLB", "CIR") or cmd in ASPHERIC_LETTERS:
-            pass
-        else:
-            unknown.setdefault(cmd, ln)
+        _setting(st, cmd, args, ln)
 
+
+def _surface_line(st: _Seq, cmd: str, args: list, ln: int) -> bool:
+    """Whether ``cmd args`` is a surface line (``SO`` / ``S`` / ``STO r t`` / ``SI``: radius, thickness in lens
+    units, glass); if so its raw surface is appended to ``st.surfs`` (after an implicit object surface when the
+    file has no ``SO``)."""
+    if not (cmd in ("SO", "S", "SI") or (cmd == "STO" and args and _number(args[0]))):
+        return False
+    surfs = st.surfs
+    if cmd != "SO" and not surfs:
+        surfs.append({"kind": "SO", "r": 0.0, "t": math.inf, "glass": "air", "line": ln, "stop": False,
+                      "conic": 0.0, "asph": {}, "label": "", "cir": None, "implicit": True})
+    vals = [_num(a, f"{cmd} radius/thickness", ln, st.err) for a in args[:2] if _number(a)]
+    r = vals[0] if vals else 0.0
+    t = vals[1] if len(vals) > 1 else 0.0
+    rest = [a for a in args[len(vals):]]
+    glass = "air"
+    if rest:
+        glass = _glass(rest[0], f"surface {len(surfs)}", st.path, ln)
+    surfs.append({"kind": "S" if cmd == "STO" else cmd, "r": r, "t": t, "glass": glass, "line": ln,
+                  "stop": cmd == "STO", "conic": 0.0, "asph": {}, "label": "", "cir": None})
+    return True
+
+
+def _stop_command(st: _Seq, cur, cmd: str, args: list, ln: int) -> bool:
+    """Whether ``cmd`` is a ``STO`` without a surface line (``STO Sk``: surface k is the stop; ``STO`` alone: the
+    current surface ``cur``); if so it is recorded in ``st``."""
+    if cmd != "STO":
+        return False
+    if args and re.fullmatch(r"[Ss]\d+", args[0]):
+        st.sto_label = (int(args[0][1:]), ln)
+    elif cur is not None:
+        cur["stop"] = True
+    return True
+
+
+def _qualifier(st: _Seq, cur: dict, cmd: str, args: list, ln: int) -> bool:
+    """Whether ``cmd args`` is a qualifier of the current surface ``cur`` (or of the surface ``Sk`` it names):
+    conic, aspheric term, label, clear aperture, decentre, curvature; if so it is stored on that surface. An
+    unsupported surface qualifier is a :class:`LensFileError`."""
+    where = f"surface {len(st.surfs) - 1}"
+    if cmd == "K":
+        cur["conic"] = _num(args[0], f"{where}: K", ln, st.err)
+        return True
+    if cmd in ASPHERIC_LETTERS and args and _number(args[0]):
+        cur["asph"][ASPHERIC_LETTERS[cmd]] = _num(args[0], f"{where}: {cmd}", ln, st.err)
+        return True
+    if cmd == "SLB":
+        cur["label"] = " ".join(args).strip("'\"")
+        return True
+    if cmd == "CIR":
+        _circle(st.surfs, cur, where, args, ln, st.err)
+        return True
+    if cmd in DECENTRE_VALUES or cmd in DECENTRE_TYPES:
+        _decentre(st.surfs, cur, where, cmd, args, ln, st.err)
+        return True
+    if cmd in ("CUY", "RDY"):
+        _shape(st.surfs, cur, where, cmd, args, ln, st.err)
+        return True
+    if cmd in UNSUPPORTED:
+        if cmd in _ZERO_OK and args and _number(args[0]) and float(args[0]) == 0.0:
+            return True
+        raise st.err(f"{where}: {UNSUPPORTED[cmd]} ({cmd}) is not supported by raywave", ln)
+    return False
+
+
+def _setting(st: _Seq, cmd: str, args: list, ln: int) -> None:
+    """A command that is not about one surface (radius mode, title, lens units, pupil, wavelengths, fields) into
+    ``st``; skipped commands pass, unknown ones are recorded in ``st.unknown``."""
+    if cmd in ("RDM", "CUM"):
+        st.radius_mode = cmd == "RDM" and not (args and args[0].upper() in ("N", "NO"))
+    elif cmd in ("TITLE", "TIT"):
+        st.name = " ".join(args).strip().strip("'\"")
+    elif cmd == "DIM":
+        u = args[0].upper() if args else "M"
+        if u not in DIM_SCALE:
+            raise st.err(f"DIM {u}: unknown lens unit (known: M, C, I)", ln)
+        st.scale = DIM_SCALE[u]
+    elif cmd in ("EPD", "FNO", "NAO"):
+        st.pupil = _pupil_command(st.pupil, cmd, args, ln, st.err)
+    elif cmd == "WL":
+        st.wls = [_nm_to_um(a, st.path, ln) for a in args]
+    elif cmd == "REF":
+        st.ref = (int(_num(args[0], "REF", ln, st.err)), ln)
+    elif cmd in ("XAN", "YAN", "XOB", "YOB"):
+        kind = "angle" if cmd.endswith("AN") else "object_height"
+        if st.field_type is not None and st.field_type != kind:
+            raise st.err(f"{cmd}: fields of two types (angles and object heights)", ln)
+        st.field_type = kind
+        st.fields[cmd[0]] = [_num(a, cmd, ln, st.err) for a in args]
+    elif cmd in UNSUPPORTED:
+        raise st.err(f"{UNSUPPORTED[cmd]} ({cmd}) is not supported by raywave", ln)
+    elif cmd in DECENTRE_VALUES or cmd in DECENTRE_TYPES:
+        raise st.err(f"{cmd}: a decentre before the first surface (it qualifies the surface before it)", ln)
+    elif cmd in IGNORED or cmd in ("K", "SLB", "CIR") or cmd in ASPHERIC_LETTERS:
+        pass
+    else:
+        st.unknown.setdefault(cmd, ln)
+
+
+def _pupil_command(pupil, cmd: str, args: list, ln: int, err) -> tuple:
+    """``(cmd, value, line)`` of a pupil command (``EPD`` lens units, ``FNO``, ``NAO``); ``pupil``: the one read
+    before (None), which must be of the same kind."""
+    v = _num(args[0], cmd, ln, err) if args else None
+    if v is None or not v > 0:
+        raise err(f"{cmd}: the pupil value must be > 0", ln)
+    if pupil is not None and pupil[0] != cmd:
+        raise err(f"{cmd}: a second pupil specification (line {pupil[2]} gives {pupil[0]})", ln)
+    return (cmd, v, ln)
+
+
+def _check_prescription(st: _Seq):
+    """``(object, image, [lens surfaces])`` of the raw surfaces, after the checks of what raywave can model (the
+    object and image surfaces, the stop); ``STO Sk`` is applied here."""
+    surfs, err = st.surfs, st.err
     if len(surfs) < 3 or surfs[0]["kind"] != "SO" or surfs[-1]["kind"] != "SI":
         raise err("a lens needs an object surface (SO), at least one surface (S) and an image surface (SI)",
                   surfs[-1]["line"] if surfs else None)
@@ -394,8 +470,8 @@ def _interpret(cmds, path) -> dict:
     if _moves(img.get("dec")) and img["dec"]["type"] == "REV":
         raise err("image surface (SI): a reverse decentre (REV) acts after its surface, i.e. after the image: "
                   "not supported (put the tilt on the image surface without REV)", img["dec"]["line"])
-    if sto_label is not None:
-        k, ln = sto_label
+    if st.sto_label is not None:
+        k, ln = st.sto_label
         if not 1 <= k <= len(lens):
             raise err(f"STO S{k}: no such surface (1..{len(lens)})", ln)
         for s in lens:
@@ -410,82 +486,107 @@ def _interpret(cmds, path) -> dict:
     stops = [i for i, s in enumerate(lens) if s["stop"]]
     if len(stops) > 1:
         raise err(f"surfaces {[i + 1 for i in stops]} are all marked as the stop", lens[stops[1]]["line"])
+    return obj, img, lens
 
-    spec: dict = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "units": dict(UNITS)}
-    if name:
-        spec["name"] = name
+
+def _object_distance(obj: dict, st: _Seq):
+    """The spec's object distance: mm, or "inf" (``SO`` thickness ≥ :data:`INFINITE_DISTANCE` lens units)."""
     dist = obj["t"]
-    distance = "inf" if (math.isinf(dist) or abs(dist) >= INFINITE_DISTANCE) else dist * scale
+    distance = "inf" if (math.isinf(dist) or abs(dist) >= INFINITE_DISTANCE) else dist * st.scale
     if distance != "inf" and not distance > 0:
-        raise err(f"object surface (SO): object distance {dist!r} must be > 0", obj["line"])
-    spec["object"] = {"distance": distance}
-    if pupil is not None:
-        cmd, v, ln = pupil
-        if cmd == "EPD":
-            spec["system_aperture"] = {"epd": v * scale}
-        elif cmd == "FNO":
-            spec["system_aperture"] = {"f_number": v}
-        else:
-            if distance == "inf":
-                raise err("NAO: an object-space NA needs an object at a finite distance", ln)
-            if not v < 1.0:
-                raise err(f"NAO {v!r}: must be < 1 (NA in air)", ln)
-            spec["system_aperture"] = {"object_na": v}
-    ys = fields.get("Y", [])
-    xs = fields.get("X", [])
+        raise st.err(f"object surface (SO): object distance {dist!r} must be > 0", obj["line"])
+    return distance
+
+
+def _system_aperture(pupil: tuple, distance, scale: float, err) -> dict:
+    """The spec's ``"system_aperture"`` of ``(EPD / FNO / NAO, value, line)`` (EPD lens units -> mm)."""
+    cmd, v, ln = pupil
+    if cmd == "EPD":
+        return {"epd": v * scale}
+    if cmd == "FNO":
+        return {"f_number": v}
+    if distance == "inf":
+        raise err("NAO: an object-space NA needs an object at a finite distance", ln)
+    if not v < 1.0:
+        raise err(f"NAO {v!r}: must be < 1 (NA in air)", ln)
+    return {"object_na": v}
+
+
+def _fields(st: _Seq) -> dict:
+    """The spec's ``"fields"``: radial values (degrees, or object heights in mm); x components are folded in."""
+    ys = st.fields.get("Y", [])
+    xs = st.fields.get("X", [])
     n = max(len(xs), len(ys), 1)
     xs, ys = xs + [0.0] * (n - len(xs)), ys + [0.0] * (n - len(ys))
     if any(xs):
-        warnings.warn(LensFileWarning(f"{path}: fields with an x component are folded to radial fields "
-                                      "sqrt(x² + y²) (raywave lenses are rotationally symmetric)"), stacklevel=3)
+        # stacklevel 4: the caller of read_seq (_fields <- _interpret <- read_seq), as before the split
+        warnings.warn(LensFileWarning(f"{st.path}: fields with an x component are folded to radial fields "
+                                      "sqrt(x² + y²) (raywave lenses are rotationally symmetric)"), stacklevel=4)
     values = [math.hypot(x, y) if x else y for x, y in zip(xs, ys)]
-    if field_type == "object_height":
-        values = [v * scale for v in values]
-    spec["fields"] = {"type": field_type or "angle", "values": values}
-    if wls:
-        primary = (ref[0] - 1) if ref else 0
-        if not 0 <= primary < len(wls):
-            raise err(f"REF {ref[0]}: reference wavelength out of range 1..{len(wls)}", ref[1])
-        spec["wavelengths"] = {"values": wls, "primary": primary}
-    else:
-        spec["wavelengths"] = dict(DEFAULT_WAVELENGTHS)
+    if st.field_type == "object_height":
+        values = [v * st.scale for v in values]
+    return {"type": st.field_type or "angle", "values": values}
+
+
+def _wavelengths(st: _Seq) -> dict:
+    """The spec's ``"wavelengths"`` (µm, 0-based primary from ``REF``; none given: the defaults)."""
+    if not st.wls:
+        return dict(DEFAULT_WAVELENGTHS)
+    ref = st.ref
+    primary = (ref[0] - 1) if ref else 0
+    if not 0 <= primary < len(st.wls):
+        raise st.err(f"REF {ref[0]}: reference wavelength out of range 1..{len(st.wls)}", ref[1])
+    return {"values": st.wls, "primary": primary}
+
+
+def _surfaces(lens: list, img: dict, st: _Seq) -> list:
+    """The spec's ``"surfaces"``: each lens surface between the coordinate breaks of its decentre, then the breaks
+    of a decentred / tilted image plane."""
     surfaces = []
     for i, s in enumerate(lens, start=1):
-        r = s["r"]
-        c = 0.0 if r == 0.0 else ((1.0 / r) if radius_mode else r)
-        if s.get("curvature") is not None:  # CUY / RDY
-            c = s["curvature"]
-        c /= scale
-        out: dict = {"type": "even_asphere" if any(s["asph"].values()) else "standard"}
-        out.update(shape_entry(c))
-        out["conic"] = s["conic"]
-        if out["type"] == "even_asphere":
-            out["aspheric"] = aspheric_canonical({f"a{p}": v * scale ** (1 - p) for p, v in s["asph"].items()})
-        if not math.isfinite(s["t"]):
-            raise err(f"surface {i}: thickness must be finite", s["line"])
-        out["thickness"] = s["t"] * scale
-        out["material"] = s["glass"]
-        out["aperture"] = None
-        if s.get("obs"):  # a circular obscuration: blocks r < obs; the clear CIR stays a semi-diameter
-            out["aperture"] = {"shape": "none", "obscuration": {"shape": "circle", "radius": s["obs"] * scale}}
-            if s["stop"]:  # the stop needs a clear radius (sized from the pupil): its CIR
-                if not s["cir"]:
-                    raise err(f"surface {i}: the stop has an obscuration (CIR OBS) but no clear aperture (CIR r)",
-                              s["line"])
-                out["aperture"] = {"shape": "circle", "radius": s["cir"] * scale,
-                                   "obscuration": out["aperture"]["obscuration"]}
-        if s["cir"]:
-            out["semi_diameter"] = s["cir"] * scale
-        out["stop"] = bool(s["stop"])
-        if s["label"]:
-            out["comment"] = s["label"]
-        before, out["thickness"], after = _breaks(s.get("dec"), out["thickness"], scale, f"S{i}")
+        out = _surface_entry(s, i, st)
+        before, out["thickness"], after = _breaks(s.get("dec"), out["thickness"], st.scale, f"S{i}")
         surfaces += before + [out] + after
     if _moves(img.get("dec")):  # a tilted / decentred image plane: the breaks before it (the image is no entry)
-        before, _, _ = _breaks(dict(img["dec"], type=None), 0.0, scale, "SI")
+        before, _, _ = _breaks(dict(img["dec"], type=None), 0.0, st.scale, "SI")
         surfaces += before
-    spec["surfaces"] = surfaces
-    if unknown:
-        listed = ", ".join(f"{k} (line {ln})" for k, ln in sorted(unknown.items(), key=lambda kv: kv[1]))
-        warnings.warn(LensFileWarning(f"{path}: ignored unknown CODE V commands: {listed}"), stacklevel=3)
-    return spec
+    return surfaces
+
+
+def _surface_entry(s: dict, i: int, st: _Seq) -> dict:
+    """The spec entry (mm) of raw lens surface ``s`` (surface ``i``, 1-based), without its decentre."""
+    r = s["r"]
+    c = 0.0 if r == 0.0 else ((1.0 / r) if st.radius_mode else r)
+    if s.get("curvature") is not None:  # CUY / RDY
+        c = s["curvature"]
+    c /= st.scale
+    out: dict = {"type": "even_asphere" if any(s["asph"].values()) else "standard"}
+    out.update(shape_entry(c))
+    out["conic"] = s["conic"]
+    if out["type"] == "even_asphere":
+        out["aspheric"] = aspheric_canonical({f"a{p}": v * st.scale ** (1 - p) for p, v in s["asph"].items()})
+    if not math.isfinite(s["t"]):
+        raise st.err(f"surface {i}: thickness must be finite", s["line"])
+    out["thickness"] = s["t"] * st.scale
+    out["material"] = s["glass"]
+    out["aperture"] = _aperture(s, i, st.scale, st.err)
+    if s["cir"]:
+        out["semi_diameter"] = s["cir"] * st.scale
+    out["stop"] = bool(s["stop"])
+    if s["label"]:
+        out["comment"] = s["label"]
+    return out
+
+
+def _aperture(s: dict, i: int, scale: float, err):
+    """The spec ``"aperture"`` of raw surface ``s`` (mm): None, or its circular obscuration (``CIR OBS``)."""
+    if not s.get("obs"):
+        return None
+    # a circular obscuration: blocks r < obs; the clear CIR stays a semi-diameter
+    obscuration = {"shape": "circle", "radius": s["obs"] * scale}
+    if not s["stop"]:
+        return {"shape": "none", "obscuration": obscuration}
+    # the stop needs a clear radius (sized from the pupil): its CIR
+    if not s["cir"]:
+        raise err(f"surface {i}: the stop has an obscuration (CIR OBS) but no clear aperture (CIR r)", s["line"])
+    return {"shape": "circle", "radius": s["cir"] * scale, "obscuration": obscuration}

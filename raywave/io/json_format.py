@@ -74,55 +74,84 @@ def locate_keys(text: str) -> tuple[dict, list]:
     1-based line where that key (or array element) starts; ``duplicates`` lists ``(path, line)`` of keys
     that occur twice in the same object.
     """
-    starts = [0] + [m.end() for m in re.finditer("\n", text)]
-    lines: dict = {}
-    dups: list = []
+    loc = _KeyLocator(text)
+    loc.value(0, ())
+    return loc.lines, loc.dups
 
-    def line_of(pos):
-        return bisect.bisect_right(starts, pos)
 
-    def ws(i):
-        return _WS.match(text, i).end()
+class _KeyLocator:
+    """A walk over a JSON text that ``json.loads`` accepted, noting where each key and array element starts
+    (``lines``: key path -> 1-based line) and the keys that repeat in one object (``dups``: ``(path, line)``)."""
 
-    def value(i, path):
-        i = ws(i)
-        lines.setdefault(path, line_of(i))
+    def __init__(self, text: str):
+        self.text = text
+        self.starts = [0] + [m.end() for m in re.finditer("\n", text)]
+        self.lines: dict = {}
+        self.dups: list = []
+
+    def line_of(self, pos) -> int:
+        """The 1-based line of character offset ``pos``."""
+        return bisect.bisect_right(self.starts, pos)
+
+    def ws(self, i) -> int:
+        """The offset of the first non-whitespace character at or after ``i``."""
+        return _WS.match(self.text, i).end()
+
+    def value(self, i, path) -> int:
+        """Walk the value at offset ``i`` (key path ``path``); return the offset just after it.
+
+        One Python frame per nesting level, as :func:`json.loads` allows (the helpers return before recursing)."""
+        text = self.text
+        i = self.ws(i)
+        self.lines.setdefault(path, self.line_of(i))
         c = text[i]
         if c == "{":
-            i = ws(i + 1)
+            i = self.ws(i + 1)
             if text[i] == "}":
                 return i + 1
-            seen = set()
+            seen: set = set()
             while True:
-                i = ws(i)
-                key_line = line_of(i)
-                key, i = scanstring(text, i + 1)
-                kpath = path + (key,)
-                if key in seen:
-                    dups.append((kpath, key_line))
-                else:
-                    lines[kpath] = key_line
-                seen.add(key)
-                i = ws(i)  # the ':'
-                i = value(i + 1, kpath)
-                i = ws(i)
+                kpath, i = self._key(i, path, seen)
+                i = self.ws(i)  # the ':'
+                i = self.value(i + 1, kpath)
+                i = self.ws(i)
                 if text[i] == ",":
                     i += 1
                     continue
                 return i + 1
         if c == "[":
-            i = ws(i + 1)
+            i = self.ws(i + 1)
             if text[i] == "]":
                 return i + 1
             k = 0
             while True:
-                i = value(i, path + (k,))
+                i = self.value(i, path + (k,))
                 k += 1
-                i = ws(i)
+                i = self.ws(i)
                 if text[i] == ",":
                     i += 1
                     continue
                 return i + 1
+        return self._scalar(i)
+
+    def _key(self, i, path, seen: set) -> tuple:
+        """Read the object key at (or after whitespace at) offset ``i`` of the object at ``path``, noting its line
+        (or, when ``seen`` already holds it, a duplicate); return ``(its key path, the offset after it)``."""
+        i = self.ws(i)
+        key_line = self.line_of(i)
+        key, i = scanstring(self.text, i + 1)
+        kpath = path + (key,)
+        if key in seen:
+            self.dups.append((kpath, key_line))
+        else:
+            self.lines[kpath] = key_line
+        seen.add(key)
+        return kpath, i
+
+    def _scalar(self, i) -> int:
+        """The offset just after the string, number or literal at offset ``i``."""
+        text = self.text
+        c = text[i]
         if c == '"':
             return scanstring(text, i + 1)[1]
         m = NUMBER_RE.match(text, i)
@@ -132,9 +161,6 @@ def locate_keys(text: str) -> tuple[dict, list]:
             if text.startswith(lit, i):
                 return i + len(lit)
         raise ValueError(f"unexpected character {c!r} at offset {i}")  # json.loads accepted it: cannot happen
-
-    value(0, ())
-    return lines, dups
 
 
 def key_path(path) -> str:
@@ -255,9 +281,32 @@ class _Validator:
 
     # ----- the schema
     def spec(self, spec):
+        """Check a whole spec: the top-level entries in order, then every surface."""
         if not self.obj(spec, ()):
             return
         self.keys(spec, (), TOP_KEYS)
+        self._header(spec)
+        for k in ("name", "description"):
+            if k in spec:
+                self.string(spec[k], (k,))
+        if "catalogs" in spec:
+            self._catalogs(spec["catalogs"])
+        if "object" in spec and self.obj(spec["object"], ("object",)):
+            self._object(spec["object"])
+        if "system_aperture" in spec and self.obj(spec["system_aperture"], ("system_aperture",)):
+            self.system_aperture(spec["system_aperture"], spec)
+        if "fields" in spec and self.obj(spec["fields"], ("fields",)):
+            self._fields(spec["fields"])
+        if "wavelengths" in spec and self.obj(spec["wavelengths"], ("wavelengths",)):
+            self._wavelengths(spec["wavelengths"])
+        if "sensor" in spec and self.obj(spec["sensor"], ("sensor",)):
+            self._sensor(spec["sensor"])
+        if "doe" in spec and spec["doe"] is not None:
+            validate_doe(self, spec["doe"], spec)
+        self._surfaces(spec)
+
+    def _header(self, spec):
+        """Check "format", "version" and "units" (when present) of a spec (a dict)."""
         if "format" in spec and spec["format"] != FORMAT_NAME:
             self.err(("format",), f"must be {FORMAT_NAME!r}, got {_typename(spec['format'])}")
         if "version" in spec:
@@ -276,70 +325,71 @@ class _Validator:
                 if k in u and u[k] != want:
                     self.err(("units", k), f"must be {want!r} (the only {k} unit of format version 1), "
                                            f"got {_typename(u[k])}")
-        for k in ("name", "description"):
-            if k in spec:
-                self.string(spec[k], (k,))
-        if "catalogs" in spec:
-            c = spec["catalogs"]
-            if not isinstance(c, list):
-                self.err(("catalogs",), f"must be a list of catalog names, got {_typename(c)}")
-            else:
-                for i, name in enumerate(c):
-                    self.string(name, ("catalogs", i), nonempty=True)
-        if "object" in spec and self.obj(spec["object"], ("object",)):
-            o = spec["object"]
-            self.keys(o, ("object",), ("distance",))
-            if "distance" in o:
-                d = o["distance"]
-                if d != "inf":
-                    if isinstance(d, str):
-                        self.err(("object", "distance"), f"must be a number or \"inf\", got {_typename(d)}")
-                    else:
-                        self.number(d, ("object", "distance"), positive=True)
-        if "system_aperture" in spec and self.obj(spec["system_aperture"], ("system_aperture",)):
-            self.system_aperture(spec["system_aperture"], spec)
-        if "fields" in spec and self.obj(spec["fields"], ("fields",)):
-            f = spec["fields"]
-            self.keys(f, ("fields",), ("type", "values"))
-            if "type" in f and f["type"] not in FIELD_TYPES:
-                self.err(("fields", "type"), f"must be one of {', '.join(map(repr, FIELD_TYPES))}, got "
-                                             f"{_typename(f['type'])}"
-                         + (suggestion(f["type"], FIELD_TYPES) if isinstance(f["type"], str) else ""))
-            if "values" not in f:
-                self.err(("fields",), "missing 'values'")
-            elif self.number_list(f["values"], ("fields", "values")) and f.get("type", "angle") == "angle":
-                for i, v in enumerate(f["values"]):
-                    if not abs(v) < MAX_FIELD_ANGLE:
-                        self.err(("fields", "values", i), f"field angle {v!r}° must lie between "
-                                                          f"-{MAX_FIELD_ANGLE:g}° and {MAX_FIELD_ANGLE:g}°")
-        if "wavelengths" in spec and self.obj(spec["wavelengths"], ("wavelengths",)):
-            w = spec["wavelengths"]
-            self.keys(w, ("wavelengths",), ("values", "primary"))
-            if "values" not in w:
-                self.err(("wavelengths",), "missing 'values' (µm)")
-            elif self.number_list(w["values"], ("wavelengths", "values"), positive=True):
-                for i, v in enumerate(w["values"]):
-                    if v > MAX_WAVELENGTH_UM:
-                        self.err(("wavelengths", "values", i),
-                                 f"{v!r} µm is not a plausible wavelength: wavelengths are in µm, not nm")
-                if "primary" in w:
-                    p = w["primary"]
-                    if not _is_int(p):
-                        self.err(("wavelengths", "primary"), f"must be an integer index, got {_typename(p)}")
-                    elif not 0 <= p < len(w["values"]):
-                        self.err(("wavelengths", "primary"),
-                                 f"index {p} out of range for {len(w['values'])} wavelengths (0-based)")
-        if "sensor" in spec and self.obj(spec["sensor"], ("sensor",)):
-            s = spec["sensor"]
-            self.keys(s, ("sensor",), ("size", "resolution"))
-            if "size" not in s:
-                self.err(("sensor",), "missing 'size' ([width, height] mm)")
-            else:
-                self.number_list(s["size"], ("sensor", "size"), n=2, positive=True)
-            if "resolution" in s:
-                self.number_list(s["resolution"], ("sensor", "resolution"), n=2, positive=True, integer=True)
-        if "doe" in spec and spec["doe"] is not None:
-            validate_doe(self, spec["doe"], spec)
+
+    def _catalogs(self, c):
+        """Check "catalogs": a list of non-empty catalog names."""
+        if not isinstance(c, list):
+            self.err(("catalogs",), f"must be a list of catalog names, got {_typename(c)}")
+        else:
+            for i, name in enumerate(c):
+                self.string(name, ("catalogs", i), nonempty=True)
+
+    def _object(self, o):
+        """Check "object" (a dict): its "distance", mm > 0 or "inf"."""
+        self.keys(o, ("object",), ("distance",))
+        if "distance" in o:
+            d = o["distance"]
+            if d != "inf":
+                if isinstance(d, str):
+                    self.err(("object", "distance"), f"must be a number or \"inf\", got {_typename(d)}")
+                else:
+                    self.number(d, ("object", "distance"), positive=True)
+
+    def _fields(self, f):
+        """Check "fields" (a dict): its type and values (angles in degrees within ±MAX_FIELD_ANGLE)."""
+        self.keys(f, ("fields",), ("type", "values"))
+        if "type" in f and f["type"] not in FIELD_TYPES:
+            self.err(("fields", "type"), f"must be one of {', '.join(map(repr, FIELD_TYPES))}, got "
+                                         f"{_typename(f['type'])}"
+                     + (suggestion(f["type"], FIELD_TYPES) if isinstance(f["type"], str) else ""))
+        if "values" not in f:
+            self.err(("fields",), "missing 'values'")
+        elif self.number_list(f["values"], ("fields", "values")) and f.get("type", "angle") == "angle":
+            for i, v in enumerate(f["values"]):
+                if not abs(v) < MAX_FIELD_ANGLE:
+                    self.err(("fields", "values", i), f"field angle {v!r}° must lie between "
+                                                      f"-{MAX_FIELD_ANGLE:g}° and {MAX_FIELD_ANGLE:g}°")
+
+    def _wavelengths(self, w):
+        """Check "wavelengths" (a dict): values in µm (not nm) and the 0-based "primary" index."""
+        self.keys(w, ("wavelengths",), ("values", "primary"))
+        if "values" not in w:
+            self.err(("wavelengths",), "missing 'values' (µm)")
+        elif self.number_list(w["values"], ("wavelengths", "values"), positive=True):
+            for i, v in enumerate(w["values"]):
+                if v > MAX_WAVELENGTH_UM:
+                    self.err(("wavelengths", "values", i),
+                             f"{v!r} µm is not a plausible wavelength: wavelengths are in µm, not nm")
+            if "primary" in w:
+                p = w["primary"]
+                if not _is_int(p):
+                    self.err(("wavelengths", "primary"), f"must be an integer index, got {_typename(p)}")
+                elif not 0 <= p < len(w["values"]):
+                    self.err(("wavelengths", "primary"),
+                             f"index {p} out of range for {len(w['values'])} wavelengths (0-based)")
+
+    def _sensor(self, s):
+        """Check "sensor" (a dict): "size" [width, height] mm and the optional pixel "resolution"."""
+        self.keys(s, ("sensor",), ("size", "resolution"))
+        if "size" not in s:
+            self.err(("sensor",), "missing 'size' ([width, height] mm)")
+        else:
+            self.number_list(s["size"], ("sensor", "size"), n=2, positive=True)
+        if "resolution" in s:
+            self.number_list(s["resolution"], ("sensor", "resolution"), n=2, positive=True, integer=True)
+
+    def _surfaces(self, spec):
+        """Check "surfaces" of a spec (a dict): a non-empty list of surfaces with at most one stop."""
         if "surfaces" not in spec:
             self.err((), "missing 'surfaces' (the list of surfaces)")
             return
@@ -389,6 +439,7 @@ class _Validator:
                                         "\"inf\" (use 'epd' or 'f_number' for a distant object)")
 
     def surface(self, s, path):
+        """Check one entry of "surfaces" (a surface or a coordinate break) at key path ``path``."""
         if not self.obj(s, path):
             return
         kind = s.get("type", "standard")
@@ -410,6 +461,12 @@ class _Validator:
             self.err(path, "missing 'thickness' (mm to the next surface, or to the image for the last one)")
         else:
             self.number(s["thickness"], path + ("thickness",))
+        self._surface_shape(s, path, kind)
+        self._surface_medium(s, path, kind)
+
+    def _surface_shape(self, s, path, kind):
+        """Check the shape keys of a (non-break) surface ``s`` of type ``kind``: radius or curvature, radius of
+        rotation, conic, aspheric terms, paraxial focal length (mm)."""
         if "radius" in s and "curvature" in s:
             self.err(path + ("curvature",), "give either 'radius' or 'curvature', not both")
         if "radius" in s:
@@ -443,6 +500,10 @@ class _Validator:
                 self.err(path, "a paraxial surface needs 'focal_length' (mm)")
             else:
                 self.number(s["focal_length"], path + ("focal_length",), nonzero=True)
+
+    def _surface_medium(self, s, path, kind):
+        """Check the rest of a (non-break) surface ``s`` of type ``kind``: material, aperture, semi-diameter
+        (mm), stop flag, comment."""
         if "material" in s:
             self.material(s["material"], path + ("material",))
             if kind == "paraxial" and isinstance(s["material"], str) and s["material"].lower() == MIRROR:
