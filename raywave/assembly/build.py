@@ -164,24 +164,9 @@ def default_doe_size(lens, distance: float, fields=None, wavelengths=None, depth
     return side, side
 
 
-def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, doe_size=None,
-                     doe_distance: float | None = None, sensor_pitch: float | None = None,
-                     oversample: int | None = None, fields=None, wavelengths=None, depth=None,
-                     field_type: str | None = None, source: str = "<spec>", stop_edge: str | None = None,
-                     edge_step: str | None = None) -> HybridLens:
-    """A :class:`HybridLens` from a lens spec and its resolved DOE (:func:`raywave.io.resolve_doe`, None: the
-    spec has no DOE, a blank one is made). See the module docstring for how the grid is chosen.
-
-    Args:
-        doe_pitch: DOE pixel pitch (mm), overriding the file's.
-        doe_size: (width, height) mm or one number (square), overriding the file's size / shape (blank DOEs).
-        doe_distance: mm from the last vertex to the DOE plane, overriding the file's.
-        sensor_pitch: PSF pixel pitch (mm); default the lens's sensor pixel pitch, else the DOE pitch.
-        oversample: simulation samples per DOE pixel per axis (default: the file's, else 1).
-        fields, wavelengths, depth: the sources the default DOE size must hold (see :func:`beam_half_extent`).
-        field_type: "angle" or "object_height": overrides the lens file's field type (how ``fields`` given to
-            the hybrid lens are read).
-    """
+def _spec_lens(spec: dict, field_type: str | None, source: str):
+    """The refractive :class:`~raywave.lens.Lens` of ``spec``, checked for the wave engine and read with
+    ``field_type`` ("angle" / "object_height", None: the file's). ValueErrors name ``source``."""
     try:
         lens = lens_from_spec(spec)
     except ValueError as err:  # a spec that validates but builds no lens: name the file
@@ -193,65 +178,81 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         if field_type not in ("angle", "object_height"):
             raise ValueError(f"field_type must be 'angle' or 'object_height', got {field_type!r}")
         lens.field_type = field_type
-    # a folded, decentred or mirrored lens is sized in its image-space frame (z along the light, like the engine)
-    optics = image_space(lens)
-    last = float(lens.surfaces[-1].thickness.detach()) * lens.direction_signs()[-1]
-    from_file = doe_data is not None
-    data = doe_data
-    info: dict = {"source": "file" if from_file else "default"}
+    return lens
 
-    # ---- distance
+
+def _first_distance(data, doe_distance: float | None, last: float, source: str) -> float:
+    """The DOE plane's distance (mm after the last vertex) before any beam fit: ``doe_distance``, else the file's
+    (``data``: its DOEData, None: no DOE in the file), else :data:`DEFAULT_DISTANCE_FRACTION` × ``last`` (the
+    last thickness, mm, along the light). A ValueError unless 0 <= distance < last."""
     if doe_distance is not None:
         distance = float(doe_distance)
-    elif from_file and data.distance is not None:
+    elif data is not None and data.distance is not None:
         distance = data.distance
     else:
         distance = DEFAULT_DISTANCE_FRACTION * last
     if not (math.isfinite(distance) and 0 <= distance < last):
         raise ValueError(f"{source}: the DOE distance must lie between the last surface and the sensor "
                          f"(0 <= d < {last:g} mm, the last thickness), got {distance!r}")
+    return distance
 
-    # ---- pitch
+
+def _doe_pitch(optics, data, doe_pitch: float | None, distance: float, fields, wavelengths, depth,
+               source: str) -> tuple[float, dict]:
+    """The DOE pixel pitch (mm) and the rule that chose it (``{"pitch_rule": ...}`` for ``doe_info``):
+    ``doe_pitch``, else the file's (``data``; a file DOE without one is an error), else
+    :func:`nyquist_doe_pitch` of ``optics`` (the image-space lens) at ``distance`` mm, else
+    :data:`DEFAULT_DOE_PITCH`. A ValueError unless finite and > 0."""
     if doe_pitch is not None:
         pitch = float(doe_pitch)
-        info["pitch_rule"] = "given"
-    elif from_file and data.pitch is not None:
+        rule = {"pitch_rule": "given"}
+    elif data is not None and data.pitch is not None:
         pitch = data.pitch
-        info["pitch_rule"] = "file"
-    elif from_file:
+        rule = {"pitch_rule": "file"}
+    elif data is not None:
         raise ValueError(f"{source}: the DOE has no pixel pitch (the file does not give one): pass doe_pitch "
                          "(raywave psf: --doe-pitch MM)")
     else:
         pitch = nyquist_doe_pitch(optics, distance, fields, wavelengths, depth)
-        info["pitch_rule"] = "nyquist" if pitch is not None else "default"
-        info["nyquist_fill"] = NYQUIST_FILL
+        rule = {"pitch_rule": "nyquist" if pitch is not None else "default", "nyquist_fill": NYQUIST_FILL}
         pitch = DEFAULT_DOE_PITCH if pitch is None else pitch
     if not (math.isfinite(pitch) and pitch > 0):
         raise ValueError(f"the DOE pitch must be > 0 mm, got {pitch!r}")
-    if doe_distance is None and not from_file:  # a beam too wide for the grid: move the default plane to focus
-        fitted = fit_doe_distance(lens, distance, pitch, fields, wavelengths, depth)
-        info["distance_rule"] = "half_way" if fitted == distance else "beam_fit"
-        distance = fitted
+    return pitch, rule
 
-    # ---- grid
-    if doe_size is not None:
-        size = tuple(float(s) for s in (doe_size if isinstance(doe_size, (list, tuple)) else (doe_size,)))
-        if len(size) == 1:
-            size = (size[0], size[0])
-        if len(size) != 2 or not all(math.isfinite(s) and s > 0 for s in size):
-            raise ValueError(f"the DOE size must be one or two lengths > 0 mm (width, height), got {doe_size!r}")
+
+def _size_arg(doe_size) -> tuple[float, float] | None:
+    """``doe_size`` (one length or one / two lengths, mm) as (width, height) mm; None when not given. A ValueError
+    unless every length is finite and > 0."""
+    if doe_size is None:
+        return None
+    size = tuple(float(s) for s in (doe_size if isinstance(doe_size, (list, tuple)) else (doe_size,)))
+    if len(size) == 1:
+        size = (size[0], size[0])
+    if len(size) != 2 or not all(math.isfinite(s) and s > 0 for s in size):
+        raise ValueError(f"the DOE size must be one or two lengths > 0 mm (width, height), got {doe_size!r}")
+    return size
+
+
+def _doe_shape(optics, data, pitch: float, doe_pitch: float | None, size, distance: float, fields, wavelengths,
+               depth, source: str) -> tuple[int, int]:
+    """The DOE grid ``(ny, nx)`` pixels of ``pitch`` mm: the file's phase map (``data``; a ``size`` (w, h) mm that
+    disagrees is an error), else ``size``, else the file's shape (unless a given ``doe_pitch`` rescales its size),
+    else its size, else (no DOE in the file) :func:`default_doe_size` of ``optics`` at ``distance`` mm, at
+    least :data:`_MIN_PIXELS` a side. A file DOE with neither is an error, as is an unloaded phase map."""
+    from_file = data is not None
     phase = data.phase if from_file else None
     if from_file and data.phase_path is not None and phase is None:
         raise ValueError(f"{source}: the DOE phase map {data.phase_path!r} was not loaded (resolve_doe(load=True))")
     if phase is not None:
         shape = tuple(phase.shape)
-        if doe_size is not None:
+        if size is not None:
             want = (shape[1] * pitch, shape[0] * pitch)
             if any(abs(s - w) > 0.5 * pitch for s, w in zip(size, want)):
                 raise ValueError(f"{source}: the DOE phase map ({shape[1]} × {shape[0]} pixels of {pitch:g} mm = "
                                  f"{want[0]:g} × {want[1]:g} mm) fixes the DOE size; a size of {size[0]:g} × "
                                  f"{size[1]:g} mm does not apply")
-    elif doe_size is not None:
+    elif size is not None:
         shape = (_pixels(size[1], pitch, source), _pixels(size[0], pitch, source))
     elif from_file and data.shape is not None and (data.size is None or doe_pitch is None):
         shape = data.shape
@@ -263,7 +264,15 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     else:
         w, h = default_doe_size(optics, distance, fields, wavelengths, depth)
         shape = (max(_pixels(h, pitch, source), _MIN_PIXELS), max(_pixels(w, pitch, source), _MIN_PIXELS))
+    return shape
 
+
+def _make_doe(data, shape: tuple[int, int], pitch: float, source: str):
+    """The DOE on the ``(ny, nx)`` grid of ``pitch`` mm: the file's phase map (``data``: its DOEData) as a
+    :class:`PixelDOE`, else its phase model, else blank; fabricated as the file says (material, levels, wrap).
+    ``data`` None: a blank square DOE. Non-finite phases are a :class:`LensFileError` naming ``source``."""
+    from_file = data is not None
+    phase = data.phase if from_file else None
     aperture = data.aperture if from_file else "square"
     model = data.phase_model if from_file else None
     material = data.material if from_file else None
@@ -289,13 +298,59 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         doe = BlankDOE(shape, pitch, aperture=aperture, design_wavelength=data.design_wavelength, material=material)
     else:
         doe = BlankDOE(shape, pitch, aperture=aperture)
-    q = int(oversample) if oversample is not None else (data.oversample if from_file else 1)
+    return doe
+
+
+def _doe_summary(data, doe, distance: float, pitch: float, oversample: int) -> dict:
+    """The DOE's entries of ``hl.doe_info``: distance and pitch (mm), grid, aperture, phase file or model,
+    oversampling and the fabrication settings (``data``: the file's DOEData, None: a default DOE)."""
+    from_file = data is not None
+    model = data.phase_model if from_file else None
+    return dict(distance=distance, pitch=pitch, shape=list(doe.shape), size=list(doe.size),
+                aperture=data.aperture if from_file else "square", phase=data.phase_path if from_file else None,
+                oversample=oversample, phase_model=None if model is None else model["type"],
+                material=doe.material_name, levels=doe.quant_levels, design_wavelength=doe.design_wavelength,
+                dispersion=doe.dispersion)
+
+
+def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, doe_size=None,
+                     doe_distance: float | None = None, sensor_pitch: float | None = None,
+                     oversample: int | None = None, fields=None, wavelengths=None, depth=None,
+                     field_type: str | None = None, source: str = "<spec>", stop_edge: str | None = None,
+                     edge_step: str | None = None) -> HybridLens:
+    """A :class:`HybridLens` from a lens spec and its resolved DOE (:func:`raywave.io.resolve_doe`, None: the
+    spec has no DOE, a blank one is made). See the module docstring for how the grid is chosen.
+
+    Args:
+        doe_pitch: DOE pixel pitch (mm), overriding the file's.
+        doe_size: (width, height) mm or one number (square), overriding the file's size / shape (blank DOEs).
+        doe_distance: mm from the last vertex to the DOE plane, overriding the file's.
+        sensor_pitch: PSF pixel pitch (mm); default the lens's sensor pixel pitch, else the DOE pitch.
+        oversample: simulation samples per DOE pixel per axis (default: the file's, else 1).
+        fields, wavelengths, depth: the sources the default DOE size must hold (see :func:`beam_half_extent`).
+        field_type: "angle" or "object_height": overrides the lens file's field type (how ``fields`` given to
+            the hybrid lens are read).
+    """
+    lens = _spec_lens(spec, field_type, source)
+    # a folded, decentred or mirrored lens is sized in its image-space frame (z along the light, like the engine)
+    optics = image_space(lens)
+    last = float(lens.surfaces[-1].thickness.detach()) * lens.direction_signs()[-1]
+    data = doe_data
+    info: dict = {"source": "file" if data is not None else "default"}
+    distance = _first_distance(data, doe_distance, last, source)
+    pitch, rule = _doe_pitch(optics, data, doe_pitch, distance, fields, wavelengths, depth, source)
+    info.update(rule)
+    if doe_distance is None and data is None:  # a beam too wide for the grid: move the default plane to focus
+        fitted = fit_doe_distance(lens, distance, pitch, fields, wavelengths, depth)
+        info["distance_rule"] = "half_way" if fitted == distance else "beam_fit"
+        distance = fitted
+    size = _size_arg(doe_size)
+    shape = _doe_shape(optics, data, pitch, doe_pitch, size, distance, fields, wavelengths, depth, source)
+    doe = _make_doe(data, shape, pitch, source)
+    q = int(oversample) if oversample is not None else (data.oversample if data is not None else 1)
     step = {} if edge_step is None else {"edge_step": edge_step}
     hl = HybridLens(lens, doe, distance, sensor_pitch=sensor_pitch, oversample=q, stop_edge=stop_edge, **step)
-    info.update(distance=distance, pitch=pitch, shape=list(doe.shape), size=list(doe.size), aperture=aperture,
-                phase=data.phase_path if from_file else None, oversample=q,
-                phase_model=None if model is None else model["type"], material=doe.material_name,
-                levels=doe.quant_levels, design_wavelength=doe.design_wavelength, dispersion=doe.dispersion)
+    info.update(_doe_summary(data, doe, distance, pitch, q))
     hl.doe_info = info
     return hl
 

@@ -230,76 +230,108 @@ def _write_image(img, path) -> None:
         iio.imwrite(p, np.round(enc * 255).astype(np.uint8))
 
 
-def cmd_render(args) -> int:
-    import torch
-
-    from raywave.imaging.color import ColorSpec
-    from raywave.imaging.psfmap import PSFMap
-    from raywave.imaging.render import render_map
-    from raywave.imaging.sensor import Sensor
-
+def _check_render_outputs(args) -> None:
+    """A :class:`CommandError` unless ``-o`` names an image file and ``--save-map`` (if given) an .npz."""
     if args.output is None:
         raise CommandError("-o: give the output image (e.g. -o out.png)")
     if Path(args.output).suffix.lower() not in IMAGE_OUTPUTS:
         raise CommandError(f"-o: write .png, .jpg, .tif or .bmp, got {args.output!r}")
     if args.save_map is not None and Path(args.save_map).suffix.lower() != ".npz":
         raise CommandError(f"--save-map: the PSF map is written as .npz, got {args.save_map!r}")
-    depth = _number(args.depth, "--depth", positive=True, allow_inf=True)
-    seed = _integer(args.seed, "--seed", minimum=0)
-    img = _read_image(args.image)
-    color = ColorSpec()
+
+
+def _render_wavelengths(args, color) -> list[float]:
+    """The wavelengths (µm) of the map to compute: ``--wavelengths`` (three, R G B), else the channel centres of
+    ``color`` (a ColorSpec), or all its wavelengths with ``--average``."""
     if args.wavelengths is not None:
         if len(args.wavelengths) != 3:
             raise CommandError(f"--wavelengths: give three wavelengths (R G B, µm), got {len(args.wavelengths)}")
         if args.average:
             raise CommandError("--wavelengths and --average exclude each other")
-        wls = [_wavelength(t, "--wavelengths") for t in args.wavelengths]
-    else:
-        wls = color.all_wavelengths().tolist() if args.average else color.centers().tolist()
+        return [_wavelength(t, "--wavelengths") for t in args.wavelengths]
+    return color.all_wavelengths().tolist() if args.average else color.centers().tolist()
+
+
+def _saved_map(args, depth: float, color):
+    """The PSF map read from ``--map`` (averaged per channel with ``--average`` when it holds 9 wavelengths) and
+    the index of its depth ``depth`` (mm, inf); a :class:`CommandError` when it cannot serve the render."""
+    from raywave.imaging.psfmap import PSFMap
+
+    try:
+        pmap = PSFMap.load(args.map)
+    except (OSError, KeyError, ValueError) as e:
+        raise CommandError(f"--map: cannot read {args.map!r} ({e})") from None
+    di = [i for i, d in enumerate(pmap.depths.tolist())
+          if d == depth or (math.isinf(d) and math.isinf(depth))]
+    if not di:
+        raise CommandError(f"--map: {args.map!r} has depths {pmap.depths.tolist()} mm, not --depth "
+                           f"{depth:g}")
+    if pmap.psf.shape[1] == 9 and args.average:
+        pmap = pmap.channel_average(color)
+    if pmap.psf.shape[1] != 3:
+        raise CommandError(f"--map: {args.map!r} has {pmap.psf.shape[1]} wavelengths; the render needs 3 "
+                           "(one per colour channel) or the 9 of --average")
+    return pmap, di[0]
+
+
+def _computed_map(args, depth: float, wls, color):
+    """The PSF map of the lens at the one depth ``depth`` (mm, inf) and wavelengths ``wls`` (µm), averaged per
+    channel with ``--average`` and written to ``--save-map`` if given, and its depth index (0)."""
+    a = parse_lens_args(args)
+    grid = _grid(args.grid, default=(5, 5))
+    _, pmap = _compute_map(a, grid, [depth], wls, args.progress)
+    if args.average:
+        pmap = pmap.channel_average(color)
+    if args.save_map is not None:
+        pmap.save(args.save_map)
+    return pmap, 0
+
+
+def _render_image(img, pmap, d_index: int, noise: bool, seed: int):
+    """The image ``img`` (3, H, W) linear rendered through ``pmap`` at its depth ``d_index`` (3, H, W), with
+    Poisson–Gaussian sensor noise (generator seeded ``seed``) if ``noise``; warns (UserWarning) when the image's
+    aspect ratio is not the sensor's. Returns (image, sensor width mm, sensor height mm)."""
+    import torch
+
+    from raywave.imaging.render import render_map
+    from raywave.imaging.sensor import Sensor
+
+    h, w = img.shape[-2:]
+    if pmap.sensor_size is None:
+        raise CommandError("--map: the PSF map has no sensor size (write it with raywave psfmap)")
+    sw, sh = pmap.sensor_size
+    if abs((w / h) / (sw / sh) - 1) > 0.01:
+        warnings.warn(f"the image's aspect ratio {w / h:.3g} differs from the sensor's {sw / sh:.3g}: it is "
+                      "stretched over the whole sensor", UserWarning)
+    with torch.no_grad():
+        out = render_map(img[None], pmap, d_index)[0]
+        if noise:
+            gen = torch.Generator().manual_seed(seed)
+            out = Sensor(noise="poisson")(out, generator=gen)
+    return out, sw, sh
+
+
+def cmd_render(args) -> int:
+    from raywave.imaging.color import ColorSpec
+
+    _check_render_outputs(args)
+    depth = _number(args.depth, "--depth", positive=True, allow_inf=True)
+    seed = _integer(args.seed, "--seed", minimum=0)
+    img = _read_image(args.image)
+    color = ColorSpec()
+    wls = _render_wavelengths(args, color)
+    lens_name = str(args.lens)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         # an error exit prints only the error (one line; its warnings would repeat it)
         if args.map is not None:
-            try:
-                pmap = PSFMap.load(args.map)
-            except (OSError, KeyError, ValueError) as e:
-                raise CommandError(f"--map: cannot read {args.map!r} ({e})") from None
-            lens_name = str(args.lens)
-            di = [i for i, d in enumerate(pmap.depths.tolist())
-                  if d == depth or (math.isinf(d) and math.isinf(depth))]
-            if not di:
-                raise CommandError(f"--map: {args.map!r} has depths {pmap.depths.tolist()} mm, not --depth "
-                                   f"{depth:g}")
-            if pmap.psf.shape[1] == 9 and args.average:
-                pmap = pmap.channel_average(color)
-            if pmap.psf.shape[1] != 3:
-                raise CommandError(f"--map: {args.map!r} has {pmap.psf.shape[1]} wavelengths; the render needs 3 "
-                                   "(one per colour channel) or the 9 of --average")
-            d_index = di[0]
+            pmap, d_index = _saved_map(args, depth, color)
         else:
-            a = parse_lens_args(args)
-            grid = _grid(args.grid, default=(5, 5))
-            lens_name = str(args.lens)
-            _, pmap = _compute_map(a, grid, [depth], wls, args.progress)
-            if args.average:
-                pmap = pmap.channel_average(color)
-            d_index = 0
-            if args.save_map is not None:
-                pmap.save(args.save_map)
-        h, w = img.shape[-2:]
-        if pmap.sensor_size is None:
-            raise CommandError("--map: the PSF map has no sensor size (write it with raywave psfmap)")
-        sw, sh = pmap.sensor_size
-        if abs((w / h) / (sw / sh) - 1) > 0.01:
-            warnings.warn(f"the image's aspect ratio {w / h:.3g} differs from the sensor's {sw / sh:.3g}: it is "
-                          "stretched over the whole sensor", UserWarning)
-        with torch.no_grad():
-            out = render_map(img[None], pmap, d_index)[0]
-            if args.noise:
-                gen = torch.Generator().manual_seed(seed)
-                out = Sensor(noise="poisson")(out, generator=gen)
+            pmap, d_index = _computed_map(args, depth, wls, color)
+        out, sw, sh = _render_image(img, pmap, d_index, args.noise, seed)
         report_warnings(caught)
     _write_image(out, args.output)
+    h, w = img.shape[-2:]
     s = {**_map_summary(pmap, lens_name), "image": str(args.image), "image_size": [int(w), int(h)],
          "image_pitch_mm": [sw / w, sh / h], "depth_mm": "inf" if math.isinf(depth) else depth,
          "average": bool(args.average), "noise": bool(args.noise), "output": args.output}

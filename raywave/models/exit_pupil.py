@@ -46,6 +46,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -176,6 +177,135 @@ def _check_sampling(opl, d, use, wl_mm: float, n: float, crop: float) -> None:
                       "raise n_pupil", RuntimeWarning, stacklevel=3)
 
 
+class _Sphere(NamedTuple):
+    """The reference sphere: ``center`` (3,) mm, the chief ray's sensor intercept C; ``chief_dir`` (3,) the chief
+    ray's direction cosines; ``radius`` R (mm); ``side`` ±1, the side of the sensor it lies on (the exit
+    pupil's); ``opl_ref`` the chief ray's OPL (mm) at the sphere."""
+
+    center: torch.Tensor
+    chief_dir: torch.Tensor
+    radius: float
+    side: float
+    opl_ref: float
+
+
+def _reference_sphere(lens, field, wl: float, depth, z_s: float, n_img: float) -> _Sphere:
+    """The reference sphere of ``field`` at ``wl`` µm: centred on the chief ray's intercept C with the sensor plane
+    z_s (mm), through the point E where it crosses the paraxial exit-pupil plane (image index ``n_img``).
+    A ValueError when the chief ray is vignetted or the exit pupil gives no sphere."""
+    ch = lens.trace_to_image(chief_ray(lens, field, wl, depth=depth), z=z_s)
+    if not bool(ch.valid.all()) and any(s.aperture is not None and s.aperture.obscuration is not None
+                                        for s in lens.surfaces):
+        ch = _chief_past_obscurations(lens, chief_ray(lens, field, wl, depth=depth), z_s, n_img)
+    if not bool(ch.valid.all()):
+        raise ValueError(f"the chief ray of field {field} is vignetted; no reference sphere")
+    cen, d_ch, opl_ch = ch.o.reshape(3), ch.d.reshape(3), float(ch.opl.reshape(()))
+    xp_z = float(paraxial.exit_pupil(lens, wl)[0])
+    if not math.isfinite(xp_z) or xp_z == z_s:
+        raise ValueError(f"the paraxial exit pupil (z = {xp_z}) gives no reference sphere")
+    radius = abs((xp_z - z_s) / float(d_ch[2]))
+    side = math.copysign(1.0, xp_z - z_s)  # the sphere lies on the exit-pupil side of the sensor
+    return _Sphere(cen, d_ch, radius, side, opl_ch + n_img * side * radius)
+
+
+def _vignetting(lens, rec, valid: torch.Tensor) -> torch.Tensor:
+    """Which traced rays (mask shaped like ``valid``) pass every aperture except the stop's clear edge (the
+    pupil cells' coverage holds that one), ``rec`` the trace's record of surface points."""
+    vig = torch.ones_like(valid)
+    for i, s in enumerate(lens.surfaces):
+        if s.aperture is not None and i != lens.stop_index:
+            vig = vig & s.aperture.contains(rec.points[i + 1][0], rec.points[i + 1][1])
+        elif s.aperture is not None and s.aperture.obscuration is not None:  # `cover` has the stop's clear edge
+            vig = vig & ~s.aperture.obscuration.blocks(rec.points[i + 1][0], rec.points[i + 1][1])
+    return vig
+
+
+def _trace_pupil(lens, field, wl: float, depth, n_pupil: int, z_s: float, n_img: float):
+    """Trace the pupil grid: every cell that touches the stop plus one ring for the finite differences.
+
+    Returns (rays at the source, the traced rays on the sensor plane z_s mm, their vignetting mask, the stop
+    coverage (n_pupil, n_pupil) of each cell, the (n_pupil, n_pupil) mask of the traced cells)."""
+    px, py, cover = _stop_coverage(lens, n_pupil, torch.float64, lens.device)
+    h = 2.0 / n_pupil
+    traced = torch.hypot(px, py) <= 1 + 1.5 * math.sqrt(2) * h
+    if float(cover.min()) == 1.0:
+        traced = torch.ones_like(traced)
+    rays = point_source_rays(lens, field, wl, pupil=(px[traced], py[traced]), aim="full", depth=depth)
+    out, rec = lens.trace(rays, record=True, apertures=False)
+    vig = _vignetting(lens, rec, out.valid)
+    return rays, out.propagate_to_z(z_s, n_img), vig, cover, traced
+
+
+def _onto_sphere(out, sph: _Sphere, n_img: float):
+    """Carry the rays ``out`` (on the sensor plane) straight to the reference sphere (forwards or backwards).
+    Returns their points (…, 3) mm, OPL (…) mm relative to the chief ray's and the mask of those that meet it."""
+    w = out.o - sph.center
+    b = (w * out.d).sum(-1)
+    disc = b * b - ((w * w).sum(-1) - sph.radius * sph.radius)
+    t = -b + sph.side * torch.sqrt(disc.clamp_min(0))
+    q = out.o + t[..., None] * out.d
+    opl = out.opl + n_img * t - sph.opl_ref
+    return q, opl, out.valid & (disc >= 0)
+
+
+def _to_grid(v: torch.Tensor, traced: torch.Tensor, fill=0.0) -> torch.Tensor:
+    """Per-ray values ``v`` (1, 1, N, …) of the traced cells back onto the pupil grid (n, n, …), ``fill``
+    elsewhere (``traced``: the (n, n) mask of the N traced cells)."""
+    g = torch.full(traced.shape + v.shape[3:], fill, dtype=v.dtype, device=traced.device)
+    g[traced] = v.reshape((-1,) + v.shape[3:])
+    return g
+
+
+def _cell_powers(lens, rays, depth, q: torch.Tensor, geom: torch.Tensor, vig: torch.Tensor, cover: torch.Tensor,
+                 traced: torch.Tensor):
+    """Power dP (n, n) of each pupil cell (source weight × entrance-plane area × stop coverage, arbitrary units),
+    its area dS (n, n) mm² on the sphere (× coverage) and the mask (n, n) of the cells that carry light.
+    ``q``, ``geom``: the rays' sphere points and sphere mask (:func:`_onto_sphere`); ``vig``: their vignetting."""
+    # Entrance-plane crossings (power per cell) and everything else back onto the (n, n) grid.
+    ep = rays.o + rays.d * ((entrance_plane_z(lens) - rays.o[..., 2]) / rays.d[..., 2])[..., None]
+    ep = torch.cat([ep[..., :2], torch.zeros_like(ep[..., :1])], -1)
+    ok = _to_grid(geom, traced, False)
+    ds, ok_s = _cell_area(_to_grid(q, traced), ok)
+    da, ok_a = _cell_area(_to_grid(ep, traced), ok)
+    # A partly covered cell keeps the irradiance of a full one on a fraction `cover` of its area.
+    dp = _to_grid(source_weight(lens, rays, depth), traced) * da * cover
+    ds = ds * cover
+    use = ok_s & ok_a & _to_grid(vig, traced, False) & (cover > 0) & (dp > 0)
+    return dp, ds, use
+
+
+def _nodes_per_pixel(oversample: int | None, d: torch.Tensor | None, d_chief: torch.Tensor, n_img: float, wl: float,
+                     pitch: float) -> int:
+    """Samples per pixel and axis: ``oversample``, or (None) :func:`auto_oversample` from the NA of the ray
+    directions ``d`` (N, 3) (needed only then) about the chief ray's ``d_chief`` (3,) (``wl`` µm, ``pitch`` mm).
+    A ValueError below 1."""
+    if oversample is None:
+        na = n_img * float(torch.linalg.vector_norm(d[:, :2] - d_chief[:2], dim=-1).max())
+        oversample = auto_oversample(na, wl, pitch)
+    oversample = int(oversample)
+    if oversample < 1:
+        raise ValueError(f"oversample must be >= 1 (or None: automatic), got {oversample}")
+    return oversample
+
+
+def _sensor_power(q, opl, amp, sph: _Sphere, center, ks: int, pitch: float, nodes: int, gauss: bool, wl: float,
+                  n_img: float, obliquity: bool) -> torch.Tensor:
+    """Power (ks, ks) float64 of each sensor pixel (``pitch`` mm, pixel [ks//2, ks//2] centred at ``center``
+    (x, y) mm): the Huygens sum of the sphere samples (``q`` (N, 3) mm relative to C, ``opl`` (N,) mm, ``amp``
+    (N,) = sqrt(dP dS)) at ``nodes`` points per pixel and axis (Gauss–Legendre or midpoint), integrated."""
+    dtype, device = torch.float64, amp.device
+    cen = sph.center
+    off, wq = _pixel_nodes(ks, pitch, nodes, gauss)
+    off = torch.as_tensor(off, dtype=dtype, device=device)
+    gy, gx = torch.meshgrid(off + (center[1] - float(cen[1])), off + (center[0] - float(cen[0])), indexing="ij")
+    pxy = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
+    u = _huygens_sum(pxy, q, opl, amp, sph.radius, 2 * math.pi / (wl * 1e-3), n_img, obliquity)
+    u = u * (n_img / (wl * 1e-3))
+    wq = wq.to(dtype=dtype, device=device)
+    irr = u.abs().square().reshape(ks, nodes, ks, nodes)
+    return (irr * wq[None, :, None, None] * wq[None, None, None, :]).sum((1, 3)) * pitch * pitch
+
+
 def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: float | None = None, center=None,
                 n_pupil: int = 256, depth: float | None = None, sensor_z: float | None = None,
                 oversample: int | None = None, obliquity: bool = False) -> HuygensPSF:
@@ -194,99 +324,34 @@ def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: fl
             changes the PSF by ~1e-7 in L1).
     Returns: :class:`HuygensPSF` (float64 psf (ks, ks) summing to 1, centre, sensor z, energy fraction).
     """
-    dtype, device = torch.float64, lens.device
+    dtype = torch.float64
     wl = float(lens.primary_wavelength if wavelength is None else wavelength)
     if pitch is None:
         pitch = lens.pixel_pitch or 1e-3
     with torch.no_grad():
         z_s = float(lens.image_z() if sensor_z is None else sensor_z)
         n_img = float(lens.surfaces[-1].material.n(torch.tensor(wl, dtype=dtype)))
-        k0 = 2 * math.pi / (wl * 1e-3)
-
-        # Reference sphere: centre C on the sensor (chief ray), through the chief ray's exit-pupil point E.
-        ch = lens.trace_to_image(chief_ray(lens, field, wl, depth=depth), z=z_s)
-        if not bool(ch.valid.all()) and any(s.aperture is not None and s.aperture.obscuration is not None
-                                            for s in lens.surfaces):
-            ch = _chief_past_obscurations(lens, chief_ray(lens, field, wl, depth=depth), z_s, n_img)
-        if not bool(ch.valid.all()):
-            raise ValueError(f"the chief ray of field {field} is vignetted; no reference sphere")
-        cen, d_ch, opl_ch = ch.o.reshape(3), ch.d.reshape(3), float(ch.opl.reshape(()))
-        xp_z = float(paraxial.exit_pupil(lens, wl)[0])
-        if not math.isfinite(xp_z) or xp_z == z_s:
-            raise ValueError(f"the paraxial exit pupil (z = {xp_z}) gives no reference sphere")
-        radius = abs((xp_z - z_s) / float(d_ch[2]))
-        side = math.copysign(1.0, xp_z - z_s)  # the sphere lies on the exit-pupil side of the sensor
-        opl_ref = opl_ch + n_img * side * radius
-
-        # Pupil grid: trace every cell that touches the stop plus one ring for the finite differences.
-        px, py, cover = _stop_coverage(lens, n_pupil, dtype, device)
-        h = 2.0 / n_pupil
-        traced = torch.hypot(px, py) <= 1 + 1.5 * math.sqrt(2) * h
-        if float(cover.min()) == 1.0:
-            traced = torch.ones_like(traced)
-        rays = point_source_rays(lens, field, wl, pupil=(px[traced], py[traced]), aim="full", depth=depth)
-        out, rec = lens.trace(rays, record=True, apertures=False)
-        vig = torch.ones_like(out.valid)
-        for i, s in enumerate(lens.surfaces):
-            if s.aperture is not None and i != lens.stop_index:
-                vig = vig & s.aperture.contains(rec.points[i + 1][0], rec.points[i + 1][1])
-            elif s.aperture is not None and s.aperture.obscuration is not None:  # `cover` has the stop's clear edge
-                vig = vig & ~s.aperture.obscuration.blocks(rec.points[i + 1][0], rec.points[i + 1][1])
-        out = out.propagate_to_z(z_s, n_img)
-        w = out.o - cen
-        b = (w * out.d).sum(-1)
-        disc = b * b - ((w * w).sum(-1) - radius * radius)
-        t = -b + side * torch.sqrt(disc.clamp_min(0))
-        q = out.o + t[..., None] * out.d
-        opl = out.opl + n_img * t - opl_ref
-        geom = out.valid & (disc >= 0)
-
-        # Entrance-plane crossings (power per cell) and everything else back onto the (n, n) grid.
-        ep = rays.o + rays.d * ((entrance_plane_z(lens) - rays.o[..., 2]) / rays.d[..., 2])[..., None]
-        ep = torch.cat([ep[..., :2], torch.zeros_like(ep[..., :1])], -1)
-
-        def grid(v, fill=0.0):
-            g = torch.full(px.shape + v.shape[3:], fill, dtype=v.dtype, device=device)
-            g[traced] = v.reshape((-1,) + v.shape[3:])
-            return g
-
-        ok = grid(geom, False)
-        ds, ok_s = _cell_area(grid(q), ok)
-        da, ok_a = _cell_area(grid(ep), ok)
-        # A partly covered cell keeps the irradiance of a full one on a fraction `cover` of its area.
-        dp = grid(source_weight(lens, rays, depth)) * da * cover
-        ds = ds * cover
-        use = ok_s & ok_a & grid(vig, False) & (cover > 0) & (dp > 0)
+        sph = _reference_sphere(lens, field, wl, depth, z_s, n_img)
+        rays, out, vig, cover, traced = _trace_pupil(lens, field, wl, depth, n_pupil, z_s, n_img)
+        q, opl, geom = _onto_sphere(out, sph, n_img)
+        dp, ds, use = _cell_powers(lens, rays, depth, q, geom, vig, cover, traced)
         amp = torch.sqrt(dp * ds)[use]
         if amp.numel() == 0:
             raise ValueError(f"field {field} at {wl} µm: every ray is vignetted")
-        _check_sampling(grid(opl), grid(out.d), use, wl * 1e-3, n_img, ks * pitch)
-        q, opl, dz = (grid(q) - cen)[use], grid(opl)[use], grid(out.d[..., 2])[use]
-
+        _check_sampling(_to_grid(opl, traced), _to_grid(out.d, traced), use, wl * 1e-3, n_img, ks * pitch)
+        q, opl = (_to_grid(q, traced) - sph.center)[use], _to_grid(opl, traced)[use]
+        dz = _to_grid(out.d[..., 2], traced)[use]
         # Sensor samples relative to C (the sensor plane contains C, so their z offset is 0).
+        cen = sph.center
         if center is None:
             center = (float(cen[0]), float(cen[1]))
-        gauss = oversample is None
-        if gauss:
-            d_use = grid(out.d)[use]
-            na = n_img * float(torch.linalg.vector_norm(d_use[:, :2] - d_ch[:2], dim=-1).max())
-            oversample = auto_oversample(na, wl, pitch)
-        oversample = int(oversample)
-        if oversample < 1:
-            raise ValueError(f"oversample must be >= 1 (or None: automatic), got {oversample}")
-        off, wq = _pixel_nodes(ks, pitch, oversample, gauss)
-        off = torch.as_tensor(off, dtype=dtype, device=device)
-        gy, gx = torch.meshgrid(off + (center[1] - float(cen[1])), off + (center[0] - float(cen[0])), indexing="ij")
-        pxy = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
-        u = _huygens_sum(pxy, q, opl, amp, radius, k0, n_img, obliquity)
-        u = u * (n_img / (wl * 1e-3))
-        wq = wq.to(dtype=dtype, device=device)
-        irr = u.abs().square().reshape(ks, oversample, ks, oversample)
-        power = (irr * wq[None, :, None, None] * wq[None, None, None, :]).sum((1, 3)) * pitch * pitch
+        d_use = _to_grid(out.d, traced)[use] if oversample is None else None  # only the automatic count needs it
+        nodes = _nodes_per_pixel(oversample, d_use, sph.chief_dir, n_img, wl, pitch)
+        power = _sensor_power(q, opl, amp, sph, center, ks, pitch, nodes, oversample is None, wl, n_img, obliquity)
         total = float(power.sum())
         plane_total = float((amp.square() / ds[use] / dz.abs()).sum())  # Σ dP / cos γ
     return HuygensPSF(power / total, (float(center[0]), float(center[1])), z_s, float(pitch), total / plane_total,
-                      tuple(float(v) for v in cen), radius, int(amp.numel()))
+                      tuple(float(v) for v in cen), sph.radius, int(amp.numel()))
 
 
 def _huygens_sum(p: torch.Tensor, q: torch.Tensor, opl: torch.Tensor, amp: torch.Tensor, radius: float,
