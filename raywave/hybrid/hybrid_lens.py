@@ -450,7 +450,7 @@ class HybridLens(nn.Module):
         full_grid = fd.full_grid
         # full-grid path: the crop's derivative goes through the pixel overlaps (piecewise-constant model)
         integrate_origin = crop_origin if full_grid else psf_origin
-        phase = self.doe.phase(fd.wavelength, fd.grid, self.oversample)
+        phase = self.doe.phase(fd.wavelength, fd.window, self.oversample)  # the box is known: no Grid.locate
         u = fd.envelope * torch.polar(torch.ones_like(phase), phase)
         with torch.no_grad():  # a diagnostic (energy outside the crop); the DOE's phase does not change it
             power = torch.view_as_real(fd.envelope).square().sum() * p * p

@@ -15,7 +15,7 @@ import warnings
 
 import torch
 
-from raywave.lens.sources import point_source_rays
+from raywave.lens.sources import VignettingWarning, point_source_rays
 
 __all__ = ["ray_phase_error"]
 
@@ -37,7 +37,9 @@ def ray_phase_error(lens, z_doe: float, field=(0.0, 0.0), wavelength=None, n: in
     out = {}
     for dt in (torch.float64, dtype):
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+            # the square pupil grid's corners are cut by the stop on purpose (``keep``/``valid`` drop them); any
+            # other warning (a wavelength outside a glass's range, ...) reaches the user
+            warnings.simplefilter("ignore", VignettingWarning)
             rays = point_source_rays(lens, field, wl, pupil=(px, py), aim="chief", depth=depth, dtype=dt)
             res = lens.trace(rays)
             nn_ = lens.surfaces[-1].material.n(res.wavelength).to(dt)

@@ -100,11 +100,12 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
                             "accurate").with_info(stop_edge="exit_pupil")
     dz = z_doe - z_xp
     margin = ripple_zones * math.sqrt(wavelength * 1e-3 * abs(dz) / n) + 4 * p
-    box = lit_box(doe.sim_grid(oversample), bbox, margin)
+    sim = doe.sim_grid(oversample)
+    box = lit_box(sim, bbox, margin)
     if box is None:
         return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays,
                             "accurate").with_info(stop_edge="exit_pupil")
-    grid = doe.sim_grid(oversample).window(*box)
+    grid = sim.window(*box)
     check_window_memory(*grid.shape, p, lens.device)
     u = propagate_window(fx.envelope, p, wavelength, dz, fx.origin, grid.origin, grid.shape, n=n, carrier=carrier)
     u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)

@@ -57,6 +57,7 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     ref = opl.detach().min()
     phase = (k * (opl - ref)).to(torch.float64)  # formed in the tracing precision
     xy, dvec = xy.to(torch.float64), dvec.to(torch.float64)
+    sim = doe.sim_grid(oversample)
     if full_grid:
         box = (0, sy, 0, sx)
         carrier = (0.0, 0.0)
@@ -67,9 +68,9 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
         phase = phase - k * n * (alpha * xy[:, 0] + beta * xy[:, 1])
         xs = xy.detach()
         bbox = (float(xs[:, 0].min()), float(xs[:, 0].max()), float(xs[:, 1].min()), float(xs[:, 1].max()))
-        box = lit_box(doe.sim_grid(oversample), bbox, 2 * p)  # valid rays lie inside the DOE: never None
+        box = lit_box(sim, bbox, 2 * p)  # valid rays lie inside the DOE: never None
         carrier = (alpha, beta)
-    grid = doe.sim_grid(oversample).window(*box)
+    grid = sim.window(*box)
     check_window_memory(grid.shape[0] * (2 if full_grid else 1), grid.shape[1] * (2 if full_grid else 1), p, dev)
     u = splat_bilinear(xy[:, 0], xy[:, 1], torch.polar(dvec[:, 2], phase), grid.origin, p, grid.shape)
     if check:
