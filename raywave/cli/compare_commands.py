@@ -171,9 +171,56 @@ def format_table(rows, reference: str) -> str:
     return "\n".join(lines)
 
 
-def cmd_compare(args) -> int:
-    from raywave.cli.psf_commands import fabricate_doe, parse_psf_args
+def _compare_lens(args, a: dict, fields):
+    """The hybrid lens of ``raywave compare`` (angle fields): the lens file with ``fields`` (degrees) and the
+    on-axis field, its DOE replaced by ``--doe`` and fabricated with ``--doe-levels`` etc. where given."""
+    from raywave.cli.psf_commands import fabricate_doe
     from raywave.assembly.build import load_hybrid
+
+    wl_list = None if a["wavelength"] is None else [a["wavelength"]]
+    hl = load_hybrid(a["path"], a["doe_pitch"], a["doe_size"], a["doe_distance"],
+                     sensor_pitch=a["sensor_pitch"], oversample=a["oversample"],
+                     fields=[list(f) for f in fields] + [[0.0, 0.0]], wavelengths=wl_list, depth=a["depth"],
+                     field_type="angle", stop_edge=a["stop_edge"], edge_step=a["edge_step"])
+    if args.doe is not None:
+        from raywave.cli.doe_commands import load_doe
+
+        doe, _ = load_doe(args.doe, a["doe_pitch"])
+        hl = hl.with_doe(doe, sensor_pitch=a["sensor_pitch"] or hl.sensor_pitch)
+        hl.doe_info = {"source": str(args.doe)}
+    if a["doe_levels"] is not None or a["doe_wavelength"] is not None or a["doe_material"] is not None:
+        if not hasattr(hl, "doe_info"):
+            hl.doe_info = {}
+        fabricate_doe(hl, a["doe_levels"], a["doe_wavelength"], a["doe_material"])
+    if hl.lens.field_type != "angle":
+        raise CommandError("compare: the lens's fields are object heights; compare takes field angles")
+    return hl
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    """The comparison rows as ``path`` (CSV, one column per row key)."""
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def _plot_compare(path: Path, results: dict, models, fields, pitch: float, title: str, log: bool) -> None:
+    """The PSF grid (rows: models, columns: fields in degrees; ``pitch`` the sensor pitch, mm) as ``path``."""
+    from raywave.plotting.psf import plot_psf_grid
+
+    grid = [[results[m].psf[i, 0].detach() for i in range(len(fields))] for m in models]
+    col_labels = [f"({f[0]:g}, {f[1]:g})°" for f in fields]
+    import matplotlib.pyplot as plt
+
+    fig = plot_psf_grid(grid, pitch, models, col_labels, path, log=log, title=title)
+    plt.close(fig)
+
+
+def cmd_compare(args) -> int:
+    """``raywave compare``: the lens through every model, then compare.csv, compare.json, compare.png and the
+    table (or the JSON report) on stdout."""
+    from raywave.cli.psf_commands import parse_psf_args
 
     args.field, args.output, args.png, args.rays = None, None, None, None  # not options of compare
     a = parse_psf_args(args)  # the lens and DOE options shared with `raywave psf`
@@ -183,23 +230,7 @@ def cmd_compare(args) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         # an error exit prints only the error (one line; its warnings would repeat it)
-        wl_list = None if a["wavelength"] is None else [a["wavelength"]]
-        hl = load_hybrid(a["path"], a["doe_pitch"], a["doe_size"], a["doe_distance"],
-                         sensor_pitch=a["sensor_pitch"], oversample=a["oversample"],
-                         fields=[list(f) for f in fields] + [[0.0, 0.0]], wavelengths=wl_list, depth=a["depth"],
-                         field_type="angle", stop_edge=a["stop_edge"], edge_step=a["edge_step"])
-        if args.doe is not None:
-            from raywave.cli.doe_commands import load_doe
-
-            doe, _ = load_doe(args.doe, a["doe_pitch"])
-            hl = hl.with_doe(doe, sensor_pitch=a["sensor_pitch"] or hl.sensor_pitch)
-            hl.doe_info = {"source": str(args.doe)}
-        if a["doe_levels"] is not None or a["doe_wavelength"] is not None or a["doe_material"] is not None:
-            if not hasattr(hl, "doe_info"):
-                hl.doe_info = {}
-            fabricate_doe(hl, a["doe_levels"], a["doe_wavelength"], a["doe_material"])
-        if hl.lens.field_type != "angle":
-            raise CommandError("compare: the lens's fields are object heights; compare takes field angles")
+        hl = _compare_lens(args, a, fields)
         models, notes = parse_models(args.models, _is_blank(hl.doe))
         reference = args.reference.strip().lower()
         if reference not in models:
@@ -209,26 +240,14 @@ def cmd_compare(args) -> int:
         report_warnings(caught)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = table["rows"]
-    with open(out_dir / "compare.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()))
-        w.writeheader()
-        w.writerows(rows)
+    _write_csv(out_dir / "compare.csv", rows)
     depth = hl.lens.object_distance if a["depth"] is None else a["depth"]
     report = {"lens": str(args.lens), "doe": args.doe, "wavelength_um": wl,
               "depth_mm": "inf" if math.isinf(depth) else depth, "ks": ks, "pitch_mm": hl.sensor_pitch,
               "models": models, "reference": reference, "notes": notes, "rows": rows, "pairs": table["pairs"]}
     (out_dir / "compare.json").write_text(json_dumps(report, indent=1))
-    from raywave.plotting.psf import plot_psf_grid
-
-    res = table["results"]
-    grid = [[res[m].psf[i, 0].detach() for i in range(len(fields))] for m in models]
-    col_labels = [f"({f[0]:g}, {f[1]:g})°" for f in fields]
     title = f"{Path(str(args.lens)).stem}: {wl:g} µm, depth {report['depth_mm']} mm (rows: models, columns: fields)"
-    import matplotlib.pyplot as plt
-
-    fig = plot_psf_grid(grid, hl.sensor_pitch, models, col_labels, out_dir / "compare.png", log=not args.linear,
-                        title=title)
-    plt.close(fig)
+    _plot_compare(out_dir / "compare.png", table["results"], models, fields, hl.sensor_pitch, title, not args.linear)
     if args.json:
         print(json_dumps(report))
     else:

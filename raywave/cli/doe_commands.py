@@ -174,6 +174,17 @@ def _fabrication_args(args):
     return L, w, pitch
 
 
+def _check_material(name) -> None:
+    """``--material``: nothing when not given, else a :class:`CommandError` unless ``name`` is a known material."""
+    from raywave.materials import GlassNotFoundError, get_material
+
+    if name is not None:
+        try:
+            get_material(name)
+        except GlassNotFoundError as e:
+            raise CommandError(f"--material: {' '.join(str(e).split())}") from None
+
+
 def cmd_export(args) -> int:
     from raywave.doe.fabrication import MASK_FORMATS
 
@@ -182,13 +193,7 @@ def cmd_export(args) -> int:
     fmt = args.format.lower()
     if fmt not in MASK_FORMATS:
         raise CommandError(f"--format: gds or oas, got {args.format!r}")
-    from raywave.materials import GlassNotFoundError, get_material
-
-    if args.material is not None:
-        try:
-            get_material(args.material)
-        except GlassNotFoundError as e:
-            raise CommandError(f"--material: {' '.join(str(e).split())}") from None
+    _check_material(args.material)
     doe, info = load_doe(args.doe, pitch, DEFAULT_WAVELENGTH if w is None else w)
     # defaults: the DOE's own design wavelength and material (a lens file's DOE), else 0.55 µm, fused silica
     if w is None:
@@ -302,10 +307,23 @@ def format_report(r: dict) -> str:
     return "\n".join(lines)
 
 
-def cmd_report(args) -> int:
+def _report_wavelengths(args) -> list[float] | None:
+    """``--wavelengths`` (µm), checked, or None when not given."""
+    if not args.wavelengths:
+        return None
+    wls = [_number(v, "--wavelengths") for v in args.wavelengths]
+    bad = [v for v in wls if v > _MAX_WAVELENGTH_UM]
+    if bad:
+        raise CommandError(f"--wavelengths: {bad[0]:g} µm is not a plausible wavelength (µm, not nm)")
+    return wls
+
+
+def _report_options(args) -> dict:
+    """The Monte Carlo options of ``doe report``, checked in this order: ``depth_error`` (percent),
+    ``misalignment`` (DOE pixels, or µm with the suffix um: then ``mis_um`` is True), ``samples``, ``seed``,
+    ``--distribution``, ``wls`` (µm or None), ``orders``, ``ks`` (sensor pixels), ``oversample``, ``field`` (deg)."""
     from raywave.doe.tolerance import DISTRIBUTIONS
 
-    L, w, pitch = _fabrication_args(args)
     depth_error = number_arg(args.depth_error, "--depth-error", nonneg=True)
     mis_text = str(args.misalignment).strip()
     mis_um = mis_text.lower().endswith(("um", "µm"))
@@ -317,12 +335,7 @@ def cmd_report(args) -> int:
         raise CommandError(f"--seed: {args.seed!r} is not an integer") from None
     if args.distribution not in DISTRIBUTIONS:
         raise CommandError(f"--distribution: one of {', '.join(DISTRIBUTIONS)}, got {args.distribution!r}")
-    wls = None
-    if args.wavelengths:
-        wls = [_number(v, "--wavelengths") for v in args.wavelengths]
-        bad = [v for v in wls if v > _MAX_WAVELENGTH_UM]
-        if bad:
-            raise CommandError(f"--wavelengths: {bad[0]:g} µm is not a plausible wavelength (µm, not nm)")
+    wls = _report_wavelengths(args)
     try:
         orders = [int(v) for v in args.orders]
     except ValueError:
@@ -330,37 +343,46 @@ def cmd_report(args) -> int:
     ks = integer_arg(args.ks, "--ks", 1)
     oversample = integer_arg(args.oversample, "--oversample", 1)
     field = number_arg(args.field, "--field")
-    from raywave.materials import GlassNotFoundError, get_material
+    return {"depth_error": depth_error, "misalignment": misalignment, "mis_um": mis_um, "samples": samples,
+            "seed": seed, "wls": wls, "orders": orders, "ks": ks, "oversample": oversample, "field": field}
 
-    if args.material is not None:
-        try:
-            get_material(args.material)
-        except GlassNotFoundError as e:
-            raise CommandError(f"--material: {' '.join(str(e).split())}") from None
+
+def _report_lens(source: str):
+    """The hybrid lens of ``--lens`` (a lens file or bundled name; angle fields) for the PSF statistics."""
+    from raywave.assembly.build import load_hybrid
+    from raywave.lens.build import resolve_lens_path
+
+    try:
+        lens_path = resolve_lens_path(source)
+    except FileNotFoundError:
+        raise CommandError(f"--lens: lens file {source!r} not found") from None
+    return load_hybrid(lens_path, field_type="angle")
+
+
+def cmd_report(args) -> int:
+    """``raywave doe report``: check the options, load the DOE (and ``--lens``), run :func:`tolerance_report`
+    and print its summary (or JSON)."""
+    L, w, pitch = _fabrication_args(args)
+    o = _report_options(args)
+    misalignment, wls = o["misalignment"], o["wls"]
+    _check_material(args.material)
     doe, info = load_doe(args.doe, pitch, DEFAULT_WAVELENGTH if w is None else w)
     if w is None:
         w = float(getattr(doe, "design_wavelength", None) or DEFAULT_WAVELENGTH)
     material = args.material or getattr(doe, "material_name", None) or DEFAULT_MATERIAL
-    if mis_um:  # µm on the substrate -> DOE pixels
+    if o["mis_um"]:  # µm on the substrate -> DOE pixels
         misalignment = misalignment / (doe.pitch * 1e3)
     hl = None
     if args.lens is not None:
-        from raywave.assembly.build import load_hybrid
-        from raywave.lens.build import resolve_lens_path
-
-        try:
-            lens_path = resolve_lens_path(args.lens)
-        except FileNotFoundError:
-            raise CommandError(f"--lens: lens file {args.lens!r} not found") from None
-        hl = load_hybrid(lens_path, field_type="angle")
+        hl = _report_lens(args.lens)
         if wls is None:
             wls = [float(v) for v in hl.lens.wavelengths]
     if wls is None:
         wls = [w]
     try:
-        r = tolerance_report(doe, L, material, w, depth_error, misalignment, samples, seed, args.distribution, wls,
-                             orders, hl, (0.0, field), ks, oversample, args.output, png=not args.no_png,
-                             progress=args.progress, info=info)
+        r = tolerance_report(doe, L, material, w, o["depth_error"], misalignment, o["samples"], o["seed"],
+                             args.distribution, wls, o["orders"], hl, (0.0, o["field"]), o["ks"], o["oversample"],
+                             args.output, png=not args.no_png, progress=args.progress, info=info)
     except ValueError as e:
         raise CommandError(" ".join(str(e).split())) from None
     if args.json:
@@ -372,10 +394,17 @@ def cmd_report(args) -> int:
 
 # ---------------------------------------------------------------------------- registration
 def register(sub) -> None:
+    """Add ``raywave doe`` and its subcommands ``export`` and ``report`` to the CLI's subparsers ``sub``."""
     p = sub.add_parser("doe", help="DOE fabrication (mask export, tolerance report)",
                        description="Diffractive optical elements: fabrication and its tolerance.")
     dsub = p.add_subparsers(dest="doe_command", metavar="SUBCOMMAND")
     dsub.required = True
+    _register_export(dsub)
+    _register_report(dsub)
+
+
+def _register_export(dsub) -> None:
+    """The ``doe export`` parser (mask files, previews, report) under the ``doe`` subparsers ``dsub``."""
     e = dsub.add_parser(
         "export", help="lithography masks (GDSII / OASIS), previews and a report for an L-level DOE",
         description="Quantise a DOE's phase at the design wavelength to L = 2^k levels and write its k binary "
@@ -404,6 +433,9 @@ def register(sub) -> None:
     e.add_argument("--json", action="store_true", help="print the report as one JSON object")
     e.set_defaults(func=cmd_export)
 
+
+def _register_report(dsub) -> None:
+    """The ``doe report`` parser (fabrication tolerance Monte Carlo) under the ``doe`` subparsers ``dsub``."""
     r = dsub.add_parser(
         "report", help="fabrication tolerance: etch-depth errors and mask misalignment by Monte Carlo",
         description="Fabrication description and tolerance of an L = 2^k level DOE: etch depths, minimum feature, "

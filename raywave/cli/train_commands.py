@@ -212,12 +212,17 @@ def _report(run_dir: Path, trainers: dict, noise: bool) -> None:
 
 
 def _figures(run_dir: Path, trainers: dict) -> None:
-    import torch
+    """``run_dir/figures``: loss curves, PSF maps per depth and sample reconstructions of every trainer."""
+    fig_dir = run_dir / "figures"
+    _loss_figure(fig_dir, trainers)
+    _psf_map_figures(fig_dir, trainers)
+    _reconstruction_figures(fig_dir, trainers)
 
+
+def _loss_figure(fig_dir: Path, trainers: dict) -> None:
+    """``loss.png``: the loss per step of every trainer's stages (pre, stage1, stage2), log scale."""
     from raywave.plotting._mpl import plt, save
 
-    fig_dir = run_dir / "figures"
-    # loss curves
     fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
     for name, t in trainers.items():
         if not t.log_path.is_file():
@@ -229,7 +234,13 @@ def _figures(run_dir: Path, trainers: dict) -> None:
                 ax.plot(range(1, len(ys) + 1), ys, label=f"{name} {stage}")
     ax.set_xlabel("step"), ax.set_ylabel("loss"), ax.set_yscale("log"), ax.legend(fontsize=7)
     save(fig, fig_dir / "loss.png")
-    # PSF maps (evaluation maps, channel-averaged, first depth)
+
+
+def _psf_map_figures(fig_dir: Path, trainers: dict) -> None:
+    """``psf_map_depth<d>.png``: per object depth (mm) the evaluation PSF maps of the trainers side by side
+    (mosaic of the PSFs, √ scale, normalised per channel)."""
+    from raywave.plotting._mpl import plt, save
+
     maps = {name: t.stage2_map for name, t in trainers.items() if t.stage2_map is not None}
     for d, depth in enumerate(next(iter(trainers.values())).depths):
         fig, axes = plt.subplots(1, len(maps), figsize=(5 * len(maps), 5), constrained_layout=True, squeeze=False)
@@ -242,28 +253,40 @@ def _figures(run_dir: Path, trainers: dict) -> None:
             ax.set_title(f"{name}: PSF map at {depth:g} mm (√, per-channel max)")
             ax.set_xticks([]), ax.set_yticks([])
         save(fig, fig_dir / f"psf_map_depth{d}.png")
-    # sample reconstructions: per zone (centre, edge) and depth, the first held-out image as evaluated (noise)
-    from raywave.imaging.data import linear_to_srgb
+
+
+def _reconstruction_row(name: str, t, d: int, uv) -> list:
+    """One figure row: the trainer's first held-out image, its simulated sensor image at depth index ``d`` and
+    sensor zone ``uv`` (with noise, a fixed seed) and the restored image, as (title, image) pairs."""
+    import torch
+
     from raywave.imaging.render import render
     from raywave.training.metrics import psnr
+
+    img = t.eval_images_tensor()[:1]
+    pm = t.stage2_map
+    ext = t._extent(img.shape[-2:], uv)
+    with torch.no_grad():
+        sim = render(img, pm.psf[d], positions=pm.positions, centers=pm.centers[d],
+                     sensor_size=pm.sensor_size, pitch=pm.pitch, extent=ext)
+        sim = t._sensor()(sim, generator=torch.Generator().manual_seed(12345)).clamp(0, 1)
+        rec = t.reconstruct(sim, pm.psf, pm.centers, [ext], pm.positions).clamp(0, 1)
+    return [("ground truth", img[0]),
+            (f"{name}: sensor image {float(psnr(sim.double(), img.double())):.2f} dB", sim[0]),
+            (f"{name}: restored {float(psnr(rec.double(), img.double())):.2f} dB", rec[0])]
+
+
+def _reconstruction_figures(fig_dir: Path, trainers: dict) -> None:
+    """``reconstructions_<zone>[_depth<d>].png``: per zone (centre, edge) and depth, the first held-out image as
+    evaluated (noise), one row per trainer."""
+    from raywave.imaging.data import linear_to_srgb
+    from raywave.plotting._mpl import plt, save
 
     first = next(iter(trainers.values()))
     zones = {"centre": (0.0, 0.0), "edge": (0.8, 0.8)}
     for d, depth in enumerate(first.depths):
         for zone, uv in zones.items():
-            rows = []
-            for name, t in trainers.items():
-                img = t.eval_images_tensor()[:1]
-                pm = t.stage2_map
-                ext = t._extent(img.shape[-2:], uv)
-                with torch.no_grad():
-                    sim = render(img, pm.psf[d], positions=pm.positions, centers=pm.centers[d],
-                                 sensor_size=pm.sensor_size, pitch=pm.pitch, extent=ext)
-                    sim = t._sensor()(sim, generator=torch.Generator().manual_seed(12345)).clamp(0, 1)
-                    rec = t.reconstruct(sim, pm.psf, pm.centers, [ext], pm.positions).clamp(0, 1)
-                rows.append([("ground truth", img[0]),
-                             (f"{name}: sensor image {float(psnr(sim.double(), img.double())):.2f} dB", sim[0]),
-                             (f"{name}: restored {float(psnr(rec.double(), img.double())):.2f} dB", rec[0])])
+            rows = [_reconstruction_row(name, t, d, uv) for name, t in trainers.items()]
             fig, axes = plt.subplots(len(rows), 3, figsize=(9.6, 3.4 * len(rows)), constrained_layout=True,
                                      squeeze=False)
             for r, row in enumerate(rows):

@@ -57,32 +57,18 @@ def export_design(doe, levels: int = 16, material="fused_silica", wavelength0: f
     n0 = fab._index(mat, wavelength0)
     t0 = time.perf_counter()
     lv = level_map(doe, levels, wavelength0)
-    masks = fab.masks_from_levels(lv, levels)
-    features = [fab.min_features(masks[j]) for j in range(k)]
-    if min_feature is not None:
-        fab.check_min_feature(masks, doe.pitch, min_feature, features)
-    report = fab.mask_report(masks, doe.pitch, depths, features)
+    masks, report = _masks_and_report(lv, levels, k, doe.pitch, depths, min_feature)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = folder / f"masks.{fmt}"
-    label = (f"{levels} levels, {k} masks, lambda0 {wavelength0:g} um, {mat.name} (n {n0:.5f}), "
-             f"pitch {doe.pitch * 1e3:g} um\netch " + ", ".join(f"L{j + 1} {d * 1e6:.1f}" for j, d in
-                                                               enumerate(depths)) + " nm; polygons = etched")
-    t1 = time.perf_counter()
-    written = fab.write_mask_file(out, masks, doe.pitch, name=name, label=label, fmt=fmt)
-    t_write = time.perf_counter() - t1
-    for j, c in enumerate(written["rectangles"]):
-        report["per_mask"][j]["rectangles"] = c
-    hist = [int(c) for c in np.bincount(lv.reshape(-1), minlength=levels)]
+    label = _mask_label(levels, k, wavelength0, mat, n0, doe.pitch, depths)
+    written, t_write = _write_masks(out, masks, doe.pitch, name, label, fmt, report)
     full = {
         "name": name,
         **(info or {}),
-        "material": mat.name,
-        "wavelength_um": float(wavelength0),
-        "n_at_wavelength": n0,
-        "h_2pi_nm": fab.height_2pi(mat, wavelength0) * 1e6,
+        **_material_facts(mat, wavelength0, n0),
         **report,
-        "level_histogram": hist,
+        "level_histogram": [int(c) for c in np.bincount(lv.reshape(-1), minlength=levels)],
         "min_feature_limit_um": min_feature,
         "file": str(out),
         "format": written["format"],
@@ -91,7 +77,57 @@ def export_design(doe, levels: int = 16, material="fused_silica", wavelength0: f
         "write_seconds": t_write,
         "export_seconds": time.perf_counter() - t0,
     }
-    rp = folder / "report.json"
+    return _write_report(folder / "report.json", full)
+
+
+def _write_report(rp: Path, full: dict) -> dict:
+    """Write ``full`` as the JSON file ``rp``; returns ``full`` plus ``"report"``: that file's path."""
     rp.write_text(json.dumps(full, indent=2) + "\n", encoding="utf-8")
     full["report"] = str(rp)
     return full
+
+
+def _masks_and_report(lv: np.ndarray, levels: int, k: int, pitch: float, depths, min_feature: float | None):
+    """``(masks (k, ny, nx) bool, report)`` of the level map ``lv``: the binary masks and
+    :func:`~raywave.doe.fabrication.mask_report` (``pitch`` mm, ``depths`` mm); refuses features below
+    ``min_feature`` (µm) when given."""
+    from raywave.doe import fabrication as fab
+
+    masks = fab.masks_from_levels(lv, levels)
+    features = [fab.min_features(masks[j]) for j in range(k)]
+    if min_feature is not None:
+        fab.check_min_feature(masks, pitch, min_feature, features)
+    return masks, fab.mask_report(masks, pitch, depths, features)
+
+
+def _mask_label(levels: int, k: int, wavelength0: float, mat, n0: float, pitch: float, depths) -> str:
+    """The mask file's label: levels, masks, λ0 (µm), material and index, pitch (µm, from ``pitch`` in mm) and
+    the etch depths (nm, from ``depths`` in mm)."""
+    return (f"{levels} levels, {k} masks, lambda0 {wavelength0:g} um, {mat.name} (n {n0:.5f}), "
+            f"pitch {pitch * 1e3:g} um\netch " + ", ".join(f"L{j + 1} {d * 1e6:.1f}" for j, d in
+                                                        enumerate(depths)) + " nm; polygons = etched")
+
+
+def _write_masks(out: Path, masks, pitch: float, name: str, label: str, fmt: str, report: dict):
+    """Write the mask file (:func:`~raywave.doe.fabrication.write_mask_file`, ``pitch`` mm), add each mask's
+    rectangle count to ``report["per_mask"]``; returns ``(what write_mask_file returned, seconds it took)``."""
+    from raywave.doe import fabrication as fab
+
+    t1 = time.perf_counter()
+    written = fab.write_mask_file(out, masks, pitch, name=name, label=label, fmt=fmt)
+    t_write = time.perf_counter() - t1
+    for j, c in enumerate(written["rectangles"]):
+        report["per_mask"][j]["rectangles"] = c
+    return written, t_write
+
+
+def _material_facts(mat, wavelength0: float, n0: float) -> dict:
+    """The report's material keys: name, λ0 (µm), index n at λ0 and the 2π height (nm)."""
+    from raywave.doe import fabrication as fab
+
+    return {
+        "material": mat.name,
+        "wavelength_um": float(wavelength0),
+        "n_at_wavelength": n0,
+        "h_2pi_nm": fab.height_2pi(mat, wavelength0) * 1e6,
+    }

@@ -375,44 +375,15 @@ def write_mask_file(path, masks, pitch: float, *, name: str = "DOE", label: str 
     m = _check_masks(masks)
     p = _check_pitch(pitch) * 1e3          # µm
     path = Path(path)
-    fmt = (fmt or path.suffix.lstrip(".")).lower()
-    if fmt not in MASK_FORMATS:
-        raise ValueError(f"mask files are {' or '.join('.' + f for f in MASK_FORMATS)} "
-                         f"({', '.join(MASK_FORMATS.values())}), got {str(path)!r}")
+    fmt = _mask_format(path, fmt)
     k, ny, nx = m.shape
     _check_database_grid(p, ny, nx, fmt)
-    x0, y0 = -nx / 2 * p, -ny / 2 * p      # lower-left corner of pixel [0, 0]; the DOE is centred at 0
     lib = gdstk.Library(name=str(name)[:60] or "DOE", unit=_UNIT, precision=_PRECISION)
-    doe = lib.new_cell("DOE")
-    counts = []
-    for j in range(k):
-        r = rectangles_from_mask(m[j]).astype(np.float64)
-        counts.append(int(r.shape[0]))
-        xa, ya, xb, yb = (x0 + r[:, 0] * p).tolist(), (y0 + r[:, 1] * p).tolist(), \
-            (x0 + r[:, 2] * p).tolist(), (y0 + r[:, 3] * p).tolist()
-        layer = j + 1
-        doe.add(*[gdstk.rectangle((a, b), (c, d), layer=layer, datatype=0) for a, b, c, d in zip(xa, ya, xb, yb)])
-
-    # alignment crosses: four corners, outside the DOE by one arm length, on every mask layer
+    doe, counts = _mask_cell(lib, m, p)
     w_doe, h_doe = nx * p, ny * p
     arm = max(20.0, 0.02 * max(w_doe, h_doe))
-    width = arm / 10
-    align = lib.new_cell("ALIGN")
-    off = arm
-    for sx in (-1, 1):
-        for sy in (-1, 1):
-            cx, cy = sx * (w_doe / 2 + off), sy * (h_doe / 2 + off)
-            for j in range(k):
-                align.add(_cross(cx, cy, arm, width, j + 1))
-
-    lab = lib.new_cell("LABEL")
-    text = str(name) if label is None else f"{name}\n{label}"
-    size = max(10.0, 0.015 * max(w_doe, h_doe))
-    ty = -h_doe / 2 - 2 * off - size
-    for i, line in enumerate(text.splitlines()):
-        lab.add(*gdstk.text(line, size, (-w_doe / 2, ty - i * 1.5 * size), layer=LABEL_LAYER))
-    lab.add(gdstk.Label(text.replace("\n", "; "), (-w_doe / 2, h_doe / 2 + 2 * off), layer=LABEL_LAYER))
-
+    align = _alignment_cell(lib, k, w_doe, h_doe, arm)
+    lab = _label_cell(lib, name, label, w_doe, h_doe, off=arm)
     top = lib.new_cell("TOP")
     for c in (doe, align, lab):
         top.add(gdstk.Reference(c))
@@ -422,6 +393,63 @@ def write_mask_file(path, masks, pitch: float, *, name: str = "DOE", label: str 
     else:
         lib.write_oas(str(path))
     return {"file": str(path), "format": MASK_FORMATS[fmt], "rectangles": counts, "bytes": path.stat().st_size}
+
+
+def _mask_format(path: Path, fmt: str | None) -> str:
+    """The mask file format key ("gds" / "oas"): ``fmt``, else the extension of ``path``; checked."""
+    fmt = (fmt or path.suffix.lstrip(".")).lower()
+    if fmt not in MASK_FORMATS:
+        raise ValueError(f"mask files are {' or '.join('.' + f for f in MASK_FORMATS)} "
+                         f"({', '.join(MASK_FORMATS.values())}), got {str(path)!r}")
+    return fmt
+
+
+def _mask_cell(lib, m: np.ndarray, p: float):
+    """The cell ``DOE`` of ``lib``: mask j's etched areas as rectangles on layer j + 1, the DOE centred at the
+    origin (``p``: pixel pitch in µm). Returns ``(cell, rectangles per mask)``."""
+    import gdstk
+
+    k, ny, nx = m.shape
+    x0, y0 = -nx / 2 * p, -ny / 2 * p      # lower-left corner of pixel [0, 0]; the DOE is centred at 0
+    doe = lib.new_cell("DOE")
+    counts = []
+    for j in range(k):
+        r = rectangles_from_mask(m[j]).astype(np.float64)
+        counts.append(int(r.shape[0]))
+        xa, ya, xb, yb = (x0 + r[:, 0] * p).tolist(), (y0 + r[:, 1] * p).tolist(), \
+            (x0 + r[:, 2] * p).tolist(), (y0 + r[:, 3] * p).tolist()
+        layer = j + 1
+        doe.add(*[gdstk.rectangle((a, b), (c, d), layer=layer, datatype=0) for a, b, c, d in zip(xa, ya, xb, yb)])
+    return doe, counts
+
+
+def _alignment_cell(lib, k: int, w_doe: float, h_doe: float, arm: float):
+    """The cell ``ALIGN`` of ``lib``: alignment crosses (arm length ``arm`` µm) in the four corners, outside the
+    ``w_doe`` × ``h_doe`` µm DOE by one arm length, on every mask layer 1..k."""
+    width = arm / 10
+    align = lib.new_cell("ALIGN")
+    off = arm
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            cx, cy = sx * (w_doe / 2 + off), sy * (h_doe / 2 + off)
+            for j in range(k):
+                align.add(_cross(cx, cy, arm, width, j + 1))
+    return align
+
+
+def _label_cell(lib, name, label: str | None, w_doe: float, h_doe: float, off: float):
+    """The cell ``LABEL`` of ``lib`` (layer :data:`LABEL_LAYER`): ``name`` and ``label`` as polygon text below the
+    ``w_doe`` × ``h_doe`` µm DOE (``off`` µm: the alignment crosses' offset) and as one text label above it."""
+    import gdstk
+
+    lab = lib.new_cell("LABEL")
+    text = str(name) if label is None else f"{name}\n{label}"
+    size = max(10.0, 0.015 * max(w_doe, h_doe))
+    ty = -h_doe / 2 - 2 * off - size
+    for i, line in enumerate(text.splitlines()):
+        lab.add(*gdstk.text(line, size, (-w_doe / 2, ty - i * 1.5 * size), layer=LABEL_LAYER))
+    lab.add(gdstk.Label(text.replace("\n", "; "), (-w_doe / 2, h_doe / 2 + 2 * off), layer=LABEL_LAYER))
+    return lab
 
 
 def read_mask_file(path, shape, pitch: float, masks: int | None = None) -> np.ndarray:

@@ -311,6 +311,31 @@ def dead_leaves(size, generator: torch.Generator, r_min: float = 1.0, r_max: flo
         r_min, r_max: radius range in pixels (default r_max = max(h, w) / 2).
         supersample: render on a grid this many times finer and average (anti-aliased disc edges).
     """
+    h, w, r_max, s = _dead_leaves_args(size, r_min, r_max, alpha, supersample)
+    H, W = h * s, w * s
+    img = torch.full((channels, H, W), 0.5, dtype=torch.float64)
+    filled = torch.zeros((H, W), dtype=torch.bool)
+    remaining = H * W
+    # pixel-centre coordinates in output pixels
+    ys = (torch.arange(H, dtype=torch.float64) + 0.5) / s
+    xs = (torch.arange(W, dtype=torch.float64) + 0.5) / s
+    drawn = 0
+    batch = 512
+    while remaining > 0 and drawn < max_discs:
+        r, cy, cx, col = _disc_batch(generator, batch, h, w, r_min, r_max, alpha, channels)
+        for k in range(batch):
+            remaining -= _drop_disc(img, filled, ys, xs, float(r[k]), float(cy[k]), float(cx[k]), col[k], s)
+            if remaining == 0:
+                break
+        drawn += batch
+    if s > 1:
+        img = torch.nn.functional.avg_pool2d(img[None], s)[0]
+    return img.to(dtype=dtype, device=device)
+
+
+def _dead_leaves_args(size, r_min: float, r_max: float | None, alpha: float, supersample) -> tuple:
+    """The checked arguments of :func:`dead_leaves`: ``(h, w, r_max, s)`` (pixels, pixels, radius in pixels with
+    its default max(h, w) / 2, supersampling factor)."""
     h, w = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
     if h < 1 or w < 1:
         raise ValueError(f"size must be positive, got {size!r}")
@@ -322,42 +347,40 @@ def dead_leaves(size, generator: torch.Generator, r_min: float = 1.0, r_max: flo
     s = int(supersample)
     if s < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample!r}")
-    H, W = h * s, w * s
-    img = torch.full((channels, H, W), 0.5, dtype=torch.float64)
-    filled = torch.zeros((H, W), dtype=torch.bool)
-    remaining = H * W
-    # pixel-centre coordinates in output pixels
-    ys = (torch.arange(H, dtype=torch.float64) + 0.5) / s
-    xs = (torch.arange(W, dtype=torch.float64) + 0.5) / s
-    drawn = 0
-    batch = 512
-    while remaining > 0 and drawn < max_discs:
-        u = torch.rand(batch, generator=generator, dtype=torch.float64)
-        # inverse CDF of p(r) ∝ r^-alpha on [r_min, r_max]
-        a1 = 1.0 - alpha
-        r = (r_min ** a1 + u * (r_max ** a1 - r_min ** a1)) ** (1.0 / a1)
-        cy = -r_max + torch.rand(batch, generator=generator, dtype=torch.float64) * (h + 2 * r_max)
-        cx = -r_max + torch.rand(batch, generator=generator, dtype=torch.float64) * (w + 2 * r_max)
-        col = torch.rand(batch, channels, generator=generator, dtype=torch.float64)
-        for k in range(batch):
-            rk, yk, xk = float(r[k]), float(cy[k]), float(cx[k])
-            y0, y1 = max(int(math.floor((yk - rk) * s)), 0), min(int(math.ceil((yk + rk) * s)) + 1, H)
-            x0, x1 = max(int(math.floor((xk - rk) * s)), 0), min(int(math.ceil((xk + rk) * s)) + 1, W)
-            if y0 >= y1 or x0 >= x1:
-                continue
-            inside = ((ys[y0:y1, None] - yk) ** 2 + (xs[None, x0:x1] - xk) ** 2) <= rk * rk
-            new = inside & ~filled[y0:y1, x0:x1]
-            n_new = int(new.sum())
-            if n_new:
-                img[:, y0:y1, x0:x1][:, new] = col[k][:, None]
-                filled[y0:y1, x0:x1] |= new
-                remaining -= n_new
-                if remaining == 0:
-                    break
-        drawn += batch
-    if s > 1:
-        img = torch.nn.functional.avg_pool2d(img[None], s)[0]
-    return img.to(dtype=dtype, device=device)
+    return h, w, r_max, s
+
+
+def _disc_batch(generator: torch.Generator, batch: int, h: int, w: int, r_min: float, r_max: float, alpha: float,
+                channels: int):
+    """``batch`` random discs ``(r, cy, cx, colour)`` (pixels; float64), drawn from ``generator`` in this order:
+    radii (power law r^-alpha on [r_min, r_max]), centre rows and columns (uniform over the image enlarged by
+    r_max), colours (uniform in [0, 1]^channels)."""
+    u = torch.rand(batch, generator=generator, dtype=torch.float64)
+    # inverse CDF of p(r) ∝ r^-alpha on [r_min, r_max]
+    a1 = 1.0 - alpha
+    r = (r_min ** a1 + u * (r_max ** a1 - r_min ** a1)) ** (1.0 / a1)
+    cy = -r_max + torch.rand(batch, generator=generator, dtype=torch.float64) * (h + 2 * r_max)
+    cx = -r_max + torch.rand(batch, generator=generator, dtype=torch.float64) * (w + 2 * r_max)
+    col = torch.rand(batch, channels, generator=generator, dtype=torch.float64)
+    return r, cy, cx, col
+
+
+def _drop_disc(img: torch.Tensor, filled: torch.Tensor, ys, xs, rk: float, yk: float, xk: float, colour,
+               s: int) -> int:
+    """Paint the disc of radius ``rk`` at (``yk``, ``xk``) (output pixels) with ``colour`` onto the supersampled
+    ``img`` where no earlier disc lies (``filled``, updated); returns the number of newly covered samples."""
+    H, W = filled.shape
+    y0, y1 = max(int(math.floor((yk - rk) * s)), 0), min(int(math.ceil((yk + rk) * s)) + 1, H)
+    x0, x1 = max(int(math.floor((xk - rk) * s)), 0), min(int(math.ceil((xk + rk) * s)) + 1, W)
+    if y0 >= y1 or x0 >= x1:
+        return 0
+    inside = ((ys[y0:y1, None] - yk) ** 2 + (xs[None, x0:x1] - xk) ** 2) <= rk * rk
+    new = inside & ~filled[y0:y1, x0:x1]
+    n_new = int(new.sum())
+    if n_new:
+        img[:, y0:y1, x0:x1][:, new] = colour[:, None]
+        filled[y0:y1, x0:x1] |= new
+    return n_new
 
 
 class DeadLeavesDataset(Dataset):

@@ -48,6 +48,46 @@ def _profile(surface, z0: float, h: float, n: int = 101):
     return (z0 + z.numpy())[ok.numpy()], y.numpy()[ok.numpy()]
 
 
+def _draw_rays(ax, lens, zs, ys, ok, n_fields: int, n_rays: int) -> None:
+    """Draw the valid rays of the ``n_fields`` fans of ``n_rays`` rays ((F, N, S) z / y polylines, mm), one colour
+    per field: from the object point when it is close, else from a short stub in front of the lens."""
+    stub = 0.15 * lens.total_track()
+    from_object = not math.isinf(lens.object_distance) and lens.object_distance <= lens.total_track()
+    for fi in range(n_fields):
+        colour = FIELD_COLOURS[fi % len(FIELD_COLOURS)]
+        for k in range(n_rays):
+            if not ok[fi, k]:
+                continue
+            z, y = zs[fi, k], ys[fi, k]
+            if not from_object:
+                dz, dy = z[1] - z[0], y[1] - y[0]
+                slope = dy / dz if dz != 0 else 0.0
+                z = np.concatenate([[z[1] - stub], z[1:]])
+                y = np.concatenate([[y[1] - stub * slope], y[1:]])
+            ax.plot(z, y, color=colour, lw=0.6)
+
+
+def _draw_surfaces(ax, lens, zv, heights) -> None:
+    """Draw the surfaces (at vertex z ``zv``, mm, to half-heights ``heights``, mm: an ideal lens as an arrow, a flat
+    stop in air as two bars, else its profile) and the element edges joining the rims of glass elements."""
+    prev = None
+    for i, s in enumerate(lens.surfaces):
+        zp, yp = _profile(s, float(zv[i]), heights[i])
+        style = dict(color="k", lw=1.0 if not s.is_stop else 2.0)
+        if s.kind == "paraxial":
+            ax.annotate("", xy=(zv[i], heights[i]), xytext=(zv[i], -heights[i]),
+                        arrowprops=dict(arrowstyle="<->", color="k"))
+        elif s.is_stop and s.geometry.paraxial_curvature().item() == 0 and s.material.is_air:
+            ax.plot([zv[i], zv[i]], [heights[i], heights[i] * 1.3], **style)
+            ax.plot([zv[i], zv[i]], [-heights[i], -heights[i] * 1.3], **style)
+        elif zp.size:
+            ax.plot(zp, yp, **style)
+        if prev is not None and not lens.surfaces[i - 1].material.is_air and zp.size and prev[0].size:
+            for end in (0, -1):  # element edges: join the rims of its two faces
+                ax.plot([prev[0][end], zp[end]], [prev[1][end], yp[end]], color="k", lw=1.0)
+        prev = (zp, yp)
+
+
 def plot_layout(lens, path=None, fields=None, n_rays: int = 7, wavelength: float | None = None, ax=None):
     """Draw the lens section and meridional ray fans; write a PNG if ``path`` is given.
 
@@ -65,38 +105,8 @@ def plot_layout(lens, path=None, fields=None, n_rays: int = 7, wavelength: float
         fig, ax = new_figure(9, 4)
     zv = lens.vertex_z().detach().numpy()
     heights = _surface_heights(lens, zs, ys, ok)
-    # Rays: from the object point when it is close, else from a short stub in front of the lens.
-    stub = 0.15 * lens.total_track()
-    from_object = not math.isinf(lens.object_distance) and lens.object_distance <= lens.total_track()
-    for fi in range(len(fields)):
-        colour = FIELD_COLOURS[fi % len(FIELD_COLOURS)]
-        for k in range(n_rays):
-            if not ok[fi, k]:
-                continue
-            z, y = zs[fi, k], ys[fi, k]
-            if not from_object:
-                dz, dy = z[1] - z[0], y[1] - y[0]
-                slope = dy / dz if dz != 0 else 0.0
-                z = np.concatenate([[z[1] - stub], z[1:]])
-                y = np.concatenate([[y[1] - stub * slope], y[1:]])
-            ax.plot(z, y, color=colour, lw=0.6)
-    # Surfaces and element edges.
-    prev = None
-    for i, s in enumerate(lens.surfaces):
-        zp, yp = _profile(s, float(zv[i]), heights[i])
-        style = dict(color="k", lw=1.0 if not s.is_stop else 2.0)
-        if s.kind == "paraxial":
-            ax.annotate("", xy=(zv[i], heights[i]), xytext=(zv[i], -heights[i]),
-                        arrowprops=dict(arrowstyle="<->", color="k"))
-        elif s.is_stop and s.geometry.paraxial_curvature().item() == 0 and s.material.is_air:
-            ax.plot([zv[i], zv[i]], [heights[i], heights[i] * 1.3], **style)
-            ax.plot([zv[i], zv[i]], [-heights[i], -heights[i] * 1.3], **style)
-        elif zp.size:
-            ax.plot(zp, yp, **style)
-        if prev is not None and not lens.surfaces[i - 1].material.is_air and zp.size and prev[0].size:
-            for end in (0, -1):  # element edges: join the rims of its two faces
-                ax.plot([prev[0][end], zp[end]], [prev[1][end], yp[end]], color="k", lw=1.0)
-        prev = (zp, yp)
+    _draw_rays(ax, lens, zs, ys, ok, len(fields), n_rays)
+    _draw_surfaces(ax, lens, zv, heights)
     zi = float(lens.image_z().detach())
     # The sensor is drawn to its half-diagonal: field points are radial, so they land within it.
     hi = max(heights) if lens.sensor_size is None else 0.5 * math.hypot(*lens.sensor_size)

@@ -145,14 +145,7 @@ def tolerance_monte_carlo(doe, levels: int = 16, depth_error: float = 5.0, misal
             draw (after its efficiency), ``observer.finish(result)``; how the PSF part hooks in.
     Returns a :class:`ToleranceResult` (``psf`` fields None: no PSF here).
     """
-    if lens is not None:
-        raise TypeError("raywave.doe.tolerance.tolerance_monte_carlo computes efficiencies only; the PSF change "
-                        "through a HybridLens (lens=...) is raywave.assembly.tolerance.tolerance_monte_carlo "
-                        "(the same arguments)")
-    k = mask_bits(levels)
-    L = int(levels)
-    n = _count(n_samples, "the number of samples")
-    ords = _orders(orders)
+    k, L, n, ords = _run_inputs(lens, levels, n_samples, orders)
     grating = not isinstance(doe, DOE)
     probe, lam0 = _nominal_element(doe, L, material, wavelength0, periodic)
     wls = _wavelengths(wavelengths, lam0)
@@ -161,10 +154,7 @@ def tolerance_monte_carlo(doe, levels: int = 16, depth_error: float = 5.0, misal
     theory = np.array([[staircase_efficiency(m, L, a) for m in ords] for a in alphas])
     eff = _efficiency_of(doe, probe, L, lam0, wls, alphas, ords, oversample)
     nominal_eta, _ = eff(FabricationErrors.nominal(k))
-    if observer is not None:
-        if grating:
-            raise ValueError("a PSF (lens=...) needs a DOE, not a grating period")
-        observer.start(probe, wls)
+    _start_observer(observer, grating, probe, wls)
     etas, rel = _run_samples(eff, errs, probe, (len(wls), len(ords)), grating, progress, observer)
     res = ToleranceResult(
         levels=L, masks=k, depth_error=float(depth_error), misalignment=float(misalignment),
@@ -173,6 +163,28 @@ def tolerance_monte_carlo(doe, levels: int = 16, depth_error: float = 5.0, misal
     if observer is not None:
         observer.finish(res)
     return res
+
+
+def _run_inputs(lens, levels: int, n_samples: int, orders) -> tuple:
+    """``(k, L, n, orders)``: the masks and levels of ``levels`` = L = 2^k, the number of samples and the orders,
+    checked; a TypeError for a ``lens`` (the PSF part is :func:`raywave.assembly.tolerance.tolerance_monte_carlo`)."""
+    if lens is not None:
+        raise TypeError("raywave.doe.tolerance.tolerance_monte_carlo computes efficiencies only; the PSF change "
+                        "through a HybridLens (lens=...) is raywave.assembly.tolerance.tolerance_monte_carlo "
+                        "(the same arguments)")
+    k = mask_bits(levels)
+    L = int(levels)
+    n = _count(n_samples, "the number of samples")
+    return k, L, n, _orders(orders)
+
+
+def _start_observer(observer, grating: bool, probe: PerturbedDOE, wls: list) -> None:
+    """Tell ``observer`` (if any) the nominal element ``probe`` and the wavelengths (µm); a grating period has no
+    PSF (ValueError)."""
+    if observer is not None:
+        if grating:
+            raise ValueError("a PSF (lens=...) needs a DOE, not a grating period")
+        observer.start(probe, wls)
 
 
 def _result_data(probe, lam0, wls, ords, alphas, errs, etas, rel, nominal_eta, theory, grating, oversample) -> dict:
