@@ -230,6 +230,98 @@ def test_many_fuzzed_lens_and_doe_files(tmp_path):
     print(f"\nfuzzed files (slow): {counts}")
 
 
+# ------------------------------------------------------------------ CODE V .seq files
+SEQ_DIR = Path(__file__).parent / "data" / "codev"
+
+
+def _mutate_seq(text: str, rng: random.Random) -> str:
+    """One or two line edits of a .seq file: drop, repeat, cut a command's arguments short, or put a nasty token
+    in place of one of them."""
+    lines = text.splitlines()
+    for _ in range(rng.choice([1, 1, 2])):
+        i = rng.randrange(len(lines))
+        toks = lines[i].split()
+        op = rng.random()
+        if op < 0.1:
+            del lines[i]
+        elif op < 0.2:
+            lines.insert(i, lines[i])
+        elif op < 0.45 and toks:
+            lines[i] = " ".join(toks[:rng.randrange(1, len(toks) + 1)])
+        elif toks:
+            toks[rng.randrange(len(toks))] = rng.choice(NASTY_TOKENS + ["'x'", ";"])
+            lines[i] = " ".join(toks)
+    return "\n".join(lines) + "\n"
+
+
+def _run_seq(tmp: Path, seeds, n: int) -> dict:
+    bases = sorted(SEQ_DIR.glob("*.seq"))
+    counts = {"loaded": 0, "refused": 0}
+    for seed in seeds:
+        rng = random.Random(seed)
+        for i in range(n):
+            p = tmp / f"seq{seed}_{i}.seq"
+            p.write_text(_mutate_seq(rng.choice(bases).read_text(), rng), encoding="utf-8")
+            counts[_try_lens(p)] += 1
+    return counts
+
+
+def _try_lens(path: Path) -> str:
+    """Like :func:`_try_file` for the refractive lens alone (a blank DOE's sizing costs seconds per file)."""
+    from raywave import load_lens
+    from raywave.lens.sources import point_source_rays
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            lens = load_lens(path)
+        except Exception as err:  # noqa: BLE001 - the point of the test
+            assert _accepted_error(err, path), f"{path.name}: {type(err).__name__}: {err}"
+            return "refused"
+        try:
+            field = max(lens.fields, key=abs) if lens.field_type == "angle" else 0.0
+            out = lens.trace_to_image(point_source_rays(lens, (0.0, field), pupil=("grid", 5)))
+        except ValueError:
+            return "refused"
+        except Exception as err:  # noqa: BLE001
+            raise AssertionError(f"{path.name}: loaded, then {type(err).__name__}: {err}") from err
+    v = out.valid
+    assert bool(torch.isfinite(out.o[v]).all()) and bool(torch.isfinite(out.opl[v]).all()), path.name
+    return "loaded"
+
+
+def test_fuzzed_codev_files_load_or_are_refused_cleanly(tmp_path):
+    """A command cut short (``K`` or ``REF`` without its value) or given a nasty number is a one-line error naming
+    the file and line, never an IndexError / OverflowError."""
+    counts = _run_seq(tmp_path, range(3), 40)
+    print(f"\nfuzzed .seq files: {counts}")
+    assert counts["loaded"] > 5 and counts["refused"] > 5, counts
+
+
+@pytest.mark.slow
+def test_many_fuzzed_codev_files(tmp_path):
+    print(f"\nfuzzed .seq files (slow): {_run_seq(tmp_path, range(100, 140), 80)}")
+
+
+@pytest.mark.parametrize("line,match", [("K", r"K: a value is missing"), ("REF", r"REF: a value is missing"),
+                                        ("REF nan", r"REF: 'nan' is not a whole number"),
+                                        ("REF 1e400", r"REF: '1e400' is not a whole number"),
+                                        ("REF 1.5", r"REF: '1.5' is not a whole number")])
+def test_codev_commands_without_their_value_are_named_errors(tmp_path, line, match):
+    from raywave.io import read_lens_spec
+    from raywave.io.errors import LensFileError
+
+    text = (SEQ_DIR / "cooke_triplet.seq").read_text()
+    if line.startswith("K"):  # a conic on the first surface
+        text = text.replace("  CCY 0; THC 0\n", f"  {line}\n", 1)
+    else:
+        text = text.replace("REF   2", line, 1)
+    p = tmp_path / "bad.seq"
+    p.write_text(text, encoding="utf-8")
+    with pytest.raises(LensFileError, match=r"bad\.seq:\d+: .*" + match):
+        read_lens_spec(p)
+
+
 # ------------------------------------------------------------------ the issue's file examples
 def _zmx_of(tmp: Path, name: str = "singlet") -> str:
     p = tmp / f"{name}.zmx"

@@ -300,6 +300,22 @@ def _num(tok, what, ln, err) -> float:
         raise err(f"{what}: {tok!r} is not a number", ln) from None
 
 
+def _first_num(args: list, what, ln, err) -> float:
+    """The command's first argument as a float; a command given without one is the error ``what: a value is
+    missing``."""
+    if not args:
+        raise err(f"{what}: a value is missing", ln)
+    return _num(args[0], what, ln, err)
+
+
+def _index(args: list, what, ln, err) -> int:
+    """The command's first argument as a whole number (a 1-based index); anything else is an error naming it."""
+    v = _first_num(args, what, ln, err)
+    if not (math.isfinite(v) and v == int(v)):
+        raise err(f"{what}: {args[0]!r} is not a whole number", ln)
+    return int(v)
+
+
 def _interpret(cmds, path) -> dict:
     """The lens spec (not yet validated; lengths in mm) of the .seq commands ``cmds`` (from :func:`_commands`);
     ``path`` names the file in errors and warnings."""
@@ -385,7 +401,7 @@ def _qualifier(st: _Seq, cur: dict, cmd: str, args: list, ln: int) -> bool:
     unsupported surface qualifier is a :class:`LensFileError`."""
     where = f"surface {len(st.surfs) - 1}"
     if cmd == "K":
-        cur["conic"] = _num(args[0], f"{where}: K", ln, st.err)
+        cur["conic"] = _first_num(args, f"{where}: K", ln, st.err)
         return True
     if cmd in ASPHERIC_LETTERS and args and _number(args[0]):
         cur["asph"][ASPHERIC_LETTERS[cmd]] = _num(args[0], f"{where}: {cmd}", ln, st.err)
@@ -426,7 +442,7 @@ def _setting(st: _Seq, cmd: str, args: list, ln: int) -> None:
     elif cmd == "WL":
         st.wls = [_nm_to_um(a, st.path, ln) for a in args]
     elif cmd == "REF":
-        st.ref = (int(_num(args[0], "REF", ln, st.err)), ln)
+        st.ref = (_index(args, "REF", ln, st.err), ln)
     elif cmd in ("XAN", "YAN", "XOB", "YOB"):
         kind = "angle" if cmd.endswith("AN") else "object_height"
         if st.field_type is not None and st.field_type != kind:
