@@ -32,7 +32,8 @@ from torch import nn
 
 from raywave.doe import DOE
 from raywave.hybrid.coherent import (DOEField, StopEdgeWarning, accurate_field_steps, chief_rays, doe_clippings,
-                                     entrance_pupil, exit_pupil_field_steps, faithful_field, footprints, run_batched)
+                                     entrance_pupil, exit_pupil_field_steps, faithful_field, footprints, run_batched,
+                                     stop_rim_images_many)
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
@@ -390,16 +391,19 @@ class HybridLens(nn.Module):
         optics, z_doe, z_sen = self.optics, self.doe_z(), self.sensor_z()
         cd, cs, cuv = chief
         z_xps = self._exit_pupil_planes(wls)
+        wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
+        boxes = footprints(optics, f, wls_t, depth, z_doe)  # every footprint in one trace
+        boxes = [[False if b is None else b for b in row] for row in boxes]
+        entrance = entrance_pupil(optics)  # one lens: once for every field
         if z_xps is None:
-            wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
-            boxes = footprints(optics, f, wls_t, depth, z_doe)
-            entrance = entrance_pupil(optics)  # one lens: once for every field
             return [accurate_field_steps(optics, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j],
                                          nodes=nodes, oversample=self.oversample, check=check, chief_uv=cuv[i, j],
-                                         bbox=False if boxes[i][j] is None else boxes[i][j], entrance=entrance)
+                                         bbox=boxes[i][j], entrance=entrance)
                     for i in range(f.shape[0]) for j, wl in enumerate(wls)]
+        rims = [[None] * f.shape[0] for _ in wls]
         if self.edge_step == "fresnel":  # the step needs no chief ray on the exit-pupil plane
             cx = [[None] * f.shape[0] for _ in wls]
+            rims = [stop_rim_images_many(optics, f, wl, depth) for wl in wls]  # one trace per wavelength
         else:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", VignettingWarning)
@@ -407,7 +411,8 @@ class HybridLens(nn.Module):
                       for wl, zx in zip(wls, z_xps)]
         return [exit_pupil_field_steps(optics, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i], cd[i, j],
                                        cs[i, j], nodes=nodes, oversample=self.oversample, check=check,
-                                       chief_uv=cuv[i, j], method=self.edge_step)
+                                       chief_uv=cuv[i, j], method=self.edge_step, bbox=boxes[i][j],
+                                       entrance=entrance, stop_rim=rims[j][i])
                 for i in range(f.shape[0]) for j, wl in enumerate(wls)]
 
     def _warn_clipped(self, fd: DOEField, field) -> None:

@@ -62,8 +62,12 @@ def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_
 def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: float, z_doe: float, z_sensor: float,
                      chief_xp, chief_doe, chief_sensor, nodes: int = 64, oversample: int = 1,
                      field_type: str | None = None, check: bool = True, chief_uv=None,
-                     ripple_zones: float | None = None, method: str = "auto", rim_images: bool = True) -> DOEField:
-    """:func:`exit_pupil_field` as a generator of trace requests (see :func:`accurate_field_steps`)."""
+                     ripple_zones: float | None = None, method: str = "auto", rim_images: bool = True,
+                     bbox=None, entrance=None, stop_rim=None) -> DOEField:
+    """:func:`exit_pupil_field` as a generator of trace requests (see :func:`accurate_field_steps`). ``bbox``,
+    ``entrance``: as :func:`accurate_field_steps` (the DOE-plane footprint and the entrance pupil, when the caller
+    has them for many fields); ``stop_rim``: the Fresnel step's rim images (:func:`stop_rim_images`) when the caller
+    traced them (None: traced here)."""
     ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
     xb = None
@@ -75,11 +79,13 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
         big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
         method = "fresnel" if big else "asm"
     if method == "fresnel":
-        rim = stop_rim_images(lens, field, wavelength, depth, field_type) if rim_images else None
+        rim = None
+        if rim_images:
+            rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
         fd = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
                                              chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
                                              check=check, chief_uv=chief_uv, stop_plane=z_xp,
-                                             ripple_zones=ripple_zones, stop_rim=rim)
+                                             ripple_zones=ripple_zones, stop_rim=rim, bbox=bbox, entrance=entrance)
         return fd.with_info(stop_edge="exit_pupil")
     if method != "asm":
         raise ValueError(f"method must be 'auto', 'fresnel' or 'asm', got {method!r}")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import warnings
 
+import numpy as np
 import torch
 
 from raywave.lens.sources import VignettingWarning, point_source_rays
@@ -16,6 +17,33 @@ from raywave.lens.sources import VignettingWarning, point_source_rays
 #: :func:`raywave.hybrid.coherent.exit_pupil.exit_pupil_field`)
 RIPPLE_ZONES = 4.0
 
+#: below this many values :func:`_fresnel_threads` evaluates in the calling thread
+_FRESNEL_CHUNK = 65536
+
+
+def _fresnel_threads(x):
+    """scipy's Fresnel integrals ``(C, S)`` of a float64 numpy array, split over torch's intra-op thread count (the
+    ufunc releases the GIL: on 2 threads it halves the Fresnel step's largest single cost); the values are those of
+    one call."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from scipy.special import fresnel
+
+    c_, s_ = np.empty_like(x), np.empty_like(x)
+    parts = min(torch.get_num_threads(), x.size // _FRESNEL_CHUNK)
+    if parts <= 1:
+        fresnel(x, out=(s_, c_))
+        return c_, s_
+    bounds = np.linspace(0, x.size, parts + 1).astype(int)
+
+    def run(i):
+        sl = slice(bounds[i], bounds[i + 1])
+        fresnel(x[sl], out=(s_[sl], c_[sl]))
+
+    with ThreadPoolExecutor(parts) as pool:
+        list(pool.map(run, range(parts)))
+    return c_, s_
+
 
 class _FresnelCS(torch.autograd.Function):
     """Fresnel integrals ``C(ν) = ∫₀^ν cos(πt²/2) dt`` and ``S(ν)`` (scipy, ~1e-15) of a real tensor, with the
@@ -23,9 +51,7 @@ class _FresnelCS(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, nu):
-        from scipy.special import fresnel
-
-        s_, c_ = fresnel(nu.detach().cpu().numpy())
+        c_, s_ = _fresnel_threads(nu.detach().cpu().numpy())
         ctx.save_for_backward(nu)
         return torch.from_numpy(c_).to(nu), torch.from_numpy(s_).to(nu)
 
@@ -115,8 +141,8 @@ def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.
     nu_max = math.sqrt(2.0) * ripple_zones
     if isinstance(g, torch.Tensor):
         nu_b = torch.clamp(0.6 / (g.detach() * pitch), max=_nu_inner(ripple_zones)).clamp_min(2.0)
-    else:
-        nu_b = torch.full_like(nu.detach(), max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0))
+    else:  # one value for the whole window
+        nu_b = max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0)
     inside = nu.detach() >= nu_b
     band = (nu.detach() > -nu_max) & ~inside
     out = inside.to(torch.complex128)
@@ -125,17 +151,19 @@ def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.
         return out
     v = nu[idx]
     c_, s_ = _FresnelCS.apply(v)
-    d = torch.complex(c_ + 0.5, s_ + 0.5)
-    d = d * complex(0.5, -0.5) if dz >= 0 else d.conj() * complex(0.5, 0.5)
+    # D = (1 − i)/2·(a + ib) (dz ≥ 0) or its mirror (1 + i)/2·(a − ib), a = C + ½, b = S + ½, in real arithmetic
+    a, b = c_ + 0.5, s_ + 0.5
+    d_re = 0.5 * a + 0.5 * b
+    d_im = 0.5 * b - 0.5 * a if dz >= 0 else 0.5 * a - 0.5 * b
     w_out = _smoothstep((v + nu_max) / math.sqrt(2.0))
-    nb = nu_b[idx]
-    w_in = 1.0 - _smoothstep((v - 0.5 * nb) / (0.5 * nb))
-    if curvature is not None:
-        f = torch.sqrt(1.0 + curvature[idx].clamp(-0.9, 3.0))  # noqa: the edge wave's cylindrical spreading
-        val = torch.where(v > 0, 1.0 + (d - 1.0) * f * w_in, d * f) * w_out
-    else:
-        val = (1.0 + (d - 1.0) * w_in) * w_out
-    return out.index_put(idx, val)
+    nb = nu_b[idx] if isinstance(nu_b, torch.Tensor) else nu_b
+    w_in = 1.0 - _smoothstep((v - 0.5 * nb) / (0.5 * nb))  # = 1 in the shadow (v ≤ 0)
+    m = w_out * w_in
+    if curvature is not None:  # the edge wave's cylindrical spreading
+        m = m * torch.sqrt(1.0 + curvature[idx].clamp(-0.9, 3.0))
+    # inside (v > 0): (1 + (D − 1)·f·w_in)·w_out; in the shadow: D·f·w_out
+    re = torch.where(v > 0, w_out + (d_re - 1.0) * m, d_re * m)
+    return out.index_put(idx, torch.complex(re, d_im * m))
 
 
 #: stop-rim points at which :func:`stop_rim_images` finds the edge's image
@@ -157,27 +185,48 @@ def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | Non
     aberration, astigmatism). The neighbouring source is displaced along the rim point's radial direction (the
     edge's normal, the direction its Fresnel diffraction runs), to first order from central differences;
     the crossing is the closest approach of the two rays. Differentiable with respect to the lens (the rays are
-    traced with autograd when it is on)."""
+    traced with autograd when it is on). Many sources at once: :func:`stop_rim_images_many`."""
+    f = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(1, 2)
+    return stop_rim_images_many(lens, f, wavelength, depth, field_type, k)[0]
+
+
+def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str | None = None,
+                         k: int = RIM_POINTS) -> list:
+    """:func:`stop_rim_images` of the sources ``fields`` (F, 2) at one wavelength (µm), from one trace of all their
+    rim rays (5·F sources × k rim points): a list of F results (``(theta, z)`` or None)."""
     field_type = field_type or lens.field_type
-    f = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
+    f = torch.as_tensor(fields, dtype=torch.float64, device=lens.device).reshape(-1, 2)
+    nf = f.shape[0]
     fmax = max([abs(float(v)) for v in getattr(lens, "fields", [])] + [0.0]) or 1.0
     eps = RIM_NUDGE * fmax
     ex = torch.tensor([eps, 0.0], dtype=f.dtype, device=f.device)
     ey = torch.tensor([0.0, eps], dtype=f.dtype, device=f.device)
-    fields = torch.stack([f, f + ex, f + ey, f - ex, f - ey])  # central differences
+    # (F, 5, 2) → (5F, 2): each source and its central-difference nudges, source-major
+    srcs = torch.stack([f, f + ex, f + ey, f - ex, f - ey], 1).reshape(-1, 2)
     theta = torch.arange(k, dtype=torch.float64, device=lens.device) * (2 * math.pi / k)
     c, s = torch.cos(theta), torch.sin(theta)
     with warnings.catch_warnings():
         # a diagnostic trace of nudged sources through the rim, apertures off: the field construction of the
         # source itself reports its vignetting. Other warnings pass through.
         warnings.simplefilter("ignore", VignettingWarning)
-        rays = point_source_rays(lens, fields, torch.tensor([float(wavelength)], dtype=torch.float64),
+        rays = point_source_rays(lens, srcs, torch.tensor([float(wavelength)], dtype=torch.float64),
                                  pupil=(c, s), aim="full", depth=depth, field_type=field_type)
         out, rec = lens.trace(rays, apertures=False, record=True)
-    o, d, v = out.o[:, 0], out.d[:, 0], out.valid[:, 0]  # (5, k, 3)
-    if not bool(v.all()):
-        return None
-    w = _radial_nudge(rays, rec, lens.stop_index, c, s)
+    o, d = out.o[:, 0].reshape(nf, 5, k, 3), out.d[:, 0].reshape(nf, 5, k, 3)
+    v = out.valid[:, 0].reshape(nf, 5, k)
+    stop = lens.stop_index
+    if stop == 0:  # the rays' own directions reach the first surface
+        dv = rays.d[:, 0]
+    else:
+        dv = torch.stack(rec.points[stop + 1], -1)[:, 0] - torch.stack(rec.points[stop], -1)[:, 0]
+    dv = dv.reshape(nf, 5, k, 3)
+    return [_rim_crossing(o[i], d[i], dv[i], c, s, theta) if bool(v[i].all()) else None for i in range(nf)]
+
+
+def _rim_crossing(o, d, dv, c, s, theta):
+    """The rim images of one source from its rays (5, k, 3) (the source and its four nudges) through the rim points
+    at azimuths ``theta`` (k,): ``(theta, z)``, or None (a degenerate source, a non-finite crossing)."""
+    w = _radial_nudge(dv, c, s)
     if w is None:
         return None
     # (k, 3): the ray of the source nudged so that its ray through the rim point turns along the rim's normal
@@ -196,15 +245,12 @@ def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | Non
     return theta, z
 
 
-def _radial_nudge(rays, rec, stop: int, c: torch.Tensor, s: torch.Tensor):
-    """Weights (k, 2) of the x and y source nudges (central differences, sources 1, 3 and 2, 4 of ``rays``) whose
-    combination turns the ray through each rim point along the rim's normal ``(c, s)`` as it arrives at the stop:
-    the edge's image for its normal diffraction, the same whatever units (angle, object height) the field takes;
-    None if the nudges do not turn the rays (a degenerate source)."""
-    if stop == 0:  # the rays' own directions reach the first surface
-        dv = rays.d[:, 0]
-    else:
-        dv = torch.stack(rec.points[stop + 1], -1)[:, 0] - torch.stack(rec.points[stop], -1)[:, 0]
+def _radial_nudge(dv: torch.Tensor, c: torch.Tensor, s: torch.Tensor):
+    """Weights (k, 2) of the x and y source nudges (central differences: sources 1, 3 and 2, 4 of the rays'
+    directions ``dv`` (5, k, 3) as they arrive at the stop) whose combination turns the ray through each rim point
+    along the rim's normal ``(c, s)`` as it arrives at the stop: the edge's image for its normal diffraction, the
+    same whatever units (angle, object height) the field takes; None if the nudges do not turn the rays (a
+    degenerate source)."""
     slope = dv[..., :2] / dv[..., 2:3]  # (5, k, 2): the incoming ray's slopes at the stop
     jac = torch.stack([slope[1] - slope[3], slope[2] - slope[4]], -1)  # (k, 2 slope, 2 nudge)
     det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]

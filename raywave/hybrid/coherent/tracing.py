@@ -3,6 +3,7 @@ plane), the Newton aiming of rays at the DOE-plane nodes, and nearest-node filli
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -125,16 +126,24 @@ def run_batched(gens: list) -> list:
     return results
 
 
-def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z):
+def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z, need_jac=None):
     """Landing points X (N, 2), validity (N,) and ∂X/∂uv (N, 2, 2) (forward differences, step h), from one
-    batched trace of the 3N rays uv, uv + h·e_u, uv + h·e_v (a generator: yields that trace's request)."""
+    batched trace of the 3N rays uv, uv + h·e_u, uv + h·e_v (a generator: yields that trace's request).
+    ``need_jac`` (N,) bool: only those rays get their two neighbours traced (the others' Jacobians are NaN)."""
     n = uv.shape[0]
     du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
-    allv = torch.cat([uv, uv + du[0], uv + du[1]])
+    uj = uv if need_jac is None else uv[need_jac]
+    m = uj.shape[0]
+    allv = torch.cat([uv, uj + du[0], uj + du[1]])
     _, _, at, _ = yield _TraceRequest(lens, allv, field, wl, depth, z_doe, field_type, False, ep_z, False)
     x = at.o[0, 0, :, :2]
-    x0, xu, xv = x[:n], x[n:2 * n], x[2 * n:]
-    jac = torch.stack([(xu - x0) / h, (xv - x0) / h], -1)
+    x0, xu, xv = x[:n], x[n:n + m], x[n + m:]
+    jac_j = torch.stack([(xu - x0[:m] if need_jac is None else xu - x0[need_jac]) / h,
+                         (xv - x0[:m] if need_jac is None else xv - x0[need_jac]) / h], -1)
+    if need_jac is None:
+        return x0, at.valid[0, 0, :n], jac_j
+    jac = torch.full((n, 2, 2), math.nan, dtype=uv.dtype, device=uv.device)
+    jac[need_jac] = jac_j
     return x0, at.valid[0, 0, :n], jac
 
 
@@ -148,27 +157,47 @@ def _solve2(j, r):
     return torch.where(ok[:, None], torch.stack([s0, s1], -1), torch.zeros_like(r)), ok
 
 
-def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h, max_step, ep_z):
-    """Newton: entrance-plane uv (N, 2) whose rays land on ``targets`` (N, 2) on the DOE plane.
+#: chord rounds (the start's Jacobian kept, no finite-difference rays) a node takes before it switches to Newton
+CHORD_ROUNDS = 3
+
+
+def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h, max_step, ep_z,
+                     uv0=None, jac0=None):
+    """Newton: entrance-plane uv (N, 2) whose rays land on ``targets`` (N, 2) on the DOE plane, from the chief ray's
+    linear guess, or from ``uv0`` (N, 2) where it is finite (a better start, e.g. interpolated from a coarser solve).
 
     Every iteration is one batched trace (the rays and their two finite-difference neighbours) of the rays that
     are still moving: a converged or dead ray keeps its uv, so its landing point and Jacobian are those it was
     last traced with (each ray is traced on its own, so tracing it again would give the same values). Steps
     longer than ``max_step`` (mm on the entrance plane) are shortened, which keeps the iteration inside the
-    traceable region. Returns (uv, converged (N,), Jacobian at the last iterate (N, 2, 2), landing points (N, 2)
-    at ``uv`` or None where some ray moved after its last trace, i.e. the iteration did not settle); all
-    detached (a generator: yields its traces)."""
+    traceable region. ``jac0`` (N, 2, 2): a Jacobian ∂X/∂uv known near the solution (from the coarse solve):
+    where it and ``uv0`` are finite, the node first takes up to :data:`CHORD_ROUNDS` chord steps with it (its
+    ray alone traced, no neighbours), then Newton steps. Returns (uv, converged (N,), Jacobian at the last iterate
+    (N, 2, 2) (a chord node's: ``jac0``), landing points (N, 2) at ``uv`` or None where some ray moved after its
+    last trace, i.e. the iteration did not settle); all detached (a generator: yields its traces)."""
     targets, uv_c, x_c, jac_c = (t.detach() for t in (targets, uv_c, x_c, jac_c))
     step0, _ = _solve2(jac_c.expand(targets.shape[0], 2, 2), targets - x_c)
     uv = uv_c + step0
     n = targets.shape[0]
+    chord = torch.zeros(n, dtype=torch.bool, device=targets.device)
+    if uv0 is not None:
+        start = torch.isfinite(uv0).all(-1)
+        uv = torch.where(start[:, None], uv0.detach(), uv)
+        if jac0 is not None:
+            chord = start & torch.isfinite(jac0).flatten(1).all(-1)
     x = torch.zeros_like(targets)
     valid = torch.zeros(n, dtype=torch.bool, device=targets.device)
     jac = torch.zeros((n, 2, 2), dtype=targets.dtype, device=targets.device)
+    if bool(chord.any()):
+        jac[chord] = jac0.detach()[chord]
     live = torch.arange(n, device=targets.device)  # the rays moved since their last trace
-    for _ in range(_NEWTON_ITERS):
+    for it in range(_NEWTON_ITERS):
+        if it == CHORD_ROUNDS:
+            chord[:] = False  # from here on every moving node takes Newton steps
+        need = ~chord[live]
         x_l, valid_l, jac_l = yield from _landing_and_jacobian(lens, uv[live], field, wl, depth, z_doe, field_type, h,
-                                                               ep_z)
+                                                               ep_z, None if bool(need.all()) else need)
+        jac_l = torch.where(need[:, None, None], jac_l, jac[live])
         x[live], valid[live], jac[live] = x_l, valid_l, jac_l
         err = x_l - targets[live]
         step, ok = _solve2(jac_l, err)
