@@ -16,7 +16,8 @@ machine). Prints one JSON object (and writes it with ``-o``).
 
     python benchmarks/imaging.py [--threads 2] [--quick] [-o imaging.json]
 
-``--per-psf`` (issue 17, the batched engine): only the PSF-map cost per PSF at 1, 10, 100 and 300 PSFs
+``--per-psf`` (issue 17, the batched engine): only the PSF-map cost per PSF at 1, 10, 100 and 300 PSFs (``--stop-edge
+doe|exit_pupil``: that stop edge instead of the default)
 (1×1×1λ, 2×5×1λ, 10×10×1λ and the 10×10×3λ map; no autograd, ks = 64), each in its own process.
 """
 
@@ -38,11 +39,11 @@ WAVELENGTHS = (0.66, 0.53, 0.47)
 MP_SHAPE = (756, 1344)
 
 
-def _lens():
+def _lens(stop_edge: str | None = None):
     from raywave.assembly.build import load_hybrid
     from raywave.lens.build import bundled_lens_path
 
-    return load_hybrid(bundled_lens_path("hybrid_asphere"))
+    return load_hybrid(bundled_lens_path("hybrid_asphere"), stop_edge=stop_edge)
 
 
 def map_case(n: int, threads: int, cached: bool) -> dict:
@@ -77,8 +78,9 @@ def map_case(n: int, threads: int, cached: bool) -> dict:
     return out
 
 
-def psfs_case(n: int, m: int, n_wl: int, threads: int) -> dict:
-    """Time per PSF of an n×m map at the first ``n_wl`` of the R, G, B wavelengths (after a 1-PSF warm-up)."""
+def psfs_case(n: int, m: int, n_wl: int, threads: int, stop_edge: str | None = None) -> dict:
+    """Time per PSF of an n×m map at the first ``n_wl`` of the R, G, B wavelengths (after a 1-PSF warm-up);
+    ``stop_edge`` None: the lens's default edge."""
     import warnings
 
     import torch
@@ -86,14 +88,15 @@ def psfs_case(n: int, m: int, n_wl: int, threads: int) -> dict:
     from raywave.imaging import psf_map
 
     torch.set_num_threads(threads)
-    hl = _lens()
+    hl = _lens(stop_edge)
     warnings.simplefilter("ignore")
     psf_map(hl, (1, 1), wavelengths=WAVELENGTHS[:1], ks=KS)  # warm-up (allocator, first-call costs)
     t0, c0 = time.perf_counter(), time.process_time()
     psf_map(hl, (n, m), wavelengths=WAVELENGTHS[:n_wl], ks=KS)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     k = n * m * n_wl
-    return {"case": "psfs", "grid": [n, m], "wavelengths": list(WAVELENGTHS[:n_wl]), "psfs": k, "seconds": wall,
+    return {"case": "psfs", "grid": [n, m], "wavelengths": list(WAVELENGTHS[:n_wl]), "psfs": k,
+            "stop_edge": hl.stop_edge, "seconds": wall,
             "seconds_per_psf": wall / k, "cpu_seconds_per_psf": cpu / k}
 
 
@@ -160,12 +163,15 @@ def main() -> None:
     ap.add_argument("-o", "--output", default=None)
     ap.add_argument("--per-psf", action="store_true", help="only the map's time per PSF at 1/10/100/300 PSFs")
     ap.add_argument("--max-psfs", type=int, default=300, help="--per-psf: skip the cases with more PSFs")
+    ap.add_argument("--stop-edge", choices=("default", "doe", "exit_pupil"), default="default",
+                    help="--per-psf: the lens's stop edge (default: the library's default, the exit pupil)")
     ap.add_argument("--case", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.case:
         kind, *rest = args.case.split(",")
         if kind == "psfs":
-            out = psfs_case(int(rest[0]), int(rest[1]), int(rest[2]), args.threads)
+            out = psfs_case(int(rest[0]), int(rest[1]), int(rest[2]), args.threads,
+                            None if rest[3] == "default" else rest[3])
         elif kind == "map":
             out = map_case(int(rest[0]), args.threads, rest[1] == "1")
         else:
@@ -177,8 +183,9 @@ def main() -> None:
 
     if args.per_psf:
         cases = [c for c in ((1, 1, 1), (2, 5, 1), (10, 10, 1), (10, 10, 3)) if c[0] * c[1] * c[2] <= args.max_psfs]
-        runs = [_run(["psfs", *c], args.threads) for c in cases]
+        runs = [_run(["psfs", *c, args.stop_edge], args.threads) for c in cases]
         summary = {"benchmark": "imaging_per_psf", "lens": "hybrid_asphere", "ks": KS, "threads": args.threads,
+                   "stop_edge": runs[0]["stop_edge"],
                    "torch": torch.__version__, "python": platform.python_version(), "machine": platform.machine(),
                    "runs": runs,
                    "seconds_per_psf": {str(r["psfs"]): r["seconds_per_psf"] for r in runs},

@@ -398,15 +398,13 @@ def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelen
     fine = upsample_nodes(torch.stack([maps["phi_env"], amp] + ([] if diffracting else [dist]) + edge_chan),
                           pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
     if diffracting:
-        edge = stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, maps["g_max"], p, curvature=fine[-1])
         cov = edge_coverage(fine[2], p) if other is not None else None
     else:
-        edge = None
         cov = edge_coverage(fine[2], p)
     if doe is not None:
         dcov = doe.coverage(sim.window(iy0, iy1, ix0, ix1), oversample, device=gx.device)
         cov = dcov if cov is None else cov * dcov
-    if edge is not None:  # the Fresnel factor is 0 beyond the ripple band
+    if diffracting:  # the Fresnel factor is 0 beyond the ripple band
         band = (fine[-2].detach() > -math.sqrt(2.0) * ripple_zones).to(torch.float64)
         b = _crop_to_lit(band if cov is None else cov * band)
     else:
@@ -417,6 +415,7 @@ def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelen
     fine = fine[:, a0:a1, b0:b1]
     k = 2 * math.pi / (wavelength * 1e-3)
     env = torch.polar(fine[1] if cov is None else fine[1] * cov[a0:a1, b0:b1], k * fine[0])
-    if edge is not None:
-        env = env * edge[a0:a1, b0:b1]
+    if diffracting:  # the knife-edge factor (elementwise) on the cropped window only
+        env = env * stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, maps["g_max"], p,
+                                     curvature=fine[-1])
     return env, (iy0 + a0, iy0 + a1, ix0 + b0, ix0 + b1)

@@ -150,20 +150,74 @@ def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.
     if idx[0].numel() == 0:
         return out
     v = nu[idx]
-    c_, s_ = _FresnelCS.apply(v)
-    # D = (1 − i)/2·(a + ib) (dz ≥ 0) or its mirror (1 + i)/2·(a − ib), a = C + ½, b = S + ½, in real arithmetic
-    a, b = c_ + 0.5, s_ + 0.5
-    d_re = 0.5 * a + 0.5 * b
-    d_im = 0.5 * b - 0.5 * a if dz >= 0 else 0.5 * a - 0.5 * b
-    w_out = _smoothstep((v + nu_max) / math.sqrt(2.0))
-    nb = nu_b[idx] if isinstance(nu_b, torch.Tensor) else nu_b
-    w_in = 1.0 - _smoothstep((v - 0.5 * nb) / (0.5 * nb))  # = 1 in the shadow (v ≤ 0)
-    m = w_out * w_in
-    if curvature is not None:  # the edge wave's cylindrical spreading
-        m = m * torch.sqrt(1.0 + curvature[idx].clamp(-0.9, 3.0))
-    # inside (v > 0): (1 + (D − 1)·f·w_in)·w_out; in the shadow: D·f·w_out
-    re = torch.where(v > 0, w_out + (d_re - 1.0) * m, d_re * m)
-    return out.index_put(idx, torch.complex(re, d_im * m))
+    nb = nu_b[idx] if isinstance(nu_b, torch.Tensor) else torch.full_like(v.detach(), nu_b)
+    curv = None if curvature is None else curvature[idx]
+    re, im = _EdgeBand.apply(v, curv, nb, nu_max, dz >= 0)
+    return out.index_put(idx, torch.complex(re, im))
+
+
+def _smoothstep_slope(t: torch.Tensor) -> torch.Tensor:
+    """d/dt of :func:`_smoothstep`: ``30 t²(1 − t)²`` on (0, 1), 0 outside."""
+    inside = (t > 0) & (t < 1)
+    return torch.where(inside, 30.0 * t * t * (1.0 - t) ** 2, torch.zeros_like(t))
+
+
+class _EdgeBand(torch.autograd.Function):
+    """The knife-edge factor on the band samples, ``(Re, Im)`` of ``D·f·w_out`` in the shadow (``ν ≤ 0``) and of
+    ``(1 + (D − 1)·f·w_in)·w_out`` inside, with ``D`` the Fresnel knife edge (its mirror for ``forward_edge``
+    False), ``f = sqrt(1 + clamp(κs))`` the curvature's spreading, ``w_out``/``w_in`` the band's smooth roll-offs
+    (see :func:`stop_edge_factor`). A hand-written backward that recomputes the few band-sized terms it needs
+    from ``ν`` and ``κs``: autograd would keep ~20 of them per PSF (the largest share of the Fresnel step's extra
+    memory in a lens-trained backward), this keeps two."""
+
+    @staticmethod
+    def _terms(v, curv, nb, nu_max: float):
+        t_out = (v + nu_max) / math.sqrt(2.0)
+        t_in = (v - 0.5 * nb) / (0.5 * nb)
+        w_out, w_in = _smoothstep(t_out), 1.0 - _smoothstep(t_in)  # w_in = 1 in the shadow (v ≤ 0)
+        f = None if curv is None else torch.sqrt(1.0 + curv.clamp(-0.9, 3.0))
+        return t_out, t_in, w_out, w_in, f
+
+    @staticmethod
+    def forward(ctx, v, curv, nb, nu_max: float, forward_edge: bool):
+        c_, s_ = (torch.from_numpy(a).to(v) for a in _fresnel_threads(v.detach().cpu().numpy()))
+        # D = (1 − i)/2·(a + ib) (dz ≥ 0) or its mirror (1 + i)/2·(a − ib), a = C + ½, b = S + ½
+        a, b = c_ + 0.5, s_ + 0.5
+        d_re = 0.5 * a + 0.5 * b
+        d_im = 0.5 * b - 0.5 * a if forward_edge else 0.5 * a - 0.5 * b
+        _, _, w_out, w_in, f = _EdgeBand._terms(v, curv, nb, nu_max)
+        m = w_out * w_in if f is None else w_out * w_in * f
+        re = torch.where(v > 0, w_out + (d_re - 1.0) * m, d_re * m)
+        ctx.save_for_backward(v, curv, nb, c_, s_)
+        ctx.nu_max, ctx.forward_edge = nu_max, forward_edge
+        return re, d_im * m
+
+    @staticmethod
+    def backward(ctx, g_re, g_im):
+        v, curv, nb, c_, s_ = ctx.saved_tensors
+        t_out, t_in, w_out, w_in, f = _EdgeBand._terms(v, curv, nb, ctx.nu_max)
+        a, b = c_ + 0.5, s_ + 0.5
+        d_re = 0.5 * a + 0.5 * b
+        sign = 1.0 if ctx.forward_edge else -1.0
+        d_im = sign * (0.5 * b - 0.5 * a)
+        ph = 0.5 * math.pi * v * v  # C' = cos, S' = sin
+        cos_, sin_ = torch.cos(ph), torch.sin(ph)
+        dd_re, dd_im = 0.5 * (cos_ + sin_), sign * 0.5 * (sin_ - cos_)
+        dw_out = _smoothstep_slope(t_out) / math.sqrt(2.0)
+        dw_in = -_smoothstep_slope(t_in) / (0.5 * nb)
+        ff = 1.0 if f is None else f
+        m = w_out * w_in * ff
+        dm = (dw_out * w_in + w_out * dw_in) * ff
+        lit = v > 0
+        dre = torch.where(lit, dw_out + dd_re * m + (d_re - 1.0) * dm, dd_re * m + d_re * dm)
+        dim = dd_im * m + d_im * dm
+        g_v = g_re * dre + g_im * dim
+        g_c = None
+        if curv is not None and ctx.needs_input_grad[1]:
+            ok = (curv >= -0.9) & (curv <= 3.0)  # clamp passes the gradient on its closed range
+            m_c = torch.where(ok, w_out * w_in * 0.5 / f, torch.zeros_like(f))
+            g_c = g_re * torch.where(lit, (d_re - 1.0) * m_c, d_re * m_c) + g_im * d_im * m_c
+        return g_v, g_c, None, None, None
 
 
 #: stop-rim points at which :func:`stop_rim_images` finds the edge's image
