@@ -199,9 +199,6 @@ def _trace_nodes(lens, nd: _Nodes, field, wl, depth, z_doe: float, field_type, c
     uv, conv, jac, x_at = yield from _invert_to_nodes(lens, nd.targets, uv_c, x_c, jac_c, field, wl, depth, z_doe,
                                                       field_type, h, max_step=0.25 * r_ep, ep_z=ep_z, uv0=uv0,
                                                       jac0=jac0)
-    if uv0 is not None and torch.is_grad_enabled():
-        # the lens gradient below needs the exact Jacobian at the solution (chord nodes carry the coarse one)
-        _, _, jac = yield from _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z)
     # the differentiable trace of the node rays. The landing point of a node's ray must stay on its node when
     # the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals uv
     # in value and carries d(uv)/dθ = −J⁻¹ ∂X/∂θ, so everything traced at uv_lin (path, directions, aperture
@@ -210,7 +207,15 @@ def _trace_nodes(lens, nd: _Nodes, field, wl, depth, z_doe: float, field_type, c
     if x_at is None or torch.is_grad_enabled():
         _, _, at0, _ = yield _TraceRequest(lens, uv, field, wl, depth, z_doe, field_type, False, ep_z, True)
         x_at = at0.o[0, 0, :, :2]
-    jinv_step, _ = _solve2(jac, (x_at - nd.targets))
+    if uv0 is not None and torch.is_grad_enabled():
+        # the lens gradient needs the exact Jacobian at the solution (a chord node carries the coarse one): the
+        # step's value comes from the iteration's Jacobian (as without autograd, so that a replay of this
+        # construction is bitwise the forward pass), its derivative from the exact one (a zero-valued term)
+        _, _, jac_exact = yield from _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z)
+        jinv_step, _ = _solve2(jac, x_at.detach() - nd.targets)
+        jinv_step = jinv_step + _solve2(jac_exact, x_at - x_at.detach())[0]
+    else:
+        jinv_step, _ = _solve2(jac, (x_at - nd.targets))
     uv_lin = uv - jinv_step
     rays, _, at, rec = yield _TraceRequest(lens, uv_lin, field, wl, depth, z_doe, field_type, True, ep_z, True)
     return uv_lin, rays, at, rec, conv & at.valid[0, 0]
