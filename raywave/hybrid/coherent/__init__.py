@@ -48,7 +48,7 @@ from raywave.hybrid.coherent.geometry import (WINDOW_BYTES_PER_SAMPLE, _check_be
 from raywave.hybrid.coherent.tracing import (_TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
                                              _slice_bundle, _solve2, _trace_group, _trace_uv, run_batched,
                                              run_serial)  # noqa: F401
-from raywave.hybrid.coherent.stop_edge import (INNER_TAIL, RIM_POINTS, RIPPLE_ZONES, _FresnelCS, _fresnel_scale,
+from raywave.hybrid.coherent.stop_edge import (INNER_TAIL, RIM_POINTS, RIPPLE_ZONES, _fresnel_scale,
                                                _nu_inner, _rim_z, _smoothstep, _zone_estimate, stop_edge_factor,
                                                stop_rim_images, stop_rim_images_many)  # noqa: F401
 from raywave.hybrid.coherent.accurate import (accurate_field, accurate_field_steps, entrance_pupil)  # noqa: F401

@@ -45,28 +45,6 @@ def _fresnel_threads(x):
     return c_, s_
 
 
-class _FresnelCS(torch.autograd.Function):
-    """Fresnel integrals ``C(ν) = ∫₀^ν cos(πt²/2) dt`` and ``S(ν)`` (scipy, ~1e-15) of a real tensor, with the
-    exact derivatives ``cos(πν²/2)``, ``sin(πν²/2)``."""
-
-    @staticmethod
-    def forward(ctx, nu):
-        c_, s_ = _fresnel_threads(nu.detach().cpu().numpy())
-        ctx.save_for_backward(nu)
-        return torch.from_numpy(c_).to(nu), torch.from_numpy(s_).to(nu)
-
-    @staticmethod
-    def backward(ctx, gc, gs):
-        (nu,) = ctx.saved_tensors
-        ph = 0.5 * math.pi * nu * nu
-        out = torch.zeros_like(nu)
-        if gc is not None:
-            out = out + gc * torch.cos(ph)
-        if gs is not None:
-            out = out + gs * torch.sin(ph)
-        return out
-
-
 def _smoothstep(t: torch.Tensor) -> torch.Tensor:
     t = t.clamp(0.0, 1.0)
     return t * t * t * (10.0 + t * (6.0 * t - 15.0))
