@@ -157,12 +157,16 @@ class _EdgeBand(torch.autograd.Function):
         return t_out, t_in, w_out, w_in, f
 
     @staticmethod
+    def _knife(c_, s_, forward_edge: bool):
+        """``(Re D, Im D)`` from the Fresnel integrals: ``D = (1 − i)/2·(a + ib)`` (``forward_edge``) or its mirror
+        ``(1 + i)/2·(a − ib)``, ``a = C + ½``, ``b = S + ½``."""
+        a, b = c_ + 0.5, s_ + 0.5
+        return 0.5 * a + 0.5 * b, (0.5 * b - 0.5 * a if forward_edge else 0.5 * a - 0.5 * b)
+
+    @staticmethod
     def forward(ctx, v, curv, nb, nu_max: float, forward_edge: bool):
         c_, s_ = (torch.from_numpy(a).to(v) for a in _fresnel_threads(v.detach().cpu().numpy()))
-        # D = (1 − i)/2·(a + ib) (dz ≥ 0) or its mirror (1 + i)/2·(a − ib), a = C + ½, b = S + ½
-        a, b = c_ + 0.5, s_ + 0.5
-        d_re = 0.5 * a + 0.5 * b
-        d_im = 0.5 * b - 0.5 * a if forward_edge else 0.5 * a - 0.5 * b
+        d_re, d_im = _EdgeBand._knife(c_, s_, forward_edge)
         _, _, w_out, w_in, f = _EdgeBand._terms(v, curv, nb, nu_max)
         m = w_out * w_in if f is None else w_out * w_in * f
         re = torch.where(v > 0, w_out + (d_re - 1.0) * m, d_re * m)
@@ -174,10 +178,8 @@ class _EdgeBand(torch.autograd.Function):
     def backward(ctx, g_re, g_im):
         v, curv, nb, c_, s_ = ctx.saved_tensors
         t_out, t_in, w_out, w_in, f = _EdgeBand._terms(v, curv, nb, ctx.nu_max)
-        a, b = c_ + 0.5, s_ + 0.5
-        d_re = 0.5 * a + 0.5 * b
+        d_re, d_im = _EdgeBand._knife(c_, s_, ctx.forward_edge)
         sign = 1.0 if ctx.forward_edge else -1.0
-        d_im = sign * (0.5 * b - 0.5 * a)
         ph = 0.5 * math.pi * v * v  # C' = cos, S' = sin
         cos_, sin_ = torch.cos(ph), torch.sin(ph)
         dd_re, dd_im = 0.5 * (cos_ + sin_), sign * 0.5 * (sin_ - cos_)

@@ -138,8 +138,8 @@ def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z
     _, _, at, _ = yield _TraceRequest(lens, allv, field, wl, depth, z_doe, field_type, False, ep_z, False)
     x = at.o[0, 0, :, :2]
     x0, xu, xv = x[:n], x[n:n + m], x[n + m:]
-    jac_j = torch.stack([(xu - x0[:m] if need_jac is None else xu - x0[need_jac]) / h,
-                         (xv - x0[:m] if need_jac is None else xv - x0[need_jac]) / h], -1)
+    xj = x0 if need_jac is None else x0[need_jac]
+    jac_j = torch.stack([(xu - xj) / h, (xv - xj) / h], -1)
     if need_jac is None:
         return x0, at.valid[0, 0, :n], jac_j
     jac = torch.full((n, 2, 2), math.nan, dtype=uv.dtype, device=uv.device)
