@@ -476,6 +476,7 @@ class HybridLens(nn.Module):
             out, out_origin = _full_grid_window(u, fd, dz, (lo_x, lo_y), n_out)
         else:
             out, out_origin = self._lattice_window(u, fd, dz, crop_origin, (xc, yc), lo_x, n_out)
+        del u, phase  # the DOE-plane window is no longer needed (autograd keeps what its backward needs)
         # intensity on a q-times finer grid (q ≥ 2: |U|² has twice the field's bandwidth), then integrated over
         # the sensor pixels through its cubic interpolant
         q = self.intensity_upsample

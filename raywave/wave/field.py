@@ -125,5 +125,9 @@ def upsampled_intensity(u: torch.Tensor, factor: int, window: torch.Tensor | Non
     # ifft2(spec, s=(q·Ny, q·Nx)) one axis at a time: the first pass transforms only the Ny rows of the spectrum
     # (the zero padding's rows stay zero through it)
     up = torch.fft.ifft(torch.fft.ifft(spec, n=q * nx, dim=-1), n=q * ny, dim=-2)
+    del spec
     r = torch.view_as_real(up)
-    return r[..., 0].square() + r[..., 1].square()
+    if torch.is_grad_enabled() and up.requires_grad:
+        return r[..., 0].square() + r[..., 1].square()
+    out = r[..., 0].square()  # without autograd: one array less at the peak (the same sums)
+    return out.add_(r[..., 1].square())

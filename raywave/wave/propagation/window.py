@@ -131,11 +131,21 @@ def _convolve_band(u, h, size, rows, cols, noy, nox):
     lead = u.shape[:-2]
     if rows.numel() == 0 or cols.numel() == 0:
         return torch.zeros((*lead, noy, nox), dtype=u.dtype, device=u.device) + 0 * u.sum()
+    # peak memory: every full-size intermediate is released before the next one is made, and the zero-filled
+    # grids are filled in place (their zeros carry no graph, so autograd keeps the copies' gradients)
     spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1).index_select(-1, cols), n=my, dim=-2)
-    prod = spec.index_select(-2, rows) * h
-    full_y = torch.zeros((*lead, my, cols.numel()), dtype=prod.dtype, device=u.device).index_copy(-2, rows, prod)
-    part = torch.fft.ifft(full_y, dim=-2)[..., :noy, :]
-    full_x = torch.zeros((*lead, noy, mx), dtype=part.dtype, device=u.device).index_copy(-1, cols, part)
+    prod = spec.index_select(-2, rows)
+    del spec
+    # in place unless autograd needs the factors (the product's backward keeps both)
+    prod = prod.mul_(h) if not (torch.is_grad_enabled() and (prod.requires_grad or h.requires_grad)) else prod * h
+    full_y = torch.zeros((*lead, my, cols.numel()), dtype=prod.dtype, device=u.device)
+    full_y.index_copy_(-2, rows, prod)
+    del prod
+    part = torch.fft.ifft(full_y, dim=-2)
+    del full_y
+    full_x = torch.zeros((*lead, noy, mx), dtype=part.dtype, device=u.device)
+    full_x.index_copy_(-1, cols, part[..., :noy, :])
+    del part
     return torch.fft.ifft(full_x, dim=-1)[..., :nox]
 
 
