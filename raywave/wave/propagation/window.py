@@ -94,7 +94,10 @@ def propagate_window(
         h = _perturbed(h.to(u.dtype), rel, (my, mx), rows, cols, pitch, wavelength, n, carrier, shift, dz, u.device)
     if rows is None:
         return _convolve_full(u, h.to(u.dtype), (my, mx), noy, nox)
-    return _convolve_band(u, h.to(u.dtype), (my, mx), rows, cols, noy, nox)
+    h = h.to(u.dtype)
+    if torch.is_grad_enabled() and (u.requires_grad or h.requires_grad) and rows.numel() and cols.numel():
+        return _BandConvolve.apply(u, h, (my, mx), rows, cols, noy, nox)
+    return _convolve_band(u, h, (my, mx), rows, cols, noy, nox)
 
 
 def _perturbed(h, rel, size, rows, cols, pitch, wavelength, n, carrier, shift, dz, device):
@@ -149,6 +152,53 @@ def _convolve_band(u, h, size, rows, cols, noy, nox):
     return torch.fft.ifft(full_x, dim=-1)[..., :nox]
 
 
+def _band_spectrum(u, size, rows, cols):
+    """The band ``rows × cols`` of ``fft2(u, s=size)`` (the first pass along x, then only the band's columns)."""
+    my, mx = size
+    spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1).index_select(-1, cols), n=my, dim=-2)
+    return spec.index_select(-2, rows)
+
+
+class _BandConvolve(torch.autograd.Function):
+    """:func:`_convolve_band` with a hand-written backward (the adjoint transforms): autograd would keep the band
+    spectrum, the product and both zero-filled grids (~4 band-sized complex arrays per PSF, the largest share of a
+    trained lens's propagation memory); this keeps the inputs it needs and recomputes the input's band spectrum
+    for the transfer function's gradient. Linear in ``u`` for fixed ``h`` and in ``h`` for fixed ``u``:
+    ``∂/∂u`` is the adjoint convolution with ``conj(h)``, ``∂/∂h`` the product of the output gradient's band
+    spectrum with the input's conjugate band spectrum."""
+
+    @staticmethod
+    def forward(ctx, u, h, size, rows, cols, noy: int, nox: int):
+        ctx.size, ctx.noy, ctx.nox, ctx.in_shape = size, noy, nox, u.shape[-2:]
+        ctx.save_for_backward(u if ctx.needs_input_grad[1] else None, h if ctx.needs_input_grad[0] else None,
+                              rows, cols)
+        return _convolve_band(u, h, size, rows, cols, noy, nox)
+
+    @staticmethod
+    def backward(ctx, g):
+        u, h, rows, cols = ctx.saved_tensors
+        (my, mx), noy, nox, (ny, nx) = ctx.size, ctx.noy, ctx.nox, ctx.in_shape
+        # the output's adjoint chain: ifft along x (fft / mx), the columns' copy, ifft along y over the kept rows
+        g = torch.fft.fft(g, n=mx, dim=-1).index_select(-1, cols) / mx  # (..., noy, C)
+        g = torch.fft.fft(g, n=my, dim=-2).index_select(-2, rows) / my  # (..., R, C): ∂L/∂(product)
+        grad_u = grad_h = None
+        if ctx.needs_input_grad[1]:
+            grad_h = g * _band_spectrum(u, (my, mx), rows, cols).conj()
+            grad_h = grad_h.sum(tuple(range(grad_h.ndim - 2))) if grad_h.ndim > 2 else grad_h
+        if ctx.needs_input_grad[0]:
+            g = g * h.conj()
+            full = torch.zeros((*g.shape[:-2], my, g.shape[-1]), dtype=g.dtype, device=g.device)
+            full.index_copy_(-2, rows, g)
+            del g
+            part = torch.fft.ifft(full, dim=-2)[..., :ny, :] * my  # the adjoint of fft(n=my) of ny rows
+            del full
+            full = torch.zeros((*part.shape[:-2], ny, mx), dtype=part.dtype, device=part.device)
+            full.index_copy_(-1, cols, part)
+            del part
+            grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).reshape(*full.shape[:-2], ny, nx)
+        return grad_u, grad_h, None, None, None, None, None
+
+
 class _Perturbed(torch.autograd.Function):
     """``h·a·exp(iφ)`` with ``φ = 2π(f_x s_x + f_y s_y + w·dz)`` and ``a = 1 + s_x R_x + s_y R_y + dz R_z`` (the
     window shift, the extra distance and the roll-off weights' first-order change), with a hand-written
@@ -156,18 +206,26 @@ class _Perturbed(torch.autograd.Function):
     temporaries. ``w`` None: no distance term; ``rel`` None: no weight terms (a = 1)."""
 
     @staticmethod
-    def forward(ctx, h, sx, sy, dz, fx, fy, w, rel):
+    def _factors(h, sx, sy, dz, fx, fy, w, rel):
+        """``(exp(iφ), a)`` on the band (``a`` None without weight terms)."""
         phase = _TWO_PI * (fy[:, None] * sy + fx[None, :] * sx)
         if w is not None:
             phase = phase + _TWO_PI * dz * w
         e = torch.polar(torch.ones_like(phase), phase).to(h.dtype)  # exp(iφ)
         amp = None if rel is None else 1.0 + (sx * rel[1] + sy * rel[2] + dz * rel[0])
-        ctx.save_for_backward(h, e, amp, fx, fy, w, rel)
+        return e, amp
+
+    @staticmethod
+    def forward(ctx, h, sx, sy, dz, fx, fy, w, rel):
+        e, amp = _Perturbed._factors(h, sx, sy, dz, fx, fy, w, rel)
+        # the band-sized factors are recomputed in backward (the same values): only the inputs are kept
+        ctx.save_for_backward(h, sx, sy, dz, fx, fy, w, rel)
         return h * e if amp is None else h * e * amp.to(h.real.dtype)
 
     @staticmethod
     def backward(ctx, g):
-        h, e, amp, fx, fy, w, rel = ctx.saved_tensors
+        h, sx, sy, dz, fx, fy, w, rel = ctx.saved_tensors
+        e, amp = _Perturbed._factors(h, sx, sy, dz, fx, fy, w, rel)
         grads = [None] * 8
         if ctx.needs_input_grad[0]:
             grads[0] = g * e.conj() if amp is None else g * e.conj() * amp.to(g.real.dtype)
