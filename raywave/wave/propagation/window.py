@@ -169,7 +169,7 @@ class _BandConvolve(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, u, h, size, rows, cols, noy: int, nox: int):
-        ctx.size, ctx.noy, ctx.nox, ctx.in_shape = size, noy, nox, u.shape[-2:]
+        ctx.size, ctx.noy, ctx.nox, ctx.u_shape, ctx.h_shape = size, noy, nox, u.shape, h.shape
         ctx.save_for_backward(u if ctx.needs_input_grad[1] else None, h if ctx.needs_input_grad[0] else None,
                               rows, cols)
         return _convolve_band(u, h, size, rows, cols, noy, nox)
@@ -177,14 +177,13 @@ class _BandConvolve(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g):
         u, h, rows, cols = ctx.saved_tensors
-        (my, mx), noy, nox, (ny, nx) = ctx.size, ctx.noy, ctx.nox, ctx.in_shape
+        (my, mx), noy, nox, (ny, nx) = ctx.size, ctx.noy, ctx.nox, ctx.u_shape[-2:]
         # the output's adjoint chain: ifft along x (fft / mx), the columns' copy, ifft along y over the kept rows
         g = torch.fft.fft(g, n=mx, dim=-1).index_select(-1, cols) / mx  # (..., noy, C)
         g = torch.fft.fft(g, n=my, dim=-2).index_select(-2, rows) / my  # (..., R, C): ∂L/∂(product)
         grad_u = grad_h = None
         if ctx.needs_input_grad[1]:
-            grad_h = g * _band_spectrum(u, (my, mx), rows, cols).conj()
-            grad_h = grad_h.sum(tuple(range(grad_h.ndim - 2))) if grad_h.ndim > 2 else grad_h
+            grad_h = (g * _band_spectrum(u, (my, mx), rows, cols).conj()).sum_to_size(ctx.h_shape)
         if ctx.needs_input_grad[0]:
             g = g * h.conj()
             full = torch.zeros((*g.shape[:-2], my, g.shape[-1]), dtype=g.dtype, device=g.device)
@@ -195,7 +194,7 @@ class _BandConvolve(torch.autograd.Function):
             full = torch.zeros((*part.shape[:-2], ny, mx), dtype=part.dtype, device=part.device)
             full.index_copy_(-1, cols, part)
             del part
-            grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).reshape(*full.shape[:-2], ny, nx)
+            grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).sum_to_size(ctx.u_shape)
         return grad_u, grad_h, None, None, None, None, None
 
 
