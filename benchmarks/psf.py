@@ -298,8 +298,24 @@ def edge_errors(cases=EDGE_CASES, fields=EDGE_FIELDS, lenses=("asphere_hk51", "i
     return out
 
 
+def _median_of_processes(rows: list) -> dict:
+    """One case's result over fresh processes: the median time and peak memory (a single process's peak RSS
+    scatters by ~±10 %), with every process's values kept."""
+    ok = [r for r in rows if "error" not in r]
+    if not ok:
+        return rows[0]
+    if len(ok) == 1:
+        return ok[0]
+    out = dict(ok[0])
+    for key in ("seconds", "seconds_min", "peak_extra_memory_mb"):
+        vals = sorted(r[key] for r in ok)
+        out[key] = vals[len(vals) // 2]
+        out[f"{key}_processes"] = [r[key] for r in ok]
+    out["processes"] = len(ok)
+    return out
+
+
 def edges_main(args) -> dict:
-    timings = []
     cases = []
     steps = args.edge_steps.split(",")
     edge_cases = [(e, s) for e, s in EDGE_CASES if (s if e == "exit_pupil" else "doe") in steps]
@@ -309,15 +325,20 @@ def edges_main(args) -> dict:
     for edge, step in edge_cases:
         for bwd, cached, lens_grad in configs:
             cases.append((edge, step, bwd, cached, lens_grad))
-    for edge, step, bwd, cached, lens_grad in cases:
-        cmd = [sys.executable, __file__, "--edge-case", f"{edge},{step},{bwd},{cached},{lens_grad},{args.edge_field}",
-               "--threads", str(args.threads), "--repeat", str(args.repeat)]
-        res = subprocess.run(cmd, capture_output=True, text=True)
-        if res.returncode != 0:
-            timings.append({"stop_edge": edge, "edge_step": step, "error": res.stderr.strip().splitlines()[-1]})
-        else:
-            timings.append(json.loads(res.stdout.strip().splitlines()[-1]))
-        print(json.dumps(timings[-1]), file=sys.stderr, flush=True)
+    runs = {c: [] for c in cases}
+    for _ in range(max(1, args.processes)):  # the cases interleaved: a drifting machine affects both edges alike
+        for edge, step, bwd, cached, lens_grad in cases:
+            cmd = [sys.executable, __file__, "--edge-case",
+                   f"{edge},{step},{bwd},{cached},{lens_grad},{args.edge_field}", "--threads", str(args.threads),
+                   "--repeat", str(args.repeat)]
+            res = subprocess.run(cmd, capture_output=True, text=True)
+            if res.returncode != 0:
+                row = {"stop_edge": edge, "edge_step": step, "error": res.stderr.strip().splitlines()[-1]}
+            else:
+                row = json.loads(res.stdout.strip().splitlines()[-1])
+            runs[(edge, step, bwd, cached, lens_grad)].append(row)
+            print(json.dumps(row), file=sys.stderr, flush=True)
+    timings = [_median_of_processes(rows) for rows in runs.values()]
     t = {(x["stop_edge"], x.get("edge_step"), x.get("backward"), x.get("cached_doe_field"), x.get("lens_grad")): x
          for x in timings}
     ratios = {}
@@ -355,6 +376,8 @@ def main() -> None:
     ap.add_argument("--edge-steps", default="doe,asm,fresnel", help="stop-edge comparison: the cases, a subset of "
                     "doe,asm,fresnel (cheap: doe,fresnel)")
     ap.add_argument("--edge-quick", action="store_true", help="stop-edge timing: uncached forward only")
+    ap.add_argument("--processes", type=int, default=1, help="stop-edge timing: run every case in this many fresh "
+                    "processes (interleaved) and report the medians (peak memory scatters by ~±10 %% per process)")
     ap.add_argument("--edge-error-fields", default="0,0.7,1", help="stop-edge errors: fractions of the full field")
     ap.add_argument("--edge-error-lenses", default="asphere_hk51,ideal", help="stop-edge errors: asphere_hk51, ideal")
     args = ap.parse_args()
