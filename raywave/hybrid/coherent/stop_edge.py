@@ -20,6 +20,9 @@ RIPPLE_ZONES = 4.0
 #: below this many values :func:`_fresnel_threads` evaluates in the calling thread
 _FRESNEL_CHUNK = 65536
 
+#: band samples per chunk of the knife-edge factor's forward arithmetic (its temporaries' size)
+_BAND_CHUNK = 1 << 17
+
 
 def _fresnel_threads(x):
     """scipy's Fresnel integrals ``(C, S)`` of a float64 numpy array, split over torch's intra-op thread count (the
@@ -131,7 +134,7 @@ def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.
     nb = nu_b[idx] if isinstance(nu_b, torch.Tensor) else torch.full_like(v.detach(), nu_b)
     curv = None if curvature is None else curvature[idx]
     re, im = _EdgeBand.apply(v, curv, nb, nu_max, dz >= 0)
-    return out.index_put(idx, torch.complex(re, im))
+    return out.index_put_(idx, torch.complex(re, im))  # in place: ``out`` is new and carries no graph
 
 
 def _smoothstep_slope(t: torch.Tensor) -> torch.Tensor:
@@ -164,15 +167,25 @@ class _EdgeBand(torch.autograd.Function):
         return 0.5 * a + 0.5 * b, (0.5 * b - 0.5 * a if forward_edge else 0.5 * a - 0.5 * b)
 
     @staticmethod
-    def forward(ctx, v, curv, nb, nu_max: float, forward_edge: bool):
-        c_, s_ = (torch.from_numpy(a).to(v) for a in _fresnel_threads(v.detach().cpu().numpy()))
+    def _values(v, curv, nb, c_, s_, nu_max: float, forward_edge: bool):
+        """``(Re, Im)`` of the factor on band samples (the forward's arithmetic)."""
         d_re, d_im = _EdgeBand._knife(c_, s_, forward_edge)
         _, _, w_out, w_in, f = _EdgeBand._terms(v, curv, nb, nu_max)
         m = w_out * w_in if f is None else w_out * w_in * f
-        re = torch.where(v > 0, w_out + (d_re - 1.0) * m, d_re * m)
+        return torch.where(v > 0, w_out + (d_re - 1.0) * m, d_re * m), d_im * m
+
+    @staticmethod
+    def forward(ctx, v, curv, nb, nu_max: float, forward_edge: bool):
+        c_, s_ = (torch.from_numpy(a).to(v) for a in _fresnel_threads(v.detach().cpu().numpy()))
+        re, im = torch.empty_like(v), torch.empty_like(v)
+        # in chunks: the ~15 band-sized temporaries of the arithmetic stay small (elementwise: the same values)
+        for a in range(0, v.numel(), _BAND_CHUNK):
+            sl = slice(a, a + _BAND_CHUNK)
+            re[sl], im[sl] = _EdgeBand._values(v[sl], None if curv is None else curv[sl], nb[sl], c_[sl], s_[sl],
+                                               nu_max, forward_edge)
         ctx.save_for_backward(v, curv, nb, c_, s_)
         ctx.nu_max, ctx.forward_edge = nu_max, forward_edge
-        return re, d_im * m
+        return re, im
 
     @staticmethod
     def backward(ctx, g_re, g_im):
