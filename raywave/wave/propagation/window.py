@@ -92,9 +92,9 @@ def propagate_window(
     my, mx = transfer[1]
     if shift is not None or dz is not None:
         h = _perturbed(h.to(u.dtype), rel, (my, mx), rows, cols, pitch, wavelength, n, carrier, shift, dz, u.device)
-    if rows is None:
-        return _convolve_full(u, h.to(u.dtype), (my, mx), noy, nox)
     h = h.to(u.dtype)
+    if rows is None:
+        return _convolve_full(u, h, (my, mx), noy, nox)
     if torch.is_grad_enabled() and (u.requires_grad or h.requires_grad) and rows.numel() and cols.numel():
         return _BandConvolve.apply(u, h, (my, mx), rows, cols, noy, nox)
     return _convolve_band(u, h, (my, mx), rows, cols, noy, nox)
@@ -134,20 +134,13 @@ def _convolve_band(u, h, size, rows, cols, noy, nox):
     lead = u.shape[:-2]
     if rows.numel() == 0 or cols.numel() == 0:
         return torch.zeros((*lead, noy, nox), dtype=u.dtype, device=u.device) + 0 * u.sum()
-    # peak memory: every full-size intermediate is released before the next one is made, and the zero-filled
-    # grids are filled in place (their zeros carry no graph, so autograd keeps the copies' gradients)
-    spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1).index_select(-1, cols), n=my, dim=-2)
-    prod = spec.index_select(-2, rows)
-    del spec
+    # peak memory: every full-size intermediate is released before the next one is made
+    prod = _band_spectrum(u, size, rows, cols)
     # in place unless autograd needs the factors (the product's backward keeps both)
     prod = prod.mul_(h) if not (torch.is_grad_enabled() and (prod.requires_grad or h.requires_grad)) else prod * h
-    full_y = torch.zeros((*lead, my, cols.numel()), dtype=prod.dtype, device=u.device)
-    full_y.index_copy_(-2, rows, prod)
+    part = torch.fft.ifft(_scatter(prod, -2, rows, my), dim=-2)
     del prod
-    part = torch.fft.ifft(full_y, dim=-2)
-    del full_y
-    full_x = torch.zeros((*lead, noy, mx), dtype=part.dtype, device=u.device)
-    full_x.index_copy_(-1, cols, part[..., :noy, :])
+    full_x = _scatter(part[..., :noy, :], -1, cols, mx)
     del part
     return torch.fft.ifft(full_x, dim=-1)[..., :nox]
 
@@ -157,6 +150,14 @@ def _band_spectrum(u, size, rows, cols):
     my, mx = size
     spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1).index_select(-1, cols), n=my, dim=-2)
     return spec.index_select(-2, rows)
+
+
+def _scatter(x, dim: int, index, n: int):
+    """``x`` placed at ``index`` along ``dim`` of a zero array ``n`` long there, filled in place (the zeros carry no
+    graph, so autograd keeps the copy's gradient)."""
+    shape = list(x.shape)
+    shape[dim] = n
+    return torch.zeros(shape, dtype=x.dtype, device=x.device).index_copy_(dim, index, x)
 
 
 class _BandConvolve(torch.autograd.Function):
@@ -185,14 +186,9 @@ class _BandConvolve(torch.autograd.Function):
         if ctx.needs_input_grad[1]:
             grad_h = (g * _band_spectrum(u, (my, mx), rows, cols).conj()).sum_to_size(ctx.h_shape)
         if ctx.needs_input_grad[0]:
-            g = g * h.conj()
-            full = torch.zeros((*g.shape[:-2], my, g.shape[-1]), dtype=g.dtype, device=g.device)
-            full.index_copy_(-2, rows, g)
+            part = torch.fft.ifft(_scatter(g * h.conj(), -2, rows, my), dim=-2)[..., :ny, :] * my  # fft(n=my)'s adjoint
             del g
-            part = torch.fft.ifft(full, dim=-2)[..., :ny, :] * my  # the adjoint of fft(n=my) of ny rows
-            del full
-            full = torch.zeros((*part.shape[:-2], ny, mx), dtype=part.dtype, device=part.device)
-            full.index_copy_(-1, cols, part)
+            full = _scatter(part, -1, cols, mx)
             del part
             grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).sum_to_size(ctx.u_shape)
         return grad_u, grad_h, None, None, None, None, None
