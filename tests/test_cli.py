@@ -74,3 +74,20 @@ def test_entry_point_runs():
     out = subprocess.run([sys.executable, "-m", "raywave.cli.main", "info", "singlet", "--json"],
                          capture_output=True, text=True, check=True)
     assert json.loads(out.stdout)["efl"] == pytest.approx(100.0, rel=0.02)
+
+
+def test_loss_figure_draws_each_stage_with_its_running_mean(tmp_path):
+    """``loss.png``: per-step losses (noisy by design: random patches, depths, sensor noise) and their running
+    mean, which starts at the first value and averages at most ``width`` values."""
+    import json
+    from types import SimpleNamespace
+
+    from raywave.cli.train_commands import _loss_figure, _running_mean
+
+    assert _running_mean([1.0, 2.0, 3.0, 4.0, 5.0], 2) == [1.0, 1.5, 2.5, 3.5, 4.5]
+    assert _running_mean([4.0, 2.0], 5) == [4.0, 3.0]
+    log = tmp_path / "log.jsonl"
+    log.write_text("\n".join(json.dumps({"stage": s, "loss": 1.0 + i % 3}) for s in ("stage1", "stage2")
+                             for i in range(40)) + "\n")
+    _loss_figure(tmp_path / "figures", {"designed": SimpleNamespace(log_path=log)})
+    assert (tmp_path / "figures" / "loss.png").stat().st_size > 0

@@ -220,7 +220,8 @@ def _figures(run_dir: Path, trainers: dict) -> None:
 
 
 def _loss_figure(fig_dir: Path, trainers: dict) -> None:
-    """``loss.png``: the loss per step of every trainer's stages (pre, stage1, stage2), log scale."""
+    """``loss.png``: the loss per step of every trainer's stages (pre, stage1, stage2), log scale, with its running
+    mean."""
     from raywave.plotting._mpl import plt, save
 
     fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
@@ -231,9 +232,22 @@ def _loss_figure(fig_dir: Path, trainers: dict) -> None:
         for stage in ("pre", "stage1", "stage2"):
             ys = [r["loss"] for r in recs if r.get("stage") == stage and "loss" in r]
             if ys:
-                ax.plot(range(1, len(ys) + 1), ys, label=f"{name} {stage}")
+                steps = range(1, len(ys) + 1)
+                raw, = ax.plot(steps, ys, alpha=0.25, lw=0.8)  # per-step: noisy (random patches, depths, noise)
+                ax.plot(steps, _running_mean(ys, max(3, len(ys) // 20)), color=raw.get_color(), lw=1.5,
+                        label=f"{name} {stage}")
     ax.set_xlabel("step"), ax.set_ylabel("loss"), ax.set_yscale("log"), ax.legend(fontsize=7)
+    ax.set_title("faint: per step; solid: running mean over 5 % of the stage's steps (at least 3)", fontsize=8)
     save(fig, fig_dir / "loss.png")
+
+
+def _running_mean(ys: list, width: int) -> list:
+    """The mean of each value with the up to ``width − 1`` values before it (as many as there are at the start)."""
+    out, acc = [], 0.0
+    for i, y in enumerate(ys):
+        acc += y - (ys[i - width] if i >= width else 0.0)
+        out.append(acc / min(i + 1, width))
+    return out
 
 
 def _psf_map_figures(fig_dir: Path, trainers: dict) -> None:
