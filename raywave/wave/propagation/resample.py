@@ -36,6 +36,54 @@ def _cubic_overlap_matrix(n_in, p_in, o_in, n_out, p_out, o_out, dtype, device) 
     return (k[1:] - k[:-1]).to(dtype)
 
 
+def _pitches(in_pitch, out_pitch) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The checked ``((px, py), (px, py))`` (mm, all > 0) of the input and output pixels."""
+    ipx, ipy = _pair(in_pitch, "in_pitch")
+    opx, opy = _pair(out_pitch, "out_pitch")
+    for v in (ipx, ipy, opx, opy):
+        _positive(v, "pitch")
+    return (ipx, ipy), (opx, opy)
+
+
+def _out_origin(out_origin):
+    """``(x0, y0)`` mm of the output pixel (0, 0): floats, or 0-d float64 tensors of an ``out_origin`` ``(2,)``
+    tensor that requires grad."""
+    if isinstance(out_origin, torch.Tensor) and out_origin.requires_grad:
+        # keep the output origin in the graph: d(out)/d(origin) is the exact derivative of the overlaps
+        # (the intensity at the moving pixel edges), so a PSF crop that follows a chief ray differentiates
+        return out_origin.reshape(2).to(torch.float64).unbind()
+    return _xy(out_origin, "out_origin")
+
+
+def _weights(kernel: str, x_axis, y_axis, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The float64 weights ``(W_x, W_y)``, ``(Nx_out, Nx_in)`` and ``(Ny_out, Ny_in)`` (overlaps in mm) of
+    ``kernel``; each axis is ``(n_in, p_in, o_in, n_out, p_out, o_out)`` (pitches and origins in mm)."""
+    if kernel == "box":
+        wx = _overlap_matrix(*x_axis, torch.float64, device)
+        wy = _overlap_matrix(*y_axis, torch.float64, device)
+    elif kernel == "cubic":
+        wx = _cubic_overlap_matrix(*x_axis, torch.float64, device)
+        wy = _cubic_overlap_matrix(*y_axis, torch.float64, device)
+    else:
+        raise ValueError(f"kernel must be 'box' or 'cubic', got {kernel!r}")
+    return wx, wy
+
+
+def _scaled(mode: str, wx, wy, in_pitch, out_pitch) -> tuple[torch.Tensor, torch.Tensor]:
+    """The weights ``(W_x, W_y)`` of :func:`_weights` (mm) for ``mode``: unchanged for ``"integral"``, divided by
+    the input pitch for ``"sum"``, by the output pitch for ``"mean"`` (``in_pitch``, ``out_pitch``: ``(px, py)``
+    mm)."""
+    if mode == "integral":
+        pass
+    elif mode == "sum":
+        wx, wy = wx / in_pitch[0], wy / in_pitch[1]
+    elif mode == "mean":
+        wx, wy = wx / out_pitch[0], wy / out_pitch[1]
+    else:
+        raise ValueError(f"mode must be 'integral', 'sum' or 'mean', got {mode!r}")
+    return wx, wy
+
+
 def pixel_integrate(
     intensity: torch.Tensor,
     in_pitch,
@@ -76,36 +124,14 @@ def pixel_integrate(
         raise TypeError("pixel_integrate expects a real intensity map")
     if intensity.ndim < 2:
         raise ValueError("expected shape (..., Ny, Nx)")
-    ipx, ipy = _pair(in_pitch, "in_pitch")
-    opx, opy = _pair(out_pitch, "out_pitch")
-    for v in (ipx, ipy, opx, opy):
-        _positive(v, "pitch")
+    (ipx, ipy), (opx, opy) = _pitches(in_pitch, out_pitch)
     xi0, yi0 = _xy(in_origin, "in_origin")
-    if isinstance(out_origin, torch.Tensor) and out_origin.requires_grad:
-        # keep the output origin in the graph: d(out)/d(origin) is the exact derivative of the overlaps
-        # (the intensity at the moving pixel edges), so a PSF crop that follows a chief ray differentiates
-        xo0, yo0 = out_origin.reshape(2).to(torch.float64).unbind()
-    else:
-        xo0, yo0 = _xy(out_origin, "out_origin")
+    xo0, yo0 = _out_origin(out_origin)
     noy, nox = (int(s) for s in out_shape)
     niy, nix = intensity.shape[-2:]
     if not intensity.is_floating_point():
         intensity = intensity.to(torch.float64)
     dt, dev = intensity.dtype, intensity.device
-    if kernel == "box":
-        wx = _overlap_matrix(nix, ipx, xi0, nox, opx, xo0, torch.float64, dev)
-        wy = _overlap_matrix(niy, ipy, yi0, noy, opy, yo0, torch.float64, dev)
-    elif kernel == "cubic":
-        wx = _cubic_overlap_matrix(nix, ipx, xi0, nox, opx, xo0, torch.float64, dev)
-        wy = _cubic_overlap_matrix(niy, ipy, yi0, noy, opy, yo0, torch.float64, dev)
-    else:
-        raise ValueError(f"kernel must be 'box' or 'cubic', got {kernel!r}")
-    if mode == "integral":
-        pass
-    elif mode == "sum":
-        wx, wy = wx / ipx, wy / ipy
-    elif mode == "mean":
-        wx, wy = wx / opx, wy / opy
-    else:
-        raise ValueError(f"mode must be 'integral', 'sum' or 'mean', got {mode!r}")
+    wx, wy = _weights(kernel, (nix, ipx, xi0, nox, opx, xo0), (niy, ipy, yi0, noy, opy, yo0), dev)
+    wx, wy = _scaled(mode, wx, wy, (ipx, ipy), (opx, opy))
     return wy.to(dt) @ (intensity @ wx.to(dt).transpose(0, 1))

@@ -76,11 +76,29 @@ def nyquist_check(
     px, py = _pair(pitch, "pitch")
     ax, ay = _xy(carrier, "carrier")
     x0, y0 = _xy(origin, "origin")
+    cx, cy = _carrier_steps((ax, ay), (px, py), wavelength, n)
+    lit, stepx, stepy = _phase_steps(t, cx, cy, threshold)
+    if mask is not None:
+        lit = lit & mask.to(device=t.device, dtype=torch.bool)
+    ratio = _ratio_map(lit, stepx, stepy)
+    return _report(ratio, (x0, y0), (px, py), limit)
+
+
+def _carrier_steps(carrier, pitch, wavelength: float | None, n: float) -> tuple[float, float]:
+    """The carrier's phase steps ``(cx, cy)`` (rad per pixel) of direction cosines ``carrier`` ``(α, β)`` on the
+    pitch ``(px, py)`` (mm) at the vacuum wavelength (µm) in a medium of index ``n``."""
+    ax, ay = carrier
+    px, py = pitch
     if (ax or ay) and wavelength is None:
         raise ValueError("a non-zero carrier needs the wavelength")
     kc = _TWO_PI * n / (wavelength * _UM_TO_MM) if wavelength is not None else 0.0
-    cx, cy = kc * ax * px, kc * ay * py  # carrier phase step per pixel
+    return kc * ax * px, kc * ay * py  # carrier phase step per pixel
 
+
+def _phase_steps(t: torch.Tensor, cx: float, cy: float, threshold: float):
+    """``(lit, stepx, stepy)`` of a detached phase (rad) or field ``t`` ``(..., Ny, Nx)``: the lit pixels (bool
+    ``(..., Ny, Nx)``, all of a phase) and the neighbour phase steps less the carrier's (rad, ``(..., Ny, Nx−1)``
+    and ``(..., Ny−1, Nx)``; wrapped to ``(-π, π]`` for a field)."""
     if t.is_complex():
         t = t.to(torch.complex128)
         amp = t.abs()
@@ -92,17 +110,28 @@ def nyquist_check(
         lit = torch.ones_like(t, dtype=torch.bool)
         stepx = t[..., :, 1:] - t[..., :, :-1] - cx
         stepy = t[..., 1:, :] - t[..., :-1, :] - cy
-    if mask is not None:
-        lit = lit & mask.to(device=t.device, dtype=torch.bool)
+    return lit, stepx, stepy
+
+
+def _ratio_map(lit: torch.Tensor, stepx: torch.Tensor, stepy: torch.Tensor) -> torch.Tensor:
+    """The per-pixel ratio ``(..., Ny, Nx)`` to Nyquist, ``|Δφ|/π``: the largest over a pixel's four neighbour
+    steps (rad, see :func:`_phase_steps`) whose two pixels are both ``lit``; 0 where none is."""
     okx = lit[..., :, 1:] & lit[..., :, :-1]
     oky = lit[..., 1:, :] & lit[..., :-1, :]
     rx = torch.where(okx, stepx.abs() / math.pi, torch.zeros_like(stepx))
     ry = torch.where(oky, stepy.abs() / math.pi, torch.zeros_like(stepy))
     pad = torch.nn.functional.pad
-    ratio = torch.maximum(
+    return torch.maximum(
         torch.maximum(pad(rx, (1, 0)), pad(rx, (0, 1))),
         torch.maximum(pad(ry, (0, 0, 1, 0)), pad(ry, (0, 0, 0, 1))),
     )
+
+
+def _report(ratio: torch.Tensor, origin, pitch, limit: float) -> NyquistReport:
+    """The :class:`NyquistReport` of the ratio map ``(..., Ny, Nx)``: its worst pixel (the first of equal ones)
+    and that pixel's position (mm) on the grid of pixel (0, 0) at ``origin`` ``(x0, y0)`` (mm), pitch ``(px, py)``
+    (mm)."""
+    (x0, y0), (px, py) = origin, pitch
     flat = int(torch.argmax(ratio.reshape(-1)))
     index = tuple(int(i) for i in torch.unravel_index(torch.tensor(flat), ratio.shape))
     max_ratio = float(ratio.reshape(-1)[flat])

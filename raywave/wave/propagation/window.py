@@ -1,5 +1,15 @@
 """Propagation between two windows (the efficient path): :func:`propagate_window` and the first-order
-perturbation of its transfer function by a window shift and an extra distance (:class:`_Perturbed`)."""
+perturbation of its transfer function by a window shift and an extra distance (:class:`_Perturbed`).
+
+Method (Matsushima 2010, Opt. Express 18, 18453): linear convolution by FFTs of size ≥ N_in + N_out − 1 (+ the
+guard) per axis with the transfer function ``H(f + f_c)·exp(i2π f·(out_origin − in_origin))`` restricted to the
+frequencies whose geometric shift ``z·tanθ`` (per axis) can carry light from the input window into the output
+window, then rolled off smoothly over ``guard`` Fresnel zones (see :func:`window_transfer`). This removes
+wrap-around and kernel aliasing, and the cost scales with ``(N_in + N_out + 4·guard·F/p)²`` instead of the full
+DOE grid. ``guard=0`` is the sharp band limit of the paper, whose truncation error decays only like 1/distance:
+for a hard-edged aperture whose edge lies within a Fresnel zone of the window extremes it reaches ~6e-3 of the
+peak amplitude, against ~1e-4 with ``guard=2`` (see tests/test_propagation.py).
+"""
 
 from __future__ import annotations
 
@@ -12,33 +22,16 @@ from raywave.wave.propagation._common import _TWO_PI, _UM_TO_MM, _as_field, _pai
 from raywave.wave.propagation.transfer import WindowTransfer, window_transfer
 
 
-def propagate_window(
-    u: torch.Tensor,
-    pitch,
-    wavelength: float,
-    z,
-    in_origin,
-    out_origin,
-    out_shape: Sequence[int],
-    n: float = 1.0,
-    carrier=(0.0, 0.0),
-    margin: float = 0.5,
-    guard: float = 2.0,
-    shift: torch.Tensor | None = None,
-    transfer: tuple | None = None,
-    dz: torch.Tensor | None = None,
-) -> torch.Tensor:
+def propagate_window(u: torch.Tensor, pitch, wavelength: float, z, in_origin, out_origin, out_shape: Sequence[int],
+                     n: float = 1.0, carrier=(0.0, 0.0), margin: float = 0.5, guard: float = 2.0,
+                     shift: torch.Tensor | None = None, transfer: tuple | None = None,
+                     dz: torch.Tensor | None = None) -> torch.Tensor:
     """Propagate an envelope from an input window to an output window (shifted band-limited ASM).
 
     The true field is ``U(x, y) = u(x, y) · exp(i k n (α x + β y))`` with ``k = 2π/λ`` and
     ``carrier = (α, β)`` direction cosines (typically the chief ray's); removing the carrier keeps the sampled
-    envelope far below Nyquist for off-axis light. Method (Matsushima 2010, Opt. Express 18, 18453):
-    linear convolution by FFTs of size ≥ N_in + N_out − 1 (+ the guard) per axis with the transfer function
-    ``H(f + f_c)·exp(i2π f·(out_origin − in_origin))`` restricted to the frequencies whose geometric shift
-    ``z·tanθ`` (per axis) can carry light from the input window into the output window, then rolled off
-    smoothly over ``guard`` Fresnel zones (see :func:`window_transfer`). This removes wrap-around and
-    kernel aliasing, and the cost scales with ``(N_in + N_out + 4·guard·F/p)²`` instead of the full DOE grid:
-    crop ``u`` to the lit footprint before calling.
+    envelope far below Nyquist for off-axis light. An FFT convolution on the band of frequencies that can carry
+    light between the windows (method, cost, accuracy: the module docstring): crop ``u`` to the lit footprint.
 
     Args:
         u: envelope ``(..., Ny_in, Nx_in)``; pixel (0, 0) centred at ``in_origin``.
@@ -54,10 +47,7 @@ def propagate_window(
         margin: tolerance of the band limit in pixels beyond the pixel-centre extremes (default ½ pixel).
         guard: width of the smooth roll-off of the band limit beyond that range, in Fresnel zones
             ``sqrt(λ|z|/(n cos³θ_c))`` (default 2; the FFT grows by the same amount). ``guard=0`` is the sharp
-            band limit of the paper, whose truncation error decays only like 1/distance: for a hard-edged
-            aperture whose edge lies within a Fresnel zone of the window extremes it reaches ~6e-3 of the peak
-            amplitude, against ~1e-4 with ``guard=2`` (see tests/test_propagation.py).
-
+            band limit of the paper (an error up to ~6e-3 of the peak amplitude instead of ~1e-4: module docstring).
         shift: optional ``(2,)`` tensor (mm), an extra translation of the output window added to
             ``out_origin`` through a phase ramp on the spectrum; pass a zero-valued tensor that carries a
             derivative to make the result differentiable with respect to where the window sits (a PSF crop
@@ -84,6 +74,15 @@ def propagate_window(
     if transfer is None or (dz is not None and len(transfer) < 3):
         transfer = window_transfer(u.shape[-2:], (noy, nox), pitch, wavelength, z, in_origin, out_origin, n, carrier,
                                    margin, guard, u.device, weight_derivative=dz is not None or shift is not None)
+    h, size, rows, cols = _applied_transfer(transfer, u, pitch, wavelength, n, carrier, shift, dz)
+    return _convolve(u, h, size, rows, cols, noy, nox)
+
+
+def _applied_transfer(transfer, u, pitch, wavelength, n, carrier, shift, dz):
+    """``(h, (My, Mx), rows, cols)``: the transfer function in ``u``'s dtype on the band ``rows × cols`` (int64
+    indices ``(R,)``, ``(C,)``; ``h`` ``(R, C)``) of the FFT grid ``(My, Mx)`` of a :class:`WindowTransfer`, or on
+    the whole grid (``h`` ``(My, Mx)``, ``rows``/``cols`` None) of a plain tuple; times the window shift ``shift``
+    ``(2,)`` (mm) and the extra distance ``dz`` (0-d, mm) where given (pitch mm, wavelength µm)."""
     if isinstance(transfer, WindowTransfer):
         h, rows, cols = transfer.band, transfer.rows.to(u.device), transfer.cols.to(u.device)
         rel = transfer.band_rel
@@ -92,12 +91,18 @@ def propagate_window(
     my, mx = transfer[1]
     if shift is not None or dz is not None:
         h = _perturbed(h.to(u.dtype), rel, (my, mx), rows, cols, pitch, wavelength, n, carrier, shift, dz, u.device)
-    h = h.to(u.dtype)
+    return h.to(u.dtype), (my, mx), rows, cols
+
+
+def _convolve(u, h, size, rows, cols, noy: int, nox: int):
+    """The output window ``(..., noy, nox)`` of ``u`` ``(..., Ny_in, Nx_in)`` convolved with the transfer function
+    ``h`` on the FFT grid ``size`` (see :func:`_applied_transfer`): over the whole grid where ``rows`` is None,
+    else over the band alone, with the hand-written backward where autograd records the product."""
     if rows is None:
-        return _convolve_full(u, h, (my, mx), noy, nox)
+        return _convolve_full(u, h, size, noy, nox)
     if torch.is_grad_enabled() and (u.requires_grad or h.requires_grad) and rows.numel() and cols.numel():
-        return _BandConvolve.apply(u, h, (my, mx), rows, cols, noy, nox)
-    return _convolve_band(u, h, (my, mx), rows, cols, noy, nox)
+        return _BandConvolve.apply(u, h, size, rows, cols, noy, nox)
+    return _convolve_band(u, h, size, rows, cols, noy, nox)
 
 
 def _perturbed(h, rel, size, rows, cols, pitch, wavelength, n, carrier, shift, dz, device):
