@@ -496,6 +496,57 @@ def default_batch(n_wavelengths: int) -> int:
     return max(1, DEFAULT_FIELDS_PER_CALL // max(1, n_wavelengths))
 
 
+def _map_fields(model, grid, fields, sensor_size, mapping, reference_wavelength, depth):
+    """The map's node field angles ``(N, M, 2)`` (deg, float64) and sensor size ((w, h) mm, or None if unknown):
+    ``fields`` when given, else :func:`field_grid` of ``grid`` at ``depth`` (mm, the map's first)."""
+    size = sensor_size_of(model, sensor_size) if (sensor_size is not None or fields is None) else None
+    if fields is None:
+        return field_grid(model, grid, size, reference_wavelength, depth, mapping), size
+    f_nm = torch.as_tensor(fields, dtype=torch.float64)
+    if f_nm.ndim != 3 or f_nm.shape[-1] != 2:
+        raise ValueError(f"fields: give (N, M, 2) field angles in degrees, got shape {tuple(f_nm.shape)}")
+    if size is None:
+        try:
+            size = sensor_size_of(model)
+        except (TypeError, ValueError):
+            size = None  # unknown: the map's centres cannot be placed on a sensor (render without centres)
+    return f_nm, size
+
+
+def _map_chunks(n_points: int, n_wavelengths: int, batch: int | None) -> list[tuple[int, int]]:
+    """[start, end) ranges of the ``n_points`` flat field points, ``batch`` (default :func:`default_batch`) per
+    model call."""
+    b = default_batch(n_wavelengths) if batch is None else int(batch)
+    if b < 1:
+        raise ValueError(f"batch must be >= 1 field point, got {batch}")
+    return [(s, min(s + b, n_points)) for s in range(0, n_points, b)]
+
+
+def _progress_disable(progress: bool | None, n_psfs: int):
+    """tqdm's ``disable`` for a map of ``n_psfs`` PSFs (D·W·N·M): None (a bar only on a terminal) from
+    _AUTO_PROGRESS_PSFS on when ``progress`` is None."""
+    if progress is None:  # tqdm's disable=None: only on a terminal
+        return None if n_psfs >= _AUTO_PROGRESS_PSFS else True
+    return not progress
+
+
+def _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw):
+    """Per depth of ``ds`` (mm), the chunks' PSFs ``(F, W, ks, ks)``, centres ``(F, W, 2)`` mm (float64) and
+    energies outside ``(F, W)``, each concatenated over the ``flat`` ``(F, 2)`` field points (deg); and the PSF
+    pitch (mm). Runs in the caller's autograd mode; one ``bar`` step per chunk."""
+    psfs, cens, outs = [], [], []
+    pitch = None
+    for d in ds:
+        dp, dc, do = [], [], []
+        for s, e in chunks:
+            res = psf_map_points(model, flat[s:e], wls, d, ks, cache, **psf_kw)
+            dp.append(res.psf), dc.append(res.center.to(torch.float64)), do.append(res.energy_outside)
+            pitch = float(res.pitch)
+            bar.update(1)
+        psfs.append(torch.cat(dp)), cens.append(torch.cat(dc)), outs.append(torch.cat(do))
+    return psfs, cens, outs, pitch
+
+
 def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int = 64, batch: int | None = None,
             progress: bool | None = None, cache: DOEFieldCache | None = None, fields=None, sensor_size=None,
             mapping: str = "chief_ray", reference_wavelength: float | None = None, grad: bool = False,
@@ -526,44 +577,17 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
     wls = _wavelength_list(wavelengths)
     if int(ks) < 1:
         raise ValueError(f"ks must be >= 1, got {ks}")
-    size = sensor_size_of(model, sensor_size) if (sensor_size is not None or fields is None) else None
-    if fields is None:
-        f_nm = field_grid(model, grid, size, reference_wavelength, ds[0], mapping)
-        n, m = f_nm.shape[:2]
-    else:
-        f_nm = torch.as_tensor(fields, dtype=torch.float64)
-        if f_nm.ndim != 3 or f_nm.shape[-1] != 2:
-            raise ValueError(f"fields: give (N, M, 2) field angles in degrees, got shape {tuple(f_nm.shape)}")
-        n, m = f_nm.shape[:2]
-        if size is None:
-            try:
-                size = sensor_size_of(model)
-            except (TypeError, ValueError):
-                size = None  # unknown: the map's centres cannot be placed on a sensor (render without centres)
+    f_nm, size = _map_fields(model, grid, fields, sensor_size, mapping, reference_wavelength, ds[0])
+    n, m = f_nm.shape[:2]
     positions = normalised_grid((n, m))
     flat = f_nm.reshape(-1, 2)
-    b = default_batch(len(wls)) if batch is None else int(batch)
-    if b < 1:
-        raise ValueError(f"batch must be >= 1 field point, got {batch}")
-    chunks = [(s, min(s + b, flat.shape[0])) for s in range(0, flat.shape[0], b)]
-    psfs, cens, outs = [], [], []
-    pitch = None
-    if progress is None:  # tqdm's disable=None: only on a terminal
-        disable = None if len(ds) * len(wls) * flat.shape[0] >= _AUTO_PROGRESS_PSFS else True
-    else:
-        disable = not progress
+    chunks = _map_chunks(flat.shape[0], len(wls), batch)
+    disable = _progress_disable(progress, len(ds) * len(wls) * flat.shape[0])
     bar = tqdm(total=len(ds) * len(chunks), desc=f"PSF map {n}×{m}×{len(wls)}λ×{len(ds)} depth", disable=disable,
                leave=False)
     ctx = torch.enable_grad() if grad else torch.no_grad()
     with ctx:
-        for d in ds:
-            dp, dc, do = [], [], []
-            for s, e in chunks:
-                res = psf_map_points(model, flat[s:e], wls, d, ks, cache, **psf_kw)
-                dp.append(res.psf), dc.append(res.center.to(torch.float64)), do.append(res.energy_outside)
-                pitch = float(res.pitch)
-                bar.update(1)
-            psfs.append(torch.cat(dp)), cens.append(torch.cat(dc)), outs.append(torch.cat(do))
+        psfs, cens, outs, pitch = _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw)
     bar.close()
     # (D, F, W, ...) -> (D, W, N, M, ...)
     psf = torch.stack(psfs).transpose(1, 2).reshape(len(ds), len(wls), n, m, ks, ks)

@@ -55,6 +55,40 @@ def _is_flat(geom) -> bool:
     return rc is None or float(rc.detach()) == 0.0
 
 
+def _axis_hit(p: torch.Tensor, d: torch.Tensor, rot: torch.Tensor, t: torch.Tensor):
+    """Where the axis through ``p`` (3,) mm along the unit direction ``d`` (3,) meets the plane through ``t`` (3,)
+    mm whose normal is ``rot[:, 2]`` (``rot`` (3, 3)): (point (3,) mm, or None when the axis runs parallel to the
+    plane; normal (3,); d · normal, a 0-d tensor)."""
+    normal = rot[:, 2]
+    dn = d @ normal
+    if abs(float(dn.detach())) < 1e-12:
+        return None, normal, dn
+    return p + ((t - p) @ normal / dn) * d, normal, dn
+
+
+def _axis_problem(s, kind: str, where: str, n_before: float, n_after: float, d, normal, dn, h, t) -> str | None:
+    """What leaves the paraxial model undefined at surface ``s`` (of interaction ``kind``, named ``where``), or
+    None: the axis (unit direction ``d`` (3,)) meets it at ``h`` (3,) mm; its frame's origin is ``t`` (3,) mm and
+    its normal ``normal`` (3,), ``dn`` = d · normal; ``n_before``, ``n_after``: the indices around it. Tilts are
+    reported in degrees, decentres in mm."""
+    # the angle between the axis and the normal from atan2(|d × n|, |d · n|): accurate near 0 (acos of a dot
+    # product one rounding below 1 is already 1.2e-6 degrees, which refused a tilt undone by its inverse)
+    cross = float(torch.linalg.vector_norm(torch.linalg.cross(d, normal)).detach())
+    tilt = math.degrees(math.atan2(cross, abs(float(dn.detach()))))
+    off = float(torch.linalg.vector_norm((h - t).detach()))
+    scale = max(1.0, float(torch.linalg.vector_norm(t.detach())))
+    flat = _is_flat(s.geometry) and kind in ("reflection", "refraction")
+    if kind == "refraction" and flat and n_before != n_after and tilt > 1e-9:
+        return (f"{where} is a plane tilted by {tilt:.6g} degrees to the optical axis between different media "
+                "(a tilted plate: the system is not rotationally symmetric)")
+    if not flat:
+        if tilt > 1e-9:
+            return f"{where} is tilted by {tilt:.6g} degrees to the optical axis"
+        if off > 1e-9 * scale:
+            return f"{where} is decentred by {off:.6g} mm from the optical axis"
+    return None
+
+
 def _axis_walk(lens, wavelength: float | None = None):
     """Follow the optical axis through a lens with coordinate breaks.
 
@@ -81,20 +115,13 @@ def _axis_walk(lens, wavelength: float | None = None):
             gaps.append(a - a_prev)
         a_prev = a
 
-    def hit(rot, t):
-        normal = rot[:, 2]
-        dn = d @ normal
-        if abs(float(dn.detach())) < 1e-12:
-            return None, normal, dn
-        return p + ((t - p) @ normal / dn) * d, normal, dn
-
     for i, s in enumerate(surfaces + [None]):
         kind = "image" if s is None else s.interaction.kind
         if kind == "coordinate_break":
             place(a_hit + sign * ((frames[i][1] - p) @ d))
             continue
         rot, t = (r_img, t_img) if s is None else frames[i]
-        h, normal, dn = hit(rot, t)
+        h, normal, dn = _axis_hit(p, d, rot, t)
         where = "the image plane" if s is None else f"surface {i}"
         if h is None:
             return gaps, (i, f"{where} is parallel to the optical axis")
@@ -102,21 +129,9 @@ def _axis_walk(lens, wavelength: float | None = None):
         place(a_hit)
         if s is None:
             break
-        # the angle between the axis and the normal from atan2(|d × n|, |d · n|): accurate near 0 (acos of a dot
-        # product one rounding below 1 is already 1.2e-6 degrees, which refused a tilt undone by its inverse)
-        cross = float(torch.linalg.vector_norm(torch.linalg.cross(d, normal)).detach())
-        tilt = math.degrees(math.atan2(cross, abs(float(dn.detach()))))
-        off = float(torch.linalg.vector_norm((h - t).detach()))
-        scale = max(1.0, float(torch.linalg.vector_norm(t.detach())))
-        flat = _is_flat(s.geometry) and kind in ("reflection", "refraction")
-        if kind == "refraction" and flat and n[i] != n[i + 1] and tilt > 1e-9:
-            return gaps, (i, f"{where} is a plane tilted by {tilt:.6g} degrees to the optical axis between different "
-                             "media (a tilted plate: the system is not rotationally symmetric)")
-        if not flat:
-            if tilt > 1e-9:
-                return gaps, (i, f"{where} is tilted by {tilt:.6g} degrees to the optical axis")
-            if off > 1e-9 * scale:
-                return gaps, (i, f"{where} is decentred by {off:.6g} mm from the optical axis")
+        what = _axis_problem(s, kind, where, n[i], n[i + 1], d, normal, dn, h, t)
+        if what is not None:
+            return gaps, (i, what)
         p = h
         if kind == "reflection":
             d = d - 2.0 * (d @ normal) * normal

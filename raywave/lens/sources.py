@@ -187,6 +187,65 @@ def aim_chief_rays(lens, fields, field_type, wavelength, depth=None, ep_z=None) 
     return uv_c, ok
 
 
+def _pupil_samples(lens, pupil, generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normalised pupil coordinates (px, py), each (N,) float64 (1 = the stop's rim), from ``(pattern, n)``
+    (:func:`raywave.rays.pupil.sample`) or explicit ``(px, py)`` tensors."""
+    if isinstance(pupil[0], str):
+        px, py = pupil_patterns.sample(pupil[0], pupil[1], generator=generator, device=lens.device)
+    else:
+        px, py = (torch.as_tensor(p, dtype=torch.float64, device=lens.device).reshape(-1) for p in pupil)
+    return px, py
+
+
+def _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, ep_z):
+    """Inverse Jacobian (F, W, 1, 2, 2) of the stop crossing (mm) with respect to the entrance-plane crossing (mm)
+    at the chief rays ``uv_c`` (F, W, 1, 2) mm, by forward differences of step ``h`` mm; and ``bad`` (F, W, 1):
+    fields without a usable Jacobian (chief ray not aimed, ``ok_c`` False, or singular), where the identity
+    stands in."""
+    p0, _ = _stop_hit(lens, uv_c, fields, field_type, wl, depth, ep_z)
+    p1, _ = _stop_hit(lens, uv_c + torch.tensor([h, 0.0], dtype=torch.float64), fields, field_type, wl, depth, ep_z)
+    p2, _ = _stop_hit(lens, uv_c + torch.tensor([0.0, h], dtype=torch.float64), fields, field_type, wl, depth, ep_z)
+    j = torch.stack([(p1 - p0) / h, (p2 - p0) / h], -1)  # (F, W, 1, 2, 2)
+    # A field whose chief ray cannot be aimed (e.g. beyond the lens's field) has no usable Jacobian.
+    det = torch.linalg.det(j)
+    bad = ~torch.isfinite(det) | (det.abs() < 1e-12) | ~ok_c.reshape(det.shape)
+    eye = torch.eye(2, dtype=j.dtype, device=j.device).expand_as(j)
+    j = torch.where(bad[..., None, None], eye, torch.nan_to_num(j))
+    return torch.linalg.inv(j), bad
+
+
+def _aimed_uv(lens, pn, fields, field_type, wl, aim, r_ep, r_stop, depth, ep_z):
+    """Entrance-plane crossings uv (F, W, N, 2) mm of the rays with normalised pupil coordinates ``pn``
+    (F, W, N, 2), aimed as ``aim`` says (see :func:`point_source_rays`), and their validity (F, W, N): False
+    where aiming failed. ``wl`` (W,) µm; ``r_ep``, ``r_stop``: entrance-pupil and stop radii (mm). No autograd."""
+    valid = torch.ones(pn.shape[:3], dtype=torch.bool, device=lens.device)
+    if aim == "paraxial":
+        return pn * r_ep, valid
+    if aim not in ("full", "chief"):
+        raise ValueError(f"aim must be 'full', 'chief' or 'paraxial', got {aim!r}")
+    uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth, ep_z)
+    h = 1e-6 * max(r_ep, 1e-3)
+    # Linear map pupil -> entrance plane from the chief ray's Jacobian.
+    jinv, bad = _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, ep_z)
+    valid = valid & ~bad
+    uv = uv_c + torch.einsum("fwnij,fwmj->fwmi", jinv, pn * r_stop)
+    if aim == "full":
+        uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h, depth, ep_z)
+        valid = valid & ok
+    return uv, valid & ok_c
+
+
+def _warn_dead_fields(rays: RayBundle, fields: torch.Tensor, wl: torch.Tensor) -> None:
+    """One :class:`VignettingWarning` (attributed to :func:`point_source_rays`'s caller) for the first
+    (field (F, 2), wavelength (W,) µm) pair of which no ray of ``rays`` (F, W, N) is valid."""
+    F, W = fields.shape[0], wl.numel()
+    dead = ~rays.valid.reshape(F, W, -1).any(-1)
+    if bool(dead.any()):
+        fi, wi = (int(v) for v in dead.nonzero()[0])
+        warnings.warn(f"field {fields[fi].tolist()} at {float(wl[wi]):g} µm: every ray is vignetted or misses the "
+                      "lens (none reaches the stop); results for it are empty", VignettingWarning, stacklevel=3)
+
+
 def point_source_rays(
     lens,
     field=(0.0, 0.0),
@@ -212,51 +271,20 @@ def point_source_rays(
     field_type = field_type or lens.field_type
     fields = _as_fields(field, torch.float64, lens.device)
     wl = torch.as_tensor(lens.primary_wavelength if wavelength is None else wavelength, dtype=torch.float64).reshape(-1)
-    if isinstance(pupil[0], str):
-        px, py = pupil_patterns.sample(pupil[0], pupil[1], generator=generator, device=lens.device)
-    else:
-        px, py = (torch.as_tensor(p, dtype=torch.float64, device=lens.device).reshape(-1) for p in pupil)
+    px, py = _pupil_samples(lens, pupil, generator)
     F, W, N = fields.shape[0], wl.numel(), px.numel()
     pdata = lens.paraxial()
     r_ep = 0.5 * pdata.epd
     ep_z = entrance_plane_z(lens)  # once: every aiming iteration needs it
     r_stop = lens.stop_radius()
     pn = torch.stack([px, py], -1)[None, None].expand(F, W, N, 2)
-    valid = torch.ones((F, W, N), dtype=torch.bool, device=lens.device)
     with torch.no_grad():
-        if aim == "paraxial":
-            uv = pn * r_ep
-        elif aim in ("full", "chief"):
-            uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth, ep_z)
-            h = 1e-6 * max(r_ep, 1e-3)
-            # Linear map pupil -> entrance plane from the chief ray's Jacobian.
-            p0, _ = _stop_hit(lens, uv_c, fields, field_type, wl, depth, ep_z)
-            p1, _ = _stop_hit(lens, uv_c + torch.tensor([h, 0.0], dtype=torch.float64), fields, field_type, wl, depth, ep_z)
-            p2, _ = _stop_hit(lens, uv_c + torch.tensor([0.0, h], dtype=torch.float64), fields, field_type, wl, depth, ep_z)
-            j = torch.stack([(p1 - p0) / h, (p2 - p0) / h], -1)  # (F, W, 1, 2, 2)
-            # A field whose chief ray cannot be aimed (e.g. beyond the lens's field) has no usable Jacobian.
-            det = torch.linalg.det(j)
-            bad = ~torch.isfinite(det) | (det.abs() < 1e-12) | ~ok_c.reshape(det.shape)
-            eye = torch.eye(2, dtype=j.dtype, device=j.device).expand_as(j)
-            j = torch.where(bad[..., None, None], eye, torch.nan_to_num(j))
-            jinv = torch.linalg.inv(j)
-            valid = valid & ~bad
-            uv = uv_c + torch.einsum("fwnij,fwmj->fwmi", jinv, pn * r_stop)
-            if aim == "full":
-                uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h, depth, ep_z)
-                valid = valid & ok
-            valid = valid & ok_c
-        else:
-            raise ValueError(f"aim must be 'full', 'chief' or 'paraxial', got {aim!r}")
+        uv, valid = _aimed_uv(lens, pn, fields, field_type, wl, aim, r_ep, r_stop, depth, ep_z)
     uv = torch.nan_to_num(uv.detach())
     rays = rays_through(lens, uv, fields, field_type, wl, dtype=dtype, depth=depth, ep_z=ep_z)
     if not bool(valid.all()):
         rays = rays.replace(valid=rays.valid & valid)
-    dead = ~rays.valid.reshape(F, W, -1).any(-1)
-    if bool(dead.any()):
-        fi, wi = (int(v) for v in dead.nonzero()[0])
-        warnings.warn(f"field {fields[fi].tolist()} at {float(wl[wi]):g} µm: every ray is vignetted or misses the "
-                      "lens (none reaches the stop); results for it are empty", VignettingWarning, stacklevel=2)
+    _warn_dead_fields(rays, fields, wl)
     return rays
 
 
