@@ -94,6 +94,15 @@ def _full_grid_window(u, fd: DOEField, dz, lo, n_out: int):
     return full[a0:a1, b0:b1], (fd.origin[0] + b0 * p, fd.origin[1] + a0 * p)
 
 
+def _quiet_chief_rays(optics, f: torch.Tensor, wls: list[float], depth, z_doe: float, z_sen: float):
+    """:func:`chief_rays` of the fields ``f`` (F, 2) at the wavelengths ``wls`` (µm) on the DOE plane ``z_doe`` and
+    the sensor ``z_sen`` (mm): ``(at the DOE, at the sensor, entrance-plane points)``, each (F, W). Its warnings
+    are dropped: chief-ray vignetting is reported per PSF (:meth:`HybridLens._finish_fields`)."""
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always", VignettingWarning)
+        return chief_rays(optics, f, torch.tensor(wls, dtype=torch.float64), depth, z_doe, z_sen)
+
+
 def _dark(fd: DOEField) -> bool:
     """No light in the field (its power is 0): every envelope sample is 0 (a cheap test, no |U|² sum)."""
     return not bool((fd.envelope.detach() != 0).any())
@@ -349,10 +358,8 @@ class HybridLens(nn.Module):
         wls = self.wavelength_list(wavelengths)
         optics = self.optics  # the lens, or its image-space view (one object for the whole call: run_batched groups by it)
         z_doe, z_sen = self.doe_z(), self.sensor_z()
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", VignettingWarning)
-            cd, cs, cuv = chief_rays(optics, f, torch.tensor(wls, dtype=torch.float64), depth, z_doe, z_sen)
-        nf, nw = f.shape[0], len(wls)
+        cd, cs, cuv = _quiet_chief_rays(optics, f, wls, depth, z_doe, z_sen)
+        nf = f.shape[0]
         wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
         if mode == "accurate":
             built = run_batched(self._accurate_constructions(f, wls, depth, (cd, cs, cuv), rays or 64, check))
@@ -364,23 +371,30 @@ class HybridLens(nn.Module):
         # the DOE-aperture diagnostic of every accurate field, from one trace (the faithful mode measures it
         # from its own rays)
         clips = doe_clippings(optics, self.doe, f, wls_t, depth, z_doe) if mode == "accurate" else None
-        out = []
-        for i in range(nf):
+        return self._finish_fields(built, f, wls, cd, clips)
+
+    def _finish_fields(self, built: list, f: torch.Tensor, wls: list[float], chief_doe, clips) -> list:
+        """The flat field-major list ``built`` (F·W :class:`DOEField`) as the nested ``[F][W]`` list of
+        :meth:`doe_fields`, each completed: the DOE-aperture diagnostic ``clips`` (``[F][W]`` of (blocked fraction,
+        beam half-width mm), or None: the field's own) and the chief ray's slopes ``chief_tan`` from ``chief_doe``
+        (F, W) rays; warns (pointing at the caller of :meth:`doe_fields`) where no light reaches the DOE
+        (``f`` (F, 2) fields, ``wls`` µm) or the DOE aperture clips the beam."""
+        nw, out = len(wls), []
+        for i in range(f.shape[0]):
             row = []
             for j, wl in enumerate(wls):
                 fd = built[i * nw + j]
                 if _dark(fd):
                     warnings.warn(f"field {f[i].tolist()} at {wl:g} µm: no light reaches the DOE (every ray is "
                                   "vignetted or misses the DOE aperture); its PSF is all zeros",
-                                  VignettingWarning, stacklevel=2)
+                                  VignettingWarning, stacklevel=3)
                 if clips is not None:
                     fd.clipped, fd.beam_half = clips[i][j]
                 self._warn_clipped(fd, f[i])
-                d_c = cd[i, j].d.detach()
+                d_c = chief_doe[i, j].d.detach()
                 fd.chief_tan = (float(d_c[0] / d_c[2]), float(d_c[1] / d_c[2]))
                 row.append(fd)
             out.append(row)
-        del caught  # chief-ray vignetting is reported per PSF above
         return out
 
     def _accurate_constructions(self, f, wls, depth, chief, nodes: int, check: bool) -> list:
@@ -416,6 +430,9 @@ class HybridLens(nn.Module):
                 for i in range(f.shape[0]) for j, wl in enumerate(wls)]
 
     def _warn_clipped(self, fd: DOEField, field) -> None:
+        """:class:`DOEApertureWarning` (pointing at the caller of :meth:`doe_fields`, through
+        :meth:`_finish_fields`) when the DOE aperture blocks more than :data:`CLIP_WARN` of ``fd``'s power;
+        ``field`` (2,) names the source."""
         if fd.clipped <= CLIP_WARN:
             return
         w, h = self.doe.size
@@ -424,7 +441,7 @@ class HybridLens(nn.Module):
                       f"aperture blocks {100 * fd.clipped:.1f} % of the beam's power (not counted in "
                       f"energy_outside); the beam needs a DOE of at least {need:.3g} mm square "
                       f"({BEAM_MARGIN * need:.3g} mm with the usual {BEAM_MARGIN:g}× margin, see "
-                      "raywave.assembly.build.default_doe_size)", DOEApertureWarning, stacklevel=3)
+                      "raywave.assembly.build.default_doe_size)", DOEApertureWarning, stacklevel=4)
 
     # ------------------------------------------------------------------ steps 3-4: DOE, propagation, sensor
     def propagate(self, fd: DOEField, ks: int, propagation_dtype=torch.complex128):
@@ -439,15 +456,7 @@ class HybridLens(nn.Module):
         the full grid) and moves the crop centre along the chief ray by ``chief_tan·dz``; exact to first order
         (the discrete choices — windows, FFT sizes, band rows — are those of the current distance)."""
         ps, p = self.sensor_pitch, fd.pitch
-        center_t = torch.stack([torch.as_tensor(c, dtype=torch.float64) for c in fd.center])
-        # the sensor distance: fd.z (a float, used for every discrete choice) plus a zero-valued dz that carries
-        # d(distance)/dθ (the last thickness) into the propagation and into the chief ray's image point, which
-        # slides along the chief ray by tan·dz. Only for live fields from doe_fields (they record chief_tan);
-        # detached (cached) fields and other models' fields (raywave.models) keep a fixed sensor.
-        dz = self._sensor_dz() if fd.chief_tan is not None else None
-        if dz is not None:
-            dz = dz.to(center_t.device)
-            center_t = center_t + torch.tensor(fd.chief_tan, dtype=torch.float64, device=center_t.device) * dz
+        center_t, dz = self._chief_image(fd)
         xc, yc = (float(c) for c in center_t.detach())
         half = ks // 2
         psf_origin = (xc - half * ps, yc - half * ps)
@@ -487,6 +496,20 @@ class HybridLens(nn.Module):
         outside = 1.0 - total / power.to(torch.float64)
         psf = safe_div(crop, total, total > 0)  # a crop with no light stays 0, with finite gradients
         return psf, center_t, outside
+
+    def _chief_image(self, fd: DOEField):
+        """The chief ray's image point on the sensor, float64 (2,) mm, and the zero-valued 0-d ``dz`` (or None)
+        that carries d(DOE → sensor distance)/dθ into :meth:`propagate`."""
+        center_t = torch.stack([torch.as_tensor(c, dtype=torch.float64) for c in fd.center])
+        # the sensor distance: fd.z (a float, used for every discrete choice) plus a zero-valued dz that carries
+        # d(distance)/dθ (the last thickness) into the propagation and into the chief ray's image point, which
+        # slides along the chief ray by tan·dz. Only for live fields from doe_fields (they record chief_tan);
+        # detached (cached) fields and other models' fields (raywave.models) keep a fixed sensor.
+        dz = self._sensor_dz() if fd.chief_tan is not None else None
+        if dz is not None:
+            dz = dz.to(center_t.device)
+            center_t = center_t + torch.tensor(fd.chief_tan, dtype=torch.float64, device=center_t.device) * dz
+        return center_t, dz
 
     def _lattice_window(self, u, fd: DOEField, dz, crop_origin, center, lo_x: float, n_out: int):
         """The field ``u`` (the DOE's phase applied) propagated to the sensor window of ≥ ``n_out`` samples from

@@ -118,10 +118,7 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
     def empty(rays):
         return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, rays, "accurate")
 
-    if bbox is False:  # given: every ray is vignetted
-        bbox = None
-    elif bbox is None:
-        bbox = _footprint(lens, field, wl, depth, z_doe, virtual=virtual)
+    bbox = _lit_footprint(bbox, lens, field, wl, depth, z_doe, virtual)
     if bbox is None:
         return empty(0)
     if stop_plane is not None:
@@ -148,11 +145,30 @@ def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: floa
                       ripple_zones)
     if out is None:
         return empty(n_rays)
-    env, box = out
+    return _window_field(*out, sim, p, wavelength, n, carrier, zprop, center, n_rays + 1)
+
+
+def _lit_footprint(bbox, lens, field, wl, depth, z_doe: float, virtual: bool):
+    """The lit footprint ``(xmin, xmax, ymin, ymax)`` mm on the plane ``z_doe``, or None (every ray vignetted):
+    ``bbox`` as the caller gave it (``False``: none), else traced here (:func:`_footprint`; ``field`` (2,), ``wl``
+    (1,) µm)."""
+    if bbox is False:  # given: every ray is vignetted
+        return None
+    if bbox is None:
+        return _footprint(lens, field, wl, depth, z_doe, virtual=virtual)
+    return bbox
+
+
+def _window_field(env: torch.Tensor, box, sim: Grid, p: float, wavelength: float, n: float, carrier, zprop, center,
+                  rays: int) -> DOEField:
+    """The :class:`DOEField` of the envelope ``env`` (ny, nx) complex128 on the half-open window ``box``
+    ``(iy0, iy1, ix0, ix1)`` of ``sim``'s lattice (pitch ``p`` mm; ``wavelength`` µm, ``n`` the medium's index,
+    ``carrier`` the chief ray's direction cosines (α, β), ``zprop`` mm to the sensor, ``center`` (2,) mm the chief
+    ray's image point), built from ``rays`` traced rays."""
     # on the DOE's simulation lattice (a virtual plane's box may extend beyond the DOE grid)
     grid = Grid(sim.position(box[0], box[2]), p, (box[1] - box[0], box[3] - box[2]))
     return DOEField(Field(env, grid, float(wavelength), n, carrier), box, zprop, center,
-                    FieldInfo(n_rays + 1, "accurate"))
+                    FieldInfo(rays, "accurate"))
 
 
 def _node_layout(bbox, chief_doe, p: float, nodes: int, dev, z_doe: float, z_sensor: float, wavelength: float,
@@ -370,18 +386,13 @@ def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelen
     plane, whose window may extend beyond the DOE grid). Returns ``(envelope, box)`` (box: half-open
     ``(iy0, iy1, ix0, ix1)`` on ``sim``'s lattice) or None when nothing is lit."""
     p = sim.pitch[0]
-    (x0, y0), (sy, sx) = sim.origin, sim.shape
+    x0, y0 = sim.origin
     gx, gy, h_node, ky, kx = nd.gx, nd.gy, nd.h, nd.ky, nd.kx
     diffracting, dist = "nu" in maps, maps["dist"]
-    # fine window (half-open, simulation-grid indices): the samples inside the node span, clamped to the DOE grid
-    # (a virtual plane's window is not: it lies on the DOE grid's lattice extended)
-    iy0, ix0 = math.ceil((float(gy[0]) - y0) / p), math.ceil((float(gx[0]) - x0) / p)
-    iy1, ix1 = math.floor((float(gy[-1]) - y0) / p) + 1, math.floor((float(gx[-1]) - x0) / p) + 1
-    if doe is not None:
-        iy0, iy1, ix0, ix1 = max(0, iy0), min(sy, iy1), max(0, ix0), min(sx, ix1)
-    if iy1 <= iy0 or ix1 <= ix0:
+    win = _span_window(nd, sim, doe is not None)
+    if win is None:
         return None
-    check_window_memory(iy1 - iy0, ix1 - ix0, p, gx.device)  # before any array of the window's size
+    iy0, iy1, ix0, ix1 = win
     pos_x = (x0 + torch.arange(ix0, ix1, dtype=torch.float64, device=gx.device) * p - float(gx[0])) / h_node
     pos_y = (y0 + torch.arange(iy0, iy1, dtype=torch.float64, device=gx.device) * p - float(gy[0])) / h_node
     # interpolate only near the nodes that can be lit (inside the ripple band / the edges): the node span reaches
@@ -402,18 +413,8 @@ def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelen
     edge_chan = ([] if other is None else [other]) + [maps["nu"], maps["curv"]] if diffracting else []
     fine = upsample_nodes(torch.stack([maps["phi_env"], amp] + ([] if diffracting else [dist]) + edge_chan),
                           pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
-    if diffracting:
-        cov = edge_coverage(fine[2], p) if other is not None else None
-    else:
-        cov = edge_coverage(fine[2], p)
-    if doe is not None:
-        dcov = doe.coverage(sim.window(iy0, iy1, ix0, ix1), oversample, device=gx.device)
-        cov = dcov if cov is None else cov * dcov
-    if diffracting:  # the Fresnel factor is 0 beyond the ripple band
-        band = (fine[-2].detach() > -math.sqrt(2.0) * ripple_zones).to(torch.float64)
-        b = _crop_to_lit(band if cov is None else cov * band)
-    else:
-        b = _crop_to_lit(cov)
+    cov, b = _fine_coverage(fine, diffracting, other is not None, sim, (iy0, iy1, ix0, ix1), doe, oversample,
+                            ripple_zones)
     if b is None:
         return None
     a0, a1, b0, b1 = b
@@ -424,3 +425,43 @@ def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelen
         env = env * stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, maps["g_max"], p,
                                      curvature=fine[-1])
     return env, (iy0 + a0, iy0 + a1, ix0 + b0, ix0 + b1)
+
+
+def _span_window(nd: _Nodes, sim: Grid, clamp: bool):
+    """The fine window: the simulation samples inside the node span, half-open ``(iy0, iy1, ix0, ix1)`` indices on
+    ``sim``'s lattice (pitch mm), clamped to the DOE grid with ``clamp`` (a virtual plane's window is not: it lies
+    on the DOE grid's lattice extended); None when empty. Refuses a window too large for memory
+    (:func:`check_window_memory`) before any array of its size exists."""
+    p = sim.pitch[0]
+    (x0, y0), (sy, sx) = sim.origin, sim.shape
+    gx, gy = nd.gx, nd.gy
+    iy0, ix0 = math.ceil((float(gy[0]) - y0) / p), math.ceil((float(gx[0]) - x0) / p)
+    iy1, ix1 = math.floor((float(gy[-1]) - y0) / p) + 1, math.floor((float(gx[-1]) - x0) / p) + 1
+    if clamp:
+        iy0, iy1, ix0, ix1 = max(0, iy0), min(sy, iy1), max(0, ix0), min(sx, ix1)
+    if iy1 <= iy0 or ix1 <= ix0:
+        return None
+    check_window_memory(iy1 - iy0, ix1 - ix0, p, gx.device)  # before any array of the window's size
+    return iy0, iy1, ix0, ix1
+
+
+def _fine_coverage(fine: torch.Tensor, diffracting: bool, has_other: bool, sim: Grid, box, doe, oversample: int,
+                   ripple_zones):
+    """The fine window's amplitude coverage and its lit part. ``fine`` (C, ny, nx): the interpolated channels
+    (index 2: the edge distance in mm, the other edges' with ``diffracting`` and ``has_other``; ``fine[-2]``: ν
+    with ``diffracting``); ``box``: the window ``(iy0, iy1, ix0, ix1)`` on ``sim``; ``doe``: its aperture (None: a
+    virtual plane). Returns ``(cov (ny, nx) float64 or None: 1 everywhere, crop)``: ``crop`` the half-open
+    ``(a0, a1, b0, b1)`` of the lit samples in the window (with ``diffracting`` inside the ripple band), None
+    when none is lit."""
+    p = sim.pitch[0]
+    if diffracting:
+        cov = edge_coverage(fine[2], p) if has_other else None
+    else:
+        cov = edge_coverage(fine[2], p)
+    if doe is not None:
+        dcov = doe.coverage(sim.window(*box), oversample, device=fine.device)
+        cov = dcov if cov is None else cov * dcov
+    if diffracting:  # the Fresnel factor is 0 beyond the ripple band
+        band = (fine[-2].detach() > -math.sqrt(2.0) * ripple_zones).to(torch.float64)
+        return cov, _crop_to_lit(band if cov is None else cov * band)
+    return cov, _crop_to_lit(cov)

@@ -70,14 +70,7 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
     traced them (None: traced here)."""
     ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
-    xb = None
-    if method in ("auto", "asm"):
-        xb = _footprint(lens, torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2),
-                        torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device), depth, z_xp,
-                        virtual=True)
-    if method == "auto":
-        big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
-        method = "fresnel" if big else "asm"
+    method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
     if method == "fresnel":
         rim = None
         if rim_images:
@@ -89,11 +82,7 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
         return fd.with_info(stop_edge="exit_pupil")
     if method != "asm":
         raise ValueError(f"method must be 'auto', 'fresnel' or 'asm', got {method!r}")
-    if xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > MAX_XP_SAMPLES:
-        raise ValueError(f"stop_edge='exit_pupil': the beam is {xb[1] - xb[0]:.3g}×{xb[3] - xb[2]:.3g} mm on the "
-                         f"exit-pupil plane z = {z_xp:.4g} mm, over {MAX_XP_SAMPLES} samples of {p_sim * 1e3:g} µm "
-                         "a side, too large for the exact angular-spectrum construction: use the Fresnel step "
-                         "(HybridLens(edge_step='fresnel'), the default) or stop_edge='doe'")
+    _check_xp_beam(xb, p_sim, z_xp)
     fx = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_xp, z_sensor, chief_xp, chief_sensor,
                                          nodes=nodes, oversample=oversample, field_type=field_type, check=check,
                                          chief_uv=chief_uv, virtual=True)
@@ -117,3 +106,30 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
     u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)
     return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
                     FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil"))
+
+
+def _edge_method(lens, field, wavelength: float, depth, z_xp: float, p_sim: float, method: str):
+    """``(method, xb)``: the edge step ``method`` with "auto" resolved ("asm" up to :data:`AUTO_ASM_SAMPLES`
+    simulation samples of ``p_sim`` mm across the beam on the exit-pupil plane ``z_xp`` mm, else "fresnel"), and
+    the beam's footprint ``(xmin, xmax, ymin, ymax)`` mm there (traced for "auto" and "asm"; None otherwise or
+    when every ray is vignetted) for the field (2,) at ``wavelength`` µm."""
+    xb = None
+    if method in ("auto", "asm"):
+        xb = _footprint(lens, torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2),
+                        torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device), depth, z_xp,
+                        virtual=True)
+    if method == "auto":
+        big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
+        method = "fresnel" if big else "asm"
+    return method, xb
+
+
+def _check_xp_beam(xb, p_sim: float, z_xp: float) -> None:
+    """Refuse (ValueError) a beam whose footprint ``xb`` ``(xmin, xmax, ymin, ymax)`` mm on the exit-pupil plane
+    ``z_xp`` mm spans more than :data:`MAX_XP_SAMPLES` simulation samples of ``p_sim`` mm (the exact construction's
+    grid there would not fit in memory)."""
+    if xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > MAX_XP_SAMPLES:
+        raise ValueError(f"stop_edge='exit_pupil': the beam is {xb[1] - xb[0]:.3g}×{xb[3] - xb[2]:.3g} mm on the "
+                         f"exit-pupil plane z = {z_xp:.4g} mm, over {MAX_XP_SAMPLES} samples of {p_sim * 1e3:g} µm "
+                         "a side, too large for the exact angular-spectrum construction: use the Fresnel step "
+                         "(HybridLens(edge_step='fresnel'), the default) or stop_edge='doe'")

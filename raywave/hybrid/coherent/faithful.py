@@ -43,12 +43,7 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     nn_ = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
     at = out.propagate_to_z(z_doe, nn_)
     xy, dvec, opl = at.o[0, 0, :, :2], at.d[0, 0], at.opl[0, 0]
-    inside = inside_doe(doe, xy)
-    passed = at.valid[0, 0]
-    valid = passed & inside
-    # the rays sample the pupil uniformly: the blocked power fraction is the blocked ray fraction
-    clipped = float((passed & ~inside).sum()) / max(int(passed.sum()), 1)
-    beam_half = float(xy.detach()[passed].abs().max()) if bool(passed.any()) else 0.0
+    valid, clipped, beam_half = _doe_pass(doe, xy, at.valid[0, 0])
     if not bool(valid.any()):
         return _empty_field(doe, oversample, (alpha, beta), n, wavelength, zprop, center, n_rays,
                             "faithful").with_info(clipped=clipped, beam_half=beam_half)
@@ -58,18 +53,7 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     phase = (k * (opl - ref)).to(torch.float64)  # formed in the tracing precision
     xy, dvec = xy.to(torch.float64), dvec.to(torch.float64)
     sim = doe.sim_grid(oversample)
-    if full_grid:
-        box = (0, sy, 0, sx)
-        carrier = (0.0, 0.0)
-    else:
-        # the lit window: each ray's phasor is demodulated by the chief ray's carrier *before* it is spread,
-        # so the spread envelope varies slowly even for off-axis light (the paper's full grid spreads the
-        # carrier itself and aliases once the local fringe frequency passes Nyquist: see the warning)
-        phase = phase - k * n * (alpha * xy[:, 0] + beta * xy[:, 1])
-        xs = xy.detach()
-        bbox = (float(xs[:, 0].min()), float(xs[:, 0].max()), float(xs[:, 1].min()), float(xs[:, 1].max()))
-        box = lit_box(sim, bbox, 2 * p)  # valid rays lie inside the DOE: never None
-        carrier = (alpha, beta)
+    phase, box, carrier = _splat_window(sim, p, (sy, sx), full_grid, xy, phase, k, n, (alpha, beta))
     grid = sim.window(*box)
     check_window_memory(grid.shape[0] * (2 if full_grid else 1), grid.shape[1] * (2 if full_grid else 1), p, dev)
     u = splat_bilinear(xy[:, 0], xy[:, 1], torch.polar(dvec[:, 2], phase), grid.origin, p, grid.shape)
@@ -80,3 +64,35 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     u = u * doe.coverage(grid, oversample, device=dev).to(u.dtype)
     return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
                     FieldInfo(n_rays, "faithful", full_grid=full_grid, clipped=clipped, beam_half=beam_half))
+
+
+def _doe_pass(doe, xy: torch.Tensor, passed: torch.Tensor):
+    """Which rays pass the DOE aperture, from their DOE-plane points ``xy`` (N, 2) mm and ``passed`` (N,) bool
+    (through the lens): ``(valid (N,) bool, clipped, beam_half)``, the fraction of the passed rays that the
+    aperture blocks and the beam's half-width (mm, largest |x| or |y| of the passed rays; 0 when none)."""
+    inside = inside_doe(doe, xy)
+    valid = passed & inside
+    # the rays sample the pupil uniformly: the blocked power fraction is the blocked ray fraction
+    clipped = float((passed & ~inside).sum()) / max(int(passed.sum()), 1)
+    beam_half = float(xy.detach()[passed].abs().max()) if bool(passed.any()) else 0.0
+    return valid, clipped, beam_half
+
+
+def _splat_window(sim, p: float, shape, full_grid: bool, xy: torch.Tensor, phase: torch.Tensor, k: float, n: float,
+                  carrier):
+    """Where the rays are spread on the simulation grid ``sim`` (pitch ``p`` mm, ``shape`` (sy, sx)):
+    ``(phase, box, carrier)``. ``full_grid``: the whole grid, ``phase`` (N,) rad as it is, no carrier; else the lit
+    window around the rays' points ``xy`` (N, 2) mm (+ 2 samples), ``phase`` less the chief ray's carrier ``(α, β)``
+    (direction cosines; ``k`` = 2π/λ in 1/mm, ``n`` the image medium's index). ``box``: half-open
+    ``(iy0, iy1, ix0, ix1)`` on ``sim``."""
+    if full_grid:
+        return phase, (0, shape[0], 0, shape[1]), (0.0, 0.0)
+    # the lit window: each ray's phasor is demodulated by the chief ray's carrier *before* it is spread,
+    # so the spread envelope varies slowly even for off-axis light (the paper's full grid spreads the
+    # carrier itself and aliases once the local fringe frequency passes Nyquist: see the warning)
+    alpha, beta = carrier
+    phase = phase - k * n * (alpha * xy[:, 0] + beta * xy[:, 1])
+    xs = xy.detach()
+    bbox = (float(xs[:, 0].min()), float(xs[:, 0].max()), float(xs[:, 1].min()), float(xs[:, 1].max()))
+    box = lit_box(sim, bbox, 2 * p)  # valid rays lie inside the DOE: never None
+    return phase, box, (alpha, beta)
