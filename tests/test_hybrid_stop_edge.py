@@ -81,6 +81,21 @@ def test_clipping_warns_with_field_wavelength_fraction_and_size(lens):
         hl.psf_result((0.0, 5.0), WL, ks=8, rays=24)  # holds the whole 5° beam
 
 
+
+def test_clipping_of_many_sources_warns_once_with_the_range_and_the_worst(lens):
+    """A map's call (several fields) gives one DOEApertureWarning: how many sources, the blocked range, the worst
+    source, the widest beam's DOE size; sources the DOE holds are not counted."""
+    hl = HybridLens(lens, BlankDOE(3000, 1e-3), 0.7, sensor_pitch=PS)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = hl.psf_result([(0.0, 0.0), (0.0, 14.0), (0.0, 17.5)], WL, ks=8, rays=24)
+    msgs = [str(w.message) for w in caught if issubclass(w.category, DOEApertureWarning)]
+    assert len(msgs) == 1, msgs
+    lo, hi = (100 * float(res.doe_clipped[i, 0]) for i in (1, 2))
+    assert msgs[0].startswith(f"2 sources (field × wavelength) of this call: the 3×3 mm DOE aperture blocks "
+                              f"{lo:.1f}–{hi:.1f} % of their beams' power (most at field [0.0, 17.5] at 0.53 µm)")
+    assert "the widest beam needs a DOE of at least" in msgs[0]
+
 def test_faithful_mode_measures_the_clipping_from_its_own_rays(lens):
     hl = HybridLens(lens, BlankDOE(3000, 1e-3), 0.7, sensor_pitch=PS)
     with pytest.warns(DOEApertureWarning):

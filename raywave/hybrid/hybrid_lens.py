@@ -379,7 +379,7 @@ class HybridLens(nn.Module):
         beam half-width mm), or None: the field's own) and the chief ray's slopes ``chief_tan`` from ``chief_doe``
         (F, W) rays; warns (pointing at the caller of :meth:`doe_fields`) where no light reaches the DOE
         (``f`` (F, 2) fields, ``wls`` µm) or the DOE aperture clips the beam."""
-        nw, out = len(wls), []
+        nw, out, clipped = len(wls), [], []
         for i in range(f.shape[0]):
             row = []
             for j, wl in enumerate(wls):
@@ -390,11 +390,13 @@ class HybridLens(nn.Module):
                                   VignettingWarning, stacklevel=3)
                 if clips is not None:
                     fd.clipped, fd.beam_half = clips[i][j]
-                self._warn_clipped(fd, f[i])
+                if fd.clipped > CLIP_WARN:
+                    clipped.append((fd, f[i]))
                 d_c = chief_doe[i, j].d.detach()
                 fd.chief_tan = (float(d_c[0] / d_c[2]), float(d_c[1] / d_c[2]))
                 row.append(fd)
             out.append(row)
+        self._warn_clipped(clipped)
         return out
 
     def _accurate_constructions(self, f, wls, depth, chief, nodes: int, check: bool) -> list:
@@ -429,17 +431,25 @@ class HybridLens(nn.Module):
                                        entrance=entrance, stop_rim=rims[j][i])
                 for i in range(f.shape[0]) for j, wl in enumerate(wls)]
 
-    def _warn_clipped(self, fd: DOEField, field) -> None:
-        """:class:`DOEApertureWarning` (pointing at the caller of :meth:`doe_fields`, through
-        :meth:`_finish_fields`) when the DOE aperture blocks more than :data:`CLIP_WARN` of ``fd``'s power;
-        ``field`` (2,) names the source."""
-        if fd.clipped <= CLIP_WARN:
+    def _warn_clipped(self, clipped: list) -> None:
+        """One :class:`DOEApertureWarning` (pointing at the caller of :meth:`doe_fields`, through
+        :meth:`_finish_fields`) for the ``clipped`` sources, a list of ``(DOEField, field (2,))`` whose power the DOE
+        aperture blocks by more than :data:`CLIP_WARN`: a map's many sources give one line, not one each."""
+        if not clipped:
             return
         w, h = self.doe.size
-        need = 2.0 * fd.beam_half
-        warnings.warn(f"field {[float(v) for v in field]} at {fd.wavelength:g} µm: the {w:g}×{h:g} mm DOE "
-                      f"aperture blocks {100 * fd.clipped:.1f} % of the beam's power (not counted in "
-                      f"energy_outside); the beam needs a DOE of at least {need:.3g} mm square "
+        need = 2.0 * max(fd.beam_half for fd, _ in clipped)
+        fd, field = max(clipped, key=lambda c: c[0].clipped)
+        where = f"field {[float(v) for v in field]} at {fd.wavelength:g} µm"
+        if len(clipped) == 1:
+            what = f"{where}: the {w:g}×{h:g} mm DOE aperture blocks {100 * fd.clipped:.1f} % of the beam's power"
+            beams = "the beam needs"
+        else:
+            low = 100 * min(c[0].clipped for c in clipped)
+            what = (f"{len(clipped)} sources (field × wavelength) of this call: the {w:g}×{h:g} mm DOE aperture blocks "
+                    f"{low:.1f}–{100 * fd.clipped:.1f} % of their beams' power (most at {where})")
+            beams = "the widest beam needs"
+        warnings.warn(f"{what} (not counted in energy_outside); {beams} a DOE of at least {need:.3g} mm square "
                       f"({BEAM_MARGIN * need:.3g} mm with the usual {BEAM_MARGIN:g}× margin, see "
                       "raywave.assembly.build.default_doe_size)", DOEApertureWarning, stacklevel=4)
 
