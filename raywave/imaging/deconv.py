@@ -22,6 +22,21 @@ depths disagree are damped instead of being boosted for a PSF that none of the d
 the depth-averaged PSF over-sharpens the in-focus depth). Give ``psf`` as ``(S, C, N, M, ks, ks)`` for it;
 S = 1 is the ordinary filter.
 
+**Colour prior (``chroma``).** The per-channel filter treats R, G and B as independent, so where it boosts a
+frequency it boosts each channel's noise separately: colour speckle and colour ringing. Natural images are
+strongly correlated across channels; with the Gaussian prior whose covariance across channels has the luminance
+direction ``(1, 1, 1)/√3`` at full power and the two chroma directions at ``ρ`` times it (``chroma = ρ``, 0 < ρ ≤ 1;
+the regularisation in channel space is ``R^½·M·R^½`` with ``M = P_L + (I − P_L)/ρ``, ``P_L = 11ᵀ/3``), the
+filter becomes a 3×3 linear solve per frequency and node (the multichannel Wiener filter):
+
+    X̂_n(f) = (mean_s diag|K̂_sn(f)|² + R^½ M R^½)⁻¹ · (mean_s conj(K̂_sn(f)) ⊙ Ŷ(f)).
+
+``ρ = 1`` (or None) is the per-channel filter above exactly; smaller ρ lets chroma be restored less sharply than
+luminance. Measured on the EDoF demo's designed optics (held-out photos, deconvolution only, the learned λ and
+μ, 2026-11-27): ρ = 0.1 raises the gain over the sensor image at 200 mm / 300 mm / 10 m from +1.82 / +2.89 / +1.17 dB
+to +2.03 / +3.57 / +1.31 dB; on the aberration demo's designed optics the centre from 27.71 to 29.73 dB, the edge
+21.05 → 20.92 dB (ρ = 0.3: 28.88 / 21.14 dB).
+
 Orientation, extents, pitches and centres are those of :func:`~raywave.imaging.render.render`; the image is
 reflect-padded by the PSF size before the FFTs (no wrap-around ringing from the frame).
 """
@@ -37,7 +52,7 @@ import torch.nn.functional as F
 from raywave.imaging.render import (_GRID_PADDING, _PADDING, _fast, _hat_weights, _image_pitch, _node_grid, _windows,
                                     prepare_map_arguments)
 
-__all__ = ["wiener_deconvolve", "WienerDeconv", "laplacian_power"]
+__all__ = ["wiener_deconvolve", "WienerDeconv", "chroma_ratio", "laplacian_power"]
 
 
 def laplacian_power(fy: int, fx: int, dtype=torch.float64, device=None) -> torch.Tensor:
@@ -110,7 +125,7 @@ def _unwarp(x, centers, positions, sensor_size, extent, cy, cx, padding):
 def wiener_deconvolve(image: torch.Tensor, psf: torch.Tensor, reg=1e-3, *, positions: torch.Tensor | None = None,
                       centers: torch.Tensor | None = None, sensor_size=None, pitch: float | None = None,
                       extent=(-1.0, 1.0, -1.0, 1.0), orientation: str = "picture",
-                      padding: str = "reflect") -> torch.Tensor:
+                      padding: str = "reflect", chroma=None) -> torch.Tensor:
     """Multi-Wiener deconvolution of an image blurred by a PSF map (see the module docstring).
 
     Args:
@@ -121,6 +136,8 @@ def wiener_deconvolve(image: torch.Tensor, psf: torch.Tensor, reg=1e-3, *, posit
         reg: Tikhonov regularisation: a float λ, a pair (λ, μ), or tensors (C,) / (2, C) per channel (λ > 0 is
             about the noise-to-signal power ratio; μ weights the Laplacian smoothness term).
         positions, centers, sensor_size, pitch, extent, orientation, padding: as :func:`render`.
+        chroma: ρ of the colour prior (module docstring; a float or a 0-d tensor in (0, 1], 3 channels): the
+            chroma's prior power relative to the luminance's. None: the per-channel filter.
 
     Returns:
         the deconvolved image, the shape, dtype and orientation of ``image``; differentiable w.r.t. the image,
@@ -137,7 +154,8 @@ def wiener_deconvolve(image: torch.Tensor, psf: torch.Tensor, reg=1e-3, *, posit
                                                      padding)[1] for m in maps[1:]])
     lam, mu = _regulariser(reg, x.shape[1], x.dtype, x.device)
     flip = orientation == "picture"
-    out = _multi_wiener(x, k, lam, mu, cy, cx, padding)
+    rho = _chroma(chroma, x.shape[1], x.dtype, x.device)
+    out = _multi_wiener(x, k, lam, mu, cy, cx, padding, rho)
     if centers is not None:
         if sensor_size is None:
             raise ValueError("centers: give sensor_size (mm) to convert the PSF centres to pixels")
@@ -147,10 +165,58 @@ def wiener_deconvolve(image: torch.Tensor, psf: torch.Tensor, reg=1e-3, *, posit
     return out[0] if squeeze else out
 
 
-def _multi_wiener(x, k, lam, mu, cy, cx, padding):
+def chroma_ratio(images: torch.Tensor) -> float:
+    """ρ of the colour prior measured on ``images (B, 3, H, W)`` (linear RGB): the power of their chroma per
+    chroma direction (the part orthogonal to (1, 1, 1), two directions) over the power of their luminance
+    direction, each image's mean removed. 0 for grey images, ~1 for independent channels; the bundled training
+    photos give ~0.06, the same in every frequency band from 0.02 to 0.5 cycles per pixel."""
+    if images.ndim != 4 or images.shape[1] != 3:
+        raise ValueError(f"chroma_ratio: give images of shape (B, 3, H, W), got {tuple(images.shape)}")
+    x = images.double() - images.double().mean((-2, -1), keepdim=True)
+    lum = x.mean(1, keepdim=True)
+    p_lum = 3 * lum.square().sum()  # |P_L x|² with P_L = 11ᵀ/3
+    p_chroma = (x - lum).square().sum() / 2
+    if float(p_lum) == 0.0:
+        raise ValueError("chroma_ratio: the images have no luminance contrast")
+    return float(p_chroma / p_lum)
+
+
+def _chroma(chroma, C: int, dtype, device):
+    """ρ of the colour prior as a 0-d tensor, or None (the per-channel filter); checks its range and C = 3."""
+    if chroma is None:
+        return None
+    rho = torch.as_tensor(chroma, dtype=dtype, device=device).reshape(())
+    if not (0.0 < float(rho.detach()) <= 1.0):
+        raise ValueError(f"chroma: the colour prior's chroma-to-luminance power ratio must lie in (0, 1], got "
+                         f"{float(rho.detach()):g}")
+    if C != 3:
+        raise ValueError(f"chroma: the colour prior needs 3 channels (RGB), the image has {C}")
+    return rho
+
+
+def _colour_solve(Y, Kc, P2, R, rho):
+    """The multichannel Wiener estimate (module docstring) per node: ``Y (B, 3, fy, fx')`` the image spectrum,
+    ``Kc (3, n, m, fy, fx')`` mean_s conj K̂, ``P2`` the same shape mean_s |K̂|², ``R (3, 1, 1, fy, fx')`` the
+    regularisation per channel, ``rho`` 0-d. Returns ``(B, 3, n, m, fy, fx')``.
+
+    ``M = I/ρ + β·11ᵀ`` with ``β = (1 − 1/ρ)/3``, so the system is a diagonal plus a rank-one matrix,
+    ``A = diag(P2 + R/ρ) + β·ssᵀ`` (``s = R^½``), and Sherman–Morrison solves it elementwise:
+    ``x_c = w_c z_c − β u_c (Σ_d u_d z_d) / (1 + β Σ_d s_d u_d)``, ``w = 1/(P2 + R/ρ)``, ``u = w s``,
+    ``z = conj K̂ ⊙ Ŷ`` (A is positive definite: the denominator is > 0)."""
+    s = R.sqrt()
+    beta = (1 - 1 / rho) / 3
+    w = 1 / (P2 + R / rho)  # (3, n, m, fy, fx'): the per-channel filter's denominator with R/ρ
+    u = w * s
+    r = u * (beta / (1 + beta * (s * u).sum(0)))  # (3, n, m, fy, fx')
+    t = (Y[:, :, None, None] * (u * Kc)[None]).sum(1, keepdim=True)  # Σ_d u_d z_d: (B, 1, n, m, fy, fx')
+    return Y[:, :, None, None] * (w * Kc)[None] - r[None] * t
+
+
+def _multi_wiener(x, k, lam, mu, cy, cx, padding, rho=None):
     """Deconvolve ``x (B, C, H, W)`` (sensor orientation) with each node kernel of ``k (C, N, M, ky, kx)`` (or the
     expected-error filter of a set ``k (S, C, N, M, ky, kx)``) whose weight reaches the image, and blend with the
-    renderer's bilinear weights."""
+    renderer's bilinear weights; with ``rho`` (0-d) the colour prior's 3×3 solve instead of the per-channel
+    filter."""
     if k.ndim == 5:
         k = k[None]
     B, C, H, W = x.shape
@@ -174,8 +240,12 @@ def _multi_wiener(x, k, lam, mu, cy, cx, padding):
     K = _kernel_spectrum(k, fy, fx)  # (S, C, n, m, fy, fx//2+1)
     lap = laplacian_power(fy, fx, dtype=dt, device=dev)
     R = lam[:, None, None, None, None] + mu[:, None, None, None, None] * lap  # (C, 1, 1, fy, fx')
-    G = K.conj().mean(0) / ((K.real.square() + K.imag.square()).mean(0) + R)  # expected-error filter over S
-    X = torch.fft.irfft2(Y[:, :, None, None] * G[None], s=(fy, fx))[..., py:py + H, px:px + W]  # (B, C, n, m, H, W)
+    if rho is None:
+        G = K.conj().mean(0) / ((K.real.square() + K.imag.square()).mean(0) + R)  # expected-error filter over S
+        XF = Y[:, :, None, None] * G[None]
+    else:
+        XF = _colour_solve(Y, K.conj().mean(0), (K.real.square() + K.imag.square()).mean(0), R, rho)
+    X = torch.fft.irfft2(XF, s=(fy, fx))[..., py:py + H, px:px + W]  # (B, C, n, m, H, W)
     return torch.einsum("bcnmhw,nh,mw->bchw", X, wy, wx)
 
 
@@ -187,14 +257,25 @@ class WienerDeconv(nn.Module):
         channels: colour channels.
         init_lambda, init_mu: initial λ and μ (the noise-to-signal ratio of a well-exposed image is ~1e-4 –
             1e-2).
+        init_chroma: initial ρ of the colour prior (module docstring; 3 channels), learned as
+            ``ρ = min(exp(log_chroma), 1)``; None: the per-channel filter (no parameter).
     """
 
-    def __init__(self, channels: int = 3, init_lambda: float = 1e-3, init_mu: float = 1e-2):
+    def __init__(self, channels: int = 3, init_lambda: float = 1e-3, init_mu: float = 1e-2,
+                 init_chroma: float | None = None):
         super().__init__()
         if not (init_lambda > 0 and init_mu > 0):
             raise ValueError("WienerDeconv: init_lambda and init_mu must be > 0")
         self.log_lambda = nn.Parameter(torch.full((channels,), math.log(init_lambda)))
         self.log_mu = nn.Parameter(torch.full((channels,), math.log(init_mu)))
+        self.log_chroma = None
+        if init_chroma is not None:
+            _chroma(init_chroma, channels, torch.float64, None)  # range and channel count, now
+            self.log_chroma = nn.Parameter(torch.tensor(math.log(init_chroma)))
+
+    def chroma(self) -> torch.Tensor | None:
+        """ρ of the colour prior (0-d, ≤ 1), or None."""
+        return None if self.log_chroma is None else self.log_chroma.exp().clamp(max=1.0)
 
     def regularisation(self) -> torch.Tensor:
         """``(2, C)``: λ and μ per channel."""
@@ -205,4 +286,5 @@ class WienerDeconv(nn.Module):
         ``(S, C, N, M, ks, ks)``, e.g. one per depth: the expected-error filter); ``kw`` as
         :func:`wiener_deconvolve` (positions, centers, sensor_size, pitch, extent, ...)."""
         reg = self.regularisation().to(image.dtype)
-        return wiener_deconvolve(image, psf, reg, **kw)
+        rho = self.chroma()
+        return wiener_deconvolve(image, psf, reg, chroma=None if rho is None else rho.to(image.dtype), **kw)

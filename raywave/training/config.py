@@ -142,8 +142,10 @@ class NetworkConfig:
 
     ``deconv``: ``"wiener"``: the PSF-aware reconstruction: a multi-Wiener deconvolution with the current PSF
     map (:mod:`raywave.imaging.deconv`; learned regularisation per channel, initial ``wiener_lambda`` and
-    ``wiener_mu``), refined by the network, differentiable w.r.t. the PSFs (so the optics learn to be
-    restorable); ``"none"``: the paper's plain network on the sensor image.
+    ``wiener_mu``; ``wiener_chroma``: ρ of the colour prior, the chroma's prior power relative to the
+    luminance's, learned from this start; None: the per-channel filter), refined by the network, differentiable
+    w.r.t. the PSFs (so the optics learn to be restorable); ``"none"``: the paper's plain network on the sensor
+    image.
     ``ablation``: after training, also train a plain network (``deconv: none``, stage 2's settings) on the final
     optics, for the ablation table of the evaluation (sensor image / network only / deconvolution + network).
     """
@@ -156,6 +158,7 @@ class NetworkConfig:
     deconv: str = "none"
     wiener_lambda: float = 1e-3
     wiener_mu: float = 1e-2
+    wiener_chroma: Optional[float] = None
     ablation: bool = False
 
 
@@ -294,6 +297,7 @@ RULES: dict[str, Rule] = {
     "NetworkConfig.middle_blocks": _NONNEG,
     "NetworkConfig.wiener_lambda": _NONNEG,
     "NetworkConfig.wiener_mu": _NONNEG,
+    "NetworkConfig.wiener_chroma": Rule(lo=0, lo_open=True, hi=1),
     "PreStageConfig.steps": _NONNEG,
     "PreStageConfig.lr_doe": _NONNEG,
     "PreStageConfig.lr_lens": _NONNEG,

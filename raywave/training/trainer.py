@@ -168,7 +168,8 @@ class Trainer(FabricationSchedule, StageSteps):
             from raywave.imaging.deconv import WienerDeconv
 
             n = self.cfg.network
-            return PSFAwareNet(net, WienerDeconv(3, init_lambda=n.wiener_lambda, init_mu=n.wiener_mu))
+            return PSFAwareNet(net, WienerDeconv(3, init_lambda=n.wiener_lambda, init_mu=n.wiener_mu,
+                                                 init_chroma=n.wiener_chroma))
         raise ValueError(f"network.deconv must be 'wiener' or 'none', got {deconv!r}")
 
     def reconstruct(self, sims, psf, cen, extents, positions=None, net=None) -> torch.Tensor:
