@@ -63,10 +63,11 @@ def test_aberration_demo_reaches_the_issue_margins(aberration):
 
 @pytest.mark.slow
 def test_edof_demo_restores_every_depth_and_beats_the_paraxially_designed_doe(tmp_path):
-    """Measured (2026-11-26, the default exit-pupil stop edge): restored vs sensor image +1.79 / +2.85 / +1.17 dB
-    at 200 mm / 300 mm / 10 m; designed vs paraxial design under the same reconstruction +0.54 dB mean, at the
-    field edge +0.68 / +0.99 / +1.43 dB (the paraxial model cannot see the lens's off-axis aberrations), centre
-    −0.17 / +0.41 / −0.12 dB. The per-depth floor is 1.0 dB: with the paper's DOE-plane edge the 10 m gain was
+    """Measured (2026-11-27, the default exit-pupil stop edge, the colour prior): restored vs sensor image +1.94 /
+    +3.42 / +1.27 dB at 200 mm / 300 mm / 10 m; designed vs paraxial design under the same reconstruction +0.57 dB
+    mean, at the field edge +0.76 / +1.13 / +1.61 dB (the paraxial model cannot see the lens's off-axis
+    aberrations), centre −0.18 / +0.23 / −0.09 dB (without the colour prior, 2026-11-26: +1.79 / +2.85 / +1.17
+    and +0.54). The per-depth floor is 1.0 dB: with the paper's DOE-plane edge the 10 m gain was
     +1.39 dB, with the physically right edge the designed lens's sensor images are sharper (19.64 vs 19.41 dB)
     and the 10 m gain +1.17 dB (issue 15's +2 dB bar is not met at 200 mm and 10 m either way)."""
     run = tmp_path / "edof_demo"
