@@ -35,7 +35,8 @@ filter becomes a 3×3 linear solve per frequency and node (the multichannel Wien
 luminance. Measured on the EDoF demo's designed optics (held-out photos, deconvolution only, the learned λ and
 μ, 2026-11-27): ρ = 0.1 raises the gain over the sensor image at 200 mm / 300 mm / 10 m from +1.82 / +2.89 / +1.17 dB
 to +2.03 / +3.57 / +1.31 dB; on the aberration demo's designed optics the centre from 27.71 to 29.73 dB, the edge
-21.05 → 20.92 dB (ρ = 0.3: 28.88 / 21.14 dB).
+21.05 → 20.92 dB (ρ = 0.3: 28.88 / 21.14 dB). The demos start at ρ = 0.06, :func:`chroma_ratio` of their
+training photos, and learn it (end-to-end results: docs/training.md, "Demo results").
 
 Orientation, extents, pitches and centres are those of :func:`~raywave.imaging.render.render`; the image is
 reflect-padded by the PSF size before the FFTs (no wrap-around ringing from the frame).
