@@ -241,11 +241,11 @@ def _multi_wiener(x, k, lam, mu, cy, cx, padding, rho=None):
     K = _kernel_spectrum(k, fy, fx)  # (S, C, n, m, fy, fx//2+1)
     lap = laplacian_power(fy, fx, dtype=dt, device=dev)
     R = lam[:, None, None, None, None] + mu[:, None, None, None, None] * lap  # (C, 1, 1, fy, fx')
+    kc, p2 = K.conj().mean(0), (K.real.square() + K.imag.square()).mean(0)  # over the S maps
     if rho is None:
-        G = K.conj().mean(0) / ((K.real.square() + K.imag.square()).mean(0) + R)  # expected-error filter over S
-        XF = Y[:, :, None, None] * G[None]
+        XF = Y[:, :, None, None] * (kc / (p2 + R))[None]  # the expected-error filter over S
     else:
-        XF = _colour_solve(Y, K.conj().mean(0), (K.real.square() + K.imag.square()).mean(0), R, rho)
+        XF = _colour_solve(Y, kc, p2, R, rho)
     X = torch.fft.irfft2(XF, s=(fy, fx))[..., py:py + H, px:px + W]  # (B, C, n, m, H, W)
     return torch.einsum("bcnmhw,nh,mw->bchw", X, wy, wx)
 
