@@ -69,13 +69,41 @@ def test_paraxial_mapping_is_rectilinear_and_its_centres_show_the_distortion(hl)
     assert abs(dist) > 0.05  # the singlet's distortion is visible at this field (%)
 
 
-def test_field_grid_needs_a_sensor_size():
-    from raywave.lens.build import load_lens
+def test_a_lens_without_a_sensor_gets_the_square_in_its_image_circle():
+    """A lens file without a sensor (most .zmx files, three bundled lenses) maps onto the square inscribed in its
+    image circle: for a perfect lens at infinity the image height of the largest field is f·tan θ exactly."""
+    from raywave.lens.analysis import default_sensor_size, image_circle_radius
+    from raywave.lens.build import ideal_lens, load_lens
+    from raywave.imaging import sensor_size_of
 
+    f, theta = 20.0, 12.0
+    lens = ideal_lens(f, f_number=4.0, fields=[0.0, 5.0, theta])
+    assert lens.sensor_size is None
+    r = f * math.tan(math.radians(theta))
+    assert image_circle_radius(lens) == pytest.approx(r, rel=1e-12)
+    w, h = default_sensor_size(lens)
+    assert w == h == pytest.approx(math.sqrt(2.0) * r, rel=1e-12)
+    assert sensor_size_of(lens) == (w, h)
+    grid = field_grid(lens, (2, 2), mapping="chief_ray")  # the corners of a 2×2 tiling sit at half the sensor
+    t = torch.tan(torch.deg2rad(grid[0, 0]))
+    assert float(torch.linalg.vector_norm(t)) == pytest.approx(0.5 * math.tan(math.radians(theta)), rel=1e-9)
+    corner = field_grid(lens, (1, 1), sensor_size=(2 * w, 2 * h))  # an explicit size still wins
+    assert float(corner.abs().max()) == 0.0
+    # a real lens without a sensor: the corners see its largest field
+    singlet = load_lens(bundled_lens_path("singlet"))
+    assert singlet.sensor_size is None
+    ws, hs = sensor_size_of(singlet)
+    assert ws == hs and 0.97 < ws / (math.sqrt(2.0) * 100.0 * math.tan(math.radians(5.0))) < 1.03
+
+
+def test_field_grid_without_a_sensor_or_an_off_axis_field_names_the_problem():
+    from raywave.lens.build import ideal_lens, load_lens
+
+    lens = ideal_lens(20.0, f_number=4.0, fields=[0.0])
+    with pytest.raises(ValueError, match=r"no sensor size and the lens lists no off-axis field.*sensor_size"):
+        field_grid(lens, (2, 2))
     lens = load_lens(bundled_lens_path("singlet"))
     lens.sensor_size = None
-    with pytest.raises(ValueError, match="sensor_size"):
-        field_grid(lens, (2, 2))
     f = field_grid(lens, (1, 3), sensor_size=(2.0, 1.0))
     assert f.shape == (1, 3, 2) and float(f[0, 1].abs().max()) == 0.0
     with pytest.raises(TypeError, match="lens"):

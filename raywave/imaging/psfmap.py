@@ -12,7 +12,7 @@ of :mod:`raywave.models`. Field points are angles in degrees, (θx, θy), OpticS
 
 ``positions[i, j] = (u_j, v_i)``; row i runs along sensor +y, column j along +x (the ``[iy, ix]`` order of PSFs).
 A normalised position (u, v) is the sensor point (x, y) = (u·w/2, v·h/2) mm of a w × h mm sensor
-(``lens.sensor_size`` unless ``sensor_size`` is given). Its field angle is found through the lens:
+(``lens.sensor_size`` unless ``sensor_size`` is given; a lens without a sensor: the square in its image circle). Its field angle is found through the lens:
 
 * ``mapping="chief_ray"`` (default): the field whose **real chief ray** (through the refractive lens, aimed at
   the stop centre, at ``wavelength``, default the lens's primary, and at the first depth of the map) lands at
@@ -95,7 +95,9 @@ def _lens_of(model):
 
 
 def sensor_size_of(model, sensor_size=None) -> tuple[float, float]:
-    """(w, h) mm: ``sensor_size`` when given, else the model's lens's sensor size (an error if it has none)."""
+    """(w, h) mm: ``sensor_size`` when given, else the model's lens's sensor size, else (a lens file without a
+    sensor, e.g. most .zmx files) the square inscribed in the lens's image circle
+    (:func:`raywave.lens.analysis.default_sensor_size`: its corners see the lens's largest field)."""
     if sensor_size is not None:
         s = tuple(float(v) for v in (sensor_size if hasattr(sensor_size, "__len__") else (sensor_size,)))
         if len(s) == 1:
@@ -103,10 +105,16 @@ def sensor_size_of(model, sensor_size=None) -> tuple[float, float]:
         if len(s) != 2 or not all(math.isfinite(v) and v > 0 for v in s):
             raise ValueError(f"sensor_size: give (width, height) in mm, both > 0, got {sensor_size!r}")
         return s
-    size = getattr(_lens_of(model), "sensor_size", None)
+    lens = _lens_of(model)
+    size = getattr(lens, "sensor_size", None)
     if size is None:
-        raise ValueError("the lens has no sensor size (lens file 'sensor': {'size': [w, h]}): pass "
-                         "sensor_size=(w, h) mm")
+        from raywave.lens.analysis import default_sensor_size
+
+        try:
+            return default_sensor_size(lens)
+        except ValueError as err:
+            raise ValueError(f"the lens has no sensor size and {err}: give one (lens file 'sensor': {{'size': "
+                             "[w, h]}, or sensor_size=(w, h) mm)") from None
     return float(size[0]), float(size[1])
 
 

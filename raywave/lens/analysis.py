@@ -90,6 +90,38 @@ def beam_half_extent(lens, z: float, fields=None, wavelengths=None, depth=None) 
 
 
 # ---------------------------------------------------------------------------- focus
+def image_circle_radius(lens, depth=None, wavelength: float | None = None) -> float:
+    """Radius (mm) of the lens's image circle: the real chief ray's height on the sensor plane for the largest of
+    ``lens.fields`` (in the lens's field type), at ``wavelength`` (µm; default the primary), object at ``depth``
+    (mm; default the lens's own). A ValueError names the problem when the lens lists no off-axis field or that
+    field's chief ray does not reach the sensor."""
+    fmax = max((abs(f) for f in lens.fields), default=0.0)
+    if not fmax > 0:
+        raise ValueError("the lens lists no off-axis field (its 'fields'), so its image circle is unknown")
+    wl = float(lens.primary_wavelength if wavelength is None else wavelength)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", VignettingWarning)
+        rays = chief_ray(lens, torch.tensor([[0.0, fmax]], dtype=torch.float64), [wl], depth=depth)
+        out = lens.trace_to_image(rays)
+    h = abs(float(out.o[0, 0, 0, 1]))
+    if not (bool(out.valid[0, 0, 0]) and math.isfinite(h) and h > 0):
+        raise ValueError(f"the chief ray of the lens's largest field ({fmax:g} {_field_unit(lens)}, {wl:g} µm) "
+                         "does not reach the sensor, so its image circle is unknown")
+    return h
+
+
+def default_sensor_size(lens, depth=None) -> tuple[float, float]:
+    """(w, h) mm of the sensor assumed for a lens file without one: the square inscribed in the lens's image
+    circle (:func:`image_circle_radius`), so its corners see the largest field the lens lists and every sensor
+    point lies within the lens's field of view."""
+    side = math.sqrt(2.0) * image_circle_radius(lens, depth)
+    return side, side
+
+
+def _field_unit(lens) -> str:
+    return "deg" if lens.field_type == "angle" else "mm object height"
+
+
 def refocus(lens, object_distance: float | None = None, method: str = "paraxial", wavelength=None) -> float:
     """Set the last thickness so that the sensor is at the focus of an object at ``object_distance``
     (mm; default: the lens's own). ``method``: "paraxial" (paraxial image plane) or "rms" (plane of least

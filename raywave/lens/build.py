@@ -262,9 +262,9 @@ def bundled_lens_path(name: str) -> Path:
 
 
 def resolve_lens_path(name_or_path: str | Path) -> Path:
-    """A file path, or the name of a bundled lens."""
+    """A file path, or the name of a bundled lens (a folder of that name, e.g. a run folder, is not a lens file)."""
     p = Path(name_or_path)
-    if p.exists():
+    if p.is_file():
         return p
     if p.suffix == "" and (BUNDLED / f"{p.name}.json").exists():
         return BUNDLED / f"{p.name}.json"

@@ -43,6 +43,8 @@ class LensConfig:
         focus_depth: refocus the sensor for an object at this distance (mm) before training (EDoF: 300 mm);
             None keeps the file's sensor position.
         sensor_pitch: PSF / image pixel pitch (mm); None: the lens's sensor pixel.
+        sensor_size: sensor (w, h) mm, replacing the lens file's; None: the file's, or for a file without a sensor
+            the square inscribed in the lens's image circle (:func:`raywave.lens.analysis.default_sensor_size`).
         stop_edge: where the ray-wave engine forms the stop's sharp edge: None (default) / "exit_pupil" (the
             stop's image, where it is physically sharp) or "doe" (the paper's model); see
             :class:`raywave.hybrid.HybridLens`.
@@ -57,6 +59,7 @@ class LensConfig:
     train_lens: bool = False
     focus_depth: Optional[float] = None
     sensor_pitch: Optional[float] = None
+    sensor_size: Optional[list[float]] = None
     stop_edge: Optional[str] = None
     edge_step: Optional[str] = None
 
@@ -273,6 +276,7 @@ RULES: dict[str, Rule] = {
     "LensConfig.doe_distance": _NONNEG,
     "LensConfig.focus_depth": Rule(lo=0, lo_open=True, inf=True),
     "LensConfig.sensor_pitch": _POS,
+    "LensConfig.sensor_size": Rule(lo=0, lo_open=True, length=2),
     "OpticsConfig.grid": Rule(lo=1, length=2),
     "OpticsConfig.eval_grid": Rule(lo=1, length=2),
     "OpticsConfig.depths": Rule(lo=0, lo_open=True, inf=True, nonempty=True),

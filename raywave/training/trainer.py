@@ -66,18 +66,40 @@ def build_hybrid(lc):
     path = resolve_lens_path(lc.file)
     hl = load_hybrid(path, doe_pitch=lc.doe_pitch, doe_size=lc.doe_size, doe_distance=lc.doe_distance,
                      sensor_pitch=lc.sensor_pitch, stop_edge=lc.stop_edge, edge_step=lc.edge_step)
+    if lc.sensor_size is not None:
+        hl.lens.set_sensor(lc.sensor_size)
     if lc.focus_depth is not None:
         from raywave.lens.analysis import refocus
 
         refocus(hl.lens, float(lc.focus_depth))
     if lc.doe == "pixel":
         doe = hl.doe
+        _check_pixel_doe_memory(doe.shape, doe.pitch, lc.file)
         new = PixelDOE(torch.zeros(doe.shape, dtype=torch.float64), doe.pitch, aperture=doe.aperture)
         hl = hl.with_doe(new)
     elif lc.doe != "file":
         raise ValueError(f"lens.doe must be 'pixel' or 'file', got {lc.doe!r}")
     hl.lens.requires_grad_(bool(lc.train_lens))
     return hl
+
+
+# bytes per DOE pixel while a pixel DOE trains: its float64 phase, gradient and Adam's two moments (32 B) and the
+# replay backward's transient gradient of the phase window (~16 B: measured 4.7 GB for the Cooke triplet's 18063²)
+PIXEL_DOE_TRAIN_BYTES = 48
+
+
+def _check_pixel_doe_memory(shape, pitch: float, file) -> None:
+    """Refuse, before anything is allocated, a pixel DOE whose training would not fit in memory (a lens file
+    without a DOE gets one covering every field's beam at the Nyquist pitch, which for a large lens is 10⁸–10⁹
+    pixels); the message names the lens and the settings that shrink it."""
+    from raywave.utils.errors import check_allocation
+
+    ny, nx = (int(v) for v in shape)
+    check_allocation(float(ny) * float(nx) * PIXEL_DOE_TRAIN_BYTES,
+                     f"training the {ny}×{nx} pixel DOE of {file} ({pitch * 1e3:g} µm pixels, "
+                     f"{nx * pitch:g}×{ny * pitch:g} mm; phase, gradient and Adam's moments)",
+                     "set lens.doe_size (a smaller DOE), lens.doe_pitch (coarser pixels, above the Nyquist pitch the "
+                     "wavefront needs) or lens.doe_distance (a plane where the beams are smaller)", fraction=0.5)
 
 
 def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
