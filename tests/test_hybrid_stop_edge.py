@@ -96,6 +96,34 @@ def test_clipping_of_many_sources_warns_once_with_the_range_and_the_worst(lens):
                               f"{lo:.1f}–{hi:.1f} % of their beams' power (most at field [0.0, 17.5] at 0.53 µm)")
     assert "the widest beam needs a DOE of at least" in msgs[0]
 
+
+def test_a_map_of_many_calls_warns_once_at_its_caller(lens):
+    """psf_map calls the lens once per chunk of fields: their DOEApertureWarnings become one for the map (the
+    sources of every call, the worst among them), issued at the line that called psf_map; other warnings pass."""
+    import pickle
+
+    from raywave.imaging import psf_map
+
+    hl = HybridLens(lens, BlankDOE(3000, 1e-3), 0.7, sensor_pitch=PS)
+    fields = torch.tensor([[[0.0, 0.0], [0.0, 14.0], [0.0, 17.5], [0.0, 16.0]]], dtype=torch.float64)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        pm = psf_map(hl, (1, 4), wavelengths=WL, ks=8, batch=1, fields=fields, rays=24); line = _line()  # noqa: E702
+    ap = [w for w in caught if issubclass(w.category, DOEApertureWarning)]
+    assert len(ap) == 1, [str(w.message) for w in ap]
+    assert ap[0].filename == __file__ and ap[0].lineno == line
+    assert str(ap[0].message).startswith("3 sources (field × wavelength × depth) of this map: the 3×3 mm DOE "
+                                         "aperture blocks ") and "(most at field [0.0, 17.5] at 0.53 µm)" in str(ap[0].message)
+    assert pm.psf.shape[2:4] == (1, 4)
+    w = pickle.loads(pickle.dumps(ap[0].message))  # multi-process training sends warnings between processes
+    assert str(w) == str(ap[0].message) and len(w.entries) == 3
+
+
+def _line():
+    import inspect
+
+    return inspect.currentframe().f_back.f_lineno
+
 def test_faithful_mode_measures_the_clipping_from_its_own_rays(lens):
     hl = HybridLens(lens, BlankDOE(3000, 1e-3), 0.7, sensor_pitch=PS)
     with pytest.warns(DOEApertureWarning):

@@ -139,3 +139,13 @@ def test_warnings_surface_once_per_run(tiny_lens, tmp_path):
                 warnings.warn(f"phase slope {v} × Nyquist", UserWarning)
     lines = (tmp_path / "w" / "warnings.jsonl").read_text().splitlines()
     assert len(lines) == 1  # the same warning with other numbers is the same warning
+    shown = warnings.formatwarning(*_last_warning(tr, "phase slope 2.5 × Nyquist"))
+    assert shown.count("phase slope") == 1  # the console shows it once (not again as the JSON record's "source line")
+
+
+def _last_warning(tr, message):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        tr._warn_once(message, RuntimeWarning)
+    (w,) = caught
+    return w.message, w.category, w.filename, w.lineno

@@ -114,7 +114,40 @@ class SensorCropWarning(UserWarning):
 
 class DOEApertureWarning(UserWarning):
     """The DOE aperture blocks part of the beam (more than 1 % of its power); ``energy_outside`` does not show
-    it, since it is measured against the power that reaches the DOE."""
+    it, since it is measured against the power that reaches the DOE.
+
+    Built from the DOE's ``size`` (w, h) mm and ``entries``, one ``(blocked fraction, beam half-width mm, where)``
+    per clipped source of one ``scope`` ("call", "map"); both are kept as attributes, so that the warnings of
+    several calls can be merged into one (:meth:`merged`)."""
+
+    def __init__(self, size, entries, scope: str = "call"):
+        self.size, self.entries, self.scope = tuple(size), list(entries), scope
+        super().__init__(self._text())
+
+    def _text(self) -> str:
+        w, h = self.size
+        blocked, half, where = max(self.entries, key=lambda e: e[0])
+        need = 2.0 * max(e[1] for e in self.entries)
+        if len(self.entries) == 1:
+            what = f"{where}: the {w:g}×{h:g} mm DOE aperture blocks {100 * blocked:.1f} % of the beam's power"
+            beams = "the beam needs"
+        else:
+            low = 100 * min(e[0] for e in self.entries)
+            kind = "field × wavelength × depth" if self.scope == "map" else "field × wavelength"
+            what = (f"{len(self.entries)} sources ({kind}) of this {self.scope}: the {w:g}×{h:g} mm DOE "
+                    f"aperture blocks {low:.1f}–{100 * blocked:.1f} % of their beams' power (most at {where})")
+            beams = "the widest beam needs"
+        return (f"{what} (not counted in energy_outside); {beams} a DOE of at least {need:.3g} mm square "
+                f"({BEAM_MARGIN * need:.3g} mm with the usual {BEAM_MARGIN:g}× margin, see "
+                "raywave.assembly.build.default_doe_size)")
+
+    @classmethod
+    def merged(cls, warnings_: list, scope: str) -> "DOEApertureWarning":
+        """One warning for the sources of several (of one DOE size)."""
+        return cls(warnings_[0].size, [e for w in warnings_ for e in w.entries], scope)
+
+    def __reduce__(self):  # picklable (multi-process training) with its attributes
+        return (type(self), (self.size, self.entries, self.scope))
 
 
 @dataclass
@@ -434,26 +467,15 @@ class HybridLens(nn.Module):
     def _warn_clipped(self, clipped: list) -> None:
         """One :class:`DOEApertureWarning` (pointing at the caller of :meth:`doe_fields`, through
         :meth:`_finish_fields`) for the ``clipped`` sources, a list of ``(DOEField, field (2,))`` whose power the DOE
-        aperture blocks by more than :data:`CLIP_WARN`: a map's many sources give one line, not one each."""
+        aperture blocks by more than :data:`CLIP_WARN`: a call's many sources give one line, not one each (and
+        :func:`raywave.imaging.psf_map` merges its calls' into one for the map)."""
         if not clipped:
             return
-        w, h = self.doe.size
-        need = 2.0 * max(fd.beam_half for fd, _ in clipped)
-        fd, field = max(clipped, key=lambda c: c[0].clipped)
-        where = f"field {[float(v) for v in field]} at {fd.wavelength:g} µm"
-        if len(clipped) == 1:
-            what = f"{where}: the {w:g}×{h:g} mm DOE aperture blocks {100 * fd.clipped:.1f} % of the beam's power"
-            beams = "the beam needs"
-        else:
-            low = 100 * min(c[0].clipped for c in clipped)
-            what = (f"{len(clipped)} sources (field × wavelength) of this call: the {w:g}×{h:g} mm DOE aperture blocks "
-                    f"{low:.1f}–{100 * fd.clipped:.1f} % of their beams' power (most at {where})")
-            beams = "the widest beam needs"
-        warnings.warn(f"{what} (not counted in energy_outside); {beams} a DOE of at least {need:.3g} mm square "
-                      f"({BEAM_MARGIN * need:.3g} mm with the usual {BEAM_MARGIN:g}× margin, see "
-                      "raywave.assembly.build.default_doe_size)", DOEApertureWarning, stacklevel=4)
+        entries = [(float(fd.clipped), float(fd.beam_half), f"field {[float(v) for v in field]} at {fd.wavelength:g} µm")
+                   for fd, field in clipped]
+        warnings.warn(DOEApertureWarning(tuple(self.doe.size), entries, "call"), stacklevel=4)
 
-    # ------------------------------------------------------------------ steps 3-4: DOE, propagation, sensor
+    # ------------------------------------------------------------------ steps 3-4    # ------------------------------------------------------------------ steps 3-4: DOE, propagation, sensor
     def propagate(self, fd: DOEField, ks: int, propagation_dtype=torch.complex128):
         """PSF ``(ks, ks)``, centre (2,) and energy outside the crop for one :class:`DOEField`.
 

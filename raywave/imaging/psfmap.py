@@ -40,6 +40,7 @@ autograd (the replay of the memory-saving training loop).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 from collections import OrderedDict
@@ -538,6 +539,28 @@ def _progress_disable(progress: bool | None, n_psfs: int):
     return not progress
 
 
+@contextlib.contextmanager
+def _one_aperture_warning():
+    """Merge the :class:`~raywave.hybrid.DOEApertureWarning` of each model call inside (one per chunk and depth)
+    into one for the whole map, issued at the caller of :func:`psf_map`; every other warning passes through
+    unchanged (its category, message and location)."""
+    from raywave.hybrid.hybrid_lens import DOEApertureWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    aperture = [w.message for w in caught if isinstance(w.message, DOEApertureWarning)]
+    seen = set()
+    for w in caught:
+        key = (w.category, str(w.message), w.filename, w.lineno)
+        if not isinstance(w.message, DOEApertureWarning) and key not in seen:  # as "default": once per place
+            seen.add(key)
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+    if aperture:
+        warnings.warn(DOEApertureWarning.merged(aperture, "map") if len(aperture) > 1 else aperture[0],
+                      stacklevel=4)  # _one_aperture_warning → contextlib → psf_map → its caller
+
+
 def _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw):
     """Per depth of ``ds`` (mm), the chunks' PSFs ``(F, W, ks, ks)``, centres ``(F, W, 2)`` mm (float64) and
     energies outside ``(F, W)``, each concatenated over the ``flat`` ``(F, 2)`` field points (deg); and the PSF
@@ -594,7 +617,7 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
     bar = tqdm(total=len(ds) * len(chunks), desc=f"PSF map {n}×{m}×{len(wls)}λ×{len(ds)} depth", disable=disable,
                leave=False)
     ctx = torch.enable_grad() if grad else torch.no_grad()
-    with ctx:
+    with ctx, _one_aperture_warning():
         psfs, cens, outs, pitch = _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw)
     bar.close()
     # (D, F, W, ...) -> (D, W, N, M, ...)

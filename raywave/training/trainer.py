@@ -390,7 +390,9 @@ class Trainer(FabricationSchedule, StageSteps):
         path = self.run_dir / "warnings.jsonl"
         with open(path, "a") as fh:
             fh.write(json.dumps({"warning": key[0], "message": message}) + "\n")
-        warnings.warn_explicit(message, category, str(path), len(self._seen_warnings))
+        # attributed to the run's warnings.jsonl; line 0 because Python prints the source line of the location it
+        # is given, which here would be the JSON record of the same warning (each warning showed twice)
+        warnings.warn_explicit(message, category, str(path), 0)
 
 
     # ------------------------------------------------------------------ the loop
