@@ -117,6 +117,9 @@ def test_a_map_of_many_calls_warns_once_at_its_caller(lens):
     assert pm.psf.shape[2:4] == (1, 4)
     w = pickle.loads(pickle.dumps(ap[0].message))  # multi-process training sends warnings between processes
     assert str(w) == str(ap[0].message) and len(w.entries) == 3
+    with pytest.warns(DOEApertureWarning, match="^plain text$") as rec:  # as warnings.warn and the trainer build it
+        warnings.warn("plain text", DOEApertureWarning)
+    assert rec[0].message.entries is None and str(pickle.loads(pickle.dumps(rec[0].message))) == "plain text"
 
 
 def _line():

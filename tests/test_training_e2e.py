@@ -141,6 +141,11 @@ def test_warnings_surface_once_per_run(tiny_lens, tmp_path):
     assert len(lines) == 1  # the same warning with other numbers is the same warning
     shown = warnings.formatwarning(*_last_warning(tr, "phase slope 2.5 × Nyquist"))
     assert shown.count("phase slope") == 1  # the console shows it once (not again as the JSON record's "source line")
+    from raywave.hybrid import DOEApertureWarning
+
+    with pytest.warns(DOEApertureWarning, match="blocks 40"):  # a warning class with attributes re-issues too
+        with tr.surface_warnings():
+            warnings.warn(DOEApertureWarning("", [(0.4, 1.0, "field [0, 9] at 0.5 µm")], (2.0, 2.0)))
 
 
 def _last_warning(tr, message):

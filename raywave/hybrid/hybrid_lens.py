@@ -116,13 +116,15 @@ class DOEApertureWarning(UserWarning):
     """The DOE aperture blocks part of the beam (more than 1 % of its power); ``energy_outside`` does not show
     it, since it is measured against the power that reaches the DOE.
 
-    Built from the DOE's ``size`` (w, h) mm and ``entries``, one ``(blocked fraction, beam half-width mm, where)``
-    per clipped source of one ``scope`` ("call", "map"); both are kept as attributes, so that the warnings of
-    several calls can be merged into one (:meth:`merged`)."""
+    Either a plain message (``DOEApertureWarning("text")``, as ``warnings`` builds it), or built from ``entries``,
+    one ``(blocked fraction, beam half-width mm, where)`` per clipped source of one ``scope`` ("call", "map"),
+    and the DOE's ``size`` (w, h) mm; these are kept as attributes, so that the warnings of several calls can be
+    merged into one (:meth:`merged`)."""
 
-    def __init__(self, size, entries, scope: str = "call"):
-        self.size, self.entries, self.scope = tuple(size), list(entries), scope
-        super().__init__(self._text())
+    def __init__(self, message: str = "", entries=None, size=None, scope: str = "call"):
+        self.entries = None if entries is None else list(entries)
+        self.size, self.scope = (None if size is None else tuple(size)), scope
+        super().__init__(message if self.entries is None else self._text())
 
     def _text(self) -> str:
         w, h = self.size
@@ -143,11 +145,11 @@ class DOEApertureWarning(UserWarning):
 
     @classmethod
     def merged(cls, warnings_: list, scope: str) -> "DOEApertureWarning":
-        """One warning for the sources of several (of one DOE size)."""
-        return cls(warnings_[0].size, [e for w in warnings_ for e in w.entries], scope)
+        """One warning for the sources of several built from entries (of one DOE size)."""
+        return cls("", [e for w in warnings_ for e in w.entries], warnings_[0].size, scope)
 
     def __reduce__(self):  # picklable (multi-process training) with its attributes
-        return (type(self), (self.size, self.entries, self.scope))
+        return (type(self), (str(self), self.entries, self.size, self.scope))
 
 
 @dataclass
@@ -473,7 +475,7 @@ class HybridLens(nn.Module):
             return
         entries = [(float(fd.clipped), float(fd.beam_half), f"field {[float(v) for v in field]} at {fd.wavelength:g} µm")
                    for fd, field in clipped]
-        warnings.warn(DOEApertureWarning(tuple(self.doe.size), entries, "call"), stacklevel=4)
+        warnings.warn(DOEApertureWarning("", entries, self.doe.size, "call"), stacklevel=4)
 
     # ------------------------------------------------------------------ steps 3-4    # ------------------------------------------------------------------ steps 3-4: DOE, propagation, sensor
     def propagate(self, fd: DOEField, ks: int, propagation_dtype=torch.complex128):

@@ -549,11 +549,12 @@ def _one_aperture_warning():
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         yield
-    aperture = [w.message for w in caught if isinstance(w.message, DOEApertureWarning)]
+    aperture = [w.message for w in caught if isinstance(w.message, DOEApertureWarning) and w.message.entries]
     seen = set()
     for w in caught:
         key = (w.category, str(w.message), w.filename, w.lineno)
-        if not isinstance(w.message, DOEApertureWarning) and key not in seen:  # as "default": once per place
+        mergeable = isinstance(w.message, DOEApertureWarning) and w.message.entries
+        if not mergeable and key not in seen:  # as "default": once per place
             seen.add(key)
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
     if aperture:
