@@ -542,24 +542,19 @@ def _progress_disable(progress: bool | None, n_psfs: int):
 @contextlib.contextmanager
 def _one_aperture_warning():
     """Merge the :class:`~raywave.hybrid.DOEApertureWarning` of each model call inside (one per chunk and depth)
-    into one for the whole map, issued at the caller of :func:`psf_map`; every other warning passes through
-    unchanged (its category, message and location)."""
+    into one for the whole map, issued at the caller of :func:`psf_map`. Every other warning meets the caller's
+    filters as it happens (an "error" filter still stops the map at once) and is shown as usual."""
     from raywave.hybrid.hybrid_lens import DOEApertureWarning
 
     with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+        warnings.simplefilter("always", DOEApertureWarning)  # collected here, filtered once merged
         yield
     aperture = [w.message for w in caught if isinstance(w.message, DOEApertureWarning) and w.message.entries]
-    seen = set()
-    for w in caught:
-        key = (w.category, str(w.message), w.filename, w.lineno)
-        mergeable = isinstance(w.message, DOEApertureWarning) and w.message.entries
-        if not mergeable and key not in seen:  # as "default": once per place
-            seen.add(key)
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+    for w in caught:  # the others passed the caller's filters already: show them as they were
+        if not (isinstance(w.message, DOEApertureWarning) and w.message.entries):
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno, w.file, w.line)
     if aperture:
-        warnings.warn(DOEApertureWarning.merged(aperture, "map") if len(aperture) > 1 else aperture[0],
-                      stacklevel=4)  # _one_aperture_warning → contextlib → psf_map → its caller
+        warnings.warn(DOEApertureWarning.merged(aperture, "map"), stacklevel=4)  # _one_aperture_warning → contextlib → psf_map → its caller
 
 
 def _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw):
