@@ -5,7 +5,12 @@ channel centres, ks = 64, accurate mode, no autograd) and reports wall and CPU s
 threads) per PSF. The trees alternate A, B, A, B, … so that a machine shared with other work loads both alike;
 the medians are reported. Prints one JSON object (and writes it with ``-o``).
 
-    python benchmarks/psf_ab.py --a /path/to/old/tree --b . [--grid 5] [--repeat 3] [--threads 1] [-o out.json]
+    python benchmarks/psf_ab.py --a /path/to/old/tree --b . [--grid 5] [--repeat 3] [--threads 1]
+        [--stop-edge doe|exit_pupil] [-o out.json]
+
+Issue 17's bar (the 10×10×3 map ≥ 3× faster per PSF than at 17ade15, where it was filed; the DOE-plane edge,
+that tree's default): ``git worktree add /tmp/old 17ade15`` then
+``python benchmarks/psf_ab.py --a /tmp/old --grid 10 --repeat 2 --threads 2 --stop-edge doe``.
 """
 
 from __future__ import annotations
@@ -23,12 +28,16 @@ _CHILD = r"""
 import json, sys, time, warnings
 import torch
 torch.set_num_threads(int(sys.argv[2]))
-from raywave.assembly.build import load_hybrid
+try:
+    from raywave.assembly.build import load_hybrid
+except ImportError:  # trees from before the assembly layer (e.g. 17ade15, where issue 17 was filed)
+    from raywave.hybrid.build import load_hybrid
 from raywave.lens.build import bundled_lens_path
 from raywave.imaging import psf_map
 n = int(sys.argv[1])
 wls = (0.66, 0.53, 0.47)
-hl = load_hybrid(bundled_lens_path("hybrid_asphere"))
+edge = sys.argv[4]
+hl = load_hybrid(bundled_lens_path("hybrid_asphere"), **({} if edge == "default" else {"stop_edge": edge}))
 warnings.simplefilter("ignore")
 psf_map(hl, (1, 1), wavelengths=wls[:1], ks=64)
 t0, c0 = time.perf_counter(), time.process_time()
@@ -41,10 +50,10 @@ print(json.dumps({"wall_per_psf": wall / k, "cpu_per_psf": cpu / k, "raywave": r
 """
 
 
-def _run(tree: str, n: int, threads: int, out: str) -> dict:
+def _run(tree: str, n: int, threads: int, out: str, edge: str = "default") -> dict:
     env = dict(os.environ, PYTHONPATH=os.path.abspath(tree), OMP_NUM_THREADS=str(threads))
     # run in the tree itself: ``python -c`` puts the working directory ahead of PYTHONPATH on sys.path
-    res = subprocess.run([sys.executable, "-c", _CHILD, str(n), str(threads), out], capture_output=True, text=True,
+    res = subprocess.run([sys.executable, "-c", _CHILD, str(n), str(threads), out, edge], capture_output=True, text=True,
                          env=env, cwd=os.path.abspath(tree))
     if res.returncode != 0:
         raise RuntimeError(res.stderr[-3000:])
@@ -58,6 +67,8 @@ def main() -> None:
     ap.add_argument("--grid", type=int, default=5)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--stop-edge", default="default",
+                    help="doe / exit_pupil for both trees (default: each tree's own default edge)")
     ap.add_argument("-o", "--output")
     args = ap.parse_args()
     import torch
@@ -65,12 +76,13 @@ def main() -> None:
     runs = {"a": [], "b": []}
     for r in range(args.repeat):
         for key in ("a", "b"):
-            runs[key].append(_run(getattr(args, key), args.grid, args.threads, f"/tmp/raywave_psf_ab_{key}.pt"))
+            runs[key].append(_run(getattr(args, key), args.grid, args.threads, f"/tmp/raywave_psf_ab_{key}.pt",
+                                  args.stop_edge))
             print(key, r, runs[key][-1], file=sys.stderr, flush=True)
     diff = float((torch.load("/tmp/raywave_psf_ab_a.pt") - torch.load("/tmp/raywave_psf_ab_b.pt")).abs().max())
     med = {k: {m: statistics.median(x[m] for x in v) for m in ("wall_per_psf", "cpu_per_psf")} for k, v in runs.items()}
     out = {"benchmark": "psf_ab", "lens": "hybrid_asphere", "grid": [args.grid, args.grid], "wavelengths": 3, "ks": 64,
-           "threads": args.threads, "a": os.path.abspath(args.a), "b": os.path.abspath(args.b), "runs": runs,
+           "threads": args.threads, "stop_edge": args.stop_edge, "a": os.path.abspath(args.a), "b": os.path.abspath(args.b), "runs": runs,
            "median": med, "speedup_wall": med["a"]["wall_per_psf"] / med["b"]["wall_per_psf"],
            "speedup_cpu": med["a"]["cpu_per_psf"] / med["b"]["cpu_per_psf"], "max_abs_psf_diff": diff}
     emit_json(out, args.output)
