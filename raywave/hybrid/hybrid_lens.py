@@ -473,11 +473,11 @@ class HybridLens(nn.Module):
         :func:`raywave.imaging.psf_map` merges its calls' into one for the map)."""
         if not clipped:
             return
-        entries = [(float(fd.clipped), float(fd.beam_half), f"field {[float(v) for v in field]} at {fd.wavelength:g} µm")
-                   for fd, field in clipped]
+        entries = [(float(fd.clipped), float(fd.beam_half),
+                    f"field {[float(v) for v in field]} at {fd.wavelength:g} µm") for fd, field in clipped]
         warnings.warn(DOEApertureWarning("", entries, self.doe.size, "call"), stacklevel=4)
 
-    # ------------------------------------------------------------------ steps 3-4    # ------------------------------------------------------------------ steps 3-4: DOE, propagation, sensor
+    # ------------------------------------------------------------------ steps 3-4: DOE, propagation, sensor
     def propagate(self, fd: DOEField, ks: int, propagation_dtype=torch.complex128):
         """PSF ``(ks, ks)``, centre (2,) and energy outside the crop for one :class:`DOEField`.
 

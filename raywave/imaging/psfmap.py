@@ -12,7 +12,8 @@ of :mod:`raywave.models`. Field points are angles in degrees, (θx, θy), OpticS
 
 ``positions[i, j] = (u_j, v_i)``; row i runs along sensor +y, column j along +x (the ``[iy, ix]`` order of PSFs).
 A normalised position (u, v) is the sensor point (x, y) = (u·w/2, v·h/2) mm of a w × h mm sensor
-(``lens.sensor_size`` unless ``sensor_size`` is given; a lens without a sensor: the square in its image circle). Its field angle is found through the lens:
+(``lens.sensor_size`` unless ``sensor_size`` is given; a lens without a sensor: the square in its image circle).
+Its field angle is found through the lens:
 
 * ``mapping="chief_ray"`` (default): the field whose **real chief ray** (through the refractive lens, aimed at
   the stop centre, at ``wavelength``, default the lens's primary, and at the first depth of the map) lands at
@@ -554,7 +555,8 @@ def _one_aperture_warning():
         if not (isinstance(w.message, DOEApertureWarning) and w.message.entries):
             warnings.showwarning(w.message, w.category, w.filename, w.lineno, w.file, w.line)
     if aperture:
-        warnings.warn(DOEApertureWarning.merged(aperture, "map"), stacklevel=4)  # _one_aperture_warning → contextlib → psf_map → its caller
+        # stacklevel: this generator → contextlib's __exit__ → psf_map → psf_map's caller
+        warnings.warn(DOEApertureWarning.merged(aperture, "map"), stacklevel=4)
 
 
 def _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw):
