@@ -42,3 +42,37 @@ def test_a_pixel_doe_too_large_to_train_is_refused_before_allocation(monkeypatch
     monkeypatch.setattr(errors, "available_memory", lambda: int(2.5 * need))
     hl = build_hybrid(lc)
     assert tuple(hl.doe.shape) == (3000, 3000) and math.isclose(hl.doe.pitch, 0.001)
+
+
+def test_training_patches_avoid_map_nodes_that_receive_no_light(tmp_path):
+    """A DOE smaller than the corner beams leaves those PSFs dark: a stage-2 patch there is a black image the
+    network would learn to invent, so patches are drawn around lit nodes only (with a warning); a fully lit map
+    draws exactly as before (the same random stream)."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from raywave.imaging import normalised_grid
+    from raywave.training.trainer import DarkRegionWarning, Trainer, _nearest_node
+
+    tr = Trainer.__new__(Trainer)  # only the patch placement: no lens, no data
+    tr.pitch, tr.sensor_size, tr.gen, tr.run_dir, tr._seen_warnings = 0.003, (5.76, 3.24), None, tmp_path, set()
+    pos = normalised_grid((3, 3))
+    psf = torch.rand(1, 3, 3, 3, 4, 4)
+    lit_map = SimpleNamespace(psf=psf, positions=pos)
+    tr.gen = torch.Generator().manual_seed(0)
+    a = [tr._random_extent((32, 32), lit_map) for _ in range(20)]
+    tr.gen = torch.Generator().manual_seed(0)
+    assert a == [tr._random_extent((32, 32)) for _ in range(20)]  # all lit: unchanged draws
+    dark = psf.clone()
+    dark[..., 0, :, :, :] = 0.0  # the bottom row of nodes (v = −2/3) is dark at one wavelength
+    dark[:, 1, 1, 2] = 0.0  # and the centre-right node
+    dark_map = SimpleNamespace(psf=dark, positions=pos)
+    tr.gen = torch.Generator().manual_seed(1)
+    with pytest.warns(DarkRegionWarning, match="4 of the 9 nodes"):
+        ext = [tr._random_extent((32, 32), dark_map) for _ in range(200)]
+    for u0, u1, v0, v1 in ext:
+        i, j = _nearest_node(pos, torch.tensor([(u0 + u1) / 2, (v0 + v1) / 2], dtype=torch.float64))
+        assert i != 0 and (i, j) != (1, 2)
+    with pytest.raises(ValueError, match="no node of the PSF map receives light"):
+        tr._random_extent((32, 32), SimpleNamespace(psf=torch.zeros_like(psf), positions=pos))

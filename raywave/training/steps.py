@@ -112,7 +112,7 @@ class StageSteps:
             self.stage2_map = self.evaluation_map()
         pm, sensor = self.stage2_map, self._sensor() if sc.noise else None
         img = self._batch("stage2", step_idx)
-        extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
+        extents = [self._random_extent(img.shape[-2:], pm) for _ in range(img.shape[0])]
         loss = self._recon_loss_map(img, pm, extents, sc, sensor)
         loss.backward()
         self._optimizer_step(opt, sched)

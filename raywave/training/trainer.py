@@ -102,6 +102,35 @@ def _check_pixel_doe_memory(shape, pitch: float, file) -> None:
                      "wavefront needs) or lens.doe_distance (a plane where the beams are smaller)", fraction=0.5)
 
 
+#: redraws of a patch's place before a dark-node map gives up (then the last draw stands)
+_LIT_DRAWS = 64
+
+
+class DarkRegionWarning(UserWarning):
+    """Some nodes of a training PSF map receive no light: training patches avoid them."""
+
+
+def _lit_nodes(pm):
+    """(N, M) bool of the map's nodes whose PSFs carry light at every depth and wavelength, or None when all do
+    (or no map is given). A map with no lit node at all is an error."""
+    if pm is None:
+        return None
+    lit = (pm.psf.detach().sum(dim=(-1, -2)) > 0).flatten(0, -3).all(0)  # (N, M)
+    if bool(lit.all()):
+        return None
+    if not bool(lit.any()):
+        raise ValueError("no node of the PSF map receives light (the DOE aperture or vignetting blocks every beam): "
+                         "check lens.doe_size, lens.doe_distance and the lens file's apertures")
+    return lit.cpu()
+
+
+def _nearest_node(positions: torch.Tensor, uv: torch.Tensor) -> tuple[int, int]:
+    """(i, j) of the node of ``positions`` (N, M, 2) (normalised sensor coordinates) nearest to ``uv`` (2,)."""
+    d = (positions.detach().cpu().to(torch.float64) - uv).square().sum(-1)
+    k = int(torch.argmin(d))
+    return k // d.shape[1], k % d.shape[1]
+
+
 def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
     g = torch.Generator()
     g.manual_seed((int(seed) * 7919 + int(epoch) * 104729 + 17) % (2 ** 62))
@@ -281,8 +310,21 @@ class Trainer(FabricationSchedule, StageSteps):
         v = min(max(centre_uv[1], -1 + dv / 2), 1 - dv / 2)
         return (u - du / 2, u + du / 2, v - dv / 2, v + dv / 2)
 
-    def _random_extent(self, size_px) -> tuple:
-        uv = torch.rand(2, generator=self.gen, dtype=torch.float64) * 2 - 1
+    def _random_extent(self, size_px, pm=None) -> tuple:
+        """A patch at a uniformly random place on the sensor (the run's generator). With the map ``pm`` whose
+        PSFs are dark at some nodes (the DOE aperture or vignetting blocks all their light), the place is drawn
+        again until its nearest node is lit: a patch of a black image teaches the network to invent it."""
+        lit = _lit_nodes(pm)
+        for _ in range(_LIT_DRAWS):
+            uv = torch.rand(2, generator=self.gen, dtype=torch.float64) * 2 - 1
+            if lit is None or bool(lit[_nearest_node(pm.positions, uv)]):
+                break
+        if lit is not None:
+            n, k = int(lit.numel()), int((~lit).sum())
+            self._warn_once(f"{k} of the {n} nodes of the {tuple(lit.shape)} PSF map receive no light (the DOE "
+                            "aperture or vignetting blocks it): training patches are placed around the lit nodes "
+                            "only; a DOE that covers every field's beam (lens.doe_size) avoids the dark regions",
+                            DarkRegionWarning)
         return self._extent(size_px, (float(uv[0]), float(uv[1])))
 
     # ------------------------------------------------------------------ optics
