@@ -632,3 +632,20 @@ def test_every_numeric_training_setting_has_a_rule():
                 if f"{cls.__name__}.{f.name}" not in c.RULES:
                     missing.append(f"{cls.__name__}.{f.name}")
     assert not missing, missing
+
+
+def test_a_stop_far_larger_than_the_beam_is_refused_not_traced_until_memory_runs_out(tmp_path):
+    """Found by the slow fuzzing (seed 111): the bundled hybrid with its stop's radius set to 1e12 mm loaded, and its
+    PSF then built a 3025×3025 node grid (the exit-pupil edge's ripple band around a degenerate footprint) and
+    took 18 GB before dying. The node grid is now capped (MAX_NODE_RAYS) with an error naming the margin."""
+    from raywave.hybrid.build import load_hybrid
+
+    spec = json.loads((BUNDLED / "hybrid_asphere.json").read_text())
+    spec["surfaces"][0]["aperture"]["radius"] = 1e12
+    path = tmp_path / "huge_stop.json"
+    path.write_text(json.dumps(spec))
+    hl = load_hybrid(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(ValueError, match=r"node grid would be \d+×\d+ rays .*stop_edge='doe'"):
+            hl.psf((0.0, 0.0), ks=8, rays=8)

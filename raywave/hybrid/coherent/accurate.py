@@ -171,6 +171,24 @@ def _window_field(env: torch.Tensor, box, sim: Grid, p: float, wavelength: float
                     FieldInfo(rays, "accurate"))
 
 
+#: the most rays a node grid may hold (2048² nodes; the default 64 nodes per side give ~150² with the exit-pupil
+#: edge's ripple band): beyond, its margin has grown without bound
+MAX_NODE_RAYS = 2048 * 2048
+
+
+def _check_node_count(kx: int, ky: int, nodes: int, extent: float, margin: float, stop_plane) -> None:
+    """Refuse a node grid of more than :data:`MAX_NODE_RAYS` (a clear error instead of tracing 10⁷ rays until
+    memory runs out): its margin (mm) around the beam's ``extent`` (mm) is what grew."""
+    if kx * ky <= MAX_NODE_RAYS:
+        return
+    why = (" The margin is the stop edge's Fresnel ripple band (the stop's rim imaged far from the DOE plane: a stop "
+           "that does not limit this beam, or an unphysical stop size); stop_edge='doe' forms the edge on the DOE "
+           "plane instead." if stop_plane is not None else "")
+    raise ValueError(f"the accurate field's node grid would be {kx}×{ky} rays (at most {MAX_NODE_RAYS}) for {nodes} "
+                     f"requested per side: a {margin:.3g} mm margin around a {extent:.3g} mm beam on the DOE "
+                     f"plane.{why}")
+
+
 def _node_layout(bbox, chief_doe, p: float, nodes: int, dev, z_doe: float, z_sensor: float, wavelength: float,
                  n: float, carrier, stop_plane, stop_rim, ripple_zones) -> _Nodes:
     """The node grid: spacing h, symmetric about the chief ray's landing point (so a symmetric lens gives an
@@ -192,6 +210,7 @@ def _node_layout(bbox, chief_doe, p: float, nodes: int, dev, z_doe: float, z_sen
     half_y = max(ycd - bbox[2], bbox[3] - ycd) + margin
     kx = 2 * math.ceil(half_x / h_node) + 1
     ky = 2 * math.ceil(half_y / h_node) + 1
+    _check_node_count(kx, ky, nodes, extent, margin, stop_plane)
     gx = xcd + (torch.arange(kx, dtype=torch.float64, device=dev) - (kx - 1) / 2) * h_node
     gy = ycd + (torch.arange(ky, dtype=torch.float64, device=dev) - (ky - 1) / 2) * h_node
     return _Nodes(gx, gy, h_node)
