@@ -2,6 +2,7 @@
 PSF calls, the frozen-lens DOE-field cache (values and gradients), colour sampling and averaging."""
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -94,6 +95,24 @@ def test_a_lens_without_a_sensor_gets_the_square_in_its_image_circle():
     assert singlet.sensor_size is None
     ws, hs = sensor_size_of(singlet)
     assert ws == hs and 0.97 < ws / (math.sqrt(2.0) * 100.0 * math.tan(math.radians(5.0))) < 1.03
+
+
+def test_the_image_circle_is_that_of_the_largest_listed_field_that_images():
+    """A .zmx file as people have them: no sensor, and fields 0 / 20 / 40 that `raywave psfmap` reads as angles
+    (deg), of which 40° does not reach the sensor: the image circle is the 20° chief ray's height."""
+    from pathlib import Path
+
+    from raywave.lens.analysis import image_circle_radius
+    from raywave.lens.sources import chief_ray
+
+    hl = load_hybrid(Path(__file__).parent / "data" / "zmx" / "cooke_pwfn.zmx", field_type="angle")
+    lens = hl.lens
+    assert lens.sensor_size is None and lens.field_type == "angle" and max(lens.fields) == 40.0
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = lens.trace_to_image(chief_ray(lens, torch.tensor([[0.0, 40.0], [0.0, 20.0]], dtype=torch.float64)))
+        assert not bool(out.valid[0, 0, 0]) and bool(out.valid[1, 0, 0])
+        assert image_circle_radius(lens) == pytest.approx(abs(float(out.o[1, 0, 0, 1])), rel=1e-12)
 
 
 def test_field_grid_without_a_sensor_or_an_off_axis_field_names_the_problem():

@@ -92,22 +92,23 @@ def beam_half_extent(lens, z: float, fields=None, wavelengths=None, depth=None) 
 # ---------------------------------------------------------------------------- focus
 def image_circle_radius(lens, depth=None, wavelength: float | None = None) -> float:
     """Radius (mm) of the lens's image circle: the real chief ray's height on the sensor plane for the largest of
-    ``lens.fields`` (in the lens's field type), at ``wavelength`` (µm; default the primary), object at ``depth``
-    (mm; default the lens's own). A ValueError names the problem when the lens lists no off-axis field or that
-    field's chief ray does not reach the sensor."""
-    fmax = max((abs(f) for f in lens.fields), default=0.0)
-    if not fmax > 0:
+    ``lens.fields`` (in the lens's field type) whose chief ray reaches the sensor, at ``wavelength`` (µm; default
+    the primary), object at ``depth`` (mm; default the lens's own). A ValueError names the problem when the lens
+    lists no off-axis field or no off-axis field's chief ray reaches the sensor."""
+    listed = sorted({abs(float(f)) for f in lens.fields if abs(float(f)) > 0}, reverse=True)
+    if not listed:
         raise ValueError("the lens lists no off-axis field (its 'fields'), so its image circle is unknown")
     wl = float(lens.primary_wavelength if wavelength is None else wavelength)
+    f = torch.stack([torch.zeros(len(listed), dtype=torch.float64), torch.tensor(listed, dtype=torch.float64)], -1)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)
-        rays = chief_ray(lens, torch.tensor([[0.0, fmax]], dtype=torch.float64), [wl], depth=depth)
-        out = lens.trace_to_image(rays)
-    h = abs(float(out.o[0, 0, 0, 1]))
-    if not (bool(out.valid[0, 0, 0]) and math.isfinite(h) and h > 0):
-        raise ValueError(f"the chief ray of the lens's largest field ({fmax:g} {_field_unit(lens)}, {wl:g} µm) "
-                         "does not reach the sensor, so its image circle is unknown")
-    return h
+        out = lens.trace_to_image(chief_ray(lens, f, [wl], depth=depth))
+    h = out.o[:, 0, 0, 1].abs()
+    for i in range(len(listed)):  # the largest listed field that images
+        if bool(out.valid[i, 0, 0]) and math.isfinite(float(h[i])) and float(h[i]) > 0:
+            return float(h[i])
+    raise ValueError(f"no chief ray of the lens's off-axis fields ({', '.join(f'{v:g}' for v in listed)} "
+                     f"{_field_unit(lens)}, {wl:g} µm) reaches the sensor, so its image circle is unknown")
 
 
 def default_sensor_size(lens, depth=None) -> tuple[float, float]:
