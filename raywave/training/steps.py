@@ -13,6 +13,35 @@ from raywave.training.replay import OpticsStep
 __all__ = ["StageSteps"]
 
 
+#: redraws of a patch's place before a dark-node map gives up (then the last draw stands)
+_LIT_DRAWS = 64
+
+
+class DarkRegionWarning(UserWarning):
+    """Some nodes of a training PSF map receive no light: training patches avoid them."""
+
+
+def _lit_nodes(pm):
+    """(N, M) bool of the map's nodes whose PSFs carry light at every depth and wavelength, or None when all do
+    (or no map is given). A map with no lit node at all is an error."""
+    if pm is None:
+        return None
+    lit = (pm.psf.detach().sum(dim=(-1, -2)) > 0).flatten(0, -3).all(0)  # (N, M)
+    if bool(lit.all()):
+        return None
+    if not bool(lit.any()):
+        raise ValueError("no node of the PSF map receives light (the DOE aperture or vignetting blocks every beam): "
+                         "check lens.doe_size, lens.doe_distance and the lens file's apertures")
+    return lit.cpu()
+
+
+def _nearest_node(positions: torch.Tensor, uv: torch.Tensor) -> tuple[int, int]:
+    """(i, j) of the node of ``positions`` (N, M, 2) (normalised sensor coordinates) nearest to ``uv`` (2,)."""
+    d = (positions.detach().cpu().to(torch.float64) - uv).square().sum(-1)
+    k = int(torch.argmin(d))
+    return k // d.shape[1], k % d.shape[1]
+
+
 class StageSteps:
     """The per-stage iterations and the multi-process hooks (mixin of :class:`~raywave.training.trainer.Trainer`)."""
 
@@ -112,7 +141,8 @@ class StageSteps:
             self.stage2_map = self.evaluation_map()
         pm, sensor = self.stage2_map, self._sensor() if sc.noise else None
         img = self._batch("stage2", step_idx)
-        extents = [self._random_extent(img.shape[-2:], pm) for _ in range(img.shape[0])]
+        lit = _lit_nodes(pm)  # once per step: the map's lit nodes
+        extents = [self._random_extent(img.shape[-2:], pm, lit) for _ in range(img.shape[0])]
         loss = self._recon_loss_map(img, pm, extents, sc, sensor)
         loss.backward()
         self._optimizer_step(opt, sched)

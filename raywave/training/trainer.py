@@ -44,7 +44,7 @@ from raywave.training.losses import image_loss
 from raywave.training.networks import PSFAwareNet, build_network
 from raywave.training.replay import OpticsStep, chunk_ranges
 from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
-from raywave.training.steps import StageSteps
+from raywave.training.steps import _LIT_DRAWS, DarkRegionWarning, StageSteps, _lit_nodes, _nearest_node
 
 __all__ = ["Trainer", "build_hybrid", "STAGES", "CropWarning"]
 
@@ -102,33 +102,8 @@ def _check_pixel_doe_memory(shape, pitch: float, file) -> None:
                      "wavefront needs) or lens.doe_distance (a plane where the beams are smaller)", fraction=0.5)
 
 
-#: redraws of a patch's place before a dark-node map gives up (then the last draw stands)
-_LIT_DRAWS = 64
-
-
-class DarkRegionWarning(UserWarning):
-    """Some nodes of a training PSF map receive no light: training patches avoid them."""
-
-
-def _lit_nodes(pm):
-    """(N, M) bool of the map's nodes whose PSFs carry light at every depth and wavelength, or None when all do
-    (or no map is given). A map with no lit node at all is an error."""
-    if pm is None:
-        return None
-    lit = (pm.psf.detach().sum(dim=(-1, -2)) > 0).flatten(0, -3).all(0)  # (N, M)
-    if bool(lit.all()):
-        return None
-    if not bool(lit.any()):
-        raise ValueError("no node of the PSF map receives light (the DOE aperture or vignetting blocks every beam): "
-                         "check lens.doe_size, lens.doe_distance and the lens file's apertures")
-    return lit.cpu()
-
-
-def _nearest_node(positions: torch.Tensor, uv: torch.Tensor) -> tuple[int, int]:
-    """(i, j) of the node of ``positions`` (N, M, 2) (normalised sensor coordinates) nearest to ``uv`` (2,)."""
-    d = (positions.detach().cpu().to(torch.float64) - uv).square().sum(-1)
-    k = int(torch.argmin(d))
-    return k // d.shape[1], k % d.shape[1]
+#: ``Trainer._random_extent(lit=)`` default: find the lit nodes from the map
+_FROM_MAP = object()
 
 
 def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
@@ -310,11 +285,12 @@ class Trainer(FabricationSchedule, StageSteps):
         v = min(max(centre_uv[1], -1 + dv / 2), 1 - dv / 2)
         return (u - du / 2, u + du / 2, v - dv / 2, v + dv / 2)
 
-    def _random_extent(self, size_px, pm=None) -> tuple:
+    def _random_extent(self, size_px, pm=None, lit=_FROM_MAP) -> tuple:
         """A patch at a uniformly random place on the sensor (the run's generator). With the map ``pm`` whose
         PSFs are dark at some nodes (the DOE aperture or vignetting blocks all their light), the place is drawn
-        again until its nearest node is lit: a patch of a black image teaches the network to invent it."""
-        lit = _lit_nodes(pm)
+        again until its nearest node is lit: a patch of a black image teaches the network to invent it.
+        ``lit``: :func:`_lit_nodes` of ``pm`` when the caller has it (one per step, not per patch)."""
+        lit = _lit_nodes(pm) if lit is _FROM_MAP else lit
         for _ in range(_LIT_DRAWS):
             uv = torch.rand(2, generator=self.gen, dtype=torch.float64) * 2 - 1
             if lit is None or bool(lit[_nearest_node(pm.positions, uv)]):
