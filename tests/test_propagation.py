@@ -80,6 +80,36 @@ def test_upsampled_intensity_of_a_band_limited_field_is_exact(q, device):
     assert torch.allclose(got, want, atol=1e-12, rtol=0)
 
 
+@pytest.mark.parametrize("q, shape", [(2, (21, 21)), (3, (24, 19)), (4, (213, 213)), (4, (30, 44))])
+def test_integrated_upsampled_intensity_is_the_q_grid_integral(q, shape, device):
+    """The PSF's pixel integral computed on the 2× grid (the folded weights) equals the cubic integral of the
+    q×-upsampled intensity to round-off, values and the derivative with respect to where the pixels sit
+    (the intensity of N samples a period holds |m| ≤ N − 1, which 2N samples carry exactly)."""
+    from raywave.wave.field import upsampled_intensity
+    from raywave.wave.propagation import integrated_upsampled_intensity, pixel_integrate
+
+    g = torch.Generator().manual_seed(sum(shape) + q)
+    ny, nx = shape
+    y = torch.arange(ny, dtype=F64) - ny / 2
+    x = torch.arange(nx, dtype=F64) - nx / 2
+    u = torch.exp(-(y[:, None] ** 2 + x[None, :] ** 2) / (0.04 * ny * nx) + 1j * (0.4 * x[None, :] - 0.2 * y[:, None]))
+    u = (u + 0.05 * torch.randn(ny, nx, dtype=C128, generator=g)).to(device)
+    window = torch.rand(ny, nx, dtype=F64, generator=g).to(device)
+    p, ps, org = 1e-3, 2.7e-3, (0.1, -0.2)
+    k = (int(nx * p / ps) - 2, int(ny * p / ps) - 2)
+    want_o = torch.tensor([org[0] + 0.0113, org[1] + 0.0127], dtype=F64, device=device, requires_grad=True)
+    got_o = want_o.detach().clone().requires_grad_(True)
+    want = pixel_integrate(upsampled_intensity(u, q, window).to(F64), p / q, ps, org, want_o, (k[1], k[0]),
+                           kernel="cubic")
+    got = integrated_upsampled_intensity(u, q, p, org, ps, got_o, (k[1], k[0]), window)
+    assert got.dtype == F64 and got.shape == want.shape and got.device.type == device
+    assert float((got - want).detach().abs().max()) < 1e-13 * float(want.detach().abs().max())
+    w = torch.rand(want.shape, dtype=F64, generator=g).to(device)
+    (gw,) = torch.autograd.grad((want * w).sum(), want_o)
+    (gg,) = torch.autograd.grad((got * w).sum(), got_o)
+    assert torch.allclose(gg, gw, rtol=1e-11, atol=1e-13 * float(gw.abs().max()))
+
+
 def test_gaussian_beam_window_subpixel_offset():
     c = centred(384, P)
     u0 = gaussian(c, c, 0.0, LAM, W0)

@@ -37,9 +37,10 @@ from raywave.hybrid.coherent import (DOEField, StopEdgeWarning, accurate_field_s
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
+from raywave.utils.phasor import polar
 from raywave.utils.safe import safe_div
-from raywave.wave.field import upsampled_intensity
-from raywave.wave.propagation import angular_spectrum, pixel_integrate, propagate_window, window_transfer
+from raywave.wave.propagation import (angular_spectrum, integrated_upsampled_intensity, propagate_window,
+                                      window_transfer)
 
 __all__ = ["DEFAULT_EDGE_STEP", "DEFAULT_STOP_EDGE", "DOEApertureWarning", "HybridLens", "PSFResult",
            "SensorCropWarning", "StopEdgeWarning"]
@@ -499,7 +500,7 @@ class HybridLens(nn.Module):
         # full-grid path: the crop's derivative goes through the pixel overlaps (piecewise-constant model)
         integrate_origin = crop_origin if full_grid else psf_origin
         phase = self.doe.phase(fd.wavelength, fd.window, self.oversample)  # the box is known: no Grid.locate
-        u = fd.envelope * torch.polar(torch.ones_like(phase), phase)
+        u = fd.envelope * polar(torch.ones_like(phase), phase)
         with torch.no_grad():  # a diagnostic (energy outside the crop); the DOE's phase does not change it
             power = torch.view_as_real(fd.envelope).square().sum() * p * p
         if float(power.detach()) == 0.0:
@@ -520,12 +521,11 @@ class HybridLens(nn.Module):
         else:
             out, out_origin = self._lattice_window(u, fd, dz, crop_origin, (xc, yc), lo_x, n_out)
         del u, phase  # the DOE-plane window is no longer needed (autograd keeps what its backward needs)
-        # intensity on a q-times finer grid (q ≥ 2: |U|² has twice the field's bandwidth), then integrated over
-        # the sensor pixels through its cubic interpolant
+        # intensity on a q-times finer grid (q ≥ 2: |U|² has twice the field's bandwidth), integrated over the
+        # sensor pixels through its cubic interpolant; computed on the 2× grid (the q grid's weights folded onto it)
         q = self.intensity_upsample
-        inten = upsampled_intensity(out, q, _edge_taper(out.shape[-2:], _OUT_MARGIN - 2, out.device)).to(torch.float64)
-        crop = pixel_integrate(inten, p / q, ps, out_origin, integrate_origin, (ks, ks), mode="integral",
-                               kernel="cubic")
+        crop = integrated_upsampled_intensity(out, q, p, out_origin, ps, integrate_origin, (ks, ks),
+                                              _edge_taper(out.shape[-2:], _OUT_MARGIN - 2, out.device))
         total = crop.sum()
         outside = 1.0 - total / power.to(torch.float64)
         psf = safe_div(crop, total, total > 0)  # a crop with no light stays 0, with finite gradients

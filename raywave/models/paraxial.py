@@ -39,6 +39,7 @@ import torch
 from raywave.hybrid.coherent import DOEField, SamplingWarning
 from raywave.lens.sources import object_distance
 from raywave.models.base import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_xy
+from raywave.utils.phasor import polar
 
 __all__ = ["ParaxialModel", "thin_lens_plane"]
 
@@ -165,7 +166,7 @@ class ParaxialModel(PSFModel):
         amp = torch.sqrt(r / abs(dz))  # sqrt(irradiance / d_z) with a uniform irradiance
         rho = torch.sqrt((x - cx) ** 2 + (y - cy) ** 2)
         cover = (0.5 + (r_doe - rho) / p).clamp(0.0, 1.0) * doe.coverage(win, q, device=dev)
-        env = torch.polar(amp * cover, phase)
+        env = polar(amp * cover, phase)
         if check:
             # local slope of the envelope's phase at the rim against the Nyquist limit of the simulation pitch
             sx = (-conv * (x - px) / r - alpha).abs()

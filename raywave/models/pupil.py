@@ -33,6 +33,7 @@ from raywave.hybrid.coherent import DOEField, chief_rays
 from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.models.base import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_xy
 from raywave.rays import pupil as pupil_patterns
+from raywave.utils.phasor import polar
 
 __all__ = ["PupilModel", "ZernikeFit", "fit_zernike", "zernike_basis"]
 
@@ -157,7 +158,7 @@ class PupilModel(PSFModel):
         phase = k * (-n * (sphere - s_c) + fit(x, y)) - k * n * (alpha * (x - cx) + beta * (y - cy))
         rho = torch.sqrt((x - fit.center[0]) ** 2 + (y - fit.center[1]) ** 2)
         cover = (0.5 + (fit.radius - rho) / p).clamp(0.0, 1.0) * doe.coverage(win, q, device=dev)
-        return DOEField.on_window(torch.polar(cover, phase), win, origin, p, (alpha, beta), n, float(wavelength), z,
+        return DOEField.on_window(polar(cover, phase), win, origin, p, (alpha, beta), n, float(wavelength), z,
                                   center, fit.n_samples, "pupil")
 
     def psf_result(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None) -> ModelPSFResult:

@@ -19,6 +19,8 @@ from dataclasses import dataclass, field as dc_field, replace
 
 import torch
 
+from raywave.utils.phasor import polar
+
 __all__ = ["Grid", "Field"]
 
 
@@ -173,7 +175,7 @@ class Field:
         x, y = self.grid.coordinates(device=self.envelope.device)
         k = 2.0 * math.pi * self.n / (self.wavelength * 1e-3)  # rad/mm
         phase = k * (self.carrier[0] * x[None, :] + self.carrier[1] * y[:, None])
-        return self.envelope * torch.polar(torch.ones_like(phase), phase).to(self.envelope.dtype)
+        return self.envelope * polar(torch.ones_like(phase), phase).to(self.envelope.dtype)
 
     def power(self) -> torch.Tensor:
         """``Σ |u|² · px · py`` over the last two dimensions (the carrier does not change it)."""

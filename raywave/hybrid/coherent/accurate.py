@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import torch
 
 from raywave.lens.sources import entrance_plane_z, point_source_rays, source_weight
+from raywave.utils.phasor import polar
 from raywave.utils.safe import safe_sqrt
 from raywave.wave.field import cubic_matrix, edge_coverage, upsample_nodes
 from raywave.wave.grid import Field, Grid
@@ -439,7 +440,7 @@ def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelen
     a0, a1, b0, b1 = b
     fine = fine[:, a0:a1, b0:b1]
     k = 2 * math.pi / (wavelength * 1e-3)
-    env = torch.polar(fine[1] if cov is None else fine[1] * cov[a0:a1, b0:b1], k * fine[0])
+    env = polar(fine[1] if cov is None else fine[1] * cov[a0:a1, b0:b1], k * fine[0])
     if diffracting:  # the knife-edge factor (elementwise) on the cropped window only
         env = env * stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, maps["g_max"], p,
                                      curvature=fine[-1])

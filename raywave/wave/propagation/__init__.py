@@ -18,7 +18,7 @@ Pure functions on ``torch`` tensors; no state, no caching. Conventions shared by
 
 Split by concern (issue 17), every name importable from here as before: ``_common`` (argument checks, FFT sizes,
 coordinates), ``full_grid`` (:func:`angular_spectrum`), ``transfer`` (:func:`window_transfer`), ``window``
-(:func:`propagate_window`), ``sampling`` (:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`), ``fields`` (the same on :class:`~raywave.wave.grid.Field` values:
+(:func:`propagate_window`), ``sampling`` (:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`, :func:`integrated_upsampled_intensity`), ``fields`` (the same on :class:`~raywave.wave.grid.Field` values:
 :func:`propagate_field`, :func:`angular_spectrum_field`, :func:`field_transfer`).
 """
 
@@ -27,7 +27,7 @@ from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _as_field, _pa
 from raywave.wave.propagation.fields import angular_spectrum_field, field_transfer, propagate_field
 from raywave.wave.propagation.full_grid import angular_spectrum
 from raywave.wave.propagation.resample import (_cubic_overlap_matrix, _keys_antiderivative, _overlap_matrix,
-                                               pixel_integrate)
+                                               integrated_upsampled_intensity, pixel_integrate)
 from raywave.wave.propagation.sampling import NyquistReport, nyquist_check
 from raywave.wave.propagation.transfer import WindowTransfer, window_transfer
 from raywave.wave.propagation.window import _axial_frequency, _dz_tensor, _Perturbed, propagate_window
@@ -37,9 +37,10 @@ __all__ = [
     "WindowTransfer",
     "angular_spectrum",
     "angular_spectrum_field",
-    "field_transfer",
     "fast_fft_size",
+    "field_transfer",
     "grid_coordinates",
+    "integrated_upsampled_intensity",
     "nyquist_check",
     "pixel_integrate",
     "propagate_field",

@@ -7,6 +7,8 @@ import math
 
 import torch
 
+from raywave.utils.phasor import polar
+
 _TWO_PI = 2.0 * math.pi
 _UM_TO_MM = 1e-3
 
@@ -102,5 +104,5 @@ def _sqrt_kz(arg: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
 
 
 def _transfer(phase: torch.Tensor, mask: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    h = torch.polar(torch.ones_like(phase), phase)
+    h = polar(torch.ones_like(phase), phase)
     return torch.where(mask, h, torch.zeros((), dtype=h.dtype, device=h.device)).to(dtype)

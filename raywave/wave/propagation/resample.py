@@ -135,3 +135,56 @@ def pixel_integrate(
     wx, wy = _weights(kernel, (nix, ipx, xi0, nox, opx, xo0), (niy, ipy, yi0, noy, opy, yo0), dev)
     wx, wy = _scaled(mode, wx, wy, (ipx, ipy), (opx, opy))
     return wy.to(dt) @ (intensity @ wx.to(dt).transpose(0, 1))
+
+
+def _through_double_grid(w: torch.Tensor, n: int, q: int) -> torch.Tensor:
+    """Weights ``(K, 2n)`` on the intensity's samples at ``p/2`` that give what ``w`` ``(K, q·n)`` gives on its
+    samples at ``p/q`` (the same origin; sample ``[q·i]`` resp. ``[2·i]`` on the field's ``[i]``), for the intensity
+    of a field of ``n`` samples a period: a trigonometric polynomial with the frequencies ``|m| ≤ n − 1`` (cycles
+    a period), which its ``2n`` samples hold exactly. ``A[a, i] = Σ_j w[a, j]·D(j/(q n) − i/(2n))`` with the
+    Dirichlet kernel ``D(t) = (1/2n)·Σ_{|m|<n} e^{2πimt}``: the sum over ``j`` is a DFT of ``w``'s rows at the
+    frequencies ``m``, the sum over ``m`` a DFT of length ``2n``. Differentiable in ``w``."""
+    qn = q * n
+    spec = torch.fft.ifft(w.to(torch.complex128), dim=-1) * qn  # Σ_j w[a, j]·e^{+2πi m j/(q n)} at index m mod q·n
+    nyquist = torch.zeros((*w.shape[:-1], 1), dtype=spec.dtype, device=w.device)  # |m| = n: not in the intensity
+    spec = torch.cat([spec[..., :n], nyquist, spec[..., qn - n + 1:]], dim=-1)  # index m mod 2n
+    return torch.fft.fft(spec, dim=-1).real / (2 * n)
+
+
+def integrated_upsampled_intensity(u: torch.Tensor, q: int, in_pitch: float, in_origin, out_pitch: float, out_origin,
+                                   out_shape: Sequence[int], window: torch.Tensor | None = None) -> torch.Tensor:
+    """The irradiance ``|u|²`` of a band-limited field, Fourier-interpolated ``q``-fold and integrated over
+    sensor pixels through the cubic interpolant of those samples: ``pixel_integrate(upsampled_intensity(u, q,
+    window), in_pitch/q, out_pitch, in_origin, out_origin, out_shape, kernel="cubic")`` up to round-off, at the
+    cost of the ``q = 2`` grid.
+
+    ``|u|²`` of a field of ``N`` samples a period holds the frequencies ``|m| ≤ N − 1``, so its ``2N`` samples
+    determine its ``q·N`` ones exactly (trigonometric interpolation, linear): the cubic pixel weights on the
+    ``q`` grid fold into weights on the ``2`` grid (:func:`_through_double_grid`), and the FFTs run on ``2N``
+    samples an axis instead of ``q·N``.
+
+    Args:
+        u: complex field ``(..., Ny, Nx)`` (pitch ``in_pitch`` mm, pixel ``(0, 0)`` at ``in_origin``); the window is
+            periodic: taper it to ~0 at its edges (``window``, real ``(Ny, Nx)``, multiplies it).
+        q: the upsampling whose cubic pixel integral this is (≥ 2).
+        out_pitch, out_origin, out_shape: the sensor pixels as in :func:`pixel_integrate` (an ``out_origin``
+            tensor that requires grad stays differentiable).
+
+    Returns:
+        float64 ``(..., Ny_out, Nx_out)``, differentiable with respect to ``u`` and ``out_origin``.
+    """
+    from raywave.wave.field import upsampled_intensity  # same package, a sibling module (no cycle at import)
+
+    q = int(q)
+    if q < 2:
+        raise ValueError(f"q must be >= 2 (|u|² has twice the field's bandwidth), got {q}")
+    ny, nx = u.shape[-2:]
+    (ipx, ipy), (opx, opy) = _pitches(in_pitch, out_pitch)
+    xi0, yi0 = _xy(in_origin, "in_origin")
+    xo0, yo0 = _out_origin(out_origin)
+    noy, nox = (int(s) for s in out_shape)
+    wx, wy = _weights("cubic", (q * nx, ipx / q, xi0, nox, opx, xo0), (q * ny, ipy / q, yi0, noy, opy, yo0), u.device)
+    if q != 2:
+        wx, wy = _through_double_grid(wx, nx, q), _through_double_grid(wy, ny, q)
+    inten = upsampled_intensity(u, 2, window).to(torch.float64)
+    return (wy @ inten) @ wx.transpose(0, 1)

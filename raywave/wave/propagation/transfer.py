@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 import torch
 
+from raywave.utils.phasor import polar
 from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _pair, _positive, _sqrt_kz, _xy, _z_value,
                                               fast_fft_size)
 
@@ -118,7 +119,7 @@ def _band_values(geo: _Geometry, fx, fy, rows, cols, weight_derivative: bool):
     fac_x = _roll_off((zf * gxs)[None, :] * inv_w, geo.bx, zf, weight, weight_derivative)
     fac_y = _roll_off((zf * gys)[:, None] * inv_w, geo.by, zf, weight, weight_derivative)
     phase = _TWO_PI * geo.zt * w + _TWO_PI * ((fx[cols] * dx)[None, :] + (fy[rows] * dy)[:, None])
-    g = torch.polar(weight, phase)
+    g = polar(weight, phase)
     if not weight_derivative:
         return g, None
     (rz_x, rs_x), (rz_y, rs_y) = fac_x, fac_y
