@@ -11,7 +11,7 @@ def _polar_values(abs: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:  # no
     """``abs·cos(angle) + i·abs·sin(angle)``, the vectorised ``cos``/``sin`` written into the output's real and
     imaginary parts in place (no autograd)."""
     dtype = torch.promote_types(abs.dtype, angle.dtype)
-    shape = torch.broadcast_shapes(abs.shape, angle.shape)
+    shape = angle.shape if abs.shape == angle.shape or abs.ndim == 0 else torch.broadcast_shapes(abs.shape, angle.shape)
     out = torch.empty(shape, dtype=torch.complex128 if dtype == torch.float64 else torch.complex64, device=angle.device)
     parts = torch.view_as_real(out)
     torch.mul(torch.cos(angle), abs, out=parts[..., 0])
