@@ -76,3 +76,35 @@ def test_training_patches_avoid_map_nodes_that_receive_no_light(tmp_path):
         assert i != 0 and (i, j) != (1, 2)
     with pytest.raises(ValueError, match="no node of the PSF map receives light"):
         tr._random_extent((32, 32), SimpleNamespace(psf=torch.zeros_like(psf), positions=pos))
+
+
+def test_stage1_patches_avoid_the_steps_dark_nodes(tmp_path, tiny_lens_file):
+    """Stage 1 places its patches from this step's own map: with a DOE that only the centre beam reaches (0.03 mm
+    at 1.5 mm behind an ideal f = 2 mm lens, the DOE-plane stop edge: the other 8 nodes' PSFs are exactly 0),
+    every training patch of stages 1 and 2 lies around the centre node, and the run says why, once per map."""
+    import torch
+
+    from raywave.training.trainer import Trainer, _nearest_node
+
+    cfg = tmp_path / "dark.yaml"
+    cfg.write_text(f"""name: dark
+seed: 3
+dtype: float64
+lens: {{file: {tiny_lens_file}, doe_pitch: 0.002, doe_size: 0.03, doe_distance: 1.5, stop_edge: doe}}
+optics: {{grid: [3, 3], eval_grid: [3, 3], ks: 16, rays: 20}}
+data: {{source: dead_leaves, patch_size: 16, dead_leaves_count: 8, eval_size: 16}}
+network: {{kind: unet, width: 4, depth: 1}}
+pre_stage: {{steps: 0}}
+stage1: {{max_steps: 2, batch_size: 4, warmup_steps: 0}}
+stage2: {{max_steps: 1, batch_size: 4, warmup_steps: 0}}
+""")
+    tr = Trainer(load_config(cfg), tmp_path / "run", progress=False)
+    placed, lit_uv = [], tr._lit_uv
+    tr._lit_uv = lambda uv, positions, lit: placed.append((lit_uv(uv, positions, lit), positions)) or placed[-1][0]
+    with pytest.warns(UserWarning):
+        tr.run()
+    assert len(placed) == 2 * 4 + 4
+    for uv, positions in placed:
+        assert _nearest_node(positions, torch.tensor(uv, dtype=torch.float64)) == (1, 1)
+    logged = (tmp_path / "run" / "warnings.jsonl").read_text()
+    assert logged.count("DarkRegionWarning") == 1 and "8 of the 9 nodes" in logged

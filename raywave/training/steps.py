@@ -23,10 +23,12 @@ class DarkRegionWarning(UserWarning):
 
 def _lit_nodes(pm):
     """(N, M) bool of the map's nodes whose PSFs carry light at every depth and wavelength, or None when all do
-    (or no map is given). A map with no lit node at all is an error."""
+    (or no map is given). ``pm``: a map (its ``psf``) or the PSFs ``(..., N, M, ks, ks)`` themselves. A map with no
+    lit node at all is an error."""
     if pm is None:
         return None
-    lit = (pm.psf.detach().sum(dim=(-1, -2)) > 0).flatten(0, -3).all(0)  # (N, M)
+    psf = pm if torch.is_tensor(pm) else pm.psf
+    lit = (psf.detach().sum(dim=(-1, -2)) > 0).flatten(0, -3).all(0)  # (N, M)
     if bool(lit.all()):
         return None
     if not bool(lit.any()):
@@ -83,7 +85,7 @@ class StageSteps:
     def _stage1_step(self, step_idx, opt, sched) -> float:
         sc = self.cfg.stage1
         img = self._batch("stage1", step_idx)
-        extents = [self._random_extent(img.shape[-2:]) for _ in range(img.shape[0])]
+        places = [self._random_uv() for _ in range(img.shape[0])]  # drawn first: the stream of a fully lit map
         fields, positions = self.step_nodes()
         ostep = self.optics_step(fields)
         frozen = not any(p.requires_grad for p in self.hl.parameters())
@@ -96,6 +98,8 @@ class StageSteps:
         else:
             psf, cen = ostep.full_graph()
         p, c = self._as_map(psf, cen)
+        lit = _lit_nodes(p)  # this step's map: a patch whose nearest node is dark is drawn again
+        extents = [self._extent(img.shape[-2:], self._lit_uv(uv, positions, lit)) for uv in places]
         B = img.shape[0]
         parts = self._parts(B, sc.micro_batches, sc.loss)
         total = 0.0

@@ -291,17 +291,30 @@ class Trainer(FabricationSchedule, StageSteps):
         again until its nearest node is lit: a patch of a black image teaches the network to invent it.
         ``lit``: :func:`_lit_nodes` of ``pm`` when the caller has it (one per step, not per patch)."""
         lit = _lit_nodes(pm) if lit is _FROM_MAP else lit
-        for _ in range(_LIT_DRAWS):
-            uv = torch.rand(2, generator=self.gen, dtype=torch.float64) * 2 - 1
-            if lit is None or bool(lit[_nearest_node(pm.positions, uv)]):
+        uv = self._lit_uv(self._random_uv(), None if pm is None else pm.positions, lit)
+        return self._extent(size_px, uv)
+
+    def _random_uv(self) -> tuple[float, float]:
+        """A uniformly random place ``(u, v)`` on the sensor (normalised coordinates, the run's generator)."""
+        uv = torch.rand(2, generator=self.gen, dtype=torch.float64) * 2 - 1
+        return float(uv[0]), float(uv[1])
+
+    def _lit_uv(self, uv, positions, lit) -> tuple[float, float]:
+        """``uv`` if its nearest node of ``positions`` (N, M, 2) is lit (``lit`` (N, M) bool, or None: all are),
+        else a new :meth:`_random_uv` until one is (at most :data:`_LIT_DRAWS` draws in all); warns once
+        (:class:`DarkRegionWarning`) where some node is dark. A fully lit map draws nothing more."""
+        if lit is None:
+            return uv
+        for _ in range(_LIT_DRAWS - 1):
+            if bool(lit[_nearest_node(positions, torch.tensor(uv, dtype=torch.float64))]):
                 break
-        if lit is not None:
-            n, k = int(lit.numel()), int((~lit).sum())
-            self._warn_once(f"{k} of the {n} nodes of the {tuple(lit.shape)} PSF map receive no light (the DOE "
-                            "aperture or vignetting blocks it): training patches are placed around the lit nodes "
-                            "only; a DOE that covers every field's beam (lens.doe_size) avoids the dark regions",
-                            DarkRegionWarning)
-        return self._extent(size_px, (float(uv[0]), float(uv[1])))
+            uv = self._random_uv()
+        n, k = int(lit.numel()), int((~lit).sum())
+        self._warn_once(f"{k} of the {n} nodes of the {tuple(lit.shape)} PSF map receive no light (the DOE "
+                        "aperture or vignetting blocks it): training patches are placed around the lit nodes "
+                        "only; a DOE that covers every field's beam (lens.doe_size) avoids the dark regions",
+                        DarkRegionWarning)
+        return uv
 
     # ------------------------------------------------------------------ optics
     def step_nodes(self, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
