@@ -40,6 +40,11 @@ class Geometry(nn.Module):
         """(dz/dx, dz/dy) at (x, y)."""
         raise NotImplementedError
 
+    def sag_and_gradient(self, x: torch.Tensor, y: torch.Tensor):
+        """``(sag, (dz/dx, dz/dy))`` at (x, y): the values of :meth:`sag` and :meth:`sag_gradient` (a shape whose
+        two share work computes it once: a Newton step of the ray intersection needs both)."""
+        return self.sag(x, y), self.sag_gradient(x, y)
+
     def in_domain(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """Where the sag is defined (bool)."""
         return torch.ones_like(x, dtype=torch.bool)
@@ -105,16 +110,23 @@ class Standard(Geometry):
         return 1.0 - (1.0 + k) * c * c * (x * x + y * y) >= 0
 
     def sag(self, x, y):
+        return self._conic_sag(x * x + y * y)
+
+    def sag_gradient(self, x, y):
+        s = self._conic_slope(x * x + y * y)
+        return s * x, s * y
+
+    def _conic_sag(self, r2):
+        """The conic's sag at ``r2 = x² + y²`` (mm²)."""
         c, k = self.curvature, self.conic
-        r2 = x * x + y * y
         arg = 1.0 - (1.0 + k) * c * c * r2
         return c * r2 / (1.0 + safe_sqrt(arg, arg >= 0, fill=1.0))
 
-    def sag_gradient(self, x, y):
+    def _conic_slope(self, r2):
+        """``s`` with the conic's sag gradient ``(s·x, s·y)`` at ``r2 = x² + y²`` (1/mm)."""
         c, k = self.curvature, self.conic
-        arg = 1.0 - (1.0 + k) * c * c * (x * x + y * y)
-        s = c / safe_sqrt(arg, arg > 0, fill=1.0)
-        return s * x, s * y
+        arg = 1.0 - (1.0 + k) * c * c * r2
+        return c / safe_sqrt(arg, arg > 0, fill=1.0)
 
     def normal(self, x, y, z):
         # Gradient of the implicit form c(x²+y²) + c(1+k) z² - 2z = 0: no square root needed.
@@ -168,24 +180,30 @@ class EvenAsphere(Standard):
         """(Σ a_{2i} r^{2i}, d/d(r²) of it) by Horner's rule."""
         a = self.coefficients
         n = a.shape[0]
-        val = torch.zeros_like(r2) + a[n - 1]
-        der = torch.zeros_like(r2) + (n * a[n - 1])
+        # the coefficients and (i + 1)·a_i as 0-d tensors, taken once (not two indexings and a product per term)
+        terms = a.unbind()
+        slopes = (a * torch.arange(1, n + 1, dtype=a.dtype, device=a.device)).unbind()
+        val = torch.zeros_like(r2) + terms[n - 1]
+        der = torch.zeros_like(r2) + slopes[n - 1]
         for i in range(n - 2, -1, -1):
-            val = val * r2 + a[i]
-            der = der * r2 + (i + 1) * a[i]
+            val = val * r2 + terms[i]
+            der = der * r2 + slopes[i]
         # val = Σ a[i] r2^i: one more factor r2 gives Σ a[i] r^(2i+2).
         return val * r2, der
 
     def sag(self, x, y):
         r2 = x * x + y * y
         poly, _ = self._poly(r2)
-        return super().sag(x, y) + poly
+        return self._conic_sag(r2) + poly
 
     def sag_gradient(self, x, y):
-        gx, gy = super().sag_gradient(x, y)
+        return self.sag_and_gradient(x, y)[1]
+
+    def sag_and_gradient(self, x, y):
         r2 = x * x + y * y
-        _, der = self._poly(r2)
-        return gx + 2.0 * der * x, gy + 2.0 * der * y
+        poly, der = self._poly(r2)
+        s = self._conic_slope(r2)
+        return self._conic_sag(r2) + poly, (s * x + 2.0 * der * x, s * y + 2.0 * der * y)
 
     def normal(self, x, y, z):
         return Geometry.normal(self, x, y, z)
@@ -196,8 +214,8 @@ class EvenAsphere(Standard):
 
 def _newton_step(geom, t, ox, oy, oz, dx, dy, dz):
     x, y = ox + t * dx, oy + t * dy
-    f = oz + t * dz - geom.sag(x, y)
-    zx, zy = geom.sag_gradient(x, y)
+    sag, (zx, zy) = geom.sag_and_gradient(x, y)
+    f = oz + t * dz - sag
     fp = dz - zx * dx - zy * dy
     okp = fp.abs() > 1e-12
     return t - f / torch.where(okp, fp, torch.ones_like(fp)), f, okp
