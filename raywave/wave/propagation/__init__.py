@@ -18,7 +18,8 @@ Pure functions on ``torch`` tensors; no state, no caching. Conventions shared by
 
 Split by concern (issue 17), every name importable from here as before: ``_common`` (argument checks, FFT sizes,
 coordinates), ``full_grid`` (:func:`angular_spectrum`), ``transfer`` (:func:`window_transfer`), ``window``
-(:func:`propagate_window`), ``sampling`` (:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`, :func:`integrated_upsampled_intensity`), ``fields`` (the same on :class:`~raywave.wave.grid.Field` values:
+(:func:`propagate_window`), ``sampling`` (:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`,
+:func:`integrated_upsampled_intensity`), ``fields`` (the same on :class:`~raywave.wave.grid.Field` values:
 :func:`propagate_field`, :func:`angular_spectrum_field`, :func:`field_transfer`).
 """
 
