@@ -100,7 +100,7 @@ def grid_coordinates(
 
 def _sqrt_kz(arg: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
     """sqrt(arg) where ok, 1 elsewhere (NaN-free forward and backward)."""
-    return torch.sqrt(torch.where(ok, arg, torch.ones_like(arg)))
+    return torch.sqrt(torch.where(ok, arg, 1.0))
 
 
 def _transfer(phase: torch.Tensor, mask: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:

@@ -111,15 +111,23 @@ def _band_values(geo: _Geometry, fx, fy, rows, cols, weight_derivative: bool):
     k, zf = geo.k, geo.zf
     (ax, ay), (dx, dy) = geo.carrier, geo.shift
     gxs, gys = fx[cols] + k * ax, fy[rows] + k * ay  # physical spatial frequencies (cycles/mm)
+    # band-sized float64 arrays are released as soon as they are used (the peak memory of a PSF with a wide band:
+    # the exit-pupil edge's 1175×1473 band held ~9 of them at once)
     arg = k * k - gxs[None, :] ** 2 - gys[:, None] ** 2
     prop = arg > 0
     w = _sqrt_kz(arg, prop)  # (n/λ)·cosθ; 1 on evanescent entries
-    inv_w = 1.0 / w
+    del arg
     weight = prop.to(torch.float64)  # evanescent: exactly 0
+    del prop
+    inv_w = 1.0 / w
     fac_x = _roll_off((zf * gxs)[None, :] * inv_w, geo.bx, zf, weight, weight_derivative)
     fac_y = _roll_off((zf * gys)[:, None] * inv_w, geo.by, zf, weight, weight_derivative)
-    phase = _TWO_PI * geo.zt * w + _TWO_PI * ((fx[cols] * dx)[None, :] + (fy[rows] * dy)[:, None])
+    del inv_w
+    phase = _TWO_PI * geo.zt * w
+    del w
+    phase += _TWO_PI * ((fx[cols] * dx)[None, :] + (fy[rows] * dy)[:, None])
     g = polar(weight, phase)
+    del phase
     if not weight_derivative:
         return g, None
     (rz_x, rs_x), (rz_y, rs_y) = fac_x, fac_y

@@ -143,8 +143,10 @@ def _convolve_band(u, h, size, rows, cols, noy, nox):
     prod = _band_spectrum(u, size, rows, cols)
     # in place unless autograd needs the factors (the product's backward keeps both)
     prod = prod.mul_(h) if not (torch.is_grad_enabled() and (prod.requires_grad or h.requires_grad)) else prod * h
-    part = torch.fft.ifft(_scatter(prod, -2, rows, my), dim=-2)
-    del prod
+    full_y = _scatter(prod, -2, rows, my)
+    del prod  # before the inverse transform: the band and both full-height grids would be alive at once
+    part = torch.fft.ifft(full_y, dim=-2)
+    del full_y
     full_x = _scatter(part[..., :noy, :], -1, cols, mx)
     del part
     return torch.fft.ifft(full_x, dim=-1)[..., :nox]
