@@ -276,7 +276,11 @@ class OddAsphere(Standard):
         return self.curvature + (2.0 * b[1] if b.shape[0] > 1 else 0.0 * b[0])
 
     def _r(self, x, y):
-        r2 = x * x + y * y
+        return self._r_of(x * x + y * y)
+
+    @staticmethod
+    def _r_of(r2):
+        """``(r, r > 0)`` from ``r2 = x² + y²`` (r = 0 on the axis, with a finite gradient)."""
         pos = r2 > 0
         return safe_sqrt(r2, pos, fill=0.0), pos
 
@@ -301,14 +305,18 @@ class OddAsphere(Standard):
         return super().sag(x, y) + poly
 
     def sag_gradient(self, x, y):
-        gx, gy = super().sag_gradient(x, y)
-        r, pos = self._r(x, y)
-        _, der = self._poly(r)
+        return self.sag_and_gradient(x, y)[1]
+
+    def sag_and_gradient(self, x, y):
+        r2 = x * x + y * y
+        r, pos = self._r_of(r2)
+        poly, der = self._poly(r)
         # d/dr (b1 r) = b1, times x/r; 0 on the axis (the cone point)
         cone = self.coefficients[0] / torch.where(pos, r, torch.ones_like(r))
         cone = torch.where(pos, cone, torch.zeros_like(cone))
         s = der + cone
-        return gx + s * x, gy + s * y
+        s0 = self._conic_slope(r2)
+        return self._conic_sag(r2) + poly, (s0 * x + s * x, s0 * y + s * y)
 
     def normal(self, x, y, z):
         return Geometry.normal(self, x, y, z)
