@@ -22,7 +22,9 @@ pixels, a trainable pixel phase map) 0.7 mm after the last surface, sensor at fo
   DOE-plane field cached, forward and forward + backward (gradient w.r.t. the DOE pixels, lens frozen; and,
   uncached, w.r.t. the lens too); L1 error against the exit-pupil Huygens PSF (``raywave.models.exit_pupil``,
   n_pupil 192) on axis and at 0.7 and 1.0 of the full field (17.5°), and against the Debye truth of an ideal
-  lens of the same EFL and F-number on axis (off axis: against its Huygens PSF).
+  lens of the same EFL and F-number on axis (off axis: against its Huygens PSF). Peak memory is the resident peak
+  (freed blocks that glibc keeps count); ``--live-memory`` measures the live peak instead (for memory only: every
+  large block is then mapped afresh, which makes the times ~1.5–2× slower).
 
 Prints one JSON object (and writes it with ``-o``).
 
@@ -34,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import subprocess
 import sys
@@ -315,6 +318,16 @@ def _median_of_processes(rows: list) -> dict:
     return out
 
 
+def _memory_env(live: bool) -> dict:
+    """The child processes' environment: with ``live``, glibc serves every allocation of 64 KB or more by mmap and
+    returns it when freed, so the resident peak is the live peak (by default glibc keeps freed large blocks once it
+    has raised its threshold, and the resident peak includes them)."""
+    env = dict(os.environ)
+    if live:
+        env["MALLOC_MMAP_THRESHOLD_"] = "65536"
+    return env
+
+
 def edges_main(args) -> dict:
     cases = []
     steps = args.edge_steps.split(",")
@@ -331,7 +344,7 @@ def edges_main(args) -> dict:
             cmd = [sys.executable, __file__, "--edge-case",
                    f"{edge},{step},{bwd},{cached},{lens_grad},{args.edge_field}", "--threads", str(args.threads),
                    "--repeat", str(args.repeat)]
-            res = subprocess.run(cmd, capture_output=True, text=True)
+            res = subprocess.run(cmd, capture_output=True, text=True, env=_memory_env(args.live_memory))
             if res.returncode != 0:
                 row = {"stop_edge": edge, "edge_step": step, "error": res.stderr.strip().splitlines()[-1]}
             else:
@@ -352,7 +365,10 @@ def edges_main(args) -> dict:
                 ratios[name] = {"time": a["seconds"] / b["seconds"],
                                 "memory": a["peak_extra_memory_mb"] / max(b["peak_extra_memory_mb"], 1e-9)}
     out = {"benchmark": "psf stop edges", "lens": "hybrid_asphere (3 mm DOE, 1 µm, 0.7 mm)", "ks": KS,
-           "threads": args.threads, "timing_field_deg": args.edge_field, "timing": timings,
+           "threads": args.threads, "timing_field_deg": args.edge_field,
+           "memory": ("live: glibc returns every block of 64 KB or more when freed (MALLOC_MMAP_THRESHOLD_=65536)"
+                      if args.live_memory else "resident (VmHWM): includes freed blocks the allocator keeps"),
+           "timing": timings,
            "exit_pupil_over_doe (goal: time <= 2, memory <= 1.5)": ratios}
     if not args.no_errors:
         fields = tuple(float(f) for f in args.edge_error_fields.split(","))
@@ -376,6 +392,8 @@ def main() -> None:
     ap.add_argument("--edge-steps", default="doe,asm,fresnel", help="stop-edge comparison: the cases, a subset of "
                     "doe,asm,fresnel (cheap: doe,fresnel)")
     ap.add_argument("--edge-quick", action="store_true", help="stop-edge timing: uncached forward only")
+    ap.add_argument("--live-memory", action="store_true", help="stop-edge timing: peak memory of live allocations "
+                    "(glibc returns every freed block of 64 KB or more) instead of the resident peak; slows the times")
     ap.add_argument("--processes", type=int, default=1, help="stop-edge timing: run every case in this many fresh "
                     "processes (interleaved) and report the medians (peak memory scatters by ~±10 %% per process)")
     ap.add_argument("--edge-error-fields", default="0,0.7,1", help="stop-edge errors: fractions of the full field")
