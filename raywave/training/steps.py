@@ -146,7 +146,8 @@ class StageSteps:
         pm, sensor = self.stage2_map, self._sensor() if sc.noise else None
         img = self._batch("stage2", step_idx)
         lit = _lit_nodes(pm)  # once per step: the map's lit nodes
-        extents = [self._random_extent(img.shape[-2:], pm, lit) for _ in range(img.shape[0])]
+        extents = [self._extent(img.shape[-2:], self._lit_uv(self._random_uv(), pm.positions, lit))
+                   for _ in range(img.shape[0])]
         loss = self._recon_loss_map(img, pm, extents, sc, sensor)
         loss.backward()
         self._optimizer_step(opt, sched)

@@ -102,10 +102,6 @@ def _check_pixel_doe_memory(shape, pitch: float, file) -> None:
                      "wavefront needs) or lens.doe_distance (a plane where the beams are smaller)", fraction=0.5)
 
 
-#: ``Trainer._random_extent(lit=)`` default: find the lit nodes from the map
-_FROM_MAP = object()
-
-
 def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
     g = torch.Generator()
     g.manual_seed((int(seed) * 7919 + int(epoch) * 104729 + 17) % (2 ** 62))
@@ -285,13 +281,14 @@ class Trainer(FabricationSchedule, StageSteps):
         v = min(max(centre_uv[1], -1 + dv / 2), 1 - dv / 2)
         return (u - du / 2, u + du / 2, v - dv / 2, v + dv / 2)
 
-    def _random_extent(self, size_px, pm=None, lit=_FROM_MAP) -> tuple:
+    def _random_extent(self, size_px, pm=None) -> tuple:
         """A patch at a uniformly random place on the sensor (the run's generator). With the map ``pm`` whose
         PSFs are dark at some nodes (the DOE aperture or vignetting blocks all their light), the place is drawn
-        again until its nearest node is lit: a patch of a black image teaches the network to invent it.
-        ``lit``: :func:`_lit_nodes` of ``pm`` when the caller has it (one per step, not per patch)."""
-        lit = _lit_nodes(pm) if lit is _FROM_MAP else lit
-        uv = self._lit_uv(self._random_uv(), None if pm is None else pm.positions, lit)
+        again until its nearest node is lit (:meth:`_lit_uv`): a patch of a black image teaches the network to
+        invent it."""
+        uv = self._random_uv()
+        if pm is not None:
+            uv = self._lit_uv(uv, pm.positions, _lit_nodes(pm))
         return self._extent(size_px, uv)
 
     def _random_uv(self) -> tuple[float, float]:
