@@ -17,7 +17,7 @@ machine). Prints one JSON object (and writes it with ``-o``).
     python benchmarks/imaging.py [--threads 2] [--quick] [-o imaging.json]
 
 ``--per-psf`` (issue 17, the batched engine): only the PSF-map cost per PSF at 1, 10, 100 and 300 PSFs (``--stop-edge
-doe|exit_pupil``: that stop edge instead of the default)
+doe|exit_pupil``: that stop edge instead of the default; ``--device cuda``: the lens on a GPU)
 (1×1×1λ, 2×5×1λ, 10×10×1λ and the 10×10×3λ map; no autograd, ks = 64), each in its own process.
 """
 
@@ -78,9 +78,10 @@ def map_case(n: int, threads: int, cached: bool) -> dict:
     return out
 
 
-def psfs_case(n: int, m: int, n_wl: int, threads: int, stop_edge: str | None = None) -> dict:
+def psfs_case(n: int, m: int, n_wl: int, threads: int, stop_edge: str | None = None, device: str = "cpu") -> dict:
     """Time per PSF of an n×m map at the first ``n_wl`` of the R, G, B wavelengths (after a 1-PSF warm-up);
-    ``stop_edge`` None: the lens's default edge."""
+    ``stop_edge`` None: the lens's default edge; ``device``: the torch device of the lens (on CUDA the time is
+    taken after a synchronisation, and the peak GPU memory of the timed map is reported)."""
     import warnings
 
     import torch
@@ -88,16 +89,30 @@ def psfs_case(n: int, m: int, n_wl: int, threads: int, stop_edge: str | None = N
     from raywave.imaging import psf_map
 
     torch.set_num_threads(threads)
-    hl = _lens(stop_edge)
+    dev = torch.device(device)
+    hl = _lens(stop_edge).to(dev)
     warnings.simplefilter("ignore")
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
     psf_map(hl, (1, 1), wavelengths=WAVELENGTHS[:1], ks=KS)  # warm-up (allocator, first-call costs)
+    sync()
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
     t0, c0 = time.perf_counter(), time.process_time()
-    psf_map(hl, (n, m), wavelengths=WAVELENGTHS[:n_wl], ks=KS)
+    m_ = psf_map(hl, (n, m), wavelengths=WAVELENGTHS[:n_wl], ks=KS)
+    sync()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     k = n * m * n_wl
-    return {"case": "psfs", "grid": [n, m], "wavelengths": list(WAVELENGTHS[:n_wl]), "psfs": k,
-            "stop_edge": hl.stop_edge, "seconds": wall,
-            "seconds_per_psf": wall / k, "cpu_seconds_per_psf": cpu / k}
+    out = {"case": "psfs", "grid": [n, m], "wavelengths": list(WAVELENGTHS[:n_wl]), "psfs": k,
+           "stop_edge": hl.stop_edge, "device": str(dev), "psf_device": str(m_.psf.device), "seconds": wall,
+           "seconds_per_psf": wall / k, "cpu_seconds_per_psf": cpu / k}
+    if dev.type == "cuda":
+        out["cuda_peak_allocated_mb"] = torch.cuda.max_memory_allocated(dev) / 1e6
+        out["device_name"] = torch.cuda.get_device_name(dev)
+    return out
 
 
 def render_case(n: int, threads: int, repeat: int, training: bool) -> dict:
@@ -147,8 +162,9 @@ def render_case(n: int, threads: int, repeat: int, training: bool) -> dict:
     return res
 
 
-def _run(args_list, threads):
-    cmd = [sys.executable, __file__, "--case", ",".join(str(a) for a in args_list), "--threads", str(threads)]
+def _run(args_list, threads, device="cpu"):
+    cmd = [sys.executable, __file__, "--case", ",".join(str(a) for a in args_list), "--threads", str(threads),
+           "--device", device]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         raise RuntimeError(f"case {args_list} failed:\n{res.stderr[-3000:]}")
@@ -165,13 +181,14 @@ def main() -> None:
     ap.add_argument("--max-psfs", type=int, default=300, help="--per-psf: skip the cases with more PSFs")
     ap.add_argument("--stop-edge", choices=("default", "doe", "exit_pupil"), default="default",
                     help="--per-psf: the lens's stop edge (default: the library's default, the exit pupil)")
+    ap.add_argument("--device", default="cpu", help="--per-psf: the torch device of the lens (cpu, cuda)")
     ap.add_argument("--case", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.case:
         kind, *rest = args.case.split(",")
         if kind == "psfs":
             out = psfs_case(int(rest[0]), int(rest[1]), int(rest[2]), args.threads,
-                            None if rest[3] == "default" else rest[3])
+                            None if rest[3] == "default" else rest[3], args.device)
         elif kind == "map":
             out = map_case(int(rest[0]), args.threads, rest[1] == "1")
         else:
@@ -183,8 +200,9 @@ def main() -> None:
 
     if args.per_psf:
         cases = [c for c in ((1, 1, 1), (2, 5, 1), (10, 10, 1), (10, 10, 3)) if c[0] * c[1] * c[2] <= args.max_psfs]
-        runs = [_run(["psfs", *c, args.stop_edge], args.threads) for c in cases]
+        runs = [_run(["psfs", *c, args.stop_edge], args.threads, args.device) for c in cases]
         summary = {"benchmark": "imaging_per_psf", "lens": "hybrid_asphere", "ks": KS, "threads": args.threads,
+                   "device": args.device, "device_name": runs[0].get("device_name", platform.processor()),
                    "stop_edge": runs[0]["stop_edge"],
                    "torch": torch.__version__, "python": platform.python_version(), "machine": platform.machine(),
                    "runs": runs,

@@ -83,7 +83,9 @@ def compute(name: str, device: str = "cpu") -> dict[str, np.ndarray]:
     seed = kw.pop("seed", None)
     hl = build().to(device)
     if seed is not None:
-        kw["generator"] = torch.Generator(device=device).manual_seed(seed)
+        # a CPU generator on every device: the ray sample is drawn where the generator lives, then moved, so
+        # the GPU traces the same rays (a CUDA generator's Philox stream is another sample)
+        kw["generator"] = torch.Generator().manual_seed(seed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         with torch.no_grad():

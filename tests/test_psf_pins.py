@@ -18,6 +18,9 @@ SLOW = {"hybrid_asphere_exit_pupil"}
 #: whenever the rays' aiming takes another path to the same tolerance (its ~100 mm optical paths round at ~1e-14 mm,
 #: 1e-10 rad): tightening the Newton tolerance of the pinned code 100× moves it by 5e-13, the coarse Newton start
 #: (raywave.hybrid.coherent.accurate._coarse_start) by 1.2e-12. A numeric change that matters moves it by far more.
+# The Cooke case at 14° is discontinuous at round-off: scaling one thickness by 1 + 1e-15 moves its PSF by 3e-8 on the
+# CPU (a ray or node of the construction flips at an edge); a GPU's rounding moved it by 1.4e-8 (H200, 2026-11-27).
+GPU_FLOOR = {"cooke_triplet": 1e-7}
 FLOOR = {"cooke_triplet": 3e-12}  # ~10 s; the ideal-lens case covers stop_edge="exit_pupil" by default
 
 CASES = [pytest.param(name, marks=pytest.mark.slow) if name in SLOW else name for name in pin_cases.CASES]
@@ -28,7 +31,7 @@ def test_psfs_match_their_pins(name, device):
     ref = np.load(pin_cases.PINS)
     got = pin_cases.compute(name, device)
     # CUDA's FFTs round differently from pocketfft's: the pins hold to 1e-12 on the CPU, ~1e-9 on a GPU
-    tol = FLOOR.get(name, 1e-12) if device == "cpu" else 1e-9
+    tol = FLOOR.get(name, 1e-12) if device == "cpu" else GPU_FLOOR.get(name, 1e-9)
     for key, value in got.items():
         want = ref[f"{name}/{key}"]
         assert value.shape == want.shape, key

@@ -189,7 +189,9 @@ def test_ray_aiming_hits_stop_points(cooke_const, device):
     px = torch.tensor([0.0, 0.5, -0.7, 0.0, 0.99], dtype=torch.float64, device=device)
     py = torch.tensor([0.0, 0.5, 0.2, -1.0, 0.0], dtype=torch.float64, device=device)
     rays = point_source_rays(cooke_const, [[0.0, 20.0], [5.0, 12.0]], [0.48, 0.65], pupil=(px, py))
-    out = cooke_const.trace(rays, stop=cooke_const.stop_index + 1)
+    # apertures off: the ray aimed at the stop's rim (py = -1) lands on it to ~1e-15 mm, inside or just outside
+    # the aperture by rounding (seen both ways on CPUs and GPUs); this test is about the aim, not the clipping
+    out = cooke_const.trace(rays, stop=cooke_const.stop_index + 1, apertures=False)
     assert out.o.device.type == device
     r = cooke_const.stop_radius()
     assert torch.allclose(out.o[..., 0], px * r, atol=1e-10)

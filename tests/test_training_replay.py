@@ -49,7 +49,7 @@ def fft_conv(img, psf):
     """Circular convolution of img (..., H, W) with a centred psf (..., k, k) (k ≤ H, W)."""
     H, W = img.shape[-2:]
     k = psf.shape[-1]
-    pad = torch.zeros(*psf.shape[:-2], H, W, dtype=psf.dtype)
+    pad = torch.zeros(*psf.shape[:-2], H, W, dtype=psf.dtype, device=psf.device)
     pad[..., :k, :k] = psf
     pad = torch.roll(pad, (-(k // 2), -(k // 2)), (-2, -1))
     return torch.fft.irfft2(torch.fft.rfft2(img) * torch.fft.rfft2(pad), s=(H, W))
@@ -81,11 +81,12 @@ def data():
 
 
 @pytest.mark.parametrize("stop_edge", ["doe", pytest.param("exit_pupil", marks=pytest.mark.slow)])
-def test_replayed_gradient_equals_full_graph_gradient(data, stop_edge):
+def test_replayed_gradient_equals_full_graph_gradient(data, stop_edge, device):
     """Also with the stop's edge at the exit pupil (the field built on the exit-pupil plane and propagated to the
-    DOE plane by the angular spectrum; ~10 s, slow)."""
-    patches, target, weight = data
-    hl = small_hybrid(stop_edge=stop_edge)
+    DOE plane by the angular spectrum; ~10 s, slow), and on every device (the lens on the GPU; the field angles
+    and the drawn wavelengths stay CPU tensors, as a user passes them)."""
+    patches, target, weight = (t.to(device) for t in data)
+    hl = small_hybrid(stop_edge=stop_edge).to(device)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         # reference: the full autograd graph

@@ -83,7 +83,8 @@ def _slopes(lens, z: float, fields, wavelengths, depth):
     d = at.d[..., :2]
     rel = n * torch.linalg.vector_norm(d - d[..., :1, :], dim=-1)  # pupil sample 0 is the chief ray
     ok = at.valid & at.valid[..., :1] & torch.isfinite(rel)
-    return torch.where(ok, rel, torch.zeros_like(rel)).amax(-1), torch.tensor(wls, dtype=torch.float64)
+    return torch.where(ok, rel, torch.zeros_like(rel)).amax(-1), torch.tensor(wls, dtype=torch.float64,
+                                                                                device="cpu")
 
 
 def nyquist_doe_pitch(lens, distance: float, fields=None, wavelengths=None, depth=None,
@@ -124,10 +125,11 @@ def fit_doe_distance(lens, distance: float, pitch: float, fields=None, wavelengt
         return distance
     xy0 = at.o[..., :2]
     tan = at.d[..., :2] / at.d[..., 2:]
-    dz = torch.linspace(0.0, 0.995 * last - distance, 400, dtype=torch.float64)  # offsets from the default plane
+    # offsets from the default plane
+    dz = torch.linspace(0.0, 0.995 * last - distance, 400, dtype=torch.float64, device=xy0.device)
 
     def widest(xy):  # (Z, F, W, N, 2) -> (Z,) largest side of any source's footprint, pixels
-        big = torch.tensor(math.inf, dtype=xy.dtype)
+        big = torch.tensor(math.inf, dtype=xy.dtype, device=xy.device)
         hi = torch.where(ok[..., None], xy, -big).amax(-2)
         lo = torch.where(ok[..., None], xy, big).amin(-2)
         side = (hi - lo).amax(-1)

@@ -92,7 +92,7 @@ class PSFTolerance:
             self.values[name].append(row[name])
         v = float(row["peak_ratio"].mean())
         if v < self.worst_val:
-            self.worst_val, self.worst_i, self.worst_psf = v, s, p.numpy()
+            self.worst_val, self.worst_i, self.worst_psf = v, s, p.cpu().numpy()
 
     def finish(self, res: ToleranceResult) -> None:
         nw = self.n_wl
@@ -101,7 +101,7 @@ class PSFTolerance:
                                    "rms_radius_um": np.array([v[1] for v in self.nominal]),
                                    "r80_um": np.array([v[2] for v in self.nominal]),
                                    "crop_energy": np.array([float(self.nominal_psf[i].sum()) for i in range(nw)])}
-        res.nominal_psf = self.nominal_psf.numpy()
+        res.nominal_psf = self.nominal_psf.cpu().numpy()
         res.worst_psf = self.worst_psf
         res.worst_sample = self.worst_i
         res.psf_pitch_um = self.pitch_um

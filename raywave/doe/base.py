@@ -164,7 +164,8 @@ class DOE(nn.Module):
             m = get_material(DEFAULT_MATERIAL if material is None else material)  # GlassNotFoundError
             if m.is_air:
                 raise ValueError("a DOE's material cannot be air")
-            dn = float(m.n(torch.tensor(self.design_wavelength, dtype=torch.float64)).detach()) - self.n_medium
+            wl0 = torch.tensor(self.design_wavelength, dtype=torch.float64, device="cpu")
+            dn = float(m.n(wl0).detach()) - self.n_medium
             if not dn > 0:
                 raise ValueError(f"the DOE material {m.name} (n = {dn + self.n_medium:.6g} at "
                                  f"{self.design_wavelength:g} µm) must be denser than the medium "

@@ -90,7 +90,7 @@ def _index(material, wavelength0: float) -> float:
     if not (math.isfinite(w) and w > 0):
         raise ValueError(f"the design wavelength must be > 0 µm, got {wavelength0!r}")
     with torch.no_grad():
-        n = float(_material(material).n(torch.tensor(w, dtype=torch.float64)))
+        n = float(_material(material).n(torch.tensor(w, dtype=torch.float64, device="cpu")))
     if not (math.isfinite(n) and n > 1):
         raise ValueError(f"the DOE material must have n > 1 at {w:g} µm (n = {n:g}): a relief in it cannot delay "
                          "the phase")

@@ -101,7 +101,7 @@ def _quiet_chief_rays(optics, f: torch.Tensor, wls: list[float], depth, z_doe: f
     are dropped: chief-ray vignetting is reported per PSF (:meth:`HybridLens._finish_fields`)."""
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always", VignettingWarning)
-        return chief_rays(optics, f, torch.tensor(wls, dtype=torch.float64), depth, z_doe, z_sen)
+        return chief_rays(optics, f, torch.tensor(wls, dtype=torch.float64, device=optics.device), depth, z_doe, z_sen)
 
 
 def _dark(fd: DOEField) -> bool:
@@ -357,7 +357,7 @@ class HybridLens(nn.Module):
         model (this engine and :mod:`raywave.models`) reads its ``wavelengths`` argument."""
         if wavelengths is None:
             return [self.lens.primary_wavelength]
-        return [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
+        return [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64, device="cpu").reshape(-1)]
 
     _wavelengths = wavelength_list  # the pre-issue-17 private name
 
@@ -459,7 +459,8 @@ class HybridLens(nn.Module):
         else:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", VignettingWarning)
-                cx = [chief_rays(optics, f, torch.tensor([wl], dtype=torch.float64), depth, zx, z_sen)[0][:, 0]
+                cx = [chief_rays(optics, f, torch.tensor([wl], dtype=torch.float64, device=optics.device), depth, zx,
+                                  z_sen)[0][:, 0]
                       for wl, zx in zip(wls, z_xps)]
         return [exit_pupil_field_steps(optics, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i], cd[i, j],
                                        cs[i, j], nodes=nodes, oversample=self.oversample, check=check,
@@ -609,7 +610,7 @@ class HybridLens(nn.Module):
                 pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays)
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
             nr.append(rr)
-        return torch.stack(psfs), torch.stack(centers), torch.stack(outs), torch.tensor(nr)
+        return torch.stack(psfs), torch.stack(centers), torch.stack(outs), torch.tensor(nr, device="cpu")
 
     def psf(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None, mode: str = "accurate",
             rays: int | None = None, cache=None, **kw) -> torch.Tensor:

@@ -43,8 +43,8 @@ def _as_psf(psf) -> torch.Tensor:
 
 def _coords(p: torch.Tensor, pitch: float):
     ny, nx = p.shape
-    x = (torch.arange(nx, dtype=torch.float64) - nx // 2) * pitch
-    y = (torch.arange(ny, dtype=torch.float64) - ny // 2) * pitch
+    x = (torch.arange(nx, dtype=torch.float64, device=p.device) - nx // 2) * pitch
+    y = (torch.arange(ny, dtype=torch.float64, device=p.device) - ny // 2) * pitch
     return x, y
 
 
@@ -78,7 +78,7 @@ def ee_curve(psf, pitch: float = 1.0, center=None, sub: int | None = None) -> tu
         sub = int(max(1, min(8, math.floor(math.sqrt(_MAX_SUBPIXELS / (ny * nx))))))
     cx, cy = centroid(p, pitch) if center is None else (float(center[0]), float(center[1]))
     x, y = _coords(p, pitch)
-    off = ((torch.arange(sub, dtype=torch.float64) + 0.5) / sub - 0.5) * pitch
+    off = ((torch.arange(sub, dtype=torch.float64, device=p.device) + 0.5) / sub - 0.5) * pitch
     xs = (x[:, None] + off[None, :]).reshape(-1) - cx  # (nx·sub,)
     ys = (y[:, None] + off[None, :]).reshape(-1) - cy
     r = torch.sqrt(ys[:, None] ** 2 + xs[None, :] ** 2).reshape(-1)
@@ -98,7 +98,7 @@ def ee_radius(psf, pitch: float = 1.0, fraction=0.8, center=None) -> float | lis
     for f in fr:
         if not 0 < f < 1:
             raise ValueError(f"an encircled-energy fraction lies in (0, 1), got {f!r}")
-        i = int(torch.searchsorted(ee, torch.tensor(float(f), dtype=torch.float64)))
+        i = int(torch.searchsorted(ee, torch.tensor(float(f), dtype=torch.float64, device=ee.device)))
         if i == 0:
             out.append(float(r[0]))
         elif i >= ee.numel():

@@ -30,7 +30,7 @@ def ray_phase_error(lens, z_doe: float, field=(0.0, 0.0), wavelength=None, n: in
     the chief ray (rad), ``opl64`` and ``opl`` (N,) the optical paths (mm) traced in float64 and in ``dtype``. The reference's constant is removed (only phase differences across the beam matter).
     """
     wl = lens.primary_wavelength if wavelength is None else float(wavelength)
-    g = torch.linspace(-1, 1, n, dtype=torch.float64)
+    g = torch.linspace(-1, 1, n, dtype=torch.float64, device=lens.device)
     px, py = torch.meshgrid(g, g, indexing="xy")
     keep = (px**2 + py**2) <= 1
     px, py = px[keep], py[keep]
@@ -43,7 +43,7 @@ def ray_phase_error(lens, z_doe: float, field=(0.0, 0.0), wavelength=None, n: in
             rays = point_source_rays(lens, field, wl, pupil=(px, py), aim="chief", depth=depth, dtype=dt)
             res = lens.trace(rays)
             nn_ = lens.surfaces[-1].material.n(res.wavelength).to(dt)
-            at = res.propagate_to_z(torch.tensor(z_doe, dtype=dt), nn_)
+            at = res.propagate_to_z(torch.tensor(z_doe, dtype=dt, device=lens.device), nn_)
         out[dt] = (at.o[0, 0, :, :2].detach().to(torch.float64), at.opl[0, 0].detach(), at.valid[0, 0])
     xy, opl64, v64 = out[torch.float64]
     _, opl_lo, v_lo = out[dtype]
@@ -51,7 +51,7 @@ def ray_phase_error(lens, z_doe: float, field=(0.0, 0.0), wavelength=None, n: in
     valid = v64 & v_lo
     # the phase each precision *forms*: k·OPL computed in that precision (then compared in float64)
     ph64 = k * opl64
-    ph_lo = (torch.tensor(k, dtype=dtype) * opl_lo).to(torch.float64)
+    ph_lo = (torch.tensor(k, dtype=dtype, device=opl_lo.device) * opl_lo).to(torch.float64)
     err = (ph_lo - ph64)[valid]
     err = err - err.mean()
     c = int(torch.argmin((px[valid] ** 2 + py[valid] ** 2)))

@@ -53,7 +53,7 @@ class ColorSpec:
     names: tuple | None = None
 
     def __post_init__(self):
-        wl = torch.as_tensor(self.wavelengths, dtype=torch.float64)
+        wl = torch.as_tensor(self.wavelengths, dtype=torch.float64, device="cpu")
         if wl.ndim != 2 or wl.numel() == 0:
             raise ValueError(f"ColorSpec.wavelengths: give one row of wavelengths (µm) per channel, got shape "
                              f"{tuple(wl.shape)}")
@@ -63,7 +63,7 @@ class ColorSpec:
         if self.weights is None:
             w = torch.full_like(wl, 1.0 / wl.shape[1])
         else:
-            w = torch.as_tensor(self.weights, dtype=torch.float64)
+            w = torch.as_tensor(self.weights, dtype=torch.float64, device="cpu")
             if w.shape != wl.shape:
                 raise ValueError(f"ColorSpec.weights: shape {tuple(w.shape)} must match the wavelengths' "
                                  f"{tuple(wl.shape)} (one weight per wavelength)")
@@ -83,12 +83,12 @@ class ColorSpec:
         return len(self.wavelengths)
 
     def wavelength_table(self) -> torch.Tensor:
-        """``(C, K)`` float64 wavelengths (µm)."""
-        return torch.tensor(self.wavelengths, dtype=torch.float64)
+        """``(C, K)`` float64 wavelengths (µm), a CPU tensor (host-side metadata, like every wavelength list)."""
+        return torch.tensor(self.wavelengths, dtype=torch.float64, device="cpu")
 
     def weight_table(self) -> torch.Tensor:
-        """``(C, K)`` float64 weights, each row summing to 1."""
-        return torch.tensor(self.weights, dtype=torch.float64)
+        """``(C, K)`` float64 weights, each row summing to 1 (a CPU tensor)."""
+        return torch.tensor(self.weights, dtype=torch.float64, device="cpu")
 
     def all_wavelengths(self) -> torch.Tensor:
         """``(C·K,)`` float64: every wavelength, channel after channel (the order :meth:`average` expects)."""
@@ -101,8 +101,8 @@ class ColorSpec:
     def sample(self, generator: torch.Generator | None = None) -> torch.Tensor:
         """``(C,)`` float64: one wavelength per channel drawn uniformly from its K (training)."""
         wl = self.wavelength_table()
-        idx = torch.randint(0, wl.shape[1], (wl.shape[0],), generator=generator)
-        return wl[torch.arange(wl.shape[0]), idx]
+        idx = torch.randint(0, wl.shape[1], (wl.shape[0],), generator=generator, device="cpu")
+        return wl[torch.arange(wl.shape[0], device="cpu"), idx]
 
     def average(self, psf: torch.Tensor, centers: torch.Tensor | None = None, pitch: float | None = None,
                 dim: int = 1):

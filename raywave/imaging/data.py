@@ -109,11 +109,11 @@ def random_crop_flip(img: torch.Tensor, size, generator: torch.Generator, flips:
     H, W = img.shape[-2:]
     if h > H or w > W:
         raise ValueError(f"crop {h}×{w} is larger than the image {H}×{W}")
-    r = torch.randint(0, H - h + 1, (1,), generator=generator).item()
-    c = torch.randint(0, W - w + 1, (1,), generator=generator).item()
+    r = torch.randint(0, H - h + 1, (1,), generator=generator, device="cpu").item()
+    c = torch.randint(0, W - w + 1, (1,), generator=generator, device="cpu").item()
     out = img[..., r:r + h, c:c + w]
     if flips:
-        f = torch.rand(2, generator=generator)
+        f = torch.rand(2, generator=generator, device="cpu")
         if f[0] < 0.5:
             out = out.flip(-1)
         if f[1] < 0.5:
@@ -313,12 +313,12 @@ def dead_leaves(size, generator: torch.Generator, r_min: float = 1.0, r_max: flo
     """
     h, w, r_max, s = _dead_leaves_args(size, r_min, r_max, alpha, supersample)
     H, W = h * s, w * s
-    img = torch.full((channels, H, W), 0.5, dtype=torch.float64)
-    filled = torch.zeros((H, W), dtype=torch.bool)
+    img = torch.full((channels, H, W), 0.5, dtype=torch.float64, device="cpu")
+    filled = torch.zeros((H, W), dtype=torch.bool, device="cpu")
     remaining = H * W
     # pixel-centre coordinates in output pixels
-    ys = (torch.arange(H, dtype=torch.float64) + 0.5) / s
-    xs = (torch.arange(W, dtype=torch.float64) + 0.5) / s
+    ys = (torch.arange(H, dtype=torch.float64, device="cpu") + 0.5) / s
+    xs = (torch.arange(W, dtype=torch.float64, device="cpu") + 0.5) / s
     drawn = 0
     batch = 512
     while remaining > 0 and drawn < max_discs:
@@ -355,13 +355,13 @@ def _disc_batch(generator: torch.Generator, batch: int, h: int, w: int, r_min: f
     """``batch`` random discs ``(r, cy, cx, colour)`` (pixels; float64), drawn from ``generator`` in this order:
     radii (power law r^-alpha on [r_min, r_max]), centre rows and columns (uniform over the image enlarged by
     r_max), colours (uniform in [0, 1]^channels)."""
-    u = torch.rand(batch, generator=generator, dtype=torch.float64)
+    u = torch.rand(batch, generator=generator, dtype=torch.float64, device="cpu")
     # inverse CDF of p(r) ∝ r^-alpha on [r_min, r_max]
     a1 = 1.0 - alpha
     r = (r_min ** a1 + u * (r_max ** a1 - r_min ** a1)) ** (1.0 / a1)
-    cy = -r_max + torch.rand(batch, generator=generator, dtype=torch.float64) * (h + 2 * r_max)
-    cx = -r_max + torch.rand(batch, generator=generator, dtype=torch.float64) * (w + 2 * r_max)
-    col = torch.rand(batch, channels, generator=generator, dtype=torch.float64)
+    cy = -r_max + torch.rand(batch, generator=generator, dtype=torch.float64, device="cpu") * (h + 2 * r_max)
+    cx = -r_max + torch.rand(batch, generator=generator, dtype=torch.float64, device="cpu") * (w + 2 * r_max)
+    col = torch.rand(batch, channels, generator=generator, dtype=torch.float64, device="cpu")
     return r, cy, cx, col
 
 

@@ -147,14 +147,14 @@ def fields_at(model_or_lens, points_mm, wavelength: float | None = None, depth=N
         raise ValueError(f"mapping must be 'chief_ray' or 'paraxial', got {mapping!r}")
     lens = _lens_of(model_or_lens)
     wl = float(lens.primary_wavelength if wavelength is None else wavelength)
-    pts = torch.as_tensor(points_mm, dtype=torch.float64).detach().cpu()
+    pts = torch.as_tensor(points_mm, dtype=torch.float64, device="cpu").detach()
     shape = pts.shape[:-1]
     flat = pts.reshape(-1, 2)
     rho = torch.linalg.vector_norm(flat, dim=-1)
     # paraxial scale s = dρ/d(tan θ) at the axis: ρ/tan θ = s (1 + O(θ²)) at two small angles, extrapolated
     # (Richardson)
     t0 = 0.02
-    h = _chief_heights(lens, torch.tensor([t0, 0.5 * t0], dtype=torch.float64), wl, depth)
+    h = _chief_heights(lens, torch.tensor([t0, 0.5 * t0], dtype=torch.float64, device="cpu"), wl, depth)
     s1, s2 = float(h[0]) / math.tan(math.radians(t0)), float(h[1]) / math.tan(math.radians(0.5 * t0))
     s = (4 * s2 - s1) / 3
     if not (math.isfinite(s) and s > 0):
@@ -208,8 +208,8 @@ def field_grid(model_or_lens, grid=(10, 10), sensor_size=None, wavelength: float
         mapping: "chief_ray" (real image height, default) or "paraxial" (rectilinear); see the module docstring.
     """
     w, h = sensor_size_of(model_or_lens, sensor_size)
-    pos = normalised_grid(grid)
-    pts = pos * torch.tensor([0.5 * w, 0.5 * h], dtype=torch.float64)
+    pos = normalised_grid(grid, device="cpu")  # host-side: field angles are CPU tensors
+    pts = pos * torch.tensor([0.5 * w, 0.5 * h], dtype=torch.float64, device="cpu")
     return fields_at(model_or_lens, pts, wavelength, depth, mapping)
 
 
@@ -375,7 +375,7 @@ class DOEFieldCache:
         if sig != self._signature:
             self.clear()
             self._signature = sig
-        wls = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
+        wls = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64, device="cpu").reshape(-1)]
         f = fields.detach().cpu().reshape(-1, 2)
         keys = [[self.key(depth, f[i], wl, mode, rays) for wl in wls] for i in range(f.shape[0])]
         missing_rows = [i for i in range(f.shape[0]) if any(k not in self._store for k in keys[i])]
@@ -424,7 +424,7 @@ def _wavelength_list(wavelengths) -> list[float]:
         from raywave.imaging.color import ColorSpec
 
         return [float(w) for w in ColorSpec().centers()]
-    wl = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
+    wl = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64, device="cpu").reshape(-1)]
     if not wl or not all(math.isfinite(w) and 0 < w <= 100 for w in wl):
         raise ValueError(f"wavelengths: give µm values > 0, got {wl!r}")
     return wl
@@ -608,7 +608,7 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
         raise ValueError(f"ks must be >= 1, got {ks}")
     f_nm, size = _map_fields(model, grid, fields, sensor_size, mapping, reference_wavelength, ds[0])
     n, m = f_nm.shape[:2]
-    positions = normalised_grid((n, m))
+    positions = normalised_grid((n, m), device="cpu")  # host-side, like the field angles
     flat = f_nm.reshape(-1, 2)
     chunks = _map_chunks(flat.shape[0], len(wls), batch)
     disable = _progress_disable(progress, len(ds) * len(wls) * flat.shape[0])
@@ -624,6 +624,7 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
     eo = torch.stack([torch.as_tensor(o) for o in outs]).transpose(1, 2).reshape(len(ds), len(wls), n, m)
     _warn_crop(eo.detach(), f_nm, ds, wls, ks)
     return PSFMap(psf=psf, centers=cen, fields=f_nm, positions=positions.to(f_nm.device),
-                  depths=torch.tensor(ds, dtype=torch.float64), wavelengths=torch.tensor(wls, dtype=torch.float64),
+                  depths=torch.tensor(ds, dtype=torch.float64, device="cpu"),
+                  wavelengths=torch.tensor(wls, dtype=torch.float64, device="cpu"),
                   pitch=pitch, sensor_size=None if size is None else tuple(size), energy_outside=eo,
                   info={"mapping": mapping if fields is None else "given"})

@@ -382,13 +382,13 @@ def depth_layer_weights(depth: torch.Tensor, layers) -> torch.Tensor:
 
     Linear interpolation in inverse depth 1/z (``inf`` → 0) between the two nearest layers, clamped outside
     their range; the weights are ≥ 0 and sum to 1 at every pixel."""
-    z = torch.as_tensor(layers, dtype=torch.float64).reshape(-1)
+    z = torch.as_tensor(layers, dtype=torch.float64, device="cpu").reshape(-1)
     if z.numel() == 0 or bool((z <= 0).any()):
         raise ValueError(f"layers: give depths > 0 mm (or inf), got {z.tolist()}")
     dm = torch.as_tensor(depth)
     if not bool((dm > 0).all()):
         raise ValueError("depth map: depths must be > 0 mm (or inf)")
-    inv = (1.0 / z).to(dm.dtype if dm.is_floating_point() else torch.float64)
+    inv = (1.0 / z).to(device=dm.device, dtype=dm.dtype if dm.is_floating_point() else torch.float64)
     order = torch.argsort(inv)
     inv_s = inv[order]
     t = (1.0 / dm.to(inv.dtype)).clamp(float(inv_s[0]), float(inv_s[-1]))

@@ -43,11 +43,11 @@ def _beam_field_points(lens, fields):
     if fields is None:
         pts = [(0.0, float(f)) for f in lens.fields] + [(0.0, 0.0)]
     else:
-        f = torch.as_tensor(fields, dtype=torch.float64)
+        f = torch.as_tensor(fields, dtype=torch.float64, device="cpu")
         if f.ndim == 0:
             f = torch.stack([torch.zeros_like(f), f])
         pts = [tuple(float(v) for v in row) for row in f.reshape(-1, 2)]
-    return torch.tensor(pts, dtype=torch.float64)
+    return torch.tensor(pts, dtype=torch.float64, device=lens.device)
 
 
 def beam_rays_at(lens, z: float, fields=None, wavelengths=None, depth=None, chief: bool = False):
@@ -64,12 +64,13 @@ def beam_rays_at(lens, z: float, fields=None, wavelengths=None, depth=None, chie
     """
     if not getattr(lens, "image_space_view", False):  # the image-space view's z axis is straight (lens.frames)
         lens.require_unfolded("beam_half_extent")
-    t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
-    hx, hy = hexapolar(6)
-    head = [torch.zeros(1, dtype=torch.float64)] if chief else []
+    t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64, device=lens.device)[:-1]
+    hx, hy = hexapolar(6, device=lens.device)
+    head = [torch.zeros(1, dtype=torch.float64, device=lens.device)] if chief else []
     px = torch.cat(head + [torch.cos(t), hx])
     py = torch.cat(head + [torch.sin(t), hy])
-    wls = lens.wavelengths if wavelengths is None else [float(w) for w in torch.as_tensor(wavelengths).reshape(-1)]
+    wls = (lens.wavelengths if wavelengths is None
+           else [float(w) for w in torch.as_tensor(wavelengths, device="cpu").reshape(-1)])
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # vignetted rays are left out (valid mask)
         rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full", depth=depth)
@@ -99,7 +100,8 @@ def image_circle_radius(lens, depth=None, wavelength: float | None = None) -> fl
     if not listed:
         raise ValueError("the lens lists no off-axis field (its 'fields'), so its image circle is unknown")
     wl = float(lens.primary_wavelength if wavelength is None else wavelength)
-    f = torch.stack([torch.zeros(len(listed), dtype=torch.float64), torch.tensor(listed, dtype=torch.float64)], -1)
+    f = torch.stack([torch.zeros(len(listed), dtype=torch.float64, device=lens.device),
+                     torch.tensor(listed, dtype=torch.float64, device=lens.device)], -1)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)
         out = lens.trace_to_image(chief_ray(lens, f, [wl], depth=depth))
@@ -206,7 +208,7 @@ def _sqrt0(x: torch.Tensor) -> torch.Tensor:
 def _fields(lens, fields):
     if fields is None:
         fields = lens.fields
-    f = torch.as_tensor(fields, dtype=torch.float64)
+    f = torch.as_tensor(fields, dtype=torch.float64, device=lens.device)
     if f.ndim == 0:
         f = f[None]
     if f.ndim == 1:
@@ -229,16 +231,16 @@ def wavefront_opd(lens, field=(0.0, 0.0), wavelength=None, pupil=("grid", 33), a
     if isinstance(pupil[0], str):
         from raywave.rays import pupil as patterns
 
-        px, py = patterns.sample(pupil[0], pupil[1])
+        px, py = patterns.sample(pupil[0], pupil[1], device=lens.device)
     else:
         px, py = pupil
-    px = torch.as_tensor(px, dtype=torch.float64).reshape(-1)
-    py = torch.as_tensor(py, dtype=torch.float64).reshape(-1)
+    px = torch.as_tensor(px, dtype=torch.float64, device=lens.device).reshape(-1)
+    py = torch.as_tensor(py, dtype=torch.float64, device=lens.device).reshape(-1)
     px = torch.cat([px.new_zeros(1), px])
     py = torch.cat([py.new_zeros(1), py])
     rays = point_source_rays(lens, field, wl, pupil=(px, py), aim=aim)
     out = lens.trace_to_image(rays)
-    n_img = lens.surfaces[-1].material.n(torch.as_tensor(out.wavelength)).to(out.dtype)
+    n_img = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
     xp_z = paraxial.exit_pupil(lens, lens.primary_wavelength)[0]
     chief = out[..., :1]
     centre = chief.o  # (F, W, 1, 3)
@@ -256,7 +258,7 @@ def wavefront_opd(lens, field=(0.0, 0.0), wavelength=None, pupil=("grid", 33), a
     t = -b + sign * _sqrt0(disc)
     opl = out.opl + n_img * t
     opd = opl[..., :1] - opl
-    wl_t = torch.as_tensor(wl, dtype=torch.float64).reshape(-1)[None, :, None]
+    wl_t = torch.as_tensor(wl, dtype=torch.float64, device=lens.device).reshape(-1)[None, :, None]
     opd_waves = opd / (wl_t * 1e-3)
     return opd_waves[..., 1:], px[1:], py[1:], out.valid[..., 1:]
 
@@ -328,8 +330,8 @@ def field_curvature(lens, fields=None, wavelength=None, delta: float = 1e-3):
     lens.require_unfolded("field_curvature", toward_plus_z=True)
     wl = lens.primary_wavelength if wavelength is None else wavelength
     f = _fields(lens, fields)
-    px = torch.tensor([0.0, 0.0, delta, -delta], dtype=torch.float64)
-    py = torch.tensor([delta, -delta, 0.0, 0.0], dtype=torch.float64)
+    px = torch.tensor([0.0, 0.0, delta, -delta], dtype=torch.float64, device=lens.device)
+    py = torch.tensor([delta, -delta, 0.0, 0.0], dtype=torch.float64, device=lens.device)
     out = lens.trace_to_image(point_source_rays(lens, f, [wl], pupil=(px, py)))
     o, d = out.o[:, 0], out.d[:, 0]
     z_img = lens.image_z()

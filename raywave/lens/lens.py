@@ -239,7 +239,7 @@ class Lens(nn.Module):
             r = min(x for x in (a.clear_radius(), b.clear_radius(), 1e30) if x is not None)
             if r >= 1e30:
                 r = 0.0
-            rs = torch.linspace(0, r, 65, dtype=torch.float64)
+            rs = torch.linspace(0, r, 65, dtype=torch.float64, device=self.device)
             zero = torch.zeros_like(rs)
             xs, ys = torch.cat([rs, zero]), torch.cat([zero, rs])  # along x and along y (toroids differ)
             rs = torch.cat([rs, rs])

@@ -65,7 +65,7 @@ def object_distance(lens, depth=None) -> float:
 def check_field_angles(fields) -> None:
     """Raise ValueError for a field angle (degrees, any shape) that is not finite or not below 90° in magnitude
     (tan θ: 90° is a ray parallel to the object plane, and 180° would silently trace like 0°)."""
-    f = torch.as_tensor(fields, dtype=torch.float64).detach().reshape(-1)
+    f = torch.as_tensor(fields, dtype=torch.float64, device="cpu").detach().reshape(-1)
     bad = ~torch.isfinite(f) | (f.abs() >= MAX_FIELD_ANGLE)
     if bool(bad.any()):
         raise ValueError(f"field angle {float(f[bad][0])!r}° is not a field angle: angles must be finite and "
@@ -203,8 +203,9 @@ def _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, 
     fields without a usable Jacobian (chief ray not aimed, ``ok_c`` False, or singular), where the identity
     stands in."""
     p0, _ = _stop_hit(lens, uv_c, fields, field_type, wl, depth, ep_z)
-    p1, _ = _stop_hit(lens, uv_c + torch.tensor([h, 0.0], dtype=torch.float64), fields, field_type, wl, depth, ep_z)
-    p2, _ = _stop_hit(lens, uv_c + torch.tensor([0.0, h], dtype=torch.float64), fields, field_type, wl, depth, ep_z)
+    dx, dy = torch.tensor([[h, 0.0], [0.0, h]], dtype=torch.float64, device=uv_c.device)
+    p1, _ = _stop_hit(lens, uv_c + dx, fields, field_type, wl, depth, ep_z)
+    p2, _ = _stop_hit(lens, uv_c + dy, fields, field_type, wl, depth, ep_z)
     j = torch.stack([(p1 - p0) / h, (p2 - p0) / h], -1)  # (F, W, 1, 2, 2)
     # A field whose chief ray cannot be aimed (e.g. beyond the lens's field) has no usable Jacobian.
     det = torch.linalg.det(j)
@@ -270,7 +271,8 @@ def point_source_rays(
     """
     field_type = field_type or lens.field_type
     fields = _as_fields(field, torch.float64, lens.device)
-    wl = torch.as_tensor(lens.primary_wavelength if wavelength is None else wavelength, dtype=torch.float64).reshape(-1)
+    wl = torch.as_tensor(lens.primary_wavelength if wavelength is None else wavelength, dtype=torch.float64,
+                         device=lens.device).reshape(-1)
     px, py = _pupil_samples(lens, pupil, generator)
     F, W, N = fields.shape[0], wl.numel(), px.numel()
     pdata = lens.paraxial()
@@ -288,14 +290,20 @@ def point_source_rays(
     return rays
 
 
+def chief_pupil(lens) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pupil sample ``(px, py)`` of the chief ray: the stop centre, (1,) float64 each on the lens's device."""
+    zero = torch.zeros(1, dtype=torch.float64, device=lens.device)
+    return zero, zero
+
+
 def chief_ray(lens, field=(0.0, 0.0), wavelength=None, field_type: str | None = None, depth=None) -> RayBundle:
     """The chief ray(s) (F, W, 1): aimed at the centre of the stop."""
-    return point_source_rays(lens, field, wavelength, pupil=(torch.zeros(1), torch.zeros(1)), field_type=field_type,
-                             aim="full", depth=depth)
+    return point_source_rays(lens, field, wavelength, pupil=chief_pupil(lens), field_type=field_type, aim="full",
+                             depth=depth)
 
 
 def marginal_rays(lens, field=(0.0, 0.0), wavelength=None, field_type: str | None = None) -> RayBundle:
     """The four marginal rays (F, W, 4) at pupil (0, 1), (0, -1), (1, 0), (-1, 0) (edge of the stop)."""
-    px = torch.tensor([0.0, 0.0, 1.0, -1.0])
-    py = torch.tensor([1.0, -1.0, 0.0, 0.0])
+    px = torch.tensor([0.0, 0.0, 1.0, -1.0], dtype=torch.float64, device=lens.device)
+    py = torch.tensor([1.0, -1.0, 0.0, 0.0], dtype=torch.float64, device=lens.device)
     return point_source_rays(lens, field, wavelength, pupil=(px, py), field_type=field_type, aim="full")

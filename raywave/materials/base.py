@@ -58,7 +58,7 @@ class ConstantIndex(Material):
 
     def n(self, wavelength: torch.Tensor) -> torch.Tensor:
         if not isinstance(wavelength, torch.Tensor) or not wavelength.is_floating_point():
-            wavelength = torch.as_tensor(wavelength, dtype=torch.float64)
+            wavelength = torch.as_tensor(wavelength, dtype=torch.float64, device="cpu")
         return self.index.to(device=wavelength.device, dtype=wavelength.dtype).expand(wavelength.shape)
 
     @property

@@ -21,7 +21,7 @@ class WavelengthRangeWarning(UserWarning):
 def _as_wavelength(wavelength) -> torch.Tensor:
     """Python numbers and integer tensors become float64; floating tensors keep their dtype."""
     if not isinstance(wavelength, torch.Tensor):
-        return torch.as_tensor(wavelength, dtype=torch.float64)
+        return torch.as_tensor(wavelength, dtype=torch.float64, device="cpu")
     return wavelength if wavelength.is_floating_point() else wavelength.to(torch.float64)
 
 
@@ -49,7 +49,7 @@ class DispersiveGlass(Material):
         if family == "rii" and formula not in formulas.RII_FORMULAS:
             raise ValueError(f"glass {name!r}: unknown refractiveindex.info formula {formula!r} (known: 1–9)")
         self.family, self.formula = family, formula
-        self.register_buffer("coefficients", torch.as_tensor(coefficients, dtype=torch.float64).clone())
+        self.register_buffer("coefficients", torch.as_tensor(coefficients, dtype=torch.float64, device="cpu").clone())
         self.catalog = catalog
         self.provenance = provenance
         self.explicit_catalog = explicit_catalog

@@ -108,7 +108,7 @@ def debye_field(rho, na: float, wavelength: float, z: float = 0.0, n: float = 1.
         n_theta: quadrature nodes (default :func:`auto_n_theta` for the largest ρ).
     Returns: complex128 tensor of ``rho``'s shape; ∫∫|U|² dx dy over a whole plane is :func:`debye_total_power`.
     """
-    rho = np.asarray(torch.as_tensor(rho, dtype=torch.float64).cpu(), dtype=np.float64)
+    rho = np.asarray(torch.as_tensor(rho, dtype=torch.float64, device="cpu"), dtype=np.float64)
     shape, rho = rho.shape, rho.reshape(-1)
     if n_theta is None:
         n_theta = auto_n_theta(na, wavelength, float(rho.max(initial=0.0)), z, n)

@@ -330,7 +330,7 @@ def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: fl
         pitch = lens.pixel_pitch or 1e-3
     with torch.no_grad():
         z_s = float(lens.image_z() if sensor_z is None else sensor_z)
-        n_img = float(lens.surfaces[-1].material.n(torch.tensor(wl, dtype=dtype)))
+        n_img = float(lens.surfaces[-1].material.n(torch.tensor(wl, dtype=dtype, device="cpu")))
         sph = _reference_sphere(lens, field, wl, depth, z_s, n_img)
         rays, out, vig, cover, traced = _trace_pupil(lens, field, wl, depth, n_pupil, z_s, n_img)
         q, opl, geom = _onto_sphere(out, sph, n_img)
@@ -459,12 +459,12 @@ class ExitPupilModel(PSFModel):
             pr, cr, orow, rr = [], [], [], []
             for wl in wls:
                 psf, center, inside, n_rays = self._one(tuple(float(v) for v in f[i]), wl, ks, depth)
-                pr.append(psf), cr.append(torch.tensor(center, dtype=torch.float64))
-                orow.append(torch.tensor(1.0 - inside, dtype=torch.float64)), rr.append(n_rays)
+                pr.append(psf), cr.append(torch.tensor(center, dtype=torch.float64, device=psf.device))
+                orow.append(torch.tensor(1.0 - inside, dtype=torch.float64, device=psf.device)), rr.append(n_rays)
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
             nr.append(rr)
         return ModelPSFResult(torch.stack(psfs), torch.stack(centers), torch.stack(outs), hl.sensor_pitch,
-                              torch.tensor(nr), model=self.name)
+                              torch.tensor(nr, device="cpu"), model=self.name)
 
     def _one(self, field, wl: float, ks: int, depth):
         """One PSF. ``oversample`` None: :func:`huygens_psf`'s Gauss–Legendre pixel integration. Otherwise

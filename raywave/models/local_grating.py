@@ -229,7 +229,8 @@ class LocalGratingModel(PSFModel):
         f = self._fields(fields)
         wls = self._wavelengths(wavelengths)
         with torch.no_grad():
-            _, cs, _ = chief_rays(self.lens, f, torch.tensor(wls, dtype=torch.float64), depth, hl.doe_z(),
+            _, cs, _ = chief_rays(self.lens, f, torch.tensor(wls, dtype=torch.float64, device=self.lens.device), depth,
+                                  hl.doe_z(),
                                   hl.sensor_z())
         psfs, centers, outs, nr, reports = [], [], [], [], []
         for i in range(f.shape[0]):
@@ -258,7 +259,7 @@ class LocalGratingModel(PSFModel):
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
             nr.append(rr), reports.append(rep_row)
         return ModelPSFResult(torch.stack(psfs), torch.stack(centers), torch.stack(outs), hl.sensor_pitch,
-                              torch.tensor(nr), model=self.name, info={"discontinuity": reports})
+                              torch.tensor(nr, device="cpu"), model=self.name, info={"discontinuity": reports})
 
     def _warn(self, field, wl: float, rep: dict) -> None:
         where = ""

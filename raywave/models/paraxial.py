@@ -47,11 +47,11 @@ _PLANES = ("sensor", "principal")
 
 
 def _image_index(lens, wavelength: float) -> float:
-    return float(lens.surfaces[-1].material.n(torch.tensor(wavelength, dtype=torch.float64)).detach())
+    return float(lens.surfaces[-1].material.n(torch.tensor(wavelength, dtype=torch.float64, device="cpu")).detach())
 
 
 def _object_index(lens, wavelength: float) -> float:
-    return float(lens.object_material.n(torch.tensor(wavelength, dtype=torch.float64)).detach())
+    return float(lens.object_material.n(torch.tensor(wavelength, dtype=torch.float64, device="cpu")).detach())
 
 
 def _image_distance(efl: float, n_obj: float, n_img: float, s: float) -> float:

@@ -111,8 +111,9 @@ class PupilModel(PSFModel):
         z_doe, z_sen = hl.doe_z(), hl.sensor_z()
         with torch.no_grad():
             if chief is None:
-                cd, cs, _ = chief_rays(lens, torch.as_tensor(field, dtype=torch.float64).reshape(1, 2),
-                                       torch.tensor([float(wavelength)], dtype=torch.float64), depth, z_doe, z_sen)
+                f1 = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(1, 2)
+                w1 = torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device)
+                cd, cs, _ = chief_rays(lens, f1, w1, depth, z_doe, z_sen)
                 chief = (cd[0, 0], cs[0, 0])
             cd, cs = chief
             px, py = pupil_patterns.grid(self.rays, "circle", device=lens.device)
@@ -167,7 +168,8 @@ class PupilModel(PSFModel):
         f = self._fields(fields)
         wls = self._wavelengths(wavelengths)
         with torch.no_grad():
-            cd, cs, _ = chief_rays(self.lens, f, torch.tensor(wls, dtype=torch.float64), depth, hl.doe_z(),
+            cd, cs, _ = chief_rays(self.lens, f, torch.tensor(wls, dtype=torch.float64, device=self.lens.device), depth,
+                                   hl.doe_z(),
                                    hl.sensor_z())
         fds, coef, resid, pupils = [], [], [], []
         for i in range(f.shape[0]):
@@ -182,7 +184,7 @@ class PupilModel(PSFModel):
                     crow.append([c / lam_mm for c in fit.coefficients.tolist()])
                     rrow.append(fit.residual_rms / lam_mm), prow.append([*fit.center, fit.radius])
             fds.append(row), coef.append(crow), resid.append(rrow), pupils.append(prow)
-        info = {"zernike_waves": torch.tensor(coef, dtype=torch.float64),
-                "residual_rms_waves": torch.tensor(resid, dtype=torch.float64),
-                "pupil": torch.tensor(pupils, dtype=torch.float64), "n_terms": self.n_terms}
+        info = {"zernike_waves": torch.tensor(coef, dtype=torch.float64, device="cpu"),
+                "residual_rms_waves": torch.tensor(resid, dtype=torch.float64, device="cpu"),
+                "pupil": torch.tensor(pupils, dtype=torch.float64, device="cpu"), "n_terms": self.n_terms}
         return propagate_fields(hl, fds, ks, self.name, info)

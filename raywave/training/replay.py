@@ -114,7 +114,7 @@ class OpticsStep:
         """A step whose draws are ``sampler(generator)`` and whose chunk seed is drawn from ``generator`` too
         (so one training generator drives everything, and its state after this call is reproducible)."""
         draws = sampler(generator) if sampler is not None else None
-        seed = int(torch.randint(0, 2 ** 62, (1,), generator=generator))
+        seed = int(torch.randint(0, 2 ** 62, (1,), generator=generator, device=generator.device))
         return cls(compute_chunk, n_chunks, draws=draws, seed=seed, **kw)
 
     # ------------------------------------------------------------------ evaluation

@@ -51,7 +51,7 @@ class StageSteps:
     # raywave.training.parallel.DistributedTrainer splits the work and sums the gradients through these)
     def _parts(self, batch: int, micro: int, loss: str) -> list:
         """The index sets (micro-batches) of a batch of ``batch`` images that this process renders."""
-        return list(torch.arange(batch).chunk(max(1, min(int(micro), batch))))
+        return list(torch.arange(batch, device="cpu").chunk(max(1, min(int(micro), batch))))
 
     def _replay(self, step: OpticsStep, leaf_grads_partial: bool) -> None:
         """Replay ``step``'s chunks with autograd (``leaf_grads_partial``: ∂L/∂PSF holds this process's share
@@ -123,7 +123,7 @@ class StageSteps:
             self._frozen_maps["all"] = tuple(t.detach() for t in step.forward())  # (D·F, C·K, ...)
         psf, cen = self._frozen_maps["all"]
         C, K = table.shape
-        d = torch.as_tensor(draws, dtype=torch.float64).reshape(C, 1)
+        d = torch.as_tensor(draws, dtype=torch.float64, device="cpu").reshape(C, 1)
         idx = [c * K + int((table[c] - d[c]).abs().argmin()) for c in range(C)]
         return psf[:, idx], cen[:, idx]
 

@@ -264,7 +264,7 @@ class Trainer(FabricationSchedule, StageSteps):
         per_epoch = max(n // sc.batch_size, 1)
         epoch, b = divmod(step, per_epoch)
         epoch += 1000 if stage == "stage2" else 0  # other crops than stage 1's
-        perm = torch.randperm(n, generator=_epoch_generator(self.cfg.seed, epoch))
+        perm = torch.randperm(n, generator=_epoch_generator(self.cfg.seed, epoch), device="cpu")
         if hasattr(self.train_data, "set_epoch"):
             self.train_data.set_epoch(epoch)
         idx = [int(perm[(b * sc.batch_size + i) % n]) for i in range(sc.batch_size)]
@@ -293,7 +293,7 @@ class Trainer(FabricationSchedule, StageSteps):
 
     def _random_uv(self) -> tuple[float, float]:
         """A uniformly random place ``(u, v)`` on the sensor (normalised coordinates, the run's generator)."""
-        uv = torch.rand(2, generator=self.gen, dtype=torch.float64) * 2 - 1
+        uv = torch.rand(2, generator=self.gen, dtype=torch.float64, device="cpu") * 2 - 1
         return float(uv[0]), float(uv[1])
 
     def _lit_uv(self, uv, positions, lit) -> tuple[float, float]:
@@ -303,7 +303,7 @@ class Trainer(FabricationSchedule, StageSteps):
         if lit is None:
             return uv
         for _ in range(_LIT_DRAWS - 1):
-            if bool(lit[_nearest_node(positions, torch.tensor(uv, dtype=torch.float64))]):
+            if bool(lit[_nearest_node(positions, torch.tensor(uv, dtype=torch.float64, device=positions.device))]):
                 break
             uv = self._random_uv()
         n, k = int(lit.numel()), int((~lit).sum())
@@ -327,9 +327,10 @@ class Trainer(FabricationSchedule, StageSteps):
         if jit <= 0:
             return self.fields, self.positions
         n, m = self.grid
-        r = torch.rand(2, generator=self.gen if generator is None else generator, dtype=torch.float64) - 0.5
-        pos = normalised_grid(self.grid) + r * jit * torch.tensor([2.0 / m, 2.0 / n], dtype=torch.float64)
-        half = torch.tensor([0.5 * self.sensor_size[0], 0.5 * self.sensor_size[1]], dtype=torch.float64)
+        r = torch.rand(2, generator=self.gen if generator is None else generator, dtype=torch.float64, device="cpu")
+        pos = normalised_grid(self.grid, device="cpu") + (r - 0.5) * jit * torch.tensor([2.0 / m, 2.0 / n],
+                                                                          dtype=torch.float64, device="cpu")
+        half = torch.tensor([0.5 * self.sensor_size[0], 0.5 * self.sensor_size[1]], dtype=torch.float64, device="cpu")
         with torch.no_grad():
             fields = fields_at(self.hl, pos * half, depth=self.depths[0]).reshape(-1, 2)
         if self.cache is not None:
@@ -356,7 +357,8 @@ class Trainer(FabricationSchedule, StageSteps):
             return res.psf, res.center
 
         if wavelengths is not None:
-            return OpticsStep(compute, nf * len(self.depths), draws=torch.as_tensor(wavelengths, dtype=torch.float64))
+            return OpticsStep(compute, nf * len(self.depths), draws=torch.as_tensor(wavelengths, dtype=torch.float64,
+                                                                                              device="cpu"))
         return OpticsStep.draw(compute, nf * len(self.depths), lambda g: self.color.sample(g), self.gen)
 
     def _as_map(self, psf, cen):

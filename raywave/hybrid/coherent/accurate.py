@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
-from raywave.lens.sources import entrance_plane_z, point_source_rays, source_weight
+from raywave.lens.sources import chief_pupil, entrance_plane_z, point_source_rays, source_weight
 from raywave.utils.phasor import polar
 from raywave.utils.safe import safe_sqrt
 from raywave.wave.field import cubic_matrix, edge_coverage, upsample_nodes
@@ -224,7 +224,7 @@ def _trace_nodes(lens, nd: _Nodes, field, wl, depth, z_doe: float, field_type, c
     and passed (N,)."""
     ep_z, r_ep = entrance_pupil(lens) if entrance is None else entrance
     if chief_uv is None:
-        ep_rays = point_source_rays(lens, field, wl, pupil=(torch.zeros(1), torch.zeros(1)), aim="full", depth=depth)
+        ep_rays = point_source_rays(lens, field, wl, pupil=chief_pupil(lens), aim="full", depth=depth)
         o, d = ep_rays.o[0, 0, 0].detach(), ep_rays.d[0, 0, 0].detach()
         chief_uv = o[:2] + d[:2] * (ep_z - o[2]) / d[2]
     uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device).reshape(1, 2)

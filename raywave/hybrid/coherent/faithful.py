@@ -30,8 +30,10 @@ def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_s
     field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
     dev = lens.device
-    r = 1.05 * torch.sqrt(torch.rand(n_rays, generator=generator, dtype=torch.float64))
-    t = 2 * math.pi * torch.rand(n_rays, generator=generator, dtype=torch.float64)
+    # drawn where the generator lives (the CPU by default: the same sample on every device), then moved
+    gdev = generator.device if generator is not None else "cpu"
+    r = 1.05 * torch.sqrt(torch.rand(n_rays, generator=generator, dtype=torch.float64, device=gdev)).to(dev)
+    t = 2 * math.pi * torch.rand(n_rays, generator=generator, dtype=torch.float64, device=gdev).to(dev)
     with warnings.catch_warnings():
         # the pupil is overfilled on purpose (r ≤ 1.05: the stop clips the rim), so vignetting is expected here;
         # HybridLens reports a field that no light reaches. Other warnings (wavelength range, ...) pass through.

@@ -8,7 +8,8 @@ import warnings
 
 import torch
 
-from raywave.lens.sources import VignettingWarning, entrance_plane_z, point_source_rays, source_weight
+from raywave.lens.sources import (VignettingWarning, chief_pupil, entrance_plane_z, point_source_rays,
+                                  source_weight)
 from raywave.utils.errors import check_allocation
 from raywave.wave.grid import Grid
 from raywave.hybrid.coherent.record import DOEField, SamplingWarning
@@ -32,7 +33,7 @@ def chief_rays(lens, fields, wavelengths, depth, z_doe: float, z_sensor: float):
 
     Returns ``(at_doe, at_sensor, uv)``: bundles of shape (F, W) and the chief rays' entrance-plane points
     (F, W, 2) mm (detached)."""
-    cr = point_source_rays(lens, fields, wavelengths, pupil=(torch.zeros(1), torch.zeros(1)), aim="full", depth=depth)
+    cr = point_source_rays(lens, fields, wavelengths, pupil=chief_pupil(lens), aim="full", depth=depth)
     o, d = cr.o[:, :, 0].detach(), cr.d[:, :, 0].detach()
     uv = o[..., :2] + d[..., :2] * ((entrance_plane_z(lens) - o[..., 2:]) / d[..., 2:])
     out = lens.trace(cr, apertures=False)
@@ -57,8 +58,8 @@ def footprints(lens, fields, wavelengths, depth, z_doe: float, n_grid: int = 15,
     """Lit bounding boxes ``(xmin, xmax, ymin, ymax)`` (mm) on the plane ``z_doe`` of fields (F, 2) at wavelengths
     (W,) µm, a nested list ``[F][W]`` (None where every ray is vignetted), from one trace of all F×W beams (~250
     rays each: the rim of the pupil and a grid inside, every ray aimed at its stop point). See :func:`_footprint`."""
-    t = torch.linspace(0, 2 * math.pi, n_rim + 1, dtype=torch.float64)[:-1]
-    g = torch.linspace(-1, 1, n_grid, dtype=torch.float64)
+    t = torch.linspace(0, 2 * math.pi, n_rim + 1, dtype=torch.float64, device=lens.device)[:-1]
+    g = torch.linspace(-1, 1, n_grid, dtype=torch.float64, device=lens.device)
     gx, gy = torch.meshgrid(g, g, indexing="xy")
     inside = gx**2 + gy**2 <= 1
     px = torch.cat([torch.cos(t), gx[inside]])
@@ -109,7 +110,7 @@ def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: i
     """:func:`doe_clipping` of fields (F, 2) at wavelengths (W,) µm from one trace of all F×W beams: a nested list
     ``[F][W]`` of ``(blocked, half)``. (The rays' aiming iterates over the whole batch, so the values can differ
     from single calls' in the last digits of the aim: ~1e-12 mm on the stop.)"""
-    g = (torch.arange(n_grid, dtype=torch.float64) + 0.5) / n_grid * 2 - 1
+    g = (torch.arange(n_grid, dtype=torch.float64, device=lens.device) + 0.5) / n_grid * 2 - 1
     gx, gy = torch.meshgrid(g, g, indexing="xy")
     inside = gx**2 + gy**2 <= 1
     with torch.no_grad(), warnings.catch_warnings():

@@ -256,7 +256,7 @@ def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str
         # a diagnostic trace of nudged sources through the rim, apertures off: the field construction of the
         # source itself reports its vignetting. Other warnings pass through.
         warnings.simplefilter("ignore", VignettingWarning)
-        rays = point_source_rays(lens, srcs, torch.tensor([float(wavelength)], dtype=torch.float64),
+        rays = point_source_rays(lens, srcs, torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device),
                                  pupil=(c, s), aim="full", depth=depth, field_type=field_type)
         out, rec = lens.trace(rays, apertures=False, record=True)
     o, d = out.o[:, 0].reshape(nf, 5, k, 3), out.d[:, 0].reshape(nf, 5, k, 3)

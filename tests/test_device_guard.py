@@ -1,0 +1,68 @@
+"""Device correctness without a GPU: the user paths run with :class:`device_guard.StrayTensors` active, so a tensor
+that raywave makes without a device on the data path (a CPU tensor beside a GPU lens's tensors) fails here, on
+the CPU, as it would on CUDA (tests/test_device_paths.py runs the same paths on a GPU where one is present).
+
+Covered: PSF maps (default exit-pupil edge, the DOE-plane edge, the DOE-field cache), the replayed training step
+of a hybrid lens (both edges) and a tiny end-to-end training run (pre-stage, stage 1 with the quantised DOE,
+stage 2, evaluation, export)."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+from device_guard import StrayTensors
+from raywave.assembly.build import load_hybrid
+from raywave.imaging import DOEFieldCache, psf_map
+
+
+@pytest.mark.parametrize("stop_edge", [None, "doe"])
+def test_psf_map_makes_no_stray_tensors(stop_edge):
+    hl = load_hybrid("hybrid_asphere", stop_edge=stop_edge)
+    cache = DOEFieldCache(max_bytes=None)
+    with warnings.catch_warnings(), StrayTensors():
+        warnings.simplefilter("ignore")
+        maps = [psf_map(hl, (1, 2), wavelengths=(0.53,), ks=32, cache=c) for c in (None, cache, cache)]
+    assert all(torch.isfinite(m.psf).all() for m in maps)
+
+
+@pytest.mark.parametrize("stop_edge", ["doe", "exit_pupil"])
+def test_replayed_step_makes_no_stray_tensors(stop_edge):
+    import test_training_replay as t
+
+    g = torch.Generator().manual_seed(1)
+    patches, target = (torch.rand(9, 3, 24, 24, dtype=torch.float64, generator=g) for _ in range(2))
+    weight = 0.3 * torch.randn(3, 3, 3, 3, dtype=torch.float64, generator=g)
+    hl = t.small_hybrid(stop_edge=stop_edge)
+    step = t.make_step(hl, 3, 2, torch.Generator().manual_seed(7))
+    with warnings.catch_warnings(), StrayTensors():
+        warnings.simplefilter("ignore")
+        psf, center = step.leaves()
+        t.render_and_loss(psf, center, patches, target, weight).backward()
+        step.backward()
+    assert hl.doe.phase_map.grad is not None and torch.isfinite(hl.doe.phase_map.grad).all()
+
+
+def test_training_run_makes_no_stray_tensors(tiny_lens_file, tmp_path):
+    from test_training_e2e import _cfg
+
+    from raywave.training.trainer import Trainer
+
+    tr = Trainer(_cfg(tmp_path, tiny_lens_file), tmp_path / "run", progress=False)
+    with warnings.catch_warnings(), StrayTensors():
+        warnings.simplefilter("ignore")
+        tr.run()
+        tr.evaluate()
+        folder = tr.export()
+    assert (folder / "masks" / "masks.gds").exists()
+
+
+def test_the_guard_catches_a_stray_tensor():
+    """The guard itself: a raywave function that makes a tensor without a device fails under it."""
+    from raywave.imaging.psfmap import normalised_grid
+
+    with StrayTensors():
+        assert normalised_grid((2, 2)).device.type == "meta"  # device=None: the caller's choice, here none
+        assert normalised_grid((2, 2), device="cpu").device.type == "cpu"
