@@ -66,3 +66,40 @@ def test_the_guard_catches_a_stray_tensor():
     with StrayTensors():
         assert normalised_grid((2, 2)).device.type == "meta"  # device=None: the caller's choice, here none
         assert normalised_grid((2, 2), device="cpu").device.type == "cpu"
+
+
+def _model_names():
+    from raywave.models.interface import MODEL_NAMES
+
+    return list(MODEL_NAMES)
+
+
+@pytest.mark.parametrize("name", _model_names())
+def test_comparison_models_make_no_stray_tensors(name):
+    """Every PSF model of raywave.models (and the engine through the same interface), on axis and off axis."""
+    from test_models_compare import LAM, ideal_hybrid
+
+    from raywave.models.interface import make_model
+
+    m = make_model(name, ideal_hybrid(n=1100), **({"n_pupil": 64} if name == "exit_pupil" else {}))
+    with warnings.catch_warnings(), StrayTensors():
+        warnings.simplefilter("ignore")
+        r = m.psf_result([(0.0, 0.0), (0.0, 2.0)], [LAM], ks=16)
+    assert torch.isfinite(r.psf).all() and r.psf.shape == (2, 1, 16, 16)
+
+
+def test_edof_run_with_the_paraxial_baseline_makes_no_stray_tensors(tiny_lens_file, tmp_path):
+    """Several depths, the EDoF loss and the paraxial baseline's DOE design (built inside the guard too)."""
+    from test_training_baselines import CFG
+
+    from raywave.training.config import load_config
+    from raywave.training.trainer import Trainer
+
+    p = tmp_path / "edof.yaml"
+    p.write_text(CFG.format(lens=tiny_lens_file, baseline="paraxial"))
+    with warnings.catch_warnings(), StrayTensors():
+        warnings.simplefilter("ignore")
+        for baseline in (False, True):
+            tr = Trainer(load_config(p), tmp_path / f"run{int(baseline)}", baseline=baseline, progress=False)
+            tr.run()
+            tr.evaluate()

@@ -75,7 +75,7 @@ def build_hybrid(lc):
     if lc.doe == "pixel":
         doe = hl.doe
         _check_pixel_doe_memory(doe.shape, doe.pitch, lc.file)
-        new = PixelDOE(torch.zeros(doe.shape, dtype=torch.float64), doe.pitch, aperture=doe.aperture)
+        new = PixelDOE(torch.zeros(doe.shape, dtype=torch.float64, device="cpu"), doe.pitch, aperture=doe.aperture)
         hl = hl.with_doe(new)
     elif lc.doe != "file":
         raise ValueError(f"lens.doe must be 'pixel' or 'file', got {lc.doe!r}")
@@ -152,7 +152,7 @@ class Trainer(FabricationSchedule, StageSteps):
         self.sensor_size = sensor_size_of(self.hl)
         with torch.no_grad():
             self.fields = field_grid(self.hl, self.grid, depth=self.depths[0]).reshape(-1, 2)
-        self.positions = normalised_grid(self.grid).to(self.device)
+        self.positions = normalised_grid(self.grid, device=self.device)
         self.pitch = self.hl.sensor_pitch
         with torch.random.fork_rng(devices=[]):  # the initial weights depend on the seed only (global RNG untouched)
             torch.manual_seed(int(cfg.seed))
