@@ -14,7 +14,7 @@ Each case runs in its own process; memory is the peak resident memory above the 
 before the first iteration (Linux VmHWM), time the median of the following iterations. Prints JSON (``-o``
 writes it too).
 
-    OMP_NUM_THREADS=1 python benchmarks/replay.py [--grids 5 10] [--iters 3] [-o replay.json]
+    OMP_NUM_THREADS=1 python benchmarks/replay.py [--grids 5 10] [--iters 3] [--device cuda] [-o replay.json]
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ KS, IMG, DOE_N, DOE_PITCH = 32, 480, 256, 2e-3
 WAVELENGTHS = (0.66, 0.53, 0.47)
 
 
-def _case(grid: int, mode: str, iters: int) -> dict:
+def _case(grid: int, mode: str, iters: int, device: str = "cpu") -> dict:
     import warnings
 
     import torch
@@ -50,19 +50,21 @@ def _case(grid: int, mode: str, iters: int) -> dict:
     lens = ideal_lens(4.0, f_number=8.0, wavelengths=(0.55,))
     lens.requires_grad_(False)
     doe = PixelDOE(0.3 * torch.randn(DOE_N, DOE_N, dtype=torch.float64), DOE_PITCH)
-    hl = HybridLens(lens, doe, 0.5, sensor_pitch=2e-3)
-    net = UNet(width=8, depth=2).double()
+    dev = torch.device(device)
+    cuda = dev.type == "cuda"
+    hl = HybridLens(lens, doe, 0.5, sensor_pitch=2e-3).to(dev)
+    net = UNet(width=8, depth=2).double().to(dev)
     t = torch.linspace(-5.0, 5.0, grid, dtype=torch.float64)
     fields = torch.stack(torch.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2).flip(-1)
     TILE = IMG // grid  # the image is the same for every grid: only the number of PSFs changes
-    img = torch.rand(1, 3, IMG, IMG, dtype=torch.float64)
+    img = torch.rand(1, 3, IMG, IMG, dtype=torch.float64).to(dev)
 
     def compute(ctx):
         return hl.psf(fields[ctx.index:ctx.index + 1], WAVELENGTHS, ks=KS, rays=32)
 
     def render(psf):  # psf (F, 3, ks, ks) → blurred image, tile (i, j) with PSF i*grid + j
         tiles = img.reshape(3, grid, TILE, grid, TILE).permute(1, 3, 0, 2, 4).reshape(grid * grid, 3, TILE, TILE)
-        pad = torch.zeros(grid * grid, 3, TILE, TILE, dtype=psf.dtype)
+        pad = torch.zeros(grid * grid, 3, TILE, TILE, dtype=psf.dtype, device=psf.device)
         pad[..., :KS, :KS] = psf
         pad = torch.roll(pad, (-(KS // 2), -(KS // 2)), (-2, -1))
         out = torch.fft.irfft2(torch.fft.rfft2(tiles) * torch.fft.rfft2(pad), s=(TILE, TILE))
@@ -77,17 +79,23 @@ def _case(grid: int, mode: str, iters: int) -> dict:
             (psf,) = step.leaves()
             (net(render(psf)) - img).abs().mean().backward()
             step.backward()
-        g = float(doe.phase_map.grad.abs().sum())
-        doe.phase_map.grad = None
+        g = float(hl.doe.phase_map.grad.abs().sum())  # (a float: also the GPU's synchronisation)
+        hl.doe.phase_map.grad = None
         net.zero_grad(set_to_none=True)
         return g
 
     rss0 = rss_mb()
     reset_peak()
+    if cuda:
+        torch.cuda.synchronize(dev)
+        base = torch.cuda.memory_allocated(dev)
+        torch.cuda.reset_peak_memory_stats(dev)
     t0 = time.perf_counter()
     iteration()
     first = time.perf_counter() - t0
     peak = peak_mb() - rss0
+    gpu = {"gpu_peak_mb_above_baseline": round((torch.cuda.max_memory_allocated(dev) - base) / 1e6, 1),
+           "device_name": torch.cuda.get_device_name(dev)} if cuda else {}
     times = []
     for _ in range(max(iters - 1, 0)):
         t0 = time.perf_counter()
@@ -95,7 +103,8 @@ def _case(grid: int, mode: str, iters: int) -> dict:
         times.append(time.perf_counter() - t0)
     return {"grid": f"{grid}x{grid}", "psfs": grid * grid * len(WAVELENGTHS), "mode": mode,
             "peak_mb_above_baseline": round(peak, 1), "first_iteration_s": round(first, 3),
-            "time_per_iteration_s": round(statistics.median(times), 3) if times else round(first, 3)}
+            "time_per_iteration_s": round(statistics.median(times), 3) if times else round(first, 3),
+            "device": str(dev), **gpu}
 
 
 def main(argv=None) -> None:
@@ -103,17 +112,20 @@ def main(argv=None) -> None:
     ap.add_argument("--grids", type=int, nargs="+", default=[5, 10])
     ap.add_argument("--iters", type=int, default=3)
     ap.add_argument("-o", "--output")
+    ap.add_argument("--device", default="cpu", help="torch device of the lens and network (cpu, cuda): on CUDA the "
+                    "peak GPU memory above the baseline is reported as well")
     ap.add_argument("--case", nargs=2, help=argparse.SUPPRESS)  # internal: run one case in this process
     args = ap.parse_args(argv)
     if args.case:
-        print(json.dumps(_case(int(args.case[0]), args.case[1], args.iters)))
+        print(json.dumps(_case(int(args.case[0]), args.case[1], args.iters, args.device)))
         return
     import torch
 
     results = []
     for grid in args.grids:
         for mode in ("replay", "full"):
-            out = subprocess.run([sys.executable, __file__, "--case", str(grid), mode, "--iters", str(args.iters)],
+            out = subprocess.run([sys.executable, __file__, "--case", str(grid), mode, "--iters", str(args.iters),
+                                  "--device", args.device],
                                  capture_output=True, text=True, check=True)
             results.append(json.loads(out.stdout.strip().splitlines()[-1]))
             print(json.dumps(results[-1]), file=sys.stderr)
