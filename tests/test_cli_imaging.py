@@ -97,6 +97,8 @@ def test_render_from_a_saved_map_and_directly(rgb_map, tmp_path, capsys):
     (["render", "hybrid_asphere", "IMG", "-o", "o.txt"], "-o"),
     (["render", "hybrid_asphere", "IMG", "-o", "o.png", "--wavelengths", "0.6", "0.5"], "three"),
     (["render", "hybrid_asphere", "IMG", "-o", "o.png", "--depth", "0"], "--depth"),
+    (["psfmap", "hybrid_asphere", "--device", "tpu"], "--device"),
+    (["render", "hybrid_asphere", "IMG", "-o", "o.png", "--device", "gpu0"], "--device"),
 ])
 def test_bad_input_is_one_line(argv, expected, tmp_path, capsys):
     write_picture(tmp_path / "in.png")
@@ -120,3 +122,24 @@ def test_render_with_the_three_wavelength_average(tmp_path, capsys):
     s = json.loads(capsys.readouterr().out)
     assert s["average"] and s["wavelengths_um"] == [0.66, 0.53, 0.47]
     assert np.load(tmp_path / "m.npz")["psf"].shape == (1, 3, 1, 1, 8, 8)  # the channel-averaged map
+
+
+def test_device_option_on_this_machine(tmp_path, capsys):
+    """``--device cpu`` gives the default's map; a CUDA device this machine lacks is a one-line error naming it,
+    and on a machine with CUDA the map computed there equals the CPU's (docs/architecture.md, Devices)."""
+    import torch
+
+    args = ["psfmap", "hybrid_asphere", "--grid", "1", "1", "--wavelengths", "0.53", *FAST]
+    assert main([*args, "-o", str(tmp_path / "a.npz")]) == 0
+    assert main([*args, "-o", str(tmp_path / "b.npz"), "--device", "cpu"]) == 0
+    a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
+    assert np.array_equal(a["psf"], b["psf"])
+    capsys.readouterr()
+    if torch.cuda.is_available():
+        assert main([*args, "-o", str(tmp_path / "c.npz"), "--device", "cuda"]) == 0
+        c = np.load(tmp_path / "c.npz")
+        assert np.abs(c["psf"] - a["psf"]).max() <= 1e-10 * a["psf"].max()
+    else:
+        assert main([*args, "--device", "cuda"]) == 2
+        err = capsys.readouterr().err
+        assert "--device" in err and "CUDA" in err and err.count("\n") == 1

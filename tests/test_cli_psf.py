@@ -277,6 +277,7 @@ def test_psf_phase_map_from_the_lens_file_deflects_along_y(tmp_path, capsys):
     (["psf", "hybrid_asphere", "-o", "psf.txt"], "-o: the PSF is written as .npy"),
     (["psf", "hybrid_asphere", "--doe-distance", "9"], "the DOE distance must lie between"),
     (["psf", "hybrid_asphere", "--doe-size", "0"], "--doe-size: must be > 0"),
+    (["psf", "hybrid_asphere", "--device", "cuda:x"], "--device: 'cuda:x' is not a torch device"),
 ])
 def test_psf_bad_input_is_one_line(argv, expected, capsys):
     assert main(argv) == 2

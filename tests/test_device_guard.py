@@ -103,3 +103,18 @@ def test_edof_run_with_the_paraxial_baseline_makes_no_stray_tensors(tiny_lens_fi
             tr = Trainer(load_config(p), tmp_path / f"run{int(baseline)}", baseline=baseline, progress=False)
             tr.run()
             tr.evaluate()
+
+
+def test_cli_psf_and_render_make_no_stray_tensors(tmp_path):
+    """``raywave psf`` and ``raywave render`` (map, blur, sensor noise) compute inside the guard."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from raywave.cli.main import main
+
+    iio.imwrite(tmp_path / "in.png", (np.random.default_rng(0).random((24, 40, 3)) * 255).astype(np.uint8))
+    with warnings.catch_warnings(), StrayTensors():
+        warnings.simplefilter("ignore")
+        assert main(["psf", "hybrid_asphere", "--field", "0", "5", "--ks", "16", "--rays", "16", "--json"]) == 0
+        assert main(["render", "hybrid_asphere", str(tmp_path / "in.png"), "--grid", "1", "2", "--ks", "16",
+                     "--rays", "16", "--noise", "-o", str(tmp_path / "out.png")]) == 0

@@ -46,6 +46,29 @@ def integer_arg(text: str, flag: str, minimum: int = 1) -> int:
     return v
 
 
+DEVICE_HELP = ("torch device to compute on: cpu (default), cuda, cuda:N; the PSFs are the same to ~1e-10 "
+               "(docs/architecture.md, Devices)")
+
+
+def device_arg(text: str, flag: str = "--device") -> str:
+    """A torch device name (``cpu``, ``cuda``, ``cuda:1``) that this machine has, or a :class:`CommandError`."""
+    import torch
+
+    try:
+        dev = torch.device(text)
+    except (RuntimeError, TypeError, ValueError):
+        raise CommandError(f"{flag}: {text!r} is not a torch device (give cpu, cuda or cuda:N)") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise CommandError(f"{flag}: {text!r}: this torch ({torch.__version__}) has no CUDA device; install a CUDA "
+                               "build of torch (README: why torch is pinned) or use --device cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise CommandError(f"{flag}: {text!r}: there are {torch.cuda.device_count()} CUDA devices")
+    elif dev.type != "cpu":
+        raise CommandError(f"{flag}: {text!r}: raywave runs on cpu and cuda devices")
+    return str(dev)
+
+
 def finite_json(obj, where: str = "output"):
     """``obj`` with every infinite float written as the string ``"inf"`` / ``"-inf"`` (as the lens format does);
     a NaN anywhere is a :class:`CommandError` naming its key (JSON has no NaN or Infinity)."""

@@ -23,7 +23,8 @@ import math
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, report_warnings, integer_arg as _integer, number_arg as _number, json_dumps
+from raywave.cli.errors import (DEVICE_HELP, CommandError, device_arg, integer_arg as _integer, json_dumps,
+                                number_arg as _number, report_warnings)
 from raywave.cli.psf_commands import _wavelength, fabricate_doe, parse_doe_options
 
 IMAGE_OUTPUTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -56,6 +57,7 @@ def _add_lens_options(p) -> None:
                    help="fabricate the DOE: design wavelength in µm (default 0.55)")
     p.add_argument("--doe-material", default=None, metavar="NAME",
                    help="fabricate the DOE: a dispersive height map in this glass (default FUSED_SILICA)")
+    p.add_argument("--device", default="cpu", metavar="DEV", help=DEVICE_HELP)
 
 
 def _grid(values, default=(10, 10)) -> tuple[int, int]:
@@ -81,7 +83,7 @@ def parse_lens_args(args) -> dict:
         raise CommandError(str(e)) from None
     out = {"path": path, "ks": _integer(args.ks, "--ks"), "mode": args.mode, "mapping": args.mapping,
            "batch": None if args.batch is None else _integer(args.batch, "--batch"),
-           "rays": None if args.rays is None else _integer(args.rays, "--rays")}
+           "rays": None if args.rays is None else _integer(args.rays, "--rays"), "device": device_arg(args.device)}
     out.update(parse_doe_options(args))
     return out
 
@@ -104,7 +106,7 @@ def load_lens_for_map(a: dict, grid, depth, wavelengths):
                          fields=fields.reshape(-1, 2).tolist() + [[0.0, 0.0]], **{**common, "depth": depth})
     if a["doe_levels"] is not None or a["doe_wavelength"] is not None or a["doe_material"] is not None:
         fabricate_doe(hl, a["doe_levels"], a["doe_wavelength"], a["doe_material"])
-    return hl, fields
+    return hl.to(a.get("device", "cpu")), fields
 
 
 def _compute_map(a: dict, grid, depths, wavelengths, progress: bool):
@@ -304,7 +306,7 @@ def _render_image(img, pmap, d_index: int, noise: bool, seed: int):
         warnings.warn(f"the image's aspect ratio {w / h:.3g} differs from the sensor's {sw / sh:.3g}: it is "
                       "stretched over the whole sensor", UserWarning)
     with torch.no_grad():
-        out = render_map(img[None], pmap, d_index)[0]
+        out = render_map(img[None].to(pmap.psf.device), pmap, d_index)[0]
         if noise:
             gen = torch.Generator().manual_seed(seed)
             out = Sensor(noise="poisson")(out, generator=gen)

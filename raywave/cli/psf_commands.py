@@ -22,7 +22,8 @@ import math
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, report_warnings, integer_arg as _integer, number_arg as _number, json_dumps
+from raywave.cli.errors import (DEVICE_HELP, CommandError, device_arg, integer_arg as _integer, json_dumps,
+                                number_arg as _number, report_warnings)
 from raywave.utils.checks import MAX_WAVELENGTH_UM as _MAX_WAVELENGTH_UM
 
 OUTPUT_EXTENSIONS = (".npy", ".npz")
@@ -87,6 +88,7 @@ def parse_psf_args(args) -> dict:
     out.update(parse_doe_options(args))
     out["stop_edge"] = getattr(args, "stop_edge", None)
     out["edge_step"] = getattr(args, "edge_step", None)
+    out["device"] = device_arg(getattr(args, "device", "cpu"))
     if args.output is not None and Path(args.output).suffix.lower() not in OUTPUT_EXTENSIONS:
         raise CommandError(f"-o: the PSF is written as .npy (the array) or .npz (psf, center, pitch, "
                            f"energy_outside, ...), got {args.output!r}")
@@ -112,7 +114,7 @@ def add_edge_arguments(p) -> None:
 def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 64, mode: str = "accurate",
                 rays: int | None = None, doe_pitch=None, doe_size=None, doe_distance=None, sensor_pitch=None,
                 oversample=None, doe_levels=None, doe_wavelength=None, doe_material=None, stop_edge=None,
-                edge_step=None) -> dict:
+                edge_step=None, device: str = "cpu") -> dict:
     """The PSF of one point source through the hybrid lens of ``path`` and its metrics.
 
     Field angles in degrees (whatever the file's field type), ``depth`` object distance in mm (None: the lens
@@ -121,7 +123,8 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
     (:func:`raywave.hybrid.metrics.psf_metrics`, lengths in mm), ``wavelength``, ``depth``, ``hybrid``.
     ``doe_levels`` / ``doe_wavelength`` / ``doe_material``: fabricate the DOE first (see the module docstring).
     ``stop_edge`` / ``edge_step``: the engine's stop edge (None: the default, the exit pupil with the Fresnel step;
-    "doe": the paper's model), see :class:`raywave.hybrid.HybridLens`."""
+    "doe": the paper's model), see :class:`raywave.hybrid.HybridLens`. ``device``: where to compute (the result
+    is on the CPU)."""
     import torch
 
     from raywave.assembly.build import load_hybrid
@@ -134,6 +137,7 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
                      stop_edge=stop_edge, edge_step=edge_step)
     if doe_levels is not None or doe_wavelength is not None or doe_material is not None:
         fabricate_doe(hl, doe_levels, doe_wavelength, doe_material)
+    hl = hl.to(device)
     wl = hl.lens.primary_wavelength if wavelength is None else float(wavelength)
     with torch.no_grad():
         res = hl.psf_result(fields=tuple(field), wavelengths=wl, ks=ks, depth=depth, mode=mode, rays=rays)
@@ -261,7 +265,7 @@ def cmd_psf(args) -> int:
         result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
                              a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"],
                              a["doe_levels"], a["doe_wavelength"], a["doe_material"], a["stop_edge"],
-                             a["edge_step"])
+                             a["edge_step"], a["device"])
     report_warnings(caught)
     s = summary(result, str(args.lens))
     wrote = []
@@ -333,4 +337,5 @@ def register(sub) -> None:
     p.add_argument("--doe-material", default=None, metavar="NAME",
                    help="fabricate the DOE: a dispersive height map in this glass (default FUSED_SILICA), "
                         "φ(λ) = 2π(n(λ) − 1)h/λ")
+    p.add_argument("--device", default="cpu", metavar="DEV", help=DEVICE_HELP)
     p.set_defaults(func=cmd_psf)
