@@ -18,8 +18,10 @@ SLOW = {"hybrid_asphere_exit_pupil"}
 #: whenever the rays' aiming takes another path to the same tolerance (its ~100 mm optical paths round at ~1e-14 mm,
 #: 1e-10 rad): tightening the Newton tolerance of the pinned code 100× moves it by 5e-13, the coarse Newton start
 #: (raywave.hybrid.coherent.accurate._coarse_start) by 1.2e-12. A numeric change that matters moves it by far more.
-# The Cooke case at 14° is discontinuous at round-off: scaling one thickness by 1 + 1e-15 moves its PSF by 3e-8 on the
-# CPU (a ray or node of the construction flips at an edge); a GPU's rounding moved it by 1.4e-8 (H200, 2026-11-27).
+# The Cooke case is discontinuous at round-off: scaling one thickness by 1 + 1e-15 moves its on-axis PSF by 3e-8 on
+# the CPU. The node grid is a discrete choice: its spacing flips from 65.70 to 65.95 µm (the beam's extent crosses a
+# whole number of samples), and the field interpolated from the other nodes differs by its interpolation error
+# (±0.13 % in amplitude). A GPU's rounding moved the PSF by 1.4e-8 (H200, 2026-11-27).
 GPU_FLOOR = {"cooke_triplet": 1e-7}
 FLOOR = {"cooke_triplet": 3e-12}  # ~10 s; the ideal-lens case covers stop_edge="exit_pupil" by default
 
