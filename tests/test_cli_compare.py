@@ -64,6 +64,7 @@ def test_compare_with_a_doe_leaves_out_the_exit_pupil_model(ideal_file, tmp_path
     (["--fields", "1,2,3"], "Y or X,Y"),
     (["--models", "paraxial", "--reference", "raywave"], "--reference"),
     (["--ks", "0"], "--ks"),
+    (["--device", "npu"], "--device"),
 ])
 def test_compare_bad_input_is_one_clear_error(ideal_file, tmp_path, capsys, argv, message):
     assert main(["compare", str(ideal_file), "-o", str(tmp_path / "x"), *argv]) == 2

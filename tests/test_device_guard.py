@@ -118,3 +118,15 @@ def test_cli_psf_and_render_make_no_stray_tensors(tmp_path):
         assert main(["psf", "hybrid_asphere", "--field", "0", "5", "--ks", "16", "--rays", "16", "--json"]) == 0
         assert main(["render", "hybrid_asphere", str(tmp_path / "in.png"), "--grid", "1", "2", "--ks", "16",
                      "--rays", "16", "--noise", "-o", str(tmp_path / "out.png")]) == 0
+
+
+def test_cli_compare_makes_no_stray_tensors(tmp_path):
+    """``raywave compare`` (every model, the Debye ground truth, the table) computes inside the guard."""
+    from raywave.cli.main import main
+    from raywave.lens.build import ideal_lens, save_lens
+
+    save_lens(ideal_lens(5.0, f_number=4.0, wavelengths=(0.55,)), tmp_path / "ideal.json")
+    with warnings.catch_warnings(), StrayTensors():
+        warnings.simplefilter("ignore")
+        assert main(["compare", str(tmp_path / "ideal.json"), "--fields", "0", "0,2", "--ks", "16", "--sensor-pitch",
+                     "0.001", "--doe-distance", "1", "--device", "cpu", "-o", str(tmp_path / "cmp")]) == 0

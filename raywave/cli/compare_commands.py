@@ -25,7 +25,7 @@ import math
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, report_warnings, number_arg as _number, json_dumps
+from raywave.cli.errors import DEVICE_HELP, CommandError, json_dumps, number_arg as _number, report_warnings
 
 DEFAULT_FIELDS = ("0",)
 
@@ -103,7 +103,7 @@ def ground_truth(hl, field, wavelength: float, ks: int, depth):
     r = s.clear_radius()
     if r is None or f <= 0:
         return None
-    n = float(s.material.n(torch.tensor(wavelength, dtype=torch.float64)))
+    n = float(s.material.n(torch.tensor(wavelength, dtype=torch.float64, device="cpu")))
     half = 0.5 * min(hl.doe.size)
     # the DOE must not clip the cone: then the truth is the lens's own focus
     if r * (1 - hl.doe_distance / f) > half:
@@ -129,9 +129,10 @@ def run_compare(hl, models, fields, wavelength: float, ks: int, depth, reference
         truth = ground_truth(hl, f, wavelength, ks, depth)
         for name in models:
             r = results[name]
-            psf = r.psf[i, 0].detach()
+            psf = r.psf[i, 0].detach().cpu()  # (the ground truth is a CPU tensor)
             row = {"field_x_deg": f[0], "field_y_deg": f[1], "model": name,
-                   f"l1_vs_{reference}": float(relative_l1(psf, ref.psf[i, 0].detach())) if ref is not None else None,
+                   f"l1_vs_{reference}": (float(relative_l1(psf, ref.psf[i, 0].detach().cpu())) if ref is not None
+                                          else None),
                    "l1_vs_truth": float(relative_l1(psf, truth)) if truth is not None else None,
                    "center_offset_um": (float(torch.linalg.vector_norm(r.center[i, 0].detach()
                                                                        - ref.center[i, 0].detach())) * 1e3
@@ -194,7 +195,7 @@ def _compare_lens(args, a: dict, fields):
         fabricate_doe(hl, a["doe_levels"], a["doe_wavelength"], a["doe_material"])
     if hl.lens.field_type != "angle":
         raise CommandError("compare: the lens's fields are object heights; compare takes field angles")
-    return hl
+    return hl.to(a.get("device", "cpu"))
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
@@ -296,4 +297,5 @@ def register(sub) -> None:
         p.add_argument(flag, default=None, metavar=meta, help=text)
     p.add_argument("--doe-size", nargs="+", default=None, metavar="MM", help="DOE width [height] in mm")
     add_edge_arguments(p)
+    p.add_argument("--device", default="cpu", metavar="DEV", help=DEVICE_HELP)
     p.set_defaults(func=cmd_compare)
