@@ -148,14 +148,15 @@ def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None, ep_z=None):
 def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None, ep_z=None):
     """Solve stop_hit(uv) = target for uv (F, W, N, 2) by Newton with a finite-difference Jacobian."""
     ok = torch.ones(uv.shape[:-1], dtype=torch.bool, device=uv.device)
+    dx, dy = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)  # the finite-difference steps
     for _ in range(AIM_MAX_ITER):
         p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth, ep_z)
         err = p - target
         conv = err.abs().amax(-1) <= AIM_TOL * max(1.0, float(target.abs().max()))
         if bool((conv | ~v).all()):
             break
-        px, _ = _stop_hit(lens, uv + torch.tensor([h, 0.0], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength, depth, ep_z)
-        py, _ = _stop_hit(lens, uv + torch.tensor([0.0, h], dtype=uv.dtype, device=uv.device), fields, field_type, wavelength, depth, ep_z)
+        px, _ = _stop_hit(lens, uv + dx, fields, field_type, wavelength, depth, ep_z)
+        py, _ = _stop_hit(lens, uv + dy, fields, field_type, wavelength, depth, ep_z)
         j = torch.stack([(px - p) / h, (py - p) / h], -1)  # (..., 2 out, 2 in)
         det = j[..., 0, 0] * j[..., 1, 1] - j[..., 0, 1] * j[..., 1, 0]
         good = v & (det.abs() > 1e-300)

@@ -357,8 +357,8 @@ class Trainer(FabricationSchedule, StageSteps):
             return res.psf, res.center
 
         if wavelengths is not None:
-            return OpticsStep(compute, nf * len(self.depths), draws=torch.as_tensor(wavelengths, dtype=torch.float64,
-                                                                                              device="cpu"))
+            draws = torch.as_tensor(wavelengths, dtype=torch.float64, device="cpu")
+            return OpticsStep(compute, nf * len(self.depths), draws=draws)
         return OpticsStep.draw(compute, nf * len(self.depths), lambda g: self.color.sample(g), self.gen)
 
     def _as_map(self, psf, cen):
