@@ -37,7 +37,7 @@ from raywave.hybrid.coherent import (DOEField, StopEdgeWarning, accurate_field_s
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
-from raywave.utils.phasor import polar
+from raywave.utils.phasor import unit_phasor
 from raywave.utils.safe import safe_div
 from raywave.wave.propagation import (angular_spectrum, integrated_upsampled_intensity, propagate_window,
                                       window_transfer)
@@ -501,7 +501,7 @@ class HybridLens(nn.Module):
         # full-grid path: the crop's derivative goes through the pixel overlaps (piecewise-constant model)
         integrate_origin = crop_origin if full_grid else psf_origin
         phase = self.doe.phase(fd.wavelength, fd.window, self.oversample)  # the box is known: no Grid.locate
-        u = fd.envelope * polar(torch.ones_like(phase), phase)
+        u = fd.envelope * unit_phasor(phase)
         with torch.no_grad():  # a diagnostic (energy outside the crop); the DOE's phase does not change it
             power = torch.view_as_real(fd.envelope).square().sum() * p * p
         if float(power.detach()) == 0.0:

@@ -118,7 +118,8 @@ def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=t
     ``ep_z``: the entrance-plane z (:func:`entrance_plane_z`) when the caller already has it (it costs a
     paraxial trace)."""
     device = lens.device
-    wl = torch.as_tensor(wavelength, dtype=dtype, device=device).reshape(1, -1, 1)
+    wl = torch.as_tensor(wavelength, dtype=dtype, device=device)
+    wl = wl if wl.ndim == 3 else wl.reshape(1, -1, 1)  # (F, 1, 1): a wavelength per field row
     ep_z = entrance_plane_z(lens) if ep_z is None else float(ep_z)
     d_inf, pts = _directions_and_points(lens, fields, field_type, ep_z, dtype, depth)
     F, W, N = uv.shape[:3]

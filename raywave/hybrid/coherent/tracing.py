@@ -46,8 +46,9 @@ class _TraceRequest:
 
     def group_key(self) -> tuple:
         d = self.depth
-        return (id(self.lens), float(self.wavelength.reshape(-1)[0]), float(self.z_doe), self.field_type, self.record,
-                self.ep_z, self.grad, None if d is None else float(d), self.uv.device)
+        # no wavelength: the rays of every wavelength go into one trace (each row carries its own)
+        return (id(self.lens), float(self.z_doe), self.field_type, self.record, self.ep_z, self.grad,
+                None if d is None else float(d), self.uv.device)
 
 
 def _slice_bundle(b, g: int, n: int):
@@ -69,8 +70,11 @@ def _trace_group(reqs: list) -> list:
     uv = torch.stack([torch.cat([r.uv, r.uv[:1].expand(n_max - r.uv.shape[0], 2)]) if r.uv.shape[0] < n_max
                       else r.uv for r in reqs])[:, None]
     fields = torch.stack([r.field.reshape(2) for r in reqs])
+    wls = torch.cat([r.wavelength.reshape(1) for r in reqs])
+    same_wl = bool((wls == wls[0]).all())
     with torch.set_grad_enabled(r0.grad and torch.is_grad_enabled()):
-        rays = rays_through(r0.lens, uv, fields, r0.field_type, r0.wavelength.reshape(1), depth=r0.depth, ep_z=r0.ep_z)
+        rays = rays_through(r0.lens, uv, fields, r0.field_type, wls[:1] if same_wl else wls.reshape(-1, 1, 1),
+                            depth=r0.depth, ep_z=r0.ep_z)
         res = r0.lens.trace(rays, apertures=False, record=r0.record)
         out, rec = res if r0.record else (res, None)
         n = r0.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)

@@ -106,6 +106,44 @@ def _roll_off(shift: torch.Tensor, band, zf: float, weight: torch.Tensor, weight
     return factor
 
 
+def _ramp_lines(g: torch.Tensor, g_other: torch.Tensor, k: float, zf: float, band) -> torch.Tensor:
+    """Indices of the band's lines (columns for the x axis: ``g`` its spatial frequencies, cycles/mm; ``g_other``
+    the band's frequencies along the other axis) where the lateral shift Δ = z·g/sqrt(k² − g² − g_o²) may leave
+    ``[lo, hi]`` of ``band`` (the roll-off or an evanescent entry): along a line |Δ| grows with |g_o|, so its
+    range is that of the line's two extreme |g_o|. The other lines lie inside by a margin far above rounding, so
+    their roll-off factor is exactly 1 (skipping them gives the same values)."""
+    lo, hi, _ = band
+    a, b = (g_other * g_other).aminmax()
+    q_near, q_far = k * k - g * g - a, k * k - g * g - b
+    ok = q_far > 0
+    s_near = zf * g / torch.sqrt(torch.where(ok, q_near, 1.0))
+    s_far = zf * g / torch.sqrt(torch.where(ok, q_far, 1.0))
+    tol = 1e-9 * max(abs(lo), abs(hi), 1e-9)
+    inside = ok & (torch.minimum(s_near, s_far) >= lo + tol) & (torch.maximum(s_near, s_far) <= hi - tol)
+    return torch.nonzero(~inside).squeeze(1)
+
+
+def _roll_off_lines(g, g_other, k: float, zf: float, inv_w, band, weight, weight_derivative: bool, dim: int):
+    """:func:`_roll_off` of one axis (``dim`` 1: x, the band's columns; 0: y, its rows; ``g`` (L,) that axis's
+    frequencies, ``g_other`` the other's, ``inv_w`` (R, C) 1/w), evaluated on the lines that can roll off alone
+    (:func:`_ramp_lines`; the same values: elsewhere the factor is 1 and its derivatives 0)."""
+    lines = _ramp_lines(g, g_other, k, zf, band)
+    if lines.numel() == g.numel():  # every line: the whole band at once
+        shift = (zf * g)[None, :] * inv_w if dim == 1 else (zf * g)[:, None] * inv_w
+        return _roll_off(shift, band, zf, weight, weight_derivative)
+    if lines.numel() == 0:
+        return (torch.zeros_like(weight), torch.zeros_like(weight)) if weight_derivative else None
+    gl = (zf * g).index_select(0, lines)
+    iw = inv_w.index_select(dim, lines)
+    shift = gl[None, :] * iw if dim == 1 else gl[:, None] * iw
+    w_sub = weight.index_select(dim, lines)
+    fac = _roll_off(shift, band, zf, w_sub, weight_derivative)
+    weight.index_copy_(dim, lines, w_sub)
+    if not weight_derivative:
+        return None
+    return tuple(torch.zeros_like(weight).index_copy_(dim, lines, f.expand_as(w_sub)) for f in fac)
+
+
 def _band_values(geo: _Geometry, fx, fy, rows, cols, weight_derivative: bool):
     """The transfer function on the band rectangle ``rows × cols``: (G, relative weight derivatives or None)."""
     k, zf = geo.k, geo.zf
@@ -120,8 +158,8 @@ def _band_values(geo: _Geometry, fx, fy, rows, cols, weight_derivative: bool):
     weight = prop.to(torch.float64)  # evanescent: exactly 0
     del prop
     inv_w = 1.0 / w
-    fac_x = _roll_off((zf * gxs)[None, :] * inv_w, geo.bx, zf, weight, weight_derivative)
-    fac_y = _roll_off((zf * gys)[:, None] * inv_w, geo.by, zf, weight, weight_derivative)
+    fac_x = _roll_off_lines(gxs, gys, k, zf, inv_w, geo.bx, weight, weight_derivative, dim=1)
+    fac_y = _roll_off_lines(gys, gxs, k, zf, inv_w, geo.by, weight, weight_derivative, dim=0)
     del inv_w
     phase = _TWO_PI * geo.zt * w
     del w

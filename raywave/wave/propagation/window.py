@@ -139,6 +139,9 @@ def _convolve_band(u, h, size, rows, cols, noy, nox):
     lead = u.shape[:-2]
     if rows.numel() == 0 or cols.numel() == 0:
         return torch.zeros((*lead, noy, nox), dtype=u.dtype, device=u.device) + 0 * u.sum()
+    chunks = _band_chunks(u, my, cols.numel())
+    if chunks > 1 and not (torch.is_grad_enabled() and (u.requires_grad or h.requires_grad)):
+        return _convolve_band_chunked(u, h, size, rows, cols, noy, nox, chunks)
     # peak memory: every full-size intermediate is released before the next one is made
     prod = _band_spectrum(u, size, rows, cols)
     # in place unless autograd needs the factors (the product's backward keeps both)
@@ -152,11 +155,58 @@ def _convolve_band(u, h, size, rows, cols, noy, nox):
     return torch.fft.ifft(full_x, dim=-1)[..., :nox]
 
 
+#: a band convolution whose full-height band (My × C samples of the field's dtype) takes more bytes than this runs
+#: in column chunks of about this size (without autograd): the same FFTs on the same values, a lower peak
+BAND_CHUNK_BYTES = 8 * 2**20
+
+
+def _band_chunks(u, my: int, n_cols: int) -> int:
+    """How many column chunks :func:`_convolve_band` splits a band of ``n_cols`` columns into (1: none), for a
+    field ``u`` ``(..., Ny, Nx)`` and the FFT height ``my``."""
+    per_col = my * u.element_size() * max(1, math.prod(u.shape[:-2]))
+    return max(1, min(n_cols, math.ceil(per_col * n_cols / BAND_CHUNK_BYTES)))
+
+
+def _convolve_band_chunked(u, h, size, rows, cols, noy: int, nox: int, chunks: int):
+    """:func:`_convolve_band` (no autograd) in ``chunks`` blocks of the band's columns: the transform along x runs
+    over blocks of rows and keeps only the band's columns, then each column block goes through the transform along
+    y, the product, the inverse along y and into the output's columns. The same 1-D FFTs on the same values; the
+    full-height (My × C) arrays never exist."""
+    my, mx = size
+    ny = u.shape[-2]
+    n_cols = cols.numel()
+    step_r = max(1, math.ceil(ny / chunks))
+    ux = torch.cat([torch.fft.fft(u[..., r0:r0 + step_r, :], n=mx, dim=-1).index_select(-1, cols)
+                    for r0 in range(0, ny, step_r)], dim=-2)  # (..., ny, C)
+    out = torch.zeros((*u.shape[:-2], noy, mx), dtype=u.dtype, device=u.device)
+    step = math.ceil(n_cols / chunks)
+    for c0 in range(0, n_cols, step):
+        spec = torch.fft.fft(ux[..., c0:c0 + step], n=my, dim=-2).index_select(-2, rows)
+        spec.mul_(h[..., c0:c0 + step])
+        part = torch.fft.ifft(_scatter(spec, -2, rows, my), dim=-2)[..., :noy, :]
+        del spec
+        out.index_copy_(-1, cols[c0:c0 + step], part)
+        del part
+    del ux
+    return torch.fft.ifft(out, dim=-1)[..., :nox]
+
+
 def _band_spectrum(u, size, rows, cols):
     """The band ``rows × cols`` of ``fft2(u, s=size)`` (the first pass along x, then only the band's columns)."""
     my, mx = size
-    spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1).index_select(-1, cols), n=my, dim=-2)
-    return spec.index_select(-2, rows)
+    ny, nx = u.shape[-2:]
+    # the two orders give the same DFT (to rounding); the cheaper one transforms fewer / shorter lines: x first
+    # costs ny transforms of mx and C of my, y first nx of my and R of mx
+    if ny * _fft_cost(mx) + cols.numel() * _fft_cost(my) <= nx * _fft_cost(my) + rows.numel() * _fft_cost(mx):
+        spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1).index_select(-1, cols), n=my, dim=-2)
+        return spec.index_select(-2, rows)
+    spec = torch.fft.fft(torch.fft.fft(u, n=my, dim=-2).index_select(-2, rows), n=mx, dim=-1)
+    return spec.index_select(-1, cols)
+
+
+def _fft_cost(n: int) -> float:
+    """Relative cost of one FFT of length ``n`` (n·log2 n)."""
+    return n * math.log2(max(n, 2))
 
 
 def _scatter(x, dim: int, index, n: int):
