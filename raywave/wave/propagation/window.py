@@ -235,6 +235,9 @@ class _BandConvolve(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g):
         u, h, rows, cols = ctx.saved_tensors
+        chunks = _band_chunks(g, ctx.size[0], cols.numel())
+        if chunks > 1:
+            return _BandConvolve._backward_chunked(ctx, g, u, h, rows, cols, chunks)
         (my, mx), noy, nox, (ny, nx) = ctx.size, ctx.noy, ctx.nox, ctx.u_shape[-2:]
         # the output's adjoint chain: ifft along x (fft / mx), the columns' copy, ifft along y over the kept rows
         g = torch.fft.fft(g, n=mx, dim=-1).index_select(-1, cols) / mx  # (..., noy, C)
@@ -248,6 +251,35 @@ class _BandConvolve(torch.autograd.Function):
             full = _scatter(part, -1, cols, mx)
             del part
             grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).sum_to_size(ctx.u_shape)
+        return grad_u, grad_h, None, None, None, None, None
+
+    @staticmethod
+    def _backward_chunked(ctx, g, u, h, rows, cols, chunks: int):
+        """:meth:`backward` in ``chunks`` blocks of the band's columns (a large band: the same 1-D transforms on the
+        same values, without the full-height My × C arrays; see :func:`_convolve_band_chunked`)."""
+        (my, mx), (ny, nx) = ctx.size, ctx.u_shape[-2:]
+        need_u, need_h = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        n_cols = cols.numel()
+        step = math.ceil(n_cols / chunks)
+        g = torch.fft.fft(g, n=mx, dim=-1).index_select(-1, cols) / mx  # (..., noy, C)
+        ux = torch.fft.fft(u, n=mx, dim=-1).index_select(-1, cols) if need_h else None  # (..., ny, C)
+        full = torch.zeros((*g.shape[:-2], ny, mx), dtype=g.dtype, device=g.device) if need_u else None
+        grad_h = []
+        for c0 in range(0, n_cols, step):
+            gc = torch.fft.fft(g[..., c0:c0 + step], n=my, dim=-2).index_select(-2, rows) / my  # (..., R, c)
+            if need_h:
+                spec = torch.fft.fft(ux[..., c0:c0 + step], n=my, dim=-2).index_select(-2, rows)
+                width = spec.shape[-1]
+                grad_h.append((gc * spec.conj()).sum_to_size(*ctx.h_shape[:-1], width))
+                del spec
+            if need_u:
+                part = torch.fft.ifft(_scatter(gc * h[..., c0:c0 + step].conj(), -2, rows, my), dim=-2)[..., :ny, :]
+                full.index_copy_(-1, cols[c0:c0 + step], part * my)
+                del part
+            del gc
+        del g, ux
+        grad_h = torch.cat(grad_h, dim=-1) if need_h else None
+        grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).sum_to_size(ctx.u_shape) if need_u else None
         return grad_u, grad_h, None, None, None, None, None
 
 
