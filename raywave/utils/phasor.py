@@ -55,10 +55,31 @@ def unit_phasor(angle: torch.Tensor) -> torch.Tensor:
     """``exp(i·angle)``: :func:`polar` with ``abs = 1`` (the same values bit for bit, with and without autograd),
     without autograd written straight from ``cos``/``sin`` (no unit array, no product)."""
     if torch.is_grad_enabled() and angle.requires_grad:
-        return _Polar.apply(torch.ones_like(angle), angle)
+        return _UnitPhasor.apply(angle)
+    return _unit_values(angle)
+
+
+def _unit_values(angle: torch.Tensor) -> torch.Tensor:
+    """``cos(angle) + i·sin(angle)`` written into the output's parts (no autograd)."""
     out = torch.empty(angle.shape, dtype=torch.complex128 if angle.dtype == torch.float64 else torch.complex64,
                       device=angle.device)
     parts = torch.view_as_real(out)
     torch.cos(angle, out=parts[..., 0])
     torch.sin(angle, out=parts[..., 1])
     return out
+
+
+class _UnitPhasor(torch.autograd.Function):
+    """:func:`unit_phasor` with its derivative ``∂z/∂θ = i·z``; keeps only the angle (a unit array for
+    :class:`_Polar` would double what the graph holds) and recomputes ``z`` in the backward (the same values as
+    :class:`_Polar`'s with ``abs = 1``)."""
+
+    @staticmethod
+    def forward(ctx, angle):
+        ctx.save_for_backward(angle)
+        return _unit_values(angle)
+
+    @staticmethod
+    def backward(ctx, g):
+        (angle,) = ctx.saved_tensors
+        return (_unit_values(angle).conj() * g).imag
