@@ -126,22 +126,36 @@ def _ramp_lines(g: torch.Tensor, g_other: torch.Tensor, k: float, zf: float, ban
 def _roll_off_lines(g, g_other, k: float, zf: float, inv_w, band, weight, weight_derivative: bool, dim: int):
     """:func:`_roll_off` of one axis (``dim`` 1: x, the band's columns; 0: y, its rows; ``g`` (L,) that axis's
     frequencies, ``g_other`` the other's, ``inv_w`` (R, C) 1/w), evaluated on the lines that can roll off alone
-    (:func:`_ramp_lines`; the same values: elsewhere the factor is 1 and its derivatives 0)."""
+    (:func:`_ramp_lines`; the same values: elsewhere the factor is 1 and its derivatives 0), a contiguous run of
+    lines at a time (views: no gathers)."""
     lines = _ramp_lines(g, g_other, k, zf, band)
     if lines.numel() == g.numel():  # every line: the whole band at once
         shift = (zf * g)[None, :] * inv_w if dim == 1 else (zf * g)[:, None] * inv_w
         return _roll_off(shift, band, zf, weight, weight_derivative)
-    if lines.numel() == 0:
-        return (torch.zeros_like(weight), torch.zeros_like(weight)) if weight_derivative else None
-    gl = (zf * g).index_select(0, lines)
-    iw = inv_w.index_select(dim, lines)
-    shift = gl[None, :] * iw if dim == 1 else gl[:, None] * iw
-    w_sub = weight.index_select(dim, lines)
-    fac = _roll_off(shift, band, zf, w_sub, weight_derivative)
-    weight.index_copy_(dim, lines, w_sub)
-    if not weight_derivative:
-        return None
-    return tuple(torch.zeros_like(weight).index_copy_(dim, lines, f.expand_as(w_sub)) for f in fac)
+    facs = (torch.zeros_like(weight), torch.zeros_like(weight)) if weight_derivative else None
+    for a, b in _runs(lines):
+        gl = (zf * g)[a:b]
+        iw = inv_w.narrow(dim, a, b - a)
+        shift = gl[None, :] * iw if dim == 1 else gl[:, None] * iw
+        fac = _roll_off(shift, band, zf, weight.narrow(dim, a, b - a), weight_derivative)  # in place on the view
+        if weight_derivative:
+            for full, part in zip(facs, fac):
+                full.narrow(dim, a, b - a).copy_(part.expand_as(shift))
+    return facs
+
+
+def _runs(idx: torch.Tensor) -> list[tuple[int, int]]:
+    """The sorted indices ``idx`` (K,) as half-open runs ``[(a, b), …]`` of consecutive values."""
+    if idx.numel() == 0:
+        return []
+    v = idx.tolist()
+    runs, a = [], v[0]
+    for prev, cur in zip(v, v[1:]):
+        if cur != prev + 1:
+            runs.append((a, prev + 1))
+            a = cur
+    runs.append((a, v[-1] + 1))
+    return runs
 
 
 def _band_values(geo: _Geometry, fx, fy, rows, cols, weight_derivative: bool):
