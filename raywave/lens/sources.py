@@ -148,16 +148,17 @@ def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None, ep_z=None):
 
 def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None, ep_z=None):
     """Solve stop_hit(uv) = target for uv (F, W, N, 2) by Newton with a finite-difference Jacobian."""
-    ok = torch.ones(uv.shape[:-1], dtype=torch.bool, device=uv.device)
     dx, dy = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)  # the finite-difference steps
+    n = uv.shape[-2]
     for _ in range(AIM_MAX_ITER):
-        p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth, ep_z)
+        # the rays and their two finite-difference neighbours in one trace (each ray is traced on its own)
+        p3, v3 = _stop_hit(lens, torch.cat([uv, uv + dx, uv + dy], dim=-2), fields, field_type, wavelength, depth,
+                           ep_z)
+        p, v, px, py = p3[..., :n, :], v3[..., :n], p3[..., n:2 * n, :], p3[..., 2 * n:, :]
         err = p - target
         conv = err.abs().amax(-1) <= AIM_TOL * max(1.0, float(target.abs().max()))
         if bool((conv | ~v).all()):
-            break
-        px, _ = _stop_hit(lens, uv + dx, fields, field_type, wavelength, depth, ep_z)
-        py, _ = _stop_hit(lens, uv + dy, fields, field_type, wavelength, depth, ep_z)
+            break  # p, v are those of the final uv
         j = torch.stack([(px - p) / h, (py - p) / h], -1)  # (..., 2 out, 2 in)
         det = j[..., 0, 0] * j[..., 1, 1] - j[..., 0, 1] * j[..., 1, 0]
         good = v & (det.abs() > 1e-300)
@@ -166,7 +167,8 @@ def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None,
         dv = (-j[..., 1, 0] * err[..., 0] + j[..., 0, 0] * err[..., 1]) / det
         step = torch.stack([du, dv], -1)
         uv = torch.where(good[..., None], uv - step, uv)
-    p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth, ep_z)
+    else:  # the last step moved uv: its stop hits
+        p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth, ep_z)
     ok = v & ((p - target).abs().amax(-1) <= 1e-9 * max(1.0, float(target.abs().max())))
     return uv, ok
 
