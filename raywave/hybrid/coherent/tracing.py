@@ -60,8 +60,8 @@ def _slice_bundle(b, g: int, n: int):
 def _trace_group(reqs: list) -> list:
     """The :func:`_trace_uv` results of requests that share lens, plane, depth and mode, from one batched trace: the
     rays of request g are row g of a (G, 1, N_max) bundle with its own wavelength (the shorter requests padded with
-    copies of their first ray, traced and dropped). Every ray is traced on its own (elementwise), so each request gets the
-    values its own call would give (up to the last-bit rounding of vectorised transcendental functions)."""
+    copies of their first ray, traced and dropped). Every ray is traced on its own (elementwise), so each request
+    gets the values its own call would give (up to the last-bit rounding of vectorised transcendental functions)."""
     if len(reqs) == 1:
         return [reqs[0].run()]
     r0 = reqs[0]
@@ -103,9 +103,10 @@ def run_serial(gen):
 def run_batched(gens: list) -> list:
     """Run several field constructions (generators that yield :class:`_TraceRequest` and return a
     :class:`DOEField`) together: in every round, the pending trace requests of all constructions that share a lens,
-    plane and mode (whatever their wavelengths) are traced as one batch (:func:`_trace_group`: one ray trace for all fields instead
-    of one per field, large enough for the elementwise kernels to use every thread). Each construction sees the
-    results its own calls would give, so the fields equal :func:`run_serial`'s. Returns their results in order."""
+    plane and mode (whatever their wavelengths) are traced as one batch (:func:`_trace_group`: one ray trace for all
+    fields instead of one per field, large enough for the elementwise kernels to use every thread). Each construction
+    sees the results its own calls would give, so the fields equal :func:`run_serial`'s. Returns their results in
+    order."""
     results = [None] * len(gens)
     pending = {}
     for i, g in enumerate(gens):
