@@ -192,7 +192,8 @@ def _convolve_band_chunked(u, h, size, rows, cols, noy: int, nox: int, chunks: i
 
 
 def _band_spectrum(u, size, rows, cols):
-    """The band ``rows × cols`` of ``fft2(u, s=size)`` (the first pass along x, then only the band's columns)."""
+    """The band ``rows × cols`` of ``fft2(u, s=size)``: the first pass along one axis, then only the band's lines
+    along the other (the cheaper order of the two)."""
     my, mx = size
     ny, nx = u.shape[-2:]
     # the two orders give the same DFT (to rounding); the cheaper one transforms fewer / shorter lines: x first
