@@ -472,3 +472,59 @@ def test_band_convolution_backward_is_the_adjoint():
         ref = torch.autograd.grad((_convolve_band(u, h, size, rows, cols, noy, nox) * w.conj()).real.sum(), (u, h))
         assert all(float((a - b).abs().max()) < 1e-14 for a, b in zip(mine, ref))
         assert torch.equal(band(u, h).detach(), _convolve_band(u.detach(), h.detach(), size, rows, cols, noy, nox))
+
+
+def _band_case():
+    """A field, a window transfer with its weight derivatives and an output gradient (off-axis carrier)."""
+    from raywave.wave.propagation import window_transfer
+
+    g = torch.Generator().manual_seed(5)
+    u = torch.randn(2, 300, 260, dtype=torch.complex128, generator=g)
+    tr = window_transfer((300, 260), (97, 97), 1e-3, 0.53, 2.0, (0.0, 0.0), (0.04, 0.07), carrier=(0.1, 0.05),
+                         weight_derivative=True)
+    gout = torch.randn(2, 97, 97, dtype=torch.complex128, generator=g)
+    return u, tr, gout
+
+
+def test_band_convolution_in_column_chunks_equals_the_whole_band(monkeypatch):
+    """A band taller than BAND_CHUNK_BYTES goes through in column blocks, forward and backward: the same 1-D
+    transforms, so the same values and gradients to rounding."""
+    import raywave.wave.propagation.window as W
+
+    u0, tr, gout = _band_case()
+    results = []
+    for limit in (2**60, 2**16):  # whole band, then many chunks
+        monkeypatch.setattr(W, "BAND_CHUNK_BYTES", limit)
+        u = u0.clone().requires_grad_()
+        h = tr.band.clone().requires_grad_()
+        out = W._BandConvolve.apply(u, h, tr.size, tr.rows, tr.cols, 97, 97)
+        gu, gh = torch.autograd.grad(out, (u, h), gout)
+        with torch.no_grad():
+            plain = W._convolve_band(u0, tr.band, tr.size, tr.rows, tr.cols, 97, 97)
+        results.append((out.detach(), plain, gu, gh))
+    assert W._band_chunks(u0, tr.size[0], tr.cols.numel()) > 4
+    for whole, chunked in zip(*results):
+        assert float((whole - chunked).abs().max()) <= 1e-14 * float(whole.abs().max())
+
+
+def test_roll_off_on_the_lines_that_can_roll_off_equals_every_line(monkeypatch):
+    """The window transfer evaluates the band-limit roll-off only on the lines whose lateral shift can leave the
+    band (the others' factor is exactly 1): bit for bit what evaluating every line gives, with the weight
+    derivatives."""
+    import raywave.wave.propagation.transfer as T
+
+    args = ((300, 260), (97, 97), 1e-3, 0.53, 2.0, (0.0, 0.0), (0.04, 0.07))
+    real, counts = T._ramp_lines, []
+
+    def spy(g, *a):
+        lines = real(g, *a)
+        counts.append((lines.numel(), g.numel()))
+        return lines
+
+    monkeypatch.setattr(T, "_ramp_lines", spy)
+    fast = T.window_transfer(*args, carrier=(0.1, 0.05), weight_derivative=True)
+    assert all(n < total for n, total in counts)  # some lines were skipped on both axes
+    monkeypatch.setattr(T, "_ramp_lines", lambda g, *a: torch.arange(g.numel()))
+    full = T.window_transfer(*args, carrier=(0.1, 0.05), weight_derivative=True)
+    assert torch.equal(fast.band, full.band)
+    assert torch.equal(fast.band_rel.abs(), full.band_rel.abs())  # the skipped lines' zeros may differ in sign
