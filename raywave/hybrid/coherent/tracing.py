@@ -3,6 +3,7 @@ plane), the Newton aiming of rays at the DOE-plane nodes, and nearest-node filli
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -120,7 +121,9 @@ def run_batched(gens: list) -> list:
             groups.setdefault(req.group_key(), []).append(i)
         answers = {}
         for idx in groups.values():
-            for i, res in zip(idx, _trace_group([pending[i] for i in idx])):
+            reqs = [pending[i] for i in idx]
+            run = _invert_group if isinstance(reqs[0], _InvertRequest) else _trace_group
+            for i, res in zip(idx, run(reqs)):
                 answers[i] = res
         pending = {}
         for i, res in answers.items():
@@ -179,45 +182,142 @@ def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, f
     where it and ``uv0`` are finite, the node first takes up to :data:`CHORD_ROUNDS` chord steps with it (its
     ray alone traced, no neighbours), then Newton steps. Returns (uv, converged (N,), Jacobian at the last iterate
     (N, 2, 2) (a chord node's: ``jac0``), landing points (N, 2) at ``uv`` or None where some ray moved after its
-    last trace, i.e. the iteration did not settle); all detached (a generator: yields its traces)."""
-    targets, uv_c, x_c, jac_c = (t.detach() for t in (targets, uv_c, x_c, jac_c))
-    step0, _ = _solve2(jac_c.expand(targets.shape[0], 2, 2), targets - x_c)
-    uv = uv_c + step0
+    last trace, i.e. the iteration did not settle); all detached (a generator: yields one :class:`_InvertRequest`,
+    which :func:`run_batched` solves together with the other constructions' as one set of rays)."""
+    req = _InvertRequest(lens, targets.detach(), uv_c.detach(), x_c.detach(), jac_c.detach(), field, wl, depth,
+                         z_doe, field_type, float(h), float(max_step), ep_z,
+                         None if uv0 is None else uv0.detach(), None if jac0 is None else jac0.detach())
+    return (yield req)
+
+
+@dataclass
+class _InvertRequest:
+    """One :func:`_invert_to_nodes` call (its arguments, detached): a construction yields it like a trace request,
+    and :func:`run_batched` solves the pending ones of constructions that share a lens, plane and mode together
+    (:func:`_invert_group`)."""
+
+    lens: object
+    targets: torch.Tensor
+    uv_c: torch.Tensor
+    x_c: torch.Tensor
+    jac_c: torch.Tensor
+    field: torch.Tensor
+    wavelength: torch.Tensor
+    depth: object
+    z_doe: float
+    field_type: str
+    h: float
+    max_step: float
+    ep_z: float | None
+    uv0: torch.Tensor | None
+    jac0: torch.Tensor | None
+
+    def run(self):
+        return _invert_group([self])[0]
+
+    def group_key(self) -> tuple:
+        d = self.depth
+        return ("invert", id(self.lens), float(self.z_doe), self.field_type, self.ep_z, self.h,
+                None if d is None else float(d), self.targets.device)
+
+
+def _invert_group(reqs: list) -> list:
+    """:func:`_invert_to_nodes` for every request of ``reqs`` (:class:`_InvertRequest`, one lens, plane and mode) at
+    once: their rays are one set, every Newton round is one batched trace (:func:`_trace_group`, a row per request)
+    and one set of elementwise updates. Each ray's iteration is its own (its trace, its 2×2 solve, its step), so
+    every request gets what a call of its own gives; a request whose rays all stopped leaves the rounds, as its
+    own iteration would have ended there."""
+    sizes = [r.targets.shape[0] for r in reqs]
+    dev = reqs[0].targets.device
+    rid = torch.repeat_interleave(torch.arange(len(reqs), device=dev), torch.tensor(sizes, device=dev))
+    targets = torch.cat([r.targets for r in reqs])
+    uv_c, x_c = torch.cat([r.uv_c for r in reqs])[rid], torch.cat([r.x_c for r in reqs])[rid]
+    jac_c = torch.cat([r.jac_c.reshape(1, 2, 2) for r in reqs])[rid]
+    max_step = torch.tensor([r.max_step for r in reqs], dtype=targets.dtype, device=dev)[rid][:, None]
     n = targets.shape[0]
-    chord = torch.zeros(n, dtype=torch.bool, device=targets.device)
-    if uv0 is not None:
-        start = torch.isfinite(uv0).all(-1)
-        uv = torch.where(start[:, None], uv0.detach(), uv)
-        if jac0 is not None:
-            chord = start & torch.isfinite(jac0).flatten(1).all(-1)
+    step0, _ = _solve2(jac_c, targets - x_c)
+    uv = uv_c + step0
+    chord = torch.zeros(n, dtype=torch.bool, device=dev)
+    nan2 = torch.full((1, 2), math.nan, dtype=targets.dtype, device=dev)
+    uv0 = torch.cat([r.uv0 if r.uv0 is not None else nan2.expand(k, 2) for r, k in zip(reqs, sizes)])
+    start = torch.isfinite(uv0).all(-1)
+    uv = torch.where(start[:, None], uv0, uv)
+    jac = torch.zeros((n, 2, 2), dtype=targets.dtype, device=dev)
+    if any(r.uv0 is not None and r.jac0 is not None for r in reqs):
+        jac0 = torch.cat([r.jac0 if (r.uv0 is not None and r.jac0 is not None) else nan2.new_full((k, 2, 2), math.nan)
+                          for r, k in zip(reqs, sizes)])
+        chord = start & torch.isfinite(jac0).flatten(1).all(-1)
+        jac[chord] = jac0[chord]
     x = torch.zeros_like(targets)
-    valid = torch.zeros(n, dtype=torch.bool, device=targets.device)
-    jac = torch.zeros((n, 2, 2), dtype=targets.dtype, device=targets.device)
-    if bool(chord.any()):
-        jac[chord] = jac0.detach()[chord]
-    live = torch.arange(n, device=targets.device)  # the rays moved since their last trace
+    valid = torch.zeros(n, dtype=torch.bool, device=dev)
+    bounds = [0, *itertools.accumulate(sizes)]
+    live = torch.arange(n, device=dev)  # the rays moved since their last trace
+    moved_last: set[int] = set()
     for it in range(_NEWTON_ITERS):
         if it == CHORD_ROUNDS:
             chord[:] = False  # from here on every moving node takes Newton steps
-        need = ~chord[live]
-        x_l, valid_l, jac_l = yield from _landing_and_jacobian(lens, uv[live], field, wl, depth, z_doe, field_type, h,
-                                                               ep_z, None if bool(need.all()) else need)
-        jac_l = torch.where(need[:, None, None], jac_l, jac[live])
+        if live.numel() == 0:
+            break
+        x_l, valid_l, jac_l = _landing_rounds(reqs, rid, live, uv, chord, bounds)
+        jac_l = torch.where(chord[live][:, None, None], jac[live], jac_l)
         x[live], valid[live], jac[live] = x_l, valid_l, jac_l
         err = x_l - targets[live]
         step, ok = _solve2(jac_l, err)
         move = valid_l & ~(err.abs().amax(-1) <= _NEWTON_TOL) & ok
-        if not bool(move.any()):  # nothing moves any more (tracing the same rays again changes nothing)
-            stale = False
-            break
         big = step.abs().amax(-1, keepdim=True)
-        step = torch.where(big > max_step, step * (max_step / big), step)
+        ms = max_step[live]
+        step = torch.where(big > ms, step * (ms / big), step)
         live = live[move]
         uv[live] = uv[live] - step[move]
-    else:  # the last iteration moved some rays: their landing points are those of the previous uv
-        stale = True
+        if it == _NEWTON_ITERS - 1:  # the last iteration moved these requests' rays: their landing points are stale
+            moved_last.update(torch.unique(rid[live]).tolist())
     conv = valid & ((x - targets).abs().amax(-1) <= _NEWTON_TOL)
-    return uv, conv, jac, (None if stale else x)
+    out = []
+    for g in range(len(reqs)):
+        a, b = bounds[g], bounds[g + 1]
+        out.append((uv[a:b].clone(), conv[a:b].clone(), jac[a:b].clone(),
+                    None if g in moved_last else x[a:b].clone()))
+    return out
+
+
+def _landing_rounds(reqs: list, rid, live, uv, chord, bounds):
+    """One Newton round's trace for the ``live`` rays (sorted indices into the set of :func:`_invert_group`): each
+    request's rays and, for its non-chord rays, their two finite-difference neighbours (:func:`_landing_and_jacobian`'s
+    rays), one :func:`_trace_group` for all requests. Returns the landing points (L, 2), validity (L,) and Jacobians
+    (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
+    dev = uv.device
+    counts = torch.bincount(rid[live], minlength=len(reqs)).tolist()
+    trace_reqs, parts, offset = [], [], 0
+    for g, m in enumerate(counts):
+        if m == 0:
+            continue
+        r = reqs[g]
+        idx = live[offset:offset + m]
+        offset += m
+        uv_g = uv[idx]
+        need = ~chord[idx]
+        du = torch.tensor([[r.h, 0.0], [0.0, r.h]], dtype=uv.dtype, device=dev)
+        uj = uv_g if bool(need.all()) else uv_g[need]
+        allv = torch.cat([uv_g, uj + du[0], uj + du[1]])
+        trace_reqs.append(_TraceRequest(r.lens, allv, r.field, r.wavelength, r.depth, r.z_doe, r.field_type, False,
+                                        r.ep_z, False))
+        parts.append((m, need, uj.shape[0], r.h))
+    results = _trace_group(trace_reqs)
+    xs, vs, js = [], [], []
+    for (m, need, k, h), (_, _, at, _) in zip(parts, results):
+        xx = at.o[0, 0, :, :2]
+        x0, xu, xv = xx[:m], xx[m:m + k], xx[m + k:]
+        xj = x0 if k == m else x0[need]
+        jac_j = torch.stack([(xu - xj) / h, (xv - xj) / h], -1)
+        if k == m:
+            jac_g = jac_j
+        else:
+            jac_g = torch.full((m, 2, 2), math.nan, dtype=xx.dtype, device=dev)
+            jac_g[need] = jac_j
+        xs.append(x0)
+        vs.append(at.valid[0, 0, :m])
+        js.append(jac_g)
+    return torch.cat(xs), torch.cat(vs), torch.cat(js)
 
 
 def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, grad_xy: torch.Tensor | None = None):
