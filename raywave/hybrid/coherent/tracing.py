@@ -244,8 +244,8 @@ def _invert_group(reqs: list) -> list:
     uv = torch.where(start[:, None], uv0, uv)
     jac = torch.zeros((n, 2, 2), dtype=targets.dtype, device=dev)
     if any(r.uv0 is not None and r.jac0 is not None for r in reqs):
-        jac0 = torch.cat([r.jac0 if (r.uv0 is not None and r.jac0 is not None) else nan2.new_full((k, 2, 2), math.nan)
-                          for r, k in zip(reqs, sizes)])
+        jac0 = torch.cat([r.jac0 if (r.uv0 is not None and r.jac0 is not None)
+                          else nan2.new_full((k, 2, 2), math.nan) for r, k in zip(reqs, sizes)])
         chord = start & torch.isfinite(jac0).flatten(1).all(-1)
         jac[chord] = jac0[chord]
     x = torch.zeros_like(targets)
@@ -282,8 +282,8 @@ def _invert_group(reqs: list) -> list:
 
 def _landing_rounds(reqs: list, rid, live, uv, chord, bounds):
     """One Newton round's trace for the ``live`` rays (sorted indices into the set of :func:`_invert_group`): each
-    request's rays and, for its non-chord rays, their two finite-difference neighbours (:func:`_landing_and_jacobian`'s
-    rays), one :func:`_trace_group` for all requests. Returns the landing points (L, 2), validity (L,) and Jacobians
+    request's rays and, for its non-chord rays, their two finite-difference neighbours (the rays of
+    :func:`_landing_and_jacobian`), one :func:`_trace_group` for all requests. Returns the landing points (L, 2), validity (L,) and Jacobians
     (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
     dev = uv.device
     counts = torch.bincount(rid[live], minlength=len(reqs)).tolist()
