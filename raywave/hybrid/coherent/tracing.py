@@ -283,8 +283,8 @@ def _invert_group(reqs: list) -> list:
 def _landing_rounds(reqs: list, rid, live, uv, chord, bounds):
     """One Newton round's trace for the ``live`` rays (sorted indices into the set of :func:`_invert_group`): each
     request's rays and, for its non-chord rays, their two finite-difference neighbours (the rays of
-    :func:`_landing_and_jacobian`), one :func:`_trace_group` for all requests. Returns the landing points (L, 2), validity (L,) and Jacobians
-    (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
+    :func:`_landing_and_jacobian`), one :func:`_trace_group` for all requests. Returns the landing points (L, 2),
+    validity (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
     dev = uv.device
     counts = torch.bincount(rid[live], minlength=len(reqs)).tolist()
     trace_reqs, parts, offset = [], [], 0
