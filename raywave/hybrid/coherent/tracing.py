@@ -258,7 +258,7 @@ def _invert_group(reqs: list) -> list:
             chord[:] = False  # from here on every moving node takes Newton steps
         if live.numel() == 0:
             break
-        x_l, valid_l, jac_l = _landing_rounds(reqs, rid, live, uv, chord, bounds)
+        x_l, valid_l, jac_l = _landing_rounds(reqs, rid, live, uv, chord)
         jac_l = torch.where(chord[live][:, None, None], jac[live], jac_l)
         x[live], valid[live], jac[live] = x_l, valid_l, jac_l
         err = x_l - targets[live]
@@ -280,7 +280,7 @@ def _invert_group(reqs: list) -> list:
     return out
 
 
-def _landing_rounds(reqs: list, rid, live, uv, chord, bounds):
+def _landing_rounds(reqs: list, rid, live, uv, chord):
     """One Newton round's trace for the ``live`` rays (sorted indices into the set of :func:`_invert_group`): each
     request's rays and, for its non-chord rays, their two finite-difference neighbours (the rays of
     :func:`_landing_and_jacobian`), one :func:`_trace_group` for all requests. Returns the landing points (L, 2),
