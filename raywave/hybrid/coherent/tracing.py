@@ -71,11 +71,9 @@ def _trace_group(reqs: list) -> list:
     uv = torch.stack([torch.cat([r.uv, r.uv[:1].expand(n_max - r.uv.shape[0], 2)]) if r.uv.shape[0] < n_max
                       else r.uv for r in reqs])[:, None]
     fields = torch.stack([r.field.reshape(2) for r in reqs])
-    wls = torch.cat([r.wavelength.reshape(1) for r in reqs])
-    same_wl = bool((wls == wls[0]).all())
+    wls = torch.cat([r.wavelength.reshape(1) for r in reqs]).reshape(-1, 1, 1)  # a wavelength per row
     with torch.set_grad_enabled(r0.grad and torch.is_grad_enabled()):
-        rays = rays_through(r0.lens, uv, fields, r0.field_type, wls[:1] if same_wl else wls.reshape(-1, 1, 1),
-                            depth=r0.depth, ep_z=r0.ep_z)
+        rays = rays_through(r0.lens, uv, fields, r0.field_type, wls, depth=r0.depth, ep_z=r0.ep_z)
         res = r0.lens.trace(rays, apertures=False, record=r0.record)
         out, rec = res if r0.record else (res, None)
         n = r0.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
@@ -138,19 +136,30 @@ def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z
     """Landing points X (N, 2), validity (N,) and ∂X/∂uv (N, 2, 2) (forward differences, step h), from one
     batched trace of the 3N rays uv, uv + h·e_u, uv + h·e_v (a generator: yields that trace's request).
     ``need_jac`` (N,) bool: only those rays get their two neighbours traced (the others' Jacobians are NaN)."""
-    n = uv.shape[0]
+    allv = _with_neighbours(uv, h, need_jac)
+    _, _, at, _ = yield _TraceRequest(lens, allv, field, wl, depth, z_doe, field_type, False, ep_z, False)
+    return _landing_from(at, uv.shape[0], h, need_jac)
+
+
+def _with_neighbours(uv, h: float, need_jac=None):
+    """The rays ``uv`` (N, 2) followed by the two finite-difference neighbours ``+h·e_u``, ``+h·e_v`` of those that
+    ``need_jac`` (N,) bool marks (None: all): (N + 2M, 2)."""
     du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
     uj = uv if need_jac is None else uv[need_jac]
-    m = uj.shape[0]
-    allv = torch.cat([uv, uj + du[0], uj + du[1]])
-    _, _, at, _ = yield _TraceRequest(lens, allv, field, wl, depth, z_doe, field_type, False, ep_z, False)
+    return torch.cat([uv, uj + du[0], uj + du[1]])
+
+
+def _landing_from(at, n: int, h: float, need_jac=None):
+    """Landing points (n, 2), validity (n,) and forward-difference Jacobians (n, 2, 2) (NaN where ``need_jac`` is
+    False) from the traced rays ``at`` of :func:`_with_neighbours` (a (1, 1, n + 2M) bundle on the plane)."""
     x = at.o[0, 0, :, :2]
+    m = (x.shape[0] - n) // 2
     x0, xu, xv = x[:n], x[n:n + m], x[n + m:]
     xj = x0 if need_jac is None else x0[need_jac]
     jac_j = torch.stack([(xu - xj) / h, (xv - xj) / h], -1)
     if need_jac is None:
         return x0, at.valid[0, 0, :n], jac_j
-    jac = torch.full((n, 2, 2), math.nan, dtype=uv.dtype, device=uv.device)
+    jac = torch.full((n, 2, 2), math.nan, dtype=x.dtype, device=x.device)
     jac[need_jac] = jac_j
     return x0, at.valid[0, 0, :n], jac
 
@@ -285,7 +294,6 @@ def _landing_rounds(reqs: list, rid, live, uv, chord):
     request's rays and, for its non-chord rays, their two finite-difference neighbours (the rays of
     :func:`_landing_and_jacobian`), one :func:`_trace_group` for all requests. Returns the landing points (L, 2),
     validity (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
-    dev = uv.device
     counts = torch.bincount(rid[live], minlength=len(reqs)).tolist()
     trace_reqs, parts, offset = [], [], 0
     for g, m in enumerate(counts):
@@ -294,30 +302,13 @@ def _landing_rounds(reqs: list, rid, live, uv, chord):
         r = reqs[g]
         idx = live[offset:offset + m]
         offset += m
-        uv_g = uv[idx]
         need = ~chord[idx]
-        du = torch.tensor([[r.h, 0.0], [0.0, r.h]], dtype=uv.dtype, device=dev)
-        uj = uv_g if bool(need.all()) else uv_g[need]
-        allv = torch.cat([uv_g, uj + du[0], uj + du[1]])
-        trace_reqs.append(_TraceRequest(r.lens, allv, r.field, r.wavelength, r.depth, r.z_doe, r.field_type, False,
-                                        r.ep_z, False))
-        parts.append((m, need, uj.shape[0], r.h))
-    results = _trace_group(trace_reqs)
-    xs, vs, js = [], [], []
-    for (m, need, k, h), (_, _, at, _) in zip(parts, results):
-        xx = at.o[0, 0, :, :2]
-        x0, xu, xv = xx[:m], xx[m:m + k], xx[m + k:]
-        xj = x0 if k == m else x0[need]
-        jac_j = torch.stack([(xu - xj) / h, (xv - xj) / h], -1)
-        if k == m:
-            jac_g = jac_j
-        else:
-            jac_g = torch.full((m, 2, 2), math.nan, dtype=xx.dtype, device=dev)
-            jac_g[need] = jac_j
-        xs.append(x0)
-        vs.append(at.valid[0, 0, :m])
-        js.append(jac_g)
-    return torch.cat(xs), torch.cat(vs), torch.cat(js)
+        need = None if bool(need.all()) else need
+        trace_reqs.append(_TraceRequest(r.lens, _with_neighbours(uv[idx], r.h, need), r.field, r.wavelength, r.depth,
+                                        r.z_doe, r.field_type, False, r.ep_z, False))
+        parts.append((m, need, r.h))
+    landed = [_landing_from(at, m, h, need) for (m, need, h), (_, _, at, _) in zip(parts, _trace_group(trace_reqs))]
+    return tuple(torch.cat(c) for c in zip(*landed))
 
 
 def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, grad_xy: torch.Tensor | None = None):
