@@ -37,13 +37,14 @@ from raywave.doe import BlankDOE, PixelDOE, doe_from_phase_model
 from raywave.doe.spec import check_phase_finite
 from raywave.hybrid.hybrid_lens import BEAM_MARGIN, HybridLens
 from raywave.io.errors import LensFileError, with_location
-from raywave.lens.analysis import beam_half_extent, beam_rays_at
+from raywave.lens.analysis import beam_folds, beam_half_extent, beam_rays_at
 from raywave.lens.build import lens_from_spec, resolve_lens_path
 from raywave.lens.frames import image_space
 from raywave.utils.errors import NonFiniteError
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "MAX_DEFAULT_PITCH", "NYQUIST_FILL",
-           "MAX_DEFAULT_BEAM_PIXELS", "beam_half_extent", "default_doe_size", "fit_doe_distance", "hybrid_from_spec", "load_hybrid", "nyquist_doe_pitch"]
+           "CAUSTIC_MARGIN", "MAX_DEFAULT_BEAM_PIXELS", "beam_half_extent", "caustic_free_distance", "default_doe_size",
+           "fit_doe_distance", "hybrid_from_spec", "load_hybrid", "nyquist_doe_pitch"]
 
 #: Pixel pitch (mm) of the blank DOE given to a lens file without a DOE when no ray can size it (before issue 19
 #: every lens file without a DOE got it; now :func:`nyquist_doe_pitch` chooses).
@@ -57,6 +58,10 @@ DEFAULT_DISTANCE_FRACTION = 0.5
 #: a lens file without a DOE: the default DOE plane moves towards the sensor until every source's beam spans at most
 #: this many DOE pixels a side on it (:func:`fit_doe_distance`; a 25 mm beam at 0.6 µm would need 40 000²)
 MAX_DEFAULT_BEAM_PIXELS = 2048
+#: ... but it stays where every beam is at least this many times as wide as on the plane where its rays first cross
+#: (a caustic between the lens and the plane makes the ray map, from which the field is built, many to one: the
+#: field there is wrong, e.g. an f/3 double Gauss at 14°, 2 mm before focus: 0.17 rel L1 from the Huygens PSF)
+CAUSTIC_MARGIN = 1.5
 _MIN_PIXELS = 16
 _PIXEL_TOL = 1e-6
 
@@ -107,50 +112,90 @@ def nyquist_doe_pitch(lens, distance: float, fields=None, wavelengths=None, dept
 
 
 def fit_doe_distance(lens, distance: float, pitch: float, fields=None, wavelengths=None, depth=None,
-                     max_pixels: int = MAX_DEFAULT_BEAM_PIXELS) -> float:
+                     max_pixels: int = MAX_DEFAULT_BEAM_PIXELS, report: dict | None = None) -> float:
     """The default DOE distance (mm after the last vertex) for a lens file without a DOE: ``distance`` when every
     source's beam spans at most ``max_pixels`` pixels of ``pitch`` mm a side on that plane, else the nearest plane
     towards the sensor where it does (the beam narrows towards focus while the Nyquist pitch, set by the rays'
     directions, stays the same: a fast lens with a large beam, e.g. an F/1.3 lens with a 21 mm pupil, needs
     20 000² pixels half way to the sensor and 2 000² a few mm before it). When no plane fits: the plane where the
-    widest beam is narrowest. With a blank DOE and ``stop_edge="exit_pupil"`` the PSF does not depend on the
-    plane (docs/ray-wave.md). Rays: pupil rim and a hexapolar grid per field and wavelength (defaults as
-    :func:`beam_half_extent`), traced once and carried along straight lines; a 1.1 margin for the window's edge
-    band."""
+    widest beam is narrowest. Never beyond the first caustic (:func:`caustic_free_distance`): an aberrated beam's
+    rays cross before focus, and the field is built from a one-to-one ray map, so the plane stays before the
+    crossing even where the beam then spans more than ``max_pixels``. With a blank DOE and
+    ``stop_edge="exit_pupil"`` the PSF does not depend on the plane otherwise (docs/ray-wave.md). Rays: pupil rim
+    and a hexapolar grid per field and wavelength (defaults as :func:`beam_half_extent`), traced once and carried
+    along straight lines; a 1.1 margin for the window's edge band. ``report``: a dict that receives
+    ``distance_rule`` ("half_way", "beam_fit" or "before_caustic") and ``caustic_distance`` (mm after the last
+    vertex where the first rays cross, or None)."""
     last = float(lens.surfaces[-1].thickness.detach())
     z_last = float(lens.vertex_z()[-1].detach())
+    report = {} if report is None else report
     at, n, _ = beam_rays_at(lens, z_last + distance, fields, wavelengths, depth)
     ok = at.valid & torch.isfinite(at.o).all(-1)
+    report.update(distance_rule="half_way", caustic_distance=None)
     if not bool(ok.any()):
         return distance
     xy0 = at.o[..., :2]
     tan = at.d[..., :2] / at.d[..., 2:]
+    safe = caustic_free_distance(lens, fields, wavelengths, depth, report=report)
     # offsets from the default plane
     dz = torch.linspace(0.0, 0.995 * last - distance, 400, dtype=torch.float64, device=xy0.device)
-
-    def widest(xy):  # (Z, F, W, N, 2) -> (Z,) largest side of any source's footprint, pixels
-        big = torch.tensor(math.inf, dtype=xy.dtype, device=xy.device)
-        hi = torch.where(ok[..., None], xy, -big).amax(-2)
-        lo = torch.where(ok[..., None], xy, big).amin(-2)
-        side = (hi - lo).amax(-1)
-        side = torch.where(ok.any(-1), side, torch.zeros_like(side))
-        return side.flatten(1).amax(1) * 1.1 / pitch
-
-    w = widest(xy0[None] + tan[None] * dz[:, None, None, None, None])
+    w = _widest(xy0[None] + tan[None] * dz[:, None, None, None, None], ok) / pitch
     if float(w[0]) <= max_pixels or dz.numel() < 2 or float(dz[-1]) <= 0:
-        return distance
-    fits = torch.nonzero(w <= max_pixels).squeeze(1)
-    if fits.numel():
-        i = int(fits[0])
-        lo_, hi_ = float(dz[i - 1]), float(dz[i])  # refine the crossing by bisection
-        for _ in range(30):
-            mid = 0.5 * (lo_ + hi_)
-            if float(widest(xy0[None] + tan[None] * mid)[0]) <= max_pixels:
-                hi_ = mid
-            else:
-                lo_ = mid
-        return distance + hi_
-    return distance + float(dz[int(torch.argmin(w))])
+        fitted = distance
+    else:
+        fits = torch.nonzero(w <= max_pixels).squeeze(1)
+        if fits.numel():
+            i = int(fits[0])
+            lo_, hi_ = float(dz[i - 1]), float(dz[i])  # refine the crossing by bisection
+            for _ in range(30):
+                mid = 0.5 * (lo_ + hi_)
+                if float(_widest(xy0[None] + tan[None] * mid, ok)[0]) / pitch <= max_pixels:
+                    hi_ = mid
+                else:
+                    lo_ = mid
+            fitted = distance + hi_
+        else:
+            fitted = distance + float(dz[int(torch.argmin(w))])
+        report["distance_rule"] = "beam_fit"
+    if safe is not None and fitted > safe:
+        fitted = safe
+        report["distance_rule"] = "before_caustic"
+    return fitted
+
+
+def _widest(xy: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+    """The largest side (mm) of any source's footprint, times 1.1 (the window's edge band): ``xy`` (Z, F, W, N, 2)
+    ray positions on Z planes, ``ok`` (F, W, N) the rays that count → (Z,)."""
+    big = torch.tensor(math.inf, dtype=xy.dtype, device=xy.device)
+    hi = torch.where(ok[..., None], xy, -big).amax(-2)
+    lo = torch.where(ok[..., None], xy, big).amin(-2)
+    side = (hi - lo).amax(-1)
+    side = torch.where(ok.any(-1), side, torch.zeros_like(side))
+    return side.flatten(1).amax(1) * 1.1
+
+
+def caustic_free_distance(lens, fields=None, wavelengths=None, depth=None, margin: float = CAUSTIC_MARGIN,
+                          report: dict | None = None) -> float | None:
+    """The largest DOE distance (mm after the last vertex) before the sources' first caustic: the plane where the
+    widest beam is still ``margin`` × as wide as on the first plane where any source's rays cross
+    (:func:`raywave.lens.analysis.beam_folds`, 400 planes up to 0.995 of the last thickness); None when no rays
+    cross there (or right after the lens, where no plane helps). Sources as :func:`fit_doe_distance`. ``report``
+    receives ``caustic_distance`` (mm or None)."""
+    last = float(lens.surfaces[-1].thickness.detach())
+    z_last = float(lens.vertex_z()[-1].detach())
+    dz = torch.linspace(0.0, 0.995 * last, 400, dtype=torch.float64, device=lens.device)
+    folded = beam_folds(lens, z_last + dz, fields, wavelengths, depth).flatten(1).amax(1) > 0
+    if not bool(folded.any()):
+        return None
+    i = int(torch.nonzero(folded)[0])
+    if report is not None:
+        report["caustic_distance"] = float(dz[i])
+    at, _, _ = beam_rays_at(lens, z_last, fields, wavelengths, depth)
+    ok = at.valid & torch.isfinite(at.o).all(-1)
+    tan = at.d[..., :2] / at.d[..., 2:]
+    w = _widest(at.o[None, ..., :2] + tan[None] * dz[:i + 1, None, None, None, None], ok)
+    wide = torch.nonzero(w[:i] >= margin * w[i]).squeeze(1)
+    return float(dz[int(wide[-1])]) if wide.numel() else None  # crossing right after the lens: no plane helps
 
 
 def default_doe_size(lens, distance: float, fields=None, wavelengths=None, depth=None,
@@ -343,9 +388,9 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     pitch, rule = _doe_pitch(optics, data, doe_pitch, distance, fields, wavelengths, depth, source)
     info.update(rule)
     if doe_distance is None and data is None:  # a beam too wide for the grid: move the default plane to focus
-        fitted = fit_doe_distance(lens, distance, pitch, fields, wavelengths, depth)
-        info["distance_rule"] = "half_way" if fitted == distance else "beam_fit"
-        distance = fitted
+        fit: dict = {}
+        distance = fit_doe_distance(lens, distance, pitch, fields, wavelengths, depth, report=fit)
+        info.update(fit)
     size = _size_arg(doe_size)
     shape = _doe_shape(optics, data, pitch, doe_pitch, size, distance, fields, wavelengths, depth, source)
     doe = _make_doe(data, shape, pitch, source)

@@ -31,9 +31,9 @@ import torch
 from torch import nn
 
 from raywave.doe import DOE
-from raywave.hybrid.coherent import (DOEField, StopEdgeWarning, accurate_field_steps, chief_rays, doe_clippings,
-                                     entrance_pupil, exit_pupil_field_steps, faithful_field, footprints, run_batched,
-                                     stop_rim_images_many)
+from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
+                                     doe_clippings, entrance_pupil, exit_pupil_field_steps, faithful_field, footprints,
+                                     run_batched, stop_rim_images_many)
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
@@ -406,7 +406,7 @@ class HybridLens(nn.Module):
                      for i in range(nf) for j, wl in enumerate(wls)]
         # the DOE-aperture diagnostic of every accurate field, from one trace (the faithful mode measures it
         # from its own rays)
-        clips = doe_clippings(optics, self.doe, f, wls_t, depth, z_doe) if mode == "accurate" else None
+        clips = doe_clippings(optics, self.doe, f, wls_t, depth, z_doe, folds=True) if mode == "accurate" else None
         return self._finish_fields(built, f, wls, cd, clips)
 
     def _finish_fields(self, built: list, f: torch.Tensor, wls: list[float], chief_doe, clips) -> list:
@@ -415,7 +415,7 @@ class HybridLens(nn.Module):
         beam half-width mm), or None: the field's own) and the chief ray's slopes ``chief_tan`` from ``chief_doe``
         (F, W) rays; warns (pointing at the caller of :meth:`doe_fields`) where no light reaches the DOE
         (``f`` (F, 2) fields, ``wls`` µm) or the DOE aperture clips the beam."""
-        nw, out, clipped = len(wls), [], []
+        nw, out, clipped, folded = len(wls), [], [], []
         for i in range(f.shape[0]):
             row = []
             for j, wl in enumerate(wls):
@@ -425,7 +425,9 @@ class HybridLens(nn.Module):
                                   "vignetted or misses the DOE aperture); its PSF is all zeros",
                                   VignettingWarning, stacklevel=3)
                 if clips is not None:
-                    fd.clipped, fd.beam_half = clips[i][j]
+                    fd.clipped, fd.beam_half, fold = clips[i][j]
+                    if fold > 0:
+                        folded.append((fold, f[i].tolist(), wl))
                 if fd.clipped > CLIP_WARN:
                     clipped.append((fd, f[i]))
                 d_c = chief_doe[i, j].d.detach()
@@ -433,7 +435,20 @@ class HybridLens(nn.Module):
                 row.append(fd)
             out.append(row)
         self._warn_clipped(clipped)
+        self._warn_caustic(folded)
         return out
+
+    def _warn_caustic(self, folded: list) -> None:
+        """One :class:`~raywave.hybrid.coherent.CausticWarning` (pointing at the caller of :meth:`doe_fields`) for
+        the sources whose rays cross before the DOE plane: ``folded`` a list of ``(fraction of the stop grid's cells
+        folded, field, wavelength µm)``."""
+        if not folded:
+            return
+        frac, field, wl = max(folded)
+        warnings.warn(f"{len(folded)} source(s): the rays cross between the lens and the DOE plane "
+                      f"{self.doe_distance:g} mm after the last vertex (a caustic before it; worst {frac:.1%} of the "
+                      f"stop grid folded, field {field} at {wl:g} µm): the accurate field, built from a one-to-one "
+                      "ray map, is wrong there. Move the DOE plane towards the lens", CausticWarning, stacklevel=4)
 
     def _accurate_constructions(self, f, wls, depth, chief, nodes: int, check: bool) -> list:
         """The accurate field constructions (generators, :func:`raywave.hybrid.coherent.run_batched` runs them

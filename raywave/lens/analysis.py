@@ -79,6 +79,64 @@ def beam_rays_at(lens, z: float, fields=None, wavelengths=None, depth=None, chie
         return out.propagate_to_z(z, n), n, wls
 
 
+def pupil_grid(n_grid: int, device=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Cell centres of an ``n_grid`` × ``n_grid`` grid over the normalised stop square [-1, 1]², those inside the
+    unit circle: ``(px (N,), py (N,), index (N,))``, ``index`` their flat positions in the grid (row-major: row y,
+    column x), which :func:`fold_fraction` uses to find each ray's grid neighbours."""
+    g = (torch.arange(n_grid, dtype=torch.float64, device=device) + 0.5) / n_grid * 2 - 1
+    gx, gy = torch.meshgrid(g, g, indexing="xy")
+    inside = (gx**2 + gy**2 <= 1).flatten()
+    return gx.flatten()[inside], gy.flatten()[inside], torch.nonzero(inside).squeeze(1)
+
+
+def fold_fraction(xy: torch.Tensor, valid: torch.Tensor, index: torch.Tensor, n_grid: int) -> torch.Tensor:
+    """How much of a beam's ray map from the stop to a plane is folded (rays that cross between the lens and the
+    plane: a caustic lies before it).
+
+    The rays come from the :func:`pupil_grid` cells ``index`` (N,); each grid cell with three valid rays (its own,
+    the next along x, the next along y) maps to a triangle on the plane whose orientation is the sign of the map's
+    Jacobian there. One orientation throughout means the map is one to one (mirrored as a whole past a focus is
+    fine); both mean it folds. Returns the fraction (...,) float64 of the counted cells with the less common
+    orientation (0: no fold). ``xy`` (..., N, 2) mm on the plane, ``valid`` (..., N) (vignetted rays: False)."""
+    lead = xy.shape[:-2]
+    nan = torch.tensor(math.nan, dtype=xy.dtype, device=xy.device)
+    full = torch.full((*lead, n_grid * n_grid, 2), math.nan, dtype=xy.dtype, device=xy.device)
+    full[..., index, :] = torch.where(valid[..., None], xy, nan)
+    g = full.reshape(*lead, n_grid, n_grid, 2)
+    a = g[..., :-1, 1:, :] - g[..., :-1, :-1, :]  # to the next column (x)
+    b = g[..., 1:, :-1, :] - g[..., :-1, :-1, :]  # to the next row (y)
+    det = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    ok = torch.isfinite(det)
+    det = torch.where(ok, det, torch.zeros_like(det))
+    tol = 1e-9 * det.abs().amax((-1, -2), keepdim=True)  # a degenerate (focused) cell counts for neither side
+    pos = (det > tol).sum((-1, -2))
+    neg = (det < -tol).sum((-1, -2))
+    return torch.minimum(pos, neg).to(xy.dtype) / (pos + neg).clamp_min(1).to(xy.dtype)
+
+
+def beam_folds(lens, z, fields=None, wavelengths=None, depth=None, n_grid: int = 32) -> torch.Tensor:
+    """:func:`fold_fraction` of every source's beam on the planes ``z`` (Z,) mm from the first vertex (in image
+    space, after the last surface): ``(Z, F, W)`` float64, 0 where the rays from the stop have not crossed yet.
+    Sources as :func:`beam_rays_at` (``fields`` in the lens's field type, default its fields along y and (0, 0);
+    ``wavelengths`` µm, default all the lens's); an ``n_grid``² stop grid, fully aimed, traced once without autograd
+    and carried along straight lines."""
+    if not getattr(lens, "image_space_view", False):
+        lens.require_unfolded("beam_folds")
+    px, py, index = pupil_grid(n_grid, lens.device)
+    wls = (lens.wavelengths if wavelengths is None
+           else [float(w) for w in torch.as_tensor(wavelengths, device="cpu").reshape(-1)])
+    zs = torch.as_tensor(z, dtype=torch.float64, device=lens.device).reshape(-1)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", VignettingWarning)  # vignetted rays are left out (valid mask)
+        rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full", depth=depth)
+        out = lens.trace(rays)
+        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(float(zs[0]), n)
+        tan = at.d[..., :2] / at.d[..., 2:]
+        xy = at.o[None, ..., :2] + tan[None] * (zs - zs[0])[:, None, None, None, None]
+        return fold_fraction(xy, at.valid.expand(xy.shape[:-1]), index, n_grid)
+
+
 def beam_half_extent(lens, z: float, fields=None, wavelengths=None, depth=None) -> tuple[float, float] | None:
     """Largest ``|x|`` and ``|y|`` (mm) the beam (:func:`beam_rays_at`: pupil rim and hexapolar grid, every field
     and wavelength) reaches on the plane ``z`` (mm from the first vertex). None when every ray is vignetted."""

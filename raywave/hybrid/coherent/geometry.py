@@ -8,6 +8,7 @@ import warnings
 
 import torch
 
+from raywave.lens.analysis import fold_fraction, pupil_grid
 from raywave.lens.sources import (VignettingWarning, chief_pupil, entrance_plane_z, point_source_rays,
                                   source_weight)
 from raywave.utils.errors import check_allocation
@@ -106,16 +107,16 @@ def doe_clipping(lens, doe, field, wavelength, depth, z_doe: float, n_grid: int 
     return doe_clippings(lens, doe, torch.as_tensor(field).reshape(1, 2), wavelength, depth, z_doe, n_grid)[0][0]
 
 
-def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: int = 48) -> list:
+def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: int = 48, folds: bool = False) -> list:
     """:func:`doe_clipping` of fields (F, 2) at wavelengths (W,) µm from one trace of all F×W beams: a nested list
-    ``[F][W]`` of ``(blocked, half)``. (The rays' aiming iterates over the whole batch, so the values can differ
+    ``[F][W]`` of ``(blocked, half)``, with ``folds`` ``(blocked, half, folded)``: ``folded`` the fraction of the
+    stop grid's cells whose rays have crossed before the DOE plane (:func:`raywave.lens.analysis.fold_fraction`; 0:
+    none, the ray map is one to one). (The rays' aiming iterates over the whole batch, so the values can differ
     from single calls' in the last digits of the aim: ~1e-12 mm on the stop.)"""
-    g = (torch.arange(n_grid, dtype=torch.float64, device=lens.device) + 0.5) / n_grid * 2 - 1
-    gx, gy = torch.meshgrid(g, g, indexing="xy")
-    inside = gx**2 + gy**2 <= 1
+    px, py, index = pupil_grid(n_grid, lens.device)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # the caller reports vignetting once
-        rays = point_source_rays(lens, fields, wavelengths, pupil=(gx[inside], gy[inside]), aim="full", depth=depth)
+        rays = point_source_rays(lens, fields, wavelengths, pupil=(px, py), aim="full", depth=depth)
         out = lens.trace(rays)
         n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(z_doe, n)
@@ -126,8 +127,10 @@ def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: i
         blocked = (w * ~inside_doe(doe, xy)).sum(-1) / w.sum(-1).clamp_min(1e-300)
         half = torch.where(v[..., None], xy.abs(), torch.zeros((), dtype=xy.dtype, device=xy.device)).amax((-1, -2))
         lit = v.any(-1)
+        folded = fold_fraction(xy, v, index, n_grid).cpu() if folds else torch.zeros(v.shape[:2], dtype=xy.dtype)
         blocked, half, lit = blocked.cpu(), half.cpu(), lit.cpu()
-    return [[(float(blocked[i, j]), float(half[i, j])) if bool(lit[i, j]) else (0.0, 0.0)
+    extra = (lambda i, j: (float(folded[i, j]),)) if folds else (lambda i, j: ())
+    return [[((float(blocked[i, j]), float(half[i, j])) if bool(lit[i, j]) else (0.0, 0.0)) + extra(i, j)
              for j in range(v.shape[1])] for i in range(v.shape[0])]
 
 

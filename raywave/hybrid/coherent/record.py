@@ -18,6 +18,15 @@ class SamplingWarning(UserWarning):
     """A grid too coarse for the phase it must carry, or a ray map that cannot be interpolated."""
 
 
+class CausticWarning(SamplingWarning):
+    """The rays from the stop cross between the lens and the DOE plane (a caustic lies before it): the accurate
+    field is built from a one-to-one map of stop points to DOE-plane points, so there it is wrong (and so is its
+    PSF). Move the DOE plane towards the lens (a lens file's default blank DOE stays before the caustic:
+    :func:`raywave.assembly.build.caustic_free_distance`). Found from a regular stop grid traced to the plane
+    (:func:`raywave.hybrid.coherent.doe_clippings`), which sees a fold that the field's own nodes can miss (they
+    each land on one branch of it)."""
+
+
 class StopEdgeWarning(UserWarning):
     """The exit-pupil stop edge is approximate or unavailable: the Fresnel edge step on an edge whose radius of
     curvature is not large against its Fresnel zone (a small obscuration), or a lens whose exit pupil lies at
