@@ -96,6 +96,34 @@ def test_fold_mirror_psf_equals_the_unfolded_lens():
     assert float(a.center[1, 0, 1]) == pytest.approx(1.17189, abs=1e-4)  # ~100 mm · tan 1° on the tilted sensor
 
 
+def test_a_folded_lens_file_without_a_doe_gets_the_default_one():
+    """`raywave psf` on a folded lens file with no DOE (the corpus fold): the default blank DOE is sized and placed
+    in the image-space frame (it used to fail: "beam_half_extent is not supported for a lens with coordinate
+    breaks"); its PSF equals the unfolded doublet's with the same DOE on the same plane (40 mm further along)."""
+    from raywave.assembly.build import load_hybrid
+
+    path = ZMX / "fold_mirror_doublet.zmx"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hl = load_hybrid(path, fields=[[0.0, 1.0], [0.0, 0.0]], field_type="angle", stop_edge="doe")
+        spec = read_zmx(path)
+    info = hl.doe_info
+    assert info["source"] == "default" and info["distance_rule"] in ("half_way", "beam_fit", "before_caustic")
+    assert 0 < info["distance"] < 24.513
+    flat = dict(spec, surfaces=spec["surfaces"][:3])
+    flat["surfaces"][2] = dict(flat["surfaces"][2], thickness=spec["surfaces"][2]["thickness"]
+                               - spec["surfaces"][5]["thickness"])
+    straight = lens_from_spec(flat)
+    gap = spec["surfaces"][2]["thickness"]
+    b = _psfs(straight, gap + info["distance"], hl.doe, [(0.0, 1.0)])
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a = HybridLens(hl.lens, hl.doe, info["distance"], sensor_pitch=0.002, stop_edge="doe").psf_result(
+            [(0.0, 1.0)], [0.55], ks=16, rays=24)
+    assert float(b.psf.max()) > 0.01
+    np.testing.assert_allclose(a.psf.numpy(), b.psf.numpy(), rtol=0, atol=1e-10)
+
+
 @pytest.mark.parametrize("second", [-45.0, 45.0], ids=["periscope", "u-turn"])
 def test_two_mirrors_psf_equals_the_unfolded_lens(second):
     """Two flat mirrors (a periscope, light along +z again 8 mm higher; or a U-turn, light along −z): the image-space

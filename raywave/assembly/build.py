@@ -113,7 +113,8 @@ def nyquist_doe_pitch(lens, distance: float, fields=None, wavelengths=None, dept
 
 def fit_doe_distance(lens, distance: float, pitch: float, fields=None, wavelengths=None, depth=None,
                      max_pixels: int = MAX_DEFAULT_BEAM_PIXELS, report: dict | None = None) -> float:
-    """The default DOE distance (mm after the last vertex) for a lens file without a DOE: ``distance`` when every
+    """The default DOE distance (mm after the last vertex) for a lens file without a DOE (``lens``: the lens, or for a
+    folded or mirrored one its image-space view, :func:`raywave.lens.frames.image_space`): ``distance`` when every
     source's beam spans at most ``max_pixels`` pixels of ``pitch`` mm a side on that plane, else the nearest plane
     towards the sensor where it does (the beam narrows towards focus while the Nyquist pitch, set by the rays'
     directions, stays the same: a fast lens with a large beam, e.g. an F/1.3 lens with a 21 mm pupil, needs
@@ -126,8 +127,7 @@ def fit_doe_distance(lens, distance: float, pitch: float, fields=None, wavelengt
     along straight lines; a 1.1 margin for the window's edge band. ``report``: a dict that receives
     ``distance_rule`` ("half_way", "beam_fit" or "before_caustic") and ``caustic_distance`` (mm after the last
     vertex where the first rays cross, or None)."""
-    last = float(lens.surfaces[-1].thickness.detach())
-    z_last = float(lens.vertex_z()[-1].detach())
+    last, z_last = _last_gap(lens), float(lens.vertex_z()[-1].detach())
     report = {} if report is None else report
     at, n, _ = beam_rays_at(lens, z_last + distance, fields, wavelengths, depth)
     ok = at.valid & torch.isfinite(at.o).all(-1)
@@ -163,6 +163,14 @@ def fit_doe_distance(lens, distance: float, pitch: float, fields=None, wavelengt
     return fitted
 
 
+def _last_gap(lens) -> float:
+    """The distance (mm) from the last vertex to the sensor along the light: the last thickness, or for a folded or
+    mirrored lens's image-space view (:func:`raywave.lens.frames.image_space`) its signed last thickness, positive
+    in that frame."""
+    t = lens.last_thickness() if getattr(lens, "image_space_view", False) else lens.surfaces[-1].thickness
+    return float(t.detach())
+
+
 def _widest(xy: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
     """The largest side (mm) of any source's footprint, times 1.1 (the window's edge band): ``xy`` (Z, F, W, N, 2)
     ray positions on Z planes, ``ok`` (F, W, N) the rays that count → (Z,)."""
@@ -181,8 +189,7 @@ def caustic_free_distance(lens, fields=None, wavelengths=None, depth=None, margi
     (:func:`raywave.lens.analysis.beam_folds`, 400 planes up to 0.995 of the last thickness); None when no rays
     cross there (or right after the lens, where no plane helps). Sources as :func:`fit_doe_distance`. ``report``
     receives ``caustic_distance`` (mm or None)."""
-    last = float(lens.surfaces[-1].thickness.detach())
-    z_last = float(lens.vertex_z()[-1].detach())
+    last, z_last = _last_gap(lens), float(lens.vertex_z()[-1].detach())
     dz = torch.linspace(0.0, 0.995 * last, 400, dtype=torch.float64, device=lens.device)
     folded = beam_folds(lens, z_last + dz, fields, wavelengths, depth).flatten(1).amax(1) > 0
     if not bool(folded.any()):
@@ -389,7 +396,7 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     info.update(rule)
     if doe_distance is None and data is None:  # a beam too wide for the grid: move the default plane to focus
         fit: dict = {}
-        distance = fit_doe_distance(lens, distance, pitch, fields, wavelengths, depth, report=fit)
+        distance = fit_doe_distance(optics, distance, pitch, fields, wavelengths, depth, report=fit)
         info.update(fit)
     size = _size_arg(doe_size)
     shape = _doe_shape(optics, data, pitch, doe_pitch, size, distance, fields, wavelengths, depth, source)
