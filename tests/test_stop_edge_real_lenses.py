@@ -38,7 +38,9 @@ TOL = 2e-2
 #: the default DOE plane stayed before the caustic, these four were also built beyond it: 0.17 rel L1 for the double
 #: Gauss at full field; tests/test_caustic.py.)
 SETTINGS = {("asphere_f13", 0.7): (384, 3e-3), ("asphere_f13", 1.0): (384, 3e-3), ("double_gauss", 0.7): (384, 3e-3),
-            ("double_gauss", 1.0): (384, 3e-3)}
+            ("double_gauss", 1.0): (384, 3e-3),
+            # 1.8e-2 against 192² cells (the reference warns: 0.51 waves), 9.1e-3 against 384² at 3 µm pixels
+            ("singlet_nbk7_50", 1.0): (384, 3e-3)}
 
 pytestmark = pytest.mark.filterwarnings("ignore::raywave.hybrid.SensorCropWarning")
 
