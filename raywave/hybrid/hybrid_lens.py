@@ -412,9 +412,10 @@ class HybridLens(nn.Module):
     def _finish_fields(self, built: list, f: torch.Tensor, wls: list[float], chief_doe, clips) -> list:
         """The flat field-major list ``built`` (F·W :class:`DOEField`) as the nested ``[F][W]`` list of
         :meth:`doe_fields`, each completed: the DOE-aperture diagnostic ``clips`` (``[F][W]`` of (blocked fraction,
-        beam half-width mm), or None: the field's own) and the chief ray's slopes ``chief_tan`` from ``chief_doe``
-        (F, W) rays; warns (pointing at the caller of :meth:`doe_fields`) where no light reaches the DOE
-        (``f`` (F, 2) fields, ``wls`` µm) or the DOE aperture clips the beam."""
+        beam half-width mm, folded fraction: :func:`~raywave.hybrid.coherent.doe_clippings` with ``folds``), or
+        None: the field's own) and the chief ray's slopes ``chief_tan`` from ``chief_doe`` (F, W) rays; warns
+        (pointing at the caller of :meth:`doe_fields`) where no light reaches the DOE (``f`` (F, 2) fields, ``wls``
+        µm), the DOE aperture clips the beam or the rays cross before the DOE plane."""
         nw, out, clipped, folded = len(wls), [], [], []
         for i in range(f.shape[0]):
             row = []

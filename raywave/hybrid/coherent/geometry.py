@@ -127,11 +127,16 @@ def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: i
         blocked = (w * ~inside_doe(doe, xy)).sum(-1) / w.sum(-1).clamp_min(1e-300)
         half = torch.where(v[..., None], xy.abs(), torch.zeros((), dtype=xy.dtype, device=xy.device)).amax((-1, -2))
         lit = v.any(-1)
-        folded = fold_fraction(xy, v, index, n_grid).cpu() if folds else torch.zeros(v.shape[:2], dtype=xy.dtype)
+        folded = fold_fraction(xy, v, index, n_grid).cpu() if folds else None
         blocked, half, lit = blocked.cpu(), half.cpu(), lit.cpu()
-    extra = (lambda i, j: (float(folded[i, j]),)) if folds else (lambda i, j: ())
-    return [[((float(blocked[i, j]), float(half[i, j])) if bool(lit[i, j]) else (0.0, 0.0)) + extra(i, j)
-             for j in range(v.shape[1])] for i in range(v.shape[0])]
+    out = []
+    for i in range(v.shape[0]):
+        row = []
+        for j in range(v.shape[1]):
+            entry = (float(blocked[i, j]), float(half[i, j])) if bool(lit[i, j]) else (0.0, 0.0)
+            row.append(entry if folded is None else entry + (float(folded[i, j]),))
+        out.append(row)
+    return out
 
 
 def _sim_grid(doe, oversample: int):
