@@ -110,3 +110,17 @@ def test_a_doe_plane_beyond_the_caustic_warns():
         with pytest.warns(CausticWarning, match=r"1 source\(s\).*field \[0.0, 14.0\]"):
             hl.doe_fields([[0.0, 14.0], [0.0, 0.0]], hl.lens.primary_wavelength, rays=16)
     assert math.isfinite(clips[0][0][0])
+
+
+def test_cli_psf_reports_the_caustic_rule(capsys):
+    """`raywave psf --json` names the rule and where the rays first cross; the text output says it too."""
+    import json
+
+    from raywave.cli.main import main
+
+    assert main(["psf", DOUBLE_GAUSS, "--field", "0", "14", "--ks", "8", "--rays", "16", "--json"]) == 0
+    doe = json.loads(capsys.readouterr().out)["doe"]
+    assert doe["distance_rule"] == "before_caustic"
+    assert doe["distance_mm"] < doe["caustic_distance_mm"]
+    assert main(["psf", DOUBLE_GAUSS, "--field", "0", "14", "--ks", "8", "--rays", "16"]) == 0
+    assert "kept before the rays' first crossing" in capsys.readouterr().out

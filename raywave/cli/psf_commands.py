@@ -206,6 +206,7 @@ def summary(result: dict, lens_name: str) -> dict:
             "pitch_mm": info["pitch"],
             "pitch_rule": info.get("pitch_rule"),
             "distance_rule": info.get("distance_rule"),
+            "caustic_distance_mm": info.get("caustic_distance"),
             "shape": info["shape"],
             "size_mm": info["size"],
             "aperture": info["aperture"],
@@ -240,7 +241,9 @@ def _format_text(s: dict) -> str:
         f"PSF of {s['lens']}: field ({s['field_deg'][0]:g}, {s['field_deg'][1]:g}) deg, depth {s['depth_mm']} mm, "
         f"{s['wavelength_um']:g} µm, {s['mode']} mode, {s['rays']} rays",
         f"  DOE ({d['source']}): {d['shape'][1]} × {d['shape'][0]} pixels of {d['pitch_mm'] * 1e3:g} µm, "
-        f"{d['distance_mm']:g} mm after the last vertex, {d['aperture']}, "
+        f"{d['distance_mm']:g} mm after the last vertex"
+        + (f" (kept before the rays' first crossing, {d['caustic_distance_mm']:g} mm)"
+           if d.get("distance_rule") == "before_caustic" else "") + f", {d['aperture']}, "
         + (f"phase {d['phase']}" if d["phase"] is not None else f"{d['phase_model']} phase"
            if d.get("phase_model") else "blank")
         + (f", {d['levels']} levels" if d.get("levels") else "")
