@@ -172,8 +172,9 @@ def check_window_memory(ny: int, nx: int, p: float, device=None) -> None:
     pitch ``p`` mm that would not fit in memory, before anything of that size is allocated."""
     check_allocation(float(ny) * float(nx) * WINDOW_BYTES_PER_SAMPLE,
                      f"the {ny}×{nx}-sample DOE-plane field (simulation pitch {p * 1e3:.3g} µm)",
-                     "use a coarser DOE pitch (doe pitch / --doe-pitch), a lower oversample (--oversample) or a "
-                     "smaller DOE", device)
+                     "use a coarser DOE pitch (doe pitch / --doe-pitch), a lower oversample (--oversample), a "
+                     "smaller DOE or, for a blank DOE, a plane nearer focus (--doe-distance; the beam is narrower "
+                     "there, but the plane must stay before the rays' first crossing: CausticWarning)", device)
 
 
 def lit_box(grid: Grid, bbox, margin: float) -> tuple[int, int, int, int] | None:
