@@ -136,7 +136,7 @@ def fit_doe_distance(lens, distance: float, pitch: float, fields=None, wavelengt
         return distance
     xy0 = at.o[..., :2]
     tan = at.d[..., :2] / at.d[..., 2:]
-    safe = caustic_free_distance(lens, fields, wavelengths, depth, report=report)
+    safe = caustic_free_distance(lens, fields, wavelengths, depth, report=report, beam=(xy0, tan, ok, distance))
     # offsets from the default plane
     dz = torch.linspace(0.0, 0.995 * last - distance, 400, dtype=torch.float64, device=xy0.device)
     w = _widest(xy0[None] + tan[None] * dz[:, None, None, None, None], ok) / pitch
@@ -183,12 +183,14 @@ def _widest(xy: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
 
 
 def caustic_free_distance(lens, fields=None, wavelengths=None, depth=None, margin: float = CAUSTIC_MARGIN,
-                          report: dict | None = None) -> float | None:
+                          report: dict | None = None, beam: tuple | None = None) -> float | None:
     """The largest DOE distance (mm after the last vertex) before the sources' first caustic: the plane where the
     widest beam is still ``margin`` × as wide as on the first plane where any source's rays cross
     (:func:`raywave.lens.analysis.beam_folds`, 400 planes up to 0.995 of the last thickness); None when no rays
     cross there (or right after the lens, where no plane helps). Sources as :func:`fit_doe_distance`. ``report``
-    receives ``caustic_distance`` (mm or None)."""
+    receives ``caustic_distance`` (mm or None). ``beam``: the sources' rays already traced by
+    :func:`raywave.lens.analysis.beam_rays_at` as ``(xy (F, W, N, 2) mm, tan (F, W, N, 2), ok (F, W, N), d)`` on the
+    plane ``d`` mm after the last vertex (:func:`fit_doe_distance` passes its own; None: traced here)."""
     last, z_last = _last_gap(lens), float(lens.vertex_z()[-1].detach())
     dz = torch.linspace(0.0, 0.995 * last, 400, dtype=torch.float64, device=lens.device)
     folded = beam_folds(lens, z_last + dz, fields, wavelengths, depth).flatten(1).amax(1) > 0
@@ -197,10 +199,11 @@ def caustic_free_distance(lens, fields=None, wavelengths=None, depth=None, margi
     i = int(torch.nonzero(folded)[0])
     if report is not None:
         report["caustic_distance"] = float(dz[i])
-    at, _, _ = beam_rays_at(lens, z_last, fields, wavelengths, depth)
-    ok = at.valid & torch.isfinite(at.o).all(-1)
-    tan = at.d[..., :2] / at.d[..., 2:]
-    w = _widest(at.o[None, ..., :2] + tan[None] * dz[:i + 1, None, None, None, None], ok)
+    if beam is None:
+        at, _, _ = beam_rays_at(lens, z_last, fields, wavelengths, depth)
+        beam = (at.o[..., :2], at.d[..., :2] / at.d[..., 2:], at.valid & torch.isfinite(at.o).all(-1), 0.0)
+    xy, tan, ok, d0 = beam  # straight lines after the last surface
+    w = _widest(xy[None] + tan[None] * (dz[:i + 1] - d0)[:, None, None, None, None], ok)
     wide = torch.nonzero(w[:i] >= margin * w[i]).squeeze(1)
     return float(dz[int(wide[-1])]) if wide.numel() else None  # crossing right after the lens: no plane helps
 
