@@ -281,6 +281,12 @@ def test_straight_axis_models_and_the_map_grid_refuse_a_folded_lens():
     for name in ("paraxial", "pupil", "raytrace", "exit_pupil"):
         with pytest.raises(ValueError, match="straight optical axis"):
             make_model(name, hl)
-    assert make_model("raywave", hl) is not None
+    assert make_model("raywave", hl) is not None and make_model("raywave_doe", hl) is not None
+    # built directly, not through make_model: the same clear refusal
+    from raywave.models import ExitPupilModel, LocalGratingModel, ParaxialModel, PupilModel
+
+    for cls in (ExitPupilModel, ParaxialModel, PupilModel, LocalGratingModel):
+        with pytest.raises(ValueError, match=f"the {cls.name!r} model assumes one straight optical axis"):
+            cls(hl)
     with pytest.raises(ValueError, match="fields="):
         field_grid(hl, (2, 2), sensor_size=(1.0, 1.0))

@@ -183,7 +183,7 @@ def format_ablation(table: dict, deconv: str) -> str:
                 zones = list(cols)
                 lines.append("| DOE | reconstruction | " + " | ".join(zones) + " |")
                 lines.append("|---|---|" + "---|" * len(zones))
-            name = "deconvolution + network" if (label == "reconstruction" and deconv == "wiener") else \
+            name = "deconvolution + network" if (label == "reconstruction" and deconv.startswith("wiener")) else \
                 ("network" if label == "reconstruction" else label)
             lines.append(f"| {doe} | {name} | " + " | ".join(f"{cols[z]['psnr']:.2f} / {cols[z]['ssim']:.3f}"
                                                               for z in zones) + " |")

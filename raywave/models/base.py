@@ -32,15 +32,30 @@ def relative_l1(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a - b).abs().sum((-2, -1)) / b.abs().sum((-2, -1)).clamp_min(1e-300)
 
 
+def require_straight_axis(hybrid, name: str) -> None:
+    """The comparison models read the lens along one straight +z axis: refuse a folded, decentred, tilted or
+    mirrored lens (only the ray-wave engine traces it, in its image-space frame) instead of a wrong PSF."""
+    from raywave.lens.frames import image_space
+
+    lens = getattr(hybrid, "lens", None)
+    if lens is not None and image_space(lens) is not lens:
+        raise ValueError(f"the {name!r} model assumes one straight optical axis, but this lens has coordinate breaks "
+                         "or mirrors; only the ray-wave model ('raywave', HybridLens.psf) traces it, in its "
+                         "image-space frame")
+
+
 class PSFModel(nn.Module):
     """Base class: holds the :class:`HybridLens` whose lens, DOE, DOE distance and sensor every model shares."""
 
     name = "base"
+    straight_axis_only = True  # reads the lens along one straight +z axis (the ray-wave engine does not)
 
     def __init__(self, hybrid: HybridLens):
         super().__init__()
         if not isinstance(hybrid, HybridLens):
             raise TypeError(f"a comparison model is built on a raywave.hybrid.HybridLens, got {type(hybrid).__name__}")
+        if self.straight_axis_only:
+            require_straight_axis(hybrid, self.name)
         self.hybrid = hybrid
 
     @property
@@ -90,6 +105,7 @@ class RayWaveModel(PSFModel):
     ``rays``: traced nodes across the lit footprint (default 64, see :meth:`HybridLens.doe_fields`)."""
 
     name = "raywave"
+    straight_axis_only = False  # the engine traces folded / mirrored lenses in their image-space frame
 
     def __init__(self, hybrid: HybridLens, rays: int | None = None):
         super().__init__(hybrid)

@@ -54,18 +54,4 @@ def make_model(name: str, hybrid: HybridLens, **options) -> PSFModel:
     key = str(name).strip().lower().replace("-", "_")
     if key not in MODELS:
         raise ValueError(f"unknown model {name!r}: choose one of {', '.join(MODEL_NAMES)}")
-    if key not in (RayWaveModel.name, PaperRayWaveModel.name):
-        _require_straight_axis(hybrid, key)
     return MODELS[key](hybrid, **options)
-
-
-def _require_straight_axis(hybrid, key: str) -> None:
-    """The comparison models read the lens along one straight +z axis: refuse a folded, decentred, tilted or
-    mirrored lens (only the ray-wave engine traces it, in its image-space frame) instead of a wrong PSF."""
-    from raywave.lens.frames import image_space
-
-    lens = getattr(hybrid, "lens", None)
-    if lens is not None and image_space(lens) is not lens:
-        raise ValueError(f"the {key!r} model assumes one straight optical axis, but this lens has coordinate breaks "
-                         "or mirrors; only the ray-wave model ('raywave', HybridLens.psf) traces it, in its "
-                         "image-space frame")

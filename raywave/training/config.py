@@ -147,8 +147,11 @@ class NetworkConfig:
     map (:mod:`raywave.imaging.deconv`; learned regularisation per channel, initial ``wiener_lambda`` and
     ``wiener_mu``; ``wiener_chroma``: ρ of the colour prior, the chroma's prior power relative to the
     luminance's, learned from this start; None: the per-channel filter), refined by the network, differentiable
-    w.r.t. the PSFs (so the optics learn to be restorable); ``"none"``: the paper's plain network on the sensor
-    image.
+    w.r.t. the PSFs (so the optics learn to be restorable); ``"wiener_select"``: the same, but with several
+    ``optics.depths`` the image is deconvolved with each depth's map and the results are blended per region by
+    the depth the image's own evidence favours (:mod:`raywave.imaging.depth`; ``select_temperature`` 1 is the
+    Gaussian model's posterior) instead of one expected-error filter for all depths; ``"none"``: the paper's
+    plain network on the sensor image.
     ``ablation``: after training, also train a plain network (``deconv: none``, stage 2's settings) on the final
     optics, for the ablation table of the evaluation (sensor image / network only / deconvolution + network).
     """
@@ -162,6 +165,7 @@ class NetworkConfig:
     wiener_lambda: float = 1e-3
     wiener_mu: float = 1e-2
     wiener_chroma: Optional[float] = None
+    select_temperature: float = 1.0
     ablation: bool = False
 
 

@@ -83,9 +83,7 @@ def evaluate(trainer, noise: bool = True) -> dict:
             rec = trainer.reconstruct(sim, pm.psf, pm.centers, exts, pm.positions)
             row = {**scores(rec, ""), **scores(sim, "_input")}
             if isinstance(trainer.net, PSFAwareNet):
-                row.update(scores(trainer.net.deconvolve(sim, pm.psf, exts, positions=pm.positions,
-                                                      centers=pm.centers.mean(0), sensor_size=trainer.sensor_size,
-                                                      pitch=trainer.pitch), "_deconv"))
+                row.update(scores(trainer.deconvolve(sim, pm.psf, pm.centers, exts, pm.positions), "_deconv"))
             if trainer.plain_net is not None:
                 row.update(scores(trainer.plain_net(sim), "_network_only"))
             row["psf_rms_px"] = nearest_psf_size(pm.psf[d], pm.positions, uv)

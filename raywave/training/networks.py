@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["UNet", "NAFNet", "LayerNorm2d", "SimpleGate", "NAFBlock", "PSFAwareNet", "build_network",
+__all__ = ["UNet", "NAFNet", "LayerNorm2d", "SimpleGate", "NAFBlock", "PSFAwareNet", "DepthSelect", "build_network",
            "count_parameters"]
 
 
@@ -199,28 +199,81 @@ class PSFAwareNet(nn.Module):
     The deconvolution is differentiable w.r.t. the PSFs: in end-to-end training ∂loss/∂PSF flows through it
     as well as through the rendering (so the optics learn to be restorable, not only small).
 
+    With S candidate maps (one per object depth; the camera does not know which blurred the image):
+    without ``select`` one filter serves every depth, the expected-error filter over the S maps; with
+    ``select`` (a :class:`DepthSelect`) the image is deconvolved with each depth's map alone and the results
+    are blended per pixel with the depth weights the image's own evidence gives
+    (:mod:`raywave.imaging.depth`).
+
     Args:
         net: the refinement network (``(B, C, H, W) → (B, C, H, W)``, residual).
         deconv: the deconvolution module.
+        select: a :class:`DepthSelect`, or None.
     """
 
-    def __init__(self, net: nn.Module, deconv: nn.Module):
+    def __init__(self, net: nn.Module, deconv: nn.Module, select: nn.Module | None = None):
         super().__init__()
-        self.net, self.deconv = net, deconv
+        self.net, self.deconv, self.select = net, deconv, select
 
-    def forward(self, image: torch.Tensor, psf: torch.Tensor | None = None, extents=None, **kw) -> torch.Tensor:
+    def forward(self, image: torch.Tensor, psf: torch.Tensor | None = None, extents=None, depth_centers=None,
+                **kw) -> torch.Tensor:
         """``image (B, C, H, W)`` blurred; ``psf (C, N, M, ks, ks)`` the map it was blurred with (or
         ``(S, C, N, M, ks, ks)``: the candidate maps, e.g. one per depth); ``extents``:
         one normalised sensor extent per image (or one for all); ``kw``: positions, centers, sensor_size, pitch
-        (:func:`~raywave.imaging.deconv.wiener_deconvolve`)."""
+        (:func:`~raywave.imaging.deconv.wiener_deconvolve`); ``depth_centers (S, C, N, M, 2)`` mm: each map's
+        PSF centres, for the per-depth deconvolutions of ``select`` (default: ``centers``)."""
         if psf is None:
             raise ValueError("PSFAwareNet needs the PSF map the image was blurred with (psf=...)")
-        return self.net(self.deconvolve(image, psf, extents, **kw))
+        return self.net(self.deconvolve(image, psf, extents, depth_centers=depth_centers, **kw))
 
-    def deconvolve(self, image, psf, extents=None, **kw) -> torch.Tensor:
+    def deconvolve(self, image, psf, extents=None, depth_centers=None, **kw) -> torch.Tensor:
         """The deconvolution stage alone (the network's input)."""
+        if self.select is None or psf.dim() != 6 or psf.shape[0] < 2:
+            return self._per_image(self.deconv, image, psf, extents, **kw)
+        S = psf.shape[0]
+        outs = []
+        for s in range(S):
+            kws = dict(kw, centers=depth_centers[s]) if depth_centers is not None else kw
+            outs.append(self._per_image(self.deconv, image, psf[s:s + 1], extents, **kws))
+        kws = {k: v for k, v in kw.items() if k != "centers"}
+        w = self._per_image(self.select, image, psf, extents, **kws)  # (B, S, H, W)
+        return sum(w[:, s:s + 1] * outs[s] for s in range(S))
+
+    @staticmethod
+    def _per_image(fn, image, psf, extents, **kw) -> torch.Tensor:
+        """``fn(image, psf, extent=…, **kw)`` with one extent for all images or one per image."""
         if extents is None or (len(extents) == 4 and not hasattr(extents[0], "__len__")):
-            return self.deconv(image, psf, **({"extent": tuple(extents)} if extents is not None else {}), **kw)
+            return fn(image, psf, **({"extent": tuple(extents)} if extents is not None else {}), **kw)
         if len(extents) != image.shape[0]:
             raise ValueError(f"extents: one per image ({image.shape[0]}), got {len(extents)}")
-        return torch.cat([self.deconv(image[i:i + 1], psf, extent=tuple(e), **kw) for i, e in enumerate(extents)])
+        return torch.cat([fn(image[i:i + 1], psf, extent=tuple(e), **kw) for i, e in enumerate(extents)])
+
+
+class DepthSelect(nn.Module):
+    """Per-pixel weights of the S depths' maps from the image's own evidence
+    (:func:`raywave.imaging.depth.depth_weights`): the image prior (a radial power-spectrum table, a buffer:
+    it travels with ``state_dict``), the sensor's noise (``shot``, ``read`` as fractions of full scale) and
+    the softmax temperature.
+
+    Args:
+        prior: ``(C, bins)`` from :func:`~raywave.imaging.depth.power_spectrum_prior` of training images.
+        shot, read: the sensor noise (:class:`~raywave.imaging.sensor.Sensor`).
+        temperature: 1 is the Gaussian model's posterior.
+    """
+
+    def __init__(self, prior: torch.Tensor, shot: float, read: float, temperature: float = 1.0):
+        super().__init__()
+        self.register_buffer("prior", torch.as_tensor(prior, dtype=torch.float64).clone())
+        self.shot, self.read, self.temperature = float(shot), float(read), float(temperature)
+
+    def forward(self, image: torch.Tensor, psf: torch.Tensor, **kw) -> torch.Tensor:
+        """``(B, S, H, W)`` depth weights of ``image (B, C, H, W)`` for the maps ``psf (S, C, N, M, ks, ks)``;
+        ``kw``: positions, sensor_size, pitch, extent, orientation."""
+        from raywave.imaging.depth import depth_weights
+
+        w = depth_weights(image, psf, self.prior.to(image.dtype), self.shot, self.read,
+                          temperature=self.temperature, **kw)
+        return w.to(image.dtype)
+
+    def extra_repr(self) -> str:
+        return f"shot={self.shot:g}, read={self.read:g}, temperature={self.temperature:g}"

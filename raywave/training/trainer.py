@@ -41,7 +41,7 @@ from raywave.training.checkpoint import checkpoint_path, latest_checkpoint, load
 from raywave.training.config import TrainConfig, dump_config
 from raywave.training.fabricating import FabricationSchedule
 from raywave.training.losses import image_loss
-from raywave.training.networks import PSFAwareNet, build_network
+from raywave.training.networks import DepthSelect, PSFAwareNet, build_network
 from raywave.training.replay import OpticsStep, chunk_ranges
 from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
 from raywave.training.steps import _LIT_DRAWS, DarkRegionWarning, StageSteps, _lit_nodes, _nearest_node
@@ -154,11 +154,11 @@ class Trainer(FabricationSchedule, StageSteps):
             self.fields = field_grid(self.hl, self.grid, depth=self.depths[0]).reshape(-1, 2)
         self.positions = normalised_grid(self.grid, device=self.device)
         self.pitch = self.hl.sensor_pitch
+        self.train_data = train_data if train_data is not None else self._dataset("train")
         with torch.random.fork_rng(devices=[]):  # the initial weights depend on the seed only (global RNG untouched)
             torch.manual_seed(int(cfg.seed))
             self.net = self._build_net(cfg.network.deconv).to(self.device, self.dtype)
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
-        self.train_data = train_data if train_data is not None else self._dataset("train")
         self.eval_images = eval_images
         self.loss_fn = image_loss(cfg.stage1.loss if cfg.stage1.loss != "edof" else "rmse")
         jit = float(cfg.optics.field_jitter)
@@ -182,17 +182,37 @@ class Trainer(FabricationSchedule, StageSteps):
 
     # ------------------------------------------------------------------ set-up helpers
     def _build_net(self, deconv: str):
-        """The reconstruction module: the network (``deconv: none``) or :class:`PSFAwareNet` (``wiener``)."""
-        net = build_network(self.cfg.network.kind, **self._net_kwargs())
+        """The reconstruction module: the network (``deconv: none``) or :class:`PSFAwareNet` (``wiener``; with
+        ``wiener_select`` it deconvolves with each depth's map and picks per region by the image's evidence)."""
         if deconv == "none":
-            return net
-        if deconv == "wiener":
-            from raywave.imaging.deconv import WienerDeconv
+            return build_network(self.cfg.network.kind, **self._net_kwargs())
+        if deconv not in ("wiener", "wiener_select"):
+            raise ValueError(f"network.deconv must be 'wiener', 'wiener_select' or 'none', got {deconv!r}")
+        from raywave.imaging.deconv import WienerDeconv
 
-            n = self.cfg.network
-            return PSFAwareNet(net, WienerDeconv(3, init_lambda=n.wiener_lambda, init_mu=n.wiener_mu,
-                                                 init_chroma=n.wiener_chroma))
-        raise ValueError(f"network.deconv must be 'wiener' or 'none', got {deconv!r}")
+        select = None
+        if deconv == "wiener_select":
+            if len(self.depths) < 2:
+                raise ValueError(f"network.deconv 'wiener_select' chooses between the depths' maps: it needs two or "
+                                 f"more optics.depths, got {self.depths}; use 'wiener'")
+            select = self._depth_select()
+        n = self.cfg.network
+        return PSFAwareNet(build_network(n.kind, **self._net_kwargs()),
+                           WienerDeconv(3, init_lambda=n.wiener_lambda, init_mu=n.wiener_mu,
+                                        init_chroma=n.wiener_chroma), select=select)
+
+    def _depth_select(self):
+        """:class:`DepthSelect` with the image prior measured on (up to 64 of) the training patches and the
+        stage-2 sensor's noise."""
+        from raywave.imaging.depth import power_spectrum_prior
+        from raywave.imaging.sensor import Sensor
+
+        n = min(len(self.train_data), 64)
+        patches = torch.stack([torch.as_tensor(self.train_data[i]) for i in range(n)])
+        s2 = self.cfg.stage2
+        sensor = Sensor.from_electrons(full_well=s2.full_well, read_noise=s2.read_noise)
+        return DepthSelect(power_spectrum_prior(patches), sensor.shot, sensor.read,
+                           temperature=self.cfg.network.select_temperature)
 
     def reconstruct(self, sims, psf, cen, extents, positions=None, net=None) -> torch.Tensor:
         """The network's restoration of the simulated images ``sims (B, 3, h, w)`` at the normalised sensor
@@ -201,12 +221,20 @@ class Trainer(FabricationSchedule, StageSteps):
         ``cen (D, 3, N, M, 2)``, averaged over the depths for the distortion): the camera does not know the
         object's distance, so one filter serves every depth, the one with the least expected error over the D
         maps (:mod:`raywave.imaging.deconv`; with D = 1 the Wiener filter of the map the images were rendered
-        with)."""
+        with). ``wiener_select`` deconvolves with each depth's map and blends by the depth weights of the
+        image's evidence (:mod:`raywave.imaging.depth`)."""
         net = self.net if net is None else net
         if not isinstance(net, PSFAwareNet):
             return net(sims)
-        return net(sims, psf, extents, positions=self.positions if positions is None else positions,
-                   centers=cen.mean(0), sensor_size=self.sensor_size, pitch=self.pitch)
+        return net(sims, psf, extents, **self._deconv_kwargs(cen, positions))
+
+    def deconvolve(self, sims, psf, cen, extents, positions=None) -> torch.Tensor:
+        """The deconvolution stage of :meth:`reconstruct` alone (``network.deconv`` wiener / wiener_select)."""
+        return self.net.deconvolve(sims, psf, extents, **self._deconv_kwargs(cen, positions))
+
+    def _deconv_kwargs(self, cen, positions=None) -> dict:
+        return {"positions": self.positions if positions is None else positions, "centers": cen.mean(0),
+                "depth_centers": cen, "sensor_size": self.sensor_size, "pitch": self.pitch}
 
     def _net_kwargs(self) -> dict:
         n = self.cfg.network
