@@ -100,6 +100,20 @@ def test_select_gradients_reach_every_depths_map():
     assert torch.isfinite(g).all() and all(g[s].abs().max() > 0 for s in range(3))
 
 
+def test_float32_gradients_stay_finite_where_nodes_miss_the_image():
+    """Training runs in float32 on patches that see only some map nodes: the evidence's gradients w.r.t. the maps
+    and the image stay finite (found by the EDoF demo: a NaN DOE after the first stage-1 step)."""
+    maps = _gaussian_maps([1.0, 2.2, 3.6], n=5).float().requires_grad_(True)
+    y = render(_prior_field(seed=5), _gaussian_maps([2.2])[0]).float().requires_grad_(True)
+    prior = power_spectrum_prior(_prior_field(B=8, seed=13)).float()
+    for extent in ((-1.0, -0.2, -1.0, -0.2), (0.3, 0.9, -0.4, 0.2)):  # a corner: most nodes have no weight here
+        w = depth_weights(y, maps, prior, SHOT, READ, extent=extent, temperature=10.0)
+        assert w.dtype == torch.float32 and torch.isfinite(w).all()
+        (w * torch.linspace(0, 1, 3)[None, :, None, None]).sum().backward()
+        assert torch.isfinite(maps.grad).all() and torch.isfinite(y.grad).all()
+        assert maps.grad.abs().max() > 0
+
+
 def test_select_errors_are_clear():
     maps, y = _gaussian_maps([1.0, 2.0]), _prior_field()
     prior = power_spectrum_prior(y)
@@ -133,3 +147,23 @@ def test_trainer_builds_the_depth_select(tiny_lens_file, tmp_path):
     cfg1 = apply_overrides(load_config(p), ["optics.depths=[300.0]"])
     with pytest.raises(ValueError, match="two or more optics.depths"):
         Trainer(cfg1, tmp_path / "r1", progress=False)
+
+
+def test_a_non_finite_gradient_is_refused_before_it_reaches_the_parameters(tiny_lens_file, tmp_path):
+    """A NaN in a gradient stops the step by name instead of turning the DOE into NaN (the PSF would then fail
+    far from the cause)."""
+    from test_training_e2e import CFG
+
+    from raywave.training.config import load_config
+    from raywave.training.trainer import Trainer
+
+    p = tmp_path / "cfg.yaml"
+    p.write_text(CFG.format(lens=tiny_lens_file, deconv="wiener", ablation="false"))
+    tr = Trainer(load_config(p), tmp_path / "r", progress=False)
+    opt, _ = tr._optimizer("stage1")
+    before = tr.hl.doe.phase_map.detach().clone()
+    tr.hl.doe.phase_map.grad = torch.full_like(before, float("nan"))
+    with pytest.raises(FloatingPointError, match="gradient of hybrid.doe.phase_map .* is not finite"):
+        tr._optimizer_step(opt, None)
+    assert torch.equal(tr.hl.doe.phase_map.detach(), before)
+

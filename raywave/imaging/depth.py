@@ -53,6 +53,11 @@ def _radial_frequency(fy: int, fx: int, dtype, device) -> torch.Tensor:
     return (ky[:, None].square() + kx[None, :].square()).sqrt()
 
 
+def _power(z: torch.Tensor) -> torch.Tensor:
+    """``|z|²`` as ``Re² + Im²``: smooth at 0, where ``abs()`` has no derivative."""
+    return z.real.square() + z.imag.square()
+
+
 def power_spectrum_prior(images: torch.Tensor, bins: int = 48) -> torch.Tensor:
     """The images' mean power spectrum per channel as a radial table, ``(C, bins)`` at ``|f|`` =
     ``linspace(0, √½, bins)`` cycles per pixel: the periodogram of each mean-removed, Tukey-windowed image,
@@ -69,7 +74,7 @@ def power_spectrum_prior(images: torch.Tensor, bins: int = 48) -> torch.Tensor:
     B, C, H, W = x.shape
     w = _tukey(H, x.dtype, x.device)[:, None] * _tukey(W, x.dtype, x.device)[None, :]
     xw = (x - x.mean(dim=(-1, -2), keepdim=True)) * w
-    per = torch.fft.fft2(xw).abs().square().mean(0) / w.square().sum()  # (C, H, W)
+    per = _power(torch.fft.fft2(xw)).mean(0) / w.square().sum()  # (C, H, W)
     fr = _radial_frequency(H, W, x.dtype, x.device)
     idx = (fr / math.sqrt(0.5) * (bins - 1)).round().long().clamp(max=bins - 1).reshape(-1)
     count = torch.zeros(bins, dtype=x.dtype, device=x.device).index_add_(0, idx, torch.ones_like(idx, dtype=x.dtype))
@@ -87,7 +92,7 @@ def _interp(q: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor
     (clamped to the ends); ``(C, ...)``."""
     qf = q.reshape(-1).clamp(float(xs[0]), float(xs[-1]))
     j = torch.searchsorted(xs, qf, right=True).clamp(1, xs.numel() - 1)
-    t = (qf - xs[j - 1]) / (xs[j] - xs[j - 1]).clamp(min=1e-300)
+    t = (qf - xs[j - 1]) / (xs[j] - xs[j - 1])  # xs strictly ascending
     out = ys[:, j - 1] * (1 - t) + ys[:, j] * t
     return out.reshape(ys.shape[0], *q.shape)
 
@@ -134,14 +139,16 @@ def depth_evidence(image: torch.Tensor, maps: torch.Tensor, prior: torch.Tensor,
     wx = _hat_weights(cx, torch.arange(W, dtype=dt, device=dev), "bilinear") * _tukey(W, dt, dev)  # (M, W)
     w = wy[:, None, :, None] * wx[None, :, None, :]  # (N, M, H, W)
     w2 = w.square().sum(dim=(-1, -2))  # (N, M)
-    live = w2 > 0
-    mean = (x[:, :, None, None] * w).sum(dim=(-1, -2)) / w.sum(dim=(-1, -2)).clamp(min=1e-300)  # (B, C, N, M)
+    live = w2 > 0  # nodes whose weight reaches the image; the others get E = 0 (no say), with finite gradients
+    one = torch.ones_like(w2)
+    mean = (x[:, :, None, None] * w).sum(dim=(-1, -2)) / torch.where(live, w.sum(dim=(-1, -2)), one)  # (B, C, N, M)
     xw = (x[:, :, None, None] - mean[..., None, None]) * w  # (B, C, N, M, H, W)
-    per = torch.fft.fft2(xw, s=(fy, fx)).abs().square() / w2.clamp(min=1e-300)[..., None, None]
+    per = _power(torch.fft.fft2(xw, s=(fy, fx))) / torch.where(live, w2, one)[..., None, None]
     kp = F.pad(k, (0, fx - kx, 0, fy - ky))
-    K2 = torch.fft.fft2(kp).abs().square()  # (S, C, N, M, fy, fx); |K̂|² does not depend on the kernel's origin
+    K2 = _power(torch.fft.fft2(kp))  # (S, C, N, M, fy, fx); |K̂|² does not depend on the kernel's origin
     S_f = prior_on_grid(prior.to(device=dev, dtype=dt), fy, fx)  # (C, fy, fx)
     sig2 = (float(shot) * mean.detach().clamp(min=0) + float(read) ** 2).clamp(min=1e-12)  # (B, C, N, M)
+    # (1e-12: a noiseless sensor model still leaves the quantisation and rounding of the image)
     P = K2[None] * S_f[None, None, :, None, None] + sig2[:, None, ..., None, None]  # (B, S, C, N, M, fy, fx)
     dc = torch.ones(fy, fx, dtype=dt, device=dev)
     dc[0, 0] = 0.0  # the window's mean was removed

@@ -67,7 +67,23 @@ class StageSteps:
 
     def _optimizer_step(self, opt, sched) -> None:
         self._sync_grads()
+        self._check_grads(opt)
         opt.step(), sched.step(), opt.zero_grad(set_to_none=True)
+
+    def _check_grads(self, opt) -> None:
+        """Refuse a non-finite gradient before it reaches the parameters (Adam would spread the NaN into the
+        DOE / lens / network, and the next PSF would fail far from the cause); names the parameter."""
+        names = {id(p): n for n, p in self._named_parameters()}
+        for group in opt.param_groups:
+            for p in group["params"]:
+                if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+                    raise FloatingPointError(f"the gradient of {names.get(id(p), 'a parameter')} "
+                                             f"{tuple(p.shape)} is not finite (NaN or inf); nothing was updated")
+
+    def _named_parameters(self):
+        for key, module in self._modules().items():
+            for n, p in module.named_parameters():
+                yield f"{key}.{n}", p
 
     # ------------------------------------------------------------------ one iteration per stage
     def _pre_step(self, opt, sched) -> float:
