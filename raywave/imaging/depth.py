@@ -2,8 +2,8 @@
 
 An extended-depth-of-field camera does not know the object's distance, and a single deconvolution filter for
 every depth (the expected-error filter of :mod:`raywave.imaging.deconv`) restores each depth only part way: on
-the EDoF demo's optics at 10 m it gains +0.45 dB over the sensor image where the filter of the true depth gains
-+3.2 dB. The image itself tells the depths apart. Under the Gaussian image model of the Wiener filter, a region
+the EDoF demo's optics (blank DOE) at 10 m it gains +0.45 dB over the sensor image at the field centre where the
+filter of the true depth gains +3.2 dB. The image itself tells the depths apart. Under the Gaussian image model of the Wiener filter, a region
 ``y = k_s ⊛ x + n`` of an image blurred by the PSF ``k_s`` of depth s, with the image's power spectrum ``S(f)``
 and the noise variance ``σ²``, has the spectral density ``P_s(f) = |K̂_s(f)|²·S(f) + σ²``, and the depth with
 the largest marginal likelihood (Whittle's approximation) minimises
@@ -18,8 +18,9 @@ spatially varying choice of depth.
 
 The image prior matters: with the Wiener filter's own regulariser as prior (``S ∝ 1/(λ + μ|L̂|²)``, far too
 little high-frequency power for photographs) the evidence prefers the narrowest kernel; with the measured
-power spectrum of the training photos (:func:`power_spectrum_prior`) it picked the true depth of every held-out
-photo at the centre of the EDoF demo's field (measured 2026-11-28).
+power spectrum of the training photos (:func:`power_spectrum_prior`) it puts 0.88–0.98 of the weight on the true
+depth at the centre of the EDoF demo's field and 0.65–0.91 at its edge (blank DOE, held-out photos, 2026-11-28).
+Nothing in it is trained: the prior is measured, the noise is the sensor's, the temperature is set.
 """
 
 from __future__ import annotations
@@ -69,7 +70,8 @@ def power_spectrum_prior(images: torch.Tensor, bins: int = 48) -> torch.Tensor:
         bins: table length.
     """
     if images.ndim != 4 or min(images.shape[-2:]) < 8:
-        raise ValueError(f"power_spectrum_prior: images (B, C, H, W) of at least 8×8 pixels, got {tuple(images.shape)}")
+        raise ValueError(f"power_spectrum_prior: images (B, C, H, W) of at least 8×8 pixels, got "
+                         f"{tuple(images.shape)}")
     x = images.to(torch.float64)
     B, C, H, W = x.shape
     w = _tukey(H, x.dtype, x.device)[:, None] * _tukey(W, x.dtype, x.device)[None, :]
