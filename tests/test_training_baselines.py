@@ -136,3 +136,39 @@ def test_the_paraxial_design_measures_psf_size_about_the_pre_stages_point(tiny, 
     tr = Trainer(cfg, tmp_path, baseline=True, progress=False)
     assert seen and set(seen) == {"center"}  # design steps and the before/after objectives alike
     assert tr.baseline_design["settings"]["about"] == "center"
+
+
+def test_paraxial_reconstruction_builds_the_baselines_pipeline_on_the_paraxial_model(tiny, designed, tmp_path):
+    """``baseline_reconstruction: paraxial`` (the paper's baseline pipeline): the reconstruction's maps come from the
+    paraxial model, the sensor images from the ray-wave model. On this ideal lens the two models agree, so the
+    deconvolution with the paraxial PSFs restores as well as with the true ones (an independent check), and the
+    sensor images are the ones the ray-wave reconstruction sees."""
+    from raywave.models.paraxial import ParaxialModel
+
+    _, folder = designed
+    runs = {}
+    for rec in ("ray_wave", "paraxial"):
+        cfg = load_config(tiny / "paraxial.yaml")
+        cfg.network.deconv = "wiener"
+        cfg.baseline_reconstruction = rec
+        run = tmp_path / rec
+        run.mkdir()
+        for f in ("baseline_design.json", "baseline_doe.pt"):  # the stored design: not designed again
+            (run / f).write_bytes((folder / f).read_bytes())
+        runs[rec] = Trainer(cfg, run, baseline=True, progress=False)
+    rw, px = runs["ray_wave"], runs["paraxial"]
+    assert rw.recon_model is rw.hl and isinstance(px.recon_model, ParaxialModel)
+    assert torch.equal(rw.hl.doe.phase_map, px.hl.doe.phase_map)
+    m_rw, m_px = rw.evaluate(), px.evaluate()
+    assert px.truth_map() is not px.stage2_map and rw.truth_map() is rw.stage2_map
+    assert torch.allclose(px.truth_map().psf, rw.stage2_map.psf, atol=1e-12)
+    assert not torch.allclose(px.stage2_map.psf, px.truth_map().psf, atol=1e-12)  # another model's PSFs
+    for k in m_rw:
+        assert m_px[k]["psnr_input"] == pytest.approx(m_rw[k]["psnr_input"], abs=1e-9)
+        assert m_px[k]["psnr_deconv_true"] == pytest.approx(m_rw[k]["psnr_deconv"], abs=1e-9)
+        assert m_px[k]["psnr_deconv"] == pytest.approx(m_rw[k]["psnr_deconv"], abs=0.3)
+        assert "psnr_deconv_true" not in m_rw[k]
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("baseline_reconstruction: exact\n")
+    with pytest.raises(ConfigError, match="baseline_reconstruction"):
+        load_config(bad)

@@ -153,7 +153,7 @@ def _eval(args) -> int:
 
 #: the ablation table's reconstructions: metrics.json suffix → row label
 ABLATION_ROWS = {"_input": "sensor image", "_network_only": "network only", "_deconv": "deconvolution only",
-                 "": "reconstruction"}
+                 "_deconv_true": "deconvolution only, true PSFs", "": "reconstruction"}
 
 
 def ablation_table(metrics: dict) -> dict:
@@ -255,7 +255,7 @@ def _psf_map_figures(fig_dir: Path, trainers: dict) -> None:
     (mosaic of the PSFs, √ scale, normalised per channel)."""
     from raywave.plotting._mpl import plt, save
 
-    maps = {name: t.stage2_map for name, t in trainers.items() if t.stage2_map is not None}
+    maps = {name: t.truth_map() for name, t in trainers.items() if t.stage2_map is not None}  # what the lens does
     for d, depth in enumerate(next(iter(trainers.values())).depths):
         fig, axes = plt.subplots(1, len(maps), figsize=(5 * len(maps), 5), constrained_layout=True, squeeze=False)
         for ax, (name, pm) in zip(axes[0], maps.items()):
@@ -278,11 +278,11 @@ def _reconstruction_row(name: str, t, d: int, uv) -> list:
     from raywave.training.metrics import psnr
 
     img = t.eval_images_tensor()[:1]
-    pm = t.stage2_map
+    pm, truth = t.stage2_map, t.truth_map()  # the reconstruction's map; the lens's own (the sensor image)
     ext = t._extent(img.shape[-2:], uv)
     with torch.no_grad():
-        sim = render(img, pm.psf[d], positions=pm.positions, centers=pm.centers[d],
-                     sensor_size=pm.sensor_size, pitch=pm.pitch, extent=ext)
+        sim = render(img, truth.psf[d], positions=truth.positions, centers=truth.centers[d],
+                     sensor_size=truth.sensor_size, pitch=truth.pitch, extent=ext)
         sim = t._sensor()(sim, generator=torch.Generator().manual_seed(12345)).clamp(0, 1)
         rec = t.reconstruct(sim, pm.psf, pm.centers, [ext], pm.positions).clamp(0, 1)
     return [("ground truth", img[0]),

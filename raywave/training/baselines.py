@@ -36,17 +36,18 @@ BASELINES = ("blank", "paraxial")
 
 
 def psf_objective(psf: torch.Tensor, similarity_weight: float = 0.0, about: str = "centroid",
-                  restore_weight: float = 0.0, restore_noise: float = 1e-3) -> torch.Tensor:
+                  restore_weight: float = 0.0, restore_noise: float = 1e-3,
+                  restore_filter: str = "shared") -> torch.Tensor:
     """The pre-stage objective of PSFs ``(D, ..., ks, ks)`` (D depths first): mean RMS radius (pixels, about
     each PSF's ``about``: ``"centroid"`` or ``"center"``) plus ``similarity_weight`` × mean L1 distance across
     depths (when D > 1) plus ``restore_weight`` × the restorability term (dB, the soft worst depth's expected
-    error of one Wiener filter for all depths at noise ``restore_noise``,
-    :func:`~raywave.training.losses.psf_restorability_loss`). Scalar."""
+    error of one Wiener filter for all depths, or with ``restore_filter="own"`` of each depth's own filter, at
+    noise ``restore_noise``, :func:`~raywave.training.losses.psf_restorability_loss`). Scalar."""
     loss = psf_size_loss(psf, about=about)
     if similarity_weight and psf.shape[0] > 1:
         loss = loss + similarity_weight * psf_similarity_loss(psf)
     if restore_weight:
-        loss = loss + restore_weight * psf_restorability_loss(psf, noise=restore_noise)
+        loss = loss + restore_weight * psf_restorability_loss(psf, noise=restore_noise, filter=restore_filter)
     return loss
 
 
@@ -56,6 +57,8 @@ def objective_settings(pre_stage) -> dict:
     kw = {"similarity_weight": float(pre_stage.similarity_weight), "about": pre_stage.about}
     if pre_stage.restore_weight:  # only when used: older stored baseline designs stay reusable
         kw.update(restore_weight=float(pre_stage.restore_weight), restore_noise=float(pre_stage.restore_noise))
+        if pre_stage.restore_filter != "shared":
+            kw["restore_filter"] = pre_stage.restore_filter
     return kw
 
 

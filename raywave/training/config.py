@@ -178,7 +178,9 @@ class PreStageConfig:
     evaluation against the undistorted scene counts as error). ``restore_weight`` (pixels per dB) adds the
     restorability term: the soft worst depth's expected error (dB) of one Wiener filter for all depths, with a
     natural-image spectrum and white noise of variance ``restore_noise`` relative to the image's
-    (:func:`raywave.training.losses.psf_restorability_loss`); the paraxial baseline minimises the same objective."""
+    (:func:`raywave.training.losses.psf_restorability_loss`); ``restore_filter: own`` gives each depth its own
+    filter instead (the reconstruction of ``network.deconv: wiener_select``, which finds the depth from the image).
+    The paraxial baseline minimises the same objective."""
 
     steps: int = 0
     lr_doe: float = 1e-1
@@ -187,6 +189,7 @@ class PreStageConfig:
     about: str = "centroid"
     restore_weight: float = 0.0
     restore_noise: float = 1e-3
+    restore_filter: str = "shared"
 
 
 @dataclass
@@ -226,7 +229,11 @@ class TrainConfig:
     "float64"; the optics is always float64). ``checkpoint_every``: optimizer steps between checkpoints.
     ``baseline``: "blank" (the same lens with a zero-phase DOE, same network training) or "paraxial" (a DOE
     designed with the paraxial wave model in ``baseline_steps`` Adam steps of the pre-stage objective, evaluated
-    with the ray-wave model; :mod:`raywave.training.baselines`)."""
+    with the ray-wave model; :mod:`raywave.training.baselines`). ``baseline_reconstruction``: the model whose
+    PSFs the baseline's reconstruction is built and trained with: "ray_wave" (the lens's true PSFs: the DOE alone
+    is compared) or "paraxial" (the paper's protocol, supplement 2.6: a conventional paraxial pipeline, whose
+    Wiener filters and network training use the paraxial model's PSFs, while its images are simulated with the
+    ray-wave model)."""
 
     name: str = "run"
     seed: int = 0
@@ -242,6 +249,7 @@ class TrainConfig:
     checkpoint_every: int = 50
     baseline: str = "blank"
     baseline_steps: int = 50
+    baseline_reconstruction: str = "ray_wave"
 
 
 # ------------------------------------------------------------------ value rules
@@ -314,6 +322,7 @@ RULES: dict[str, Rule] = {
     "PreStageConfig.similarity_weight": _NONNEG,
     "PreStageConfig.restore_weight": _NONNEG,
     "PreStageConfig.restore_noise": _POS,
+    "PreStageConfig.restore_filter": Rule(choices=("shared", "own")),
     "PreStageConfig.about": Rule(choices=("centroid", "center")),
     "StageConfig.epochs": _NONNEG,
     "StageConfig.batch_size": _COUNT,
@@ -333,6 +342,7 @@ RULES: dict[str, Rule] = {
     "TrainConfig.checkpoint_every": _COUNT,
     "TrainConfig.baseline": Rule(choices=("blank", "paraxial")),
     "TrainConfig.baseline_steps": _NONNEG,
+    "TrainConfig.baseline_reconstruction": Rule(choices=("ray_wave", "paraxial")),
 }
 
 

@@ -53,15 +53,23 @@ def evaluate(trainer, noise: bool = True) -> dict:
     * ``psnr_deconv`` / ``ssim_deconv``: the multi-Wiener deconvolution alone (``deconv: wiener``);
     * ``psnr_network_only`` / ``ssim_network_only``: a plain network trained on the same optics
       (``network.ablation``, :meth:`Trainer.train_plain_network`);
+    * ``psnr_deconv_true`` / ``ssim_deconv_true``: for a baseline whose reconstruction uses the paraxial model's
+      PSFs (``baseline_reconstruction: paraxial``), the same deconvolution given the lens's true PSFs (the
+      baseline DOE compared alone).
+
+The sensor images are always simulated with the lens's own (ray-wave) evaluation map
+(:meth:`Trainer.truth_map`); the reconstructions use the run's reconstruction map (``trainer.stage2_map``).
 
     and ``psf_rms_px``: the RMS radius (sensor pixels, about the centroid, mean of the three channels) of the
-    evaluation map's PSF nearest the zone's centre; ``mean`` also has ``psf_rms_px_map`` (the whole map's
+    lens's evaluation-map PSF nearest the zone's centre; ``mean`` also has ``psf_rms_px_map`` (the whole map's
     mean) and ``energy_outside_max`` (the largest fraction of a PSF's energy outside the evaluation crop)."""
     from raywave.imaging.render import render
     from raywave.training.metrics import psnr, ssim
 
     pm = trainer.stage2_map if trainer.stage2_map is not None else trainer.evaluation_map()
-    trainer.stage2_map = pm
+    trainer.stage2_map = pm  # the reconstruction's map
+    truth = trainer.truth_map()  # the lens's own (ray-wave) map: the sensor images; pm itself unless a baseline
+    other = truth is not pm       # reconstructs with the paraxial model's PSFs (baseline_reconstruction)
     img = trainer.eval_images_tensor()
     sensor = trainer._sensor() if noise else None
     g = torch.Generator().manual_seed(12345)
@@ -75,8 +83,8 @@ def evaluate(trainer, noise: bool = True) -> dict:
     for d, depth in enumerate(trainer.depths):
         for zone, uv in zones.items():
             ext = trainer._extent(img.shape[-2:], uv)
-            sim = render(img, pm.psf[d], positions=pm.positions, centers=pm.centers[d],
-                         sensor_size=pm.sensor_size, pitch=pm.pitch, extent=ext)
+            sim = render(img, truth.psf[d], positions=truth.positions, centers=truth.centers[d],
+                         sensor_size=truth.sensor_size, pitch=truth.pitch, extent=ext)
             if sensor is not None:
                 sim = sensor(sim, generator=g)
             exts = [ext] * img.shape[0]
@@ -84,15 +92,18 @@ def evaluate(trainer, noise: bool = True) -> dict:
             row = {**scores(rec, ""), **scores(sim, "_input")}
             if isinstance(trainer.net, PSFAwareNet):
                 row.update(scores(trainer.deconvolve(sim, pm.psf, pm.centers, exts, pm.positions), "_deconv"))
+                if other:  # the same deconvolution given the lens's true PSFs: the DOE alone, compared
+                    row.update(scores(trainer.deconvolve(sim, truth.psf, truth.centers, exts, truth.positions),
+                                      "_deconv_true"))
             if trainer.plain_net is not None:
                 row.update(scores(trainer.plain_net(sim), "_network_only"))
-            row["psf_rms_px"] = nearest_psf_size(pm.psf[d], pm.positions, uv)
+            row["psf_rms_px"] = nearest_psf_size(truth.psf[d], truth.positions, uv)
             out[f"depth={depth:g}/{zone}"] = row
     keys = list(next(iter(out.values())))
     out["mean"] = {k: sum(v[k] for v in out.values()) / len(out) for k in keys}
-    out["mean"]["psf_rms_px_map"] = float(psf_size(pm.psf.double()).mean())
-    if "energy_outside_max" in pm.info:
-        out["mean"]["energy_outside_max"] = pm.info["energy_outside_max"]
+    out["mean"]["psf_rms_px_map"] = float(psf_size(truth.psf.double()).mean())
+    if "energy_outside_max" in truth.info:
+        out["mean"]["energy_outside_max"] = truth.info["energy_outside_max"]
     return out
 
 

@@ -63,3 +63,4 @@ class FabricationSchedule:
             self._fabricated = want
             self._frozen_maps.clear()
             self.stage2_map = None
+            self._truth_map = None

@@ -14,7 +14,9 @@ import math
 import torch
 
 __all__ = ["l1_loss", "mse_loss", "rmse_loss", "image_loss", "edof_loss", "psf_size", "psf_size_loss",
-           "psf_similarity_loss", "wiener_restoration_error", "psf_restorability_loss"]
+           "psf_similarity_loss", "wiener_restoration_error", "psf_restorability_loss", "RESTORE_FILTERS"]
+
+RESTORE_FILTERS = ("shared", "own")  # the restorability term's Wiener filter: one for all depths, or each depth's
 
 
 def l1_loss(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -107,7 +109,7 @@ def _image_spectrum(ky: int, kx: int, dtype, device) -> torch.Tensor:
     return p / p.mean()
 
 
-def wiener_restoration_error(psf_by_depth: torch.Tensor, noise: float = 1e-3) -> torch.Tensor:
+def wiener_restoration_error(psf_by_depth: torch.Tensor, noise: float = 1e-3, filter: str = "shared") -> torch.Tensor:
     """Expected error (dB, relative to the signal variance) of restoring each depth's image with **one** Wiener
     filter, the one of least error averaged over the depths (the camera does not know the distance; the filter of
     :func:`raywave.imaging.deconv.wiener_deconvolve` given a set of maps).
@@ -117,25 +119,37 @@ def wiener_restoration_error(psf_by_depth: torch.Tensor, noise: float = 1e-3) ->
     ``G = mean_d conj(K_d) P / (mean_d |K_d|² P + noise)`` and depth d's error per frequency is
     ``|G K_d − 1|² P + |G|² noise``; the result is ``10 log10`` of its mean over the frequencies.
 
+    ``filter="own"``: each depth restored with **its own** Wiener filter (a reconstruction that knows, or finds
+    from the image, the depth: ``network.deconv: wiener_select``), ``G_d = conj(K_d) P / (|K_d|² P + noise)``,
+    whose error per frequency is ``noise · P / (|K_d|² P + noise)``.
+
     Args:
         psf_by_depth: ``(D, ..., ky, kx)`` PSFs (each normalised to sum 1), D depths first.
         noise: noise variance relative to the image variance (> 0).
+        filter: ``"shared"`` (one filter for all depths) or ``"own"`` (each depth's filter).
 
     Returns:
         ``(D, ...)`` errors in dB (lower is better; −PSNR-like).
     """
     if not noise > 0:
         raise ValueError(f"noise must be > 0, got {noise}")
+    if filter not in RESTORE_FILTERS:
+        raise ValueError(f"filter must be one of {', '.join(RESTORE_FILTERS)}, got {filter!r}")
     ky, kx = psf_by_depth.shape[-2:]
     k = torch.fft.fft2(torch.fft.ifftshift(psf_by_depth, dim=(-2, -1)))
     p = _image_spectrum(ky, kx, psf_by_depth.dtype, psf_by_depth.device)
+    if filter == "own":
+        # |K|² as Re² + Im²: differentiable where a frequency is exactly zero (abs() is not)
+        a = k.real.square() + k.imag.square()
+        return 10 * torch.log10((noise * p / (a * p + noise)).mean((-2, -1)))
     a = k.abs().square().mean(0)
     g = k.mean(0).conj() * p / (a * p + noise)
     err = (g * k - 1).abs().square() * p + g.abs().square() * noise
     return 10 * torch.log10(err.mean((-2, -1)))
 
 
-def psf_restorability_loss(psf_by_depth: torch.Tensor, noise: float = 1e-3, temperature: float = 1.0) -> torch.Tensor:
+def psf_restorability_loss(psf_by_depth: torch.Tensor, noise: float = 1e-3, temperature: float = 1.0,
+                           filter: str = "shared") -> torch.Tensor:
     """The pre-stage's restorability term: a soft maximum over depths (log-mean-exp with ``temperature`` dB) of
     :func:`wiener_restoration_error`, averaged over the other leading dimensions (fields, colours). It
     favours PSFs that one deconvolution filter restores well at *every* depth, the worst depth most. dB, scalar.
@@ -144,8 +158,10 @@ def psf_restorability_loss(psf_by_depth: torch.Tensor, noise: float = 1e-3, temp
         psf_by_depth: ``(D, ..., ky, kx)`` normalised PSFs.
         noise: noise variance relative to the image variance.
         temperature: dB; → 0 gives the worst depth, large values the mean over depths.
+        filter: ``"shared"`` (one filter for all depths) or ``"own"`` (each depth's;
+            :func:`wiener_restoration_error`).
     """
-    e = wiener_restoration_error(psf_by_depth, noise)
+    e = wiener_restoration_error(psf_by_depth, noise, filter)
     d = e.shape[0]
     soft = temperature * (torch.logsumexp(e / temperature, dim=0) - math.log(d))
     return soft.mean()

@@ -171,6 +171,7 @@ class Trainer(FabricationSchedule, StageSteps):
         self.eval_ks = int(cfg.optics.eval_ks) if cfg.optics.eval_ks is not None else int(cfg.optics.ks)
         self._init_fabrication()
         self.stage2_map = None
+        self._truth_map = None  # the lens's own evaluation map when the reconstruction uses another model's
         self.plain_net = None  # network.ablation: the plain network trained on the final optics
         self._frozen_maps: dict = {}
         dump_config(cfg, self.run_dir / "config.yaml")
@@ -179,8 +180,27 @@ class Trainer(FabricationSchedule, StageSteps):
             from raywave.training.baselines import prepare_baseline
 
             self.baseline_design = prepare_baseline(self)
+        self.recon_model = self._recon_model()
 
     # ------------------------------------------------------------------ set-up helpers
+    def _recon_model(self):
+        """The model whose PSFs this run's reconstruction is built and trained with: the hybrid lens itself, or
+        for a baseline with ``baseline_reconstruction: paraxial`` the paraxial model of it (the paper's
+        baseline pipeline; its images are still simulated with the ray-wave model, :meth:`truth_map`)."""
+        if self.baseline and self.cfg.baseline_reconstruction == "paraxial":
+            from raywave.models import make_model
+
+            return make_model("paraxial", self.hl)
+        return self.hl
+
+    def _map_kwargs(self, model) -> dict:
+        """``cache`` and ``rays`` of a PSF-map call on ``model`` (the DOE-field cache and the ray count belong to
+        the ray-wave model)."""
+        if model is not self.hl:
+            return {"cache": None}
+        rays = self.cfg.optics.rays
+        return {"cache": self.cache, **({"rays": rays} if rays else {})}
+
     def _build_net(self, deconv: str):
         """The reconstruction module: the network (``deconv: none``) or :class:`PSFAwareNet` (``wiener``; with
         ``wiener_select`` it deconvolves with each depth's map and picks per region by the image's evidence)."""
@@ -377,11 +397,13 @@ class Trainer(FabricationSchedule, StageSteps):
         nf = len(ranges)
         oc = self.cfg.optics
 
+        model, kw = self.recon_model, self._map_kwargs(self.recon_model)
+
         def compute(ctx):
             d, c = divmod(ctx.index, nf)
             with self.surface_warnings():  # sampling / vignetting warnings: once per run, not per step
-                res = psf_map_points(self.hl, fields[ranges[c].start:ranges[c].stop], ctx.draws, self.depths[d],
-                                     oc.ks, self.cache, **({"rays": oc.rays} if oc.rays else {}))
+                res = psf_map_points(model, fields[ranges[c].start:ranges[c].stop], ctx.draws, self.depths[d],
+                                     oc.ks, **kw)
             return res.psf, res.center
 
         if wavelengths is not None:
@@ -410,15 +432,16 @@ class Trainer(FabricationSchedule, StageSteps):
         sc = self.cfg.stage2
         return Sensor.from_electrons(full_well=sc.full_well, read_noise=sc.read_noise)
 
-    def evaluation_map(self):
-        """The stage-2 / evaluation PSF map: ``optics.eval_grid``, all wavelengths averaged per channel."""
+    def evaluation_map(self, model=None):
+        """The stage-2 / evaluation PSF map of ``model`` (default the reconstruction's, :attr:`recon_model`):
+        ``optics.eval_grid``, all wavelengths averaged per channel."""
         from raywave.imaging.psfmap import psf_map
 
         oc = self.cfg.optics
+        model = self.recon_model if model is None else model
         with self.surface_warnings():
-            pm = psf_map(self.hl, grid=tuple(oc.eval_grid), depths=self.depths, wavelengths=self.color.all_wavelengths(),
-                         ks=self.eval_ks, cache=self.cache, progress=self.progress,
-                         **({"rays": oc.rays} if oc.rays else {}))
+            pm = psf_map(model, grid=tuple(oc.eval_grid), depths=self.depths, wavelengths=self.color.all_wavelengths(),
+                         ks=self.eval_ks, progress=self.progress, **self._map_kwargs(model))
         out = pm.channel_average(self.color).detach()
         if pm.energy_outside is not None:
             lost = float(pm.energy_outside.max())
@@ -427,6 +450,17 @@ class Trainer(FabricationSchedule, StageSteps):
                 self._warn_once(f"the evaluation PSF window (optics.eval_ks = {self.eval_ks}) misses up to "
                                 f"{lost:.1%} of a PSF's energy: raise optics.eval_ks", CropWarning)
         return out
+
+    def truth_map(self):
+        """The evaluation map of the hybrid lens itself (ray-wave model), with which the evaluation simulates the
+        sensor images: the stage-2 map when the reconstruction uses the lens's own PSFs, else computed once."""
+        if self.recon_model is self.hl:
+            if self.stage2_map is None:
+                self.stage2_map = self.evaluation_map()
+            return self.stage2_map
+        if self._truth_map is None:
+            self._truth_map = self.evaluation_map(self.hl)
+        return self._truth_map
 
     # ------------------------------------------------------------------ warnings: surfaced once per run
     @contextlib.contextmanager
