@@ -55,14 +55,14 @@ def evaluate(trainer, noise: bool = True) -> dict:
       (``network.ablation``, :meth:`Trainer.train_plain_network`);
     * ``psnr_deconv_true`` / ``ssim_deconv_true``: for a baseline whose reconstruction uses the paraxial model's
       PSFs (``baseline_reconstruction: paraxial``), the same deconvolution given the lens's true PSFs (the
-      baseline DOE compared alone).
-
-The sensor images are always simulated with the lens's own (ray-wave) evaluation map
-(:meth:`Trainer.truth_map`); the reconstructions use the run's reconstruction map (``trainer.stage2_map``).
+      baseline DOE compared alone);
 
     and ``psf_rms_px``: the RMS radius (sensor pixels, about the centroid, mean of the three channels) of the
     lens's evaluation-map PSF nearest the zone's centre; ``mean`` also has ``psf_rms_px_map`` (the whole map's
-    mean) and ``energy_outside_max`` (the largest fraction of a PSF's energy outside the evaluation crop)."""
+    mean) and ``energy_outside_max`` (the largest fraction of a PSF's energy outside the evaluation crop).
+
+    The sensor images are always simulated with the lens's own (ray-wave) evaluation map
+    (:meth:`Trainer.truth_map`); the reconstructions use the run's reconstruction map (``trainer.stage2_map``)."""
     from raywave.imaging.render import render
     from raywave.training.metrics import psnr, ssim
 

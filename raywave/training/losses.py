@@ -152,7 +152,8 @@ def psf_restorability_loss(psf_by_depth: torch.Tensor, noise: float = 1e-3, temp
                            filter: str = "shared") -> torch.Tensor:
     """The pre-stage's restorability term: a soft maximum over depths (log-mean-exp with ``temperature`` dB) of
     :func:`wiener_restoration_error`, averaged over the other leading dimensions (fields, colours). It
-    favours PSFs that one deconvolution filter restores well at *every* depth, the worst depth most. dB, scalar.
+    favours PSFs that the deconvolution (one filter, or each depth's with ``filter="own"``) restores well at
+    *every* depth, the worst depth most. dB, scalar.
 
     Args:
         psf_by_depth: ``(D, ..., ky, kx)`` normalised PSFs.
