@@ -143,12 +143,12 @@ def _through_double_grid(w: torch.Tensor, n: int, q: int) -> torch.Tensor:
     of a field of ``n`` samples a period: a trigonometric polynomial with the frequencies ``|m| ≤ n − 1`` (cycles
     a period), which its ``2n`` samples hold exactly. ``A[a, i] = Σ_j w[a, j]·D(j/(q n) − i/(2n))`` with the
     Dirichlet kernel ``D(t) = (1/2n)·Σ_{|m|<n} e^{2πimt}``: the sum over ``j`` is a DFT of ``w``'s rows at the
-    frequencies ``m``, the sum over ``m`` a DFT of length ``2n``. Differentiable in ``w``."""
-    qn = q * n
-    spec = torch.fft.ifft(w.to(torch.complex128), dim=-1) * qn  # Σ_j w[a, j]·e^{+2πi m j/(q n)} at index m mod q·n
+    frequencies ``m``, the sum over ``m`` a DFT of length ``2n``. ``w`` is real, so both are real-input/output
+    transforms: ``F = rfft(w)`` holds the ``m ≥ 0`` half (the ``m < 0`` half is its conjugate) and ``A =
+    irfft(F[:n], 2n)`` (half the work of the complex pair; the same values to rounding). Differentiable in ``w``."""
+    spec = torch.fft.rfft(w.to(torch.float64), dim=-1)[..., :n]  # Σ_j w[a, j]·e^{−2πi m j/(q n)}, 0 ≤ m < n
     nyquist = torch.zeros((*w.shape[:-1], 1), dtype=spec.dtype, device=w.device)  # |m| = n: not in the intensity
-    spec = torch.cat([spec[..., :n], nyquist, spec[..., qn - n + 1:]], dim=-1)  # index m mod 2n
-    return torch.fft.fft(spec, dim=-1).real / (2 * n)
+    return torch.fft.irfft(torch.cat([spec, nyquist], dim=-1), n=2 * n, dim=-1)
 
 
 def integrated_upsampled_intensity(u: torch.Tensor, q: int, in_pitch: float, in_origin, out_pitch: float, out_origin,
@@ -160,8 +160,9 @@ def integrated_upsampled_intensity(u: torch.Tensor, q: int, in_pitch: float, in_
 
     ``|u|²`` of a field of ``N`` samples a period holds the frequencies ``|m| ≤ N − 1``, so its ``2N`` samples
     determine its ``q·N`` ones exactly (trigonometric interpolation, linear): the cubic pixel weights on the
-    ``q`` grid fold into weights on the ``2`` grid (:func:`_through_double_grid`), and the FFTs run on ``2N``
-    samples an axis instead of ``q·N``.
+    ``q`` grid fold into weights on the ``2`` grid (:func:`_through_double_grid`), and the ``2N`` grid's samples
+    come as its four interleaved sets (:func:`~raywave.wave.field.double_grid_intensity`): FFTs of ``N`` samples
+    an axis instead of ``q·N``.
 
     Args:
         u: complex field ``(..., Ny, Nx)`` (pitch ``in_pitch`` mm, pixel ``(0, 0)`` at ``in_origin``); the window is
@@ -173,7 +174,7 @@ def integrated_upsampled_intensity(u: torch.Tensor, q: int, in_pitch: float, in_
     Returns:
         float64 ``(..., Ny_out, Nx_out)``, differentiable with respect to ``u`` and ``out_origin``.
     """
-    from raywave.wave.field import upsampled_intensity  # same package, a sibling module (no cycle at import)
+    from raywave.wave.field import double_grid_intensity  # same package, a sibling module (no cycle at import)
 
     q = int(q)
     if q < 2:
@@ -186,5 +187,8 @@ def integrated_upsampled_intensity(u: torch.Tensor, q: int, in_pitch: float, in_
     wx, wy = _weights("cubic", (q * nx, ipx / q, xi0, nox, opx, xo0), (q * ny, ipy / q, yi0, noy, opy, yo0), u.device)
     if q != 2:
         wx, wy = _through_double_grid(wx, nx, q), _through_double_grid(wy, ny, q)
-    inten = upsampled_intensity(u, 2, window).to(torch.float64)
-    return (wy @ inten) @ wx.transpose(0, 1)
+    blocks = double_grid_intensity(u, window).to(torch.float64)  # (..., 2, 2, Ny, Nx): samples [2i + a, 2j + b]
+    wy0, wy1, wx0, wx1 = wy[:, 0::2], wy[:, 1::2], wx[:, 0::2], wx[:, 1::2]
+    b = blocks.unbind(-4)
+    return ((wy0 @ b[0][..., 0, :, :] + wy1 @ b[1][..., 0, :, :]) @ wx0.transpose(0, 1)
+            + (wy0 @ b[0][..., 1, :, :] + wy1 @ b[1][..., 1, :, :]) @ wx1.transpose(0, 1))
