@@ -8,10 +8,11 @@ the stop's rim is not imaged onto either: pupil aberrations put the image of eac
 (default 1.0 of the full field, 17.5°; benchmarks/psf.py's edge case: 6 mm blank DOE at 1 µm, 0.7 mm after the
 lens, 3 µm pixels, λ 0.53 µm, ks 32), L1 distances ``Σ|p − q|`` (PSFs summing to 1) of:
 
-* the ray-wave PSF with 64 and 128 nodes (its own convergence);
+* the ray-wave PSF with 64 and 128 nodes (its own convergence), with its edge at the stop's rim images (the exact
+  construction since 2026-11-28) and cut sharply on the paraxial exit-pupil plane (before);
 * the Huygens PSF at ``n_pupil`` and 3/4 of it (the reference's own convergence), and with the obliquity factor;
 * the ray-wave PSF with the sharp edge's plane moved to the mean, nearest and farthest rim image (the spread
-  that the choice of surface leaves open), each against the paraxial-plane PSF and against Huygens.
+  that the choice of one plane leaves open), each against the paraxial-plane PSF and against Huygens.
 
 Prints one JSON object (and writes it with ``-o``). ~3 min on 2 cores at the defaults (the Huygens PSFs).
 
@@ -47,12 +48,20 @@ def run(field_fraction: float, n_pupil: int) -> dict:
     out = {"benchmark": "stop edge plane", "lens": "hybrid_asphere", "field_deg": fld[1], "wavelength_um": WL,
            "ks": KS, "pixel_mm": PITCH, "metric": "L1 = sum|p - q| (0..2)"}
 
-    def engine(nodes=64, plane=None):
+    import raywave.hybrid.coherent.exit_pupil as xp
+
+    def engine(nodes=64, plane=None, rim=True):
         hl = HybridLens(lens, BlankDOE(6000, DOE_PITCH), DOE_DIST, sensor_pitch=PITCH, stop_edge="exit_pupil",
                         edge_step="asm")
         if plane is not None:  # the sharp edge on another plane (a probe of the model, not an option)
             hl._exit_pupil_planes = lambda wls: [plane for _ in wls]
-        return hl, hl.psf(fld, WL, ks=KS, rays=nodes)[0, 0].detach()
+        real = xp._rim_step_plane
+        if not rim:  # the edge cut sharply on the (exit-pupil) plane, as before 2026-11-28
+            xp._rim_step_plane = lambda rim_, z_xp, *a: (None, z_xp)
+        try:
+            return hl, hl.psf(fld, WL, ks=KS, rays=nodes)[0, 0].detach()
+        finally:
+            xp._rim_step_plane = real
 
     t0 = time.perf_counter()
     hl, p64 = engine(64)
@@ -64,7 +73,9 @@ def run(field_fraction: float, n_pupil: int) -> dict:
     out["n_pupil"] = n_pupil
     out["huygens_3/4_vs_n_pupil"] = _l1(coarse, ref)
     out["huygens_obliquity_vs_without"] = _l1(obl, ref)
-    out["engine_vs_huygens"] = _l1(p64, ref)
+    out["engine_vs_huygens"] = _l1(p64, ref)  # the edge at the rim images (the exact construction's default)
+    _, p_plane = engine(64, rim=False)
+    out["engine_plane_edge_vs_huygens"] = _l1(p_plane, ref)
     z0 = hl.exit_pupil_z(WL)
     _, zr = stop_rim_images(lens, torch.tensor(fld, dtype=torch.float64), WL, None)
     zr = zr.detach()
@@ -72,8 +83,8 @@ def run(field_fraction: float, n_pupil: int) -> dict:
     out["rim_image_z_mm"] = {"min": float(zr.min()), "mean": float(zr.mean()), "max": float(zr.max())}
     rows = []
     for name, z in (("mean", float(zr.mean())), ("min", float(zr.min())), ("max", float(zr.max()))):
-        _, p = engine(64, z)
-        rows.append({"edge_plane": name, "z_mm": z, "dz_mm": z - z0, "vs_paraxial_plane": _l1(p, p64),
+        _, p = engine(64, z, rim=False)
+        rows.append({"edge_plane": name, "z_mm": z, "dz_mm": z - z0, "vs_paraxial_plane": _l1(p, p_plane),
                      "vs_huygens": _l1(p, ref)})
         print(rows[-1], file=sys.stderr, flush=True)
     out["moved_edge_plane"] = rows

@@ -30,10 +30,21 @@ def small_asphere():
     return lens
 
 
-@pytest.mark.parametrize("edge_step", ["asm", "fresnel"])
-def test_exit_pupil_edge_lens_gradients_match_central_differences(edge_step):
+@pytest.mark.parametrize("edge_step", ["asm", "asm_rim", "fresnel"])
+def test_exit_pupil_edge_lens_gradients_match_central_differences(edge_step, monkeypatch):
+    """``asm``: the exact construction with its edge on the exit-pupil plane (at 3 µm pixels a 16-pixel Fresnel
+    zone leaves no room for the rim images' step before the DOE); ``asm_rim``: its edge at the rim images, a
+    6-pixel zone's step (0.6 mm) before the angular spectrum."""
+    import raywave.hybrid.coherent.exit_pupil as xp
+
     lens = small_asphere()
-    hl = HybridLens(lens, BlankDOE(400, PS), 0.7, sensor_pitch=PS, stop_edge="exit_pupil", edge_step=edge_step)
+    taken = []
+    real = xp._rim_step_plane
+    monkeypatch.setattr(xp, "_rim_step_plane", lambda *a: taken.append(real(*a)[0] is not None) or real(*a))
+    if edge_step == "asm_rim":
+        monkeypatch.setattr(xp, "RIM_STEP_ZONE_PIXELS", 6.0)
+    hl = HybridLens(lens, BlankDOE(400, PS), 0.7, sensor_pitch=PS, stop_edge="exit_pupil",
+                    edge_step=edge_step.split("_")[0])
     z_xp, z_doe = hl.exit_pupil_z(), hl.doe_z()
     hl.exit_pupil_z = lambda wavelength=None: z_xp  # a constant of the model
     w = torch.randn(KS, KS, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
@@ -65,3 +76,5 @@ def test_exit_pupil_edge_lens_gradients_match_central_differences(edge_step):
         print(f"{edge_step} {name}: autograd {g:.8e}, central difference {fd:.8e}")
         assert abs(g) > 1e-6 * max(abs(v) for v in grads.values())
         assert g == pytest.approx(fd, rel=1e-4), (name, g, fd)
+    if edge_step != "fresnel":
+        assert taken and all(t == (edge_step == "asm_rim") for t in taken)

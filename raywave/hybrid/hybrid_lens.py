@@ -469,10 +469,9 @@ class HybridLens(nn.Module):
                                          nodes=nodes, oversample=self.oversample, check=check, chief_uv=cuv[i, j],
                                          bbox=boxes[i][j], entrance=entrance)
                     for i in range(f.shape[0]) for j, wl in enumerate(wls)]
-        rims = [[None] * f.shape[0] for _ in wls]
+        rims = [stop_rim_images_many(optics, f, wl, depth) for wl in wls]  # one trace per wavelength
         if self.edge_step == "fresnel":  # the step needs no chief ray on the exit-pupil plane
             cx = [[None] * f.shape[0] for _ in wls]
-            rims = [stop_rim_images_many(optics, f, wl, depth) for wl in wls]  # one trace per wavelength
         else:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", VignettingWarning)
