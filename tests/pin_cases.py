@@ -58,7 +58,9 @@ def _ideal_exit_pupil():
 #: name -> (builder, psf_result kwargs). The two exact-construction cases (``hybrid_asphere_exit_pupil``,
 #: ``ideal_binary2_exit_pupil``: ``edge_step="auto"`` takes "asm" for these beams) were re-pinned on 2026-11-28 when
 #: that construction moved its edge from the exit-pupil plane to the stop's rim images (issue 19; on axis the two
-#: agree to L1 3e-5, at 17.5° the rim images bring the bundled asphere from 2.0e-3 to 5.9e-4 of the Huygens PSF).
+#: agree to L1 3e-5, at 17.5° the rim images bring the bundled asphere from 2.0e-3 to 5.9e-4 of the Huygens PSF);
+#: with ``hybrid_asphere_default`` (the Fresnel step) again the same day, when the step's Fresnel parameter came
+#: from each node's optical path difference to the edge (17.5°: 4.3e-3 -> 2.0e-3 from Huygens).
 CASES = {
     "hybrid_asphere": (_hybrid_asphere, dict(fields=[(0.0, 0.0), (0.0, 7.0), (0.0, 14.0), (3.0, 10.0)],
                                              wavelengths=[0.47, 0.53, 0.66], ks=32)),

@@ -17,8 +17,8 @@ from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _warn_nyquist, check_window_memory)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
-from raywave.hybrid.coherent.stop_edge import (RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_z, _zone_estimate,
-                                               stop_edge_factor)
+from raywave.hybrid.coherent.stop_edge import (RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_cubic, _rim_z,
+                                               _zone_estimate, stop_edge_factor)
 from raywave.hybrid.coherent.tracing import (_TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
                                              _solve2, run_serial)
 
@@ -325,7 +325,8 @@ def _node_maps(lens, nd: _Nodes, uv_lin, rays, at, rec, good, n: float, depth, i
     det = du_dx * dv_dy - du_dy * dv_dx
     ky, kx = nd.ky, nd.kx
     phi_env = phi_g - phi_g[ky // 2, kx // 2].detach() - n * (carrier[0] * nd.tx + carrier[1] * nd.ty)
-    maps = {"phi_env": phi_env, "amp2": w0_g * det.abs() / gamma_g, "det": det, "slopes": grid[5 + len(slacks):]}
+    maps = {"phi_env": phi_env, "amp2": w0_g * det.abs() / gamma_g, "det": det, "slopes": grid[5 + len(slacks):],
+            "phi": phi_g}
     maps.update(_edge_distances(grid[5:5 + len(slacks)], is_stop, diffracting, nd.h))
     if maps["dist"] is None:  # no aperture at all: far from every edge
         maps["dist"] = torch.full_like(phi_g, 3.0 * nd.h)
@@ -366,24 +367,57 @@ def _stop_edge_maps(lens, nd: _Nodes, rec, good, maps: dict, z_doe: float, stop_
     factor is 1 or 0 anyway), ``curv`` = s·κ (the edge's curvature correction), ``g_max`` the largest Fresnel
     scale near the edge. Warns (``check``) where the edge is too curved for the step."""
     dz_edge = z_doe - stop_plane
+    rim_ok = False
     if stop_rim is not None:  # the rim point's own image, by the node ray's azimuth on the stop
         sx_, sy_ = (c[0, 0] for c in rec.points[lens.stop_index + 1][:2])
         dz_n = z_doe - _rim_z(stop_rim, sx_, sy_)
         dz_n = nd.as_map(_nearest_fill(dz_n[:, None], good, nd.targets)[:, 0])
         if bool((dz_n * dz_edge > 0).all()):  # same side of the DOE plane as the pupil (else: the plane)
-            dz_edge = dz_n
+            dz_edge, rim_ok = dz_n, True
     s_stop, nx_, ny_ = maps["stop"]
     g_s = _fresnel_scale(maps["slopes"], nx_, ny_, nd.h, dz_edge, wavelength * 1e-3 / n, p)
     # ν = g·s and s·κ vary smoothly: interpolated as they are
     nu_lim = _nu_inner(ripple_zones) + 4.0
     div_n = torch.gradient(nx_, spacing=nd.h, dim=1)[0] + torch.gradient(ny_, spacing=nd.h, dim=0)[0]
-    nu = s_stop * g_s
+    if rim_ok and getattr(stop_rim, "points", None) is not None and PATH_DIFFERENCE_NU:
+        nu = _path_difference_nu(stop_rim, sx_, sy_, nd, good, maps["phi"], s_stop, g_s, z_doe, wavelength, n)
+    else:
+        nu = s_stop * g_s
     near = nu.detach().abs() < nu_lim
     g_max = float(g_s.detach()[near].max()) if bool(near.any()) else float(g_s.detach().max())
     if check:
         _warn_edge_curvature(div_n.detach(), g_s.detach(), nu.detach().abs() < 2.0, field.tolist(), wavelength)
     return {"nu": nu.clamp(-nu_lim, nu_lim), "nu_raw": nu.detach(), "curv": (s_stop * -div_n).clamp(-0.9, 3.0),
             "g_max": g_max}
+
+
+#: the Fresnel step's ν from each node's optical path difference to the edge (:func:`_path_difference_nu`); False:
+#: ``ν = g·s`` with the local Fresnel scale (the step before 2026-11-28)
+PATH_DIFFERENCE_NU = True
+
+
+def _path_difference_nu(rim, sx, sy, nd: _Nodes, good, phi, s_stop, g_s, z_doe: float, wavelength: float,
+                        n: float) -> torch.Tensor:
+    """The knife edge's Fresnel parameter at the nodes ``(ky, kx)`` from the optical path difference ``Δ`` between
+    the wave diffracted at the edge and the geometric one: ``ν = sign(s)·2·sqrt(Δ/λ)``, ``Δ = Φ_E + n|P − E| − Φ_P``
+    with ``E`` the image of the stop's rim point at the node ray's azimuth (:class:`RimImages`: the edge's
+    diffracted wave leaves it, on straight lines in the image medium), ``Φ_E`` the optical path to it, ``P`` the
+    node on the plane ``z_doe`` and ``Φ_P`` its optical path (``phi``). In the quadratic approximation this is
+    ``g·s`` (:func:`_fresnel_scale`: ``Δ = n s²/(2L)``); unlike it, it holds where the wave's convergence changes
+    across the edge's Fresnel zones (an aberrated beam, off axis: the local ``L`` at the node is not that of the
+    path from the edge). Near the shadow's edge (``|s|`` below a tenth of a Fresnel unit) it blends into ``g·s``:
+    ``g_eff² = (4Δ/λ + g² s₀²)/(s² + s₀²)``, smooth and with finite derivatives where ``Δ`` and ``s`` vanish
+    together. ``sx, sy`` (N,) the node rays' stop coordinates, ``s_stop`` and ``g_s`` (ky, kx). Differentiable."""
+    pts = _rim_cubic(rim.points, sx, sy)  # (N, 3)
+    opl = _rim_cubic(rim.opl, sx, sy)  # (N,)
+    filled = nd.as_map(_nearest_fill(torch.cat([pts, opl[:, None]], -1), good, nd.targets))  # (4, ky, kx)
+    ex, ey, ez, phi_e = filled
+    dx, dy, dz = nd.tx - ex, nd.ty - ey, z_doe - ez
+    delta = phi_e + n * torch.sqrt(dx * dx + dy * dy + dz * dz) - phi
+    lam = wavelength * 1e-3
+    s0 = 0.1 / g_s.detach()
+    g2 = ((4.0 * delta / lam + g_s * g_s * s0 * s0) / (s_stop * s_stop + s0 * s0)).clamp_min(1e-300)
+    return s_stop * torch.sqrt(g2)
 
 
 def _check_nodes(nd: _Nodes, maps: dict, good, dvec, carrier, n: float, p: float, wavelength: float, field) -> None:

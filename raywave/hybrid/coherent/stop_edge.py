@@ -224,7 +224,8 @@ RIM_NUDGE = 1e-5
 def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | None = None, k: int = RIM_POINTS):
     """Where the stop's rim is sharp, seen by one source: z (mm) of the image of every rim point along the ray
     that the source sends through it, ``(theta (k,), z (k,))`` with ``theta`` the rim point's azimuth on the stop
-    (``atan2(y, x)`` of the stop coordinates); None when the rays cannot be traced.
+    (``atan2(y, x)`` of the stop coordinates), a :class:`RimImages` that also holds the image points and the
+    optical paths to them; None when the rays cannot be traced.
 
     The image of a stop point P is where the rays through P from neighbouring sources cross (straight lines in
     the image medium, usually extended backwards to a virtual point inside the lens): the exit pupil is the
@@ -260,6 +261,8 @@ def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str
                                  pupil=(c, s), aim="full", depth=depth, field_type=field_type)
         out, rec = lens.trace(rays, apertures=False, record=True)
     o, d = out.o[:, 0].reshape(nf, 5, k, 3), out.d[:, 0].reshape(nf, 5, k, 3)
+    opl = out.opl[:, 0].reshape(nf, 5, k)
+    n_img = lens.surfaces[-1].material.n(out.wavelength[:1, 0].reshape(())).to(opl.dtype)  # the image medium
     v = out.valid[:, 0].reshape(nf, 5, k)
     stop = lens.stop_index
     if stop == 0:  # the rays' own directions reach the first surface
@@ -267,12 +270,26 @@ def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str
     else:
         dv = torch.stack(rec.points[stop + 1], -1)[:, 0] - torch.stack(rec.points[stop], -1)[:, 0]
     dv = dv.reshape(nf, 5, k, 3)
-    return [_rim_crossing(o[i], d[i], dv[i], c, s, theta) if bool(v[i].all()) else None for i in range(nf)]
+    return [_rim_crossing(o[i], d[i], dv[i], c, s, theta, opl[i, 0], n_img) if bool(v[i].all()) else None
+            for i in range(nf)]
 
 
-def _rim_crossing(o, d, dv, c, s, theta):
+class RimImages(tuple):
+    """What :func:`stop_rim_images` returns: the tuple ``(theta, z)`` (rim azimuths on the stop (k,), z (k,) mm of
+    each rim point's image) with, as attributes, ``points`` (k, 3) mm (the image point on the source's own ray
+    through the rim point) and ``opl`` (k,) mm (that ray's optical path from the source to the point), or None."""
+
+    def __new__(cls, theta, z, points=None, opl=None):
+        obj = super().__new__(cls, (theta, z))
+        obj.points, obj.opl = points, opl
+        return obj
+
+
+def _rim_crossing(o, d, dv, c, s, theta, opl0=None, n_img: float = 1.0):
     """The rim images of one source from its rays (5, k, 3) (the source and its four nudges) through the rim points
-    at azimuths ``theta`` (k,): ``(theta, z)``, or None (a degenerate source, a non-finite crossing)."""
+    at azimuths ``theta`` (k,): :class:`RimImages` (with the image points and the optical paths to them when the
+    source's rays' paths ``opl0`` (k,) at ``o[0]`` are given, ``n_img`` the image medium's index), or None (a
+    degenerate source, a non-finite crossing)."""
     w = _radial_nudge(dv, c, s)
     if w is None:
         return None
@@ -289,7 +306,9 @@ def _rim_crossing(o, d, dv, c, s, theta):
     z = o[0, :, 2] + t * a[:, 2]
     if not bool(torch.isfinite(z.detach()).all()):
         return None
-    return theta, z
+    if opl0 is None:
+        return RimImages(theta, z)
+    return RimImages(theta, z, o[0] + t[:, None] * a, opl0 + n_img * t)
 
 
 def _radial_nudge(dv: torch.Tensor, c: torch.Tensor, s: torch.Tensor):
@@ -306,6 +325,27 @@ def _radial_nudge(dv: torch.Tensor, c: torch.Tensor, s: torch.Tensor):
     w0 = (jac[:, 1, 1] * c - jac[:, 0, 1] * s) / det
     w1 = (-jac[:, 1, 0] * c + jac[:, 0, 0] * s) / det
     return torch.stack([w0, w1], -1)
+
+
+def _rim_azimuth_index(k: int, xs: torch.Tensor, ys: torch.Tensor):
+    """``(i0 (N,) long, w (N,))``: the rim interval ``[i0, i0 + 1]`` (of ``k`` equal azimuth steps) holding the
+    azimuth of each stop point (xs, ys) and the fraction ``w`` along it (the stop's centre: azimuth 0)."""
+    ok = (xs * xs + ys * ys).detach() > 0
+    az = torch.atan2(torch.where(ok, ys, torch.zeros_like(ys)), torch.where(ok, xs, torch.ones_like(xs)))
+    u = torch.remainder(az, 2 * math.pi) / (2 * math.pi / k)
+    i0 = torch.floor(u.detach()).long().clamp(0, k - 1)
+    return i0, u - i0
+
+
+def _rim_cubic(values: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
+    """Per-rim-point ``values`` (k, ...) at the azimuths of stop points (xs, ys) (N,): periodic Catmull–Rom cubic
+    interpolation (error ∝ the azimuth step⁴: the rim's image points a fraction of a nm off the curve at 64 rim
+    points, where linear interpolation cuts its chords by ~1 µm); differentiable. Returns (N, ...)."""
+    k = values.shape[0]
+    i0, w = _rim_azimuth_index(k, xs, ys)
+    p0, p1, p2, p3 = (values[(i0 + j) % k] for j in (-1, 0, 1, 2))
+    w = w.reshape(-1, *([1] * (values.ndim - 1)))
+    return p1 + 0.5 * w * (p2 - p0 + w * (2 * p0 - 5 * p1 + 4 * p2 - p3 + w * (3 * (p1 - p2) + p3 - p0)))
 
 
 def _rim_z(rim, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
