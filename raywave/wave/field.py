@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["cubic_matrix", "upsampled_intensity", "double_grid_intensity", "keys_matrix", "upsample_nodes", "splat_bilinear", "edge_coverage"]
+__all__ = ["cubic_matrix", "upsampled_intensity", "double_grid_intensity", "keys_matrix", "upsample_nodes",
+           "splat_bilinear", "edge_coverage"]
 
 
 def _keys(t: torch.Tensor) -> torch.Tensor:

@@ -402,7 +402,9 @@ def _path_difference_nu(rim, sx, sy, nd: _Nodes, good, phi, s_stop, g_s, z_doe: 
     the wave diffracted at the edge and the geometric one: ``ν = sign(s)·2·sqrt(Δ/λ)``, ``Δ = Φ_E + n|P − E| − Φ_P``
     with ``E`` the image of the stop's rim point at the node ray's azimuth (:class:`RimImages`: the edge's
     diffracted wave leaves it, on straight lines in the image medium), ``Φ_E`` the optical path to it, ``P`` the
-    node on the plane ``z_doe`` and ``Φ_P`` its optical path (``phi``). In the quadratic approximation this is
+    node on the plane ``z_doe`` and ``Φ_P`` its optical path (``phi``); ``Δ = Φ_E − n|P − E| − Φ_P`` where the
+    plane lies before the rim's images (the wave still converges on them; the knife edge's factor is then the
+    mirrored one). In the quadratic approximation this is
     ``g·s`` (:func:`_fresnel_scale`: ``Δ = n s²/(2L)``); unlike it, it holds where the wave's convergence changes
     across the edge's Fresnel zones (an aberrated beam, off axis: the local ``L`` at the node is not that of the
     path from the edge). Near the shadow's edge (``|s|`` below a tenth of a Fresnel unit) it blends into ``g·s``:
@@ -413,7 +415,9 @@ def _path_difference_nu(rim, sx, sy, nd: _Nodes, good, phi, s_stop, g_s, z_doe: 
     filled = nd.as_map(_nearest_fill(torch.cat([pts, opl[:, None]], -1), good, nd.targets))  # (4, ky, kx)
     ex, ey, ez, phi_e = filled
     dx, dy, dz = nd.tx - ex, nd.ty - ey, z_doe - ez
-    delta = phi_e + n * torch.sqrt(dx * dx + dy * dy + dz * dz) - phi
+    # the diffracted wave leaves E on its way to P, or (a DOE plane before the edge's images) converges on it
+    sgn = 1.0 if bool((dz.detach() > 0).all()) else -1.0
+    delta = phi_e + sgn * n * torch.sqrt(dx * dx + dy * dy + dz * dz) - phi
     lam = wavelength * 1e-3
     s0 = 0.1 / g_s.detach()
     g2 = ((4.0 * delta / lam + g_s * g_s * s0 * s0) / (s_stop * s_stop + s0 * s0)).clamp_min(1e-300)

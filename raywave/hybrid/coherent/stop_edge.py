@@ -262,7 +262,7 @@ def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str
         out, rec = lens.trace(rays, apertures=False, record=True)
     o, d = out.o[:, 0].reshape(nf, 5, k, 3), out.d[:, 0].reshape(nf, 5, k, 3)
     opl = out.opl[:, 0].reshape(nf, 5, k)
-    n_img = lens.surfaces[-1].material.n(out.wavelength[:1, 0].reshape(())).to(opl.dtype)  # the image medium
+    n_img = lens.surfaces[-1].material.n(out.wavelength.reshape(-1)[:1].reshape(())).to(opl.dtype)  # image medium
     v = out.valid[:, 0].reshape(nf, 5, k)
     stop = lens.stop_index
     if stop == 0:  # the rays' own directions reach the first surface
@@ -339,8 +339,9 @@ def _rim_azimuth_index(k: int, xs: torch.Tensor, ys: torch.Tensor):
 
 def _rim_cubic(values: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
     """Per-rim-point ``values`` (k, ...) at the azimuths of stop points (xs, ys) (N,): periodic Catmull–Rom cubic
-    interpolation (error ∝ the azimuth step⁴: the rim's image points a fraction of a nm off the curve at 64 rim
-    points, where linear interpolation cuts its chords by ~1 µm); differentiable. Returns (N, ...)."""
+    interpolation (third order: 64 points on a 1.2 mm circle are interpolated to within 3 nm of it, where linear
+    interpolation cuts the chords by 1.4 µm, a shift of the edge that the path difference would feel);
+    differentiable. Returns (N, ...)."""
     k = values.shape[0]
     i0, w = _rim_azimuth_index(k, xs, ys)
     p0, p1, p2, p3 = (values[(i0 + j) % k] for j in (-1, 0, 1, 2))
@@ -353,10 +354,5 @@ def _rim_z(rim, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
     interpolation (differentiable; the stop's centre, where the azimuth is undefined, gets the image of azimuth 0)."""
     theta, z = rim
     k = theta.numel()
-    ok = (xs * xs + ys * ys).detach() > 0
-    az = torch.atan2(torch.where(ok, ys, torch.zeros_like(ys)), torch.where(ok, xs, torch.ones_like(xs)))
-    az = torch.remainder(az, 2 * math.pi)
-    u = az / (2 * math.pi / k)
-    i0 = torch.floor(u.detach()).long().clamp(0, k - 1)
-    w = u - i0
+    i0, w = _rim_azimuth_index(k, xs, ys)
     return z[i0] * (1 - w) + z[(i0 + 1) % k] * w
