@@ -153,11 +153,7 @@ def upsampled_intensity(u: torch.Tensor, factor: int, window: torch.Tensor | Non
     linear phase, which the modulus removes."""
     q = int(factor)
     ny, nx = u.shape[-2:]
-    mod_y = torch.polar(torch.ones(ny, dtype=torch.float64, device=u.device),
-                        2 * torch.pi * (ny // 2) * torch.arange(ny, dtype=torch.float64, device=u.device) / ny)
-    mod_x = torch.polar(torch.ones(nx, dtype=torch.float64, device=u.device),
-                        2 * torch.pi * (nx // 2) * torch.arange(nx, dtype=torch.float64, device=u.device) / nx)
-    mod = mod_y[:, None] * mod_x[None, :] * float(q * q)
+    mod = _roll_modulation(ny, u.device)[:, None] * _roll_modulation(nx, u.device)[None, :] * float(q * q)
     if window is not None:
         mod = mod * window
     spec = torch.fft.fft2(u * mod.to(u.dtype))
