@@ -410,9 +410,8 @@ def _path_difference_nu(rim, sx, sy, nd: _Nodes, good, phi, s_stop, g_s, z_doe: 
     path from the edge). Near the shadow's edge (``|s|`` below a tenth of a Fresnel unit) it blends into ``g·s``:
     ``g_eff² = (4Δ/λ + g² s₀²)/(s² + s₀²)``, smooth and with finite derivatives where ``Δ`` and ``s`` vanish
     together. ``sx, sy`` (N,) the node rays' stop coordinates, ``s_stop`` and ``g_s`` (ky, kx). Differentiable."""
-    pts = _rim_cubic(rim.points, sx, sy)  # (N, 3)
-    opl = _rim_cubic(rim.opl, sx, sy)  # (N,)
-    filled = nd.as_map(_nearest_fill(torch.cat([pts, opl[:, None]], -1), good, nd.targets))  # (4, ky, kx)
+    at_rim = _rim_cubic(torch.cat([rim.points, rim.opl[:, None]], -1), sx, sy)  # (N, 4): x, y, z, Φ_E
+    filled = nd.as_map(_nearest_fill(at_rim, good, nd.targets))  # (4, ky, kx)
     ex, ey, ez, phi_e = filled
     dx, dy, dz = nd.tx - ex, nd.ty - ey, z_doe - ez
     # the diffracted wave leaves E on its way to P, or (a DOE plane before the edge's images) converges on it
