@@ -248,6 +248,44 @@ def test_knife_edge_factor_hand_written_backward_passes_gradcheck(dz):
     assert torch.autograd.gradcheck(f, (nu, curv), eps=1e-7, atol=1e-6)
 
 
+@pytest.mark.parametrize("dz", [1.0, -1.0])
+@pytest.mark.parametrize("scalar_g, block_rows", [(True, 64), (False, 2), (True, 4)])
+def test_edge_envelope_hand_written_backward_is_the_composed_one(dz, scalar_g, block_rows, monkeypatch):
+    """The fused envelope ``polar(a, θ)·D(ν, κs)`` (what a trainable lens's Fresnel step records): the same values as
+    the two factors, gradients equal to autograd's through them (to rounding) and to finite differences
+    (gradcheck), with samples inside the beam, on the band and in the shadow beyond it; in one block of rows and
+    in several."""
+    import raywave.hybrid.coherent.stop_edge as se
+    from raywave.hybrid.coherent.stop_edge import edge_envelope, stop_edge_factor
+
+    monkeypatch.setattr(se, "ENVELOPE_BLOCK_ROWS", block_rows)
+    from raywave.utils.phasor import polar
+
+    gen = torch.Generator().manual_seed(7)
+    shape = (6, 9)
+    amp = torch.rand(shape, dtype=torch.float64, generator=gen).requires_grad_(True)
+    ang = (torch.rand(shape, dtype=torch.float64, generator=gen) * 40.0).requires_grad_(True)
+    nu = (torch.rand(shape, dtype=torch.float64, generator=gen) * 24.0 - 10.0).requires_grad_(True)
+    curv = (torch.rand(shape, dtype=torch.float64, generator=gen) * 5.0 - 1.5).requires_grad_(True)
+    g = 50.0 if scalar_g else torch.full(shape, 50.0, dtype=torch.float64)
+    inputs = (amp, ang, nu, curv)
+    fused = edge_envelope(amp, ang, nu, dz, 4.0, g, 1e-3, curvature=curv)
+    composed = polar(amp, ang) * stop_edge_factor(nu, dz, 4.0, g, 1e-3, curvature=curv)
+    # one block: the same arithmetic; several: the vectorised cos/sin may round a block's tail differently (1 ulp)
+    assert torch.equal(fused, composed) if block_rows >= shape[0] else torch.allclose(fused, composed, rtol=1e-14,
+                                                                                       atol=1e-15)
+    with torch.no_grad():  # without a graph: the same blocks, the same values bit for bit
+        assert torch.equal(edge_envelope(amp, ang, nu, dz, 4.0, g, 1e-3, curvature=curv), fused.detach())
+    w = torch.randn(*shape, 2, dtype=torch.float64, generator=gen)
+    ga = torch.autograd.grad((torch.view_as_real(fused) * w).sum(), inputs)
+    gb = torch.autograd.grad((torch.view_as_real(composed) * w).sum(), inputs)
+    for a, b in zip(ga, gb):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
+    assert torch.autograd.gradcheck(
+        lambda *x: torch.view_as_real(edge_envelope(x[0], x[1], x[2], dz, 4.0, g, 1e-3, curvature=x[3])),
+        inputs, eps=1e-7, atol=1e-6)
+
+
 def test_auto_edge_step_takes_the_fresnel_step_for_a_large_beam(lens):
     """A beam too large for the exact construction (here: a tiny AUTO_ASM_SAMPLES) takes the Fresnel step
     instead of raising, and gives its PSF."""

@@ -18,7 +18,7 @@ from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empt
                                               _warn_nyquist, check_window_memory)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
 from raywave.hybrid.coherent.stop_edge import (RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_cubic, _rim_z,
-                                               _zone_estimate, stop_edge_factor)
+                                               _zone_estimate, edge_envelope)
 from raywave.hybrid.coherent.tracing import (_TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
                                              _solve2, run_serial)
 
@@ -476,12 +476,21 @@ def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelen
         return None
     a0, a1, b0, b1 = b
     fine = fine[:, a0:a1, b0:b1]
-    k = 2 * math.pi / (wavelength * 1e-3)
-    env = polar(fine[1] if cov is None else fine[1] * cov[a0:a1, b0:b1], k * fine[0])
-    if diffracting:  # the knife-edge factor (elementwise) on the cropped window only
-        env = env * stop_edge_factor(fine[-2], z_doe - stop_plane, ripple_zones, maps["g_max"], p,
-                                     curvature=fine[-1])
+    cov = None if cov is None else cov[a0:a1, b0:b1]
+    edge = (z_doe - stop_plane, ripple_zones, maps["g_max"], p) if diffracting else None
+    env = _envelope(fine, cov, 2 * math.pi / (wavelength * 1e-3), edge)
     return env, (iy0 + a0, iy0 + a1, ix0 + b0, ix0 + b1)
+
+
+def _envelope(fine: torch.Tensor, cov: torch.Tensor | None, k: float, edge: tuple | None) -> torch.Tensor:
+    """The envelope ``a·cov·exp(i k φ)`` (complex128 (ny, nx)) from the fine channels ``fine`` (C, ny, nx) (0: φ
+    mm, 1: amplitude, with ``edge`` ``(dz, ripple_zones, g_max, pitch)``: ``[-2]`` ν and ``[-1]`` the curvature
+    term), times the knife-edge factor (:func:`edge_envelope`) with ``edge``; ``k = 2π/λ`` (1/mm)."""
+    amp = fine[1] if cov is None else fine[1] * cov
+    if edge is None:
+        return polar(amp, k * fine[0])
+    dz, ripple_zones, g_max, p = edge
+    return edge_envelope(amp, k * fine[0], fine[-2], dz, ripple_zones, g_max, p, curvature=fine[-1])
 
 
 def _span_window(nd: _Nodes, sim: Grid, clamp: bool):

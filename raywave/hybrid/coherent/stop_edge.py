@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from raywave.lens.sources import VignettingWarning, point_source_rays
+from raywave.utils.phasor import polar
 
 
 #: default width (Fresnel zones of the exit pupil → DOE distance) of the band around the geometric footprint
@@ -119,22 +120,133 @@ def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.
     level lines, > 0 for a convex aperture): the edge wave ``D − step`` of a curved edge converges (inside) or
     spreads (outside) like a cylindrical wave, amplitude ``sqrt(1 + s κ)``. Evaluated on the band only (1 inside,
     0 outside). Differentiable with respect to ``ν`` (exactly)."""
+    inside, idx, nb, nu_max = _edge_band(nu, ripple_zones, g, pitch)
+    out = inside.to(torch.complex128)
+    if idx[0].numel() == 0:
+        return out
+    curv = None if curvature is None else curvature[idx]
+    re, im = _EdgeBand.apply(nu[idx], curv, nb, nu_max, dz >= 0)
+    return out.index_put_(idx, torch.complex(re, im))  # in place: ``out`` is new and carries no graph
+
+
+def _edge_band(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
+    """Where :func:`stop_edge_factor` is 1 and where it is evaluated: ``(inside (bool, nu's shape), idx (the band
+    samples' indices, a tuple of int64 tensors), nb (the band's ν_b, float64 (B,)), ν_max)`` (from ``ν`` detached:
+    no graph)."""
     nu_max = math.sqrt(2.0) * ripple_zones
     if isinstance(g, torch.Tensor):
         nu_b = torch.clamp(0.6 / (g.detach() * pitch), max=_nu_inner(ripple_zones)).clamp_min(2.0)
     else:  # one value for the whole window
         nu_b = max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0)
-    inside = nu.detach() >= nu_b
-    band = (nu.detach() > -nu_max) & ~inside
-    out = inside.to(torch.complex128)
-    idx = band.nonzero(as_tuple=True)
-    if idx[0].numel() == 0:
+    nu = nu.detach()
+    inside = nu >= nu_b
+    idx = ((nu > -nu_max) & ~inside).nonzero(as_tuple=True)
+    nb = nu_b[idx] if isinstance(nu_b, torch.Tensor) else torch.full(idx[0].shape, nu_b, dtype=nu.dtype,
+                                                                        device=nu.device)
+    return inside, idx, nb, nu_max
+
+
+def edge_envelope(amp: torch.Tensor, angle: torch.Tensor, nu: torch.Tensor, dz: float, ripple_zones: float, g,
+                  pitch: float, curvature: torch.Tensor | None = None) -> torch.Tensor:
+    """``polar(amp, angle) · stop_edge_factor(nu, dz, ripple_zones, g, pitch, curvature)`` (complex128, the shape of
+    ``amp``): the geometric envelope times the knife edge, the same values, with a hand-written backward when
+    autograd records it (a trainable lens). Autograd would keep ~14 window-sized arrays (the phasor, the factor,
+    both factors of their product, the band's indices and terms); this keeps the four inputs and the band's
+    Fresnel integrals, and recomputes the rest (no Fresnel integral: their derivatives are ``cos``, ``sin``)."""
+    graph = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (amp, angle, nu, curvature))
+    if not graph:  # the same blocks as with a graph: the same values bit for bit (a replay compares the two)
+        return _EdgeEnvelope.values(amp, angle, nu, curvature, (dz >= 0, ripple_zones, g, pitch))[0]
+    return _EdgeEnvelope.apply(amp, angle, nu, curvature, dz >= 0, ripple_zones, g, pitch)
+
+
+#: rows per block of :class:`_EdgeEnvelope` (its window-sized temporaries exist a block at a time)
+ENVELOPE_BLOCK_ROWS = 64
+
+
+class _EdgeEnvelope(torch.autograd.Function):
+    """:func:`edge_envelope` with autograd: ``z = a·e^{iθ}·D(ν, κs)``; ``∂z/∂a = e^{iθ}D``, ``∂z/∂θ = i z``, and
+    ``∂/∂ν``, ``∂/∂(κs)`` of ``D`` on the band (:meth:`_EdgeBand.grads`). Forward and backward run in blocks of
+    :data:`ENVELOPE_BLOCK_ROWS` rows (elementwise: the same values); the band's Fresnel integrals are computed once,
+    in the forward, and kept (in the band's row-major order, so a block's are a contiguous slice)."""
+
+    @staticmethod
+    def _block(nu, curv, fresnel, start: int, consts):
+        """``(D (complex128, the block's shape), idx (the block's band samples), band terms (v, curv, nb, C, S) or
+        None, the number of band samples)`` of one block of rows (:func:`stop_edge_factor`'s values, no graph),
+        with the band's Fresnel integrals ``fresnel`` from the block's first band sample ``start`` on."""
+        forward_edge, ripple_zones, g, pitch = consts
+        inside, idx, nb, nu_max = _edge_band(nu, ripple_zones, g, pitch)
+        d = inside.to(torch.complex128)
+        k = idx[0].numel()
+        if k == 0:
+            return d, idx, None, 0
+        v = nu.detach()[idx]
+        cv = None if curv is None else curv.detach()[idx]
+        c_, s_ = fresnel[0][start:start + k], fresnel[1][start:start + k]
+        re, im = _EdgeBand._values(v, cv, nb, c_, s_, nu_max, forward_edge)
+        return d.index_put_(idx, torch.complex(re, im)), idx, (v, cv, nb, c_, s_), k
+
+    @staticmethod
+    def _blocks(n_rows: int):
+        return [slice(r, r + ENVELOPE_BLOCK_ROWS) for r in range(0, n_rows, ENVELOPE_BLOCK_ROWS)]
+
+    @staticmethod
+    def values(amp, angle, nu, curv, consts):
+        """``(z (complex128, nu's shape), the band's Fresnel integrals (C, S))`` (no graph), block by block."""
+        forward_edge, ripple_zones, g, pitch = consts
+        _, idx, _, _ = _edge_band(nu, ripple_zones, g, pitch)
+        v = nu.detach()[idx]
+        fresnel = tuple(torch.from_numpy(a).to(v) for a in _fresnel_threads(v.cpu().numpy()))
+        del idx, v
+        out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
+        start = 0
+        for rows in _EdgeEnvelope._blocks(nu.shape[0]):
+            g_r = g[rows] if isinstance(g, torch.Tensor) else g
+            d, _, _, k = _EdgeEnvelope._block(nu[rows], None if curv is None else curv[rows], fresnel, start,
+                                              (forward_edge, ripple_zones, g_r, pitch))
+            start += k
+            out[rows] = polar(amp[rows] if amp.ndim else amp, angle[rows]) * d
+        return out, fresnel
+
+    @staticmethod
+    def forward(ctx, amp, angle, nu, curv, forward_edge: bool, ripple_zones: float, g, pitch: float):
+        ctx.consts = (forward_edge, ripple_zones, g, pitch)
+        out, fresnel = _EdgeEnvelope.values(amp, angle, nu, curv, ctx.consts)
+        ctx.save_for_backward(amp, angle, nu, curv, *fresnel)
         return out
-    v = nu[idx]
-    nb = nu_b[idx] if isinstance(nu_b, torch.Tensor) else torch.full_like(v.detach(), nu_b)
-    curv = None if curvature is None else curvature[idx]
-    re, im = _EdgeBand.apply(v, curv, nb, nu_max, dz >= 0)
-    return out.index_put_(idx, torch.complex(re, im))  # in place: ``out`` is new and carries no graph
+
+    @staticmethod
+    def backward(ctx, grad):
+        amp, angle, nu, curv, *fresnel = ctx.saved_tensors
+        forward_edge, ripple_zones, g, pitch = ctx.consts
+        need = ctx.needs_input_grad
+        g_amp = torch.zeros_like(amp) if need[0] else None
+        g_angle = torch.zeros_like(angle) if need[1] else None
+        g_nu = torch.zeros_like(nu) if need[2] else None
+        g_curv = torch.zeros_like(curv) if need[3] and curv is not None else None
+        nu_max = math.sqrt(2.0) * ripple_zones
+        start = 0
+        for rows in _EdgeEnvelope._blocks(nu.shape[0]):
+            g_r = g[rows] if isinstance(g, torch.Tensor) else g
+            d, idx, band, k = _EdgeEnvelope._block(nu[rows], None if curv is None else curv[rows], fresnel, start,
+                                                   (forward_edge, ripple_zones, g_r, pitch))
+            start += k
+            a_r = amp[rows] if amp.ndim else amp
+            unit = polar(torch.ones((), dtype=angle.dtype, device=angle.device), angle[rows])
+            gr = grad[rows]
+            t = gr.conj() * (unit * d)  # conj(G)·∂z/∂a
+            if g_amp is not None:
+                g_amp[rows] = t.real
+            if g_angle is not None:
+                g_angle[rows] = -(a_r * t.imag)  # Re(conj(G)·i·z)
+            if band is not None and (g_nu is not None or g_curv is not None):
+                g_d = (gr * (unit * a_r).conj())[idx]  # ∂L/∂D on the band
+                gv, gc = _EdgeBand.grads(*band, nu_max, forward_edge, g_d.real, g_d.imag, g_curv is not None)
+                if g_nu is not None:
+                    g_nu[rows].index_put_(idx, gv)
+                if g_curv is not None:
+                    g_curv[rows].index_put_(idx, gc)
+        return g_amp, g_angle, g_nu, g_curv, None, None, None, None
 
 
 def _smoothstep_slope(t: torch.Tensor) -> torch.Tensor:
@@ -190,9 +302,17 @@ class _EdgeBand(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_re, g_im):
         v, curv, nb, c_, s_ = ctx.saved_tensors
-        t_out, t_in, w_out, w_in, f = _EdgeBand._terms(v, curv, nb, ctx.nu_max)
-        d_re, d_im = _EdgeBand._knife(c_, s_, ctx.forward_edge)
-        sign = 1.0 if ctx.forward_edge else -1.0
+        g_v, g_c = _EdgeBand.grads(v, curv, nb, c_, s_, ctx.nu_max, ctx.forward_edge, g_re, g_im,
+                                   ctx.needs_input_grad[1])
+        return g_v, g_c, None, None, None
+
+    @staticmethod
+    def grads(v, curv, nb, c_, s_, nu_max: float, forward_edge: bool, g_re, g_im, need_curv: bool):
+        """The gradients ``(∂L/∂ν, ∂L/∂(κs) or None)`` on the band samples from those of ``(Re, Im)`` of the factor
+        (``c_``, ``s_`` the Fresnel integrals at ``v``)."""
+        t_out, t_in, w_out, w_in, f = _EdgeBand._terms(v, curv, nb, nu_max)
+        d_re, d_im = _EdgeBand._knife(c_, s_, forward_edge)
+        sign = 1.0 if forward_edge else -1.0
         ph = 0.5 * math.pi * v * v  # C' = cos, S' = sin
         cos_, sin_ = torch.cos(ph), torch.sin(ph)
         dd_re, dd_im = 0.5 * (cos_ + sin_), sign * 0.5 * (sin_ - cos_)
@@ -206,11 +326,11 @@ class _EdgeBand(torch.autograd.Function):
         dim = dd_im * m + d_im * dm
         g_v = g_re * dre + g_im * dim
         g_c = None
-        if curv is not None and ctx.needs_input_grad[1]:
+        if curv is not None and need_curv:
             ok = (curv >= -0.9) & (curv <= 3.0)  # clamp passes the gradient on its closed range
             m_c = torch.where(ok, w_out * w_in * 0.5 / f, torch.zeros_like(f))
             g_c = g_re * torch.where(lit, (d_re - 1.0) * m_c, d_re * m_c) + g_im * d_im * m_c
-        return g_v, g_c, None, None, None
+        return g_v, g_c
 
 
 #: stop-rim points at which :func:`stop_rim_images` finds the edge's image

@@ -117,8 +117,9 @@ def _perturbed(h, rel, size, rows, cols, pitch, wavelength, n, carrier, shift, d
     zero = torch.zeros((), dtype=torch.float64, device=device)
     sx, sy = (zero, zero) if shift is None else shift.to(device=device, dtype=torch.float64).reshape(2).unbind()
     dz = _dz_tensor(dz, device) if dz is not None else zero
-    w = _axial_frequency(fx, fy, wavelength, n, carrier) if dz.requires_grad or float(dz) != 0 else None
-    return _Perturbed.apply(h, sx, sy, dz, fx, fy, w, rel)
+    axial = (float(wavelength), float(n), tuple(float(c) for c in carrier)) if dz.requires_grad or float(dz) != 0 \
+        else None
+    return _Perturbed.apply(h, sx, sy, dz, fx, fy, axial, rel)
 
 
 def _convolve_full(u, h, size, noy, nox):
@@ -288,48 +289,74 @@ class _Perturbed(torch.autograd.Function):
     """``h·a·exp(iφ)`` with ``φ = 2π(f_x s_x + f_y s_y + w·dz)`` and ``a = 1 + s_x R_x + s_y R_y + dz R_z`` (the
     window shift, the extra distance and the roll-off weights' first-order change), with a hand-written
     backward: the scalars' gradients are a few reductions instead of autograd's chain of full-size complex
-    temporaries. ``w`` None: no distance term; ``rel`` None: no weight terms (a = 1)."""
+    temporaries. ``axial``: ``(λ µm, n, carrier)`` of the axial frequency ``w`` (:func:`_axial_frequency`), None:
+    no distance term; ``rel`` None: no weight terms (a = 1).
+
+    Memory: the backward keeps the output ``y = h·a·e^{iφ}`` (which the band convolution that follows keeps
+    anyway: one array for both) instead of ``h``, and recomputes ``w`` and ``e^{iφ}``: ``conj(g)·h·e^{iφ} =
+    conj(g)·y / a``."""
 
     @staticmethod
-    def _factors(h, sx, sy, dz, fx, fy, w, rel):
+    def _factors(sx, sy, dz, fx, fy, axial, rel, dtype):
         """``(exp(iφ), a)`` on the band (``a`` None without weight terms)."""
         phase = _TWO_PI * (fy[:, None] * sy + fx[None, :] * sx)
-        if w is not None:
-            phase = phase + _TWO_PI * dz * w
-        e = torch.polar(torch.ones_like(phase), phase).to(h.dtype)  # exp(iφ)
+        if axial is not None:
+            phase = phase + _TWO_PI * dz * _axial_frequency(fx, fy, *axial)
+        e = torch.polar(torch.ones_like(phase), phase).to(dtype)  # exp(iφ)
         amp = None if rel is None else 1.0 + (sx * rel[1] + sy * rel[2] + dz * rel[0])
         return e, amp
 
     @staticmethod
-    def forward(ctx, h, sx, sy, dz, fx, fy, w, rel):
-        e, amp = _Perturbed._factors(h, sx, sy, dz, fx, fy, w, rel)
-        # the band-sized factors are recomputed in backward (the same values): only the inputs are kept
-        ctx.save_for_backward(h, sx, sy, dz, fx, fy, w, rel)
-        return h * e if amp is None else h * e * amp.to(h.real.dtype)
+    def forward(ctx, h, sx, sy, dz, fx, fy, axial, rel):
+        e, amp = _Perturbed._factors(sx, sy, dz, fx, fy, axial, rel, h.dtype)
+        y = h * e if amp is None else h * e * amp.to(h.real.dtype)
+        # the band-sized factors are recomputed in backward (the same values): only the output and the inputs
+        # other than h are kept
+        ctx.axial = axial
+        ctx.save_for_backward(y, sx, sy, dz, fx, fy, rel)
+        return y
 
     @staticmethod
     def backward(ctx, g):
-        h, sx, sy, dz, fx, fy, w, rel = ctx.saved_tensors
-        e, amp = _Perturbed._factors(h, sx, sy, dz, fx, fy, w, rel)
+        y, sx, sy, dz, fx, fy, rel = ctx.saved_tensors
         grads = [None] * 8
         if ctx.needs_input_grad[0]:
+            e, amp = _Perturbed._factors(sx, sy, dz, fx, fy, ctx.axial, rel, y.dtype)
             grads[0] = g * e.conj() if amp is None else g * e.conj() * amp.to(g.real.dtype)
         if any(ctx.needs_input_grad[1:4]):
-            # the real gradient of s is Re Σ conj(g)·∂(h·a·e^{iφ})/∂s = Re Σ conj(g)·h·e^{iφ}·(∂a/∂s + i a ∂φ/∂s)
-            q = (g.conj() * h * e).to(torch.complex128)
-            qa = q.imag if amp is None else q.imag * amp
-
-            def red(r_chan, freq):
-                out = -_TWO_PI * (qa * freq).sum() if freq is not None else q.real.new_zeros(())
-                return out + (q.real * rel[r_chan]).sum() if rel is not None else out
-
-            if ctx.needs_input_grad[1]:
-                grads[1] = red(1, fx[None, :])
-            if ctx.needs_input_grad[2]:
-                grads[2] = red(2, fy[:, None])
-            if ctx.needs_input_grad[3]:
-                grads[3] = red(0, w)
+            sums = _Perturbed._scalar_sums(g, y, sx, sy, dz, fx, fy, ctx.axial, rel)
+            for i in (1, 2, 3):
+                if ctx.needs_input_grad[i]:
+                    grads[i] = sums[i - 1]
         return tuple(grads)
+
+    @staticmethod
+    def _scalar_sums(g, y, sx, sy, dz, fx, fy, axial, rel):
+        """The real gradients of ``(s_x, s_y, dz)``: ``Re Σ conj(g)·∂y/∂s = Re Σ conj(g)·h·e^{iφ}·(∂a/∂s + i a
+        ∂φ/∂s)``, with ``conj(g)·h·e^{iφ}·a = conj(g)·y`` (``a`` real), summed over blocks of
+        :data:`PERTURBED_BLOCK_ROWS` rows of the band: its band-sized temporaries (~8 arrays, the peak of a
+        lens-trained backward) exist a block at a time."""
+        sums = [y.real.new_zeros(()).to(torch.float64) for _ in range(3)]
+        for r0 in range(0, y.shape[-2], PERTURBED_BLOCK_ROWS):
+            rows = slice(r0, r0 + PERTURBED_BLOCK_ROWS)
+            qa_c = (g[..., rows, :].conj() * y[..., rows, :]).to(torch.complex128)  # q·a
+            qa = qa_c.imag
+            rel_b = None if rel is None else rel[:, rows]
+            if rel_b is None:
+                q_re = qa_c.real
+            else:
+                q_re = qa_c.real / (1.0 + (sx * rel_b[1] + sy * rel_b[2] + dz * rel_b[0]))
+            w = None if axial is None else _axial_frequency(fx, fy[rows], *axial)
+            for k, (freq, chan) in enumerate(((fx[None, :], 1), (fy[rows, None], 2), (w, 0))):
+                part = -_TWO_PI * (qa * freq).sum() if freq is not None else sums[k].new_zeros(())
+                if rel_b is not None:
+                    part = part + (q_re * rel_b[chan]).sum()
+                sums[k] = sums[k] + part
+        return sums
+
+
+#: rows of the band per block of :meth:`_Perturbed._scalar_sums`
+PERTURBED_BLOCK_ROWS = 64
 
 
 def _dz_tensor(dz, device) -> torch.Tensor:
