@@ -140,7 +140,9 @@ def test_psf_map_psfs_equal_single_psf_calls(hl, small_map):
             for w, wl in enumerate((0.47, 0.66)):
                 with torch.no_grad():
                     res = hl.psf_result(m.fields[i, j], wl, ks=KS, depth=depth, rays=24)
-                assert float((m.psf[d, w, i, j] - res.psf[0, 0]).abs().max()) < 1e-12
+                # the map builds node (0, 0)'s field and mirrors it for these two (raywave.hybrid.mirror): the same
+                # to the construction's rounding (~7e-12 here, at 24 nodes), not bit for bit
+                assert float((m.psf[d, w, i, j] - res.psf[0, 0]).abs().max()) < 1e-10
                 assert float((m.centers[d, w, i, j] - res.center[0, 0]).abs().max()) < 1e-12
     # depth and wavelength change the PSFs and their centres (lateral colour)
     assert float((m.psf[0] - m.psf[1]).abs().max()) > 1e-3

@@ -523,6 +523,19 @@ def _map_fields(model, grid, fields, sensor_size, mapping, reference_wavelength,
     return f_nm, size
 
 
+def _pair_order(n: int, m: int) -> torch.Tensor:
+    """The map's N×M nodes (row-major flat indices) in the order they are computed: from the outside in, the four
+    mirror images ``(r, c), (r, M−1−c), (N−1−r, c), (N−1−r, M−1−c)`` side by side (fewer on the middle row or
+    column), so that a chunk holds them together (one model call builds them from one DOE-plane field on a
+    mirror-symmetric lens: :mod:`raywave.hybrid.mirror`)."""
+    order = []
+    for r in range((n + 1) // 2):
+        for c in range((m + 1) // 2):
+            for rr, cc in dict.fromkeys(((r, c), (r, m - 1 - c), (n - 1 - r, c), (n - 1 - r, m - 1 - c))):
+                order.append(rr * m + cc)
+    return torch.tensor(order, dtype=torch.long)
+
+
 def _map_chunks(n_points: int, n_wavelengths: int, batch: int | None) -> list[tuple[int, int]]:
     """[start, end) ranges of the ``n_points`` flat field points, ``batch`` (default :func:`default_batch`) per
     model call."""
@@ -609,7 +622,8 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
     f_nm, size = _map_fields(model, grid, fields, sensor_size, mapping, reference_wavelength, ds[0])
     n, m = f_nm.shape[:2]
     positions = normalised_grid((n, m), device="cpu")  # host-side, like the field angles
-    flat = f_nm.reshape(-1, 2)
+    order = _pair_order(n, m)  # mirror-image nodes side by side: a chunk holds both (built once, mirrored)
+    flat = f_nm.reshape(-1, 2)[order]
     chunks = _map_chunks(flat.shape[0], len(wls), batch)
     disable = _progress_disable(progress, len(ds) * len(wls) * flat.shape[0])
     bar = tqdm(total=len(ds) * len(chunks), desc=f"PSF map {n}×{m}×{len(wls)}λ×{len(ds)} depth", disable=disable,
@@ -618,6 +632,8 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
     with ctx, _one_aperture_warning():
         psfs, cens, outs, pitch = _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw)
     bar.close()
+    back = torch.argsort(order)  # the chunks' order back to row-major
+    psfs, cens, outs = ([t[back] for t in ts] for ts in (psfs, cens, [torch.as_tensor(o) for o in outs]))
     # (D, F, W, ...) -> (D, W, N, M, ...)
     psf = torch.stack(psfs).transpose(1, 2).reshape(len(ds), len(wls), n, m, ks, ks)
     cen = torch.stack(cens).transpose(1, 2).reshape(len(ds), len(wls), n, m, 2)

@@ -31,6 +31,10 @@ class Geometry(nn.Module):
 
     #: False for shapes whose paraxial data depend on the section (toroids): the paraxial model sees y–z only.
     rotationally_symmetric = True
+    #: the sag is even in x and in y (``sag(−x, y) = sag(x, −y) = sag(x, y)``): true of every rotationally symmetric
+    #: shape and of the toroid; a mirror-symmetric lens sends the source (−x, y) the mirror image of the field of
+    #: (x, y) (:mod:`raywave.hybrid.mirror`). A shape with odd terms in x or y must set it False.
+    mirror_symmetric = True
 
     def sag(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """Surface height z (mm) at (x, y) (mm)."""
