@@ -187,24 +187,29 @@ class _EdgeEnvelope(torch.autograd.Function):
         return d.index_put_(idx, torch.complex(re, im)), idx, (v, cv, nb, c_, s_), k
 
     @staticmethod
-    def _blocks(n_rows: int):
-        return [slice(r, r + ENVELOPE_BLOCK_ROWS) for r in range(0, n_rows, ENVELOPE_BLOCK_ROWS)]
+    def _walk(nu, curv, fresnel, consts):
+        """The blocks of :data:`ENVELOPE_BLOCK_ROWS` rows in order: ``(rows (a slice), D, idx, band terms)`` of
+        :meth:`_block`, each block's Fresnel integrals taken from where the previous block's ended."""
+        forward_edge, ripple_zones, g, pitch = consts
+        start = 0
+        for r in range(0, nu.shape[0], ENVELOPE_BLOCK_ROWS):
+            rows = slice(r, r + ENVELOPE_BLOCK_ROWS)
+            g_r = g[rows] if isinstance(g, torch.Tensor) else g
+            d, idx, band, k = _EdgeEnvelope._block(nu[rows], None if curv is None else curv[rows], fresnel, start,
+                                                   (forward_edge, ripple_zones, g_r, pitch))
+            start += k
+            yield rows, d, idx, band
 
     @staticmethod
     def values(amp, angle, nu, curv, consts):
         """``(z (complex128, nu's shape), the band's Fresnel integrals (C, S))`` (no graph), block by block."""
-        forward_edge, ripple_zones, g, pitch = consts
+        _, ripple_zones, g, pitch = consts
         _, idx, _, _ = _edge_band(nu, ripple_zones, g, pitch)
         v = nu.detach()[idx]
         fresnel = tuple(torch.from_numpy(a).to(v) for a in _fresnel_threads(v.cpu().numpy()))
         del idx, v
         out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
-        start = 0
-        for rows in _EdgeEnvelope._blocks(nu.shape[0]):
-            g_r = g[rows] if isinstance(g, torch.Tensor) else g
-            d, _, _, k = _EdgeEnvelope._block(nu[rows], None if curv is None else curv[rows], fresnel, start,
-                                              (forward_edge, ripple_zones, g_r, pitch))
-            start += k
+        for rows, d, _, _ in _EdgeEnvelope._walk(nu, curv, fresnel, consts):
             out[rows] = polar(amp[rows] if amp.ndim else amp, angle[rows]) * d
         return out, fresnel
 
@@ -218,19 +223,14 @@ class _EdgeEnvelope(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         amp, angle, nu, curv, *fresnel = ctx.saved_tensors
-        forward_edge, ripple_zones, g, pitch = ctx.consts
+        forward_edge, ripple_zones = ctx.consts[:2]
         need = ctx.needs_input_grad
         g_amp = torch.zeros_like(amp) if need[0] else None
         g_angle = torch.zeros_like(angle) if need[1] else None
         g_nu = torch.zeros_like(nu) if need[2] else None
         g_curv = torch.zeros_like(curv) if need[3] and curv is not None else None
         nu_max = math.sqrt(2.0) * ripple_zones
-        start = 0
-        for rows in _EdgeEnvelope._blocks(nu.shape[0]):
-            g_r = g[rows] if isinstance(g, torch.Tensor) else g
-            d, idx, band, k = _EdgeEnvelope._block(nu[rows], None if curv is None else curv[rows], fresnel, start,
-                                                   (forward_edge, ripple_zones, g_r, pitch))
-            start += k
+        for rows, d, idx, band in _EdgeEnvelope._walk(nu, curv, fresnel, ctx.consts):
             a_r = amp[rows] if amp.ndim else amp
             unit = polar(torch.ones((), dtype=angle.dtype, device=angle.device), angle[rows])
             gr = grad[rows]
