@@ -533,7 +533,7 @@ def _pair_order(n: int, m: int) -> torch.Tensor:
         for c in range((m + 1) // 2):
             for rr, cc in dict.fromkeys(((r, c), (r, m - 1 - c), (n - 1 - r, c), (n - 1 - r, m - 1 - c))):
                 order.append(rr * m + cc)
-    return torch.tensor(order, dtype=torch.long)
+    return torch.tensor(order, dtype=torch.long, device="cpu")  # host-side, like the field angles
 
 
 def _map_chunks(n_points: int, n_wavelengths: int, batch: int | None) -> list[tuple[int, int]]:
