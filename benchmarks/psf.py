@@ -21,7 +21,7 @@ pixels, a trainable pixel phase map) 0.7 mm after the last surface, sensor at fo
   peak memory per PSF (a fresh ``HybridLens`` per call: no transfer function reused), uncached and with the
   DOE-plane field cached, forward and forward + backward (gradient w.r.t. the DOE pixels, lens frozen; and,
   uncached, w.r.t. the lens too); L1 error against the exit-pupil Huygens PSF (``raywave.models.exit_pupil``,
-  n_pupil 192) on axis and at 0.7 and 1.0 of the full field (17.5°), and against the Debye truth of an ideal
+  n_pupil 512, ks 32) on axis and at 0.7 and 1.0 of the full field (17.5°), and against the Debye truth of an ideal
   lens of the same EFL and F-number on axis (off axis: against its Huygens PSF). Peak memory is the resident peak
   (freed blocks that glibc keeps count); ``--live-memory`` measures the live peak instead (for memory only: every
   large block is then mapped afresh, which makes the times ~1.5–2× slower).
@@ -205,6 +205,12 @@ def timing_case(mode: str, backward: bool, nodes: int, threads: int, repeat: int
 
 EDGE_CASES = (("doe", "auto"), ("exit_pupil", "asm"), ("exit_pupil", "fresnel"))
 EDGE_WL, EDGE_FIELDS = 0.53, (0.0, 0.7, 1.0)
+#: the Huygens reference's pupil samples: converged to ~1e-4 at 17.5° (384 → 512: 1.8e-4, 512 → 640: 8e-5; at 192
+#: it was itself ~1e-3 off, as much as the Fresnel step it measures)
+EDGE_HUYGENS_PUPIL = 512
+#: the errors' crop (3 µm pixels): the tests' (tests/test_hybrid_stop_edge.py); the Huygens PSF at n_pupil 512 costs
+#: ~1 min per field at ks 32
+EDGE_ERROR_KS = 32
 
 
 def _edge_lens(edge: str, step: str, pixel_doe: bool = False):
@@ -268,7 +274,8 @@ def edge_errors(cases=EDGE_CASES, fields=EDGE_FIELDS, lenses=("asphere_hk51", "i
     from raywave.models import huygens_psf
     from raywave.models.debye import debye_psf
 
-    out = {"metric": "L1 = sum|psf - ref| (0..2)", "wavelength_um": EDGE_WL, "ks": KS, "rows": []}
+    out = {"metric": "L1 = sum|psf - ref| (0..2)", "wavelength_um": EDGE_WL, "ks": EDGE_ERROR_KS,
+           "huygens_n_pupil": EDGE_HUYGENS_PUPIL, "rows": []}
     _, lens = _edge_lens("doe", "auto")
     full = max(lens.fields)
     efl, epd = float(lens.paraxial().efl), float(lens.paraxial().epd)
@@ -280,16 +287,17 @@ def edge_errors(cases=EDGE_CASES, fields=EDGE_FIELDS, lenses=("asphere_hk51", "i
             continue
         for fr in fields:
             fld = (0.0, fr * full)
-            ref = huygens_psf(base, fld, EDGE_WL, ks=KS, pitch=ps, n_pupil=192).psf.to(torch.float64)
+            ref = huygens_psf(base, fld, EDGE_WL, ks=EDGE_ERROR_KS, pitch=ps,
+                              n_pupil=EDGE_HUYGENS_PUPIL).psf.to(torch.float64)
             debye = None
             if name == "ideal" and fr == 0.0:
-                res = debye_psf(math.sin(math.atan(0.5 * epd / efl)), EDGE_WL, KS, ps, oversample=15)
+                res = debye_psf(math.sin(math.atan(0.5 * epd / efl)), EDGE_WL, EDGE_ERROR_KS, ps, oversample=15)
                 debye = (res[0] if isinstance(res, tuple) else getattr(res, "psf", res)).to(torch.float64)
             for edge, step in cases:
                 d = DOE_DIST if name == "asphere_hk51" else efl - z_doe_sensor
                 hl = HybridLens(base, BlankDOE(6000, DOE_PITCH), d, sensor_pitch=ps, stop_edge=edge, edge_step=step)
                 t0 = time.perf_counter()
-                p = hl.psf(fld, EDGE_WL, ks=KS)[0, 0].detach()
+                p = hl.psf(fld, EDGE_WL, ks=EDGE_ERROR_KS)[0, 0].detach()
                 row = {"lens": name, "field": fr, "field_deg": fld[1], "stop_edge": edge,
                        "edge_step": step if edge == "exit_pupil" else None, "l1_vs_huygens": _l1(p, ref),
                        "seconds": time.perf_counter() - t0}

@@ -197,17 +197,53 @@ def test_fresnel_step_agrees_with_the_exact_construction(lens, fld):
     the DOE plane, no exit-pupil grid, no extra propagation) against the exact construction (edge_step="asm") and
     the Huygens PSF. Measured L1 (ks 32, 3 µm pixels, DOE at 0.7 mm, Huygens n_pupil 192): step vs exact 5.6e-4
     (0°), 9.6e-4 (7°), 1.6e-3 (14°), 4.1e-3 (17.5°), where the DOE-plane edge is 4.0e-3 / 1.3e-2 / 6.2e-2 / 0.105
-    from Huygens. Most of what is left on axis is the boundary wave of the round edge focusing on the axis (an
-    Arago spot on the DOE plane), which the local knife-edge leaves out. Since 2026-11-28 (the exact construction's
-    edge at the rim images, the step's ν from the optical path difference): 5.3e-4 (0°), 1.1e-3 (14°), 2.0e-3
-    (17.5°, 6 mm DOE)."""
+    from Huygens. Since 2026-11-28 (the exact construction's edge at the rim images, the step's ν from the optical
+    path difference): 5.3e-4 (0°), 1.1e-3 (14°), 2.0e-3 (17.5°, 6 mm DOE); with the curved edge's first-order term
+    and 5 zones of ripples rolled off over 2: 2.2e-4 / 3.3e-4 / 8.3e-4 (what was left on axis was mostly that term,
+    on the edge, not the round edge's boundary wave focusing on the axis, as thought before)."""
     step = blank_psf(lens, 0.7, fld, "exit_pupil", edge_step="fresnel")
     exact = blank_psf(lens, 0.7, fld, "exit_pupil", edge_step="asm")
     dp = blank_psf(lens, 0.7, fld, "doe")
     print(f"{fld}°: L1 fresnel step vs exact {l1(step, exact):.2e}, DOE edge vs exact {l1(dp, exact):.2e}")
-    assert l1(step, exact) < (1.5e-3 if fld == 14.0 else 2.5e-3)
+    assert l1(step, exact) < (5e-4 if fld < 15.0 else 1.2e-3)
     if fld > 0:
         assert l1(step, exact) < 0.1 * l1(dp, exact)
+
+
+@pytest.mark.slow  # Huygens at n_pupil 512: ~3 min
+def test_fresnel_step_is_within_1e_3_of_huygens_across_the_field(lens):
+    """Issue 19's accuracy goal: the default Fresnel step within 1e-3 (L1) of the exit-pupil Huygens PSF at every
+    field of the bundled asphere (6 mm blank DOE at 0.7 mm, ks 32, 3 µm pixels). The reference at n_pupil 512:
+    at 384 it is itself ~3e-4 off at 17.5° (384 → 512: 1.8e-4, 512 → 640: 8e-5). Measured 1.5e-4 / 1.8e-4 /
+    3.4e-4 / 8.8e-4 at 0° / 7° / 14° / 17.5° (before the curved edge's term and the wider roll-off: 7.4e-4 /
+    1.0e-3 / 1.2e-3 / 2.0e-3)."""
+    for fld in (0.0, 7.0, 14.0, 17.5):
+        ref = huygens_psf(lens, (0.0, fld), WL, ks=KS, pitch=PS, n_pupil=512).psf
+        step = blank_psf(lens, 0.7, fld, "exit_pupil", n=6000, edge_step="fresnel")
+        print(f"{fld}°: L1 Fresnel step vs Huygens {l1(step, ref):.2e}")
+        assert l1(step, ref) < 1e-3
+
+
+@pytest.mark.parametrize("depth", [15.0, None])
+def test_fresnel_step_of_a_small_beam_agrees_with_huygens_in_and_out_of_focus(depth):
+    """A small beam (ideal f = 2 mm, F/8, DOE 0.5 mm behind: ~45 Fresnel zones across the beam on the DOE plane,
+    the curved edge's term 1.2 % of the field on the edge) against the Huygens PSF, focused and defocused (object
+    at 15 mm), on axis and at 3°. Measured 6.2e-4 / 6.4e-4 (in focus), 8.9e-4 / 9.6e-4 (15 mm); without the curved
+    edge's term 2.3e-3 out of focus. Also guards the inner tail's anti-aliasing limit: it took its Fresnel scale
+    from the beam's centre (an undefined edge normal, the scale's clamp), which cut the tail at ν = 2 (2.0e-3 /
+    3.3e-3 with and without the term)."""
+    from raywave.lens.build import ideal_lens
+
+    small = ideal_lens(2.0, f_number=8.0, wavelengths=(WL,))
+    for fld in ((0.0, 0.0), (0.0, 3.0)):
+        hl = HybridLens(small, BlankDOE(256, 2e-3), 0.5, sensor_pitch=2e-3)
+        with torch.no_grad():
+            center = [float(v) for v in hl.doe_fields(fld, WL, depth=depth)[0][0].center]
+            p = hl.psf(fld, WL, ks=16, depth=depth)[0, 0]
+        ref = huygens_psf(small, fld, WL, ks=16, pitch=2e-3, center=center, n_pupil=384, depth=depth,
+                          sensor_z=float(hl.sensor_z())).psf
+        print(f"depth {depth}, field {fld}: L1 Fresnel step vs Huygens {l1(p, ref):.2e}")
+        assert l1(p, ref) < 1.5e-3
 
 
 def test_fresnel_step_knife_edge_factor():
@@ -230,19 +266,58 @@ def test_fresnel_step_knife_edge_factor():
     assert torch.allclose(nu.grad, fd, atol=1e-7)
 
 
+@pytest.mark.parametrize("fresnel_number", [100.0, 300.0])
+def test_curved_edge_factor_is_the_fresnel_diffraction_of_a_disk(fresnel_number):
+    """Near the shadow of a disk of radius a (a plane wave, Fresnel number N = a²/(λL), the Lommel integral done
+    numerically), the factor with the edge's curvature (κ/g = 1/(g a)) matches the exact field to second order in
+    1/(g a); the straight knife edge is off by the first order (0.8 % at N = 100). Both are smoothed over 0.1 in ν:
+    that removes the opposite rim's boundary wave (~1/(π g 2a), oscillating ~2 g a times faster), which the step
+    leaves out on purpose (its fringes land far outside the PSF crop)."""
+    from scipy.integrate import simpson
+    from scipy.ndimage import gaussian_filter1d
+    from scipy.special import j0
+
+    from raywave.hybrid.coherent import stop_edge_factor
+
+    a, dnu = 1.0, 0.01
+    lam_l = a * a / fresnel_number
+    g = math.sqrt(2.0 / lam_l)
+    nu = np.arange(-4.0, 4.0 + dnu / 2, dnu)
+    r = a - nu / g
+    rho = np.linspace(0.0, a, 20001)
+    k = math.pi / lam_l
+    integrand = np.exp(1j * k * rho**2)[None, :] * j0(2 * k * r[:, None] * rho[None, :]) * rho[None, :]
+    exact = 2 * math.pi / (1j * lam_l) * np.exp(1j * k * r**2) * simpson(integrand, x=rho, axis=1)
+
+    def smooth(x):
+        return gaussian_filter1d(x.real, 0.1 / dnu) + 1j * gaussian_filter1d(x.imag, 0.1 / dnu)
+
+    nu_t = torch.tensor(nu)
+    g_t = torch.full_like(nu_t, g)
+    near = np.abs(nu) <= 2.5
+    err = {}
+    for name, kappa in (("knife", None), ("curved", torch.full_like(nu_t, 1.0 / (g * a)))):
+        d = stop_edge_factor(nu_t, 1.0, 5.0, g_t, 1e-6, kappa=kappa).numpy()
+        err[name] = float(np.abs(smooth(exact) - smooth(d))[near].max())
+    print(f"N = {fresnel_number:g}: knife edge {err['knife']:.1e}, curved edge {err['curved']:.1e}")
+    assert err["curved"] < 0.15 * err["knife"]
+    assert err["curved"] < 0.2 / fresnel_number
+
+
 @pytest.mark.parametrize("dz", [1.0, -1.0])
 def test_knife_edge_factor_hand_written_backward_passes_gradcheck(dz):
     """The factor's backward (recomputed from ν and the curvature, not stored by autograd) against finite
-    differences, across the band: shadow, edge, inner roll-off, with the curvature clamped at both ends."""
+    differences, across the band: shadow, edge, inner roll-off, with the curvature (and ν·κ/g) clamped at both
+    ends."""
     from raywave.hybrid.coherent import stop_edge_factor
 
     gen = torch.Generator().manual_seed(5)
     nu = (torch.rand(40, dtype=torch.float64, generator=gen) * 14.0 - 7.0).requires_grad_(True)
-    curv = (torch.rand(40, dtype=torch.float64, generator=gen) * 5.0 - 1.5).requires_grad_(True)
+    curv = (torch.rand(40, dtype=torch.float64, generator=gen) * 1.6 - 0.8).requires_grad_(True)
     g = torch.full((40,), 50.0, dtype=torch.float64)
 
     def f(n_, c_):
-        d = stop_edge_factor(n_, dz, 4.0, g, 1e-3, curvature=c_)
+        d = stop_edge_factor(n_, dz, 4.0, g, 1e-3, kappa=c_)
         return torch.view_as_real(d)
 
     assert torch.autograd.gradcheck(f, (nu, curv), eps=1e-7, atol=1e-6)
@@ -251,7 +326,7 @@ def test_knife_edge_factor_hand_written_backward_passes_gradcheck(dz):
 @pytest.mark.parametrize("dz", [1.0, -1.0])
 @pytest.mark.parametrize("scalar_g, block_rows", [(True, 64), (False, 2), (True, 4)])
 def test_edge_envelope_hand_written_backward_is_the_composed_one(dz, scalar_g, block_rows, monkeypatch):
-    """The fused envelope ``polar(a, θ)·D(ν, κs)`` (what a trainable lens's Fresnel step records): the same values as
+    """The fused envelope ``polar(a, θ)·D(ν, κ/g)`` (what a trainable lens's Fresnel step records): the same values as
     the two factors, gradients equal to autograd's through them (to rounding) and to finite differences
     (gradcheck), with samples inside the beam, on the band and in the shadow beyond it; in one block of rows and
     in several."""
@@ -266,23 +341,23 @@ def test_edge_envelope_hand_written_backward_is_the_composed_one(dz, scalar_g, b
     amp = torch.rand(shape, dtype=torch.float64, generator=gen).requires_grad_(True)
     ang = (torch.rand(shape, dtype=torch.float64, generator=gen) * 40.0).requires_grad_(True)
     nu = (torch.rand(shape, dtype=torch.float64, generator=gen) * 24.0 - 10.0).requires_grad_(True)
-    curv = (torch.rand(shape, dtype=torch.float64, generator=gen) * 5.0 - 1.5).requires_grad_(True)
+    curv = (torch.rand(shape, dtype=torch.float64, generator=gen) * 1.6 - 0.8).requires_grad_(True)
     g = 50.0 if scalar_g else torch.full(shape, 50.0, dtype=torch.float64)
     inputs = (amp, ang, nu, curv)
-    fused = edge_envelope(amp, ang, nu, dz, 4.0, g, 1e-3, curvature=curv)
-    composed = polar(amp, ang) * stop_edge_factor(nu, dz, 4.0, g, 1e-3, curvature=curv)
+    fused = edge_envelope(amp, ang, nu, dz, 4.0, g, 1e-3, kappa=curv)
+    composed = polar(amp, ang) * stop_edge_factor(nu, dz, 4.0, g, 1e-3, kappa=curv)
     # one block: the same arithmetic; several: the vectorised cos/sin may round a block's tail differently (1 ulp)
     assert torch.equal(fused, composed) if block_rows >= shape[0] else torch.allclose(fused, composed, rtol=1e-14,
                                                                                        atol=1e-15)
     with torch.no_grad():  # without a graph: the same blocks, the same values bit for bit
-        assert torch.equal(edge_envelope(amp, ang, nu, dz, 4.0, g, 1e-3, curvature=curv), fused.detach())
+        assert torch.equal(edge_envelope(amp, ang, nu, dz, 4.0, g, 1e-3, kappa=curv), fused.detach())
     w = torch.randn(*shape, 2, dtype=torch.float64, generator=gen)
     ga = torch.autograd.grad((torch.view_as_real(fused) * w).sum(), inputs)
     gb = torch.autograd.grad((torch.view_as_real(composed) * w).sum(), inputs)
     for a, b in zip(ga, gb):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
     assert torch.autograd.gradcheck(
-        lambda *x: torch.view_as_real(edge_envelope(x[0], x[1], x[2], dz, 4.0, g, 1e-3, curvature=x[3])),
+        lambda *x: torch.view_as_real(edge_envelope(x[0], x[1], x[2], dz, 4.0, g, 1e-3, kappa=x[3])),
         inputs, eps=1e-7, atol=1e-6)
 
 

@@ -17,8 +17,8 @@ from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _warn_nyquist, check_window_memory)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
-from raywave.hybrid.coherent.stop_edge import (RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_cubic, _rim_z,
-                                               _zone_estimate, edge_envelope)
+from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_cubic,
+                                               _rim_z, _zone_estimate, edge_envelope)
 from raywave.hybrid.coherent.tracing import (_TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
                                              _solve2, run_serial)
 
@@ -96,10 +96,10 @@ class _Nodes:
         return v.T.reshape(-1, self.ky, self.kx) if v.ndim == 2 else v.reshape(self.ky, self.kx)
 
 
-def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
-                   nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
-                   chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
-                   ripple_zones: float | None = None, bbox=None, stop_rim=None, entrance=None):
+def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe,
+                         chief_sensor, nodes: int = 64, oversample: int = 1, field_type: str | None = None,
+                         check: bool = True, chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
+                         ripple_zones: float | None = None, bbox=None, stop_rim=None, entrance=None):
     """:func:`accurate_field` as a generator: yields the :class:`_TraceRequest` of every ray trace it needs and
     receives its result, returns the :class:`DOEField` (run it with :func:`run_serial`, or many together with
     :func:`run_batched`: one batched trace per round for all of them). ``bbox``: the lit footprint on the plane
@@ -364,8 +364,9 @@ def _stop_edge_maps(lens, nd: _Nodes, rec, good, maps: dict, z_doe: float, stop_
                     ripple_zones: float, wavelength: float, n: float, p: float, check: bool, field) -> dict:
     """The stop edge's channels when it diffracts from ``stop_plane`` (or from the rim's own images
     ``stop_rim``): ``nu`` = g·s (the Fresnel parameter of the node's distance to the edge, clamped where the
-    factor is 1 or 0 anyway), ``curv`` = s·κ (the edge's curvature correction), ``g_max`` the largest Fresnel
-    scale near the edge. Warns (``check``) where the edge is too curved for the step."""
+    factor is 1 or 0 anyway), ``kappa`` = κ·g/g_t² (the edge's curvature in Fresnel units, ``g_t`` the Fresnel
+    scale along the edge), ``g_max`` the largest Fresnel scale near the edge. Warns (``check``) where the edge is
+    too curved for the step."""
     dz_edge = z_doe - stop_plane
     rim_ok = False
     if stop_rim is not None:  # the rim point's own image, by the node ray's azimuth on the stop
@@ -376,19 +377,25 @@ def _stop_edge_maps(lens, nd: _Nodes, rec, good, maps: dict, z_doe: float, stop_
             dz_edge, rim_ok = dz_n, True
     s_stop, nx_, ny_ = maps["stop"]
     g_s = _fresnel_scale(maps["slopes"], nx_, ny_, nd.h, dz_edge, wavelength * 1e-3 / n, p)
-    # ν = g·s and s·κ vary smoothly: interpolated as they are
+    # the Fresnel scale along the edge: the edge's curvature in Fresnel units is κ·g/g_t² (the kernel's lengths
+    # across and along the edge differ off axis, and on axis where the wave's two curvatures do)
+    g_t = _fresnel_scale(maps["slopes"], -ny_, nx_, nd.h, dz_edge, wavelength * 1e-3 / n, p)
+    # ν = g·s and κ·g/g_t² vary smoothly: interpolated as they are
     nu_lim = _nu_inner(ripple_zones) + 4.0
     div_n = torch.gradient(nx_, spacing=nd.h, dim=1)[0] + torch.gradient(ny_, spacing=nd.h, dim=0)[0]
     if rim_ok and getattr(stop_rim, "points", None) is not None and PATH_DIFFERENCE_NU:
         nu = _path_difference_nu(stop_rim, sx_, sy_, nd, good, maps["phi"], s_stop, g_s, z_doe, wavelength, n)
     else:
         nu = s_stop * g_s
-    near = nu.detach().abs() < nu_lim
+    # the largest scale where the factor is evaluated (the band; it sets the inner tail's anti-aliasing limit):
+    # deeper inside, a small beam's centre (an undefined edge normal) can have any scale
+    nu_d = nu.detach()
+    near = (nu_d > -math.sqrt(2.0) * ripple_zones) & (nu_d < _nu_inner(ripple_zones))
     g_max = float(g_s.detach()[near].max()) if bool(near.any()) else float(g_s.detach().max())
     if check:
         _warn_edge_curvature(div_n.detach(), g_s.detach(), nu.detach().abs() < 2.0, field.tolist(), wavelength)
-    return {"nu": nu.clamp(-nu_lim, nu_lim), "nu_raw": nu.detach(), "curv": (s_stop * -div_n).clamp(-0.9, 3.0),
-            "g_max": g_max}
+    return {"nu": nu.clamp(-nu_lim, nu_lim), "nu_raw": nu.detach(),
+            "kappa": (-div_n * g_s / (g_t * g_t)).clamp(-KAPPA_MAX, KAPPA_MAX), "g_max": g_max}
 
 
 #: the Fresnel step's ν from each node's optical path difference to the edge (:func:`_path_difference_nu`); False:
@@ -467,7 +474,7 @@ def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelen
     lit_amp = amp2 > 0
     amp = torch.where(lit_amp, safe_sqrt(amp2, lit_amp), torch.zeros_like(amp2))
     other = maps["other"]
-    edge_chan = ([] if other is None else [other]) + [maps["nu"], maps["curv"]] if diffracting else []
+    edge_chan = ([] if other is None else [other]) + [maps["nu"], maps["kappa"]] if diffracting else []
     fine = upsample_nodes(torch.stack([maps["phi_env"], amp] + ([] if diffracting else [dist]) + edge_chan),
                           pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
     cov, b = _fine_coverage(fine, diffracting, other is not None, sim, (iy0, iy1, ix0, ix1), doe, oversample,
@@ -484,13 +491,13 @@ def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelen
 
 def _envelope(fine: torch.Tensor, cov: torch.Tensor | None, k: float, edge: tuple | None) -> torch.Tensor:
     """The envelope ``a·cov·exp(i k φ)`` (complex128 (ny, nx)) from the fine channels ``fine`` (C, ny, nx) (0: φ
-    mm, 1: amplitude, with ``edge`` ``(dz, ripple_zones, g_max, pitch)``: ``[-2]`` ν and ``[-1]`` the curvature
-    term), times the knife-edge factor (:func:`edge_envelope`) with ``edge``; ``k = 2π/λ`` (1/mm)."""
+    mm, 1: amplitude, with ``edge`` ``(dz, ripple_zones, g_max, pitch)``: ``[-2]`` ν and ``[-1]`` the edge's
+    κ/g), times the knife-edge factor (:func:`edge_envelope`) with ``edge``; ``k = 2π/λ`` (1/mm)."""
     amp = fine[1] if cov is None else fine[1] * cov
     if edge is None:
         return polar(amp, k * fine[0])
     dz, ripple_zones, g_max, p = edge
-    return edge_envelope(amp, k * fine[0], fine[-2], dz, ripple_zones, g_max, p, curvature=fine[-1])
+    return edge_envelope(amp, k * fine[0], fine[-2], dz, ripple_zones, g_max, p, kappa=fine[-1])
 
 
 def _span_window(nd: _Nodes, sim: Grid, clamp: bool):

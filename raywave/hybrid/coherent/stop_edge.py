@@ -15,8 +15,15 @@ from raywave.utils.phasor import polar
 
 #: default width (Fresnel zones of the exit pupil → DOE distance) of the band around the geometric footprint
 #: on the DOE plane that keeps the stop edge's diffraction ripples (see
-#: :func:`raywave.hybrid.coherent.exit_pupil.exit_pupil_field`)
-RIPPLE_ZONES = 4.0
+#: :func:`raywave.hybrid.coherent.exit_pupil.exit_pupil_field`). Off axis the rim rays land far from the chief
+#: ray's image (astigmatism: up to 134 µm at 17.5° on the bundled asphere), and edge waves several zones out come
+#: back into the PSF crop: 4 zones (the default before 2026-11-28) left 1.5e-3 L1 there, 5 zones 8.8e-4
+RIPPLE_ZONES = 5.0
+
+#: Fresnel zones over which the ripple band rolls off to 0 at its outer end (its shape hardly matters, its
+#: extent does: at 17.5° full weight out to 3 zones and a roll-off over 1 / 1.5 / 2 zones: 1.5e-3 / 1.1e-3 /
+#: 8.8e-4 L1 from the Huygens PSF)
+ROLL_ZONES = 2.0
 
 #: below this many values :func:`_fresnel_threads` evaluates in the calling thread
 _FRESNEL_CHUNK = 65536
@@ -54,8 +61,9 @@ def _smoothstep(t: torch.Tensor) -> torch.Tensor:
     return t * t * t * (10.0 + t * (6.0 * t - 15.0))
 
 
-#: the edge wave's tail inside the beam is kept up to this many times the outer band's Fresnel parameter
-INNER_TAIL = 1.0
+#: the edge wave's tail inside the beam is kept up to this many times the outer band's Fresnel parameter (4√2 with
+#: 5 ripple zones: further in moves the bundled asphere's L1 from the Huygens PSF by < 3e-6)
+INNER_TAIL = 0.8
 
 
 def _nu_inner(ripple_zones: float) -> float:
@@ -106,7 +114,7 @@ def _fresnel_scale(slopes, nx, ny, h_node: float, dz: float, lam_m: float, pitch
 
 
 def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.Tensor, pitch: float,
-                     curvature: torch.Tensor | None = None) -> torch.Tensor:
+                     kappa: torch.Tensor | None = None) -> torch.Tensor:
     """The knife-edge Fresnel diffraction factor (complex128, same shape as ``nu``) that multiplies the
     geometric-optics field near the stop edge's shadow on the DOE plane.
 
@@ -114,18 +122,21 @@ def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.
     ``exp(+iπν²/2)``): 1 deep in the beam, ½ on the geometric edge (¼ of the intensity), → 0 in the shadow;
     its complex conjugate when the DOE plane lies before the edge's plane (``dz < 0``). Kept: the band
     ``ν ≥ −ν_max``, ``ν_max = ripple_zones·√2`` (ripple_zones Fresnel zones outside the shadow's edge, rolled off
-    over the last zone), and the edge wave's tail inside the beam up to ``ν_b = min(3 ν_max, 0.6/(g p))`` (beyond,
-    its fringes near the grid's Nyquist frequency and it leaves the PSF crop), blended smoothly to 1 from
-    ``ν_b/2``. ``curvature``: ``s·κ`` (signed distance to the edge times the curvature ``−∇·n̂`` of the edge's
-    level lines, > 0 for a convex aperture): the edge wave ``D − step`` of a curved edge converges (inside) or
-    spreads (outside) like a cylindrical wave, amplitude ``sqrt(1 + s κ)``. Evaluated on the band only (1 inside,
-    0 outside). Differentiable with respect to ``ν`` (exactly)."""
+    over the last :data:`ROLL_ZONES`), and the edge wave's tail inside the beam up to ``ν_b = min(INNER_TAIL·ν_max,
+    0.6/(g p))`` (beyond, its fringes near the grid's Nyquist frequency and it leaves the PSF crop), blended
+    smoothly to 1 from ``ν_b/2``. ``kappa``: the edge's curvature in Fresnel units, ``κ/g`` (``κ = −∇·n̂`` (1/mm)
+    the curvature of the edge's level lines, > 0 for a convex aperture, ``g`` (1/mm) the Fresnel scale across the
+    edge; ``κ·g/g_t²`` where the scale along the edge ``g_t`` differs); a curved edge's factor to first order in
+    ``ε = kappa/2``: the edge wave ``D − step`` converges (inside) or spreads (outside) like a cylindrical wave,
+    amplitude ``sqrt(1 + ν·kappa)``, plus the term :func:`curved_edge_term` that is left on and near the shadow's
+    edge, where that factor is 1. Evaluated on the band only (1 inside, 0 outside). Differentiable with respect
+    to ``ν`` and ``kappa`` (exactly)."""
     inside, idx, nb, nu_max = _edge_band(nu, ripple_zones, g, pitch)
     out = inside.to(torch.complex128)
     if idx[0].numel() == 0:
         return out
-    curv = None if curvature is None else curvature[idx]
-    re, im = _EdgeBand.apply(nu[idx], curv, nb, nu_max, dz >= 0)
+    kap = None if kappa is None else kappa[idx]
+    re, im = _EdgeBand.apply(nu[idx], kap, nb, nu_max, dz >= 0)
     return out.index_put_(idx, torch.complex(re, im))  # in place: ``out`` is new and carries no graph
 
 
@@ -147,16 +158,16 @@ def _edge_band(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
 
 
 def edge_envelope(amp: torch.Tensor, angle: torch.Tensor, nu: torch.Tensor, dz: float, ripple_zones: float, g,
-                  pitch: float, curvature: torch.Tensor | None = None) -> torch.Tensor:
-    """``polar(amp, angle) · stop_edge_factor(nu, dz, ripple_zones, g, pitch, curvature)`` (complex128, the shape of
+                  pitch: float, kappa: torch.Tensor | None = None) -> torch.Tensor:
+    """``polar(amp, angle) · stop_edge_factor(nu, dz, ripple_zones, g, pitch, kappa)`` (complex128, the shape of
     ``amp``): the geometric envelope times the knife edge, the same values, with a hand-written backward when
     autograd records it (a trainable lens). Autograd would keep ~14 window-sized arrays (the phasor, the factor,
     both factors of their product, the band's indices and terms); this keeps the four inputs and the band's
     Fresnel integrals, and recomputes the rest (no Fresnel integral: their derivatives are ``cos``, ``sin``)."""
-    graph = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (amp, angle, nu, curvature))
+    graph = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (amp, angle, nu, kappa))
     if not graph:  # the same blocks as with a graph: the same values bit for bit (a replay compares the two)
-        return _EdgeEnvelope.values(amp, angle, nu, curvature, (dz >= 0, ripple_zones, g, pitch))[0]
-    return _EdgeEnvelope.apply(amp, angle, nu, curvature, dz >= 0, ripple_zones, g, pitch)
+        return _EdgeEnvelope.values(amp, angle, nu, kappa, (dz >= 0, ripple_zones, g, pitch))[0]
+    return _EdgeEnvelope.apply(amp, angle, nu, kappa, dz >= 0, ripple_zones, g, pitch)
 
 
 #: rows per block of :class:`_EdgeEnvelope` (its window-sized temporaries exist a block at a time)
@@ -164,14 +175,14 @@ ENVELOPE_BLOCK_ROWS = 64
 
 
 class _EdgeEnvelope(torch.autograd.Function):
-    """:func:`edge_envelope` with autograd: ``z = a·e^{iθ}·D(ν, κs)``; ``∂z/∂a = e^{iθ}D``, ``∂z/∂θ = i z``, and
-    ``∂/∂ν``, ``∂/∂(κs)`` of ``D`` on the band (:meth:`_EdgeBand.grads`). Forward and backward run in blocks of
+    """:func:`edge_envelope` with autograd: ``z = a·e^{iθ}·D(ν, κ/g)``; ``∂z/∂a = e^{iθ}D``, ``∂z/∂θ = i z``, and
+    ``∂/∂ν``, ``∂/∂(κ/g)`` of ``D`` on the band (:meth:`_EdgeBand.grads`). Forward and backward run in blocks of
     :data:`ENVELOPE_BLOCK_ROWS` rows (elementwise: the same values); the band's Fresnel integrals are computed once,
     in the forward, and kept (in the band's row-major order, so a block's are a contiguous slice)."""
 
     @staticmethod
-    def _block(nu, curv, fresnel, start: int, consts):
-        """``(D (complex128, the block's shape), idx (the block's band samples), band terms (v, curv, nb, C, S) or
+    def _block(nu, kap, fresnel, start: int, consts):
+        """``(D (complex128, the block's shape), idx (the block's band samples), band terms (v, kap, nb, C, S) or
         None, the number of band samples)`` of one block of rows (:func:`stop_edge_factor`'s values, no graph),
         with the band's Fresnel integrals ``fresnel`` from the block's first band sample ``start`` on."""
         forward_edge, ripple_zones, g, pitch = consts
@@ -181,13 +192,13 @@ class _EdgeEnvelope(torch.autograd.Function):
         if k == 0:
             return d, idx, None, 0
         v = nu.detach()[idx]
-        cv = None if curv is None else curv.detach()[idx]
+        cv = None if kap is None else kap.detach()[idx]
         c_, s_ = fresnel[0][start:start + k], fresnel[1][start:start + k]
         re, im = _EdgeBand._values(v, cv, nb, c_, s_, nu_max, forward_edge)
         return d.index_put_(idx, torch.complex(re, im)), idx, (v, cv, nb, c_, s_), k
 
     @staticmethod
-    def _walk(nu, curv, fresnel, consts):
+    def _walk(nu, kap, fresnel, consts):
         """The blocks of :data:`ENVELOPE_BLOCK_ROWS` rows in order: ``(rows (a slice), D, idx, band terms)`` of
         :meth:`_block`, each block's Fresnel integrals taken from where the previous block's ended."""
         forward_edge, ripple_zones, g, pitch = consts
@@ -195,13 +206,13 @@ class _EdgeEnvelope(torch.autograd.Function):
         for r in range(0, nu.shape[0], ENVELOPE_BLOCK_ROWS):
             rows = slice(r, r + ENVELOPE_BLOCK_ROWS)
             g_r = g[rows] if isinstance(g, torch.Tensor) else g
-            d, idx, band, k = _EdgeEnvelope._block(nu[rows], None if curv is None else curv[rows], fresnel, start,
+            d, idx, band, k = _EdgeEnvelope._block(nu[rows], None if kap is None else kap[rows], fresnel, start,
                                                    (forward_edge, ripple_zones, g_r, pitch))
             start += k
             yield rows, d, idx, band
 
     @staticmethod
-    def values(amp, angle, nu, curv, consts):
+    def values(amp, angle, nu, kap, consts):
         """``(z (complex128, nu's shape), the band's Fresnel integrals (C, S))`` (no graph), block by block."""
         _, ripple_zones, g, pitch = consts
         _, idx, _, _ = _edge_band(nu, ripple_zones, g, pitch)
@@ -209,28 +220,30 @@ class _EdgeEnvelope(torch.autograd.Function):
         fresnel = tuple(torch.from_numpy(a).to(v) for a in _fresnel_threads(v.cpu().numpy()))
         del idx, v
         out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
-        for rows, d, _, _ in _EdgeEnvelope._walk(nu, curv, fresnel, consts):
+        for rows, d, _, _ in _EdgeEnvelope._walk(nu, kap, fresnel, consts):
             out[rows] = polar(amp[rows] if amp.ndim else amp, angle[rows]) * d
         return out, fresnel
 
     @staticmethod
-    def forward(ctx, amp, angle, nu, curv, forward_edge: bool, ripple_zones: float, g, pitch: float):
+    def forward(ctx, amp, angle, nu, kap, forward_edge: bool, ripple_zones: float, g, pitch: float):
         ctx.consts = (forward_edge, ripple_zones, g, pitch)
-        out, fresnel = _EdgeEnvelope.values(amp, angle, nu, curv, ctx.consts)
-        ctx.save_for_backward(amp, angle, nu, curv, *fresnel)
+        out, fresnel = _EdgeEnvelope.values(amp, angle, nu, kap, ctx.consts)
+        # a view of a larger tensor (the accurate construction's interpolated channels: ν and κ/g are two of four,
+        # before the crop to the lit window) would keep all of it: keep compact copies instead
+        ctx.save_for_backward(amp, angle, *(_compact(t) for t in (nu, kap)), *fresnel)
         return out
 
     @staticmethod
     def backward(ctx, grad):
-        amp, angle, nu, curv, *fresnel = ctx.saved_tensors
+        amp, angle, nu, kap, *fresnel = ctx.saved_tensors
         forward_edge, ripple_zones = ctx.consts[:2]
         need = ctx.needs_input_grad
         g_amp = torch.zeros_like(amp) if need[0] else None
         g_angle = torch.zeros_like(angle) if need[1] else None
         g_nu = torch.zeros_like(nu) if need[2] else None
-        g_curv = torch.zeros_like(curv) if need[3] and curv is not None else None
+        g_kap = torch.zeros_like(kap) if need[3] and kap is not None else None
         nu_max = math.sqrt(2.0) * ripple_zones
-        for rows, d, idx, band in _EdgeEnvelope._walk(nu, curv, fresnel, ctx.consts):
+        for rows, d, idx, band in _EdgeEnvelope._walk(nu, kap, fresnel, ctx.consts):
             a_r = amp[rows] if amp.ndim else amp
             unit = polar(torch.ones((), dtype=angle.dtype, device=angle.device), angle[rows])
             gr = grad[rows]
@@ -239,14 +252,21 @@ class _EdgeEnvelope(torch.autograd.Function):
                 g_amp[rows] = t.real
             if g_angle is not None:
                 g_angle[rows] = -(a_r * t.imag)  # Re(conj(G)·i·z)
-            if band is not None and (g_nu is not None or g_curv is not None):
+            if band is not None and (g_nu is not None or g_kap is not None):
                 g_d = (gr * (unit * a_r).conj())[idx]  # ∂L/∂D on the band
-                gv, gc = _EdgeBand.grads(*band, nu_max, forward_edge, g_d.real, g_d.imag, g_curv is not None)
+                gv, gc = _EdgeBand.grads(*band, nu_max, forward_edge, g_d.real, g_d.imag, g_kap is not None)
                 if g_nu is not None:
                     g_nu[rows].index_put_(idx, gv)
-                if g_curv is not None:
-                    g_curv[rows].index_put_(idx, gc)
-        return g_amp, g_angle, g_nu, g_curv, None, None, None, None
+                if g_kap is not None:
+                    g_kap[rows].index_put_(idx, gc)
+        return g_amp, g_angle, g_nu, g_kap, None, None, None, None
+
+
+def _compact(t: torch.Tensor | None) -> torch.Tensor | None:
+    """``t``, or a copy of it when it is a view into a larger storage (so that saving it does not keep that alive)."""
+    if t is None or t._base is None or t._base.numel() == t.numel():
+        return t
+    return t.clone(memory_format=torch.contiguous_format)
 
 
 def _smoothstep_slope(t: torch.Tensor) -> torch.Tensor:
@@ -255,21 +275,47 @@ def _smoothstep_slope(t: torch.Tensor) -> torch.Tensor:
     return torch.where(inside, 30.0 * t * t * (1.0 - t) ** 2, torch.zeros_like(t))
 
 
+#: largest |κ/g| in a curved edge's first-order term (:func:`curved_edge_term`); beyond (a small obscuration or
+#: stop) the step is approximate anyway: :data:`raywave.hybrid.coherent.accurate.EDGE_CURVATURE_LIMIT` warns
+KAPPA_MAX = 0.5
+
+
+def curved_edge_term(v: torch.Tensor, d_re, d_im, forward_edge: bool):
+    """``(Re, Im)`` of the bracket ``B = ν(D − H) + ((1 + i)/2π)·e^{iπν²/2}`` (its conjugate for ``forward_edge``
+    False) of a curved edge's first-order term ``c = −(κ/2g)·B`` at ``ν`` = ``v``, from the knife edge ``D`` =
+    ``(d_re, d_im)`` and the step ``H = [ν > 0]``.
+
+    Why: near a circle of radius ``a = 1/κ`` the lit region is ``x > −ν + ε y²`` in Fresnel units (``ε = κ/2g``);
+    the first order in ``ε`` of the Fresnel integral over it is ``−ε·((1 + i)/2π)·e^{iπν²/2}`` at every ``ν``.
+    The spreading factor ``sqrt(1 + sκ)`` on ``D − H`` (:class:`_EdgeBand`) holds its far part; ``c`` is the rest:
+    ``O(ε/ν²)`` away from the edge, ``−ε(1 + i)/2π`` on it (0.5 % of the field on the bundled asphere's edge).
+    ``∂B/∂ν = D − H`` (the chirps' derivatives cancel)."""
+    ph = 0.5 * math.pi * v * v
+    cos_, sin_ = torch.cos(ph), torch.sin(ph)
+    b_re = v * torch.where(v > 0, d_re - 1.0, d_re) + (cos_ - sin_) / (2.0 * math.pi)
+    b_im = v * d_im + (cos_ + sin_) / (2.0 * math.pi) * (1.0 if forward_edge else -1.0)
+    return b_re, b_im
+
+
 class _EdgeBand(torch.autograd.Function):
-    """The knife-edge factor on the band samples, ``(Re, Im)`` of ``D·f·w_out`` in the shadow (``ν ≤ 0``) and of
-    ``(1 + (D − 1)·f·w_in)·w_out`` inside, with ``D`` the Fresnel knife edge (its mirror for ``forward_edge``
-    False), ``f = sqrt(1 + clamp(κs))`` the curvature's spreading, ``w_out``/``w_in`` the band's smooth roll-offs
-    (see :func:`stop_edge_factor`). A hand-written backward that recomputes the few band-sized terms it needs
-    from ``ν`` and ``κs``: autograd would keep ~20 of them per PSF (the largest share of the Fresnel step's extra
-    memory in a lens-trained backward), this keeps two."""
+    """The knife-edge factor on the band samples, ``(Re, Im)`` of ``(D·f + c)·w_out`` in the shadow (``ν ≤ 0``)
+    and of ``(1 + ((D − 1)·f + c)·w_in)·w_out`` inside, with ``D`` the Fresnel knife edge (its mirror for
+    ``forward_edge`` False), ``f = sqrt(1 + clamp(ν κ/g))`` the curvature's spreading, ``c = −(κ/2g)·B`` the curved
+    edge's first-order term (:func:`curved_edge_term`; ``κ/g`` clamped to ±:data:`KAPPA_MAX`), ``w_out``/``w_in``
+    the band's smooth roll-offs (see :func:`stop_edge_factor`). A hand-written backward that recomputes the few
+    band-sized terms it needs from ``ν`` and ``κ/g``: autograd would keep ~20 of them per PSF (the largest share of
+    the Fresnel step's extra memory in a lens-trained backward), this keeps two."""
 
     @staticmethod
-    def _terms(v, curv, nb, nu_max: float):
-        t_out = (v + nu_max) / math.sqrt(2.0)
+    def _terms(v, kap, nb, nu_max: float):
+        t_out = (v + nu_max) / (ROLL_ZONES * math.sqrt(2.0))
         t_in = (v - 0.5 * nb) / (0.5 * nb)
         w_out, w_in = _smoothstep(t_out), 1.0 - _smoothstep(t_in)  # w_in = 1 in the shadow (v ≤ 0)
-        f = None if curv is None else torch.sqrt(1.0 + curv.clamp(-0.9, 3.0))
-        return t_out, t_in, w_out, w_in, f
+        if kap is None:
+            return t_out, t_in, w_out, w_in, None, None
+        sk = v * kap  # s·κ
+        ok = (sk >= -0.9) & (sk <= 3.0)  # the clamp passes the gradient on its closed range
+        return t_out, t_in, w_out, w_in, torch.sqrt(1.0 + sk.clamp(-0.9, 3.0)), ok
 
     @staticmethod
     def _knife(c_, s_, forward_edge: bool):
@@ -279,58 +325,73 @@ class _EdgeBand(torch.autograd.Function):
         return 0.5 * a + 0.5 * b, (0.5 * b - 0.5 * a if forward_edge else 0.5 * a - 0.5 * b)
 
     @staticmethod
-    def _values(v, curv, nb, c_, s_, nu_max: float, forward_edge: bool):
+    def _values(v, kap, nb, c_, s_, nu_max: float, forward_edge: bool):
         """``(Re, Im)`` of the factor on band samples (the forward's arithmetic)."""
         d_re, d_im = _EdgeBand._knife(c_, s_, forward_edge)
-        _, _, w_out, w_in, f = _EdgeBand._terms(v, curv, nb, nu_max)
-        m = w_out * w_in if f is None else w_out * w_in * f
-        return torch.where(v > 0, w_out + (d_re - 1.0) * m, d_re * m), d_im * m
+        _, _, w_out, w_in, f, _ = _EdgeBand._terms(v, kap, nb, nu_max)
+        w = w_out * w_in
+        m = w if f is None else w * f
+        re, im = torch.where(v > 0, w_out + (d_re - 1.0) * m, d_re * m), d_im * m
+        if kap is None:
+            return re, im
+        b_re, b_im = curved_edge_term(v, d_re, d_im, forward_edge)
+        e = -0.5 * kap.clamp(-KAPPA_MAX, KAPPA_MAX) * w
+        return re + e * b_re, im + e * b_im
 
     @staticmethod
-    def forward(ctx, v, curv, nb, nu_max: float, forward_edge: bool):
+    def forward(ctx, v, kap, nb, nu_max: float, forward_edge: bool):
         c_, s_ = (torch.from_numpy(a).to(v) for a in _fresnel_threads(v.detach().cpu().numpy()))
         re, im = torch.empty_like(v), torch.empty_like(v)
         # in chunks: the ~15 band-sized temporaries of the arithmetic stay small (elementwise: the same values)
         for a in range(0, v.numel(), _BAND_CHUNK):
             sl = slice(a, a + _BAND_CHUNK)
-            re[sl], im[sl] = _EdgeBand._values(v[sl], None if curv is None else curv[sl], nb[sl], c_[sl], s_[sl],
+            re[sl], im[sl] = _EdgeBand._values(v[sl], None if kap is None else kap[sl], nb[sl], c_[sl], s_[sl],
                                                nu_max, forward_edge)
-        ctx.save_for_backward(v, curv, nb, c_, s_)
+        ctx.save_for_backward(v, kap, nb, c_, s_)
         ctx.nu_max, ctx.forward_edge = nu_max, forward_edge
         return re, im
 
     @staticmethod
     def backward(ctx, g_re, g_im):
-        v, curv, nb, c_, s_ = ctx.saved_tensors
-        g_v, g_c = _EdgeBand.grads(v, curv, nb, c_, s_, ctx.nu_max, ctx.forward_edge, g_re, g_im,
+        v, kap, nb, c_, s_ = ctx.saved_tensors
+        g_v, g_k = _EdgeBand.grads(v, kap, nb, c_, s_, ctx.nu_max, ctx.forward_edge, g_re, g_im,
                                    ctx.needs_input_grad[1])
-        return g_v, g_c, None, None, None
+        return g_v, g_k, None, None, None
 
     @staticmethod
-    def grads(v, curv, nb, c_, s_, nu_max: float, forward_edge: bool, g_re, g_im, need_curv: bool):
-        """The gradients ``(∂L/∂ν, ∂L/∂(κs) or None)`` on the band samples from those of ``(Re, Im)`` of the factor
-        (``c_``, ``s_`` the Fresnel integrals at ``v``)."""
-        t_out, t_in, w_out, w_in, f = _EdgeBand._terms(v, curv, nb, nu_max)
+    def grads(v, kap, nb, c_, s_, nu_max: float, forward_edge: bool, g_re, g_im, need_kap: bool):
+        """The gradients ``(∂L/∂ν, ∂L/∂(κ/g) or None)`` on the band samples from those of ``(Re, Im)`` of the
+        factor (``c_``, ``s_`` the Fresnel integrals at ``v``)."""
+        t_out, t_in, w_out, w_in, f, ok = _EdgeBand._terms(v, kap, nb, nu_max)
         d_re, d_im = _EdgeBand._knife(c_, s_, forward_edge)
         sign = 1.0 if forward_edge else -1.0
         ph = 0.5 * math.pi * v * v  # C' = cos, S' = sin
         cos_, sin_ = torch.cos(ph), torch.sin(ph)
         dd_re, dd_im = 0.5 * (cos_ + sin_), sign * 0.5 * (sin_ - cos_)
-        dw_out = _smoothstep_slope(t_out) / math.sqrt(2.0)
+        dw_out = _smoothstep_slope(t_out) / (ROLL_ZONES * math.sqrt(2.0))
         dw_in = -_smoothstep_slope(t_in) / (0.5 * nb)
-        ff = 1.0 if f is None else f
-        m = w_out * w_in * ff
-        dm = (dw_out * w_in + w_out * dw_in) * ff
+        w = w_out * w_in
+        dw = dw_out * w_in + w_out * dw_in
         lit = v > 0
-        dre = torch.where(lit, dw_out + dd_re * m + (d_re - 1.0) * dm, dd_re * m + d_re * dm)
+        e_re = torch.where(lit, d_re - 1.0, d_re)  # the edge wave D − H
+        if kap is None:
+            m, dm = w, dw
+        else:
+            m, dm = w * f, dw * f + w * torch.where(ok, 0.5 * kap / f, torch.zeros_like(f))
+        dre = torch.where(lit, dw_out, torch.zeros_like(dw_out)) + dd_re * m + e_re * dm
         dim = dd_im * m + d_im * dm
+        if kap is not None:  # d(c·w)/dν = ∂c/∂ν·w + c·dw/dν, c = e·B, ∂B/∂ν = D − H
+            b_re, b_im = curved_edge_term(v, d_re, d_im, forward_edge)
+            e = -0.5 * kap.clamp(-KAPPA_MAX, KAPPA_MAX)
+            dre = dre + e * (e_re * w + b_re * dw)
+            dim = dim + e * (d_im * w + b_im * dw)
         g_v = g_re * dre + g_im * dim
-        g_c = None
-        if curv is not None and need_curv:
-            ok = (curv >= -0.9) & (curv <= 3.0)  # clamp passes the gradient on its closed range
-            m_c = torch.where(ok, w_out * w_in * 0.5 / f, torch.zeros_like(f))
-            g_c = g_re * torch.where(lit, (d_re - 1.0) * m_c, d_re * m_c) + g_im * d_im * m_c
-        return g_v, g_c
+        g_k = None
+        if kap is not None and need_kap:
+            df = torch.where(ok, 0.5 * v / f, torch.zeros_like(f)) * w  # ∂f/∂(κ/g)·w
+            de = torch.where((kap >= -KAPPA_MAX) & (kap <= KAPPA_MAX), -0.5 * w, torch.zeros_like(w))  # ∂e/∂(κ/g)·w
+            g_k = g_re * (e_re * df + b_re * de) + g_im * (d_im * df + b_im * de)
+        return g_v, g_k
 
 
 #: stop-rim points at which :func:`stop_rim_images` finds the edge's image
