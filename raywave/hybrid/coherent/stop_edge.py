@@ -280,7 +280,7 @@ def _smoothstep_slope(t: torch.Tensor) -> torch.Tensor:
 KAPPA_MAX = 0.5
 
 
-def curved_edge_term(v: torch.Tensor, d_re, d_im, forward_edge: bool):
+def curved_edge_term(v: torch.Tensor, d_re, d_im, forward_edge: bool, cos_sin=None):
     """``(Re, Im)`` of the bracket ``B = ν(D − H) + ((1 + i)/2π)·e^{iπν²/2}`` (its conjugate for ``forward_edge``
     False) of a curved edge's first-order term ``c = −(κ/2g)·B`` at ``ν`` = ``v``, from the knife edge ``D`` =
     ``(d_re, d_im)`` and the step ``H = [ν > 0]``.
@@ -289,9 +289,12 @@ def curved_edge_term(v: torch.Tensor, d_re, d_im, forward_edge: bool):
     the first order in ``ε`` of the Fresnel integral over it is ``−ε·((1 + i)/2π)·e^{iπν²/2}`` at every ``ν``.
     The spreading factor ``sqrt(1 + sκ)`` on ``D − H`` (:class:`_EdgeBand`) holds its far part; ``c`` is the rest:
     ``O(ε/ν²)`` away from the edge, ``−ε(1 + i)/2π`` on it (0.5 % of the field on the bundled asphere's edge).
-    ``∂B/∂ν = D − H`` (the chirps' derivatives cancel)."""
-    ph = 0.5 * math.pi * v * v
-    cos_, sin_ = torch.cos(ph), torch.sin(ph)
+    ``∂B/∂ν = D − H`` (the chirps' derivatives cancel). ``cos_sin``: ``(cos, sin)`` of ``πν²/2`` when the caller
+    has them."""
+    if cos_sin is None:
+        ph = 0.5 * math.pi * v * v
+        cos_sin = (torch.cos(ph), torch.sin(ph))
+    cos_, sin_ = cos_sin
     b_re = v * torch.where(v > 0, d_re - 1.0, d_re) + (cos_ - sin_) / (2.0 * math.pi)
     b_im = v * d_im + (cos_ + sin_) / (2.0 * math.pi) * (1.0 if forward_edge else -1.0)
     return b_re, b_im
@@ -381,7 +384,7 @@ class _EdgeBand(torch.autograd.Function):
         dre = torch.where(lit, dw_out, torch.zeros_like(dw_out)) + dd_re * m + e_re * dm
         dim = dd_im * m + d_im * dm
         if kap is not None:  # d(c·w)/dν = ∂c/∂ν·w + c·dw/dν, c = e·B, ∂B/∂ν = D − H
-            b_re, b_im = curved_edge_term(v, d_re, d_im, forward_edge)
+            b_re, b_im = curved_edge_term(v, d_re, d_im, forward_edge, (cos_, sin_))
             e = -0.5 * kap.clamp(-KAPPA_MAX, KAPPA_MAX)
             dre = dre + e * (e_re * w + b_re * dw)
             dim = dim + e * (d_im * w + b_im * dw)
