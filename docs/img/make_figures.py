@@ -49,7 +49,7 @@ def make_hybrid_figure(path: Path) -> Path:
         res = hl.psf_result(fields, wls, ks=KS)
     psf = res.psf.detach().cpu().numpy()
 
-    fig = plt.figure(figsize=(11.0, 3.6), constrained_layout=True)
+    fig = plt.figure(figsize=(11.0, 3.9), constrained_layout=True)
     gs = fig.add_gridspec(1, 4, width_ratios=[2.4, 0.05, 1, 1])
     ax = fig.add_subplot(gs[0, 0])
     plot_layout(lens, ax=ax)
