@@ -34,6 +34,22 @@ def prose_lines(path: Path) -> list[tuple[int, str]]:
     return out
 
 
+def prose_lines_raw(path: Path) -> list[tuple[int, str]]:
+    """Lines outside fenced code blocks, code spans kept (headings keep their `code`)."""
+    out, fence = [], None
+    for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        s = line.lstrip()
+        if fence is None and (s.startswith("```") or s.startswith("~~~")):
+            fence = s[:3]
+            continue
+        if fence is not None:
+            if s.startswith(fence):
+                fence = None
+            continue
+        out.append((i, line))
+    return out
+
+
 def slug(heading: str) -> str:
     """GitHub's anchor for a heading's text: lower case, markup and punctuation dropped (letters, digits, ``-``
     and ``_`` kept, any script), spaces to hyphens."""
@@ -59,40 +75,24 @@ def anchors(path: Path) -> set[str]:
     return out
 
 
-def prose_lines_raw(path: Path) -> list[tuple[int, str]]:
-    """Lines outside fenced code blocks, code spans kept (headings keep their `code`)."""
-    out, fence = [], None
-    for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
-        s = line.lstrip()
-        if fence is None and (s.startswith("```") or s.startswith("~~~")):
-            fence = s[:3]
-            continue
-        if fence is not None:
-            if s.startswith(fence):
-                fence = None
-            continue
-        out.append((i, line))
-    return out
-
-
 def links(path: Path) -> list[tuple[int, str]]:
     """(line, target) of every Markdown link of ``path`` outside code."""
     return [(i, m.group(1)) for i, line in prose_lines(path) for m in LINK.finditer(line)]
 
 
-def broken_links(path: Path) -> list[str]:
-    """Descriptions of the links of ``path`` that do not resolve."""
+def broken_links(path: Path, root: Path = ROOT) -> list[str]:
+    """Descriptions of the links of ``path`` that do not resolve (paths shown relative to ``root``)."""
     bad = []
     for line, target in links(path):
         if re.match(r"^[a-z][a-z0-9+.-]*:", target, re.I):  # http:, https:, mailto:, ...
             continue
         file_part, _, anchor = target.partition("#")
         dest = path if not file_part else (path.parent / file_part).resolve()
-        where = f"{path.relative_to(ROOT)}:{line}: {target}"
+        where = f"{path.relative_to(root)}:{line}: {target}"
         if not dest.exists():
             bad.append(f"{where} (no such file)")
         elif anchor and dest.suffix == ".md" and anchor not in anchors(dest):
-            bad.append(f"{where} (no heading #{anchor} in {dest.relative_to(ROOT)})")
+            bad.append(f"{where} (no heading #{anchor} in {dest.relative_to(root)})")
     return bad
 
 
@@ -107,12 +107,7 @@ def test_the_checker_reads_links_and_anchors(tmp_path):
     found = [t for _, t in links(a)]
     assert found == ["b.md", "b.md#top-1", "b.md#where-the-stops-edge-diffracts-hybridlensstop_edge", "c.md",
                      "b.md#nowhere", "https://example.org/x#y"]
-    global ROOT
-    old, ROOT = ROOT, tmp_path
-    try:
-        bad = broken_links(a)
-    finally:
-        ROOT = old
+    bad = broken_links(a, root=tmp_path)
     assert len(bad) == 2 and "c.md" in bad[0] and "#nowhere" in bad[1]
 
 
