@@ -40,7 +40,8 @@ from raywave.io.errors import LensFileError, with_location
 from raywave.lens.analysis import beam_folds, beam_half_extent, beam_rays_at
 from raywave.lens.build import lens_from_spec, resolve_lens_path
 from raywave.lens.frames import image_space
-from raywave.utils.errors import NonFiniteError
+from raywave.utils.checks import pitch_mm
+from raywave.utils.errors import NonFiniteError, check_allocation
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "MAX_DEFAULT_PITCH", "NYQUIST_FILL",
            "CAUSTIC_MARGIN", "MAX_DEFAULT_BEAM_PIXELS", "beam_half_extent", "caustic_free_distance", "default_doe_size",
@@ -275,6 +276,7 @@ def _doe_pitch(optics, data, doe_pitch: float | None, distance: float, fields, w
         pitch = DEFAULT_DOE_PITCH if pitch is None else pitch
     if not (math.isfinite(pitch) and pitch > 0):
         raise ValueError(f"the DOE pitch must be > 0 mm, got {pitch!r}")
+    pitch_mm(pitch, "the DOE pitch (doe_pitch; raywave: --doe-pitch MM)")
     return pitch, rule
 
 
@@ -322,6 +324,34 @@ def _doe_shape(optics, data, pitch: float, doe_pitch: float | None, size, distan
         w, h = default_doe_size(optics, distance, fields, wavelengths, depth)
         shape = (max(_pixels(h, pitch, source), _MIN_PIXELS), max(_pixels(w, pitch, source), _MIN_PIXELS))
     return shape
+
+
+#: bytes per DOE pixel held by the element itself (a float64 phase map or phase-model samples and, fabricated, its
+#: float64 height map)
+DOE_BYTES_PER_PIXEL = 16
+
+
+def check_doe_memory(shape: tuple[int, int], pitch: float, oversample: int, beam_sized: bool, source: str,
+                     device=None) -> None:
+    """The memory estimate of a hybrid lens's DOE, before anything of its size is allocated or traced: its own
+    arrays (:data:`DOE_BYTES_PER_PIXEL` per pixel) and, when the DOE was sized to the beam (``beam_sized``: a lens
+    file without a DOE, whose default DOE the beam fills), the field window of every PSF, ``oversample``² samples
+    per pixel (:data:`raywave.hybrid.coherent.geometry.WINDOW_BYTES_PER_SAMPLE`). Refused
+    (:class:`~raywave.utils.errors.MemoryLimitError`) over the limit of :func:`~raywave.utils.errors.check_allocation`,
+    with the options that shrink it and, for a pitch below 0.1 µm, the likely unit slip."""
+    from raywave.hybrid.coherent.geometry import WINDOW_BYTES_PER_SAMPLE
+
+    ny, nx = (int(v) for v in shape)
+    q = max(int(oversample), 1)
+    per_pixel = DOE_BYTES_PER_PIXEL + (q * q * WINDOW_BYTES_PER_SAMPLE if beam_sized else 0)
+    slip = ""
+    if pitch < 1e-4:
+        slip = (f" (the pitch is {pitch:g} mm = {pitch * 1e3:g} µm, finer than any DOE pixel: pitches are in mm, "
+                "1 µm = 0.001 mm)")
+    check_allocation(float(ny) * float(nx) * per_pixel,
+                     f"{source}: the {nx}×{ny}-pixel DOE ({pitch * 1e3:.3g} µm pixels, oversample {q}){slip}",
+                     "use a coarser DOE pitch (doe_pitch; raywave: --doe-pitch, in mm), a lower oversample "
+                     "(--oversample) or a smaller DOE (doe_size; --doe-size, in mm)", device)
 
 
 def _make_doe(data, shape: tuple[int, int], pitch: float, source: str):
@@ -388,6 +418,8 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         field_type: "angle" or "object_height": overrides the lens file's field type (how ``fields`` given to
             the hybrid lens are read).
     """
+    if sensor_pitch is not None:
+        sensor_pitch = pitch_mm(sensor_pitch, "the sensor pitch (sensor_pitch; raywave: --sensor-pitch MM)")
     lens = _spec_lens(spec, field_type, source)
     # a folded, decentred or mirrored lens is sized in its image-space frame (z along the light, like the engine)
     optics = image_space(lens)
@@ -403,8 +435,9 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         info.update(fit)
     size = _size_arg(doe_size)
     shape = _doe_shape(optics, data, pitch, doe_pitch, size, distance, fields, wavelengths, depth, source)
-    doe = _make_doe(data, shape, pitch, source)
     q = int(oversample) if oversample is not None else (data.oversample if data is not None else 1)
+    check_doe_memory(shape, pitch, q, data is None and size is None, source, lens.device)
+    doe = _make_doe(data, shape, pitch, source)
     step = {} if edge_step is None else {"edge_step": edge_step}
     hl = HybridLens(lens, doe, distance, sensor_pitch=sensor_pitch, oversample=q, stop_edge=stop_edge, **step)
     info.update(_doe_summary(data, doe, distance, pitch, q))

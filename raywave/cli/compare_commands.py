@@ -1,12 +1,12 @@
 """The ``compare`` command: one hybrid lens through the paper's simulation models (Table S.I), side by side.
 
-    raywave compare LENS [--doe DOE] [--fields 0 3.5 7 ...] [--models all|raywave,paraxial,...]
+    raywave compare LENS [--doe DOE] [--field Y|X,Y ...] [--fields 0 3.5 0,7 ...] [--models all|raywave,paraxial,...]
                     [--wavelength W] [--depth Z] [--ks 64] [--reference raywave] [-o out/] [--linear] [--json]
                     [--doe-pitch P] [--doe-size W [H]] [--doe-distance D] [--sensor-pitch P] [--oversample Q]
                     [--doe-levels L] [--doe-wavelength W0] [--doe-material NAME]
 
-Models (:mod:`raywave.models.interface`): raywave, paraxial, pupil, raytrace, exit_pupil. ``--fields`` takes
-field angles in degrees: ``Y`` or ``X,Y``. ``--doe`` replaces the lens file's DOE by a phase map (.npy with
+Models (:mod:`raywave.models.interface`): raywave, paraxial, pupil, raytrace, exit_pupil. ``--field`` (repeatable)
+and ``--fields`` (a list) take field angles in degrees: ``Y`` or ``X,Y`` (:mod:`raywave.cli.fields`). ``--doe`` replaces the lens file's DOE by a phase map (.npy with
 ``--doe-pitch``, .npz) or the DOE of another lens file (the lens options of ``raywave psf`` apply otherwise).
 ``all`` leaves out exit_pupil when the DOE is not blank (it cannot carry one; naming it is an error).
 
@@ -25,25 +25,16 @@ import math
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import DEVICE_HELP, CommandError, json_dumps, number_arg as _number, report_warnings
+from raywave.cli.errors import DEVICE_HELP, CommandError, json_dumps, report_warnings
+from raywave.cli.fields import parse_field_list, add_field_arguments, check_angles, field_list
 
-DEFAULT_FIELDS = ("0",)
+DEFAULT_FIELDS = ((0.0, 0.0),)
 
 
 def parse_fields(tokens) -> list[tuple[float, float]]:
-    """``Y`` or ``X,Y`` tokens (degrees) -> [(x, y), ...]."""
-    out = []
-    for t in tokens:
-        parts = [p for p in str(t).split(",") if p.strip() != ""]
-        if len(parts) not in (1, 2):
-            raise CommandError(f"--fields: {t!r} is not Y or X,Y (degrees)")
-        vals = [_number(p, "--fields") for p in parts]
-        f = (0.0, vals[0]) if len(vals) == 1 else (vals[0], vals[1])
-        if any(abs(v) >= 90 for v in f):
-            raise CommandError(f"--fields: angles must lie within (-90, 90) degrees, got {t!r}")
-        out.append(f)
-    if not out:
-        raise CommandError("--fields: give at least one field angle")
+    """``Y`` or ``X,Y`` tokens (degrees) -> [(x, y), ...] (the list form of :mod:`raywave.cli.fields`)."""
+    out = parse_field_list(tokens, "--fields")
+    check_angles(out, "--fields")
     return out
 
 
@@ -223,9 +214,10 @@ def cmd_compare(args) -> int:
     table (or the JSON report) on stdout."""
     from raywave.cli.psf_commands import parse_psf_args
 
-    args.field, args.output, args.png, args.rays = None, None, None, None  # not options of compare
+    fields = field_list(args, list(DEFAULT_FIELDS))
+    check_angles(fields)
+    args.field, args.fields, args.output, args.png, args.rays = None, None, None, None, None  # not psf's here
     a = parse_psf_args(args)  # the lens and DOE options shared with `raywave psf`
-    fields = parse_fields(args.fields if args.fields else DEFAULT_FIELDS)
     ks = a["ks"]
     out_dir = Path(args.out)
     with warnings.catch_warnings(record=True) as caught:
@@ -272,8 +264,7 @@ def register(sub) -> None:
     p.add_argument("lens", help="lens file or bundled lens name (as for 'raywave psf')")
     p.add_argument("--doe", default=None, metavar="DOE",
                    help="replace the lens's DOE: a phase map (.npy with --doe-pitch, .npz) or a lens file with a DOE")
-    p.add_argument("--fields", nargs="+", default=None, metavar="DEG",
-                   help="field angles in degrees, each Y or X,Y (default 0)")
+    add_field_arguments(p, "0, on axis; degrees")
     p.add_argument("--models", default="all", metavar="LIST",
                    help="'all' (default) or a comma list of raywave, raywave_doe, paraxial, pupil, raytrace, "
                         "exit_pupil")

@@ -35,6 +35,30 @@ def number_arg(text: str, flag: str, positive: bool = False, nonneg: bool = Fals
     return v
 
 
+def wavelength_arg(text: str, flag: str = "--wavelength") -> float:
+    """A wavelength option (µm), checked by :func:`raywave.utils.checks.wavelength_um`, the one wavelength check of
+    every entry point (a number above 100 is named as nanometres); a one-line :class:`CommandError` otherwise."""
+    from raywave.utils.checks import wavelength_um
+
+    w = number_arg(text, flag, positive=True)
+    try:
+        return wavelength_um(w, flag)
+    except ValueError as e:
+        raise CommandError(str(e)) from None
+
+
+def pitch_arg(text: str, flag: str) -> float:
+    """A pixel-pitch option (mm), checked by :func:`raywave.utils.checks.pitch_mm` (a pitch above 0.1 mm is named
+    as µm given as mm); a one-line :class:`CommandError` otherwise."""
+    from raywave.utils.checks import pitch_mm
+
+    v = number_arg(text, flag, positive=True)
+    try:
+        return pitch_mm(v, flag)
+    except ValueError as e:
+        raise CommandError(str(e)) from None
+
+
 def integer_arg(text: str, flag: str, minimum: int = 1) -> int:
     """A command-line integer ≥ ``minimum``, or a one-line :class:`CommandError`."""
     try:

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import torch
 
-from raywave.cli.errors import CommandError, integer_arg, json_dumps, number_arg
+from raywave.cli.errors import CommandError, integer_arg, json_dumps, wavelength_arg
+from raywave.cli.fields import add_field_arguments, field_list
 
 
 def _load(name_or_path):
@@ -16,18 +17,40 @@ def _load(name_or_path):
     return load_lens(resolve_lens_path(name_or_path))
 
 
-def _floats(text: str | None, flag: str = "--fields"):
-    """Comma- or space-separated finite numbers, or a one-line :class:`CommandError` naming ``flag``."""
-    if text is None:
+def _y_fields(args, command: str):
+    """The ``--field`` / ``--fields`` of a command that draws the meridional (y-z) section: Y values (None: the
+    lens's fields); an X other than 0 is a :class:`CommandError`."""
+    fields = field_list(args)
+    if fields is None:
         return None
-    vals = [number_arg(v, flag) for v in text.replace(",", " ").split()]
-    if not vals:
-        raise CommandError(f"{flag}: no values given")
-    return vals
+    if any(x != 0 for x, _ in fields):
+        raise CommandError(f"--field: {command} draws the meridional (y-z) section: give Y values only, got "
+                           + ", ".join(f"{x:g},{y:g}" for x, y in fields if x != 0))
+    return [y for _, y in fields]
+
+
+def _spot_fields(args):
+    """The fields of ``spot``: Y values when every X is 0 (the table's rows), else (x, y) pairs; None: the lens's."""
+    fields = field_list(args)
+    if fields is None or all(x == 0 for x, _ in fields):
+        return None if fields is None else [y for _, y in fields]
+    return [list(f) for f in fields]
+
+
+def png_path(output, default_name: str) -> Path:
+    """``-o`` of a command that writes one PNG: a ``.png`` file as given, else a folder (created) that receives
+    ``default_name``; another suffix is a :class:`CommandError`."""
+    out = Path(output)
+    if out.suffix.lower() == ".png":
+        return out
+    if out.suffix and not out.is_dir():
+        raise CommandError(f"-o: give a .png file or a folder, got {str(output)!r}")
+    out.mkdir(parents=True, exist_ok=True)
+    return out / default_name
 
 
 def _wavelength(text):
-    return None if text is None else number_arg(text, "--wavelength", positive=True)
+    return None if text is None else wavelength_arg(text, "--wavelength")
 
 
 # ---------------------------------------------------------------------------- info
@@ -90,9 +113,11 @@ def cmd_info(args) -> int:
 def cmd_layout(args) -> int:
     from raywave.plotting import plot_layout
 
+    fields = _y_fields(args, "layout")
+    out = png_path(args.output, "layout.png")
     lens = _load(args.lens)
-    plot_layout(lens, args.output, fields=_floats(args.fields), n_rays=integer_arg(args.rays, "--rays"))
-    print(f"wrote {args.output}")
+    plot_layout(lens, out, fields=fields, n_rays=integer_arg(args.rays, "--rays"))
+    print(f"wrote {out}")
     return 0
 
 
@@ -113,8 +138,9 @@ def spot_table(lens, fields=None) -> dict:
 
 
 def cmd_spot(args) -> int:
+    fields = _spot_fields(args)
+    out = None if not args.output else png_path(args.output, "spot.png")
     lens = _load(args.lens)
-    fields = _floats(args.fields)
     table = spot_table(lens, fields)
     if args.json:
         print(json_dumps(table))
@@ -123,13 +149,14 @@ def cmd_spot(args) -> int:
         print("RMS spot radius (µm), centroid reference")
         print(f"  {'field (' + unit + ')':>12s}" + "".join(f"{w:>12.4g}" for w in table["wavelengths"]))
         for f, row in zip(table["fields"], table["rms_radius"]):
-            print(f"  {f:>12g}" + "".join(f"{r:>12.4f}" for r in row))
-    if args.output:
+            label = f"{f[0]:g},{f[1]:g}" if isinstance(f, (list, tuple)) else f"{f:g}"
+            print(f"  {label:>12s}" + "".join(f"{r:>12.4f}" for r in row))
+    if out is not None:
         from raywave.plotting import plot_spots
 
-        plot_spots(lens, args.output, fields=fields)
+        plot_spots(lens, out, fields=fields)
         if not args.json:
-            print(f"wrote {args.output}")
+            print(f"wrote {out}")
     return 0
 
 
@@ -216,16 +243,16 @@ def register(sub) -> None:
 
     p = sub.add_parser("layout", help="2D section with ray fans (PNG)")
     p.add_argument("lens", help=lens_help)
-    p.add_argument("-o", "--output", required=True, help="PNG file")
-    p.add_argument("--fields", default=None, help="field values, e.g. '0,10,14' (default: the lens's)")
+    p.add_argument("-o", "--output", required=True, help="PNG file, or a folder (receives layout.png)")
+    add_field_arguments(p, "the lens's fields; Y values: the y-z section", legacy_y_list=True)
     p.add_argument("--rays", default="7", help="rays per fan")
     p.set_defaults(func=cmd_layout)
 
     p = sub.add_parser("spot", help="RMS spot radius per field and wavelength")
     p.add_argument("lens", help=lens_help)
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("-o", "--output", default=None, help="spot diagram PNG")
-    p.add_argument("--fields", default=None, help="field values (default: the lens's)")
+    p.add_argument("-o", "--output", default=None, help="spot diagram PNG, or a folder (receives spot.png)")
+    add_field_arguments(p, "the lens's fields", legacy_y_list=True)
     p.set_defaults(func=cmd_spot)
 
     p = sub.add_parser("convert", help="convert a lens file (.json <-> .zmx; DeepLens .json in)")

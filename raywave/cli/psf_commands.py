@@ -1,6 +1,6 @@
 """The ``psf`` command: the ray-wave PSF of a hybrid lens (refractive lens + DOE) for one point source.
 
-    raywave psf LENS [--field X [Y]] [--depth Z] [--wavelength W] [--ks N] [-o psf.npy|psf.npz] [--png psf.png]
+    raywave psf LENS [--field Y|X,Y] [--depth Z] [--wavelength W] [--ks N] [-o psf.npy|psf.npz] [--png psf.png]
                 [--log] [--json] [--mode accurate|faithful] [--rays N] [--doe-pitch P] [--doe-size W [H]]
                 [--doe-distance D] [--sensor-pitch P] [--oversample Q]
                 [--doe-levels L] [--doe-wavelength W0] [--doe-material NAME]
@@ -23,18 +23,16 @@ import warnings
 from pathlib import Path
 
 from raywave.cli.errors import (DEVICE_HELP, CommandError, device_arg, integer_arg as _integer, json_dumps,
-                                number_arg as _number, report_warnings)
-from raywave.utils.checks import MAX_WAVELENGTH_UM as _MAX_WAVELENGTH_UM
+                                number_arg as _number, pitch_arg, report_warnings,
+                                wavelength_arg)
+from raywave.cli.fields import add_field_arguments, check_angles, single_field
 
 OUTPUT_EXTENSIONS = (".npy", ".npz")
 
 
 # ---------------------------------------------------------------------------- argument parsing
-def _wavelength(text: str, flag: str) -> float:
-    w = _number(text, flag, positive=True)
-    if w > _MAX_WAVELENGTH_UM:
-        raise CommandError(f"{flag}: {text} µm is not a plausible wavelength (µm, not nm)")
-    return w
+_wavelength = wavelength_arg
+pitch_option = pitch_arg
 
 
 def parse_doe_options(args) -> dict:
@@ -42,7 +40,7 @@ def parse_doe_options(args) -> dict:
     ``--doe-size``, ``--doe-distance``, ``--sensor-pitch``, ``--oversample``, ``--doe-levels``, ``--doe-wavelength``,
     ``--doe-material``), checked: lengths in mm, wavelengths in µm; absent options are None."""
     out = {}
-    out["doe_pitch"] = None if args.doe_pitch is None else _number(args.doe_pitch, "--doe-pitch", positive=True)
+    out["doe_pitch"] = None if args.doe_pitch is None else pitch_option(args.doe_pitch, "--doe-pitch")
     if args.doe_size is not None:
         if len(args.doe_size) not in (1, 2):
             raise CommandError(f"--doe-size: give W [H] (mm), got {len(args.doe_size)} values")
@@ -52,7 +50,7 @@ def parse_doe_options(args) -> dict:
     out["doe_distance"] = (None if args.doe_distance is None
                            else _number(args.doe_distance, "--doe-distance", nonneg=True))
     out["sensor_pitch"] = (None if args.sensor_pitch is None
-                           else _number(args.sensor_pitch, "--sensor-pitch", positive=True))
+                           else pitch_option(args.sensor_pitch, "--sensor-pitch"))
     out["oversample"] = None if args.oversample is None else _integer(args.oversample, "--oversample")
     out["doe_levels"] = None if args.doe_levels is None else _integer(args.doe_levels, "--doe-levels", minimum=2)
     out["doe_wavelength"] = (None if args.doe_wavelength is None
@@ -74,13 +72,8 @@ def parse_psf_args(args) -> dict:
     except FileNotFoundError as e:
         raise CommandError(str(e)) from None
     out: dict = {"path": path}
-    f = args.field if args.field is not None else ["0", "0"]
-    if len(f) not in (1, 2):
-        raise CommandError(f"--field: give X Y (degrees) or one value Y, got {len(f)} values")
-    vals = [_number(t, "--field") for t in f]
-    out["field"] = (0.0, vals[0]) if len(vals) == 1 else (vals[0], vals[1])
-    if any(abs(v) >= 90 for v in out["field"]):
-        raise CommandError(f"--field: angles must lie within (-90, 90) degrees, got {list(out['field'])}")
+    out["field"] = single_field(args, (0.0, 0.0), "psf")
+    check_angles([out["field"]])
     out["depth"] = None if args.depth is None else _number(args.depth, "--depth", positive=True, allow_inf=True)
     out["wavelength"] = None if args.wavelength is None else _wavelength(args.wavelength, "--wavelength")
     out["ks"] = _integer(args.ks, "--ks")
@@ -303,8 +296,8 @@ def register(sub) -> None:
         "pixel [ks//2, ks//2] centred on the chief ray, both indices increasing with the coordinate).")
     p.add_argument("lens", help="lens file (.json raywave with an optional \"doe\", .zmx, DeepLens .json) or a "
                                 "bundled lens name (e.g. hybrid_asphere)")
-    p.add_argument("--field", nargs="+", default=None, metavar="DEG",
-                   help="field angle X Y in degrees (one value: Y); OpticStudio signs, +Y images at +y (default 0 0)")
+    add_field_arguments(p, "0, on axis; degrees, OpticStudio signs: +Y images at +y; the older --field X Y is "
+                           "accepted")
     p.add_argument("--depth", default="inf", metavar="MM",
                    help="object distance in mm from the first vertex, or 'inf' (default: inf, a distant object)")
     p.add_argument("--wavelength", default=None, metavar="UM", help="µm (default: the lens's primary wavelength)")
