@@ -26,6 +26,7 @@ from raywave.cli.errors import (DEVICE_HELP, CommandError, device_arg, integer_a
                                 number_arg as _number, pitch_arg, report_warnings,
                                 wavelength_arg)
 from raywave.cli.fields import add_field_arguments, check_angles, single_field
+from raywave.cli.progress import bar, ticking
 
 OUTPUT_EXTENSIONS = (".npy", ".npz")
 
@@ -130,8 +131,9 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
                      stop_edge=stop_edge, edge_step=edge_step)
     if doe_levels is not None or doe_wavelength is not None or doe_material is not None:
         fabricate_doe(hl, doe_levels, doe_wavelength, doe_material)
-    hl = hl.to(device)
     wl = hl.lens.primary_wavelength if wavelength is None else float(wavelength)
+    check_sources_lit(hl, [field], [wl], depth)  # before the minutes of work a dark PSF would cost
+    hl = hl.to(device)
     with torch.no_grad():
         res = hl.psf_result(fields=tuple(field), wavelengths=wl, ks=ks, depth=depth, mode=mode, rays=rays)
     psf = res.psf[0, 0].detach().cpu()
@@ -154,6 +156,52 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
         "ks": ks,
         "hybrid": hl,
     }
+
+
+def check_sources_lit(hl, fields, wavelengths, depth=None, flag: str = "--field") -> None:
+    """Refuse, before any wave computation, a source (``fields`` (F, 2) degrees × ``wavelengths`` µm) none of whose
+    rays (pupil rim and a hexapolar grid, :func:`raywave.lens.analysis.beam_rays_at`) both pass the lens and land
+    inside the DOE aperture: its PSF would be all zeros after minutes of work (a fully vignetted field, or a beam
+    that misses the DOE)."""
+    import torch
+
+    from raywave.lens.analysis import beam_rays_at
+
+    at, _, wls = beam_rays_at(hl.optics, hl.doe_z(), [list(f) for f in fields], list(wavelengths), depth)
+    xy = at.o[..., :2].detach()
+    ok = at.valid & torch.isfinite(xy).all(-1)
+    w, h = hl.doe.size
+    if hl.doe.aperture == "circle":
+        inside = (xy ** 2).sum(-1) <= (0.5 * min(w, h)) ** 2
+    else:
+        inside = (xy[..., 0].abs() <= 0.5 * w) & (xy[..., 1].abs() <= 0.5 * h)
+    for i, f in enumerate(fields):
+        for j, wl in enumerate(wls):
+            where = f"field ({f[0]:g}, {f[1]:g}) deg at {wl:g} µm"
+            if not bool(ok[i, j].any()):
+                raise CommandError(f"{flag}: {where}: every ray is vignetted by the lens's apertures (no light "
+                                   f"reaches the DOE plane); the lens's fields reach {max(hl.lens.fields):g}")
+            if not bool((ok & inside)[i, j].any()):
+                r = float(xy[i, j][ok[i, j]].norm(dim=-1).min())
+                raise CommandError(f"{flag}: {where}: the beam misses the {w:g}×{h:g} mm DOE aperture (its nearest "
+                                   f"ray lands {r:.3g} mm from the axis on the DOE plane); the lens's fields reach "
+                                   f"{max(hl.lens.fields):g}")
+
+
+#: a PSF whose crop misses more than this fraction of its energy is reported (as ``raywave train`` does)
+CROP_WARN = 0.01
+
+
+class CropWarning(UserWarning):
+    """The PSF crop (``--ks``) misses a notable part of the PSF's energy: its radii are underestimated."""
+
+
+def warn_crop(energy_outside: float, ks: int, what: str) -> None:
+    """Warn (:class:`CropWarning`) when ``energy_outside`` (fraction) exceeds :data:`CROP_WARN`."""
+    if energy_outside > CROP_WARN:
+        warnings.warn(f"{what}: {energy_outside:.1%} of its energy falls outside the {ks}×{ks}-pixel crop, so its RMS "
+                      f"and EE radii (measured in the crop) are underestimated: raise --ks (e.g. --ks {2 * ks})",
+                      CropWarning, stacklevel=2)
 
 
 def fabricate_doe(hl, levels=None, wavelength=None, material=None) -> None:
@@ -258,10 +306,14 @@ def cmd_psf(args) -> int:
         warnings.simplefilter("always")
         # an error leaves its warnings unprinted: the error names the problem in one line (e.g. a vignetted
         # field's VignettingWarning would repeat "no light reaches the sensor")
-        result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
-                             a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"],
-                             a["doe_levels"], a["doe_wavelength"], a["doe_material"], a["stop_edge"],
-                             a["edge_step"], a["device"])
+        pbar = bar(args, 1, "PSF", "psf")
+        with pbar, ticking(pbar):
+            result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
+                                 a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"],
+                                 a["oversample"], a["doe_levels"], a["doe_wavelength"], a["doe_material"],
+                                 a["stop_edge"], a["edge_step"], a["device"])
+            pbar.update(1)
+        warn_crop(result["energy_outside"], a["ks"], f"the PSF of field ({a['field'][0]:g}, {a['field'][1]:g}) deg")
     report_warnings(caught)
     s = summary(result, str(args.lens))
     wrote = []

@@ -46,6 +46,8 @@ def wavelengths_um(ws, name: str = "wavelengths") -> list[float]:
     list of floats."""
     if hasattr(ws, "detach"):
         ws = ws.detach().reshape(-1).tolist()
+    elif isinstance(ws, (str, bytes)):
+        ws = [ws]
     elif not isinstance(ws, (list, tuple)):
         try:
             ws = list(ws)
