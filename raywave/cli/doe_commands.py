@@ -377,7 +377,7 @@ def cmd_report(args) -> int:
     try:
         r = tolerance_report(doe, L, material, w, o["depth_error"], misalignment, o["samples"], o["seed"],
                              args.distribution, wls, o["orders"], hl, o["field"], o["ks"], o["oversample"],
-                             args.output, png=not args.no_png, progress=args.progress, info=info)
+                             args.output, png=not args.no_png, progress=not args.quiet, info=info)
     except ValueError as e:
         raise CommandError(" ".join(str(e).split())) from None
     if args.json:
@@ -469,6 +469,6 @@ def _register_report(dsub) -> None:
                         "refines a circular aperture's edge)")
     r.add_argument("-o", "--output", default="report", metavar="DIR", help="output folder (default report/)")
     r.add_argument("--no-png", action="store_true", help="do not write the PNG figures")
-    r.add_argument("--progress", action="store_true", help="show a progress bar (stderr)")
+    r.add_argument("--progress", action="store_true", help="show a progress bar (the default now; --quiet: none)")
     r.add_argument("--json", action="store_true", help="print the report as one JSON object")
     r.set_defaults(func=cmd_report)

@@ -404,6 +404,7 @@ class Trainer(FabricationSchedule, StageSteps):
             with self.surface_warnings():  # sampling / vignetting warnings: once per run, not per step
                 res = psf_map_points(model, fields[ranges[c].start:ranges[c].stop], ctx.draws, self.depths[d],
                                      oc.ks, **kw)
+            self._count_psfs(res.psf.shape[0] * res.psf.shape[1])
             return res.psf, res.center
 
         if wavelengths is not None:
@@ -487,6 +488,28 @@ class Trainer(FabricationSchedule, StageSteps):
         warnings.warn_explicit(message, category, str(path), 0)
 
 
+    # ------------------------------------------------------------------ progress inside a step
+    @contextlib.contextmanager
+    def _step_progress(self, stage: str, step: int):
+        """A second tqdm bar (PSFs computed in this step: the forward pass and its replay, each chunk's PSFs) shown
+        while one optimizer step runs, when it takes longer than 2 s: a first step that fills the DOE-field cache
+        computes the whole map and takes minutes (the step bar alone would sit at 0)."""
+        from tqdm.auto import tqdm
+
+        self._psf_bar = tqdm(total=None, unit="PSF", desc=f"  {stage} step {step + 1}: PSFs", leave=False,
+                             position=1, delay=2.0, disable=not self.progress)
+        try:
+            yield
+        finally:
+            self._psf_bar.close()
+            self._psf_bar = None
+
+    def _count_psfs(self, n: int) -> None:
+        """``n`` more PSFs computed in the current step (:meth:`_step_progress`)."""
+        bar = getattr(self, "_psf_bar", None)
+        if bar is not None:
+            bar.update(int(n))
+
     # ------------------------------------------------------------------ the loop
     def _modules(self) -> dict:
         return {"hybrid": self.hl, "net": self.net}
@@ -521,19 +544,20 @@ class Trainer(FabricationSchedule, StageSteps):
             else:
                 info = info or {}
             bar = tqdm(total=total, initial=step, desc=f"{'baseline ' if self.baseline else ''}{stage}",
-                       disable=not self.progress)
+                       unit="step", disable=not self.progress)
             while step < total:
                 if stop_after is not None and done_here >= stop_after:
                     bar.close()
                     return {"stage": stage, "step": step}
                 t0 = time.perf_counter()
                 self._fabrication(stage, step)
-                if stage == "pre":
-                    loss = self._pre_step(opt, sched)
-                elif stage == "stage1":
-                    loss = self._stage1_step(step, opt, sched)
-                else:
-                    loss = self._stage2_step(step, opt, sched)
+                with self._step_progress(stage, step):
+                    if stage == "pre":
+                        loss = self._pre_step(opt, sched)
+                    elif stage == "stage1":
+                        loss = self._stage1_step(step, opt, sched)
+                    else:
+                        loss = self._stage2_step(step, opt, sched)
                 if not math.isfinite(loss):
                     raise FloatingPointError(f"{stage} step {step}: the loss is {loss} (check the learning rates)")
                 step += 1
