@@ -85,7 +85,7 @@ def device_arg(text: str, flag: str = "--device") -> str:
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise CommandError(f"{flag}: {text!r}: this torch ({torch.__version__}) has no CUDA device; install a CUDA "
-                               "build of torch (README: why torch is pinned) or use --device cpu")
+                               "build of torch (README, 'Set-up'; torch is pinned to the CPU build) or use --device cpu")
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise CommandError(f"{flag}: {text!r}: there are {torch.cuda.device_count()} CUDA devices")
     elif dev.type != "cpu":
