@@ -102,6 +102,15 @@ def _check_pixel_doe_memory(shape, pitch: float, file) -> None:
                      "wavefront needs) or lens.doe_distance (a plane where the beams are smaller)", fraction=0.5)
 
 
+def _kind(warning) -> str | None:
+    """The once-per-run key of a warning whose wording varies with its sources (a DOEApertureWarning names one
+    source, or "N sources of this call / map", differently each step): its kind and DOE size; None for the others
+    (keyed by their message with the numbers masked)."""
+    if getattr(warning, "entries", None) is not None and getattr(warning, "size", None) is not None:
+        return f"DOE aperture {tuple(warning.size)}"
+    return None
+
+
 def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
     g = torch.Generator()
     g.manual_seed((int(seed) * 7919 + int(epoch) * 104729 + 17) % (2 ** 62))
@@ -473,10 +482,13 @@ class Trainer(FabricationSchedule, StageSteps):
             warnings.simplefilter("always")
             yield
         for w in caught:
-            self._warn_once(str(w.message), w.category)
+            self._warn_once(str(w.message), w.category, _kind(w.message))
 
-    def _warn_once(self, message: str, category=UserWarning) -> None:
-        key = (getattr(category, "__name__", str(category)), re.sub(r"[-+]?\d[\d.e+-]*", "#", message))
+    def _warn_once(self, message: str, category=UserWarning, kind: str | None = None) -> None:
+        """Issue ``message`` once per run: warnings of one ``kind`` (default: the message with its numbers masked)
+        and category are shown (and logged to ``warnings.jsonl``) the first time only."""
+        key = (getattr(category, "__name__", str(category)),
+               kind if kind is not None else re.sub(r"[-+]?\d[\d.e+-]*", "#", message))
         if key in self._seen_warnings:
             return
         self._seen_warnings.add(key)
