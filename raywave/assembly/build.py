@@ -455,7 +455,7 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     q = int(oversample) if oversample is not None else (data.oversample if data is not None else 1)
     stores_map = data is not None and (data.phase is not None or data.material is not None
                                        or data.levels is not None)
-    beam = widest_beam(optics, distance, fields, wavelengths, depth) if data is None else None
+    beam = widest_beam(optics, distance, fields, wavelengths, depth)
     check_doe_memory(shape, pitch, q, stores_map, source, beam, lens.device)
     doe = _make_doe(data, shape, pitch, source)
     step = {} if edge_step is None else {"edge_step": edge_step}
