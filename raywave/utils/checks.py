@@ -35,10 +35,20 @@ def wavelength_um(w, name: str = "wavelength") -> float:
     if not (math.isfinite(v) and 0 < v <= MAX_WAVELENGTH_UM):
         hint = ""
         if math.isfinite(v) and v > MAX_WAVELENGTH_UM:
-            hint = (f": not a plausible wavelength in µm; it looks like nanometres ({v:g} nm = {v * 1e-3:g} µm; "
-                    "raywave takes wavelengths in µm)")
+            hint = (f": not a plausible wavelength (µm, not nm); it looks like nanometres ({v:g} nm = "
+                    f"{v * 1e-3:g} µm)")
         raise ValueError(f"{name} must be a wavelength in µm (0 < λ <= {MAX_WAVELENGTH_UM:g}), got {w!r}{hint}")
     return v
+
+
+def wavelength_problem(w, name: str = "the value") -> str | None:
+    """What :func:`wavelength_um` says about ``w`` (None when it is a wavelength in µm): for validators that collect
+    problems instead of raising (the lens-file readers)."""
+    try:
+        wavelength_um(w, name)
+    except ValueError as e:
+        return str(e)
+    return None
 
 
 def wavelengths_um(ws, name: str = "wavelengths") -> list[float]:
@@ -66,6 +76,9 @@ def pitch_mm(p, name: str = "pitch") -> float:
     ``name``, mm and µm (a pitch of 1 "mm" is 1000 µm: almost certainly µm given as mm)."""
     v = positive_float(p, name, "mm")
     if v > MAX_PITCH_MM:
-        raise ValueError(f"{name} is {v:g} mm = {v * 1e3:g} µm, larger than any DOE or sensor pixel (at most "
-                         f"{MAX_PITCH_MM:g} mm): pitches are in mm, not µm (did you mean {v * 1e-3:g} mm = {v:g} µm?)")
+        msg = f"{name} is {v:g} mm, larger than any DOE or sensor pixel (at most {MAX_PITCH_MM:g} mm = 100 µm)"
+        if v <= 1e4:  # a number a slip of units explains
+            msg = (f"{name} is {v:g} mm = {v * 1e3:g} µm, larger than any DOE or sensor pixel (at most "
+                   f"{MAX_PITCH_MM:g} mm): pitches are in mm, not µm (did you mean {v * 1e-3:g} mm = {v:g} µm?)")
+        raise ValueError(msg)
     return v
