@@ -30,6 +30,7 @@ from pathlib import Path
 
 from raywave.cli.errors import CommandError, integer_arg, json_dumps, number_arg, pitch_arg, wavelength_arg
 from raywave.cli.fields import add_field_arguments, check_angles, single_field
+from raywave.cli.progress import bar, ticking
 
 PHASE_EXTENSIONS = (".npy", ".npz")
 LENS_EXTENSIONS = (".json", ".zmx")
@@ -199,8 +200,10 @@ def cmd_export(args) -> int:
     material = args.material or getattr(doe, "material_name", None) or DEFAULT_MATERIAL
     name = args.name or Path(str(args.doe)).stem
     try:
-        r = export_masks(doe, L, material, w, args.output, fmt, name, min_feature, png=not args.no_png,
-                         info=info)
+        pbar = bar(args, None, "step", "doe export: masks and previews")  # elapsed time while a large grid is cut
+        with pbar, ticking(pbar):
+            r = export_masks(doe, L, material, w, args.output, fmt, name, min_feature, png=not args.no_png,
+                             info=info)
     except ValueError as e:
         raise CommandError(" ".join(str(e).split())) from None
     if args.json:

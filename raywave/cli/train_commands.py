@@ -87,14 +87,21 @@ def plain_text(doc: str) -> str:
     return doc.replace("``", "")
 
 
+#: config keys that do not change what a run trains (a changed note is no reason to refuse a folder)
+IGNORED_KEYS = ("note",)
+
+
 def config_changes(old, new, prefix: str = "") -> list[str]:
-    """``"key: old -> new"`` for every setting that differs between two configs (dataclasses or dicts)."""
+    """``"key: old -> new"`` for every setting that differs between two configs (dataclasses or dicts), leaving
+    out :data:`IGNORED_KEYS`."""
     from raywave.training.config import to_dict
 
     a = old if isinstance(old, dict) else to_dict(old)
     b = new if isinstance(new, dict) else to_dict(new)
     out = []
     for k in sorted(set(a) | set(b)):
+        if not prefix and k in IGNORED_KEYS:
+            continue
         va, vb = a.get(k), b.get(k)
         if isinstance(va, dict) and isinstance(vb, dict):
             out += config_changes(va, vb, f"{prefix}{k}.")
