@@ -12,7 +12,7 @@ gives the same PSFs: the fold changes nothing but the direction of the image spa
 difference and writes folded_psf.png (log-scale PSFs at 0°, 0.5° and 1°, folded and unfolded) and folded_psf.json.
 
     python examples/folded_psf.py [-o examples_out/folded_psf]
-    raywave psf examples/folded_hybrid.json --field 0 0.5 --png psf.png
+    raywave psf examples/folded_hybrid.json --field 0,0.5 --png psf.png
 """
 
 from __future__ import annotations

@@ -54,8 +54,12 @@ def test_convert_round_trip(tmp_path, capsys):
     assert b["efl"] == pytest.approx(a["efl"], rel=1e-12)
 
 
-def test_demo_writes_outputs(tmp_path):
+def test_demo_writes_outputs(tmp_path, capsys):
     assert main(["demo", "-o", str(tmp_path)]) == 0
+    out, err = capsys.readouterr()
+    # a fresh clone's demo warns about nothing (issue 45): the bundled DOE's slight clipping is a note
+    assert "warning" not in err.lower() and "raywave/" not in err
+    assert "note: the bundled hybrid lens's 3×3 mm DOE" in out and "as intended" in out
     for name in ("paraxial.txt", "paraxial.json", "layout.png", "spot.png", "psf.png", "psf.json"):
         assert (tmp_path / name).stat().st_size > 100
     import json
@@ -91,3 +95,24 @@ def test_loss_figure_draws_each_stage_with_its_running_mean(tmp_path):
                              for i in range(40)) + "\n")
     _loss_figure(tmp_path / "figures", {"designed": SimpleNamespace(log_path=log)})
     assert (tmp_path / "figures" / "loss.png").stat().st_size > 0
+
+
+def test_layout_and_spot_write_into_a_folder(tmp_path, capsys):
+    """``-o DIR`` writes DIR/layout.png (before: DIR.png); a .png path is kept; another suffix is refused."""
+    assert main(["layout", "singlet", "-o", str(tmp_path / "figs")]) == 0
+    assert (tmp_path / "figs" / "layout.png").is_file() and not (tmp_path / "figs.png").exists()
+    assert main(["layout", "singlet", "-o", str(tmp_path / "a.png")]) == 0 and (tmp_path / "a.png").is_file()
+    assert main(["spot", "singlet", "-o", str(tmp_path / "figs")]) == 0 and (tmp_path / "figs" / "spot.png").is_file()
+    assert main(["layout", "singlet", "-o", str(tmp_path / "a.jpg")]) == 2
+    assert "give a .png file or a folder" in capsys.readouterr().err
+
+
+def test_psf_warns_when_the_crop_misses_energy(capsys):
+    """Before: a PSF with 74 % of its energy outside the crop had its radii printed without a word."""
+    assert main(["--quiet", "psf", "hybrid_asphere", "--field", "0,7", "--ks", "8", "--rays", "16", "--json"]) == 0
+    out, err = capsys.readouterr()
+    outside = json.loads(out)["energy_outside"]
+    assert outside > 0.01
+    assert f"{outside:.1%} of its energy falls outside the 8×8-pixel crop" in err and "--ks 16" in err
+    assert main(["--quiet", "psf", "hybrid_asphere", "--ks", "64", "--rays", "16"]) == 0
+    assert "outside the" not in capsys.readouterr().err

@@ -273,7 +273,7 @@ def test_psf_phase_map_from_the_lens_file_deflects_along_y(tmp_path, capsys):
     (["psf", "hybrid_asphere", "--depth", "-5"], "--depth: must be > 0"),
     (["psf", "hybrid_asphere", "--ks", "0"], "--ks: must be >= 1"),
     (["psf", "hybrid_asphere", "--wavelength", "550"], "µm, not nm"),
-    (["psf", "hybrid_asphere", "--field", "1", "2", "3"], "--field: give X Y"),
+    (["psf", "hybrid_asphere", "--field", "1", "2", "3"], "give one field per --field, Y or X,Y"),
     (["psf", "hybrid_asphere", "-o", "psf.txt"], "-o: the PSF is written as .npy"),
     (["psf", "hybrid_asphere", "--doe-distance", "9"], "the DOE distance must lie between"),
     (["psf", "hybrid_asphere", "--doe-size", "0"], "--doe-size: must be > 0"),

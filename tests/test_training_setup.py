@@ -248,3 +248,65 @@ def test_checkpoint_save_is_atomic_and_checks_names(tmp_path):
     with pytest.raises(FileNotFoundError):
         load_checkpoint(tmp_path / "none.pt", modules={"net": net})
     assert latest_checkpoint(tmp_path / "empty") is None
+
+
+# ------------------------------------------------------------------ run folders (issue 45, item 9)
+def _finished_folder(tmp_path, cfg, stage="done", stage_step=0, step=12):
+    from raywave.training.config import dump_config
+
+    run = tmp_path / "run"
+    run.mkdir()
+    dump_config(cfg, run / "config.yaml")
+    save_checkpoint(checkpoint_path(run, step), modules={"m": torch.nn.Linear(1, 1)},
+                    extra={"stage": stage, "stage_step": stage_step})
+    (run / "log.jsonl").write_text("{}\n")
+    return run
+
+
+def test_a_changed_config_on_a_trained_folder_needs_resume_or_restart(tmp_path):
+    from raywave.cli.errors import CommandError
+    from raywave.cli.train_commands import prepare_run_folder
+
+    cfg = TrainConfig()
+    run = _finished_folder(tmp_path, cfg)
+    assert prepare_run_folder(run, cfg, False, False) == [f"{run}: the run is finished (12 steps): evaluating it again"]
+    changed = TrainConfig()
+    changed.stage1.max_steps = 2
+    before = (run / "config.yaml").read_text()
+    with pytest.raises(CommandError, match=r"another config \(stage1.max_steps: None -> 2\).*--resume.*--restart"):
+        prepare_run_folder(run, changed, False, False)
+    assert (run / "config.yaml").read_text() == before  # never replaced silently
+    lines = prepare_run_folder(run, changed, False, True)
+    assert "replaced (continuing with the new settings): stage1.max_steps: None -> 2" in lines[0]
+    lines = prepare_run_folder(run, changed, True, False)
+    assert "restarting" in lines[0] and not (run / "checkpoints").exists() and not (run / "log.jsonl").exists()
+    with pytest.raises(CommandError, match="exclude each other"):
+        prepare_run_folder(run, changed, True, True)
+
+
+def test_resuming_says_from_which_step(tmp_path):
+    from raywave.cli.train_commands import prepare_run_folder
+
+    cfg = TrainConfig()
+    run = _finished_folder(tmp_path, cfg, stage="stage1", stage_step=3, step=13)
+    assert prepare_run_folder(run, cfg, False, False) == [f"resuming from step 13 (stage1 step 3) of {run}"]
+    assert prepare_run_folder(tmp_path / "fresh", cfg, False, False) == []
+
+
+def test_train_help_has_no_sphinx_markup(capsys):
+    from raywave.cli.main import main
+
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    out = capsys.readouterr().out
+    assert "``" not in out and ":mod:" not in out and ":class:" not in out and "--resume" in out
+
+
+def test_the_config_note_is_a_string_key(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("note: the corners are clipped on purpose\n")
+    assert load_config(p).note == "the corners are clipped on purpose"
+    from pathlib import Path
+
+    demo = load_config(Path(__file__).parent.parent / "configs" / "aberration_demo.yaml")
+    assert "on purpose" in demo.note  # the demo says its corner fields' DOE clipping is intended

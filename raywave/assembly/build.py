@@ -40,7 +40,8 @@ from raywave.io.errors import LensFileError, with_location
 from raywave.lens.analysis import beam_folds, beam_half_extent, beam_rays_at
 from raywave.lens.build import lens_from_spec, resolve_lens_path
 from raywave.lens.frames import image_space
-from raywave.utils.errors import NonFiniteError
+from raywave.utils.checks import pitch_mm
+from raywave.utils.errors import NonFiniteError, check_allocation
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "MAX_DEFAULT_PITCH", "NYQUIST_FILL",
            "CAUSTIC_MARGIN", "MAX_DEFAULT_BEAM_PIXELS", "beam_half_extent", "caustic_free_distance", "default_doe_size",
@@ -275,6 +276,7 @@ def _doe_pitch(optics, data, doe_pitch: float | None, distance: float, fields, w
         pitch = DEFAULT_DOE_PITCH if pitch is None else pitch
     if not (math.isfinite(pitch) and pitch > 0):
         raise ValueError(f"the DOE pitch must be > 0 mm, got {pitch!r}")
+    pitch_mm(pitch, "the DOE pitch (doe_pitch; raywave: --doe-pitch MM)")
     return pitch, rule
 
 
@@ -322,6 +324,51 @@ def _doe_shape(optics, data, pitch: float, doe_pitch: float | None, size, distan
         w, h = default_doe_size(optics, distance, fields, wavelengths, depth)
         shape = (max(_pixels(h, pitch, source), _MIN_PIXELS), max(_pixels(w, pitch, source), _MIN_PIXELS))
     return shape
+
+
+#: bytes per DOE pixel held by the element itself when it stores a map (a float64 phase map and, fabricated, its
+#: float64 height map); a blank DOE or a phase model stores nothing per pixel
+DOE_BYTES_PER_PIXEL = 16
+
+
+def widest_beam(optics, distance: float, fields=None, wavelengths=None, depth=None) -> float | None:
+    """The widest single source's footprint (mm, the larger side, with the 1.1 edge-band margin) on the plane
+    ``distance`` mm after the last vertex (sources as :func:`beam_half_extent`); None when no ray reaches it."""
+    z = float(optics.vertex_z()[-1].detach()) + distance
+    at, _, _ = beam_rays_at(optics, z, fields, wavelengths, depth)
+    ok = at.valid & torch.isfinite(at.o).all(-1)
+    if not bool(ok.any()):
+        return None
+    return float(_widest(at.o[..., :2][None], ok)[0])
+
+
+def check_doe_memory(shape: tuple[int, int], pitch: float, oversample: int, stores_map: bool, source: str,
+                     beam: float | None = None, device=None) -> None:
+    """The memory estimate of a hybrid lens's DOE and of the field window of one PSF, before anything of their size
+    is allocated or traced: the element's own arrays (:data:`DOE_BYTES_PER_PIXEL` per pixel when ``stores_map``)
+    plus the largest field window, ``oversample``² simulation samples per pixel over the DOE grid or, when
+    ``beam`` (mm, :func:`widest_beam`) is known, over the widest beam, at
+    :data:`raywave.hybrid.coherent.geometry.WINDOW_BYTES_PER_SAMPLE`. Refused
+    (:class:`~raywave.utils.errors.MemoryLimitError`) over the limit of
+    :func:`~raywave.utils.errors.check_allocation`, naming the options that shrink it and, for a pitch below
+    0.1 µm, the likely unit slip."""
+    from raywave.hybrid.coherent.geometry import WINDOW_BYTES_PER_SAMPLE
+
+    ny, nx = (int(v) for v in shape)
+    q = max(int(oversample), 1)
+    wy, wx = ny, nx
+    if beam is not None:
+        side = math.ceil(beam / pitch) + 2
+        wy, wx = min(ny, side), min(nx, side)
+    need = float(ny) * nx * (DOE_BYTES_PER_PIXEL if stores_map else 0) + float(wy) * wx * q * q * WINDOW_BYTES_PER_SAMPLE
+    slip = ""
+    if pitch < 1e-4:
+        slip = (f" (the pitch is {pitch:g} mm = {pitch * 1e3:g} µm, finer than any DOE pixel: pitches are in mm, "
+                "1 µm = 0.001 mm)")
+    check_allocation(need, f"{source}: the {nx}×{ny}-pixel DOE ({pitch * 1e3:.3g} µm pixels, oversample {q}) with "
+                           f"a PSF's {wx * q}×{wy * q}-sample field window{slip}",
+                     "use a coarser DOE pitch (doe_pitch; raywave: --doe-pitch, in mm), a lower oversample "
+                     "(--oversample) or a smaller DOE (doe_size; --doe-size, in mm)", device)
 
 
 def _make_doe(data, shape: tuple[int, int], pitch: float, source: str):
@@ -388,6 +435,8 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         field_type: "angle" or "object_height": overrides the lens file's field type (how ``fields`` given to
             the hybrid lens are read).
     """
+    if sensor_pitch is not None:
+        sensor_pitch = pitch_mm(sensor_pitch, "the sensor pitch (sensor_pitch; raywave: --sensor-pitch MM)")
     lens = _spec_lens(spec, field_type, source)
     # a folded, decentred or mirrored lens is sized in its image-space frame (z along the light, like the engine)
     optics = image_space(lens)
@@ -403,8 +452,12 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         info.update(fit)
     size = _size_arg(doe_size)
     shape = _doe_shape(optics, data, pitch, doe_pitch, size, distance, fields, wavelengths, depth, source)
-    doe = _make_doe(data, shape, pitch, source)
     q = int(oversample) if oversample is not None else (data.oversample if data is not None else 1)
+    stores_map = data is not None and (data.phase is not None or data.material is not None
+                                       or data.levels is not None)
+    beam = widest_beam(optics, distance, fields, wavelengths, depth)
+    check_doe_memory(shape, pitch, q, stores_map, source, beam, lens.device)
+    doe = _make_doe(data, shape, pitch, source)
     step = {} if edge_step is None else {"edge_step": edge_step}
     hl = HybridLens(lens, doe, distance, sensor_pitch=sensor_pitch, oversample=q, stop_edge=stop_edge, **step)
     info.update(_doe_summary(data, doe, distance, pitch, q))

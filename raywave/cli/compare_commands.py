@@ -1,12 +1,12 @@
 """The ``compare`` command: one hybrid lens through the paper's simulation models (Table S.I), side by side.
 
-    raywave compare LENS [--doe DOE] [--fields 0 3.5 7 ...] [--models all|raywave,paraxial,...]
+    raywave compare LENS [--doe DOE] [--field Y|X,Y ...] [--fields 0 3.5 0,7 ...] [--models all|raywave,paraxial,...]
                     [--wavelength W] [--depth Z] [--ks 64] [--reference raywave] [-o out/] [--linear] [--json]
                     [--doe-pitch P] [--doe-size W [H]] [--doe-distance D] [--sensor-pitch P] [--oversample Q]
                     [--doe-levels L] [--doe-wavelength W0] [--doe-material NAME]
 
-Models (:mod:`raywave.models.interface`): raywave, paraxial, pupil, raytrace, exit_pupil. ``--fields`` takes
-field angles in degrees: ``Y`` or ``X,Y``. ``--doe`` replaces the lens file's DOE by a phase map (.npy with
+Models (:mod:`raywave.models.interface`): raywave, paraxial, pupil, raytrace, exit_pupil. ``--field`` (repeatable)
+and ``--fields`` (a list) take field angles in degrees: ``Y`` or ``X,Y`` (:mod:`raywave.cli.fields`). ``--doe`` replaces the lens file's DOE by a phase map (.npy with
 ``--doe-pitch``, .npz) or the DOE of another lens file (the lens options of ``raywave psf`` apply otherwise).
 ``all`` leaves out exit_pupil when the DOE is not blank (it cannot carry one; naming it is an error).
 
@@ -25,25 +25,17 @@ import math
 import warnings
 from pathlib import Path
 
-from raywave.cli.errors import DEVICE_HELP, CommandError, json_dumps, number_arg as _number, report_warnings
+from raywave.cli.errors import DEVICE_HELP, CommandError, json_dumps, report_warnings
+from raywave.cli.fields import add_field_arguments, check_angles, field_list, parse_field_list
+from raywave.cli.progress import bar, ticking
 
-DEFAULT_FIELDS = ("0",)
+DEFAULT_FIELDS = ((0.0, 0.0),)
 
 
 def parse_fields(tokens) -> list[tuple[float, float]]:
-    """``Y`` or ``X,Y`` tokens (degrees) -> [(x, y), ...]."""
-    out = []
-    for t in tokens:
-        parts = [p for p in str(t).split(",") if p.strip() != ""]
-        if len(parts) not in (1, 2):
-            raise CommandError(f"--fields: {t!r} is not Y or X,Y (degrees)")
-        vals = [_number(p, "--fields") for p in parts]
-        f = (0.0, vals[0]) if len(vals) == 1 else (vals[0], vals[1])
-        if any(abs(v) >= 90 for v in f):
-            raise CommandError(f"--fields: angles must lie within (-90, 90) degrees, got {t!r}")
-        out.append(f)
-    if not out:
-        raise CommandError("--fields: give at least one field angle")
+    """``Y`` or ``X,Y`` tokens (degrees) -> [(x, y), ...] (the list form of :mod:`raywave.cli.fields`)."""
+    out = parse_field_list(tokens, "--fields")
+    check_angles(out, "--fields")
     return out
 
 
@@ -113,40 +105,51 @@ def ground_truth(hl, field, wavelength: float, ks: int, depth):
     return debye_psf(na, wavelength, ks, hl.sensor_pitch, n=n, defocus=defocus, oversample=15).psf
 
 
-def run_compare(hl, models, fields, wavelength: float, ks: int, depth, reference: str) -> dict:
-    """Every model's PSFs and the comparison table (a dict; see the module docstring)."""
+def run_compare(hl, models, fields, wavelength: float, ks: int, depth, reference: str, pbar=None) -> dict:
+    """Every model's PSFs and the comparison table (a dict; see the module docstring). ``results[model]`` is a list
+    of one-field results (:class:`~raywave.models.base.ModelPSFResult`, ``psf (1, 1, ks, ks)``), computed one
+    (model, field) at a time so that ``pbar`` (a tqdm bar of len(models) × len(fields) PSFs, or None) moves
+    per PSF (a field alone gives the same PSF as in a batch)."""
     import torch
 
     from raywave.models.interface import make_model, relative_l1
 
     results = {}
     for name in models:
-        with torch.no_grad():
-            results[name] = make_model(name, hl).psf_result(fields, [wavelength], ks=ks, depth=depth)
+        model = make_model(name, hl)
+        results[name] = []
+        for f in fields:
+            if pbar is not None:
+                pbar.set_postfix_str(f"{name} ({f[0]:g}, {f[1]:g})°")
+            with torch.no_grad():
+                results[name].append(model.psf_result([list(f)], [wavelength], ks=ks, depth=depth))
+            if pbar is not None:
+                pbar.update(1)
     ref = results.get(reference)
     rows, pairs = [], []
     for i, f in enumerate(fields):
         truth = ground_truth(hl, f, wavelength, ks, depth)
         for name in models:
-            r = results[name]
-            psf = r.psf[i, 0].detach().cpu()  # (the ground truth is a CPU tensor)
+            r = results[name][i]
+            psf = r.psf[0, 0].detach().cpu()  # (the ground truth is a CPU tensor)
+            rf = None if ref is None else ref[i]
             row = {"field_x_deg": f[0], "field_y_deg": f[1], "model": name,
-                   f"l1_vs_{reference}": (float(relative_l1(psf, ref.psf[i, 0].detach().cpu())) if ref is not None
+                   f"l1_vs_{reference}": (float(relative_l1(psf, rf.psf[0, 0].detach().cpu())) if rf is not None
                                           else None),
                    "l1_vs_truth": float(relative_l1(psf, truth)) if truth is not None else None,
-                   "center_offset_um": (float(torch.linalg.vector_norm(r.center[i, 0].detach()
-                                                                       - ref.center[i, 0].detach())) * 1e3
-                                        if ref is not None else None),
-                   "energy_outside": float(r.energy_outside[i, 0].detach()),
+                   "center_offset_um": (float(torch.linalg.vector_norm(r.center[0, 0].detach()
+                                                                       - rf.center[0, 0].detach())) * 1e3
+                                        if rf is not None else None),
+                   "energy_outside": float(r.energy_outside[0, 0].detach()),
                    "zernike_residual_waves": None, "rays_on_discontinuity": None}
             if name == "pupil":
-                row["zernike_residual_waves"] = float(r.info["residual_rms_waves"][i, 0])
+                row["zernike_residual_waves"] = float(r.info["residual_rms_waves"][0, 0])
             if name == "raytrace":
-                row["rays_on_discontinuity"] = r.info["discontinuity"][i][0]["fraction_on_discontinuity"]
+                row["rays_on_discontinuity"] = r.info["discontinuity"][0][0]["fraction_on_discontinuity"]
             rows.append(row)
         for a in range(len(models)):
             for b in range(a + 1, len(models)):
-                pa, pb = results[models[a]].psf[i, 0].detach(), results[models[b]].psf[i, 0].detach()
+                pa, pb = results[models[a]][i].psf[0, 0].detach(), results[models[b]][i].psf[0, 0].detach()
                 pairs.append({"field_x_deg": f[0], "field_y_deg": f[1], "a": models[a], "b": models[b],
                               "l1_a_vs_b": float(relative_l1(pa, pb))})
     return {"results": results, "rows": rows, "pairs": pairs}
@@ -210,7 +213,7 @@ def _plot_compare(path: Path, results: dict, models, fields, pitch: float, title
     """The PSF grid (rows: models, columns: fields in degrees; ``pitch`` the sensor pitch, mm) as ``path``."""
     from raywave.plotting.psf import plot_psf_grid
 
-    grid = [[results[m].psf[i, 0].detach() for i in range(len(fields))] for m in models]
+    grid = [[results[m][i].psf[0, 0].detach() for i in range(len(fields))] for m in models]
     col_labels = [f"({f[0]:g}, {f[1]:g})°" for f in fields]
     import matplotlib.pyplot as plt
 
@@ -221,11 +224,12 @@ def _plot_compare(path: Path, results: dict, models, fields, pitch: float, title
 def cmd_compare(args) -> int:
     """``raywave compare``: the lens through every model, then compare.csv, compare.json, compare.png and the
     table (or the JSON report) on stdout."""
-    from raywave.cli.psf_commands import parse_psf_args
+    from raywave.cli.psf_commands import check_sources_lit, parse_psf_args
 
-    args.field, args.output, args.png, args.rays = None, None, None, None  # not options of compare
+    fields = field_list(args, list(DEFAULT_FIELDS))
+    check_angles(fields)
+    args.field, args.fields, args.output, args.png, args.rays = None, None, None, None, None  # not psf's here
     a = parse_psf_args(args)  # the lens and DOE options shared with `raywave psf`
-    fields = parse_fields(args.fields if args.fields else DEFAULT_FIELDS)
     ks = a["ks"]
     out_dir = Path(args.out)
     with warnings.catch_warnings(record=True) as caught:
@@ -237,7 +241,10 @@ def cmd_compare(args) -> int:
         if reference not in models:
             raise CommandError(f"--reference: {reference!r} is not among the models compared ({', '.join(models)})")
         wl = hl.lens.primary_wavelength if a["wavelength"] is None else a["wavelength"]
-        table = run_compare(hl, models, fields, wl, ks, a["depth"], reference)
+        check_sources_lit(hl, fields, [wl], a["depth"])  # a dark field fails now, not after every model ran
+        pbar = bar(args, len(models) * len(fields), "PSF", "compare")
+        with pbar, ticking(pbar):
+            table = run_compare(hl, models, fields, wl, ks, a["depth"], reference, pbar)
         report_warnings(caught)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = table["rows"]
@@ -272,8 +279,7 @@ def register(sub) -> None:
     p.add_argument("lens", help="lens file or bundled lens name (as for 'raywave psf')")
     p.add_argument("--doe", default=None, metavar="DOE",
                    help="replace the lens's DOE: a phase map (.npy with --doe-pitch, .npz) or a lens file with a DOE")
-    p.add_argument("--fields", nargs="+", default=None, metavar="DEG",
-                   help="field angles in degrees, each Y or X,Y (default 0)")
+    add_field_arguments(p, "0, on axis; degrees")
     p.add_argument("--models", default="all", metavar="LIST",
                    help="'all' (default) or a comma list of raywave, raywave_doe, paraxial, pupil, raytrace, "
                         "exit_pupil")

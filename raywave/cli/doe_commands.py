@@ -28,8 +28,9 @@ import sys
 import time
 from pathlib import Path
 
-from raywave.cli.errors import CommandError, integer_arg, number_arg, json_dumps
-from raywave.utils.checks import MAX_WAVELENGTH_UM as _MAX_WAVELENGTH_UM
+from raywave.cli.errors import CommandError, integer_arg, json_dumps, number_arg, pitch_arg, wavelength_arg
+from raywave.cli.fields import add_field_arguments, check_angles, single_field
+from raywave.cli.progress import bar, ticking
 
 PHASE_EXTENSIONS = (".npy", ".npz")
 LENS_EXTENSIONS = (".json", ".zmx")
@@ -167,10 +168,8 @@ def _fabrication_args(args):
         mask_bits(L)
     except ValueError as e:
         raise CommandError(f"--levels: {e}") from None
-    w = None if args.wavelength is None else _number(args.wavelength, "--wavelength")
-    if w is not None and w > _MAX_WAVELENGTH_UM:
-        raise CommandError(f"--wavelength: {args.wavelength} µm is not a plausible wavelength (µm, not nm)")
-    pitch = None if args.pitch is None else _number(args.pitch, "--pitch")
+    w = None if args.wavelength is None else wavelength_arg(args.wavelength, "--wavelength")
+    pitch = None if args.pitch is None else pitch_arg(args.pitch, "--pitch")
     return L, w, pitch
 
 
@@ -201,8 +200,10 @@ def cmd_export(args) -> int:
     material = args.material or getattr(doe, "material_name", None) or DEFAULT_MATERIAL
     name = args.name or Path(str(args.doe)).stem
     try:
-        r = export_masks(doe, L, material, w, args.output, fmt, name, min_feature, png=not args.no_png,
-                         info=info)
+        pbar = bar(args, None, "step", "doe export: masks and previews")  # elapsed time while a large grid is cut
+        with pbar, ticking(pbar):
+            r = export_masks(doe, L, material, w, args.output, fmt, name, min_feature, png=not args.no_png,
+                             info=info)
     except ValueError as e:
         raise CommandError(" ".join(str(e).split())) from None
     if args.json:
@@ -311,11 +312,7 @@ def _report_wavelengths(args) -> list[float] | None:
     """``--wavelengths`` (µm), checked, or None when not given."""
     if not args.wavelengths:
         return None
-    wls = [_number(v, "--wavelengths") for v in args.wavelengths]
-    bad = [v for v in wls if v > _MAX_WAVELENGTH_UM]
-    if bad:
-        raise CommandError(f"--wavelengths: {bad[0]:g} µm is not a plausible wavelength (µm, not nm)")
-    return wls
+    return [wavelength_arg(v, "--wavelengths") for v in args.wavelengths]
 
 
 def _report_options(args) -> dict:
@@ -342,7 +339,8 @@ def _report_options(args) -> dict:
         raise CommandError(f"--orders: integers, got {' '.join(args.orders)}") from None
     ks = integer_arg(args.ks, "--ks", 1)
     oversample = integer_arg(args.oversample, "--oversample", 1)
-    field = number_arg(args.field, "--field")
+    field = single_field(args, (0.0, 0.0), "doe report")
+    check_angles([field])
     return {"depth_error": depth_error, "misalignment": misalignment, "mis_um": mis_um, "samples": samples,
             "seed": seed, "wls": wls, "orders": orders, "ks": ks, "oversample": oversample, "field": field}
 
@@ -381,8 +379,8 @@ def cmd_report(args) -> int:
         wls = [w]
     try:
         r = tolerance_report(doe, L, material, w, o["depth_error"], misalignment, o["samples"], o["seed"],
-                             args.distribution, wls, o["orders"], hl, (0.0, o["field"]), o["ks"], o["oversample"],
-                             args.output, png=not args.no_png, progress=args.progress, info=info)
+                             args.distribution, wls, o["orders"], hl, o["field"], o["ks"], o["oversample"],
+                             args.output, png=not args.no_png, progress=not args.quiet, info=info)
     except ValueError as e:
         raise CommandError(" ".join(str(e).split())) from None
     if args.json:
@@ -467,13 +465,13 @@ def _register_report(dsub) -> None:
     r.add_argument("--lens", default=None, metavar="LENS",
                    help="lens file (raywave .json / .zmx, or a bundled name) for the PSF statistics: its lens, DOE "
                         "distance, sensor pitch and oversampling, with this DOE")
-    r.add_argument("--field", default="0", metavar="DEG", help="field angle (y, degrees) of the PSF (default 0)")
+    add_field_arguments(r, "0, on axis; degrees")
     r.add_argument("--ks", default="64", metavar="PX", help="PSF crop in sensor pixels (default 64)")
     r.add_argument("--oversample", default="1", metavar="Q",
                    help="samples per DOE pixel of the efficiency overlap (exact at 1 for a square aperture; "
                         "refines a circular aperture's edge)")
     r.add_argument("-o", "--output", default="report", metavar="DIR", help="output folder (default report/)")
     r.add_argument("--no-png", action="store_true", help="do not write the PNG figures")
-    r.add_argument("--progress", action="store_true", help="show a progress bar (stderr)")
+    r.add_argument("--progress", action="store_true", help="show a progress bar (the default now; --quiet: none)")
     r.add_argument("--json", action="store_true", help="print the report as one JSON object")
     r.set_defaults(func=cmd_report)

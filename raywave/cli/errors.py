@@ -35,6 +35,30 @@ def number_arg(text: str, flag: str, positive: bool = False, nonneg: bool = Fals
     return v
 
 
+def wavelength_arg(text: str, flag: str = "--wavelength") -> float:
+    """A wavelength option (µm), checked by :func:`raywave.utils.checks.wavelength_um`, the one wavelength check of
+    every entry point (a number above 100 is named as nanometres); a one-line :class:`CommandError` otherwise."""
+    from raywave.utils.checks import wavelength_um
+
+    w = number_arg(text, flag, positive=True)
+    try:
+        return wavelength_um(w, flag)
+    except ValueError as e:
+        raise CommandError(str(e)) from None
+
+
+def pitch_arg(text: str, flag: str) -> float:
+    """A pixel-pitch option (mm), checked by :func:`raywave.utils.checks.pitch_mm` (a pitch above 0.1 mm is named
+    as µm given as mm); a one-line :class:`CommandError` otherwise."""
+    from raywave.utils.checks import pitch_mm
+
+    v = number_arg(text, flag, positive=True)
+    try:
+        return pitch_mm(v, flag)
+    except ValueError as e:
+        raise CommandError(str(e)) from None
+
+
 def integer_arg(text: str, flag: str, minimum: int = 1) -> int:
     """A command-line integer ≥ ``minimum``, or a one-line :class:`CommandError`."""
     try:
@@ -61,7 +85,7 @@ def device_arg(text: str, flag: str = "--device") -> str:
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise CommandError(f"{flag}: {text!r}: this torch ({torch.__version__}) has no CUDA device; install a CUDA "
-                               "build of torch (README: why torch is pinned) or use --device cpu")
+                               "build of torch (README, 'Set-up'; torch is pinned to the CPU build) or use --device cpu")
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise CommandError(f"{flag}: {text!r}: there are {torch.cuda.device_count()} CUDA devices")
     elif dev.type != "cpu":

@@ -1,9 +1,9 @@
 """The ``psfmap`` and ``render`` commands: PSF maps of a hybrid lens and images simulated through it.
 
     raywave psfmap LENS [--grid N [M]] [--depths Z ...] [--wavelengths W ...] [--ks N] [-o map.npz] [--png map.png]
-                   [--mapping chief_ray|paraxial] [--batch B] [--progress] [--json] [DOE options]
+                   [--mapping chief_ray|paraxial] [--batch B] [--quiet] [--json] [DOE options]
     raywave render LENS IMAGE [--depth Z] [--grid N [M]] [--ks N] [--wavelengths R G B | --average] -o out.png
-                   [--map map.npz] [--noise] [--seed S] [--save-map map.npz] [--progress] [--json] [DOE options]
+                   [--map map.npz] [--noise] [--seed S] [--save-map map.npz] [--quiet] [--json] [DOE options]
 
 LENS is a lens file or a bundled lens name as for ``raywave psf``, with the same DOE options (``--doe-pitch``,
 ``--doe-size``, ``--doe-distance``, ``--sensor-pitch``, ``--oversample``, ``--doe-levels``, ``--doe-wavelength``,
@@ -40,7 +40,7 @@ def _add_lens_options(p) -> None:
                         "(paraxial; the render then shows the lens's distortion)")
     p.add_argument("--batch", default=None, metavar="B", help="field points per model call (default: ~24 fields)")
     p.add_argument("--progress", action="store_true",
-                   help="show a progress bar (default: for maps of 100 PSFs or more, on a terminal)")
+                   help="show a progress bar (the default now; --quiet turns it off)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--mode", choices=("accurate", "faithful"), default="accurate",
                    help="DOE-plane field: accurate (default) or faithful (the paper's ray splatting)")
@@ -116,7 +116,7 @@ def _compute_map(a: dict, grid, depths, wavelengths, progress: bool):
     kw = {"mode": a["mode"]}
     if a["rays"] is not None:
         kw["rays"] = a["rays"]
-    pmap = psf_map(hl, grid, depths, wavelengths, ks=a["ks"], batch=a["batch"], progress=progress or None,
+    pmap = psf_map(hl, grid, depths, wavelengths, ks=a["ks"], batch=a["batch"], progress=progress,
                    fields=fields, sensor_size=hl.lens.sensor_size, **kw)
     pmap.info["mapping"] = a["mapping"]
     return hl, pmap
@@ -152,7 +152,7 @@ def cmd_psfmap(args) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         # an error exit prints only the error (one line; its warnings would repeat it)
-        _, pmap = _compute_map(a, grid, depths, wls, args.progress)
+        _, pmap = _compute_map(a, grid, depths, wls, not args.quiet)
         report_warnings(caught)
     s = _map_summary(pmap, str(args.lens))
     wrote = []
@@ -281,7 +281,7 @@ def _computed_map(args, depth: float, wls, color):
     channel with ``--average`` and written to ``--save-map`` if given, and its depth index (0)."""
     a = parse_lens_args(args)
     grid = _grid(args.grid, default=(5, 5))
-    _, pmap = _compute_map(a, grid, [depth], wls, args.progress)
+    _, pmap = _compute_map(a, grid, [depth], wls, not args.quiet)
     if args.average:
         pmap = pmap.channel_average(color)
     if args.save_map is not None:

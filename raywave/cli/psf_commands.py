@@ -1,6 +1,6 @@
 """The ``psf`` command: the ray-wave PSF of a hybrid lens (refractive lens + DOE) for one point source.
 
-    raywave psf LENS [--field X [Y]] [--depth Z] [--wavelength W] [--ks N] [-o psf.npy|psf.npz] [--png psf.png]
+    raywave psf LENS [--field Y|X,Y] [--depth Z] [--wavelength W] [--ks N] [-o psf.npy|psf.npz] [--png psf.png]
                 [--log] [--json] [--mode accurate|faithful] [--rays N] [--doe-pitch P] [--doe-size W [H]]
                 [--doe-distance D] [--sensor-pitch P] [--oversample Q]
                 [--doe-levels L] [--doe-wavelength W0] [--doe-material NAME]
@@ -23,18 +23,17 @@ import warnings
 from pathlib import Path
 
 from raywave.cli.errors import (DEVICE_HELP, CommandError, device_arg, integer_arg as _integer, json_dumps,
-                                number_arg as _number, report_warnings)
-from raywave.utils.checks import MAX_WAVELENGTH_UM as _MAX_WAVELENGTH_UM
+                                number_arg as _number, pitch_arg, report_warnings,
+                                wavelength_arg)
+from raywave.cli.fields import add_field_arguments, check_angles, single_field
+from raywave.cli.progress import bar, ticking
 
 OUTPUT_EXTENSIONS = (".npy", ".npz")
 
 
 # ---------------------------------------------------------------------------- argument parsing
-def _wavelength(text: str, flag: str) -> float:
-    w = _number(text, flag, positive=True)
-    if w > _MAX_WAVELENGTH_UM:
-        raise CommandError(f"{flag}: {text} µm is not a plausible wavelength (µm, not nm)")
-    return w
+_wavelength = wavelength_arg
+pitch_option = pitch_arg
 
 
 def parse_doe_options(args) -> dict:
@@ -42,7 +41,7 @@ def parse_doe_options(args) -> dict:
     ``--doe-size``, ``--doe-distance``, ``--sensor-pitch``, ``--oversample``, ``--doe-levels``, ``--doe-wavelength``,
     ``--doe-material``), checked: lengths in mm, wavelengths in µm; absent options are None."""
     out = {}
-    out["doe_pitch"] = None if args.doe_pitch is None else _number(args.doe_pitch, "--doe-pitch", positive=True)
+    out["doe_pitch"] = None if args.doe_pitch is None else pitch_option(args.doe_pitch, "--doe-pitch")
     if args.doe_size is not None:
         if len(args.doe_size) not in (1, 2):
             raise CommandError(f"--doe-size: give W [H] (mm), got {len(args.doe_size)} values")
@@ -52,7 +51,7 @@ def parse_doe_options(args) -> dict:
     out["doe_distance"] = (None if args.doe_distance is None
                            else _number(args.doe_distance, "--doe-distance", nonneg=True))
     out["sensor_pitch"] = (None if args.sensor_pitch is None
-                           else _number(args.sensor_pitch, "--sensor-pitch", positive=True))
+                           else pitch_option(args.sensor_pitch, "--sensor-pitch"))
     out["oversample"] = None if args.oversample is None else _integer(args.oversample, "--oversample")
     out["doe_levels"] = None if args.doe_levels is None else _integer(args.doe_levels, "--doe-levels", minimum=2)
     out["doe_wavelength"] = (None if args.doe_wavelength is None
@@ -74,13 +73,8 @@ def parse_psf_args(args) -> dict:
     except FileNotFoundError as e:
         raise CommandError(str(e)) from None
     out: dict = {"path": path}
-    f = args.field if args.field is not None else ["0", "0"]
-    if len(f) not in (1, 2):
-        raise CommandError(f"--field: give X Y (degrees) or one value Y, got {len(f)} values")
-    vals = [_number(t, "--field") for t in f]
-    out["field"] = (0.0, vals[0]) if len(vals) == 1 else (vals[0], vals[1])
-    if any(abs(v) >= 90 for v in out["field"]):
-        raise CommandError(f"--field: angles must lie within (-90, 90) degrees, got {list(out['field'])}")
+    out["field"] = single_field(args, (0.0, 0.0), "psf")
+    check_angles([out["field"]])
     out["depth"] = None if args.depth is None else _number(args.depth, "--depth", positive=True, allow_inf=True)
     out["wavelength"] = None if args.wavelength is None else _wavelength(args.wavelength, "--wavelength")
     out["ks"] = _integer(args.ks, "--ks")
@@ -137,8 +131,9 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
                      stop_edge=stop_edge, edge_step=edge_step)
     if doe_levels is not None or doe_wavelength is not None or doe_material is not None:
         fabricate_doe(hl, doe_levels, doe_wavelength, doe_material)
-    hl = hl.to(device)
     wl = hl.lens.primary_wavelength if wavelength is None else float(wavelength)
+    check_sources_lit(hl, [field], [wl], depth)  # before the minutes of work a dark PSF would cost
+    hl = hl.to(device)
     with torch.no_grad():
         res = hl.psf_result(fields=tuple(field), wavelengths=wl, ks=ks, depth=depth, mode=mode, rays=rays)
     psf = res.psf[0, 0].detach().cpu()
@@ -161,6 +156,52 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
         "ks": ks,
         "hybrid": hl,
     }
+
+
+def check_sources_lit(hl, fields, wavelengths, depth=None, flag: str = "--field") -> None:
+    """Refuse, before any wave computation, a source (``fields`` (F, 2) degrees × ``wavelengths`` µm) none of whose
+    rays (pupil rim and a hexapolar grid, :func:`raywave.lens.analysis.beam_rays_at`) both pass the lens and land
+    inside the DOE aperture: its PSF would be all zeros after minutes of work (a fully vignetted field, or a beam
+    that misses the DOE)."""
+    import torch
+
+    from raywave.lens.analysis import beam_rays_at
+
+    at, _, wls = beam_rays_at(hl.optics, hl.doe_z(), [list(f) for f in fields], list(wavelengths), depth)
+    xy = at.o[..., :2].detach()
+    ok = at.valid & torch.isfinite(xy).all(-1)
+    w, h = hl.doe.size
+    if hl.doe.aperture == "circle":
+        inside = (xy ** 2).sum(-1) <= (0.5 * min(w, h)) ** 2
+    else:
+        inside = (xy[..., 0].abs() <= 0.5 * w) & (xy[..., 1].abs() <= 0.5 * h)
+    for i, f in enumerate(fields):
+        for j, wl in enumerate(wls):
+            where = f"field ({f[0]:g}, {f[1]:g}) deg at {wl:g} µm"
+            if not bool(ok[i, j].any()):
+                raise CommandError(f"{flag}: {where}: every ray is vignetted by the lens's apertures (no light "
+                                   f"reaches the DOE plane); the lens's fields reach {max(hl.lens.fields):g}")
+            if not bool((ok & inside)[i, j].any()):
+                r = float(xy[i, j][ok[i, j]].norm(dim=-1).min())
+                raise CommandError(f"{flag}: {where}: the beam misses the {w:g}×{h:g} mm DOE aperture (its nearest "
+                                   f"ray lands {r:.3g} mm from the axis on the DOE plane); the lens's fields reach "
+                                   f"{max(hl.lens.fields):g}")
+
+
+#: a PSF whose crop misses more than this fraction of its energy is reported (as ``raywave train`` does)
+CROP_WARN = 0.01
+
+
+class CropWarning(UserWarning):
+    """The PSF crop (``--ks``) misses a notable part of the PSF's energy: its radii are underestimated."""
+
+
+def warn_crop(energy_outside: float, ks: int, what: str) -> None:
+    """Warn (:class:`CropWarning`) when ``energy_outside`` (fraction) exceeds :data:`CROP_WARN`."""
+    if energy_outside > CROP_WARN:
+        warnings.warn(f"{what}: {energy_outside:.1%} of its energy falls outside the {ks}×{ks}-pixel crop, so its RMS "
+                      f"and EE radii (measured in the crop) are underestimated: raise --ks (e.g. --ks {2 * ks})",
+                      CropWarning, stacklevel=2)
 
 
 def fabricate_doe(hl, levels=None, wavelength=None, material=None) -> None:
@@ -265,10 +306,14 @@ def cmd_psf(args) -> int:
         warnings.simplefilter("always")
         # an error leaves its warnings unprinted: the error names the problem in one line (e.g. a vignetted
         # field's VignettingWarning would repeat "no light reaches the sensor")
-        result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
-                             a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"], a["oversample"],
-                             a["doe_levels"], a["doe_wavelength"], a["doe_material"], a["stop_edge"],
-                             a["edge_step"], a["device"])
+        pbar = bar(args, 1, "PSF", "psf")
+        with pbar, ticking(pbar):
+            result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
+                                 a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"],
+                                 a["oversample"], a["doe_levels"], a["doe_wavelength"], a["doe_material"],
+                                 a["stop_edge"], a["edge_step"], a["device"])
+            pbar.update(1)
+        warn_crop(result["energy_outside"], a["ks"], f"the PSF of field ({a['field'][0]:g}, {a['field'][1]:g}) deg")
     report_warnings(caught)
     s = summary(result, str(args.lens))
     wrote = []
@@ -303,8 +348,8 @@ def register(sub) -> None:
         "pixel [ks//2, ks//2] centred on the chief ray, both indices increasing with the coordinate).")
     p.add_argument("lens", help="lens file (.json raywave with an optional \"doe\", .zmx, DeepLens .json) or a "
                                 "bundled lens name (e.g. hybrid_asphere)")
-    p.add_argument("--field", nargs="+", default=None, metavar="DEG",
-                   help="field angle X Y in degrees (one value: Y); OpticStudio signs, +Y images at +y (default 0 0)")
+    add_field_arguments(p, "0, on axis; degrees, OpticStudio signs: +Y images at +y; the older --field X Y is "
+                           "accepted")
     p.add_argument("--depth", default="inf", metavar="MM",
                    help="object distance in mm from the first vertex, or 'inf' (default: inf, a distant object)")
     p.add_argument("--wavelength", default=None, metavar="UM", help="µm (default: the lens's primary wavelength)")

@@ -1,7 +1,7 @@
 """The ``train`` and ``eval`` commands: end-to-end design runs.
 
-    raywave train CONFIG.yaml [-o RUN_DIR] [--set KEY=VALUE ...] [--no-baseline] [--restart] [--max-steps N]
-                  [--nproc N] [--quiet]
+    raywave train CONFIG.yaml [-o RUN_DIR] [--set KEY=VALUE ...] [--no-baseline] [--restart | --resume]
+                  [--max-steps N] [--nproc N] [--quiet]
     raywave eval RUN_DIR [--no-noise] [--quiet]
 
 ``train`` runs (or resumes, from the run folder's latest checkpoint) the stages of CONFIG (see
@@ -15,12 +15,20 @@ stage at N optimizer steps (a quick look). ``--set KEY=VALUE`` (repeatable) over
 ``--set data.root=/data/DIV2K`` (the value is YAML; unknown keys are errors). ``--nproc N`` trains on N local
 gloo processes (the steps of one process, split: :mod:`raywave.training.parallel`); under ``torchrun`` the ranks train together and rank 0
 evaluates. ``eval`` re-evaluates a finished run folder.
+
+A run folder that holds checkpoints of another config (its ``config.yaml`` differs from CONFIG with its
+``--set`` and ``--max-steps``) is refused unless ``--resume`` (continue with the new settings; config.yaml is
+replaced and the changes printed) or ``--restart`` (its checkpoints and logs are removed); a run that continues
+prints "resuming from step N".
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
+import sys
 from pathlib import Path
 
 from raywave.cli.errors import CommandError, integer_arg as _integer, json_dumps
@@ -30,14 +38,19 @@ __all__ = ["register"]
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("train", help="end-to-end design: train lens/DOE + network from a YAML config",
-                              description=__doc__.split("\n\n")[2])
+                              description=plain_text(" ".join(__doc__.split("\n\n")[2:4])))
     p.add_argument("config", help="YAML config (configs/*.yaml)")
     p.add_argument("-o", "--output", help="run folder (default runs/<config name>)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key (repeatable; the value is YAML), e.g. --set data.root=/data/DIV2K")
     p.add_argument("--no-baseline", action="store_true", help="skip the baseline (config key baseline)")
     p.add_argument("--nproc", default=None, metavar="N", help="train on N local gloo processes (CPU)")
-    p.add_argument("--restart", action="store_true", help="ignore existing checkpoints in the run folder")
+    p.add_argument("--restart", action="store_true",
+                   help="start the run folder over: its checkpoints and logs are removed (needed, or --resume, when "
+                        "the config differs from the folder's config.yaml)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run folder's latest checkpoint with this config even where it differs from the "
+                        "folder's config.yaml (which is then replaced; the changes are printed)")
     p.add_argument("--max-steps", default=None, metavar="N", help="cap every stage at N optimizer steps")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_train)
@@ -67,6 +80,108 @@ def _cap(cfg, n: int | None):
     return cfg
 
 
+def plain_text(doc: str) -> str:
+    """A docstring without its Sphinx markup (for ``--help``): ``:mod:`x``` -> ``x``, double back-quotes
+    dropped."""
+    doc = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", doc)
+    return doc.replace("``", "")
+
+
+#: config keys that do not change what a run trains (a changed note is no reason to refuse a folder)
+IGNORED_KEYS = ("note",)
+
+
+def config_changes(old, new, prefix: str = "") -> list[str]:
+    """``"key: old -> new"`` for every setting that differs between two configs (dataclasses or dicts), leaving
+    out :data:`IGNORED_KEYS`."""
+    from raywave.training.config import to_dict
+
+    a = old if isinstance(old, dict) else to_dict(old)
+    b = new if isinstance(new, dict) else to_dict(new)
+    out = []
+    for k in sorted(set(a) | set(b)):
+        if not prefix and k in IGNORED_KEYS:
+            continue
+        va, vb = a.get(k), b.get(k)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += config_changes(va, vb, f"{prefix}{k}.")
+        elif va != vb:
+            out.append(f"{prefix}{k}: {va!r} -> {vb!r}")
+    return out
+
+
+#: what ``--restart`` removes from a run folder and its sub-runs (the run's state; figures and exports are rewritten)
+RUN_STATE = ("checkpoints", "log.jsonl", "warnings.jsonl")
+SUB_RUNS = ("", "baseline", "plain_network", "baseline/plain_network")
+
+
+def _clear_run(run_dir: Path) -> bool:
+    """Remove the run state (:data:`RUN_STATE`) of ``run_dir`` and its sub-runs; True if anything was removed."""
+    removed = False
+    for sub in SUB_RUNS:
+        for name in RUN_STATE:
+            p = run_dir / sub / name
+            if p.is_dir():
+                shutil.rmtree(p)
+                removed = True
+            elif p.is_file():
+                p.unlink()
+                removed = True
+    return removed
+
+
+def resume_position(run_dir: Path) -> tuple[int, str, int] | None:
+    """``(global step, stage, stage step)`` of the run folder's latest checkpoint, or None when it has none."""
+    import torch
+
+    from raywave.training.checkpoint import latest_checkpoint
+
+    ck = latest_checkpoint(run_dir)
+    if ck is None:
+        return None
+    extra = torch.load(ck, map_location="cpu", weights_only=True).get("extra", {})
+    step = int(re.fullmatch(r"step_(\d+)\.pt", ck.name).group(1))
+    return step, str(extra.get("stage", "?")), int(extra.get("stage_step", 0))
+
+
+def prepare_run_folder(run_dir: Path, cfg, restart: bool, resume: bool) -> list[str]:
+    """Check ``cfg`` against the run folder's ``config.yaml`` before anything is written, and return the lines to
+    print. A folder with checkpoints whose config differs is a :class:`CommandError` (naming the changed keys)
+    unless ``restart`` (the run state is removed, :data:`RUN_STATE`) or ``resume`` (the run continues with the
+    new settings, which replace config.yaml); config.yaml is never replaced silently. A run that continues says
+    from which step."""
+    from raywave.training.config import ConfigError, load_config
+
+    if restart and resume:
+        raise CommandError("--restart and --resume exclude each other")
+    lines = []
+    cfg_path = run_dir / "config.yaml"
+    pos = resume_position(run_dir)
+    if restart:
+        if _clear_run(run_dir):
+            lines.append(f"restarting {run_dir}: the previous run's checkpoints and logs were removed")
+        return lines
+    if cfg_path.is_file():
+        try:
+            changes = config_changes(load_config(cfg_path), cfg)
+        except ConfigError as e:
+            changes = [f"the folder's config.yaml does not load ({e})"]
+        if changes and pos is not None and not resume:
+            shown = "; ".join(changes[:6]) + (f"; … ({len(changes)} in all)" if len(changes) > 6 else "")
+            raise CommandError(f"{run_dir} holds a run of another config ({shown}): give --resume to continue it "
+                               "with these settings, --restart to start it over, or another folder (-o)")
+        if changes:
+            why = "continuing with the new settings" if pos is not None else "nothing was trained yet"
+            lines.append(f"{cfg_path} replaced ({why}): " + "; ".join(changes))
+    if pos is not None:
+        step, stage, stage_step = pos
+        if stage == "done":
+            lines.append(f"{run_dir}: the run is finished ({step} steps): evaluating it again")
+        else:
+            lines.append(f"resuming from step {step} ({stage} step {stage_step}) of {run_dir}")
+    return lines
+
+
 def _train(args) -> int:
     from raywave.training.trainer import Trainer
 
@@ -74,6 +189,10 @@ def _train(args) -> int:
     cap = _integer(args.max_steps, "--max-steps", minimum=0) if args.max_steps is not None else None
     cfg = _cap(cfg, cap)
     run_dir = Path(args.output) if args.output else Path("runs") / cfg.name
+    for line in prepare_run_folder(run_dir, cfg, args.restart, getattr(args, "resume", False)):
+        print(line, file=sys.stderr)
+    if cfg.note:
+        print("note: " + " ".join(cfg.note.split()), file=sys.stderr)
     nproc = _integer(args.nproc, "--nproc", minimum=1) if args.nproc is not None else 1
     if nproc > 1 or int(os.environ.get("WORLD_SIZE", "1")) > 1:
         return _train_parallel(args, cfg, run_dir, nproc)

@@ -38,6 +38,7 @@ from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
+from raywave.utils.checks import wavelengths_um
 from raywave.utils.phasor import unit_phasor
 from raywave.utils.safe import safe_div
 from raywave.wave.propagation import (angular_spectrum, integrated_upsampled_intensity, propagate_window,
@@ -366,7 +367,7 @@ class HybridLens(nn.Module):
         model (this engine and :mod:`raywave.models`) reads its ``wavelengths`` argument."""
         if wavelengths is None:
             return [self.lens.primary_wavelength]
-        return [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64, device="cpu").reshape(-1)]
+        return wavelengths_um(torch.as_tensor(wavelengths, dtype=torch.float64, device="cpu"), "wavelengths")
 
     _wavelengths = wavelength_list  # the pre-issue-17 private name
 

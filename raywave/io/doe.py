@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from raywave.io.errors import LensFileError, suggestion
-from raywave.utils.checks import MAX_WAVELENGTH_UM as _MAX_WAVELENGTH_UM
+from raywave.utils.checks import MAX_WAVELENGTH_UM as _MAX_WAVELENGTH_UM, wavelength_problem as _wavelength_problem
 
 #: Keys of the "doe" object.
 DOE_KEYS = ("distance", "pitch", "size", "shape", "aperture", "phase", "design_wavelength", "oversample",
@@ -122,8 +122,7 @@ def validate_doe(v, doe, spec) -> None:
     if "design_wavelength" in doe and doe["design_wavelength"] is not None:
         w = doe["design_wavelength"]
         if v.number(w, path + ("design_wavelength",), positive=True) and w > _MAX_WAVELENGTH_UM:
-            v.err(path + ("design_wavelength",), f"{w!r} µm is not a plausible wavelength: wavelengths are in µm, "
-                                                 "not nm")
+            v.err(path + ("design_wavelength",), _wavelength_problem(w))
     if "oversample" in doe:
         o = doe["oversample"]
         if not (isinstance(o, int) and not isinstance(o, bool) and o >= 1):
@@ -163,8 +162,7 @@ def _validate_phase_model(v, m, path, depth: int = 0) -> None:
         v.number(m["focal_length"], path + ("focal_length",), nonzero=True)
     if "wavelength" in m and v.number(m["wavelength"], path + ("wavelength",), positive=True) \
             and m["wavelength"] > _MAX_WAVELENGTH_UM:
-        v.err(path + ("wavelength",), f"{m['wavelength']!r} µm is not a plausible wavelength: wavelengths are in µm, "
-                                      "not nm")
+        v.err(path + ("wavelength",), _wavelength_problem(m["wavelength"]))
     for k in ("coefficients", "profile"):
         if k in m:
             c = m[k]

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from raywave.io.doe import check_doe_files, validate_doe
 from raywave.io.errors import LensFileError, suggestion
-from raywave.utils.checks import MAX_FIELD_ANGLE, MAX_WAVELENGTH_UM
+from raywave.utils.checks import MAX_FIELD_ANGLE, MAX_WAVELENGTH_UM, wavelength_problem as _wavelength_problem
 
 FORMAT_NAME = "raywave-lens"
 FORMAT_VERSION = 1
@@ -367,9 +367,8 @@ class _Validator:
             self.err(("wavelengths",), "missing 'values' (µm)")
         elif self.number_list(w["values"], ("wavelengths", "values"), positive=True):
             for i, v in enumerate(w["values"]):
-                if v > MAX_WAVELENGTH_UM:
-                    self.err(("wavelengths", "values", i),
-                             f"{v!r} µm is not a plausible wavelength: wavelengths are in µm, not nm")
+                if v > MAX_WAVELENGTH_UM:  # the one wavelength check's message (nm named)
+                    self.err(("wavelengths", "values", i), _wavelength_problem(v))
             if "primary" in w:
                 p = w["primary"]
                 if not _is_int(p):

@@ -11,6 +11,7 @@ from torch import nn
 from raywave.materials.base import Air, Material
 from raywave.rays.bundle import RayBundle
 from raywave.surfaces.surface import Surface
+from raywave.utils.checks import wavelength_um, wavelengths_um
 
 
 #: Rays per chunk when tracing large bundles (see Lens._trace_chunked).
@@ -92,7 +93,7 @@ class Lens(nn.Module):
             from raywave.lens.sources import check_field_angles
 
             check_field_angles(self.fields)
-        self.wavelengths = [float(w) for w in wavelengths]
+        self.wavelengths = wavelengths_um(wavelengths, "the lens's wavelengths")
         if not 0 <= primary < len(self.wavelengths):
             raise ValueError(f"primary wavelength index {primary} out of range for {len(self.wavelengths)} wavelengths")
         self.primary = int(primary)
@@ -531,7 +532,7 @@ class Lens(nn.Module):
         """Paraxial data (EFL, BFL, pupils, ...) at ``wavelength`` (µm, default primary)."""
         from raywave.lens.paraxial import paraxial_data
 
-        return paraxial_data(self, self.primary_wavelength if wavelength is None else wavelength)
+        return paraxial_data(self, self.primary_wavelength if wavelength is None else wavelength_um(wavelength))
 
     def extra_repr(self) -> str:
         od = "inf" if math.isinf(self.object_distance) else f"{self.object_distance:g}"

@@ -26,7 +26,7 @@ import torch
 from raywave.lens import paraxial
 from raywave.rays import pupil as pupil_patterns
 from raywave.rays.bundle import RayBundle
-from raywave.utils.checks import MAX_FIELD_ANGLE
+from raywave.utils.checks import MAX_FIELD_ANGLE, wavelengths_um
 
 AIM_MAX_ITER = 30
 
@@ -275,6 +275,8 @@ def point_source_rays(
     """
     field_type = field_type or lens.field_type
     fields = _as_fields(field, torch.float64, lens.device)
+    if wavelength is not None and not isinstance(wavelength, torch.Tensor):
+        wavelengths_um(wavelength)  # the one wavelength check (a tensor comes from raywave's own code)
     wl = torch.as_tensor(lens.primary_wavelength if wavelength is None else wavelength, dtype=torch.float64,
                          device=lens.device).reshape(-1)
     px, py = _pupil_samples(lens, pupil, generator)

@@ -35,10 +35,15 @@ def plot_spots(lens, path=None, fields=None, wavelengths=None, pupil=("hexapolar
         ax.set_xlim(-lim, lim)
         ax.set_ylim(-lim, lim)
         ax.set_aspect("equal")
-        ax.set_title(f"field {fields[fi]:g}{unit}\nRMS " + ", ".join(f"{r:.3g}" for r in rms[fi]) + " µm", fontsize=9)
+        ax.set_title(f"field {_label(fields[fi])}{unit}\nRMS " + ", ".join(f"{r:.3g}" for r in rms[fi]) + " µm", fontsize=9)
         ax.set_xlabel("x (µm)")
     axes[0][0].set_ylabel("y (µm)")
     axes[0][0].legend(fontsize=7, loc="upper left")
     if path is not None:
         save(fig, path)
     return fig
+
+
+def _label(f) -> str:
+    """A field's label: ``14`` for a y value, ``3,14`` for an (x, y) pair."""
+    return f"{f[0]:g},{f[1]:g}" if isinstance(f, (list, tuple)) else f"{f:g}"

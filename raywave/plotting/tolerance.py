@@ -43,6 +43,15 @@ def _hist(ax, values, nominal=None, xlabel="", title=""):
     ax.legend(fontsize=6)
 
 
+def _suptitle(fig, text: str, fontsize: float = 9) -> None:
+    """``fig.suptitle`` wrapped to the figure's width (a one-panel figure is ~3.8 inches wide: the settings line
+    would be clipped at both ends)."""
+    import textwrap
+
+    chars = max(20, int(fig.get_figwidth() * 72 / (0.55 * fontsize)))  # average glyph ≈ 0.55 em
+    fig.suptitle("\n".join(textwrap.wrap(text, chars)), fontsize=fontsize)
+
+
 def _subtitle(res) -> str:
     tol = "2σ" if res.distribution == "normal" else "uniform"
     return (f"{res.levels} levels, depth ±{res.depth_error:g} %, misalignment ±{res.misalignment:g} px ({tol}), "
@@ -59,7 +68,7 @@ def plot_efficiency_histograms(res, path=None, orders=None):
     for ax, (i, j) in zip(axes, panels):
         _hist(ax, res.efficiency[:, i, j], float(res.nominal_efficiency[i, j]), f"η order {res.orders[j]}",
               f"{res.wavelengths[i]:g} µm")
-    fig.suptitle("diffraction efficiency: " + _subtitle(res), fontsize=9)
+    _suptitle(fig, "diffraction efficiency: " + _subtitle(res))
     if path is not None:
         save(fig, path)
     return fig
@@ -74,7 +83,7 @@ def plot_psf_metric_histograms(res, path=None, wavelength_index: int = 0):
     for ax, name in zip(axes, names):
         _hist(ax, res.psf[name][:, wavelength_index], float(res.nominal_psf_metrics[name][wavelength_index]),
               _PSF_LABELS.get(name, name))
-    fig.suptitle(f"PSF at {res.wavelengths[wavelength_index]:g} µm: " + _subtitle(res), fontsize=9)
+    _suptitle(fig, f"PSF at {res.wavelengths[wavelength_index]:g} µm: " + _subtitle(res))
     if path is not None:
         save(fig, path)
     return fig
@@ -109,7 +118,7 @@ def plot_psf_comparison(res, path=None, log: bool = True, log_range: float = 1e-
             ax.set_ylabel("y − y₀ (µm)", fontsize=8)
             ax.tick_params(labelsize=7)
         fig.colorbar(im, ax=axes[i][1], shrink=0.85, label="fraction of incident power").ax.tick_params(labelsize=7)
-    fig.suptitle(_subtitle(res), fontsize=9)
+    _suptitle(fig, _subtitle(res))
     if path is not None:
         save(fig, path)
     return fig

@@ -233,7 +233,7 @@ class TrainConfig:
     PSFs the baseline's reconstruction is built and trained with: "ray_wave" (the lens's true PSFs: the DOE alone
     is compared) or "paraxial" (the paper's protocol, supplement 2.6: a conventional paraxial pipeline, whose
     Wiener filters and network training use the paraxial model's PSFs, while its images are simulated with the
-    ray-wave model)."""
+    ray-wave model). ``note``: printed when the run starts (what the config does on purpose)."""
 
     name: str = "run"
     seed: int = 0
@@ -250,6 +250,9 @@ class TrainConfig:
     baseline: str = "blank"
     baseline_steps: int = 50
     baseline_reconstruction: str = "ray_wave"
+    #: a sentence the run prints when it starts (``raywave train``): what the config does on purpose that its
+    #: warnings might otherwise make look like a fault (e.g. the aberration demo's DOE clipping its corner fields)
+    note: str = ""
 
 
 # ------------------------------------------------------------------ value rules

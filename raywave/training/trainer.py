@@ -102,6 +102,15 @@ def _check_pixel_doe_memory(shape, pitch: float, file) -> None:
                      "wavefront needs) or lens.doe_distance (a plane where the beams are smaller)", fraction=0.5)
 
 
+def _kind(warning) -> str | None:
+    """The once-per-run key of a warning whose wording varies with its sources (a DOEApertureWarning names one
+    source, or "N sources of this call / map", differently each step): its kind and DOE size; None for the others
+    (keyed by their message with the numbers masked)."""
+    if getattr(warning, "entries", None) is not None and getattr(warning, "size", None) is not None:
+        return f"DOE aperture {tuple(warning.size)}"
+    return None
+
+
 def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
     g = torch.Generator()
     g.manual_seed((int(seed) * 7919 + int(epoch) * 104729 + 17) % (2 ** 62))
@@ -404,6 +413,7 @@ class Trainer(FabricationSchedule, StageSteps):
             with self.surface_warnings():  # sampling / vignetting warnings: once per run, not per step
                 res = psf_map_points(model, fields[ranges[c].start:ranges[c].stop], ctx.draws, self.depths[d],
                                      oc.ks, **kw)
+            self._count_psfs(res.psf.shape[0] * res.psf.shape[1])
             return res.psf, res.center
 
         if wavelengths is not None:
@@ -472,10 +482,13 @@ class Trainer(FabricationSchedule, StageSteps):
             warnings.simplefilter("always")
             yield
         for w in caught:
-            self._warn_once(str(w.message), w.category)
+            self._warn_once(str(w.message), w.category, _kind(w.message))
 
-    def _warn_once(self, message: str, category=UserWarning) -> None:
-        key = (getattr(category, "__name__", str(category)), re.sub(r"[-+]?\d[\d.e+-]*", "#", message))
+    def _warn_once(self, message: str, category=UserWarning, kind: str | None = None) -> None:
+        """Issue ``message`` once per run: warnings of one ``kind`` (default: the message with its numbers masked)
+        and category are shown (and logged to ``warnings.jsonl``) the first time only."""
+        key = (getattr(category, "__name__", str(category)),
+               kind if kind is not None else re.sub(r"[-+]?\d[\d.e+-]*", "#", message))
         if key in self._seen_warnings:
             return
         self._seen_warnings.add(key)
@@ -486,6 +499,28 @@ class Trainer(FabricationSchedule, StageSteps):
         # is given, which here would be the JSON record of the same warning (each warning showed twice)
         warnings.warn_explicit(message, category, str(path), 0)
 
+
+    # ------------------------------------------------------------------ progress inside a step
+    @contextlib.contextmanager
+    def _step_progress(self, stage: str, step: int):
+        """A second tqdm bar (PSFs computed in this step: the forward pass and its replay, each chunk's PSFs) shown
+        while one optimizer step runs, when it takes longer than 2 s: a first step that fills the DOE-field cache
+        computes the whole map and takes minutes (the step bar alone would sit at 0)."""
+        from tqdm.auto import tqdm
+
+        self._psf_bar = tqdm(total=None, unit="PSF", desc=f"  {stage} step {step + 1}: PSFs", leave=False,
+                             position=1, delay=2.0, disable=not self.progress)
+        try:
+            yield
+        finally:
+            self._psf_bar.close()
+            self._psf_bar = None
+
+    def _count_psfs(self, n: int) -> None:
+        """``n`` more PSFs computed in the current step (:meth:`_step_progress`)."""
+        bar = getattr(self, "_psf_bar", None)
+        if bar is not None:
+            bar.update(int(n))
 
     # ------------------------------------------------------------------ the loop
     def _modules(self) -> dict:
@@ -521,19 +556,20 @@ class Trainer(FabricationSchedule, StageSteps):
             else:
                 info = info or {}
             bar = tqdm(total=total, initial=step, desc=f"{'baseline ' if self.baseline else ''}{stage}",
-                       disable=not self.progress)
+                       unit="step", disable=not self.progress)
             while step < total:
                 if stop_after is not None and done_here >= stop_after:
                     bar.close()
                     return {"stage": stage, "step": step}
                 t0 = time.perf_counter()
                 self._fabrication(stage, step)
-                if stage == "pre":
-                    loss = self._pre_step(opt, sched)
-                elif stage == "stage1":
-                    loss = self._stage1_step(step, opt, sched)
-                else:
-                    loss = self._stage2_step(step, opt, sched)
+                with self._step_progress(stage, step):
+                    if stage == "pre":
+                        loss = self._pre_step(opt, sched)
+                    elif stage == "stage1":
+                        loss = self._stage1_step(step, opt, sched)
+                    else:
+                        loss = self._stage2_step(step, opt, sched)
                 if not math.isfinite(loss):
                     raise FloatingPointError(f"{stage} step {step}: the loss is {loss} (check the learning rates)")
                 step += 1

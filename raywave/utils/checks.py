@@ -26,11 +26,59 @@ MAX_FIELD_ANGLE = 90.0
 
 def wavelength_um(w, name: str = "wavelength") -> float:
     """``float(w)`` if it is a wavelength in µm (finite, 0 < λ <= :data:`MAX_WAVELENGTH_UM`), else a ValueError
-    naming ``name`` (and suggesting µm when the number looks like nm)."""
+    naming ``name`` (and, when the number looks like nanometres, the value in µm). The one wavelength check of
+    every entry point: lens construction and paraxial data, the hybrid lens's PSFs, the CLI, the file readers."""
     try:
         v = float(w)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a wavelength in µm, got {w!r}") from None
     if not (math.isfinite(v) and 0 < v <= MAX_WAVELENGTH_UM):
-        raise ValueError(f"{name} must be a wavelength in µm (0 < λ <= {MAX_WAVELENGTH_UM:g}), got {w!r}")
+        hint = ""
+        if math.isfinite(v) and v > MAX_WAVELENGTH_UM:
+            hint = (f": not a plausible wavelength (µm, not nm); it looks like nanometres ({v:g} nm = "
+                    f"{v * 1e-3:g} µm)")
+        raise ValueError(f"{name} must be a wavelength in µm (0 < λ <= {MAX_WAVELENGTH_UM:g}), got {w!r}{hint}")
+    return v
+
+
+def wavelength_problem(w, name: str = "the value") -> str | None:
+    """What :func:`wavelength_um` says about ``w`` (None when it is a wavelength in µm): for validators that collect
+    problems instead of raising (the lens-file readers)."""
+    try:
+        wavelength_um(w, name)
+    except ValueError as e:
+        return str(e)
+    return None
+
+
+def wavelengths_um(ws, name: str = "wavelengths") -> list[float]:
+    """Every wavelength of ``ws`` (a number, a sequence or a tensor, µm) checked by :func:`wavelength_um`, as a
+    list of floats."""
+    if hasattr(ws, "detach"):
+        ws = ws.detach().reshape(-1).tolist()
+    elif isinstance(ws, (str, bytes)):
+        ws = [ws]
+    elif not isinstance(ws, (list, tuple)):
+        try:
+            ws = list(ws)
+        except TypeError:
+            ws = [ws]
+    return [wavelength_um(w, name) for w in ws]
+
+
+#: The largest pixel pitch (mm) raywave accepts for a DOE or a sensor (0.1 mm = 100 µm): a larger number is
+#: almost certainly a pitch in µm given where mm are expected (``--doe-pitch 1`` meaning 1 µm). Defined once here.
+MAX_PITCH_MM = 0.1
+
+
+def pitch_mm(p, name: str = "pitch") -> float:
+    """``float(p)`` if it is a pixel pitch in mm (finite, 0 < p <= :data:`MAX_PITCH_MM`), else a ValueError naming
+    ``name``, mm and µm (a pitch of 1 "mm" is 1000 µm: almost certainly µm given as mm)."""
+    v = positive_float(p, name, "mm")
+    if v > MAX_PITCH_MM:
+        msg = f"{name} is {v:g} mm, larger than any DOE or sensor pixel (at most {MAX_PITCH_MM:g} mm = 100 µm)"
+        if v <= 1e4:  # a number a slip of units explains
+            msg = (f"{name} is {v:g} mm = {v * 1e3:g} µm, larger than any DOE or sensor pixel (at most "
+                   f"{MAX_PITCH_MM:g} mm): pitches are in mm, not µm (did you mean {v * 1e-3:g} mm = {v:g} µm?)")
+        raise ValueError(msg)
     return v

@@ -11,6 +11,7 @@ import torch
 
 from raywave.lens.sources import rays_through
 from raywave.hybrid.coherent.record import _NEWTON_ITERS, _NEWTON_TOL
+from raywave.utils.errors import check_allocation
 
 
 def _trace_uv(lens, uv, field, wavelength, depth, z_doe, field_type, record=False, ep_z=None):
@@ -319,6 +320,9 @@ def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, gr
         return values
     gi = torch.nonzero(good).squeeze(1)
     bi = torch.nonzero(bad).squeeze(1)
+    check_allocation(16.0 * bi.numel() * gi.numel(), f"the node grid's nearest-node fill ({bi.numel()} × "
+                     f"{gi.numel()} distances)", "fewer nodes (rays; raywave: --rays) or a finer DOE pitch "
+                     "(--doe-pitch, in mm: a pitch as large as the beam widens the node grid's margin)", xy.device)
     d = torch.cdist(xy[bi].detach(), xy[gi].detach())
     near = gi[d.argmin(1)]
     filled = values[near].clone()
