@@ -97,18 +97,25 @@ def cmd_layout(args) -> int:
 
 
 def spot_table(lens, fields=None) -> dict:
-    """RMS spot radius (µm) per field and wavelength, about each spot's centroid."""
+    """RMS spot radius (µm) per field and wavelength, about each spot's centroid; ``None`` (JSON null) where every
+    ray is vignetted, and those (field, wavelength) pairs listed under ``"vignetted"``."""
+    import warnings
+
     from raywave.lens.analysis import rms_spot_radius
+    from raywave.lens.sources import VignettingWarning
 
     fields = list(lens.fields) if fields is None else list(fields)
-    with torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", VignettingWarning)  # reported in the table ("vignetted")
         rms = rms_spot_radius(lens, fields, lens.wavelengths)
+    rows = [[None if math.isnan(v) else v * 1e3 for v in row] for row in rms.tolist()]
     return {
         "unit": "um",
         "fields": fields,
         "field_type": lens.field_type,
         "wavelengths": list(lens.wavelengths),
-        "rms_radius": (rms * 1e3).tolist(),
+        "rms_radius": rows,
+        "vignetted": [[f, w] for f, row in zip(fields, rows) for w, v in zip(lens.wavelengths, row) if v is None],
     }
 
 
@@ -123,7 +130,7 @@ def cmd_spot(args) -> int:
         print("RMS spot radius (µm), centroid reference")
         print(f"  {'field (' + unit + ')':>12s}" + "".join(f"{w:>12.4g}" for w in table["wavelengths"]))
         for f, row in zip(table["fields"], table["rms_radius"]):
-            print(f"  {f:>12g}" + "".join(f"{r:>12.4f}" for r in row))
+            print(f"  {f:>12g}" + "".join(f"{'vignetted':>12s}" if r is None else f"{r:>12.4f}" for r in row))
     if args.output:
         from raywave.plotting import plot_spots
 
