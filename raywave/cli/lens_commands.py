@@ -76,13 +76,62 @@ def format_info(info: dict) -> str:
     return "\n".join(lines)
 
 
+def prescription_rows(lens, wavelength=None) -> list[dict]:
+    """The surface table (:func:`raywave.lens.prescription.surface_table`) as JSON-ready dicts."""
+    from dataclasses import asdict
+
+    from raywave.lens.prescription import surface_table
+
+    return [asdict(r) for r in surface_table(lens, wavelength)]
+
+
+def doe_power_info(path, lens, wavelength=None) -> dict | None:
+    """The DOE of the lens file ``path`` (its spec's ``"doe"``): None without one; else a dict with ``"note"`` and,
+    for a BINARY_2 DOE, its paraxial ``power`` (1/mm), ``focal_length`` and the ``efl_with_doe`` (mm)
+    (:func:`raywave.lens.prescription.doe_power`); a phase map's power is not paraxial data (excluded, said so)."""
+    from raywave.io import read_lens_spec
+    from raywave.lens.build import resolve_lens_path
+    from raywave.lens.prescription import doe_power
+
+    doe = read_lens_spec(resolve_lens_path(path)).get("doe")
+    if not doe:
+        return None
+    p = doe_power(lens, doe, wavelength)
+    if p is None:
+        return {"distance": float(doe.get("distance", 0.0)),
+                "note": "the DOE (a phase map) is excluded from the paraxial table: its power is not paraxial data"}
+    return {"distance": p.distance, "wavelength": p.wavelength, "power": p.power, "focal_length": p.focal_length,
+            "efl_with_doe": p.efl,
+            "note": "the paraxial table above is the refractive lens alone; the BINARY_2 DOE's power is added here"}
+
+
+def format_doe_power(d: dict) -> str:
+    lines = [f"DOE plane {d['distance']:g} mm after the last surface: {d['note']}"]
+    if "power" in d:
+        lines.append(f"  {'DOE paraxial power (BINARY_2, order M)':<42s} {d['power']:>14.6g} 1/mm")
+        lines.append(f"  {'DOE focal length':<42s} {d['focal_length']:>14.6f} mm")
+        lines.append(f"  {'Effective focal length, lens + DOE':<42s} {d['efl_with_doe']:>14.6f} mm")
+    return "\n".join(lines)
+
+
 def cmd_info(args) -> int:
+    from raywave.lens.prescription import table
+
     lens = _load(args.lens)
-    info = lens_info(lens, _wavelength(args.wavelength))
+    wl = _wavelength(args.wavelength)
+    info = lens_info(lens, wl)
+    doe = doe_power_info(args.lens, lens, wl)
     if args.json:
-        print(json_dumps({k: info[k] for k in INFO_KEYS}))
+        out = {k: info[k] for k in INFO_KEYS}
+        out["surfaces"] = prescription_rows(lens, wl)
+        if doe is not None:
+            out["doe"] = doe
+        print(json_dumps(out))
     else:
         print(format_info(info))
+        print(table(lens, wl))
+        if doe is not None:
+            print(format_doe_power(doe))
     return 0
 
 
