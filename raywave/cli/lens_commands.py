@@ -85,15 +85,21 @@ def prescription_rows(lens, wavelength=None) -> list[dict]:
     return [asdict(r) for r in surface_table(lens, wavelength)]
 
 
+def lens_file_doe(path) -> dict | None:
+    """The ``"doe"`` section of the lens file (or bundled lens) ``path``, None without one."""
+    from raywave.io import read_lens_spec
+    from raywave.lens.build import resolve_lens_path
+
+    return read_lens_spec(resolve_lens_path(path)).get("doe") or None
+
+
 def doe_power_info(path, lens, wavelength=None) -> dict | None:
     """The DOE of the lens file ``path`` (its spec's ``"doe"``): None without one; else a dict with ``"note"`` and,
     for a BINARY_2 DOE, its paraxial ``power`` (1/mm), ``focal_length`` and the ``efl_with_doe`` (mm)
     (:func:`raywave.lens.prescription.doe_power`); a phase map's power is not paraxial data (excluded, said so)."""
-    from raywave.io import read_lens_spec
-    from raywave.lens.build import resolve_lens_path
     from raywave.lens.prescription import doe_power
 
-    doe = read_lens_spec(resolve_lens_path(path)).get("doe")
+    doe = lens_file_doe(path)
     if not doe:
         return None
     p = doe_power(lens, doe, wavelength)
@@ -140,7 +146,8 @@ def cmd_layout(args) -> int:
     from raywave.plotting import plot_layout
 
     lens = _load(args.lens)
-    plot_layout(lens, args.output, fields=_floats(args.fields), n_rays=integer_arg(args.rays, "--rays"))
+    plot_layout(lens, args.output, fields=_floats(args.fields), n_rays=integer_arg(args.rays, "--rays"),
+                doe=lens_file_doe(args.lens))
     print(f"wrote {args.output}")
     return 0
 
