@@ -14,7 +14,9 @@ INFO_KEYS = {"efl", "efl_real", "bfl", "ffl", "fnum", "epd", "ep_z", "xpd", "xp_
 def test_info_json_keys_and_values(capsys):
     assert main(["info", "cooke_triplet", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert set(info) == INFO_KEYS
+    assert set(info) == INFO_KEYS | {"surfaces"}  # + the prescription (issue 45)
+    assert [r["radius"] for r in info["surfaces"]][:2] == pytest.approx([22.01359, -435.7604])
+    assert [r["stop"] for r in info["surfaces"]] == [False, False, True, False, False, False]
     assert info["efl"] == pytest.approx(50.0, rel=0.02)
     assert info["efl_real"] == pytest.approx(info["efl"], rel=1e-5)
     assert info["epd"] == pytest.approx(10.0, rel=1e-12)
@@ -116,3 +118,30 @@ def test_psf_warns_when_the_crop_misses_energy(capsys):
     assert f"{outside:.1%} of its energy falls outside the 8×8-pixel crop" in err and "--ks 16" in err
     assert main(["--quiet", "psf", "hybrid_asphere", "--ks", "64", "--rays", "16"]) == 0
     assert "outside the" not in capsys.readouterr().err
+
+
+def test_spot_vignetted_field_is_not_zero(capsys):
+    """Issue 45: a fully vignetted field is "vignetted" in the table and null in JSON, never 0.0000."""
+    assert main(["spot", "cooke_triplet", "--fields", "0", "40", "--json"]) == 0
+    table = json.loads(capsys.readouterr().out)
+    assert table["rms_radius"][1] == [None, None, None] and all(v > 1 for v in table["rms_radius"][0])
+    assert [f for f, _ in table["vignetted"]] == [40.0, 40.0, 40.0]
+    assert main(["spot", "cooke_triplet", "--fields", "0", "40"]) == 0
+    out = capsys.readouterr().out
+    assert "vignetted" in out and "0.0000" not in out
+
+
+def test_spot_on_axis_independent_of_other_fields(capsys):
+    """Issue 45: `spot --fields 0,20` and `--fields 0,20,30` print the same on-axis RMS (it used to be 15.87 vs
+    16.32 µm at 0.486 µm: the rim ring passed or not with the batch's rounding)."""
+    rows = []
+    for fields in (["0", "20"], ["0", "20", "30"]):
+        assert main(["spot", "cooke_triplet", "--fields", *fields, "--json"]) == 0
+        rows.append(json.loads(capsys.readouterr().out)["rms_radius"][0])
+    assert rows[0] == pytest.approx(rows[1], abs=1e-9)
+
+
+def test_info_prints_the_prescription(capsys):
+    assert main(["info", "cooke_triplet"]) == 0
+    out = capsys.readouterr().out
+    assert "STO" in out and "N-SK16" in out and "semi-diam" in out

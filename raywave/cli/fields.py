@@ -20,7 +20,7 @@ import sys
 
 from raywave.cli.errors import CommandError, number_arg
 
-__all__ = ["FIELD_HELP", "add_field_arguments", "check_angles", "field_list", "parse_field_groups", "parse_field_list",
+__all__ = ["FIELD_HELP", "add_field_argument", "add_field_arguments", "check_angles", "field_points", "field_list", "parse_field_groups", "parse_field_list",
            "parse_field_token", "single_field"]
 
 FIELD_HELP = ("field point: Y or X,Y in the lens's field unit (degrees for angles), repeatable "
@@ -132,3 +132,14 @@ def check_angles(fields, flag: str = "--field") -> None:
     for f in fields:
         if any(abs(v) >= 90 for v in f):
             raise CommandError(f"{flag}: angles must lie within (-90, 90) degrees, got ({f[0]:g}, {f[1]:g})")
+
+
+def add_field_argument(parser, what: str = "field point") -> None:
+    """``--field`` (repeatable) and ``--fields`` on an analysis command's parser (:func:`add_field_arguments`,
+    defaulting to the lens's own fields along y)."""
+    add_field_arguments(parser, default_help=f"{what}: the lens's fields along y")
+
+
+def field_points(args, lens) -> list[tuple[float, float]]:
+    """The field points of ``--field`` / ``--fields`` (:func:`field_list`), or the lens's own fields along y."""
+    return field_list(args, default=[(0.0, float(f)) for f in lens.fields])

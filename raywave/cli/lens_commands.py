@@ -99,13 +99,68 @@ def format_info(info: dict) -> str:
     return "\n".join(lines)
 
 
+def prescription_rows(lens, wavelength=None) -> list[dict]:
+    """The surface table (:func:`raywave.lens.prescription.surface_table`) as JSON-ready dicts."""
+    from dataclasses import asdict
+
+    from raywave.lens.prescription import surface_table
+
+    return [asdict(r) for r in surface_table(lens, wavelength)]
+
+
+def lens_file_doe(path) -> dict | None:
+    """The ``"doe"`` section of the lens file (or bundled lens) ``path``, None without one."""
+    from raywave.io import read_lens_spec
+    from raywave.lens.build import resolve_lens_path
+
+    return read_lens_spec(resolve_lens_path(path)).get("doe") or None
+
+
+def doe_power_info(path, lens, wavelength=None) -> dict | None:
+    """The DOE of the lens file ``path`` (its spec's ``"doe"``): None without one; else a dict with ``"note"`` and,
+    for a BINARY_2 DOE, its paraxial ``power`` (1/mm), ``focal_length`` and the ``efl_with_doe`` (mm)
+    (:func:`raywave.lens.prescription.doe_power`); a phase map's power is not paraxial data (excluded, said so)."""
+    from raywave.lens.prescription import doe_power
+
+    doe = lens_file_doe(path)
+    if not doe:
+        return None
+    p = doe_power(lens, doe, wavelength)
+    if p is None:
+        return {"distance": float(doe.get("distance", 0.0)),
+                "note": "the DOE (a phase map) is excluded from the paraxial table: its power is not paraxial data"}
+    return {"distance": p.distance, "wavelength": p.wavelength, "power": p.power, "focal_length": p.focal_length,
+            "efl_with_doe": p.efl,
+            "note": "the paraxial table above is the refractive lens alone; the BINARY_2 DOE's power is added here"}
+
+
+def format_doe_power(d: dict) -> str:
+    lines = [f"DOE plane {d['distance']:g} mm after the last surface: {d['note']}"]
+    if "power" in d:
+        lines.append(f"  {'DOE paraxial power (BINARY_2, order M)':<42s} {d['power']:>14.6g} 1/mm")
+        lines.append(f"  {'DOE focal length':<42s} {d['focal_length']:>14.6f} mm")
+        lines.append(f"  {'Effective focal length, lens + DOE':<42s} {d['efl_with_doe']:>14.6f} mm")
+    return "\n".join(lines)
+
+
 def cmd_info(args) -> int:
+    from raywave.lens.prescription import table
+
     lens = _load(args.lens)
-    info = lens_info(lens, _wavelength(args.wavelength))
+    wl = _wavelength(args.wavelength)
+    info = lens_info(lens, wl)
+    doe = doe_power_info(args.lens, lens, wl)
     if args.json:
-        print(json_dumps({k: info[k] for k in INFO_KEYS}))
+        out = {k: info[k] for k in INFO_KEYS}
+        out["surfaces"] = prescription_rows(lens, wl)
+        if doe is not None:
+            out["doe"] = doe
+        print(json_dumps(out))
     else:
         print(format_info(info))
+        print(table(lens, wl))
+        if doe is not None:
+            print(format_doe_power(doe))
     return 0
 
 
@@ -116,24 +171,31 @@ def cmd_layout(args) -> int:
     fields = _y_fields(args, "layout")
     out = png_path(args.output, "layout.png")
     lens = _load(args.lens)
-    plot_layout(lens, out, fields=fields, n_rays=integer_arg(args.rays, "--rays"))
+    plot_layout(lens, out, fields=fields, n_rays=integer_arg(args.rays, "--rays"), doe=lens_file_doe(args.lens))
     print(f"wrote {out}")
     return 0
 
 
 def spot_table(lens, fields=None) -> dict:
-    """RMS spot radius (µm) per field and wavelength, about each spot's centroid."""
+    """RMS spot radius (µm) per field and wavelength, about each spot's centroid; ``None`` (JSON null) where every
+    ray is vignetted, and those (field, wavelength) pairs listed under ``"vignetted"``."""
+    import warnings
+
     from raywave.lens.analysis import rms_spot_radius
+    from raywave.lens.sources import VignettingWarning
 
     fields = list(lens.fields) if fields is None else list(fields)
-    with torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", VignettingWarning)  # reported in the table ("vignetted")
         rms = rms_spot_radius(lens, fields, lens.wavelengths)
+    rows = [[None if math.isnan(v) else v * 1e3 for v in row] for row in rms.tolist()]
     return {
         "unit": "um",
         "fields": fields,
         "field_type": lens.field_type,
         "wavelengths": list(lens.wavelengths),
-        "rms_radius": (rms * 1e3).tolist(),
+        "rms_radius": rows,
+        "vignetted": [[f, w] for f, row in zip(fields, rows) for w, v in zip(lens.wavelengths, row) if v is None],
     }
 
 
@@ -150,7 +212,7 @@ def cmd_spot(args) -> int:
         print(f"  {'field (' + unit + ')':>12s}" + "".join(f"{w:>12.4g}" for w in table["wavelengths"]))
         for f, row in zip(table["fields"], table["rms_radius"]):
             label = f"{f[0]:g},{f[1]:g}" if isinstance(f, (list, tuple)) else f"{f:g}"
-            print(f"  {label:>12s}" + "".join(f"{r:>12.4f}" for r in row))
+            print(f"  {label:>12s}" + "".join(f"{'vignetted':>12s}" if r is None else f"{r:>12.4f}" for r in row))
     if out is not None:
         from raywave.plotting import plot_spots
 

@@ -6,7 +6,7 @@ import argparse
 import os
 import sys
 
-from raywave.cli import compare_commands, doe_commands, imaging_commands, lens_commands, psf_commands
+from raywave.cli import analysis_commands, compare_commands, doe_commands, imaging_commands, lens_commands, psf_commands
 from raywave.cli import train_commands
 from raywave.cli.errors import CommandError
 from raywave.utils.errors import MEMORY_LIMIT_ENV
@@ -14,7 +14,8 @@ from raywave.utils.errors import MEMORY_LIMIT_ENV
 __all__ = ["COMMAND_MODULES", "CommandError", "build_parser", "main"]
 
 #: Modules that add sub-commands: each has ``register(subparsers)``.
-COMMAND_MODULES = [lens_commands, psf_commands, doe_commands, imaging_commands, compare_commands, train_commands]
+COMMAND_MODULES = [lens_commands, analysis_commands, psf_commands, doe_commands, imaging_commands, compare_commands,
+                   train_commands]
 
 
 def build_parser() -> argparse.ArgumentParser:

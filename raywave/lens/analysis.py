@@ -250,10 +250,14 @@ def spot(lens, fields=None, wavelengths=None, pupil=("hexapolar", 6), reference:
 
 
 def rms_spot_radius(lens, fields=None, wavelengths=None, pupil=("hexapolar", 6), reference="centroid") -> torch.Tensor:
-    """RMS spot radius (mm), shape (F, W), over the valid rays of each field and wavelength."""
+    """RMS spot radius (mm), shape (F, W), over the valid rays of each field and wavelength; NaN for a field and
+    wavelength of which every ray is vignetted (no spot: never 0, which would read as a perfect focus). Each field's
+    value is the same whatever other fields share the call (the rim rule, :mod:`raywave.rays.pupil`)."""
     dx, dy, v, _ = spot(lens, fields, wavelengths, pupil, reference)
     w = v.to(dx.dtype)
-    return _sqrt0(((dx * dx + dy * dy) * w).sum(-1) / w.sum(-1).clamp_min(1))
+    n = w.sum(-1)
+    rms = _sqrt0(((dx * dx + dy * dy) * w).sum(-1) / n.clamp_min(1))
+    return torch.where(n > 0, rms, torch.full_like(rms, math.nan))
 
 
 def _sqrt0(x: torch.Tensor) -> torch.Tensor:

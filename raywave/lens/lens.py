@@ -534,6 +534,24 @@ class Lens(nn.Module):
 
         return paraxial_data(self, self.primary_wavelength if wavelength is None else wavelength_um(wavelength))
 
+    def table(self, wavelength: float | None = None) -> str:
+        """The prescription as text: one line per surface (radius, thickness, glass, semi-diameter, conic; the stop
+        marked; aspheric terms below), semi-diameters traced at ``wavelength`` µm (default all the lens's);
+        :mod:`raywave.lens.prescription`."""
+        from raywave.lens.prescription import table  # lazy: prescription traces rays (raywave.lens.sources)
+
+        return table(self, wavelength)
+
+    def __str__(self) -> str:
+        """The prescription (:meth:`table`; ``print(lens)``), without the traced semi-diameters if tracing fails.
+        ``repr(lens)`` stays the module tree (``HybridLens.field_signature`` keys on it)."""
+        try:
+            return self.table()
+        except Exception:  # noqa: BLE001 - a repr must not raise
+            from raywave.lens.prescription import format_table, surface_table
+
+            return format_table(self, surface_table(self, semi_diameters=False))
+
     def extra_repr(self) -> str:
         od = "inf" if math.isinf(self.object_distance) else f"{self.object_distance:g}"
         return f"name={self.name!r}, object_distance={od}, stop={self.stop_index}"

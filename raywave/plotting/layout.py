@@ -88,12 +88,40 @@ def _draw_surfaces(ax, lens, zv, heights) -> None:
         prev = (zp, yp)
 
 
-def plot_layout(lens, path=None, fields=None, n_rays: int = 7, wavelength: float | None = None, ax=None):
+def draw_doe_plane(ax, z: float, half_height: float, label: str = "DOE") -> None:
+    """Draw a DOE plane at ``z`` (mm) across ``±half_height`` (mm): a dashed magenta bar with a label."""
+    ax.plot([z, z], [-half_height, half_height], color="tab:pink", lw=2.0, ls="--", label=label)
+    ax.annotate(label, xy=(z, -half_height), xytext=(0, -11), textcoords="offset points", ha="center", fontsize=8,
+                color="tab:pink")
+
+
+def doe_plane_of(doe: dict, lens) -> tuple[float, float]:
+    """(z mm, half-height mm) of a DOE given as a lens file's ``"doe"`` section (``distance`` mm after the last
+    vertex, ``size`` [w, h] mm; without a size, sized to the beam as the ray-wave engine does)."""
+    z = float(lens.vertex_z()[-1].detach()) + float(doe.get("distance", 0.0))
+    size = doe.get("size")
+    if size is None:
+        from raywave.assembly.build import default_doe_size
+
+        size = default_doe_size(lens, float(doe.get("distance", 0.0)))
+    return z, 0.5 * float(size[1])
+
+
+def plot_hybrid_layout(hl, path=None, fields=None, n_rays: int = 7, wavelength: float | None = None):
+    """:func:`plot_layout` of a :class:`~raywave.hybrid.HybridLens`'s lens with its DOE plane drawn."""
+    return plot_layout(hl.lens, path, fields, n_rays, wavelength,
+                       doe={"distance": hl.doe_distance, "size": list(hl.doe.size)})
+
+
+def plot_layout(lens, path=None, fields=None, n_rays: int = 7, wavelength: float | None = None, ax=None,
+                doe: dict | None = None):
     """Draw the lens section and meridional ray fans; write a PNG if ``path`` is given.
 
     Args:
         fields: field values along y (degrees or mm, as the lens's fields; default: the lens's).
         n_rays: rays per fan.
+        doe: a DOE to draw, as a lens file's ``"doe"`` section (``distance`` mm after the last vertex, ``size``);
+            :func:`plot_hybrid_layout` passes a hybrid lens's.
     Returns the matplotlib figure.
     """
     lens.require_unfolded("plot_layout")
@@ -111,6 +139,8 @@ def plot_layout(lens, path=None, fields=None, n_rays: int = 7, wavelength: float
     # The sensor is drawn to its half-diagonal: field points are radial, so they land within it.
     hi = max(heights) if lens.sensor_size is None else 0.5 * math.hypot(*lens.sensor_size)
     ax.plot([zi, zi], [-hi, hi], color="0.3", lw=2)
+    if doe is not None:
+        draw_doe_plane(ax, *doe_plane_of(doe, lens))
     ax.set_aspect("equal")
     ax.set_xlabel("z (mm)")
     ax.set_ylabel("y (mm)")

@@ -26,6 +26,7 @@ def plot_spots(lens, path=None, fields=None, wavelengths=None, pupil=("hexapolar
     fig, axes = plt.subplots(1, len(fields), figsize=(3.2 * len(fields), 3.9), constrained_layout=True, squeeze=False)
     w = v.astype(float)
     rms = np.sqrt(((dx.numpy() ** 2 + dy.numpy() ** 2) * w).sum(-1) / np.maximum(w.sum(-1), 1)) * 1e3
+    rms = np.where(w.sum(-1) > 0, rms, np.nan)  # a fully vignetted field has no spot (never RMS 0)
     lim = max(float(np.abs(np.concatenate([x[v], y[v]])).max()) if v.any() else 1.0, 1e-3) * 1.1
     unit = "°" if lens.field_type == "angle" else " mm"
     for fi, ax in enumerate(axes[0]):
@@ -35,7 +36,8 @@ def plot_spots(lens, path=None, fields=None, wavelengths=None, pupil=("hexapolar
         ax.set_xlim(-lim, lim)
         ax.set_ylim(-lim, lim)
         ax.set_aspect("equal")
-        ax.set_title(f"field {_label(fields[fi])}{unit}\nRMS " + ", ".join(f"{r:.3g}" for r in rms[fi]) + " µm", fontsize=9)
+        ax.set_title(f"field {_label(fields[fi])}{unit}\nRMS " + ", ".join("vignetted" if np.isnan(r) else f"{r:.3g}"
+                                                                for r in rms[fi]) + " µm", fontsize=9)
         ax.set_xlabel("x (µm)")
     axes[0][0].set_ylabel("y (µm)")
     axes[0][0].legend(fontsize=7, loc="upper left")

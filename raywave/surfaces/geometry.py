@@ -109,6 +109,10 @@ class Standard(Geometry):
     def paraxial_curvature(self):
         return self.curvature
 
+    def extra_repr(self) -> str:
+        c = float(self.curvature.detach())
+        return f"radius={'inf' if c == 0 else f'{1.0 / c:.8g}'}, conic={float(self.conic.detach()):.8g}"
+
     def in_domain(self, x, y):
         c, k = self.curvature, self.conic
         return 1.0 - (1.0 + k) * c * c * (x * x + y * y) >= 0

@@ -11,6 +11,7 @@ import torch
 from raywave.lens.analysis import fold_fraction, pupil_grid
 from raywave.lens.sources import (VignettingWarning, chief_pupil, entrance_plane_z, point_source_rays,
                                   source_weight)
+from raywave.rays.pupil import RIM_INSET  # the footprint's rim a hair inside the stop: the engine's one rim rule
 from raywave.utils.errors import check_allocation
 from raywave.wave.grid import Grid
 from raywave.hybrid.coherent.record import DOEField, SamplingWarning
@@ -54,8 +55,6 @@ def _footprint(lens, field, wavelength, depth, z_doe: float, n_grid: int = 15, n
                       virtual)[0][0]
 
 
-#: the footprint's pupil samples, relative to the stop's radius (the rim a hair inside it: :func:`footprints`)
-RIM_INSET = 1.0 - 1e-9
 
 
 def footprints(lens, fields, wavelengths, depth, z_doe: float, n_grid: int = 15, n_rim: int = 72,
