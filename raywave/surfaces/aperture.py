@@ -179,6 +179,24 @@ class Aperture(nn.Module):
         """How far the decentre moves the aperture from the axis (mm)."""
         return float(torch.linalg.vector_norm(self.decenter)) if self.decentered else 0.0
 
+    def blocked_by(self, x: float, y: float) -> str | None:
+        """What of this aperture blocks the point (x, y) mm (local frame), in words, or None when it passes: its
+        obscuration (e.g. "its central obscuration (circle of radius 2 mm)") or its clear region."""
+        xt = torch.tensor([float(x)], dtype=torch.float64, device=self.decenter.device if self.decentered else None)
+        yt = torch.tensor([float(y)], dtype=torch.float64, device=xt.device)
+        u, v = self._local(xt, yt)
+        if self.obscuration is not None and bool(self.obscuration.blocks(u, v)[0]):
+            o = self.obscuration.to_spec()
+            central = not any(o.get("decenter", [0.0, 0.0])) and not self.decentered and o["shape"] != "annulus"
+            size = {"circle": f"circle of radius {o.get('radius', 0):g} mm",
+                    "annulus": f"ring {o.get('inner_radius', 0):g}–{o.get('radius', 0):g} mm",
+                    "rectangle": f"rectangle {2 * o.get('half_width_x', 0):g} × {2 * o.get('half_width_y', 0):g} mm"}
+            return (f"its {'central ' if central else ''}obscuration ({size[o['shape']]}"
+                    f"{', decentred ' + str(o['decenter']) + ' mm' if 'decenter' in o else ''})")
+        if not bool(self._contains(u, v)[0]):
+            return f"its clear aperture ({self.to_spec()})"
+        return None
+
     def stop_edge_refusal(self) -> str | None:
         """Why the ray-wave engine's stop-edge construction cannot use this aperture as the stop (it samples the
         stop's rim as a circle about the axis), or None for a centred circle."""
