@@ -104,7 +104,8 @@ def real_ray_info(lens, wavelength: float | None = None) -> dict:
     from raywave.lens.sources import _newton_aim, rays_through
 
     wl = lens.primary_wavelength if wavelength is None else float(wavelength)
-    fields = torch.tensor([[0.0, float(f)] for f in lens.fields], dtype=torch.float64, device=lens.device)
+    fields = torch.tensor([[0.0, float(f)] for f in (list(lens.fields) or [0.0])], dtype=torch.float64,
+                          device=lens.device)
     r = lens.stop_radius()
     target = torch.tensor([[0.0, 0.0], [r, 0.0], [-r, 0.0], [0.0, r], [0.0, -r]], dtype=torch.float64,
                           device=lens.device).expand(len(fields), 1, 5, 2)
@@ -119,7 +120,7 @@ def real_ray_info(lens, wavelength: float | None = None) -> dict:
         n_img = float(lens.surfaces[-1].material.n(wl))
     fnum = 1.0 / (2.0 * n_img * float(sin_t.mean())) if bool(ok[0, 0].all()) else math.nan
     chief = [[float(v) for v in out.o[i, 0, 0, :2]] if bool(ok[i, 0, 0]) else None for i in range(len(fields))]
-    return {"name": lens.name, "wavelength": wl, "fields": [float(f) for f in lens.fields],
+    return {"name": lens.name, "wavelength": wl, "fields": [float(f[1]) for f in fields],
             "field_type": lens.field_type, "chief_image_xy": chief, "fnum_real": fnum}
 
 
