@@ -182,8 +182,9 @@ class Aperture(nn.Module):
     def blocked_by(self, x: float, y: float) -> str | None:
         """What of this aperture blocks the point (x, y) mm (local frame), in words, or None when it passes: its
         obscuration (e.g. "its central obscuration (circle of radius 2 mm)") or its clear region."""
-        xt = torch.tensor([float(x)], dtype=torch.float64, device=self.decenter.device if self.decentered else None)
-        yt = torch.tensor([float(y)], dtype=torch.float64, device=xt.device)
+        dev = next(self.buffers()).device  # the aperture's (the lens's) device
+        xt = torch.tensor([float(x)], dtype=torch.float64, device=dev)
+        yt = torch.tensor([float(y)], dtype=torch.float64, device=dev)
         u, v = self._local(xt, yt)
         if self.obscuration is not None and bool(self.obscuration.blocks(u, v)[0]):
             o = self.obscuration.to_spec()
