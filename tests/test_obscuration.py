@@ -251,16 +251,23 @@ def test_zmx_decentre_annulus_and_rectangle(tmp_path):
     ann = _read(tmp_path, "a.zmx", _ZMX.format(obs="  CLAP 2.0 6.0 0"))
     assert ann["surfaces"][0]["aperture"] == {"shape": "circle", "radius": 6.0,
                                               "obscuration": {"shape": "circle", "radius": 2.0}}
-    with pytest.raises(LensFileError, match="annular obscuration"):
-        _read(tmp_path, "b.zmx", _ZMX.format(obs="  OBSC 1.0 2.0"))
-    with pytest.raises(LensFileError, match="decentred aperture"):
-        _read(tmp_path, "c.zmx", _ZMX.format(obs="  CLAP 0 6.0 0\n  OBDC 0.5 0"))
+    # issue 44: an annular obscuration (a ring), a decentred clear aperture, a rectangle of unequal half widths
+    ring = _read(tmp_path, "b.zmx", _ZMX.format(obs="  OBSC 1.0 2.0"))
+    assert ring["surfaces"][0]["aperture"] == {"shape": "none", "obscuration": {"shape": "annulus",
+                                                                                "inner_radius": 1.0, "radius": 2.0}}
+    dec = _read(tmp_path, "c.zmx", _ZMX.format(obs="  CLAP 0 6.0 0\n  OBDC 0.5 0"))
+    assert dec["surfaces"][0]["aperture"] == {"shape": "circle", "radius": 6.0, "decenter": [0.5, 0.0]}
+    rect = _read(tmp_path, "e.zmx", _ZMX.format(obs="  SQAP 4.24 1.92"))
+    assert rect["surfaces"][0]["aperture"] == {"shape": "rectangle", "half_width_x": 4.24, "half_width_y": 1.92}
+    with pytest.raises(LensFileError, match="OBSC minimum radius 3.0 must be >= 0 and < the maximum radius 2.0"):
+        _read(tmp_path, "f.zmx", _ZMX.format(obs="  OBSC 3.0 2.0"))
 
 
 def test_zmx_write_read_round_trip(tmp_path):
     from raywave.io import write_lens_spec
 
-    for obs in ("  OBSC 0 2.0\n  OBDC 0.5 -0.25", "  CLAP 2.0 6.0 0", "  OBSQ 1.5 0.5"):
+    for obs in ("  OBSC 0 2.0\n  OBDC 0.5 -0.25", "  CLAP 2.0 6.0 0", "  OBSQ 1.5 0.5", "  OBSC 1.0 2.0",
+                "  SQAP 4.24 1.92\n  OBDC 0.5 -0.25", "  CLAP 0 6.0 0\n  OBDC 0.5 0"):
         spec = _read(tmp_path, "r.zmx", _ZMX.format(obs=obs))
         write_lens_spec(spec, tmp_path / "w.zmx")
         back = read_lens_spec(tmp_path / "w.zmx")

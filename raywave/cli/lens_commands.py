@@ -79,9 +79,16 @@ def lens_info(lens, wavelength: float | None = None) -> dict:
 
     p = lens.paraxial(wavelength)
     d = p.as_dict()
-    with torch.no_grad():
-        d["efl_real"] = float(real_ray_efl(lens, wavelength))
+    notes = []
+    try:
+        with torch.no_grad():
+            d["efl_real"] = float(real_ray_efl(lens, wavelength))
+    except ValueError as err:  # e.g. a central obscuration blocks the near-axis ray: say so, print the rest
+        d["efl_real"] = math.nan
+        notes.append(f"real-ray EFL: {err}")
     out = {k: d[k] for k in INFO_KEYS}
+    if notes:
+        out["notes"] = notes
     out.update({k: d[k] for k in ("working_fnum", "image_z_paraxial", "wavelength")})
     out["name"] = lens.name
     out["section"] = p.section
@@ -95,7 +102,61 @@ def format_info(info: dict) -> str:
     for k in INFO_KEYS + ["working_fnum", "image_z_paraxial"]:
         label, unit = INFO_LABELS[k]
         v = info[k]
-        lines.append(f"  {label:<42s} {v:>14.6f} {unit}" if math.isfinite(v) else f"  {label:<42s} {'inf':>14s} {unit}")
+        shown = "n/a" if math.isnan(v) else "inf"
+        lines.append(f"  {label:<42s} {v:>14.6f} {unit}" if math.isfinite(v) else f"  {label:<42s} {shown:>14s} {unit}")
+    lines += [f"  note: {n}" for n in info.get("notes", [])]
+    return "\n".join(lines)
+
+
+def _no_paraxial_reason(lens, wavelength) -> str | None:
+    """Why a tilted or decentred lens has no paraxial data (the paraxial trace's own message), or None."""
+    if not lens.is_folded:
+        return None
+    try:
+        lens.paraxial(wavelength)
+    except ValueError as err:
+        return str(err)
+    return None
+
+
+def real_ray_info(lens, wavelength: float | None = None) -> dict:
+    """What real rays say of a lens without paraxial data (tilted or decentred): per field the chief ray's image
+    point (x, y mm in the image plane's frame) and, for the first field, the real-ray working F/# 1 / (2 n' sin θ')
+    from the four marginal rays through the stop's rim (±x, ±y), θ' their mean angle to the chief ray in image space.
+    Rays are aimed at the stop by Newton iteration from the first vertex plane (no paraxial pupil)."""
+    from raywave.lens.sources import _newton_aim, rays_through
+
+    wl = lens.primary_wavelength if wavelength is None else float(wavelength)
+    fields = torch.tensor([[0.0, float(f)] for f in (list(lens.fields) or [0.0])], dtype=torch.float64,
+                          device=lens.device)
+    r = lens.stop_radius()
+    target = torch.tensor([[0.0, 0.0], [r, 0.0], [-r, 0.0], [0.0, r], [0.0, -r]], dtype=torch.float64,
+                          device=lens.device).expand(len(fields), 1, 5, 2)
+    wls = torch.tensor([wl], dtype=torch.float64, device=lens.device)
+    with torch.no_grad():
+        uv, ok = _newton_aim(lens, target.clone(), target, fields, lens.field_type, wls, 1e-6 * max(r, 1.0), ep_z=0.0)
+        out = lens.image_coordinates(lens.trace_to_image(rays_through(lens, uv, fields, lens.field_type, wls,
+                                                                      ep_z=0.0)))
+        ok = ok & out.valid
+        d = out.d[0, 0]
+        sin_t = torch.linalg.vector_norm(torch.linalg.cross(d[1:], d[:1].expand(4, 3)), dim=-1)
+        n_img = float(lens.surfaces[-1].material.n(wl))
+    fnum = 1.0 / (2.0 * n_img * float(sin_t.mean())) if bool(ok[0, 0].all()) else math.nan
+    chief = [[float(v) for v in out.o[i, 0, 0, :2]] if bool(ok[i, 0, 0]) else None for i in range(len(fields))]
+    return {"name": lens.name, "wavelength": wl, "fields": [float(f[1]) for f in fields],
+            "field_type": lens.field_type, "chief_image_xy": chief, "fnum_real": fnum}
+
+
+def format_real_ray_info(info: dict, reason: str) -> str:
+    unit = "deg" if info["field_type"] == "angle" else "mm"
+    lines = [f"{info.get('name') or 'lens'} at {info['wavelength']:g} µm: no paraxial data", f"  ({reason})",
+             "  Real rays (chief rays aimed at the stop's centre):",
+             f"  {'field (' + unit + ')':>14s} {'image x (mm)':>14s} {'image y (mm)':>14s}"]
+    for f, xy in zip(info["fields"], info["chief_image_xy"]):
+        lines.append(f"  {f:>14g} " + (f"{xy[0]:>14.6f} {xy[1]:>14.6f}" if xy else f"{'vignetted':>29s}"))
+    fn = info["fnum_real"]
+    lines.append(f"  {'Real-ray working F/# (first field)':<42s} " + (f"{fn:>14.6f}" if math.isfinite(fn) else
+                                                                        f"{'n/a':>14s}"))
     return "\n".join(lines)
 
 
@@ -148,6 +209,11 @@ def cmd_info(args) -> int:
 
     lens = _load(args.lens)
     wl = _wavelength(args.wavelength)
+    reason = _no_paraxial_reason(lens, wl)
+    if reason is not None:  # tilted / decentred: what real rays tell
+        info = real_ray_info(lens, wl)
+        print(json_dumps(dict(info, paraxial=None, reason=reason)) if args.json else format_real_ray_info(info, reason))
+        return 0
     info = lens_info(lens, wl)
     doe = doe_power_info(args.lens, lens, wl)
     if args.json:

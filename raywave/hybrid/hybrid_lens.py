@@ -352,6 +352,15 @@ class HybridLens(nn.Module):
         :class:`StopEdgeWarning` and uses the DOE-plane edge; an explicit ``stop_edge="exit_pupil"`` raises)."""
         if self.stop_edge != "exit_pupil":
             return None
+        stop_ap = self.lens.surfaces[self.lens.stop_index].aperture
+        refusal = stop_ap.stop_edge_refusal() if stop_ap is not None else None
+        if refusal is not None:  # a rectangular or decentred stop (issue 44): its rim is no circle about the axis
+            if self._edge_requested is not None:
+                raise ValueError(f"stop_edge='exit_pupil': {refusal}; use stop_edge='doe' (the edge cut on the DOE "
+                                 "plane honours any aperture)")
+            warnings.warn(f"{refusal}: the stop's edge is formed on the DOE plane (stop_edge='doe') instead of the "
+                          "default exit pupil", StopEdgeWarning, stacklevel=4)
+            return None
         try:
             return [self.exit_pupil_z(wl) for wl in wls]
         except _PupilAtInfinity:

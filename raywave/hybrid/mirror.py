@@ -17,7 +17,7 @@ from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.record import DOEField, FieldInfo
 
 #: aperture shapes (``Aperture.shape``) symmetric under x → −x and y → −y about the axis (with a centred obscuration)
-_SYMMETRIC_APERTURES = ("circle", "square", "none")
+_SYMMETRIC_APERTURES = ("circle", "square", "rectangle", "none")
 #: two sources are mirror images when their coordinates agree (up to the sign of a mirrored one) to this times the
 #: largest ``|x|`` or ``|y|`` asked for (1 at least): a map's grid names its mirror-image nodes to ~1e-14 of the
 #: field (its chief-ray angles are solved per node), and the PSF moves by far less than rounding over such a distance
@@ -29,6 +29,8 @@ def _aperture_symmetric(ap, axis: int) -> bool:
     if ap is None:
         return True
     if getattr(ap, "shape", None) not in _SYMMETRIC_APERTURES:
+        return False
+    if getattr(ap, "decentered", False) and float(ap.decenter[axis]) != 0.0:  # a decentred aperture (OBDC)
         return False
     obs = getattr(ap, "obscuration", None)
     return obs is None or float(obs.decenter[axis]) == 0.0

@@ -4,11 +4,15 @@ What is read (docs/lens-format.md, "CODE V .seq"): ``RDM`` (radius mode; ``RDM N
 ``DIM`` (M / C / I), the pupil (``EPD``, ``FNO`` = image-space F/#, ``NAO`` = object-space NA), ``WL`` (nm),
 ``REF``, fields ``XAN`` / ``YAN`` (degrees) or ``XOB`` / ``YOB`` (object heights), and the surfaces ``SO`` (object:
 its thickness is the object distance, ≥ 1e10 = infinity), ``S`` (radius, thickness, glass), ``STO`` (the stop:
-as a surface line, or alone after one), ``SI`` (image), with the qualifiers ``K`` (conic), ``A`` … ``J`` (aspheric
-terms on r⁴ … r²⁰), ``CUY`` / ``RDY`` (curvature / radius, replacing the surface line's), ``SLB`` (label → comment) and ``CIR`` (clear aperture → semi-diameter; ``CIR OBS r``: a central circular
-obscuration, ``CIR Sk ...`` addresses surface k). Glasses:
+as a surface line, or alone after one), ``SI`` (image; its thickness is a defocus: the image plane sits that far
+beyond the last surface's thickness, as CODE V and rayoptics read it), with the qualifiers ``K`` (conic), ``A`` … ``J`` (aspheric
+terms on r⁴ … r²⁰), ``CUY`` / ``RDY`` (curvature / radius, replacing the surface line's), ``SLB`` (label → comment) and the apertures (:func:`_aperture_command`; ``Sk`` addresses surface k): ``CIR r``
+(clear aperture → semi-diameter), ``CIR OBS r`` (a circular obscuration; with ``CIR HOL r0`` inside it an annular
+obscuration), ``REX`` / ``REY`` (a rectangular clear aperture, a real aperture; with ``OBS`` a rectangular
+obscuration), ``ADX`` / ``ADY`` (the clear aperture's decentre, a decentred CIR becoming a real aperture; with
+``OBS`` the obscuration's). Glasses:
 ``NAME_CATALOG`` (CODE V writes vendor names without hyphens: NBK7_SCHOTT is N-BK7, resolved when the lens is
-built), a bare name, ``nd:vd`` and six-digit codes ``NNNVVV`` (model glasses). A mirror is ``REFL`` as the glass (the
+built), a bare name, ``nd:vd`` and glass codes ``NNNVVV``, ``NNNVVV.DDD``, ``NNNNNN.VVVVVV`` (model glasses, :func:`_glass_code`). A mirror is ``REFL`` as the glass (the
 medium after it is the one before it; CODE V, like OpticStudio, writes the thicknesses after it negative).
 Surface decentres and tilts (``XDE`` / ``YDE`` / ``ZDE`` lens units, ``ADE`` / ``BDE`` / ``CDE`` degrees, optional
 ``Sk``) with CODE V's basic decentre or ``DAR`` / ``BEN`` / ``REV`` become coordinate breaks around the surface
@@ -42,7 +46,7 @@ INFINITE_DISTANCE = 1e10
 #: Commands skipped on purpose (weights, vignetting, solves, variables, bookkeeping).
 IGNORED = {"LEN", "INI", "WTW", "WTF", "VUX", "VLX", "VUY", "VLY", "VCX", "VCY", "TEM", "PRE", "GO", "CWL", "DDM",
            "DES", "CCY", "THC", "GLC", "PIM", "SPH", "CON", "ASP", "RSU", "EDG", "SELECT", "END", "PRV", "PWL", "DEL",
-           "AFO", "RMD", "HOT", "ZOO", "REX", "REY", "PWR", "CCA", "CCB", "CCC", "CCD", "CCE", "CCK",
+           "AFO", "RMD", "HOT", "ZOO", "PWR", "CCA", "CCB", "CCC", "CCD", "CCE", "CCK",
            "CCF", "CCG", "CCH", "CCJ", "TLE", "DNP", "NAM", "LNG", "XRI", "YRI", "HWL", "HOR", "HCT",
            "HCO", "OBS"}
 #: Commands raywave cannot model, and what they are.
@@ -52,39 +56,54 @@ UNSUPPORTED = {
     "YIM": "image-height field", "XRI": "real image-height field", "YRI": "real image-height field",
     "UDS": "user-defined surface", "HOE": "holographic surface", "GRT": "grating",
     "DIF": "diffractive surface",  # its HWL / HOR / HCT / HCO data mean nothing without it (skipped)
-    "ADX": "aperture decentre", "ADY": "aperture decentre",
+    "ELX": "elliptical aperture", "ELY": "elliptical aperture", "POL": "polygon aperture",
 }
-#: Commands that take effect only when non-zero (a zero aperture decentre is written by some exports).
-_ZERO_OK = {"ADX", "ADY"}
+#: Commands that take effect only when non-zero.
+_ZERO_OK: set = set()
 #: Surface decentre values (XDE, YDE, ZDE in lens units; ADE, BDE, CDE in degrees) and decentre types.
 DECENTRE_VALUES = {"XDE": "x", "YDE": "y", "ZDE": "z", "ADE": "a", "BDE": "b", "CDE": "c"}
 DECENTRE_TYPES = {"DAR": "decentre and return", "BEN": "bend", "REV": "reverse decentre"}
 _SURFACE_STARTS = ("SO", "S", "STO", "SI")
 
 
-def _circle(surfs: list, cur: dict, where: str, args: list, ln: int, err) -> None:
-    """A ``CIR [Sk] [OBS] r`` qualifier: the clear aperture radius (-> semi-diameter) or, with ``OBS``, a central
-    circular obscuration of radius r, of surface k (``Sk``) or of the current surface."""
-    target = cur
-    rest = []
-    for a in args:
-        if re.fullmatch(r"[Ss]\d+", a):
-            k = int(a[1:])
-            if not 0 < k < len(surfs):
-                raise err(f"{where}: CIR {' '.join(args)}: no surface {k}", ln)
-            target, where = surfs[k], f"surface {k}"
-        else:
-            rest.append(a)
+#: CODE V aperture commands (a qualifier of a surface, or of surface k with ``Sk``): the shape or decentre and,
+#: after an optional ``OBS`` / ``HOL`` / ``EDG`` keyword, the value. ``EDG`` (a mechanical edge) is read past.
+APERTURE_COMMANDS = ("CIR", "REX", "REY", "ADX", "ADY", "ARO")
+_APERTURE_KINDS = {"OBS": "obs", "HOL": "hol", "EDG": "edg"}
+
+
+def _aperture_command(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int, err) -> None:
+    """A ``CIR`` / ``REX`` / ``REY`` / ``ADX`` / ``ADY`` / ``ARO`` qualifier ``cmd [Sk] [OBS|HOL|EDG] value`` of
+    surface k (``Sk``) or of the current surface. Kept on the surface record: ``cir`` (a clear circle: the
+    semi-diameter), ``obs`` / ``hol`` (a circular obscuration, and a hole in it: an annular obscuration),
+    ``rect`` / ``rect_obs`` (``{"x": half width, "y": ...}`` of a clear / obscuring rectangle), ``dec`` / ``dec_obs``
+    (the clear aperture's / the obscuration's decentre [x, y]); the line in ``ap_line``."""
+    target, where, rest = _addressed(surfs, cur, where, cmd, args, ln, err)
     vals = [float(a) for a in rest if _number(a)]
     words = [a.upper() for a in rest if not _number(a)]
-    if not vals:
-        raise err(f"{where}: CIR {' '.join(args)}: needs a radius", ln)
-    if "OBS" in words:
-        if not vals[0] > 0:
-            raise err(f"{where}: CIR {' '.join(args)}: the obscuration radius must be > 0", ln)
-        target["obs"] = vals[0]
+    kind = next((_APERTURE_KINDS[w] for w in words if w in _APERTURE_KINDS), "clear")
+    bad = [w for w in words if w not in _APERTURE_KINDS]
+    if bad or len(vals) != 1 or not math.isfinite(vals[0]):
+        raise err(f"{where}: {cmd} {' '.join(args)}: needs one finite number (after an optional OBS, HOL or EDG)",
+                  ln)
+    v = vals[0]
+    target.setdefault("ap_line", ln)
+    if kind == "edg":
+        return  # the mechanical edge: drawing only
+    if cmd == "ARO":
+        if v != 0.0:
+            raise err(f"{where}: ARO {' '.join(args)}: a rotated aperture is not supported by raywave", ln)
+        return
+    if cmd in ("ADX", "ADY"):
+        dec = target.setdefault("dec_obs" if kind in ("obs", "hol") else "dec_ap", [0.0, 0.0])
+        dec[0 if cmd == "ADX" else 1] = v
+        return
+    if not v > 0:
+        raise err(f"{where}: {cmd} {' '.join(args)}: the aperture size must be > 0", ln)
+    if cmd == "CIR":
+        target["cir" if kind == "clear" else kind] = v
     else:
-        target["cir"] = vals[0]
+        target.setdefault("rect" if kind == "clear" else f"rect_{kind}", {})[cmd[-1].lower()] = v
 
 
 def _addressed(surfs: list, cur: dict, where: str, cmd: str, args: list, ln: int, err):
@@ -233,6 +252,26 @@ def _nm_to_um(tok: str, path, ln) -> float:
         raise LensFileError(f"WL: {tok!r} is not a number", path, ln) from None
 
 
+def _glass_code(t: str, where: str, path, ln) -> tuple[float, float] | None:
+    """``(nd, vd)`` of a glass code, or None when ``t`` is not one: ``NNNVVV`` (nd 1.NNN, vd VV.V), SCHOTT's
+    ``NNNVVV.DDD`` (DDD: the density, ignored) and CODE V's fine code ``NNNNNN.VVVVVV`` (six digits after the point:
+    nd 1.NNNNNN, vd VV.VVVV; ``517000.520000`` is nd 1.517, vd 52). The same rules as
+    :func:`raywave.materials.codes.parse_glass_code` (io may not import materials). Never vd = 0: a code whose Abbe
+    digits are zero is an error naming it."""
+    m = re.fullmatch(r"(\d{3})(\d{3})(?:\.\d{3})?", t)
+    if m:
+        nd, vd = 1.0 + int(m.group(1)) / 1000.0, int(m.group(2)) / 10.0
+    else:
+        m = re.fullmatch(r"(\d{6})\.(\d{4,})", t)
+        if not m:
+            return None
+        nd, vd = 1.0 + int(m.group(1)) / 1e6, float("0." + m.group(2)) * 100.0
+    if not vd > 0:
+        raise LensFileError(f"{where}: glass code {t!r} has Abbe number vd = 0 (NNNVVV, NNNVVV.DDD or CODE V's "
+                            "NNNNNN.VVVVVV: nd 1.NNNNNN, vd VV.VVVV)", path, ln)
+    return nd, vd
+
+
 def _glass(tok: str, where: str, path, ln):
     """A CODE V glass token -> spec material."""
     t = tok.strip("'\"")
@@ -244,11 +283,9 @@ def _glass(tok: str, where: str, path, ln):
     m = re.fullmatch(r"(\d+\.\d+):(\d+\.?\d*)", t)
     if m:
         return {"model": {"nd": float(m.group(1)), "vd": float(m.group(2))}}
-    if re.fullmatch(r"\d{6}", t):
-        return {"model": {"nd": 1.0 + int(t[:3]) / 1000.0, "vd": int(t[3:]) / 10.0}}
-    if re.fullmatch(r"\d{6}\.\d+", t):  # NNNVVV.vvvv: nd 1.NNN..., vd VV.V... (finer code)
-        nd_s, vd_s = t[:3] + t[7:11], t[3:6]
-        return {"model": {"nd": 1.0 + int(nd_s[:3]) / 1000.0, "vd": int(vd_s) / 10.0}}
+    code = _glass_code(t, where, path, ln)
+    if code is not None:
+        return {"model": {"nd": code[0], "vd": code[1]}}
     if "_" in t:
         name, cat = t.rsplit("_", 1)
         if name and cat:
@@ -409,8 +446,8 @@ def _qualifier(st: _Seq, cur: dict, cmd: str, args: list, ln: int) -> bool:
     if cmd == "SLB":
         cur["label"] = " ".join(args).strip("'\"")
         return True
-    if cmd == "CIR":
-        _circle(st.surfs, cur, where, args, ln, st.err)
+    if cmd in APERTURE_COMMANDS:
+        _aperture_command(st.surfs, cur, where, cmd, args, ln, st.err)
         return True
     if cmd in DECENTRE_VALUES or cmd in DECENTRE_TYPES:
         _decentre(st.surfs, cur, where, cmd, args, ln, st.err)
@@ -453,7 +490,9 @@ def _setting(st: _Seq, cmd: str, args: list, ln: int) -> None:
         raise st.err(f"{UNSUPPORTED[cmd]} ({cmd}) is not supported by raywave", ln)
     elif cmd in DECENTRE_VALUES or cmd in DECENTRE_TYPES:
         raise st.err(f"{cmd}: a decentre before the first surface (it qualifies the surface before it)", ln)
-    elif cmd in IGNORED or cmd in ("K", "SLB", "CIR") or cmd in ASPHERIC_LETTERS:
+    elif cmd in APERTURE_COMMANDS:
+        raise st.err(f"{cmd}: an aperture before the first surface (it qualifies the surface before it)", ln)
+    elif cmd in IGNORED or cmd in ("K", "SLB") or cmd in ASPHERIC_LETTERS:
         pass
     else:
         st.unknown.setdefault(cmd, ln)
@@ -478,8 +517,12 @@ def _check_prescription(st: _Seq):
         raise err("a lens needs an object surface (SO), at least one surface (S) and an image surface (SI)",
                   surfs[-1]["line"] if surfs else None)
     obj, img, lens = surfs[0], surfs[-1], surfs[1:-1]
-    if img.get("obs"):
-        raise err("image surface: an obscuration (CIR OBS) on the image surface is not supported", img["line"])
+    if img.get("obs") or img.get("rect_obs") or img.get("hol"):
+        raise err("image surface: an obscuration (CIR OBS, REX / REY OBS) on the image surface is not supported",
+                  img.get("ap_line", img["line"]))
+    if img.get("rect") or any(img.get("dec_ap") or ()):
+        raise err("image surface: a rectangular or decentred aperture (REX / REY, ADX / ADY) on the image surface "
+                  "is not supported (the sensor is the image plane)", img.get("ap_line", img["line"]))
     if _moves(obj.get("dec")):
         raise err("object surface (SO): a decentred or tilted object is not supported (decentre surface 1 "
                   "instead)", obj["dec"]["line"])
@@ -563,6 +606,10 @@ def _surfaces(lens: list, img: dict, st: _Seq) -> list:
         out = _surface_entry(s, i, st)
         before, out["thickness"], after = _breaks(s.get("dec"), out["thickness"], st.scale, f"S{i}")
         surfaces += before + [out] + after
+    if img["t"] != 0.0:  # the image surface's thickness: a defocus, as CODE V and rayoptics read it
+        if not math.isfinite(img["t"]):
+            raise st.err("image surface (SI): its thickness (a defocus) must be finite", img["line"])
+        surfaces[-1]["thickness"] += img["t"] * st.scale
     if _moves(img.get("dec")):  # a tilted / decentred image plane: the breaks before it (the image is no entry)
         before, _, _ = _breaks(dict(img["dec"], type=None), 0.0, st.scale, "SI")
         surfaces += before
@@ -595,14 +642,57 @@ def _surface_entry(s: dict, i: int, st: _Seq) -> dict:
 
 
 def _aperture(s: dict, i: int, scale: float, err):
-    """The spec ``"aperture"`` of raw surface ``s`` (mm): None, or its circular obscuration (``CIR OBS``)."""
-    if not s.get("obs"):
-        return None
-    # a circular obscuration: blocks r < obs; the clear CIR stays a semi-diameter
-    obscuration = {"shape": "circle", "radius": s["obs"] * scale}
-    if not s["stop"]:
-        return {"shape": "none", "obscuration": obscuration}
-    # the stop needs a clear radius (sized from the pupil): its CIR
-    if not s["cir"]:
-        raise err(f"surface {i}: the stop has an obscuration (CIR OBS) but no clear aperture (CIR r)", s["line"])
-    return {"shape": "circle", "radius": s["cir"] * scale, "obscuration": obscuration}
+    """The spec ``"aperture"`` of raw surface ``s`` (mm): None; a clear rectangle (``REX`` / ``REY``) or a decentred
+    circle (``CIR`` with ``ADX`` / ``ADY``) as a real aperture; an obscuration (``CIR OBS``, an annulus with
+    ``CIR HOL`` inside it, or ``REX`` / ``REY OBS``), decentred by ``ADX`` / ``ADY OBS``. A clear ``CIR`` alone stays
+    the semi-diameter (it does not clip), as before."""
+    ln = s.get("ap_line", s["line"])
+    obs = _obscuration(s, i, scale, err, ln)
+    dec = [v * scale for v in s.get("dec_ap", [0.0, 0.0])]
+    clear = None
+    if s.get("rect"):
+        r = s["rect"]
+        if set(r) != {"x", "y"}:
+            raise err(f"surface {i}: a rectangular aperture needs both REX and REY (got only "
+                      f"{'REX' if 'x' in r else 'REY'})", ln)
+        clear = {"shape": "rectangle", "half_width_x": r["x"] * scale, "half_width_y": r["y"] * scale}
+    elif any(dec) or (obs is not None and s["stop"]):
+        if not s["cir"]:
+            what = "has an obscuration (CIR OBS)" if not any(dec) else "has a decentred aperture (ADX / ADY)"
+            raise err(f"surface {i}: {'the stop' if s['stop'] else 'the surface'} {what} but no clear aperture "
+                      "(CIR r)", ln)
+        clear = {"shape": "circle", "radius": s["cir"] * scale}
+    if clear is None:
+        return None if obs is None else {"shape": "none", "obscuration": obs}
+    if any(dec):
+        clear["decenter"] = dec
+    if obs is not None:
+        clear["obscuration"] = obs
+    return clear
+
+
+def _obscuration(s: dict, i: int, scale: float, err, ln):
+    """The spec obscuration of raw surface ``s`` (mm), or None: ``CIR OBS r`` (a disc; with ``CIR HOL r0`` inside it,
+    the ring r0 <= r <= r: an annular obscuration) or ``REX`` / ``REY OBS`` (a rectangle), decentred by ``ADX`` /
+    ``ADY OBS``."""
+    obs = None
+    if s.get("obs"):
+        obs = {"shape": "circle", "radius": s["obs"] * scale}
+        if s.get("hol"):
+            if not s["hol"] < s["obs"]:
+                raise err(f"surface {i}: the hole (CIR HOL {s['hol']:g}) must lie inside the obscuration "
+                          f"(CIR OBS {s['obs']:g})", ln)
+            obs = {"shape": "annulus", "inner_radius": s["hol"] * scale, "radius": s["obs"] * scale}
+    elif s.get("rect_obs"):
+        r = s["rect_obs"]
+        if set(r) != {"x", "y"}:
+            raise err(f"surface {i}: a rectangular obscuration needs both REX OBS and REY OBS", ln)
+        obs = {"shape": "rectangle", "half_width_x": r["x"] * scale, "half_width_y": r["y"] * scale}
+    elif s.get("hol"):
+        raise err(f"surface {i}: a hole (CIR HOL) without an obscuration (CIR OBS) around it", ln)
+    d = [v * scale for v in s.get("dec_obs", [0.0, 0.0])]
+    if obs is not None and any(d):
+        obs["decenter"] = d
+    elif any(d):
+        raise err(f"surface {i}: an obscuration decentre (ADX / ADY OBS) without an obscuration", ln)
+    return obs

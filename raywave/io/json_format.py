@@ -48,9 +48,10 @@ ASPHERIC_KEYS_BY_TYPE = {
     "toroidal": tuple(f"a{p}" for p in range(2, 15, 2)),
 }
 FIELD_TYPES = ("angle", "object_height")
-APERTURE_SHAPES = {"circle": "radius", "square": "half_width"}
+APERTURE_SHAPES = {"circle": "radius", "square": "half_width", "rectangle": ("half_width_x", "half_width_y")}
 #: Central obscuration shapes (an aperture's "obscuration" entry) and their size keys (mm).
-OBSCURATION_SHAPES = {"circle": ("radius",), "rectangle": ("half_width_x", "half_width_y")}
+OBSCURATION_SHAPES = {"circle": ("radius",), "rectangle": ("half_width_x", "half_width_y"),
+                      "annulus": ("inner_radius", "radius")}
 #: System aperture types (one per lens; the key of the "system_aperture" object) and what their value is.
 SYSTEM_APERTURE_TYPES = {
     "epd": "entrance pupil diameter, mm",
@@ -582,47 +583,56 @@ class _Validator:
         if not isinstance(shape, str) or shape not in shapes:
             hint = suggestion(shape, shapes) if isinstance(shape, str) else ""
             self.err(path + ("shape",) if "shape" in a else path,
-                     f"aperture shape must be 'circle', 'square' or 'none' (an obscuration alone), got "
-                     f"{_typename(shape)}{hint}")
+                     f"aperture shape must be 'circle', 'square', 'rectangle' or 'none' (an obscuration alone), "
+                     f"got {_typename(shape)}{hint}")
             return
         if shape == "none":
             misplaced = {k: f"{k!r} belongs to a {s!r} aperture; a 'none' aperture has only an obscuration"
-                         for s, k in APERTURE_SHAPES.items()}
+                         for s, ks in APERTURE_SHAPES.items() for k in _size_keys(ks)}
+            misplaced["decenter"] = "a 'none' aperture has no centre: give the decenter to its obscuration"
             self.keys(a, path, ("shape", "obscuration"), misplaced)
             if a.get("obscuration") is None:
                 self.err(path, "a 'none' aperture needs an \"obscuration\" (else write the aperture as null)")
             else:
                 self.obscuration(a["obscuration"], path + ("obscuration",), None)
             return
-        size_key = APERTURE_SHAPES[shape]
+        size_keys = _size_keys(APERTURE_SHAPES[shape])
         misplaced = {k: f"{k!r} belongs to a {s!r} aperture, not a {shape!r} one"
-                     for s, k in APERTURE_SHAPES.items() if s != shape}
-        self.keys(a, path, ("shape", size_key, "obscuration"), misplaced)
-        if size_key not in a:
-            self.err(path, f"a {shape} aperture needs {size_key!r} (mm)")
-            return
-        v = a[size_key]
-        if self.number(v, path + (size_key,)) and not v > 0:
-            self.err(path + (size_key,), f"empty aperture: {size_key} must be > 0 mm, got {v!r}")
+                     for s, ks in APERTURE_SHAPES.items() if s != shape for k in _size_keys(ks) if k not in size_keys}
+        self.keys(a, path, ("shape", "decenter", "obscuration") + size_keys, misplaced)
+        v = None
+        for size_key in size_keys:
+            if size_key not in a:
+                self.err(path, f"a {shape} aperture needs {size_key!r} (mm)")
+                return
+            v = a[size_key]
+            if self.number(v, path + (size_key,)) and not v > 0:
+                self.err(path + (size_key,), f"empty aperture: {size_key} must be > 0 mm, got {v!r}")
+                return
+        if "decenter" in a and not self.number_list(a["decenter"], path + ("decenter",), n=2):
             return
         if a.get("obscuration") is not None:
             self.obscuration(a["obscuration"], path + ("obscuration",),
                              v if shape == "circle" and _is_number(v) else None)
 
     def obscuration(self, o, path, clear_radius):
-        """A central obscuration: {"shape": "circle", "radius": r} or {"shape": "rectangle", "half_width_x": ..,
-        "half_width_y": ..}, each with an optional "decenter": [dx, dy] (mm)."""
+        """An obscuration: {"shape": "circle", "radius": r}, {"shape": "rectangle", "half_width_x": ..,
+        "half_width_y": ..} or {"shape": "annulus", "inner_radius": .., "radius": ..} (a ring), each with an
+        optional "decenter": [dx, dy] (mm, about the aperture's centre)."""
         if not self.obj(o, path, what="an object {\"shape\": \"circle\", \"radius\": r} or a rectangle"):
             return
         shape = o.get("shape", "circle")
         if not isinstance(shape, str) or shape not in OBSCURATION_SHAPES:
             hint = suggestion(shape, OBSCURATION_SHAPES) if isinstance(shape, str) else ""
-            self.err(path + ("shape",), f"obscuration shape must be 'circle' or 'rectangle', got "
+            self.err(path + ("shape",), f"obscuration shape must be 'circle', 'rectangle' or 'annulus', got "
                                         f"{_typename(shape)}{hint}")
             return
         size_keys = OBSCURATION_SHAPES[shape]
-        misplaced = {k: f"{k!r} belongs to a {s!r} obscuration, not a {shape!r} one"
-                     for s, ks in OBSCURATION_SHAPES.items() if s != shape for k in ks if k not in size_keys}
+        misplaced: dict = {}
+        for s, ks in OBSCURATION_SHAPES.items():  # a key of two shapes (radius) is named by the first
+            for k in ks:
+                if s != shape and k not in size_keys:
+                    misplaced.setdefault(k, f"{k!r} belongs to a {s!r} obscuration, not a {shape!r} one")
         self.keys(o, path, ("shape", "decenter") + size_keys, misplaced)
         ok = True
         for k in size_keys:
@@ -633,11 +643,19 @@ class _Validator:
                 ok = False
         if "decenter" in o and not self.number_list(o["decenter"], path + ("decenter",), n=2):
             ok = False
+        if ok and shape == "annulus" and not o["inner_radius"] < o["radius"]:
+            self.err(path + ("inner_radius",), f"an annular obscuration's inner_radius ({o['inner_radius']!r} mm) "
+                                               f"must be < its radius ({o['radius']!r} mm)")
         if ok and shape == "circle" and clear_radius is not None:
             d = o.get("decenter", [0.0, 0.0])
             if not any(d) and o["radius"] >= clear_radius:
                 self.err(path + ("radius",), f"the obscuration (radius {o['radius']!r} mm) covers the whole "
                                              f"clear aperture (radius {clear_radius!r} mm)")
+
+
+def _size_keys(keys) -> tuple:
+    """An aperture shape's size key(s) as a tuple."""
+    return (keys,) if isinstance(keys, str) else tuple(keys)
 
 
 def validate_spec(spec, source="<spec>", lines: dict | None = None) -> dict:

@@ -32,8 +32,27 @@ def real_ray_efl(lens, wavelength: float | None = None, height: float | None = N
     rays = RayBundle.create([[0.0, height, -1.0]], [[0.0, 0.0, 1.0]], wl, device=lens.device)
     out = lens.image_coordinates(lens.trace(rays))  # directions in the image plane's frame (folded lenses)
     if not bool(out.valid.all()):
-        raise ValueError(f"the real-ray EFL ray at height {height} mm is vignetted")
+        raise ValueError(f"the real-ray EFL ray at height {height:g} mm is vignetted{blocking_aperture(lens, rays)}")
     return -height / (out.d[0, 1] / out.d[0, 2])
+
+
+def blocking_aperture(lens, rays) -> str:
+    """Where the first ray of ``rays`` is blocked, in words (": surface 3 ('secondary') blocks it: its central
+    obscuration (circle of radius 2 mm); ..."), or "" when no aperture blocks it (it misses a surface, or TIR)."""
+    with torch.no_grad():  # apertures off: the record keeps where the ray meets each surface (blocked rays are
+        _, rec = lens.trace(rays, record=True, apertures=False)  # parked on the axis otherwise)
+    for i, s in enumerate(lens.surfaces):
+        if s.aperture is None or not bool(rec.valid[i + 1].reshape(-1)[0]):
+            continue
+        x, y = (float(c.reshape(-1)[0]) for c in rec.points[i + 1][:2])
+        what = s.aperture.blocked_by(x, y)
+        if what is None:
+            continue
+        name = f" ({s.comment!r})" if s.comment else ""
+        hint = ("; a central obscuration blocks the axis: give the real-ray EFL a height outside it "
+                "(real_ray_efl(lens, height=...))") if "central obscuration" in what else ""
+        return f": surface {i}{name} blocks it at (x, y) = ({x:.4g}, {y:.4g}) mm: {what}{hint}"
+    return ""
 
 
 # ---------------------------------------------------------------------------- beam extent

@@ -7,6 +7,7 @@ spec into modules with real parameters, and a lens back into a spec (exact round
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -69,7 +70,10 @@ def surface_from_spec(s: dict, catalogs=None, where: str = "surface", medium_bef
         else:
             material = get_material(s.get("material", "air"), catalogs=catalogs)
     except (KeyError, ValueError) as err:
-        raise type(err)(f"{where}: {err}") from None
+        new = type(err)(f"{where}: {err}")
+        if getattr(err, "glass", None) is not None:  # an unknown glass keeps its name (load_lens finds its line)
+            new.glass = err.glass
+        raise new from None
     common = dict(
         thickness=float(s.get("thickness", 0.0)),
         aperture=aperture_from_spec(s.get("aperture")),
@@ -238,7 +242,27 @@ def load_lens(path: str | Path) -> Lens:
     try:
         return lens_from_spec(spec)
     except ValueError as err:  # a spec that validates but builds no lens: name the file
-        raise with_location(err, path)
+        raise with_location(_with_glass_line(err, path), path)
+
+
+def _with_glass_line(err: Exception, path) -> Exception:
+    """``err`` (an unknown glass, whose ``glass`` attribute names it) prefixed with ``path:LINE:`` of the first line
+    of the lens file that names the glass (a .zmx GLAS line, a .seq surface line); other errors unchanged."""
+    from raywave.io.zmx.tokens import decode_zmx_bytes
+
+    name = getattr(err, "glass", None)
+    if not name or not err.args or not isinstance(err.args[0], str) or Path(path).suffix.lower() == ".json":
+        return err
+    try:
+        text, _ = decode_zmx_bytes(Path(path).read_bytes())
+    except OSError:
+        return err
+    pat = re.compile(r"(?<![\w-])" + re.escape(name) + r"(?![\w-])", re.IGNORECASE)
+    for ln, line in enumerate(text.splitlines(), start=1):
+        if pat.search(line.split("!", 1)[0]):
+            err.args = (f"{path}:{ln}: {err.args[0]}",) + tuple(err.args[1:])
+            break
+    return err
 
 
 def save_lens(lens: Lens, path: str | Path) -> None:

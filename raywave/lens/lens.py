@@ -329,6 +329,12 @@ class Lens(nn.Module):
             raise ValueError(f"the stop (surface {self.stop_index}) has no aperture: give it one or set an entrance pupil diameter")
         if stop.aperture is not None and stop.aperture.shape == "square":
             return float(stop.aperture.half_width)
+        if stop.aperture is not None and stop.aperture.shape == "circle":
+            return float(stop.aperture.radius)  # its extent adds a decentre (OBDC), which sizes no pupil
+        if stop.aperture is not None and stop.aperture.shape == "rectangle":
+            # a fixed rectangle on the stop: the system aperture's circle (pupil_radius), else the inscribed one
+            pr = stop.aperture.pupil_radius
+            return float(pr) if pr is not None else float(stop.aperture.half_widths.min())
         return r
 
     # ------------------------------------------------------------------ media

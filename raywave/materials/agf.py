@@ -27,6 +27,8 @@ class GlassRecord:
     provenance: str
     nd: float | None = None
     vd: float | None = None
+    #: for an obsolete catalog glass whose data come from an equivalent glass: the note a warning gives
+    obsolete: str | None = None
 
     def to_material(self, explicit_catalog: bool = False) -> Material:
         """A fresh material module for this record (family "constant": a :class:`ConstantIndex` / :class:`Air`)."""

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from raywave.materials.agf import Catalog, GlassRecord, read_agf
 from raywave.materials.base import Air, ConstantIndex, Material
+from raywave.materials.codes import parse_glass_code
 from raywave.materials.glass import ModelGlass
 from raywave.materials.rii import book_index, database_root, read_rii_file
 
@@ -25,11 +26,19 @@ BOOK_ORDER = ["MAIN", "ORGANIC", "OTHER"]
 
 
 class GlassNotFoundError(ValueError):
-    """A glass name that no searched catalog holds."""
+    """A glass name that no searched catalog holds (``glass``: the name, when known)."""
+
+    def __init__(self, message: str, glass: str | None = None):
+        super().__init__(message)
+        self.glass = glass
 
 
 class GlassCatalogWarning(UserWarning):
     """A glass taken from a catalog the lens does not name, because a catalog it names is not bundled."""
+
+
+class ObsoleteGlassWarning(UserWarning):
+    """An obsolete catalog glass (e.g. SCHOTT BK7, K5, SK16): its data come from an equivalent glass."""
 
 
 def _vendor_index() -> dict[str, dict[str, Path]]:
@@ -75,6 +84,21 @@ class GlassLibrary:
         return cat
 
     @cached_property
+    def obsolete(self) -> dict[str, dict[str, GlassRecord]]:
+        """{CATALOG: {NAME: record}} of the bundled table's obsolete glasses (the data of an equivalent glass)."""
+        data = json.loads(TABLE_PATH.read_text(encoding="utf-8"))
+        out: dict[str, dict[str, GlassRecord]] = {}
+        for g in data.get("obsolete", []):
+            note = (f"glass {g['name']!r} is obsolete in the {g['catalog']} catalog (nd {g['catalog_nd']:.5f}, "
+                    f"vd {g['catalog_vd']:.2f}); raywave uses the dispersion data of the equivalent "
+                    f"{g['equivalent']} (same nd and vd to {1e-4:g} / 0.15; the CC0 database has no data of the "
+                    "obsolete melt)")
+            out.setdefault(g["catalog"].upper(), {})[g["name"].upper()] = GlassRecord(
+                g["name"], g["family"], g.get("formula", 0), g["coefficients"], tuple(g["wavelength_range"]),
+                g["catalog"], g["provenance"], g["catalog_nd"], g["catalog_vd"], obsolete=note)
+        return out
+
+    @cached_property
     def vendor_index(self) -> dict[str, dict[str, Path]]:
         """Lazy: built on the first lookup that needs the vendor database."""
         return _vendor_index()
@@ -113,7 +137,8 @@ class GlassLibrary:
         if c == TABLE_CATALOG:
             return sorted({r.name for r in self.table.records.values()})
         if c in self.vendor_index:
-            return sorted(p.stem for p in self.vendor_index[c].values())
+            return sorted({p.stem for p in self.vendor_index[c].values()} |
+                          {r.name for r in self.obsolete.get(c, {}).values()})
         if c in self.book_lookup:
             return sorted(book for book, _ in self.book_lookup[c].values())
         raise GlassNotFoundError(f"unknown glass catalog {catalog!r}; known: {', '.join(self.catalogs())}")
@@ -129,7 +154,7 @@ class GlassLibrary:
             return self._find_in_books(c, name)
         path = self.vendor_index.get(c, {}).get(key)
         if path is None:
-            return None
+            return self.obsolete.get(c, {}).get(key)  # an obsolete glass the catalog still lists
         d = read_rii_file(str(path))
         rel = path.relative_to(database_root())
         return GlassRecord(path.stem, d["family"], d["formula"], d["coefficients"], d["wavelength_range"], c,
@@ -168,6 +193,14 @@ class GlassLibrary:
         return None
 
     def find(self, name: str, catalogs=None) -> GlassRecord:
+        """The record of glass ``name`` (see :meth:`_find`); an obsolete glass gives an :class:`ObsoleteGlassWarning`
+        naming the equivalent whose data are used."""
+        rec = self._find(name, catalogs)
+        if rec.obsolete:
+            warnings.warn(ObsoleteGlassWarning(rec.obsolete), stacklevel=3)
+        return rec
+
+    def _find(self, name: str, catalogs=None) -> GlassRecord:
         """The record of glass ``name``: in ``catalogs`` (in order) if given, else in the user catalogs, the
         bundled table (MISC), the vendor catalogs (SCHOTT, OHARA, CDGM, HOYA, HIKARI, SUMITA, then the
         database's other vendors), then the database's MAIN, ORGANIC and OTHER shelves.
@@ -202,17 +235,17 @@ class GlassLibrary:
                     warnings.warn(GlassCatalogWarning(
                         f"glass {name!r}: not in the named catalog(s) {', '.join(order) or '(none bundled)'}, and "
                         f"{', '.join(missing)} {'is' if len(missing) == 1 else 'are'} not bundled with raywave; "
-                        f"using {rec.name} from {c}"), stacklevel=4)
+                        f"using {rec.name} from {c}"), stacklevel=5)
                     return rec
             order = order + rest
             if not order:
                 raise GlassNotFoundError(f"glass {name!r}: unknown glass catalog(s) {', '.join(missing)}; "
-                                         f"known: {', '.join(self.catalogs())}")
+                                         f"known: {', '.join(self.catalogs())}", name)
         pool = sorted({g for c in order for g in self.glasses(c)})
         close = difflib.get_close_matches(name.upper(), [g.upper() for g in pool], n=5, cutoff=0.6)
         by_upper = {g.upper(): g for g in pool}
         hint = f"; did you mean {', '.join(by_upper[c] for c in close)}?" if close else ""
-        raise GlassNotFoundError(f"unknown glass {name!r} (searched catalogs: {', '.join(order)}){hint}")
+        raise GlassNotFoundError(f"unknown glass {name!r} (searched catalogs: {', '.join(order)}){hint}", name)
 
     def material(self, name: str, catalogs=None, catalog: str | None = None) -> Material:
         """A fresh material module (a :class:`DispersiveGlass`, or air) for glass ``name``."""
@@ -226,7 +259,8 @@ DEFAULT_LIBRARY = GlassLibrary(read_only=True)
 def get_material(spec, catalogs=None, library: GlassLibrary | None = None) -> Material:
     """A material from its lens-file form (docs/lens-format.md).
 
-    ``spec``: a :class:`Material` (returned as is); ``"air"`` (or None / ""); a glass name; ``{"index": n}``
+    ``spec``: a :class:`Material` (returned as is); ``"air"`` (or None / ""); a glass name (or a glass code
+    no catalog names, e.g. ``"517642"`` or CODE V's ``"517000.520000"``: a model glass, :mod:`raywave.materials.codes`); ``{"index": n}``
     (constant index); ``{"model": {"nd": .., "vd": ..}}`` (model glass); ``{"name": .., "catalog": ..}``.
     ``catalogs``: the catalog search order (a .zmx GCAT line), default: see :meth:`GlassLibrary.find`.
     Raises :class:`GlassNotFoundError` (naming the glass and suggesting close names) or ValueError.
@@ -237,7 +271,13 @@ def get_material(spec, catalogs=None, library: GlassLibrary | None = None) -> Ma
     if spec is None or (isinstance(spec, str) and spec.strip().lower() in ("", "air")):
         return Air()
     if isinstance(spec, str):
-        return lib.material(spec.strip(), catalogs)
+        try:
+            return lib.material(spec.strip(), catalogs)
+        except GlassNotFoundError:
+            code = parse_glass_code(spec)  # a glass code no catalog names: a model glass (nd, vd)
+            if code is None:
+                raise
+            return ModelGlass(*code, name=spec.strip())
     if isinstance(spec, dict):
         if set(spec) == {"index"}:
             return ConstantIndex(float(spec["index"]))

@@ -10,6 +10,7 @@ from raywave.io.spec import aspheric_canonical
 from raywave.io.zmx.tables import (IGNORED_SURFACE_KEYS, KNOWN_UNSUPPORTED_TYPES, MAX_BINARY2_TERMS,
                                    MAX_EVENASPH_PARM, MAX_ODDASPHE_PARM, SURFACE_TYPES, UNSUPPORTED_APERTURES,
                                    is_diffractive_type)
+from raywave.io.zmx.apertures import APERTURE_KEYS, finish_aperture, surface_aperture
 from raywave.io.zmx.tokens import _float, _int, _state, _Surf
 
 
@@ -29,12 +30,7 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
         if not _surface_entry(p, where, ln, key, rest, path, scale):
             unknown.setdefault(f"{key} (surface {s.number})", ln)
 
-    _aperture_decenter(p, where, path)
-    if isinstance(p["aperture"], tuple):  # FLAP: floating aperture at the semi-diameter
-        if p["diam"] is None:
-            raise LensFileError(f"{where}: floating aperture without a semi-diameter (DIAM)", path,
-                                p["aperture"][1])
-        p["aperture"] = {"shape": "circle", "radius": p["diam"]}
+    finish_aperture(p, where, path)  # FLAP at DIAM, OBDC (raywave/io/zmx/apertures.py)
     _read_parms(p, where, path, scale)
     return p
 
@@ -75,8 +71,8 @@ def _surface_entry(p: dict, where: str, ln: int, key: str, rest: str, path, scal
             _float(toks[1], path, ln, f"{where}: PARM"), ln)
     elif key == "GLAS":
         p["material"] = _glass(toks, where, path, ln)
-    elif key in ("CLAP", "FLAP", "SQAP", "OBDC", "OBSC", "OBSQ"):
-        _surface_aperture(p, where, ln, key, rest, path, scale)
+    elif key in APERTURE_KEYS:
+        surface_aperture(p, where, ln, key, rest, path, scale)
     elif key == "XDAT" and p["kind"] == "diffractive":
         if len(toks) < 2:
             raise LensFileError(f"{where}: XDAT needs an index and a value", path, ln)
@@ -106,77 +102,6 @@ def _surface_type(p: dict, where: str, ln: int, toks: list, path) -> None:
                             f"{', '.join(SURFACE_TYPES)}, and a diffractive last surface)", path, ln)
     p["kind"] = SURFACE_TYPES[typ]
     p["line"] = ln
-
-
-def _surface_aperture(p: dict, where: str, ln: int, key: str, rest: str, path, scale: float) -> None:
-    """A CLAP / FLAP (circle; FLAP 0: at DIAM, resolved later; CLAP rmin > 0: annulus = circle with a central
-    obscuration), SQAP (square), OBSC / OBSQ (a central circular / rectangular obscuration alone) or OBDC (aperture
-    decentre, kept for the obscuration) entry; radii and half widths scaled to mm."""
-    toks = rest.split()
-    if key in ("CLAP", "FLAP"):
-        vals = [_float(t, path, ln, f"{where}: {key}") for t in toks[:2]]
-        rmin, rmax = (0.0, vals[0]) if len(vals) == 1 else (vals[0], vals[1])
-        if rmin != 0.0 and key == "FLAP":
-            raise LensFileError(f"{where}: {key} with minimum radius {rmin} (an annular aperture) is not "
-                                "supported", path, ln)
-        if key == "FLAP" and rmax == 0.0:
-            p["aperture"] = ("FLAP", ln)  # resolved from DIAM below
-            return
-        if not rmax > 0:
-            raise LensFileError(f"{where}: empty aperture ({key} radius {rmax})", path, ln)
-        if not 0.0 <= rmin < rmax:
-            raise LensFileError(f"{where}: CLAP minimum radius {rmin} must be >= 0 and < the maximum radius "
-                                f"{rmax}", path, ln)
-        p["aperture"] = {"shape": "circle", "radius": rmax * scale}
-        if rmin > 0.0:  # an annular clear aperture: a central circular obscuration of radius rmin
-            p["aperture"]["obscuration"] = {"shape": "circle", "radius": rmin * scale}
-    elif key == "OBSC":  # circular obscuration: blocks rmin <= r <= rmax; nothing else limits the surface
-        vals = [_float(t, path, ln, f"{where}: OBSC") for t in toks[:2]]
-        rmin, rmax = (0.0, vals[0]) if len(vals) == 1 else (vals[0], vals[1]) if vals else (0.0, 0.0)
-        if rmin != 0.0:
-            raise LensFileError(f"{where}: OBSC with minimum radius {rmin} (an annular obscuration: light passes "
-                                "inside it) is not supported; only a central obscuration (OBSC 0 r)", path, ln)
-        if not rmax > 0:
-            raise LensFileError(f"{where}: empty obscuration (OBSC radius {rmax})", path, ln)
-        p["aperture"] = {"shape": "none", "obscuration": {"shape": "circle", "radius": rmax * scale}}
-    elif key == "OBSQ":  # rectangular obscuration of half widths hx, hy
-        vals = [_float(t, path, ln, f"{where}: OBSQ") for t in toks[:2]]
-        if not vals:
-            raise LensFileError(f"{where}: OBSQ needs half widths", path, ln)
-        hx = vals[0]
-        hy = vals[1] if len(vals) > 1 else hx
-        if not (hx > 0 and hy > 0):
-            raise LensFileError(f"{where}: empty obscuration (OBSQ half widths {hx} x {hy})", path, ln)
-        p["aperture"] = {"shape": "none", "obscuration": {"shape": "rectangle", "half_width_x": hx * scale,
-                                                          "half_width_y": hy * scale}}
-    elif key == "SQAP":
-        vals = [_float(t, path, ln, f"{where}: SQAP") for t in toks[:2]]
-        if not vals:
-            raise LensFileError(f"{where}: SQAP needs half widths", path, ln)
-        hx = vals[0]
-        hy = vals[1] if len(vals) > 1 else hx
-        if hx != hy:
-            raise LensFileError(f"{where}: rectangular aperture {hx} x {hy} is not supported (only square "
-                                "apertures, equal half widths)", path, ln)
-        if not hx > 0:
-            raise LensFileError(f"{where}: empty aperture (SQAP half width {hx})", path, ln)
-        p["aperture"] = {"shape": "square", "half_width": hx * scale}
-    else:  # OBDC: the decentre of the surface's aperture, applied once the whole block is read
-        vals = [_float(t, path, ln, f"{where}: OBDC") for t in toks[:2]]
-        if any(v != 0.0 for v in vals):
-            p["ap_decenter"] = ([v * scale for v in vals] + [0.0])[:2], rest.strip(), ln
-
-
-def _aperture_decenter(p: dict, where: str, path) -> None:
-    """Apply a non-zero OBDC to the surface's obscuration (OBSC / OBSQ); a decentred clear aperture is an error."""
-    if "ap_decenter" not in p:
-        return
-    d, rest, ln = p.pop("ap_decenter")
-    ap = p["aperture"]
-    if not (isinstance(ap, dict) and ap["shape"] == "none"):
-        raise LensFileError(f"{where}: decentred aperture (OBDC {rest}) is not supported (only a decentred "
-                            "obscuration, OBSC / OBSQ)", path, ln)
-    ap["obscuration"]["decenter"] = d
 
 
 def _read_parms(p: dict, where: str, path, scale: float) -> None:

@@ -136,6 +136,8 @@ def _aperture_lines(w, i: int, ap: dict, source) -> None:
     if ap["shape"] == "none":
         if obs["shape"] == "circle":
             w(f"  OBSC 0 {_num(obs['radius'])}")
+        elif obs["shape"] == "annulus":
+            w(f"  OBSC {_num(obs['inner_radius'])} {_num(obs['radius'])}")
         else:
             w(f"  OBSQ {_num(obs['half_width_x'])} {_num(obs['half_width_y'])}")
         d = obs.get("decenter")
@@ -149,8 +151,13 @@ def _aperture_lines(w, i: int, ap: dict, source) -> None:
                             "written", source)
     if ap["shape"] == "circle":
         w(f"  CLAP {_num(obs['radius']) if obs is not None else 0} {_num(ap['radius'])} 0")
+    elif ap["shape"] == "rectangle":
+        w(f"  SQAP {_num(ap['half_width_x'])} {_num(ap['half_width_y'])}")
     else:
         w(f"  SQAP {_num(ap['half_width'])} {_num(ap['half_width'])}")
+    d = ap.get("decenter")
+    if d and any(d):
+        w(f"  OBDC {_num(d[0])} {_num(d[1])}")
 
 
 def _parm_lines(w, i: int, kind: str, s: dict, source) -> None:
