@@ -12,7 +12,7 @@ from raywave.utils.checks import MAX_PITCH_MM, pitch_mm, wavelength_um, waveleng
 def test_wavelength_check_names_nanometres():
     assert wavelength_um(0.55) == 0.55 and wavelengths_um([0.47, 0.53]) == [0.47, 0.53]
     assert wavelengths_um(0.6) == [0.6] and wavelengths_um("0.6") == [0.6]
-    with pytest.raises(ValueError, match=r"looks like nanometres \(587.6 nm = 0.5876 µm"):
+    with pytest.raises(ValueError, match=r"µm, not nm \(587.6 looks like nanometres: 587.6 nm = 0.5876 µm"):
         wavelength_um(587.6)
     for bad in (0, -0.5, float("nan"), float("inf"), "green"):
         with pytest.raises(ValueError, match="wavelength in µm"):

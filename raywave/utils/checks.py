@@ -35,8 +35,8 @@ def wavelength_um(w, name: str = "wavelength") -> float:
     if not (math.isfinite(v) and 0 < v <= MAX_WAVELENGTH_UM):
         hint = ""
         if math.isfinite(v) and v > MAX_WAVELENGTH_UM:
-            hint = (f": not a plausible wavelength (µm, not nm); it looks like nanometres ({v:g} nm = "
-                    f"{v * 1e-3:g} µm)")
+            hint = (f": not a plausible wavelength: wavelengths are in µm, not nm ({v:g} looks like nanometres: "
+                    f"{v:g} nm = {v * 1e-3:g} µm)")
         raise ValueError(f"{name} must be a wavelength in µm (0 < λ <= {MAX_WAVELENGTH_UM:g}), got {w!r}{hint}")
     return v
 
