@@ -91,8 +91,10 @@ def _meridional_rays(lens, t: torch.Tensor, ye: torch.Tensor, ep_z: float, wl: f
         z0 = min(ep_z, 0.0) - 1.0
         o = torch.stack([zero, ye + (z0 - ep_z) * t, torch.full_like(t, z0)], -1)
     else:
-        o = torch.stack([zero, t, torch.full_like(t, -lens.object_distance)], -1)
-        d = torch.stack([zero, ye - t, torch.full_like(t, ep_z + lens.object_distance)], -1)
+        c = getattr(lens, "object_curvature", 0.0)  # a curved object surface: the point lies on it
+        z_obj = -lens.object_distance + c * t * t / (1.0 + torch.sqrt(torch.clamp(1.0 - c * c * t * t, min=0.0)))
+        o = torch.stack([zero, t, z_obj], -1)
+        d = torch.stack([zero, ye - t, ep_z - z_obj], -1)
         d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
     return RayBundle.create(o, d, wl, dtype=torch.float64, device=lens.device)
 
@@ -170,7 +172,22 @@ def solve_real_image_heights(lens, heights, wavelength: float | None = None) -> 
     if not (lens.is_folded or lens.has_mirrors):
         t, done = _solve_newton(lens, h, k, wl)
         missed = [i for i in range(len(heights)) if not bool(done[i])]
-        return [sg * float(f) for sg, f in zip(sign, _to_field(lens, t))], missed
+        fields = [sg * float(f) for sg, f in zip(sign, _to_field(lens, t))]
+        if not missed:
+            return fields, []
+        # a strongly aberrated pupil (a fisheye's) can defeat the meridional Newton start: the aimed secant
+        again, still = _solve_secant(lens, h[missed], k, wl)
+        for j, i in enumerate(missed):
+            fields[i] = sign[i] * again[j]
+        return fields, [missed[j] for j in still]
+    again, still = _solve_secant(lens, h, k, wl)
+    return [sg * f for sg, f in zip(sign, again)], still
+
+
+def _solve_secant(lens, h: torch.Tensor, k: float, wl: float) -> tuple[list[float], list[int]]:
+    """(fields (the lens's field type), indices not reached) for the heights ``h`` (F,) >= 0: a secant iteration
+    in tan θ (or object height) on raywave's aimed chief rays from the paraxial estimate ``h / k``; a step to a
+    vignetted or non-finite field is halved back toward the last good one."""
     limit = math.tan(math.radians(ANGLE_LIMIT)) if lens.field_type == "angle" else math.inf
     t_prev = torch.zeros_like(h)
     y_prev = torch.zeros_like(h)
@@ -198,9 +215,8 @@ def solve_real_image_heights(lens, heights, wavelength: float | None = None) -> 
         t_new = t_new.clamp(-limit, limit)
         t_prev, y_prev = t, y
         t = torch.where(done, t, t_new)
-    missed = [i for i in range(len(heights)) if not bool(done[i])]
-    fields = _to_field(lens, good_t)
-    return [sg * float(f) for sg, f in zip(sign, fields)], missed
+    missed = [i for i in range(h.shape[0]) if not bool(done[i])]
+    return [float(f) for f in _to_field(lens, good_t)], missed
 
 
 def solve_paraxial_image_heights(lens, heights, wavelength: float | None = None) -> list[float]:

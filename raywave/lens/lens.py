@@ -107,6 +107,8 @@ class Lens(nn.Module):
         self.catalogs = list(catalogs) if catalogs else None
         self.epd = None if epd is None else float(epd)
         self.system_aperture = None
+        #: curvature (1/mm) of a lens file's curved object surface (finite object): object points lie on it
+        self.object_curvature = 0.0
         #: curvature (1/mm) of a curved image surface (a lens file's): trace_to_image ends on it; 0: a plane
         self.image_curvature = 0.0
         #: the fields as a lens file defines them when not as angles or object heights ({"type":
@@ -254,10 +256,12 @@ class Lens(nn.Module):
             r = min(x for x in (a.clear_radius(), b.clear_radius(), 1e30) if x is not None)
             if r >= 1e30:
                 r = 0.0
-            # a radius set by semi-diameters alone (drawing sizes, as lens files give them) may lie beyond the beam:
-            # an overlap there is a warning (OpticStudio opens such files); on the axis or inside a hard aperture, an
-            # error
-            hard = [x.aperture.extent for x in (a, b) if x.aperture is not None and x.aperture.extent is not None]
+            # a radius set by semi-diameters (drawing sizes, or a lens file's floating aperture at its semi-diameter)
+            # may lie beyond the beam: an overlap there is a warning (OpticStudio opens such files); on the axis or
+            # inside a hard aperture of its own size, an error
+            hard = [x.aperture.extent for x in (a, b) if x.aperture is not None and x.aperture.extent is not None
+                    and not (x.semi_diameter is not None
+                             and abs(x.aperture.extent - x.semi_diameter) <= 1e-12 * max(1.0, x.semi_diameter))]
             r_hard = min(hard) if hard else 0.0
             rs = torch.linspace(0, r, 65, dtype=torch.float64, device=self.device)
             zero = torch.zeros_like(rs)
