@@ -108,7 +108,7 @@ def test_unsupported_features_are_named(tmp_path):
     """One edit per unsupported feature of the Canon zoom: each gives its named error or warning."""
     base = _text("Canon EF24-70mm f2.8L II USM.zmx")
     cases = [
-        (("FTYP 3 0 3", "FTYP 4 0 3"), LensFileError, r"FTYP 4: field type theodolite angle is not supported"),
+        (("FTYP 3 0 3", "FTYP 7 0 3"), LensFileError, r"FTYP 7: unknown field type"),
         (("SURF 2\n  TYPE STANDARD", "SURF 2\n  TYPE SZERNSAG"), LensFileError,
          r"surface 2: surface type SZERNSAG \(Zernike standard sag\) is not supported"),
         (("SURF 2\n  TYPE STANDARD", "SURF 2\n  TYPE IRREGULA"), LensFileError, r"IRREGULA \(irregular\)"),
@@ -172,6 +172,25 @@ def test_real_image_height_chief_rays_land_at_their_heights():
     # the spec keeps the file's definition: a round trip solves the same angles
     again = lens_from_spec(lens_to_spec(lens))
     assert again.fields == pytest.approx(lens.fields, abs=1e-12)
+
+
+def test_theodolite_angles(tmp_path):
+    """FTYP 4 (azimuth x, elevation y): the field angle from the axis is acos(cos x cos y); y alone is the angle."""
+    text = _text("Yongnuo YN40mm F2.8N.zmx").replace("1,5168", "1.5168")
+    lines = text.splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.startswith("FTYP"))
+    lines[i] = "FTYP 4" + lines[i][6:]
+    j = next(k for k, ln in enumerate(lines) if ln.startswith("XFLN"))
+    k = next(k for k, ln in enumerate(lines) if ln.startswith("YFLN"))
+    lines[j], lines[k] = "XFLN 0 0 10", "YFLN 0 15 20"
+    p = tmp_path / "theo.zmx"
+    p.write_text("\n".join(lines) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        spec = read_zmx(p)
+    expect = math.degrees(math.acos(math.cos(math.radians(10)) * math.cos(math.radians(20))))
+    assert spec["fields"] == {"type": "angle", "values": [0.0, pytest.approx(15.0, abs=1e-12),
+                                                          pytest.approx(expect, abs=1e-12)]}
 
 
 def test_finite_object_image_heights():
@@ -317,3 +336,41 @@ def test_extended_aspheres_against_their_definition():
             expect += sum(xdat.get(2 + i, 0.0) * (r / rn) ** (i if odd else 2 * i) for i in range(1, n_terms + 1))
             got = float(g.sag(torch.tensor(r, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64)))
             assert got == pytest.approx(expect, rel=1e-13, abs=1e-15)
+
+
+def test_cli_info_prints_the_field_table(capsys):
+    """`raywave info` on a real-image-height zoom: the field table in degrees and in image height; --config."""
+    from raywave.cli.main import main
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["info", str(DATA / "Canon EF24-70mm f2.8L II USM.zmx")]) == 0
+    out = capsys.readouterr().out
+    assert "Fields (defined by real image height (file)" in out
+    assert "angle (deg)" in out and "real image h (mm)" in out and "paraxial image h (mm)" in out
+    row = next(ln for ln in out.splitlines() if ln.strip().startswith("3 "))
+    angle, real_h = (float(v) for v in row.split()[1:3])
+    assert angle == pytest.approx(42.0809, abs=1e-3) and real_h == pytest.approx(21.64, abs=1e-6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["info", str(DATA / "Canon EF24-70mm f2.8L II USM.zmx"), "--config", "3"]) == 0
+    long_end = capsys.readouterr().out
+    efl = float(next(ln for ln in long_end.splitlines() if "Effective focal length (paraxial)" in ln).split()[-2])
+    assert efl > 60.0
+
+
+@pytest.mark.slow
+def test_cli_psf_with_the_default_blank_doe(tmp_path):
+    """`raywave psf` on the real-image-height Canon zoom works with the default blank DOE (end to end)."""
+    import json
+
+    from raywave.cli.main import main
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["psf", str(DATA / "Canon EF24-70mm f2.8L II USM.zmx"), "--field", "0", "20", "--ks", "32",
+                     "-o", str(tmp_path / "psf.npy"), "--json"]) == 0
+    import numpy as np
+
+    psf = np.load(tmp_path / "psf.npy")
+    assert psf.shape == (32, 32) and abs(psf.sum() - 1.0) < 1e-9

@@ -399,15 +399,18 @@ FIELD_TYPES_BY_FTYP = {0: "angle", 1: "object_height", 2: "paraxial_image_height
 def _fields(st: _System, path: str, distance) -> dict:
     """The spec's "fields": FTYP 0 (angles, degrees), 1 (object heights), 2 (paraxial image heights), 3 (real image
     heights; heights scaled to mm); the first FTYP-count XFLN / YFLN entries (default: up to the last non-zero one),
-    x components folded into radial fields. An angle of 90° or more (a fisheye's) is left out with a warning: raywave
+    x components folded into radial fields; FTYP 4 (theodolite angles, azimuth x and elevation y) become the angle
+    from the axis, acos(cos x · cos y). An angle of 90° or more (a fisheye's) is left out with a warning: raywave
     aims its rays with tan θ, which cannot reach it."""
     ftyp, xfln, yfln = st.ftyp, st.xfln, st.yfln
     nfld = ftyp[0][2] if ftyp and len(ftyp[0]) >= 3 else None
     ftype = ftyp[0][0] if ftyp and ftyp[0] else 0
-    if ftype not in FIELD_TYPES_BY_FTYP:
-        names = {4: "theodolite angle"}
-        raise LensFileError(f"FTYP {ftype}: field type {names.get(ftype, ftype)} is not supported (raywave: angle = "
-                            "0, object height = 1, paraxial image height = 2, real image height = 3)", path, ftyp[1])
+    if ftype not in FIELD_TYPES_BY_FTYP and ftype != 4:
+        raise LensFileError(f"FTYP {ftype}: unknown field type (OpticStudio: angle = 0, object height = 1, paraxial "
+                            "image height = 2, real image height = 3, theodolite angle = 4)", path, ftyp[1])
+    if ftype == 4 and distance != "inf":
+        raise LensFileError("FTYP 4: theodolite angles need an object at infinity (surface 0 DISZ is finite)", path,
+                            ftyp[1])
     if ftype == 1 and distance == "inf":
         raise LensFileError("FTYP 1: object-height fields need an object at a finite distance (surface 0 DISZ is "
                             "INFINITY)", path, ftyp[1])
@@ -422,7 +425,12 @@ def _fields(st: _System, path: str, distance) -> dict:
     if any(x != 0.0 for x in xs):
         warnings.warn(LensFileWarning(f"{path}: fields with an x component are folded to radial fields "
                                       "sqrt(x² + y²) (raywave lenses are rotationally symmetric)"), stacklevel=4)
-    values = [math.hypot(x, y) if x else y for x, y in zip(xs, ys)]
+    if ftype == 4:  # theodolite (azimuth x, elevation y): the angle from the axis is acos(cos x · cos y)
+        values = [math.degrees(math.acos(math.cos(math.radians(x)) * math.cos(math.radians(y))))
+                  * (-1.0 if (y or x) < 0 else 1.0) for x, y in zip(xs, ys)]
+        ftype = 0
+    else:
+        values = [math.hypot(x, y) if x else y for x, y in zip(xs, ys)]
     if ftype == 0:
         wide = [v for v in values if not abs(v) < MAX_FIELD_ANGLE]
         if wide:
