@@ -143,7 +143,11 @@ def cmd_info(args) -> int:
         print(json_dumps({k: info[k] for k in INFO_KEYS}))
     else:
         print(format_info(info))
-        print(format_field_table(lens, field_table(lens)))
+        try:
+            print(format_field_table(lens, field_table(lens)))
+        except ValueError as err:  # no chief ray to trace (e.g. a lens whose paraxial pupil is undefined)
+            print(f"  Fields: {', '.join(f'{v:g}' for v in lens.fields)} "
+                  f"({'deg' if lens.field_type == 'angle' else 'mm'}); no chief-ray table: {err}")
     return 0
 
 
