@@ -11,10 +11,16 @@ from raywave.cli.errors import CommandError, integer_arg, json_dumps, wavelength
 from raywave.cli.fields import add_field_arguments, field_list
 
 
-def _load(name_or_path):
+def _load(name_or_path, config=None):
+    """The lens of a file or bundled name; ``config``: the configuration of a multi-configuration .zmx file
+    (``--config N``, 1-based; default 1)."""
     from raywave.lens.build import load_lens, resolve_lens_path
 
-    return load_lens(resolve_lens_path(name_or_path))
+    if config is not None:
+        config = integer_arg(config, "--config")
+        if config < 1:
+            raise CommandError(f"--config: configurations are numbered from 1, got {config}")
+    return load_lens(resolve_lens_path(name_or_path), config=config)
 
 
 def _y_fields(args, command: str):
@@ -93,6 +99,60 @@ def lens_info(lens, wavelength: float | None = None) -> dict:
     out["name"] = lens.name
     out["section"] = p.section
     return out
+
+
+def field_table(lens) -> list[dict]:
+    """Per field of the lens: the field angle (degrees: of the real chief ray in object space), the object height (mm,
+    finite object), the real chief ray's image height (mm, at the primary wavelength, on the image surface) and the
+    paraxial image height (mm), plus the file's own definition (an image height) when it has one. Values that
+    cannot be computed (a vignetted chief ray, no paraxial model) are NaN."""
+    from raywave.lens.fields import paraxial_image_height_per_field
+    from raywave.lens.sources import chief_ray
+
+    fields = [float(f) for f in lens.fields]
+    f = torch.tensor([[0.0, v] for v in fields], dtype=torch.float64, device=lens.device)
+    with torch.no_grad():
+        rays = chief_ray(lens, f, [lens.primary_wavelength])
+        out = lens.image_coordinates(lens.trace_to_image(rays))
+    try:
+        k = paraxial_image_height_per_field(lens)
+    except ValueError:
+        k = math.nan
+    rows = []
+    definition = getattr(lens, "field_definition", None) or {}
+    for i, v in enumerate(fields):
+        d = rays.d[i, 0, 0]
+        angle = math.degrees(math.atan2(math.hypot(float(d[0]), float(d[1])), float(d[2]))) * (1 if float(d[1]) >= 0 else -1)
+        row = {"field": v, "angle_deg": angle if lens.field_type != "angle" else v}
+        if lens.field_type == "object_height":
+            row["object_height_mm"] = v
+        ok = bool(out.valid[i, 0, 0])
+        row["real_image_height_mm"] = float(out.o[i, 0, 0, 1]) if ok else math.nan
+        row["paraxial_image_height_mm"] = k * (math.tan(math.radians(v)) if lens.field_type == "angle" else v)
+        if definition.get("values") is not None and i < len(definition["values"]):
+            row[definition["type"] + "_mm"] = float(definition["values"][i])
+        rows.append(row)
+    return rows
+
+
+def format_field_table(lens, rows: list[dict]) -> str:
+    """The field table as text: one line per field, in degrees and in image height."""
+    definition = getattr(lens, "field_definition", None)
+    how = (f"defined by {definition['type'].replace('_', ' ')} (file)" if definition else
+           f"defined by {'angle' if lens.field_type == 'angle' else 'object height'}")
+    lines = [f"  Fields ({how}; chief rays at {lens.primary_wavelength:g} µm):"]
+    head = f"    {'#':>2s} {'angle (deg)':>12s}"
+    if lens.field_type == "object_height":
+        head += f" {'object h (mm)':>14s}"
+    head += f" {'real image h (mm)':>18s} {'paraxial image h (mm)':>22s}"
+    lines.append(head)
+    for i, r in enumerate(rows):
+        line = f"    {i + 1:>2d} {r['angle_deg']:>12.6f}"
+        if lens.field_type == "object_height":
+            line += f" {r['object_height_mm']:>14.6f}"
+        line += f" {r['real_image_height_mm']:>18.6f} {r['paraxial_image_height_mm']:>22.6f}"
+        lines.append(line)
+    return "\n".join(lines)
 
 
 def format_info(info: dict) -> str:
@@ -207,7 +267,7 @@ def format_doe_power(d: dict) -> str:
 def cmd_info(args) -> int:
     from raywave.lens.prescription import table
 
-    lens = _load(args.lens)
+    lens = _load(args.lens, getattr(args, "config", None))
     wl = _wavelength(args.wavelength)
     reason = _no_paraxial_reason(lens, wl)
     if reason is not None:  # tilted / decentred: what real rays tell
@@ -224,6 +284,11 @@ def cmd_info(args) -> int:
         print(json_dumps(out))
     else:
         print(format_info(info))
+        try:
+            print(format_field_table(lens, field_table(lens)))
+        except ValueError as err:  # no chief ray to trace (e.g. a lens whose paraxial pupil is undefined)
+            print(f"  Fields: {', '.join(f'{v:g}' for v in lens.fields)} "
+                  f"({'deg' if lens.field_type == 'angle' else 'mm'}); no chief-ray table: {err}")
         print(table(lens, wl))
         if doe is not None:
             print(format_doe_power(doe))
@@ -236,7 +301,7 @@ def cmd_layout(args) -> int:
 
     fields = _y_fields(args, "layout")
     out = png_path(args.output, "layout.png")
-    lens = _load(args.lens)
+    lens = _load(args.lens, getattr(args, "config", None))
     plot_layout(lens, out, fields=fields, n_rays=integer_arg(args.rays, "--rays"), doe=lens_file_doe(args.lens))
     print(f"wrote {out}")
     return 0
@@ -268,7 +333,7 @@ def spot_table(lens, fields=None) -> dict:
 def cmd_spot(args) -> int:
     fields = _spot_fields(args)
     out = None if not args.output else png_path(args.output, "spot.png")
-    lens = _load(args.lens)
+    lens = _load(args.lens, getattr(args, "config", None))
     table = spot_table(lens, fields)
     if args.json:
         print(json_dumps(table))
@@ -406,6 +471,8 @@ def register(sub) -> None:
     p.add_argument("lens", help=lens_help)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--wavelength", default=None, help="µm (default: the lens's primary)")
+    p.add_argument("--config", default=None, help="configuration of a multi-configuration .zmx file (1-based; "
+                                                  "default 1)")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("layout", help="2D section with ray fans (PNG)")
@@ -413,6 +480,7 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", required=True, help="PNG file, or a folder (receives layout.png)")
     add_field_arguments(p, "the lens's fields; Y values: the y-z section", legacy_y_list=True)
     p.add_argument("--rays", default="7", help="rays per fan")
+    p.add_argument("--config", default=None, help="configuration of a multi-configuration .zmx file (1-based)")
     p.set_defaults(func=cmd_layout)
 
     p = sub.add_parser("spot", help="RMS spot radius per field and wavelength")
@@ -420,6 +488,7 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("-o", "--output", default=None, help="spot diagram PNG, or a folder (receives spot.png)")
     add_field_arguments(p, "the lens's fields", legacy_y_list=True)
+    p.add_argument("--config", default=None, help="configuration of a multi-configuration .zmx file (1-based)")
     p.set_defaults(func=cmd_spot)
 
     p = sub.add_parser("convert", help="convert a lens file (.json <-> .zmx; DeepLens .json in)")

@@ -71,13 +71,18 @@ def detect_format(path) -> str:
                         "lens file", p, 1)
 
 
-def read_lens_spec(path) -> dict:
-    """Read any lens file raywave knows into a validated spec (format chosen by :func:`detect_format`)."""
+def read_lens_spec(path, config: int | None = None) -> dict:
+    """Read any lens file raywave knows into a validated spec (format chosen by :func:`detect_format`).
+
+    ``config``: the configuration of a multi-configuration .zmx file (1-based, default 1); other formats have
+    one configuration (``config`` > 1 is an error there)."""
     if not Path(path).exists():
         raise FileNotFoundError(f"lens file {str(path)!r} not found")
     fmt = detect_format(path)
     if fmt == "zmx":
-        return read_zmx(path)
+        return read_zmx(path, config=config)
+    if config is not None and int(config) != 1:
+        raise ValueError(f"{path}: configuration {config} asked of a single-configuration lens file")
     if fmt == "codev":
         return read_seq(path)
     if fmt == "deeplens":

@@ -24,7 +24,7 @@ FORMAT_VERSION = 1
 UNITS = {"length": "mm", "wavelength": "um"}
 
 TOP_KEYS = ("format", "version", "units", "name", "description", "catalogs", "object", "system_aperture",
-            "fields", "wavelengths", "sensor", "surfaces", "doe")
+            "fields", "wavelengths", "sensor", "surfaces", "doe", "image")
 SURFACE_TYPES = ("standard", "even_asphere", "odd_asphere", "toroidal", "paraxial", "coordinate_break")
 #: The keys of a coordinate break (it has no shape, medium, aperture or stop).
 COORDINATE_BREAK_KEYS = ("type", "thickness", "decenter", "tilt", "order", "comment")
@@ -42,12 +42,12 @@ TYPE_KEYS = {
 ALL_SURFACE_KEYS = tuple(dict.fromkeys(COMMON_SURFACE_KEYS + sum(TYPE_KEYS.values(), ())))
 ASPHERIC_KEYS = tuple(f"a{p}" for p in range(2, 21, 2))
 #: The "aspheric" keys of each surface type: a_p multiplies r^p (toroidal: y^p, on the y–z curve).
-ASPHERIC_KEYS_BY_TYPE = {
-    "even_asphere": ASPHERIC_KEYS,
-    "odd_asphere": tuple(f"a{p}" for p in range(1, 9)),
+ASPHERIC_KEYS_BY_TYPE = {  # up to the 240 terms of an OpticStudio extended asphere (XASPHERE / XOSPHERE)
+    "even_asphere": tuple(f"a{p}" for p in range(2, 481, 2)),
+    "odd_asphere": tuple(f"a{p}" for p in range(1, 241)),
     "toroidal": tuple(f"a{p}" for p in range(2, 15, 2)),
 }
-FIELD_TYPES = ("angle", "object_height")
+FIELD_TYPES = ("angle", "object_height", "paraxial_image_height", "real_image_height")
 APERTURE_SHAPES = {"circle": "radius", "square": "half_width", "rectangle": ("half_width_x", "half_width_y")}
 #: Central obscuration shapes (an aperture's "obscuration" entry) and their size keys (mm).
 OBSCURATION_SHAPES = {"circle": ("radius",), "rectangle": ("half_width_x", "half_width_y"),
@@ -304,6 +304,10 @@ class _Validator:
             self._sensor(spec["sensor"])
         if "doe" in spec and spec["doe"] is not None:
             validate_doe(self, spec["doe"], spec)
+        if "image" in spec and self.obj(spec["image"], ("image",)):
+            self.keys(spec["image"], ("image",), ("curvature",))
+            if "curvature" in spec["image"]:
+                self.number(spec["image"]["curvature"], ("image", "curvature"))
         self._surfaces(spec)
 
     def _header(self, spec):
@@ -336,8 +340,13 @@ class _Validator:
                 self.string(name, ("catalogs", i), nonempty=True)
 
     def _object(self, o):
-        """Check "object" (a dict): its "distance", mm > 0 or "inf"."""
-        self.keys(o, ("object",), ("distance",))
+        """Check "object" (a dict): its "distance", mm > 0 or "inf"; its medium "material" (default air) and the
+        "curvature" (1/mm) of a curved object surface."""
+        self.keys(o, ("object",), ("distance", "material", "curvature"))
+        if "material" in o:
+            self.material(o["material"], ("object", "material"))
+        if "curvature" in o:
+            self.number(o["curvature"], ("object", "curvature"))
         if "distance" in o:
             d = o["distance"]
             if d != "inf":

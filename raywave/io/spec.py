@@ -59,7 +59,7 @@ def aspheric_canonical(asph: dict | None, powers=range(2, 21, 2)) -> dict:
 
 
 #: Powers of the "aspheric" terms of each surface type.
-ASPHERIC_POWERS = {"even_asphere": range(2, 21, 2), "odd_asphere": range(1, 9), "toroidal": range(2, 15, 2)}
+ASPHERIC_POWERS = {"even_asphere": range(2, 481, 2), "odd_asphere": range(1, 241), "toroidal": range(2, 15, 2)}
 
 
 def rotation_radius_canonical(r):
@@ -145,6 +145,13 @@ def canonical_spec(spec: dict) -> dict:
         out["catalogs"] = list(spec["catalogs"])
     d = (spec.get("object") or {}).get("distance", "inf")
     out["object"] = {"distance": "inf" if d == "inf" else float(d)}
+    obj = spec.get("object") or {}
+    if material_canonical(obj.get("material")) != "air":
+        out["object"]["material"] = material_canonical(obj["material"])
+    if obj.get("curvature"):
+        out["object"]["curvature"] = float(obj["curvature"])
+    if (spec.get("image") or {}).get("curvature"):
+        out["image"] = {"curvature": float(spec["image"]["curvature"])}
     ap = system_aperture_canonical(spec.get("system_aperture"))
     if ap is not None:
         out["system_aperture"] = ap

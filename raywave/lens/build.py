@@ -11,6 +11,7 @@ import re
 import warnings
 from pathlib import Path
 
+from raywave.lens.fields import IMAGE_HEIGHT_TYPES, apply_image_height_fields
 from raywave.lens.lens import Lens
 from raywave.materials import get_material
 from raywave.surfaces.aperture import aperture_from_spec
@@ -126,14 +127,23 @@ def lens_from_spec(spec: dict) -> Lens:
     dist = obj.get("distance", "inf")
     dist = math.inf if dist == "inf" else float(dist)
     fields = spec.get("fields") or {"type": "angle", "values": [0.0]}
+    field_type = fields.get("type", "angle")
+    by_height = field_type in IMAGE_HEIGHT_TYPES
     wls = spec.get("wavelengths") or {"values": [0.4861327, 0.5875618, 0.6562725], "primary": 1}
     sensor = spec.get("sensor") or {}
     ap = spec.get("system_aperture") or None
+    object_material = None
+    if obj.get("material") is not None:
+        try:
+            object_material = get_material(obj["material"], catalogs=catalogs)
+        except (KeyError, ValueError) as err:
+            raise type(err)(f"object: {err}") from None
     lens = Lens(
         surfaces,
         object_distance=dist,
-        fields=fields["values"],
-        field_type=fields.get("type", "angle"),
+        object_material=object_material,
+        fields=[0.0] if by_height else fields["values"],
+        field_type=("angle" if math.isinf(dist) else "object_height") if by_height else field_type,
         wavelengths=wls["values"],
         primary=int(wls.get("primary", 0)),
         sensor_size=sensor.get("size"),
@@ -143,6 +153,11 @@ def lens_from_spec(spec: dict) -> Lens:
         system_aperture=ap,
     )
     lens._spec_extra = {k: spec[k] for k in ("description",) if k in spec}
+    if obj.get("curvature"):
+        lens.object_curvature = float(obj["curvature"])
+    lens.image_curvature = float((spec.get("image") or {}).get("curvature", 0.0))
+    if by_height:  # solved on the finished lens: real image heights need its real chief rays
+        apply_image_height_fields(lens, field_type, fields["values"], where=spec.get("name") or "lens")
     return lens
 
 
@@ -219,11 +234,18 @@ def lens_to_spec(lens: Lens) -> dict:
     if lens.catalogs:
         spec["catalogs"] = list(lens.catalogs)
     spec["object"] = {"distance": "inf" if math.isinf(lens.object_distance) else lens.object_distance}
+    if not lens.object_material.is_air:
+        spec["object"]["material"] = lens.object_material.to_spec()
+    if getattr(lens, "object_curvature", 0.0):
+        spec["object"]["curvature"] = lens.object_curvature
+    if getattr(lens, "image_curvature", 0.0):
+        spec["image"] = {"curvature": lens.image_curvature}
     if lens.system_aperture:
         spec["system_aperture"] = dict(lens.system_aperture)
     elif lens.epd is not None:
         spec["system_aperture"] = {"epd": lens.epd}
-    spec["fields"] = {"type": lens.field_type, "values": list(lens.fields)}
+    definition = getattr(lens, "field_definition", None)
+    spec["fields"] = dict(definition) if definition else {"type": lens.field_type, "values": list(lens.fields)}
     spec["wavelengths"] = {"values": list(lens.wavelengths), "primary": lens.primary}
     if lens.sensor_size is not None:
         spec["sensor"] = {"size": list(lens.sensor_size), "resolution": list(lens.sensor_resolution or (0, 0))}
@@ -231,14 +253,16 @@ def lens_to_spec(lens: Lens) -> dict:
     return spec
 
 
-def load_lens(path: str | Path) -> Lens:
+def load_lens(path: str | Path, config: int | None = None) -> Lens:
     """Read any lens file raywave knows (.json raywave or DeepLens-style, .zmx), or a bundled lens by name
-    (``"cooke_triplet"``, see :func:`bundled_lens_path`), into a :class:`Lens`."""
+    (``"cooke_triplet"``, see :func:`bundled_lens_path`), into a :class:`Lens`.
+
+    ``config``: the configuration of a multi-configuration .zmx file (1-based; default 1, reported in a warning)."""
     from raywave.io import read_lens_spec
     from raywave.io.errors import with_location
 
     path = resolve_lens_path(path)
-    spec = read_lens_spec(path)
+    spec = read_lens_spec(path) if config is None else read_lens_spec(path, config=config)
     try:
         return lens_from_spec(spec)
     except ValueError as err:  # a spec that validates but builds no lens: name the file

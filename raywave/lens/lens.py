@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -16,6 +17,10 @@ from raywave.utils.checks import wavelength_um, wavelengths_um
 
 #: Rays per chunk when tracing large bundles (see Lens._trace_chunked).
 TRACE_CHUNK = 65536
+
+
+class LensGeometryWarning(UserWarning):
+    """Surfaces that overlap at their edges (beyond any hard aperture): a lens file's drawing sizes, not an error."""
 
 
 @dataclass
@@ -103,6 +108,14 @@ class Lens(nn.Module):
         self.catalogs = list(catalogs) if catalogs else None
         self.epd = None if epd is None else float(epd)
         self.system_aperture = None
+        #: curvature (1/mm) of a lens file's curved object surface (finite object): object points lie on it
+        self.object_curvature = 0.0
+        #: curvature (1/mm) of a curved image surface (a lens file's): trace_to_image ends on it; 0: a plane
+        self.image_curvature = 0.0
+        #: the fields as a lens file defines them when not as angles or object heights ({"type":
+        #: "real_image_height" or "paraxial_image_height", "values": heights in mm}); ``fields`` then holds the
+        #: angles / object heights solved for them (raywave.lens.fields)
+        self.field_definition: dict | None = None
         self.check_geometry()
         if system_aperture and self.epd is not None:
             raise ValueError("give either epd or system_aperture, not both")
@@ -158,6 +171,10 @@ class Lens(nn.Module):
         paraxial image space, so a lens whose paraxial model is undefined (a decentred or tilted powered surface,
         :class:`~raywave.lens.paraxial.ParaxialUndefinedError`, which names the surface) is refused, as is a lens
         whose light leaves the last surface away from the image plane."""
+        if self.image_curvature != 0.0:
+            return (f"the image surface is curved (radius {1.0 / self.image_curvature:g} mm): the ray-wave engine "
+                    "(HybridLens, raywave psf) needs a planar sensor; geometric analysis (trace_to_image, spot, "
+                    "info) traces to the curved surface")
         if not (self.is_folded or self.has_mirrors):
             return None
         from raywave.lens.paraxial import ParaxialUndefinedError
@@ -240,6 +257,13 @@ class Lens(nn.Module):
             r = min(x for x in (a.clear_radius(), b.clear_radius(), 1e30) if x is not None)
             if r >= 1e30:
                 r = 0.0
+            # a radius set by semi-diameters (drawing sizes, or a lens file's floating aperture at its semi-diameter)
+            # may lie beyond the beam: an overlap there is a warning (OpticStudio opens such files); on the axis or
+            # inside a hard aperture of its own size, an error
+            hard = [x.aperture.extent for x in (a, b) if x.aperture is not None and x.aperture.extent is not None
+                    and not (x.semi_diameter is not None
+                             and abs(x.aperture.extent - x.semi_diameter) <= 1e-12 * max(1.0, x.semi_diameter))]
+            r_hard = min(hard) if hard else 0.0
             rs = torch.linspace(0, r, 65, dtype=torch.float64, device=self.device)
             zero = torch.zeros_like(rs)
             xs, ys = torch.cat([rs, zero]), torch.cat([zero, rs])  # along x and along y (toroids differ)
@@ -253,6 +277,14 @@ class Lens(nn.Module):
                 raise ValueError(f"surface {i}: negative thickness {float(a.thickness.detach())} mm inside glass {a.material.name!r}")
             if gap.numel() and float(gap.min()) < -1e-9:
                 where = float(rs[ok][int(torch.argmin(gap))])
+                inside = (gap < -1e-9) & (rs[ok] <= max(r_hard, 0.0))
+                if not bool(inside.any()):
+                    warnings.warn(LensGeometryWarning(
+                        f"surfaces {i} and {i + 1} overlap at their edges: at radius {where:.4g} mm (their "
+                        f"semi-diameters) surface {i + 1} lies {-float(gap.min()):.4g} mm before surface {i}; rays "
+                        "that reach there are traced as the surfaces are (OpticStudio opens such files)"),
+                        stacklevel=3)
+                    continue
                 raise ValueError(
                     f"surfaces {i} and {i + 1} overlap: at radius {where:.4g} mm surface {i + 1} lies "
                     f"{-float(gap.min()):.4g} mm before surface {i} (thickness {float(a.thickness.detach()):.6g} mm too small)"
@@ -526,12 +558,26 @@ class Lens(nn.Module):
             out = out.replace(o=out.o + s.unsqueeze(-1) * out.d, opl=out.opl + n_img * s)
         else:
             out = out.propagate_to_z(self.image_z().to(rays.dtype) if z is None else z, n_img)
+            if z is None and self.image_curvature != 0.0:
+                out = self._to_curved_image(out, n_img)
         if record:
             x, y, zz = out.o.unbind(-1)
             rec.points.append((x, y, zz))
             rec.valid.append(out.valid)
             return out, rec
         return out
+
+    def _to_curved_image(self, out: RayBundle, n_img) -> RayBundle:
+        """``out`` (on the image vertex plane) carried on to the curved image surface (a sphere of curvature
+        ``image_curvature``); rays that miss it become invalid."""
+        from raywave.surfaces.geometry import Standard
+
+        sphere = Standard(self.image_curvature).to(device=out.o.device, dtype=out.o.dtype).requires_grad_(False)
+        x, y, zz = out.o.unbind(-1)
+        dx, dy, dz = out.d.unbind(-1)
+        t, ok = sphere.intersect(x, y, torch.zeros_like(zz), dx, dy, dz)
+        t = torch.where(ok, t, torch.zeros_like(t))
+        return out.replace(o=out.o + t.unsqueeze(-1) * out.d, opl=out.opl + n_img * t, valid=out.valid & ok)
 
     # ------------------------------------------------------------------ conveniences
     def paraxial(self, wavelength: float | None = None):

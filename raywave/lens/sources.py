@@ -89,7 +89,12 @@ def _directions_and_points(lens, fields, field_type, ep_z, dtype, depth=None):
         xy = t * (z_obj - ep_z)
     else:
         xy = fields
-    pts = torch.cat([xy, torch.full_like(xy[:, :1], z_obj)], -1)
+    z_pts = torch.full_like(xy[:, :1], z_obj)
+    c = getattr(lens, "object_curvature", 0.0) if depth is None else 0.0
+    if c:  # a lens file's curved object surface: the object point lies on it (sphere of curvature c)
+        r2 = (xy * xy).sum(-1, keepdim=True)
+        z_pts = z_pts + c * r2 / (1.0 + torch.sqrt(torch.clamp(1.0 - c * c * r2, min=0.0)))
+    pts = torch.cat([xy, z_pts], -1)
     return None, pts
 
 

@@ -99,6 +99,7 @@ def finish_aperture(p: dict, where: str, path) -> None:
         if p["diam"] is None:
             raise LensFileError(f"{where}: floating aperture without a semi-diameter (DIAM)", path, ln)
         ap = p["aperture"] = {"shape": "circle", "radius": p["diam"]}
+        p["floating_aperture"] = True  # follows the semi-diameter (a configuration's SDIA)
         if rmin > 0.0:
             if not rmin < p["diam"]:
                 raise LensFileError(f"{where}: FLAP minimum radius {rmin} mm is not inside the semi-diameter "

@@ -11,17 +11,23 @@ from raywave.io.json_format import FORMAT_NAME, FORMAT_VERSION, UNITS, validate_
 from raywave.io.spec import DEFAULT_WAVELENGTHS, shape_entry
 from raywave.io.zmx.diffractive import _doe_from_surface
 from raywave.io.zmx.surface import _surface
-from raywave.io.zmx.tables import IGNORED_SYSTEM_KEYS, SYSTEM_APERTURE_KEYS, UNIT_SCALE
+from raywave.io.zmx.tables import (IGNORED_SYSTEM_KEYS, MERIT_OPERANDS, MULTI_CONFIG_APPLIED, MULTI_CONFIG_IGNORED,
+                                   SURFACE_TYPES, SYSTEM_APERTURE_KEYS, UNIT_SCALE)
 from raywave.io.zmx.tokens import _float, _int, _parse_lines, _state, decode_zmx_bytes
+from raywave.utils.checks import MAX_FIELD_ANGLE
 
 
-def read_zmx(path) -> dict:
-    """Read a Zemax .zmx file into a validated lens spec (:mod:`raywave.io.zmx` says what is read)."""
+def read_zmx(path, config: int | None = None) -> dict:
+    """Read a Zemax .zmx file into a validated lens spec (:mod:`raywave.io.zmx` says what is read).
+
+    ``config``: the configuration of a multi-configuration file (zoom, focus), 1-based; default 1. Its
+    multi-configuration operands THIC, SDIA, YFIE and APER are applied; the choice is reported in a warning."""
     path = str(path)
     text, _enc = decode_zmx_bytes(Path(path).read_bytes())
     _state.line = None
+    _state.decimal_commas = []
     try:
-        spec = _interpret(text, path)
+        spec = _interpret(text, path, config)
     except LensFileError as e:
         if e.path == "<spec>":  # raised below without the path
             raise LensFileError(e.reason, path, e.line, e.column) from None
@@ -29,6 +35,11 @@ def read_zmx(path) -> dict:
     except (ValueError, IndexError, ArithmeticError) as e:  # a malformed value that no check above caught
         ln, key, rest = _state.line or (None, "", "")
         raise LensFileError(f"cannot read {key} {rest!r}: {e}", path, ln) from None
+    if _state.decimal_commas:
+        lines = _state.decimal_commas
+        warnings.warn(LensFileWarning(f"{path}: numbers with a decimal comma read as decimals (line "
+                                      f"{', '.join(map(str, lines[:5]))}{', ...' if len(lines) > 5 else ''})"),
+                      stacklevel=2)
     return validate_spec(spec, path)
 
 
@@ -48,9 +59,15 @@ class _System:
         self.wavm: dict[int, float] = {}  # WAVM index -> µm
         self.wavl: list[float] = []
         self.pwav = 1
+        self.mnum = None  # (number of configurations, current configuration, line)
+        self.mce: list[tuple[int, str, list[str]]] = []  # multi-configuration operands: (line, key, tokens)
 
 
-def _interpret(text: str, path: str) -> dict:
+def _warn(message: str) -> None:
+    warnings.warn(LensFileWarning(message), stacklevel=4)
+
+
+def _interpret(text: str, path: str, config: int | None = None) -> dict:
     """The lens spec (not yet validated) of the .zmx ``text``; ``path`` names the file in errors and warnings."""
     system, surfs = _parse_lines(text)
     unknown: dict[str, int] = {}
@@ -58,8 +75,16 @@ def _interpret(text: str, path: str) -> dict:
     for ln, key, rest in system:
         _state.line = (ln, key, rest)
         _system_entry(st, ln, key, rest, path, unknown)
-    _check_numbering(surfs, path)
-    parsed = [_surface(s, path, st.scale, unknown) for s in surfs]
+    surfs = _check_numbering(surfs, path)
+    parsed = [_surface(s, path, st.scale, unknown) if s is not None else None for s in surfs]
+    parsed = _complete_object_and_image(parsed, surfs, path)
+    notes: dict[str, list] = {}
+    for p in parsed:
+        for note, ln in p.get("notes", []):
+            notes.setdefault(note, []).append(f"{p['number']} (line {ln})")
+    for note, where in notes.items():
+        _warn(f"{path}: surface{'s' if len(where) > 1 else ''} {', '.join(where)}: {note}")
+    _apply_configuration(st, parsed, config, path)
     obj, img = parsed[0], parsed[-1]
     lens, doe = _split_doe(parsed, path, st.scale)
     distance = _object_distance(obj, img, path)
@@ -70,9 +95,20 @@ def _interpret(text: str, path: str) -> dict:
     if st.catalogs:
         spec["catalogs"] = st.catalogs
     spec["object"] = {"distance": distance}
+    if obj["material"] != "air":
+        spec["object"]["material"] = obj["material"]
+    if obj["curv"] != 0.0:
+        spec["object"]["curvature"] = obj["curv"]
+    if img["curv"] != 0.0:
+        spec["image"] = {"curvature": img["curv"]}
     if st.sys_ap is not None:
         spec["system_aperture"] = _system_aperture(st.sys_ap, distance, st.scale, path)
-    spec["fields"] = _fields(st, path)
+    elif not st.floating:
+        stop = next((p for p in lens if p["stop"]), None)
+        where = f"surface {stop['number']} (the stop)" if stop else "the first surface (the stop by default)"
+        _warn(f"{path}: no system aperture line (ENPD, FNUM, OBNA or FLOA): the stop's semi-diameter (DIAM of "
+              f"{where}) sets the pupil (float by stop size), as OpticStudio does with a fixed stop size")
+    spec["fields"] = _fields(st, path, distance)
     spec["wavelengths"] = _wavelengths(st, path)
     spec["surfaces"] = [_lens_surface(p, "system_aperture" in spec, path) for p in lens]
     if doe is not None:
@@ -83,7 +119,8 @@ def _interpret(text: str, path: str) -> dict:
 
     if unknown:
         listed = ", ".join(f"{k} (line {ln})" for k, ln in sorted(unknown.items(), key=lambda kv: kv[1]))
-        warnings.warn(LensFileWarning(f"{path}: ignored unknown .zmx keys: {listed}"), stacklevel=3)
+        warnings.warn(LensFileWarning(f"{path}: ignored .zmx keys that may change the optics (not modelled by "
+                                      f"raywave): {listed}"), stacklevel=3)
     return spec
 
 
@@ -121,11 +158,15 @@ def _system_entry(st: _System, ln: int, key: str, rest: str, path: str, unknown:
         st.wavl = [_float(t, path, ln, "WAVL") for t in toks]
     elif key == "PWAV":
         st.pwav = _int(toks[0], path, ln, "PWAV", 1, 10**6) if toks else 1
-    elif key == "MNUM" and toks and toks[0].isdigit() and int(toks[0]) > 1:
-        warnings.warn(LensFileWarning(f"{path}:{ln}: multi-configuration file ({toks[0]} configurations); "
-                                      "the prescription as written (current configuration) is read"),
-                      stacklevel=4)
-    elif key in IGNORED_SYSTEM_KEYS:
+    elif key == "MNUM":
+        n = _int(toks[0], path, ln, "MNUM (number of configurations)", 0, 10**6) if toks else 1
+        cur = _int(toks[1], path, ln, "MNUM (current configuration)", 0, 10**6) if len(toks) > 1 else 1
+        st.mnum = (max(n, 1), max(cur, 1), ln)
+    elif st.mnum is not None and key not in MULTI_CONFIG_IGNORED:
+        if key in MERIT_OPERANDS or key in IGNORED_SYSTEM_KEYS:
+            return
+        st.mce.append((ln, key, toks))
+    elif key in IGNORED_SYSTEM_KEYS or key in MERIT_OPERANDS or key in MULTI_CONFIG_IGNORED:
         pass
     else:
         unknown.setdefault(key, ln)
@@ -151,16 +192,121 @@ def _system_aperture_entry(sys_ap, ln: int, key: str, rest: str, path: str) -> t
     return (kinds[flag], value, ln)
 
 
-def _check_numbering(surfs: list, path: str) -> None:
-    """The SURF blocks exist, are numbered 0, 1, 2, ... and hold an object, a surface and an image at least."""
+def _check_numbering(surfs: list, path: str) -> list:
+    """The SURF blocks in file order, as OpticStudio reads them: numbered 0, 1, 2, ... or not (a gap, a repeated
+    number, a suffix such as ``SURF 5AS``: warned, read in order). A file whose first block is ``SURF 1`` has no
+    object surface: a None is put first for the default object (at infinity, in air)."""
     if not surfs:
         raise LensFileError("no surfaces (SURF lines) in the file", path, None)
     nums = [s.number for s in surfs]
-    if nums != list(range(len(surfs))):
-        raise LensFileError(f"surfaces must be numbered 0, 1, 2, ... in order; got {nums}", path, surfs[0].line)
-    if len(surfs) < 3:
+    out = list(surfs)
+    if nums[0] != 0:
+        out = [None] + out
+    if nums != list(range(nums[0], nums[0] + len(nums))) or nums[0] not in (0, 1):
+        _warn(f"{path}:{surfs[0].line}: surfaces are not numbered 0, 1, 2, ... ({_ranges(nums)}): read in file "
+              "order, as OpticStudio does")
+    for s in surfs:
+        if s.suffix:
+            _warn(f"{path}:{s.line}: SURF {s.number}{s.suffix}: read as a surface in file order (the suffix "
+                  f"{s.suffix!r} is ignored)")
+    if len(out) < 3 and out[0] is not None:
         raise LensFileError("a lens needs an object surface, at least one surface and an image surface", path,
                             surfs[-1].line)
+    return out
+
+
+def _ranges(nums: list) -> str:
+    """``[1, 2, 3, 5]`` -> ``"1-3, 5"``."""
+    parts, start = [], 0
+    for i in range(1, len(nums) + 1):
+        if i == len(nums) or nums[i] != nums[i - 1] + 1:
+            a, b = nums[start], nums[i - 1]
+            parts.append(str(a) if a == b else f"{a}-{b}")
+            start = i
+    return ", ".join(parts)
+
+
+def _default_surface(number: int, line: int, disz) -> dict:
+    """A parsed flat air surface (OpticStudio's default object / image)."""
+    return {"number": number, "line": line, "kind": "standard", "curv": 0.0, "disz": disz, "material": "air",
+            "diam": None, "conic": 0.0, "parms": {}, "stop": False, "comment": "", "aperture": None, "focal": None,
+            "aspheric": {}, "xdat": {}, "zemax_type": None, "notes": []}
+
+
+def _complete_object_and_image(parsed: list, surfs: list, path: str) -> list:
+    """A file without ``SURF 0`` lists lens surfaces only (hand-converted patent data): the object is OpticStudio's
+    default (at infinity, air) and, unless the last block is a plain image plane (flat, air, no thickness), an image
+    plane is added its DISZ after it. Both are reported in a warning."""
+    if parsed[0] is not None:
+        return parsed
+    first = next(s for s in surfs if s is not None)
+    lens = parsed[1:]
+    last = lens[-1]
+    added = ["an object at infinity (OpticStudio's default object surface 0)"]
+    plain_image = (last["curv"] == 0.0 and last["material"] == "air" and not last["disz"] and not last["stop"]
+                   and last["kind"] == "standard")
+    if not plain_image:
+        lens = lens + [_default_surface(last["number"] + 1, last["line"], 0.0)]
+        added.append(f"an image plane {last['disz'] or 0:g} mm after surface {last['number']} (its DISZ)")
+    if len(lens) < 2:
+        raise LensFileError("a lens needs at least one surface and an image surface", path, first.line)
+    _warn(f"{path}:{first.line}: the surfaces start at SURF {first.number} (no object surface 0): read as lens "
+          f"surfaces with {' and '.join(added)}")
+    return [_default_surface(0, first.line, None)] + lens
+
+
+def _apply_configuration(st: _System, parsed: list, config: int | None, path: str) -> None:
+    """Apply the multi-configuration operands of configuration ``config`` (default 1): THIC (thickness, file units),
+    SDIA (semi-diameter), YFIE (y field) and APER (system aperture value); report the choice, and name any operand
+    that changes the optics but is not modelled. A single-configuration file with ``config`` > 1 is an error."""
+    n = st.mnum[0] if st.mnum else 1
+    chosen = 1 if config is None else int(config)
+    if not 1 <= chosen <= n:
+        raise LensFileError(f"configuration {chosen} does not exist: the file has {n} configuration"
+                            f"{'s' if n != 1 else ''} (MNUM)", path, st.mnum[2] if st.mnum else None)
+    if n <= 1 and not st.mce:
+        return
+    by_number = {}
+    for i, p in enumerate(parsed):
+        by_number.setdefault(p["number"], i)
+    applied, skipped = [], {}
+    for ln, key, toks in st.mce:
+        if len(toks) < 3:
+            continue
+        target = _int(toks[0], path, ln, f"{key} (surface / field number)", 0, 10**6)
+        cfg = _int(toks[1], path, ln, f"{key} (configuration)", 0, 10**6)
+        if cfg != chosen:
+            continue
+        if key not in MULTI_CONFIG_APPLIED:
+            skipped.setdefault(key, ln)
+            continue
+        value = _float(toks[2], path, ln, key)
+        if key == "YFIE":
+            while len(st.yfln) < target:
+                st.yfln.append(0.0)
+            if target >= 1:
+                st.yfln[target - 1] = value
+        elif key == "APER":
+            if st.sys_ap is not None:
+                st.sys_ap = (st.sys_ap[0], value, ln)
+        elif target in by_number:
+            p = parsed[by_number[target]]
+            if key == "THIC":
+                p["disz"] = math.inf if abs(value) >= 1e10 and p is parsed[0] else value * st.scale
+            else:
+                p["diam"] = value * st.scale if value > 0 else None
+                if isinstance(p["aperture"], dict) and p.get("floating_aperture"):
+                    p["aperture"] = {"shape": "circle", "radius": p["diam"]}
+        applied.append(key)
+    what = f"{n} configurations" if n > 1 else "1 configuration"
+    if n > 1:
+        counts = ", ".join(f"{applied.count(k)} {k}" for k in dict.fromkeys(applied)) or "no operands"
+        _warn(f"{path}:{st.mnum[2]}: multi-configuration file ({what}, current {st.mnum[1]}): configuration "
+              f"{chosen} is read ({counts} applied){'' if config is not None else '; choose another with config=N'}")
+    if skipped:
+        listed = ", ".join(f"{k} (line {ln})" for k, ln in skipped.items())
+        _warn(f"{path}: multi-configuration operands of configuration {chosen} that change the optics are not "
+              f"modelled and were ignored: {listed}")
 
 
 def _split_doe(parsed: list, path: str, scale: float):
@@ -203,21 +349,26 @@ def _medium_after(lens: list):
 
 
 def _object_distance(obj: dict, img: dict, path: str):
-    """The spec's object distance (mm, or "inf") from surface 0, after checking that the object and image surfaces
-    are flat standard planes, not the stop, the object in air and the image no mirror."""
+    """The spec's object distance (mm, or "inf": also a DISZ of 1e10 lens units or more, as OpticStudio takes it)
+    from surface 0, after checking that the object and image surfaces are standard surfaces (a curved one is kept in
+    the spec), not the stop, and the image no mirror. The object space may be a medium (immersion)."""
     for p, what in ((obj, "object"), (img, "image")):
-        if p["kind"] != "standard" or p["curv"] != 0.0:
-            raise LensFileError(f"surface {p['number']} ({what}): a curved or non-standard {what} surface is not "
-                                "supported (raywave's object and image are planes)", path, p["line"])
+        if p["kind"] != "standard" or p["conic"] != 0.0:
+            typ = p["zemax_type"] or {v: k for k, v in SURFACE_TYPES.items()}.get(p["kind"], p["kind"])
+            raise LensFileError(f"surface {p['number']} ({what}): a non-standard {what} surface (type {typ}, conic "
+                                f"{p['conic']:g}) is not supported (raywave's {what} is a plane or a sphere)",
+                                path, p["line"])
         if p["stop"]:
             raise LensFileError(f"surface {p['number']} ({what}) cannot be the stop", path, p["line"])
-    if img["material"] == "mirror":
-        raise LensFileError(f"surface {img['number']} (image): the image surface cannot be a mirror", path,
-                            img["line"])
-    if obj["material"] != "air":
-        raise LensFileError("surface 0 (object): the object space must be air", path, obj["line"])
+    if img["material"] == "mirror" or obj["material"] == "mirror":
+        which = img if img["material"] == "mirror" else obj
+        raise LensFileError(f"surface {which['number']}: the object and image surfaces cannot be mirrors", path,
+                            which["line"])
     dist = obj["disz"]
-    if dist is None or math.isinf(dist):
+    if dist is None or math.isinf(dist) or dist >= 1e10:
+        if obj["curv"] != 0.0:
+            _warn(f"{path}:{obj['line']}: surface 0: the curvature of an object at infinity has no effect")
+            obj["curv"] = 0.0
         return "inf"
     if dist <= 0:
         raise LensFileError(f"surface 0 (object): object distance {dist!r} mm must be > 0 (or INFINITY)", path,
@@ -241,16 +392,28 @@ def _system_aperture(sys_ap: tuple, distance, scale: float, path: str) -> dict:
     return {kind: value * scale if kind == "epd" else value}
 
 
-def _fields(st: _System, path: str) -> dict:
-    """The spec's "fields": FTYP 0 (angles, degrees) or 1 (object heights, scaled to mm); the first FTYP-count
-    XFLN / YFLN entries (default: up to the last non-zero one), x components folded into radial fields."""
+#: OpticStudio's field types (FTYP) -> the spec's "fields" type.
+FIELD_TYPES_BY_FTYP = {0: "angle", 1: "object_height", 2: "paraxial_image_height", 3: "real_image_height"}
+
+
+def _fields(st: _System, path: str, distance) -> dict:
+    """The spec's "fields": FTYP 0 (angles, degrees), 1 (object heights), 2 (paraxial image heights), 3 (real image
+    heights; heights scaled to mm); the first FTYP-count XFLN / YFLN entries (default: up to the last non-zero one),
+    x components folded into radial fields; FTYP 4 (theodolite angles, azimuth x and elevation y) become the angle
+    from the axis, acos(cos x · cos y). An angle of 90° or more (a fisheye's) is left out with a warning: raywave
+    aims its rays with tan θ, which cannot reach it."""
     ftyp, xfln, yfln = st.ftyp, st.xfln, st.yfln
     nfld = ftyp[0][2] if ftyp and len(ftyp[0]) >= 3 else None
     ftype = ftyp[0][0] if ftyp and ftyp[0] else 0
-    if ftype not in (0, 1):
-        names = {2: "paraxial image height", 3: "real image height", 4: "theodolite angle"}
-        raise LensFileError(f"FTYP {ftype}: field type {names.get(ftype, ftype)} is not supported (raywave: angle = "
-                            "0, object height = 1)", path, ftyp[1])
+    if ftype not in FIELD_TYPES_BY_FTYP and ftype != 4:
+        raise LensFileError(f"FTYP {ftype}: unknown field type (OpticStudio: angle = 0, object height = 1, paraxial "
+                            "image height = 2, real image height = 3, theodolite angle = 4)", path, ftyp[1])
+    if ftype == 4 and distance != "inf":
+        raise LensFileError("FTYP 4: theodolite angles need an object at infinity (surface 0 DISZ is finite)", path,
+                            ftyp[1])
+    if ftype == 1 and distance == "inf":
+        raise LensFileError("FTYP 1: object-height fields need an object at a finite distance (surface 0 DISZ is "
+                            "INFINITY)", path, ftyp[1])
     n = max(len(xfln), len(yfln))
     xs = xfln + [0.0] * (n - len(xfln))
     ys = yfln + [0.0] * (n - len(yfln))
@@ -262,10 +425,25 @@ def _fields(st: _System, path: str) -> dict:
     if any(x != 0.0 for x in xs):
         warnings.warn(LensFileWarning(f"{path}: fields with an x component are folded to radial fields "
                                       "sqrt(x² + y²) (raywave lenses are rotationally symmetric)"), stacklevel=4)
-    values = [math.hypot(x, y) if x else y for x, y in zip(xs, ys)]
-    if ftype == 1:
+    if ftype == 4:  # theodolite (azimuth x, elevation y): the angle from the axis is acos(cos x · cos y)
+        values = [math.degrees(math.acos(math.cos(math.radians(x)) * math.cos(math.radians(y))))
+                  * (-1.0 if (y or x) < 0 else 1.0) for x, y in zip(xs, ys)]
+        ftype = 0
+    else:
+        values = [math.hypot(x, y) if x else y for x, y in zip(xs, ys)]
+    if ftype == 0:
+        wide = [v for v in values if not abs(v) < MAX_FIELD_ANGLE]
+        if wide:
+            kept = [v for v in values if abs(v) < MAX_FIELD_ANGLE] or [0.0]
+            line = ftyp[1] if ftyp else None
+            _warn(f"{path}:{line}: field angle{'s' if len(wide) > 1 else ''} {', '.join(f'{v:g}°' for v in wide)} "
+                  f"left out: raywave traces fields below {MAX_FIELD_ANGLE:g}° (a fisheye's wider field would need "
+                  "rays aimed from behind the first vertex); the fields read are "
+                  f"{', '.join(f'{v:g}°' for v in kept)}")
+            values = kept
+    else:
         values = [v * st.scale for v in values]
-    return {"type": "angle" if ftype == 0 else "object_height", "values": values}
+    return {"type": FIELD_TYPES_BY_FTYP[ftype], "values": values}
 
 
 def _wavelengths(st: _System, path: str) -> dict:

@@ -7,10 +7,10 @@ import math
 
 from raywave.io.errors import LensFileError
 from raywave.io.spec import aspheric_canonical
-from raywave.io.zmx.tables import (IGNORED_SURFACE_KEYS, KNOWN_UNSUPPORTED_TYPES, MAX_BINARY2_TERMS,
-                                   MAX_EVENASPH_PARM, MAX_ODDASPHE_PARM, SURFACE_TYPES, UNSUPPORTED_APERTURES,
-                                   is_diffractive_type)
 from raywave.io.zmx.apertures import APERTURE_KEYS, finish_aperture, surface_aperture
+from raywave.io.zmx.tables import (EXTENDED_TYPES, IGNORED_SURFACE_KEYS, KNOWN_UNSUPPORTED_TYPES,
+                                   MAX_BINARY2_TERMS, MAX_EVENASPH_PARM, MAX_EXTENDED_TERMS, MAX_ODDASPHE_PARM,
+                                   SURFACE_TYPES, UNSUPPORTED_APERTURES, is_diffractive_type)
 from raywave.io.zmx.tokens import _float, _int, _state, _Surf
 
 
@@ -23,7 +23,7 @@ def _surface(s: _Surf, path, scale, unknown) -> dict:
     ``scale``: lens unit -> mm; keys no table knows are recorded in ``unknown`` ("KEY (surface n)" -> line)."""
     p = {"number": s.number, "line": s.line, "kind": "standard", "curv": 0.0, "disz": None, "material": "air",
          "diam": None, "conic": 0.0, "parms": {}, "stop": False, "comment": "", "aperture": None,
-         "focal": None, "aspheric": {}, "xdat": {}, "zemax_type": None}
+         "focal": None, "aspheric": {}, "xdat": {}, "zemax_type": None, "notes": []}
     where = f"surface {s.number}"
     for ln, key, rest in s.entries:
         _state.line = (ln, key, rest)
@@ -73,12 +73,14 @@ def _surface_entry(p: dict, where: str, ln: int, key: str, rest: str, path, scal
         p["material"] = _glass(toks, where, path, ln)
     elif key in APERTURE_KEYS:
         surface_aperture(p, where, ln, key, rest, path, scale)
-    elif key == "XDAT" and p["kind"] == "diffractive":
+    elif key == "XDAT" and (p["kind"] == "diffractive" or p["zemax_type"] in EXTENDED_TYPES):
         if len(toks) < 2:
             raise LensFileError(f"{where}: XDAT needs an index and a value", path, ln)
         # XDAT 1 = N, 2 = normalisation radius, 3.. = coefficients: any other index would be dropped
-        p["xdat"][_int(toks[0], path, ln, f"{where}: XDAT index", 1, MAX_BINARY2_TERMS + 2)] = _float(
-            toks[1], path, ln, f"{where}: XDAT")
+        top = MAX_BINARY2_TERMS if p["kind"] == "diffractive" else MAX_EXTENDED_TERMS
+        v = _float(toks[1], path, ln, f"{where}: XDAT")
+        p["xdat"][_int(toks[0], path, ln, f"{where}: XDAT index", 1, top + 2)] = v if p["kind"] == "diffractive" \
+            else (v, ln)
     elif key in UNSUPPORTED_APERTURES:
         raise LensFileError(f"{where}: {UNSUPPORTED_APERTURES[key]} ({key}) is not supported", path, ln)
     elif key in IGNORED_SURFACE_KEYS:
@@ -96,6 +98,11 @@ def _surface_type(p: dict, where: str, ln: int, toks: list, path) -> None:
         p["zemax_type"] = typ
         p["line"] = ln
         return
+    if typ in EXTENDED_TYPES:
+        p["kind"] = EXTENDED_TYPES[typ]
+        p["zemax_type"] = typ
+        p["line"] = ln
+        return
     if typ not in SURFACE_TYPES:
         what = f" ({KNOWN_UNSUPPORTED_TYPES[typ]})" if typ in KNOWN_UNSUPPORTED_TYPES else ""
         raise LensFileError(f"{where}: surface type {typ}{what} is not supported by raywave (supported: "
@@ -108,7 +115,9 @@ def _read_parms(p: dict, where: str, path, scale: float) -> None:
     """The PARM data of ``p`` by kind: aspheric terms (in mm units), radius of rotation (mm), coordinate break
     (decentre mm, tilts degrees), paraxial focal length (mm); non-zero PARMs a kind does not use are errors."""
     parms = p["parms"]
-    if p["kind"] == "even_asphere":
+    if p["zemax_type"] in EXTENDED_TYPES:
+        _extended_asphere(p, where, path, scale)
+    elif p["kind"] == "even_asphere":
         bad = [(i, ln) for i, (v, ln) in parms.items() if i > MAX_EVENASPH_PARM and v != 0.0]
         if bad:
             raise LensFileError(f"{where}: EVENASPH PARM {bad[0][0]} is not an even-asphere coefficient "
@@ -136,6 +145,45 @@ def _read_parms(p: dict, where: str, path, scale: float) -> None:
         bad = [(i, ln) for i, (v, ln) in parms.items() if v != 0.0]
         if bad:
             raise LensFileError(f"{where}: STANDARD surface with non-zero PARM {bad[0][0]}", path, bad[0][1])
+
+
+def _extended_asphere(p: dict, where: str, path, scale: float) -> None:
+    """XASPHERE / XOSPHERE: XDAT 1 = number of terms N, XDAT 2 = normalisation radius R (lens units), XDAT 3..N+2 =
+    A_1..A_N on (r/R)^(2i) (XASPHERE) or (r/R)^i (XOSPHERE), lens units; they become the mm terms of an even / odd
+    asphere, a_(2i) = A_i·s / (R·s)^(2i) (s: lens unit -> mm). Terms past N are not used (as OpticStudio). PARM 1
+    (extrapolate) only affects rays outside R. An XASPHERE with PARM 1..8 terms and no XDAT terms (as some
+    converters write it) is read as an EVENASPH, PARM i on r^(2i), noted for a warning."""
+    typ, parms, xdat = p["zemax_type"], p["parms"], p["xdat"]
+    odd = typ == "XOSPHERE"
+    terms = {i: v for i, v in parms.items() if i >= 1 and v[0] != 0.0}
+    if not any(v for i, (v, _) in xdat.items() if i >= 3) and typ == "XASPHERE" and terms:
+        bad = [(i, ln) for i, (v, ln) in terms.items() if i > MAX_EVENASPH_PARM]
+        if bad:
+            raise LensFileError(f"{where}: XASPHERE PARM {bad[0][0]} has no meaning (its terms are XDAT 3.., or "
+                                f"as an EVENASPH PARM 1..{MAX_EVENASPH_PARM})", path, bad[0][1])
+        p["notes"].append(("XASPHERE with terms in PARM 1..8 and none in XDAT: read as EVENASPH terms (PARM i on "
+                           "r^(2i)), as the file's writer meant them", min(ln for _, ln in terms.values())))
+        coeffs = {f"a{2 * i}": v * scale ** (1 - 2 * i) for i, (v, _) in terms.items()}
+        p["aspheric"] = aspheric_canonical(coeffs, range(2, 2 * MAX_EVENASPH_PARM + 1, 2))
+        return
+    bad = [(i, ln) for i, (v, ln) in parms.items() if i != 1 and v != 0.0]
+    if bad:
+        raise LensFileError(f"{where}: {typ} PARM {bad[0][0]} is not an extended-asphere parameter (PARM 1 = "
+                            "extrapolate; the terms are XDAT 1 = N, 2 = normalisation radius, 3.. = coefficients)",
+                            path, bad[0][1])
+    n_val, n_ln = xdat.get(1, (0.0, p["line"]))
+    if n_val != int(n_val) or not 0 <= n_val <= MAX_EXTENDED_TERMS:
+        raise LensFileError(f"{where}: {typ} XDAT 1 (number of terms) {n_val!r} must be an integer in "
+                            f"0..{MAX_EXTENDED_TERMS}", path, n_ln)
+    n = int(n_val)
+    r_norm, r_ln = xdat.get(2, (1.0, p["line"]))
+    coeffs_file = {i - 2: v for i, (v, _) in xdat.items() if 3 <= i <= n + 2 and v != 0.0}
+    if coeffs_file and not (math.isfinite(r_norm) and r_norm > 0):
+        raise LensFileError(f"{where}: {typ} normalisation radius (XDAT 2) {r_norm!r} must be > 0", path, r_ln)
+    r_mm = r_norm * scale
+    step = 1 if odd else 2
+    coeffs = {f"a{step * i}": a * scale / r_mm ** (step * i) for i, a in coeffs_file.items()}
+    p["aspheric"] = aspheric_canonical(coeffs, range(step, step * max(n, 1) + 1, step))
 
 
 def _toroidal_parms(p: dict, where: str, path, scale: float) -> None:
@@ -175,10 +223,11 @@ def _glass(toks, where, path, ln):
         return "mirror"
     flag = toks[1] if len(toks) > 1 else "0"
     if name == "___BLANK" or flag == "1":
-        if len(toks) < 5:
+        if len(toks) < 4:
             raise LensFileError(f"{where}: model glass needs nd and vd (GLAS {name} 1 0 nd vd ...)", path, ln)
         nd = _float(toks[3], path, ln, f"{where}: GLAS nd")
-        vd = _float(toks[4], path, ln, f"{where}: GLAS vd")
+        # a missing vd is 0, as OpticStudio reads the line: a constant index (no dispersion)
+        vd = _float(toks[4], path, ln, f"{where}: GLAS vd") if len(toks) > 4 else 0.0
         if vd == 0.0:
             return {"index": nd}
         return {"model": {"nd": nd, "vd": vd}}

@@ -6,6 +6,12 @@ from __future__ import annotations
 #: Zemax surface types raywave models, and their spec type.
 SURFACE_TYPES = {"STANDARD": "standard", "EVENASPH": "even_asphere", "ODDASPHE": "odd_asphere",
                  "TOROIDAL": "toroidal", "PARAXIAL": "paraxial", "COORDBRK": "coordinate_break"}
+#: Extended aspheres, read into the spec type of their base (their XDAT terms on (r / R_norm)^i become mm terms):
+#: XASPHERE sag = conic + sum_i A_i rho^(2i) (XDAT 1 = N, 2 = R_norm, 3.. = A_1..A_N); XOSPHERE sag = conic +
+#: sum_i B_i rho^i (XDAT 1 = N, 2 = R_norm, 3.. = B_1..B_N); rho = r / R_norm.
+EXTENDED_TYPES = {"XASPHERE": "even_asphere", "XOSPHERE": "odd_asphere"}
+#: The most extended-asphere terms OpticStudio stores (XDAT 1).
+MAX_EXTENDED_TERMS = 240
 #: Types raywave cannot trace yet, with what they are (a clearer error than "not supported").
 KNOWN_UNSUPPORTED_TYPES = {
     "BICONIC": "biconic", "SZERNSAG": "Zernike standard sag", "FZERNSAG": "Zernike fringe sag",
@@ -55,6 +61,8 @@ IGNORED_SURFACE_KEYS = {
     "TCE": "thermal expansion",
     "MEMA": "mechanical semi-diameter",
     "NOTE": "note text",
+    "FIMP": "importance flag (tolerancing)",
+    "OEMA": "optical edge margin (drawing)",
 }
 #: Surface apertures raywave has no model for.
 UNSUPPORTED_APERTURES = {
@@ -71,7 +79,25 @@ IGNORED_SYSTEM_KEYS = {
     "ZVCY", "ZVAN", "MNCA", "MNEA", "MNCG", "MNEG", "MXCA", "MXCG", "RGLA", "TRAC", "TCMM", "PMAG", "TOTR",
     "OPDX", "EFFL", "PUPD", "TCED", "FWGN", "FWGT", "VDXN", "VDYN", "VCXN", "VCYN", "VANN", "WWGN", "WWGT",
     "WAVN", "MNUM", "NOTE", "FIMP", "SCOL", "SCTH",
+    # display and bookkeeping: database date, layout options, hyperhemispheric drawing, glass substitution
+    "DBDT", "OMMA", "HYPR", "OPDX", "SDMA", "FTYP_DISPLAY", "MNUM", "MOFF", "CWGT",
 }
+#: Merit function operands (OpticStudio writes the merit function editor's rows into the .zmx): optimisation
+#: targets, not the prescription; skipped silently.
+MERIT_OPERANDS = {
+    "ABSO", "ASTI", "AXCL", "BLNK", "COMA", "CTVA", "CVVA", "CTGT", "CTLT", "CVGT", "CVLT", "DIFF", "DIST", "DIVI",
+    "EFFL", "EFLX", "EFLY", "ETVA", "ETGT", "ETLT", "FCUR", "FCGS", "FCGT", "INDX", "LACL", "LONA", "MNAB", "MXAB",
+    "MNCT", "MXCT", "MNET", "MXET", "OPGT", "OPLT", "OPVA", "PETZ", "POWR", "PROD", "RAID", "RAED", "REAX", "REAY",
+    "REAR", "RECI", "RELI", "SPHA", "SUMM", "TTHI", "TOTR", "WFNO", "ISFN", "PMAG", "AMAG", "ENPP", "EXPP", "RSCE",
+    "RSCH", "RSRE", "RSRH", "TRAC", "TRAY", "TRAX", "DMFS", "OPTH", "EQUA", "CONS", "ZERN", "SQRT", "DIVB", "OSUM",
+    "SUMM", "PARB", "PARR", "RANG", "RAGA", "RAGB", "RAGC", "ANAR", "GCOS", "GTCE", "MNIN", "MXIN", "MNAB", "MNCG",
+    "MXCG", "MNEG", "MXEG", "MNCA", "MXCA", "MNEA", "MXEA", "LINV", "WAVE", "PMVA", "FICL", "FICP", "YNIP",
+}
+#: Multi-configuration operands raywave applies to the chosen configuration: ``OPER surface config value``
+#: (YFIE: field number; APER: 0). The others that change the optics are named in a warning.
+MULTI_CONFIG_APPLIED = {"THIC": "thickness", "SDIA": "semi-diameter", "YFIE": "y field", "APER": "system aperture"}
+#: Multi-configuration operands that do not change the optics (config weight, an unused row, notes).
+MULTI_CONFIG_IGNORED = {"MOFF", "CWGT", "TOL", "TOLE", "NOTE"}
 #: System aperture keys -> spec "system_aperture" key, by the flag after the value (FNUM v 0 = image-space F/#,
 #: FNUM v 1 = paraxial working F/#; OBNA v 0 = object-space NA, OBNA v 1 = object cone angle in degrees).
 SYSTEM_APERTURE_KEYS = {

@@ -25,10 +25,15 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     w = out.append
     _system_lines(w, spec)
     d = (spec.get("object") or {}).get("distance", "inf")
+    obj = spec.get("object") or {}
     w("SURF 0")
     w("  TYPE STANDARD")
-    w("  CURV 0.0")
+    w(f"  CURV {_num(obj.get('curvature', 0.0))}")
     w("  DISZ " + ("INFINITY" if d == "inf" else _num(d)))
+    if obj.get("material") not in (None, "air"):
+        glas = _glas_line(obj["material"])
+        if glas:
+            w("  " + glas)
     doe = spec.get("doe")
     model = (doe or {}).get("phase_model")
     binary2 = doe is not None and model is not None and model.get("type") == "binary_2" and doe.get("phase") is None
@@ -43,7 +48,7 @@ def zmx_text(spec: dict, source="<spec>") -> str:
         n += 1
     w(f"SURF {n}")
     w("  TYPE STANDARD")
-    w("  CURV 0.0")
+    w(f"  CURV {_num((spec.get('image') or {}).get('curvature', 0.0))}")
     w("  DISZ 0.0")
     sensor = spec.get("sensor")
     if sensor:
@@ -71,7 +76,8 @@ def _system_lines(w, spec: dict) -> None:
     wls = spec.get("wavelengths") or DEFAULT_WAVELENGTHS
     fv = [float(v) for v in fields["values"]]
     wv = [float(v) for v in wls["values"]]
-    w(f"FTYP {0 if fields.get('type', 'angle') == 'angle' else 1} 0 {len(fv)} {len(wv)} 0 0 0")
+    ftyp = {"angle": 0, "object_height": 1, "paraxial_image_height": 2, "real_image_height": 3}
+    w(f"FTYP {ftyp[fields.get('type', 'angle')]} 0 {len(fv)} {len(wv)} 0 0 0")
     pad = [0.0] * max(0, 12 - len(fv))
     w("XFLN " + " ".join(_num(0.0) for _ in fv + pad))
     w("YFLN " + " ".join(_num(v) for v in fv + pad))
@@ -105,7 +111,8 @@ def _surface_lines(w, i: int, s: dict, doe_after: dict | None, source) -> None:
         w("  STOP")
     if s.get("comment"):
         w("  COMM " + " ".join(str(s["comment"]).split()))
-    w("  TYPE " + {v: k for k, v in SURFACE_TYPES.items()}[kind])
+    extended = _extended_terms(s)
+    w("  TYPE " + (extended[0] if extended else {v: k for k, v in SURFACE_TYPES.items()}[kind]))
     if kind == "coordinate_break":
         dec, tilt = s.get("decenter", [0.0, 0.0]), s.get("tilt", [0.0, 0.0, 0.0])
         for j, v in enumerate(list(dec) + list(tilt) + [s.get("order", 0)], start=1):
@@ -160,19 +167,45 @@ def _aperture_lines(w, i: int, ap: dict, source) -> None:
         w(f"  OBDC {_num(d[0])} {_num(d[1])}")
 
 
+def _extended_terms(s: dict):
+    """``(type, [A_1..A_N])`` when an even / odd asphere has more terms than EVENASPH / ODDASPHE hold (a16 / a8):
+    it is written as an XASPHERE / XOSPHERE with normalisation radius 1 mm (its XDAT terms are the mm terms); else
+    None."""
+    kind = s.get("type", "standard")
+    if kind not in ("even_asphere", "odd_asphere"):
+        return None
+    odd = kind == "odd_asphere"
+    asph = aspheric_canonical(s.get("aspheric"), range(1, 241) if odd else range(2, 481, 2))
+    top = max((int(k[1:]) for k in asph), default=0)
+    if top <= (MAX_ODDASPHE_PARM if odd else 2 * MAX_EVENASPH_PARM):
+        return None
+    step = 1 if odd else 2
+    return ("XOSPHERE" if odd else "XASPHERE"), [asph.get(f"a{p}", 0.0) for p in range(step, top + 1, step)]
+
+
 def _parm_lines(w, i: int, kind: str, s: dict, source) -> None:
     """The PARM lines of surface ``i`` by kind: even (a2..a16) / odd (b1..b8) aspheric terms, a toroid's radius of
     rotation (mm) and a2..a14, a paraxial focal length (mm)."""
+    extended = _extended_terms(s)
+    if extended:
+        terms = extended[1]
+        for j, v in enumerate([float(len(terms)), 1.0] + terms, start=1):
+            w(f'  XDAT {j} {_num(v)} 0 0 1 0 0 ""')
+        return
     if kind == "even_asphere":
-        asph = aspheric_canonical(s.get("aspheric"))
-        for k in ("a18", "a20"):
-            if k in asph:
+        asph = aspheric_canonical(s.get("aspheric"), range(2, 481, 2))
+        for k, v in asph.items():
+            if int(k[1:]) > 2 * MAX_EVENASPH_PARM and v != 0.0:
                 raise LensFileError(f"surfaces[{i - 1}].aspheric.{k}: .zmx EVENASPH surfaces stop at a16 "
                                     "(PARM 8)", source)
         for j in range(1, MAX_EVENASPH_PARM + 1):
             w(f"  PARM {j} {_num(asph.get(f'a{2 * j}', 0.0))}")
     if kind == "odd_asphere":
-        asph = aspheric_canonical(s.get("aspheric"), range(1, MAX_ODDASPHE_PARM + 1))
+        asph = aspheric_canonical(s.get("aspheric"), range(1, 241))
+        for k, v in asph.items():
+            if int(k[1:]) > MAX_ODDASPHE_PARM and v != 0.0:
+                raise LensFileError(f"surfaces[{i - 1}].aspheric.{k}: .zmx ODDASPHE surfaces stop at a8 "
+                                    "(PARM 8)", source)
         for j in range(1, MAX_ODDASPHE_PARM + 1):
             w(f"  PARM {j} {_num(asph.get(f'a{j}', 0.0))}")
     if kind == "toroidal":
