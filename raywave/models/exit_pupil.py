@@ -205,7 +205,7 @@ class _Sphere(NamedTuple):
     opl_ref: float
 
 
-def _reference_sphere(lens, field, wl: float, depth, z_s: float, n_img: float) -> _Sphere:
+def _reference_sphere(lens, field, wl: float, depth, z_s: float, n_img: float, sphere: str = "paraxial") -> _Sphere:
     """The reference sphere of ``field`` at ``wl`` µm: centred on the chief ray's intercept C with the sensor plane
     z_s (mm), through the point E where it crosses the paraxial exit-pupil plane (image index ``n_img``).
     A ValueError when the chief ray is vignetted or the exit pupil gives no sphere."""
@@ -221,7 +221,25 @@ def _reference_sphere(lens, field, wl: float, depth, z_s: float, n_img: float) -
         raise ValueError(f"the paraxial exit pupil (z = {xp_z}) gives no reference sphere")
     radius = abs((xp_z - z_s) / float(d_ch[2]))
     side = math.copysign(1.0, xp_z - z_s)  # the sphere lies on the exit-pupil side of the sensor
+    if sphere == "rim":
+        radius = _rim_radius(lens, field, wl, depth, cen, radius)
+    elif sphere != "paraxial":
+        raise ValueError(f"sphere must be 'paraxial' or 'rim', got {sphere!r}")
     return _Sphere(cen, d_ch, radius, side, opl_ch + n_img * side * radius)
+
+
+def _rim_radius(lens, field, wl: float, depth, cen: torch.Tensor, fallback: float) -> float:
+    """The reference sphere's radius (mm) that puts the stop's rim where it is sharp: the mean distance from the
+    sphere's centre ``cen`` (3,) to the images of the stop's rim points
+    (:func:`raywave.hybrid.coherent.stop_rim_images`: where the rays through each rim point from neighbouring sources
+    cross; on axis they lie on one circle, which the sphere then contains exactly). ``fallback`` where they cannot be
+    traced."""
+    from raywave.hybrid.coherent.stop_edge import stop_rim_images
+
+    rim = stop_rim_images(lens, field, wl, depth)
+    if rim is None or rim.points is None:
+        return fallback
+    return float(torch.linalg.vector_norm(rim.points.detach() - cen, dim=-1).mean())
 
 
 def _vignetting(lens, rec, valid: torch.Tensor) -> torch.Tensor:
@@ -325,7 +343,7 @@ def _sensor_power(q, opl, amp, sph: _Sphere, center, ks: int, pitch: float, node
 def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: float | None = None, center=None,
                 n_pupil: int | str = 256, depth: float | None = None, sensor_z: float | None = None,
                 oversample: int | None = None, obliquity: bool = False, tol: float = AUTO_TOL,
-                max_n_pupil: int = AUTO_MAX_N) -> HuygensPSF:
+                max_n_pupil: int = AUTO_MAX_N, sphere: str = "paraxial") -> HuygensPSF:
     """Huygens PSF of ``lens`` for one field point and wavelength (model in the module docstring).
 
     Args:
@@ -346,10 +364,16 @@ def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: fl
             needs (:func:`auto_oversample`); an integer: that many midpoint-rule samples per pixel and axis.
         obliquity: apply the Fresnel–Kirchhoff factor (1 + cos χ)/2 (off by default: near the focus it
             changes the PSF by ~1e-7 in L1).
+        sphere: where the reference sphere (centred on the chief ray's sensor intercept C) passes: "paraxial"
+            (the default) through the chief ray's crossing with the paraxial exit-pupil plane; "rim" at the mean
+            distance from C of the stop rim's images, where the GO field's edge is physically sharp (on axis they
+            lie on one circle, which the sphere then holds exactly; the paraxial sphere misses it by the pupil's
+            spherical aberration and its own sag: 52 µm on the bundled asphere, 0.35 mm on the f/3 double Gauss,
+            1 mm on the F/1.3 asphere, where the Kirchhoff cut on it is not where the edge is sharp).
     Returns: :class:`HuygensPSF` (float64 psf (ks, ks) summing to 1, centre, sensor z, energy fraction).
     """
     kw = dict(ks=ks, pitch=pitch, center=center, depth=depth, sensor_z=sensor_z, oversample=oversample,
-              obliquity=obliquity)
+              obliquity=obliquity, sphere=sphere)
     if isinstance(n_pupil, str):
         if n_pupil != "auto":
             raise ValueError(f"n_pupil must be an integer or 'auto', got {n_pupil!r}")
@@ -358,7 +382,7 @@ def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: fl
 
 
 def auto_n_pupil(lens, field, wavelength, ks: int, pitch: float | None = None, depth: float | None = None,
-                 sensor_z: float | None = None, probe: int = 64) -> int:
+                 sensor_z: float | None = None, probe: int = 64, sphere: str = "paraxial") -> int:
     """The first pupil grid (cells per side) of ``huygens_psf(n_pupil="auto")`` for ``field`` at ``wavelength`` µm:
     the wavefront (its OPL on the reference sphere, traced on a ``probe``² grid) changes by at most
     :data:`AUTO_WAVES_PER_CELL` waves between neighbouring cells, the PSF's replicas lie at least 1.5 crop widths
@@ -369,7 +393,7 @@ def auto_n_pupil(lens, field, wavelength, ks: int, pitch: float | None = None, d
     with torch.no_grad():
         z_s = float(lens.image_z() if sensor_z is None else sensor_z)
         n_img = float(lens.surfaces[-1].material.n(torch.tensor(wl, dtype=dtype, device="cpu")))
-        sph = _reference_sphere(lens, field, wl, depth, z_s, n_img)
+        sph = _reference_sphere(lens, field, wl, depth, z_s, n_img, sphere)
         rays, out, vig, cover, traced = _trace_pupil(lens, field, wl, depth, probe, z_s, n_img)
         q, opl, geom = _onto_sphere(out, sph, n_img)
         use = _to_grid(geom & vig, traced, False) & (cover > 0)
@@ -391,7 +415,8 @@ def _huygens_auto(lens, field, wavelength, kw: dict, tol: float, max_n: int) -> 
     """``huygens_psf(n_pupil="auto")``: levels n₀ (:func:`auto_n_pupil`), 1.5 n₀, … until the estimated error of the
     finest level is at most ``tol`` or the next level would exceed ``max_n``; the Richardson extrapolation of the
     last two (the 1/n² law)."""
-    n = min(auto_n_pupil(lens, field, wavelength, kw["ks"], kw["pitch"], kw["depth"], kw["sensor_z"]), max_n)
+    n = min(auto_n_pupil(lens, field, wavelength, kw["ks"], kw["pitch"], kw["depth"], kw["sensor_z"],
+                         sphere=kw["sphere"]), max_n)
     prev = _huygens_fixed(lens, field, wavelength, n_pupil=n, **kw)
     levels, est = [(n, None)], None
     while True:
@@ -419,7 +444,7 @@ def _huygens_auto(lens, field, wavelength, kw: dict, tol: float, max_n: int) -> 
 
 def _huygens_fixed(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: float | None = None, center=None,
                    n_pupil: int = 256, depth: float | None = None, sensor_z: float | None = None,
-                   oversample: int | None = None, obliquity: bool = False) -> HuygensPSF:
+                   oversample: int | None = None, obliquity: bool = False, sphere: str = "paraxial") -> HuygensPSF:
     """:func:`huygens_psf` on a fixed ``n_pupil`` × ``n_pupil`` pupil grid (arguments as there)."""
     dtype = torch.float64
     wl = float(lens.primary_wavelength if wavelength is None else wavelength)
@@ -428,7 +453,7 @@ def _huygens_fixed(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch:
     with torch.no_grad():
         z_s = float(lens.image_z() if sensor_z is None else sensor_z)
         n_img = float(lens.surfaces[-1].material.n(torch.tensor(wl, dtype=dtype, device="cpu")))
-        sph = _reference_sphere(lens, field, wl, depth, z_s, n_img)
+        sph = _reference_sphere(lens, field, wl, depth, z_s, n_img, sphere)
         rays, out, vig, cover, traced = _trace_pupil(lens, field, wl, depth, n_pupil, z_s, n_img)
         q, opl, geom = _onto_sphere(out, sph, n_img)
         dp, ds, use = _cell_powers(lens, rays, depth, q, geom, vig, cover, traced)
@@ -489,6 +514,7 @@ class ExitPupilModel(PSFModel):
     Args: ``hybrid`` (:class:`~raywave.hybrid.HybridLens`), ``n_pupil`` (pupil grid cells per side, or "auto", the
     default: refined until the estimated error is at most ``tol``, see :func:`huygens_psf`; the result's
     ``info["n_pupil"]`` and ``info["error_estimate"]`` (F, W) say what each PSF used and how far it may be off),
+    ``sphere`` (the reference sphere: "paraxial" or "rim", see :func:`huygens_psf`),
     ``oversample`` (None, default: Gauss–Legendre nodes per pixel chosen from the PSF's bandwidth, see
     :func:`auto_oversample`; an integer q ≥ 2: point samples at pitch/q integrated through their cubic
     interpolant, the former method, which needs pitch/q well below λ/(2·NA): F/4 at 3 µm pixels, q = 3 is
@@ -497,7 +523,8 @@ class ExitPupilModel(PSFModel):
 
     name = "exit_pupil"
 
-    def __init__(self, hybrid, n_pupil: int | str = "auto", oversample: int | None = None, tol: float = AUTO_TOL):
+    def __init__(self, hybrid, n_pupil: int | str = "auto", oversample: int | None = None, tol: float = AUTO_TOL,
+                 sphere: str = "paraxial"):
         super().__init__(hybrid)
         for name, v, low in (("n_pupil", n_pupil, 8), ("oversample", oversample, 2)):
             if (v is None and name == "oversample") or (v == "auto" and name == "n_pupil"):
@@ -510,6 +537,9 @@ class ExitPupilModel(PSFModel):
         self.n_pupil = n_pupil if n_pupil == "auto" else int(n_pupil)
         self.oversample = None if oversample is None else int(oversample)
         self.tol = float(tol)
+        if sphere not in ("paraxial", "rim"):
+            raise ValueError(f"sphere must be 'paraxial' or 'rim', got {sphere!r}")
+        self.sphere = sphere
 
     def _check_blank(self, wavelengths) -> None:
         from raywave.doe import BlankDOE
@@ -582,11 +612,11 @@ class ExitPupilModel(PSFModel):
         hl, q, p = self.hybrid, self.oversample, self.hybrid.sensor_pitch
         if q is None:  # Gauss–Legendre pixel integration (auto_oversample)
             h = huygens_psf(hl.lens, field, wl, ks=ks, pitch=p, n_pupil=self.n_pupil, depth=depth,
-                            sensor_z=hl.sensor_z(), tol=self.tol)
+                            sensor_z=hl.sensor_z(), tol=self.tol, sphere=self.sphere)
             return h, h.energy_fraction
         nf = ks * q + 5
         h = huygens_psf(hl.lens, field, wl, ks=nf, pitch=p / q, n_pupil=self.n_pupil, depth=depth,
-                        sensor_z=hl.sensor_z(), oversample=1, tol=self.tol)
+                        sensor_z=hl.sensor_z(), oversample=1, tol=self.tol, sphere=self.sphere)
         cx, cy = h.center
         irr = h.psf * (h.energy_fraction / (p / q) ** 2)
         psf = pixel_integrate(irr, p / q, p, (cx - (nf // 2) * p / q, cy - (nf // 2) * p / q),
