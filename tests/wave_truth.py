@@ -233,3 +233,47 @@ def two_ideal_lenses_psf(system: TwoLenses, theta, wavelength: float, center, ks
     inten = u.abs().square()
     p = pixel_power(inten * taper(inten.shape, int(4 * pixel / pitch)), out_org, pitch, center, ks, pixel)
     return p / p.sum()
+
+
+def doe_phase_on(doe, wavelength: float):
+    """A raywave DOE as the truth's thin element: ``(origin (x, y) mm, pitch mm, phase (ny, nx) rad)`` of its whole
+    pixel grid at ``wavelength`` µm (its definition: the fabricated, quantised phase of each pixel; nothing of the
+    engine's propagation). The grid's extent is the DOE's (square) aperture."""
+    with torch.no_grad():
+        x, y = doe.pixel_xy()
+        ph = doe.phase_pixels(wavelength, slice(None), slice(None)).detach().to(F64)
+    return (float(x[0]), float(y[0])), float(doe.pitch), ph
+
+
+def ideal_lens_doe_psf(f: float, radius: float, wavelength: float, center, ks: int, pixel: float, sensor_dist: float,
+                       doe=None, doe_dist: float | None = None, depth: float | None = None,
+                       margin: float = 0.3) -> torch.Tensor:
+    """The on-axis PSF (ks, ks) float64 summing to 1 of an ideal thin lens (focal length ``f`` mm, a sharp circular
+    stop of ``radius`` mm on it) with an optional DOE (a raywave DOE: :func:`doe_phase_on`, its grid and square
+    aperture; sampled at its pitch) ``doe_dist`` mm behind it, on the sensor ``sensor_dist`` mm behind the lens.
+    The source: a plane wave (``depth`` None) or a point ``depth`` mm in front of the lens (a spherical wave, amplitude
+    ∝ 1/distance); the lens is exact for it (the phase that turns it into a sphere converging on its image,
+    1/v = 1/f − 1/depth). Plain angular spectrum lens → DOE → sensor (:func:`asm`); pixels of ``pixel`` mm,
+    pixel [ks//2, ks//2] centred at ``center``."""
+    pitch = float(doe.pitch) if doe is not None else 1e-3
+    v = f if depth is None else 1.0 / (1.0 / f - 1.0 / depth)
+    n0 = int(math.ceil(2 * radius / pitch)) + 6
+    org = (-(n0 - 1) / 2 * pitch,) * 2
+    x, y = grid_xy(org, (n0, n0), pitch)
+    amp = circle_cover(x, y, radius, pitch)
+    if depth is not None:
+        amp = amp * depth / torch.sqrt(x * x + y * y + depth * depth)
+    env = amp.to(C128) * torch.polar(torch.ones_like(x), sphere_phase(x, y, 0.0, (0.0, 0.0, v), wavelength))
+    z = 0.0
+    if doe is not None:
+        d_org, _, ph = doe_phase_on(doe, wavelength)
+        env = asm(env, org, pitch, wavelength, doe_dist, (0.0, 0.0), d_org, ph.shape, margin=margin)
+        env = env * torch.polar(torch.ones_like(ph), ph)
+        org, z = d_org, doe_dist
+    half = (ks // 2 + 8) * pixel
+    nout = int(math.ceil(2 * half / pitch)) + 1
+    out_org = (center[0] - half, center[1] - half)
+    u = asm(env, org, pitch, wavelength, sensor_dist - z, (0.0, 0.0), out_org, (nout, nout), margin=margin)
+    inten = u.abs().square()
+    p = pixel_power(inten * taper(inten.shape, int(4 * pixel / pitch)), out_org, pitch, center, ks, pixel)
+    return p / p.sum()
