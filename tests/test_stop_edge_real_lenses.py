@@ -32,6 +32,8 @@ LENSES = {
 }
 #: largest rel L1 (sum |psf − huygens|, 0..2) accepted; measured values in docs/ray-wave.md
 TOL = 2e-2
+#: the reference's own error estimate above which a comparison gives no verdict (issue 47)
+REF_TOL = 5e-3
 #: (lens, field fraction) → Huygens pupil cells and sensor pitch (mm) where the defaults (192², the DOE pitch) do not
 #: settle the comparison: the reference's 192² grid under-samples these off-axis wavefronts (it warns: 0.8–1.1 waves
 #: between neighbouring cells) and most of the PSF falls outside a 32-pixel crop of the sub-micron DOE pitch. (Until
@@ -134,4 +136,6 @@ def test_exit_pupil_edge_psf_matches_huygens_on_real_lenses(name, frac):
     n_pupil, pitch = SETTINGS.get((name, frac), (192, None))
     err, est = _case(name, frac, n_pupil=n_pupil, sensor_pitch=pitch)
     print(f"{name} at {frac} field: rel L1 {err:.3g} from the Huygens exit-pupil PSF (its own error ~{est:.2g})")
+    if est > REF_TOL:  # e.g. the double Gauss at full field: ~1 wave between neighbouring cells at 288²
+        pytest.xfail(f"the reference is not converged (its own error ~{est:.2g}): no verdict")
     assert err < TOL
