@@ -80,10 +80,10 @@ def test_pixel_power_integrates_a_band_limited_intensity_exactly():
     extrapolation (O(h²) over a pixel): the Debye focus at 2 µm pixels."""
     from raywave.models.debye import debye_psf
 
-    a, b = (debye_psf(SYSTEM.na(), WL, KS, PIXEL, oversample=q).psf for q in (16, 32))
+    a, b = (debye_psf(SYSTEM.na(), WL, KS, PIXEL, oversample=q).psf for q in (8, 16))
     ext = (4 * b - a) / 3
     assert l1(_debye(), ext) < 2e-5  # measured ~1e-5
-    assert l1(a, ext) > 1e-4  # the midpoint rule at 16 samples a pixel is not there yet
+    assert l1(a, ext) > 1e-4  # the midpoint rule at 8 samples a pixel is not there yet
 
 
 def test_two_lens_truth_is_the_non_paraxial_airy_pattern_on_axis():
@@ -164,7 +164,8 @@ def _doe(case: str):
 
 
 @pytest.mark.parametrize("case", ["binary", pytest.param("16-level at 0.45 µm", marks=pytest.mark.slow),
-                                  pytest.param("Fresnel, object at 200 mm", marks=pytest.mark.slow), "blank"])
+                                  pytest.param("Fresnel, object at 200 mm", marks=pytest.mark.slow),
+                                  pytest.param("blank", marks=pytest.mark.slow)])
 def test_default_stop_edge_with_a_doe_matches_the_wave_optics_truth(case):
     """Measured rel L1 from the truth (default / edge_step="asm" / stop_edge="doe"): binary 7.4e-4 / 7.2e-4 /
     1.3e-2; 16-level at 0.45 µm 3.2e-4 / 2.7e-4 / 2.2e-3; Fresnel, object at 200 mm 2.6e-4 / 2.6e-4 / 4.0e-4;
