@@ -36,6 +36,10 @@ def test_compare_writes_grid_and_table_with_ground_truth(ideal_file, tmp_path, c
     assert truth["raywave_doe"] < 5e-3  # the paper's DOE-plane edge: on axis as good
     assert all(r["l1_vs_truth"] is None for r in report["rows"] if r["field_y_deg"] == 2.0)
     assert len(report["pairs"]) == 2 * 15
+    # the exit-pupil reference converges its own pupil sampling and says how far it may be off (issue 47)
+    ep = [r for r in report["rows"] if r["model"] == "exit_pupil"]
+    assert all(r["n_pupil"] >= 128 and 0 < r["error_estimate"] < 1e-3 for r in ep)
+    assert "pupil cells, own error" in text
 
 
 def test_compare_with_a_doe_leaves_out_the_exit_pupil_model(ideal_file, tmp_path, capsys):

@@ -32,6 +32,8 @@ LENSES = {
 }
 #: largest rel L1 (sum |psf − huygens|, 0..2) accepted; measured values in docs/ray-wave.md
 TOL = 2e-2
+#: the reference's own error estimate above which a comparison gives no verdict (issue 47)
+REF_TOL = 5e-3
 #: (lens, field fraction) → Huygens pupil cells and sensor pitch (mm) where the defaults (192², the DOE pitch) do not
 #: settle the comparison: the reference's 192² grid under-samples these off-axis wavefronts (it warns: 0.8–1.1 waves
 #: between neighbouring cells) and most of the PSF falls outside a 32-pixel crop of the sub-micron DOE pitch. (Until
@@ -91,8 +93,10 @@ def test_stop_rim_images_on_axis_are_a_circle_at_the_paraxial_exit_pupil_for_a_s
 
 
 def _case(name, frac, ks=32, n_pupil=192, sensor_pitch=None):
+    """rel L1 of the default PSF from the converged Huygens reference (``n_pupil="auto"`` from ``n_pupil`` cells at
+    least: levels ×1.5 and the Richardson extrapolation of the last two, issue 47), and the reference's own error
+    estimate."""
     from raywave.cli.psf_commands import compute_psf
-    from raywave.models.exit_pupil import ExitPupilModel
 
     path = LENSES[name]
     lens = load_lens(resolve_lens_path(path))
@@ -102,15 +106,36 @@ def _case(name, frac, ks=32, n_pupil=192, sensor_pitch=None):
         out = compute_psf(path, field=fld, ks=ks, stop_edge="exit_pupil", sensor_pitch=sensor_pitch)
     hl = out["hybrid"]
     with torch.no_grad():
-        ref = ExitPupilModel(hl, n_pupil).psf_result(fld, hl.lens.primary_wavelength, ks=ks).psf[0, 0].numpy()
-    return float(abs(out["psf"] - ref).sum())
+        ref = _reference(hl, fld, ks, out["center"], n_pupil)
+    return float(abs(out["psf"] - ref.psf.numpy()).sum()), ref.error_estimate
+
+
+def _reference(hl, fld, ks, center, n0):
+    """The Huygens PSF at n0 and 1.5·n0 pupil cells, Richardson-extrapolated (raywave.models.exit_pupil: 1/n²)."""
+    from dataclasses import replace
+
+    from raywave.models.exit_pupil import huygens_psf
+
+    kw = dict(ks=ks, pitch=hl.sensor_pitch, center=tuple(float(c) for c in center), sensor_z=float(hl.sensor_z()))
+    wl = hl.lens.primary_wavelength
+    a = huygens_psf(hl.lens, fld, wl, n_pupil=n0, **kw)
+    n1 = int(16 * math.ceil(1.5 * n0 / 16))
+    b = huygens_psf(hl.lens, fld, wl, n_pupil=n1, **kw)
+    r2 = (n1 / n0) ** 2
+    ext = ((r2 * b.psf - a.psf) / (r2 - 1)).clamp_min(0)
+    return replace(b, psf=ext / ext.sum(), error_estimate=float((b.psf - a.psf).abs().sum()) / (r2 - 1))
 
 
 @pytest.mark.slow  # minutes per case (docs/ray-wave.md: "Real lenses")
 @pytest.mark.parametrize("frac", [0.0, 0.7, 1.0])
 @pytest.mark.parametrize("name", list(LENSES))
 def test_exit_pupil_edge_psf_matches_huygens_on_real_lenses(name, frac):
+    """Against the converged reference (issue 47; docs/ray-wave.md "Real lenses" has the table, the reference's
+    estimate beside each figure). Not yet 1e-3 everywhere: the double Gauss on axis is 1.07e-2 from a reference
+    converged to ~1.5e-4 (its Richardson extrapolations from 192/288 and 288/384 cells agree to 1.5e-4)."""
     n_pupil, pitch = SETTINGS.get((name, frac), (192, None))
-    err = _case(name, frac, n_pupil=n_pupil, sensor_pitch=pitch)
-    print(f"{name} at {frac} field: rel L1 {err:.3g} from the Huygens exit-pupil PSF")
+    err, est = _case(name, frac, n_pupil=n_pupil, sensor_pitch=pitch)
+    print(f"{name} at {frac} field: rel L1 {err:.3g} from the Huygens exit-pupil PSF (its own error ~{est:.2g})")
+    if est > REF_TOL:  # e.g. the double Gauss at full field: ~1 wave between neighbouring cells at 288²
+        pytest.xfail(f"the reference is not converged (its own error ~{est:.2g}): no verdict")
     assert err < TOL

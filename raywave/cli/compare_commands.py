@@ -14,7 +14,9 @@ Writes ``compare.png`` (a grid: models × fields, log scale unless ``--linear``)
 ``compare.json`` (per field and model: relative L1 ``Σ|psf − ref| / Σ|ref|`` to the reference model and to the
 ground truth where one exists — an ideal-lens (paraxial surface) lens with a blank DOE on axis at a distant
 object, whose truth is the Debye focus —, the centre's offset from the reference's, the energy outside the
-crop, the pupil model's Zernike fit residual and the ray model's discontinuity fraction; plus every pairwise
+crop, the pupil model's Zernike fit residual, the ray model's discontinuity fraction and the exit-pupil model's
+pupil grid and its own error estimate (``n_pupil``, ``error_estimate``: it refines its pupil sampling until
+converged, raywave.models.exit_pupil.huygens_psf); plus every pairwise
 L1 between models) and prints the table.
 """
 
@@ -141,7 +143,12 @@ def run_compare(hl, models, fields, wavelength: float, ks: int, depth, reference
                                                                        - rf.center[0, 0].detach())) * 1e3
                                         if rf is not None else None),
                    "energy_outside": float(r.energy_outside[0, 0].detach()),
-                   "zernike_residual_waves": None, "rays_on_discontinuity": None}
+                   "zernike_residual_waves": None, "rays_on_discontinuity": None, "n_pupil": None,
+                   "error_estimate": None}
+            if "error_estimate" in r.info:  # a model that converges its own sampling (exit_pupil) says how far
+                est = float(r.info["error_estimate"][0, 0])
+                row["n_pupil"] = int(r.info["n_pupil"][0, 0])
+                row["error_estimate"] = None if est != est else est
             if name == "pupil":
                 row["zernike_residual_waves"] = float(r.info["residual_rms_waves"][0, 0])
             if name == "raytrace":
@@ -169,6 +176,8 @@ def format_table(rows, reference: str) -> str:
             note = f"Zernike residual {r['zernike_residual_waves']:.2g} λ RMS"
         if r["rays_on_discontinuity"]:
             note = f"{100 * r['rays_on_discontinuity']:.1f} % rays on phase steps"
+        if r.get("n_pupil") is not None:
+            note = f"{r['n_pupil']}² pupil cells, own error ~{_fmt(r.get('error_estimate'), '.1e')}"
         lines.append(f"{'(' + format(r['field_x_deg'], 'g') + ', ' + format(r['field_y_deg'], 'g') + ')':>14}  "
                      f"{r['model']:<11} {_fmt(r['l1_vs_' + reference]):>16} {_fmt(r['l1_vs_truth']):>12} "
                      f"{_fmt(r['center_offset_um'], '.3f'):>11} {_fmt(r['energy_outside'], '.2e'):>9} {note}")
