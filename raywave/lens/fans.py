@@ -17,6 +17,7 @@ import torch
 
 from raywave.lens.analysis import wavefront_opd
 from raywave.lens.sources import VignettingWarning, chief_ray, point_source_rays
+from raywave.rays.pupil import inset_rim
 
 
 @dataclass
@@ -60,7 +61,7 @@ def ray_fan(lens, fields=None, wavelengths=None, n: int = 21) -> RayFan:
     wls = list(lens.wavelengths if wavelengths is None else [float(w) for w in wavelengths])
     t = torch.linspace(-1.0, 1.0, n, dtype=torch.float64, device=lens.device)
     z = torch.zeros_like(t)
-    px, py = torch.cat([z, t]), torch.cat([t, z])  # tangential fan, then sagittal
+    px, py = inset_rim(torch.cat([z, t]), torch.cat([t, z]))  # tangential fan, then sagittal; the rim rule
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # vignetted rays: NaN in the fans
         out = lens.image_coordinates(lens.trace_to_image(point_source_rays(lens, f, wls, pupil=(px, py))))
@@ -97,6 +98,6 @@ def opd_fan(lens, fields=None, wavelengths=None, n: int = 21) -> OPDFan:
     z = torch.zeros_like(t)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)
-        opd, _, _, v = wavefront_opd(lens, f, wls, pupil=(torch.cat([z, t]), torch.cat([t, z])))
+        opd, _, _, v = wavefront_opd(lens, f, wls, pupil=inset_rim(torch.cat([z, t]), torch.cat([t, z])))
     opd = torch.where(v & torch.isfinite(opd), opd, torch.full_like(opd, math.nan))
     return OPDFan(t, opd[..., :n], opd[..., n:], f, wls)

@@ -30,6 +30,7 @@ import torch
 from raywave.lens.analysis import wavefront_opd
 from raywave.lens.opd import square_pupil_grid
 from raywave.lens.sources import VignettingWarning, point_source_rays
+from raywave.rays.pupil import inset_rim
 
 
 @dataclass
@@ -97,7 +98,7 @@ def _frequency_steps(lens, fields, wl, n) -> torch.Tensor:
     """Cycles/mm per pupil sample of shift, (F, 2) = (along y, along x), from the marginal rays' directions."""
     px = torch.tensor([0.0, 0.0, 1.0, -1.0], dtype=torch.float64, device=lens.device)
     py = torch.tensor([1.0, -1.0, 0.0, 0.0], dtype=torch.float64, device=lens.device)
-    out = lens.image_coordinates(lens.trace_to_image(point_source_rays(lens, fields, [wl], pupil=(px, py))))
+    out = lens.image_coordinates(lens.trace_to_image(point_source_rays(lens, fields, [wl], pupil=inset_rim(px, py))))
     d = out.d[:, 0]  # (F, 4, 3), in the image plane's frame: its normal is z
     n_img = float(lens.surfaces[-1].material.n(torch.tensor([wl], dtype=torch.float64))[0])
     dt = torch.linalg.vector_norm(d[:, 0, :2] - d[:, 1, :2], dim=-1)
@@ -137,7 +138,7 @@ def diffraction_mtf(lens, fields=None, frequencies=None, wavelengths=None, weigh
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)
         for wl, wt in zip(wls, wts):
-            opd, _, _, v = wavefront_opd(lens, f, [wl], pupil=(px[inside], py[inside]))
+            opd, _, _, v = wavefront_opd(lens, f, [wl], pupil=inset_rim(px[inside], py[inside]))
             ok = v[:, 0] & torch.isfinite(opd[:, 0])
             field = torch.zeros((f.shape[0], n * n), dtype=torch.complex128, device=lens.device)
             phase = torch.where(ok, 2 * math.pi * opd[:, 0], torch.zeros_like(opd[:, 0]))
@@ -166,6 +167,9 @@ def geometric_mtf(lens, fields=None, frequencies=None, wavelengths=None, weights
           else torch.as_tensor(frequencies, dtype=torch.float64).reshape(-1)).to(lens.device)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)
+        if not isinstance(pupil[0], str):  # explicit samples: the rim rule (named patterns have it already)
+            pupil = inset_rim(*(torch.as_tensor(p, dtype=torch.float64, device=lens.device).reshape(-1)
+                                for p in pupil))
         out = lens.image_coordinates(lens.trace_to_image(point_source_rays(lens, f, wls, pupil=pupil)))
     ok = out.valid & torch.isfinite(out.o).all(-1)  # (F, W, N)
     w = ok.to(torch.float64) * torch.tensor(wts, dtype=torch.float64, device=lens.device)[None, :, None]

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from raywave.lens.analysis import wavefront_opd
+from raywave.rays.pupil import inset_rim
 
 
 @dataclass
@@ -72,8 +73,9 @@ def opd_map(lens, field=(0.0, 0.0), wavelength: float | None = None, pupil=("gri
     else:
         px, py = (torch.as_tensor(p, dtype=torch.float64, device=lens.device).reshape(-1) for p in pupil)
     inside = px * px + py * py <= 1.0 + 1e-12
-    with torch.no_grad():
-        opd, _, _, v = wavefront_opd(lens, [tuple(float(f) for f in field)], [wl], pupil=(px[inside], py[inside]))
+    with torch.no_grad():  # rim samples: the rim rule (raywave.rays.pupil)
+        opd, _, _, v = wavefront_opd(lens, [tuple(float(f) for f in field)], [wl],
+                                     pupil=inset_rim(px[inside], py[inside]))
     full = torch.full(px.shape, math.nan, dtype=torch.float64, device=px.device)
     ok = torch.zeros(px.shape, dtype=torch.bool, device=px.device)
     vv = v.reshape(-1) & torch.isfinite(opd.reshape(-1))

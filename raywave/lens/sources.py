@@ -198,13 +198,12 @@ def aim_chief_rays(lens, fields, field_type, wavelength, depth=None, ep_z=None) 
 
 def _pupil_samples(lens, pupil, generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Normalised pupil coordinates (px, py), each (N,) float64 (1 = the stop's rim), from ``(pattern, n)``
-    (:func:`raywave.rays.pupil.sample`) or explicit ``(px, py)`` tensors, rim samples inset by the rim rule
-    (:func:`raywave.rays.pupil.inset_rim`)."""
-    if isinstance(pupil[0], str):
-        px, py = pupil_patterns.sample(pupil[0], pupil[1], generator=generator, device=lens.device)
-    else:
-        px, py = (torch.as_tensor(p, dtype=torch.float64, device=lens.device).reshape(-1) for p in pupil)
-    return pupil_patterns.inset_rim(px, py)  # the rim rule (raywave.rays.pupil): rim rays always pass the stop
+    (:func:`raywave.rays.pupil.sample`, rim samples inset by the rim rule) or explicit ``(px, py)`` tensors (traced
+    as given: a caller that needs the exact rim, e.g. the stop edge's image, passes it; one that wants the rim rule
+    applies :func:`raywave.rays.pupil.inset_rim`)."""
+    if isinstance(pupil[0], str):  # a named pattern: its rim samples inset by the rim rule (raywave.rays.pupil)
+        return pupil_patterns.sample(pupil[0], pupil[1], generator=generator, device=lens.device)
+    return tuple(torch.as_tensor(p, dtype=torch.float64, device=lens.device).reshape(-1) for p in pupil)
 
 
 def _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, ep_z):

@@ -3,10 +3,12 @@
 Each function returns ``(px, py)``: float64 tensors of shape (N,) with px² + py² <= 1 (disk patterns).
 
 **The rim rule** (one for the whole engine): a sample on the pupil's rim (radius within :data:`RIM_TOL` of 1) is
-aimed a hair inside it, at radius :data:`RIM_INSET` (:func:`inset_rim`; applied to every pupil sample of
-:func:`raywave.lens.sources.point_source_rays`). A ray aimed exactly at the stop's edge passes or is stopped by the
-last bit of its aim's rounding, which depends on what else is traced in the same batch; inset by 1e-9 of the
-radius it always passes, so the rim ring of a spot diagram, a fan or a footprint counts whatever the batch.
+aimed a hair inside it, at radius :data:`RIM_INSET` (:func:`inset_rim`). :func:`sample` applies it to every named
+pattern, and the analyses that build their own samples (fans, MTF and OPD grids, the ray-wave footprint) apply it
+too; explicit ``(px, py)`` given to :func:`raywave.lens.sources.point_source_rays` are traced as given (the stop
+edge's image needs the exact rim). A ray aimed exactly at the stop's edge passes or is stopped by the last bit of
+its aim's rounding, which depends on what else is traced in the same batch; inset by 1e-9 of the radius it always
+passes, so the rim ring of a spot diagram, a fan or an MTF counts whatever the batch.
 """
 
 from __future__ import annotations
@@ -77,13 +79,14 @@ def fans(n: int, dtype=torch.float64, device=None):
 
 
 def sample(pattern: str = "grid", n: int = 21, generator=None, dtype=torch.float64, device=None):
-    """Dispatch by name: 'grid' (n per side), 'square', 'hexapolar' (n rings), 'random' (n points)."""
+    """Dispatch by name: 'grid' (n per side), 'square', 'hexapolar' (n rings), 'random' (n points); rim samples inset
+    by the rim rule (:func:`inset_rim`)."""
     if pattern == "grid":
-        return grid(n, "circle", dtype, device)
+        return inset_rim(*grid(n, "circle", dtype, device))
     if pattern == "square":
-        return grid(n, "square", dtype, device)
+        return inset_rim(*grid(n, "square", dtype, device))
     if pattern == "hexapolar":
-        return hexapolar(n, dtype, device)
+        return inset_rim(*hexapolar(n, dtype, device))
     if pattern == "random":
-        return random(n, generator, dtype, device)
+        return inset_rim(*random(n, generator, dtype, device))
     raise ValueError(f"unknown pupil pattern {pattern!r}: use 'grid', 'square', 'hexapolar' or 'random'")
