@@ -1,8 +1,8 @@
 """Steps 2–4 of the engine for many sources at once (issue 43): the DOE's phase, the propagation to the sensor and
 the pixel integration of a group of DOE-plane fields as batched tensor operations.
 
-The sources of a call are grouped (:func:`plan_groups`): one group per wavelength, medium, distance and mode, cut
-into batches of similar window sizes whose band arrays stay within :data:`BATCH_BYTES`. Every discrete choice (the
+The sources of a call are grouped (:func:`plan_groups`): one group per wavelength, medium, distance, mode and the
+FFT size each source needs on its own, cut into batches whose FFT-grid arrays stay within :data:`BATCH_BYTES`. Every discrete choice (the
 padded window shape, the FFT size, the band's rows and columns, the output window) is made once per batch on the
 host from the sources' geometry (host floats that the fields carry), so the hot path has no per-PSF device→host
 round trip. A batch then runs (:func:`propagate_group`):
@@ -28,12 +28,11 @@ import torch.nn.functional as F
 from raywave.utils.safe import safe_div
 from raywave.wave.propagation import integrated_upsampled_intensity
 from raywave.wave.propagation.batch import WindowBatch, WindowSource, batch_transfer, propagate_batch
+from raywave.wave.propagation.transfer import _geometry
 
 #: a batch holds at most this many bytes of FFT-grid arrays (B × (Ny + n) × (Nx + n) complex samples): it bounds the
 #: batched intermediates (the band spectra, the transfer functions), i.e. the peak memory of one batch
 BATCH_BYTES = 2**28
-#: a batch's smallest window (FFT area) is at least this fraction of its largest (bounds the padding's waste)
-BATCH_AREA_RATIO = 0.7
 #: samples of simulation pitch around the PSF window (keeps the periodic upsampling's edge effects out of it)
 OUT_MARGIN = 8
 
@@ -73,37 +72,37 @@ def out_half_width(sensor: SensorWindow, p: float, center: tuple[float, float]) 
     return max(math.ceil((xc - lo_x) / p), math.ceil((lo_x + n_out * p - xc) / p))
 
 
-def _area(fd, n_out: int) -> int:
-    ny, nx = fd.field.grid.shape
-    return (ny + n_out) * (nx + n_out)
+def _fft_size(pl: Planned, n_out: int, kk: int) -> tuple[int, int]:
+    """The FFT size ``(My, Mx)`` that the source ``pl`` needs on its own (:func:`window_transfer`'s, host math) for
+    an output window of ``n_out`` samples whose centre sample lies on its chief ray's image point."""
+    fd = pl.fd
+    p = fd.pitch
+    out = (pl.center[0] - kk * p, pl.center[1] - kk * p)
+    return _geometry(fd.field.grid.shape, (n_out, n_out), p, fd.wavelength, float(fd.z), fd.origin, out, fd.n,
+                     fd.carrier, 0.5, 2.0).size
 
 
 def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int) -> list[list[Planned]]:
     """The batches of ``planned`` (lattice-path sources with light): grouped by wavelength, medium index, distance,
-    pitch and whether the sensor distance is differentiated (``chief_tan``), each group sorted by window size and
-    cut where the size drops below :data:`BATCH_AREA_RATIO` of the batch's first or the batch would pass
-    :data:`BATCH_BYTES` (``element_size`` bytes per complex sample)."""
-    groups: dict = {}
+    pitch, whether the sensor distance is differentiated (``chief_tan``) and the FFT size each source needs on its
+    own (so that every PSF is the one-source path's to rounding: a larger FFT grid samples the rolled-off kernel's
+    spectrum more finely, which moves a strongly aberrated PSF such as the Cooke triplet's by up to 2e-3 L1), each
+    group cut where a batch would pass :data:`BATCH_BYTES` (``element_size`` bytes per complex sample of the FFT
+    grid)."""
+    by_wave: dict = {}
     for pl in planned:
         fd = pl.fd
-        key = (fd.wavelength, fd.n, float(fd.z), fd.pitch, fd.chief_tan is not None)
-        groups.setdefault(key, []).append(pl)
+        by_wave.setdefault((fd.wavelength, fd.n, float(fd.z), fd.pitch, fd.chief_tan is not None), []).append(pl)
     batches = []
-    for key in sorted(groups, key=str):
-        p = key[3]
-        n_out = 2 * max(out_half_width(sensor, p, pl.center) for pl in groups[key]) + 1
-        members = sorted(groups[key], key=lambda pl: -_area(pl.fd, n_out))
-        cur, first = [], 0
+    for key in sorted(by_wave, key=str):
+        members = by_wave[key]
+        kk = max(out_half_width(sensor, key[3], pl.center) for pl in members)
+        groups: dict = {}
         for pl in members:
-            a = _area(pl.fd, n_out)
-            if cur and (a < BATCH_AREA_RATIO * first or (len(cur) + 1) * first * element_size > BATCH_BYTES):
-                batches.append(cur)
-                cur = []
-            if not cur:
-                first = a
-            cur.append(pl)
-        if cur:
-            batches.append(cur)
+            groups.setdefault(_fft_size(pl, 2 * kk + 1, kk), []).append(pl)
+        for (my, mx), group in sorted(groups.items()):
+            per = max(1, BATCH_BYTES // (my * mx * element_size))
+            batches.extend(group[i:i + per] for i in range(0, len(group), per))
     return batches
 
 
