@@ -365,8 +365,8 @@ class DOE(nn.Module):
     def window_phasors(self, wavelength: float, corners, shape, oversample: int = 1) -> torch.Tensor:
         """``exp(iφ)`` at ``wavelength`` (µm) on B windows of one ``shape`` ``(ny, nx)`` whose sample (0, 0) lies at
         the simulation-grid indices ``corners`` (B pairs ``(iy0, ix0)``, host ints), complex128 ``(B, ny, nx)``:
-        the batched form of :meth:`modulate`'s factor (one phase evaluation over the DOE pixels the windows cover,
-        one gather). Samples beyond the grid repeat its edge (a padded window's envelope is 0 there)."""
+        the batched form of :meth:`modulate`'s factor (one :meth:`phase` evaluation over the windows' union on the
+        grid, one gather). Samples beyond the grid repeat its edge (a padded window's envelope is 0 there)."""
         q = int(oversample)
         ny, nx = (int(v) for v in shape)
         sy, sx = self.sim_shape(q)
@@ -375,13 +375,13 @@ class DOE(nn.Module):
         lo_x, hi_x = max(0, min(ix0s)), min(sx, max(ix0s) + nx)
         if hi_y <= lo_y or hi_x <= lo_x:  # no window meets the grid
             return torch.ones((len(iy0s), ny, nx), dtype=torch.complex128, device=self.device)
-        r0, r1, c0, c1 = lo_y // q, (hi_y - 1) // q + 1, lo_x // q, (hi_x - 1) // q + 1
-        ph = self.phase_pixels(wavelength, slice(r0, r1), slice(c0, c1))
+        # the phase of the windows' union through phase() (a subclass's own phase map, e.g. a PerturbedDOE's, holds)
+        ph = self.phase(wavelength, (lo_y, lo_x, hi_y - lo_y, hi_x - lo_x), q)
         dev = ph.device
         start = torch.tensor([iy0s, ix0s], dtype=torch.long, device=dev)  # (2, B)
-        iy = (start[0][:, None] + torch.arange(ny, device=dev)).clamp(lo_y, hi_y - 1).div(q, rounding_mode="floor")
-        ix = (start[1][:, None] + torch.arange(nx, device=dev)).clamp(lo_x, hi_x - 1).div(q, rounding_mode="floor")
-        return unit_phasor(ph[(iy - r0)[:, :, None], (ix - c0)[:, None, :]])
+        iy = (start[0][:, None] + torch.arange(ny, device=dev)).clamp(lo_y, hi_y - 1) - lo_y
+        ix = (start[1][:, None] + torch.arange(nx, device=dev)).clamp(lo_x, hi_x - 1) - lo_x
+        return unit_phasor(ph[iy[:, :, None], ix[:, None, :]])
 
     # ------------------------------------------------------------------ specs
     def model_spec(self) -> dict:

@@ -1,11 +1,11 @@
 """Steps 2–4 of the engine for many sources at once (issue 43): the DOE's phase, the propagation to the sensor and
 the pixel integration of a group of DOE-plane fields as batched tensor operations.
 
-The sources of a call are grouped (:func:`plan_groups`): one group per wavelength, medium, distance, mode and the
-FFT size each source needs on its own, cut into batches whose FFT-grid arrays stay within :data:`BATCH_BYTES`. Every discrete choice (the
-padded window shape, the FFT size, the band's rows and columns, the output window) is made once per batch on the
-host from the sources' geometry (host floats that the fields carry), so the hot path has no per-PSF device→host
-round trip. A batch then runs (:func:`propagate_group`):
+The sources of a call are grouped (:func:`plan_groups`): one group per wavelength, medium, distance, mode and
+the FFT size each source needs on its own, cut into batches whose FFT-grid arrays stay within :data:`BATCH_BYTES`.
+Every discrete choice (the padded window shape, the FFT size, the band's rows and columns, the output window) is
+made once per batch on the host from the sources' geometry (host floats that the fields carry), so the hot path
+has no per-PSF device→host round trip. A batch then runs (:func:`propagate_group`):
 
 1. the envelopes zero-padded to a common window ``(B, Ny, Nx)`` (each keeps its origin: padding is at the end);
 2. the DOE's ``exp(iφ)`` of every window from one phase evaluation (:meth:`raywave.doe.DOE.window_phasors`);

@@ -34,12 +34,11 @@ from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
                                      doe_clippings, entrance_pupil, exit_pupil_field_steps, faithful_field, footprints,
                                      run_batched, stop_rim_images_many)
-from raywave.hybrid.batched import Planned, SensorWindow, TransferMemo, plan_groups, propagate_group
+from raywave.hybrid.batched import OUT_MARGIN, Planned, SensorWindow, TransferMemo, plan_groups, propagate_group
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
-from raywave.utils.phasor import unit_phasor
 from raywave.utils.safe import safe_div
 from raywave.wave.propagation import (angular_spectrum, integrated_upsampled_intensity, propagate_window,
                                       window_transfer)
@@ -68,7 +67,7 @@ class _PupilAtInfinity(ValueError):
     """The exit pupil lies at (or near) infinity: no exit-pupil plane to form the stop's edge on."""
 
 
-_OUT_MARGIN = 8  # samples around the PSF window (keeps the periodic upsampling's edge effects out of it)
+_OUT_MARGIN = OUT_MARGIN  # samples around the PSF window (keeps the periodic upsampling's edge effects out of it)
 
 
 def _edge_taper(shape, width: int, device) -> torch.Tensor:
@@ -586,8 +585,7 @@ class HybridLens(nn.Module):
         full_grid = fd.full_grid
         # full-grid path: the crop's derivative goes through the pixel overlaps (piecewise-constant model)
         integrate_origin = crop_origin if full_grid else psf_origin
-        phase = self.doe.phase(fd.wavelength, fd.window, self.oversample)  # the box is known: no Grid.locate
-        u = fd.envelope * unit_phasor(phase)
+        u = self.doe.modulate(fd.field, self.oversample).envelope  # exp(iφ) of the DOE on the field's grid
         with torch.no_grad():  # a diagnostic (energy outside the crop); the DOE's phase does not change it
             power = torch.linalg.vector_norm(torch.view_as_real(fd.envelope)).square() * p * p  # one pass
         if float(power.detach()) == 0.0:
@@ -607,7 +605,7 @@ class HybridLens(nn.Module):
             out, out_origin = _full_grid_window(u, fd, dz, (lo_x, lo_y), n_out)
         else:
             out, out_origin = self._lattice_window(u, fd, dz, crop_origin, (xc, yc), lo_x, n_out)
-        del u, phase  # the DOE-plane window is no longer needed (autograd keeps what its backward needs)
+        del u  # the DOE-plane window is no longer needed (autograd keeps what its backward needs)
         # intensity on a q-times finer grid (q ≥ 2: |U|² has twice the field's bandwidth), integrated over the
         # sensor pixels through its cubic interpolant; computed on the 2× grid (the q grid's weights folded onto it)
         q = self.intensity_upsample
