@@ -97,17 +97,22 @@ def count_ops(fn):
     return c.n, out
 
 
-def ops_case(hl, n: int, m: int, wavelengths, grad_psfs: int = 24) -> dict:
-    """The aten ops per PSF of an n×m map at ``wavelengths`` (no autograd: the whole map, as timed), and with
-    autograd (forward + backward of a weighted sum of the PSFs) on the map's first ``grad_psfs // W`` field points
-    (one model call, as the replay runs a chunk: a whole map's graph would not fit)."""
+def ops_case(hl, n: int, m: int, wavelengths) -> dict:
+    """The aten ops per PSF of an n×m map at ``wavelengths``, counted on the map's first model call (the field points
+    of its first chunk, in the order :func:`raywave.imaging.psf_map` computes them: mirror images together, so that a
+    mirror-symmetric lens builds a quarter of the fields, as in the map; a map is ⌈N·M / chunk⌉ such calls): no
+    autograd, and with autograd (forward + backward of a weighted sum of the PSFs into the lens, as the replay runs a
+    chunk)."""
     import torch
 
-    from raywave.imaging import psf_map
-    from raywave.imaging.psfmap import field_grid
+    from raywave.imaging.psfmap import _map_chunks, _pair_order, field_grid
 
-    n_ops, _ = count_ops(lambda: psf_map(hl, (n, m), wavelengths=wavelengths, ks=KS, progress=False))
-    f = field_grid(hl, (n, m)).reshape(-1, 2)[: max(1, grad_psfs // len(wavelengths))]
+    order = _pair_order(n, m)
+    s, e = _map_chunks(n * m, len(wavelengths), None)[0]
+    f = field_grid(hl, (n, m)).reshape(-1, 2)[order][s:e]
+    k = f.shape[0] * len(wavelengths)
+    with torch.no_grad():
+        n_ops, _ = count_ops(lambda: hl.psf_result(f, list(wavelengths), ks=KS))
 
     def fwd_bwd():
         r = hl.psf_result(f, list(wavelengths), ks=KS)
@@ -115,9 +120,7 @@ def ops_case(hl, n: int, m: int, wavelengths, grad_psfs: int = 24) -> dict:
         (r.psf * w).sum().backward()
 
     g_ops, _ = count_ops(fwd_bwd)
-    k_grad = f.shape[0] * len(wavelengths)
-    return {"ops": n_ops, "ops_per_psf": n_ops / (n * m * len(wavelengths)), "grad_psfs": k_grad,
-            "ops_grad": g_ops, "ops_per_psf_grad": g_ops / k_grad}
+    return {"ops_psfs": k, "ops": n_ops, "ops_per_psf": n_ops / k, "ops_grad": g_ops, "ops_per_psf_grad": g_ops / k}
 
 
 def psfs_case(n: int, m: int, n_wl: int, threads: int, stop_edge: str | None = None, device: str = "cpu",
@@ -228,12 +231,29 @@ def main() -> None:
                     help="--per-psf: the lens's stop edge (default: the library's default, the exit pupil)")
     ap.add_argument("--device", default="cpu", help="--per-psf: the torch device of the lens (cpu, cuda)")
     ap.add_argument("--ops", action="store_true",
-                    help="--per-psf: also count the aten ops dispatched per PSF (no grad: the map; with grad: one "
-                         "call's worth of PSFs, forward + backward), in a second untimed pass")
+                    help="--per-psf: also count the aten ops dispatched per PSF on the map's first model call (no grad, "
+                         "and forward + backward), in a second untimed pass")
     ap.add_argument("--grids", default=None,
                     help="--per-psf: the cases as NxMxW,… (default 1x1x1,2x5x1,10x10x1,10x10x3)")
+    ap.add_argument("--ops-only", default=None, metavar="NxMxW",
+                    help="only count the ops per PSF of that map's first call (no timing), in this process")
     ap.add_argument("--case", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.ops_only:
+        import warnings
+
+        import torch
+
+        torch.set_num_threads(args.threads)
+        warnings.simplefilter("ignore")
+        n, m, w = (int(v) for v in args.ops_only.split("x"))
+        hl = _lens(None if args.stop_edge == "default" else args.stop_edge)
+        with torch.no_grad():
+            hl.psf_result((0.0, 0.0), list(WAVELENGTHS[:1]), ks=KS)  # warm-up (first-call costs)
+        emit_json({"benchmark": "imaging_ops", "lens": "hybrid_asphere", "grid": [n, m], "wavelengths": list(
+            WAVELENGTHS[:w]), "ks": KS, "stop_edge": hl.stop_edge, "torch": torch.__version__,
+                   **ops_case(hl, n, m, WAVELENGTHS[:w])}, args.output)
+        return
     if args.case:
         kind, *rest = args.case.split(",")
         if kind == "psfs":
