@@ -18,7 +18,10 @@ machine). Prints one JSON object (and writes it with ``-o``).
 
 ``--per-psf`` (issue 17, the batched engine): only the PSF-map cost per PSF at 1, 10, 100 and 300 PSFs (``--stop-edge
 doe|exit_pupil``: that stop edge instead of the default; ``--device cuda``: the lens on a GPU)
-(1×1×1λ, 2×5×1λ, 10×10×1λ and the 10×10×3λ map; no autograd, ks = 64), each in its own process.
+(1×1×1λ, 2×5×1λ, 10×10×1λ and the 10×10×3λ map; no autograd, ks = 64), each in its own process; with ``--ops``
+(issue 43) beside time and memory the aten ops dispatched per PSF (``TorchDispatchMode``: on a GPU each is a kernel
+launch), no grad for the map and forward + backward for one call's worth of its PSFs (``--grids 4x4x3,10x10x3``:
+other cases).
 """
 
 from __future__ import annotations
@@ -77,7 +80,51 @@ def map_case(n: int, threads: int, cached: bool) -> dict:
     return out
 
 
-def psfs_case(n: int, m: int, n_wl: int, threads: int, stop_edge: str | None = None, device: str = "cpu") -> dict:
+def count_ops(fn):
+    """``(number of aten ops dispatched, fn())``: every op that reaches the dispatcher (the kernel launches of a GPU;
+    ``torch.utils._python_dispatch.TorchDispatchMode``), forward and, when ``fn`` runs one, backward."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class _Count(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.n += 1
+            return func(*args, **(kwargs or {}))
+
+    with _Count() as c:
+        out = fn()
+    return c.n, out
+
+
+def ops_case(hl, n: int, m: int, wavelengths) -> dict:
+    """The aten ops per PSF of an n×m map at ``wavelengths``, counted on the map's first model call (the field points
+    of its first chunk, in the order :func:`raywave.imaging.psf_map` computes them: mirror images together, so that a
+    mirror-symmetric lens builds a quarter of the fields, as in the map; a map is ⌈N·M / chunk⌉ such calls): no
+    autograd, and with autograd (forward + backward of a weighted sum of the PSFs into the lens, as the replay runs a
+    chunk)."""
+    import torch
+
+    from raywave.imaging.psfmap import _map_chunks, _pair_order, field_grid
+
+    order = _pair_order(n, m)
+    s, e = _map_chunks(n * m, len(wavelengths), None)[0]
+    f = field_grid(hl, (n, m)).reshape(-1, 2)[order][s:e]
+    k = f.shape[0] * len(wavelengths)
+    with torch.no_grad():
+        n_ops, _ = count_ops(lambda: hl.psf_result(f, list(wavelengths), ks=KS))
+
+    def fwd_bwd():
+        r = hl.psf_result(f, list(wavelengths), ks=KS)
+        w = torch.rand(r.psf.shape, dtype=r.psf.dtype, generator=torch.Generator().manual_seed(0)).to(r.psf.device)
+        (r.psf * w).sum().backward()
+
+    g_ops, _ = count_ops(fwd_bwd)
+    return {"ops_psfs": k, "ops": n_ops, "ops_per_psf": n_ops / k, "ops_grad": g_ops, "ops_per_psf_grad": g_ops / k}
+
+
+def psfs_case(n: int, m: int, n_wl: int, threads: int, stop_edge: str | None = None, device: str = "cpu",
+              ops: bool = False) -> dict:
     """Time per PSF of an n×m map at the first ``n_wl`` of the R, G, B wavelengths (after a 1-PSF warm-up);
     ``stop_edge`` None: the lens's default edge; ``device``: the torch device of the lens (on CUDA the time is
     taken after a synchronisation, and the peak GPU memory of the timed map is reported)."""
@@ -111,6 +158,8 @@ def psfs_case(n: int, m: int, n_wl: int, threads: int, stop_edge: str | None = N
     if dev.type == "cuda":
         out["cuda_peak_allocated_mb"] = torch.cuda.max_memory_allocated(dev) / 1e6
         out["device_name"] = torch.cuda.get_device_name(dev)
+    if ops:  # counted in a second, untimed pass (the counting itself costs host time per op)
+        out.update(ops_case(hl, n, m, WAVELENGTHS[:n_wl]))
     return out
 
 
@@ -161,9 +210,9 @@ def render_case(n: int, threads: int, repeat: int, training: bool) -> dict:
     return res
 
 
-def _run(args_list, threads, device="cpu"):
+def _run(args_list, threads, device="cpu", ops=False):
     cmd = [sys.executable, __file__, "--case", ",".join(str(a) for a in args_list), "--threads", str(threads),
-           "--device", device]
+           "--device", device] + (["--ops"] if ops else [])
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         raise RuntimeError(f"case {args_list} failed:\n{res.stderr[-3000:]}")
@@ -181,13 +230,35 @@ def main() -> None:
     ap.add_argument("--stop-edge", choices=("default", "doe", "exit_pupil"), default="default",
                     help="--per-psf: the lens's stop edge (default: the library's default, the exit pupil)")
     ap.add_argument("--device", default="cpu", help="--per-psf: the torch device of the lens (cpu, cuda)")
+    ap.add_argument("--ops", action="store_true",
+                    help="--per-psf: also count the aten ops dispatched per PSF on the map's first model call (no grad, "
+                         "and forward + backward), in a second untimed pass")
+    ap.add_argument("--grids", default=None,
+                    help="--per-psf: the cases as NxMxW,… (default 1x1x1,2x5x1,10x10x1,10x10x3)")
+    ap.add_argument("--ops-only", default=None, metavar="NxMxW",
+                    help="only count the ops per PSF of that map's first call (no timing), in this process")
     ap.add_argument("--case", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.ops_only:
+        import warnings
+
+        import torch
+
+        torch.set_num_threads(args.threads)
+        warnings.simplefilter("ignore")
+        n, m, w = (int(v) for v in args.ops_only.split("x"))
+        hl = _lens(None if args.stop_edge == "default" else args.stop_edge)
+        with torch.no_grad():
+            hl.psf_result((0.0, 0.0), list(WAVELENGTHS[:1]), ks=KS)  # warm-up (first-call costs)
+        emit_json({"benchmark": "imaging_ops", "lens": "hybrid_asphere", "grid": [n, m], "wavelengths": list(
+            WAVELENGTHS[:w]), "ks": KS, "stop_edge": hl.stop_edge, "torch": torch.__version__,
+                   **ops_case(hl, n, m, WAVELENGTHS[:w])}, args.output)
+        return
     if args.case:
         kind, *rest = args.case.split(",")
         if kind == "psfs":
             out = psfs_case(int(rest[0]), int(rest[1]), int(rest[2]), args.threads,
-                            None if rest[3] == "default" else rest[3], args.device)
+                            None if rest[3] == "default" else rest[3], args.device, args.ops)
         elif kind == "map":
             out = map_case(int(rest[0]), args.threads, rest[1] == "1")
         else:
@@ -198,8 +269,10 @@ def main() -> None:
     import torch
 
     if args.per_psf:
-        cases = [c for c in ((1, 1, 1), (2, 5, 1), (10, 10, 1), (10, 10, 3)) if c[0] * c[1] * c[2] <= args.max_psfs]
-        runs = [_run(["psfs", *c, args.stop_edge], args.threads, args.device) for c in cases]
+        grids = ((1, 1, 1), (2, 5, 1), (10, 10, 1), (10, 10, 3)) if args.grids is None else \
+            tuple(tuple(int(v) for v in g.split("x")) for g in args.grids.split(","))
+        cases = [c for c in grids if c[0] * c[1] * c[2] <= args.max_psfs]
+        runs = [_run(["psfs", *c, args.stop_edge], args.threads, args.device, args.ops) for c in cases]
         summary = {"benchmark": "imaging_per_psf", "lens": "hybrid_asphere", "ks": KS, "threads": args.threads,
                    "device": args.device, "device_name": runs[0].get("device_name", platform.processor()),
                    "stop_edge": runs[0]["stop_edge"],
@@ -207,6 +280,9 @@ def main() -> None:
                    "runs": runs,
                    "seconds_per_psf": {str(r["psfs"]): r["seconds_per_psf"] for r in runs},
                    "cpu_seconds_per_psf": {str(r["psfs"]): r["cpu_seconds_per_psf"] for r in runs}}
+        if args.ops:
+            summary["ops_per_psf"] = {str(r["psfs"]): r["ops_per_psf"] for r in runs}
+            summary["ops_per_psf_grad"] = {str(r["psfs"]): r["ops_per_psf_grad"] for r in runs}
         emit_json(summary, args.output)
         return
 

@@ -8,6 +8,12 @@ the medians are reported. Prints one JSON object (and writes it with ``-o``).
     python benchmarks/psf_ab.py --a /path/to/old/tree --b . [--grid 5] [--repeat 3] [--threads 1]
         [--stop-edge doe|exit_pupil] [-o out.json]
 
+``--modes map,grad`` (issue 43) also times forward + backward (one model call of 8 field points × 3 λ at a time,
+each followed by the backward of a weighted sum of its PSFs) and reports every PSF's relative L1 difference between
+the trees (``max_rel_l1_per_psf``): issue 43's A/B is
+``git worktree add /tmp/base d9ddfa8`` then
+``python benchmarks/psf_ab.py --a /tmp/base --grid 10 --repeat 1 --threads 2 --modes map,grad``.
+
 Issue 17's bar (the 10×10×3 map ≥ 3× faster per PSF than at 17ade15, where it was filed; the DOE-plane edge,
 that tree's default): ``git worktree add /tmp/old 17ade15`` then
 ``python benchmarks/psf_ab.py --a /tmp/old --grid 10 --repeat 2 --threads 2 --stop-edge doe``.
@@ -40,21 +46,35 @@ edge = sys.argv[4]
 hl = load_hybrid(bundled_lens_path("hybrid_asphere"), **({} if edge == "default" else {"stop_edge": edge}))
 warnings.simplefilter("ignore")
 psf_map(hl, (1, 1), wavelengths=wls[:1], ks=64)
-t0, c0 = time.perf_counter(), time.process_time()
-m = psf_map(hl, (n, n), wavelengths=wls, ks=64)
-wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-torch.save(m.psf, sys.argv[3])
+if sys.argv[5] == "grad":  # forward + backward, one model call (8 field points × 3 λ) at a time, as the replay does
+    from raywave.imaging.psfmap import field_grid
+    f = field_grid(hl, (n, n)).reshape(-1, 2)
+    w = torch.rand((n * n, 3, 64, 64), dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    t0, c0 = time.perf_counter(), time.process_time()
+    parts = []
+    for s in range(0, f.shape[0], 8):
+        r = hl.psf_result(f[s:s + 8], list(wls), ks=64)
+        (r.psf * w[s:s + 8]).sum().backward()
+        parts.append(r.psf.detach())
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    psf = torch.cat(parts).transpose(0, 1).reshape(3, n, n, 64, 64)[None]
+else:
+    t0, c0 = time.perf_counter(), time.process_time()
+    m = psf_map(hl, (n, n), wavelengths=wls, ks=64)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    psf = m.psf
+torch.save(psf, sys.argv[3])
 k = n * n * len(wls)
 import raywave
 print(json.dumps({"wall_per_psf": wall / k, "cpu_per_psf": cpu / k, "raywave": raywave.__file__}))
 """
 
 
-def _run(tree: str, n: int, threads: int, out: str, edge: str = "default") -> dict:
+def _run(tree: str, n: int, threads: int, out: str, edge: str = "default", grad: bool = False) -> dict:
     env = dict(os.environ, PYTHONPATH=os.path.abspath(tree), OMP_NUM_THREADS=str(threads))
     # run in the tree itself: ``python -c`` puts the working directory ahead of PYTHONPATH on sys.path
-    res = subprocess.run([sys.executable, "-c", _CHILD, str(n), str(threads), out, edge], capture_output=True, text=True,
-                         env=env, cwd=os.path.abspath(tree))
+    res = subprocess.run([sys.executable, "-c", _CHILD, str(n), str(threads), out, edge, "grad" if grad else "map"],
+                         capture_output=True, text=True, env=env, cwd=os.path.abspath(tree))
     if res.returncode != 0:
         raise RuntimeError(res.stderr[-3000:])
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -69,22 +89,30 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--stop-edge", default="default",
                     help="doe / exit_pupil for both trees (default: each tree's own default edge)")
+    ap.add_argument("--modes", default="map",
+                    help="map (no grad), grad (forward + backward, 8 field points × 3 λ per call) or map,grad")
     ap.add_argument("-o", "--output")
     args = ap.parse_args()
     import torch
 
-    runs = {"a": [], "b": []}
-    for r in range(args.repeat):
-        for key in ("a", "b"):
-            runs[key].append(_run(getattr(args, key), args.grid, args.threads, f"/tmp/raywave_psf_ab_{key}.pt",
-                                  args.stop_edge))
-            print(key, r, runs[key][-1], file=sys.stderr, flush=True)
-    diff = float((torch.load("/tmp/raywave_psf_ab_a.pt") - torch.load("/tmp/raywave_psf_ab_b.pt")).abs().max())
-    med = {k: {m: statistics.median(x[m] for x in v) for m in ("wall_per_psf", "cpu_per_psf")} for k, v in runs.items()}
     out = {"benchmark": "psf_ab", "lens": "hybrid_asphere", "grid": [args.grid, args.grid], "wavelengths": 3, "ks": 64,
-           "threads": args.threads, "stop_edge": args.stop_edge, "a": os.path.abspath(args.a), "b": os.path.abspath(args.b), "runs": runs,
-           "median": med, "speedup_wall": med["a"]["wall_per_psf"] / med["b"]["wall_per_psf"],
-           "speedup_cpu": med["a"]["cpu_per_psf"] / med["b"]["cpu_per_psf"], "max_abs_psf_diff": diff}
+           "threads": args.threads, "stop_edge": args.stop_edge, "a": os.path.abspath(args.a),
+           "b": os.path.abspath(args.b)}
+    for mode in args.modes.split(","):
+        runs = {"a": [], "b": []}
+        for r in range(args.repeat):
+            for key in ("a", "b"):
+                runs[key].append(_run(getattr(args, key), args.grid, args.threads,
+                                      f"/tmp/raywave_psf_ab_{mode}_{key}.pt", args.stop_edge, mode == "grad"))
+                print(mode, key, r, runs[key][-1], file=sys.stderr, flush=True)
+        a, b = (torch.load(f"/tmp/raywave_psf_ab_{mode}_{k}.pt") for k in ("a", "b"))
+        rel_l1 = (a - b).abs().sum((-2, -1)) / a.abs().sum((-2, -1)).clamp_min(1e-300)  # per PSF
+        med = {k: {m: statistics.median(x[m] for x in v) for m in ("wall_per_psf", "cpu_per_psf")}
+               for k, v in runs.items()}
+        out[mode] = {"runs": runs, "median": med, "speedup_wall": med["a"]["wall_per_psf"] / med["b"]["wall_per_psf"],
+                     "speedup_cpu": med["a"]["cpu_per_psf"] / med["b"]["cpu_per_psf"],
+                     "max_abs_psf_diff": float((a - b).abs().max()), "max_rel_l1_per_psf": float(rel_l1.max()),
+                     "median_rel_l1_per_psf": float(rel_l1.median())}
     emit_json(out, args.output)
 
 

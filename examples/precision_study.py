@@ -30,8 +30,8 @@ from raywave.lens.build import bundled_lens_path, load_lens  # noqa: E402
 def _on_doe_grid(fd, hl) -> torch.Tensor:
     """The field's envelope placed on the whole DOE grid (so that two windows compare)."""
     full = torch.zeros(hl.doe.sim_shape(hl.oversample), dtype=torch.complex128)
-    iy, ix, ny, nx = fd.window
-    full[iy:iy + ny, ix:ix + nx] = fd.envelope
+    iy0, iy1, ix0, ix1 = fd.box
+    full[iy0:iy1, ix0:ix1] = fd.envelope
     return full
 
 

@@ -12,6 +12,7 @@ from raywave.doe import BlankDOE, PixelDOE
 from raywave.hybrid import HybridLens
 from raywave.hybrid.coherent import DOEField, FieldInfo, lit_box
 from raywave.lens.build import ideal_lens
+from raywave.utils.phasor import unit_phasor
 from raywave.wave import Field, Grid
 
 
@@ -37,14 +38,19 @@ def test_every_construction_holds_a_field_on_the_doe_grid(stop_edge, mode, apert
             iy0, iy1, ix0, ix1 = fd.box
             assert fd.grid == sim.window(iy0, iy1, ix0, ix1)  # the box is half-open, on the DOE's grid
             assert sim.locate(fd.grid) == fd.box
-            assert fd.window == (iy0, ix0, iy1 - iy0, ix1 - ix0)  # the earlier (iy0, ix0, ny, nx) form
+            assert not hasattr(fd, "window") and not hasattr(DOEField, "on_window")  # the legacy rectangle is gone
             assert (fd.origin, fd.pitch, fd.wavelength, fd.carrier) == (fd.grid.origin, fd.grid.pitch[0],
                                                                         fd.field.wavelength, fd.field.carrier)
             assert fd.mode == fd.info.mode == mode and fd.stop_edge == fd.info.stop_edge == stop_edge
             # the DOE's phase sampled on the field's Grid is the one on its index window
             ph = hl.doe.phase(fd.wavelength, fd.grid, hl.oversample)
-            assert torch.equal(ph, hl.doe.phase(fd.wavelength, fd.window, hl.oversample))
+            assert torch.equal(ph, hl.doe.phase(fd.wavelength, (iy0, ix0, iy1 - iy0, ix1 - ix0), hl.oversample))
             assert ph.shape == fd.envelope.shape
+            # DOE.modulate applies it; window_phasors gives the same factor for a batch of windows
+            mod = hl.doe.modulate(fd.field, hl.oversample)
+            assert mod.grid == fd.grid and torch.equal(mod.envelope, fd.envelope * unit_phasor(ph))
+            bat = hl.doe.window_phasors(fd.wavelength, [(iy0, ix0)], fd.grid.shape, hl.oversample)
+            assert torch.equal(bat[0] * fd.envelope, mod.envelope)
             assert float(fd.power.detach()) > 0
 
 

@@ -59,7 +59,7 @@ def test_coarse_start_changes_the_path_not_the_field(monkeypatch, name, stop_edg
     old = _fields(hl, fields, wl)
     assert sum(counts[0]) < 0.6 * sum(counts[1])
     for a, b in zip(new, old):
-        assert a.window == b.window
+        assert a.box == b.box
         peak = float(b.envelope.abs().max())
         assert float((a.envelope - b.envelope).abs().max()) <= 1e-8 * peak
 

@@ -220,8 +220,10 @@ def test_one_cache_serves_every_doe_on_a_lens_and_empties_for_other_optics():
 
 
 def test_progress_bar_and_bad_input(hl, capsys):
-    m = psf_map(hl, (1, 1), wavelengths=[0.53], ks=8, rays=16, progress=True)
-    assert m.psf.shape == (1, 1, 1, 1, 8, 8)
+    m = psf_map(hl, (1, 2), wavelengths=[0.53, 0.47], ks=8, rays=16, progress=True, batch=1)
+    assert m.psf.shape == (1, 2, 1, 2, 8, 8)
+    err = capsys.readouterr().err
+    assert "4/4" in err and "PSF" in err  # the bar counts PSFs (nodes × wavelengths), not the 2 chunks
     with pytest.raises(ValueError, match="grid"):
         psf_map(hl, (0, 2))
     with pytest.raises(ValueError, match="µm"):

@@ -36,7 +36,7 @@ def _perturbed_psf(work: HybridLens, pdoe: PerturbedDOE, fds, ks: int) -> torch.
     work.doe = pdoe
     row, ratio = [], []
     for fd in fds[0]:
-        amp = pdoe.transmittance(fd.wavelength, fd.window, work.oversample).abs()
+        amp = pdoe.transmittance(fd.wavelength, fd.grid, work.oversample).abs()
         env = fd.envelope * amp
         p_in = float(fd.envelope.detach().abs().square().sum())
         ratio.append(float(env.detach().abs().square().sum()) / p_in if p_in > 0 else 0.0)

@@ -44,7 +44,8 @@ import torch
 from torch import nn
 
 from raywave.utils.checks import wavelength_um
-from raywave.wave.grid import Grid
+from raywave.utils.phasor import unit_phasor
+from raywave.wave.grid import Field, Grid
 
 __all__ = ["DEFAULT_DESIGN_WAVELENGTH", "DEFAULT_LEVELS", "DEFAULT_MATERIAL", "DISPERSIONS", "DOE", "BlankDOE",
            "PixelDOE", "SumDOE", "Window", "check_levels", "phase_levels", "quantize_phase"]
@@ -354,6 +355,33 @@ class DOE(nn.Module):
             ph = ph.repeat_interleave(q, 0).repeat_interleave(q, 1)
             ph = ph[iy0 - r0 * q: iy0 - r0 * q + ny, ix0 - c0 * q: ix0 - c0 * q + nx]
         return ph
+
+    def modulate(self, field: Field, oversample: int = 1) -> Field:
+        """The field just after the DOE: ``field``'s envelope (any leading batch dims, on a window of
+        :meth:`sim_grid`) times ``exp(iφ)`` of this DOE at the field's wavelength (the envelope's dtype kept)."""
+        phase = self.phase(field.wavelength, field.grid, oversample)
+        return field.with_envelope(field.envelope * unit_phasor(phase).to(field.envelope.dtype))
+
+    def window_phasors(self, wavelength: float, corners, shape, oversample: int = 1) -> torch.Tensor:
+        """``exp(iφ)`` at ``wavelength`` (µm) on B windows of one ``shape`` ``(ny, nx)`` whose sample (0, 0) lies at
+        the simulation-grid indices ``corners`` (B pairs ``(iy0, ix0)``, host ints), complex128 ``(B, ny, nx)``:
+        the batched form of :meth:`modulate`'s factor (one :meth:`phase` evaluation over the windows' union on the
+        grid, one gather). Samples beyond the grid repeat its edge (a padded window's envelope is 0 there)."""
+        q = int(oversample)
+        ny, nx = (int(v) for v in shape)
+        sy, sx = self.sim_shape(q)
+        iy0s, ix0s = [int(c[0]) for c in corners], [int(c[1]) for c in corners]
+        lo_y, hi_y = max(0, min(iy0s)), min(sy, max(iy0s) + ny)
+        lo_x, hi_x = max(0, min(ix0s)), min(sx, max(ix0s) + nx)
+        if hi_y <= lo_y or hi_x <= lo_x:  # no window meets the grid
+            return torch.ones((len(iy0s), ny, nx), dtype=torch.complex128, device=self.device)
+        # the phase of the windows' union through phase() (a subclass's own phase map, e.g. a PerturbedDOE's, holds)
+        ph = self.phase(wavelength, (lo_y, lo_x, hi_y - lo_y, hi_x - lo_x), q)
+        dev = ph.device
+        start = torch.tensor([iy0s, ix0s], dtype=torch.long, device=dev)  # (2, B)
+        iy = (start[0][:, None] + torch.arange(ny, device=dev)).clamp(lo_y, hi_y - 1) - lo_y
+        ix = (start[1][:, None] + torch.arange(nx, device=dev)).clamp(lo_x, hi_x - 1) - lo_x
+        return unit_phasor(ph[iy[:, :, None], ix[:, None, :]])
 
     # ------------------------------------------------------------------ specs
     def model_spec(self) -> dict:

@@ -34,12 +34,12 @@ from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
                                      doe_clippings, entrance_pupil, exit_pupil_field_steps, faithful_field, footprints,
                                      run_batched, stop_rim_images_many)
+from raywave.hybrid.batched import OUT_MARGIN, Planned, SensorWindow, TransferMemo, plan_groups, propagate_group
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
 from raywave.utils.checks import wavelengths_um
-from raywave.utils.phasor import unit_phasor
 from raywave.utils.safe import safe_div
 from raywave.wave.propagation import (angular_spectrum, integrated_upsampled_intensity, propagate_window,
                                       window_transfer)
@@ -68,7 +68,7 @@ class _PupilAtInfinity(ValueError):
     """The exit pupil lies at (or near) infinity: no exit-pupil plane to form the stop's edge on."""
 
 
-_OUT_MARGIN = 8  # samples around the PSF window (keeps the periodic upsampling's edge effects out of it)
+_OUT_MARGIN = OUT_MARGIN  # samples around the PSF window (keeps the periodic upsampling's edge effects out of it)
 
 
 def _edge_taper(shape, width: int, device) -> torch.Tensor:
@@ -104,6 +104,14 @@ def _quiet_chief_rays(optics, f: torch.Tensor, wls: list[float], depth, z_doe: f
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always", VignettingWarning)
         return chief_rays(optics, f, torch.tensor(wls, dtype=torch.float64, device=optics.device), depth, z_doe, z_sen)
+
+
+def _center_of(fd: DOEField):
+    """``fd.center`` as one float64 (2,) tensor (its two 0-d tensors stacked) or a host pair."""
+    c = fd.center
+    if all(isinstance(v, torch.Tensor) for v in c):
+        return torch.stack(list(c)).to(torch.float64)
+    return tuple(float(v) for v in c)
 
 
 def _dark(fd: DOEField) -> bool:
@@ -250,6 +258,8 @@ class HybridLens(nn.Module):
         # transfer functions of recent window pairs (a training loop with a frozen lens reuses them); plain
         # per-instance memo, never part of the state_dict
         self._transfer_cache: OrderedDict = OrderedDict()
+        self._transfer_memo = TransferMemo()  # the batched path's (raywave.hybrid.batched)
+        self._xp_memo: dict = {}  # exit-pupil planes per (lens state, wavelength): plain memo, not state
 
     def with_doe(self, doe: DOE, **overrides) -> "HybridLens":
         """A new :class:`HybridLens` on the same refractive lens (shared, not copied) with ``doe`` in place of
@@ -346,6 +356,28 @@ class HybridLens(nn.Module):
                              "infinity: image-space telecentric), where no field can be built; use stop_edge='doe'")
         return z
 
+    def _lens_state_key(self) -> tuple:
+        """What identifies the refractive lens's current numbers without reading them: each state tensor's storage,
+        version counter (every in-place change, an optimiser's step or ``load_state_dict``, bumps it) and shape,
+        and the lens's field settings (host-side: no device round trip)."""
+        state = tuple((k, t.data_ptr(), t._version, tuple(t.shape), str(t.device))
+                      for k, t in self.lens.state_dict(keep_vars=True).items())
+        lens = self.lens
+        return (id(lens), state, lens.field_type, tuple(getattr(lens, "fields", []) or ()), lens.primary_wavelength,
+                getattr(lens, "stop_index", None), tuple(id(m) for m in lens.modules()))
+
+    def _exit_pupil_memo(self, wavelength: float) -> float:
+        """:meth:`exit_pupil_z`, memoised per wavelength while the lens's state is unchanged (a map's calls, a
+        training loop with a frozen lens: one chief-ray trace per wavelength instead of one per call)."""
+        key = (self._lens_state_key(), float(wavelength))
+        hit = self._xp_memo.get(key)
+        if hit is None:
+            hit = self.exit_pupil_z(wavelength)
+            if len(self._xp_memo) > 32:
+                self._xp_memo.clear()
+            self._xp_memo[key] = hit
+        return hit
+
     def _exit_pupil_planes(self, wls: list[float]) -> list[float] | None:
         """z (mm) of every wavelength's exit-pupil plane when the accurate field forms the stop's edge there, else
         None: ``stop_edge="doe"``, or the default edge on a lens whose exit pupil lies at infinity (warns
@@ -362,7 +394,7 @@ class HybridLens(nn.Module):
                           "default exit pupil", StopEdgeWarning, stacklevel=4)
             return None
         try:
-            return [self.exit_pupil_z(wl) for wl in wls]
+            return [self._exit_pupil_memo(wl) for wl in wls]
         except _PupilAtInfinity:
             if self._edge_requested is not None:
                 raise
@@ -563,8 +595,7 @@ class HybridLens(nn.Module):
         full_grid = fd.full_grid
         # full-grid path: the crop's derivative goes through the pixel overlaps (piecewise-constant model)
         integrate_origin = crop_origin if full_grid else psf_origin
-        phase = self.doe.phase(fd.wavelength, fd.window, self.oversample)  # the box is known: no Grid.locate
-        u = fd.envelope * unit_phasor(phase)
+        u = self.doe.modulate(fd.field, self.oversample).envelope  # exp(iφ) of the DOE on the field's grid
         with torch.no_grad():  # a diagnostic (energy outside the crop); the DOE's phase does not change it
             power = torch.linalg.vector_norm(torch.view_as_real(fd.envelope)).square() * p * p  # one pass
         if float(power.detach()) == 0.0:
@@ -584,7 +615,7 @@ class HybridLens(nn.Module):
             out, out_origin = _full_grid_window(u, fd, dz, (lo_x, lo_y), n_out)
         else:
             out, out_origin = self._lattice_window(u, fd, dz, crop_origin, (xc, yc), lo_x, n_out)
-        del u, phase  # the DOE-plane window is no longer needed (autograd keeps what its backward needs)
+        del u  # the DOE-plane window is no longer needed (autograd keeps what its backward needs)
         # intensity on a q-times finer grid (q ≥ 2: |U|² has twice the field's bandwidth), integrated over the
         # sensor pixels through its cubic interpolant; computed on the 2× grid (the q grid's weights folded onto it)
         q = self.intensity_upsample
@@ -661,19 +692,54 @@ class HybridLens(nn.Module):
                          torch.tensor(clip, dtype=torch.float64, device=center.device))
 
     def propagate_fields(self, fds, ks: int, propagation_dtype=torch.complex128):
-        """Steps 3–4 for a nested list ``[F][W]`` of :class:`DOEField` (this engine's, or a comparison model's):
-        PSFs ``(F, W, ks, ks)``, centres ``(F, W, 2)``, energy outside ``(F, W)`` and rays ``(F, W)``
-        (:meth:`propagate` per field; the one loop over PSFs that :meth:`psf_result` and
-        :func:`raywave.models.base.propagate_fields` share)."""
-        psfs, centers, outs, nr = [], [], [], []
-        for row in fds:
-            pr, cr, orow, rr = [], [], [], []
-            for fd in row:
-                psf, c, o = self.propagate(fd, ks, propagation_dtype)
-                pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays)
-            psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
-            nr.append(rr)
-        return torch.stack(psfs), torch.stack(centers), torch.stack(outs), torch.tensor(nr, device="cpu")
+        """Steps 2–4 for a nested list ``[F][W]`` of :class:`DOEField` (this engine's, or a comparison model's):
+        PSFs ``(F, W, ks, ks)``, centres ``(F, W, 2)``, energy outside ``(F, W)`` and rays ``(F, W)``; what
+        :meth:`psf_result` and :func:`raywave.models.base.propagate_fields` share.
+
+        The sources are propagated in batches (:mod:`raywave.hybrid.batched`: one padded window, one FFT size, one
+        transfer tensor and one pixel integration per batch of a wavelength); the paper's full-grid fields and fields
+        without light go through :meth:`propagate` one at a time. Each PSF equals :meth:`propagate`'s to the
+        sampling of its kernel's spectrum on the batch's (larger) FFT grid (≤ 1e-7 relative L1,
+        tests/test_hybrid_batched_propagation.py); differentiable like it."""
+        flat = [fd for row in fds for fd in row]
+        nf, nw = len(fds), (len(fds[0]) if fds else 0)
+        sensor = SensorWindow(int(ks), self.sensor_pitch, self.intensity_upsample)
+        centers, dz = self._chief_images(flat)
+        host = centers.detach().cpu().tolist()
+        lattice = [Planned(i, fd, tuple(host[i])) for i, fd in enumerate(flat)
+                   if not fd.full_grid and fd.envelope.shape[-2:] != (1, 1)]
+        done = {pl.index for pl in lattice}
+        order, psfs, outs = [], [], []
+        for i, fd in enumerate(flat):  # the full grid and the fields without light: one at a time
+            if i not in done:
+                psf, _, o = self.propagate(fd, ks, propagation_dtype)
+                order.append(i), psfs.append(psf[None]), outs.append(o.reshape(1))
+        elem = torch.empty((), dtype=propagation_dtype).element_size()
+        for batch in plan_groups(lattice, sensor, elem):
+            idx = [pl.index for pl in batch]
+            cb = centers[torch.tensor(idx, dtype=torch.long, device=centers.device)]
+            psf, o = propagate_group(self, batch, cb, dz if batch[0].fd.chief_tan is not None else None,
+                                     propagation_dtype, sensor)
+            order.extend(idx), psfs.append(psf), outs.append(o)
+        back = torch.argsort(torch.tensor(order, dtype=torch.long)).to(centers.device)
+        psf = torch.cat(psfs)[back].reshape(nf, nw, ks, ks)
+        outside = torch.cat(outs)[back].reshape(nf, nw)
+        nr = torch.tensor([[fd.rays for fd in row] for row in fds], device="cpu")
+        return psf, centers.reshape(nf, nw, 2), outside, nr
+
+    def _chief_images(self, flat: list):
+        """The chief rays' image points ``(N, 2)`` mm (float64) of the fields ``flat``, moved along their chief rays
+        by the zero-valued sensor-distance ``dz`` for live fields (``chief_tan`` set: :meth:`_chief_image`), and that
+        ``dz`` (None for a frozen lens)."""
+        dev = self.lens.device
+        centers = torch.stack([c if isinstance(c, torch.Tensor) else torch.tensor(c, dtype=torch.float64)
+                               for c in (_center_of(fd) for fd in flat)]).to(dev)
+        live = [fd.chief_tan for fd in flat]
+        dz = self._sensor_dz() if any(t is not None for t in live) else None
+        if dz is not None:
+            tans = torch.tensor([t if t is not None else (0.0, 0.0) for t in live], dtype=torch.float64, device=dev)
+            centers = centers + tans * dz.to(dev)
+        return centers, dz
 
     def psf(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None, mode: str = "accurate",
             rays: int | None = None, cache=None, **kw) -> torch.Tensor:

@@ -575,7 +575,7 @@ def _one_aperture_warning():
 def _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw):
     """Per depth of ``ds`` (mm), the chunks' PSFs ``(F, W, ks, ks)``, centres ``(F, W, 2)`` mm (float64) and
     energies outside ``(F, W)``, each concatenated over the ``flat`` ``(F, 2)`` field points (deg); and the PSF
-    pitch (mm). Runs in the caller's autograd mode; one ``bar`` step per chunk."""
+    pitch (mm). Runs in the caller's autograd mode; the ``bar`` counts PSFs (a chunk's field points × wavelengths)."""
     psfs, cens, outs = [], [], []
     pitch = None
     for d in ds:
@@ -584,7 +584,7 @@ def _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw):
             res = psf_map_points(model, flat[s:e], wls, d, ks, cache, **psf_kw)
             dp.append(res.psf), dc.append(res.center.to(torch.float64)), do.append(res.energy_outside)
             pitch = float(res.pitch)
-            bar.update(1)
+            bar.update((e - s) * len(wls))
         psfs.append(torch.cat(dp)), cens.append(torch.cat(dc)), outs.append(torch.cat(do))
     return psfs, cens, outs, pitch
 
@@ -604,8 +604,8 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
             :meth:`PSFMap.channel_average`).
         ks: PSF size in sensor pixels.
         batch: field points per model call (all wavelengths together); default :func:`default_batch`.
-        progress: show a tqdm bar (chunks × depths): True, False, or None (default): for maps of ≥ 100 PSFs
-            when stderr is a terminal.
+        progress: show a tqdm bar counting PSFs (depths × wavelengths × nodes, a chunk's worth at a time): True,
+            False, or None (default): for maps of ≥ 100 PSFs when stderr is a terminal.
         cache: :class:`DOEFieldCache` of a frozen refractive lens (HybridLens only).
         fields: ``(N, M, 2)`` field angles (deg) instead of :func:`field_grid` (``positions`` are then those of
             ``grid``).
@@ -626,8 +626,8 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
     flat = f_nm.reshape(-1, 2)[order]
     chunks = _map_chunks(flat.shape[0], len(wls), batch)
     disable = _progress_disable(progress, len(ds) * len(wls) * flat.shape[0])
-    bar = tqdm(total=len(ds) * len(chunks), desc=f"PSF map {n}×{m}×{len(wls)}λ×{len(ds)} depth", disable=disable,
-               leave=False)
+    bar = tqdm(total=len(ds) * len(wls) * flat.shape[0], desc=f"PSF map {n}×{m}×{len(wls)}λ×{len(ds)} depth",
+               unit="PSF", disable=disable, leave=False)
     ctx = torch.enable_grad() if grad else torch.no_grad()
     with ctx, _one_aperture_warning():
         psfs, cens, outs, pitch = _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw)

@@ -14,9 +14,11 @@ import torch
 from torch import nn
 
 from raywave.hybrid.coherent.geometry import lit_box
+from raywave.hybrid.coherent.record import DOEField
 from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
 
-__all__ = ["ModelPSFResult", "PSFModel", "RayWaveModel", "lit_window", "propagate_fields", "relative_l1", "window_xy"]
+__all__ = ["ModelPSFResult", "PSFModel", "RayWaveModel", "lit_window", "propagate_fields", "relative_l1",
+           "window_field", "window_xy"]
 
 @dataclass
 class ModelPSFResult(PSFResult):
@@ -142,6 +144,15 @@ def lit_window(doe, oversample: int, bbox, margin: float):
         return None, None
     iy0, iy1, ix0, ix1 = box
     return (iy0, ix0, iy1 - iy0, ix1 - ix0), sim.position(iy0, ix0)
+
+
+def window_field(envelope: torch.Tensor, window, sim, wave: tuple, z: float, center: tuple, info) -> DOEField:
+    """A model's :class:`~raywave.hybrid.DOEField`: ``envelope`` on the simulation-grid ``window``
+    ``(iy0, ix0, ny, nx)`` (:func:`lit_window`; None: the empty 1×1 field at the grid's corner) of ``sim``
+    (:meth:`raywave.doe.DOE.sim_grid`); ``wave`` = ``(wavelength µm, n, carrier)``; ``info`` a
+    :class:`~raywave.hybrid.coherent.FieldInfo`."""
+    iy0, ix0, ny, nx = (0, 0, 1, 1) if window is None else window
+    return DOEField.on_box(envelope, (iy0, iy0 + ny, ix0, ix0 + nx), sim, wave, z, center, info)
 
 
 def window_xy(window, origin, pitch: float, device=None):

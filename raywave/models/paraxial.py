@@ -36,9 +36,9 @@ import warnings
 
 import torch
 
-from raywave.hybrid.coherent import DOEField, SamplingWarning
+from raywave.hybrid.coherent import DOEField, FieldInfo, SamplingWarning
 from raywave.lens.sources import object_distance
-from raywave.models.base import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_xy
+from raywave.models.base import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_field, window_xy
 from raywave.utils.phasor import polar
 
 __all__ = ["ParaxialModel", "thin_lens_plane"]
@@ -153,8 +153,8 @@ class ParaxialModel(PSFModel):
         win, origin = lit_window(doe, q, (cx - r_doe, cx + r_doe, cy - r_doe, cy + r_doe), 2 * p)
         if win is None or r_doe == 0.0:
             env = torch.zeros((1, 1), dtype=torch.complex128, device=dev)
-            return DOEField.on_window(env, (0, 0, 1, 1), doe.sim_origin(q), p, (alpha, beta), n,
-                                      float(wavelength), z_sen - z_doe, center, 0, "paraxial")
+            return window_field(env, None, doe.sim_grid(q), (float(wavelength), n, (alpha, beta)), z_sen - z_doe,
+                                center, FieldInfo(0, "paraxial"))
         x, y = window_xy(win, origin, p, dev)
         k = 2 * math.pi / (wavelength * 1e-3)
         dx, dy, dz = x - px, y - py, z_doe - pz
@@ -177,8 +177,8 @@ class ParaxialModel(PSFModel):
                 warnings.warn(f"paraxial model: the DOE simulation pitch {p * 1e3:g} µm under-samples the converging "
                               f"wave of field {list(map(float, field))} at {wavelength:g} µm ({ratio:.2f}× Nyquist)",
                               SamplingWarning, stacklevel=3)
-        return DOEField.on_window(env, win, origin, p, (alpha, beta), n, float(wavelength), z_sen - z_doe, center,
-                                  0, "paraxial")
+        return window_field(env, win, doe.sim_grid(q), (float(wavelength), n, (alpha, beta)), z_sen - z_doe, center,
+                            FieldInfo(0, "paraxial"))
 
     def psf_result(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None) -> ModelPSFResult:
         ks = self._check_ks(ks)

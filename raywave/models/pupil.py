@@ -29,9 +29,9 @@ import warnings
 import torch
 
 from raywave.doe.params import zernike_noll
-from raywave.hybrid.coherent import DOEField, chief_rays
+from raywave.hybrid.coherent import DOEField, FieldInfo, chief_rays
 from raywave.lens.sources import VignettingWarning, point_source_rays
-from raywave.models.base import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_xy
+from raywave.models.base import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_field, window_xy
 from raywave.rays import pupil as pupil_patterns
 from raywave.utils.phasor import polar
 
@@ -149,8 +149,8 @@ class PupilModel(PSFModel):
             win, origin = lit_window(doe, q, (ox - r, ox + r, oy - r, oy + r), 2 * p)
         if win is None:
             env = torch.zeros((1, 1), dtype=torch.complex128, device=dev)
-            return DOEField.on_window(env, (0, 0, 1, 1), doe.sim_origin(q), p, (alpha, beta), n,
-                                      float(wavelength), z, center, 0, "pupil")
+            return window_field(env, None, doe.sim_grid(q), (float(wavelength), n, (alpha, beta)), z, center,
+                                FieldInfo(0, "pupil"))
         x, y = window_xy(win, origin, p, dev)
         k = 2 * math.pi / (wavelength * 1e-3)
         zc = hl.doe_z() - float(c3[2])
@@ -159,8 +159,8 @@ class PupilModel(PSFModel):
         phase = k * (-n * (sphere - s_c) + fit(x, y)) - k * n * (alpha * (x - cx) + beta * (y - cy))
         rho = torch.sqrt((x - fit.center[0]) ** 2 + (y - fit.center[1]) ** 2)
         cover = (0.5 + (fit.radius - rho) / p).clamp(0.0, 1.0) * doe.coverage(win, q, device=dev)
-        return DOEField.on_window(polar(cover, phase), win, origin, p, (alpha, beta), n, float(wavelength), z,
-                                  center, fit.n_samples, "pupil")
+        return window_field(polar(cover, phase), win, doe.sim_grid(q), (float(wavelength), n, (alpha, beta)), z,
+                            center, FieldInfo(int(fit.n_samples), "pupil"))
 
     def psf_result(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None) -> ModelPSFResult:
         ks = self._check_ks(ks)

@@ -14,7 +14,7 @@ from raywave.lens.sources import (VignettingWarning, chief_pupil, entrance_plane
 from raywave.rays.pupil import RIM_INSET  # the footprint's rim a hair inside the stop: the engine's one rim rule
 from raywave.utils.errors import check_allocation
 from raywave.wave.grid import Grid
-from raywave.hybrid.coherent.record import DOEField, SamplingWarning
+from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning
 
 
 def _medium_index(lens, wavelength: float) -> float:
@@ -199,9 +199,9 @@ def lit_box(grid: Grid, bbox, margin: float) -> tuple[int, int, int, int] | None
 
 
 def _empty_field(doe, oversample, carrier, n, wavelength, z, center, rays, mode) -> DOEField:
-    p, x0, y0, _, _ = _sim_grid(doe, oversample)
     env = torch.zeros((1, 1), dtype=torch.complex128, device=doe.device)
-    return DOEField.on_window(env, (0, 0, 1, 1), (x0, y0), p, carrier, n, wavelength, z, center, rays, mode)
+    return DOEField.on_box(env, (0, 1, 0, 1), doe.sim_grid(oversample), (wavelength, n, carrier), z, center,
+                           FieldInfo(int(rays), mode))
 
 
 def _crop_to_lit(weight: torch.Tensor, *tensors):

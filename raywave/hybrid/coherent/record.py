@@ -57,12 +57,6 @@ class FieldInfo:
     stop_edge: str = "doe"
 
 
-def _box(window) -> tuple[int, int, int, int]:
-    """``(iy0, iy1, ix0, ix1)`` half-open from a legacy ``(iy0, ix0, ny, nx)``."""
-    iy0, ix0, ny, nx = (int(v) for v in window)
-    return iy0, iy0 + ny, ix0, ix0 + nx
-
-
 class DOEField:
     """The field arriving at the DOE plane for one point source and one wavelength.
 
@@ -80,9 +74,10 @@ class DOEField:
       ``HybridLens.doe_fields``; None (fields built elsewhere, or detached for a cache): the PSF is not
       differentiated with respect to the sensor distance.
 
-    Diagnostics: :attr:`info` (:class:`FieldInfo`). The flat names of earlier versions (``envelope``,
-    ``origin``, ``pitch``, ``carrier``, ``n``, ``wavelength``, ``window`` = ``(iy0, ix0, ny, nx)``, ``rays``,
-    ``mode``, ``full_grid``, ``clipped``, ``beam_half``, ``stop_edge``) read through to these.
+    Diagnostics: :attr:`info` (:class:`FieldInfo`). The short names ``envelope``, ``origin``, ``pitch``,
+    ``carrier``, ``n``, ``wavelength``, ``rays``, ``mode``, ``full_grid``, ``clipped``, ``beam_half``, ``stop_edge``
+    read through to these (the legacy ``(iy0, ix0, ny, nx)`` rectangle ``window`` and ``on_window`` are gone
+    (issue 43): the window is :attr:`box`, half-open, or the field's own :attr:`grid`).
     """
 
     __slots__ = ("field", "box", "z", "center", "info", "chief_tan")
@@ -98,13 +93,12 @@ class DOEField:
         self.info, self.chief_tan = info, chief_tan
 
     @classmethod
-    def on_window(cls, envelope: torch.Tensor, window, origin, pitch: float, carrier, n: float, wavelength: float,
-                  z: float, center: tuple, rays: int, mode: str, **info) -> "DOEField":
-        """Build from an envelope on the simulation-grid window ``(iy0, ix0, ny, nx)`` whose sample (0, 0) is
-        centred at ``origin`` (mm); ``info``: the other :class:`FieldInfo` entries."""
-        grid = Grid(origin, pitch, tuple(envelope.shape[-2:]))
-        return cls(Field(envelope, grid, wavelength, n, carrier), _box(window), z, center,
-                   FieldInfo(int(rays), mode, **info))
+    def on_box(cls, envelope: torch.Tensor, box, sim: Grid, wave: tuple, z: float, center: tuple,
+               info: FieldInfo) -> "DOEField":
+        """Build from an envelope on the half-open window ``box`` ``(iy0, iy1, ix0, ix1)`` of the simulation grid
+        ``sim`` (:meth:`raywave.doe.DOE.sim_grid`); ``wave`` = ``(wavelength µm, n, carrier (α, β))``."""
+        wavelength, n, carrier = wave
+        return cls(Field(envelope, sim.window(*box), float(wavelength), n, carrier), box, z, center, info)
 
     def __repr__(self) -> str:
         return (f"DOEField(λ={self.wavelength:g} µm, box={self.box}, pitch={self.pitch:g} mm, z={self.z:g} mm, "
@@ -118,12 +112,6 @@ class DOEField:
     carrier = property(lambda self: self.field.carrier, doc="``(α, β)`` direction cosines of the carrier.")
     n = property(lambda self: self.field.n, doc="refractive index between the DOE and the sensor.")
     wavelength = property(lambda self: self.field.wavelength, doc="µm.")
-
-    @property
-    def window(self) -> tuple[int, int, int, int]:
-        """``(iy0, ix0, ny, nx)`` in simulation-grid indices (the form :meth:`raywave.doe.DOE.phase` takes)."""
-        iy0, iy1, ix0, ix1 = self.box
-        return iy0, ix0, iy1 - iy0, ix1 - ix0
 
     rays = property(lambda self: self.info.rays)
     mode = property(lambda self: self.info.mode)

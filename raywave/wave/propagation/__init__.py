@@ -18,13 +18,15 @@ Pure functions on ``torch`` tensors; no state, no caching. Conventions shared by
 
 Split by concern (issue 17), every name importable from here as before: ``_common`` (argument checks, FFT sizes,
 coordinates), ``full_grid`` (:func:`angular_spectrum`), ``transfer`` (:func:`window_transfer`), ``window``
-(:func:`propagate_window`), ``sampling`` (:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`,
-:func:`integrated_upsampled_intensity`), ``fields`` (the same on :class:`~raywave.wave.grid.Field` values:
+(:func:`propagate_window`), ``batch`` (:func:`propagate_batch`: many windows as one batch, issue 43), ``sampling``
+(:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`, :func:`integrated_upsampled_intensity`), ``fields`` (the same on :class:`~raywave.wave.grid.Field` values:
 :func:`propagate_field`, :func:`angular_spectrum_field`, :func:`field_transfer`).
 """
 
 from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _as_field, _pair, _positive, _sqrt_kz,
                                               _transfer, _xy, _z_value, fast_fft_size, grid_coordinates)
+from raywave.wave.propagation.batch import (BatchTransfer, WindowBatch, WindowSource, batch_transfer,
+                                             propagate_batch)
 from raywave.wave.propagation.fields import angular_spectrum_field, field_transfer, propagate_field
 from raywave.wave.propagation.full_grid import angular_spectrum
 from raywave.wave.propagation.resample import (_cubic_overlap_matrix, _keys_antiderivative, _overlap_matrix,
@@ -34,9 +36,13 @@ from raywave.wave.propagation.transfer import WindowTransfer, window_transfer
 from raywave.wave.propagation.window import _axial_frequency, _dz_tensor, _Perturbed, propagate_window
 
 __all__ = [
+    "BatchTransfer",
     "NyquistReport",
+    "WindowBatch",
+    "WindowSource",
     "WindowTransfer",
     "angular_spectrum",
+    "batch_transfer",
     "angular_spectrum_field",
     "fast_fft_size",
     "field_transfer",
@@ -44,6 +50,7 @@ __all__ = [
     "integrated_upsampled_intensity",
     "nyquist_check",
     "pixel_integrate",
+    "propagate_batch",
     "propagate_field",
     "propagate_window",
     "window_transfer",

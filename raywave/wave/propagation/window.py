@@ -156,15 +156,16 @@ def _convolve_band(u, h, size, rows, cols, noy, nox):
     return torch.fft.ifft(full_x, dim=-1)[..., :nox]
 
 
-#: a band convolution whose full-height band (My × C samples of the field's dtype) takes more bytes than this runs
-#: in column chunks of about this size (without autograd): the same FFTs on the same values, a lower peak
+#: a band convolution whose full-height band (My × C samples of the field's dtype) takes more bytes than this per
+#: field of the batch runs in column chunks of about this size per field (without autograd): the same FFTs on the
+#: same values, a lower peak (a batch of B fields: B times this, the chunks as many as for one field)
 BAND_CHUNK_BYTES = 8 * 2**20
 
 
 def _band_chunks(u, my: int, n_cols: int) -> int:
     """How many column chunks :func:`_convolve_band` splits a band of ``n_cols`` columns into (1: none), for a
-    field ``u`` ``(..., Ny, Nx)`` and the FFT height ``my``."""
-    per_col = my * u.element_size() * max(1, math.prod(u.shape[:-2]))
+    field ``u`` ``(..., Ny, Nx)`` and the FFT height ``my`` (per field of the batch: see :data:`BAND_CHUNK_BYTES`)."""
+    per_col = my * u.element_size()
     return max(1, min(n_cols, math.ceil(per_col * n_cols / BAND_CHUNK_BYTES)))
 
 

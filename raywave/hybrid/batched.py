@@ -1,0 +1,209 @@
+"""Steps 2–4 of the engine for many sources at once (issue 43): the DOE's phase, the propagation to the sensor and
+the pixel integration of a group of DOE-plane fields as batched tensor operations.
+
+The sources of a call are grouped (:func:`plan_groups`): one group per wavelength, medium, distance, mode and
+the FFT size each source needs on its own, cut into batches whose FFT-grid arrays stay within :data:`BATCH_BYTES`.
+Every discrete choice (the padded window shape, the FFT size, the band's rows and columns, the output window) is
+made once per batch on the host from the sources' geometry (host floats that the fields carry), so the hot path
+has no per-PSF device→host round trip. A batch then runs (:func:`propagate_group`):
+
+1. the envelopes zero-padded to a common window ``(B, Ny, Nx)`` (each keeps its origin: padding is at the end);
+2. the DOE's ``exp(iφ)`` of every window from one phase evaluation (:meth:`raywave.doe.DOE.window_phasors`);
+3. one windowed angular-spectrum propagation (:func:`raywave.wave.propagation.batch.propagate_batch`): a common
+   FFT size, each source with its own band limit, carrier and output window on the lattice through its chief
+   ray's image point; with autograd, the zero-valued ``dz`` (sensor distance) and window shifts (the crop following
+   the chief ray) carry their first-order derivatives as in :func:`~raywave.wave.propagate_window`;
+4. ``|U|²`` Fourier-upsampled and integrated over the sensor pixels with one set of weights (every output window
+   sits at the same offset from its crop), normalised per PSF.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from raywave.utils.safe import safe_div
+from raywave.wave.propagation import integrated_upsampled_intensity
+from raywave.wave.propagation.batch import WindowBatch, WindowSource, batch_transfer, propagate_batch
+from raywave.wave.propagation.transfer import _geometry
+
+#: a batch holds at most this many bytes of FFT-grid arrays (B × (Ny + n) × (Nx + n) complex samples): it bounds the
+#: batched intermediates (the band spectra, the transfer functions), i.e. the peak memory of one batch
+BATCH_BYTES = 2**28
+#: samples of simulation pitch around the PSF window (keeps the periodic upsampling's edge effects out of it)
+OUT_MARGIN = 8
+
+
+@dataclass(frozen=True)
+class SensorWindow:
+    """The sensor side of a call: ``ks`` × ``ks`` pixels of ``pitch`` mm, the intensity upsampling ``q``."""
+
+    ks: int
+    pitch: float
+    q: int
+
+
+@dataclass(frozen=True)
+class Planned:
+    """One source of a batch: its index in the call, its DOE-plane field (:class:`~raywave.hybrid.coherent.DOEField`)
+    and the chief ray's image point ``(x, y)`` mm on the sensor (host floats)."""
+
+    index: int
+    fd: object
+    center: tuple[float, float]
+
+
+def out_half_width(sensor: SensorWindow, p: float, center: tuple[float, float]) -> int:
+    """``kk``: the output window on the simulation pitch ``p`` mm is ``2·kk + 1`` samples about the chief ray's image
+    point ``center``, covering the ks × ks sensor pixels plus :data:`OUT_MARGIN` samples (the engine's
+    single-source rule, :meth:`raywave.hybrid.HybridLens.propagate`)."""
+    ks, ps = sensor.ks, sensor.pitch
+    span = ks * ps / p
+    if not (math.isfinite(span) and span < 2**31):
+        raise ValueError(f"the {ks}×{ks} PSF crop of {ps:g} mm sensor pixels spans {span:g} simulation samples of "
+                         f"{p:g} mm: not a usable window (check the sensor pitch and the DOE pitch)")
+    m = OUT_MARGIN
+    xc = center[0]
+    lo_x = xc - (ks // 2) * ps - 0.5 * ps - m * p
+    n_out = int(math.ceil(span)) + 2 + 2 * m
+    return max(math.ceil((xc - lo_x) / p), math.ceil((lo_x + n_out * p - xc) / p))
+
+
+def _fft_size(pl: Planned, n_out: int, kk: int) -> tuple[int, int]:
+    """The FFT size ``(My, Mx)`` that the source ``pl`` needs on its own (:func:`window_transfer`'s, host math) for
+    an output window of ``n_out`` samples whose centre sample lies on its chief ray's image point."""
+    fd = pl.fd
+    p = fd.pitch
+    out = (pl.center[0] - kk * p, pl.center[1] - kk * p)
+    return _geometry(fd.field.grid.shape, (n_out, n_out), p, fd.wavelength, float(fd.z), fd.origin, out, fd.n,
+                     fd.carrier, 0.5, 2.0).size
+
+
+def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int) -> list[list[Planned]]:
+    """The batches of ``planned`` (lattice-path sources with light): grouped by wavelength, medium index, distance,
+    pitch, whether the sensor distance is differentiated (``chief_tan``) and the FFT size each source needs on its
+    own (so that every PSF is the one-source path's to rounding: a larger FFT grid samples the rolled-off kernel's
+    spectrum more finely, which moves a strongly aberrated PSF such as the Cooke triplet's by up to 2e-3 L1), each
+    group cut where a batch would pass :data:`BATCH_BYTES` (``element_size`` bytes per complex sample of the FFT
+    grid)."""
+    by_wave: dict = {}
+    for pl in planned:
+        fd = pl.fd
+        by_wave.setdefault((fd.wavelength, fd.n, float(fd.z), fd.pitch, fd.chief_tan is not None), []).append(pl)
+    batches = []
+    for key in sorted(by_wave, key=str):
+        members = by_wave[key]
+        kk = max(out_half_width(sensor, key[3], pl.center) for pl in members)
+        groups: dict = {}
+        for pl in members:
+            groups.setdefault(_fft_size(pl, 2 * kk + 1, kk), []).append(pl)
+        for (my, mx), group in sorted(groups.items()):
+            per = max(1, BATCH_BYTES // (my * mx * element_size))
+            batches.extend(group[i:i + per] for i in range(0, len(group), per))
+    return batches
+
+
+def window_batch(batch: list[Planned], sensor: SensorWindow) -> tuple[WindowBatch, int]:
+    """The :class:`~raywave.wave.propagation.batch.WindowBatch` of a batch (each source's own input window, its
+    output window on the lattice through its chief ray's image point: a symmetric PSF stays symmetric) and the
+    output half-width ``kk`` common to the batch."""
+    p = batch[0].fd.pitch
+    kk = max(out_half_width(sensor, p, pl.center) for pl in batch)
+    sources = tuple(WindowSource(pl.fd.field.grid.shape, pl.fd.origin, (pl.center[0] - kk * p, pl.center[1] - kk * p),
+                                 pl.fd.wavelength, float(pl.fd.z), pl.fd.n, pl.fd.carrier) for pl in batch)
+    return WindowBatch(sources, (2 * kk + 1, 2 * kk + 1), p), kk
+
+
+def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
+    """The envelopes of ``batch`` zero-padded to ``shape`` ``(Ny, Nx)`` and multiplied by the DOE's ``exp(iφ)``
+    (:meth:`raywave.doe.DOE.window_phasors`), cast to ``dtype``: ``(B, Ny, Nx)``; and each field's power ``(B,)``
+    (∫|U|² dA, no autograd: a diagnostic)."""
+    ny, nx = shape
+    env = torch.stack([F.pad(pl.fd.envelope, (0, nx - pl.fd.envelope.shape[-1], 0, ny - pl.fd.envelope.shape[-2]))
+                       for pl in batch])
+    p = batch[0].fd.pitch
+    with torch.no_grad():
+        power = torch.linalg.vector_norm(torch.view_as_real(env.detach()), dim=(-3, -2, -1)).square() * (p * p)
+    corners = [(pl.fd.box[0], pl.fd.box[2]) for pl in batch]
+    phasors = doe.window_phasors(batch[0].fd.wavelength, corners, shape, oversample).to(env.device)
+    return (env * phasors).to(dtype), power
+
+
+def edge_taper(n: int, width: int, device) -> torch.Tensor:
+    """Separable raised-cosine taper (n, n): 1 inside, → 0 over the outer ``width`` samples, so that the periodic
+    Fourier upsampling sees no jump at the window's edges (the taper lies outside the PSF crop)."""
+    w = torch.ones(n, dtype=torch.float64, device=device)
+    if width > 0 and n > 2 * width:
+        t = 0.5 - 0.5 * torch.cos(math.pi * (torch.arange(width, dtype=torch.float64, device=device) + 0.5) / width)
+        w[:width], w[-width:] = t, t.flip(0)
+    return w[:, None] * w[None, :]
+
+
+def sensor_psfs(out: torch.Tensor, kk: int, p: float, sensor: SensorWindow, power: torch.Tensor):
+    """The PSFs ``(B, ks, ks)`` (each summing to 1; all zeros where no light arrives) and the energy outside the
+    crops ``(B,)`` from the sensor-plane fields ``out`` ``(B, 2kk+1, 2kk+1)`` (pitch ``p`` mm, each window's centre
+    sample on its chief ray's image point, the centre of pixel ``[ks//2, ks//2]``), ``power`` ``(B,)`` the power
+    reaching the DOE."""
+    ks, ps = sensor.ks, sensor.pitch
+    rel = (ks // 2) * ps - kk * p  # every window's sample (0, 0) relative to its crop's pixel (0, 0) centre
+    crop = integrated_upsampled_intensity(out, sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks),
+                                          edge_taper(out.shape[-1], OUT_MARGIN - 2, out.device))
+    total = crop.sum((-2, -1))
+    power = power.to(torch.float64)
+    lit = power > 0
+    outside = torch.where(lit, 1.0 - safe_div(total, power, lit), torch.ones_like(total))
+    psf = safe_div(crop, total[:, None, None], (total > 0)[:, None, None])
+    return psf, outside
+
+
+class TransferMemo:
+    """The batch transfer functions of recent batches (a training loop with a frozen lens reuses them), kept while
+    they take at most ``max_bytes`` together (least recently used dropped first). Plain per-engine memo."""
+
+    def __init__(self, max_bytes: int = 64 * 2**20):
+        from collections import OrderedDict
+
+        self.max_bytes = int(max_bytes)
+        self._items: OrderedDict = OrderedDict()
+
+    def clear(self) -> None:
+        self._items.clear()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def get(self, wb: WindowBatch, device, weight_derivative: bool):
+        key = (wb, str(device), bool(weight_derivative))
+        hit = self._items.get(key)
+        if hit is not None:
+            self._items.move_to_end(key)
+            return hit
+        hit = batch_transfer(wb, device, weight_derivative)
+        size = hit.band.numel() * hit.band.element_size() + (0 if hit.rel is None else
+                                                              hit.rel.numel() * hit.rel.element_size())
+        if size <= self.max_bytes:
+            self._items[key] = hit
+            while sum(_nbytes(v) for v in self._items.values()) > self.max_bytes:
+                self._items.popitem(last=False)
+        return hit
+
+
+def _nbytes(t) -> int:
+    return t.band.numel() * t.band.element_size() + (0 if t.rel is None else t.rel.numel() * t.rel.element_size())
+
+
+def propagate_group(engine, batch: list[Planned], centers: torch.Tensor, dz, dtype, sensor: SensorWindow):
+    """Steps 2–4 for one batch (:func:`plan_groups`) of ``engine`` (a :class:`~raywave.hybrid.HybridLens`):
+    ``centers`` ``(B, 2)`` mm the chief rays' image points (differentiable: the crops follow them), ``dz`` the
+    zero-valued sensor-distance tensor or None, ``dtype`` the propagation's complex dtype, ``sensor`` the PSF
+    window. Returns the PSFs ``(B, ks, ks)`` and the energies outside the crops ``(B,)``."""
+    wb, kk = window_batch(batch, sensor)
+    u, power = modulated_batch(engine.doe, batch, wb.in_shape(), engine.oversample, dtype)
+    shift = centers - centers.detach() if centers.requires_grad else None
+    transfer = engine._transfer_memo.get(wb, u.device, dz is not None or shift is not None)
+    out = propagate_batch(u, transfer, wb.out_shape, shift=shift, dz=dz)
+    del u
+    return sensor_psfs(out, kk, wb.pitch, sensor, power)
