@@ -125,14 +125,15 @@ class DOEPhaseSurface(nn.Module):
     differences) at its pixel centres, interpolated by cubic convolution (C¹; exact for quadratics), with its exact
     gradient (rad/mm). ``scale``: a number, or a callable ``wavelength (µm) -> number`` (a continuous DOE's
     dispersion α(λ)). Points off the grid take the edge pixels' linear extrapolation (the DOE's aperture, a surface
-    aperture, blocks them). The map is built once per instance (the engine makes one per source and order; make a
-    new one after changing the DOE)."""
+    aperture, blocks them). ``phase_map``: the map of :meth:`phase_map` when already built (shared by the
+    orders and traces of one PSF call); else it is built at the first call (make a new instance after changing
+    the DOE). Traces without autograd read it detached."""
 
-    def __init__(self, doe: DOE, scale=1.0):
+    def __init__(self, doe: DOE, scale=1.0, phase_map: torch.Tensor | None = None):
         super().__init__()
         self.doe = doe
         self.scale = scale
-        self._map = None
+        self._map = phase_map
 
     def phase_map(self) -> torch.Tensor:
         """``φ0`` on the DOE pixels (ny, nx), unwrapped, with two pixels of linear extrapolation on every side."""
@@ -149,9 +150,9 @@ class DOEPhaseSurface(nn.Module):
 
     def forward(self, x, y, wavelength):
         doe = self.doe
-        if self._map is None or self._map[1] != torch.is_grad_enabled():
-            self._map = (self.phase_map(), torch.is_grad_enabled())
-        pm = self._map[0]
+        if self._map is None:
+            self._map = self.phase_map()
+        pm = self._map if torch.is_grad_enabled() else self._map.detach()
         ny, nx = doe.shape
         pitch = doe.pitch
         u = x / pitch + (nx - 1) / 2 + 2.0  # index in the padded map
@@ -220,7 +221,7 @@ def insert_doe(lens: Lens, after: int, distance: float, phase, order: float = 1.
     return new
 
 
-def sampling_report(doe: DOE, orders, max_step: float = MAX_STEP, box=None) -> dict:
+def sampling_report(doe: DOE, orders, max_step: float = MAX_STEP, box=None, phase_map=None) -> dict:
     """How well the DOE's pixels carry the phases ``scale·φ0`` of its orders (``orders``: ``[(scale, c)]``,
     strongest first, as :func:`doe_orders`).
 
@@ -233,7 +234,7 @@ def sampling_report(doe: DOE, orders, max_step: float = MAX_STEP, box=None) -> d
     DOE is refused (ValueError: refine the DOE pitch). Warns too when the amplitude falls below
     ``1 − PIXEL_LOSS_WARN``. ``box``: the lit ``(xmin, xmax, ymin, ymax)`` mm on the DOE (default: all of it)."""
     with torch.no_grad():
-        p = DOEPhaseSurface(doe).phase_map()[2:-2, 2:-2]
+        p = (DOEPhaseSurface(doe).phase_map() if phase_map is None else phase_map.detach())[2:-2, 2:-2]
         if box is not None:
             ny, nx = doe.shape
             cx, cy = (nx - 1) / 2, (ny - 1) / 2
@@ -303,22 +304,24 @@ class MidSystemLens(nn.Module):
         self._transfer_cache = OrderedDict()
         insert_doe(lens, after, distance, DOEPhaseSurface(doe), doe=doe)  # checks the placement now
 
-    def order_lens(self, scale, dispersive: bool) -> HybridLens:
-        """The engine for one order: the lens with the order's phase plane, the blank final plane, the sensor."""
+    def order_lens(self, scale, dispersive: bool, phase_map: torch.Tensor | None = None) -> HybridLens:
+        """The engine for one order: the lens with the order's phase plane, the blank final plane, the sensor
+        (``phase_map``: the DOE's :meth:`DOEPhaseSurface.phase_map`, when already built)."""
         sc = (lambda wl: self.doe.dispersion_ratio(wl) if self.doe.dispersion != "none" else 1.0) if dispersive \
             else float(scale)
-        lens_m = insert_doe(self.lens, self.after, self.distance, DOEPhaseSurface(self.doe, sc), 1.0, self.doe)
+        lens_m = insert_doe(self.lens, self.after, self.distance, DOEPhaseSurface(self.doe, sc, phase_map), 1.0,
+                            self.doe)
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
                         stop_edge=self.stop_edge)
         hl._transfer_cache = self._transfer_cache  # shared memo of window transfer functions
         return hl
 
-    def lit_box(self, field, wavelength: float, depth=None):
+    def lit_box(self, field, wavelength: float, depth=None, phase_map: torch.Tensor | None = None):
         """The lit ``(xmin, xmax, ymin, ymax)`` mm on the DOE plane (the pupil's rim and a grid inside, aimed
         through the stop of the lens with the strongest order), or None when nothing reaches it."""
         scale = self.orders(wavelength)[0][0]
-        lens_m = insert_doe(self.lens, self.after, self.distance, DOEPhaseSurface(self.doe, float(scale)), 1.0,
-                            self.doe)
+        lens_m = insert_doe(self.lens, self.after, self.distance, DOEPhaseSurface(self.doe, float(scale), phase_map),
+                            1.0, self.doe)
         t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
         g = torch.linspace(-1, 1, 9, dtype=torch.float64)
         gx, gy = torch.meshgrid(g, g, indexing="xy")
@@ -348,11 +351,13 @@ class MidSystemLens(nn.Module):
         order, orders)``."""
         orders = self.orders(wavelength)
         continuous = not self.doe.wrap and self.doe.quant_levels is None
+        pm = DOEPhaseSurface(self.doe).phase_map()  # once for every trace of this source (with autograd if on)
         if report:
-            orders = sampling_report(self.doe, orders, box=self.lit_box(field, wavelength, depth))["kept"]
+            box = self.lit_box(field, wavelength, depth, pm)
+            orders = sampling_report(self.doe, orders, box=box, phase_map=pm)["kept"]
         parts = []
         for scale, c in orders:
-            hl = self.order_lens(scale, continuous)
+            hl = self.order_lens(scale, continuous, pm)
             fd = hl.doe_fields([tuple(field)], [wavelength], depth)[0][0]
             parts.append((hl, fd, c))
         if len(parts) == 1:
