@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from raywave.doe.base import DOE, BlankDOE
-from raywave.hybrid.coherent.record import DOEField, SamplingWarning
+from raywave.hybrid.coherent.record import CausticWarning, DOEField, SamplingWarning
 from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
 from raywave.lens.lens import Lens
 from raywave.lens.sources import chief_ray, point_source_rays
@@ -356,9 +356,19 @@ class MidSystemLens(nn.Module):
             box = self.lit_box(field, wavelength, depth, pm)
             orders = sampling_report(self.doe, orders, box=box, phase_map=pm)["kept"]
         parts = []
-        for scale, c in orders:
+        for i, (scale, c) in enumerate(orders):
             hl = self.order_lens(scale, continuous, pm)
-            fd = hl.doe_fields([tuple(field)], [wavelength], depth)[0][0]
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                fd = hl.doe_fields([tuple(field)], [wavelength], depth)[0][0]
+            caustic = any(issubclass(w.category, CausticWarning) for w in caught)
+            if caustic and i > 0:  # a weak order that folds before the engine's plane: its field is not built
+                warnings.warn(SamplingWarning(
+                    f"mid-system DOE: order {scale:g} ({100 * abs(c) ** 2:.2g} % of the light) folds (a caustic) "
+                    f"before the plane {self.final_distance:g} mm after the last surface: left out"), stacklevel=3)
+                continue
+            for w in caught:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
             parts.append((hl, fd, c))
         if len(parts) == 1:
             hl, fd, c = parts[0]
