@@ -47,3 +47,11 @@ def test_surface_doe_builds_a_midsystem_lens(tmp_path):
     assert psf.shape == (1, 1, 16, 16) and abs(float(psf.sum()) - 1) < 1e-12 and bool(torch.isfinite(psf).all())
     with pytest.raises(ValueError, match="several DOEs"):
         midsystem_from_spec(_spec([GRATING, dict(GRATING, distance=4.0)]))
+
+
+def test_the_last_surface_builder_refuses_a_doe_inside_the_lens(tmp_path):
+    """raywave.load_hybrid (and so `raywave psf`) would drop a surface's DOE: it refuses the file instead."""
+    path = tmp_path / "triplet_grating.json"
+    path.write_text(json.dumps(_spec(GRATING)))
+    with pytest.raises(ValueError, match="load_midsystem"):
+        raywave.load_hybrid(path)

@@ -388,6 +388,9 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         field_type: "angle" or "object_height": overrides the lens file's field type (how ``fields`` given to
             the hybrid lens are read).
     """
+    if any(s.get("doe") is not None for s in spec.get("surfaces", []) if isinstance(s, dict)):
+        raise ValueError(f"{source}: a surface carries a 'doe' (a DOE inside the lens): build it with "
+                         "raywave.assembly.midsystem.load_midsystem / midsystem_from_spec (issue 46)")
     lens = _spec_lens(spec, field_type, source)
     # a folded, decentred or mirrored lens is sized in its image-space frame (z along the light, like the engine)
     optics = image_space(lens)
