@@ -123,3 +123,19 @@ def test_grating_order_efficiencies_through_the_lens():
         fd = hl.doe_fields([(0.0, 0.0)], [wl])[0][0]
         eta = abs(c) ** 2 * float((fd.envelope.abs() ** 2).sum()) / p_blank
         assert abs(eta - staircase_efficiency(int(round(scale)), 2, alpha)) < 1e-3, (scale, eta)
+
+
+def test_continuous_doe_disperses_per_ray():
+    """A continuous DOE is one order whose phase scales with α(λ) of its dispersion model, evaluated at every
+    ray's wavelength (a tensor)."""
+    lens = raywave.load_lens("cooke_triplet")
+    wl = torch.tensor([0.45, 0.55, 0.65], dtype=torch.float64)
+    for kw, expect in (({}, torch.ones(3, dtype=torch.float64)), ({"dispersion": "air"}, 0.55 / wl),
+                       ({"material": "FUSED_SILICA"}, None)):
+        doe = FresnelDOE(100.0, 200, 0.05, **kw)
+        ml = MidSystemLens(lens, doe, AFTER, DIST, 41.5, 0.8, 1e-3)
+        got = torch.as_tensor(ml._dispersion_scale(wl), dtype=torch.float64) * torch.ones(3, dtype=torch.float64)
+        if expect is None:
+            expect = torch.stack([torch.as_tensor(doe.dispersion_ratio(float(w)), dtype=torch.float64) for w in wl])
+        torch.testing.assert_close(got, expect, rtol=1e-14, atol=0)
+        assert doe_orders(doe, 0.45) == [(pytest.approx(float(expect[0])), 1.0 + 0j)]

@@ -284,7 +284,8 @@ class MidSystemLens(nn.Module):
         final_distance: mm after the last vertex of the blank plane where the engine's field is built
             (see :class:`~raywave.hybrid.HybridLens` ``doe_distance``).
         final_size, final_pitch: that plane's grid (square, mm); its simulation pitch is ``final_pitch``.
-        sensor_pitch, stop_edge, oversample: as :class:`~raywave.hybrid.HybridLens` (oversample of the final plane).
+        sensor_pitch, stop_edge: as :class:`~raywave.hybrid.HybridLens` (``stop_edge="doe"``: the sharp cut on the
+            final plane; see docs/ray-wave.md for why).
         min_efficiency: the orders of a fabricated DOE with ``|c_m|²`` below it are left out.
         orders: the diffraction orders to keep (integers; default: every order that ``min_efficiency`` keeps).
     """
@@ -307,14 +308,22 @@ class MidSystemLens(nn.Module):
     def order_lens(self, scale, dispersive: bool, phase_map: torch.Tensor | None = None) -> HybridLens:
         """The engine for one order: the lens with the order's phase plane, the blank final plane, the sensor
         (``phase_map``: the DOE's :meth:`DOEPhaseSurface.phase_map`, when already built)."""
-        sc = (lambda wl: self.doe.dispersion_ratio(wl) if self.doe.dispersion != "none" else 1.0) if dispersive \
-            else float(scale)
+        sc = self._dispersion_scale if dispersive else float(scale)
         lens_m = insert_doe(self.lens, self.after, self.distance, DOEPhaseSurface(self.doe, sc, phase_map), 1.0,
                             self.doe)
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
                         stop_edge=self.stop_edge)
         hl._transfer_cache = self._transfer_cache  # shared memo of window transfer functions
         return hl
+
+    def _dispersion_scale(self, wavelength):
+        """α(λ) of a continuous DOE at the rays' wavelengths (a tensor, µm)."""
+        doe = self.doe
+        if doe.dispersion == "none":
+            return 1.0
+        if doe.dispersion == "air":
+            return doe.design_wavelength / wavelength
+        return doe.dispersion_ratio(wavelength)
 
     def lit_box(self, field, wavelength: float, depth=None, phase_map: torch.Tensor | None = None):
         """The lit ``(xmin, xmax, ymin, ymax)`` mm on the DOE plane (the pupil's rim and a grid inside, aimed
