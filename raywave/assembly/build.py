@@ -435,6 +435,9 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         field_type: "angle" or "object_height": overrides the lens file's field type (how ``fields`` given to
             the hybrid lens are read).
     """
+    if any(s.get("doe") is not None for s in spec.get("surfaces", []) if isinstance(s, dict)):
+        raise ValueError(f"{source}: a surface carries a 'doe' (a DOE inside the lens): build it with "
+                         "raywave.assembly.midsystem.load_midsystem / midsystem_from_spec (issue 46)")
     if sensor_pitch is not None:
         sensor_pitch = pitch_mm(sensor_pitch, "the sensor pitch (sensor_pitch; raywave: --sensor-pitch MM)")
     lens = _spec_lens(spec, field_type, source)

@@ -16,6 +16,7 @@ from json.scanner import NUMBER_RE
 from pathlib import Path
 
 from raywave.io.doe import check_doe_files, validate_doe
+from raywave.io.surface_doe import validate_surface_doe
 from raywave.io.errors import LensFileError, suggestion
 from raywave.utils.checks import MAX_FIELD_ANGLE, MAX_WAVELENGTH_UM, wavelength_problem as _wavelength_problem
 
@@ -30,7 +31,7 @@ SURFACE_TYPES = ("standard", "even_asphere", "odd_asphere", "toroidal", "paraxia
 COORDINATE_BREAK_KEYS = ("type", "thickness", "decenter", "tilt", "order", "comment")
 #: The material string of a reflecting surface (Zemax GLAS MIRROR): the medium after it is the one before it.
 MIRROR = "mirror"
-COMMON_SURFACE_KEYS = ("type", "thickness", "material", "aperture", "semi_diameter", "stop", "comment")
+COMMON_SURFACE_KEYS = ("type", "thickness", "material", "aperture", "semi_diameter", "stop", "comment", "doe")
 TYPE_KEYS = {
     "standard": ("radius", "curvature", "conic"),
     "even_asphere": ("radius", "curvature", "conic", "aspheric"),
@@ -472,6 +473,8 @@ class _Validator:
             self.number(s["thickness"], path + ("thickness",))
         self._surface_shape(s, path, kind)
         self._surface_medium(s, path, kind)
+        if "doe" in s:  # a DOE plane inside the lens (issue 46)
+            validate_surface_doe(self, s, path)
 
     def _surface_shape(self, s, path, kind):
         """Check the shape keys of a (non-break) surface ``s`` of type ``kind``: radius or curvature, radius of

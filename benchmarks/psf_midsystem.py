@@ -1,0 +1,137 @@
+"""Cost of a DOE inside the lens (issue 46) against the same DOE before the sensor, A/B in one run.
+
+System (as tests/wave_truth_doe.py): ideal lens A (f 10 mm, F/12.5, the stop), 6 mm, lens B (a thin phase surface
+perfect for the beam it receives), the sensor 2.4–2.9 mm behind it; λ 0.55 µm, ks 32, 2 µm sensor pixels; every
+field on a 1 µm grid (the mid-system method's blank plane 0.01 mm after B; the last-surface DOE on a plane there
+too). Cases:
+
+* ``mid``: the DOE (1 mm, 1 µm pixels) 3 mm after lens A, :class:`raywave.hybrid.midsystem.MidSystemLens`:
+  a Fresnel-lens DOE (f 50 mm, continuous: one order), the same fabricated with 16 levels (the orders with ≥ 1 %:
+  one), and a binary grating of 50 µm period (orders ±1, ±3, ±5);
+* ``last``: the same DOE class before the sensor, :class:`raywave.hybrid.HybridLens` (the engine's one path).
+
+Times: median wall time of ``--repeat`` PSFs (forward; and forward + backward w.r.t. the DOE's parameters), one
+thread. Prints one JSON object (and writes it with ``-o``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+import warnings
+
+import torch
+
+from raywave.doe.params import FresnelDOE, GratingDOE
+from raywave.hybrid import HybridLens
+from raywave.hybrid.midsystem import MidSystemLens
+from raywave.lens.lens import Lens
+from raywave.materials import get_material
+from raywave.surfaces.aperture import CircularAperture
+from raywave.surfaces.geometry import Plane
+from raywave.surfaces.interaction import Diffraction, IdealLens
+from raywave.surfaces.surface import Surface
+
+WL, KS, PS = 0.55, 32, 2e-3
+
+
+def _pair_phase(p, q):
+    sp = math.copysign(1.0, p[2])
+
+    def phase(x, y, wavelength):
+        k = 2 * math.pi / (wavelength * 1e-3)
+        rp = torch.sqrt((x - p[0]) ** 2 + (y - p[1]) ** 2 + p[2] ** 2)
+        rq = torch.sqrt((x - q[0]) ** 2 + (y - q[1]) ** 2 + q[2] ** 2)
+        return k * (sp * rp - rq), k * (sp * (x - p[0]) / rp - (x - q[0]) / rq), k * (sp * (y - p[1]) / rp - (y - q[1]) / rq)
+
+    return phase
+
+
+def two_lens(f_doe: float, field_deg: float) -> Lens:
+    """A (f 10, radius 0.4, stop) — 6 mm — B (perfect for the beam after a DOE of paraxial focal length f_doe
+    3 mm after A) — the sensor."""
+    t = math.tan(math.radians(field_deg))
+    s = 7.0
+    s2 = s if math.isinf(f_doe) else 1 / (1 / s + 1 / f_doe)
+    p = (0.0, 10 * t * s2 / s, s2 - 3.0)
+    z2 = 1 / (1 / p[2] + 1 / 10.0)
+    q = (0.0, p[1] * z2 / p[2], z2)
+    air = get_material("AIR")
+    a = Surface(Plane(), air, 6.0, aperture=CircularAperture(0.4), interaction=IdealLens(10.0), is_stop=True)
+    b = Surface(Plane(), air, z2, interaction=Diffraction(_pair_phase(p, q)))
+    return Lens([a, b], wavelengths=(WL,), primary=0)
+
+
+def _doe(kind):
+    if kind == "grating":
+        d = GratingDOE(0.05, 1000, 1e-3)
+        return d.fabricate(2), math.inf
+    d = FresnelDOE(50.0, 1000, 1e-3, wavelength=WL)
+    return (d.fabricate(16) if kind == "fresnel16" else d), 50.0
+
+
+def _time(fn, repeat):
+    ts = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return statistics.median(ts)
+
+
+def run(repeat: int, field: float) -> dict:
+    out = {"system": "ideal A (f 10, F/12.5) + 1 mm DOE at 1 µm 3 mm after it + lens B; ks 32, 2 µm pixels",
+           "field_deg": field, "repeat": repeat, "threads": torch.get_num_threads(), "cases": {}}
+    for kind in ("fresnel", "fresnel16", "grating"):
+        doe, f_doe = _doe(kind)
+        lens = two_lens(f_doe, field)
+        mid = MidSystemLens(lens, doe, 0, 3.0, final_distance=0.01, final_size=1.0, final_pitch=1e-3, sensor_pitch=PS)
+        d2, _ = _doe(kind)
+        last = HybridLens(two_lens(math.inf, field), d2, 0.01, sensor_pitch=PS, stop_edge="doe")
+        params = [p for p in doe.parameters() if p.requires_grad]
+        params2 = [p for p in d2.parameters() if p.requires_grad]
+
+        def fwd_mid():
+            return mid.psf([(0.0, field)], WL, ks=KS)
+
+        def fwd_last():
+            return last.psf([(0.0, field)], WL, ks=KS)
+
+        def bwd(f, ps):
+            def go():
+                y = f()
+                if ps and y.requires_grad:
+                    torch.autograd.grad(y[0, 0, KS // 2, KS // 2], ps, allow_unused=True)
+            return go
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fwd_mid(), fwd_last()  # warm-up (imports, caches)
+            row = {"orders": len(mid.orders(WL)),
+                   "mid_forward_s": _time(fwd_mid, repeat), "last_forward_s": _time(fwd_last, repeat),
+                   "mid_backward_s": _time(bwd(fwd_mid, params), repeat),
+                   "last_backward_s": _time(bwd(fwd_last, params2), repeat)}
+        row["forward_ratio"] = row["mid_forward_s"] / row["last_forward_s"]
+        row["backward_ratio"] = row["mid_backward_s"] / row["last_backward_s"]
+        out["cases"][kind] = row
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--field", type=float, default=1.5, help="field angle (deg, along y)")
+    ap.add_argument("-o", "--output")
+    a = ap.parse_args(argv)
+    res = run(a.repeat, a.field)
+    text = json.dumps(res, indent=1)
+    print(text)
+    if a.output:
+        with open(a.output, "w") as f:
+            f.write(text)
+
+
+if __name__ == "__main__":
+    main()

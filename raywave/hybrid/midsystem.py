@@ -1,0 +1,458 @@
+"""A DOE inside the lens (issue 46): a thin DOE plane between two surfaces of the sequential lens.
+
+Method (docs/ray-wave.md, "A DOE inside the lens"). The fabricated DOE's transmission at λ is
+``exp(i α Q(φ0))``: ``φ0`` its unwrapped design phase at λ0, ``Q`` the wrap to [0, 2π) and the L-level staircase
+(identity for a continuous DOE), ``α = φ(λ)/φ(λ0)`` its dispersion. Being periodic in ``φ0``, it is a sum of
+diffraction orders, ``exp(i α Q(φ0)) = Σ_m c_m exp(i m φ0)``, with the staircase's Fourier coefficients ``c_m``
+(:func:`order_coefficients`; ``|c_m|²`` is :func:`raywave.doe.staircase_efficiency`). Every order is a smooth
+phase ``m φ0``; it enters the lens as a thin phase surface (:class:`~raywave.surfaces.Diffraction`, the local
+grating: exact for a thin phase screen in the ray limit) and the engine's accurate mode carries it through the
+surfaces after it to a blank DOE plane near the sensor (:class:`~raywave.hybrid.HybridLens` unchanged, ray → field
+→ band-limited angular spectrum → sensor). The orders' fields meet there coherently: each one's absolute phase is
+fixed by its chief ray's optical path (:func:`_absolute_phase`), their envelopes are put on the reference order's
+carrier and summed with ``c_m`` before the one propagation to the sensor.
+
+A continuous DOE is one order with the phase ``α φ0`` and ``c = 1``. The DOE's phase map is read from its pixels
+(the design phase × ``phase_scale``), unwrapped by phasor differences (so a wrapped pixel map is read as its
+smooth phase) and interpolated by cubic convolution (C¹, exact for quadratics) for the rays
+(:class:`DOEPhaseSurface`). What it leaves out: the DOE pixels' flat steps (a sample-and-hold multiplies the
+order's amplitude by ``sinc(p ∂φ/∂x / 2π) sinc(p ∂φ/∂y / 2π)``; :func:`sampling_report` gives its worst value
+and warns past 1 %), and orders below ``min_efficiency``. Differentiable in the DOE's parameters and the lens's
+(the split thickness included).
+"""
+
+from __future__ import annotations
+
+import cmath
+import math
+import warnings
+from collections import OrderedDict
+
+import torch
+from torch import nn
+
+from raywave.doe.base import DOE, BlankDOE
+from raywave.hybrid.coherent.record import CausticWarning, DOEField, SamplingWarning
+from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
+from raywave.lens.lens import Lens
+from raywave.lens.sources import chief_ray, point_source_rays
+from raywave.surfaces.aperture import CircularAperture, SquareAperture
+from raywave.surfaces.geometry import Plane
+from raywave.surfaces.interaction import Diffraction
+from raywave.surfaces.surface import Surface
+from raywave.wave.grid import Field
+
+__all__ = ["DOEPhaseSurface", "MidSystemLens", "order_coefficients", "sampling_report", "insert_doe"]
+
+_TWO_PI = 2.0 * math.pi
+
+#: a DOE-pixel step of the order's phase beyond this (rad) is refused: the map no longer tells its gradient
+MAX_STEP = 0.5 * math.pi
+#: the pixels' flat steps (sample-and-hold) may cost this much of an order's amplitude before a warning
+PIXEL_LOSS_WARN = 0.01
+
+
+def dispersion_alpha(doe: DOE, wavelength: float) -> float:
+    """``α = φ(λ)/φ(λ0)`` of ``doe``'s dispersion model at ``wavelength`` µm (1 for ``"none"``)."""
+    r = doe.dispersion_ratio(wavelength)
+    return 1.0 if r is None else float(r.detach()) if isinstance(r, torch.Tensor) else float(r)
+
+
+def order_coefficients(levels: int | None, wrapped: bool, alpha: float, orders) -> dict:
+    """Complex amplitude ``c_m`` of diffraction order ``m`` of ``exp(i α Q(φ0)) = Σ c_m exp(i m φ0)``.
+
+    ``Q``: the wrap to [0, 2π) (``wrapped``) and, with ``levels`` L, rounding to the nearest of the levels 2πk/L
+    (:func:`raywave.doe.phase_levels`: level k covers φ0 ∈ [2π(k − ½)/L, 2π(k + ½)/L)), so
+    ``c_m = sinc(m/L) (1/L) Σ_k exp(i2πk(α − m)/L)``; a kinoform (no levels): ``c_m = e^{iπ(α−m)} sinc(α − m)``.
+    ``orders``: iterable of integers. Returns ``{m: complex}``."""
+    out = {}
+    for m in orders:
+        m = int(m)
+        if levels is not None:
+            L = int(levels)
+            s = sum(cmath.exp(1j * _TWO_PI * k * (alpha - m) / L) for k in range(L)) / L
+            out[m] = complex(_sinc(m / L) * s)
+        elif wrapped:
+            out[m] = complex(cmath.exp(1j * math.pi * (alpha - m)) * _sinc(alpha - m))
+        else:
+            raise ValueError("order_coefficients: a continuous (unwrapped) DOE has one order (its phase α·φ0)")
+    return out
+
+
+def _sinc(x: float) -> float:
+    return 1.0 if x == 0 else math.sin(math.pi * x) / (math.pi * x)
+
+
+def doe_orders(doe: DOE, wavelength: float, min_efficiency: float = 1e-3, max_order: int = 64) -> list:
+    """The orders of ``doe`` at ``wavelength`` µm as ``[(scale, c)]``: the phase surface carries ``scale·φ0``
+    and the order's field is multiplied by the complex ``c``; a continuous DOE gives ``[(α, 1)]``, a fabricated one
+    every order ``|m| ≤ max_order`` with ``|c_m|² ≥ min_efficiency``, strongest first."""
+    alpha = dispersion_alpha(doe, wavelength)
+    if not doe.wrap and doe.quant_levels is None:
+        return [(alpha, 1.0 + 0j)]
+    cs = order_coefficients(doe.quant_levels, doe.wrap, alpha, range(-max_order, max_order + 1))
+    keep = [(float(m), c) for m, c in cs.items() if abs(c) ** 2 >= min_efficiency]
+    if not keep:
+        raise ValueError(f"no diffraction order of the DOE carries {min_efficiency:g} of the light at {wavelength:g} "
+                         "µm: lower min_efficiency")
+    return sorted(keep, key=lambda t: -abs(t[1]))
+
+
+def _unwrapped(phase: torch.Tensor) -> torch.Tensor:
+    """``phase`` (ny, nx) rad unwrapped by phasor differences (each step taken in (−π, π]): along the first column,
+    then along every row. Differentiable (the steps' gradient is the identity's)."""
+    def steps(d):
+        return d - _TWO_PI * torch.round(d.detach() / _TWO_PI)
+
+    col = torch.cat([phase[:1, :1], phase[:1, :1] + torch.cumsum(steps(phase[1:, :1] - phase[:-1, :1]), 0)], 0)
+    rows = torch.cumsum(steps(phase[:, 1:] - phase[:, :-1]), 1)
+    return torch.cat([col, col + rows], 1)
+
+
+def _keys(t: torch.Tensor):
+    """Keys cubic-convolution weights (a = −½) for offsets −1, 0, 1, 2 at fractions ``t`` and their derivatives."""
+    t2, t3 = t * t, t * t * t
+    w = torch.stack([(-t3 + 2 * t2 - t) / 2, (3 * t3 - 5 * t2 + 2) / 2, (-3 * t3 + 4 * t2 + t) / 2, (t3 - t2) / 2], -1)
+    dw = torch.stack([(-3 * t2 + 4 * t - 1) / 2, (9 * t2 - 10 * t) / 2, (-9 * t2 + 8 * t + 1) / 2, (3 * t2 - 2 * t) / 2],
+                     -1)
+    return w, dw
+
+
+class DOEPhaseSurface(nn.Module):
+    """The smooth phase of a DOE's diffraction order as a :class:`~raywave.surfaces.Diffraction` phase callable.
+
+    ``φ(x, y) = scale · φ0(x, y)``: ``φ0`` the DOE's design phase × ``phase_scale`` (rad at λ0, unwrapped by phasor
+    differences) at its pixel centres, interpolated by cubic convolution (C¹; exact for quadratics), with its exact
+    gradient (rad/mm). ``scale``: a number, or a callable ``wavelength (µm) -> number`` (a continuous DOE's
+    dispersion α(λ)). Points off the grid take the edge pixels' linear extrapolation (the DOE's aperture, a surface
+    aperture, blocks them). ``phase_map``: the map of :meth:`phase_map` when already built (shared by the
+    orders and traces of one PSF call); else it is built at the first call (make a new instance after changing
+    the DOE). Traces without autograd read it detached."""
+
+    def __init__(self, doe: DOE, scale=1.0, phase_map: torch.Tensor | None = None):
+        super().__init__()
+        self.doe = doe
+        self.scale = scale
+        self._map = phase_map
+
+    def phase_map(self) -> torch.Tensor:
+        """``φ0`` on the DOE pixels (ny, nx), unwrapped, with two pixels of linear extrapolation on every side."""
+        p = self.doe.design_phase_pixels(slice(None), slice(None))
+        if self.doe.phase_scale != 1.0:
+            p = p * self.doe.phase_scale
+        p = _unwrapped(p) if min(p.shape) > 1 else p
+        for dim in (0, 1):  # linear extrapolation: two samples before and after
+            n = p.shape[dim]
+            a, b = p.narrow(dim, 0, 1), p.narrow(dim, min(1, n - 1), 1)
+            c, d = p.narrow(dim, n - 1, 1), p.narrow(dim, max(n - 2, 0), 1)
+            p = torch.cat([a + 2 * (a - b), a + (a - b), p, c + (c - d), c + 2 * (c - d)], dim)
+        return p
+
+    def forward(self, x, y, wavelength):
+        doe = self.doe
+        if self._map is None:
+            self._map = self.phase_map()
+        pm = self._map if torch.is_grad_enabled() else self._map.detach()
+        ny, nx = doe.shape
+        pitch = doe.pitch
+        u = x / pitch + (nx - 1) / 2 + 2.0  # index in the padded map
+        v = y / pitch + (ny - 1) / 2 + 2.0
+        shape = u.shape
+        u, v = u.reshape(-1), v.reshape(-1)
+        iu = torch.floor(u.detach()).clamp(1, nx + 1)  # the 4 taps iu−1 … iu+2 stay inside the padded map
+        iv = torch.floor(v.detach()).clamp(1, ny + 1)
+        wu, dwu = _keys(u - iu)
+        wv, dwv = _keys(v - iv)
+        off = torch.arange(-1, 3, device=u.device)
+        cols = (iu.long()[:, None] + off).clamp(0, nx + 3)
+        rows = (iv.long()[:, None] + off).clamp(0, ny + 3)
+        vals = pm[rows[:, :, None], cols[:, None, :]]  # (N, 4, 4)
+        phi = torch.einsum("nij,ni,nj->n", vals, wv, wu)
+        gx = torch.einsum("nij,ni,nj->n", vals, wv, dwu) / pitch
+        gy = torch.einsum("nij,ni,nj->n", vals, dwv, wu) / pitch
+        s = self.scale(wavelength) if callable(self.scale) else self.scale
+        return tuple(s * t.reshape(shape) for t in (phi, gx, gy))
+
+
+def _doe_aperture(doe: DOE):
+    """The DOE's clear aperture as a surface aperture (the inscribed circle, or the square grid)."""
+    w, h = doe.size
+    if doe.aperture == "circle":
+        return CircularAperture(0.5 * min(w, h))
+    if abs(w - h) > 1e-12 * max(w, h):
+        raise ValueError(f"a mid-system DOE needs a square grid (or aperture='circle'); got {w:g}×{h:g} mm")
+    return SquareAperture(0.5 * w)
+
+
+def insert_doe(lens: Lens, after: int, distance: float, phase, order: float = 1.0, doe: DOE | None = None) -> Lens:
+    """A new :class:`~raywave.lens.Lens` sharing ``lens``'s surfaces, with a thin phase plane ``distance`` mm after
+    the vertex of surface ``after`` (in the medium after it): a :class:`~raywave.surfaces.Diffraction` with
+    ``phase`` and ``order`` and ``doe``'s aperture. The split gap is differentiable: the plane's own thickness is
+    ``thickness[after] − distance`` (a tensor expression of the original parameter)."""
+    n_s = len(lens.surfaces)
+    if not 0 <= int(after) < n_s:
+        raise ValueError(f"insert_doe: after={after!r} is not a surface index of a {n_s}-surface lens")
+    s = lens.surfaces[after]
+    t = s.thickness
+    if not (0.0 <= float(distance) < float(t.detach())):
+        raise ValueError(f"insert_doe: the DOE must lie inside the gap after surface {after} (0 ≤ distance < "
+                         f"{float(t.detach()):g} mm), got {distance!r}")
+    if s.interaction.kind in ("coordinate_break", "reflection") or lens.is_folded or lens.has_mirrors:
+        raise ValueError("insert_doe: mid-system DOEs are supported in unfolded lenses without coordinate breaks "
+                         "or mirrors")
+    head = Surface(s.geometry, s.material, float(distance), s.aperture, s.interaction, s.is_stop, s.semi_diameter,
+                   s.comment)
+    del head.thickness
+    head.thickness = torch.tensor(float(distance), dtype=torch.float64, device=t.device)
+    plane = Surface(Plane(), s.material, 0.0, _doe_aperture(doe) if doe is not None else None,
+                    Diffraction(phase, order), comment="DOE (mid-system)")
+    del plane.thickness
+    plane.thickness = t - float(distance)
+    surfaces = list(lens.surfaces[:after]) + [head, plane] + list(lens.surfaces[after + 1:])
+    new = Lens.__new__(Lens)
+    nn.Module.__init__(new)
+    new.surfaces = nn.ModuleList(surfaces)
+    internal = set(nn.Module().__dict__)
+    for k, v in lens.__dict__.items():  # the lens's settings (object, fields, wavelengths, sensor, pupil)
+        if k not in internal:
+            new.__dict__[k] = v
+    new.object_material = lens.object_material
+    new.training = lens.training
+    return new
+
+
+def sampling_report(doe: DOE, orders, max_step: float = MAX_STEP, box=None, phase_map=None) -> dict:
+    """How well the DOE's pixels carry the phases ``scale·φ0`` of its orders (``orders``: ``[(scale, c)]``,
+    strongest first, as :func:`doe_orders`).
+
+    Returns ``{"step": rad per pixel of φ0 (x, y), "max_step": of the kept orders, "pixel_amplitude": worst sinc
+    factor, "kept": the kept orders, "dropped": [(scale, |c|²)]}``: the largest phase step between neighbouring
+    DOE pixels (after unwrapping), and the smallest amplitude factor ``sinc(Δφx/2π) sinc(Δφy/2π)`` that the
+    pixels' flat steps leave on a kept order (1: no loss; the method does not model it). An order whose step exceeds
+    ``max_step`` is not sampled by the DOE's pixels (its gradient is not known): it is dropped with a
+    :class:`~raywave.hybrid.SamplingWarning` naming the power it carries, and when it is the strongest order the
+    DOE is refused (ValueError: refine the DOE pitch). Warns too when the amplitude falls below
+    ``1 − PIXEL_LOSS_WARN``. ``box``: the lit ``(xmin, xmax, ymin, ymax)`` mm on the DOE (default: all of it)."""
+    with torch.no_grad():
+        p = (DOEPhaseSurface(doe).phase_map() if phase_map is None else phase_map.detach())[2:-2, 2:-2]
+        if box is not None:
+            ny, nx = doe.shape
+            cx, cy = (nx - 1) / 2, (ny - 1) / 2
+            c0 = max(int(math.floor(box[0] / doe.pitch + cx)) - 2, 0)
+            c1 = min(int(math.ceil(box[1] / doe.pitch + cx)) + 3, nx)
+            r0 = max(int(math.floor(box[2] / doe.pitch + cy)) - 2, 0)
+            r1 = min(int(math.ceil(box[3] / doe.pitch + cy)) + 3, ny)
+            if c1 - c0 >= 2 and r1 - r0 >= 2:
+                p = p[r0:r1, c0:c1]
+        dx = (p[:, 1:] - p[:, :-1]).abs()
+        dy = (p[1:, :] - p[:-1, :]).abs()
+        gx = float(dx.max()) if dx.numel() else 0.0
+        gy = float(dy.max()) if dy.numel() else 0.0
+    kept, dropped = [], []
+    for scale, c in orders:
+        (kept if abs(float(scale)) * max(gx, gy) <= max_step else dropped).append((scale, c))
+    if not kept or (dropped and dropped[0] is orders[0]):
+        s0 = abs(float(orders[0][0]))
+        raise ValueError(f"mid-system DOE under-sampled: its strongest order's phase ({s0:g}·φ0) changes by "
+                         f"{s0 * max(gx, gy):.3g} rad between neighbouring {doe.pitch * 1e3:g} µm pixels (limit "
+                         f"{max_step:.3g} rad): refine the DOE pitch")
+    worst = max(abs(float(s)) for s, _ in kept)
+    amp = _sinc(worst * gx / _TWO_PI) * _sinc(worst * gy / _TWO_PI)
+    rep = {"step": (gx, gy), "max_step": worst * max(gx, gy), "pixel_amplitude": amp, "kept": kept,
+           "dropped": [(s, abs(c) ** 2) for s, c in dropped]}
+    if dropped:
+        lost = sum(abs(c) ** 2 for _, c in dropped)
+        warnings.warn(SamplingWarning(
+            f"mid-system DOE: orders {', '.join(f'{s:g}' for s, _ in dropped)} ({100 * lost:.2g} % of the light) "
+            f"change by more than {max_step:.3g} rad between neighbouring {doe.pitch * 1e3:g} µm pixels: not "
+            "sampled, left out"), stacklevel=3)
+    if amp < 1.0 - PIXEL_LOSS_WARN:
+        warnings.warn(SamplingWarning(
+            f"mid-system DOE: the {doe.pitch * 1e3:g} µm pixels' flat steps cost up to {100 * (1 - amp):.2g} % of the "
+            f"order-{worst:g} amplitude (steps of {rep['max_step']:.3g} rad), which the local-grating model does not "
+            "include"), stacklevel=3)
+    return rep
+
+
+class MidSystemLens(nn.Module):
+    """A lens with a thin DOE plane ``distance`` mm after the vertex of surface ``after``, and the sensor.
+
+    Args:
+        lens: the refractive lens (its last thickness reaches the sensor).
+        doe: the DOE (square grid, or ``aperture="circle"``), centred on the axis.
+        after, distance: where the DOE plane sits (inside the gap after surface ``after``).
+        final_distance: mm after the last vertex of the blank plane where the engine's field is built
+            (see :class:`~raywave.hybrid.HybridLens` ``doe_distance``).
+        final_size, final_pitch: that plane's grid (square, mm); its simulation pitch is ``final_pitch``.
+        sensor_pitch, stop_edge: as :class:`~raywave.hybrid.HybridLens` (``stop_edge="doe"``: the sharp cut on the
+            final plane; see docs/ray-wave.md for why).
+        min_efficiency: the orders of a fabricated DOE with ``|c_m|²`` below it are left out.
+        orders: the diffraction orders to keep (integers; default: every order that ``min_efficiency`` keeps).
+    """
+
+    def __init__(self, lens: Lens, doe: DOE, after: int, distance: float, final_distance: float, final_size: float,
+                 final_pitch: float, sensor_pitch: float | None = None, stop_edge: str | None = "doe",
+                 min_efficiency: float = 0.01, orders=None):
+        super().__init__()
+        self.only = None if orders is None else {int(m) for m in orders}
+        self.lens, self.doe = lens, doe
+        self.after, self.distance = int(after), float(distance)
+        n = int(math.ceil(final_size / final_pitch))
+        self.final = BlankDOE(n, final_pitch)
+        self.final_distance = float(final_distance)
+        self.sensor_pitch, self.stop_edge = sensor_pitch, stop_edge
+        self.min_efficiency = float(min_efficiency)
+        self._transfer_cache = OrderedDict()
+        insert_doe(lens, after, distance, DOEPhaseSurface(doe), doe=doe)  # checks the placement now
+
+    def order_lens(self, scale, dispersive: bool, phase_map: torch.Tensor | None = None) -> HybridLens:
+        """The engine for one order: the lens with the order's phase plane, the blank final plane, the sensor
+        (``phase_map``: the DOE's :meth:`DOEPhaseSurface.phase_map`, when already built)."""
+        sc = self._dispersion_scale if dispersive else float(scale)
+        lens_m = insert_doe(self.lens, self.after, self.distance, DOEPhaseSurface(self.doe, sc, phase_map), 1.0,
+                            self.doe)
+        hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
+                        stop_edge=self.stop_edge)
+        hl._transfer_cache = self._transfer_cache  # shared memo of window transfer functions
+        return hl
+
+    def _dispersion_scale(self, wavelength):
+        """α(λ) of a continuous DOE at the rays' wavelengths (a tensor, µm)."""
+        doe = self.doe
+        if doe.dispersion == "none":
+            return 1.0
+        if doe.dispersion == "air":
+            return doe.design_wavelength / wavelength
+        return doe.dispersion_ratio(wavelength)
+
+    def lit_box(self, field, wavelength: float, depth=None, phase_map: torch.Tensor | None = None):
+        """The lit ``(xmin, xmax, ymin, ymax)`` mm on the DOE plane (the pupil's rim and a grid inside, aimed
+        through the stop of the lens with the strongest order), or None when nothing reaches it."""
+        scale = self.orders(wavelength)[0][0]
+        lens_m = insert_doe(self.lens, self.after, self.distance, DOEPhaseSurface(self.doe, float(scale), phase_map),
+                            1.0, self.doe)
+        t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
+        g = torch.linspace(-1, 1, 9, dtype=torch.float64)
+        gx, gy = torch.meshgrid(g, g, indexing="xy")
+        inside = gx**2 + gy**2 <= 1
+        px = torch.cat([torch.cos(t), gx[inside]]) * (1 - 1e-9)
+        py = torch.cat([torch.sin(t), gy[inside]]) * (1 - 1e-9)
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            rays = point_source_rays(lens_m, torch.tensor([list(field)], dtype=torch.float64), [wavelength],
+                                     pupil=(px, py), aim="full", depth=depth)
+            out = lens_m.trace(rays, stop=self.after + 2)
+        ok = out.valid
+        if not bool(ok.any()):
+            return None
+        x, y = out.o[..., 0][ok], out.o[..., 1][ok]
+        return float(x.min()), float(x.max()), float(y.min()), float(y.max())
+
+    def orders(self, wavelength: float) -> list:
+        """``[(scale, c)]`` of :func:`doe_orders` at ``wavelength``."""
+        out = doe_orders(self.doe, wavelength, self.min_efficiency)
+        if self.only is not None and (self.doe.wrap or self.doe.quant_levels is not None):
+            out = [(s, c) for s, c in out if int(round(s)) in self.only]
+        return out
+
+    def source_field(self, field, wavelength: float, depth=None, report: bool = True):
+        """The combined field on the final plane for one source: ``(DOEField, HybridLens of the strongest
+        order, orders)``."""
+        orders = self.orders(wavelength)
+        continuous = not self.doe.wrap and self.doe.quant_levels is None
+        pm = DOEPhaseSurface(self.doe).phase_map()  # once for every trace of this source (with autograd if on)
+        if report:
+            box = self.lit_box(field, wavelength, depth, pm)
+            orders = sampling_report(self.doe, orders, box=box, phase_map=pm)["kept"]
+        parts = []
+        for i, (scale, c) in enumerate(orders):
+            hl = self.order_lens(scale, continuous, pm)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                fd = hl.doe_fields([tuple(field)], [wavelength], depth)[0][0]
+            caustic = any(issubclass(w.category, CausticWarning) for w in caught)
+            if caustic and i > 0:  # a weak order that folds before the engine's plane: its field is not built
+                warnings.warn(SamplingWarning(
+                    f"mid-system DOE: order {scale:g} ({100 * abs(c) ** 2:.2g} % of the light) folds (a caustic) "
+                    f"before the plane {self.final_distance:g} mm after the last surface: left out"), stacklevel=3)
+                continue
+            for w in caught:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            parts.append((hl, fd, c))
+        if len(parts) == 1:
+            hl, fd, c = parts[0]
+            return fd, hl, orders
+        return _combine(parts, self.final, field, wavelength, depth), parts[0][0], orders
+
+    def psf_result(self, fields=(0.0, 0.0), wavelengths=0.55, ks: int = 64, depth=None) -> PSFResult:
+        """PSFs ``(F, W, ks, ks)`` (sum 1, centred on the strongest order's chief ray) as :class:`PSFResult`."""
+        fields = torch.as_tensor(fields, dtype=torch.float64).reshape(-1, 2).tolist()
+        wls = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
+        psfs, centers, outs, rays = [], [], [], []
+        for f in fields:
+            pr, cr, orow, rr = [], [], [], []
+            for wl in wls:
+                fd, hl, orders = self.source_field(f, wl, depth)
+                psf, c, o = hl.propagate(fd, ks)
+                pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays * len(orders))
+            psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
+            rays.append(rr)
+        return PSFResult(torch.stack(psfs), torch.stack(centers), torch.stack(outs), hl.sensor_pitch,
+                         torch.tensor(rays))
+
+    def psf(self, fields=(0.0, 0.0), wavelengths=0.55, ks: int = 64, depth=None) -> torch.Tensor:
+        return self.psf_result(fields, wavelengths, ks, depth).psf
+
+
+def _absolute_phase(hl: HybridLens, fd: DOEField, field, wavelength: float, depth) -> torch.Tensor:
+    """``K`` (mm of optical path) with ``true field = envelope·carrier·exp(i k K)`` up to one constant common to
+    every order: the chief ray's optical path at its point ``X`` on the final plane less the phase of the carrier
+    and of the envelope there (bilinear interpolation of the envelope's phasor; the carrier is the chief ray's
+    direction, so the envelope's phase is stationary at ``X``)."""
+    lens = hl.lens
+    z = float(lens.vertex_z()[-1].detach()) + hl.doe_distance
+    wl = torch.tensor([wavelength], dtype=torch.float64, device=lens.device)
+    cr = chief_ray(lens, torch.tensor([list(field)], dtype=torch.float64), wl, depth=depth)
+    out = lens.trace(cr, apertures=False)
+    nmed = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+    at = out.propagate_to_z(z, nmed)
+    x, y, opl = at.o[0, 0, 0, 0], at.o[0, 0, 0, 1], at.opl[0, 0, 0]
+    g = fd.grid
+    (x0, y0), p = g.origin, fd.pitch
+    fx, fy = (float(x.detach()) - x0) / p, (float(y.detach()) - y0) / p
+    ix, iy = int(math.floor(fx)), int(math.floor(fy))
+    ny, nx = fd.envelope.shape[-2:]
+    if not (0 <= ix < nx - 1 and 0 <= iy < ny - 1):
+        raise ValueError("mid-system DOE: an order's chief ray misses its own field window on the final plane")
+    tx, ty = fx - ix, fy - iy
+    e = fd.envelope
+    val = ((1 - ty) * ((1 - tx) * e[iy, ix] + tx * e[iy, ix + 1]) + ty * ((1 - tx) * e[iy + 1, ix] + tx * e[iy + 1, ix + 1]))
+    k = _TWO_PI / (wavelength * 1e-3)
+    a, b = fd.carrier
+    return opl - fd.n * (a * x + b * y) - torch.angle(val) / k
+
+
+def _combine(parts, final: DOE, field, wavelength: float, depth) -> DOEField:
+    """The orders' fields ``[(hl, fd, c)]`` summed coherently on the union of their windows, on the first
+    (strongest) order's carrier; its sensor point, distance and diagnostics."""
+    hl0, fd0, _ = parts[0]
+    k = _TWO_PI / (wavelength * 1e-3)
+    boxes = [fd.box for _, fd, _ in parts]
+    iy0, iy1 = min(b[0] for b in boxes), max(b[1] for b in boxes)
+    ix0, ix1 = min(b[2] for b in boxes), max(b[3] for b in boxes)
+    grid = final.sim_grid(1).window(iy0, iy1, ix0, ix1)
+    env = torch.zeros((iy1 - iy0, ix1 - ix0), dtype=torch.complex128, device=fd0.envelope.device)
+    K0 = None
+    a0, b0 = fd0.carrier
+    for hl, fd, c in parts:
+        K = _absolute_phase(hl, fd, field, wavelength, depth)
+        K0 = K.detach() if K0 is None else K0
+        a, b = fd.carrier
+        gx, gy = fd.grid.coordinates(device=env.device)
+        ramp = k * fd.n * ((a - a0) * gx[None, :] + (b - b0) * gy[:, None]) + k * (K - K0)
+        part = c * fd.envelope * torch.polar(torch.ones_like(ramp), ramp)
+        by0, by1, bx0, bx1 = fd.box
+        env = env.index_put((torch.arange(by0 - iy0, by1 - iy0, device=env.device)[:, None],
+                             torch.arange(bx0 - ix0, bx1 - ix0, device=env.device)[None, :]), part, accumulate=True)
+    return DOEField(Field(env, grid, wavelength, fd0.n, fd0.carrier), (iy0, iy1, ix0, ix1), fd0.z, fd0.center,
+                    fd0.info, fd0.chief_tan)

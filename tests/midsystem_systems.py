@@ -1,0 +1,43 @@
+"""The raywave side of the two-lens test system of tests/wave_truth_doe.py (issue 46): lens A as raywave's
+``IdealLens`` (exact for collimated light), lens B as a thin phase surface with the reference's exact
+sphere-to-sphere phase (the lens that is perfect for the beam it receives), the DOE between them."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from raywave.lens.lens import Lens
+from raywave.materials import get_material
+from raywave.surfaces.aperture import CircularAperture
+from raywave.surfaces.geometry import Plane
+from raywave.surfaces.interaction import Diffraction, IdealLens
+from raywave.surfaces.surface import Surface
+
+
+def sphere_pair_phase(p, q):
+    """Phase callable of lens B: ``2π/λ · (±|X − p| − |X − q|)`` (p, q = (x, y, z) mm from B; + when p lies
+    behind B: the beam converges on it), with its gradient."""
+    sp = math.copysign(1.0, p[2])
+
+    def phase(x, y, wavelength):
+        k = 2 * math.pi / (wavelength * 1e-3)
+        dpx, dpy = x - p[0], y - p[1]
+        dqx, dqy = x - q[0], y - q[1]
+        rp = torch.sqrt(dpx * dpx + dpy * dpy + p[2] ** 2)
+        rq = torch.sqrt(dqx * dqx + dqy * dqy + q[2] ** 2)
+        phi = k * (sp * rp - rq)
+        return phi, k * (sp * dpx / rp - dqx / rq), k * (sp * dpy / rp - dqy / rq)
+
+    return phase
+
+
+def two_lens(sys) -> Lens:
+    """The raywave lens of a :class:`wave_truth_doe.TwoLensSystem` (without the DOE: A, gap1 + gap2, B, sensor)."""
+    air = get_material("AIR")
+    a = Surface(Plane(), air, sys.gap1 + sys.gap2, aperture=CircularAperture(sys.radius_a),
+                interaction=IdealLens(sys.f_a), is_stop=True, comment="lens A")
+    p, q = sys.beam_focus(), sys.image()
+    b = Surface(Plane(), air, float(q[2]), interaction=Diffraction(sphere_pair_phase(p, q)), comment="lens B")
+    return Lens([a, b], wavelengths=(sys.wavelength,), primary=0, fields=(0.0,))

@@ -1,0 +1,147 @@
+"""A DOE inside the lens (issue 46) against the independent wave-optics reference of tests/wave_truth_doe.py:
+point source at infinity, ideal lens A (the stop), 3 mm, the DOE, 3 mm, lens B perfect for the beam it receives,
+the sensor; and the reference itself against the Rayleigh–Sommerfeld integral (the non-paraxial Airy pattern).
+Gradients of the mid-system PSF by finite differences."""
+
+import math
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+import midsystem_systems as M  # noqa: E402
+import wave_truth_doe as W  # noqa: E402
+
+from raywave.doe.base import BlankDOE  # noqa: E402
+from raywave.doe.params import FresnelDOE  # noqa: E402
+from raywave.hybrid.midsystem import MidSystemLens  # noqa: E402
+
+N, PITCH, PS, KS = 1000, 1e-3, 2e-3, 32  # the DOE: 1 mm of 1 µm pixels; 2 µm sensor pixels
+
+
+def _doe(kind):
+    if kind == "blank":
+        return BlankDOE(N, PITCH), math.inf
+    doe = FresnelDOE(50.0, N, PITCH, wavelength=0.55)
+    if kind == "16-level":
+        doe.fabricate(16)
+    return doe, 50.0
+
+
+def _compare(kind, field):
+    doe, f_doe = _doe(kind)
+    sys_ = W.TwoLensSystem(f_doe=f_doe, field=field)
+    ml = MidSystemLens(M.two_lens(sys_), doe, 0, sys_.gap1, final_distance=0.01, final_size=1.0, final_pitch=1e-3,
+                       sensor_pitch=PS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the 16-level DOE's high orders: under-sampled, left out (tested elsewhere)
+        res = ml.psf_result([field], 0.55, ks=KS)
+    center = res.center[0, 0].detach().numpy()
+    np.testing.assert_allclose(center, sys_.image()[:2], atol=2e-5)  # the chief ray meets B's image point
+    phase = None if kind == "blank" else doe.phase(0.55).detach().numpy()
+    ref = W.sensor_psf(sys_, N, PITCH, phase, center, PS, KS)
+    return W.rel_l1(res.psf[0, 0].detach().numpy(), ref)
+
+
+def test_reference_is_the_airy_pattern():
+    """Lens A alone (F/12.5), its focus by the reference's angular spectrum vs the RS integral by quadrature."""
+    s = W.TwoLensSystem()
+    n, p = 2000, 1e-3
+    x = W.coords(n, p)
+    u = W.circle_coverage(x, x, s.radius_a, p) * np.exp(1j * (W._sphere(x, x, s.focus_a(), 1.0, s.k) + s.k * s.f_a))
+    dx = -x[0] / p
+    sh = (dx - math.floor(dx)) * p
+    u = W.asm(u, p, s.f_a, s.wavelength, shift=(sh, sh))
+    irr = W.pixel_integrate(np.abs(u) ** 2, p, PS)
+    idx = int(math.floor(dx)) + (np.arange(KS) - KS // 2) * 2
+    crop = irr[np.ix_(idx, idx)]
+    ref = W.airy_reference(s, PS, KS, sub=12)
+    assert W.rel_l1(crop / crop.sum(), ref) < 3e-4  # measured 1.7e-4 (2.0e-4 with 16 sub-samples … )
+
+
+@pytest.mark.parametrize("kind,bar", [("blank", 4e-4), ("fresnel", 1e-3)])
+def test_midsystem_doe_on_axis(kind, bar):
+    """Measured: blank 2.0e-4, Fresnel-lens DOE (f = 50 mm) 8.9e-4."""
+    assert _compare(kind, (0.0, 0.0)) < bar
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind,field,bar", [("blank", (0.0, 1.5), 4e-4), ("fresnel", (0.0, 1.5), 1e-3),
+                                            ("16-level", (0.0, 0.0), 1.6e-3), ("16-level", (0.0, 1.5), 4e-3)])
+def test_midsystem_doe_matrix(kind, field, bar):
+    """Measured: blank 2.2e-4 at 1.5°; Fresnel 9.0e-4; 16 levels 1.35e-3 on axis, 3.3e-3 at 1.5° (over the issue's
+    1e-3: its orders −15 and +17, left out as not sampled by the 1 µm pixels / crossing a focus before lens B)."""
+    assert _compare(kind, field) < bar
+
+
+def test_midsystem_gradients_by_finite_differences():
+    """d(Σ w·PSF) with respect to the DOE (its focal length) and lens A's focal length, on axis: measured 1.2e-3 and
+    9e-4 relative. Not covered: off axis the two are 1.3–1.5 % off (also with the crop held fixed; a blank
+    mid-system DOE agrees to 7.5e-4 there; the field's interior is exact, test below), and thicknesses before the
+    final plane (the engine traces its field to a fixed plane, docs/ray-wave.md)."""
+    sys_ = W.TwoLensSystem(f_doe=50.0, field=(0.0, 0.0))
+    doe = FresnelDOE(50.0, 600, PITCH, wavelength=0.55)
+    lens = M.two_lens(sys_)
+    ml = MidSystemLens(lens, doe, 0, sys_.gap1, final_distance=0.01, final_size=0.6, final_pitch=1e-3,
+                       sensor_pitch=PS)
+    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+
+    def loss():
+        return (ml.psf([(0.0, 0.0)], 0.55, ks=16)[0, 0] * w).sum()
+
+    params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
+    val = loss()
+    grads = torch.autograd.grad(val, list(params.values()))
+    for (name, prm), g in zip(params.items(), grads):
+        h = 1e-6 * max(abs(float(prm.detach())), 1.0)
+        with torch.no_grad():
+            prm += h
+        lp = float(loss().detach())
+        with torch.no_grad():
+            prm -= 2 * h
+        lm = float(loss().detach())
+        with torch.no_grad():
+            prm += h
+        fd = (lp - lm) / (2 * h)
+        assert abs(float(g) - fd) <= 3e-3 * abs(fd), (name, float(g), fd)
+
+
+def test_midsystem_field_gradients_off_axis():
+    """Off axis (1°), the field on the engine's plane near the sensor, differentiated with respect to lens A's
+    focal length: the irradiance at two points and their phase difference against central differences (measured
+    7e-7 and 3e-5 relative)."""
+    sys_ = W.TwoLensSystem(f_doe=50.0, field=(0.0, 1.0))
+    doe = FresnelDOE(50.0, 600, PITCH, wavelength=0.55)
+    lens = M.two_lens(sys_)
+    ml = MidSystemLens(lens, doe, 0, sys_.gap1, final_distance=0.01, final_size=0.6, final_pitch=1e-3,
+                       sensor_pitch=PS)
+    prm = lens.surfaces[0].interaction.focal_length
+    k = 2 * math.pi / 0.55e-3
+
+    def probe():
+        fd = ml.source_field((0.0, 1.0), 0.55)[0]
+        iy0, _, ix0, _ = fd.box
+        x, y = fd.grid.coordinates()
+        a, b = fd.carrier
+        u = fd.envelope * torch.polar(torch.ones_like(fd.envelope.real), k * (a * x[None, :] + b * y[:, None]))
+        v1, v2 = u[340 - iy0, 310 - ix0], u[400 - iy0, 240 - ix0]
+        return v1.abs() ** 2, v2.abs() ** 2, torch.angle(v1 * v2.conj())
+
+    vals = probe()
+    grads = [torch.autograd.grad(v, prm, retain_graph=True)[0] for v in vals]
+    h = 1e-5
+    with torch.no_grad():
+        prm += h
+    plus = probe()
+    with torch.no_grad():
+        prm -= 2 * h
+    minus = probe()
+    with torch.no_grad():
+        prm += h
+    for g, p_, m_ in zip(grads, plus, minus):
+        fd = float((p_ - m_).detach()) / (2 * h)
+        assert abs(float(g) - fd) <= 1e-4 * abs(fd), (float(g), fd)
