@@ -29,7 +29,7 @@ from raywave.utils.checks import MAX_FIELD_ANGLE
 
 #: Image-height tolerance of the real chief-ray solve (mm).
 HEIGHT_TOL = 1e-12
-#: Secant iterations at most.
+#: Newton / secant iterations at most (each converges in a handful; a height beyond reach stops early).
 MAX_ITER = 60
 #: The largest angle the solve tries (degrees): rays are aimed with tan θ.
 ANGLE_LIMIT = MAX_FIELD_ANGLE - 1e-6
@@ -145,7 +145,10 @@ def _solve_newton(lens, h: torch.Tensor, k: float, wl: float):
         det = torch.where(det != 0, det, torch.ones_like(det))
         step_t = (a22 * r1 - a12 * r2) / det
         step_y = (-a21 * r1 + a11 * r2) / det
-        t = torch.where(done, t, (t - step_t).clamp(-limit, limit))
+        t_new = torch.where(done, t, (t - step_t).clamp(-limit, limit))
+        if bool(((t_new == t) | done).all()):  # stuck at the angle limit: the height is beyond reach
+            break
+        t = t_new
         ye = torch.where(done, ye, ye - step_y)
     return t, done
 
@@ -195,11 +198,12 @@ def _solve_secant(lens, h: torch.Tensor, k: float, wl: float) -> tuple[list[floa
     done = h == 0
     t = torch.where(done, torch.zeros_like(t), t)
     good_t, good_y = t_prev.clone(), y_prev.clone()
+    gave_up = torch.zeros_like(done)
     for _ in range(MAX_ITER):
-        if bool(done.all()):
+        if bool((done | gave_up).all()):
             break
         y, ok = _chief_heights(lens, _to_field(lens, t), wl)
-        bad = ~ok & ~done
+        bad = ~ok & ~done & ~gave_up
         # a vignetted trial: halve back toward the last good field
         t = torch.where(bad, 0.5 * (t + good_t), t)
         if bool(bad.any()):
@@ -213,8 +217,13 @@ def _solve_secant(lens, h: torch.Tensor, k: float, wl: float) -> tuple[list[floa
         slope = torch.where(torch.isfinite(slope) & (slope != 0), slope, torch.full_like(slope, k))
         t_new = t - err / slope
         t_new = t_new.clamp(-limit, limit)
+        # at the angle limit and still short of the height: beyond reach (stop iterating that field)
+        beyond = (t.abs() >= limit) & (y < h) & ~done
+        gave_up = gave_up | beyond
         t_prev, y_prev = t, y
-        t = torch.where(done, t, t_new)
+        t = torch.where(done | gave_up, t, t_new)
+        if bool((done | gave_up).all()):
+            break
     missed = [i for i in range(h.shape[0]) if not bool(done[i])]
     return [float(f) for f in _to_field(lens, good_t)], missed
 
