@@ -22,7 +22,7 @@ def _decenter_buffer(decenter, what: str) -> torch.Tensor:
     dx, dy = (float(v) for v in decenter)
     if not all(abs(v) < float("inf") for v in (dx, dy)):
         raise ValueError(f"{what} decenter must be finite, got {decenter!r}")
-    return torch.tensor([dx, dy], dtype=torch.float64)
+    return torch.tensor([dx, dy], dtype=torch.float64, device="cpu")  # built on the CPU; Module.to moves it
 
 
 def _positive(v, what: str) -> float:
