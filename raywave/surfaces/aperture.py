@@ -22,7 +22,7 @@ def _decenter_buffer(decenter, what: str) -> torch.Tensor:
     dx, dy = (float(v) for v in decenter)
     if not all(abs(v) < float("inf") for v in (dx, dy)):
         raise ValueError(f"{what} decenter must be finite, got {decenter!r}")
-    return torch.tensor([dx, dy], dtype=torch.float64)
+    return torch.tensor([dx, dy], dtype=torch.float64, device="cpu")  # built on the CPU; Module.to moves it
 
 
 def _positive(v, what: str) -> float:
@@ -52,8 +52,8 @@ class Obscuration(nn.Module):
                                                                   "obscuration radius"), dtype=torch.float64))
         if shape == "annulus":
             rin = _positive(inner_radius if inner_radius is not None else 0.0, "annular obscuration inner_radius")
-            if not rin < float(self.radius):
-                raise ValueError(f"annular obscuration: inner_radius {rin!r} must be < radius {float(self.radius)!r}")
+            if not rin < float(radius):
+                raise ValueError(f"annular obscuration: inner_radius {rin!r} must be < radius {float(radius)!r}")
             self.register_buffer("inner_radius", torch.tensor(rin, dtype=torch.float64))
         if shape == "rectangle":
             hx = _positive(half_width_x if half_width_x is not None else 0.0, "obscuration half_width_x")
@@ -116,7 +116,7 @@ class Aperture(nn.Module):
     def _set_decenter(self, decenter) -> None:
         """The aperture's centre ``(dx, dy)`` mm in the surface's local frame (OpticStudio's OBDC)."""
         self.register_buffer("decenter", _decenter_buffer(decenter, "aperture"))
-        self._decentered = bool(self.decenter.any())  # fixed at construction (no device sync per trace)
+        self._decentered = any(float(v) != 0.0 for v in decenter)  # fixed at construction: no device sync
 
     def _local(self, x, y):
         """(x, y) relative to the aperture's centre."""
@@ -177,7 +177,7 @@ class Aperture(nn.Module):
 
     def _decenter_extent(self) -> float:
         """How far the decentre moves the aperture from the axis (mm)."""
-        return float(torch.linalg.vector_norm(self.decenter)) if self.decentered else 0.0
+        return float(torch.linalg.vector_norm(self.decenter)) if self.decentered else 0.0  # no sync when centred
 
     def blocked_by(self, x: float, y: float) -> str | None:
         """What of this aperture blocks the point (x, y) mm (local frame), in words, or None when it passes: its
