@@ -228,6 +228,9 @@ def _glass(toks, where, path, ln):
         nd = _float(toks[3], path, ln, f"{where}: GLAS nd")
         # a missing vd is 0, as OpticStudio reads the line: a constant index (no dispersion)
         vd = _float(toks[4], path, ln, f"{where}: GLAS vd") if len(toks) > 4 else 0.0
+        if not nd > 0:
+            raise LensFileError(f"{where}: model glass index nd {toks[3]} is not supported (an index must be > 0; "
+                                "a mirror is GLAS MIRROR)", path, ln)
         if vd == 0.0:
             return {"index": nd}
         return {"model": {"nd": nd, "vd": vd}}
