@@ -714,14 +714,14 @@ class HybridLens(nn.Module):
             if i not in done:
                 psf, _, o = self.propagate(fd, ks, propagation_dtype)
                 order.append(i), psfs.append(psf[None]), outs.append(o.reshape(1))
-        elem = torch.empty((), dtype=propagation_dtype).element_size()
+        elem = torch.empty((), dtype=propagation_dtype, device="meta").element_size()
         for batch in plan_groups(lattice, sensor, elem):
             idx = [pl.index for pl in batch]
             cb = centers[torch.tensor(idx, dtype=torch.long, device=centers.device)]
             psf, o = propagate_group(self, batch, cb, dz if batch[0].fd.chief_tan is not None else None,
                                      propagation_dtype, sensor)
             order.extend(idx), psfs.append(psf), outs.append(o)
-        back = torch.argsort(torch.tensor(order, dtype=torch.long)).to(centers.device)
+        back = torch.argsort(torch.tensor(order, dtype=torch.long, device="cpu")).to(centers.device)
         psf = torch.cat(psfs)[back].reshape(nf, nw, ks, ks)
         outside = torch.cat(outs)[back].reshape(nf, nw)
         nr = torch.tensor([[fd.rays for fd in row] for row in fds], device="cpu")

@@ -597,7 +597,8 @@ class ExitPupilModel(PSFModel):
                 er.append(math.nan if h.error_estimate is None else h.error_estimate)
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
             nr.append(rr), nps.append(npr), ests.append(er)
-        info = {"n_pupil": torch.tensor(nps), "error_estimate": torch.tensor(ests, dtype=torch.float64)}
+        info = {"n_pupil": torch.tensor(nps, device="cpu"),
+                "error_estimate": torch.tensor(ests, dtype=torch.float64, device="cpu")}
         return ModelPSFResult(torch.stack(psfs), torch.stack(centers), torch.stack(outs), hl.sensor_pitch,
                               torch.tensor(nr, device="cpu"), model=self.name, info=info)
 
