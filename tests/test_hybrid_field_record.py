@@ -50,7 +50,8 @@ def test_every_construction_holds_a_field_on_the_doe_grid(stop_edge, mode, apert
             mod = hl.doe.modulate(fd.field, hl.oversample)
             assert mod.grid == fd.grid and torch.equal(mod.envelope, fd.envelope * unit_phasor(ph))
             bat = hl.doe.window_phasors(fd.wavelength, [(iy0, ix0)], fd.grid.shape, hl.oversample)
-            assert torch.equal(bat[0] * fd.envelope, mod.envelope)
+            # the same factor; the product may round differently in the last bit (vectorised complex multiply)
+            torch.testing.assert_close(bat[0] * fd.envelope, mod.envelope, rtol=0, atol=1e-15)
             assert float(fd.power.detach()) > 0
 
 
