@@ -286,7 +286,9 @@ def _sqrt0(x: torch.Tensor) -> torch.Tensor:
     return torch.where(ok, safe_sqrt(x, ok), torch.zeros_like(x))
 
 
-def _fields(lens, fields):
+def field_pairs(lens, fields=None) -> torch.Tensor:
+    """Field points ``(F, 2)`` float64 on the lens's device from ``(x, y)`` pairs, y values or one value (the lens's
+    field unit: degrees or mm); None: the lens's own fields along y."""
     if fields is None:
         fields = lens.fields
     f = torch.as_tensor(fields, dtype=torch.float64, device=lens.device)
@@ -295,6 +297,9 @@ def _fields(lens, fields):
     if f.ndim == 1:
         f = torch.stack([torch.zeros_like(f), f], -1)
     return f
+
+
+_fields = field_pairs
 
 
 # ---------------------------------------------------------------------------- wavefront

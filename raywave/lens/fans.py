@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from raywave.lens.analysis import wavefront_opd
+from raywave.lens.analysis import field_pairs as _fields, wavefront_opd
 from raywave.lens.sources import VignettingWarning, chief_ray, point_source_rays
 from raywave.rays.pupil import inset_rim
 
@@ -37,17 +37,6 @@ class RayFan:
     fields: torch.Tensor
     wavelengths: list
 
-
-def _fields(lens, fields) -> torch.Tensor:
-    """(F, 2) float64 from (x, y) pairs or y values (default the lens's fields along y)."""
-    if fields is None:
-        fields = [(0.0, float(f)) for f in lens.fields]
-    f = torch.as_tensor(fields, dtype=torch.float64, device=lens.device)
-    if f.ndim == 0:
-        f = f[None]
-    if f.ndim == 1:
-        f = torch.stack([torch.zeros_like(f), f], -1)
-    return f
 
 
 def ray_fan(lens, fields=None, wavelengths=None, n: int = 21) -> RayFan:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
-from raywave.lens.analysis import wavefront_opd
+from raywave.lens.analysis import field_pairs as _fields, wavefront_opd
 from raywave.lens.opd import square_pupil_grid
 from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.rays.pupil import inset_rim
@@ -49,16 +49,6 @@ class MTFResult:
     kind: str
     cutoff: float
 
-
-def _fields(lens, fields) -> torch.Tensor:
-    if fields is None:
-        fields = [(0.0, float(f)) for f in lens.fields]
-    f = torch.as_tensor(fields, dtype=torch.float64, device=lens.device)
-    if f.ndim == 0:
-        f = f[None]
-    if f.ndim == 1:
-        f = torch.stack([torch.zeros_like(f), f], -1)
-    return f
 
 
 def _wavelengths(lens, wavelengths, weights):
