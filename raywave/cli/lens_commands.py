@@ -23,6 +23,17 @@ def _load(name_or_path, config=None):
     return load_lens(resolve_lens_path(name_or_path), config=config)
 
 
+def _load_shown(args):
+    """:func:`_load` of ``args.lens`` (``--config``) under a ticking bar: solving a file's real-image-height fields
+    can take a minute on a fisheye, and no command stays silent that long (``--quiet`` hides it)."""
+    from raywave.cli.progress import bar, ticking
+
+    with bar(args, 1, "lens", "reading the lens (solving its fields)") as pbar, ticking(pbar):
+        lens = _load(args.lens, getattr(args, "config", None))
+        pbar.update(1)
+    return lens
+
+
 def _y_fields(args, command: str):
     """The ``--field`` / ``--fields`` of a command that draws the meridional (y-z) section: Y values (None: the
     lens's fields); an X other than 0 is a :class:`CommandError`."""
@@ -267,7 +278,7 @@ def format_doe_power(d: dict) -> str:
 def cmd_info(args) -> int:
     from raywave.lens.prescription import table
 
-    lens = _load(args.lens, getattr(args, "config", None))
+    lens = _load_shown(args)
     wl = _wavelength(args.wavelength)
     reason = _no_paraxial_reason(lens, wl)
     if reason is not None:  # tilted / decentred: what real rays tell
@@ -301,7 +312,7 @@ def cmd_layout(args) -> int:
 
     fields = _y_fields(args, "layout")
     out = png_path(args.output, "layout.png")
-    lens = _load(args.lens, getattr(args, "config", None))
+    lens = _load_shown(args)
     plot_layout(lens, out, fields=fields, n_rays=integer_arg(args.rays, "--rays"), doe=lens_file_doe(args.lens))
     print(f"wrote {out}")
     return 0
@@ -333,7 +344,7 @@ def spot_table(lens, fields=None) -> dict:
 def cmd_spot(args) -> int:
     fields = _spot_fields(args)
     out = None if not args.output else png_path(args.output, "spot.png")
-    lens = _load(args.lens, getattr(args, "config", None))
+    lens = _load_shown(args)
     table = spot_table(lens, fields)
     if args.json:
         print(json_dumps(table))
