@@ -31,6 +31,7 @@ from collections import OrderedDict
 import torch
 from torch import nn
 
+from raywave.rays.pupil import RIM_INSET
 from raywave.doe.base import DOE, BlankDOE
 from raywave.hybrid.coherent.record import CausticWarning, DOEField, SamplingWarning
 from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
@@ -335,10 +336,10 @@ class MidSystemLens(nn.Module):
         g = torch.linspace(-1, 1, 9, dtype=torch.float64)
         gx, gy = torch.meshgrid(g, g, indexing="xy")
         inside = gx**2 + gy**2 <= 1
-        px = torch.cat([torch.cos(t), gx[inside]]) * (1 - 1e-9)
-        py = torch.cat([torch.sin(t), gy[inside]]) * (1 - 1e-9)
+        px = torch.cat([torch.cos(t), gx[inside]]) * RIM_INSET
+        py = torch.cat([torch.sin(t), gy[inside]]) * RIM_INSET
         with torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+            warnings.simplefilter("ignore")  # the footprint's probe rays: vignetted ones drop out by `ok`; the PSF warns
             rays = point_source_rays(lens_m, torch.tensor([list(field)], dtype=torch.float64), [wavelength],
                                      pupil=(px, py), aim="full", depth=depth)
             out = lens_m.trace(rays, stop=self.after + 2)

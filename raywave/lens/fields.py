@@ -102,7 +102,7 @@ def _meridional_rays(lens, t: torch.Tensor, ye: torch.Tensor, ep_z: float, wl: f
 def _stop_and_image_heights(lens, t, ye, ep_z, wl):
     """(height at the stop (M,), height on the image surface (M,), valid (M,)) of :func:`_meridional_rays`."""
     with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+        warnings.simplefilter("ignore")  # trial rays of the solve: a vignetted one is dropped by `ok` below
         out, rec = lens.trace_to_image(_meridional_rays(lens, t, ye, ep_z, wl), record=True)
     y_stop = rec.points[lens.stop_index + 1][1]
     y_img = out.o[..., 1]
