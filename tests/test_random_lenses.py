@@ -49,13 +49,13 @@ def _sweep(seeds, **kw):
 
 
 def test_random_lenses_have_finite_psfs_and_gradients():
-    """100 seeded random lenses (1–4 catalog-glass elements, some even aspheres, stop on a surface / flat stop /
+    """40 seeded random lenses (1–4 catalog-glass elements, some even aspheres, stop on a surface / flat stop /
     EPD, 256² PixelDOE, ks 16): no NaN or inf in any PSF or in any parameter's gradient (issue 16: before the
     fix, 142 of 206 such lenses had NaN curvature and thickness gradients)."""
-    seeds = range(100)
+    seeds = range(40)  # 500 more: the slow test below
     bad_psf, bad_grad, lit = _sweep(seeds)
     assert not bad_psf and not bad_grad, f"non-finite PSFs {bad_psf}, non-finite gradients {bad_grad[:5]}"
-    assert lit > 50  # most random lenses send light to the sensor: the test exercises the lit path
+    assert lit > 20  # most random lenses send light to the sensor: the test exercises the lit path
 
 
 @pytest.mark.slow
