@@ -50,8 +50,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from raywave.imaging.render import (_GRID_PADDING, _PADDING, _fast, _hat_weights, _image_pitch, _node_grid, _windows,
-                                    prepare_map_arguments)
+from raywave.imaging.render import (_GRID_PADDING, _PADDING, _fast, _hat_weights, _image_pitch, _node_grid,
+                                    _node_offsets, _windows, prepare_map_arguments)
 
 __all__ = ["wiener_deconvolve", "WienerDeconv", "chroma_ratio", "laplacian_power"]
 
@@ -99,17 +99,8 @@ def _unwarp(x, centers, positions, sensor_size, extent, cy, cx, padding):
     """Inverse of the renderer's warp: the renderer moved content from ``s`` to ``s + D(s)``; here output pixel
     ``p`` reads ``x(p + D(p))`` (sensor orientation; D interpolated bilinearly between nodes, per channel)."""
     B, C, H, W = x.shape
-    cen = torch.as_tensor(centers).to(device=x.device, dtype=x.dtype)
-    if cen.ndim == 3:
-        cen = cen[None].expand(C, *cen.shape)
-    if cen.shape != (C,) + tuple(positions.shape):
-        raise ValueError(f"centers: expected ({C}, {positions.shape[0]}, {positions.shape[1]}, 2) mm, got "
-                         f"{tuple(cen.shape)}")
-    w, h = sensor_size
-    nodes_mm = positions.to(x.dtype) * torch.tensor([0.5 * w, 0.5 * h], dtype=x.dtype, device=x.device)
-    qx, qy = _image_pitch(extent, sensor_size, (H, W))
-    off = (cen - nodes_mm) / torch.tensor([qx, qy], dtype=x.dtype, device=x.device)  # (C, N, M, 2) pixels
-    if not bool(off.detach().abs().gt(1e-9).any()):
+    off = _node_offsets(x, centers, positions, sensor_size, extent)
+    if off is None:
         return x
     yy, xx = torch.meshgrid(torch.arange(H, dtype=x.dtype, device=x.device),
                             torch.arange(W, dtype=x.dtype, device=x.device), indexing="ij")

@@ -291,9 +291,11 @@ def _node_grid(nodes: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return 2 * frac / (n - 1) - 1
 
 
-def _warp(x, centers, positions, sensor_size, extent, cy, cx, padding):
-    """Move the image content by the displacement ``centers − node positions`` (sensor orientation)."""
-    B, C, H, W = x.shape
+def _node_offsets(x, centers, positions, sensor_size, extent):
+    """The displacement ``centers − node positions`` (C, N, M, 2) in image pixels for the image ``x`` (B, C, H, W)
+    (``centers`` (N, M, 2) or (C, N, M, 2) mm, ``positions`` (N, M, 2) normalised node positions, ``sensor_size``
+    (w, h) mm), or None where every node's PSF sits on its node (nothing to move)."""
+    _, C, H, W = x.shape
     cen = torch.as_tensor(centers).to(device=x.device, dtype=x.dtype)
     if cen.ndim == 3:
         cen = cen[None].expand(C, *cen.shape)
@@ -304,7 +306,14 @@ def _warp(x, centers, positions, sensor_size, extent, cy, cx, padding):
     nodes_mm = positions.to(x.dtype) * torch.tensor([0.5 * w, 0.5 * h], dtype=x.dtype, device=x.device)
     qx, qy = _image_pitch(extent, sensor_size, (H, W))
     off = (cen - nodes_mm) / torch.tensor([qx, qy], dtype=x.dtype, device=x.device)  # (C, N, M, 2) pixels
-    if not bool(off.detach().abs().gt(1e-9).any()):
+    return off if bool(off.detach().abs().gt(1e-9).any()) else None
+
+
+def _warp(x, centers, positions, sensor_size, extent, cy, cx, padding):
+    """Move the image content by the displacement ``centers − node positions`` (sensor orientation)."""
+    B, C, H, W = x.shape
+    off = _node_offsets(x, centers, positions, sensor_size, extent)
+    if off is None:
         return x
     # the source of output pixel p is s with s + D(s) = p (D interpolated bilinearly between the nodes):
     # fixed-point iterations s ← p − D(s) from s = p (error ~ |∇D|^k, |∇D| ≪ 1)
