@@ -145,10 +145,15 @@ def pixel_integrate(intensity: np.ndarray, pitch: float, sensor_pitch: float) ->
 
 
 def _transmission(n: int, pad: int, phase) -> np.ndarray:
-    """The DOE grid's transmission on the padded grid: ``exp(i phase)`` inside (phase (n, n) rad, or None: 1), 0
-    outside."""
+    """The DOE grid's transmission on the padded grid: ``exp(i phase)`` inside (phase (n, n) rad, or None: 1; a
+    complex array is the transmission itself, e.g. a chosen sum of diffraction orders), 0 outside."""
     t = np.zeros((n + 2 * pad, n + 2 * pad), dtype=np.complex128)
-    t[pad:pad + n, pad:pad + n] = 1.0 if phase is None else np.exp(1j * np.asarray(phase))
+    if phase is None:
+        t[pad:pad + n, pad:pad + n] = 1.0
+    elif np.iscomplexobj(phase):
+        t[pad:pad + n, pad:pad + n] = phase
+    else:
+        t[pad:pad + n, pad:pad + n] = np.exp(1j * np.asarray(phase))
     return t
 
 
@@ -188,7 +193,8 @@ def sensor_psf(sys: TwoLensSystem, n: int, pitch: float, doe_phase, center, sens
     """The reference PSF ``(ks, ks)`` (sum 1), pixel ``[ks//2, ks//2]`` centred on ``center`` (x, y) mm.
 
     Args: the system; the DOE's grid (``n`` samples of ``pitch`` mm, centred: its simulation grid), which blocks
-    the light outside it; the DOE's phase on it (rad, (n, n); None: a blank DOE of that size); sensor pixels of
+    the light outside it; the DOE's phase on it (rad, (n, n); None: a blank DOE of that size; complex: its
+    transmission); sensor pixels of
     ``sensor_pitch`` (an integer multiple of ``pitch``); ``pad`` samples of grid on every side of the DOE's;
     ``doe2_phase``: the second DOE's (same grid; with ``sys.gap12``); ``sag_step``: the multi-slice step (mm) of a
     DOE on a sphere (``sys.doe_radius``), :func:`through_curved_screen`."""

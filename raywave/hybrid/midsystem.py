@@ -399,11 +399,39 @@ class MidSystemLens(nn.Module):
         scales = list(scale) if isinstance(scale, (tuple, list)) else [scale] * n
         pms = phase_map if isinstance(phase_map, (list, tuple)) else [phase_map] * n
         disp = [self._continuous(i) for i in range(n)] if dispersive is None else _as_list(dispersive, n, "dispersive")
-        lens_m, _ = self.build_lens(scales, pms, disp)
+        lens_m, idx = self.build_lens(scales, pms, disp)
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
                         stop_edge=self.stop_edge)
         hl._transfer_cache = self._transfer_cache  # shared memo of window transfer functions
+        hl._doe_indices = idx
         return hl
+
+    def caustics(self, hl: HybridLens, field, wavelength: float, depth=None) -> int:
+        """How many line foci (caustics) an order's beam crosses between the first DOE and the engine's plane
+        (0, 1 or 2: a point focus is 2): from the chief ray's neighbourhood, the 2×2 map ``M`` of small pupil
+        offsets from the first DOE's surface to the plane (``det M < 0``: one; ``det M > 0`` and ``tr M < 0``:
+        two). Each one delays the order's field by π/2 (the Gouy phase), which the rays' optical paths do not
+        hold (:meth:`source_field` applies it relative to the strongest order)."""
+        lens_m = hl.lens
+        e = 1e-3
+        px = torch.tensor([0.0, e, 0.0], dtype=torch.float64)
+        py = torch.tensor([0.0, 0.0, e], dtype=torch.float64)
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            rays = point_source_rays(lens_m, torch.tensor([list(field)], dtype=torch.float64), [wavelength],
+                                     pupil=(px, py), aim="full", depth=depth)
+            at_doe = lens_m.trace(rays, stop=hl._doe_indices[0] + 1, apertures=False)
+            out = lens_m.trace(rays, apertures=False)
+            nmed = lens_m.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+            out = out.propagate_to_z(float(lens_m.vertex_z()[-1].detach()) + hl.doe_distance, nmed)
+        a, b = at_doe.o.reshape(-1, 3)[:3, :2], out.o.reshape(-1, 3)[:3, :2]
+        j0 = torch.stack([a[1] - a[0], a[2] - a[0]], 1)
+        j1 = torch.stack([b[1] - b[0], b[2] - b[0]], 1)
+        m = j1 @ torch.linalg.inv(j0)
+        det, tr = float(torch.linalg.det(m)), float(torch.trace(m))
+        if not (math.isfinite(det) and math.isfinite(tr)):
+            return 0
+        return 1 if det < 0 else 2 if tr < 0 else 0
 
     def _dispersion_scale(self, wavelength, i: int = 0):
         """α(λ) of continuous DOE ``i`` at the rays' wavelengths (a tensor, µm)."""
@@ -512,6 +540,10 @@ class MidSystemLens(nn.Module):
                 continue
             for w in caught:
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            if len(orders) > 1:  # the Gouy phase of the foci the order crosses, relative to the strongest order
+                nc = self.caustics(hl, field, wavelength, depth)
+                nc0 = nc if j == 0 else nc0
+                c = c * cmath.exp(-0.5j * math.pi * (nc - nc0))
             parts.append((hl, fd, c))
         if len(parts) == 1:
             hl, fd, c = parts[0]
