@@ -74,7 +74,9 @@ def test_midsystem_doe_on_axis(kind, bar):
                                             ("16-level", (0.0, 0.0), 1.6e-3), ("16-level", (0.0, 1.5), 4e-3)])
 def test_midsystem_doe_matrix(kind, field, bar):
     """Measured: blank 2.2e-4 at 1.5°; Fresnel 9.0e-4; 16 levels 1.35e-3 on axis, 3.3e-3 at 1.5° (over the issue's
-    1e-3: its orders −15 and +17, left out as not sampled by the 1 µm pixels / crossing a focus before lens B)."""
+    1e-3: the weak orders −15 and +17, below the default min_efficiency, carry 8.6e-4 / 3.1e-3 of the reference in
+    the crop, and their fields there are ruled by the stop's edge waves, which no sharp-edge plane reproduces:
+    docs/ray-wave.md, "A DOE inside the lens")."""
     assert _compare(kind, field) < bar
 
 
