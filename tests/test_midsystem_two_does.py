@@ -82,3 +82,41 @@ def test_conformal_doe_placement():
     assert float(lm.surfaces[1].thickness) == float(lens.surfaces[1].thickness)
     with pytest.raises(ValueError, match="conformal DOE needs a refracting surface"):
         MidSystemLens(lens, doe, 0, None, final_distance=0.01, final_size=0.4, final_pitch=1e-3)
+
+
+def test_conformal_and_two_doe_gradients_by_finite_differences():
+    """d(Σ w·PSF) at 1°, against central differences: with respect to the focal length of the DOE on the conformal
+    surface (measured 2.4e-4 relative) and of the second of two DOEs (1.0e-4); the conformal surface's curvature:
+    5.2e-3 (R 10 mm; 1.6e-3 on axis, 3.6e-3 at R 100 mm, 1.2e-3 at R −10 mm; converged in the step, cause not found:
+    a refracting glass surface's curvature through the same engine agrees to 2e-5)."""
+    import torch
+
+    field = (0.0, 1.0)
+    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    sys_c = W.TwoLensSystem(f_doe=10.0, field=field, doe_radius=10.0)
+    lens_c = M.two_lens_split(sys_c)
+    doe_c = FresnelDOE(10.0, 800, PITCH, wavelength=0.55)
+    conf = MidSystemLens(lens_c, doe_c, 1, None, final_distance=0.01, final_size=0.8, final_pitch=1e-3,
+                         sensor_pitch=PS)
+    sys_t = W.TwoLensSystem(f_doe=50.0, f_doe2=-80.0, gap1=3.0, gap12=1.0, gap2=2.0, field=field)
+    d1, d2 = FresnelDOE(50.0, 800, PITCH, wavelength=0.55), FresnelDOE(-80.0, 800, PITCH, wavelength=0.55)
+    two = MidSystemLens(M.two_lens(sys_t), [d1, d2], 0, [3.0, 4.0], final_distance=0.01, final_size=0.8,
+                        final_pitch=1e-3, sensor_pitch=PS)
+    cases = [(conf, lens_c.surfaces[1].geometry.curvature, 1e-2), (conf, doe_c.focal_length, 1e-3),
+             (two, d2.focal_length, 1e-3)]
+    for ml, prm, tol in cases:
+        def loss():
+            return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
+
+        g = torch.autograd.grad(loss(), prm)[0]
+        h = 1e-6 * max(abs(float(prm.detach())), 1e-2)
+        with torch.no_grad():
+            prm += h
+        lp = float(loss().detach())
+        with torch.no_grad():
+            prm -= 2 * h
+        lm = float(loss().detach())
+        with torch.no_grad():
+            prm += h
+        fd = (lp - lm) / (2 * h)
+        assert abs(float(g) - fd) <= tol * abs(fd), (float(g), fd)
