@@ -36,8 +36,24 @@ def sphere_pair_phase(p, q):
 def two_lens(sys) -> Lens:
     """The raywave lens of a :class:`wave_truth_doe.TwoLensSystem` (without the DOE: A, gap1 + gap2, B, sensor)."""
     air = get_material("AIR")
-    a = Surface(Plane(), air, sys.gap1 + sys.gap2, aperture=CircularAperture(sys.radius_a),
+    a = Surface(Plane(), air, sys.gap1 + getattr(sys, "gap12", 0.0) + sys.gap2, aperture=CircularAperture(sys.radius_a),
                 interaction=IdealLens(sys.f_a), is_stop=True, comment="lens A")
     p, q = sys.beam_focus(), sys.image()
     b = Surface(Plane(), air, float(q[2]), interaction=Diffraction(sphere_pair_phase(p, q)), comment="lens B")
     return Lens([a, b], wavelengths=(sys.wavelength,), primary=0, fields=(0.0,))
+
+
+def two_lens_split(sys) -> Lens:
+    """:func:`two_lens` with a surface in air ``gap1`` mm after A: a sphere of ``sys.doe_radius`` (a plane when
+    infinite), where a conformal DOE sits (A, gap1, that surface, gap12 + gap2, B, sensor)."""
+    from raywave.surfaces.geometry import Standard
+    from raywave.surfaces.interaction import Refraction
+
+    air = get_material("AIR")
+    a = Surface(Plane(), air, sys.gap1, aperture=CircularAperture(sys.radius_a), interaction=IdealLens(sys.f_a),
+                is_stop=True, comment="lens A")
+    c = 0.0 if math.isinf(sys.doe_radius) else 1.0 / sys.doe_radius
+    s = Surface(Standard(c), air, sys.gap12 + sys.gap2, interaction=Refraction(), comment="DOE substrate (air)")
+    p, q = sys.beam_focus(), sys.image()
+    b = Surface(Plane(), air, float(q[2]), interaction=Diffraction(sphere_pair_phase(p, q)), comment="lens B")
+    return Lens([a, s, b], wavelengths=(sys.wavelength,), primary=0, fields=(0.0,))

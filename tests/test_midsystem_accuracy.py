@@ -18,7 +18,7 @@ import wave_truth_doe as W  # noqa: E402
 
 from raywave.doe.base import BlankDOE  # noqa: E402
 from raywave.doe.params import FresnelDOE  # noqa: E402
-from raywave.hybrid.midsystem import MidSystemLens  # noqa: E402
+from raywave.hybrid.midsystem import DOEClipWarning, MidSystemLens  # noqa: E402
 
 N, PITCH, PS, KS = 1000, 1e-3, 2e-3, 32  # the DOE: 1 mm of 1 µm pixels; 2 µm sensor pixels
 
@@ -74,30 +74,34 @@ def test_midsystem_doe_on_axis(kind, bar):
                                             ("16-level", (0.0, 0.0), 1.6e-3), ("16-level", (0.0, 1.5), 4e-3)])
 def test_midsystem_doe_matrix(kind, field, bar):
     """Measured: blank 2.2e-4 at 1.5°; Fresnel 9.0e-4; 16 levels 1.35e-3 on axis, 3.3e-3 at 1.5° (over the issue's
-    1e-3: its orders −15 and +17, left out as not sampled by the 1 µm pixels / crossing a focus before lens B)."""
+    1e-3: the weak orders −15 and +17, below the default min_efficiency, carry 8.6e-4 / 3.1e-3 of the reference in
+    the crop, and their fields there are ruled by the stop's edge waves, which no sharp-edge plane reproduces:
+    docs/ray-wave.md, "A DOE inside the lens")."""
     assert _compare(kind, field) < bar
 
 
-def test_midsystem_gradients_by_finite_differences():
-    """d(Σ w·PSF) with respect to the DOE (its focal length) and lens A's focal length, on axis: measured 1.2e-3 and
-    9e-4 relative. Not covered: off axis the two are 1.3–1.5 % off (also with the crop held fixed; a blank
-    mid-system DOE agrees to 7.5e-4 there; the field's interior is exact, test below), and thicknesses before the
-    final plane (the engine traces its field to a fixed plane, docs/ray-wave.md)."""
-    sys_ = W.TwoLensSystem(f_doe=50.0, field=(0.0, 0.0))
-    doe = FresnelDOE(50.0, 600, PITCH, wavelength=0.55)
+@pytest.mark.parametrize("field", [(0.0, 0.0), (0.0, 1.0)])
+def test_midsystem_gradients_by_finite_differences(field):
+    """d(Σ w·PSF) with respect to the DOE (its focal length) and lens A's focal length, on axis and at 1°, against
+    central differences: measured 6e-5 relative for both, both fields. (With a 0.6 mm DOE the 1° beam overruns the
+    DOE's grid: that hard edge inside the lens is not differentiated, 1.3–1.5 % off; DOEClipWarning, test below.)"""
+    sys_ = W.TwoLensSystem(f_doe=50.0, field=field)
+    doe = FresnelDOE(50.0, 800, PITCH, wavelength=0.55)
     lens = M.two_lens(sys_)
-    ml = MidSystemLens(lens, doe, 0, sys_.gap1, final_distance=0.01, final_size=0.6, final_pitch=1e-3,
+    ml = MidSystemLens(lens, doe, 0, sys_.gap1, final_distance=0.01, final_size=0.8, final_pitch=1e-3,
                        sensor_pitch=PS)
     w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
 
     def loss():
-        return (ml.psf([(0.0, 0.0)], 0.55, ks=16)[0, 0] * w).sum()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", DOEClipWarning)
+            return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
 
     params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
     val = loss()
     grads = torch.autograd.grad(val, list(params.values()))
     for (name, prm), g in zip(params.items(), grads):
-        h = 1e-6 * max(abs(float(prm.detach())), 1.0)
+        h = 1e-6 * max(abs(float(prm.detach())), 1.0)  # 1e-5: FD truncation 2e-3 for lens A
         with torch.no_grad():
             prm += h
         lp = float(loss().detach())
@@ -107,7 +111,18 @@ def test_midsystem_gradients_by_finite_differences():
         with torch.no_grad():
             prm += h
         fd = (lp - lm) / (2 * h)
-        assert abs(float(g) - fd) <= 3e-3 * abs(fd), (name, float(g), fd)
+        assert abs(float(g) - fd) <= 1e-3 * abs(fd), (name, float(g), fd)
+
+
+def test_midsystem_doe_clipping_warns():
+    """A DOE grid smaller than the beam it meets inside the lens is named (its edge's position is not
+    differentiated)."""
+    sys_ = W.TwoLensSystem(f_doe=50.0, field=(0.0, 1.0))
+    ml = MidSystemLens(M.two_lens(sys_), FresnelDOE(50.0, 600, PITCH, wavelength=0.55), 0, sys_.gap1,
+                       final_distance=0.01, final_size=0.6, final_pitch=1e-3, sensor_pitch=PS)
+    assert 0.05 < ml.footprint((0.0, 1.0), 0.55)[1] < 0.2  # measured 9.9 % of the probe rays outside the grid
+    with pytest.warns(DOEClipWarning, match="grid cuts the beam"):
+        ml.source_field((0.0, 1.0), 0.55)
 
 
 def test_midsystem_field_gradients_off_axis():

@@ -2,7 +2,9 @@
 
 The system: a distant point source at field angle (θx, θy); ideal thin lens A (focal length ``f_a``, the stop: a
 sharp circle of radius ``radius_a``), a gap ``gap1``, the DOE (a thin phase screen: its pixel map, as fabricated),
-a gap ``gap2``, ideal thin lens B, and the sensor at B's image of the beam's focus.
+a gap ``gap2``, ideal thin lens B, and the sensor at B's image of the beam's focus. Variants (issue 46): a second
+DOE ``gap12`` behind the first; the first DOE conformal on a sphere in air (its phase applied on the sag by
+multi-slice angular spectrum, :func:`through_curved_screen`: no rays, no local-grating model).
 
 * Lens A turns the plane wave at (θx, θy) into the sphere converging exactly on ``f_a·(tan θx, tan θy, 1)``
   (raywave's ``IdealLens`` is that lens for collimated light).
@@ -44,6 +46,11 @@ class TwoLensSystem:
     f_b: float = 10.0
     f_doe: float = math.inf
     field: tuple = (0.0, 0.0)
+    #: a second DOE ``gap12`` mm behind the first (``gap2`` then runs from it to B), paraxial focal length ``f_doe2``
+    f_doe2: float = math.inf
+    gap12: float = 0.0
+    #: the first DOE on a sphere of this radius (mm, vertex on its plane; ``inf``: a plane), in air on both sides
+    doe_radius: float = math.inf
 
     @property
     def k(self) -> float:
@@ -58,18 +65,24 @@ class TwoLensSystem:
         """P: where the beam leaving the DOE converges (paraxial image of A's focus by the DOE), (x, y, z from B)."""
         pa = self.focus_a()
         s = pa[2] - self.gap1  # from the DOE
-        if math.isinf(self.f_doe):
-            s2, mag = s, 1.0
-        else:
-            s2 = 1.0 / (1.0 / s + 1.0 / self.f_doe)
-            mag = s2 / s
-        return np.array([pa[0] * mag, pa[1] * mag, s2 - self.gap2])
+        s2, mag = _thin_image(s, self.f_doe)
+        s3, mag2 = _thin_image(s2 - self.gap12, self.f_doe2)
+        return np.array([pa[0] * mag * mag2, pa[1] * mag * mag2, s3 - self.gap2])
 
     def image(self) -> np.ndarray:
         """P': B's image of P, (x, y, z from B); z is the sensor distance."""
         p = self.beam_focus()
         z2 = 1.0 / (1.0 / p[2] + 1.0 / self.f_b)
         return np.array([p[0] * z2 / p[2], p[1] * z2 / p[2], z2])
+
+
+def _thin_image(s: float, f: float):
+    """``(s', m)``: the paraxial image distance (mm, after the element) of a point ``s`` mm after a thin element of
+    focal length ``f`` (a converging beam's focus: s > 0), and the lateral magnification."""
+    if math.isinf(f):
+        return s, 1.0
+    s2 = 1.0 / (1.0 / s + 1.0 / f)
+    return s2, s2 / s
 
 
 def coords(n: int, pitch: float):
@@ -95,7 +108,13 @@ def circle_coverage(x: np.ndarray, y: np.ndarray, radius: float, pitch: float, s
 def asm(u: np.ndarray, pitch: float, z: float, wavelength: float, shift=(0.0, 0.0)) -> np.ndarray:
     """Angular-spectrum propagation of ``u`` (ny, nx) over ``z`` mm in air (λ µm); the output is sampled at the
     input's sample positions plus ``shift`` (mm, a lateral offset of the output grid)."""
-    ny, nx = u.shape
+    h = asm_transfer(u.shape, pitch, z, wavelength, shift)
+    return sfft.ifft2(sfft.fft2(u, workers=1) * h, workers=1)
+
+
+def asm_transfer(shape, pitch: float, z: float, wavelength: float, shift=(0.0, 0.0)) -> np.ndarray:
+    """The band-limited angular-spectrum transfer function of :func:`asm` on a grid of ``shape``."""
+    ny, nx = shape
     lam = wavelength * 1e-3
     fx = sfft.fftfreq(nx, pitch)
     fy = sfft.fftfreq(ny, pitch)
@@ -107,8 +126,7 @@ def asm(u: np.ndarray, pitch: float, z: float, wavelength: float, shift=(0.0, 0.
     lim_x = 1.0 / (lam * math.sqrt((2 * z / (nx * pitch)) ** 2 + 1))
     lim_y = 1.0 / (lam * math.sqrt((2 * z / (ny * pitch)) ** 2 + 1))
     band = prop & (np.abs(fx)[None, :] < lim_x) & (np.abs(fy)[:, None] < lim_y)
-    h = np.where(band, np.exp(2j * math.pi * (z * w + fx[None, :] * shift[0] + fy[:, None] * shift[1])), 0)
-    return sfft.ifft2(sfft.fft2(u, workers=1) * h, workers=1)
+    return np.where(band, np.exp(2j * math.pi * (z * w + fx[None, :] * shift[0] + fy[:, None] * shift[1])), 0)
 
 
 def _sphere(x, y, p, sign: float, k: float):
@@ -126,17 +144,63 @@ def pixel_integrate(intensity: np.ndarray, pitch: float, sensor_pitch: float) ->
     return np.real(sfft.ifft2(sfft.fft2(intensity, workers=1) * box, workers=1))
 
 
+def _transmission(n: int, pad: int, phase) -> np.ndarray:
+    """The DOE grid's transmission on the padded grid: ``exp(i phase)`` inside (phase (n, n) rad, or None: 1; a
+    complex array is the transmission itself, e.g. a chosen sum of diffraction orders), 0 outside."""
+    t = np.zeros((n + 2 * pad, n + 2 * pad), dtype=np.complex128)
+    if phase is None:
+        t[pad:pad + n, pad:pad + n] = 1.0
+    elif np.iscomplexobj(phase):
+        t[pad:pad + n, pad:pad + n] = phase
+    else:
+        t[pad:pad + n, pad:pad + n] = np.exp(1j * np.asarray(phase))
+    return t
+
+
+def sag_sphere(x: np.ndarray, y: np.ndarray, radius: float) -> np.ndarray:
+    """Sag (mm, along +z) of a sphere of ``radius`` mm with its vertex at the origin, on the grid (y, x); points
+    beyond the hemisphere get the rim's sag."""
+    r2 = np.minimum(x[None, :] ** 2 + y[:, None] ** 2, radius * radius)
+    return r2 / (radius + math.copysign(1.0, radius) * np.sqrt(radius * radius - r2))
+
+
+def through_curved_screen(u: np.ndarray, t: np.ndarray, sag: np.ndarray, pitch: float, wavelength: float,
+                          dz: float, lit: float = 1e-3):
+    """The field ``u`` (on the vertex plane) through a thin screen ``t`` lying on the surface ``z = sag(x, y)``:
+    multi-slice, the angular spectrum (exact) between planes ``dz`` apart, and every point's transmission applied
+    on the plane nearest its sag (an error below ``dz/2`` in its position). The screen's lit part (``|u|² >
+    lit·max`` where ``t ≠ 0``) sets the sag range; points beyond it (the faint edge-diffraction tails) take the
+    range's end planes. Returns ``(field, z)``: the field on the plane ``z`` mm after the vertex."""
+    inten = np.abs(u) ** 2 * (np.abs(t) > 0)
+    lit_mask = inten > lit * inten.max()
+    lo, hi = float(sag[lit_mask].min()), float(sag[lit_mask].max())
+    m = max(1, int(math.ceil((hi - lo) / dz)))
+    step = (hi - lo) / m if hi > lo else dz
+    idx = np.clip(np.floor((sag - lo) / step), 0, m - 1).astype(int)  # slab of every point
+    z = lo + 0.5 * step  # the slabs' mid-planes
+    u = asm(u, pitch, z, wavelength) if z != 0 else u
+    h = asm_transfer(u.shape, pitch, step, wavelength)
+    for j in range(m):
+        u = np.where(idx == j, u * t, u)
+        if j < m - 1:
+            u = sfft.ifft2(sfft.fft2(u, workers=1) * h, workers=1)
+            z += step
+    return u, z
+
+
 def sensor_psf(sys: TwoLensSystem, n: int, pitch: float, doe_phase, center, sensor_pitch: float, ks: int,
-               pad: int = 400):
+               pad: int = 400, doe2_phase=None, sag_step: float = 2.5e-4):
     """The reference PSF ``(ks, ks)`` (sum 1), pixel ``[ks//2, ks//2]`` centred on ``center`` (x, y) mm.
 
     Args: the system; the DOE's grid (``n`` samples of ``pitch`` mm, centred: its simulation grid), which blocks
-    the light outside it; the DOE's phase on it (rad, (n, n); None: a blank DOE of that size); sensor pixels of
-    ``sensor_pitch`` (an integer multiple of ``pitch``); ``pad`` samples of grid on every side of the DOE's."""
+    the light outside it; the DOE's phase on it (rad, (n, n); None: a blank DOE of that size; complex: its
+    transmission); sensor pixels of
+    ``sensor_pitch`` (an integer multiple of ``pitch``); ``pad`` samples of grid on every side of the DOE's;
+    ``doe2_phase``: the second DOE's (same grid; with ``sys.gap12``); ``sag_step``: the multi-slice step (mm) of a
+    DOE on a sphere (``sys.doe_radius``), :func:`through_curved_screen`."""
     doe_n = n
     n = doe_n + 2 * pad
-    t = np.zeros((n, n), dtype=np.complex128)
-    t[pad:pad + doe_n, pad:pad + doe_n] = 1.0 if doe_phase is None else np.exp(1j * np.asarray(doe_phase))
+    t = _transmission(doe_n, pad, doe_phase)
     s = int(round(sensor_pitch / pitch))
     if abs(s * pitch - sensor_pitch) > 1e-9 * sensor_pitch:
         raise ValueError("the sensor pitch must be an integer multiple of the grid pitch")
@@ -144,8 +208,15 @@ def sensor_psf(sys: TwoLensSystem, n: int, pitch: float, doe_phase, center, sens
     x = coords(n, pitch)
     u = circle_coverage(x, x, sys.radius_a, pitch) * np.exp(1j * (_sphere(x, x, sys.focus_a(), 1.0, k) + k * sys.f_a))
     u = asm(u, pitch, sys.gap1, sys.wavelength)
-    u = u * t
-    u = asm(u, pitch, sys.gap2, sys.wavelength)
+    z = 0.0
+    if math.isinf(sys.doe_radius):
+        u = u * t
+    else:
+        u, z = through_curved_screen(u, t, sag_sphere(x, x, sys.doe_radius), pitch, sys.wavelength, sag_step)
+    if sys.gap12 > 0 or doe2_phase is not None:
+        u = asm(u, pitch, sys.gap12 - z, sys.wavelength) * _transmission(doe_n, pad, doe2_phase)
+        z = 0.0
+    u = asm(u, pitch, sys.gap2 - z, sys.wavelength)
     p, q = sys.beam_focus(), sys.image()
     phi_b = _sphere(x, x, q, 1.0, k) - _sphere(x, x, p, math.copysign(1.0, p[2]), k)
     u = u * np.exp(1j * (phi_b - phi_b[n // 2, n // 2]))

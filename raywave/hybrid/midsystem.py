@@ -43,7 +43,7 @@ from raywave.surfaces.interaction import Diffraction
 from raywave.surfaces.surface import Surface
 from raywave.wave.grid import Field
 
-__all__ = ["DOEPhaseSurface", "MidSystemLens", "order_coefficients", "sampling_report", "insert_doe"]
+__all__ = ["DOEClipWarning", "DOEPhaseSurface", "MidSystemLens", "order_coefficients", "sampling_report", "insert_doe"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -185,15 +185,22 @@ def _doe_aperture(doe: DOE):
     return SquareAperture(0.5 * w)
 
 
-def insert_doe(lens: Lens, after: int, distance: float, phase, order: float = 1.0, doe: DOE | None = None) -> Lens:
+def insert_doe(lens: Lens, after: int, distance: float | None, phase, order: float = 1.0,
+               doe: DOE | None = None) -> Lens:
     """A new :class:`~raywave.lens.Lens` sharing ``lens``'s surfaces, with a thin phase plane ``distance`` mm after
     the vertex of surface ``after`` (in the medium after it): a :class:`~raywave.surfaces.Diffraction` with
     ``phase`` and ``order`` and ``doe``'s aperture. The split gap is differentiable: the plane's own thickness is
-    ``thickness[after] − distance`` (a tensor expression of the original parameter)."""
+    ``thickness[after] − distance`` (a tensor expression of the original parameter).
+
+    ``distance=None``: a conformal DOE, the phase on surface ``after`` itself (its sag, its refraction: the surface
+    is rebuilt with a :class:`~raywave.surfaces.Diffraction` interaction, which bends by the phase's gradient
+    projected on the tangent plane and refracts in one step; its aperture: the surface's, else the DOE's)."""
     n_s = len(lens.surfaces)
     if not 0 <= int(after) < n_s:
         raise ValueError(f"insert_doe: after={after!r} is not a surface index of a {n_s}-surface lens")
     s = lens.surfaces[after]
+    if distance is None:
+        return _conformal(lens, int(after), phase, order, doe)
     t = s.thickness
     if not (0.0 <= float(distance) < float(t.detach())):
         raise ValueError(f"insert_doe: the DOE must lie inside the gap after surface {after} (0 ≤ distance < "
@@ -209,7 +216,26 @@ def insert_doe(lens: Lens, after: int, distance: float, phase, order: float = 1.
                     Diffraction(phase, order), comment="DOE (mid-system)")
     del plane.thickness
     plane.thickness = t - float(distance)
-    surfaces = list(lens.surfaces[:after]) + [head, plane] + list(lens.surfaces[after + 1:])
+    return _with_surfaces(lens, list(lens.surfaces[:after]) + [head, plane] + list(lens.surfaces[after + 1:]))
+
+
+def _conformal(lens: Lens, after: int, phase, order: float, doe: DOE | None) -> Lens:
+    """:func:`insert_doe` with ``distance=None``: surface ``after`` carries the phase (a refracting surface)."""
+    s = lens.surfaces[after]
+    if s.interaction.kind != "refraction" or lens.is_folded or lens.has_mirrors:
+        raise ValueError(f"insert_doe: a conformal DOE needs a refracting surface in an unfolded lens without "
+                         f"mirrors; surface {after} is a {s.interaction.kind!r} surface")
+    # the surface's own aperture where it has one (the footprint check warns when light leaves the DOE's grid)
+    ap = s.aperture if s.aperture is not None or doe is None else _doe_aperture(doe)
+    new_s = Surface(s.geometry, s.material, 0.0, ap, Diffraction(phase, order), s.is_stop, s.semi_diameter,
+                    s.comment + " + DOE (conformal)")
+    del new_s.thickness
+    new_s.thickness = s.thickness
+    return _with_surfaces(lens, list(lens.surfaces[:after]) + [new_s] + list(lens.surfaces[after + 1:]))
+
+
+def _with_surfaces(lens: Lens, surfaces) -> Lens:
+    """A new :class:`~raywave.lens.Lens` with ``surfaces`` and ``lens``'s settings."""
     new = Lens.__new__(Lens)
     nn.Module.__init__(new)
     new.surfaces = nn.ModuleList(surfaces)
@@ -275,110 +301,249 @@ def sampling_report(doe: DOE, orders, max_step: float = MAX_STEP, box=None, phas
     return rep
 
 
+class DOEClipWarning(UserWarning):
+    """A mid-system DOE's grid (its aperture) cuts the beam that the stop lets through: the cut is a hard edge
+    inside the lens, formed geometrically on the engine's plane, whose position is not differentiated."""
+
+
+def _as_list(v, n: int, name: str) -> list:
+    """``v`` as a list of ``n`` items (a scalar repeated, or a sequence of length ``n``)."""
+    if isinstance(v, (list, tuple)):
+        if len(v) != n:
+            raise ValueError(f"MidSystemLens: {name} has {len(v)} entries for {n} DOEs")
+        return list(v)
+    return [v] * n
+
+
 class MidSystemLens(nn.Module):
-    """A lens with a thin DOE plane ``distance`` mm after the vertex of surface ``after``, and the sensor.
+    """A lens with thin DOEs inside it (planes in its gaps, or conformal on its surfaces), and the sensor.
 
     Args:
         lens: the refractive lens (its last thickness reaches the sensor).
-        doe: the DOE (square grid, or ``aperture="circle"``), centred on the axis.
-        after, distance: where the DOE plane sits (inside the gap after surface ``after``).
+        doe: the DOE (square grid, or ``aperture="circle"``), centred on the axis; or a list of DOEs (one behind
+            the other: their orders' products are traced).
+        after, distance: where each DOE sits: ``distance`` mm after the vertex of surface ``after`` (inside the
+            gap after it); ``distance=None``: on surface ``after`` itself (conformal: the phase on its sag). With
+            several DOEs, lists (or one value for all).
         final_distance: mm after the last vertex of the blank plane where the engine's field is built
             (see :class:`~raywave.hybrid.HybridLens` ``doe_distance``).
         final_size, final_pitch: that plane's grid (square, mm); its simulation pitch is ``final_pitch``.
         sensor_pitch, stop_edge: as :class:`~raywave.hybrid.HybridLens` (``stop_edge="doe"``: the sharp cut on the
             final plane; see docs/ray-wave.md for why).
-        min_efficiency: the orders of a fabricated DOE with ``|c_m|²`` below it are left out.
-        orders: the diffraction orders to keep (integers; default: every order that ``min_efficiency`` keeps).
+        min_efficiency: the orders (products of the DOEs' orders) with ``|c|²`` below it are left out.
+        orders: the diffraction orders to keep (integers; default: every order that ``min_efficiency`` keeps); with
+            several DOEs, one such set (or None) per DOE.
     """
 
-    def __init__(self, lens: Lens, doe: DOE, after: int, distance: float, final_distance: float, final_size: float,
+    def __init__(self, lens: Lens, doe, after, distance, final_distance: float, final_size: float,
                  final_pitch: float, sensor_pitch: float | None = None, stop_edge: str | None = "doe",
                  min_efficiency: float = 0.01, orders=None):
         super().__init__()
-        self.only = None if orders is None else {int(m) for m in orders}
-        self.lens, self.doe = lens, doe
-        self.after, self.distance = int(after), float(distance)
-        n = int(math.ceil(final_size / final_pitch))
-        self.final = BlankDOE(n, final_pitch)
+        does = list(doe) if isinstance(doe, (list, tuple)) else [doe]
+        n = len(does)
+        if n == 0:
+            raise ValueError("MidSystemLens: no DOE given")
+        afters = [int(a) for a in _as_list(after, n, "after")]
+        dists = [None if d is None else float(d) for d in _as_list(distance, n, "distance")]
+        only = orders if n > 1 and isinstance(orders, (list, tuple)) and len(orders) == n and \
+            all(o is None or isinstance(o, (list, tuple, set, range)) for o in orders) else [orders] * n
+        self.only = [None if o is None else {int(m) for m in o} for o in only]
+        self.lens = lens
+        self.does = nn.ModuleList(does)
+        self.doe = does[0]
+        self.placements = list(zip(afters, dists))
+        self.after, self.distance = afters[0], dists[0]
+        keys = [(a, -1.0 if d is None else d) for a, d in self.placements]
+        if len(set(keys)) != n:
+            raise ValueError(f"MidSystemLens: two DOEs at the same place {self.placements}")
+        grid = int(math.ceil(final_size / final_pitch))
+        self.final = BlankDOE(grid, final_pitch)
         self.final_distance = float(final_distance)
         self.sensor_pitch, self.stop_edge = sensor_pitch, stop_edge
         self.min_efficiency = float(min_efficiency)
         self._transfer_cache = OrderedDict()
-        insert_doe(lens, after, distance, DOEPhaseSurface(doe), doe=doe)  # checks the placement now
+        self.build_lens([1.0] * n)  # checks the placements now
 
-    def order_lens(self, scale, dispersive: bool, phase_map: torch.Tensor | None = None) -> HybridLens:
-        """The engine for one order: the lens with the order's phase plane, the blank final plane, the sensor
-        (``phase_map``: the DOE's :meth:`DOEPhaseSurface.phase_map`, when already built)."""
-        sc = self._dispersion_scale if dispersive else float(scale)
-        lens_m = insert_doe(self.lens, self.after, self.distance, DOEPhaseSurface(self.doe, sc, phase_map), 1.0,
-                            self.doe)
+    def build_lens(self, scales, phase_maps=None, dispersive=None):
+        """``(lens, indices)``: the lens with every DOE's order phase (``scales[i]·φ0`` of DOE ``i``; a callable
+        scale: α(λ)) and the index of each DOE's surface in it."""
+        n = len(self.does)
+        pms = phase_maps if phase_maps is not None else [None] * n
+        lens_m = self.lens
+        # the deepest first: earlier indices stay valid; in one gap, the farther plane first
+        todo = sorted(range(n), key=lambda i: (self.placements[i][0], -1.0 if self.placements[i][1] is None
+                                               else self.placements[i][1]), reverse=True)
+        for i in todo:
+            a, d = self.placements[i]
+            sc = self._scale_fn(i) if dispersive is not None and dispersive[i] else float(scales[i])
+            lens_m = insert_doe(lens_m, a, d, DOEPhaseSurface(self.does[i], sc, pms[i]), 1.0, self.does[i])
+        idx = []
+        for i in range(n):
+            a, d = self.placements[i]
+            before = sum(1 for j in range(n) if self.placements[j][1] is not None and
+                         (self.placements[j][0] < a or (self.placements[j][0] == a and d is not None and
+                                                        self.placements[j][1] < d)))
+            idx.append(a + before + (0 if d is None else 1))
+        return lens_m, idx
+
+    def _continuous(self, i: int) -> bool:
+        d = self.does[i]
+        return not d.wrap and d.quant_levels is None
+
+    def order_lens(self, scale, dispersive=None, phase_map=None) -> HybridLens:
+        """The engine for one order: the lens with the order's phase planes, the blank final plane, the sensor.
+        ``scale``: the order's scale (a number, or a tuple with one per DOE); ``phase_map``: the DOEs'
+        :meth:`DOEPhaseSurface.phase_map` (one, or a list), when already built; ``dispersive``: whether the DOEs
+        are continuous (their scale α(λ)); default: read from the DOEs."""
+        n = len(self.does)
+        scales = list(scale) if isinstance(scale, (tuple, list)) else [scale] * n
+        pms = phase_map if isinstance(phase_map, (list, tuple)) else [phase_map] * n
+        disp = [self._continuous(i) for i in range(n)] if dispersive is None else _as_list(dispersive, n, "dispersive")
+        lens_m, idx = self.build_lens(scales, pms, disp)
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
                         stop_edge=self.stop_edge)
         hl._transfer_cache = self._transfer_cache  # shared memo of window transfer functions
+        hl._doe_indices = idx
         return hl
 
-    def _dispersion_scale(self, wavelength):
-        """α(λ) of a continuous DOE at the rays' wavelengths (a tensor, µm)."""
-        doe = self.doe
+    def caustics(self, hl: HybridLens, field, wavelength: float, depth=None) -> int:
+        """How many line foci (caustics) an order's beam crosses between the first DOE and the engine's plane
+        (0, 1 or 2: a point focus is 2): from the chief ray's neighbourhood, the 2×2 map ``M`` of small pupil
+        offsets from the first DOE's surface to the plane (``det M < 0``: one; ``det M > 0`` and ``tr M < 0``:
+        two). Each one delays the order's field by π/2 (the Gouy phase), which the rays' optical paths do not
+        hold (:meth:`source_field` applies it relative to the strongest order)."""
+        lens_m = hl.lens
+        e = 1e-3
+        px = torch.tensor([0.0, e, 0.0], dtype=torch.float64)
+        py = torch.tensor([0.0, 0.0, e], dtype=torch.float64)
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            rays = point_source_rays(lens_m, torch.tensor([list(field)], dtype=torch.float64), [wavelength],
+                                     pupil=(px, py), aim="full", depth=depth)
+            at_doe = lens_m.trace(rays, stop=hl._doe_indices[0] + 1, apertures=False)
+            out = lens_m.trace(rays, apertures=False)
+            nmed = lens_m.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+            out = out.propagate_to_z(float(lens_m.vertex_z()[-1].detach()) + hl.doe_distance, nmed)
+        a, b = at_doe.o.reshape(-1, 3)[:3, :2], out.o.reshape(-1, 3)[:3, :2]
+        j0 = torch.stack([a[1] - a[0], a[2] - a[0]], 1)
+        j1 = torch.stack([b[1] - b[0], b[2] - b[0]], 1)
+        m = j1 @ torch.linalg.inv(j0)
+        det, tr = float(torch.linalg.det(m)), float(torch.trace(m))
+        if not (math.isfinite(det) and math.isfinite(tr)):
+            return 0
+        return 1 if det < 0 else 2 if tr < 0 else 0
+
+    def _dispersion_scale(self, wavelength, i: int = 0):
+        """α(λ) of continuous DOE ``i`` at the rays' wavelengths (a tensor, µm)."""
+        doe = self.does[i]
         if doe.dispersion == "none":
             return 1.0
         if doe.dispersion == "air":
             return doe.design_wavelength / wavelength
         return doe.dispersion_ratio(wavelength)
 
-    def lit_box(self, field, wavelength: float, depth=None, phase_map: torch.Tensor | None = None):
-        """The lit ``(xmin, xmax, ymin, ymax)`` mm on the DOE plane (the pupil's rim and a grid inside, aimed
-        through the stop of the lens with the strongest order), or None when nothing reaches it."""
-        scale = self.orders(wavelength)[0][0]
-        lens_m = insert_doe(self.lens, self.after, self.distance, DOEPhaseSurface(self.doe, float(scale), phase_map),
-                            1.0, self.doe)
+    def _scale_fn(self, i: int):
+        """:meth:`_dispersion_scale` of DOE ``i`` as a callable of the wavelength."""
+        return lambda wavelength: self._dispersion_scale(wavelength, i)
+
+    def footprint(self, field, wavelength: float, depth=None, phase_maps=None, i: int = 0):
+        """``(box, clipped)`` on DOE ``i``: the lit ``(xmin, xmax, ymin, ymax)`` mm (None when nothing reaches it)
+        and the fraction of the probe rays (the pupil's rim and a grid inside, aimed through the stop of the lens
+        with every DOE's strongest order) that reach its surface but fall outside the DOE's aperture."""
+        n = len(self.does)
+        scales = [doe_orders(self.does[j], wavelength, self.min_efficiency)[0][0] for j in range(n)]
+        pms = phase_maps if phase_maps is not None else [None] * n
+        lens_m, idx = self.build_lens(scales, pms)
         t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
         g = torch.linspace(-1, 1, 9, dtype=torch.float64)
         gx, gy = torch.meshgrid(g, g, indexing="xy")
         inside = gx**2 + gy**2 <= 1
         px = torch.cat([torch.cos(t), gx[inside]]) * RIM_INSET
         py = torch.cat([torch.sin(t), gy[inside]]) * RIM_INSET
+        k = idx[i]
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the footprint's probe rays: vignetted ones drop out by `ok`; the PSF warns
             rays = point_source_rays(lens_m, torch.tensor([list(field)], dtype=torch.float64), [wavelength],
                                      pupil=(px, py), aim="full", depth=depth)
-            out = lens_m.trace(rays, stop=self.after + 2)
+            before = lens_m.trace(rays, stop=k)
+            out = lens_m.trace(before, start=k, stop=k + 1, apertures=False)
         ok = out.valid
         if not bool(ok.any()):
-            return None
+            return None, 0.0
         x, y = out.o[..., 0][ok], out.o[..., 1][ok]
-        return float(x.min()), float(x.max()), float(y.min()), float(y.max())
+        inside = _doe_aperture(self.does[i]).contains(x, y)
+        clipped = 1.0 - float(inside.double().mean())
+        if not bool(inside.any()):
+            return None, clipped
+        x, y = x[inside], y[inside]
+        return (float(x.min()), float(x.max()), float(y.min()), float(y.max())), clipped
 
-    def orders(self, wavelength: float) -> list:
-        """``[(scale, c)]`` of :func:`doe_orders` at ``wavelength``."""
-        out = doe_orders(self.doe, wavelength, self.min_efficiency)
-        if self.only is not None and (self.doe.wrap or self.doe.quant_levels is not None):
-            out = [(s, c) for s, c in out if int(round(s)) in self.only]
+    def lit_box(self, field, wavelength: float, depth=None, phase_map: torch.Tensor | None = None, i: int = 0):
+        """The lit ``(xmin, xmax, ymin, ymax)`` mm on DOE ``i`` (:meth:`footprint`), or None."""
+        pms = phase_map if isinstance(phase_map, (list, tuple)) or phase_map is None else [phase_map] + [None] * (
+            len(self.does) - 1)
+        return self.footprint(field, wavelength, depth, pms, i)[0]
+
+    def doe_order_list(self, i: int, wavelength: float) -> list:
+        """``[(scale, c)]`` of DOE ``i`` (:func:`doe_orders`, restricted to the requested ``orders``)."""
+        out = doe_orders(self.does[i], wavelength, self.min_efficiency)
+        if self.only[i] is not None and not self._continuous(i):
+            out = [(s, c) for s, c in out if int(round(s)) in self.only[i]]
         return out
+
+    def orders(self, wavelength: float, per_doe=None) -> list:
+        """``[(scale, c)]`` of :func:`doe_orders` at ``wavelength`` (one DOE); with several, ``[(scales, c)]``:
+        the products of the DOEs' orders (``per_doe``: each DOE's list, default :meth:`doe_order_list`) with
+        ``|c|² ≥ min_efficiency``, strongest first."""
+        n = len(self.does)
+        lists = per_doe if per_doe is not None else [self.doe_order_list(i, wavelength) for i in range(n)]
+        if n == 1:
+            return list(lists[0])
+        combos = [((), 1.0 + 0j)]
+        for lst in lists:
+            combos = [(sc + (s,), c * cm) for sc, c in combos for s, cm in lst]
+        keep = sorted([t for t in combos if abs(t[1]) ** 2 >= self.min_efficiency], key=lambda t: -abs(t[1]))
+        if not keep:
+            raise ValueError(f"no product of the DOEs' orders carries {self.min_efficiency:g} of the light at "
+                             f"{wavelength:g} µm: lower min_efficiency")
+        return keep
 
     def source_field(self, field, wavelength: float, depth=None, report: bool = True):
         """The combined field on the final plane for one source: ``(DOEField, HybridLens of the strongest
         order, orders)``."""
-        orders = self.orders(wavelength)
-        continuous = not self.doe.wrap and self.doe.quant_levels is None
-        pm = DOEPhaseSurface(self.doe).phase_map()  # once for every trace of this source (with autograd if on)
+        n = len(self.does)
+        pms = [DOEPhaseSurface(d).phase_map() for d in self.does]  # once per source (with autograd if on)
+        per = [self.doe_order_list(i, wavelength) for i in range(n)]
         if report:
-            box = self.lit_box(field, wavelength, depth, pm)
-            orders = sampling_report(self.doe, orders, box=box, phase_map=pm)["kept"]
+            for i in range(n):
+                box, clipped = self.footprint(field, wavelength, depth, pms, i)
+                if clipped > 0:
+                    warnings.warn(DOEClipWarning(
+                        f"mid-system DOE {i} (after surface {self.placements[i][0]}): its {self.does[i].size[0]:g} mm "
+                        f"grid cuts the beam of field {list(field)} at {wavelength:g} µm ({100 * clipped:.2g} % of "
+                        "the probe rays): a hard edge inside the lens whose position is not differentiated; make "
+                        "the DOE larger than its footprint"), stacklevel=3)
+                per[i] = sampling_report(self.does[i], per[i], box=box, phase_map=pms[i])["kept"]
+        orders = self.orders(wavelength, per)
         parts = []
-        for i, (scale, c) in enumerate(orders):
-            hl = self.order_lens(scale, continuous, pm)
+        for j, (scale, c) in enumerate(orders):
+            hl = self.order_lens(scale, None, pms)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 fd = hl.doe_fields([tuple(field)], [wavelength], depth)[0][0]
             caustic = any(issubclass(w.category, CausticWarning) for w in caught)
-            if caustic and i > 0:  # a weak order that folds before the engine's plane: its field is not built
+            if caustic and j > 0:  # a weak order that folds before the engine's plane: its field is not built
                 warnings.warn(SamplingWarning(
-                    f"mid-system DOE: order {scale:g} ({100 * abs(c) ** 2:.2g} % of the light) folds (a caustic) "
-                    f"before the plane {self.final_distance:g} mm after the last surface: left out"), stacklevel=3)
+                    f"mid-system DOE: order {scale} ({100 * abs(c) ** 2:.2g} % of the light) "
+                    f"folds (a caustic) before the plane {self.final_distance:g} mm after the last surface: left out"),
+                    stacklevel=3)
                 continue
             for w in caught:
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            if len(orders) > 1:  # the Gouy phase of the foci the order crosses, relative to the strongest order
+                nc = self.caustics(hl, field, wavelength, depth)
+                nc0 = nc if j == 0 else nc0
+                c = c * cmath.exp(-0.5j * math.pi * (nc - nc0))
             parts.append((hl, fd, c))
         if len(parts) == 1:
             hl, fd, c = parts[0]
