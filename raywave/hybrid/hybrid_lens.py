@@ -41,6 +41,7 @@ from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
 from raywave.utils.checks import wavelengths_um
 from raywave.utils.safe import safe_div
+from raywave.wave.grid import Grid
 from raywave.wave.propagation import (angular_spectrum, integrated_upsampled_intensity, propagate_window,
                                       window_transfer)
 
@@ -651,8 +652,8 @@ class HybridLens(nn.Module):
         n_out = 2 * kk + 1
         shift = crop_origin - crop_origin.detach() if crop_origin.requires_grad else None
         transfer = self._transfer(u, p, fd, out_origin, n_out, dz is not None or shift is not None)
-        out = propagate_window(u, p, fd.wavelength, fd.z, fd.origin, out_origin, (n_out, n_out), n=fd.n,
-                               carrier=fd.carrier, shift=shift, dz=dz, transfer=transfer)
+        out = propagate_window(fd.field.with_envelope(u), Grid(out_origin, p, (n_out, n_out)), fd.z, shift=shift, dz=dz,
+                               transfer=transfer).envelope
         return out, out_origin
 
     def _transfer(self, u, p, fd: DOEField, out_origin, n_out: int, weight_derivative: bool = False):
@@ -664,8 +665,8 @@ class HybridLens(nn.Module):
                weight_derivative)
         hit = self._transfer_cache.get(key)
         if hit is None:
-            hit = window_transfer(u.shape[-2:], (n_out, n_out), p, fd.wavelength, fd.z, fd.origin, out_origin, fd.n,
-                                  fd.carrier, device=u.device, weight_derivative=weight_derivative)
+            hit = window_transfer(fd.field.with_envelope(u), Grid(out_origin, p, (n_out, n_out)), fd.z,
+                                  weight_derivative=weight_derivative)
             self._transfer_cache[key] = hit
             while len(self._transfer_cache) > 8:
                 self._transfer_cache.popitem(last=False)

@@ -124,7 +124,7 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
                             "accurate").with_info(stop_edge="exit_pupil")
     grid = sim.window(*box)
     check_window_memory(*grid.shape, p, lens.device)
-    u = propagate_window(fx.envelope, p, wavelength, dz, fx.origin, grid.origin, grid.shape, n=n, carrier=carrier)
+    u = propagate_window(Field(fx.envelope, fx.grid, float(wavelength), n, carrier), grid, dz).envelope
     u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)
     return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
                     FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil"))
