@@ -25,6 +25,8 @@ __all__ = ["Grid", "Field"]
 
 
 def _pair_of(v, name: str, kind=float) -> tuple:
+    if type(v) is tuple and len(v) == 2 and type(v[0]) is kind and type(v[1]) is kind:
+        return v  # already normalised (the common case: a Grid built from another's values)
     if isinstance(v, torch.Tensor):
         v = v.detach().cpu().tolist()
     if isinstance(v, (int, float)) and kind is float:
@@ -53,11 +55,13 @@ class Grid:
     def __post_init__(self):
         origin = _pair_of(self.origin, "origin")
         pitch = _pair_of(self.pitch, "pitch")
-        if isinstance(self.shape, (int, float)) or len(tuple(self.shape)) != 2:
-            raise ValueError(f"Grid: shape must be (ny, nx), got {self.shape!r}")
-        if any(float(s) != int(s) for s in self.shape):
-            raise ValueError(f"Grid: shape must be integers, got {self.shape!r}")
-        shape = tuple(int(s) for s in self.shape)
+        shape = self.shape
+        if not (type(shape) is tuple and len(shape) == 2 and type(shape[0]) is int and type(shape[1]) is int):
+            if isinstance(shape, (int, float)) or len(tuple(shape)) != 2:
+                raise ValueError(f"Grid: shape must be (ny, nx), got {shape!r}")
+            if any(float(s) != int(s) for s in shape):
+                raise ValueError(f"Grid: shape must be integers, got {shape!r}")
+            shape = tuple(int(s) for s in shape)
         if not all(math.isfinite(v) for v in origin):
             raise ValueError(f"Grid: origin must be finite, got {origin}")
         if not all(math.isfinite(p) and p > 0 for p in pitch):
