@@ -6,6 +6,8 @@ source's rolled-off kernel spectrum more finely, which moves a PSF by ≤ 1e-7 r
 
 import math
 import warnings
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,13 +15,10 @@ import torch
 from raywave.doe import PixelDOE
 from raywave.hybrid import HybridLens
 from raywave.lens.build import ideal_lens
-from raywave.wave.propagation import propagate_window
 from raywave.wave.propagation.batch import WindowBatch, WindowSource, batch_transfer, propagate_batch
-import sys  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
-from window_calls import transfer as _wt, window as _pw  # noqa: E402
+from window_calls import window as _pw  # noqa: E402
 
 P = 1e-3
 

@@ -6,6 +6,8 @@ bundled asphere, the faithful full-grid path), and the direction of the gradient
 
 import math
 import warnings
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,9 +15,6 @@ import torch
 from raywave.doe import PixelDOE
 from raywave.hybrid import HybridLens
 from raywave.lens.build import bundled_lens_path, ideal_lens, load_lens
-from raywave.wave.propagation import propagate_window, window_transfer
-import sys  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 from window_calls import transfer as _wt, window as _pw  # noqa: E402

@@ -1,11 +1,11 @@
 """Free-space propagation core (raywave.wave.propagation), each result against an independent reference."""
 
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
-import sys  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 from window_calls import transfer as _wt, window as _pw  # noqa: E402
@@ -16,7 +16,6 @@ from raywave.wave import (
     grid_coordinates,
     nyquist_check,
     pixel_integrate,
-    propagate_window,
 )
 
 F64 = torch.float64

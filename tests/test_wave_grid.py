@@ -2,14 +2,14 @@
 compact WindowTransfer that window_transfer returns (issue 17)."""
 
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
 from raywave.wave import (Field, Grid, WindowTransfer, angular_spectrum, angular_spectrum_field, field_transfer,
-                          propagate_field, propagate_window, window_transfer)
-import sys  # noqa: E402
-from pathlib import Path  # noqa: E402
+                          propagate_field)
 
 sys.path.insert(0, str(Path(__file__).parent))
 from window_calls import transfer as _wt, window as _pw  # noqa: E402
