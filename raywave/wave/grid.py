@@ -121,22 +121,42 @@ class Grid:
         return replace(self, origin=(self.origin[0] + dx, self.origin[1] + dy))
 
 
+def _nested(v, name: str):
+    """A number or nested sequences of numbers as ``(flat list of floats, shape)`` (plain Python: no tensor is
+    made, so host metadata never lands on a device)."""
+    if isinstance(v, torch.Tensor):
+        return [float(x) for x in v.detach().reshape(-1).tolist()], tuple(v.shape)
+    if isinstance(v, (str, bytes)):
+        raise ValueError(f"Field: {name} must be numbers, got {v!r}")
+    if type(v) in (list, tuple) and v:  # the common flat forms, without recursion: floats, or pairs of floats
+        if all(type(x) is float for x in v):
+            return list(v), (len(v),)
+        if all(type(x) is tuple and len(x) == 2 and type(x[0]) is float and type(x[1]) is float for x in v):
+            return [c for x in v for c in x], (len(v), 2)
+    try:
+        items = list(v)
+    except TypeError:
+        try:
+            return [float(v)], ()
+        except (TypeError, ValueError):
+            raise ValueError(f"Field: {name} must be numbers, got {v!r}") from None
+    parts = [_nested(x, name) for x in items]
+    shapes = {shape for _, shape in parts}
+    if len(shapes) > 1:
+        raise ValueError(f"Field: {name} is ragged (elements of shapes {sorted(shapes)})")
+    inner = shapes.pop() if shapes else ()
+    return [x for flat, _ in parts for x in flat], (len(items), *inner)
+
+
 def _host_values(v, name: str, width: int = 0):
     """``v`` as a flat list of host floats (a tensor read once) and its shape (``width`` > 0: a trailing axis of
     that length, e.g. 2 for a carrier, not part of the shape)."""
-    if isinstance(v, torch.Tensor):
-        t = v.detach().to("cpu", torch.float64)
-    else:
-        try:
-            t = torch.as_tensor(v, dtype=torch.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"Field: {name} must be a number or numbers per batch element, got {v!r}") from None
-    shape = tuple(t.shape)
+    flat, shape = _nested(v, name)
     if width:
         if not shape or shape[-1] != width:
             raise ValueError(f"Field: {name} must be a pair (α, β) or pairs per batch element, got shape {shape}")
-        return [tuple(r) for r in t.reshape(-1, width).tolist()], shape[:-1]
-    return t.reshape(-1).tolist(), shape
+        return [tuple(flat[i:i + width]) for i in range(0, len(flat), width)], shape[:-1]
+    return flat, shape
 
 
 def _per_element(v, name: str, batch: tuple, width: int = 0):
