@@ -6,6 +6,8 @@ bundled asphere, the faithful full-grid path), and the direction of the gradient
 
 import math
 import warnings
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,7 +15,9 @@ import torch
 from raywave.doe import PixelDOE
 from raywave.hybrid import HybridLens
 from raywave.lens.build import bundled_lens_path, ideal_lens, load_lens
-from raywave.wave.propagation import propagate_window, window_transfer
+
+sys.path.insert(0, str(Path(__file__).parent))
+from window_calls import transfer as _wt, window as _pw  # noqa: E402
 
 LAM = 0.55
 F, FNUM, DIST = 5.0, 8.0, 1.0  # ideal lens f = 5 mm at F/8, DOE 1 mm behind it (0.5 mm beam on the DOE)
@@ -49,7 +53,7 @@ def thickness_fd(hl, loss, rel=1e-6):
     return g, (lp - lm) / (2 * eps)
 
 
-# ------------------------------------------------------------------ propagate_window(dz=)
+# ------------------------------------------------------------------ _pw(dz=)
 def _beam(n=200, p=1e-3, sigma=0.06, z0=2.0):
     """A Gaussian beam (σ = 60 µm, cut by the 200 µm window: edge diffraction reaches the band's roll-off)
     converging to a focus z0 mm away, as an envelope (carrier removed)."""
@@ -67,7 +71,7 @@ def test_window_dz_matches_a_finite_difference_in_z(carrier):
     w = weights(41, 3)
 
     def loss(z, dz=None):
-        out = propagate_window(u, p, LAM, z, (x0, x0), out_origin, (41, 41), carrier=carrier, dz=dz)
+        out = _pw(u, p, LAM, z, (x0, x0), out_origin, (41, 41), carrier=carrier, dz=dz)
         return (out.abs() ** 2 * w).sum()
 
     dz = torch.zeros((), dtype=torch.float64, requires_grad=True)
@@ -90,7 +94,7 @@ def test_window_dz_of_the_complex_field_is_the_axial_frequency_times_2pi_i():
     ramp[-edge:] = ramp[:edge].flip(0)
     u = torch.exp(2j * math.pi * kx * x)[None, :] * (ramp[:, None] * ramp[None, :])
     dz = torch.zeros((), dtype=torch.float64, requires_grad=True)
-    out = propagate_window(u, p, LAM, 0.2, (0.0, 0.0), (124 * p, 124 * p), (8, 8), carrier=carrier, dz=dz)
+    out = _pw(u, p, LAM, 0.2, (0.0, 0.0), (124 * p, 124 * p), (8, 8), carrier=carrier, dz=dz)
     ratio_re = torch.autograd.grad(out.real[4, 4], dz, retain_graph=True)[0]
     ratio_im = torch.autograd.grad(out.imag[4, 4], dz)[0]
     d = complex(float(ratio_re), float(ratio_im)) / complex(out[4, 4].detach())
@@ -106,7 +110,7 @@ def test_window_shift_derivative_includes_the_band_following_the_window():
     base = (-0.02, -0.02)
 
     def loss(ox, shift=None):
-        out = propagate_window(u, 1e-3, LAM, 2.0, (x0, x0), (ox, base[1]), (41, 41), shift=shift)
+        out = _pw(u, 1e-3, LAM, 2.0, (x0, x0), (ox, base[1]), (41, 41), shift=shift)
         return (out.abs() ** 2 * w).sum()
 
     s = torch.zeros(2, dtype=torch.float64, requires_grad=True)
@@ -119,12 +123,12 @@ def test_window_shift_derivative_includes_the_band_following_the_window():
 def test_a_cached_two_tuple_transfer_is_rebuilt_with_its_weight_derivative():
     u, x0 = _beam(n=64, sigma=0.02)
     args = (u.shape, (21, 21), 1e-3, LAM, 1.5, (x0, x0), (-0.01, -0.01))
-    t2, t3 = window_transfer(*args), window_transfer(*args, weight_derivative=True)
+    t2, t3 = _wt(*args), _wt(*args, weight_derivative=True)
     assert len(t2) == 2 and len(t3) == 3 and torch.equal(t2[0], t3[0]) and t3[2].shape == (3, *t3[0].shape)
     grads = []
     for t in (t2, t3):
         dz = torch.zeros((), dtype=torch.float64, requires_grad=True)
-        out = propagate_window(u, 1e-3, LAM, 1.5, (x0, x0), (-0.01, -0.01), (21, 21), dz=dz, transfer=t)
+        out = _pw(u, 1e-3, LAM, 1.5, (x0, x0), (-0.01, -0.01), (21, 21), dz=dz, transfer=t)
         (out.abs() ** 2).sum().backward()
         grads.append(float(dz.grad))
     assert grads[0] == grads[1]
@@ -148,9 +152,9 @@ def test_the_hand_written_backward_of_the_perturbed_transfer_passes_gradcheck(wi
 def test_dz_must_be_a_scalar_tensor():
     u, x0 = _beam(n=32, sigma=0.01)
     with pytest.raises(TypeError, match="dz"):
-        propagate_window(u, 1e-3, LAM, 1.0, (x0, x0), (0.0, 0.0), (8, 8), dz=0.0)
+        _pw(u, 1e-3, LAM, 1.0, (x0, x0), (0.0, 0.0), (8, 8), dz=0.0)
     with pytest.raises(ValueError, match="dz must be a scalar"):
-        propagate_window(u, 1e-3, LAM, 1.0, (x0, x0), (0.0, 0.0), (8, 8), dz=torch.zeros(2))
+        _pw(u, 1e-3, LAM, 1.0, (x0, x0), (0.0, 0.0), (8, 8), dz=torch.zeros(2))
 
 
 # ------------------------------------------------------------------ HybridLens PSF

@@ -78,8 +78,8 @@ def _fft_size(pl: Planned, n_out: int, kk: int) -> tuple[int, int]:
     fd = pl.fd
     p = fd.pitch
     out = (pl.center[0] - kk * p, pl.center[1] - kk * p)
-    return _geometry(fd.field.grid.shape, (n_out, n_out), p, fd.wavelength, float(fd.z), fd.origin, out, fd.n,
-                     fd.carrier, 0.5, 2.0).size
+    src = WindowSource(fd.field.grid.shape, fd.origin, out, fd.wavelength, float(fd.z), fd.n, fd.carrier)
+    return _geometry(src, (n_out, n_out), p, 0.5, 2.0).size
 
 
 def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int) -> list[list[Planned]]:
@@ -204,6 +204,6 @@ def propagate_group(engine, batch: list[Planned], centers: torch.Tensor, dz, dty
     u, power = modulated_batch(engine.doe, batch, wb.in_shape(), engine.oversample, dtype)
     shift = centers - centers.detach() if centers.requires_grad else None
     transfer = engine._transfer_memo.get(wb, u.device, dz is not None or shift is not None)
-    out = propagate_batch(u, transfer, wb.out_shape, shift=shift, dz=dz)
+    out = propagate_batch(wb.field(u), wb.out_grids(), wb.distances(), transfer=transfer, shift=shift, dz=dz).envelope
     del u
     return sensor_psfs(out, kk, wb.pitch, sensor, power)

@@ -34,6 +34,7 @@ from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
                                      doe_clippings, entrance_pupil, exit_pupil_field_steps, faithful_field, footprints,
                                      run_batched, stop_rim_images_many)
+from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import OUT_MARGIN, Planned, SensorWindow, TransferMemo, plan_groups, propagate_group
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
@@ -41,6 +42,7 @@ from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
 from raywave.utils.checks import wavelengths_um
 from raywave.utils.safe import safe_div
+from raywave.wave.grid import Grid
 from raywave.wave.propagation import (angular_spectrum, integrated_upsampled_intensity, propagate_window,
                                       window_transfer)
 
@@ -454,9 +456,10 @@ class HybridLens(nn.Module):
             src = mirror_sources(f, axes) if any(axes) else src
             built = self._accurate_fields(f, wls, depth, (cd, cs, cuv), rays or 64, check, src)
         else:
-            built = [faithful_field(optics, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j],
-                                    n_rays=rays or 100_000, oversample=self.oversample, full_grid=full_grid,
-                                    generator=generator, check=check, dtype=trace_dtype)
+            settings = FieldSettings(n_rays=rays or 100_000, oversample=self.oversample, full_grid=full_grid,
+                                     generator=generator, check=check, trace_dtype=trace_dtype)
+            built = [faithful_field(optics, self.doe, Source(f[i], wl, depth), Planes(z_doe, z_sen),
+                                    ChiefRays(cd[i, j], cs[i, j]), settings)
                      for i in range(nf) for j, wl in enumerate(wls)]
         # the DOE-aperture diagnostic of every accurate field, from one trace (the faithful mode measures it
         # from its own rays)
@@ -557,10 +560,10 @@ class HybridLens(nn.Module):
                 cx = [chief_rays(optics, f, torch.tensor([wl], dtype=torch.float64, device=optics.device), depth, zx,
                                   z_sen)[0][:, 0]
                       for wl, zx in zip(wls, z_xps)]
-        return [exit_pupil_field_steps(optics, self.doe, f[i], wl, depth, z_xps[j], z_doe, z_sen, cx[j][i], cd[i, j],
-                                       cs[i, j], nodes=nodes, oversample=self.oversample, check=check,
-                                       chief_uv=cuv[i, j], method=self.edge_step, bbox=boxes[i][j],
-                                       entrance=entrance, stop_rim=rims[j][i])
+        settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step)
+        return [exit_pupil_field_steps(optics, self.doe, Source(f[i], wl, depth), Planes(z_doe, z_sen, z_xps[j]),
+                                       ChiefRays(cd[i, j], cs[i, j], cx[j][i], cuv[i, j]), settings,
+                                       Known(boxes[i][j], entrance, rims[j][i]))
                 for i in range(f.shape[0]) for j, wl in enumerate(wls)]
 
     def _warn_clipped(self, clipped: list) -> None:
@@ -651,8 +654,8 @@ class HybridLens(nn.Module):
         n_out = 2 * kk + 1
         shift = crop_origin - crop_origin.detach() if crop_origin.requires_grad else None
         transfer = self._transfer(u, p, fd, out_origin, n_out, dz is not None or shift is not None)
-        out = propagate_window(u, p, fd.wavelength, fd.z, fd.origin, out_origin, (n_out, n_out), n=fd.n,
-                               carrier=fd.carrier, shift=shift, dz=dz, transfer=transfer)
+        out = propagate_window(fd.field.with_envelope(u), Grid(out_origin, p, (n_out, n_out)), fd.z, shift=shift, dz=dz,
+                               transfer=transfer).envelope
         return out, out_origin
 
     def _transfer(self, u, p, fd: DOEField, out_origin, n_out: int, weight_derivative: bool = False):
@@ -664,8 +667,8 @@ class HybridLens(nn.Module):
                weight_derivative)
         hit = self._transfer_cache.get(key)
         if hit is None:
-            hit = window_transfer(u.shape[-2:], (n_out, n_out), p, fd.wavelength, fd.z, fd.origin, out_origin, fd.n,
-                                  fd.carrier, device=u.device, weight_derivative=weight_derivative)
+            hit = window_transfer(fd.field.with_envelope(u), Grid(out_origin, p, (n_out, n_out)), fd.z,
+                                  weight_derivative=weight_derivative)
             self._transfer_cache[key] = hit
             while len(self._transfer_cache) > 8:
                 self._transfer_cache.popitem(last=False)

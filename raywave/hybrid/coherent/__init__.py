@@ -33,7 +33,8 @@ the DOE aperture applied and the DOE phase not yet applied. Phases are formed fr
 Modules (each name is importable from ``raywave.hybrid.coherent`` as before the split): :mod:`.record`
 (:class:`DOEField`, :class:`SamplingWarning`), :mod:`.geometry` (chief rays, footprints, DOE clipping, windows),
 :mod:`.tracing` (trace requests, batching, Newton aiming), :mod:`.stop_edge` (the Fresnel step, the stop rim's
-images), :mod:`.accurate`, :mod:`.exit_pupil`, :mod:`.faithful` (the three constructions). Module-level limits
+images), :mod:`.accurate`, :mod:`.exit_pupil`, :mod:`.faithful` (the three constructions), :mod:`.settings` (their value
+types: :class:`Source`, :class:`Planes`, :class:`ChiefRays`, :class:`FieldSettings`, :class:`Known`). Module-level limits
 are read where they are used (e.g. ``coherent.exit_pupil.AUTO_ASM_SAMPLES``).
 """
 
@@ -55,7 +56,8 @@ from raywave.hybrid.coherent.accurate import (accurate_field, accurate_field_ste
 from raywave.hybrid.coherent.exit_pupil import (AUTO_ASM_SAMPLES, MAX_XP_SAMPLES, exit_pupil_field,
                                                 exit_pupil_field_steps)  # noqa: F401
 from raywave.hybrid.coherent.faithful import (faithful_field)  # noqa: F401
+from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source  # noqa: F401
 
 __all__ = ["CausticWarning", "DOEField", "FieldInfo", "SamplingWarning", "StopEdgeWarning", "accurate_field",
            "chief_rays", "doe_clipping", "doe_clippings",
-           "exit_pupil_field", "footprints", "faithful_field"]
+           "exit_pupil_field", "footprints", "faithful_field", "ChiefRays", "FieldSettings", "Known", "Planes", "Source"]

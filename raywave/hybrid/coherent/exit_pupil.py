@@ -12,6 +12,7 @@ from raywave.wave.propagation import propagate_window
 from raywave.hybrid.coherent.accurate import accurate_field_steps
 from raywave.hybrid.coherent.geometry import _common_setup, _empty_field, _footprint, check_window_memory, lit_box
 from raywave.hybrid.coherent.record import DOEField, FieldInfo
+from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source, check_types
 from raywave.hybrid.coherent.stop_edge import RIPPLE_ZONES, stop_rim_images
 from raywave.hybrid.coherent.tracing import run_serial
 
@@ -27,10 +28,8 @@ AUTO_ASM_SAMPLES = 3072
 RIM_STEP_ZONE_PIXELS = 16.0
 
 
-def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_doe: float, z_sensor: float,
-                     chief_xp, chief_doe, chief_sensor, nodes: int = 64, oversample: int = 1,
-                     field_type: str | None = None, check: bool = True, chief_uv=None,
-                     ripple_zones: float | None = None, method: str = "auto", rim_images: bool = True) -> DOEField:
+def exit_pupil_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
+                     settings: FieldSettings = FieldSettings()) -> DOEField:
     """The accurate DOE-plane field with the stop's sharp edge formed where it belongs: at the exit pupil.
 
     ``method="fresnel"``: the analytic step. The geometric-optics field is built on the DOE plane
@@ -58,27 +57,33 @@ def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_
     edge's distance for the edge's ripples, clamped to the DOE grid; the DOE aperture is applied there.
     Differentiable like :func:`accurate_field`.
 
-    Args: as :func:`accurate_field`, plus ``z_xp`` (mm) and ``chief_xp`` (the chief ray on that plane).
-    ``method="asm"`` raises ValueError when the beam on the exit-pupil plane spans more than
+    Args: ``source`` (:class:`~raywave.hybrid.coherent.settings.Source`: field point, wavelength, depth, field
+    type), ``planes`` (the DOE, sensor and exit-pupil planes ``z_xp``, mm), ``chief`` (the chief ray on the DOE
+    plane, the sensor and, for "asm", the exit-pupil plane; its entrance-plane point ``uv`` if known),
+    ``settings`` (``nodes``, ``oversample``, ``check`` as :func:`accurate_field`; ``ripple_zones``, ``method``,
+    ``rim_images``). ``method="asm"`` raises ValueError when the beam on the exit-pupil plane spans more than
     :data:`MAX_XP_SAMPLES` simulation samples (a large beam: the field there would not fit in memory).
     ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel". ``rim_images``: each node's
     edge is sharp at its stop-rim point's own image (:func:`stop_rim_images`); False: on the exit-pupil plane for
     every node (both steps as they were before the rim images)."""
-    return run_serial(exit_pupil_field_steps(lens, doe, field, wavelength, depth, z_xp, z_doe, z_sensor, chief_xp,
-                                             chief_doe, chief_sensor, nodes=nodes, oversample=oversample,
-                                             field_type=field_type, check=check, chief_uv=chief_uv,
-                                             ripple_zones=ripple_zones, method=method, rim_images=rim_images))
+    return run_serial(exit_pupil_field_steps(lens, doe, source, planes, chief, settings))
 
 
-def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: float, z_doe: float, z_sensor: float,
-                     chief_xp, chief_doe, chief_sensor, nodes: int = 64, oversample: int = 1,
-                     field_type: str | None = None, check: bool = True, chief_uv=None,
-                     ripple_zones: float | None = None, method: str = "auto", rim_images: bool = True,
-                     bbox=None, entrance=None, stop_rim=None) -> DOEField:
-    """:func:`exit_pupil_field` as a generator of trace requests (see :func:`accurate_field_steps`). ``bbox``,
-    ``entrance``: as :func:`accurate_field_steps` (the DOE-plane footprint and the entrance pupil, when the caller
-    has them for many fields); ``stop_rim``: the rim images (:func:`stop_rim_images`) when the caller
-    traced them (None: traced here)."""
+def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
+                           settings: FieldSettings = FieldSettings(), known: Known = Known()) -> DOEField:
+    """:func:`exit_pupil_field` as a generator of trace requests (see :func:`accurate_field_steps`). ``known``
+    (:class:`~raywave.hybrid.coherent.settings.Known`): ``bbox``, ``entrance`` as :func:`accurate_field_steps`
+    (the DOE-plane footprint and the entrance pupil, when the caller has them for many fields); ``stop_rim``: the
+    rim images (:func:`stop_rim_images`) when the caller traced them (None: traced here)."""
+    check_types("exit_pupil_field_steps", source, planes, chief, settings)
+    field, wavelength, depth, field_type = source.field, source.wavelength, source.depth, source.field_type
+    z_xp, z_doe, z_sensor = planes.z_xp, planes.z_doe, planes.z_sensor
+    chief_xp, chief_doe, chief_sensor, chief_uv = chief.xp, chief.doe, chief.sensor, chief.uv
+    nodes, oversample, check = settings.nodes, settings.oversample, settings.check
+    ripple_zones, method, rim_images = settings.ripple_zones, settings.method, settings.rim_images
+    bbox, entrance, stop_rim = known.bbox, known.entrance, known.stop_rim
+    if z_xp is None:
+        raise ValueError("exit_pupil_field: planes.z_xp (the exit-pupil plane, mm) is required")
     ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
     method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
@@ -124,7 +129,7 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
                             "accurate").with_info(stop_edge="exit_pupil")
     grid = sim.window(*box)
     check_window_memory(*grid.shape, p, lens.device)
-    u = propagate_window(fx.envelope, p, wavelength, dz, fx.origin, grid.origin, grid.shape, n=n, carrier=carrier)
+    u = propagate_window(Field(fx.envelope, fx.grid, float(wavelength), n, carrier), grid, dz).envelope
     u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)
     return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
                     FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil"))

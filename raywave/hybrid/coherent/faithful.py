@@ -13,22 +13,29 @@ from raywave.wave.grid import Field
 from raywave.hybrid.coherent.geometry import (_check_beyond_last_surface, _common_setup, _empty_field,
                                               _warn_nyquist, check_window_memory, inside_doe, lit_box)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo
+from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Planes, Source, check_types
 
 
-def faithful_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
-                   n_rays: int = 100_000, oversample: int = 1, full_grid: bool = False, generator=None,
-                   field_type: str | None = None, check: bool = True, dtype=torch.float64) -> DOEField:
-    """The paper's DOE-plane field: ``n_rays`` rays sampled uniformly at random over the pupil (slightly
+def faithful_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
+                   settings: FieldSettings = FieldSettings()) -> DOEField:
+    """The paper's DOE-plane field: ``settings.n_rays`` rays sampled uniformly at random over the pupil (slightly
     overfilled so that the real apertures cut the beam), each ray's complex amplitude ``d_z · exp(i k OPL)``
     spread bilinearly into its four neighbouring pixels.
 
-    ``full_grid=True`` returns the whole DOE simulation grid with no carrier removed (as the paper's full
-    angular-spectrum propagation needs); otherwise the lit window, demodulated by the chief-ray carrier.
-    ``generator`` (torch.Generator) makes the ray sample replayable. ``dtype`` is the tracing precision:
-    float32 reproduces the precision failure of the paper's Fig. S2 (the optical paths of ~10⁴ waves lose
-    a sizeable fraction of a wave); the field is always assembled in complex128 afterwards."""
+    ``source`` (:class:`~raywave.hybrid.coherent.settings.Source`): the field point, wavelength, depth;
+    ``planes``: the DOE and sensor planes; ``chief``: the chief ray at both. ``settings.full_grid=True`` returns the
+    whole DOE simulation grid with no carrier removed (as the paper's full angular-spectrum propagation needs);
+    otherwise the lit window, demodulated by the chief-ray carrier. ``settings.generator`` (torch.Generator) makes
+    the ray sample replayable. ``settings.trace_dtype`` is the tracing precision: float32 reproduces the precision
+    failure of the paper's Fig. S2 (the optical paths of ~10⁴ waves lose a sizeable fraction of a wave); the field
+    is always assembled in complex128 afterwards."""
+    check_types("faithful_field", source, planes, chief, settings)
+    wavelength, depth, z_doe = source.wavelength, source.depth, planes.z_doe
+    n_rays, oversample, full_grid, check = settings.n_rays, settings.oversample, settings.full_grid, settings.check
+    generator, dtype = settings.generator, settings.trace_dtype
     field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
-        lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
+        lens, doe, source.field, wavelength, z_doe, planes.z_sensor, chief.doe, chief.sensor, oversample,
+        source.field_type)
     dev = lens.device
     # drawn where the generator lives (the CPU by default: the same sample on every device), then moved
     gdev = generator.device if generator is not None else "cpu"

@@ -1,6 +1,10 @@
 """Free-space (homogeneous-medium) scalar propagation of sampled complex fields.
 
-Pure functions on ``torch`` tensors; no state, no caching. Conventions shared by every function here:
+Pure functions; no state, no caching. The window propagation speaks :class:`~raywave.wave.grid.Field` /
+:class:`~raywave.wave.grid.Grid` (issue 43): :func:`propagate_window` takes a Field and the output Grid and returns a
+Field, :func:`propagate_batch` the same for a batched Field whose elements differ (wavelength, index, carrier,
+window); the full-grid :func:`angular_spectrum` and the resampling work on tensors. Conventions shared by every
+function here:
 
 * Lengths (pitch, origins, z) in **mm**, wavelengths in **µm** (vacuum), ``n`` is the (real) medium index.
 * Fields have shape ``(..., Ny, Nx)`` (any leading batch dims) and are indexed ``[iy, ix]``; the sample
@@ -18,7 +22,8 @@ Pure functions on ``torch`` tensors; no state, no caching. Conventions shared by
 
 Split by concern (issue 17), every name importable from here as before: ``_common`` (argument checks, FFT sizes,
 coordinates), ``full_grid`` (:func:`angular_spectrum`), ``transfer`` (:func:`window_transfer`), ``window``
-(:func:`propagate_window`), ``batch`` (:func:`propagate_batch`: many windows as one batch, issue 43), ``sampling``
+(:func:`propagate_window`: a Field in, a Grid out), ``batch`` (:func:`propagate_batch`: many windows as one batch,
+issue 43), ``sampling``
 (:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`, :func:`integrated_upsampled_intensity`), ``fields`` (the same on :class:`~raywave.wave.grid.Field` values:
 :func:`propagate_field`, :func:`angular_spectrum_field`, :func:`field_transfer`).
 """

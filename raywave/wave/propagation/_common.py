@@ -8,6 +8,7 @@ import math
 import torch
 
 from raywave.utils.phasor import polar
+from raywave.wave.grid import Field, Grid
 
 _TWO_PI = 2.0 * math.pi
 _UM_TO_MM = 1e-3
@@ -41,6 +42,29 @@ def _positive(v, name: str) -> float:
     if not math.isfinite(v) or v <= 0:
         raise ValueError(f"{name} must be a positive finite number, got {v!r}")
     return v
+
+
+def legacy_call(name: str, signature: str):
+    """Raise the TypeError of a call in the form that issue 43 replaced (loose tensor, pitch, wavelength, origins,
+    shape arguments): the new signature and how to build its arguments."""
+    raise TypeError(f"{name} takes a Field and an output Grid since issue 43: {signature}. Build them from the old "
+                    "arguments as field = raywave.wave.Field(u, raywave.wave.Grid(in_origin, pitch, u.shape[-2:]), "
+                    "wavelength, n, carrier) and out = raywave.wave.Grid(out_origin, pitch, out_shape)")
+
+
+def check_single_field(field: Field, out: Grid, z, where: str) -> None:
+    """The checks of a one-geometry propagation of ``field`` by ``z`` onto ``out``: a Field whose elements share
+    their wavelength, index, carrier and window (a batch whose elements differ goes through
+    :func:`~raywave.wave.propagation.propagate_batch`), an output Grid of the field's pitch, a distance."""
+    if not isinstance(out, Grid):
+        raise TypeError(f"{where}: the output window must be a raywave.wave.Grid, got {type(out).__name__}")
+    if out.pitch != field.grid.pitch:
+        raise ValueError(f"{where}: the output grid's pitch {out.pitch} differs from the field's {field.grid.pitch}")
+    if z is None:
+        raise TypeError(f"{where}: missing the propagation distance z (mm)")
+    if not field.shared:
+        raise ValueError(f"{where}: the field's {field.count} elements differ in wavelength, index, carrier or "
+                         "window; propagate them together with raywave.wave.propagation.propagate_batch")
 
 
 def _as_field(u: torch.Tensor) -> torch.Tensor:

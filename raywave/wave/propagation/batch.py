@@ -13,6 +13,11 @@ batch runs
   limit that of its own input window (exactly 0 outside it, so the union adds only zeros);
 * one band convolution of the zero-padded input windows ``(B, Ny, Nx)`` (:func:`propagate_batch`).
 
+The vocabulary is that of :mod:`raywave.wave.grid`: a batched :class:`~raywave.wave.grid.Field` in (its elements
+on their own windows of one padded array), a batched Field out on the output Grids; :class:`WindowBatch` is the
+host-side plan (:meth:`WindowBatch.of` the field, the output windows and the distances) by which a caller memoises
+:func:`batch_transfer`.
+
 Lengths mm, wavelengths µm; float64 transfer functions, complex128 (or complex64) fields. Host-side choices (FFT
 size, the band's rows and columns) are made once per batch.
 """
@@ -24,43 +29,80 @@ from dataclasses import dataclass
 import torch
 
 from raywave.utils.phasor import polar
-from raywave.wave.propagation._common import _TWO_PI
-from raywave.wave.propagation.transfer import _geometry
+from raywave.wave.grid import Field, Grid
+from raywave.wave.propagation._common import _TWO_PI, _pair
+from raywave.wave.propagation.transfer import WindowSource, _geometry
 from raywave.wave.propagation.window import _convolve
 
 __all__ = ["BatchTransfer", "WindowBatch", "WindowSource", "batch_transfer", "propagate_batch"]
 
 
 @dataclass(frozen=True)
-class WindowSource:
-    """One source of a :class:`WindowBatch`: its input window (``in_shape`` ``(ny, nx)`` samples, sample (0, 0) at
-    ``in_origin`` ``(x, y)`` mm), its output window's origin ``out_origin`` (mm), the vacuum ``wavelength`` (µm),
-    the distance ``z`` (mm), the medium index ``n`` and the carrier ``(α, β)`` (direction cosines) removed from
-    both windows (see :func:`~raywave.wave.propagation.propagate_window`)."""
-
-    in_shape: tuple[int, int]
-    in_origin: tuple[float, float]
-    out_origin: tuple[float, float]
-    wavelength: float
-    z: float
-    n: float = 1.0
-    carrier: tuple[float, float] = (0.0, 0.0)
-
-
-@dataclass(frozen=True)
 class WindowBatch:
-    """B :class:`WindowSource` propagated to output windows of one ``out_shape`` ``(ny, nx)`` on one ``pitch`` (mm),
-    with the band limit's ``margin`` (pixels) and ``guard`` (Fresnel zones) of :func:`window_transfer`."""
+    """B :class:`WindowSource` propagated to output windows of one ``out_shape`` ``(ny, nx)`` on one ``pitch`` (mm, a
+    float (square pixels; a pair of equal values is stored as one) or ``(px, py)``), with the band limit's ``margin`` (pixels) and ``guard`` (Fresnel zones) of
+    :func:`window_transfer`. The host-side plan of :func:`propagate_batch` (:meth:`of` a batched Field), hashable:
+    a caller may memoise :func:`batch_transfer` by it."""
 
     sources: tuple[WindowSource, ...]
     out_shape: tuple[int, int]
-    pitch: float
+    pitch: float | tuple[float, float]
     margin: float = 0.5
     guard: float = 2.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "sources", tuple(self.sources))
+        object.__setattr__(self, "out_shape", tuple(int(v) for v in self.out_shape))
+        px, py = _pair(self.pitch, "pitch")
+        object.__setattr__(self, "pitch", px if px == py else (px, py))  # square pixels: one float
+        object.__setattr__(self, "margin", float(self.margin))
+        object.__setattr__(self, "guard", float(self.guard))
+        if not self.sources:
+            raise ValueError("WindowBatch: no sources")
+
+    @classmethod
+    def of(cls, field: Field, out, z, margin: float = 0.5, guard: float = 2.0) -> WindowBatch:
+        """The plan of propagating the batched :class:`~raywave.wave.grid.Field` ``field`` by ``z`` (mm, one
+        distance or one per element, flat B) onto ``out`` (one :class:`~raywave.wave.grid.Grid` for every element,
+        or one per element, flat B, all of one shape): each element between its own window
+        (:meth:`~raywave.wave.grid.Field.element_grids`) and its output window, with its own wavelength, index and
+        carrier. Clear errors for mismatched counts, shapes and pitches."""
+        if not isinstance(field, Field):
+            raise TypeError(f"WindowBatch.of: expected a raywave.wave.Field, got {type(field).__name__}")
+        b = field.count
+        outs = _per_source(out, b, "out")
+        for i, g in enumerate(outs):
+            if not isinstance(g, Grid):
+                raise TypeError(f"propagate_batch: out[{i}] must be a raywave.wave.Grid, got {type(g).__name__}")
+            if g.pitch != field.grid.pitch or g.shape != outs[0].shape:
+                raise ValueError(f"propagate_batch: out[{i}] (pitch {g.pitch}, shape {g.shape}) must have the field's "
+                                 f"pitch {field.grid.pitch} and the shape of out[0] {outs[0].shape}")
+        zs = _per_source(z, b, "z")
+        sources = tuple(WindowSource(g.shape, g.origin, o.origin, lam, zz, n, c) for g, o, lam, zz, n, c in
+                        zip(field.element_grids(), outs, field.wavelengths(), zs, field.indices(), field.carriers()))
+        return cls(sources, outs[0].shape, field.grid.pitch, margin, guard)
 
     def in_shape(self) -> tuple[int, int]:
         """The common (padded) input shape ``(Ny, Nx)``: the largest of the sources'."""
         return (max(s.in_shape[0] for s in self.sources), max(s.in_shape[1] for s in self.sources))
+
+    def field(self, envelope: torch.Tensor) -> Field:
+        """The batched :class:`~raywave.wave.grid.Field` of these sources whose (zero-padded) envelopes are
+        ``envelope`` ``(B, Ny, Nx)`` (:meth:`in_shape`; each source's own window at the start of its array):
+        ``WindowBatch.of(self.field(u), self.out_grids(), self.distances()) == self`` (the same margin and guard)."""
+        src = self.sources
+        windows = tuple(Grid(s.in_origin, self.pitch, s.in_shape) for s in src)
+        grid = Grid(src[0].in_origin, self.pitch, tuple(envelope.shape[-2:]))
+        return Field(envelope, grid, [s.wavelength for s in src], [s.n for s in src], [s.carrier for s in src],
+                     windows)
+
+    def out_grids(self) -> tuple[Grid, ...]:
+        """Each source's output window (B)."""
+        return tuple(Grid(s.out_origin, self.pitch, self.out_shape) for s in self.sources)
+
+    def distances(self) -> tuple:
+        """Each source's distance ``z`` (mm, B)."""
+        return tuple(s.z for s in self.sources)
 
     def fft_size(self) -> tuple[int, int]:
         """The common FFT size ``(My, Mx)``: the largest any source needs (each a fast size)."""
@@ -69,8 +111,19 @@ class WindowBatch:
 
     def geometries(self) -> list:
         """Each source's checked geometry (:func:`raywave.wave.propagation.transfer._geometry`, host floats)."""
-        return [_geometry(s.in_shape, self.out_shape, self.pitch, s.wavelength, s.z, s.in_origin, s.out_origin, s.n,
-                          s.carrier, self.margin, self.guard) for s in self.sources]
+        return [_geometry(s, self.out_shape, self.pitch, self.margin, self.guard) for s in self.sources]
+
+
+def _per_source(v, b: int, name: str) -> tuple:
+    """``v`` (one value, or a sequence of ``b``) as a tuple of ``b`` values (a Grid or a number is one value)."""
+    if isinstance(v, Grid) or isinstance(v, (int, float)) or (isinstance(v, torch.Tensor) and v.ndim == 0):
+        return (v,) * b
+    if isinstance(v, torch.Tensor):
+        v = v.detach().cpu().reshape(-1).tolist()
+    v = tuple(v)
+    if len(v) != b:
+        raise ValueError(f"propagate_batch: {name} must be one value or one per field of the batch ({b}), got {len(v)}")
+    return v
 
 
 @dataclass
@@ -80,7 +133,7 @@ class BatchTransfer:
     ``size`` ``(My, Mx)``); ``rel`` float64 ``(B, 3, R, C)`` or None: the roll-off weights' relative first-order
     changes ``(∂W/∂z, ∂W/∂s_x, ∂W/∂s_y)/W`` (``weight_derivative``); ``wave`` float64 ``(3, B, 1, 1)``: each
     source's ``(n/λ, n α/λ, n β/λ)`` (1/mm), for the axial frequency of the distance perturbation; ``pitch``
-    ``(px, py)`` mm."""
+    ``(px, py)`` mm; ``batch`` the :class:`WindowBatch` it was built for."""
 
     size: tuple[int, int]
     rows: torch.Tensor
@@ -89,6 +142,7 @@ class BatchTransfer:
     rel: torch.Tensor | None
     wave: torch.Tensor
     pitch: tuple[float, float]
+    batch: WindowBatch | None = None
 
 
 def _columns(values: list[list[float]], device) -> list[torch.Tensor]:
@@ -208,7 +262,7 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
     if cols.numel() == 0 or rows.numel() == 0:
         empty = torch.zeros((b, rows.numel(), cols.numel()), dtype=torch.complex128, device=device)
         rel = torch.zeros((b, 3, *empty.shape[1:]), dtype=torch.float64, device=device) if weight_derivative else None
-        return BatchTransfer((my, mx), rows, cols, empty, rel, wave, (px, py))
+        return BatchTransfer((my, mx), rows, cols, empty, rel, wave, (px, py), batch)
     fxc, fyr = fx[cols], fy[rows]
     gxs, gys = fxc + kax, fyr[:, None] + kay  # (B, 1, C), (B, R, 1): physical frequencies (cycles/mm)
     arg = (k * k - gys * gys) - gxs * gxs  # (B, R, C)
@@ -229,7 +283,7 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
         zero = torch.zeros((), dtype=torch.float64, device=weight.device)
         rel = torch.stack([torch.where(live, fac_x[0] + fac_y[0], zero), torch.where(live, fac_x[1], zero),
                            torch.where(live, fac_y[1], zero)], 1)
-    return BatchTransfer((my, mx), rows, cols, band, rel, wave, (px, py))
+    return BatchTransfer((my, mx), rows, cols, band, rel, wave, (px, py), batch)
 
 
 def _axial(fx: torch.Tensor, fy: torch.Tensor, wave: torch.Tensor) -> torch.Tensor:
@@ -285,13 +339,62 @@ class _Perturbed(torch.autograd.Function):
         return tuple(grads)
 
 
-def propagate_batch(u: torch.Tensor, transfer: BatchTransfer, out_shape, shift: torch.Tensor | None = None,
-                    dz: torch.Tensor | None = None) -> torch.Tensor:
-    """Propagate the envelopes ``u`` ``(B, Ny, Nx)`` (each source's window zero-padded at its end to the batch's
-    input shape) by the transfer functions of :func:`batch_transfer` onto their output windows ``(B, ny, nx)``
-    (``out_shape``). ``shift`` ``(B, 2)`` mm and ``dz`` (0-d mm): zero-valued tensors that carry the derivatives of
-    each output window's position and of the distance (the first-order perturbation of
-    :func:`~raywave.wave.propagation.propagate_window`; the transfer built with ``weight_derivative``)."""
+def propagate_batch(field: Field, out, z=None, *legacy, transfer: BatchTransfer | None = None,
+                    shift: torch.Tensor | None = None, dz: torch.Tensor | None = None, margin: float = 0.5,
+                    guard: float = 2.0) -> Field:
+    """Propagate the batched :class:`~raywave.wave.grid.Field` ``field`` (envelope ``(..., Ny, Nx)``, any batch
+    axes, B elements; each with its own wavelength, index, carrier and window where they differ, zero-padded at
+    its end: :meth:`~raywave.wave.grid.Field.stack`) by ``z`` mm (one distance, or one per element) onto ``out``
+    (one :class:`~raywave.wave.grid.Grid` of the field's pitch for every element, or one per element, all of one
+    shape ``(ny, nx)``) as one batch: one FFT size, one transfer tensor, one band convolution (the module
+    docstring). Each element equals :func:`~raywave.wave.propagation.propagate_window` of it alone where the batch
+    needs no larger FFT grid than it does (otherwise to the sampling of its rolled-off kernel's spectrum).
+
+    Args:
+        transfer: :func:`batch_transfer` of ``WindowBatch.of(field, out, z, margin, guard)`` (a caller that
+            propagates many batches of one geometry builds it once; checked against that plan); None: built here
+            (with ``weight_derivative`` when ``shift`` or ``dz`` is given).
+        shift: ``(..., 2)`` mm (the batch shape, or ``(B, 2)``) and ``dz`` (0-d, mm): zero-valued tensors that carry
+            the derivatives of each output window's position and of the distance (the first-order perturbation of
+            :func:`~raywave.wave.propagation.propagate_window`; the transfer built with ``weight_derivative``).
+        margin, guard: the band limit's, as :func:`~raywave.wave.propagation.propagate_window` (``guard`` > 0).
+
+    Returns:
+        The propagated Field, envelope ``(..., ny, nx)``, each element on its output window (one grid of the output
+        shape; :attr:`~raywave.wave.grid.Field.windows` where the output windows differ), with the input's
+        wavelengths, indices and carriers. The form of before issue 43 (``propagate_batch(u, transfer, out_shape,
+        ...)``) raises a TypeError naming this one.
+    """
+    if legacy or not isinstance(field, Field):
+        raise TypeError("propagate_batch takes a batched raywave.wave.Field since issue 43: propagate_batch(field, "
+                        "out, z, *, transfer=None, shift=None, dz=None, margin=0.5, guard=2.0) -> Field; a padded "
+                        "(B, Ny, Nx) tensor u of a WindowBatch wb is wb.field(u), with out=wb.out_grids(), "
+                        "z=wb.distances()")
+    wb = WindowBatch.of(field, out, z, margin, guard)
+    b = field.count
+    if transfer is None:
+        transfer = batch_transfer(wb, field.envelope.device, shift is not None or dz is not None)
+    elif transfer.band.shape[0] != b or (transfer.batch is not None and transfer.batch != wb):
+        raise ValueError(f"propagate_batch: the transfer was built for another batch (its {transfer.band.shape[0]} "
+                         f"sources vs the field's {b}, or another geometry): build it with "
+                         "batch_transfer(WindowBatch.of(field, out, z, margin, guard))")
+    if shift is not None:
+        if tuple(shift.shape) not in ((*field.batch_shape, 2), (b, 2)):
+            raise ValueError(f"propagate_batch: shift must have the shape {(*field.batch_shape, 2)} (or {(b, 2)}), "
+                             f"got {tuple(shift.shape)}")
+        shift = shift.reshape(b, 2)
+    u = field.envelope.reshape(b, *field.grid.shape)
+    env = _propagate_flat(u, transfer, wb.out_shape, shift, dz)
+    outs = wb.out_grids()
+    return Field(env.reshape(*field.batch_shape, *wb.out_shape), outs[0], field.wavelength, field.n, field.carrier,
+                 outs)
+
+
+def _propagate_flat(u: torch.Tensor, transfer: BatchTransfer, out_shape, shift: torch.Tensor | None,
+                    dz: torch.Tensor | None) -> torch.Tensor:
+    """The envelopes ``u`` ``(B, Ny, Nx)`` (each source's window zero-padded at its end to the batch's input shape)
+    propagated by the transfer functions of :func:`batch_transfer` onto their output windows ``(B, ny, nx)``
+    (``out_shape``); ``shift`` ``(B, 2)`` mm and ``dz`` (0-d mm) as :func:`propagate_batch`."""
     noy, nox = (int(s) for s in out_shape)
     h = transfer.band
     if shift is not None or dz is not None:
@@ -306,4 +409,3 @@ def propagate_batch(u: torch.Tensor, transfer: BatchTransfer, out_shape, shift: 
         dzt = torch.zeros((), dtype=torch.float64, device=dev) if dz is None else dz.reshape(()).to(torch.float64)
         h = _Perturbed.apply(h, sx, sy, dzt, fx, fy, None if dz is None else transfer.wave, transfer.rel)
     return _convolve(u, h.to(u.dtype), transfer.size, transfer.rows, transfer.cols, noy, nox)
-

@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 
 from raywave.utils.phasor import polar
+from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _pair, _positive, _sqrt_kz, _xy, _z_value,
-                                              fast_fft_size)
+                                              check_single_field, fast_fft_size, legacy_call)
 
 
 class _Geometry(NamedTuple):
@@ -28,9 +30,48 @@ class _Geometry(NamedTuple):
     by: tuple[float, float, float]
 
 
-def _geometry(in_shape, out_shape, pitch, wavelength, z, in_origin, out_origin, n, carrier, margin,
-              guard) -> _Geometry:
-    """Check the arguments of :func:`window_transfer` and derive the FFT size and the bands of Δ."""
+@dataclass(frozen=True)
+class WindowSource:
+    """The geometry of one window-to-window propagation (host values): the input window (``in_shape`` ``(ny, nx)``
+    samples, sample (0, 0) at ``in_origin`` ``(x, y)`` mm), the output window's origin ``out_origin`` (mm), the
+    vacuum ``wavelength`` (µm), the distance ``z`` (mm; a float, or a 0-d tensor whose value is used for the
+    discrete choices and which the phase follows), the medium index ``n`` and the carrier ``(α, β)`` (direction
+    cosines) removed from both windows (see :func:`~raywave.wave.propagation.propagate_window`). One source of a
+    :class:`~raywave.wave.propagation.batch.WindowBatch`."""
+
+    in_shape: tuple[int, int]
+    in_origin: tuple[float, float]
+    out_origin: tuple[float, float]
+    wavelength: float
+    z: object
+    n: float = 1.0
+    carrier: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self):
+        # host values normalised, so that two descriptions of one geometry compare (and hash) equal
+        object.__setattr__(self, "in_shape", tuple(int(v) for v in self.in_shape))
+        object.__setattr__(self, "in_origin", tuple(float(v) for v in self.in_origin))
+        object.__setattr__(self, "out_origin", tuple(float(v) for v in self.out_origin))
+        object.__setattr__(self, "wavelength", float(self.wavelength))
+        if not isinstance(self.z, torch.Tensor):
+            object.__setattr__(self, "z", float(self.z))
+        object.__setattr__(self, "n", float(self.n))
+        object.__setattr__(self, "carrier", tuple(float(v) for v in self.carrier))
+
+    @classmethod
+    def between(cls, field, out, z) -> "WindowSource":
+        """The geometry of propagating the single :class:`~raywave.wave.grid.Field` ``field`` (shared wavelength,
+        index and carrier) by ``z`` mm onto the :class:`~raywave.wave.grid.Grid` ``out``."""
+        g = field.grid
+        return cls(g.shape, g.origin, out.origin, field.wavelength, z, field.n, field.carrier)
+
+
+def _geometry(src: WindowSource, out_shape, pitch, margin, guard) -> _Geometry:
+    """Check the geometry ``src`` (:class:`WindowSource`) of a propagation onto a window of ``out_shape`` samples of
+    ``pitch`` mm with the band limit's ``margin`` (pixels) and ``guard`` (Fresnel zones), and derive the FFT size
+    and the bands of Δ (:func:`window_transfer`)."""
+    in_shape, wavelength, z, n, carrier = src.in_shape, src.wavelength, src.z, src.n, src.carrier
+    in_origin, out_origin = src.in_origin, src.out_origin
     px, py = _pair(pitch, "pitch")
     _positive(px, "pitch"), _positive(py, "pitch")
     lam = _positive(wavelength, "wavelength") * _UM_TO_MM
@@ -241,22 +282,13 @@ class WindowTransfer(Sequence):
                 f"weight_derivative={self.weight_derivative})")
 
 
-def window_transfer(
-    in_shape: Sequence[int],
-    out_shape: Sequence[int],
-    pitch,
-    wavelength: float,
-    z,
-    in_origin,
-    out_origin,
-    n: float = 1.0,
-    carrier=(0.0, 0.0),
-    margin: float = 0.5,
-    guard: float = 2.0,
-    device=None,
-    weight_derivative: bool = False,
-) -> WindowTransfer:
-    """Transfer function used by :func:`propagate_window` (float64-accurate, complex128).
+def window_transfer(field: Field, out: Grid, z=None, *legacy, margin: float = 0.5, guard: float = 2.0,
+                    weight_derivative: bool = False, **legacy_kw) -> WindowTransfer:
+    """Transfer function used by :func:`propagate_window` (float64-accurate, complex128) for propagating ``field``
+    (a :class:`~raywave.wave.grid.Field`: its grid, wavelength, index and carrier; the envelope's values are not
+    used, its device is) by ``z`` mm (float or 0-d tensor) onto the window ``out`` (a
+    :class:`~raywave.wave.grid.Grid` of the same pitch, any origin and shape). ``margin`` and ``guard``: as
+    :func:`propagate_window`. The geometry alone (no tensor): :func:`_window_transfer` of a :class:`WindowSource`.
 
     Returns ``(G, (My, Mx))`` (a :class:`WindowTransfer`, which holds only the band where ``G`` can be non-zero) with, on the ``fftfreq`` grid of the FFT size ``(My, Mx)``,
     ``G = W(f) · H(f + f_c) · exp(i2π f·(out_origin − in_origin))`` with
@@ -282,7 +314,18 @@ def window_transfer(
     the output window (the band follows it): :func:`propagate_window` adds ``(dz·R_z + s·R_s)·G`` for its
     ``dz`` and ``shift`` so that their derivatives are those of the whole discrete model.
     """
-    geo = _geometry(in_shape, out_shape, pitch, wavelength, z, in_origin, out_origin, n, carrier, margin, guard)
+    if legacy or legacy_kw or not isinstance(field, Field):
+        legacy_call("window_transfer", "window_transfer(field, out, z, *, margin=0.5, guard=2.0, "
+                    "weight_derivative=False)")
+    check_single_field(field, out, z, "window_transfer")
+    return _window_transfer(WindowSource.between(field, out, z), out.shape, field.grid.pitch, (margin, guard),
+                            field.envelope.device, weight_derivative)
+
+
+def _window_transfer(src: WindowSource, out_shape, pitch, band_limit, device, weight_derivative: bool) -> WindowTransfer:
+    """:func:`window_transfer` of the geometry ``src`` onto ``out_shape`` samples of ``pitch`` mm; ``band_limit`` =
+    ``(margin, guard)``; the tensors on ``device``."""
+    geo = _geometry(src, out_shape, pitch, *band_limit)
     (my, mx), (px, py), k = geo.size, geo.pitch, geo.k
     fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=device)
     fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=device)

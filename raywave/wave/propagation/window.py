@@ -14,48 +14,44 @@ peak amplitude, against ~1e-4 with ``guard=2`` (see tests/test_propagation.py).
 from __future__ import annotations
 
 import math
-from typing import Sequence
-
 import torch
 
-from raywave.wave.propagation._common import _TWO_PI, _UM_TO_MM, _as_field, _pair, _positive, _sqrt_kz, _xy
-from raywave.wave.propagation.transfer import WindowTransfer, window_transfer
+from raywave.wave.grid import Field, Grid
+from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _positive, _sqrt_kz, _xy, check_single_field,
+                                              legacy_call)
+from raywave.wave.propagation.transfer import WindowSource, WindowTransfer, _window_transfer
 
 
-def propagate_window(u: torch.Tensor, pitch, wavelength: float, z, in_origin, out_origin, out_shape: Sequence[int],
-                     n: float = 1.0, carrier=(0.0, 0.0), margin: float = 0.5, guard: float = 2.0,
-                     shift: torch.Tensor | None = None, transfer: tuple | None = None,
-                     dz: torch.Tensor | None = None) -> torch.Tensor:
-    """Propagate an envelope from an input window to an output window (shifted band-limited ASM).
+def propagate_window(field: Field, out: Grid, z=None, *legacy, margin: float = 0.5, guard: float = 2.0,
+                     shift: torch.Tensor | None = None, transfer: tuple | None = None, dz: torch.Tensor | None = None,
+                     **legacy_kw) -> Field:
+    """Propagate a field from its window to the output window ``out`` (shifted band-limited ASM).
 
     The true field is ``U(x, y) = u(x, y) · exp(i k n (α x + β y))`` with ``k = 2π/λ`` and
     ``carrier = (α, β)`` direction cosines (typically the chief ray's); removing the carrier keeps the sampled
     envelope far below Nyquist for off-axis light. An FFT convolution on the band of frequencies that can carry
-    light between the windows (method, cost, accuracy: the module docstring): crop ``u`` to the lit footprint.
+    light between the windows (method, cost, accuracy: the module docstring): crop the field to the lit footprint.
 
     Args:
-        u: envelope ``(..., Ny_in, Nx_in)``; pixel (0, 0) centred at ``in_origin``.
-        pitch: sample spacing in mm (float or ``(px, py)``), shared by input and output grids.
-        wavelength: vacuum wavelength in µm.
+        field: the :class:`~raywave.wave.grid.Field` to propagate: envelope ``u`` ``(..., Ny_in, Nx_in)`` on its
+            grid (pixel (0, 0) centred at the grid's origin), its vacuum wavelength (µm), medium index ``n`` and
+            carrier ``(α, β)`` (removed at the input and the output), shared by any leading batch axes (a batch
+            whose elements differ: :func:`~raywave.wave.propagation.propagate_batch`).
+        out: the output window, a :class:`~raywave.wave.grid.Grid` of the field's pitch (any origin, not only on
+            the input's lattice, and any shape).
         z: propagation distance in mm (negative allowed; float or 0-d tensor).
-        in_origin: ``(x0, y0)`` mm, centre of the input pixel (0, 0).
-        out_origin: ``(x0, y0)`` mm, centre of the output pixel (0, 0) (any real offset, not only multiples
-            of the pitch).
-        out_shape: ``(Ny_out, Nx_out)``.
-        n: index of the homogeneous medium.
-        carrier: ``(α, β)`` direction cosines of the carrier (in the medium), same for input and output.
         margin: tolerance of the band limit in pixels beyond the pixel-centre extremes (default ½ pixel).
         guard: width of the smooth roll-off of the band limit beyond that range, in Fresnel zones
             ``sqrt(λ|z|/(n cos³θ_c))`` (default 2; the FFT grows by the same amount). ``guard=0`` is the sharp
             band limit of the paper (an error up to ~6e-3 of the peak amplitude instead of ~1e-4: module docstring).
         shift: optional ``(2,)`` tensor (mm), an extra translation of the output window added to
-            ``out_origin`` through a phase ramp on the spectrum; pass a zero-valued tensor that carries a
+            ``out.origin`` through a phase ramp on the spectrum; pass a zero-valued tensor that carries a
             derivative to make the result differentiable with respect to where the window sits (a PSF crop
             that follows a chief ray). Keep it well below the margin (sub-sample). With a ``transfer`` built by
             ``weight_derivative=True`` (the default when ``transfer`` is None) the derivative includes the band
             limit's roll-off following the window.
-        transfer: a precomputed ``window_transfer(...)`` result for exactly these arguments (a caller that
-            propagates many fields between the same windows builds it once).
+        transfer: a precomputed ``window_transfer(field, out, z, ...)`` result for exactly this geometry (a caller
+            that propagates many fields between the same windows builds it once).
         dz: optional 0-d tensor (mm), an extra propagation distance added to ``z``: the transfer function
             becomes ``(G + dz·D)·exp(i2π·dz·w)``, ``w = sqrt((n/λ)² − |f + f_c|²)`` the axial frequency at the
             true spatial frequency (0 where evanescent) and ``D`` the first-order change of the roll-off weights
@@ -66,23 +62,32 @@ def propagate_window(u: torch.Tensor, pitch, wavelength: float, z, in_origin, ou
             3-tuple of ``weight_derivative=True`` (a 2-tuple is rebuilt).
 
     Returns:
-        The output envelope ``(..., Ny_out, Nx_out)`` (true field divided by ``exp(i k n (α x + β y))`` at the
-        output coordinates), same dtype as ``u``.
+        The output :class:`~raywave.wave.grid.Field` on ``out`` with the input's wavelength, index and carrier:
+        envelope ``(..., Ny_out, Nx_out)`` (the true field divided by ``exp(i k n (α x + β y))`` at the output
+        coordinates), the input's dtype.
+
+    The form of before issue 43 (``propagate_window(u, pitch, wavelength, z, in_origin, out_origin, out_shape,
+    n=, carrier=, ...)``) raises a TypeError that says how to build the Field and the Grid.
     """
-    u = _as_field(u)
-    noy, nox = (int(s) for s in out_shape)
+    if legacy or legacy_kw or not isinstance(field, Field):
+        legacy_call("propagate_window", "propagate_window(field, out, z, *, margin=0.5, guard=2.0, shift=None, "
+                    "transfer=None, dz=None) -> Field")
+    check_single_field(field, out, z, "propagate_window")
+    u = field.envelope
     if transfer is None or (dz is not None and len(transfer) < 3):
-        transfer = window_transfer(u.shape[-2:], (noy, nox), pitch, wavelength, z, in_origin, out_origin, n, carrier,
-                                   margin, guard, u.device, weight_derivative=dz is not None or shift is not None)
-    h, size, rows, cols = _applied_transfer(transfer, u, pitch, wavelength, n, carrier, shift, dz)
-    return _convolve(u, h, size, rows, cols, noy, nox)
+        transfer = _window_transfer(WindowSource.between(field, out, z), out.shape, field.grid.pitch, (margin, guard),
+                                    u.device, dz is not None or shift is not None)
+    h, size, rows, cols = _applied_transfer(transfer, field, shift, dz)
+    return field.with_envelope(_convolve(u, h, size, rows, cols, *out.shape), out)
 
 
-def _applied_transfer(transfer, u, pitch, wavelength, n, carrier, shift, dz):
-    """``(h, (My, Mx), rows, cols)``: the transfer function in ``u``'s dtype on the band ``rows × cols`` (int64
-    indices ``(R,)``, ``(C,)``; ``h`` ``(R, C)``) of the FFT grid ``(My, Mx)`` of a :class:`WindowTransfer`, or on
-    the whole grid (``h`` ``(My, Mx)``, ``rows``/``cols`` None) of a plain tuple; times the window shift ``shift``
-    ``(2,)`` (mm) and the extra distance ``dz`` (0-d, mm) where given (pitch mm, wavelength µm)."""
+def _applied_transfer(transfer, field: Field, shift, dz):
+    """``(h, (My, Mx), rows, cols)``: the transfer function in the envelope's dtype on the band ``rows × cols``
+    (int64 indices ``(R,)``, ``(C,)``; ``h`` ``(R, C)``) of the FFT grid ``(My, Mx)`` of a :class:`WindowTransfer`,
+    or on the whole grid (``h`` ``(My, Mx)``, ``rows``/``cols`` None) of a plain tuple; times the window shift
+    ``shift`` ``(2,)`` (mm) and the extra distance ``dz`` (0-d, mm) where given (``field``'s pitch, wavelength, index
+    and carrier)."""
+    u = field.envelope
     if isinstance(transfer, WindowTransfer):
         h, rows, cols = transfer.band, transfer.rows.to(u.device), transfer.cols.to(u.device)
         rel = transfer.band_rel
@@ -90,7 +95,7 @@ def _applied_transfer(transfer, u, pitch, wavelength, n, carrier, shift, dz):
         h, rel, rows, cols = transfer[0], transfer[2] if len(transfer) > 2 else None, None, None
     my, mx = transfer[1]
     if shift is not None or dz is not None:
-        h = _perturbed(h.to(u.dtype), rel, (my, mx), rows, cols, pitch, wavelength, n, carrier, shift, dz, u.device)
+        h = _perturbed(h.to(u.dtype), rel, ((my, mx), rows, cols), field, shift, dz)
     return h.to(u.dtype), (my, mx), rows, cols
 
 
@@ -105,11 +110,13 @@ def _convolve(u, h, size, rows, cols, noy: int, nox: int):
     return _convolve_band(u, h, size, rows, cols, noy, nox)
 
 
-def _perturbed(h, rel, size, rows, cols, pitch, wavelength, n, carrier, shift, dz, device):
-    """``h`` times the first-order window shift and extra distance (:class:`_Perturbed`), on the band
-    ``rows × cols`` of the FFT grid ``size`` (or on the whole grid where ``rows`` is None)."""
-    my, mx = size
-    px, py = _pair(pitch, "pitch")
+def _perturbed(h, rel, band, field: Field, shift, dz):
+    """``h`` times the first-order window shift and extra distance (:class:`_Perturbed`), on the band ``band`` =
+    ``(size, rows, cols)``: the rows × cols of the FFT grid ``size`` (or the whole grid where ``rows`` is None);
+    ``field``: the pitch, wavelength, index, carrier and device."""
+    (my, mx), rows, cols = band
+    device = field.envelope.device
+    px, py = field.grid.pitch
     fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=device)
     fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=device)
     if rows is not None:
@@ -117,8 +124,7 @@ def _perturbed(h, rel, size, rows, cols, pitch, wavelength, n, carrier, shift, d
     zero = torch.zeros((), dtype=torch.float64, device=device)
     sx, sy = (zero, zero) if shift is None else shift.to(device=device, dtype=torch.float64).reshape(2).unbind()
     dz = _dz_tensor(dz, device) if dz is not None else zero
-    axial = (float(wavelength), float(n), tuple(float(c) for c in carrier)) if dz.requires_grad or float(dz) != 0 \
-        else None
+    axial = (field.wavelength, field.n, field.carrier) if dz.requires_grad or float(dz) != 0 else None
     return _Perturbed.apply(h, sx, sy, dz, fx, fy, axial, rel)
 
 

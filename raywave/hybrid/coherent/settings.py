@@ -1,0 +1,106 @@
+"""Value types of the field constructions (issue 43): the arguments of :func:`~raywave.hybrid.coherent.faithful.
+faithful_field` and :func:`~raywave.hybrid.coherent.exit_pupil.exit_pupil_field` grouped by what they describe, so
+that no construction takes more than ten parameters:
+
+* :class:`Source`: the point source (field point, wavelength, object depth, field type);
+* :class:`Planes`: where the planes lie (DOE, sensor, and for the exit-pupil edge the exit-pupil plane);
+* :class:`ChiefRays`: the chief ray on those planes (and its entrance-plane point, when known);
+* :class:`FieldSettings`: how the field is built (nodes or rays, oversampling, checks, the edge step);
+* :class:`Known`: what a caller building many fields traced already (footprint, entrance pupil, stop-rim images).
+
+Lengths mm, wavelengths µm. (The accurate construction's own value types, if any, live with it in
+:mod:`raywave.hybrid.coherent.accurate`.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["ChiefRays", "FieldSettings", "Known", "Planes", "Source"]
+
+
+@dataclass(frozen=True, eq=False)
+class Source:
+    """One point source: ``field`` (2,) (degrees, or mm on a finite object: ``field_type``, default the lens's), the
+    vacuum ``wavelength`` (µm) and the object ``depth`` (mm from the first vertex; None: the lens's, ``inf``:
+    distant)."""
+
+    field: object
+    wavelength: float
+    depth: object = None
+    field_type: str | None = None
+
+
+@dataclass(frozen=True)
+class Planes:
+    """The planes of a construction, z in mm from the first vertex: the DOE plane ``z_doe``, the sensor ``z_sensor``
+    and, for the stop's edge at the exit pupil, the paraxial exit-pupil plane ``z_xp`` (None otherwise)."""
+
+    z_doe: float
+    z_sensor: float
+    z_xp: float | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class ChiefRays:
+    """The chief ray (a :class:`~raywave.rays.RayBundle` of scalar batch each) at the DOE plane (``doe``) and at the
+    sensor (``sensor``); on the exit-pupil plane (``xp``: the exact exit-pupil step only, else None); its
+    entrance-plane point ``uv`` (2,) mm when known (saves aiming it again)."""
+
+    doe: object
+    sensor: object
+    xp: object = None
+    uv: object = None
+
+
+@dataclass(frozen=True)
+class FieldSettings:
+    """How a DOE-plane field is built.
+
+    * ``nodes``: accurate constructions: traced nodes across the larger side of the lit footprint;
+    * ``n_rays``: the faithful construction's random rays;
+    * ``oversample``: simulation samples per DOE pixel;
+    * ``check``: the sampling checks (Nyquist, caustics) with their warnings;
+    * ``full_grid``: faithful only: the whole DOE grid, no carrier (the paper's full propagation);
+    * ``generator``: faithful only: the ``torch.Generator`` of the pupil samples (replayable);
+    * ``trace_dtype``: faithful only: the ray-tracing precision (float32 only to study its failure);
+    * ``ripple_zones``: exit-pupil edge: Fresnel zones of the edge's ripples kept (None: ``RIPPLE_ZONES``);
+    * ``method``: exit-pupil edge step, "auto", "fresnel" or "asm" (:func:`~raywave.hybrid.coherent.exit_pupil.
+      exit_pupil_field`);
+    * ``rim_images``: exit-pupil edge: each node's edge sharp at its stop-rim point's own image.
+    """
+
+    nodes: int = 64
+    n_rays: int = 100_000
+    oversample: int = 1
+    check: bool = True
+    full_grid: bool = False
+    generator: object = None
+    trace_dtype: torch.dtype = torch.float64
+    ripple_zones: float | None = None
+    method: str = "auto"
+    rim_images: bool = True
+
+
+@dataclass(frozen=True, eq=False)
+class Known:
+    """What a caller that builds many fields traced already (None: traced by the construction): ``bbox`` the lit
+    footprint on the DOE plane (:func:`~raywave.hybrid.coherent.footprints`; ``False``: none), ``entrance`` ``(z,
+    radius)`` mm of the paraxial entrance pupil, ``stop_rim`` the stop rim's images
+    (:func:`~raywave.hybrid.coherent.stop_rim_images`)."""
+
+    bbox: object = None
+    entrance: object = None
+    stop_rim: object = None
+
+
+def check_types(where: str, source, planes, chief, settings) -> None:
+    """TypeError naming the value types when a construction is called in its pre-issue-43 loose form."""
+    for name, value, kind in (("source", source, Source), ("planes", planes, Planes), ("chief", chief, ChiefRays),
+                              ("settings", settings, FieldSettings)):
+        if not isinstance(value, kind):
+            raise TypeError(f"{where}(lens, doe, source, planes, chief, settings) takes value types since issue 43: "
+                            f"{name} must be a raywave.hybrid.coherent.settings.{kind.__name__}, got "
+                            f"{type(value).__name__}")
