@@ -87,6 +87,7 @@ def _interpret(text: str, path: str, config: int | None = None) -> dict:
     _apply_configuration(st, parsed, config, path)
     obj, img = parsed[0], parsed[-1]
     lens, doe = _split_doe(parsed, path, st.scale)
+    _check_axial_order(lens, path)
     distance = _object_distance(obj, img, path)
 
     spec: dict = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "units": dict(UNITS)}
@@ -293,6 +294,7 @@ def _apply_configuration(st: _System, parsed: list, config: int | None, path: st
             p = parsed[by_number[target]]
             if key == "THIC":
                 p["disz"] = math.inf if abs(value) >= 1e10 and p is parsed[0] else value * st.scale
+                p["disz_line"] = ln
             else:
                 p["diam"] = value * st.scale if value > 0 else None
                 if isinstance(p["aperture"], dict) and p.get("floating_aperture"):
@@ -336,6 +338,27 @@ def _split_doe(parsed: list, path: str, scale: float):
         doe = _doe_from_surface(d, lens[-1], path, scale, sign=sign, medium=_medium_after(lens))
         lens[-1] = dict(lens[-1], disz=lens[-1]["disz"] + d["disz"])  # the refractive lens reaches the sensor
     return lens, doe
+
+
+def _check_axial_order(lens: list, path: str) -> None:
+    """A line-numbered error for a negative thickness (DISZ) while the light travels toward +z (before the first
+    mirror, or after an even number): the next surface's vertex lies before this one on the axis. OpticStudio
+    traces such a gap virtually (backward); raywave's surfaces must follow each other along the light
+    (:meth:`raywave.lens.lens.Lens.check_geometry` refuses it; here it is named with its line). Files with
+    coordinate breaks are left to that check (their surfaces lie in other frames)."""
+    if any(p["kind"] == "coordinate_break" for p in lens):
+        return
+    forward = True
+    for p, nxt in zip(lens[:-1], lens[1:]):
+        if p["material"] == "mirror":
+            forward = not forward
+        d = p["disz"]
+        if forward and d is not None and d < -1e-9:
+            medium = "air" if p["material"] == "air" else "glass"
+            raise LensFileError(f"surface {p['number']}: negative thickness DISZ {d:g} mm in {medium} while the "
+                                f"light travels toward +z: surface {nxt['number']} lies {-d:g} mm before it on the "
+                                "axis (OpticStudio traces such a gap backward, virtually; raywave needs the surfaces "
+                                "in the order the light meets them)", path, p.get("disz_line", p["line"]))
 
 
 def _medium_after(lens: list):
