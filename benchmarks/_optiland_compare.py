@@ -57,6 +57,10 @@ def optiland_model(path: str, lens):
     inner = o.surfaces.surfaces[1:-1]
     if len(inner) != len(lens.surfaces):
         raise NotFaithful(f"Optiland has {len(inner)} surfaces, raywave {len(lens.surfaces)}")
+    for k, (a, b) in enumerate(zip(lens.surfaces, inner)):
+        if (a.interaction.kind == "reflection") != bool(getattr(b.interaction_model, "is_reflective", False)):
+            raise NotFaithful("a mirror in one and a refraction in the other (raywave reads a model glass of index -1, "
+                              "an old file's way of writing a reflection, as a mirror)")
     ours = [float(s.thickness.detach()) for s in lens.surfaces]
     theirs = [_s(o.surfaces.surfaces[k + 2].geometry.cs.z) - _s(o.surfaces.surfaces[k + 1].geometry.cs.z)
               for k in range(len(inner))]

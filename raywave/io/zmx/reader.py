@@ -14,7 +14,7 @@ from raywave.io.zmx.surface import _surface
 from raywave.io.zmx.tables import (IGNORED_SYSTEM_KEYS, MERIT_OPERANDS, MULTI_CONFIG_APPLIED, MULTI_CONFIG_IGNORED,
                                    SURFACE_TYPES, SYSTEM_APERTURE_KEYS, UNIT_SCALE)
 from raywave.io.zmx.tokens import _float, _int, _parse_lines, _state, decode_zmx_bytes
-from raywave.utils.checks import MAX_FIELD_ANGLE
+from raywave.utils.checks import MAX_FIELD_ANGLE, MAX_WIDE_FIELD_ANGLE
 
 
 def read_zmx(path, config: int | None = None) -> dict:
@@ -56,6 +56,8 @@ class _System:
         self.ftyp = None  # ([FTYP integers], line)
         self.xfln: list[float] = []
         self.yfln: list[float] = []
+        self.field_lines: dict[int, int] = {}  # field index (0-based) -> the line that gives its value
+        self.yfln_line = None  # line of YFLN / XFLN
         self.wavm: dict[int, float] = {}  # WAVM index -> µm
         self.wavl: list[float] = []
         self.pwav = 1
@@ -149,8 +151,10 @@ def _system_entry(st: _System, ln: int, key: str, rest: str, path: str, unknown:
         st.ftyp = ([_int(t, path, ln, f"FTYP entry {i + 1}", 0, 10**6) for i, t in enumerate(toks)], ln)
     elif key in ("XFLN", "XFLD"):
         st.xfln = [_float(t, path, ln, key) for t in toks]
+        st.yfln_line = st.yfln_line or ln
     elif key in ("YFLN", "YFLD"):
         st.yfln = [_float(t, path, ln, key) for t in toks]
+        st.yfln_line = ln
     elif key == "WAVM":
         if len(toks) < 2:
             raise LensFileError("WAVM needs an index and a wavelength", path, ln)
@@ -287,6 +291,7 @@ def _apply_configuration(st: _System, parsed: list, config: int | None, path: st
                 st.yfln.append(0.0)
             if target >= 1:
                 st.yfln[target - 1] = value
+                st.field_lines[target - 1] = ln
         elif key == "APER":
             if st.sys_ap is not None:
                 st.sys_ap = (st.sys_ap[0], value, ln)
@@ -423,8 +428,9 @@ def _fields(st: _System, path: str, distance) -> dict:
     """The spec's "fields": FTYP 0 (angles, degrees), 1 (object heights), 2 (paraxial image heights), 3 (real image
     heights; heights scaled to mm); the first FTYP-count XFLN / YFLN entries (default: up to the last non-zero one),
     x components folded into radial fields; FTYP 4 (theodolite angles, azimuth x and elevation y) become the angle
-    from the axis, acos(cos x · cos y). An angle of 90° or more (a fisheye's) is left out with a warning: raywave
-    aims its rays with tan θ, which cannot reach it."""
+    from the axis, acos(cos x · cos y). An object at infinity may be seen beyond 90° (a fisheye's field, light from
+    behind the first vertex) and below 180°; an angle out of range (at or beyond 90° for a finite object) is left out
+    with a warning naming the field and its line."""
     ftyp, xfln, yfln = st.ftyp, st.xfln, st.yfln
     nfld = ftyp[0][2] if ftyp and len(ftyp[0]) >= 3 else None
     ftype = ftyp[0][0] if ftyp and ftyp[0] else 0
@@ -455,13 +461,16 @@ def _fields(st: _System, path: str, distance) -> dict:
     else:
         values = [math.hypot(x, y) if x else y for x, y in zip(xs, ys)]
     if ftype == 0:
-        wide = [v for v in values if not abs(v) < MAX_FIELD_ANGLE]
+        limit = MAX_WIDE_FIELD_ANGLE if distance == "inf" else MAX_FIELD_ANGLE
+        wide = [i for i, v in enumerate(values) if not abs(v) < limit]
         if wide:
-            kept = [v for v in values if abs(v) < MAX_FIELD_ANGLE] or [0.0]
-            line = ftyp[1] if ftyp else None
-            _warn(f"{path}:{line}: field angle{'s' if len(wide) > 1 else ''} {', '.join(f'{v:g}°' for v in wide)} "
-                  f"left out: raywave traces fields below {MAX_FIELD_ANGLE:g}° (a fisheye's wider field would need "
-                  "rays aimed from behind the first vertex); the fields read are "
+            kept = [v for i, v in enumerate(values) if i not in wide] or [0.0]
+            where = ", ".join(f"field {i + 1} ({values[i]:g}°, line {st.field_lines.get(i, st.yfln_line)})"
+                              for i in wide)
+            why = ("an object at infinity is seen at angles below 180°" if distance == "inf" else
+                   f"a finite object's angles must lie below {MAX_FIELD_ANGLE:g}° (the object point is placed with "
+                   "tan θ; beyond 90° only for an object at infinity)")
+            _warn(f"{path}:{st.field_lines.get(wide[0], st.yfln_line)}: {where} left out: {why}; the fields read are "
                   f"{', '.join(f'{v:g}°' for v in kept)}")
             values = kept
     else:
