@@ -57,6 +57,10 @@ def optiland_model(path: str, lens):
     inner = o.surfaces.surfaces[1:-1]
     if len(inner) != len(lens.surfaces):
         raise NotFaithful(f"Optiland has {len(inner)} surfaces, raywave {len(lens.surfaces)}")
+    for k, (a, b) in enumerate(zip(lens.surfaces, inner)):
+        if (a.interaction.kind == "reflection") != bool(getattr(b.interaction_model, "is_reflective", False)):
+            raise NotFaithful("a mirror in one and a refraction in the other (raywave reads a model glass of index -1, "
+                              "an old file's way of writing a reflection, as a mirror)")
     ours = [float(s.thickness.detach()) for s in lens.surfaces]
     theirs = [_s(o.surfaces.surfaces[k + 2].geometry.cs.z) - _s(o.surfaces.surfaces[k + 1].geometry.cs.z)
               for k in range(len(inner))]
@@ -100,7 +104,7 @@ def compare(path: str, lens) -> dict:
     out = {"efl": _rel(p.efl, f2), "bfl": _rel(p.bfl, F2 + last_t, scale), "fnum": _rel(p.fnum, abs(f2) / epd),
            "ep_z": _rel(p.ep_z, epl, scale), "epd": _rel(p.epd, epd), "xp_z": _rel(p.xp_z, total + xpl, scale),
            "xpd": _rel(p.xpd, xpd)}
-    if any(float(getattr(s.geometry, "coefficients", torch.zeros(1))[0]) != 0.0 and s.kind == "even_asphere"
+    if any(float(getattr(s.geometry, "coefficients", torch.zeros(1))[0].detach()) != 0.0 and s.kind == "even_asphere"
            for s in lens.surfaces):
         # an even asphere's r² term (a2): raywave's paraxial model includes its power (c + 2 a2), Optiland's uses
         # the base radius only, so the paraxial quantities differ by definition; the real chief ray is compared

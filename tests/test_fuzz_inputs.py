@@ -411,18 +411,23 @@ def test_a_non_finite_psf_raises_a_named_error():
         hl.psf((0.0, 0.0), ks=8, rays=8)
 
 
-@pytest.mark.parametrize("value", [120.0, 90.0, -90.0, 1e12])
-def test_field_angles_of_90_degrees_or_more_are_refused(tmp_path, value):
+@pytest.mark.parametrize("value, distance", [(120.0, 1000.0), (90.0, 1000.0), (-90.0, 1000.0), (180.0, "inf"),
+                                             (-180.0, "inf"), (1e12, "inf")])
+def test_field_angles_out_of_range_are_refused(tmp_path, value, distance):
+    """At or beyond 90° for a finite object; at or beyond 180° for an object at infinity (a fisheye's field between
+    90° and 180° is read: tests/test_lens_files_fisheye.py)."""
     from raywave.io import LensFileError
     from raywave.lens.build import load_lens
 
     spec = json.loads((BUNDLED / "singlet.json").read_text())
     spec["fields"]["values"] = [0.0, value]
+    spec["object"]["distance"] = distance
     p = tmp_path / "wide.json"
     p.write_text(json.dumps(spec))
     with pytest.raises(LensFileError, match=r"wide\.json:\d+: fields\.values\[1\]: field angle"):
         load_lens(p)
-    assert main(["spot", "singlet", "--fields", f"0,{value}"]) == 2
+    if distance == "inf":
+        assert main(["spot", "singlet", "--fields", f"0,{value}"]) == 2
     assert main(["info", str(p), "--json"]) == 2
 
 

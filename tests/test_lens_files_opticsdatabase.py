@@ -61,8 +61,8 @@ READS = {
     "Nikon Nikkor Z 50mm f1.2 S.zmx": [r"surfaces 25 \(line \d+\), 26 \(line \d+\): XASPHERE with terms in PARM "
                                        r"1..8 and none in XDAT: read as EVENASPH terms"],
     "Nikon AF-S DX Zoom-Nikkor 18-55mm f3.5-5.6G ED II.zmx": [],
-    "Canon EF15mm f2.8 Fisheye.zmx": [r"field angle 90.015° left out: raywave traces fields below 90°"],
-    "Samsung 10mm F3.5 Fisheye.zmx": [r"field angle 91.075° left out"],
+    "Canon EF15mm f2.8 Fisheye.zmx": [],  # its 90.015° field is read (tests/test_lens_files_fisheye.py)
+    "Samsung 10mm F3.5 Fisheye.zmx": [],  # its 91.075° field (a YFIE operand) too
     "Nikon 400mm f8 Dodotto Tele.zmx": [r":6: the surfaces start at SURF 1 \(no object surface 0\): read as lens "
                                         r"surfaces with an object at infinity .* and an image plane 174.595 mm after "
                                         r"surface 7", r"no system aperture line"],
@@ -76,6 +76,8 @@ READS = {
     "Canon Extender EF2X.zmx": [r"no system aperture line \(ENPD, FNUM, OBNA or FLOA\): the stop's semi-diameter"],
     "Microscope USP3893752.zmx": [],
     "Telescope Fraunhofer.zmx": [r"glass 'BK7' is obsolete in the SCHOTT catalog", r"surfaces 2 and 3 overlap"],
+    "Canon New FD 500mm f8 Mirror.zmx": [r"surfaces 5 \(line 101\), 11 \(line 152\): model glass nd -1 read as a "
+                                         r"mirror \(GLAS MIRROR\)"],
 }
 
 
@@ -93,6 +95,11 @@ def test_reads_with_the_expected_warnings(name):
 #: file -> (error type, regex): what raywave refuses, and why, naming the line.
 REFUSES = {
     "Canon EF24mm f1.4L II USM.zmx": (LensFileError, r":95: surface 4: PARM: '\?\?3.9223E-12' is not a number"),
+    "Sony DT 16-50mm F2.8 SSM.zmx": (LensFileError, r":111: surface 6: PARM: '-6.03510E-08\?\?' is not a number"),
+    "Nikon 90mm f4.8 Fuwatto Soft.zmx": (LensFileError, r":6: SURF needs a surface number, got '3.5'"),
+    "Ricoh smc Pentax-FA 28-70mm F4 AL.zmx": (LensFileError, r":76: surface 2: GLAS vd: '\?' is not a number"),
+    "Canon RF28-70mm F2 L USM.zmx": (LensFileError, r":274: surface 22: negative thickness DISZ -2.59 mm in air while "
+                                     r"the light travels toward \+z: surface 23 lies 2.59 mm before it on the axis"),
 }
 
 
@@ -102,6 +109,34 @@ def test_refuses_with_a_named_error(name):
     with pytest.raises(kind, match=pattern), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         raywave.load_lens(DATA / name).paraxial()
+
+
+def test_negative_index_mirrors_are_mirrors():
+    """The Canon New FD 500mm f8 Mirror writes its two reflections as model glasses of index -1 (the Mangin primary's
+    back surface, the secondary's): read as mirrors the catadioptric lens has its nominal focal length, 500 mm (a
+    reading that is independent of the file: the lens's name); the light after the first mirror travels toward -z
+    (negative thicknesses), after the second toward +z again."""
+    lens, _ = _load("Canon New FD 500mm f8 Mirror.zmx")
+    assert [i for i, s in enumerate(lens.surfaces) if s.interaction.kind == "reflection"] == [4, 10]
+    assert lens.paraxial().efl == pytest.approx(500.0, rel=1e-4)
+    signs = lens.direction_signs()
+    assert signs[5] < 0 and signs[11] > 0
+    # any other index <= 0 is still an error naming the line
+    text = _text("Canon New FD 500mm f8 Mirror.zmx").replace("___BLANK 1 0 -1  0", "___BLANK 1 0 -1.5  0", 1)
+    with pytest.raises(LensFileError, match=r":101: surface 5: model glass index nd -1.5 is not supported"):
+        read_lens_spec_text(text)
+
+
+def read_lens_spec_text(text: str):
+    """read_zmx on ``text`` written to a temporary .zmx file."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "x.zmx"
+        p.write_text(text)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return read_zmx(p)
 
 
 def test_unsupported_features_are_named(tmp_path):

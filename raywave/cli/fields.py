@@ -128,10 +128,14 @@ def single_field(args, default=(0.0, 0.0), command: str = "this command") -> tup
 
 
 def check_angles(fields, flag: str = "--field") -> None:
-    """Field angles (degrees) must lie within (-90, 90): a :class:`CommandError` naming ``flag`` otherwise."""
+    """Field angles (degrees) for the ray-wave engine (psf, compare, doe) must lie within (-90, 90): it samples the
+    entrance-pupil plane. A :class:`CommandError` naming ``flag`` and saying where a wider field is traced otherwise
+    (a fisheye's field beyond 90°, up to 180° for an object at infinity: the geometric analyses info, spot, layout)."""
     for f in fields:
         if any(abs(v) >= 90 for v in f):
-            raise CommandError(f"{flag}: angles must lie within (-90, 90) degrees, got ({f[0]:g}, {f[1]:g})")
+            raise CommandError(f"{flag}: angles must lie within (-90, 90) degrees for the ray-wave engine, got "
+                               f"({f[0]:g}, {f[1]:g}); a fisheye's field beyond 90° (object at infinity, below 180°) "
+                               "is traced by the geometric analyses (info, spot, layout)")
 
 
 def add_field_argument(parser, what: str = "field point") -> None:

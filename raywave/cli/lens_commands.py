@@ -140,6 +140,8 @@ def field_table(lens) -> list[dict]:
         ok = bool(out.valid[i, 0, 0])
         row["real_image_height_mm"] = float(out.o[i, 0, 0, 1]) if ok else math.nan
         row["paraxial_image_height_mm"] = k * (math.tan(math.radians(v)) if lens.field_type == "angle" else v)
+        if lens.field_type == "angle" and abs(v) >= 90.0:  # a fisheye's field beyond 90°: no paraxial image
+            row["paraxial_image_height_mm"] = math.nan
         if definition.get("values") is not None and i < len(definition["values"]):
             row[definition["type"] + "_mm"] = float(definition["values"][i])
         rows.append(row)

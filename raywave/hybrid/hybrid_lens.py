@@ -40,7 +40,7 @@ from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
-from raywave.utils.checks import wavelengths_um
+from raywave.utils.checks import MAX_FIELD_ANGLE, wavelengths_um
 from raywave.utils.safe import safe_div
 from raywave.wave.grid import Grid
 from raywave.wave.propagation import (angular_spectrum, integrated_upsampled_intensity, propagate_window,
@@ -444,6 +444,10 @@ class HybridLens(nn.Module):
         if mode == "accurate" and trace_dtype != torch.float64:
             raise ValueError("the accurate mode traces in float64 only (its rays land on their nodes to 1e-10 mm)")
         f = _as_fields(fields, torch.float64, self.lens.device)
+        if self.lens.field_type == "angle" and bool((f.abs() >= MAX_FIELD_ANGLE).any()):
+            raise ValueError(f"field {f[(f.abs() >= MAX_FIELD_ANGLE).any(-1)][0].tolist()}: the ray-wave engine "
+                             f"samples the entrance-pupil plane and traces field angles below {MAX_FIELD_ANGLE:g}°; a "
+                             "fisheye's wider field is traced by the geometric analyses (trace, spot, info)")
         wls = self.wavelength_list(wavelengths)
         optics = self.optics  # the lens, or its image-space view (one object for the whole call: run_batched groups by it)
         z_doe, z_sen = self.doe_z(), self.sensor_z()

@@ -18,7 +18,7 @@ from pathlib import Path
 from raywave.io.doe import check_doe_files, validate_doe
 from raywave.io.surface_doe import validate_surface_doe
 from raywave.io.errors import LensFileError, suggestion
-from raywave.utils.checks import MAX_FIELD_ANGLE, MAX_WAVELENGTH_UM, wavelength_problem as _wavelength_problem
+from raywave.utils.checks import MAX_FIELD_ANGLE, MAX_WAVELENGTH_UM, MAX_WIDE_FIELD_ANGLE, wavelength_problem as _wavelength_problem
 
 FORMAT_NAME = "raywave-lens"
 FORMAT_VERSION = 1
@@ -298,7 +298,8 @@ class _Validator:
         if "system_aperture" in spec and self.obj(spec["system_aperture"], ("system_aperture",)):
             self.system_aperture(spec["system_aperture"], spec)
         if "fields" in spec and self.obj(spec["fields"], ("fields",)):
-            self._fields(spec["fields"])
+            obj = spec.get("object") if isinstance(spec.get("object"), dict) else {}
+            self._fields(spec["fields"], distant=obj.get("distance", "inf") == "inf")
         if "wavelengths" in spec and self.obj(spec["wavelengths"], ("wavelengths",)):
             self._wavelengths(spec["wavelengths"])
         if "sensor" in spec and self.obj(spec["sensor"], ("sensor",)):
@@ -356,8 +357,9 @@ class _Validator:
                 else:
                     self.number(d, ("object", "distance"), positive=True)
 
-    def _fields(self, f):
-        """Check "fields" (a dict): its type and values (angles in degrees within ±MAX_FIELD_ANGLE)."""
+    def _fields(self, f, distant: bool = True):
+        """Check "fields" (a dict): its type and values (angles in degrees within ±MAX_FIELD_ANGLE, or within ±180°
+        for an object at infinity (``distant``): a fisheye's field seen from behind the first vertex)."""
         self.keys(f, ("fields",), ("type", "values"))
         if "type" in f and f["type"] not in FIELD_TYPES:
             self.err(("fields", "type"), f"must be one of {', '.join(map(repr, FIELD_TYPES))}, got "
@@ -366,10 +368,12 @@ class _Validator:
         if "values" not in f:
             self.err(("fields",), "missing 'values'")
         elif self.number_list(f["values"], ("fields", "values")) and f.get("type", "angle") == "angle":
+            limit = MAX_WIDE_FIELD_ANGLE if distant else MAX_FIELD_ANGLE
             for i, v in enumerate(f["values"]):
-                if not abs(v) < MAX_FIELD_ANGLE:
-                    self.err(("fields", "values", i), f"field angle {v!r}° must lie between "
-                                                      f"-{MAX_FIELD_ANGLE:g}° and {MAX_FIELD_ANGLE:g}°")
+                if not abs(v) < limit:
+                    self.err(("fields", "values", i), f"field angle {v!r}° must lie between -{limit:g}° and "
+                                                      f"{limit:g}°" + ("" if distant else
+                                                                       " (beyond 90° only for an object at infinity)"))
 
     def _wavelengths(self, w):
         """Check "wavelengths" (a dict): values in µm (not nm) and the 0-based "primary" index."""

@@ -255,11 +255,13 @@ def apply_image_height_fields(lens, kind: str, heights, where: str = "lens") -> 
     else:
         fields, missed = solve_real_image_heights(lens, heights)
     if missed:
+        # the solve tries angles below 90° (each trial beyond would aim a fisheye's chief ray by continuation from the
+        # axis, minutes per height); angle fields beyond 90° are read as given (raywave.lens.sources)
         unit = "angles below 90°" if lens.field_type == "angle" else "object heights"
         warnings.warn(FieldSolveWarning(
             f"{where}: no chief ray at {', '.join(unit.split()[:1])} reaches the image height"
             f"{'s' if len(missed) > 1 else ''} {', '.join(f'{heights[i]:g} mm' for i in missed)} "
-            f"({kind.replace('_', ' ')}; raywave traces {unit}): left out of the lens's fields"), stacklevel=2)
+            f"({kind.replace('_', ' ')}; the solve tries {unit}): left out of the lens's fields"), stacklevel=2)
     keep = [i for i in range(len(heights)) if i not in missed] or [0]
     lens.fields = [fields[i] if i not in missed else 0.0 for i in keep]
     lens.field_definition = {"type": kind, "values": [heights[i] if i not in missed else 0.0 for i in keep]}

@@ -97,7 +97,7 @@ class Lens(nn.Module):
         if field_type == "angle":
             from raywave.lens.sources import check_field_angles
 
-            check_field_angles(self.fields)
+            check_field_angles(self.fields, distant=math.isinf(self.object_distance))
         self.wavelengths = wavelengths_um(wavelengths, "the lens's wavelengths")
         if not 0 <= primary < len(self.wavelengths):
             raise ValueError(f"primary wavelength index {primary} out of range for {len(self.wavelengths)} wavelengths")
@@ -413,6 +413,7 @@ class Lens(nn.Module):
         mirrors = self.has_mirrors
         n_all = self.indices(wl)
         zs = self.vertex_z().to(rays.dtype)
+        signs = self.direction_signs() if mirrors else None
         x, y, z = rays.o.unbind(-1)
         dx, dy, dz = rays.d.unbind(-1)
         valid, opl = rays.valid, rays.opl
@@ -426,7 +427,8 @@ class Lens(nn.Module):
                 continue
             n1, n2 = n_all[i].to(rays.dtype), n_all[i + 1].to(rays.dtype)
             zl = z - zs[i]
-            t, ok = s.geometry.intersect(x, y, zl, dx, dy, dz)
+            # light travelling toward +z here (no mirror before, or an even number): rays meet the surface's front
+            t, ok = s.geometry.intersect(x, y, zl, dx, dy, dz, front=signs is None or signs[i] > 0)
             x, y, zl = x + t * dx, y + t * dy, zl + t * dz
             opl = opl + n1 * t
             if apertures and s.aperture is not None:
@@ -458,6 +460,7 @@ class Lens(nn.Module):
         wl = rays.wavelength
         n_all = self.indices(wl)
         frames, _ = self.surface_frames()
+        signs = self.direction_signs()
         x, y, z = rays.o.unbind(-1)
         dx, dy, dz = rays.d.unbind(-1)
         valid, opl = rays.valid, rays.opl
@@ -477,7 +480,7 @@ class Lens(nn.Module):
             xl, yl, zl = r00 * px + r10 * py + r20 * pz, r01 * px + r11 * py + r21 * pz, r02 * px + r12 * py + r22 * pz
             ex, ey, ez = r00 * dx + r10 * dy + r20 * dz, r01 * dx + r11 * dy + r21 * dz, r02 * dx + r12 * dy + r22 * dz
             n1, n2 = n_all[i].to(rays.dtype), n_all[i + 1].to(rays.dtype)
-            t, ok = s.geometry.intersect(xl, yl, zl, ex, ey, ez)
+            t, ok = s.geometry.intersect(xl, yl, zl, ex, ey, ez, front=signs[i] > 0)
             xl, yl, zl = xl + t * ex, yl + t * ey, zl + t * ez
             opl = opl + n1 * t
             if apertures and s.aperture is not None:

@@ -26,7 +26,7 @@ import torch
 from raywave.lens import paraxial
 from raywave.rays import pupil as pupil_patterns
 from raywave.rays.bundle import RayBundle
-from raywave.utils.checks import MAX_FIELD_ANGLE, wavelengths_um
+from raywave.utils.checks import MAX_FIELD_ANGLE, MAX_WIDE_FIELD_ANGLE, wavelengths_um
 
 AIM_MAX_ITER = 30
 
@@ -62,27 +62,72 @@ def object_distance(lens, depth=None) -> float:
 
 
 
-def check_field_angles(fields) -> None:
-    """Raise ValueError for a field angle (degrees, any shape) that is not finite or not below 90° in magnitude
-    (tan θ: 90° is a ray parallel to the object plane, and 180° would silently trace like 0°)."""
+def check_field_angles(fields, distant: bool = False) -> None:
+    """Raise ValueError for a field angle (degrees, any shape) that is not finite or out of range: below 90° in
+    magnitude for a finite object (the object point is placed with tan θ: 90° is a point at infinity on the object
+    plane), below 180° for an object at infinity (``distant``: a fisheye's field beyond 90°, light from behind the
+    first vertex; 180° would be the axis seen backward)."""
     f = torch.as_tensor(fields, dtype=torch.float64, device="cpu").detach().reshape(-1)
-    bad = ~torch.isfinite(f) | (f.abs() >= MAX_FIELD_ANGLE)
+    limit = MAX_WIDE_FIELD_ANGLE if distant else MAX_FIELD_ANGLE
+    bad = ~torch.isfinite(f) | (f.abs() >= limit)
     if bool(bad.any()):
+        why = ("" if distant else f"; beyond {MAX_FIELD_ANGLE:g}° only for an object at infinity (a fisheye's field "
+               "seen from behind the first vertex)")
         raise ValueError(f"field angle {float(f[bad][0])!r}° is not a field angle: angles must be finite and "
-                         f"between -{MAX_FIELD_ANGLE:g}° and {MAX_FIELD_ANGLE:g}° (exclusive)")
+                         f"between -{limit:g}° and {limit:g}° (exclusive){why}")
+
+
+def wide_fields(fields) -> torch.Tensor:
+    """(F,) bool: angle fields (F, 2) in degrees at or beyond 90° (either component): their collimated beam travels
+    sideways or backward (d_z <= 0), so their rays are parametrised on the plane through the paraxial entrance-pupil
+    centre perpendicular to the beam (:func:`beam_basis`) instead of the entrance-pupil plane z = ep_z."""
+    return (fields.abs() >= MAX_FIELD_ANGLE).any(-1)
+
+
+def beam_direction(fields: torch.Tensor) -> torch.Tensor:
+    """Unit directions (F, 3) of collimated beams at angle fields (F, 2) (degrees), as OpticStudio defines them:
+    tan θx = l/n, tan θy = m/n, with n < 0 where either angle is beyond 90° (θ in (-180°, 180°)). Below 90° this is
+    (tan θx, tan θy, 1) normalised; a single-axis field at or beyond 90° is (sin θ, cos θ) in its plane."""
+    t = torch.tan(torch.deg2rad(fields))
+    d = torch.stack([t[:, 0], t[:, 1], torch.ones_like(t[:, 0])], -1)
+    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+    wide = wide_fields(fields)
+    if bool(wide.any()):
+        rad = torch.deg2rad(fields)
+        s, c = torch.sin(rad), torch.cos(rad)
+        zero = torch.zeros_like(s[:, 0])
+        along_y = torch.stack([zero, s[:, 1], c[:, 1]], -1)  # θx = 0
+        along_x = torch.stack([s[:, 0], zero, c[:, 0]], -1)  # θy = 0
+        both = -d  # both angles set: the same l/n, m/n with n < 0
+        d_wide = torch.where((fields[:, 0] == 0)[:, None], along_y,
+                             torch.where((fields[:, 1] == 0)[:, None], along_x, both))
+        d = torch.where(wide[:, None], d_wide, d)
+    return d
+
+
+def beam_basis(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(e1, e2), each (F, 3): an orthonormal basis of the plane perpendicular to the beam directions ``d`` (F, 3),
+    the images of x̂ and ŷ under the rotation about ẑ × d that takes ẑ to d (continuous in the field angle; a
+    meridional y field has e1 = x̂, e2 = (0, cos θ, -sin θ)). Defined for d ≠ ±ẑ."""
+    dx, dy, dz = d.unbind(-1)
+    s2 = dx * dx + dy * dy
+    s2 = torch.where(s2 > 0, s2, torch.ones_like(s2))
+    # Rodrigues: R v = v cos α + (a × v) sin α + a (a·v)(1 - cos α), a = (-dy, dx, 0)/sin α, cos α = dz
+    k = (1.0 - dz) / s2  # (1 - cos α) / sin² α
+    e1 = torch.stack([dz + k * dy * dy, -k * dx * dy, -dx], -1)
+    e2 = torch.stack([-k * dx * dy, dz + k * dx * dx, -dy], -1)
+    return e1, e2
 
 
 def _directions_and_points(lens, fields, field_type, ep_z, dtype, depth=None):
     """Per field: chief-ray direction (F,3) for distant objects, or object point (F,3) for finite ones."""
     dist = object_distance(lens, depth)
     if field_type == "angle":
-        check_field_angles(fields)
+        check_field_angles(fields, distant=math.isinf(dist))
     if math.isinf(dist):
         if field_type != "angle":
             raise ValueError("a distant object (object distance inf) needs angle fields, not object heights")
-        t = torch.tan(torch.deg2rad(fields))
-        d = torch.stack([t[:, 0], t[:, 1], torch.ones_like(t[:, 0])], -1)
-        return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True), None
+        return beam_direction(fields), None
     z_obj = -dist
     if field_type == "angle":
         t = torch.tan(torch.deg2rad(fields))
@@ -98,6 +143,40 @@ def _directions_and_points(lens, fields, field_type, ep_z, dtype, depth=None):
     return None, pts
 
 
+def _wide_start_distance(lens, ep_z: float) -> float:
+    """How far (mm) before the plane across the beam a wide field's ray starts: beyond the first surface (a sphere
+    around the origin of radius |ep_z| + four times the first surface's size). Where it starts matters little: the
+    ray meets the first surface's front (its entry crossing, found from any point of its line) and its optical path
+    is counted from the plane wavefront through the origin."""
+    first = lens.surfaces[0]
+    size = max(x for x in (first.clear_radius(), first.semi_diameter, 1.0) if x is not None)
+    return abs(ep_z) + 4.0 * size + 1.0
+
+
+def to_beam_coordinates(uv: torch.Tensor, fields: torch.Tensor, ep_z: float) -> torch.Tensor:
+    """The coordinates (F, W, N, 2) mm on the plane across the beam (:func:`beam_basis`, through (0, 0, ep_z)) of the
+    rays of angle ``fields`` (F, 2) given by ``uv`` (F, W, N, 2) in their own parametrisation (the entrance-pupil
+    plane below 90°, the plane across the beam at or beyond): a ray's place in a continuation in field angle."""
+    wide = wide_fields(fields)
+    d = beam_direction(fields)
+    e1, e2 = (e[:, None, None, :] for e in beam_basis(d))
+    p = torch.cat([uv, torch.zeros_like(uv[..., :1])], -1)  # crossing of z = ep_z, relative to (0, 0, ep_z)
+    across = torch.stack([(p * e1).sum(-1), (p * e2).sum(-1)], -1)
+    return torch.where(wide[:, None, None, None], uv, across)
+
+
+def from_beam_coordinates(s: torch.Tensor, fields: torch.Tensor, ep_z: float) -> torch.Tensor:
+    """Inverse of :func:`to_beam_coordinates`: the ``uv`` (F, W, N, 2) of the rays of ``fields`` (F, 2) whose
+    coordinates on the plane across their beam are ``s`` (F, W, N, 2)."""
+    wide = wide_fields(fields)
+    d = beam_direction(fields)
+    e1, e2 = (e[:, None, None, :] for e in beam_basis(d))
+    q = s[..., :1] * e1 + s[..., 1:2] * e2  # relative to (0, 0, ep_z)
+    dz = d[:, None, None, 2:3]
+    uv = (q - d[:, None, None, :] * (q[..., 2:3] / torch.where(dz > 0, dz, torch.ones_like(dz))))[..., :2]
+    return torch.where(wide[:, None, None, None], s, uv)
+
+
 def entrance_plane_z(lens) -> float:
     """z (mm) of the paraxial entrance-pupil plane, where ``uv`` coordinates of :func:`rays_through` live."""
     return float(paraxial.stop_to_entrance_pupil(lens, lens.primary_wavelength)[0].detach())
@@ -110,8 +189,8 @@ def source_weight(lens, rays: RayBundle, depth=None) -> torch.Tensor:
     isotropically gives ∝ cos θ / r² on a plane at distance r along the ray, i.e. d_z³ / Δz². Shape S."""
     dz = rays.d[..., 2]
     dist = object_distance(lens, depth)
-    if math.isinf(dist):
-        return dz
+    if math.isinf(dist):  # per unit area of the entrance-pupil plane; of the plane across the beam beyond 90°
+        return torch.where(dz > 0, dz, torch.ones_like(dz))
     gap = entrance_plane_z(lens) + dist
     return dz**3 / gap**2
 
@@ -134,6 +213,11 @@ def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=t
         d = d_inf[:, None, None, :].expand(F, W, N, 3)
         z_start = min(ep_z, 0.0) - 1.0
         o = target + d * ((z_start - ep_z) / d[..., 2:3])
+        wide = wide_fields(torch.as_tensor(fields, dtype=dtype, device=device).reshape(-1, 2))
+        if bool(wide.any()):  # uv on the plane across the beam through (0, 0, ep_z); start well before the lens
+            e1, e2 = (e[:, None, None, :] for e in beam_basis(d_inf))
+            across = target.new_tensor([0.0, 0.0, ep_z]) + uv[..., :1] * e1 + uv[..., 1:2] * e2
+            o = torch.where(wide[:, None, None, None], across - d * _wide_start_distance(lens, ep_z), o)
         opl = n0 * (o * d).sum(-1)  # distance from the plane wavefront through the origin
     else:
         o = pts[:, None, None, :].expand(F, W, N, 3)
@@ -191,9 +275,33 @@ def aim_chief_rays(lens, fields, field_type, wavelength, depth=None, ep_z=None) 
     if bool(ok.all()):
         return uv1, ok
     uv_c = uv.clone()
-    for frac in (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 1.0):
-        uv_c, ok = _newton_aim(lens, uv_c, target, fields * frac, field_type, wavelength, h, depth, ep_z)
-    return uv_c, ok
+    wide = field_type == "angle" and bool(wide_fields(fields).any())
+    if not wide:
+        for frac in (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 1.0):
+            uv_c, ok = _newton_aim(lens, uv_c, target, fields * frac, field_type, wavelength, h, depth, ep_z)
+        return uv_c, ok
+    # a field at or beyond 90° (a fisheye's pupil moves far from its paraxial place): adaptive steps in field from the
+    # last aimed one, each start carried over on the plane across the beam (the parametrisation changes at 90°, see
+    # rays_through); a step whose aiming fails is halved
+    ep = entrance_plane_z(lens) if ep_z is None else float(ep_z)
+    done, step = 0.0, 0.1
+    good = uv.clone()
+    ok = torch.zeros(uv.shape[:3], dtype=torch.bool, device=uv.device)
+    while done < 1.0 and step >= WIDE_MIN_STEP:
+        frac = min(1.0, done + step)
+        trial = from_beam_coordinates(to_beam_coordinates(good, fields * done, ep), fields * frac, ep)
+        trial, ok = _newton_aim(lens, trial, target, fields * frac, field_type, wavelength, h, depth, ep_z)
+        if bool(ok.all()):
+            good, done, step = trial, frac, min(0.25, 1.5 * step)
+        else:
+            step *= 0.5
+    if done < 1.0:
+        return from_beam_coordinates(to_beam_coordinates(good, fields * done, ep), fields, ep), ok & False
+    return good, ok
+
+
+#: The smallest continuation step (fraction of the field) when aiming a field at or beyond 90°.
+WIDE_MIN_STEP = 1e-3
 
 
 def _pupil_samples(lens, pupil, generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -252,8 +360,11 @@ def _warn_dead_fields(rays: RayBundle, fields: torch.Tensor, wl: torch.Tensor) -
     dead = ~rays.valid.reshape(F, W, -1).any(-1)
     if bool(dead.any()):
         fi, wi = (int(v) for v in dead.nonzero()[0])
+        wide = ("; a field at or beyond 90° reaches the stop only through a first surface curved enough to take light "
+                "from behind its vertex (a fisheye's front element)" if bool(wide_fields(fields[fi:fi + 1]).any())
+                else "")
         warnings.warn(f"field {fields[fi].tolist()} at {float(wl[wi]):g} µm: every ray is vignetted or misses the "
-                      "lens (none reaches the stop); results for it are empty", VignettingWarning, stacklevel=3)
+                      f"lens (none reaches the stop){wide}; results for it are empty", VignettingWarning, stacklevel=3)
 
 
 def point_source_rays(

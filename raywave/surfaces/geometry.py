@@ -59,8 +59,13 @@ class Geometry(nn.Module):
         inv = torch.rsqrt(1.0 + zx * zx + zy * zy)
         return -zx * inv, -zy * inv, inv
 
-    def intersect(self, ox, oy, oz, dx, dy, dz):
-        """Ray parameter ``t`` (mm, signed) where o + t·d meets the surface, and a validity mask."""
+    def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
+        """Ray parameter ``t`` (mm, signed) where o + t·d meets the surface, and a validity mask.
+
+        ``front``: every ray comes from the surface's front (−z) side, whatever its direction (the tracer says so
+        where the light travels toward +z: before any mirror, or after an even number). Else the side is taken from
+        the ray's direction (toward −z: from behind, as after a mirror). The two agree for rays travelling toward +z;
+        they differ for a ray that meets a front surface travelling backward (a fisheye's field beyond 90°)."""
         raise NotImplementedError
 
     def paraxial_curvature(self) -> torch.Tensor:
@@ -82,7 +87,7 @@ class Plane(Geometry):
         zero = torch.zeros_like(x)
         return zero, zero, torch.ones_like(x)
 
-    def intersect(self, ox, oy, oz, dx, dy, dz):
+    def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
         ok = dz != 0
         t = -oz / torch.where(ok, dz, torch.ones_like(dz))
         return t, ok
@@ -143,7 +148,7 @@ class Standard(Geometry):
         inv = torch.rsqrt(nx * nx + ny * ny + nz * nz)
         return nx * inv, ny * inv, nz * inv
 
-    def intersect(self, ox, oy, oz, dx, dy, dz):
+    def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
         c, k = self.curvature, self.conic
         kp1 = 1.0 + k
         a = c * (dx * dx + dy * dy + kp1 * dz * dz)
@@ -154,9 +159,10 @@ class Standard(Geometry):
         # The root continuous with the plane as c -> 0: t = (-b - s·root) / a with s = +1 for a ray travelling toward
         # +z, -1 toward -z (after a mirror). Written as cc / (-b + s·root) it has no cancellation where -b and s·root
         # share a sign (the usual case, and the plane limit a -> 0); where they do not (an origin far from the
-        # vertex, e.g. on the other sheet of a hyperboloid) the quotient by a is the stable form.
+        # vertex, e.g. on the other sheet of a hyperboloid) the quotient by a is the stable form. ``front``: s = +1 for
+        # every ray (the crossing from the front side, a ray travelling backward onto a front surface included).
         root = safe_sqrt(disc, ok, fill=1.0)
-        sroot = torch.where(dz < 0, -root, root)
+        sroot = root if front else torch.where(dz < 0, -root, root)
         den = sroot - b
         by_a = (b * sroot > 0) & (a != 0)  # -b and s·root of opposite signs: den cancels
         ok = ok & ((den != 0) | by_a)
@@ -216,8 +222,8 @@ class EvenAsphere(Standard):
     def normal(self, x, y, z):
         return Geometry.normal(self, x, y, z)
 
-    def intersect(self, ox, oy, oz, dx, dy, dz):
-        return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz), ox, oy, oz, dx, dy, dz)
+    def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
+        return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz, front), ox, oy, oz, dx, dy, dz)
 
 
 def _newton_step(geom, t, ox, oy, oz, dx, dy, dz):
@@ -329,8 +335,8 @@ class OddAsphere(Standard):
     def normal(self, x, y, z):
         return Geometry.normal(self, x, y, z)
 
-    def intersect(self, ox, oy, oz, dx, dy, dz):
-        return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz), ox, oy, oz, dx, dy, dz)
+    def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
+        return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz, front), ox, oy, oz, dx, dy, dz)
 
 
 class Toroidal(Standard):
@@ -405,5 +411,5 @@ class Toroidal(Standard):
     def normal(self, x, y, z):
         return Geometry.normal(self, x, y, z)
 
-    def intersect(self, ox, oy, oz, dx, dy, dz):
-        return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz), ox, oy, oz, dx, dy, dz)
+    def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
+        return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz, front), ox, oy, oz, dx, dy, dz)

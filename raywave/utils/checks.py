@@ -22,6 +22,9 @@ MAX_WAVELENGTH_UM = 100.0
 #: Field angles (degrees) must be smaller than this in magnitude (lens files, traced sources): at 90° the chief
 #: ray travels across the axis. Defined once here.
 MAX_FIELD_ANGLE = 90.0
+#: For an object at infinity a field angle may go beyond 90° (a fisheye sees light from behind its first vertex), up
+#: to this (degrees, exclusive: 180° is the axis seen backward).
+MAX_WIDE_FIELD_ANGLE = 180.0
 
 
 def wavelength_um(w, name: str = "wavelength") -> float:

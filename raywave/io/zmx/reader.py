@@ -14,7 +14,7 @@ from raywave.io.zmx.surface import _surface
 from raywave.io.zmx.tables import (IGNORED_SYSTEM_KEYS, MERIT_OPERANDS, MULTI_CONFIG_APPLIED, MULTI_CONFIG_IGNORED,
                                    SURFACE_TYPES, SYSTEM_APERTURE_KEYS, UNIT_SCALE)
 from raywave.io.zmx.tokens import _float, _int, _parse_lines, _state, decode_zmx_bytes
-from raywave.utils.checks import MAX_FIELD_ANGLE
+from raywave.utils.checks import MAX_FIELD_ANGLE, MAX_WIDE_FIELD_ANGLE
 
 
 def read_zmx(path, config: int | None = None) -> dict:
@@ -56,6 +56,8 @@ class _System:
         self.ftyp = None  # ([FTYP integers], line)
         self.xfln: list[float] = []
         self.yfln: list[float] = []
+        self.field_lines: dict[int, int] = {}  # field index (0-based) -> the line that gives its value
+        self.yfln_line = None  # line of YFLN / XFLN
         self.wavm: dict[int, float] = {}  # WAVM index -> µm
         self.wavl: list[float] = []
         self.pwav = 1
@@ -87,6 +89,7 @@ def _interpret(text: str, path: str, config: int | None = None) -> dict:
     _apply_configuration(st, parsed, config, path)
     obj, img = parsed[0], parsed[-1]
     lens, doe = _split_doe(parsed, path, st.scale)
+    _check_axial_order(lens, path)
     distance = _object_distance(obj, img, path)
 
     spec: dict = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "units": dict(UNITS)}
@@ -148,8 +151,10 @@ def _system_entry(st: _System, ln: int, key: str, rest: str, path: str, unknown:
         st.ftyp = ([_int(t, path, ln, f"FTYP entry {i + 1}", 0, 10**6) for i, t in enumerate(toks)], ln)
     elif key in ("XFLN", "XFLD"):
         st.xfln = [_float(t, path, ln, key) for t in toks]
+        st.yfln_line = st.yfln_line or ln
     elif key in ("YFLN", "YFLD"):
         st.yfln = [_float(t, path, ln, key) for t in toks]
+        st.yfln_line = ln
     elif key == "WAVM":
         if len(toks) < 2:
             raise LensFileError("WAVM needs an index and a wavelength", path, ln)
@@ -286,6 +291,7 @@ def _apply_configuration(st: _System, parsed: list, config: int | None, path: st
                 st.yfln.append(0.0)
             if target >= 1:
                 st.yfln[target - 1] = value
+                st.field_lines[target - 1] = ln
         elif key == "APER":
             if st.sys_ap is not None:
                 st.sys_ap = (st.sys_ap[0], value, ln)
@@ -293,6 +299,7 @@ def _apply_configuration(st: _System, parsed: list, config: int | None, path: st
             p = parsed[by_number[target]]
             if key == "THIC":
                 p["disz"] = math.inf if abs(value) >= 1e10 and p is parsed[0] else value * st.scale
+                p["disz_line"] = ln
             else:
                 p["diam"] = value * st.scale if value > 0 else None
                 if isinstance(p["aperture"], dict) and p.get("floating_aperture"):
@@ -336,6 +343,27 @@ def _split_doe(parsed: list, path: str, scale: float):
         doe = _doe_from_surface(d, lens[-1], path, scale, sign=sign, medium=_medium_after(lens))
         lens[-1] = dict(lens[-1], disz=lens[-1]["disz"] + d["disz"])  # the refractive lens reaches the sensor
     return lens, doe
+
+
+def _check_axial_order(lens: list, path: str) -> None:
+    """A line-numbered error for a negative thickness (DISZ) while the light travels toward +z (before the first
+    mirror, or after an even number): the next surface's vertex lies before this one on the axis. OpticStudio
+    traces such a gap virtually (backward); raywave's surfaces must follow each other along the light
+    (:meth:`raywave.lens.lens.Lens.check_geometry` refuses it; here it is named with its line). Files with
+    coordinate breaks are left to that check (their surfaces lie in other frames)."""
+    if any(p["kind"] == "coordinate_break" for p in lens):
+        return
+    forward = True
+    for p, nxt in zip(lens[:-1], lens[1:]):
+        if p["material"] == "mirror":
+            forward = not forward
+        d = p["disz"]
+        if forward and d is not None and d < -1e-9:
+            medium = "air" if p["material"] == "air" else "glass"
+            raise LensFileError(f"surface {p['number']}: negative thickness DISZ {d:g} mm in {medium} while the "
+                                f"light travels toward +z: surface {nxt['number']} lies {-d:g} mm before it on the "
+                                "axis (OpticStudio traces such a gap backward, virtually; raywave needs the surfaces "
+                                "in the order the light meets them)", path, p.get("disz_line", p["line"]))
 
 
 def _medium_after(lens: list):
@@ -400,8 +428,9 @@ def _fields(st: _System, path: str, distance) -> dict:
     """The spec's "fields": FTYP 0 (angles, degrees), 1 (object heights), 2 (paraxial image heights), 3 (real image
     heights; heights scaled to mm); the first FTYP-count XFLN / YFLN entries (default: up to the last non-zero one),
     x components folded into radial fields; FTYP 4 (theodolite angles, azimuth x and elevation y) become the angle
-    from the axis, acos(cos x · cos y). An angle of 90° or more (a fisheye's) is left out with a warning: raywave
-    aims its rays with tan θ, which cannot reach it."""
+    from the axis, acos(cos x · cos y). An object at infinity may be seen beyond 90° (a fisheye's field, light from
+    behind the first vertex) and below 180°; an angle out of range (at or beyond 90° for a finite object) is left out
+    with a warning naming the field and its line."""
     ftyp, xfln, yfln = st.ftyp, st.xfln, st.yfln
     nfld = ftyp[0][2] if ftyp and len(ftyp[0]) >= 3 else None
     ftype = ftyp[0][0] if ftyp and ftyp[0] else 0
@@ -432,13 +461,16 @@ def _fields(st: _System, path: str, distance) -> dict:
     else:
         values = [math.hypot(x, y) if x else y for x, y in zip(xs, ys)]
     if ftype == 0:
-        wide = [v for v in values if not abs(v) < MAX_FIELD_ANGLE]
+        limit = MAX_WIDE_FIELD_ANGLE if distance == "inf" else MAX_FIELD_ANGLE
+        wide = [i for i, v in enumerate(values) if not abs(v) < limit]
         if wide:
-            kept = [v for v in values if abs(v) < MAX_FIELD_ANGLE] or [0.0]
-            line = ftyp[1] if ftyp else None
-            _warn(f"{path}:{line}: field angle{'s' if len(wide) > 1 else ''} {', '.join(f'{v:g}°' for v in wide)} "
-                  f"left out: raywave traces fields below {MAX_FIELD_ANGLE:g}° (a fisheye's wider field would need "
-                  "rays aimed from behind the first vertex); the fields read are "
+            kept = [v for i, v in enumerate(values) if i not in wide] or [0.0]
+            where = ", ".join(f"field {i + 1} ({values[i]:g}°, line {st.field_lines.get(i, st.yfln_line)})"
+                              for i in wide)
+            why = ("an object at infinity is seen at angles below 180°" if distance == "inf" else
+                   f"a finite object's angles must lie below {MAX_FIELD_ANGLE:g}° (the object point is placed with "
+                   "tan θ; beyond 90° only for an object at infinity)")
+            _warn(f"{path}:{st.field_lines.get(wide[0], st.yfln_line)}: {where} left out: {why}; the fields read are "
                   f"{', '.join(f'{v:g}°' for v in kept)}")
             values = kept
     else:

@@ -55,6 +55,7 @@ def _surface_entry(p: dict, where: str, ln: int, key: str, rest: str, path, scal
                                 "is CURV 0)", path, ln)
     elif key == "DISZ":
         p["disz"] = _value(toks, 0, where, key, path, ln) * scale
+        p["disz_line"] = ln
     elif key == "CONI":
         p["conic"] = _value(toks, 0, where, key, path, ln)
     elif key == "DIAM":
@@ -71,6 +72,8 @@ def _surface_entry(p: dict, where: str, ln: int, key: str, rest: str, path, scal
             _float(toks[1], path, ln, f"{where}: PARM"), ln)
     elif key == "GLAS":
         p["material"] = _glass(toks, where, path, ln)
+        if p["material"] == "mirror" and toks[0].upper() != "MIRROR":
+            p["notes"].append((NEGATIVE_INDEX_MIRROR_NOTE, ln))
     elif key in APERTURE_KEYS:
         surface_aperture(p, where, ln, key, rest, path, scale)
     elif key == "XDAT" and (p["kind"] == "diffractive" or p["zemax_type"] in EXTENDED_TYPES):
@@ -215,7 +218,17 @@ def _coordinate_break_parms(p: dict, where: str, path, scale: float) -> None:
                   "order": 0 if v[6] == 0.0 else 1}
 
 
+#: The note (a warning) on a model glass nd -1 read as a mirror.
+NEGATIVE_INDEX_MIRROR_NOTE = (
+    "model glass nd -1 read as a mirror (GLAS MIRROR): the old way of writing a reflection as a medium of index -1; "
+    "the surface after it, at the same place, refracts out of the mirror's medium as written")
+
+
 def _glass(toks, where, path, ln):
+    """The material of a GLAS entry: a catalog name, "mirror", "air", or a model glass ({"index": nd} without
+    dispersion, else {"model": {"nd", "vd"}}). A model glass of index exactly -1 is a mirror (old files write a
+    reflection as a medium of index -1, the negative-index convention of paraxial optics; the surface after it, at
+    the same place, leaves that medium); any other index <= 0 is an error."""
     if not toks:
         raise LensFileError(f"{where}: GLAS without a glass name", path, ln)
     name = toks[0]
@@ -228,6 +241,8 @@ def _glass(toks, where, path, ln):
         nd = _float(toks[3], path, ln, f"{where}: GLAS nd")
         # a missing vd is 0, as OpticStudio reads the line: a constant index (no dispersion)
         vd = _float(toks[4], path, ln, f"{where}: GLAS vd") if len(toks) > 4 else 0.0
+        if nd == -1.0:
+            return "mirror"
         if not nd > 0:
             raise LensFileError(f"{where}: model glass index nd {toks[3]} is not supported (an index must be > 0; "
                                 "a mirror is GLAS MIRROR)", path, ln)
