@@ -143,7 +143,9 @@ def test_stop_edge_argument_is_checked_and_shown(lens):
     hl = HybridLens(lens, BlankDOE(100, 1e-3), 0.7, stop_edge="exit_pupil")
     assert "stop_edge='exit_pupil'" in repr(hl)
     default = HybridLens(lens, BlankDOE(100, 1e-3), 0.7)
-    assert (default.stop_edge, default.edge_step) == ("exit_pupil", "fresnel")  # the default since issue 19
+    # the exit-pupil edge is the default since issue 19; its step "adaptive" (the Fresnel step, or the DOE-plane cut
+    # where that is exact: a blank DOE on a spherical wave) since issue 47
+    assert (default.stop_edge, default.edge_step) == ("exit_pupil", "adaptive")
     assert HybridLens(lens, BlankDOE(100, 1e-3), 0.7, stop_edge="doe").stop_edge == "doe"  # the paper's model
     assert hl.exit_pupil_z() == pytest.approx(7.6 - 6.03, abs=0.01)  # virtual, inside the lens
 

@@ -4,9 +4,12 @@ Fresnel step to the DOE plane."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import torch
 
+from raywave.doe.base import BlankDOE
+from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.wave.grid import Field
 from raywave.wave.propagation import propagate_window
 from raywave.hybrid.coherent.accurate import accurate_field_steps
@@ -81,6 +84,13 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
     traced them (None: traced here)."""
     ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
+    if method == "adaptive":
+        method = adaptive_edge_step(lens, doe, field, wavelength, depth, field_type)
+    if method == "doe":  # exact for this source (see adaptive_edge_step): the edge cut on the DOE plane
+        fd = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
+                                             chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
+                                             check=check, chief_uv=chief_uv, bbox=bbox, entrance=entrance)
+        return fd.with_info(stop_edge="exit_pupil")
     method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
     if method == "fresnel":
         rim = None
@@ -92,7 +102,7 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
                                              ripple_zones=ripple_zones, stop_rim=rim, bbox=bbox, entrance=entrance)
         return fd.with_info(stop_edge="exit_pupil")
     if method != "asm":
-        raise ValueError(f"method must be 'auto', 'fresnel' or 'asm', got {method!r}")
+        raise ValueError(f"method must be 'adaptive', 'auto', 'fresnel' or 'asm', got {method!r}")
     _check_xp_beam(xb, p_sim, z_xp)
     _, fld, wl, n, (p, x0, y0, sy, sx), _, center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
@@ -163,6 +173,108 @@ def _edge_method(lens, field, wavelength: float, depth, z_xp: float, p_sim: floa
         big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
         method = "fresnel" if big else "asm"
     return method, xb
+
+
+#: ``method="adaptive"`` of :func:`exit_pupil_field`: the rel L1 error (of the PSF) the exit-pupil edge aims at
+EDGE_STEP_TOL = 1e-3
+#: the Fresnel step's error estimate :func:`fresnel_step_estimate` is ``FRESNEL_ERROR_SCALE / N_F`` (``N_F`` the
+#: Fresnel number of the stop edge's circle seen from the DOE plane): calibrated to bound the step's measured error
+#: against converged references (benchmarks/stop_edge_references.py, issue 47): the F/3 double Gauss on axis (its
+#: blank DOE 3.6 mm before focus, N_F 177) 1.07e-2, the 50 mm singlet 1.2e-3 (N_F 363), the Cooke triplet 5.6e-4 …
+#: 1.2e-3 (N_F 448 … 471)
+FRESNEL_ERROR_SCALE = 2.0
+
+
+def edge_fresnel_number(beam_half: float, wavelength: float, n: float, d: float, r: float) -> float:
+    """The Fresnel number ``N_F = a² n / (λ L)`` of the stop edge's circle as the DOE plane sees it: ``a`` (mm) the
+    beam's half width on the DOE plane, ``L = d (R − d)/R`` the edge's Fresnel length there (``d`` mm from the
+    edge's image, the exit pupil, to the DOE plane; ``R`` mm from it to the focus, the sensor: the Fresnel scaling of
+    a converging wave), ``wavelength`` µm, ``n`` the image medium's index. The number of Fresnel zones the edge's
+    ripples are spread over across the beam's radius is ``sqrt(N_F)``: the knife-edge step is a local (straight,
+    slowly varying edge) expansion in ``1/sqrt(N_F)`` that keeps its first order (the edge's curvature); near focus
+    (``R − d → 0``) the ripples cover the beam and ``N_F`` falls. ``inf`` where ``d`` is 0 (the DOE at the pupil)."""
+    length = abs(d * (r - d) / r) if r != 0 else abs(d)
+    if length == 0.0:
+        return math.inf
+    return beam_half * beam_half * n / (wavelength * 1e-3 * length)
+
+
+def fresnel_step_estimate(beam_half: float, wavelength: float, n: float, d: float, r: float) -> float:
+    """Host-side estimate (rel L1 of the PSF) of the Fresnel edge step's error for one source:
+    :data:`FRESNEL_ERROR_SCALE` / :func:`edge_fresnel_number` (arguments as there). An order-of-magnitude bound
+    calibrated on the real lenses of issue 47 (not a measurement: the step's error also depends on how fast the
+    beam's amplitude varies across the edge's ripples, e.g. a lens's spherical aberration near focus)."""
+    nf = edge_fresnel_number(beam_half, wavelength, n, d, r)
+    return 0.0 if math.isinf(nf) else FRESNEL_ERROR_SCALE / nf
+
+
+#: the rings (fractions of the stop's radius) and azimuths of the rays with which :func:`edge_aberration` tests the
+#: wave near the stop's edge
+SPHERE_RINGS = (0.9, 1.0, 1.1)
+SPHERE_AZIMUTHS = 16
+
+
+def edge_aberration(lens, field, wavelength: float, depth, field_type: str | None = None) -> float:
+    """How far (waves, ≥ 0) the wave near the stop's edge is from a sphere, for one source (2,) at ``wavelength``
+    µm: the rays through :data:`SPHERE_RINGS` × :data:`SPHERE_AZIMUTHS` points of the stop (apertures off, straight
+    lines in the image medium after the last surface), the point X closest to all of them (least squares), and
+    ``max_i dist(ray_i, X) · NA / λ_m`` (``NA = n·max_i |d_i × d̄|``, the rays' spread about their mean direction
+    ``d̄``; ``λ_m = λ/n``): the transverse aberration of the edge's rays in units of the focus's diffraction scale,
+    about the wave aberration (waves) that the edge's neighbourhood carries. 0 for a perfect sphere (any focus,
+    any defocus of the sensor); ``inf`` when a ray cannot be traced.
+
+    With a blank DOE this says where the stop's edge may be cut sharply on the DOE plane instead of at the exit
+    pupil: for a spherical wave the focal field of a sharp aperture does not depend on where along the cone the
+    aperture sits (the Fresnel scaling theorem), so the DOE-plane edge is then exact and cheaper than the edge step
+    (the F/1.3 asphere on axis: 1.2e-4 rel L1 from the converged Huygens PSF, where the Fresnel step leaves 1.4e-3)."""
+    dev = lens.device
+    f = torch.as_tensor(field, dtype=torch.float64, device=dev).reshape(1, 2)
+    th = torch.arange(SPHERE_AZIMUTHS, dtype=torch.float64, device=dev) * (2 * math.pi / SPHERE_AZIMUTHS)
+    r = torch.tensor(SPHERE_RINGS, dtype=torch.float64, device=dev)[:, None]
+    px, py = (r * torch.cos(th)).reshape(-1), (r * torch.sin(th)).reshape(-1)
+    wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=dev)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", VignettingWarning)  # a diagnostic trace, apertures off
+        rays = point_source_rays(lens, f, wl, pupil=(px, py), aim="full", depth=depth,
+                                 field_type=field_type or lens.field_type)
+        out = lens.trace(rays, apertures=False)
+        if not bool(out.valid.all()):
+            return math.inf
+        o, d = out.o[0, 0], out.d[0, 0]
+        d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+        proj = torch.eye(3, dtype=torch.float64, device=dev) - d[:, :, None] * d[:, None, :]  # (N, 3, 3)
+        x = torch.linalg.solve(proj.sum(0), (proj @ o[:, :, None]).sum(0))[:, 0]
+        dist = torch.linalg.vector_norm((proj @ (x - o)[:, :, None])[:, :, 0], dim=-1)
+        mean = d.mean(0)
+        mean = mean / torch.linalg.vector_norm(mean)
+        n = float(lens.surfaces[-1].material.n(wl[0]))
+        na = n * float(torch.linalg.vector_norm(torch.linalg.cross(d, mean.expand_as(d)), dim=-1).max())
+    value = float(dist.max()) * na / (float(wavelength) * 1e-3 / n)
+    return value if math.isfinite(value) else math.inf
+
+
+#: ``method="adaptive"``: the wave near the stop's edge is taken for a sphere (:func:`edge_aberration`, waves) up to
+#: this value. Measured (rel L1 of the DOE-plane edge from converged references): 2.6e-5 waves on the F/1.3 asphere
+#: on axis, 1.2e-4; ideal lenses ~1e-12 waves, 2.8e-4 (the wave-optics truths of tests/test_ideal_lens_truth.py);
+#: 0.56 waves (the Cooke triplet on axis) already 1.8e-2, 0.11 on the bundled asphere on axis
+SPHERE_TOL = 0.01
+
+
+def is_blank(doe) -> bool:
+    """Whether ``doe`` has zero phase at every wavelength and nothing to train (:class:`raywave.doe.BlankDOE`):
+    only its clear aperture acts on the field."""
+    return isinstance(doe, BlankDOE)
+
+
+def adaptive_edge_step(lens, doe, field, wavelength: float, depth, field_type: str | None = None) -> str:
+    """The edge step of ``method="adaptive"`` (the default of :class:`raywave.hybrid.HybridLens`) for one source:
+    "doe" where the DOE is blank (:func:`is_blank`) and the wave near the stop's edge is a sphere to within
+    :data:`SPHERE_TOL` waves (:func:`edge_aberration`): the focal field of a sharp aperture on a spherical wave does
+    not depend on the plane along the cone where it cuts (the Fresnel scaling theorem), so the edge cut on the DOE
+    plane is the exit-pupil edge's exact result there, and the cheapest; else "fresnel" (the knife-edge step)."""
+    if is_blank(doe) and edge_aberration(lens, field, wavelength, depth, field_type) <= SPHERE_TOL:
+        return "doe"
+    return "fresnel"
 
 
 def _check_xp_beam(xb, p_sim: float, z_xp: float) -> None:
