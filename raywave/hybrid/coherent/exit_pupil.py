@@ -1,5 +1,5 @@
 """The stop's sharp edge at the exit pupil (:func:`exit_pupil_field`): the exact angular-spectrum step or the
-Fresnel step to the DOE plane."""
+Fresnel step to the DOE plane, and the per-source choice of ``method="adaptive"`` (:func:`adaptive_edge_step`)."""
 
 from __future__ import annotations
 
@@ -64,7 +64,10 @@ def exit_pupil_field(lens, doe, field, wavelength: float, depth, z_xp: float, z_
     Args: as :func:`accurate_field`, plus ``z_xp`` (mm) and ``chief_xp`` (the chief ray on that plane).
     ``method="asm"`` raises ValueError when the beam on the exit-pupil plane spans more than
     :data:`MAX_XP_SAMPLES` simulation samples (a large beam: the field there would not fit in memory).
-    ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel". ``rim_images``: each node's
+    ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel". ``method="adaptive"``
+    (:class:`~raywave.hybrid.HybridLens`'s default): :func:`adaptive_edge_step` per source, the Fresnel step or, with
+    a blank DOE on a spherical wave, the edge cut on the DOE plane (``method="doe"``, exact there: the construction of
+    :func:`accurate_field` with the stop's sharp edge on the DOE plane). ``rim_images``: each node's
     edge is sharp at its stop-rim point's own image (:func:`stop_rim_images`); False: on the exit-pupil plane for
     every node (both steps as they were before the rim images)."""
     return run_serial(exit_pupil_field_steps(lens, doe, field, wavelength, depth, z_xp, z_doe, z_sensor, chief_xp,
@@ -175,16 +178,6 @@ def _edge_method(lens, field, wavelength: float, depth, z_xp: float, p_sim: floa
     return method, xb
 
 
-#: ``method="adaptive"`` of :func:`exit_pupil_field`: the rel L1 error (of the PSF) the exit-pupil edge aims at
-EDGE_STEP_TOL = 1e-3
-#: the Fresnel step's error estimate :func:`fresnel_step_estimate` is ``FRESNEL_ERROR_SCALE / N_F`` (``N_F`` the
-#: Fresnel number of the stop edge's circle seen from the DOE plane): calibrated to bound the step's measured error
-#: against converged references (benchmarks/stop_edge_references.py, issue 47): the F/3 double Gauss on axis (its
-#: blank DOE 3.6 mm before focus, N_F 177) 1.07e-2, the 50 mm singlet 1.2e-3 (N_F 363), the Cooke triplet 5.6e-4 …
-#: 1.2e-3 (N_F 448 … 471)
-FRESNEL_ERROR_SCALE = 2.0
-
-
 def edge_fresnel_number(beam_half: float, wavelength: float, n: float, d: float, r: float) -> float:
     """The Fresnel number ``N_F = a² n / (λ L)`` of the stop edge's circle as the DOE plane sees it: ``a`` (mm) the
     beam's half width on the DOE plane, ``L = d (R − d)/R`` the edge's Fresnel length there (``d`` mm from the
@@ -192,20 +185,13 @@ def edge_fresnel_number(beam_half: float, wavelength: float, n: float, d: float,
     a converging wave), ``wavelength`` µm, ``n`` the image medium's index. The number of Fresnel zones the edge's
     ripples are spread over across the beam's radius is ``sqrt(N_F)``: the knife-edge step is a local (straight,
     slowly varying edge) expansion in ``1/sqrt(N_F)`` that keeps its first order (the edge's curvature); near focus
-    (``R − d → 0``) the ripples cover the beam and ``N_F`` falls. ``inf`` where ``d`` is 0 (the DOE at the pupil)."""
+    (``R − d → 0``) the ripples cover the beam and ``N_F`` falls. ``inf`` where ``d`` is 0 (the DOE at the pupil).
+    A diagnostic: it does not predict the step's error (issue 47: the double Gauss on axis, N_F 177, 1.07e-2 from the
+    converged Huygens PSF; the bundled asphere, N_F 105–130, and the two-lens truth system, N_F 27, ≤ 9e-4)."""
     length = abs(d * (r - d) / r) if r != 0 else abs(d)
     if length == 0.0:
         return math.inf
     return beam_half * beam_half * n / (wavelength * 1e-3 * length)
-
-
-def fresnel_step_estimate(beam_half: float, wavelength: float, n: float, d: float, r: float) -> float:
-    """Host-side estimate (rel L1 of the PSF) of the Fresnel edge step's error for one source:
-    :data:`FRESNEL_ERROR_SCALE` / :func:`edge_fresnel_number` (arguments as there). An order-of-magnitude bound
-    calibrated on the real lenses of issue 47 (not a measurement: the step's error also depends on how fast the
-    beam's amplitude varies across the edge's ripples, e.g. a lens's spherical aberration near focus)."""
-    nf = edge_fresnel_number(beam_half, wavelength, n, d, r)
-    return 0.0 if math.isinf(nf) else FRESNEL_ERROR_SCALE / nf
 
 
 #: the rings (fractions of the stop's radius) and azimuths of the rays with which :func:`edge_aberration` tests the
