@@ -257,7 +257,10 @@ def adaptive_edge_step(lens, doe, field, wavelength: float, depth, field_type: s
     "doe" where the DOE is blank (:func:`is_blank`) and the wave near the stop's edge is a sphere to within
     :data:`SPHERE_TOL` waves (:func:`edge_aberration`): the focal field of a sharp aperture on a spherical wave does
     not depend on the plane along the cone where it cuts (the Fresnel scaling theorem), so the edge cut on the DOE
-    plane is the exit-pupil edge's exact result there, and the cheapest; else "fresnel" (the knife-edge step)."""
+    plane is the exit-pupil edge's exact result there, and the cheapest; else "fresnel" (the knife-edge step).
+    A blank DOE's PSF and a phase DOE's PSF of the same lens may so come from different edge constructions: their
+    difference then holds the Fresnel step's own error (1.3e-3 in a grating's first-order efficiency unmixed with
+    the blank PSF at F/4, tests/test_doe_params.py); pass ``edge_step="fresnel"`` to compare them like for like."""
     if is_blank(doe) and edge_aberration(lens, field, wavelength, depth, field_type) <= SPHERE_TOL:
         return "doe"
     return "fresnel"
