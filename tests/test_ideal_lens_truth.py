@@ -217,10 +217,15 @@ def test_adaptive_step_cuts_the_edge_on_the_doe_plane_only_for_a_blank_doe_on_a_
     from raywave.lens.build import bundled_lens_path, load_lens
 
     lens = two_lens_engine_lens(0.0)
-    assert adaptive_edge_step(lens, BlankDOE(100, 1e-3), (0.0, 0.0), WL, None) == "doe"
-    assert adaptive_edge_step(lens, FresnelDOE(200.0, (100, 100), 1e-3), (0.0, 0.0), WL, None) == "fresnel"
+    hl = HybridLens(lens, BlankDOE(100, 1e-3), 5.0)
+    planes = (hl.doe_z(), hl.sensor_z())
+    assert adaptive_edge_step(lens, hl.doe, (0.0, 0.0), WL, None, *planes) == "doe"
+    assert adaptive_edge_step(lens, FresnelDOE(200.0, (100, 100), 1e-3), (0.0, 0.0), WL, None, *planes) == "fresnel"
+    # the same sphere on a sensor 0.3 mm out of focus: the plane of the cut matters (0.9 waves of defocus)
+    assert adaptive_edge_step(lens, hl.doe, (0.0, 0.0), WL, None, planes[0], planes[1] - 0.3) == "fresnel"
     asphere = load_lens(bundled_lens_path("asphere_hk51"))
-    assert adaptive_edge_step(asphere, BlankDOE(100, 1e-3), (0.0, 0.0), 0.53, None) == "fresnel"
+    hl = HybridLens(asphere, BlankDOE(100, 1e-3), 0.7)
+    assert adaptive_edge_step(asphere, hl.doe, (0.0, 0.0), 0.53, None, hl.doe_z(), hl.sensor_z()) == "fresnel"
     lens = _single_lens(None, 10.0, WL)
     out = {}
     for name, kw in (("default", {}), ("doe", {"stop_edge": "doe"}), ("fresnel", {"edge_step": "fresnel"})):

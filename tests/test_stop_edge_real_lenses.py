@@ -155,7 +155,7 @@ def test_f13_asphere_on_axis_default_is_the_exact_doe_plane_cut():
     path = LENSES["asphere_f13"]
     hl = load_hybrid(path, fields=[[0.0, 0.0]], field_type="angle")
     wl = hl.lens.primary_wavelength
-    assert adaptive_edge_step(hl.lens, hl.doe, (0.0, 0.0), wl, None) == "doe"
+    assert adaptive_edge_step(hl.lens, hl.doe, (0.0, 0.0), wl, None, hl.doe_z(), hl.sensor_z()) == "doe"
     hl.intensity_upsample = 8
     with torch.no_grad():
         r = hl.psf_result((0.0, 0.0), wl, ks=32)
