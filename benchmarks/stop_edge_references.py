@@ -1,21 +1,33 @@
-"""Issue 47, "measure first": the default stop edge (exit pupil, Fresnel step), ``edge_step="asm"`` and
-``stop_edge="doe"`` against a *converged* Huygens exit-pupil reference, with the reference's own convergence beside
-every figure. The reference is :func:`raywave.models.exit_pupil.huygens_psf` at the pupil grids ``--levels``
-(default 256 and 384 cells a side); its error falls as 1/n² (docs/ray-wave.md), so the last two levels give the
-Richardson extrapolation (the reference used) and the estimate ``|P_n1 − P_n0| / ((n1/n0)² − 1)`` of the finer
-level's error (``ref_error``; an upper bound for the extrapolation while the 1/n² law holds). With three levels the
-extrapolations of the two pairs are also compared (``ref_richardson_change``).
+"""Issue 47: the default stop edge (exit pupil, ``edge_step="adaptive"``) and the other edges against *converged*
+references, with each reference's own convergence beside every figure. One JSON line per case (and the list with
+``-o``).
 
-Cases: ``asphere:DEG`` (the bundled hybrid_asphere's lens, 6 mm blank DOE of 1 µm pixels at 0.7 mm, 3 µm sensor
-pixels, λ 0.53 µm) and ``real:NAME:FRAC`` (the lenses of tests/test_stop_edge_real_lenses.py through ``raywave psf``'s
-defaults, at FRAC of the lens's largest field; sensor pitch as the slow test's SETTINGS, 3 µm where they say so).
-One JSON line per case.
+References:
 
-    PYTHONPATH=. python benchmarks/stop_edge_references.py asphere:0 real:double_gauss:0 [--levels 256 384] [-o F]
+- ``real:NAME:FRAC`` (the lenses of tests/test_stop_edge_real_lenses.py through ``raywave psf``'s defaults, their
+  blank DOE, at FRAC of the lens's largest field; sensor pitch as the slow test's SETTINGS) and ``asphere:DEG`` (the
+  bundled hybrid_asphere's lens, a 6 mm blank DOE of 1 µm pixels at 0.7 mm, 3 µm sensor pixels, λ 0.53 µm): the
+  Huygens exit-pupil PSF, :func:`raywave.models.exit_pupil.huygens_psf` with ``n_pupil="auto"`` (levels ×1.5 up to
+  ``--max-n`` cells, the Richardson extrapolation of the last two; ``ref_error`` its own estimate, an upper bound for
+  the extrapolation while its 1/n² law holds; ``ref_levels`` each level's change).
+- ``two_lens:DEG`` (tests/test_ideal_lens_truth.py's two ideal lenses, a blank DOE 5 mm behind lens B) and
+  ``single:CASE`` (one ideal lens, a DOE 1 mm behind it: binary, 16level, fresnel200 (a Fresnel DOE, object at
+  200 mm), blank): the independent wave-optics truths of tests/wave_truth.py (no rays, no exit pupil: the stop's
+  edge diffracts from the stop itself); ``ref_error``: the two-lens truth's change from 2 to 1 µm sampling.
+
+Variants: ``default`` (the engine's default), ``fresnel`` / ``asm`` (``edge_step``), ``doe`` (``stop_edge="doe"``,
+the paper's edge), and ``*_iu8`` (the same with ``intensity_upsample=8``: the sensor pixels' quadrature, which at
+4 leaves ~1e-3 on a PSF as sharp as the DOE grid allows, e.g. the F/1.3 asphere at its 0.56 µm Nyquist pitch).
+``--cache DIR`` keeps the references (torch files) so that a sweep can be resumed.
+
+    PYTHONPATH=. python benchmarks/stop_edge_references.py real:double_gauss:0 asphere:0 two_lens:0 single:blank \
+        [--variants default doe] [--max-n 432] [--cache DIR] [-o F]
 """
 
 import argparse
 import json
+import math
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -32,95 +44,131 @@ LENSES = {
 #: sensor pitch (mm) of the slow test where its default (the DOE pitch) leaves most of the PSF outside the crop
 PITCH = {("asphere_f13", 0.7): 3e-3, ("asphere_f13", 1.0): 3e-3, ("double_gauss", 0.7): 3e-3,
          ("double_gauss", 1.0): 3e-3, ("singlet_nbk7_50", 1.0): 3e-3}
-VARIANTS = {"default": {}, "asm": {"edge_step": "asm"}, "doe": {"stop_edge": "doe"}}
+VARIANTS = {"default": {}, "fresnel": {"edge_step": "fresnel"}, "asm": {"edge_step": "asm"},
+            "doe": {"stop_edge": "doe"}, "default_iu8": {"intensity_upsample": 8},
+            "doe_iu8": {"stop_edge": "doe", "intensity_upsample": 8}}
+SINGLE = {"binary": "binary", "16level": "16-level at 0.45 µm", "fresnel200": "Fresnel, object at 200 mm",
+          "blank": "blank"}
 
 
 def l1(a, b) -> float:
     return float((torch.as_tensor(a) - torch.as_tensor(b)).abs().sum())
 
 
-def engine_psfs(case: str, ks: int, variants):
-    """{variant: (psf (ks, ks) tensor, seconds) or error string}, plus (lens, field, wavelength, pitch, sensor z,
-    centre) for the reference."""
+def _hybrid(case: str, kw: dict):
+    """``(HybridLens, field (2,), wavelength µm, depth)`` of a case with the variant's keywords ``kw``."""
     from raywave.doe import BlankDOE
     from raywave.hybrid import HybridLens
 
+    kw = dict(kw)
+    iu = kw.pop("intensity_upsample", 4)
     kind, *rest = case.split(":")
-    out = {}
     if kind == "asphere":
         from raywave.lens.build import bundled_lens_path, load_lens
 
         lens = load_lens(bundled_lens_path("asphere_hk51"))
-        fld, wl, pitch = (0.0, float(rest[0])), 0.53, 3e-3
-        for v in variants:
-            hl = HybridLens(lens, BlankDOE(6000, 1e-3), 0.7, sensor_pitch=pitch, **VARIANTS[v])
-            t = time.perf_counter()
+        hl = HybridLens(lens, BlankDOE(6000, 1e-3), 0.7, sensor_pitch=3e-3, intensity_upsample=iu, **kw)
+        return hl, (0.0, float(rest[0])), 0.53, None
+    if kind == "real":
+        from raywave.assembly.build import load_hybrid
+        from raywave.lens.build import load_lens, resolve_lens_path
+
+        name, frac = rest[0], float(rest[1])
+        lens = load_lens(resolve_lens_path(LENSES[name]))
+        fld = (0.0, frac * max(float(f) for f in lens.fields))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            hl = load_hybrid(LENSES[name], sensor_pitch=PITCH.get((name, frac)), fields=[list(fld), [0.0, 0.0]],
+                             field_type="angle", **kw)
+        hl.intensity_upsample = iu
+        return hl, fld, hl.lens.primary_wavelength, None
+    sys.path.insert(0, str(ROOT / "tests"))
+    import test_ideal_lens_truth as t
+
+    if kind == "two_lens":
+        th = float(rest[0])
+        hl = HybridLens(t.two_lens_engine_lens(th), BlankDOE(2000, 1e-3), 5.0, sensor_pitch=t.PIXEL,
+                        intensity_upsample=iu, **kw)
+        return hl, (0.0, th), t.WL, None
+    doe, wl, depth, sensor = t._doe(SINGLE[rest[0]])
+    hl = HybridLens(t._single_lens(depth, sensor, wl), doe, t.DOE_DIST, sensor_pitch=t.PIXEL, intensity_upsample=iu,
+                    **kw)
+    return hl, (0.0, 0.0), wl, depth
+
+
+def engine_psfs(case: str, ks: int, variants):
+    """``({variant: (psf (ks, ks), seconds, warnings) or an error string}, (hybrid, field, λ, depth, centre))``."""
+    out, geo = {}, None
+    for v in variants:
+        hl, fld, wl, depth = _hybrid(case, VARIANTS[v])
+        t = time.perf_counter()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
             try:
-                r = hl.psf_result(fld, wl, ks=ks)
-                out[v] = (r.psf[0, 0].detach(), time.perf_counter() - t)
-                center = tuple(float(c) for c in r.center[0, 0])
+                with torch.no_grad():
+                    r = hl.psf_result(fld, wl, ks=ks, depth=depth)
             except ValueError as e:
                 out[v] = str(e)[:200]
-        return out, (lens, fld, wl, pitch, float(hl.sensor_z()), center, {})
-    from raywave.cli.psf_commands import compute_psf
-    from raywave.lens.build import load_lens, resolve_lens_path
-
-    name, frac = rest[0], float(rest[1])
-    path = LENSES[name]
-    lens = load_lens(resolve_lens_path(path))
-    fld = (0.0, frac * max(float(f) for f in lens.fields))
-    pitch = PITCH.get((name, frac))
-    hl = None
-    for v in variants:
-        t = time.perf_counter()
-        try:
-            r = compute_psf(path, field=fld, ks=ks, sensor_pitch=pitch, **VARIANTS[v])
-            out[v] = (torch.as_tensor(r["psf"]), time.perf_counter() - t)
-            hl = r["hybrid"]
-            center = tuple(float(c) for c in r["center"])
-        except ValueError as e:
-            out[v] = str(e)[:200]
-    info = dict(doe_distance=hl.doe_distance, doe_pitch=float(hl.doe.pitch))
-    return out, (hl.lens, fld, hl.lens.primary_wavelength, hl.sensor_pitch, float(hl.sensor_z()), center, info)
+                continue
+        out[v] = (r.psf[0, 0].detach(), time.perf_counter() - t,
+                  sorted({f"{w.category.__name__}: {str(w.message)[:100]}" for w in caught
+                          if w.category.__name__ != "SensorCropWarning"}))
+        geo = (hl, fld, wl, depth, tuple(float(c) for c in r.center[0, 0]))
+    return out, geo
 
 
-def reference(lens, fld, wl, pitch, z_s, center, ks, levels, sphere="paraxial"):
-    """The Huygens PSFs at ``levels``, the Richardson extrapolation of the last two, its error estimate."""
-    from raywave.models.exit_pupil import huygens_psf
+def reference(case: str, geo, ks: int, max_n: int, cache: Path | None):
+    """``(reference psf, row)``: the converged reference of the case and its convergence (cached in ``cache``)."""
+    fn = None if cache is None else cache / f"ref_{case.replace(':', '_')}_ks{ks}.pt"
+    if fn is not None and fn.exists():
+        d = torch.load(fn, weights_only=False)
+        return d["psf"], d["row"]
+    hl, fld, wl, depth, center = geo
+    kind, *rest = case.split(":")
+    t = time.perf_counter()
+    if kind in ("real", "asphere"):
+        from raywave.models.exit_pupil import huygens_psf
 
-    ps, times = {}, {}
-    for n in levels:
-        t = time.perf_counter()
-        ps[n] = huygens_psf(lens, fld, wl, ks=ks, pitch=pitch, center=center, n_pupil=n, sensor_z=z_s,
-                            sphere=sphere).psf
-        times[n] = time.perf_counter() - t
-    n0, n1 = levels[-2], levels[-1]
-    r2 = (n1 / n0) ** 2
-    ext = ((r2 * ps[n1] - ps[n0]) / (r2 - 1)).clamp_min(0)
-    ext = ext / ext.sum()
-    row = dict(levels=list(levels), huygens_s=times, ref_error=l1(ps[n1], ps[n0]) / (r2 - 1),
-               ref_changes={f"{a}->{b}": l1(ps[b], ps[a]) for a, b in zip(levels, levels[1:])})
-    if len(levels) >= 3:
-        m0 = levels[-3]
-        q2 = (n0 / m0) ** 2
-        prev = ((q2 * ps[n0] - ps[m0]) / (q2 - 1)).clamp_min(0)
-        row["ref_richardson_change"] = l1(prev / prev.sum(), ext)
-    return ext, ps[n1], row
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            r = huygens_psf(hl.lens, fld, wl, ks=ks, pitch=hl.sensor_pitch, center=center, n_pupil="auto",
+                            sensor_z=float(hl.sensor_z()), max_n_pupil=max_n)
+        psf = r.psf
+        row = dict(reference="huygens_psf(n_pupil='auto')", ref_error=r.error_estimate, ref_n_pupil=r.n_pupil,
+                   ref_levels=[list(lv) for lv in r.levels],
+                   ref_warnings=sorted({str(w.message)[:120] for w in caught}))
+    else:
+        sys.path.insert(0, str(ROOT / "tests"))
+        import test_ideal_lens_truth as tl
+        from wave_truth import ideal_lens_doe_psf, two_ideal_lenses_psf
+
+        if kind == "two_lens":
+            psf = two_ideal_lenses_psf(tl.SYSTEM, fld, wl, center, ks, tl.PIXEL, pitch=1e-3)
+            coarse = two_ideal_lenses_psf(tl.SYSTEM, fld, wl, center, ks, tl.PIXEL, pitch=2e-3)
+            row = dict(reference="wave_truth.two_ideal_lenses_psf (1 µm)", ref_error=l1(psf, coarse),
+                       ref_note="ref_error: the truth's change from 2 to 1 µm sampling")
+        else:
+            doe, wl, depth, sensor = tl._doe(SINGLE[rest[0]])
+            psf = ideal_lens_doe_psf(tl.F1, tl.R1, wl, center, ks, tl.PIXEL, sensor, doe=doe, doe_dist=tl.DOE_DIST,
+                                     depth=depth)
+            row = dict(reference="wave_truth.ideal_lens_doe_psf", ref_error=None,
+                       ref_note="the truth samples the DOE's own 1 µm grid (tests/test_ideal_lens_truth.py)")
+    row["ref_s"] = time.perf_counter() - t
+    if fn is not None:
+        torch.save(dict(psf=psf, row=row), fn)
+    return psf, row
 
 
-def run(case: str, ks: int, levels, variants, sphere="paraxial"):
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        eng, (lens, fld, wl, pitch, z_s, center, info) = engine_psfs(case, ks, variants)
-        ext, finest, row = reference(lens, fld, wl, pitch, z_s, center, ks, levels, sphere)
-    res = dict(case=case, ks=ks, sphere=sphere, field=fld, wavelength=wl, pitch=pitch, **info, **row)
+def run(case: str, ks: int, variants, max_n: int, cache):
+    eng, geo = engine_psfs(case, ks, variants)
+    if geo is None:
+        return dict(case=case, error={v: r for v, r in eng.items()})
+    ref, row = reference(case, geo, ks, max_n, cache)
+    hl, fld, wl, depth, center = geo
+    res = dict(case=case, ks=ks, field=list(fld), wavelength=wl, depth=depth, pitch=hl.sensor_pitch,
+               doe_distance=hl.doe_distance, doe_pitch=float(hl.doe.pitch), **row)
     for v, r in eng.items():
-        if isinstance(r, str):
-            res[v] = r
-            continue
-        res[v] = dict(l1_vs_extrapolated=l1(r[0], ext), l1_vs_finest=l1(r[0], finest), time_s=r[1])
-    res["warnings"] = sorted({f"{w.category.__name__}: {str(w.message)[:100]}" for w in caught
-                              if w.category.__name__ not in ("SensorCropWarning",)})
+        res[v] = r if isinstance(r, str) else dict(l1=l1(r[0], ref), time_s=r[1], warnings=r[2])
     return res
 
 
@@ -128,14 +176,16 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("cases", nargs="+")
     ap.add_argument("--ks", type=int, default=32)
-    ap.add_argument("--levels", type=int, nargs="+", default=[256, 384])
-    ap.add_argument("--variants", nargs="+", default=list(VARIANTS))
-    ap.add_argument("--sphere", default="paraxial", help="the reference sphere: paraxial (default) or rim")
+    ap.add_argument("--max-n", type=int, default=432, help="the Huygens reference's finest pupil grid")
+    ap.add_argument("--variants", nargs="+", default=["default", "fresnel", "asm", "doe", "default_iu8"])
+    ap.add_argument("--cache", type=Path, default=None, help="a folder for the references (resumable sweeps)")
     ap.add_argument("-o", "--output")
     a = ap.parse_args(argv)
+    if a.cache is not None:
+        a.cache.mkdir(parents=True, exist_ok=True)
     rows = []
     for c in a.cases:
-        r = run(c, a.ks, a.levels, a.variants, a.sphere)
+        r = run(c, a.ks, a.variants, a.max_n, a.cache)
         print(json.dumps(r), flush=True)
         rows.append(r)
         if a.output:

@@ -143,7 +143,9 @@ def test_stop_edge_argument_is_checked_and_shown(lens):
     hl = HybridLens(lens, BlankDOE(100, 1e-3), 0.7, stop_edge="exit_pupil")
     assert "stop_edge='exit_pupil'" in repr(hl)
     default = HybridLens(lens, BlankDOE(100, 1e-3), 0.7)
-    assert (default.stop_edge, default.edge_step) == ("exit_pupil", "fresnel")  # the default since issue 19
+    # the exit-pupil edge is the default since issue 19; its step "adaptive" (the Fresnel step, or the DOE-plane cut
+    # where that is exact: a blank DOE on a spherical wave) since issue 47
+    assert (default.stop_edge, default.edge_step) == ("exit_pupil", "adaptive")
     assert HybridLens(lens, BlankDOE(100, 1e-3), 0.7, stop_edge="doe").stop_edge == "doe"  # the paper's model
     assert hl.exit_pupil_z() == pytest.approx(7.6 - 6.03, abs=0.01)  # virtual, inside the lens
 
@@ -231,7 +233,9 @@ def test_fresnel_step_of_a_small_beam_agrees_with_huygens_in_and_out_of_focus(de
     at 15 mm), on axis and at 3°. Measured 6.2e-4 / 6.4e-4 (in focus), 8.9e-4 / 9.6e-4 (15 mm); without the curved
     edge's term 2.3e-3 out of focus. Also guards the inner tail's anti-aliasing limit: it took its Fresnel scale
     from the beam's centre (an undefined edge normal, the scale's clamp), which cut the tail at ν = 2 (2.0e-3 /
-    3.3e-3 with and without the term)."""
+    3.3e-3 with and without the term). In focus the default ("adaptive", issue 47) cuts this blank DOE's edge on the
+    DOE plane (a spherical wave focused on the sensor): 6.8e-4 / 6.7e-4; out of focus it keeps the step (the
+    plane of the cut matters there: the cut is 6.5e-2 off)."""
     from raywave.lens.build import ideal_lens
 
     small = ideal_lens(2.0, f_number=8.0, wavelengths=(WL,))

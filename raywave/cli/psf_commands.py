@@ -98,10 +98,11 @@ def add_edge_arguments(p) -> None:
                         "the edge is physically sharp; off-axis PSFs independent of the DOE distance) or doe (on the "
                         "DOE plane: the paper's model, its off-axis PSFs depend on the DOE distance); "
                         "docs/ray-wave.md")
-    p.add_argument("--edge-step", choices=("fresnel", "asm", "auto"), default=None,
-                   help="with the exit-pupil edge, how the edge's diffraction reaches the DOE plane: fresnel (default: "
-                        "the knife-edge step, any beam), asm (the exact angular-spectrum construction, ~4x the "
-                        "cost, beams up to 8192 samples), auto (asm where the beam fits)")
+    p.add_argument("--edge-step", choices=("adaptive", "fresnel", "asm", "auto"), default=None,
+                   help="with the exit-pupil edge, how the edge's diffraction reaches the DOE plane: adaptive (default: "
+                        "fresnel, or with a blank DOE and a spherical wave at the stop's edge the edge cut on the DOE "
+                        "plane, exact there), fresnel (the knife-edge step, any beam), asm (the exact angular-spectrum "
+                        "construction, ~4x the cost, beams up to 8192 samples), auto (asm where the beam fits)")
 
 
 # ---------------------------------------------------------------------------- the computation
@@ -116,7 +117,7 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
     (ks, ks) float64 numpy, ``center`` (2,) mm, ``pitch`` mm, ``energy_outside``, ``rays``, ``metrics``
     (:func:`raywave.hybrid.metrics.psf_metrics`, lengths in mm), ``wavelength``, ``depth``, ``hybrid``.
     ``doe_levels`` / ``doe_wavelength`` / ``doe_material``: fabricate the DOE first (see the module docstring).
-    ``stop_edge`` / ``edge_step``: the engine's stop edge (None: the default, the exit pupil with the Fresnel step;
+    ``stop_edge`` / ``edge_step``: the engine's stop edge (None: the default, the exit pupil with the adaptive step;
     "doe": the paper's model), see :class:`raywave.hybrid.HybridLens`. ``device``: where to compute (the result
     is on the CPU)."""
     import torch

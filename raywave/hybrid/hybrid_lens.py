@@ -57,13 +57,15 @@ BEAM_MARGIN = 1.2
 #: the accepted values of ``HybridLens(stop_edge=...)``
 STOP_EDGES = ("doe", "exit_pupil")
 #: the accepted values of ``HybridLens(edge_step=...)``: how the exit-pupil edge reaches the DOE plane
-EDGE_STEPS = ("auto", "fresnel", "asm")
+EDGE_STEPS = ("adaptive", "auto", "fresnel", "asm")
 #: where the stop's sharp edge is formed unless a caller says otherwise: at the exit pupil, where it is physically
 #: sharp ("doe" is the paper's model; issue 19, docs/ray-wave.md)
 DEFAULT_STOP_EDGE = "exit_pupil"
-#: how the default exit-pupil edge reaches the DOE plane: the Fresnel step (1.3–1.8× the DOE-plane edge's cost, any
-#: beam size; "asm" is the exact construction at ~4×, "auto" takes it where the beam fits)
-DEFAULT_EDGE_STEP = "fresnel"
+#: how the default exit-pupil edge reaches the DOE plane: "adaptive" (issue 47), per source the Fresnel step
+#: (1.3–1.8× the DOE-plane edge's cost, any beam size), or with a blank DOE and a spherical wave at the stop's edge the
+#: edge cut on the DOE plane, there exact (raywave.hybrid.coherent.exit_pupil.adaptive_edge_step); "asm" is the exact
+#: construction at ~4×, "auto" takes it where the beam fits
+DEFAULT_EDGE_STEP = "adaptive"
 
 
 class _PupilAtInfinity(ValueError):
@@ -215,8 +217,10 @@ class HybridLens(nn.Module):
             :data:`raywave.hybrid.coherent.AUTO_ASM_SAMPLES` simulation samples on the exit-pupil plane).
             "fresnel": the analytic knife-edge step on the DOE plane's own grid (a few times the DOE-plane edge's
             cost, any beam size; :func:`raywave.hybrid.coherent.stop_edge_factor`; 1e-3 … 5e-3 L1 from the exact
-            construction on the bundled asphere, docs/ray-wave.md; the default, :data:`DEFAULT_EDGE_STEP`).
-            "auto": "asm" where the beam fits, else "fresnel".
+            construction on the bundled asphere, docs/ray-wave.md).
+            "auto": "asm" where the beam fits, else "fresnel". "adaptive" (the default since issue 47): "fresnel", or
+            where the DOE is blank and the wave at the stop's edge a sphere, the edge cut on the DOE plane (exact
+            there: :func:`raywave.hybrid.coherent.exit_pupil.adaptive_edge_step`).
         mirror: build the DOE-plane field of a source that is the mirror image of another in the same call (across
             x or y, on a lens and DOE grid symmetric across that axis: :func:`raywave.hybrid.mirror.symmetric_axes`)
             by mirroring the other's (default True: a map's symmetric grid builds a quarter of its fields; the PSFs
@@ -556,7 +560,7 @@ class HybridLens(nn.Module):
                                          bbox=boxes[i][j], entrance=entrance)
                     for i in range(f.shape[0]) for j, wl in enumerate(wls)]
         rims = [stop_rim_images_many(optics, f, wl, depth) for wl in wls]  # one trace per wavelength
-        if self.edge_step == "fresnel":  # the step needs no chief ray on the exit-pupil plane
+        if self.edge_step in ("fresnel", "adaptive"):  # these steps need no chief ray on the exit-pupil plane
             cx = [[None] * f.shape[0] for _ in wls]
         else:
             with warnings.catch_warnings():

@@ -1,12 +1,15 @@
 """The stop's sharp edge at the exit pupil (:func:`exit_pupil_field`): the exact angular-spectrum step or the
-Fresnel step to the DOE plane."""
+Fresnel step to the DOE plane, and the per-source choice of ``method="adaptive"`` (:func:`adaptive_edge_step`)."""
 
 from __future__ import annotations
 
 import math
+import warnings
 
 import torch
 
+from raywave.doe.base import BlankDOE
+from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.wave.grid import Field
 from raywave.wave.propagation import propagate_window
 from raywave.hybrid.coherent.accurate import accurate_field_steps
@@ -63,7 +66,10 @@ def exit_pupil_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays
     ``settings`` (``nodes``, ``oversample``, ``check`` as :func:`accurate_field`; ``ripple_zones``, ``method``,
     ``rim_images``). ``method="asm"`` raises ValueError when the beam on the exit-pupil plane spans more than
     :data:`MAX_XP_SAMPLES` simulation samples (a large beam: the field there would not fit in memory).
-    ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel". ``rim_images``: each node's
+    ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel". ``method="adaptive"``
+    (:class:`~raywave.hybrid.HybridLens`'s default): :func:`adaptive_edge_step` per source, the Fresnel step or, with
+    a blank DOE on a spherical wave, the edge cut on the DOE plane (``method="doe"``, exact there: the construction of
+    :func:`accurate_field` with the stop's sharp edge on the DOE plane). ``rim_images``: each node's
     edge is sharp at its stop-rim point's own image (:func:`stop_rim_images`); False: on the exit-pupil plane for
     every node (both steps as they were before the rim images)."""
     return run_serial(exit_pupil_field_steps(lens, doe, source, planes, chief, settings))
@@ -86,6 +92,13 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         raise ValueError("exit_pupil_field: planes.z_xp (the exit-pupil plane, mm) is required")
     ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
+    if method == "adaptive":
+        method = adaptive_edge_step(lens, doe, field, wavelength, depth, z_doe, z_sensor, field_type)
+    if method == "doe":  # exact for this source (see adaptive_edge_step): the edge cut on the DOE plane
+        fd = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
+                                             chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
+                                             check=check, chief_uv=chief_uv, bbox=bbox, entrance=entrance)
+        return fd.with_info(stop_edge="exit_pupil")
     method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
     if method == "fresnel":
         rim = None
@@ -97,7 +110,7 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                                              ripple_zones=ripple_zones, stop_rim=rim, bbox=bbox, entrance=entrance)
         return fd.with_info(stop_edge="exit_pupil")
     if method != "asm":
-        raise ValueError(f"method must be 'auto', 'fresnel' or 'asm', got {method!r}")
+        raise ValueError(f"method must be 'adaptive', 'auto', 'fresnel' or 'asm', got {method!r}")
     _check_xp_beam(xb, p_sim, z_xp)
     _, fld, wl, n, (p, x0, y0, sy, sx), _, center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
@@ -168,6 +181,126 @@ def _edge_method(lens, field, wavelength: float, depth, z_xp: float, p_sim: floa
         big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
         method = "fresnel" if big else "asm"
     return method, xb
+
+
+def edge_fresnel_number(beam_half: float, wavelength: float, n: float, d: float, r: float) -> float:
+    """The Fresnel number ``N_F = a² n / (λ L)`` of the stop edge's circle as the DOE plane sees it: ``a`` (mm) the
+    beam's half width on the DOE plane, ``L = d (R − d)/R`` the edge's Fresnel length there (``d`` mm from the
+    edge's image, the exit pupil, to the DOE plane; ``R`` mm from it to the focus, the sensor: the Fresnel scaling of
+    a converging wave), ``wavelength`` µm, ``n`` the image medium's index. The number of Fresnel zones the edge's
+    ripples are spread over across the beam's radius is ``sqrt(N_F)``: the knife-edge step is a local (straight,
+    slowly varying edge) expansion in ``1/sqrt(N_F)`` that keeps its first order (the edge's curvature); near focus
+    (``R − d → 0``) the ripples cover the beam and ``N_F`` falls. ``inf`` where ``d`` is 0 (the DOE at the pupil).
+    A diagnostic: it does not predict the step's error (issue 47: the double Gauss on axis, N_F 177, 1.07e-2 from the
+    converged Huygens PSF; the bundled asphere, N_F 105–130, and the two-lens truth system, N_F 27, ≤ 9e-4)."""
+    length = abs(d * (r - d) / r) if r != 0 else abs(d)
+    if length == 0.0:
+        return math.inf
+    return beam_half * beam_half * n / (wavelength * 1e-3 * length)
+
+
+#: the rings (fractions of the stop's radius) and azimuths of the rays with which :func:`edge_aberration` tests the
+#: wave near the stop's edge
+SPHERE_RINGS = (0.9, 1.0, 1.1)
+SPHERE_AZIMUTHS = 16
+
+
+def edge_aberration(lens, field, wavelength: float, depth, field_type: str | None = None) -> float:
+    """How far (waves, ≥ 0) the wave near the stop's edge is from a sphere, for one source (2,) at ``wavelength``
+    µm: the rays through :data:`SPHERE_RINGS` × :data:`SPHERE_AZIMUTHS` points of the stop (apertures off, straight
+    lines in the image medium after the last surface), the point X closest to all of them (least squares), and
+    ``max_i dist(ray_i, X) · NA / λ_m`` (``NA = n·max_i |d_i × d̄|``, the rays' spread about their mean direction
+    ``d̄``; ``λ_m = λ/n``): the transverse aberration of the edge's rays in units of the focus's diffraction scale,
+    about the wave aberration (waves) that the edge's neighbourhood carries. 0 for a perfect sphere (whatever the
+    sensor's defocus: :func:`adaptive_edge_step` checks that apart); ``inf`` when a ray cannot be traced.
+
+    With a blank DOE this says where the stop's edge may be cut sharply on the DOE plane instead of at the exit
+    pupil: for a spherical wave the focal field of a sharp aperture does not depend on where along the cone the
+    aperture sits (the Fresnel scaling theorem), so the DOE-plane edge is then exact and cheaper than the edge step
+    (the F/1.3 asphere on axis: 1.2e-4 rel L1 from the converged Huygens PSF, where the Fresnel step leaves 1.4e-3).
+    """
+    return _edge_focus(lens, field, wavelength, depth, field_type)[0]
+
+
+def _edge_focus(lens, field, wavelength: float, depth, field_type: str | None = None):
+    """``(waves, focus z mm, NA, n)`` of :func:`edge_aberration` (``waves`` inf, the rest None, where a ray cannot
+    be traced): the aberration, the z of the point closest to the edge's rays, their spread ``n·sin`` and the image
+    medium's index."""
+    dev = lens.device
+    f = torch.as_tensor(field, dtype=torch.float64, device=dev).reshape(1, 2)
+    th = torch.arange(SPHERE_AZIMUTHS, dtype=torch.float64, device=dev) * (2 * math.pi / SPHERE_AZIMUTHS)
+    r = torch.tensor(SPHERE_RINGS, dtype=torch.float64, device=dev)[:, None]
+    px, py = (r * torch.cos(th)).reshape(-1), (r * torch.sin(th)).reshape(-1)
+    wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=dev)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", VignettingWarning)  # a diagnostic trace, apertures off
+        rays = point_source_rays(lens, f, wl, pupil=(px, py), aim="full", depth=depth,
+                                 field_type=field_type or lens.field_type)
+        out = lens.trace(rays, apertures=False)
+        if not bool(out.valid.all()):
+            return math.inf, None, None, None
+        o, d = out.o[0, 0], out.d[0, 0]
+        d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+        proj = torch.eye(3, dtype=torch.float64, device=dev) - d[:, :, None] * d[:, None, :]  # (N, 3, 3)
+        x = torch.linalg.solve(proj.sum(0), (proj @ o[:, :, None]).sum(0))[:, 0]
+        dist = torch.linalg.vector_norm((proj @ (x - o)[:, :, None])[:, :, 0], dim=-1)
+        mean = d.mean(0)
+        mean = mean / torch.linalg.vector_norm(mean)
+        n = float(lens.surfaces[-1].material.n(wl[0]))
+        na = n * float(torch.linalg.vector_norm(torch.linalg.cross(d, mean.expand_as(d)), dim=-1).max())
+    value = float(dist.max()) * na / (float(wavelength) * 1e-3 / n)
+    if not (math.isfinite(value) and math.isfinite(float(x[2]))):
+        return math.inf, None, None, None
+    return value, float(x[2]), na, n
+
+
+#: ``method="adaptive"``: the wave near the stop's edge is taken for a sphere (:func:`edge_aberration`, waves) up to
+#: this value. Measured (rel L1 of the DOE-plane edge from converged references): 2.6e-5 waves on the F/1.3 asphere
+#: on axis, 1.2e-4; ideal lenses ~1e-12 waves, 2.8e-4 (the wave-optics truths of tests/test_ideal_lens_truth.py);
+#: 0.56 waves (the Cooke triplet on axis) already 1.8e-2, 0.11 on the bundled asphere on axis
+SPHERE_TOL = 0.01
+
+
+def is_blank(doe) -> bool:
+    """Whether ``doe`` has zero phase at every wavelength and nothing to train (:class:`raywave.doe.BlankDOE`):
+    only its clear aperture acts on the field."""
+    return isinstance(doe, BlankDOE)
+
+
+def adaptive_edge_step(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float,
+                       field_type: str | None = None) -> str:
+    """The edge step of ``method="adaptive"`` (the default of :class:`raywave.hybrid.HybridLens`) for one source:
+    "doe" where the DOE is blank (:func:`is_blank`), the wave near the stop's edge a sphere to within
+    :data:`SPHERE_TOL` waves (:func:`edge_aberration`) and the sensor at its focus (:func:`defocus_mismatch` ≤
+    :data:`SPHERE_TOL`; ``z_doe``, ``z_sensor`` mm the planes): the focal field of a sharp aperture on a spherical
+    wave does not depend on the plane along the cone where it cuts (the Fresnel scaling theorem), so the edge cut on
+    the DOE plane is the exit-pupil edge's exact result there, and the cheapest; else "fresnel" (the knife-edge
+    step).
+    A blank DOE's PSF and a phase DOE's PSF of the same lens may so come from different edge constructions: their
+    difference then holds the Fresnel step's own error (1.3e-3 in a grating's first-order efficiency unmixed with
+    the blank PSF at F/4, tests/test_doe_params.py); pass ``edge_step="fresnel"`` to compare them like for like."""
+    if not is_blank(doe):
+        return "fresnel"
+    waves, z_focus, na, n = _edge_focus(lens, field, wavelength, depth, field_type)
+    if not waves <= SPHERE_TOL:
+        return "fresnel"
+    if defocus_mismatch(z_focus, na, n, wavelength, z_doe, z_sensor) > SPHERE_TOL:
+        return "fresnel"
+    return "doe"
+
+
+def defocus_mismatch(z_focus: float, na: float, n: float, wavelength: float, z_doe: float, z_sensor: float) -> float:
+    """Waves by which a spherical wave's PSF on a defocused sensor depends on the plane where its aperture cuts:
+    the plane is free only at the focus (Fresnel scaling). With the defocus ``δ = z_sensor − z_focus`` (mm), the
+    aperture's Fresnel number seen from the sensor, ≈ the defocus in waves ``|δ|·NA²/(2λ_m)``, changes between the
+    exit pupil and the DOE plane by the relative amount ``|δ| / |z_focus − z_doe|`` (to first order): their product.
+    An ideal f 2 mm F/8 lens with the object at 15 mm (δ = −0.31 mm, the DOE 1.8 mm before focus): 0.14 waves, and
+    the DOE-plane cut 6.5e-2 rel L1 from the Huygens PSF; a sensor at the focus: 0."""
+    delta = z_sensor - z_focus
+    gap = abs(z_focus - z_doe)
+    if gap == 0.0:
+        return math.inf
+    return abs(delta) * na * na / (2 * float(wavelength) * 1e-3 / n) * abs(delta) / gap
 
 
 def _check_xp_beam(xb, p_sim: float, z_xp: float) -> None:
