@@ -31,7 +31,8 @@ carrier ``exp(i k n (α x + β y))`` of the chief ray removed, so off-axis light
 the DOE aperture applied and the DOE phase not yet applied. Phases are formed from float64 optical paths.
 
 Modules (each name is importable from ``raywave.hybrid.coherent`` as before the split): :mod:`.record`
-(:class:`DOEField`, :class:`SamplingWarning`), :mod:`.geometry` (chief rays, footprints, DOE clipping, windows),
+(:class:`DOEField`, :class:`SamplingWarning`; the constructions' value types :class:`Source`, :class:`FieldSettings`,
+:class:`Traced`), :mod:`.geometry` (chief rays, footprints, DOE clipping, windows),
 :mod:`.tracing` (trace requests, batching, Newton aiming), :mod:`.stop_edge` (the Fresnel step, the stop rim's
 images), :mod:`.accurate`, :mod:`.exit_pupil`, :mod:`.faithful` (the three constructions). Module-level limits
 are read where they are used (e.g. ``coherent.exit_pupil.AUTO_ASM_SAMPLES``).
@@ -39,13 +40,14 @@ are read where they are used (e.g. ``coherent.exit_pupil.AUTO_ASM_SAMPLES``).
 
 from __future__ import annotations
 
-from raywave.hybrid.coherent.record import (CausticWarning, DOEField, FieldInfo, SamplingWarning,  # noqa: F401
-                                            StopEdgeWarning, _NEWTON_ITERS, _NEWTON_TOL)
+from raywave.hybrid.coherent.record import (CausticWarning, DOEField, FieldInfo, FieldSettings,  # noqa: F401
+                                            SamplingWarning, Source, StopEdgeWarning, Traced, _NEWTON_ITERS,
+                                            _NEWTON_TOL)
 from raywave.hybrid.coherent.geometry import (WINDOW_BYTES_PER_SAMPLE, _check_beyond_last_surface, _common_setup,
                                               _crop_to_lit, _empty_field, _footprint, _medium_index, _sim_grid,
                                               _warn_nyquist, check_window_memory, chief_rays, lit_box,
                                               doe_clipping, doe_clippings, footprints, inside_doe)  # noqa: F401
-from raywave.hybrid.coherent.tracing import (_TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
+from raywave.hybrid.coherent.tracing import (_Aim, _TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
                                              _slice_bundle, _solve2, _trace_group, _trace_uv, run_batched,
                                              run_serial)  # noqa: F401
 from raywave.hybrid.coherent.stop_edge import (INNER_TAIL, RIM_POINTS, RIPPLE_ZONES, _fresnel_scale,
@@ -56,6 +58,7 @@ from raywave.hybrid.coherent.exit_pupil import (AUTO_ASM_SAMPLES, MAX_XP_SAMPLES
                                                 exit_pupil_field_steps)  # noqa: F401
 from raywave.hybrid.coherent.faithful import (faithful_field)  # noqa: F401
 
-__all__ = ["CausticWarning", "DOEField", "FieldInfo", "SamplingWarning", "StopEdgeWarning", "accurate_field",
+__all__ = ["CausticWarning", "DOEField", "FieldInfo", "FieldSettings", "SamplingWarning", "Source",
+           "StopEdgeWarning", "Traced", "accurate_field",
            "chief_rays", "doe_clipping", "doe_clippings",
            "exit_pupil_field", "footprints", "faithful_field"]

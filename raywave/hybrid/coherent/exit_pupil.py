@@ -11,7 +11,7 @@ from raywave.wave.grid import Field
 from raywave.wave.propagation import propagate_window
 from raywave.hybrid.coherent.accurate import accurate_field_steps
 from raywave.hybrid.coherent.geometry import _common_setup, _empty_field, _footprint, check_window_memory, lit_box
-from raywave.hybrid.coherent.record import DOEField, FieldInfo
+from raywave.hybrid.coherent.record import DOEField, FieldInfo, FieldSettings, Source, Traced
 from raywave.hybrid.coherent.stop_edge import RIPPLE_ZONES, stop_rim_images
 from raywave.hybrid.coherent.tracing import run_serial
 
@@ -86,10 +86,10 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
         rim = None
         if rim_images:
             rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
-        fd = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
-                                             chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
-                                             check=check, chief_uv=chief_uv, stop_plane=z_xp,
-                                             ripple_zones=ripple_zones, stop_rim=rim, bbox=bbox, entrance=entrance)
+        fd = yield from accurate_field_steps(
+            lens, doe, Source(field, wavelength, depth, chief_doe, chief_sensor, chief_uv), z_doe, z_sensor,
+            FieldSettings(nodes, oversample, field_type, check, stop_plane=z_xp, ripple_zones=ripple_zones),
+            Traced(bbox, rim, entrance))
         return fd.with_info(stop_edge="exit_pupil")
     if method != "asm":
         raise ValueError(f"method must be 'auto', 'fresnel' or 'asm', got {method!r}")
@@ -101,15 +101,14 @@ def exit_pupil_field_steps(lens, doe, field, wavelength: float, depth, z_xp: flo
         rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
     z_edge, z_far = _rim_step_plane(rim, z_xp, z_doe, wavelength, n, p)
     if z_edge is None:  # the edge sharp on the exit-pupil plane
-        fx = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_xp, z_sensor, chief_xp,
-                                             chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
-                                             check=check, chief_uv=chief_uv, virtual=True)
+        fx = yield from accurate_field_steps(
+            lens, doe, Source(field, wavelength, depth, chief_xp, chief_sensor, chief_uv), z_xp, z_sensor,
+            FieldSettings(nodes, oversample, field_type, check, virtual=True))
     else:  # sharp at every rim point's image, stepped to z_edge (chief ray: a straight line in the image medium)
-        fx = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_edge, z_sensor,
-                                             chief_xp.propagate_to_z(z_edge, n), chief_sensor, nodes=nodes,
-                                             oversample=oversample, field_type=field_type, check=check,
-                                             chief_uv=chief_uv, virtual=True, stop_plane=z_xp, stop_rim=rim,
-                                             ripple_zones=ripple_zones)
+        fx = yield from accurate_field_steps(
+            lens, doe, Source(field, wavelength, depth, chief_xp.propagate_to_z(z_edge, n), chief_sensor, chief_uv),
+            z_edge, z_sensor, FieldSettings(nodes, oversample, field_type, check, virtual=True, stop_plane=z_xp,
+                                            ripple_zones=ripple_zones), Traced(stop_rim=rim))
     carrier = fx.carrier  # the chief ray's direction: the same on both planes
     bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
     if bbox is None or float(fx.power.detach()) == 0.0:

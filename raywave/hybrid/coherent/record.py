@@ -33,6 +33,72 @@ class StopEdgeWarning(UserWarning):
     infinity (the DOE-plane edge is used instead)."""
 
 
+@dataclass(frozen=True)
+class Source:
+    """One point source of a field construction: ``field`` (2,) in the lens's field type (degrees for angles),
+    ``wavelength`` (µm), ``depth`` (object distance mm, None: the lens's), and its chief ray (aimed at the stop's
+    centre, refractive lens only): ``chief_doe`` and ``chief_sensor`` (RayBundles of scalar batch) on the
+    construction's plane and on the sensor, ``chief_uv`` its entrance-plane point (2,) mm if known (saves aiming it
+    again)."""
+
+    field: object
+    wavelength: float
+    depth: object
+    chief_doe: object
+    chief_sensor: object
+    chief_uv: object = None
+
+    def on_plane(self, chief_doe) -> "Source":
+        """The same source with its chief ray given on another plane."""
+        return replace(self, chief_doe=chief_doe)
+
+
+@dataclass(frozen=True)
+class FieldSettings:
+    """How the accurate construction samples a field (:func:`~raywave.hybrid.coherent.accurate_field`).
+
+    Attributes:
+        nodes: traced nodes across the larger side of the lit footprint (the ray budget is about ``nodes²``; the
+            field is smooth, so 32–64 are plenty for most lenses).
+        oversample: simulation samples per DOE pixel.
+        field_type: the fields' type (None: the lens's).
+        check: warn where the ray map folds, the envelope passes Nyquist or the Fresnel edge step is approximate.
+        virtual: the plane may lie inside the lens (reached by extending the rays leaving the last surface along
+            straight lines in the image medium), on the DOE's simulation lattice extended without bound and without
+            the DOE aperture (the window indices may be negative or beyond the DOE grid).
+        stop_plane: z (mm) of the plane where the stop's edge is sharp (the exit pupil): the edge then carries its
+            Fresnel diffraction from there (the knife-edge factor of :func:`stop_edge_factor`); None: the paper's
+            sharp edge on this plane.
+        ripple_zones: with ``stop_plane``: Fresnel zones of the edge's ripples kept outside the geometric footprint
+            (None: :data:`~raywave.hybrid.coherent.stop_edge.RIPPLE_ZONES`).
+    """
+
+    nodes: int = 64
+    oversample: int = 1
+    field_type: str | None = None
+    check: bool = True
+    virtual: bool = False
+    stop_plane: float | None = None
+    ripple_zones: float | None = None
+
+
+@dataclass(frozen=True)
+class Traced:
+    """What a caller that builds many sources traced once for all of them (each None: traced by the construction).
+
+    Attributes:
+        bbox: the lit footprint ``(xmin, xmax, ymin, ymax)`` mm on the plane (:func:`footprints`; False: none,
+            every ray vignetted).
+        stop_rim: with ``stop_plane``, the images of the stop's rim (:func:`stop_rim_images`): the edge's Fresnel
+            step then runs from the rim point's own image at every node.
+        entrance: ``(z, radius)`` mm of the paraxial entrance pupil (:func:`entrance_pupil`).
+    """
+
+    bbox: object = None
+    stop_rim: object = None
+    entrance: tuple | None = None
+
+
 @dataclass
 class FieldInfo:
     """How a DOE-plane field was built (diagnostics; nothing here enters the PSF's numbers).
