@@ -74,7 +74,9 @@ def test_newton_rows_equal_one_trace_per_construction(asphere):
     x, valid = tracing_mod._trace_rows(aim, uv.reshape(-1, 2), fields.repeat_interleave(40, 0),
                                        wls.repeat_interleave(40))
     for g in range(3):
-        _, _, at, _ = tracing_mod._trace_uv(lens, uv[g], fields[g], wls[g:g + 1], None, z, lens.field_type, ep_z=ep_z)
+        with torch.no_grad():
+            _, _, at, _ = tracing_mod._trace_uv(lens, uv[g], fields[g], wls[g:g + 1], None, z, lens.field_type,
+                                                ep_z=ep_z)
         ref = at.o[0, 0, :, :2]
         assert float((x[40 * g:40 * (g + 1)] - ref).abs().max()) <= 1e-12
         assert torch.equal(valid[40 * g:40 * (g + 1)], at.valid[0, 0])
@@ -89,3 +91,25 @@ def test_map_without_grad_takes_the_lens_call_size(asphere):
     assert psfmap_mod.map_call_size(asphere, True, None) is None
     assert psfmap_mod.map_call_size(asphere, False, object()) is None
     assert len(psfmap_mod._map_chunks(100, 3, None, None)) == 13
+
+
+def test_construction_functions_take_at_most_ten_parameters():
+    """The accurate construction's functions take value types (:class:`~raywave.hybrid.coherent.Source`,
+    :class:`~raywave.hybrid.coherent.FieldSettings`, :class:`~raywave.hybrid.coherent.Traced`, the tracing's
+    ``_Aim``) instead of long parameter lists: at most 10 parameters each (``self`` not counted)."""
+    import ast
+    import pathlib
+
+    root = pathlib.Path(__file__).resolve().parents[1] / "raywave" / "hybrid"
+    files = [root / "coherent" / n for n in ("accurate.py", "tracing.py", "geometry.py", "record.py")]
+    files += [root / "hybrid_lens.py", root / "batched.py", root / "mirror.py"]
+    long = []
+    for path in files:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef):
+                a = node.args
+                k = len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs) + bool(a.vararg) + bool(a.kwarg)
+                k -= bool(a.args and a.args[0].arg in ("self", "cls"))
+                if k > 10:
+                    long.append(f"{path.name}:{node.name} ({k})")
+    assert not long, long
