@@ -105,14 +105,18 @@ def ops_case(hl, n: int, m: int, wavelengths) -> dict:
     chunk)."""
     import torch
 
-    from raywave.imaging.psfmap import _map_chunks, _pair_order, field_grid
+    from raywave.imaging.psfmap import _map_chunks, _pair_order, field_grid, map_call_size
 
     order = _pair_order(n, m)
-    s, e = _map_chunks(n * m, len(wavelengths), None)[0]
-    f = field_grid(hl, (n, m)).reshape(-1, 2)[order][s:e]
-    k = f.shape[0] * len(wavelengths)
+    flat = field_grid(hl, (n, m)).reshape(-1, 2)[order]
+    s, e = _map_chunks(n * m, len(wavelengths), None, map_call_size(hl, False, None))[0]  # the map's own call
+    f = flat[s:e]
+    k0 = f.shape[0] * len(wavelengths)
     with torch.no_grad():
         n_ops, _ = count_ops(lambda: hl.psf_result(f, list(wavelengths), ks=KS))
+    s, e = _map_chunks(n * m, len(wavelengths), None)[0]  # with autograd: psf_map(grad=True)'s call
+    f = flat[s:e]
+    k = f.shape[0] * len(wavelengths)
 
     def fwd_bwd():
         r = hl.psf_result(f, list(wavelengths), ks=KS)
@@ -120,7 +124,8 @@ def ops_case(hl, n: int, m: int, wavelengths) -> dict:
         (r.psf * w).sum().backward()
 
     g_ops, _ = count_ops(fwd_bwd)
-    return {"ops_psfs": k, "ops": n_ops, "ops_per_psf": n_ops / k, "ops_grad": g_ops, "ops_per_psf_grad": g_ops / k}
+    return {"ops_psfs": k0, "ops": n_ops, "ops_per_psf": n_ops / k0, "ops_psfs_grad": k, "ops_grad": g_ops,
+            "ops_per_psf_grad": g_ops / k}
 
 
 def psfs_case(n: int, m: int, n_wl: int, threads: int, stop_edge: str | None = None, device: str = "cpu",

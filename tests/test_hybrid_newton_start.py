@@ -37,7 +37,14 @@ def _counting(monkeypatch) -> list:
         counts[-1].append(sum(r.uv.shape[0] for r in reqs))
         return run(reqs)
 
+    rows = tracing_mod._trace_rows  # the Newton rounds' traces (one bundle of single-ray rows)
+
+    def counted_rows(aim, uv, fields, wavelengths):
+        counts[-1].append(uv.shape[0])
+        return rows(aim, uv, fields, wavelengths)
+
     monkeypatch.setattr(tracing_mod, "_trace_group", counted)
+    monkeypatch.setattr(tracing_mod, "_trace_rows", counted_rows)
     return counts
 
 
@@ -85,14 +92,15 @@ def test_newton_takes_the_linear_start_where_the_given_start_is_missing():
         uv_c = cd[2][0, 0].reshape(1, 2)
         x_c, _, jac_c = coherent.run_serial(tracing_mod._landing_and_jacobian(lens, uv_c, f, wl, None, z, ft, h,
                                                                               ep_z))
+        aim = tracing_mod._Aim(lens, f, wl, None, z, ft, h, ep_z)
         ref_uv, ref_conv, ref_jac, _ = coherent.run_serial(tracing_mod._invert_to_nodes(
-            lens, targets, uv_c, x_c, jac_c, f, wl, None, z, ft, h, 0.25 * r_ep, ep_z))
+            aim, targets, (uv_c, x_c, jac_c), 0.25 * r_ep))
         uv0 = ref_uv + 1e-7  # a good start everywhere but a few nodes
         uv0[::3] = float("nan")
         jac0 = ref_jac * (1 + 1e-4)
         jac0[1::5] = float("nan")
         uv, conv, _, x = coherent.run_serial(tracing_mod._invert_to_nodes(
-            lens, targets, uv_c, x_c, jac_c, f, wl, None, z, ft, h, 0.25 * r_ep, ep_z, uv0=uv0, jac0=jac0))
+            aim, targets, (uv_c, x_c, jac_c), 0.25 * r_ep, (uv0, jac0)))
     assert bool(ref_conv.all()) and bool(conv.all())
     assert float((x - targets).abs().max()) <= _NEWTON_TOL
     assert float((uv - ref_uv).abs().max()) <= 1e-9

@@ -338,6 +338,7 @@ def test_edge_envelope_hand_written_backward_is_the_composed_one(dz, scalar_g, b
     from raywave.hybrid.coherent.stop_edge import edge_envelope, stop_edge_factor
 
     monkeypatch.setattr(se, "ENVELOPE_BLOCK_ROWS", block_rows)
+    monkeypatch.setattr(se, "ENVELOPE_BLOCK_SAMPLES", 1)  # blocks of exactly block_rows rows
     from raywave.utils.phasor import polar
 
     gen = torch.Generator().manual_seed(7)

@@ -68,6 +68,39 @@ DEFAULT_STOP_EDGE = "exit_pupil"
 DEFAULT_EDGE_STEP = "adaptive"
 
 
+#: the DOE-plane fields of one call are built and propagated in groups whose envelopes take at most about this many
+#: bytes (:meth:`HybridLens._field_groups`; issue 43): the call's traces (chief rays, footprints, the stop rim's
+#: images, the DOE-aperture diagnostics) are shared by all its groups, and a group's Newton rounds are one trace
+FIELD_GROUP_BYTES = 2**29
+
+
+@dataclass
+class _CallGeometry:
+    """What the field constructions of one call share (:meth:`HybridLens._accurate_geometry`): the sources ``f``
+    (F, 2) at ``wls`` (µm) and ``depth``; ``chief`` = (at the DOE, at the sensor, entrance-plane points) (F, W); per
+    source, None or its mirror source ``(j, flip_x, flip_y)`` (``src``); ``todo`` the built sources (indices into
+    ``f``) and, per built source (its row in ``todo``): ``boxes`` ``[R][W]`` the lit footprints (False: none),
+    ``clips`` ``[R][W]`` the DOE-aperture diagnostics; ``entrance`` the entrance pupil; with the exit-pupil edge
+    ``edge`` = ``(z_xps, rims, cx)``: its planes per wavelength, ``[W][R]`` the stop rim's images and the chief rays
+    on the exit pupil (None: the DOE-plane edge)."""
+
+    f: torch.Tensor
+    wls: list
+    depth: object
+    chief: tuple
+    src: list
+    todo: list | None = None
+    boxes: list | None = None
+    entrance: tuple | None = None
+    clips: list | None = None
+    edge: tuple | None = None
+
+    def __post_init__(self):
+        if self.todo is None:
+            self.todo = [i for i, s_ in enumerate(self.src) if s_ is None]
+        self.row = {i: r for r, i in enumerate(self.todo)}
+
+
 class _PupilAtInfinity(ValueError):
     """The exit pupil lies at (or near) infinity: no exit-pupil plane to form the stop's edge on."""
 
@@ -227,6 +260,11 @@ class HybridLens(nn.Module):
             agree with building each one to the construction's rounding, max |Δ| 2e-13 … 3e-12 on the bundled
             lenses' maps). False builds every field.
     """
+
+    #: sources a PSF map without autograd hands to one :meth:`psf_result` call (:func:`raywave.imaging.psfmap.
+    #: map_call_size`): the call's shared traces hold ~3,000 rays per source (~1 GB at most), its fields are built
+    #: in groups of :data:`FIELD_GROUP_BYTES`
+    map_sources_per_call = 512
 
     def __init__(self, lens, doe: DOE, doe_distance: float, sensor_pitch: float | None = None, oversample: int = 1,
                  intensity_upsample: int = 4, stop_edge: str | None = None, edge_step: str = DEFAULT_EDGE_STEP,
@@ -453,61 +491,156 @@ class HybridLens(nn.Module):
                              f"samples the entrance-pupil plane and traces field angles below {MAX_FIELD_ANGLE:g}°; a "
                              "fisheye's wider field is traced by the geometric analyses (trace, spot, info)")
         wls = self.wavelength_list(wavelengths)
+        if mode == "accurate":
+            geo = self._accurate_geometry(f, wls, depth)
+            return self._finish_fields(self._accurate_group(geo, list(range(f.shape[0])), rays or 64, check), geo)
+        optics = self.optics
+        z_doe, z_sen = self.doe_z(), self.sensor_z()
+        cd, cs, _ = _quiet_chief_rays(optics, f, wls, depth, z_doe, z_sen)
+        settings = FieldSettings(n_rays=rays or 100_000, oversample=self.oversample, full_grid=full_grid,
+                                 generator=generator, check=check, trace_dtype=trace_dtype)
+        built = [faithful_field(optics, self.doe, Source(f[i], wl, depth), Planes(z_doe, z_sen),
+                                ChiefRays(cd[i, j], cs[i, j]), settings)
+                 for i in range(f.shape[0]) for j, wl in enumerate(wls)]
+        geo = _CallGeometry(f, wls, depth, (cd, None, None), [None] * f.shape[0])
+        return self._finish_fields((list(range(f.shape[0])), built), geo)
+
+    def _accurate_geometry(self, f: torch.Tensor, wls: list[float], depth) -> "_CallGeometry":
+        """What the accurate construction of the call's sources ``f`` (F, 2) × ``wls`` (µm) shares, each traced once
+        for the call (whatever the number of its sources, issue 43): the chief rays, the mirror pairing, and for the
+        sources that are built (not mirror images) their lit footprints, the DOE-aperture diagnostics, the entrance
+        pupil, the exit-pupil planes, the stop rim's images and (exact edge step) the chief rays on the exit
+        pupil."""
         optics = self.optics  # the lens, or its image-space view (one object for the whole call: run_batched groups by it)
         z_doe, z_sen = self.doe_z(), self.sensor_z()
         cd, cs, cuv = _quiet_chief_rays(optics, f, wls, depth, z_doe, z_sen)
-        nf = f.shape[0]
+        axes = symmetric_axes(self.lens, self.doe, self.oversample) if self.mirror else (False, False)
+        src = mirror_sources(f, axes) if any(axes) else [None] * f.shape[0]
+        todo = [i for i, s_ in enumerate(src) if s_ is None]
+        geo = _CallGeometry(f, wls, depth, (cd, cs, cuv), src, todo=todo)
+        ft = f[torch.tensor(todo, dtype=torch.long, device=f.device)]
         wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
-        src = [None] * nf  # accurate mode: the sources built as another's mirror image (mirror_sources)
-        if mode == "accurate":
-            axes = symmetric_axes(self.lens, self.doe, self.oversample) if self.mirror else (False, False)
-            src = mirror_sources(f, axes) if any(axes) else src
-            built = self._accurate_fields(f, wls, depth, (cd, cs, cuv), rays or 64, check, src)
-        else:
-            settings = FieldSettings(n_rays=rays or 100_000, oversample=self.oversample, full_grid=full_grid,
-                                     generator=generator, check=check, trace_dtype=trace_dtype)
-            built = [faithful_field(optics, self.doe, Source(f[i], wl, depth), Planes(z_doe, z_sen),
-                                    ChiefRays(cd[i, j], cs[i, j]), settings)
-                     for i in range(nf) for j, wl in enumerate(wls)]
-        # the DOE-aperture diagnostic of every accurate field, from one trace (the faithful mode measures it
-        # from its own rays)
-        clips = None
-        if mode == "accurate":  # the built sources' (a mirror image's diagnostics are its source's)
-            todo = [i for i, s_ in enumerate(src) if s_ is None]
-            own = doe_clippings(optics, self.doe, f[torch.tensor(todo, dtype=torch.long, device=f.device)], wls_t,
-                                depth, z_doe, folds=True)
-            row = dict(zip(todo, own))
-            clips = [row[i] if s_ is None else row[s_[0]] for i, s_ in enumerate(src)]
-        return self._finish_fields(built, f, wls, cd, clips)
+        geo.boxes = [[False if b is None else b for b in row] for row in footprints(optics, ft, wls_t, depth, z_doe)]
+        geo.entrance = entrance_pupil(optics)  # one lens: once for every field
+        z_xps = self._exit_pupil_planes(wls)
+        if z_xps is not None:
+            rims = [stop_rim_images_many(optics, ft, wl, depth) for wl in wls]  # one trace per wavelength
+            if self.edge_step in ("fresnel", "adaptive"):  # these steps need no chief ray on the exit-pupil plane
+                cx = [[None] * ft.shape[0] for _ in wls]
+            else:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", VignettingWarning)
+                    cx = [chief_rays(optics, ft, torch.tensor([wl], dtype=torch.float64, device=optics.device),
+                                     depth, zx, z_sen)[0][:, 0] for wl, zx in zip(wls, z_xps)]
+            geo.edge = (z_xps, rims, cx)
+        # the DOE-aperture diagnostic of every built field, from one trace (a mirror image's are its source's)
+        geo.clips = doe_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True)
+        return geo
 
-    def _finish_fields(self, built: list, f: torch.Tensor, wls: list[float], chief_doe, clips) -> list:
-        """The flat field-major list ``built`` (F·W :class:`DOEField`) as the nested ``[F][W]`` list of
-        :meth:`doe_fields`, each completed: the DOE-aperture diagnostic ``clips`` (``[F][W]`` of (blocked fraction,
-        beam half-width mm, folded fraction: :func:`~raywave.hybrid.coherent.doe_clippings` with ``folds``), or
-        None: the field's own) and the chief ray's slopes ``chief_tan`` from ``chief_doe`` (F, W) rays; warns
-        (pointing at the caller of :meth:`doe_fields`) where no light reaches the DOE (``f`` (F, 2) fields, ``wls``
-        µm), the DOE aperture clips the beam or the rays cross before the DOE plane."""
-        nw, out, clipped, folded = len(wls), [], [], []
-        for i in range(f.shape[0]):
+    def _accurate_group(self, geo: "_CallGeometry", members: list[int], nodes: int, check: bool) -> tuple:
+        """The accurate fields of the call's sources ``members`` (indices into ``geo.f``; every mirror image's source
+        among them), built together (:func:`raywave.hybrid.coherent.run_batched`): ``(members, flat field-major
+        list of their F·W :class:`DOEField`)``. A mirror image (:func:`~raywave.hybrid.mirror.mirror_sources`, with
+        :attr:`mirror` on a mirror-symmetric lens) is not built: its fields are its source's mirrored
+        (:func:`~raywave.hybrid.mirror.mirror_field`; the same to the construction's rounding, at a quarter of the
+        field stage's cost for a map's symmetric grid)."""
+        rows = [geo.row[i] for i in members if geo.src[i] is None]  # rows of the built sources (geo.todo)
+        done = run_batched(self._accurate_constructions(geo, rows, nodes, check))
+        nw = len(geo.wls)
+        at = {geo.todo[r]: k for k, r in enumerate(rows)}
+        sim = self.doe.sim_grid(self.oversample)
+        src = geo.src
+        return members, [done[at[i] * nw + j] if src[i] is None else
+                         mirror_field(done[at[src[i][0]] * nw + j], sim, src[i][1], src[i][2])
+                         for i in members for j in range(nw)]
+
+    def _accurate_constructions(self, geo: "_CallGeometry", rows: list[int], nodes: int, check: bool) -> list:
+        """The accurate field constructions (generators, :func:`raywave.hybrid.coherent.run_batched` runs them
+        together: their ray traces batched per round) of the built sources ``rows`` (indices into ``geo.todo``) ×
+        wavelength, field-major: the stop edge on the DOE plane or at the exit pupil."""
+        optics, z_doe, z_sen = self.optics, self.doe_z(), self.sensor_z()
+        cd, cs, cuv = geo.chief
+        settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step)
+        out = []
+        for r in rows:
+            i = geo.todo[r]
+            for j, wl in enumerate(geo.wls):
+                source = Source(geo.f[i], wl, geo.depth)
+                if geo.edge is None:
+                    out.append(accurate_field_steps(optics, self.doe, source, Planes(z_doe, z_sen),
+                                                    ChiefRays(cd[i, j], cs[i, j], uv=cuv[i, j]), settings,
+                                                    Known(geo.boxes[r][j], geo.entrance)))
+                else:
+                    z_xps, rims, cx = geo.edge
+                    out.append(exit_pupil_field_steps(optics, self.doe, source, Planes(z_doe, z_sen, z_xps[j]),
+                                                      ChiefRays(cd[i, j], cs[i, j], cx[j][r], cuv[i, j]), settings,
+                                                      Known(geo.boxes[r][j], geo.entrance, rims[j][r])))
+        return out
+
+    def _field_groups(self, geo: "_CallGeometry") -> list[list[int]]:
+        """The call's sources in groups whose DOE-plane fields are built and propagated together (issue 43): every
+        built source with its mirror images, the groups cut where their envelopes' estimated size (the lit
+        footprints with a margin, complex128) would pass :data:`FIELD_GROUP_BYTES` (the fields of one group are
+        held at once; the call's traces are shared by all groups)."""
+        p = self.doe.pitch / self.oversample
+        deps: dict = {i: [i] for i in geo.todo}
+        for i, s_ in enumerate(geo.src):
+            if s_ is not None:
+                deps[s_[0]].append(i)
+        groups, cur, size = [], [], 0.0
+        for r, i in enumerate(geo.todo):
+            est = 0.0
+            for b in geo.boxes[r]:
+                if b is not False:
+                    w, h = b[1] - b[0], b[3] - b[2]
+                    m = 0.1 * max(w, h) + 16 * p  # the edge's ripple band and the window's margin, roughly
+                    est += 16.0 * ((w + 2 * m) / p + 1) * ((h + 2 * m) / p + 1)
+            est *= len(deps[i])
+            if cur and size + est > FIELD_GROUP_BYTES:
+                groups.append(cur)
+                cur, size = [], 0.0
+            cur.extend(deps[i])
+            size += est
+        if cur:
+            groups.append(cur)
+        return groups
+
+    def _finish_fields(self, group: tuple, geo: "_CallGeometry", pending: tuple | None = None) -> list:
+        """The fields of ``group`` = ``(members, built)`` (``built``: the flat field-major list of the members' F·W
+        :class:`DOEField`) as a nested ``[F][W]`` list, each completed: the DOE-aperture diagnostic (``geo.clips``:
+        ``[F][W]`` of (blocked fraction, beam half-width mm, folded fraction) of the built sources, a mirror image
+        takes its source's; None: the field's own) and the chief ray's slopes ``chief_tan``; warns (pointing at the
+        caller of :meth:`doe_fields`) where no light reaches the DOE, and (at once, or with ``pending`` = ``(clipped,
+        folded)`` lists collected for one warning per call) where the DOE aperture clips the beam or the rays cross
+        before the DOE plane."""
+        members, built = group
+        nw, out, clipped, folded = len(geo.wls), [], [], []
+        chief_doe = geo.chief[0]
+        for k, i in enumerate(members):
             row = []
-            for j, wl in enumerate(wls):
-                fd = built[i * nw + j]
+            own = i if geo.src[i] is None else geo.src[i][0]
+            for j, wl in enumerate(geo.wls):
+                fd = built[k * nw + j]
                 if _dark(fd):
-                    warnings.warn(f"field {f[i].tolist()} at {wl:g} µm: no light reaches the DOE (every ray is "
+                    warnings.warn(f"field {geo.f[i].tolist()} at {wl:g} µm: no light reaches the DOE (every ray is "
                                   "vignetted or misses the DOE aperture); its PSF is all zeros",
                                   VignettingWarning, stacklevel=3)
-                if clips is not None:
-                    fd.clipped, fd.beam_half, fold = clips[i][j]
+                if geo.clips is not None:
+                    fd.clipped, fd.beam_half, fold = geo.clips[geo.row[own]][j]
                     if fold > 0:
-                        folded.append((fold, f[i].tolist(), wl))
+                        folded.append((fold, geo.f[i].tolist(), wl))
                 if fd.clipped > CLIP_WARN:
-                    clipped.append((fd, f[i]))
+                    clipped.append((fd, geo.f[i]))
                 d_c = chief_doe[i, j].d.detach()
                 fd.chief_tan = (float(d_c[0] / d_c[2]), float(d_c[1] / d_c[2]))
                 row.append(fd)
             out.append(row)
-        self._warn_clipped(clipped)
-        self._warn_caustic(folded)
+        if pending is None:
+            self._warn_clipped(clipped)
+            self._warn_caustic(folded)
+        else:
+            pending[0].extend(clipped)
+            pending[1].extend(folded)
         return out
 
     def _warn_caustic(self, folded: list) -> None:
@@ -521,58 +654,6 @@ class HybridLens(nn.Module):
                       f"{self.doe_distance:g} mm after the last vertex (a caustic before it; worst {frac:.1%} of the "
                       f"stop grid folded, field {field} at {wl:g} µm): the accurate field, built from a one-to-one "
                       "ray map, is wrong there. Move the DOE plane towards the lens", CausticWarning, stacklevel=4)
-
-    def _accurate_fields(self, f, wls, depth, chief, nodes: int, check: bool, src: list) -> list:
-        """The accurate fields (flat, field-major, F·W :class:`DOEField`) of the fields ``f`` (F, 2) × ``wls``, built
-        together (:func:`raywave.hybrid.coherent.run_batched`). ``src``: per source, None or ``(j, flip_x,
-        flip_y)`` (:func:`~raywave.hybrid.mirror.mirror_sources`, with :attr:`mirror` on a mirror-symmetric lens):
-        such a source is not built, its fields are source j's mirrored (:func:`~raywave.hybrid.mirror.mirror_field`;
-        the same to the construction's rounding, at a quarter of the field stage's cost for a map's symmetric
-        grid)."""
-        todo = [i for i, s in enumerate(src) if s is None]
-        if len(todo) == f.shape[0]:
-            return run_batched(self._accurate_constructions(f, wls, depth, chief, nodes, check))
-        cd, cs, cuv = chief
-        idx = torch.tensor(todo, dtype=torch.long, device=f.device)
-        done = run_batched(self._accurate_constructions(f[idx], wls, depth, (cd[idx], cs[idx], cuv[idx]), nodes,
-                                                        check))
-        nw, row = len(wls), {i: k for k, i in enumerate(todo)}
-        sim = self.doe.sim_grid(self.oversample)
-        return [done[row[i] * nw + j] if src[i] is None else
-                mirror_field(done[row[src[i][0]] * nw + j], sim, src[i][1], src[i][2])
-                for i in range(f.shape[0]) for j in range(nw)]
-
-    def _accurate_constructions(self, f, wls, depth, chief, nodes: int, check: bool) -> list:
-        """The accurate field constructions (generators, :func:`raywave.hybrid.coherent.run_batched` runs them
-        together: their ray traces batched per round) of every field ``f (F, 2)`` × wavelength, field-major, with
-        the chief rays ``chief = (at the DOE, at the sensor, entrance-plane points)`` of :func:`chief_rays`: the
-        stop edge on the DOE plane (the footprints in one trace, the entrance pupil once) or at the exit pupil."""
-        optics, z_doe, z_sen = self.optics, self.doe_z(), self.sensor_z()
-        cd, cs, cuv = chief
-        z_xps = self._exit_pupil_planes(wls)
-        wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
-        boxes = footprints(optics, f, wls_t, depth, z_doe)  # every footprint in one trace
-        boxes = [[False if b is None else b for b in row] for row in boxes]
-        entrance = entrance_pupil(optics)  # one lens: once for every field
-        if z_xps is None:
-            return [accurate_field_steps(optics, self.doe, f[i], wl, depth, z_doe, z_sen, cd[i, j], cs[i, j],
-                                         nodes=nodes, oversample=self.oversample, check=check, chief_uv=cuv[i, j],
-                                         bbox=boxes[i][j], entrance=entrance)
-                    for i in range(f.shape[0]) for j, wl in enumerate(wls)]
-        rims = [stop_rim_images_many(optics, f, wl, depth) for wl in wls]  # one trace per wavelength
-        if self.edge_step in ("fresnel", "adaptive"):  # these steps need no chief ray on the exit-pupil plane
-            cx = [[None] * f.shape[0] for _ in wls]
-        else:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", VignettingWarning)
-                cx = [chief_rays(optics, f, torch.tensor([wl], dtype=torch.float64, device=optics.device), depth, zx,
-                                  z_sen)[0][:, 0]
-                      for wl, zx in zip(wls, z_xps)]
-        settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step)
-        return [exit_pupil_field_steps(optics, self.doe, Source(f[i], wl, depth), Planes(z_doe, z_sen, z_xps[j]),
-                                       ChiefRays(cd[i, j], cs[i, j], cx[j][i], cuv[i, j]), settings,
-                                       Known(boxes[i][j], entrance, rims[j][i]))
-                for i in range(f.shape[0]) for j, wl in enumerate(wls)]
 
     def _warn_clipped(self, clipped: list) -> None:
         """One :class:`DOEApertureWarning` (pointing at the caller of :meth:`doe_fields`, through
@@ -694,13 +775,53 @@ class HybridLens(nn.Module):
         (see :meth:`propagate`)."""
         if int(ks) < 1:
             raise ValueError(f"ks must be >= 1, got {ks}")
+        if cache is None and mode == "accurate" and not (set(field_kw) - {"check", "trace_dtype"}):
+            if field_kw.get("trace_dtype", torch.float64) != torch.float64:
+                raise ValueError("the accurate mode traces in float64 only (its rays land on their nodes to 1e-10 mm)")
+            psf, center, outside, nr, clip = self._accurate_psfs(fields, wavelengths, depth, rays,
+                                                                 field_kw.get("check", True), ks, propagation_dtype)
+            wls = self.wavelength_list(wavelengths)
+            self._check_sensor(center)
+            psf = self._checked(psf, [wls] * psf.shape[0])
+            return PSFResult(psf, center, outside, self.sensor_pitch, nr,
+                             torch.tensor(clip, dtype=torch.float64, device=center.device))
         fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw)
         psf, center, outside, nr = self.propagate_fields(fds, ks, propagation_dtype)
         clip = [[fd.clipped for fd in row] for row in fds]
         self._check_sensor(center)
-        psf = self._checked(psf, fds, connect=cache is None)
+        psf = self._checked(psf, [[fd.wavelength for fd in row] for row in fds], connect=cache is None)
         return PSFResult(psf, center, outside, self.sensor_pitch, nr,
                          torch.tensor(clip, dtype=torch.float64, device=center.device))
+
+    def _accurate_psfs(self, fields, wavelengths, depth, rays, check: bool, ks: int, propagation_dtype):
+        """:meth:`psf_result`'s accurate path without a cache (issue 43): the call's shared traces once
+        (:meth:`_accurate_geometry`), then per group of sources (:meth:`_field_groups`, bounded by the fields'
+        memory) the fields built together and propagated in batches (:meth:`propagate_fields`), each group's fields
+        dropped before the next is built. Returns ``(psf (F, W, ks, ks), centres (F, W, 2), energy outside (F, W),
+        rays (F, W), clipped fractions [F][W])``; the aperture and caustic warnings once for the call."""
+        f = _as_fields(fields, torch.float64, self.lens.device)
+        if self.lens.field_type == "angle" and bool((f.abs() >= MAX_FIELD_ANGLE).any()):
+            raise ValueError(f"field {f[(f.abs() >= MAX_FIELD_ANGLE).any(-1)][0].tolist()}: the ray-wave engine "
+                             f"samples the entrance-pupil plane and traces field angles below {MAX_FIELD_ANGLE:g}°; a "
+                             "fisheye's wider field is traced by the geometric analyses (trace, spot, info)")
+        wls = self.wavelength_list(wavelengths)
+        geo = self._accurate_geometry(f, wls, depth)
+        pending: tuple = ([], [])
+        order, parts, clip = [], [], {}
+        for members in self._field_groups(geo):
+            fds = self._finish_fields(self._accurate_group(geo, members, rays or 64, check), geo, pending)
+            parts.append(self.propagate_fields(fds, ks, propagation_dtype))
+            clip.update({i: [fd.clipped for fd in row] for i, row in zip(members, fds)})
+            order.extend(members)
+            del fds
+        self._warn_clipped(pending[0])
+        self._warn_caustic(pending[1])
+        if len(parts) == 1 and order == list(range(f.shape[0])):
+            psf, center, outside, nr = parts[0]
+        else:
+            back = torch.argsort(torch.tensor(order, dtype=torch.long, device="cpu"))
+            psf, center, outside, nr = (torch.cat(ts)[back.to(ts[0].device)] for ts in zip(*parts))
+        return psf, center, outside, nr, [clip[i] for i in range(f.shape[0])]
 
     def propagate_fields(self, fds, ks: int, propagation_dtype=torch.complex128):
         """Steps 2–4 for a nested list ``[F][W]`` of :class:`DOEField` (this engine's, or a comparison model's):
@@ -757,8 +878,8 @@ class HybridLens(nn.Module):
         """PSFs ``(F, W, ks, ks)`` (float64, each summing to 1); see :meth:`psf_result` for the arguments."""
         return self.psf_result(fields, wavelengths, ks, depth, mode, rays, cache, **kw).psf
 
-    def _checked(self, psf: torch.Tensor, fds, connect: bool = True) -> torch.Tensor:
-        """``psf`` (F, W, ks, ks) refused when not finite (:class:`~raywave.utils.errors.NonFiniteError` naming the
+    def _checked(self, psf: torch.Tensor, wls, connect: bool = True) -> torch.Tensor:
+        """``psf`` (F, W, ks, ks) (``wls`` ``[F][W]`` their wavelengths, µm) refused when not finite (:class:`~raywave.utils.errors.NonFiniteError` naming the
         source), and (``connect``: fields traced now, not a cache, which stands for a frozen lens) kept connected
         to the autograd graph when no light reached the sensor in any source (all zeros): a zero-valued term in
         every trainable parameter, so ``backward()`` works and gives zero gradients instead of failing inside
@@ -768,9 +889,8 @@ class HybridLens(nn.Module):
         bad = ~torch.isfinite(psf).all(-1).all(-1)
         if bool(bad.any()):
             i, j = (int(v) for v in bad.nonzero()[0])
-            fd = fds[i][j]
             raise NonFiniteError(
-                f"the PSF of source {i} at {fd.wavelength:g} µm is not finite (NaN or inf): the DOE's phase is not "
+                f"the PSF of source {i} at {wls[i][j]:g} µm is not finite (NaN or inf): the DOE's phase is not "
                 f"finite on its grid (check its phase model: coefficients, order, normalisation radius) or the lens "
                 f"gives non-finite optical paths; DOE: {self.doe.extra_repr()}")
         if connect and torch.is_grad_enabled() and not psf.requires_grad:

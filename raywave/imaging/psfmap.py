@@ -506,6 +506,16 @@ def default_batch(n_wavelengths: int) -> int:
     return max(1, DEFAULT_FIELDS_PER_CALL // max(1, n_wavelengths))
 
 
+def map_call_size(model, grad: bool, cache) -> int | None:
+    """Sources (field points × wavelengths) per model call of a map without autograd and without a field cache:
+    the model's ``map_sources_per_call`` (a model that builds its fields in memory-bounded groups within a call and
+    traces what its sources share once per call: :class:`~raywave.hybrid.HybridLens`, issue 43), else None (the
+    fixed :func:`default_batch`; with autograd a call holds its whole graph, with a cache every field is kept)."""
+    if grad or cache is not None:
+        return None
+    return getattr(model, "map_sources_per_call", None)
+
+
 def _map_fields(model, grid, fields, sensor_size, mapping, reference_wavelength, depth):
     """The map's node field angles ``(N, M, 2)`` (deg, float64) and sensor size ((w, h) mm, or None if unknown):
     ``fields`` when given, else :func:`field_grid` of ``grid`` at ``depth`` (mm, the map's first)."""
@@ -536,9 +546,13 @@ def _pair_order(n: int, m: int) -> torch.Tensor:
     return torch.tensor(order, dtype=torch.long, device="cpu")  # host-side, like the field angles
 
 
-def _map_chunks(n_points: int, n_wavelengths: int, batch: int | None) -> list[tuple[int, int]]:
-    """[start, end) ranges of the ``n_points`` flat field points, ``batch`` (default :func:`default_batch`) per
-    model call."""
+def _map_chunks(n_points: int, n_wavelengths: int, batch: int | None,
+                per_call: int | None = None) -> list[tuple[int, int]]:
+    """[start, end) ranges of the ``n_points`` flat field points, ``batch`` per model call; default: ``per_call``
+    sources (field points × wavelengths) when the model says how many one call takes (a model that bounds its own
+    memory: :attr:`raywave.hybrid.HybridLens.map_sources_per_call`), else :func:`default_batch`."""
+    if batch is None and per_call is not None:
+        batch = max(1, int(per_call) // max(1, n_wavelengths))
     b = default_batch(n_wavelengths) if batch is None else int(batch)
     if b < 1:
         raise ValueError(f"batch must be >= 1 field point, got {batch}")
@@ -603,7 +617,8 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
             :meth:`ColorSpec.sample` draw, for evaluation ``ColorSpec.all_wavelengths()`` then
             :meth:`PSFMap.channel_average`).
         ks: PSF size in sensor pixels.
-        batch: field points per model call (all wavelengths together); default :func:`default_batch`.
+        batch: field points per model call (all wavelengths together); default :func:`map_call_size` (without
+            autograd and cache, a HybridLens takes up to 512 sources a call) or :func:`default_batch`.
         progress: show a tqdm bar counting PSFs (depths × wavelengths × nodes, a chunk's worth at a time): True,
             False, or None (default): for maps of ≥ 100 PSFs when stderr is a terminal.
         cache: :class:`DOEFieldCache` of a frozen refractive lens (HybridLens only).
@@ -624,7 +639,7 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
     positions = normalised_grid((n, m), device="cpu")  # host-side, like the field angles
     order = _pair_order(n, m)  # mirror-image nodes side by side: a chunk holds both (built once, mirrored)
     flat = f_nm.reshape(-1, 2)[order]
-    chunks = _map_chunks(flat.shape[0], len(wls), batch)
+    chunks = _map_chunks(flat.shape[0], len(wls), batch, map_call_size(model, grad, cache))
     disable = _progress_disable(progress, len(ds) * len(wls) * flat.shape[0])
     bar = tqdm(total=len(ds) * len(wls) * flat.shape[0], desc=f"PSF map {n}×{m}×{len(wls)}λ×{len(ds)} depth",
                unit="PSF", disable=disable, leave=False)

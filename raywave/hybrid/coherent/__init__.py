@@ -46,7 +46,7 @@ from raywave.hybrid.coherent.geometry import (WINDOW_BYTES_PER_SAMPLE, _check_be
                                               _crop_to_lit, _empty_field, _footprint, _medium_index, _sim_grid,
                                               _warn_nyquist, check_window_memory, chief_rays, lit_box,
                                               doe_clipping, doe_clippings, footprints, inside_doe)  # noqa: F401
-from raywave.hybrid.coherent.tracing import (_TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
+from raywave.hybrid.coherent.tracing import (_Aim, _TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
                                              _slice_bundle, _solve2, _trace_group, _trace_uv, run_batched,
                                              run_serial)  # noqa: F401
 from raywave.hybrid.coherent.stop_edge import (INNER_TAIL, RIM_POINTS, RIPPLE_ZONES, _fresnel_scale,

@@ -17,37 +17,19 @@ from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _warn_nyquist, check_window_memory)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
+from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_cubic,
                                                _rim_z, _zone_estimate, edge_envelope)
-from raywave.hybrid.coherent.tracing import (_TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
-                                             _solve2, run_serial)
+from raywave.hybrid.coherent.tracing import _Aim, _invert_to_nodes, _nearest_fill, _solve2, run_serial
 
 
-def accurate_field(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe, chief_sensor,
-                   nodes: int = 64, oversample: int = 1, field_type: str | None = None, check: bool = True,
-                   chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
-                   ripple_zones: float | None = None) -> DOEField:
-    """The accurate DOE-plane field for one field point (2,) and one wavelength (µm).
-
-    Args:
-        virtual: build the field on a plane ``z_doe`` that may lie inside the lens (reached by extending the
-            rays leaving the last surface along straight lines in the image medium, e.g. the exit pupil),
-            on the DOE's simulation lattice extended without bound and without the DOE aperture (the
-            returned window indices may be negative or beyond the DOE grid).
-        nodes: number of traced nodes across the larger side of the lit footprint (the ray budget is about
-            ``nodes²``); the field is smooth, so 32–64 are plenty for most lenses.
-        chief_doe, chief_sensor: the chief ray (RayBundle, scalar batch) at the DOE and at the sensor.
-        chief_uv: its entrance-plane point (2,) mm, if known (saves aiming it again).
-        stop_plane: z (mm) of the plane where the stop's edge is sharp (the exit pupil): the stop's edge is then
-            not cut sharply on this plane but carries its Fresnel diffraction from that plane (the knife-edge
-            factor of :func:`stop_edge_factor`); None: the paper's sharp edge on this plane.
-        ripple_zones: with ``stop_plane``: Fresnel zones of the edge's ripples kept outside the geometric
-            footprint (default :data:`RIPPLE_ZONES`).
-    """
-    return run_serial(accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
-                                           chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
-                                           check=check, chief_uv=chief_uv, virtual=virtual, stop_plane=stop_plane,
-                                           ripple_zones=ripple_zones))
+def accurate_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
+                   settings: FieldSettings | None = None) -> DOEField:
+    """The accurate DOE-plane field of one :class:`~raywave.hybrid.coherent.settings.Source` (field point,
+    wavelength, depth) with its :class:`ChiefRays` on the plane ``planes.z_doe`` mm (the sensor at
+    ``planes.z_sensor`` mm), sampled as ``settings`` say (:class:`FieldSettings`: nodes,
+    oversampling, checks, a virtual plane, the stop edge's plane)."""
+    return run_serial(accurate_field_steps(lens, doe, source, planes, chief, settings))
 
 
 #: largest (Fresnel zone on the DOE plane) / (radius of curvature of the stop edge's shadow) for which the Fresnel
@@ -96,79 +78,95 @@ class _Nodes:
         return v.T.reshape(-1, self.ky, self.kx) if v.ndim == 2 else v.reshape(self.ky, self.kx)
 
 
-def accurate_field_steps(lens, doe, field, wavelength: float, depth, z_doe: float, z_sensor: float, chief_doe,
-                         chief_sensor, nodes: int = 64, oversample: int = 1, field_type: str | None = None,
-                         check: bool = True, chief_uv=None, virtual: bool = False, stop_plane: float | None = None,
-                         ripple_zones: float | None = None, bbox=None, stop_rim=None, entrance=None):
+@dataclass
+class _Build:
+    """One accurate construction: the lens and DOE, the :class:`Source`, the plane ``z_doe`` and the sensor
+    ``z_sensor`` (mm), its :class:`ChiefRays`, the :class:`FieldSettings` and what the caller traced already
+    (:class:`Known`); derived on
+    creation: ``field`` (2,) and ``wl`` (1,) tensors, ``n`` the image medium's index, ``p`` the simulation pitch (mm),
+    ``carrier`` the chief ray's direction cosines (α, β), ``center`` its sensor point, ``zprop`` the distance to the
+    sensor (mm), ``field_type`` and ``ripple`` (the edge's ripple zones with a stop plane, else None)."""
+
+    lens: object
+    doe: object
+    src: Source
+    z_doe: float
+    z_sensor: float
+    chief: ChiefRays
+    cfg: FieldSettings
+    given: Known
+
+    def __post_init__(self):
+        cfg, src = self.cfg, self.src
+        self.field_type, self.field, self.wl, self.n, sim, self.carrier, self.center, self.zprop = _common_setup(
+            self.lens, self.doe, src.field, src.wavelength, self.z_doe, self.z_sensor, self.chief.doe,
+            self.chief.sensor, cfg.oversample, src.field_type)
+        self.p = sim[0]
+        self.ripple = None
+        if cfg.stop_plane is not None:
+            self.ripple = RIPPLE_ZONES if cfg.ripple_zones is None else float(cfg.ripple_zones)
+
+    def empty(self, rays: int) -> DOEField:
+        """The field without light (``rays`` traced)."""
+        return _empty_field(self.doe, self.cfg.oversample, self.carrier, self.n, self.src.wavelength, self.zprop,
+                            self.center, rays, "accurate")
+
+
+def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
+                         settings: FieldSettings | None = None, known: Known | None = None):
     """:func:`accurate_field` as a generator: yields the :class:`_TraceRequest` of every ray trace it needs and
     receives its result, returns the :class:`DOEField` (run it with :func:`run_serial`, or many together with
-    :func:`run_batched`: one batched trace per round for all of them). ``bbox``: the lit footprint on the plane
-    (:func:`footprints`; ``False``: none, every ray vignetted) when the caller traced it already (None: traced
-    here). ``stop_rim``: with ``stop_plane``, the images of the stop's rim (:func:`stop_rim_images`): the edge's
-    Fresnel step then runs from the rim point's own image at every node (its azimuth on the stop) instead of from
-    the plane ``stop_plane``. ``entrance``: ``(z, radius)`` mm of the paraxial entrance pupil
-    (:func:`entrance_pupil`), when the caller knows it (one lens, many fields: it is computed once).
+    :func:`run_batched`: one batched trace per round for all of them). ``known`` (:class:`Known`): what the
+    caller traced already for many sources at once (the lit footprint, the stop rim's images, the entrance pupil).
 
     Steps: the node grid over the footprint (:func:`_node_layout`), exactly aimed rays to every node
     (:func:`_trace_nodes`), the smooth per-node maps (:func:`_node_maps`: optical path, ray density, distances
     to the edges; :func:`_stop_edge_maps`: the stop edge's Fresnel channels), the checks (:func:`_check_nodes`),
     and the fine field (:func:`_fine_field`)."""
-    field_type, field, wl, n, (p, x0, y0, sy, sx), carrier, center, zprop = _common_setup(
-        lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
-
-    def empty(rays):
-        return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, rays, "accurate")
-
-    bbox = _lit_footprint(bbox, lens, field, wl, depth, z_doe, virtual)
+    b = _Build(lens, doe, source, float(planes.z_doe), float(planes.z_sensor), chief, settings or FieldSettings(),
+               known or Known())
+    bbox = _lit_footprint(b)
     if bbox is None:
-        return empty(0)
-    if stop_plane is not None:
-        ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
-    nd = _node_layout(bbox, chief_doe, p, nodes, lens.device, z_doe, z_sensor, wavelength, n, carrier, stop_plane,
-                      stop_rim, ripple_zones)
-    uv_lin, rays, at, rec, good = yield from _trace_nodes(lens, nd, field, wl, depth, z_doe, field_type, chief_uv,
-                                                          entrance)
+        return b.empty(0)
+    nd = _node_layout(b, bbox)
+    nodes = yield from _trace_nodes(b, nd)
+    good = nodes[-1]
     n_rays = nd.targets.shape[0]
     if not bool(good.any()):
-        warnings.warn(f"no ray could be traced to the DOE plane for field {field.tolist()} at {wavelength:g} µm",
-                      SamplingWarning, stacklevel=3)
-        return empty(n_rays)
+        warnings.warn(f"no ray could be traced to the DOE plane for field {b.field.tolist()} at "
+                      f"{source.wavelength:g} µm", SamplingWarning, stacklevel=3)
+        return b.empty(n_rays)
     is_stop = [i == lens.stop_index for i, s in enumerate(lens.surfaces) if s.aperture is not None]
-    diffracting = stop_plane is not None and any(is_stop)
-    maps = _node_maps(lens, nd, uv_lin, rays, at, rec, good, n, depth, is_stop, diffracting, carrier)
+    diffracting = b.cfg.stop_plane is not None and any(is_stop)
+    maps = _node_maps(b, nd, nodes, is_stop, diffracting)
     if diffracting:
-        maps.update(_stop_edge_maps(lens, nd, rec, good, maps, z_doe, stop_plane, stop_rim, ripple_zones,
-                                    wavelength, n, p, check, field))
-    if check:
-        _check_nodes(nd, maps, good, at.d[0, 0], carrier, n, p, wavelength, field)
-    sim = doe.sim_grid(oversample)
-    out = _fine_field(nd, maps, sim, None if virtual else doe, oversample, wavelength, z_doe, stop_plane,
-                      ripple_zones)
+        maps.update(_stop_edge_maps(b, nd, nodes, maps))
+    if b.cfg.check:
+        _check_nodes(b, nd, maps, good, nodes[2].d[0, 0])
+    sim = doe.sim_grid(b.cfg.oversample)
+    out = _fine_field(b, nd, maps, sim)
     if out is None:
-        return empty(n_rays)
-    return _window_field(*out, sim, p, wavelength, n, carrier, zprop, center, n_rays + 1)
+        return b.empty(n_rays)
+    return _window_field(b, *out, sim, n_rays + 1)
 
 
-def _lit_footprint(bbox, lens, field, wl, depth, z_doe: float, virtual: bool):
-    """The lit footprint ``(xmin, xmax, ymin, ymax)`` mm on the plane ``z_doe``, or None (every ray vignetted):
-    ``bbox`` as the caller gave it (``False``: none), else traced here (:func:`_footprint`; ``field`` (2,), ``wl``
-    (1,) µm)."""
+def _lit_footprint(b: _Build):
+    """The lit footprint ``(xmin, xmax, ymin, ymax)`` mm on the plane, or None (every ray vignetted): the caller's
+    (``b.given.bbox``; ``False``: none), else traced here (:func:`_footprint`)."""
+    bbox = b.given.bbox
     if bbox is False:  # given: every ray is vignetted
         return None
     if bbox is None:
-        return _footprint(lens, field, wl, depth, z_doe, virtual=virtual)
+        return _footprint(b.lens, b.field, b.wl, b.src.depth, b.z_doe, virtual=b.cfg.virtual)
     return bbox
 
 
-def _window_field(env: torch.Tensor, box, sim: Grid, p: float, wavelength: float, n: float, carrier, zprop, center,
-                  rays: int) -> DOEField:
+def _window_field(b: _Build, env: torch.Tensor, box, sim: Grid, rays: int) -> DOEField:
     """The :class:`DOEField` of the envelope ``env`` (ny, nx) complex128 on the half-open window ``box``
-    ``(iy0, iy1, ix0, ix1)`` of ``sim``'s lattice (pitch ``p`` mm; ``wavelength`` µm, ``n`` the medium's index,
-    ``carrier`` the chief ray's direction cosines (α, β), ``zprop`` mm to the sensor, ``center`` (2,) mm the chief
-    ray's image point), built from ``rays`` traced rays."""
+    ``(iy0, iy1, ix0, ix1)`` of ``sim``'s lattice, built from ``rays`` traced rays."""
     # on the DOE's simulation lattice (a virtual plane's box may extend beyond the DOE grid)
-    grid = Grid(sim.position(box[0], box[2]), p, (box[1] - box[0], box[3] - box[2]))
-    return DOEField(Field(env, grid, float(wavelength), n, carrier), box, zprop, center,
+    grid = Grid(sim.position(box[0], box[2]), b.p, (box[1] - box[0], box[3] - box[2]))
+    return DOEField(Field(env, grid, float(b.src.wavelength), b.n, b.carrier), box, b.zprop, b.center,
                     FieldInfo(rays, "accurate"))
 
 
@@ -190,12 +188,12 @@ def _check_node_count(kx: int, ky: int, nodes: int, extent: float, margin: float
                      f"plane.{why}")
 
 
-def _node_layout(bbox, chief_doe, p: float, nodes: int, dev, z_doe: float, z_sensor: float, wavelength: float,
-                 n: float, carrier, stop_plane, stop_rim, ripple_zones) -> _Nodes:
+def _node_layout(b: _Build, bbox) -> _Nodes:
     """The node grid: spacing h, symmetric about the chief ray's landing point (so a symmetric lens gives an
     exactly symmetric field), covering the footprint ``bbox`` + a margin (with the stop edge diffracting from
-    ``stop_plane``, its ripple band too); nodes need not sit on simulation pixels."""
-    xcd, ycd = (float(v) for v in chief_doe.o[:2].detach())
+    the stop plane, its ripple band too); nodes need not sit on simulation pixels."""
+    p, nodes, z_doe, stop_plane, stop_rim = b.p, b.cfg.nodes, b.z_doe, b.cfg.stop_plane, b.given.stop_rim
+    xcd, ycd = (float(v) for v in b.chief.doe.o[:2].detach())
     extent = max(bbox[1] - bbox[0], bbox[3] - bbox[2], p)
     h_node = extent / max(nodes - 1, 2)
     margin = 2.5 * h_node + 2 * p
@@ -206,54 +204,56 @@ def _node_layout(bbox, chief_doe, p: float, nodes: int, dev, z_doe: float, z_sen
             z_far = float(zr.min() if z_doe >= stop_plane else zr.max())
             if (z_doe - z_far) * (z_doe - stop_plane) > 0 and abs(z_doe - z_far) > abs(z_doe - stop_plane):
                 z_edge = z_far
-        margin += (ripple_zones + 1) * _zone_estimate(wavelength, n, z_doe - z_edge, z_sensor - z_edge, *carrier)
+        margin += (b.ripple + 1) * _zone_estimate(b.src.wavelength, b.n, z_doe - z_edge, b.z_sensor - z_edge,
+                                                  *b.carrier)
     half_x = max(xcd - bbox[0], bbox[1] - xcd) + margin
     half_y = max(ycd - bbox[2], bbox[3] - ycd) + margin
     kx = 2 * math.ceil(half_x / h_node) + 1
     ky = 2 * math.ceil(half_y / h_node) + 1
     _check_node_count(kx, ky, nodes, extent, margin, stop_plane)
+    dev = b.lens.device
     gx = xcd + (torch.arange(kx, dtype=torch.float64, device=dev) - (kx - 1) / 2) * h_node
     gy = ycd + (torch.arange(ky, dtype=torch.float64, device=dev) - (ky - 1) / 2) * h_node
     return _Nodes(gx, gy, h_node)
 
 
-def _trace_nodes(lens, nd: _Nodes, field, wl, depth, z_doe: float, field_type, chief_uv, entrance):
+def _trace_nodes(b: _Build, nd: _Nodes):
     """Generator: aim a ray at every node (Newton on the entrance-plane point from the chief ray's linear
     guess), then trace them differentiably. Returns ``(uv_lin, rays, at, rec, good)``: the entrance-plane points
     (N, 2), the traced rays, their state on the plane, the per-surface record and the nodes whose ray converged
     and passed (N,)."""
-    ep_z, r_ep = entrance_pupil(lens) if entrance is None else entrance
+    lens = b.lens
+    ep_z, r_ep = entrance_pupil(lens) if b.given.entrance is None else b.given.entrance
+    chief_uv = b.chief.uv
     if chief_uv is None:
-        ep_rays = point_source_rays(lens, field, wl, pupil=chief_pupil(lens), aim="full", depth=depth)
+        ep_rays = point_source_rays(lens, b.field, b.wl, pupil=chief_pupil(lens), aim="full", depth=b.src.depth)
         o, d = ep_rays.o[0, 0, 0].detach(), ep_rays.d[0, 0, 0].detach()
         chief_uv = o[:2] + d[:2] * (ep_z - o[2]) / d[2]
     uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device).reshape(1, 2)
-    h = 1e-6 * max(r_ep, 1e-3)
-    x_c, _, jac_c = yield from _landing_and_jacobian(lens, uv_c, field, wl, depth, z_doe, field_type, h, ep_z)
-    uv0, jac0 = yield from _coarse_start(lens, nd, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h, r_ep,
-                                         ep_z)
-    uv, conv, jac, x_at = yield from _invert_to_nodes(lens, nd.targets, uv_c, x_c, jac_c, field, wl, depth, z_doe,
-                                                      field_type, h, max_step=0.25 * r_ep, ep_z=ep_z, uv0=uv0,
-                                                      jac0=jac0)
+    aim = _Aim(lens, b.field, b.wl, b.src.depth, b.z_doe, b.field_type, 1e-6 * max(r_ep, 1e-3), ep_z)
+    x_c, _, jac_c = yield from aim.landing(uv_c)
+    chief = (uv_c, x_c, jac_c)
+    start = yield from _coarse_start(aim, nd, chief, 0.25 * r_ep)
+    uv, conv, jac, x_at = yield from _invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep, start)
     # the differentiable trace of the node rays. The landing point of a node's ray must stay on its node when
     # the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals uv
     # in value and carries d(uv)/dθ = −J⁻¹ ∂X/∂θ, so everything traced at uv_lin (path, directions, aperture
     # slacks, ray density) has its exact first-order derivative with respect to the lens parameters.
     # (without autograd the landing points at uv are the Newton iteration's last ones: no trace)
     if x_at is None or torch.is_grad_enabled():
-        _, _, at0, _ = yield _TraceRequest(lens, uv, field, wl, depth, z_doe, field_type, False, ep_z, True)
+        _, _, at0, _ = yield aim.request(uv, False, True)
         x_at = at0.o[0, 0, :, :2]
-    if uv0 is not None and torch.is_grad_enabled():
+    if start is not None and torch.is_grad_enabled():
         # the lens gradient needs the exact Jacobian at the solution (a chord node carries the coarse one): the
         # step's value comes from the iteration's Jacobian (as without autograd, so that a replay of this
         # construction is bitwise the forward pass), its derivative from the exact one (a zero-valued term)
-        _, _, jac_exact = yield from _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z)
+        _, _, jac_exact = yield from aim.landing(uv)
         jinv_step, _ = _solve2(jac, x_at.detach() - nd.targets)
         jinv_step = jinv_step + _solve2(jac_exact, x_at - x_at.detach())[0]
     else:
         jinv_step, _ = _solve2(jac, (x_at - nd.targets))
     uv_lin = uv - jinv_step
-    rays, _, at, rec = yield _TraceRequest(lens, uv_lin, field, wl, depth, z_doe, field_type, True, ep_z, True)
+    rays, _, at, rec = yield aim.request(uv_lin, True, True)
     return uv_lin, rays, at, rec, conv & at.valid[0, 0]
 
 
@@ -262,13 +262,13 @@ def _trace_nodes(lens, nd: _Nodes, field, wl, depth, z_doe: float, field_type, c
 COARSE_STRIDE = 4
 
 
-def _coarse_start(lens, nd: _Nodes, uv_c, x_c, jac_c, field, wl, depth, z_doe: float, field_type, h: float,
-                  r_ep: float, ep_z):
-    """Generator: the Newton start of every node, ``(uv0 (N, 2), jac0 (N, 2, 2))``: the exact solution on every
+def _coarse_start(aim: _Aim, nd: _Nodes, chief: tuple, max_step: float):
+    """Generator: the Newton start of every node (rays ``aim``, from the chief ray's ``(uv, X, ∂X/∂uv)``, Newton
+    steps of at most ``max_step`` mm), ``(uv0 (N, 2), jac0 (N, 2, 2))``: the exact solution on every
     :data:`COARSE_STRIDE`-th node interpolated (separable cubic) to all nodes (entrance-plane mm), and the
     Jacobian ∂X/∂uv of that interpolant (the inverse of its node-grid differences); NaN where a coarse node that
-    the interpolation uses did not converge (that node keeps the chief ray's linear guess and Newton). ``(None,
-    None)`` for small grids.
+    the interpolation uses did not converge (that node keeps the chief ray's linear guess and Newton). None
+    for small grids.
 
     The ray map is smooth, so the interpolated start lands within ~1e-6 mm of the node's own solution and its
     Jacobian is good to ~1e-4: chord steps (one ray per node, no finite-difference neighbours) converge in one or
@@ -277,15 +277,14 @@ def _coarse_start(lens, nd: _Nodes, uv_c, x_c, jac_c, field, wl, depth, z_doe: f
     ~1e-13 mm)."""
     s = COARSE_STRIDE
     if min(nd.kx, nd.ky) < 4 * s + 1:
-        return None, None
+        return None
     kxc, kyc = -(-(nd.kx - 1) // s) + 1, -(-(nd.ky - 1) // s) + 1  # the coarse grid covers the node grid
     dev = nd.gx.device
     gxc = nd.gx[0] + torch.arange(kxc, dtype=torch.float64, device=dev) * (s * nd.h)
     gyc = nd.gy[0] + torch.arange(kyc, dtype=torch.float64, device=dev) * (s * nd.h)
     tx, ty = torch.meshgrid(gxc, gyc, indexing="xy")
     targets = torch.stack([tx, ty], -1).reshape(-1, 2)
-    uv, conv, _, _ = yield from _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type,
-                                                 h, max_step=0.25 * r_ep, ep_z=ep_z)
+    uv, conv, _, _ = yield from _invert_to_nodes(aim, targets, chief, max_step)
     my = cubic_matrix(torch.arange(nd.ky, dtype=torch.float64, device=dev) / s, kyc)
     mx = cubic_matrix(torch.arange(nd.kx, dtype=torch.float64, device=dev) / s, kxc)
     uv_map = uv.T.reshape(2, kyc, kxc)
@@ -302,17 +301,18 @@ def _coarse_start(lens, nd: _Nodes, uv_c, x_c, jac_c, field, wl, depth, z_doe: f
     return fine.reshape(2, -1).T, jac0
 
 
-def _node_maps(lens, nd: _Nodes, uv_lin, rays, at, rec, good, n: float, depth, is_stop, diffracting,
-               carrier) -> dict:
+def _node_maps(b: _Build, nd: _Nodes, traced: tuple, is_stop, diffracting) -> dict:
     """The smooth real per-node maps ``(ky, kx)`` of the wave on the plane (nodes whose ray failed take their
     nearest good neighbour's values): ``phi_env`` the optical path (Malus–Dupin to the node) less the chief
     ray's and the carrier's, ``amp2`` the irradiance from the ray density, ``det`` the pupil → plane Jacobian,
     ``dist`` the distance (mm) to the nearest aperture edge (clamped to ±3h), and with ``diffracting``:
     ``stop`` (distance, normal x, normal y) of the stop's edge, ``other`` the distance to the other edges,
-    ``slopes`` the node rays' slopes."""
+    ``slopes`` the node rays' slopes. ``traced``: :func:`_trace_nodes`' ``(uv_lin, rays, at, rec, good)``."""
+    lens, n, carrier = b.lens, b.n, b.carrier
+    uv_lin, rays, at, rec, good = traced
     X, dvec = at.o[0, 0, :, :2], at.d[0, 0]
     phi = at.opl[0, 0] + n * ((nd.targets - X) * dvec[:, :2]).sum(-1)  # Malus–Dupin: Φ at the node itself
-    w0 = source_weight(lens, rays, depth)[0, 0]
+    w0 = source_weight(lens, rays, b.src.depth)[0, 0]
     slacks = [s.aperture.slack(*(c[0, 0] for c in rec.points[i + 1][:2]))
               for i, s in enumerate(lens.surfaces) if s.aperture is not None]
     slopes = [dvec[:, 0] / dvec[:, 2], dvec[:, 1] / dvec[:, 2], dvec[:, 0], dvec[:, 1]] if diffracting else []
@@ -360,14 +360,16 @@ def _edge_distances(slack_maps, is_stop, diffracting: bool, h_node: float) -> di
             "other": None if other is None else other.clamp(-lim, lim)}
 
 
-def _stop_edge_maps(lens, nd: _Nodes, rec, good, maps: dict, z_doe: float, stop_plane: float, stop_rim,
-                    ripple_zones: float, wavelength: float, n: float, p: float, check: bool, field) -> dict:
+def _stop_edge_maps(b: _Build, nd: _Nodes, traced: tuple, maps: dict) -> dict:
     """The stop edge's channels when it diffracts from ``stop_plane`` (or from the rim's own images
     ``stop_rim``): ``nu`` = g·s (the Fresnel parameter of the node's distance to the edge, clamped where the
     factor is 1 or 0 anyway), ``kappa`` = κ·g/g_t² (the edge's curvature in Fresnel units, ``g_t`` the Fresnel
     scale along the edge), ``g_max`` the largest Fresnel scale near the edge. Warns (``check``) where the edge is
-    too curved for the step."""
-    dz_edge = z_doe - stop_plane
+    too curved for the step. ``traced``: :func:`_trace_nodes`' ``(uv_lin, rays, at, rec, good)``."""
+    lens, z_doe, stop_rim, ripple_zones = b.lens, b.z_doe, b.given.stop_rim, b.ripple
+    wavelength, n, p = b.src.wavelength, b.n, b.p
+    rec, good = traced[3], traced[4]
+    dz_edge = z_doe - b.cfg.stop_plane
     rim_ok = False
     if stop_rim is not None:  # the rim point's own image, by the node ray's azimuth on the stop
         sx_, sy_ = (c[0, 0] for c in rec.points[lens.stop_index + 1][:2])
@@ -384,7 +386,7 @@ def _stop_edge_maps(lens, nd: _Nodes, rec, good, maps: dict, z_doe: float, stop_
     nu_lim = _nu_inner(ripple_zones) + 4.0
     div_n = torch.gradient(nx_, spacing=nd.h, dim=1)[0] + torch.gradient(ny_, spacing=nd.h, dim=0)[0]
     if rim_ok and getattr(stop_rim, "points", None) is not None and PATH_DIFFERENCE_NU:
-        nu = _path_difference_nu(stop_rim, sx_, sy_, nd, good, maps["phi"], s_stop, g_s, z_doe, wavelength, n)
+        nu = _path_difference_nu(b, nd, (sx_, sy_), good, (maps["phi"], s_stop, g_s))
     else:
         nu = s_stop * g_s
     # the largest scale where the factor is evaluated (the band; it sets the inner tail's anti-aliasing limit):
@@ -392,8 +394,8 @@ def _stop_edge_maps(lens, nd: _Nodes, rec, good, maps: dict, z_doe: float, stop_
     nu_d = nu.detach()
     near = (nu_d > -math.sqrt(2.0) * ripple_zones) & (nu_d < _nu_inner(ripple_zones))
     g_max = float(g_s.detach()[near].max()) if bool(near.any()) else float(g_s.detach().max())
-    if check:
-        _warn_edge_curvature(div_n.detach(), g_s.detach(), nu.detach().abs() < 2.0, field.tolist(), wavelength)
+    if b.cfg.check:
+        _warn_edge_curvature(div_n.detach(), g_s.detach(), nu.detach().abs() < 2.0, b.field.tolist(), wavelength)
     return {"nu": nu.clamp(-nu_lim, nu_lim), "nu_raw": nu.detach(),
             "kappa": (-div_n * g_s / (g_t * g_t)).clamp(-KAPPA_MAX, KAPPA_MAX), "g_max": g_max}
 
@@ -403,8 +405,7 @@ def _stop_edge_maps(lens, nd: _Nodes, rec, good, maps: dict, z_doe: float, stop_
 PATH_DIFFERENCE_NU = True
 
 
-def _path_difference_nu(rim, sx, sy, nd: _Nodes, good, phi, s_stop, g_s, z_doe: float, wavelength: float,
-                        n: float) -> torch.Tensor:
+def _path_difference_nu(b: _Build, nd: _Nodes, stop_xy: tuple, good, edge: tuple) -> torch.Tensor:
     """The knife edge's Fresnel parameter at the nodes ``(ky, kx)`` from the optical path difference ``Δ`` between
     the wave diffracted at the edge and the geometric one: ``ν = sign(s)·2·sqrt(Δ/λ)``, ``Δ = Φ_E + n|P − E| − Φ_P``
     with ``E`` the image of the stop's rim point at the node ray's azimuth (:class:`RimImages`: the edge's
@@ -416,7 +417,11 @@ def _path_difference_nu(rim, sx, sy, nd: _Nodes, good, phi, s_stop, g_s, z_doe: 
     across the edge's Fresnel zones (an aberrated beam, off axis: the local ``L`` at the node is not that of the
     path from the edge). Near the shadow's edge (``|s|`` below a tenth of a Fresnel unit) it blends into ``g·s``:
     ``g_eff² = (4Δ/λ + g² s₀²)/(s² + s₀²)``, smooth and with finite derivatives where ``Δ`` and ``s`` vanish
-    together. ``sx, sy`` (N,) the node rays' stop coordinates, ``s_stop`` and ``g_s`` (ky, kx). Differentiable."""
+    together. ``stop_xy`` = ``(sx, sy)`` (N,) the node rays' stop coordinates, ``edge`` = ``(phi, s_stop, g_s)``
+    (ky, kx); the rim images are ``b.given.stop_rim``. Differentiable."""
+    rim, z_doe, wavelength, n = b.given.stop_rim, b.z_doe, b.src.wavelength, b.n
+    sx, sy = stop_xy
+    phi, s_stop, g_s = edge
     at_rim = _rim_cubic(torch.cat([rim.points, rim.opl[:, None]], -1), sx, sy)  # (N, 4): x, y, z, Φ_E
     filled = nd.as_map(_nearest_fill(at_rim, good, nd.targets))  # (4, ky, kx)
     ex, ey, ez, phi_e = filled
@@ -430,8 +435,10 @@ def _path_difference_nu(rim, sx, sy, nd: _Nodes, good, phi, s_stop, g_s, z_doe: 
     return s_stop * torch.sqrt(g2)
 
 
-def _check_nodes(nd: _Nodes, maps: dict, good, dvec, carrier, n: float, p: float, wavelength: float, field) -> None:
-    """Warn where the pupil → plane map folds (a caustic) or the envelope's phase slope passes Nyquist."""
+def _check_nodes(b: _Build, nd: _Nodes, maps: dict, good, dvec) -> None:
+    """Warn where the pupil → plane map folds (a caustic) or the envelope's phase slope passes Nyquist (``dvec``
+    (N, 3) the node rays' directions)."""
+    carrier, n, p, wavelength, field = b.carrier, b.n, b.p, b.src.wavelength, b.field
     ky, kx = nd.ky, nd.kx
     lit_nodes = (maps["dist"] > -nd.h) & good.reshape(ky, kx)
     det = maps["det"].detach()
@@ -443,12 +450,14 @@ def _check_nodes(nd: _Nodes, maps: dict, good, dvec, carrier, n: float, p: float
     _warn_nyquist(slope * (2 * p) / (wavelength * 1e-3), lit_nodes, nd.targets, field.tolist(), wavelength, p)
 
 
-def _fine_field(nd: _Nodes, maps: dict, sim: Grid, doe, oversample: int, wavelength: float, z_doe: float,
-                stop_plane, ripple_zones):
+def _fine_field(b: _Build, nd: _Nodes, maps: dict, sim: Grid):
     """Interpolate the node maps to the simulation samples of the node span near the lit nodes, form the phase
-    and the edges there, crop to the lit part. ``doe``: the DOE whose aperture cuts the field (None on a virtual
-    plane, whose window may extend beyond the DOE grid). Returns ``(envelope, box)`` (box: half-open
-    ``(iy0, iy1, ix0, ix1)`` on ``sim``'s lattice) or None when nothing is lit."""
+    and the edges there, crop to the lit part. The DOE's aperture cuts the field (not on a virtual plane, whose
+    window may extend beyond the DOE grid). Returns ``(envelope, box)`` (box: half-open ``(iy0, iy1, ix0, ix1)``
+    on ``sim``'s lattice) or None when nothing is lit."""
+    doe = None if b.cfg.virtual else b.doe
+    oversample, wavelength, z_doe = b.cfg.oversample, b.src.wavelength, b.z_doe
+    stop_plane, ripple_zones = b.cfg.stop_plane, b.ripple
     p = sim.pitch[0]
     x0, y0 = sim.origin
     gx, gy, h_node, ky, kx = nd.gx, nd.gy, nd.h, nd.ky, nd.kx

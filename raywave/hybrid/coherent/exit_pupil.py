@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import replace
 
 import torch
 
@@ -92,22 +93,21 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         raise ValueError("exit_pupil_field: planes.z_xp (the exit-pupil plane, mm) is required")
     ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
+    on_doe = ChiefRays(chief_doe, chief_sensor, uv=chief_uv)  # the chief ray on the DOE plane
     if method == "adaptive":
         method = adaptive_edge_step(lens, doe, field, wavelength, depth, z_doe, z_sensor, field_type)
     if method == "doe":  # exact for this source (see adaptive_edge_step): the edge cut on the DOE plane
-        fd = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
-                                             chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
-                                             check=check, chief_uv=chief_uv, bbox=bbox, entrance=entrance)
+        fd = yield from accurate_field_steps(lens, doe, source, Planes(z_doe, z_sensor), on_doe,
+                                             replace(settings, virtual=False, stop_plane=None), Known(bbox, entrance))
         return fd.with_info(stop_edge="exit_pupil")
     method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
     if method == "fresnel":
         rim = None
         if rim_images:
             rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
-        fd = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_doe, z_sensor, chief_doe,
-                                             chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
-                                             check=check, chief_uv=chief_uv, stop_plane=z_xp,
-                                             ripple_zones=ripple_zones, stop_rim=rim, bbox=bbox, entrance=entrance)
+        fd = yield from accurate_field_steps(lens, doe, source, Planes(z_doe, z_sensor), on_doe,
+                                             replace(settings, virtual=False, stop_plane=z_xp,
+                                                     ripple_zones=ripple_zones), Known(bbox, entrance, rim))
         return fd.with_info(stop_edge="exit_pupil")
     if method != "asm":
         raise ValueError(f"method must be 'adaptive', 'auto', 'fresnel' or 'asm', got {method!r}")
@@ -119,15 +119,14 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
     z_edge, z_far = _rim_step_plane(rim, z_xp, z_doe, wavelength, n, p)
     if z_edge is None:  # the edge sharp on the exit-pupil plane
-        fx = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_xp, z_sensor, chief_xp,
-                                             chief_sensor, nodes=nodes, oversample=oversample, field_type=field_type,
-                                             check=check, chief_uv=chief_uv, virtual=True)
+        fx = yield from accurate_field_steps(lens, doe, source, Planes(z_xp, z_sensor),
+                                             ChiefRays(chief_xp, chief_sensor, uv=chief_uv),
+                                             replace(settings, virtual=True, stop_plane=None))
     else:  # sharp at every rim point's image, stepped to z_edge (chief ray: a straight line in the image medium)
-        fx = yield from accurate_field_steps(lens, doe, field, wavelength, depth, z_edge, z_sensor,
-                                             chief_xp.propagate_to_z(z_edge, n), chief_sensor, nodes=nodes,
-                                             oversample=oversample, field_type=field_type, check=check,
-                                             chief_uv=chief_uv, virtual=True, stop_plane=z_xp, stop_rim=rim,
-                                             ripple_zones=ripple_zones)
+        fx = yield from accurate_field_steps(lens, doe, source, Planes(z_edge, z_sensor),
+                                             ChiefRays(chief_xp.propagate_to_z(z_edge, n), chief_sensor, uv=chief_uv),
+                                             replace(settings, virtual=True, stop_plane=z_xp,
+                                                     ripple_zones=ripple_zones), Known(stop_rim=rim))
     carrier = fx.carrier  # the chief ray's direction: the same on both planes
     bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
     if bbox is None or float(fx.power.detach()) == 0.0:

@@ -69,7 +69,13 @@ class FieldSettings:
     * ``ripple_zones``: exit-pupil edge: Fresnel zones of the edge's ripples kept (None: ``RIPPLE_ZONES``);
     * ``method``: exit-pupil edge step, "auto", "fresnel" or "asm" (:func:`~raywave.hybrid.coherent.exit_pupil.
       exit_pupil_field`);
-    * ``rim_images``: exit-pupil edge: each node's edge sharp at its stop-rim point's own image.
+    * ``rim_images``: exit-pupil edge: each node's edge sharp at its stop-rim point's own image;
+    * ``virtual``: accurate construction: the plane may lie inside the lens (reached by extending the rays leaving
+      the last surface along straight lines in the image medium), on the DOE's simulation lattice extended without
+      bound and without the DOE aperture (the window indices may be negative or beyond the DOE grid);
+    * ``stop_plane``: accurate construction: z (mm) of the plane where the stop's edge is sharp (the exit pupil): the
+      edge then carries its Fresnel diffraction from there (:func:`~raywave.hybrid.coherent.stop_edge_factor`);
+      None: the paper's sharp edge on the construction's plane.
     """
 
     nodes: int = 64
@@ -82,6 +88,8 @@ class FieldSettings:
     ripple_zones: float | None = None
     method: str = "auto"
     rim_images: bool = True
+    virtual: bool = False
+    stop_plane: float | None = None
 
 
 @dataclass(frozen=True, eq=False)

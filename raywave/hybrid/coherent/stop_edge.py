@@ -170,14 +170,18 @@ def edge_envelope(amp: torch.Tensor, angle: torch.Tensor, nu: torch.Tensor, dz: 
     return _EdgeEnvelope.apply(amp, angle, nu, kappa, dz >= 0, ripple_zones, g, pitch)
 
 
-#: rows per block of :class:`_EdgeEnvelope` (its window-sized temporaries exist a block at a time)
+#: rows per block of :class:`_EdgeEnvelope` (its window-sized temporaries exist a block at a time): at least this
+#: many, and as many as :data:`ENVELOPE_BLOCK_SAMPLES` allows
 ENVELOPE_BLOCK_ROWS = 64
+#: samples per block of :class:`_EdgeEnvelope` (~15 temporaries of 8–16 bytes each: ~100 MB): a window of up to
+#: this many samples is one block (issue 43: each block costs ~25 dispatched ops)
+ENVELOPE_BLOCK_SAMPLES = 2**19
 
 
 class _EdgeEnvelope(torch.autograd.Function):
     """:func:`edge_envelope` with autograd: ``z = a·e^{iθ}·D(ν, κ/g)``; ``∂z/∂a = e^{iθ}D``, ``∂z/∂θ = i z``, and
     ``∂/∂ν``, ``∂/∂(κ/g)`` of ``D`` on the band (:meth:`_EdgeBand.grads`). Forward and backward run in blocks of
-    :data:`ENVELOPE_BLOCK_ROWS` rows (elementwise: the same values); the band's Fresnel integrals are computed once,
+    :data:`ENVELOPE_BLOCK_ROWS` rows or more (:data:`ENVELOPE_BLOCK_SAMPLES`; elementwise: the same values); the band's Fresnel integrals are computed once,
     in the forward, and kept (in the band's row-major order, so a block's are a contiguous slice)."""
 
     @staticmethod
@@ -199,12 +203,13 @@ class _EdgeEnvelope(torch.autograd.Function):
 
     @staticmethod
     def _walk(nu, kap, fresnel, consts):
-        """The blocks of :data:`ENVELOPE_BLOCK_ROWS` rows in order: ``(rows (a slice), D, idx, band terms)`` of
+        """The blocks of rows (:data:`ENVELOPE_BLOCK_ROWS`, :data:`ENVELOPE_BLOCK_SAMPLES`) in order: ``(rows (a slice), D, idx, band terms)`` of
         :meth:`_block`, each block's Fresnel integrals taken from where the previous block's ended."""
         forward_edge, ripple_zones, g, pitch = consts
         start = 0
-        for r in range(0, nu.shape[0], ENVELOPE_BLOCK_ROWS):
-            rows = slice(r, r + ENVELOPE_BLOCK_ROWS)
+        step = max(ENVELOPE_BLOCK_ROWS, ENVELOPE_BLOCK_SAMPLES // max(nu.shape[-1] if nu.ndim > 1 else 1, 1))
+        for r in range(0, nu.shape[0], step):
+            rows = slice(r, r + step)
             g_r = g[rows] if isinstance(g, torch.Tensor) else g
             d, idx, band, k = _EdgeEnvelope._block(nu[rows], None if kap is None else kap[rows], fresnel, start,
                                                    (forward_edge, ripple_zones, g_r, pitch))

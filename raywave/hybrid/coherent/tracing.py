@@ -179,24 +179,51 @@ def _solve2(j, r):
 CHORD_ROUNDS = 3
 
 
-def _invert_to_nodes(lens, targets, uv_c, x_c, jac_c, field, wl, depth, z_doe, field_type, h, max_step, ep_z,
-                     uv0=None, jac0=None):
-    """Newton: entrance-plane uv (N, 2) whose rays land on ``targets`` (N, 2) on the DOE plane, from the chief ray's
-    linear guess, or from ``uv0`` (N, 2) where it is finite (a better start, e.g. interpolated from a coarser solve).
+@dataclass(frozen=True)
+class _Aim:
+    """How a construction's rays are aimed: rays of ``field`` (2,) at ``wavelength`` (1,) µm and ``depth`` through
+    entrance-plane points (the plane ``ep_z`` mm), traced to the plane ``z_doe`` mm (``field_type``: the lens's
+    field type), Jacobians by forward differences of step ``h`` mm on the entrance plane."""
+
+    lens: object
+    field: torch.Tensor
+    wavelength: torch.Tensor
+    depth: object
+    z_doe: float
+    field_type: str
+    h: float
+    ep_z: float | None
+
+    def landing(self, uv, need_jac=None):
+        """Generator: :func:`_landing_and_jacobian` of the rays ``uv`` (N, 2)."""
+        return (yield from _landing_and_jacobian(self.lens, uv, self.field, self.wavelength, self.depth, self.z_doe,
+                                                 self.field_type, self.h, self.ep_z, need_jac))
+
+    def request(self, uv, record: bool, grad: bool) -> "_TraceRequest":
+        """The :class:`_TraceRequest` of the rays ``uv`` (N, 2)."""
+        return _TraceRequest(self.lens, uv, self.field, self.wavelength, self.depth, self.z_doe, self.field_type,
+                             record, self.ep_z, grad)
+
+
+def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: tuple | None = None):
+    """Newton: entrance-plane uv (N, 2) whose rays (``aim``) land on ``targets`` (N, 2) on the DOE plane, from the
+    chief ray's linear guess (``chief`` = its entrance-plane point (1, 2), landing point (1, 2) and Jacobian
+    ∂X/∂uv (1, 2, 2)), or from ``start[0]`` (N, 2) where it is finite (a better start, e.g. interpolated from a
+    coarser solve).
 
     Every iteration is one batched trace (the rays and their two finite-difference neighbours) of the rays that
     are still moving: a converged or dead ray keeps its uv, so its landing point and Jacobian are those it was
     last traced with (each ray is traced on its own, so tracing it again would give the same values). Steps
     longer than ``max_step`` (mm on the entrance plane) are shortened, which keeps the iteration inside the
-    traceable region. ``jac0`` (N, 2, 2): a Jacobian ∂X/∂uv known near the solution (from the coarse solve):
-    where it and ``uv0`` are finite, the node first takes up to :data:`CHORD_ROUNDS` chord steps with it (its
+    traceable region. ``start[1]`` (N, 2, 2): a Jacobian ∂X/∂uv known near the solution (from the coarse solve):
+    where it and ``start[0]`` are finite, the node first takes up to :data:`CHORD_ROUNDS` chord steps with it (its
     ray alone traced, no neighbours), then Newton steps. Returns (uv, converged (N,), Jacobian at the last iterate
-    (N, 2, 2) (a chord node's: ``jac0``), landing points (N, 2) at ``uv`` or None where some ray moved after its
+    (N, 2, 2) (a chord node's: the start's), landing points (N, 2) at ``uv`` or None where some ray moved after its
     last trace, i.e. the iteration did not settle); all detached (a generator: yields one :class:`_InvertRequest`,
     which :func:`run_batched` solves together with the other constructions' as one set of rays)."""
-    req = _InvertRequest(lens, targets.detach(), uv_c.detach(), x_c.detach(), jac_c.detach(), field, wl, depth,
-                         z_doe, field_type, float(h), float(max_step), ep_z,
-                         None if uv0 is None else uv0.detach(), None if jac0 is None else jac0.detach())
+    uv0, jac0 = (None, None) if start is None else start
+    req = _InvertRequest(aim, targets.detach(), tuple(c.detach() for c in chief), float(max_step),
+                         (None if uv0 is None else uv0.detach(), None if jac0 is None else jac0.detach()))
     return (yield req)
 
 
@@ -206,28 +233,19 @@ class _InvertRequest:
     and :func:`run_batched` solves the pending ones of constructions that share a lens, plane and mode together
     (:func:`_invert_group`)."""
 
-    lens: object
+    aim: _Aim
     targets: torch.Tensor
-    uv_c: torch.Tensor
-    x_c: torch.Tensor
-    jac_c: torch.Tensor
-    field: torch.Tensor
-    wavelength: torch.Tensor
-    depth: object
-    z_doe: float
-    field_type: str
-    h: float
+    chief: tuple
     max_step: float
-    ep_z: float | None
-    uv0: torch.Tensor | None
-    jac0: torch.Tensor | None
+    start: tuple
 
     def run(self):
         return _invert_group([self])[0]
 
     def group_key(self) -> tuple:
-        d = self.depth
-        return ("invert", id(self.lens), float(self.z_doe), self.field_type, self.ep_z, self.h,
+        a = self.aim
+        d = a.depth
+        return ("invert", id(a.lens), float(a.z_doe), a.field_type, a.ep_z, a.h,
                 None if d is None else float(d), self.targets.device)
 
 
@@ -241,20 +259,22 @@ def _invert_group(reqs: list) -> list:
     dev = reqs[0].targets.device
     rid = torch.repeat_interleave(torch.arange(len(reqs), device=dev), torch.tensor(sizes, device=dev))
     targets = torch.cat([r.targets for r in reqs])
-    uv_c, x_c = torch.cat([r.uv_c for r in reqs])[rid], torch.cat([r.x_c for r in reqs])[rid]
-    jac_c = torch.cat([r.jac_c.reshape(1, 2, 2) for r in reqs])[rid]
+    uv_c, x_c = torch.cat([r.chief[0] for r in reqs])[rid], torch.cat([r.chief[1] for r in reqs])[rid]
+    jac_c = torch.cat([r.chief[2].reshape(1, 2, 2) for r in reqs])[rid]
     max_step = torch.tensor([r.max_step for r in reqs], dtype=targets.dtype, device=dev)[rid][:, None]
     n = targets.shape[0]
+    sources = (torch.stack([r.aim.field.reshape(2) for r in reqs]),
+               torch.cat([r.aim.wavelength.reshape(1) for r in reqs]))
     step0, _ = _solve2(jac_c, targets - x_c)
     uv = uv_c + step0
     chord = torch.zeros(n, dtype=torch.bool, device=dev)
     nan2 = torch.full((1, 2), math.nan, dtype=targets.dtype, device=dev)
-    uv0 = torch.cat([r.uv0 if r.uv0 is not None else nan2.expand(k, 2) for r, k in zip(reqs, sizes)])
+    uv0 = torch.cat([r.start[0] if r.start[0] is not None else nan2.expand(k, 2) for r, k in zip(reqs, sizes)])
     start = torch.isfinite(uv0).all(-1)
     uv = torch.where(start[:, None], uv0, uv)
     jac = torch.zeros((n, 2, 2), dtype=targets.dtype, device=dev)
-    if any(r.uv0 is not None and r.jac0 is not None for r in reqs):
-        jac0 = torch.cat([r.jac0 if (r.uv0 is not None and r.jac0 is not None)
+    if any(r.start[0] is not None and r.start[1] is not None for r in reqs):
+        jac0 = torch.cat([r.start[1] if (r.start[0] is not None and r.start[1] is not None)
                           else nan2.new_full((k, 2, 2), math.nan) for r, k in zip(reqs, sizes)])
         chord = start & torch.isfinite(jac0).flatten(1).all(-1)
         jac[chord] = jac0[chord]
@@ -268,7 +288,7 @@ def _invert_group(reqs: list) -> list:
             chord[:] = False  # from here on every moving node takes Newton steps
         if live.numel() == 0:
             break
-        x_l, valid_l, jac_l = _landing_rounds(reqs, rid, live, uv, chord)
+        x_l, valid_l, jac_l = _landing_rounds(reqs, sources, rid, live, uv, chord)
         jac_l = torch.where(chord[live][:, None, None], jac[live], jac_l)
         x[live], valid[live], jac[live] = x_l, valid_l, jac_l
         err = x_l - targets[live]
@@ -290,26 +310,40 @@ def _invert_group(reqs: list) -> list:
     return out
 
 
-def _landing_rounds(reqs: list, rid, live, uv, chord):
+def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     """One Newton round's trace for the ``live`` rays (sorted indices into the set of :func:`_invert_group`): each
-    request's rays and, for its non-chord rays, their two finite-difference neighbours (the rays of
-    :func:`_landing_and_jacobian`), one :func:`_trace_group` for all requests. Returns the landing points (L, 2),
-    validity (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
-    counts = torch.bincount(rid[live], minlength=len(reqs)).tolist()
-    trace_reqs, parts, offset = [], [], 0
-    for g, m in enumerate(counts):
-        if m == 0:
-            continue
-        r = reqs[g]
-        idx = live[offset:offset + m]
-        offset += m
-        need = ~chord[idx]
-        need = None if bool(need.all()) else need
-        trace_reqs.append(_TraceRequest(r.lens, _with_neighbours(uv[idx], r.h, need), r.field, r.wavelength, r.depth,
-                                        r.z_doe, r.field_type, False, r.ep_z, False))
-        parts.append((m, need, r.h))
-    landed = [_landing_from(at, m, h, need) for (m, need, h), (_, _, at, _) in zip(parts, _trace_group(trace_reqs))]
-    return tuple(torch.cat(c) for c in zip(*landed))
+    ray and, unless it takes chord steps, its two finite-difference neighbours (the rays of
+    :func:`_landing_and_jacobian`), all requests' rays as one bundle of single-ray rows (each with its own source and
+    wavelength, shape (R, 1, 1): no per-request slicing, issue 43; ``sources`` = the requests' fields (G, 2) and
+    wavelengths (G,) µm). Returns the landing points (L, 2), validity (L,)
+    and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
+    r0 = reqs[0].aim
+    h = r0.h  # one per group (:meth:`_InvertRequest.group_key`)
+    rid_l, uv_l = rid[live], uv[live]
+    need = ~chord[live]
+    nl, nj = uv_l.shape[0], int(need.sum())
+    du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
+    uj = uv_l[need]
+    rows = torch.cat([rid_l, rid_l[need], rid_l[need]])
+    allv = torch.cat([uv_l, uj + du[0], uj + du[1]])
+    x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows])
+    x0, xu, xv = x[:nl], x[nl:nl + nj], x[nl + nj:]
+    jac = torch.full((nl, 2, 2), math.nan, dtype=x.dtype, device=x.device)
+    jac[need] = torch.stack([(xu - x0[need]) / h, (xv - x0[need]) / h], -1)
+    return x0, valid[:nl], jac
+
+
+def _trace_rows(aim: _Aim, uv, fields, wavelengths):
+    """Landing points (R, 2) and validity (R,) on ``aim``'s plane of R rays, each with its own source: entrance-plane
+    points ``uv`` (R, 2) mm, ``fields`` (R, 2), ``wavelengths`` (R,) µm (``aim``'s lens, depth, field type and
+    entrance plane), traced without autograd as one bundle (R, 1, 1) (every ray on its own)."""
+    with torch.no_grad():
+        rays = rays_through(aim.lens, uv[:, None, None], fields, aim.field_type, wavelengths.reshape(-1, 1, 1),
+                            depth=aim.depth, ep_z=aim.ep_z)
+        out = aim.lens.trace(rays, apertures=False)
+        n = aim.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(aim.z_doe, n)
+    return at.o[:, 0, 0, :2], at.valid[:, 0, 0]
 
 
 def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, grad_xy: torch.Tensor | None = None):

@@ -1,0 +1,155 @@
+"""Where the dispatched aten ops of one PSF-map call go (issue 43): each op attributed to the innermost raywave
+function on the Python stack (and, coarser, to a phase of the data path).
+
+The calls are :func:`benchmarks.imaging.ops_case`'s: the first model call of the bundled ``hybrid_asphere``'s N×M×W
+map (field points in :func:`raywave.imaging.psf_map`'s order, mirror images together), ks = 64, default edge, no
+autograd (and, with ``--grad``, forward + backward of a weighted sum of the PSFs). Prints one JSON object (and
+writes it with ``-o``): ops per PSF in total, per phase and for the ``--top`` heaviest functions.
+
+    OMP_NUM_THREADS=1 PYTHONPATH=$PWD python benchmarks/ops_breakdown.py [--map 10x10x3] [--grad] [-o out.json]
+
+The phase of an op is the first of these functions found walking the stack outward from the op (so a trace inside
+the Newton inversion counts as ``invert``, a trace for the final node rays as ``node_trace``):
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import os
+import sys
+import warnings
+
+from _report import emit_json  # noqa: E402  (benchmarks/ is on sys.path)
+
+KS = 64
+WAVELENGTHS = (0.66, 0.53, 0.47)
+
+#: (phase, function names that open it): the first match walking outward from an op names its phase
+PHASES = (
+    ("backward", ("backward",)),
+    ("chief_rays", ("chief_rays", "_chief_rays", "chief_ray")),
+    ("footprints", ("footprints", "_footprint", "doe_clippings", "stop_rim_images_many", "stop_rim_images")),
+    ("coarse_start", ("_coarse_start",)),
+    ("invert", ("_invert_group", "_invert_to_nodes", "_landing_rounds", "_trace_rows")),
+    ("landing_jacobian", ("_landing_and_jacobian",)),
+    ("node_trace", ("_trace_nodes", "run_batched")),
+    ("node_layout", ("_node_layout",)),
+    ("node_maps", ("_node_maps",)),
+    ("stop_edge_maps", ("_stop_edge_maps",)),
+    ("check_nodes", ("_check_nodes",)),
+    ("fine_field", ("_fine_field", "_window_field")),
+    ("field_setup", ("accurate_field_steps", "_common_setup")),
+    ("propagation", ("propagate_group", "propagate_fields", "propagate", "modulated_batch", "sensor_psfs")),
+)
+__doc__ += "".join(f"\n* ``{p}``: {', '.join(fs)}" for p, fs in PHASES) + "\n"
+
+_ROOT = None  # the imported raywave package's folder (set in main: the tree on PYTHONPATH)
+
+
+def _attribute(frame, phase_of: dict) -> tuple[str, str, str]:
+    """``(innermost raywave function 'module:func', phase, the phase's opening function and its raywave caller)``
+    of the op dispatched under ``frame``."""
+    inner, phase, opener = None, None, None
+    f = frame
+    while f is not None:
+        code = f.f_code
+        fn = code.co_filename
+        if fn.startswith(_ROOT):
+            if inner is None:
+                inner = f"{os.path.relpath(fn, _ROOT)[:-3].replace(os.sep, '.')}:{code.co_name}"
+            if phase is not None:
+                opener += f" < {code.co_name}"
+                break
+            if code.co_name in phase_of:
+                phase, opener = phase_of[code.co_name], code.co_name
+        elif phase is None and code.co_name == "backward" and "torch" in fn:
+            phase, opener = "backward", "backward"
+            break
+        f = f.f_back
+    return inner or "(outside raywave)", phase or "other", opener or "(none)"
+
+
+def breakdown(fn) -> tuple[int, collections.Counter, collections.Counter, collections.Counter]:
+    """Run ``fn`` counting its aten ops: ``(total, per function, per phase, per phase opener < its caller)``."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    phase_of = {name: p for p, names in PHASES for name in names}
+    funcs, phases, openers = collections.Counter(), collections.Counter(), collections.Counter()
+
+    class _Attr(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.n += 1
+            inner, phase, opener = _attribute(sys._getframe(1), phase_of)
+            funcs[inner] += 1
+            phases[phase] += 1
+            openers[opener] += 1
+            return func(*args, **(kwargs or {}))
+
+    with _Attr() as c:
+        fn()
+    return c.n, funcs, phases, openers
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--map", default="10x10x3", metavar="NxMxW")
+    ap.add_argument("--grad", action="store_true", help="also count forward + backward")
+    ap.add_argument("--top", type=int, default=25, help="functions listed")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("-o", "--output", default=None)
+    args = ap.parse_args()
+
+    import torch
+
+    import raywave
+    from imaging import _lens  # noqa: E402  (benchmarks/ is on sys.path)
+    from raywave.imaging.psfmap import _map_chunks, _pair_order, field_grid
+    try:
+        from raywave.imaging.psfmap import map_call_size
+    except ImportError:  # a tree from before issue 43's per-call geometry (e.g. main 35b5cba): the fixed chunk
+        def map_call_size(*_):
+            return None
+
+    global _ROOT
+    _ROOT = os.path.dirname(os.path.abspath(raywave.__file__))
+    torch.set_num_threads(args.threads)
+    warnings.simplefilter("ignore")
+    n, m, w = (int(v) for v in args.map.split("x"))
+    wls = list(WAVELENGTHS[:w])
+    hl = _lens()
+    with torch.no_grad():
+        hl.psf_result((0.0, 0.0), wls[:1], ks=KS)  # warm-up (first-call costs)
+    order = _pair_order(n, m)
+    flat = field_grid(hl, (n, m)).reshape(-1, 2)[order]
+    per_call = map_call_size(hl, False, None)
+    s, e = _map_chunks(n * m, w, None, *([per_call] if per_call else []))[0]  # the no-grad map's first call
+    f0 = flat[s:e]
+    s, e = _map_chunks(n * m, w, None)[0]  # psf_map(grad=True)'s first call
+    f = flat[s:e]
+
+    def nograd():
+        with torch.no_grad():
+            hl.psf_result(f0, wls, ks=KS)
+
+    def fwd_bwd():
+        r = hl.psf_result(f, wls, ks=KS)
+        wt = torch.rand(r.psf.shape, dtype=r.psf.dtype, generator=torch.Generator().manual_seed(0))
+        (r.psf * wt.to(r.psf.device)).sum().backward()
+
+    out = {"benchmark": "ops_breakdown", "lens": "hybrid_asphere", "grid": [n, m], "wavelengths": wls, "ks": KS,
+           "stop_edge": hl.stop_edge, "torch": torch.__version__}
+    cases = [("no_grad", nograd, f0.shape[0] * w)] + ([("grad", fwd_bwd, f.shape[0] * w)] if args.grad else [])
+    for name, fn, k in cases:
+        total, funcs, phases, openers = breakdown(fn)
+        out[name] = {"psfs_in_call": k, "ops_per_psf": round(total / k, 1),
+                     "phases_per_psf": {p: round(c / k, 1) for p, c in phases.most_common()},
+                     "openers_per_psf": {o: round(c / k, 1) for o, c in openers.most_common(args.top)},
+                     "functions_per_psf": {f_: round(c / k, 1) for f_, c in funcs.most_common(args.top)}}
+    emit_json(out, args.output)
+
+
+if __name__ == "__main__":
+    main()
