@@ -38,7 +38,7 @@ from raywave.lens.sources import point_source_rays
 from raywave.rays.bundle import RayBundle
 from raywave.rays.pupil import RIM_INSET
 
-__all__ = ["MAX_SIDE_PIXELS", "PHASE_STEP", "doe_lens", "load_midsystem", "midsystem_from_spec", "surface_doe_info",
+__all__ = ["MAX_SIDE_PIXELS", "PHASE_STEP", "doe_lens", "lens_with_doe", "load_midsystem", "midsystem_of", "midsystem_from_spec", "surface_doe_info",
            "surface_doe_pitch", "surface_doe_positions"]
 
 #: the default pitch of a DOE inside the lens: its phase steps by at most this much (rad) between pixels (below the
@@ -167,6 +167,14 @@ def doe_lens(spec: dict, source: str = "<spec>", base_dir=None, doe_pitch: float
     data = _doe_data(spec, after, dspec, source, base_dir, lens, doe_pitch, doe_size)
     doe = _make_doe(data, data.shape, data.pitch, source)
     return lens, doe, after, distance
+
+
+def lens_with_doe(lens: Lens, doe, after: int, distance: float, wavelength: float | None = None) -> Lens:
+    """``lens`` with ``doe``'s plane ``distance`` mm after surface ``after``, carrying its strongest order at
+    ``wavelength`` µm (default the primary): the lens a layout draws and its rays see."""
+    wl = lens.primary_wavelength if wavelength is None else float(wavelength)
+    scale = doe_orders(doe, wl)[0][0]
+    return insert_doe(lens, after, distance, DOEPhaseSurface(doe, float(scale)), 1.0, doe)
 
 
 def midsystem_from_spec(spec: dict, source: str = "<spec>", base_dir=None, final_distance: float | None = None,
