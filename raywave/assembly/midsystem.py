@@ -104,10 +104,10 @@ def surface_doe_pitch(data, size: tuple[float, float], where: str, source: str) 
     return pitch
 
 
-def _footprint(lens: Lens, after: int, distance: float) -> tuple[float, float]:
+def _footprint(lens: Lens, after: int, distance: float, fields=None) -> tuple[float, float]:
     """(w, h) mm of the beam on the plane ``distance`` mm after surface ``after`` of ``lens``: :data:`BEAM_MARGIN`
-    × twice the widest |x|, |y| of the pupil's rim and a grid inside, for the lens's fields (and on axis) at its
-    wavelengths."""
+    × twice the widest |x|, |y| of the pupil's rim and a grid inside, for ``fields`` ((F, 2) in the lens's field
+    type; default the lens's fields along y) and on axis, at its wavelengths."""
     probe = insert_doe(lens, after, distance, lambda x, y, w: (0 * x, 0 * x, 0 * x))
     t = torch.linspace(0, 2 * math.pi, 37, dtype=torch.float64)[:-1]
     g = torch.linspace(-1, 1, 7, dtype=torch.float64)
@@ -115,7 +115,8 @@ def _footprint(lens: Lens, after: int, distance: float) -> tuple[float, float]:
     inside = gx ** 2 + gy ** 2 <= 1
     px = torch.cat([torch.cos(t), gx[inside]]) * RIM_INSET
     py = torch.cat([torch.sin(t), gy[inside]]) * RIM_INSET
-    fields = [(0.0, 0.0)] + [(0.0, float(f)) for f in probe.fields]
+    fields = [(0.0, 0.0)] + ([(0.0, float(f)) for f in probe.fields] if fields is None else
+                             [tuple(float(v) for v in row) for row in torch.as_tensor(fields).reshape(-1, 2)])
     with torch.no_grad():
         rays = point_source_rays(probe, torch.tensor(fields, dtype=torch.float64), list(probe.wavelengths),
                                  pupil=(px, py))
@@ -128,7 +129,8 @@ def _footprint(lens: Lens, after: int, distance: float) -> tuple[float, float]:
     return max(w, h, 1e-3), max(w, h, 1e-3)
 
 
-def _doe_data(spec: dict, after: int, dspec: dict, source: str, base_dir, lens: Lens, doe_pitch, doe_size):
+def _doe_data(spec: dict, after: int, dspec: dict, source: str, base_dir, lens: Lens, doe_pitch, doe_size,
+              fields=None):
     """The :class:`~raywave.io.DOEData` of the DOE ``dspec`` at surface ``after``, its grid completed: the file's
     pitch / shape, else ``doe_pitch`` / ``doe_size`` (mm), else the defaults of the module docstring."""
     where = f"surfaces[{after}].doe"
@@ -139,7 +141,7 @@ def _doe_data(spec: dict, after: int, dspec: dict, source: str, base_dir, lens: 
     if doe_pitch is not None and data.phase is None:
         data.pitch, data.shape = float(doe_pitch), None
     if data.shape is None:
-        size = data.size if data.size is not None else _footprint(lens, after, float(dspec["distance"]))
+        size = data.size if data.size is not None else _footprint(lens, after, float(dspec["distance"]), fields)
         data.size = size
         if data.pitch is None:
             data.pitch = surface_doe_pitch(data, size, where, source)
@@ -149,10 +151,12 @@ def _doe_data(spec: dict, after: int, dspec: dict, source: str, base_dir, lens: 
     return data
 
 
-def doe_lens(spec: dict, source: str = "<spec>", base_dir=None, doe_pitch: float | None = None, doe_size=None):
+def doe_lens(spec: dict, source: str = "<spec>", base_dir=None, doe_pitch: float | None = None, doe_size=None,
+             fields=None):
     """``(lens, doe, after, distance)``: the refractive lens of ``spec`` (its surface DOEs left out), the
     :class:`~raywave.doe.DOE` of its one surface DOE, and where it sits. A spec with several DOEs (or one inside
-    the lens and one before the sensor) is refused: one DOE per lens for now."""
+    the lens and one before the sensor) is refused: one DOE per lens for now. ``fields``: (F, 2) field points
+    whose beams a DOE without a size must hold (default the lens's fields along y)."""
     found = surface_doe_positions(spec)
     if not found:
         raise ValueError(f"{source}: no surface carries a 'doe': use raywave.load_hybrid for a DOE before the sensor")
@@ -164,7 +168,7 @@ def doe_lens(spec: dict, source: str = "<spec>", base_dir=None, doe_pitch: float
     for s in plain.get("surfaces", []):
         s.pop("doe", None)
     lens = _spec_lens(plain, None, source)
-    data = _doe_data(spec, after, dspec, source, base_dir, lens, doe_pitch, doe_size)
+    data = _doe_data(spec, after, dspec, source, base_dir, lens, doe_pitch, doe_size, fields)
     doe = _make_doe(data, data.shape, data.pitch, source)
     return lens, doe, after, distance
 
@@ -190,18 +194,22 @@ def midsystem_from_spec(spec: dict, source: str = "<spec>", base_dir=None, final
 
 
 def midsystem_of(lens: Lens, doe, after: int, distance: float, final_distance: float | None = None,
-                 sensor_pitch: float | None = None, **kwargs) -> MidSystemLens:
+                 sensor_pitch: float | None = None, fields=None, **kwargs) -> MidSystemLens:
     """A :class:`MidSystemLens` of ``lens`` with ``doe`` ``distance`` mm after surface ``after``, its engine plane
-    placed, sized and sampled as a lens file's default DOE (on the lens with the DOE's strongest order), its
-    sensor pitch resolved (``sensor_pitch``, else the lens's pixel, else the plane's pitch)."""
+    placed, sized and sampled as a lens file's default DOE (on the lens with the DOE's strongest order; for the
+    field points ``fields`` (F, 2), default the lens's fields along y), its sensor pitch resolved
+    (``sensor_pitch``, else the lens's pixel, else the plane's pitch)."""
     scale = doe_orders(doe, lens.primary_wavelength)[0][0]
     lens1 = insert_doe(lens, after, distance, DOEPhaseSurface(doe, float(scale)), 1.0, doe)
     last = float(lens.surfaces[-1].thickness.detach())
+    if fields is not None:
+        fields = torch.cat([torch.zeros(1, 2, dtype=torch.float64),
+                            torch.as_tensor(fields, dtype=torch.float64).reshape(-1, 2)])
     if final_distance is None:
-        free = caustic_free_distance(lens1)
+        free = caustic_free_distance(lens1, fields)
         final_distance = min(0.5 * last, free if free is not None and math.isfinite(free) else 0.5 * last)
-    pitch = nyquist_doe_pitch(lens1, final_distance) or doe.pitch
-    size = max(default_doe_size(lens1, final_distance))
+    pitch = nyquist_doe_pitch(lens1, final_distance, fields) or doe.pitch
+    size = max(default_doe_size(lens1, final_distance, fields))
     if sensor_pitch is None:
         sensor_pitch = lens.pixel_pitch if lens.pixel_pitch is not None else pitch
     return MidSystemLens(lens, doe, after, distance, final_distance, size, pitch, sensor_pitch=float(sensor_pitch),

@@ -37,7 +37,11 @@ class LensConfig:
         doe: DOE parametrisation to learn: ``"pixel"`` (a free phase map), or ``"file"`` (the lens file's DOE).
         doe_pitch: DOE pixel pitch (mm); None: the file's or the default of :func:`raywave.hybrid.load_hybrid`.
         doe_size: DOE side (mm); None: as the file / sized to the beam.
-        doe_distance: mm after the last vertex; None: the file's.
+        doe_distance: mm after the last vertex (with ``doe_after``: after that surface's vertex); None: the file's.
+        doe_after: a DOE inside the lens (issue 46): the learned DOE sits ``doe_distance`` mm (default 0) after the
+            vertex of surface ``doe_after``, inside the gap to the next surface, and the hybrid is a
+            :class:`~raywave.hybrid.midsystem.MidSystemLens` (its PSFs trace every DOE-plane field again: no
+            DOE-field cache). None: the DOE before the sensor, or a lens file's own DOE at a surface.
         train_lens: learn the refractive surfaces too (lr ``lr_lens``); False freezes the lens and caches the
             DOE-plane fields (the paper's aberration-correction set-up).
         focus_depth: refocus the sensor for an object at this distance (mm) before training (EDoF: 300 mm);
@@ -56,6 +60,7 @@ class LensConfig:
     doe_pitch: Optional[float] = None
     doe_size: Optional[float] = None
     doe_distance: Optional[float] = None
+    doe_after: Optional[int] = None
     train_lens: bool = False
     focus_depth: Optional[float] = None
     sensor_pitch: Optional[float] = None
@@ -289,6 +294,7 @@ RULES: dict[str, Rule] = {
     "LensConfig.doe_pitch": _POS,
     "LensConfig.doe_size": _POS,
     "LensConfig.doe_distance": _NONNEG,
+    "LensConfig.doe_after": _NONNEG,
     "LensConfig.focus_depth": Rule(lo=0, lo_open=True, inf=True),
     "LensConfig.sensor_pitch": _POS,
     "LensConfig.sensor_size": Rule(lo=0, lo_open=True, length=2),
