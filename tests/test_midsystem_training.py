@@ -123,3 +123,19 @@ def test_the_example_config_trains(tmp_path):
     recs = [json.loads(x) for x in (tmp_path / "run" / "log.jsonl").read_text().splitlines() if '"stage"' in x]
     assert [r["stage"] for r in recs] == ["pre", "stage1"]
     assert not torch.equal(tr.hl.doe.phase_map.detach(), phase0)
+
+
+@pytest.mark.slow  # several minutes: two end-to-end designs on the bundled asphere
+def test_the_doe_at_stop_example_runs(tmp_path):
+    import subprocess
+    import sys
+
+    root = Path(__file__).parent.parent
+    subprocess.run([sys.executable, str(root / "examples" / "doe_at_stop.py"), "-o", str(tmp_path), "--pre", "1",
+                    "--stage1", "1", "--stage2", "1"], check=True, capture_output=True)
+    report = json.loads((tmp_path / "doe_at_stop.json").read_text())
+    assert report["DOE at the stop"]["doe"]["type"] == "MidSystemLens"
+    assert report["DOE before the sensor"]["doe"]["type"] == "HybridLens"
+    assert isinstance(report["psnr_difference_stop_minus_sensor_db"], float)
+    assert (tmp_path / "figures" / "psf_map_depth0.png").stat().st_size > 10_000
+    assert (tmp_path / "figures" / "reconstructions_centre.png").stat().st_size > 10_000
