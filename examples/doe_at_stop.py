@@ -72,7 +72,8 @@ def main(argv=None) -> dict:
         report[name] = {"psnr": m["mean"]["psnr"], "ssim": m["mean"]["ssim"],
                         "psnr_input": m["mean"].get("psnr_input"), "psf_rms_px": m["mean"].get("psf_rms_px_map"),
                         "zones": {k: {"psnr": v["psnr"]} for k, v in m.items() if k != "mean"},
-                        "doe": {"type": type(tr.hl).__name__, "shape": list(tr.hl.doe.shape), "pitch_mm": tr.hl.doe.pitch},
+                        "doe": {"type": type(tr.hl).__name__, "shape": list(tr.hl.doe.shape),
+                                "pitch_mm": tr.hl.doe.pitch},
                         "seconds": time.perf_counter() - t0}
         print(f"{name}: PSNR {report[name]['psnr']:.2f} dB, SSIM {report[name]['ssim']:.4f} "
               f"({report[name]['seconds']:.0f} s)", flush=True)

@@ -38,8 +38,8 @@ from raywave.lens.sources import point_source_rays
 from raywave.rays.bundle import RayBundle
 from raywave.rays.pupil import RIM_INSET
 
-__all__ = ["MAX_SIDE_PIXELS", "PHASE_STEP", "doe_lens", "lens_with_doe", "load_midsystem", "midsystem_of", "midsystem_from_spec", "surface_doe_info",
-           "surface_doe_pitch", "surface_doe_positions"]
+__all__ = ["MAX_SIDE_PIXELS", "PHASE_STEP", "doe_lens", "lens_with_doe", "load_midsystem", "midsystem_from_spec",
+           "midsystem_of", "surface_doe_info", "surface_doe_pitch", "surface_doe_positions"]
 
 #: the default pitch of a DOE inside the lens: its phase steps by at most this much (rad) between pixels (below the
 #: ~0.49 rad at which the pixels' flat steps cost 1 % of the amplitude, the engine's warning)

@@ -95,11 +95,12 @@ def build_midsystem(lc, path):
     """The :class:`~raywave.hybrid.midsystem.MidSystemLens` of a :class:`~raywave.training.config.LensConfig` with a
     DOE inside the lens (issue 46): the lens file's own surface DOE, or (``lens.doe_after``) a DOE ``doe_distance``
     mm (default 0) after the vertex of surface ``doe_after`` (the file's DOE before the sensor, if any, left out),
-    sized ``doe_size`` (default: the beam there), of pitch ``doe_pitch`` (default: the file's, else for a learned
-    pixel DOE :data:`MIDSYSTEM_PIXELS` a side); the engine's plane near the sensor is the file's DOE plane when it
-    had one (else :func:`raywave.assembly.midsystem.midsystem_of`'s choice). ``doe: pixel`` makes it a zero-phase :class:`~raywave.doe.PixelDOE`
-    of that grid. The sensor is set and refocused on the refractive lens; the refractive lens frozen unless
-    ``train_lens``."""
+    sized ``doe_size`` (default: the beams of the sensor's centre, edges and corners there), of pitch
+    ``doe_pitch`` (default: the file's, else for a learned pixel DOE :data:`MIDSYSTEM_PIXELS` a side). The
+    engine's plane near the sensor is the file's DOE plane when it had one (else
+    :func:`raywave.assembly.midsystem.midsystem_of`'s choice). ``doe: pixel`` makes the DOE a zero-phase
+    :class:`~raywave.doe.PixelDOE` of that grid. The sensor is set and refocused on the refractive lens; the
+    refractive lens frozen unless ``train_lens``."""
     from raywave.assembly.midsystem import doe_lens, midsystem_of, surface_doe_positions
     from raywave.doe import PixelDOE
     from raywave.io import read_lens_spec, validate_spec
