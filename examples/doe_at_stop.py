@@ -1,13 +1,14 @@
 """A DOE at the aperture stop vs the same DOE before the sensor, each designed end to end (issue 46).
 
 The bundled aspheric singlet ``hybrid_asphere`` (frozen), the central 2 × 2 mm of its sensor (the same field of view
-for both), and a learned pixel DOE
+for both), and the same learned DOE, a smooth phase of 15 Zernike terms over its disk (a DOE inside the lens carries
+its phase by rays: a smooth phase, not a free pixel map),
 
 * **at the stop** (surface 0, 0 mm after it): a :class:`raywave.MidSystemLens`; every DOE order is carried through
   the asphere as a phase surface by the accurate engine to the blank plane 0.7 mm after the lens
-  (``configs/midsystem_stop_doe.yaml``; 256² pixels over the beam's footprint on the stop plane);
+  (``configs/midsystem_stop_doe.yaml``; the disk holds the beams on the stop plane);
 * **before the sensor**: the lens file's own DOE plane, 0.7 mm after the lens (a :class:`raywave.HybridLens`, its
-  3 mm element at 1 µm pixels, the pitch the converging beam there needs).
+  3 mm element; the disk is inscribed in it).
 
 Both go through the same schedule (the PSF-size pre-stage, end-to-end stage 1 with the replay, stage 2 on the
 network alone) with the same network, data and seed, and are evaluated on the held-out photos. Writes into the
@@ -15,7 +16,7 @@ output folder ``figures/psf_map_depth0.png`` (the two PSF maps), ``figures/recon
 ``_edge.png`` (sensor images and restored images), ``figures/loss.png`` and ``doe_at_stop.json`` (PSNR / SSIM and
 the timings), and prints the PSNR difference.
 
-    python examples/doe_at_stop.py [-o examples/output/doe_at_stop] [--pre 3] [--stage1 3] [--stage2 20]
+    python examples/doe_at_stop.py [-o examples/output/doe_at_stop] [--pre 3] [--stage1 2] [--stage2 20]
 
 (about 10 minutes on 2 busy CPU cores with the defaults; the DOE at the stop costs most: its PSFs trace every
 DOE-plane field again at each step, while the DOE before the sensor reuses the frozen lens's cached fields.)
@@ -55,7 +56,7 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-o", "--output", default=str(ROOT / "examples" / "output" / "doe_at_stop"))
     ap.add_argument("--pre", type=int, default=3, help="pre-stage steps (PSF size)")
-    ap.add_argument("--stage1", type=int, default=3, help="end-to-end steps")
+    ap.add_argument("--stage1", type=int, default=2, help="end-to-end steps")
     ap.add_argument("--stage2", type=int, default=20, help="network-only steps")
     args = ap.parse_args(argv)
     out = Path(args.output)

@@ -49,6 +49,10 @@ def test_build_hybrid_places_the_learned_doe_at_the_stop(stop_cfg):
     assert ml.doe.shape == (30, 30) and ml.doe.pitch == 0.01 and float(ml.doe.phase_map.detach().abs().max()) == 0.0
     assert ml.sensor_pitch == pytest.approx(0.002)  # the lens file's pixel
     assert not any(p.requires_grad for p in ml.lens.parameters())
+    lc = load_config(stop_cfg).lens
+    lc.doe, lc.doe_terms = "zernike", 6  # a smooth learned DOE: Noll j = 1..6 over the grid's inscribed disk
+    zl = build_hybrid(lc)
+    assert type(zl.doe).__name__ == "ZernikeDOE" and zl.doe.coefficients.shape == (6,) and zl.doe.shape == (30, 30)
 
 
 def test_psf_map_and_its_replay_on_a_midsystem_lens(stop_cfg):
@@ -118,11 +122,11 @@ def test_the_example_config_trains(tmp_path):
     cfg.stage1.max_steps = 1
     tr = Trainer(cfg, tmp_path / "run", progress=False)
     assert isinstance(tr.hl, MidSystemLens) and (tr.hl.after, tr.hl.distance) == (0, 0.0)
-    phase0 = tr.hl.doe.phase_map.detach().clone()
+    c0 = tr.hl.doe.coefficients.detach().clone()  # 15 Zernike terms
     tr.run(stop_after=2)
     recs = [json.loads(x) for x in (tmp_path / "run" / "log.jsonl").read_text().splitlines() if '"stage"' in x]
     assert [r["stage"] for r in recs] == ["pre", "stage1"]
-    assert not torch.equal(tr.hl.doe.phase_map.detach(), phase0)
+    assert not torch.equal(tr.hl.doe.coefficients.detach(), c0)
 
 
 @pytest.mark.slow  # several minutes: two end-to-end designs on the bundled asphere

@@ -34,7 +34,11 @@ class LensConfig:
 
     Attributes:
         file: bundled lens name (``raywave lens list``) or path of a lens JSON/.zmx (with or without a DOE).
-        doe: DOE parametrisation to learn: ``"pixel"`` (a free phase map), or ``"file"`` (the lens file's DOE).
+        doe: DOE parametrisation to learn: ``"pixel"`` (a free phase map), ``"zernike"`` (``doe_terms`` Noll
+            Zernike coefficients over the DOE's inscribed disk: a smooth phase, what a DOE inside the lens needs:
+            its phase is carried by rays, so pixel-scale noise is not modelled as diffraction), or ``"file"`` (the
+            lens file's DOE).
+        doe_terms: Zernike terms (Noll j = 1 .. doe_terms) of ``doe: zernike``.
         doe_pitch: DOE pixel pitch (mm); None: the file's or the default of :func:`raywave.hybrid.load_hybrid`.
         doe_size: DOE side (mm); None: as the file / sized to the beam.
         doe_distance: mm after the last vertex (with ``doe_after``: after that surface's vertex); None: the file's.
@@ -57,6 +61,7 @@ class LensConfig:
 
     file: str = "hybrid_asphere"
     doe: str = "pixel"
+    doe_terms: int = 15
     doe_pitch: Optional[float] = None
     doe_size: Optional[float] = None
     doe_distance: Optional[float] = None
@@ -290,7 +295,8 @@ _UNIT = Rule(lo=0, hi=1)  # a fraction in [0, 1]
 #: entry (and its length). Every int / float / list field of the config dataclasses must be listed here
 #: (tests/test_reliability_config.py checks it), so a new setting cannot slip in unchecked.
 RULES: dict[str, Rule] = {
-    "LensConfig.doe": Rule(choices=("pixel", "file")),
+    "LensConfig.doe": Rule(choices=("pixel", "zernike", "file")),
+    "LensConfig.doe_terms": _COUNT,
     "LensConfig.doe_pitch": _POS,
     "LensConfig.doe_size": _POS,
     "LensConfig.doe_distance": _NONNEG,

@@ -46,7 +46,7 @@ from raywave.training.replay import OpticsStep, chunk_ranges
 from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
 from raywave.training.steps import _LIT_DRAWS, DarkRegionWarning, StageSteps, _lit_nodes, _nearest_node
 
-__all__ = ["Trainer", "build_hybrid", "build_midsystem", "STAGES", "CropWarning"]
+__all__ = ["Trainer", "build_hybrid", "build_midsystem", "learned_doe", "STAGES", "CropWarning"]
 
 STAGES = ("pre", "stage1", "stage2", "done")
 
@@ -57,9 +57,9 @@ class CropWarning(UserWarning):
 
 def build_hybrid(lc):
     """The :class:`~raywave.hybrid.HybridLens` of a :class:`~raywave.training.config.LensConfig`: the lens file
-    (bundled name or path), its DOE replaced by a zero-phase :class:`~raywave.doe.PixelDOE` of the same grid
-    (``doe: pixel``), refocused to ``focus_depth``, the refractive lens frozen unless ``train_lens``."""
-    from raywave.doe import PixelDOE
+    (bundled name or path), its DOE replaced by a zero-phase :func:`learned_doe` of the same grid (``doe: pixel`` /
+    ``zernike``), refocused to ``focus_depth``, the refractive lens frozen unless ``train_lens``. A DOE inside the
+    lens (``lens.doe_after``, or a lens file's surface DOE): :func:`build_midsystem`."""
     from raywave.assembly.build import load_hybrid
     from raywave.assembly.midsystem import surface_doe_positions
     from raywave.io import read_lens_spec
@@ -76,15 +76,25 @@ def build_hybrid(lc):
         from raywave.lens.analysis import refocus
 
         refocus(hl.lens, float(lc.focus_depth))
-    if lc.doe == "pixel":
+    if lc.doe in ("pixel", "zernike"):
         doe = hl.doe
-        _check_pixel_doe_memory(doe.shape, doe.pitch, lc.file)
-        new = PixelDOE(torch.zeros(doe.shape, dtype=torch.float64, device="cpu"), doe.pitch, aperture=doe.aperture)
-        hl = hl.with_doe(new)
+        hl = hl.with_doe(learned_doe(lc, doe.shape, doe.pitch, doe.aperture))
     elif lc.doe != "file":
-        raise ValueError(f"lens.doe must be 'pixel' or 'file', got {lc.doe!r}")
+        raise ValueError(f"lens.doe must be 'pixel', 'zernike' or 'file', got {lc.doe!r}")
     hl.lens.requires_grad_(bool(lc.train_lens))
     return hl
+
+
+def learned_doe(lc, shape, pitch: float, aperture: str):
+    """The zero-phase DOE to learn on the ``(ny, nx)`` grid of ``pitch`` mm: ``lens.doe: pixel``, a
+    :class:`~raywave.doe.PixelDOE` (its memory checked first); ``zernike``, a :class:`~raywave.doe.ZernikeDOE` of
+    ``lens.doe_terms`` coefficients over the grid's inscribed disk."""
+    from raywave.doe import PixelDOE, ZernikeDOE
+
+    if lc.doe == "zernike":
+        return ZernikeDOE(torch.zeros(int(lc.doe_terms), dtype=torch.float64), tuple(shape), pitch, aperture=aperture)
+    _check_pixel_doe_memory(shape, pitch, lc.file)
+    return PixelDOE(torch.zeros(tuple(shape), dtype=torch.float64, device="cpu"), pitch, aperture=aperture)
 
 
 #: a learned pixel DOE inside the lens without ``lens.doe_pitch``: this many pixels a side over its size
@@ -98,11 +108,10 @@ def build_midsystem(lc, path):
     sized ``doe_size`` (default: the beams of the sensor's centre, edges and corners there), of pitch
     ``doe_pitch`` (default: the file's, else for a learned pixel DOE :data:`MIDSYSTEM_PIXELS` a side). The
     engine's plane near the sensor is the file's DOE plane when it had one (else
-    :func:`raywave.assembly.midsystem.midsystem_of`'s choice). ``doe: pixel`` makes the DOE a zero-phase
-    :class:`~raywave.doe.PixelDOE` of that grid. The sensor is set and refocused on the refractive lens; the
+    :func:`raywave.assembly.midsystem.midsystem_of`'s choice). ``doe: pixel`` / ``zernike`` make the DOE a
+    zero-phase :func:`learned_doe` of that grid. The sensor is set and refocused on the refractive lens; the
     refractive lens frozen unless ``train_lens``."""
     from raywave.assembly.midsystem import doe_lens, midsystem_of, surface_doe_positions
-    from raywave.doe import PixelDOE
     from raywave.io import read_lens_spec, validate_spec
     from raywave.io.errors import LensFileError
 
@@ -140,14 +149,13 @@ def build_midsystem(lc, path):
         from raywave.lens.analysis import refocus
 
         refocus(lens, float(lc.focus_depth))
-    if lc.doe == "pixel":
+    if lc.doe in ("pixel", "zernike"):
         own = lc.doe_pitch is not None or dspec.get("pitch") is not None or dspec.get("phase") is not None
         pitch = doe.pitch if own else max(doe.size) / MIDSYSTEM_PIXELS
         shape = doe.shape if own else tuple(max(1, round(s / pitch)) for s in (doe.size[1], doe.size[0]))
-        _check_pixel_doe_memory(shape, pitch, lc.file)
-        doe = PixelDOE(torch.zeros(shape, dtype=torch.float64, device="cpu"), pitch, aperture=doe.aperture)
+        doe = learned_doe(lc, shape, pitch, doe.aperture)
     elif lc.doe != "file":
-        raise ValueError(f"lens.doe must be 'pixel' or 'file', got {lc.doe!r}")
+        raise ValueError(f"lens.doe must be 'pixel', 'zernike' or 'file', got {lc.doe!r}")
     ml = midsystem_of(lens, doe, after, distance, final, sensor_pitch=sensor_pitch, fields=fields,
                       **({} if lc.stop_edge is None else {"stop_edge": lc.stop_edge}))
     ml.lens.requires_grad_(bool(lc.train_lens))
