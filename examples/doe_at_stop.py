@@ -16,7 +16,7 @@ output folder ``figures/psf_map_depth0.png`` (the two PSF maps), ``figures/recon
 ``_edge.png`` (sensor images and restored images), ``figures/loss.png`` and ``doe_at_stop.json`` (PSNR / SSIM and
 the timings), and prints the PSNR difference.
 
-    python examples/doe_at_stop.py [-o examples/output/doe_at_stop] [--pre 3] [--stage1 2] [--stage2 20]
+    python examples/doe_at_stop.py [-o examples_out/doe_at_stop] [--pre 3] [--stage1 2] [--stage2 20]
 
 (about 20 minutes on 2 busy CPU cores with the defaults, 10 per design: the DOE at the stop traces every
 DOE-plane field again at each step; the DOE before the sensor reuses the frozen lens's cached fields.)
@@ -54,7 +54,7 @@ def configs(pre: int, stage1: int, stage2: int):
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("-o", "--output", default=str(ROOT / "examples" / "output" / "doe_at_stop"))
+    ap.add_argument("-o", "--output", default=str(ROOT / "examples_out" / "doe_at_stop"))
     ap.add_argument("--pre", type=int, default=3, help="pre-stage steps (PSF size)")
     ap.add_argument("--stage1", type=int, default=2, help="end-to-end steps")
     ap.add_argument("--stage2", type=int, default=20, help="network-only steps")
