@@ -71,8 +71,8 @@ def _grating_phase(p, where, path, scale, line):
 
 
 def _surface_aperture_size(d) -> dict:
-    """``aperture`` and ``size`` of a DOE from the diffractive surface ``d``'s aperture (CLAP / SQAP), else (a DOE
-    inside the lens) its semi-diameter as a circle; ``{"aperture": "square"}`` when neither is known."""
+    """``aperture`` and ``size`` of a DOE from the diffractive surface ``d``'s aperture (CLAP, SQAP; a rectangle is
+    the whole rectangular grid); ``{"aperture": "square"}`` without one."""
     ap = d["aperture"]
     if ap is not None and ap["shape"] == "circle":
         return {"aperture": "circle", "size": [2.0 * ap["radius"], 2.0 * ap["radius"]]}
