@@ -317,13 +317,6 @@ class MidSystemLens(nn.Module):
         hl._transfer_cache = self._transfer_cache  # shared memo of window transfer functions
         return hl
 
-    def traced_lens(self, wavelength: float | None = None) -> Lens:
-        """The lens with the DOE plane in place, carrying its strongest order at ``wavelength`` µm (default the
-        primary): the lens whose chief rays map sensor points to field angles (:func:`raywave.imaging.psf_map`)."""
-        wl = self.lens.primary_wavelength if wavelength is None else float(wavelength)
-        scale = float(self.orders(wl)[0][0])
-        return insert_doe(self.lens, self.after, self.distance, DOEPhaseSurface(self.doe, scale), 1.0, self.doe)
-
     def _dispersion_scale(self, wavelength):
         """α(λ) of a continuous DOE at the rays' wavelengths (a tensor, µm)."""
         doe = self.doe

@@ -89,9 +89,6 @@ def _lens_of(model):
 
     if isinstance(model, Lens):
         return model
-    traced = getattr(model, "traced_lens", None)  # a DOE inside the lens (MidSystemLens): the lens with it in place
-    if callable(traced):
-        return traced()
     lens = getattr(model, "lens", None)
     if isinstance(lens, Lens):
         return lens
