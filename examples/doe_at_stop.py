@@ -18,7 +18,7 @@ the timings), and prints the PSNR difference.
 
     python examples/doe_at_stop.py [-o examples_out/doe_at_stop] [--pre 3] [--stage1 2] [--stage2 20]
 
-(about 20 minutes on 2 busy CPU cores with the defaults, 10 per design: the DOE at the stop traces every
+(about 5 minutes on 2 quiet CPU cores with the defaults, 20 on busy ones: the DOE at the stop traces every
 DOE-plane field again at each step; the DOE before the sensor reuses the frozen lens's cached fields.)
 """
 
