@@ -7,6 +7,7 @@ The public API (one import path per thing; docs/architecture.md)::
     lens = raywave.load_lens("cooke_triplet")            # a file path or a bundled lens's name
     hl = raywave.load_hybrid("hybrid_asphere")           # refractive lens + DOE + sensor
     psf = hl.psf([(0.0, 0.0), (0.0, 10.0)], [0.53], ks=32)  # (F, W, ks, ks)
+    ml = raywave.load_midsystem("lens_with_a_doe_inside.zmx")  # a DOE between surfaces: a MidSystemLens
 
 The names are loaded lazily (PEP 562): ``import raywave`` imports neither torch nor matplotlib and changes no
 global state; the first use of a name imports its module.
@@ -46,6 +47,10 @@ _EXPORTS = {
     "load_hybrid": "raywave.assembly.build",
     "hybrid_from_spec": "raywave.assembly.build",
     "tolerance_monte_carlo": "raywave.assembly.tolerance",
+    # a DOE inside the lens (issue 46)
+    "MidSystemLens": "raywave.hybrid.midsystem",
+    "load_midsystem": "raywave.assembly.midsystem",
+    "midsystem_from_spec": "raywave.assembly.midsystem",
     # comparison models
     "make_model": "raywave.models.interface",
     "MODEL_NAMES": "raywave.models.interface",
@@ -93,11 +98,13 @@ def __dir__():
 
 if TYPE_CHECKING:  # static analysers and IDEs see the real names
     from raywave.assembly.build import hybrid_from_spec, load_hybrid
+    from raywave.assembly.midsystem import load_midsystem, midsystem_from_spec
     from raywave.assembly.tolerance import tolerance_monte_carlo
     from raywave.doe import (DOE, Binary2DOE, BlankDOE, CubicDOE, FresnelDOE, GratingDOE, PixelDOE, RadialDOE, SumDOE,
                              ZernikeDOE, load_doe, save_doe)
     from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
     from raywave.hybrid.metrics import psf_metrics
+    from raywave.hybrid.midsystem import MidSystemLens
     from raywave.imaging.color import ColorSpec
     from raywave.imaging.psfmap import PSFMap, field_grid, psf_map
     from raywave.imaging.render import render, render_map

@@ -262,7 +262,7 @@ def test_zmx_unsupported_surface_type_names_surface(tmp_path):
                                    "supported")
     assert "STANDARD, EVENASPH, ODDASPHE, TOROIDAL, PARAXIAL" in str(e.value)
     for typ, msg in (("BICONIC", "surface type BICONIC .biconic. is not supported"),
-                     ("BINARY_2", "diffractive surface type BINARY_2 is supported only as the last surface")):
+                     ("BINARY_2", "BINARY_2 surface with curvature .* inside the lens: a DOE on a curved substrate")):
         bad = cooke_zmx_text().replace("SURF 3\r\n  TYPE STANDARD", f"SURF 3\r\n  TYPE {typ}")
         with pytest.raises(LensFileError, match=f"surface 3: {msg}"):
             read_zmx(write_bytes(tmp_path, "b.zmx", bad, "utf-8"))

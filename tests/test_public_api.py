@@ -28,6 +28,14 @@ def test_the_facade_is_the_defining_modules_objects():
     assert raywave.make_model is make_model and raywave.Trainer is Trainer
 
 
+def test_the_facade_exports_the_mid_system_doe():
+    from raywave.assembly.midsystem import load_midsystem, midsystem_from_spec
+    from raywave.hybrid.midsystem import MidSystemLens
+
+    assert raywave.MidSystemLens is MidSystemLens and raywave.load_midsystem is load_midsystem
+    assert raywave.midsystem_from_spec is midsystem_from_spec
+
+
 def test_load_lens_and_load_hybrid_take_bundled_names():
     from raywave.lens.build import bundled_lens_path
 

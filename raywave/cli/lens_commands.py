@@ -268,6 +268,41 @@ def doe_power_info(path, lens, wavelength=None) -> dict | None:
             "note": "the paraxial table above is the refractive lens alone; the BINARY_2 DOE's power is added here"}
 
 
+def surface_doe_rows(path, lens, wavelength=None) -> list[dict]:
+    """The DOEs placed inside the lens of the file ``path`` (a surface's ``"doe"``; a .zmx BINARY_2 / DGRATING
+    surface inside the lens): :func:`raywave.assembly.midsystem.surface_doe_info` (surface index, distance after
+    its vertex, z, type, a BINARY_2's paraxial power and the EFL with it); empty without one."""
+    from raywave.assembly.midsystem import surface_doe_info
+    from raywave.io import read_lens_spec
+    from raywave.lens.build import resolve_lens_path
+
+    spec = read_lens_spec(resolve_lens_path(path))
+    return surface_doe_info(spec, lens, wavelength)
+
+
+def format_surface_does(rows: list[dict]) -> str:
+    """The ``raywave info`` lines of the DOEs inside the lens (:func:`surface_doe_rows`)."""
+    lines = []
+    for r in rows:
+        head = (f"DOE inside the lens at surface {r['surface']}, {r['distance']:g} mm after its vertex (z "
+                f"{r['z']:g} mm): {r['type']}")
+        if r.get("aperture") and r.get("size"):
+            head += f", {r['aperture']} {r['size'][0]:g} × {r['size'][1]:g} mm"
+        lines.append(head)
+        if "power" in r:
+            lines.append(f"  {'DOE paraxial power (BINARY_2, order M)':<42s} {r['power']:>14.6g} 1/mm")
+            lines.append(f"  {'DOE focal length':<42s} {r['focal_length']:>14.6f} mm")
+            lines.append(f"  {'Effective focal length, lens + DOE':<42s} {r['efl_with_doe']:>14.6f} mm")
+            lines.append("  (the tables above are the refractive lens alone; the DOE's power is added here)")
+        elif "period" in r:
+            lines.append(f"  {'grating period':<42s} {r['period'] * 1e3:>14.6g} µm")
+            lines.append(f"  {'first-order deflection in air':<42s} {r['deflection_deg']:>14.6f} deg "
+                         f"(toward {r['angle_deg']:g}° from +x)")
+        else:
+            lines.append("  (no paraxial power: the tables above are the refractive lens alone)")
+    return "\n".join(lines)
+
+
 def format_doe_power(d: dict) -> str:
     lines = [f"DOE plane {d['distance']:g} mm after the last surface: {d['note']}"]
     if "power" in d:
@@ -289,11 +324,14 @@ def cmd_info(args) -> int:
         return 0
     info = lens_info(lens, wl)
     doe = doe_power_info(args.lens, lens, wl)
+    inside = surface_doe_rows(args.lens, lens, wl)
     if args.json:
         out = {k: info[k] for k in INFO_KEYS}
         out["surfaces"] = prescription_rows(lens, wl)
         if doe is not None:
             out["doe"] = doe
+        if inside:
+            out["surface_does"] = inside
         print(json_dumps(out))
     else:
         print(format_info(info))
@@ -305,16 +343,36 @@ def cmd_info(args) -> int:
         print(table(lens, wl))
         if doe is not None:
             print(format_doe_power(doe))
+        if inside:
+            print(format_surface_does(inside))
     return 0
 
 
 # ---------------------------------------------------------------------------- layout / spot
+def _lens_with_inside_doe(path):
+    """The lens of the file ``path`` with its DOE inside the lens in place (the strongest order at the primary
+    wavelength: :func:`raywave.assembly.midsystem.lens_with_doe`), or None when no surface carries a DOE."""
+    from raywave.assembly.midsystem import doe_lens, lens_with_doe, surface_doe_positions
+    from raywave.io import read_lens_spec
+    from raywave.lens.build import resolve_lens_path
+
+    p = resolve_lens_path(path)
+    spec = read_lens_spec(p)
+    if not surface_doe_positions(spec):
+        return None
+    lens, doe, after, distance = doe_lens(spec, str(p), p.parent)
+    return lens_with_doe(lens, doe, after, distance)
+
+
 def cmd_layout(args) -> int:
     from raywave.plotting import plot_layout
 
     fields = _y_fields(args, "layout")
     out = png_path(args.output, "layout.png")
     lens = _load_shown(args)
+    inside = _lens_with_inside_doe(args.lens)  # a DOE inside the lens (issue 46): drawn where it sits, rays bent
+    if inside is not None:
+        lens = inside
     plot_layout(lens, out, fields=fields, n_rays=integer_arg(args.rays, "--rays"), doe=lens_file_doe(args.lens))
     print(f"wrote {out}")
     return 0

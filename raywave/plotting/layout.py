@@ -72,6 +72,8 @@ def _draw_surfaces(ax, lens, zv, heights) -> None:
     stop in air as two bars, else its profile) and the element edges joining the rims of glass elements."""
     prev = None
     for i, s in enumerate(lens.surfaces):
+        if is_doe_plane(s):  # drawn by _draw_doe_planes; the element edges join the surfaces around it
+            continue
         zp, yp = _profile(s, float(zv[i]), heights[i])
         style = dict(color="k", lw=1.0 if not s.is_stop else 2.0)
         if s.kind == "paraxial":
@@ -82,10 +84,24 @@ def _draw_surfaces(ax, lens, zv, heights) -> None:
             ax.plot([zv[i], zv[i]], [-heights[i], -heights[i] * 1.3], **style)
         elif zp.size:
             ax.plot(zp, yp, **style)
-        if prev is not None and not lens.surfaces[i - 1].material.is_air and zp.size and prev[0].size:
+        if prev is not None and not prev[2].material.is_air and zp.size and prev[0].size:
             for end in (0, -1):  # element edges: join the rims of its two faces
                 ax.plot([prev[0][end], zp[end]], [prev[1][end], yp[end]], color="k", lw=1.0)
-        prev = (zp, yp)
+        prev = (zp, yp, s)
+
+
+def is_doe_plane(surface) -> bool:
+    """Whether ``surface`` is a thin DOE plane placed inside a lens (:func:`raywave.hybrid.midsystem.insert_doe`:
+    a plane with a diffractive interaction)."""
+    return surface.interaction.kind == "diffraction" and surface.geometry.paraxial_curvature().item() == 0
+
+
+def _draw_doe_planes(ax, lens, zv, heights) -> None:
+    """Draw every DOE plane inside ``lens`` (:func:`is_doe_plane`) as :func:`draw_doe_plane`, labelled with the
+    surface it follows."""
+    for i, s in enumerate(lens.surfaces):
+        if is_doe_plane(s):
+            draw_doe_plane(ax, float(zv[i]), heights[i], label=f"DOE (after surface {max(i - 1, 0)})")
 
 
 def draw_doe_plane(ax, z: float, half_height: float, label: str = "DOE") -> None:
@@ -113,6 +129,17 @@ def plot_hybrid_layout(hl, path=None, fields=None, n_rays: int = 7, wavelength: 
                        doe={"distance": hl.doe_distance, "size": list(hl.doe.size)})
 
 
+def plot_midsystem_layout(ml, path=None, fields=None, n_rays: int = 7, wavelength: float | None = None):
+    """:func:`plot_layout` of a :class:`~raywave.hybrid.midsystem.MidSystemLens`: its lens with the DOE plane in
+    place, the rays bent by the DOE's strongest order at ``wavelength`` (default the primary)."""
+    from raywave.hybrid.midsystem import DOEPhaseSurface, insert_doe
+
+    wl = ml.lens.primary_wavelength if wavelength is None else wavelength
+    scale = ml.orders(wl)[0][0]
+    lens = insert_doe(ml.lens, ml.after, ml.distance, DOEPhaseSurface(ml.doe, float(scale)), 1.0, ml.doe)
+    return plot_layout(lens, path, fields, n_rays, wl)
+
+
 def plot_layout(lens, path=None, fields=None, n_rays: int = 7, wavelength: float | None = None, ax=None,
                 doe: dict | None = None):
     """Draw the lens section and meridional ray fans; write a PNG if ``path`` is given.
@@ -121,7 +148,8 @@ def plot_layout(lens, path=None, fields=None, n_rays: int = 7, wavelength: float
         fields: field values along y (degrees or mm, as the lens's fields; default: the lens's).
         n_rays: rays per fan.
         doe: a DOE to draw, as a lens file's ``"doe"`` section (``distance`` mm after the last vertex, ``size``);
-            :func:`plot_hybrid_layout` passes a hybrid lens's.
+            :func:`plot_hybrid_layout` passes a hybrid lens's. A DOE plane inside ``lens`` (issue 46,
+            :func:`plot_midsystem_layout`) is drawn the same way where it sits, its rays bent by it.
     Returns the matplotlib figure.
     """
     lens.require_unfolded("plot_layout")
@@ -135,6 +163,7 @@ def plot_layout(lens, path=None, fields=None, n_rays: int = 7, wavelength: float
     heights = _surface_heights(lens, zs, ys, ok)
     _draw_rays(ax, lens, zs, ys, ok, len(fields), n_rays)
     _draw_surfaces(ax, lens, zv, heights)
+    _draw_doe_planes(ax, lens, zv, heights)
     zi = float(lens.image_z().detach())
     # The sensor is drawn to its half-diagonal: field points are radial, so they land within it.
     hi = max(heights) if lens.sensor_size is None else 0.5 * math.hypot(*lens.sensor_size)

@@ -34,10 +34,18 @@ class LensConfig:
 
     Attributes:
         file: bundled lens name (``raywave lens list``) or path of a lens JSON/.zmx (with or without a DOE).
-        doe: DOE parametrisation to learn: ``"pixel"`` (a free phase map), or ``"file"`` (the lens file's DOE).
+        doe: DOE parametrisation to learn: ``"pixel"`` (a free phase map), ``"zernike"`` (``doe_terms`` Noll
+            Zernike coefficients over the DOE's inscribed disk: a smooth phase, what a DOE inside the lens needs:
+            its phase is carried by rays, so pixel-scale noise is not modelled as diffraction), or ``"file"`` (the
+            lens file's DOE).
+        doe_terms: Zernike terms (Noll j = 1 .. doe_terms) of ``doe: zernike``.
         doe_pitch: DOE pixel pitch (mm); None: the file's or the default of :func:`raywave.hybrid.load_hybrid`.
         doe_size: DOE side (mm); None: as the file / sized to the beam.
-        doe_distance: mm after the last vertex; None: the file's.
+        doe_distance: mm after the last vertex (with ``doe_after``: after that surface's vertex); None: the file's.
+        doe_after: a DOE inside the lens (issue 46): the learned DOE sits ``doe_distance`` mm (default 0) after the
+            vertex of surface ``doe_after``, inside the gap to the next surface, and the hybrid is a
+            :class:`~raywave.hybrid.midsystem.MidSystemLens` (its PSFs trace every DOE-plane field again: no
+            DOE-field cache). None: the DOE before the sensor, or a lens file's own DOE at a surface.
         train_lens: learn the refractive surfaces too (lr ``lr_lens``); False freezes the lens and caches the
             DOE-plane fields (the paper's aberration-correction set-up).
         focus_depth: refocus the sensor for an object at this distance (mm) before training (EDoF: 300 mm);
@@ -53,9 +61,11 @@ class LensConfig:
 
     file: str = "hybrid_asphere"
     doe: str = "pixel"
+    doe_terms: int = 15
     doe_pitch: Optional[float] = None
     doe_size: Optional[float] = None
     doe_distance: Optional[float] = None
+    doe_after: Optional[int] = None
     train_lens: bool = False
     focus_depth: Optional[float] = None
     sensor_pitch: Optional[float] = None
@@ -285,10 +295,12 @@ _UNIT = Rule(lo=0, hi=1)  # a fraction in [0, 1]
 #: entry (and its length). Every int / float / list field of the config dataclasses must be listed here
 #: (tests/test_reliability_config.py checks it), so a new setting cannot slip in unchecked.
 RULES: dict[str, Rule] = {
-    "LensConfig.doe": Rule(choices=("pixel", "file")),
+    "LensConfig.doe": Rule(choices=("pixel", "zernike", "file")),
+    "LensConfig.doe_terms": _COUNT,
     "LensConfig.doe_pitch": _POS,
     "LensConfig.doe_size": _POS,
     "LensConfig.doe_distance": _NONNEG,
+    "LensConfig.doe_after": _NONNEG,
     "LensConfig.focus_depth": Rule(lo=0, lo_open=True, inf=True),
     "LensConfig.sensor_pitch": _POS,
     "LensConfig.sensor_size": Rule(lo=0, lo_open=True, length=2),

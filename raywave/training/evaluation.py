@@ -136,9 +136,11 @@ def export(trainer, folder=None) -> Path:
     np.save(folder / "doe_phase.npy", phase)
     save_doe(doe, folder / "doe.pt")
     spec = lens_to_spec(trainer.hl.lens)
-    section = {"distance": trainer.hl.doe_distance, "pitch": doe.pitch, "shape": list(doe.shape),
+    inside = getattr(trainer.hl, "after", None)  # a MidSystemLens: the DOE sits at a surface (issue 46)
+    section = {"distance": trainer.hl.distance if inside is not None else trainer.hl.doe_distance,
+               "pitch": doe.pitch, "shape": list(doe.shape),
                "aperture": doe.aperture, "phase": "doe_phase.npy", "design_wavelength": doe.design_wavelength}
-    if trainer.hl.oversample != 1:
+    if getattr(trainer.hl, "oversample", 1) != 1:
         section["oversample"] = int(trainer.hl.oversample)
     if doe.material_name is not None:
         section["material"] = doe.material_name
@@ -146,7 +148,10 @@ def export(trainer, folder=None) -> Path:
         section["levels"] = int(doe.quant_levels)
     elif doe.wrap:
         section["wrap"] = True
-    spec["doe"] = section
+    if inside is not None:
+        spec["surfaces"][inside]["doe"] = section
+    else:
+        spec["doe"] = section
     write_lens_spec(spec, folder / "lens.json")
     levels = doe.quant_levels if doe.quant_levels is not None else 16
     export_design(doe, levels, doe.material_name or _default_material(), doe.design_wavelength,

@@ -46,7 +46,7 @@ from raywave.training.replay import OpticsStep, chunk_ranges
 from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
 from raywave.training.steps import _LIT_DRAWS, DarkRegionWarning, StageSteps, _lit_nodes, _nearest_node
 
-__all__ = ["Trainer", "build_hybrid", "STAGES", "CropWarning"]
+__all__ = ["Trainer", "build_hybrid", "build_midsystem", "learned_doe", "STAGES", "CropWarning"]
 
 STAGES = ("pre", "stage1", "stage2", "done")
 
@@ -57,13 +57,17 @@ class CropWarning(UserWarning):
 
 def build_hybrid(lc):
     """The :class:`~raywave.hybrid.HybridLens` of a :class:`~raywave.training.config.LensConfig`: the lens file
-    (bundled name or path), its DOE replaced by a zero-phase :class:`~raywave.doe.PixelDOE` of the same grid
-    (``doe: pixel``), refocused to ``focus_depth``, the refractive lens frozen unless ``train_lens``."""
-    from raywave.doe import PixelDOE
+    (bundled name or path), its DOE replaced by a zero-phase :func:`learned_doe` of the same grid (``doe: pixel`` /
+    ``zernike``), refocused to ``focus_depth``, the refractive lens frozen unless ``train_lens``. A DOE inside the
+    lens (``lens.doe_after``, or a lens file's surface DOE): :func:`build_midsystem`."""
     from raywave.assembly.build import load_hybrid
+    from raywave.assembly.midsystem import surface_doe_positions
+    from raywave.io import read_lens_spec
     from raywave.lens.build import resolve_lens_path
 
     path = resolve_lens_path(lc.file)
+    if lc.doe_after is not None or surface_doe_positions(read_lens_spec(path)):
+        return build_midsystem(lc, path)
     hl = load_hybrid(path, doe_pitch=lc.doe_pitch, doe_size=lc.doe_size, doe_distance=lc.doe_distance,
                      sensor_pitch=lc.sensor_pitch, stop_edge=lc.stop_edge, edge_step=lc.edge_step)
     if lc.sensor_size is not None:
@@ -72,15 +76,106 @@ def build_hybrid(lc):
         from raywave.lens.analysis import refocus
 
         refocus(hl.lens, float(lc.focus_depth))
-    if lc.doe == "pixel":
+    if lc.doe in ("pixel", "zernike"):
         doe = hl.doe
-        _check_pixel_doe_memory(doe.shape, doe.pitch, lc.file)
-        new = PixelDOE(torch.zeros(doe.shape, dtype=torch.float64, device="cpu"), doe.pitch, aperture=doe.aperture)
-        hl = hl.with_doe(new)
+        hl = hl.with_doe(learned_doe(lc, doe.shape, doe.pitch, doe.aperture))
     elif lc.doe != "file":
-        raise ValueError(f"lens.doe must be 'pixel' or 'file', got {lc.doe!r}")
+        raise ValueError(f"lens.doe must be 'pixel', 'zernike' or 'file', got {lc.doe!r}")
     hl.lens.requires_grad_(bool(lc.train_lens))
     return hl
+
+
+def learned_doe(lc, shape, pitch: float, aperture: str):
+    """The zero-phase DOE to learn on the ``(ny, nx)`` grid of ``pitch`` mm: ``lens.doe: pixel``, a
+    :class:`~raywave.doe.PixelDOE` (its memory checked first); ``zernike``, a :class:`~raywave.doe.ZernikeDOE` of
+    ``lens.doe_terms`` coefficients over the grid's inscribed disk."""
+    from raywave.doe import PixelDOE, ZernikeDOE
+
+    if lc.doe == "zernike":
+        return ZernikeDOE(torch.zeros(int(lc.doe_terms), dtype=torch.float64), tuple(shape), pitch, aperture=aperture)
+    _check_pixel_doe_memory(shape, pitch, lc.file)
+    return PixelDOE(torch.zeros(tuple(shape), dtype=torch.float64, device="cpu"), pitch, aperture=aperture)
+
+
+#: a learned pixel DOE inside the lens without ``lens.doe_pitch``: this many pixels a side over its size
+MIDSYSTEM_PIXELS = 256
+
+
+def build_midsystem(lc, path):
+    """The :class:`~raywave.hybrid.midsystem.MidSystemLens` of a :class:`~raywave.training.config.LensConfig` with a
+    DOE inside the lens (issue 46): the lens file's own surface DOE, or (``lens.doe_after``) a DOE ``doe_distance``
+    mm (default 0) after the vertex of surface ``doe_after`` (the file's DOE before the sensor, if any, left out),
+    sized ``doe_size`` (default: the beams of the sensor's centre, edges and corners there), of pitch
+    ``doe_pitch`` (default: the file's, else for a learned pixel DOE :data:`MIDSYSTEM_PIXELS` a side). The
+    engine's plane near the sensor is the file's DOE plane when it had one (else
+    :func:`raywave.assembly.midsystem.midsystem_of`'s choice). ``doe: pixel`` / ``zernike`` make the DOE a
+    zero-phase :func:`learned_doe` of that grid. The sensor is set and refocused on the refractive lens; the
+    refractive lens frozen unless ``train_lens``."""
+    from raywave.assembly.midsystem import doe_lens, midsystem_of, surface_doe_positions
+    from raywave.io import read_lens_spec, validate_spec
+    from raywave.io.errors import LensFileError
+
+    if lc.edge_step is not None:
+        raise ValueError("lens.edge_step: a DOE inside the lens builds its engine plane's field with the stop edge "
+                         "on that plane (lens.stop_edge 'doe'); leave edge_step out")
+    spec = copy.deepcopy(read_lens_spec(path))
+    size = None if lc.doe_size is None else [float(lc.doe_size)] * 2
+    final = None  # the engine's plane near the sensor: midsystem_of's default
+    if lc.doe_after is not None:
+        if surface_doe_positions(spec):
+            raise ValueError(f"lens.doe_after: {lc.file} already places a DOE at a surface; leave doe_after out")
+        after = int(lc.doe_after)
+        if not 0 <= after < len(spec["surfaces"]):
+            raise ValueError(f"lens.doe_after: {after} is not a surface index of {lc.file} (0 .. "
+                             f"{len(spec['surfaces']) - 1})")
+        before = spec.pop("doe", None)  # the DOE before the sensor gives way to the one inside the lens ...
+        if before is not None and before.get("distance") is not None:
+            final = float(before["distance"])  # ... and its plane becomes the engine's (before any caustic)
+        spec["surfaces"][after]["doe"] = {"distance": float(lc.doe_distance or 0.0), "phase": None}
+        try:
+            validate_spec(spec, str(path))
+        except LensFileError as e:
+            raise ValueError(f"lens.doe_after / doe_distance: {e}") from None
+    plain = copy.deepcopy(spec)
+    for s in plain["surfaces"]:
+        s.pop("doe", None)
+    fields = _sensor_fields(plain, lc, path)
+    lens, doe, after, distance = doe_lens(spec, str(path), path.parent, lc.doe_pitch, size, fields)
+    dspec = surface_doe_positions(spec)[0][2]
+    sensor_pitch = lc.sensor_pitch if lc.sensor_pitch is not None else lens.pixel_pitch  # the file's pixel, as
+    if lc.sensor_size is not None:  # build_hybrid keeps it when the sensor's size changes
+        lens.set_sensor(lc.sensor_size)
+    if lc.focus_depth is not None:
+        from raywave.lens.analysis import refocus
+
+        refocus(lens, float(lc.focus_depth))
+    if lc.doe in ("pixel", "zernike"):
+        own = lc.doe_pitch is not None or dspec.get("pitch") is not None or dspec.get("phase") is not None
+        pitch = doe.pitch if own else max(doe.size) / MIDSYSTEM_PIXELS
+        shape = doe.shape if own else tuple(max(1, round(s / pitch)) for s in (doe.size[1], doe.size[0]))
+        doe = learned_doe(lc, shape, pitch, doe.aperture)
+    elif lc.doe != "file":
+        raise ValueError(f"lens.doe must be 'pixel', 'zernike' or 'file', got {lc.doe!r}")
+    ml = midsystem_of(lens, doe, after, distance, final, sensor_pitch=sensor_pitch, fields=fields,
+                      **({} if lc.stop_edge is None else {"stop_edge": lc.stop_edge}))
+    ml.lens.requires_grad_(bool(lc.train_lens))
+    return ml
+
+
+def _sensor_fields(spec: dict, lc, path) -> torch.Tensor:
+    """(9, 2) field angles (deg) of the sensor's centre, edge midpoints and corners (``lens.sensor_size``, else
+    the file's sensor or the square in its image circle), through the refractive lens of ``spec``: the beams a DOE
+    inside the lens and the engine's plane must hold."""
+    from raywave.imaging.psfmap import fields_at, sensor_size_of
+    from raywave.lens.build import lens_from_spec
+
+    lens = lens_from_spec(spec)
+    if lc.sensor_size is not None:
+        lens.set_sensor(lc.sensor_size)
+    w, h = sensor_size_of(lens)
+    pts = torch.tensor([[0.5 * w * i, 0.5 * h * j] for i in (-1, 0, 1) for j in (-1, 0, 1)], dtype=torch.float64)
+    with torch.no_grad():
+        return fields_at(lens, pts)
 
 
 # bytes per DOE pixel while a pixel DOE trains: its float64 phase, gradient and Adam's two moments (32 B) and the
@@ -150,7 +245,9 @@ class Trainer(FabricationSchedule, StageSteps):
                     p.zero_()
             self.hl.doe.requires_grad_(False)
         self.train_lens = any(p.requires_grad for p in self.hl.lens.parameters())
-        self.cache = None if self.train_lens else (DOEFieldCache() if field_cache is None else field_cache)
+        # a DOE inside the lens (MidSystemLens: no doe_fields) shapes the fields it propagates: nothing to cache
+        cacheable = hasattr(self.hl, "doe_fields") and not self.train_lens
+        self.cache = None if not cacheable else (DOEFieldCache() if field_cache is None else field_cache)
         wl = cfg.optics.wavelengths
         missing = [c for c in ("R", "G", "B") if c not in wl]
         if missing or set(wl) - {"R", "G", "B"}:

@@ -1,5 +1,7 @@
-"""A diffractive surface right before the image: the spec's ``"doe"`` (the DOE plane of a hybrid lens;
-BINARY_2 coefficients become its ``phase_model``)."""
+"""Diffractive surfaces: right before the image, the spec's ``"doe"`` (the DOE plane of a hybrid lens); anywhere
+else in the lens (issue 46), a plane surface carrying a ``"doe"`` at distance 0 after its vertex (a DOE inside the
+lens, :mod:`raywave.io.surface_doe`). BINARY_2 coefficients become a ``binary_2`` ``phase_model``, a DGRATING's
+line density and order a ``grating`` one."""
 
 from __future__ import annotations
 
@@ -11,11 +13,14 @@ from raywave.io.zmx.tables import MAX_BINARY2_TERMS
 
 
 def _diffractive_phase(p, where, path, scale, line):
-    """The phase model of a diffractive surface (BINARY_2 only; None for the other types, with a warning)."""
+    """The phase model of a diffractive surface (BINARY_2 and DGRATING; None for the other types, with a
+    warning)."""
     typ = p["zemax_type"]
     if p["curv"] != 0.0:
         raise LensFileError(f"{where}: {typ} surface with curvature {p['curv']!r}: raywave's DOE is a thin phase "
                             "element on a plane (CURV 0)", path, line)
+    if typ == "DGRATING":
+        return _grating_phase(p, where, path, scale, line)
     if typ != "BINARY_2":
         warnings.warn(LensFileWarning(f"{path}:{line}: {where}: the phase of a {typ} surface is not read; its plane "
                                       "becomes the DOE plane with a blank DOE"),
@@ -44,6 +49,66 @@ def _diffractive_phase(p, where, path, scale, line):
     return {"type": "binary_2", "order": order, "norm_radius": norm * scale, "coefficients": coeffs}
 
 
+def _grating_phase(p, where, path, scale, line):
+    """A DGRATING's phase model: PARM 1 = T lines per µm, PARM 2 = order M; the rulings run along the local x axis,
+    so the surface adds ``M·T·λ`` to ``n·sin`` of the ray along y (OpticStudio's grating equation): the linear phase
+    ``φ = 2π M T y`` (T in lines per mm), a ``grating`` phase model of period ``1/|M T|`` mm at 90° (−90° for
+    ``M T < 0``); None (a blank DOE) for ``M T = 0``. The line density is per µm whatever the lens unit."""
+    parms = p["parms"]
+    bad = [(i, ln) for i, (v, ln) in parms.items() if i not in (1, 2) and v != 0.0]
+    if bad:
+        raise LensFileError(f"{where}: DGRATING PARM {bad[0][0]} is not a grating parameter (PARM 1 = lines per "
+                            "µm, PARM 2 = diffraction order)", path, bad[0][1])
+    t = parms.get(1, (0.0, line))
+    m = parms.get(2, (1.0, line))
+    for (v, ln), what in ((t, "line density (PARM 1, lines per µm)"), (m, "diffraction order (PARM 2)")):
+        if not math.isfinite(v):
+            raise LensFileError(f"{where}: DGRATING {what} must be a finite number, got {v!r}", path, ln)
+    density = t[0] * m[0] * 1e3  # lines per mm of the traced order
+    if density == 0.0:
+        return None
+    return {"type": "grating", "period": 1.0 / abs(density), "angle": 90.0 if density > 0 else -90.0}
+
+
+def _surface_aperture_size(d) -> dict:
+    """``aperture`` and ``size`` of a DOE from the diffractive surface ``d``'s aperture (CLAP, SQAP; a rectangle is
+    the whole rectangular grid); ``{"aperture": "square"}`` without one."""
+    ap = d["aperture"]
+    if ap is not None and ap["shape"] == "circle":
+        return {"aperture": "circle", "size": [2.0 * ap["radius"], 2.0 * ap["radius"]]}
+    if ap is not None and ap["shape"] == "square":
+        return {"aperture": "square", "size": [2.0 * ap["half_width"], 2.0 * ap["half_width"]]}
+    if ap is not None and ap["shape"] == "rectangle":
+        return {"aperture": "square", "size": [2.0 * ap["half_width_x"], 2.0 * ap["half_width_y"]]}
+    return {"aperture": "square"}
+
+
+def doe_inside(d, path, scale) -> dict:
+    """The parsed diffractive surface ``d`` inside the lens (issue 46) as a parsed plane surface with ``"doe"``:
+    its thickness, glass (a change of medium is the plane's refraction, then the DOE in the medium after it: the
+    same ray bending, ``n2 sinθ2 − n1 sinθ1 = M λ ∂φ/∂s / 2π``, on a plane), aperture, stop and comment stay the
+    surface's; the DOE (``phase_model`` of BINARY_2 / DGRATING, else blank) sits 0 mm after the vertex, sized by
+    the surface's aperture (else its semi-diameter, as a circle). A curved one (a DOE on a curved substrate) is
+    refused: conformal DOEs are not read from .zmx files yet."""
+    where = f"surface {d['number']}"
+    if d["curv"] != 0.0:
+        raise LensFileError(f"{where}: {d['zemax_type']} surface with curvature {d['curv']!r} inside the lens: a DOE "
+                            "on a curved substrate is not read from .zmx files yet (raywave reads a plane diffractive "
+                            "surface, CURV 0, anywhere in the lens)", path, d["line"])
+    model = _diffractive_phase(d, where, path, scale, d["line"])
+    if d["disz"] is None or not math.isfinite(d["disz"]) or not d["disz"] > 0:
+        raise LensFileError(f"{where}: a diffractive surface inside the lens needs a thickness (DISZ) > 0 mm to the "
+                            f"next surface (its DOE plane lies in that gap), got {d['disz']!r}", path, d["line"])
+    doe: dict = {"distance": 0.0}
+    doe.update(_surface_aperture_size(d))
+    if "size" not in doe and d["diam"]:
+        doe.update(aperture="circle", size=[2.0 * d["diam"], 2.0 * d["diam"]])
+    doe["phase"] = None
+    if model is not None:
+        doe["phase_model"] = model
+    return dict(d, kind="standard", conic=0.0, parms={}, surface_doe=doe)
+
+
 def _doe_from_surface(d, before, path, scale, sign: float = 1.0, medium=None) -> dict:
     """The spec "doe" of the diffractive surface ``d`` (the last before the image) after surface ``before`` (a
     refractive surface, a mirror or a coordinate break).
@@ -68,15 +133,7 @@ def _doe_from_surface(d, before, path, scale, sign: float = 1.0, medium=None) ->
         raise LensFileError(f"surface {before['number']}: the distance to the DOE plane (DISZ) must be "
                             f"{'<= 0' if sign < 0 else '>= 0'} mm{along}, got {t!r}", path, before["line"])
     doe: dict = {"distance": sign * t + 0.0}  # mm along the light (+ 0.0: no -0.0)
-    ap = d["aperture"]
-    if ap is None:
-        doe["aperture"] = "square"
-    elif ap["shape"] == "circle":
-        doe["aperture"] = "circle"
-        doe["size"] = [2.0 * ap["radius"], 2.0 * ap["radius"]]
-    else:
-        doe["aperture"] = "square"
-        doe["size"] = [2.0 * ap["half_width"], 2.0 * ap["half_width"]]
+    doe.update(_surface_aperture_size(d))
     doe["phase"] = None
     if model is not None:
         doe["phase_model"] = model

@@ -9,7 +9,7 @@ from pathlib import Path
 from raywave.io.errors import LensFileError, LensFileWarning
 from raywave.io.json_format import FORMAT_NAME, FORMAT_VERSION, UNITS, validate_spec
 from raywave.io.spec import DEFAULT_WAVELENGTHS, shape_entry
-from raywave.io.zmx.diffractive import _doe_from_surface
+from raywave.io.zmx.diffractive import _doe_from_surface, doe_inside
 from raywave.io.zmx.surface import _surface
 from raywave.io.zmx.tables import (IGNORED_SYSTEM_KEYS, MERIT_OPERANDS, MULTI_CONFIG_APPLIED, MULTI_CONFIG_IGNORED,
                                    SURFACE_TYPES, SYSTEM_APERTURE_KEYS, UNIT_SCALE)
@@ -319,15 +319,11 @@ def _apply_configuration(st: _System, parsed: list, config: int | None, path: st
 def _split_doe(parsed: list, path: str, scale: float):
     """``(lens surfaces, doe section or None)``: the parsed surfaces between object and image, without a
     diffractive last surface, which becomes the DOE plane of a hybrid lens (its thickness, mm, is added to the
-    surface before it, so that the refractive lens reaches the sensor); a diffractive surface elsewhere is an
-    error."""
+    surface before it, so that the refractive lens reaches the sensor); a diffractive surface elsewhere becomes a
+    plane surface with a DOE 0 mm after it (:func:`raywave.io.zmx.diffractive.doe_inside`, issue 46)."""
     obj, lens = parsed[0], parsed[1:-1]
     doe = None
-    for p in parsed[:-1]:
-        if p["kind"] == "diffractive" and p is not parsed[-2]:
-            raise LensFileError(f"surface {p['number']}: diffractive surface type {p['zemax_type']} is supported "
-                                "only as the last surface before the image (the DOE plane of a hybrid lens)", path,
-                                p["line"])
+    lens = [doe_inside(p, path, scale) if p["kind"] == "diffractive" and p is not parsed[-2] else p for p in lens]
     if lens and lens[-1]["kind"] == "diffractive":
         if len(lens) < 2 or parsed[-2] is obj:
             raise LensFileError(f"surface {lens[-1]['number']}: a DOE plane needs a refractive lens in front of it",
@@ -536,6 +532,8 @@ def _lens_surface(p: dict, has_system_aperture: bool, path: str) -> dict:
     s["stop"] = p["stop"]
     if p["comment"]:
         s["comment"] = p["comment"]
+    if p.get("surface_doe") is not None:  # a diffractive surface inside the lens (issue 46)
+        s["doe"] = p["surface_doe"]
     return s
 
 

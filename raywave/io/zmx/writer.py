@@ -230,6 +230,9 @@ def _warn_left_out(spec: dict, doe, binary2: bool, source) -> None:
             extra.append("oversample")
         if extra:
             lost.append(f"the DOE's {', '.join(extra)}")
+    inside = [str(i) for i, s in enumerate(spec.get("surfaces", [])) if s.get("doe") is not None]
+    if inside:  # issue 46: a DOE inside the lens is not written back (yet)
+        lost.append(f"the DOEs inside the lens (at surface{'s' if len(inside) > 1 else ''} {', '.join(inside)})")
     if lost:
         warnings.warn(LensFileWarning(f"{source}: .zmx files do not store {' and '.join(lost)}; "
                                       "they are left out"), stacklevel=4)
