@@ -116,3 +116,15 @@ def test_fisheye_field_of_a_finite_object_is_left_out_naming_field_and_line(tmp_
                                              r"object's angles must lie below 90°"):
         spec = read_lens_spec(p)
     assert spec["fields"]["values"] == [0.0, 63.0105]
+
+
+def test_the_ray_wave_engine_names_a_field_at_or_beyond_90_degrees():
+    """The engine samples the entrance-pupil plane: a field angle ≥ 90° is refused before any work, naming the
+    field (both entry points: the PSF path and doe_fields)."""
+    from raywave.assembly.build import load_hybrid
+
+    hl = load_hybrid("hybrid_asphere")
+    with pytest.raises(ValueError, match=r"field \[0\.0, 95\.0\].*below 90°"):
+        hl.psf([(0.0, 95.0)], ks=8)
+    with pytest.raises(ValueError, match=r"field \[90\.0, 0\.0\].*below 90°"):
+        hl.doe_fields([(90.0, 0.0)])

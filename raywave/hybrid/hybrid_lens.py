@@ -485,11 +485,7 @@ class HybridLens(nn.Module):
             raise ValueError(f"mode must be 'accurate' or 'faithful', got {mode!r}")
         if mode == "accurate" and trace_dtype != torch.float64:
             raise ValueError("the accurate mode traces in float64 only (its rays land on their nodes to 1e-10 mm)")
-        f = _as_fields(fields, torch.float64, self.lens.device)
-        if self.lens.field_type == "angle" and bool((f.abs() >= MAX_FIELD_ANGLE).any()):
-            raise ValueError(f"field {f[(f.abs() >= MAX_FIELD_ANGLE).any(-1)][0].tolist()}: the ray-wave engine "
-                             f"samples the entrance-pupil plane and traces field angles below {MAX_FIELD_ANGLE:g}°; a "
-                             "fisheye's wider field is traced by the geometric analyses (trace, spot, info)")
+        f = self._engine_fields(fields)
         wls = self.wavelength_list(wavelengths)
         if mode == "accurate":
             geo = self._accurate_geometry(f, wls, depth)
@@ -504,6 +500,17 @@ class HybridLens(nn.Module):
                  for i in range(f.shape[0]) for j, wl in enumerate(wls)]
         geo = _CallGeometry(f, wls, depth, (cd, None, None), [None] * f.shape[0])
         return self._finish_fields((list(range(f.shape[0])), built), geo)
+
+    def _engine_fields(self, fields) -> torch.Tensor:
+        """The call's field points as an (F, 2) float64 tensor; ValueError naming the first angle field at or beyond
+        :data:`~raywave.utils.checks.MAX_FIELD_ANGLE` (the engine samples the entrance-pupil plane: a fisheye's wider
+        field is for the geometric analyses)."""
+        f = _as_fields(fields, torch.float64, self.lens.device)
+        if self.lens.field_type == "angle" and bool((f.abs() >= MAX_FIELD_ANGLE).any()):
+            raise ValueError(f"field {f[(f.abs() >= MAX_FIELD_ANGLE).any(-1)][0].tolist()}: the ray-wave engine "
+                             f"samples the entrance-pupil plane and traces field angles below {MAX_FIELD_ANGLE:g}°; a "
+                             "fisheye's wider field is traced by the geometric analyses (trace, spot, info)")
+        return f
 
     def _accurate_geometry(self, f: torch.Tensor, wls: list[float], depth) -> "_CallGeometry":
         """What the accurate construction of the call's sources ``f`` (F, 2) × ``wls`` (µm) shares, each traced once
@@ -799,11 +806,7 @@ class HybridLens(nn.Module):
         memory) the fields built together and propagated in batches (:meth:`propagate_fields`), each group's fields
         dropped before the next is built. Returns ``(psf (F, W, ks, ks), centres (F, W, 2), energy outside (F, W),
         rays (F, W), clipped fractions [F][W])``; the aperture and caustic warnings once for the call."""
-        f = _as_fields(fields, torch.float64, self.lens.device)
-        if self.lens.field_type == "angle" and bool((f.abs() >= MAX_FIELD_ANGLE).any()):
-            raise ValueError(f"field {f[(f.abs() >= MAX_FIELD_ANGLE).any(-1)][0].tolist()}: the ray-wave engine "
-                             f"samples the entrance-pupil plane and traces field angles below {MAX_FIELD_ANGLE:g}°; a "
-                             "fisheye's wider field is traced by the geometric analyses (trace, spot, info)")
+        f = self._engine_fields(fields)
         wls = self.wavelength_list(wavelengths)
         geo = self._accurate_geometry(f, wls, depth)
         pending: tuple = ([], [])
