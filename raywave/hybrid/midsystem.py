@@ -417,7 +417,7 @@ class MidSystemLens(nn.Module):
         px = torch.tensor([0.0, e, 0.0], dtype=torch.float64)
         py = torch.tensor([0.0, 0.0, e], dtype=torch.float64)
         with torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+            warnings.simplefilter("ignore")  # 3 probe rays near the chief ray, apertures off; the PSF itself warns
             rays = point_source_rays(lens_m, torch.tensor([list(field)], dtype=torch.float64), [wavelength],
                                      pupil=(px, py), aim="full", depth=depth)
             at_doe = lens_m.trace(rays, stop=hl._doe_indices[0] + 1, apertures=False)
