@@ -56,7 +56,9 @@ class LensConfig:
         stop_edge: where the ray-wave engine forms the stop's sharp edge: None (default) / "exit_pupil" (the
             stop's image, where it is physically sharp) or "doe" (the paper's model); see
             :class:`raywave.hybrid.HybridLens`.
-        edge_step: with the exit-pupil edge, "fresnel" (None: the default), "asm" or "auto".
+        edge_step: with the exit-pupil edge, how it reaches the DOE plane: None (the engine's default,
+            "adaptive": per source the Fresnel step, or the DOE-plane cut where that is exact), "fresnel", "asm"
+            or "auto"; see :data:`raywave.hybrid.hybrid_lens.EDGE_STEPS`.
     """
 
     file: str = "hybrid_asphere"
