@@ -13,66 +13,12 @@ import torch
 
 from raywave.io import read_lens_spec
 from raywave.lens.build import load_lens
-from raywave.rays.bundle import RayBundle
+from aperture_singlet import R_STOP, grid, parallel_rays, singlet_zmx
 from raywave.surfaces.aperture import Obscuration, RectangularAperture, aperture_from_spec
-
-R_STOP = 5.0  # ENPD 10: the stop (surface 2) clips r > 5 mm
-
-ZMX = """VERS 190513 80 123457
-MODE SEQ
-NAME APERTURE SINGLET
-UNIT MM X W X CM MR CPMM
-ENPD 10
-GCAT SCHOTT
-FTYP 0 0 1 1 0 0 0
-XFLN 0
-YFLN 0
-WAVM 1 0.5875618 1
-PWAV 1
-SURF 0
-  TYPE STANDARD
-  CURV 0.0
-  DISZ INFINITY
-SURF 1
-  TYPE STANDARD
-  CURV 0.0
-  DISZ 10
-{ap}
-SURF 2
-  STOP
-  TYPE STANDARD
-  CURV 9.765625E-3
-  DISZ 3.6
-  GLAS N-BK7 0 0 1.5168 64.17
-  DIAM 12.7 1 0 0 1 ""
-SURF 3
-  TYPE STANDARD
-  CURV -9.765625E-3
-  DISZ 98.47
-  DIAM 12.7 1 0 0 1 ""
-SURF 4
-  TYPE STANDARD
-  CURV 0.0
-  DISZ 0
-"""
-
-
-def _grid(step: float = 0.1, half: float = 6.0):
-    """Cell centres of a square grid (mm), never on a shape's edge (offset by half a step)."""
-    c = np.arange(-half + step / 2, half, step)
-    yy, xx = np.meshgrid(c, c, indexing="ij")
-    return xx.ravel(), yy.ravel()
-
-
-def _parallel_rays(x, y) -> RayBundle:
-    xt, yt = torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(y, dtype=torch.float64)
-    o = torch.stack([xt, yt, torch.full_like(xt, -1.0)], -1)
-    return RayBundle.create(o, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), 0.5875618)
-
 
 def _lens(tmp_path, ap_lines: str, name: str = "a.zmx"):
     p = tmp_path / name
-    p.write_text(ZMX.format(ap=ap_lines))
+    p.write_text(singlet_zmx(ap_lines))
     return load_lens(p), read_lens_spec(p)
 
 
@@ -84,8 +30,8 @@ def test_rectangular_and_decentred_aperture_vignetting_count(tmp_path, lines, dx
     lens, spec = _lens(tmp_path, lines)
     ap = spec["surfaces"][0]["aperture"]
     assert ap["shape"] == "rectangle" and (ap.get("decenter", [0.0, 0.0]) == [dx, dy])
-    x, y = _grid()
-    out = lens.trace(_parallel_rays(x, y))
+    x, y = grid()
+    out = lens.trace(parallel_rays(x, y))
     want = (np.abs(x - dx) <= 4.24) & (np.abs(y - dy) <= 1.92) & (x * x + y * y <= R_STOP**2)
     got = out.valid.numpy()
     assert int(got.sum()) == int(want.sum()) and bool((got == want).all())
@@ -93,8 +39,8 @@ def test_rectangular_and_decentred_aperture_vignetting_count(tmp_path, lines, dx
 
 def test_decentred_circle_vignetting_count(tmp_path):
     lens, _ = _lens(tmp_path, "  CLAP 0 3.0 0\n  OBDC 1.5 0.5")
-    x, y = _grid()
-    out = lens.trace(_parallel_rays(x, y))
+    x, y = grid()
+    out = lens.trace(parallel_rays(x, y))
     want = ((x - 1.5) ** 2 + (y - 0.5) ** 2 <= 9.0) & (x * x + y * y <= R_STOP**2)
     assert bool((out.valid.numpy() == want).all()) and int(want.sum()) > 1000
 
@@ -104,9 +50,9 @@ def test_annular_obscuration_transmits_the_annulus_area_ratio(tmp_path):
     fraction of a uniform beam filling the stop is 1 − (3² − 1.5²) / 5² = 0.73 (area ratio)."""
     lens, spec = _lens(tmp_path, "  OBSC 1.5 3.0")
     assert spec["surfaces"][0]["aperture"]["obscuration"] == {"shape": "annulus", "inner_radius": 1.5, "radius": 3.0}
-    x, y = _grid(step=0.04, half=R_STOP)
+    x, y = grid(step=0.04, half=R_STOP)
     inside = x * x + y * y <= R_STOP**2
-    out = lens.trace(_parallel_rays(x[inside], y[inside]))
+    out = lens.trace(parallel_rays(x[inside], y[inside]))
     frac = float(out.valid.double().mean())
     assert frac == pytest.approx(1 - (3.0**2 - 1.5**2) / R_STOP**2, abs=4e-3)
 
@@ -115,9 +61,9 @@ def test_spider_free_central_obscuration_clap_annulus(tmp_path):
     """CLAP 2 6 (an annular clear aperture: a central obscuration without spider vanes): 1 − (2/5)² of a beam
     filling the 5 mm stop passes."""
     lens, _ = _lens(tmp_path, "  CLAP 2.0 6.0 0")
-    x, y = _grid(step=0.04, half=R_STOP)
+    x, y = grid(step=0.04, half=R_STOP)
     inside = x * x + y * y <= R_STOP**2
-    frac = float(lens.trace(_parallel_rays(x[inside], y[inside])).valid.double().mean())
+    frac = float(lens.trace(parallel_rays(x[inside], y[inside])).valid.double().mean())
     assert frac == pytest.approx(1 - (2.0 / R_STOP) ** 2, abs=4e-3)
 
 

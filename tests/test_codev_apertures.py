@@ -9,53 +9,18 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
+from aperture_singlet import R_STOP, grid, parallel_rays, singlet_seq
 from raywave.cli.lens_commands import format_info, lens_info
 from raywave.io import read_lens_spec
 from raywave.io.errors import LensFileError
 from raywave.lens.analysis import real_ray_efl
 from raywave.lens.build import lens_from_spec, load_lens
-from raywave.rays.bundle import RayBundle
-
-R_STOP = 5.0
-
-SEQ = """RDM
-TITLE 'APERTURE SINGLET'
-EPD 10.0
-DIM M
-WL 587.5618
-REF 1
-XAN 0.0
-YAN 0.0
-SO 0.0 1e13
-S 0.0 10.0
-{ap}
-STO 102.4 3.6 {glass}
-  CIR 12.7
-S -102.4 {last}
-  CIR 12.7
-SI 0.0 {defocus}
-GO
-"""
-
 
 def _seq(tmp_path, ap="", glass="NBK7_SCHOTT", last="98.47", defocus="0.0", name="a.seq"):
     p = tmp_path / name
-    p.write_text(SEQ.format(ap=ap, glass=glass, last=last, defocus=defocus))
+    p.write_text(singlet_seq(ap=ap, glass=glass, last=last, defocus=defocus))
     return p
-
-
-def _grid(step=0.1, half=6.0):
-    c = np.arange(-half + step / 2, half, step)
-    yy, xx = np.meshgrid(c, c, indexing="ij")
-    return xx.ravel(), yy.ravel()
-
-
-def _parallel_rays(x, y) -> RayBundle:
-    xt, yt = torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(y, dtype=torch.float64)
-    o = torch.stack([xt, yt, torch.full_like(xt, -1.0)], -1)
-    return RayBundle.create(o, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), 0.5875618)
 
 
 # ---------------------------------------------------------------------------- image thickness
@@ -100,8 +65,8 @@ def test_rectangular_and_decentred_aperture_vignetting_count(tmp_path, ap, dx, d
     if dx or dy:
         want_ap["decenter"] = [dx, dy]
     assert spec["surfaces"][0]["aperture"] == want_ap
-    x, y = _grid()
-    out = lens_from_spec(spec).trace(_parallel_rays(x, y))
+    x, y = grid()
+    out = lens_from_spec(spec).trace(parallel_rays(x, y))
     want = (np.abs(x - dx) <= 4.24) & (np.abs(y - dy) <= 1.92) & (x * x + y * y <= R_STOP**2)
     assert bool((out.valid.numpy() == want).all())
 
@@ -109,8 +74,8 @@ def test_rectangular_and_decentred_aperture_vignetting_count(tmp_path, ap, dx, d
 def test_decentred_cir_is_a_real_aperture(tmp_path):
     spec = read_lens_spec(_seq(tmp_path, ap="  CIR 3.0\n  ADX 1.5; ADY 0.5"))
     assert spec["surfaces"][0]["aperture"] == {"shape": "circle", "radius": 3.0, "decenter": [1.5, 0.5]}
-    x, y = _grid()
-    out = lens_from_spec(spec).trace(_parallel_rays(x, y))
+    x, y = grid()
+    out = lens_from_spec(spec).trace(parallel_rays(x, y))
     want = ((x - 1.5) ** 2 + (y - 0.5) ** 2 <= 9.0) & (x * x + y * y <= R_STOP**2)
     assert bool((out.valid.numpy() == want).all())
 
@@ -120,9 +85,9 @@ def test_annular_obscuration_area_ratio(tmp_path):
     spec = read_lens_spec(_seq(tmp_path, ap="  CIR OBS 3.0\n  CIR HOL 1.5"))
     assert spec["surfaces"][0]["aperture"] == {"shape": "none", "obscuration": {
         "shape": "annulus", "inner_radius": 1.5, "radius": 3.0}}
-    x, y = _grid(step=0.04, half=R_STOP)
+    x, y = grid(step=0.04, half=R_STOP)
     inside = x * x + y * y <= R_STOP**2
-    out = lens_from_spec(spec).trace(_parallel_rays(x[inside], y[inside]))
+    out = lens_from_spec(spec).trace(parallel_rays(x[inside], y[inside]))
     assert float(out.valid.double().mean()) == pytest.approx(1 - (9.0 - 2.25) / 25.0, abs=4e-3)
 
 

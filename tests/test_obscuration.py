@@ -10,6 +10,7 @@ import math
 import pytest
 import torch
 
+from aperture_singlet import singlet_seq, singlet_zmx, zmx_head
 from raywave.io import read_lens_spec
 from raywave.io.errors import LensFileError
 from raywave.io.json_format import validate_spec
@@ -166,54 +167,8 @@ def test_json_stop_needs_clear_aperture():
         validate_spec(_spec({"shape": "none", "obscuration": {"radius": 1.0}}))
 
 
-def _zmx_head(name: str, enpd: float, wavelength: float, gcat: str = "") -> str:
-    """The system lines and the object surface of a .zmx with one on-axis field and one wavelength (µm)."""
-    return (f"VERS 190513 80 123457\nMODE SEQ\nNAME {name}\nUNIT MM X W X CM MR CPMM\nENPD {enpd:g}\n{gcat}"
-            f"FTYP 0 0 1 1 0 0 0\nXFLN 0\nYFLN 0\nWAVM 1 {wavelength} 1\nPWAV 1\n"
-            "SURF 0\n  TYPE STANDARD\n  CURV 0.0\n  DISZ INFINITY\n")
-
-
-_ZMX = _zmx_head("OBSCURED SINGLET", 10, 0.5875618, gcat="GCAT SCHOTT\n") + """SURF 1
-  TYPE STANDARD
-  CURV 0.0
-  DISZ 10
-{obs}
-SURF 2
-  STOP
-  TYPE STANDARD
-  CURV 9.765625E-3
-  DISZ 3.6
-  GLAS N-BK7 0 0 1.5168 64.17
-  DIAM 12.7 1 0 0 1 ""
-SURF 3
-  TYPE STANDARD
-  CURV -9.765625E-3
-  DISZ 98.47
-  DIAM 12.7 1 0 0 1 ""
-SURF 4
-  TYPE STANDARD
-  CURV 0.0
-  DISZ 0
-"""
-
-_SEQ = """RDM
-TITLE 'OBSCURED SINGLET'
-EPD 10.0
-DIM M
-WL 587.5618
-REF 1
-XAN 0.0
-YAN 0.0
-SO 0.0 1e13
-S 0.0 10.0
-{obs}
-STO 102.4 3.6 NBK7_SCHOTT
-  CIR 12.7
-S -102.4 98.47
-  CIR 12.7
-SI 0.0 0.0
-GO
-"""
+_ZMX = singlet_zmx("{obs}", name="OBSCURED SINGLET")
+_SEQ = singlet_seq("{obs}", title="OBSCURED SINGLET")
 
 
 def _read(tmp_path, name, text):
@@ -309,7 +264,7 @@ def test_exit_pupil_model_obscured_pupil():
     assert peak[1] / peak[0] == pytest.approx(want, rel=0.02)
 
 
-_CASS_ZMX = _zmx_head("CASSEGRAIN", 100, 0.55) + """SURF 1
+_CASS_ZMX = zmx_head("CASSEGRAIN", 100, 0.55) + """SURF 1
   COMM "secondary shadow"
   TYPE STANDARD
   CURV 0.0
