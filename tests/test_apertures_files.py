@@ -5,7 +5,6 @@ check is analytic: counts of grid rays inside the shapes, area ratios."""
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest

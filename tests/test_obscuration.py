@@ -5,7 +5,6 @@ OBSC), with Optiland's annular CLAP as an independent reading."""
 from __future__ import annotations
 
 import copy
-import math
 
 import pytest
 import torch
