@@ -3,6 +3,7 @@ import math
 import pytest
 import torch
 
+from raywave.lens.build import load_lens, resolve_lens_path
 from raywave.lens.lens import Lens
 from raywave.materials.base import Air, ConstantIndex
 from raywave.surfaces.aperture import CircularAperture
@@ -64,3 +65,18 @@ def tiny_lens_file(tmp_path_factory):
     lens.set_sensor((0.2, 0.2), (100, 100))
     write_lens_spec(lens_to_spec(lens), d / "tiny.json")
     return d / "tiny.json"
+
+
+@pytest.fixture(scope="module")
+def cooke():
+    """The bundled Cooke triplet (``cooke_triplet``), loaded once per test module."""
+    return load_lens(resolve_lens_path("cooke_triplet"))
+
+
+@pytest.fixture(scope="module")
+def optiland_cooke(cooke):
+    """The same Cooke triplet built in optiland (skips where optiland is absent), fields 0 / 14 / 20°."""
+    pytest.importorskip("optiland")
+    from optiland_bridge import optiland_lens  # lazy: optiland is a test-only dependency
+
+    return optiland_lens(cooke, cooke.primary_wavelength, [0.0, 14.0, 20.0])

@@ -10,23 +10,9 @@ import pytest
 import torch
 
 from raywave.cli.main import main
-from raywave.lens.build import load_lens, resolve_lens_path
 from raywave.lens.fans import opd_fan, ray_fan
 from raywave.lens.opd import OPDMap, fringe_index, noll_index, opd_map, square_pupil_grid, zernike_fit, zernike_term
 from raywave.rays.pupil import hexapolar
-
-
-@pytest.fixture(scope="module")
-def cooke():
-    return load_lens(resolve_lens_path("cooke_triplet"))
-
-
-@pytest.fixture(scope="module")
-def optiland_cooke(cooke):
-    pytest.importorskip("optiland")
-    from optiland_bridge import optiland_lens
-
-    return optiland_lens(cooke, cooke.primary_wavelength, [0.0, 14.0, 20.0])
 
 
 def test_ray_fan_matches_optiland(cooke, optiland_cooke):

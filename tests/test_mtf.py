@@ -11,24 +11,11 @@ import pytest
 import torch
 
 from raywave.cli.main import main
-from raywave.lens.build import ideal_lens, load_lens, resolve_lens_path
+from raywave.lens.build import ideal_lens, resolve_lens_path
 from raywave.lens.mtf import diffraction_limited_mtf, diffraction_mtf, geometric_mtf, psf_mtf
 from raywave.lens.opd import square_pupil_grid
 
 FREQS = [10.0, 25.0, 60.0]  # cycles/mm; the Cooke triplet's cutoff is 341
-
-
-@pytest.fixture(scope="module")
-def cooke():
-    return load_lens(resolve_lens_path("cooke_triplet"))
-
-
-@pytest.fixture(scope="module")
-def optiland_cooke(cooke):
-    pytest.importorskip("optiland")
-    from optiland_bridge import optiland_lens
-
-    return optiland_lens(cooke, cooke.primary_wavelength, [0.0, 14.0, 20.0])
 
 
 def test_fft_mtf_matches_optiland(cooke, optiland_cooke):

@@ -10,14 +10,8 @@ import pytest
 import torch
 
 from raywave.lens import analysis
-from raywave.lens.build import load_lens, resolve_lens_path
 from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.rays import pupil
-
-
-@pytest.fixture(scope="module")
-def cooke():
-    return load_lens(resolve_lens_path("cooke_triplet"))
 
 
 def _rms(lens, fields, pattern=("hexapolar", 6)):
