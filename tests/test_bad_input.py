@@ -88,11 +88,17 @@ def test_a_doe_grid_beyond_any_size_is_refused_naming_the_file(tmp_path):
         load_hybrid(p, doe_size=(1e300, 1e300), doe_pitch=1e-3)
 
 
+def _shown_lines(err: str) -> list[str]:
+    """The non-blank lines of captured stderr as a terminal shows them: a progress bar drawn on a slow machine (after
+    its 2 s delay) and cleared with a carriage return leaves only what follows the last ``\\r`` of its line."""
+    return [ln.rsplit("\r", 1)[-1] for ln in err.splitlines() if ln.rsplit("\r", 1)[-1].strip()]
+
+
 def test_cli_psf_with_no_light_prints_only_the_error(capsys):
     """The field's VignettingWarning repeated the error: an error exit prints one line (slow fuzz run). Since issue
     45 the dark source is found from one trace before the PSF is computed (its beam misses the 0.05 mm DOE)."""
     assert main(["psf", "singlet", "--field", "0", "15", "--doe-size", "0.05", "--ks", "8", "--rays", "8"]) == 2
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    err = _shown_lines(capsys.readouterr().err)
     assert len(err) == 1 and err[0].startswith("raywave: error: --field: field (0, 15) deg"), err
     assert "misses the 0.0518×0.0518 mm DOE aperture" in err[0], err
 
@@ -107,10 +113,10 @@ def test_slow_fuzz_findings_are_clean_refusals(tmp_path, capsys):
         BlankDOE(16, 1e308)
     # (since issue 45 the pitch check refuses both options themselves: no pixel is larger than 0.1 mm)
     assert main(["psf", "singlet", "--doe-pitch", "1e308", "--ks", "8", "--rays", "8"]) == 2
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    err = _shown_lines(capsys.readouterr().err)
     assert len(err) == 1 and "--doe-pitch is 1e+308 mm, larger than any DOE" in err[0], err
     assert main(["psf", "singlet", "--sensor-pitch", "1e300", "--ks", "8", "--rays", "8"]) == 2  # inf crop window
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    err = _shown_lines(capsys.readouterr().err)
     assert len(err) == 1 and "--sensor-pitch is 1e+300 mm" in err[0], err
     spec = json.loads(bundled_lens_path("singlet").read_text())
     spec["surfaces"][0]["aperture"] = {"radius": 1.0, "shape": [1.0, 2.0]}
