@@ -85,6 +85,16 @@ def optiland_model(path: str, lens):
     return o
 
 
+def _first_nan_surface(o) -> int | None:
+    """The first surface (Optiland's index: 0 the object, as the .zmx file counts) where Optiland's last real trace
+    holds a non-finite ray height, or None."""
+    try:
+        ys = np.asarray(o.surfaces.y, dtype=float).reshape(len(o.surfaces.surfaces), -1)[:, 0]
+    except Exception:  # noqa: BLE001 - a diagnosis only
+        return None
+    return next((k for k, v in enumerate(ys) if not math.isfinite(v)), None)
+
+
 def compare(path: str, lens) -> dict:
     """{quantity: relative difference} of raywave's ``lens`` (read from ``path``) against Optiland's model."""
     from optiland.rays import RealRays
@@ -98,6 +108,11 @@ def compare(path: str, lens) -> dict:
         f2, F2 = _s(o.paraxial.f2()), _s(o.paraxial.F2())
         epd, epl = _s(o.paraxial.EPD()), _s(o.paraxial.EPL())
         xpl, xpd = _s(o.paraxial.XPL()), abs(_s(o.paraxial.XPD()))
+    theirs = {"f2 (EFL)": f2, "F2 (BFL)": F2, "EPD": epd, "EPL (entrance pupil z)": epl, "XPL (exit pupil z)": xpl,
+              "XPD": xpd}
+    bad = [k for k, v in theirs.items() if not math.isfinite(v)]
+    if bad:
+        raise NotFaithful(f"a non-finite value from Optiland's paraxial trace ({', '.join(bad)})")
     last_t = float(lens.surfaces[-1].thickness.detach())
     total = lens.total_track()
     scale = max(1.0, abs(total))  # positions along z: relative to the lens's length
@@ -125,6 +140,14 @@ def compare(path: str, lens) -> dict:
     y_ol = _s(rays.y)
     y_rw = float(img.o[0, 0, 0, 1])
     out["chief_y"] = _rel(y_rw, y_ol, 1e-3 * max(1.0, p.epd))
+    if not math.isfinite(y_ol):
+        k = _first_nan_surface(o)
+        where = f" from surface {k} on" if k is not None else ""
+        kind = ("beyond 90°, from behind the first vertex" if lens.field_type == "angle" and abs(fmax) >= 90.0
+                else "below 90°")
+        raise NotFaithful(f"a non-finite value from Optiland's real trace of raywave's chief ray ({kind}): NaN{where} "
+                          "(raywave traces it to the image)")
     if not all(math.isfinite(v) for v in out.values()):
-        raise NotFaithful("a non-finite value")
+        bad = ", ".join(k for k, v in out.items() if not math.isfinite(v))
+        raise NotFaithful(f"a non-finite value from raywave ({bad})")
     return out
