@@ -85,6 +85,31 @@ def optiland_model(path: str, lens):
     return o
 
 
+def _where_optiland_leaves(o, lens, rec) -> str:
+    """Where Optiland's real trace (its last one, of raywave's chief ray) leaves raywave's (``rec``, raywave's
+    TraceRecord of the same ray), and why, in words (surfaces numbered as in the file: the object is 0)."""
+    ol = np.asarray(o.surfaces.y, dtype=float).ravel()  # the ray's height after each lens surface, then the image
+    rw = [float(p[1].reshape(-1)[0]) for p in rec.points[1:]]
+    k = next((i for i, (a, b) in enumerate(zip(rw, ol)) if not abs(a - b) <= 1e-6 * max(1.0, abs(a))), None)
+    if k is None or k >= len(lens.surfaces):
+        return "NaN"
+    here = f"at surface {k + 1} Optiland's ray lands at y = {ol[k]:.6g} mm, raywave's at {rw[k]:.6g} mm"
+    surf, prev = lens.surfaces[k], lens.surfaces[k - 1] if k > 0 else None
+    same = (prev is not None and float(prev.thickness.detach()) == 0.0 and surf.kind == prev.kind == "standard"
+            and float(surf.geometry.curvature.detach()) == float(prev.geometry.curvature.detach()))
+    if same:
+        return (f"{here}: surface {k + 1} coincides with surface {k} (zero thickness, the same curvature: one "
+                "interface written twice) and Optiland's sphere intersection takes the far crossing for a ray that "
+                "starts on it (raywave: the crossing where the ray stands, t = 0); NaN after")
+    conic = float(getattr(surf.geometry, "conic", torch.zeros(())).detach().reshape(-1)[0])
+    if surf.kind == "even_asphere" and conic == -1.0:
+        gap = float(prev.thickness.detach()) if prev is not None else math.nan
+        return (f"{here}: an even asphere on a paraboloid (conic -1), {gap:g} mm behind surface {k} (a hybrid "
+                "aspheric layer); Optiland's asphere intersection converges to another crossing of it, a jump the "
+                "ray's direction cannot make in that gap; NaN after")
+    return f"{here}; NaN after"
+
+
 def compare(path: str, lens) -> dict:
     """{quantity: relative difference} of raywave's ``lens`` (read from ``path``) against Optiland's model."""
     from optiland.rays import RealRays
@@ -98,6 +123,11 @@ def compare(path: str, lens) -> dict:
         f2, F2 = _s(o.paraxial.f2()), _s(o.paraxial.F2())
         epd, epl = _s(o.paraxial.EPD()), _s(o.paraxial.EPL())
         xpl, xpd = _s(o.paraxial.XPL()), abs(_s(o.paraxial.XPD()))
+    theirs = {"f2 (EFL)": f2, "F2 (BFL)": F2, "EPD": epd, "EPL (entrance pupil z)": epl, "XPL (exit pupil z)": xpl,
+              "XPD": xpd}
+    bad = [k for k, v in theirs.items() if not math.isfinite(v)]
+    if bad:
+        raise NotFaithful(f"a non-finite value from Optiland's paraxial trace ({', '.join(bad)})")
     last_t = float(lens.surfaces[-1].thickness.detach())
     total = lens.total_track()
     scale = max(1.0, abs(total))  # positions along z: relative to the lens's length
@@ -114,7 +144,7 @@ def compare(path: str, lens) -> dict:
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         cr = chief_ray(lens, (0.0, fmax), [wl])
-        img = lens.trace_to_image(cr)
+        img, rec = lens.trace_to_image(cr, record=True)
     if not bool(img.valid.all()):
         raise NotFaithful(f"raywave's chief ray at field {fmax:g} is vignetted")
     oo, dd = cr.o[0, 0, 0].numpy(), cr.d[0, 0, 0].numpy()
@@ -125,6 +155,12 @@ def compare(path: str, lens) -> dict:
     y_ol = _s(rays.y)
     y_rw = float(img.o[0, 0, 0, 1])
     out["chief_y"] = _rel(y_rw, y_ol, 1e-3 * max(1.0, p.epd))
+    if not math.isfinite(y_ol):
+        kind = ("beyond 90°, from behind the first vertex" if lens.field_type == "angle" and abs(fmax) >= 90.0
+                else "below 90°")
+        raise NotFaithful(f"a non-finite value from Optiland's real trace of raywave's chief ray ({kind}; raywave "
+                          f"traces it to the image): {_where_optiland_leaves(o, lens, rec)}")
     if not all(math.isfinite(v) for v in out.values()):
-        raise NotFaithful("a non-finite value")
+        bad = ", ".join(k for k, v in out.items() if not math.isfinite(v))
+        raise NotFaithful(f"a non-finite value from raywave ({bad})")
     return out

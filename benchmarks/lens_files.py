@@ -29,6 +29,10 @@ _NUM = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 _QUOTED = re.compile(r"'[^']*'|\"[^\"]*\"")
 
 
+#: Files listed per reason Optiland is not compared (all of a rare reason, such as a non-finite value).
+NOT_COMPARED_LISTED = 12
+
+
 def cause(message: str, path: str) -> str:
     """The message of an error or warning with the file, numbers and quoted names normalised (its cause)."""
     text = str(message).split("\n")[0].replace(path, "<file>")
@@ -93,6 +97,7 @@ def run(root: str, map_unknown_glass: bool = False, optiland: bool = False, exam
     warn_files: dict[str, set] = defaultdict(set)
     worst = {}
     compared, skipped = 0, Counter()
+    skipped_files: dict[str, list] = defaultdict(list)  # reason -> [(file, message)]: which files, and why
     for i, f in enumerate(files):
         st, msg, caught, lens = load_one(f, map_unknown_glass)
         status[st] += 1
@@ -109,6 +114,7 @@ def run(root: str, map_unknown_glass: bool = False, optiland: bool = False, exam
                         worst[q] = (v, str(f.relative_to(root)))
             except NotFaithful as why:
                 skipped[cause(str(why), str(f))] += 1
+                skipped_files[cause(str(why), str(f))].append((str(f.relative_to(root)), str(why)))
             except Exception as err:  # noqa: BLE001 - an Optiland failure is a reason not to compare
                 skipped[f"Optiland fails: {type(err).__name__}: {cause(str(err), str(f))[:100]}"] += 1
         if st != "read":
@@ -135,7 +141,9 @@ def run(root: str, map_unknown_glass: bool = False, optiland: bool = False, exam
     if optiland:
         report["optiland"] = {"compared": compared,
                               "worst_relative_difference": {q: {"value": v, "file": f} for q, (v, f) in worst.items()},
-                              "not_compared_by_reason": dict(skipped.most_common())}
+                              "not_compared_by_reason": dict(skipped.most_common()),
+                              "not_compared_files": {r: [{"file": f, "why": m[:300]} for f, m in v[:NOT_COMPARED_LISTED]]
+                                                     for r, v in skipped_files.items()}}
     return report
 
 
@@ -166,8 +174,13 @@ def merge(reports: list[dict], examples: int = 2) -> dict:
         reasons: Counter = Counter()
         for r in reports:
             reasons.update(r["optiland"]["not_compared_by_reason"])
+        listed: dict = {}
+        for r in reports:
+            for reason, v in r["optiland"].get("not_compared_files", {}).items():
+                listed[reason] = (listed.get(reason, []) + v)[:NOT_COMPARED_LISTED]
         out["optiland"] = {"compared": sum(r["optiland"]["compared"] for r in reports),
-                           "worst_relative_difference": worst, "not_compared_by_reason": dict(reasons.most_common())}
+                           "worst_relative_difference": worst, "not_compared_by_reason": dict(reasons.most_common()),
+                           "not_compared_files": listed}
     return out
 
 

@@ -276,13 +276,24 @@ def aim_chief_rays(lens, fields, field_type, wavelength, depth=None, ep_z=None) 
         return uv1, ok
     uv_c = uv.clone()
     wide = field_type == "angle" and bool(wide_fields(fields).any())
-    if not wide:
-        for frac in (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 1.0):
-            uv_c, ok = _newton_aim(lens, uv_c, target, fields * frac, field_type, wavelength, h, depth, ep_z)
-        return uv_c, ok
-    # a field at or beyond 90° (a fisheye's pupil moves far from its paraxial place): adaptive steps in field from the
-    # last aimed one, each start carried over on the plane across the beam (the parametrisation changes at 90°, see
-    # rays_through); a step whose aiming fails is halved
+    if wide:
+        return _aim_adaptive(lens, uv, target, fields, field_type, wavelength, h, depth, ep_z)
+    for frac in (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 1.0):
+        uv_c, ok = _newton_aim(lens, uv_c, target, fields * frac, field_type, wavelength, h, depth, ep_z)
+    rows = ~ok.reshape(F, -1).all(-1)
+    if field_type == "angle" and bool(rows.any()):  # those fields again, by adaptive steps (a fisheye's below 90°)
+        wl_rows = wavelength[rows] if torch.is_tensor(wavelength) and wavelength.ndim == 3 else wavelength
+        uv_a, ok_a = _aim_adaptive(lens, uv[rows], target[rows], fields[rows], field_type, wl_rows, h, depth, ep_z)
+        uv_c, ok = uv_c.clone(), ok.clone()
+        uv_c[rows], ok[rows] = uv_a, ok_a
+    return uv_c, ok
+
+
+def _aim_adaptive(lens, uv, target, fields, field_type, wavelength, h, depth, ep_z):
+    """(uv (F, W, 1, 2), ok (F, W, 1)) of the chief rays of angle ``fields`` (F, 2) aimed by adaptive steps in field
+    from the axis, each start carried over on the plane across the beam (the parametrisation changes at 90°, see
+    rays_through); a step whose aiming fails is halved, down to :data:`WIDE_MIN_STEP`. For a field at or beyond 90°,
+    or one whose fixed steps fail (a fisheye's pupil moves far from its paraxial place)."""
     ep = entrance_plane_z(lens) if ep_z is None else float(ep_z)
     done, step = 0.0, 0.1
     good = uv.clone()
