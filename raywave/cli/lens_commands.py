@@ -358,8 +358,9 @@ def cmd_info(args) -> int:
 # ---------------------------------------------------------------------------- layout / spot
 def _inside_doe_parts(path):
     """``(lens, doe, after, distance)`` of the file ``path``'s DOE inside the lens
-    (:func:`raywave.assembly.midsystem.doe_lens`), or None when no surface carries a DOE."""
-    from raywave.assembly.midsystem import doe_lens, surface_doe_positions
+    (:func:`raywave.assembly.midsystem.does_lens`; with several DOEs, lists of them and of their places), or None
+    when no surface carries a DOE."""
+    from raywave.assembly.midsystem import does_lens, surface_doe_positions
     from raywave.io import read_lens_spec
     from raywave.lens.build import resolve_lens_path
 
@@ -367,7 +368,8 @@ def _inside_doe_parts(path):
     spec = read_lens_spec(p)
     if not surface_doe_positions(spec):
         return None
-    return doe_lens(spec, str(p), p.parent)
+    lens, does, afters, distances = does_lens(spec, str(p), p.parent)
+    return (lens, does[0], afters[0], distances[0]) if len(does) == 1 else (lens, does, afters, distances)
 
 
 def _lens_with_inside_doe(path, wavelength: float | None = None):
@@ -443,8 +445,9 @@ def cmd_spot(args) -> int:
         unit = "deg" if lens.field_type == "angle" else "mm"
         print("RMS spot radius (µm), centroid reference")
         if parts is not None:
-            print(f"  with the DOE inside the lens ({parts[3]:g} mm after surface {parts[2]}; each wavelength's "
-                  "strongest order)")
+            where = "; ".join(f"{d:g} mm after surface {a}" for a, d in zip(*(
+                (v if isinstance(v, list) else [v]) for v in parts[2:])))
+            print(f"  with the DOE inside the lens ({where}; each wavelength's strongest order)")
         print(f"  {'field (' + unit + ')':>12s}" + "".join(f"{w:>12.4g}" for w in table["wavelengths"]))
         for f, row in zip(table["fields"], table["rms_radius"]):
             label = f"{f[0]:g},{f[1]:g}" if isinstance(f, (list, tuple)) else f"{f:g}"
