@@ -90,3 +90,22 @@ def test_the_last_surface_builder_refuses_a_doe_inside_the_lens(tmp_path):
     path.write_text(json.dumps(_spec(GRATING)))
     with pytest.raises(ValueError, match="load_midsystem"):
         raywave.load_hybrid(path)
+
+
+def test_conformal_surface_doe_in_a_json_lens():
+    """``"conformal": true`` puts the DOE on the surface itself (no distance): validated with its key path, built as
+    a conformal DOE (placement distance None); a distance with it, or a non-boolean, is refused."""
+    conf = {k: v for k, v in GRATING.items() if k != "distance"}
+    conf["conformal"] = True
+    spec = _spec(conf)
+    validate_spec(spec)
+    assert surface_doe_positions(spec) == [(1, None, conf)]
+    ml = midsystem_from_spec(spec)
+    assert ml.placements == [(1, None)]
+    lm, idx = ml.build_lens([1.0])
+    assert idx == [1] and len(lm.surfaces) == len(ml.lens.surfaces)
+    assert lm.surfaces[1].geometry is ml.lens.surfaces[1].geometry and lm.surfaces[1].interaction.kind == "diffraction"
+    with pytest.raises(LensFileError, match=r"surfaces.*1.*doe.*distance.*leave 'distance' out"):
+        validate_spec(_spec(dict(conf, distance=0.0)))
+    with pytest.raises(LensFileError, match=r"conformal.*true or false"):
+        validate_spec(_spec(dict(conf, conformal="yes")))

@@ -31,7 +31,7 @@ from raywave.hybrid.midsystem import DOEPhaseSurface, MidSystemLens, doe_orders,
 from raywave.io import read_lens_spec
 from raywave.io.doe import resolve_doe
 from raywave.io.errors import LensFileError
-from raywave.io.surface_doe import surface_does
+from raywave.io.surface_doe import is_conformal, surface_does, without_conformal
 from raywave.lens.lens import Lens
 from raywave.lens.prescription import binary2_power
 from raywave.lens.sources import point_source_rays
@@ -51,8 +51,9 @@ _PROBE_MAX = 4097  # ... and of the finest (what it does not resolve needs more 
 
 
 def surface_doe_positions(spec: dict) -> list:
-    """``[(surface index, distance mm, doe dict)]`` of every DOE placed at a surface of ``spec``."""
-    return [(i, float(d["distance"]), d) for i, s in enumerate(spec.get("surfaces", []))
+    """``[(surface index, distance mm, doe dict)]`` of every DOE placed at a surface of ``spec`` (distance None: a
+    conformal DOE, on the surface itself)."""
+    return [(i, None if is_conformal(d) else float(d["distance"]), d) for i, s in enumerate(spec.get("surfaces", []))
             for d in surface_does(s)]
 
 
@@ -104,10 +105,11 @@ def surface_doe_pitch(data, size: tuple[float, float], where: str, source: str) 
     return pitch
 
 
-def _footprint(lens: Lens, after: int, distance: float, fields=None) -> tuple[float, float]:
-    """(w, h) mm of the beam on the plane ``distance`` mm after surface ``after`` of ``lens``: :data:`BEAM_MARGIN`
-    × twice the widest |x|, |y| of the pupil's rim and a grid inside, for ``fields`` ((F, 2) in the lens's field
-    type; default the lens's fields along y) and on axis, at its wavelengths."""
+def _footprint(lens: Lens, after: int, distance: float | None, fields=None) -> tuple[float, float]:
+    """(w, h) mm of the beam on the plane ``distance`` mm after surface ``after`` of ``lens`` (None: on the
+    surface itself): :data:`BEAM_MARGIN` × twice the widest |x|, |y| of the pupil's rim and a grid inside, for
+    ``fields`` ((F, 2) in the lens's field type; default the lens's fields along y) and on axis, at its
+    wavelengths."""
     probe = insert_doe(lens, after, distance, lambda x, y, w: (0 * x, 0 * x, 0 * x))
     t = torch.linspace(0, 2 * math.pi, 37, dtype=torch.float64)[:-1]
     g = torch.linspace(-1, 1, 7, dtype=torch.float64)
@@ -120,7 +122,7 @@ def _footprint(lens: Lens, after: int, distance: float, fields=None) -> tuple[fl
     with torch.no_grad():
         rays = point_source_rays(probe, torch.tensor(fields, dtype=torch.float64), list(probe.wavelengths),
                                  pupil=(px, py))
-        out = probe.trace(rays, stop=after + 2)
+        out = probe.trace(rays, stop=after + (1 if distance is None else 2))
     ok = out.valid
     if not bool(ok.any()):
         raise ValueError(f"no ray of the lens reaches the plane {distance:g} mm after surface {after}")
@@ -134,14 +136,16 @@ def _doe_data(spec: dict, after: int, dspec: dict, source: str, base_dir, lens: 
     """The :class:`~raywave.io.DOEData` of the DOE ``dspec`` at surface ``after``, its grid completed: the file's
     pitch / shape, else ``doe_pitch`` / ``doe_size`` (mm), else the defaults of the module docstring."""
     where = f"surfaces[{after}].doe"
-    data = resolve_doe({"doe": dspec}, source, base_dir)
+    conformal = is_conformal(dspec)
+    data = resolve_doe({"doe": without_conformal(dspec) if conformal else dspec}, source, base_dir)
     if doe_size is not None and data.phase is None:
         size = tuple(float(s) for s in (doe_size if isinstance(doe_size, (list, tuple)) else (doe_size, doe_size)))
         data.size, data.shape = size, None
     if doe_pitch is not None and data.phase is None:
         data.pitch, data.shape = float(doe_pitch), None
     if data.shape is None:
-        size = data.size if data.size is not None else _footprint(lens, after, float(dspec["distance"]), fields)
+        size = data.size if data.size is not None else _footprint(
+            lens, after, None if conformal else float(dspec["distance"]), fields)
         data.size = size
         if data.pitch is None:
             data.pitch = surface_doe_pitch(data, size, where, source)
@@ -303,7 +307,8 @@ def surface_doe_info(spec: dict, lens: Lens, wavelength: float | None = None) ->
     zv = lens.vertex_z().detach()
     rows = []
     for after, distance, d in surface_doe_positions(spec):
-        row = {"surface": after, "distance": distance, "z": float(zv[after]) + distance, "wavelength": wl}
+        row = {"surface": after, "distance": distance, "z": float(zv[after]) + (distance or 0.0), "wavelength": wl,
+               "conformal": distance is None}
         if d.get("phase") is not None:
             row["type"] = "phase map"
         else:

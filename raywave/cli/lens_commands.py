@@ -291,8 +291,9 @@ def format_surface_does(rows: list[dict]) -> str:
     """The ``raywave info`` lines of the DOEs inside the lens (:func:`surface_doe_rows`)."""
     lines = []
     for r in rows:
-        head = (f"DOE inside the lens at surface {r['surface']}, {r['distance']:g} mm after its vertex (z "
-                f"{r['z']:g} mm): {r['type']}")
+        place = ("on the surface itself (conformal: its phase on the sag)" if r.get("conformal") else
+                 f"{r['distance']:g} mm after its vertex")
+        head = f"DOE inside the lens at surface {r['surface']}, {place} (z {r['z']:g} mm): {r['type']}"
         if r.get("aperture") and r.get("size"):
             head += f", {r['aperture']} {r['size'][0]:g} × {r['size'][1]:g} mm"
         lines.append(head)
@@ -445,7 +446,7 @@ def cmd_spot(args) -> int:
         unit = "deg" if lens.field_type == "angle" else "mm"
         print("RMS spot radius (µm), centroid reference")
         if parts is not None:
-            where = "; ".join(f"{d:g} mm after surface {a}" for a, d in zip(*(
+            where = "; ".join(f"on surface {a}" if d is None else f"{d:g} mm after surface {a}" for a, d in zip(*(
                 (v if isinstance(v, list) else [v]) for v in parts[2:])))
             print(f"  with the DOE inside the lens ({where}; each wavelength's strongest order)")
         print(f"  {'field (' + unit + ')':>12s}" + "".join(f"{w:>12.4g}" for w in table["wavelengths"]))
