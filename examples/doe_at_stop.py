@@ -12,7 +12,8 @@ its phase by rays: a smooth phase, not a free pixel map),
 
 Both go through the same schedule (the PSF-size pre-stage, end-to-end stage 1 with the replay, stage 2 on the
 network alone) with the same network, data and seed, and are evaluated on the held-out photos. Writes into the
-output folder ``figures/psf_maps.png`` (the two PSF maps; also ``psf_map_depth0.png`` as ``raywave train`` draws it), ``figures/reconstructions_centre.png`` /
+output folder ``figures/psf_maps.png`` (the two PSF maps; ``psf_map_depth0.png`` as ``raywave train`` draws it),
+``figures/reconstructions_centre.png`` /
 ``_edge.png`` (sensor images and restored images), ``figures/loss.png`` and ``doe_at_stop.json`` (PSNR / SSIM and
 the timings), and prints the PSNR difference.
 
