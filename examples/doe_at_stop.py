@@ -59,14 +59,15 @@ def _psf_maps_figure(path: Path, trainers: dict) -> None:
     from raywave.plotting._mpl import plt, save
 
     maps = {name: t.truth_map() for name, t in trainers.items()}
-    fig, axes = plt.subplots(1, len(maps), figsize=(5.2 * len(maps), 5.6), constrained_layout=True, squeeze=False)
+    fig, axes = plt.subplots(1, len(maps), figsize=(5.2 * len(maps), 5.8), squeeze=False)
+    fig.subplots_adjust(left=0.02, right=0.98, bottom=0.02, top=0.88, wspace=0.06)  # room for two title lines
     for ax, (name, pm) in zip(axes[0], maps.items()):
         psf = pm.psf[0]  # (3, N, M, ks, ks)
         C, N, M, ks, _ = psf.shape
         mosaic = psf.permute(1, 3, 2, 4, 0).reshape(N * ks, M * ks, C)
         mosaic = mosaic / mosaic.amax(dim=(0, 1), keepdim=True).clamp_min(1e-30)
         ax.imshow(mosaic.clamp(0, 1).sqrt().numpy(), origin="lower")
-        ax.set_title(f"{name}\nPSF map, object at infinity ({N} × {M}, √, per-channel max)", fontsize=10)
+        ax.set_title(f"{name}\nPSF map, object at infinity ({N} × {M}, √, per-channel max)", fontsize=10, pad=8)
         ax.set_xticks([]), ax.set_yticks([])
     save(fig, path)
 
