@@ -12,7 +12,8 @@ its phase by rays: a smooth phase, not a free pixel map),
 
 Both go through the same schedule (the PSF-size pre-stage, end-to-end stage 1 with the replay, stage 2 on the
 network alone) with the same network, data and seed, and are evaluated on the held-out photos. Writes into the
-output folder ``figures/psf_map_depth0.png`` (the two PSF maps), ``figures/reconstructions_centre.png`` /
+output folder ``figures/psf_maps.png`` (the two PSF maps; ``psf_map_depth0.png`` as ``raywave train`` draws it),
+``figures/reconstructions_centre.png`` /
 ``_edge.png`` (sensor images and restored images), ``figures/loss.png`` and ``doe_at_stop.json`` (PSNR / SSIM and
 the timings), and prints the PSNR difference.
 
@@ -52,6 +53,25 @@ def configs(pre: int, stage1: int, stage2: int):
     return {"DOE at the stop": stop, "DOE before the sensor": sensor}
 
 
+def _psf_maps_figure(path: Path, trainers: dict) -> None:
+    """``path``: the two PSF maps side by side (the lens's own, infinite depth), each a mosaic of its 3 × 3 PSFs
+    (√ scale, every channel to its own maximum), with a two-line title per panel (the placement; what is shown)."""
+    from raywave.plotting._mpl import plt, save
+
+    maps = {name: t.truth_map() for name, t in trainers.items()}
+    fig, axes = plt.subplots(1, len(maps), figsize=(5.2 * len(maps), 5.8), squeeze=False)
+    fig.subplots_adjust(left=0.02, right=0.98, bottom=0.02, top=0.88, wspace=0.06)  # room for two title lines
+    for ax, (name, pm) in zip(axes[0], maps.items()):
+        psf = pm.psf[0]  # (3, N, M, ks, ks)
+        C, N, M, ks, _ = psf.shape
+        mosaic = psf.permute(1, 3, 2, 4, 0).reshape(N * ks, M * ks, C)
+        mosaic = mosaic / mosaic.amax(dim=(0, 1), keepdim=True).clamp_min(1e-30)
+        ax.imshow(mosaic.clamp(0, 1).sqrt().numpy(), origin="lower")
+        ax.set_title(f"{name}\nPSF map, object at infinity ({N} × {M}, √, per-channel max)", fontsize=10, pad=8)
+        ax.set_xticks([]), ax.set_yticks([])
+    save(fig, path)
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-o", "--output", default=str(ROOT / "examples_out" / "doe_at_stop"))
@@ -81,6 +101,7 @@ def main(argv=None) -> dict:
     from raywave.cli.train_commands import _figures  # the figures `raywave train` writes, for both runs
 
     _figures(out, trainers)
+    _psf_maps_figure(out / "figures" / "psf_maps.png", trainers)
     a, b = report["DOE at the stop"]["psnr"], report["DOE before the sensor"]["psnr"]
     report["psnr_difference_stop_minus_sensor_db"] = a - b
     (out / "doe_at_stop.json").write_text(json.dumps(report, indent=2) + "\n")

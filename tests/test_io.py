@@ -261,11 +261,13 @@ def test_zmx_unsupported_surface_type_names_surface(tmp_path):
     assert str(e.value).startswith(f"{p}:{line}: surface 2: surface type SZERNSAG (Zernike standard sag) is not "
                                    "supported")
     assert "STANDARD, EVENASPH, ODDASPHE, TOROIDAL, PARAXIAL" in str(e.value)
-    for typ, msg in (("BICONIC", "surface type BICONIC .biconic. is not supported"),
-                     ("BINARY_2", "BINARY_2 surface with curvature .* inside the lens: a DOE on a curved substrate")):
-        bad = cooke_zmx_text().replace("SURF 3\r\n  TYPE STANDARD", f"SURF 3\r\n  TYPE {typ}")
-        with pytest.raises(LensFileError, match=f"surface 3: {msg}"):
-            read_zmx(write_bytes(tmp_path, "b.zmx", bad, "utf-8"))
+    bad = cooke_zmx_text().replace("SURF 3\r\n  TYPE STANDARD", "SURF 3\r\n  TYPE BICONIC")
+    with pytest.raises(LensFileError, match="surface 3: surface type BICONIC .biconic. is not supported"):
+        read_zmx(write_bytes(tmp_path, "b.zmx", bad, "utf-8"))
+    # a curved BINARY_2 inside the lens is read as a conformal DOE on that surface (issue 46)
+    curved = cooke_zmx_text().replace("SURF 3\r\n  TYPE STANDARD", "SURF 3\r\n  TYPE BINARY_2")
+    s3 = read_zmx(write_bytes(tmp_path, "c.zmx", curved, "utf-8"))["surfaces"][2]
+    assert s3["doe"]["conformal"] is True and s3["radius"] != "inf"
 
 
 @pytest.mark.parametrize("edit, expected", [

@@ -67,3 +67,37 @@ def test_layout_draws_the_doe_plane_where_it_sits(doublet, tmp_path, capsys):
     z, y = dashed[0].get_data()
     assert list(z) == pytest.approx([4.0, 4.0]) and max(y) == pytest.approx(5.0, rel=1e-3)  # at z 4 mm, its 5 mm aperture
     assert "DOE (after surface 1)" in [t.get_text() for t in fig.axes[0].texts]
+
+
+def test_load_lens_names_the_surface_doe_it_leaves_out(doublet):
+    """``load_lens`` builds the refractive lens only: a DOE inside it is named (SurfaceDOEWarning), not dropped
+    silently."""
+    from raywave.lens.build import SurfaceDOEWarning, load_lens
+
+    with pytest.warns(SurfaceDOEWarning, match=r"surface 1 carries a DOE inside the lens.*load_midsystem"):
+        load_lens(doublet)
+
+
+def test_spot_traces_the_doe_inside_the_lens(doublet, capsys, recwarn):
+    """``raywave spot`` traces each wavelength through the DOE's strongest order at that wavelength (the
+    BINARY_2 of the doublet: its spots are those of ``lens_with_doe``, not of the refractive lens), and says so."""
+    import torch
+
+    from raywave.assembly.midsystem import doe_lens, lens_with_doe
+    from raywave.lens.analysis import rms_spot_radius
+    from raywave.lens.build import SurfaceDOEWarning
+
+    assert main(["spot", str(doublet), "--json"]) == 0
+    table = json.loads(capsys.readouterr().out)
+    assert table["doe_inside"]["surface"] == 1 and table["doe_inside"]["distance"] == 0.0
+    assert not [w for w in recwarn if issubclass(w.category, SurfaceDOEWarning)]
+    lens, doe, after, distance = doe_lens(read_lens_spec(doublet), str(doublet), doublet.parent)
+    for j, w in enumerate(lens.wavelengths):
+        with torch.no_grad():
+            want = rms_spot_radius(lens_with_doe(lens, doe, after, distance, wavelength=w), table["fields"], [w])
+            plain = rms_spot_radius(lens, table["fields"], [w])
+        got = torch.tensor([row[j] for row in table["rms_radius"]], dtype=torch.float64)
+        assert torch.allclose(got, want[:, 0] * 1e3, rtol=1e-9)
+        assert not torch.allclose(got, plain[:, 0] * 1e3, rtol=1e-2)  # the DOE changes the spots
+    assert main(["spot", str(doublet)]) == 0
+    assert "with the DOE inside the lens (0 mm after surface 1" in capsys.readouterr().out

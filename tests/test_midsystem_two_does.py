@@ -85,11 +85,14 @@ def test_conformal_doe_placement():
 
 
 def test_conformal_and_two_doe_gradients_by_finite_differences():
-    """d(Σ w·PSF) at 1°, against central differences: with respect to the focal length of the DOE on the conformal
-    surface (measured 2.4e-4 relative) and of the second of two DOEs (1.0e-4); the conformal surface's curvature:
-    5.2e-3 (R 10 mm; 1.6e-3 on axis, 3.6e-3 at R 100 mm, 1.2e-3 at R −10 mm; converged in the step; an analytic
-    quadratic phase on the sphere through HybridLens alone is 4.0e-3 off too, a refracting glass surface's curvature
-    2e-5: the engine's derivative of a curved phase surface, not the DOE's interpolation)."""
+    """d(Σ w·PSF) at 1°, against central differences of the PSF, the error measured against the size of the sum's
+    terms ``Σ|w·∂PSF|`` (a relative error of the sum alone is ill-posed: Σ ∂PSF = 0, so a weighted sum of the
+    derivatives can nearly cancel). Measured: the curvature of the conformal surface (R 10 mm) 1.8e-4, the focal
+    length of its DOE 4.6e-5, of the second of two DOEs 8.6e-6 (relative to the sum itself: 5.2e-3, 2.4e-4,
+    1.0e-4). The 5.2e-3 once reported for the curvature is that near-cancelling sum: with five other random weight
+    maps the same derivative reads 1e-4 … 0.35 relative to the sum, but 1.1e-5 … 1.1e-4 of ``‖∂PSF/∂c‖₁``, as good
+    as lens A's focal length in the same system (0.9e-4 … 1.5e-4 of its own); no term is missing, and the
+    derivative is not node-limited (32 / 64 / 128 nodes: 5.1e-3 / 5.2e-3 / 5.8e-3 of the same sum)."""
     import torch
 
     field = (0.0, 1.0)
@@ -103,21 +106,22 @@ def test_conformal_and_two_doe_gradients_by_finite_differences():
     d1, d2 = FresnelDOE(50.0, 800, PITCH, wavelength=0.55), FresnelDOE(-80.0, 800, PITCH, wavelength=0.55)
     two = MidSystemLens(M.two_lens(sys_t), [d1, d2], 0, [3.0, 4.0], final_distance=0.01, final_size=0.8,
                         final_pitch=1e-3, sensor_pitch=PS)
-    cases = [(conf, lens_c.surfaces[1].geometry.curvature, 1e-2), (conf, doe_c.focal_length, 1e-3),
-             (two, d2.focal_length, 1e-3)]
+    cases = [(conf, lens_c.surfaces[1].geometry.curvature, 5e-4), (conf, doe_c.focal_length, 5e-4),
+             (two, d2.focal_length, 5e-4)]
     for ml, prm, tol in cases:
-        def loss():
-            return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
+        def psf():
+            return ml.psf([field], 0.55, ks=16)[0, 0]
 
-        g = torch.autograd.grad(loss(), prm)[0]
+        g = torch.autograd.grad((psf() * w).sum(), prm)[0]
         h = 1e-6 * max(abs(float(prm.detach())), 1e-2)
         with torch.no_grad():
             prm += h
-        lp = float(loss().detach())
+        pp = psf().detach()
         with torch.no_grad():
             prm -= 2 * h
-        lm = float(loss().detach())
+        pm = psf().detach()
         with torch.no_grad():
             prm += h
-        fd = (lp - lm) / (2 * h)
-        assert abs(float(g) - fd) <= tol * abs(fd), (float(g), fd)
+        terms = w * (pp - pm) / (2 * h)
+        fd = float(terms.sum())
+        assert abs(float(g) - fd) <= tol * float(terms.abs().sum()), (float(g), fd, float(terms.abs().sum()))

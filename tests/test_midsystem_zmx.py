@@ -64,13 +64,13 @@ def _doe_power():
     return -M * A1 * WL * 1e-3 / (math.pi * R_NORM ** 2)
 
 
-def _hand_efl(power_doe: float) -> float:
-    """y–nu trace of the doublet with the DOE a thin element of ``power_doe`` on the plane back face of lens 1
-    (it adds −y·power to n·u, in any medium)."""
+def _hand_efl(power_doe: float, curv: float = 0.0) -> float:
+    """y–nu trace of the doublet with the DOE a thin element of ``power_doe`` on the back face of lens 1 (of
+    curvature ``curv``; it adds −y·power to n·u, in any medium)."""
     y, nu = 1.0, 0.0
     nu -= y * (1.5 - 1.0) / 50.0
     y += 4.0 * nu / 1.5
-    nu -= y * power_doe  # the plane glass→air face has no power
+    nu -= y * ((1.0 - 1.5) * curv + power_doe)  # the glass→air face's power (none when plane) and the DOE's
     y += 2.0 * nu
     nu -= y * (1.6 - 1.0) / 60.0
     y += 3.0 * nu / 1.6
@@ -186,9 +186,61 @@ def test_dgrating_inside_the_lens_bends_rays_by_the_grating_equation(tmp_path):
     assert abs(sin_out - (sin_in + (-1) * 0.05e3 * WL * 1e-3)) < 1e-9  # n' sinθ' = n sinθ + M T λ (air after)
 
 
+CURVED = DOUBLET.replace("SURF 2\n  TYPE BINARY_2\n  CURV 0.0", "SURF 2\n  TYPE BINARY_2\n  CURV -0.01")
+
+
+def test_curved_binary2_is_a_conformal_doe(tmp_path):
+    """A BINARY_2 on a curved face (R −100 mm, glass → air) inside the lens is read as a conformal DOE on that
+    surface (its curvature kept, ``"conformal": true``): the EFL through the engine's interpolated pixel map (the
+    phase on the sag, refracting in one step) is a hand y–nu trace's with the DOE's power added to the face's
+    within 1e-7, and optiland's real-ray trace of the same radial phase on the same curved surface within 1e-7;
+    ``raywave info`` says where it sits."""
+    from raywave.assembly.midsystem import load_midsystem
+
+    path = tmp_path / "curved.zmx"
+    path.write_text(CURVED)
+    spec = read_lens_spec(path)
+    s = spec["surfaces"][1]
+    assert s["radius"] == pytest.approx(-100.0) and s["doe"]["conformal"] is True and "distance" not in s["doe"]
+    lens, doe, after, distance = doe_lens(spec, str(path), tmp_path)
+    assert (after, distance) == (1, None)
+    with_doe = insert_doe(lens, after, distance, DOEPhaseSurface(doe), 1.0, doe)
+    assert len(with_doe.surfaces) == len(lens.surfaces) and with_doe.surfaces[1].interaction.kind == "diffraction"
+    efl_hand = _hand_efl(_doe_power(), curv=-0.01)
+    efl_ray = _real_efl(with_doe)
+    assert abs(efl_ray - efl_hand) < 1e-7 * efl_hand
+    assert abs(_hand_efl(_doe_power()) - efl_hand) > 0.5  # the curvature matters
+    info = surface_doe_info(spec, lens)
+    assert info[0]["conformal"] and abs(info[0]["efl_with_doe"] - efl_hand) < 1e-7 * efl_hand
+    ml = load_midsystem(path)
+    assert ml.placements == [(1, None)]
+
+    pytest.importorskip("optiland")
+    import numpy as np
+    from optiland.materials import IdealMaterial
+    from optiland.optic import Optic
+    from optiland.phase import RadialPhaseProfile
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        o = Optic()
+        o.surfaces.add(index=0, radius=np.inf, thickness=np.inf)
+        o.surfaces.add(index=1, radius=50.0, thickness=4.0, material=IdealMaterial(1.5), is_stop=True)
+        o.surfaces.add(index=2, radius=-100.0, thickness=2.0, material="air",
+                       phase_profile=RadialPhaseProfile([M * A1 / R_NORM ** 2, M * A2 / R_NORM ** 4]))
+        o.surfaces.add(index=3, radius=60.0, thickness=3.0, material=IdealMaterial(1.6))
+        o.surfaces.add(index=4, radius=-80.0, thickness=40.0, material="air")
+        o.surfaces.add(index=5)
+        o.set_aperture("EPD", 8.0)
+        o.fields.set_type("angle")
+        o.fields.add(y=0.0)
+        o.wavelengths.add(WL, is_primary=True)
+        rays = o.trace_generic(0.0, 0.0, 0.0, 1e-4, WL)
+    efl_optiland = -4e-4 * float(rays.N[0]) / float(rays.M[0])
+    assert abs(efl_ray - efl_optiland) < 1e-7 * efl_optiland
+
+
 @pytest.mark.parametrize("edit, expected", [
-    (lambda t: t.replace("SURF 2\n  TYPE BINARY_2\n  CURV 0.0", "SURF 2\n  TYPE BINARY_2\n  CURV 0.01"),
-     "on a curved substrate is not read"),
     (lambda t: t.replace("  CURV 0.0\n  DISZ 2.0\n  CLAP", "  CURV 0.0\n  DISZ 0.0\n  CLAP"), "DISZ\\) > 0 mm"),
     (lambda t: t.replace("  PARM 0 1\n", "  PARM 0 1\n  PARM 2 0.001\n"), "aspheric substrate"),
 ])

@@ -31,14 +31,14 @@ from raywave.hybrid.midsystem import DOEPhaseSurface, MidSystemLens, doe_orders,
 from raywave.io import read_lens_spec
 from raywave.io.doe import resolve_doe
 from raywave.io.errors import LensFileError
-from raywave.io.surface_doe import surface_does
+from raywave.io.surface_doe import is_conformal, surface_does, without_conformal
 from raywave.lens.lens import Lens
 from raywave.lens.prescription import binary2_power
 from raywave.lens.sources import point_source_rays
 from raywave.rays.bundle import RayBundle
 from raywave.rays.pupil import RIM_INSET
 
-__all__ = ["MAX_SIDE_PIXELS", "PHASE_STEP", "doe_lens", "lens_with_doe", "load_midsystem", "midsystem_from_spec",
+__all__ = ["MAX_SIDE_PIXELS", "PHASE_STEP", "doe_lens", "does_lens", "lens_with_doe", "load_midsystem", "midsystem_from_spec",
            "midsystem_of", "surface_doe_info", "surface_doe_pitch", "surface_doe_positions"]
 
 #: the default pitch of a DOE inside the lens: its phase steps by at most this much (rad) between pixels (below the
@@ -51,8 +51,9 @@ _PROBE_MAX = 4097  # ... and of the finest (what it does not resolve needs more 
 
 
 def surface_doe_positions(spec: dict) -> list:
-    """``[(surface index, distance mm, doe dict)]`` of every DOE placed at a surface of ``spec``."""
-    return [(i, float(d["distance"]), d) for i, s in enumerate(spec.get("surfaces", []))
+    """``[(surface index, distance mm, doe dict)]`` of every DOE placed at a surface of ``spec`` (distance None: a
+    conformal DOE, on the surface itself)."""
+    return [(i, None if is_conformal(d) else float(d["distance"]), d) for i, s in enumerate(spec.get("surfaces", []))
             for d in surface_does(s)]
 
 
@@ -104,10 +105,11 @@ def surface_doe_pitch(data, size: tuple[float, float], where: str, source: str) 
     return pitch
 
 
-def _footprint(lens: Lens, after: int, distance: float, fields=None) -> tuple[float, float]:
-    """(w, h) mm of the beam on the plane ``distance`` mm after surface ``after`` of ``lens``: :data:`BEAM_MARGIN`
-    × twice the widest |x|, |y| of the pupil's rim and a grid inside, for ``fields`` ((F, 2) in the lens's field
-    type; default the lens's fields along y) and on axis, at its wavelengths."""
+def _footprint(lens: Lens, after: int, distance: float | None, fields=None) -> tuple[float, float]:
+    """(w, h) mm of the beam on the plane ``distance`` mm after surface ``after`` of ``lens`` (None: on the
+    surface itself): :data:`BEAM_MARGIN` × twice the widest |x|, |y| of the pupil's rim and a grid inside, for
+    ``fields`` ((F, 2) in the lens's field type; default the lens's fields along y) and on axis, at its
+    wavelengths."""
     probe = insert_doe(lens, after, distance, lambda x, y, w: (0 * x, 0 * x, 0 * x))
     t = torch.linspace(0, 2 * math.pi, 37, dtype=torch.float64)[:-1]
     g = torch.linspace(-1, 1, 7, dtype=torch.float64)
@@ -120,7 +122,7 @@ def _footprint(lens: Lens, after: int, distance: float, fields=None) -> tuple[fl
     with torch.no_grad():
         rays = point_source_rays(probe, torch.tensor(fields, dtype=torch.float64), list(probe.wavelengths),
                                  pupil=(px, py))
-        out = probe.trace(rays, stop=after + 2)
+        out = probe.trace(rays, stop=after + (1 if distance is None else 2))
     ok = out.valid
     if not bool(ok.any()):
         raise ValueError(f"no ray of the lens reaches the plane {distance:g} mm after surface {after}")
@@ -134,14 +136,16 @@ def _doe_data(spec: dict, after: int, dspec: dict, source: str, base_dir, lens: 
     """The :class:`~raywave.io.DOEData` of the DOE ``dspec`` at surface ``after``, its grid completed: the file's
     pitch / shape, else ``doe_pitch`` / ``doe_size`` (mm), else the defaults of the module docstring."""
     where = f"surfaces[{after}].doe"
-    data = resolve_doe({"doe": dspec}, source, base_dir)
+    conformal = is_conformal(dspec)
+    data = resolve_doe({"doe": without_conformal(dspec) if conformal else dspec}, source, base_dir)
     if doe_size is not None and data.phase is None:
         size = tuple(float(s) for s in (doe_size if isinstance(doe_size, (list, tuple)) else (doe_size, doe_size)))
         data.size, data.shape = size, None
     if doe_pitch is not None and data.phase is None:
         data.pitch, data.shape = float(doe_pitch), None
     if data.shape is None:
-        size = data.size if data.size is not None else _footprint(lens, after, float(dspec["distance"]), fields)
+        size = data.size if data.size is not None else _footprint(
+            lens, after, None if conformal else float(dspec["distance"]), fields)
         data.size = size
         if data.pitch is None:
             data.pitch = surface_doe_pitch(data, size, where, source)
@@ -154,29 +158,52 @@ def _doe_data(spec: dict, after: int, dspec: dict, source: str, base_dir, lens: 
 def doe_lens(spec: dict, source: str = "<spec>", base_dir=None, doe_pitch: float | None = None, doe_size=None,
              fields=None):
     """``(lens, doe, after, distance)``: the refractive lens of ``spec`` (its surface DOEs left out), the
-    :class:`~raywave.doe.DOE` of its one surface DOE, and where it sits. A spec with several DOEs (or one inside
-    the lens and one before the sensor) is refused: one DOE per lens for now. ``fields``: (F, 2) field points
-    whose beams a DOE without a size must hold (default the lens's fields along y)."""
+    :class:`~raywave.doe.DOE` of its one surface DOE, and where it sits (:func:`does_lens` for several).
+    ``fields``: (F, 2) field points whose beams a DOE without a size must hold (default the lens's fields along
+    y)."""
+    found = surface_doe_positions(spec)
+    if len(found) > 1 and spec.get("doe") is None:
+        raise ValueError(f"{source}: {len(found)} DOEs inside the lens: doe_lens gives one; use does_lens "
+                         "(raywave.load_midsystem builds them all)")
+    lens, does, afters, distances = does_lens(spec, source, base_dir, doe_pitch, doe_size, fields)
+    return lens, does[0], afters[0], distances[0]
+
+
+def does_lens(spec: dict, source: str = "<spec>", base_dir=None, doe_pitch: float | None = None, doe_size=None,
+              fields=None):
+    """``(lens, does, afters, distances)``: the refractive lens of ``spec`` (its surface DOEs left out) and every
+    DOE placed at a surface, in the file's order (surface by surface, a surface's list in order), with where each
+    sits. A DOE inside the lens together with one before the sensor (the top-level ``"doe"``) is refused (the
+    engine's plane near the sensor is blank). ``doe_pitch`` / ``doe_size`` apply to every DOE without a grid;
+    ``fields``: as :func:`doe_lens` (a DOE's default size is the beam's footprint on the refractive lens)."""
     found = surface_doe_positions(spec)
     if not found:
         raise ValueError(f"{source}: no surface carries a 'doe': use raywave.load_hybrid for a DOE before the sensor")
-    if len(found) > 1 or spec.get("doe") is not None:
-        raise ValueError(f"{source}: {len(found) + (spec.get('doe') is not None)} DOEs: a lens with several DOEs is "
-                         "not supported yet (one DOE inside the lens, issue 46)")
-    after, distance, dspec = found[0]
+    if spec.get("doe") is not None:
+        raise ValueError(f"{source}: {len(found) + 1} DOEs: a DOE inside the lens together with one before the "
+                         "sensor (the top-level 'doe') is not supported (issue 46: the engine's plane near the "
+                         "sensor is blank); place the last one at a surface too")
     plain = copy.deepcopy(spec)
     for s in plain.get("surfaces", []):
         s.pop("doe", None)
     lens = _spec_lens(plain, None, source)
-    data = _doe_data(spec, after, dspec, source, base_dir, lens, doe_pitch, doe_size, fields)
-    doe = _make_doe(data, data.shape, data.pitch, source)
-    return lens, doe, after, distance
+    does, afters, distances = [], [], []
+    for after, distance, dspec in found:
+        data = _doe_data(spec, after, dspec, source, base_dir, lens, doe_pitch, doe_size, fields)
+        does.append(_make_doe(data, data.shape, data.pitch, source))
+        afters.append(after)
+        distances.append(distance)
+    return lens, does, afters, distances
 
 
-def lens_with_doe(lens: Lens, doe, after: int, distance: float, wavelength: float | None = None) -> Lens:
+def lens_with_doe(lens: Lens, doe, after, distance, wavelength: float | None = None) -> Lens:
     """``lens`` with ``doe``'s plane ``distance`` mm after surface ``after``, carrying its strongest order at
-    ``wavelength`` µm (default the primary): the lens a layout draws and its rays see."""
+    ``wavelength`` µm (default the primary): the lens a layout draws and its rays see. Several DOEs: lists of
+    ``doe``, ``after`` and ``distance`` (each its strongest order)."""
     wl = lens.primary_wavelength if wavelength is None else float(wavelength)
+    if isinstance(doe, (list, tuple)):
+        scales = [doe_orders(d, wl)[0][0] for d in doe]
+        return MidSystemLens(lens, list(doe), list(after), list(distance), 1.0, 1.0, 1.0).build_lens(scales)[0]
     scale = doe_orders(doe, wl)[0][0]
     return insert_doe(lens, after, distance, DOEPhaseSurface(doe, float(scale)), 1.0, doe)
 
@@ -184,13 +211,15 @@ def lens_with_doe(lens: Lens, doe, after: int, distance: float, wavelength: floa
 def midsystem_from_spec(spec: dict, source: str = "<spec>", base_dir=None, final_distance: float | None = None,
                         sensor_pitch: float | None = None, doe_pitch: float | None = None, doe_size=None,
                         **kwargs) -> MidSystemLens:
-    """The :class:`MidSystemLens` of a validated spec with one DOE at a surface (the top-level ``"doe"``, the DOE
-    before the sensor, must then be absent: one DOE per lens for now). ``doe_pitch`` / ``doe_size`` (mm): the
-    DOE's grid where the file gives none (a phase map fixes its own); ``sensor_pitch``: the PSF pixel (default the
-    lens's sensor pixel, else the engine plane's pitch); ``kwargs``: passed to :class:`MidSystemLens`
-    (``stop_edge``, ``min_efficiency``, ``orders``)."""
-    lens, doe, after, distance = doe_lens(spec, source, base_dir, doe_pitch, doe_size)
-    return midsystem_of(lens, doe, after, distance, final_distance, sensor_pitch, **kwargs)
+    """The :class:`MidSystemLens` of a validated spec with DOEs at its surfaces (one or several, :func:`does_lens`;
+    the top-level ``"doe"``, the DOE before the sensor, must then be absent). ``doe_pitch`` / ``doe_size`` (mm):
+    the DOEs' grid where the file gives none (a phase map fixes its own); ``sensor_pitch``: the PSF pixel (default
+    the lens's sensor pixel, else the engine plane's pitch); ``kwargs``: passed to :class:`MidSystemLens`
+    (``stop_edge``, ``edge_step``, ``min_efficiency``, ``orders``)."""
+    lens, does, afters, distances = does_lens(spec, source, base_dir, doe_pitch, doe_size)
+    if len(does) == 1:
+        return midsystem_of(lens, does[0], afters[0], distances[0], final_distance, sensor_pitch, **kwargs)
+    return midsystem_of(lens, does, afters, distances, final_distance, sensor_pitch, **kwargs)
 
 
 def midsystem_of(lens: Lens, doe, after: int, distance: float, final_distance: float | None = None,
@@ -198,9 +227,10 @@ def midsystem_of(lens: Lens, doe, after: int, distance: float, final_distance: f
     """A :class:`MidSystemLens` of ``lens`` with ``doe`` ``distance`` mm after surface ``after``, its engine plane
     placed, sized and sampled as a lens file's default DOE (on the lens with the DOE's strongest order; for the
     field points ``fields`` (F, 2), default the lens's fields along y), its sensor pitch resolved
-    (``sensor_pitch``, else the lens's pixel, else the plane's pitch)."""
-    scale = doe_orders(doe, lens.primary_wavelength)[0][0]
-    lens1 = insert_doe(lens, after, distance, DOEPhaseSurface(doe, float(scale)), 1.0, doe)
+    (``sensor_pitch``, else the lens's pixel, else the plane's pitch). Several DOEs: lists of ``doe``, ``after``
+    and ``distance``."""
+    lens1 = lens_with_doe(lens, doe, after, distance)
+    pitch0 = min(d.pitch for d in doe) if isinstance(doe, (list, tuple)) else doe.pitch
     last = float(lens.surfaces[-1].thickness.detach())
     if fields is not None:
         fields = torch.cat([torch.zeros(1, 2, dtype=torch.float64),
@@ -208,7 +238,7 @@ def midsystem_of(lens: Lens, doe, after: int, distance: float, final_distance: f
     if final_distance is None:
         free = caustic_free_distance(lens1, fields)
         final_distance = min(0.5 * last, free if free is not None and math.isfinite(free) else 0.5 * last)
-    pitch = nyquist_doe_pitch(lens1, final_distance, fields) or doe.pitch
+    pitch = nyquist_doe_pitch(lens1, final_distance, fields) or pitch0
     size = max(default_doe_size(lens1, final_distance, fields))
     if sensor_pitch is None:
         sensor_pitch = lens.pixel_pitch if lens.pixel_pitch is not None else pitch
@@ -277,7 +307,8 @@ def surface_doe_info(spec: dict, lens: Lens, wavelength: float | None = None) ->
     zv = lens.vertex_z().detach()
     rows = []
     for after, distance, d in surface_doe_positions(spec):
-        row = {"surface": after, "distance": distance, "z": float(zv[after]) + distance, "wavelength": wl}
+        row = {"surface": after, "distance": distance, "z": float(zv[after]) + (distance or 0.0), "wavelength": wl,
+               "conformal": distance is None}
         if d.get("phase") is not None:
             row["type"] = "phase map"
         else:

@@ -23,12 +23,19 @@ def _load(name_or_path, config=None):
     return load_lens(resolve_lens_path(name_or_path), config=config)
 
 
-def _load_shown(args):
+def _load_shown(args, inside_doe: bool = False):
     """:func:`_load` of ``args.lens`` (``--config``) under a ticking bar: solving a file's real-image-height fields
-    can take a minute on a fisheye, and no command stays silent that long (``--quiet`` hides it)."""
-    from raywave.cli.progress import bar, ticking
+    can take a minute on a fisheye, and no command stays silent that long (``--quiet`` hides it). ``inside_doe``:
+    the command shows a DOE inside the lens itself (no :class:`~raywave.lens.build.SurfaceDOEWarning`)."""
+    import warnings
 
-    with bar(args, 1, "lens", "reading the lens (solving its fields)") as pbar, ticking(pbar):
+    from raywave.cli.progress import bar, ticking
+    from raywave.lens.build import SurfaceDOEWarning
+
+    with bar(args, 1, "lens", "reading the lens (solving its fields)") as pbar, ticking(pbar), \
+            warnings.catch_warnings():
+        if inside_doe:
+            warnings.simplefilter("ignore", SurfaceDOEWarning)
         lens = _load(args.lens, getattr(args, "config", None))
         pbar.update(1)
     return lens
@@ -284,8 +291,9 @@ def format_surface_does(rows: list[dict]) -> str:
     """The ``raywave info`` lines of the DOEs inside the lens (:func:`surface_doe_rows`)."""
     lines = []
     for r in rows:
-        head = (f"DOE inside the lens at surface {r['surface']}, {r['distance']:g} mm after its vertex (z "
-                f"{r['z']:g} mm): {r['type']}")
+        place = ("on the surface itself (conformal: its phase on the sag)" if r.get("conformal") else
+                 f"{r['distance']:g} mm after its vertex")
+        head = f"DOE inside the lens at surface {r['surface']}, {place} (z {r['z']:g} mm): {r['type']}"
         if r.get("aperture") and r.get("size"):
             head += f", {r['aperture']} {r['size'][0]:g} × {r['size'][1]:g} mm"
         lines.append(head)
@@ -315,7 +323,7 @@ def format_doe_power(d: dict) -> str:
 def cmd_info(args) -> int:
     from raywave.lens.prescription import table
 
-    lens = _load_shown(args)
+    lens = _load_shown(args, inside_doe=True)  # a DOE inside the lens: its own block below
     wl = _wavelength(args.wavelength)
     reason = _no_paraxial_reason(lens, wl)
     if reason is not None:  # tilted / decentred: what real rays tell
@@ -349,10 +357,11 @@ def cmd_info(args) -> int:
 
 
 # ---------------------------------------------------------------------------- layout / spot
-def _lens_with_inside_doe(path):
-    """The lens of the file ``path`` with its DOE inside the lens in place (the strongest order at the primary
-    wavelength: :func:`raywave.assembly.midsystem.lens_with_doe`), or None when no surface carries a DOE."""
-    from raywave.assembly.midsystem import doe_lens, lens_with_doe, surface_doe_positions
+def _inside_doe_parts(path):
+    """``(lens, doe, after, distance)`` of the file ``path``'s DOE inside the lens
+    (:func:`raywave.assembly.midsystem.does_lens`; with several DOEs, lists of them and of their places), or None
+    when no surface carries a DOE."""
+    from raywave.assembly.midsystem import does_lens, surface_doe_positions
     from raywave.io import read_lens_spec
     from raywave.lens.build import resolve_lens_path
 
@@ -360,8 +369,18 @@ def _lens_with_inside_doe(path):
     spec = read_lens_spec(p)
     if not surface_doe_positions(spec):
         return None
-    lens, doe, after, distance = doe_lens(spec, str(p), p.parent)
-    return lens_with_doe(lens, doe, after, distance)
+    lens, does, afters, distances = does_lens(spec, str(p), p.parent)
+    return (lens, does[0], afters[0], distances[0]) if len(does) == 1 else (lens, does, afters, distances)
+
+
+def _lens_with_inside_doe(path, wavelength: float | None = None):
+    """The lens of the file ``path`` with its DOE inside the lens in place (the strongest order at ``wavelength``,
+    default the primary: :func:`raywave.assembly.midsystem.lens_with_doe`), or None when no surface carries a
+    DOE."""
+    from raywave.assembly.midsystem import lens_with_doe
+
+    parts = _inside_doe_parts(path)
+    return None if parts is None else lens_with_doe(*parts, wavelength=wavelength)
 
 
 def cmd_layout(args) -> int:
@@ -369,7 +388,7 @@ def cmd_layout(args) -> int:
 
     fields = _y_fields(args, "layout")
     out = png_path(args.output, "layout.png")
-    lens = _load_shown(args)
+    lens = _load_shown(args, inside_doe=True)
     inside = _lens_with_inside_doe(args.lens)  # a DOE inside the lens (issue 46): drawn where it sits, rays bent
     if inside is not None:
         lens = inside
@@ -378,9 +397,11 @@ def cmd_layout(args) -> int:
     return 0
 
 
-def spot_table(lens, fields=None) -> dict:
+def spot_table(lens, fields=None, lens_at=None) -> dict:
     """RMS spot radius (µm) per field and wavelength, about each spot's centroid; ``None`` (JSON null) where every
-    ray is vignetted, and those (field, wavelength) pairs listed under ``"vignetted"``."""
+    ray is vignetted, and those (field, wavelength) pairs listed under ``"vignetted"``. ``lens_at``: a callable
+    ``wavelength (µm) -> Lens`` giving the lens each wavelength's rays see (a DOE inside the lens: its strongest
+    order at that wavelength); default ``lens`` for all."""
     import warnings
 
     from raywave.lens.analysis import rms_spot_radius
@@ -389,7 +410,10 @@ def spot_table(lens, fields=None) -> dict:
     fields = list(lens.fields) if fields is None else list(fields)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # reported in the table ("vignetted")
-        rms = rms_spot_radius(lens, fields, lens.wavelengths)
+        if lens_at is None:
+            rms = rms_spot_radius(lens, fields, lens.wavelengths)
+        else:
+            rms = torch.cat([rms_spot_radius(lens_at(w), fields, [w]) for w in lens.wavelengths], 1)
     rows = [[None if math.isnan(v) else v * 1e3 for v in row] for row in rms.tolist()]
     return {
         "unit": "um",
@@ -404,13 +428,27 @@ def spot_table(lens, fields=None) -> dict:
 def cmd_spot(args) -> int:
     fields = _spot_fields(args)
     out = None if not args.output else png_path(args.output, "spot.png")
-    lens = _load_shown(args)
-    table = spot_table(lens, fields)
+    lens = _load_shown(args, inside_doe=True)
+    parts = _inside_doe_parts(args.lens)  # a DOE inside the lens (issue 46): the rays see its strongest order
+    lens_at = None
+    if parts is not None:
+        from raywave.assembly.midsystem import lens_with_doe
+
+        def lens_at(w):
+            return lens_with_doe(*parts, wavelength=w)
+    table = spot_table(lens, fields, lens_at)
+    if parts is not None:
+        table["doe_inside"] = {"surface": parts[2], "distance": parts[3],
+                               "note": "each wavelength's rays carry the DOE's strongest order at that wavelength"}
     if args.json:
         print(json_dumps(table))
     else:
         unit = "deg" if lens.field_type == "angle" else "mm"
         print("RMS spot radius (µm), centroid reference")
+        if parts is not None:
+            where = "; ".join(f"on surface {a}" if d is None else f"{d:g} mm after surface {a}" for a, d in zip(*(
+                (v if isinstance(v, list) else [v]) for v in parts[2:])))
+            print(f"  with the DOE inside the lens ({where}; each wavelength's strongest order)")
         print(f"  {'field (' + unit + ')':>12s}" + "".join(f"{w:>12.4g}" for w in table["wavelengths"]))
         for f, row in zip(table["fields"], table["rms_radius"]):
             label = f"{f[0]:g},{f[1]:g}" if isinstance(f, (list, tuple)) else f"{f:g}"
@@ -418,7 +456,7 @@ def cmd_spot(args) -> int:
     if out is not None:
         from raywave.plotting import plot_spots
 
-        plot_spots(lens, out, fields=fields)
+        plot_spots(lens if lens_at is None else lens_at(lens.primary_wavelength), out, fields=fields)
         if not args.json:
             print(f"wrote {out}")
     return 0

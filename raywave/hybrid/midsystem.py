@@ -328,8 +328,10 @@ class MidSystemLens(nn.Module):
         final_distance: mm after the last vertex of the blank plane where the engine's field is built
             (see :class:`~raywave.hybrid.HybridLens` ``doe_distance``).
         final_size, final_pitch: that plane's grid (square, mm); its simulation pitch is ``final_pitch``.
-        sensor_pitch, stop_edge: as :class:`~raywave.hybrid.HybridLens` (``stop_edge="doe"``: the sharp cut on the
-            final plane; see docs/ray-wave.md for why).
+        sensor_pitch, stop_edge, edge_step: as :class:`~raywave.hybrid.HybridLens` (``stop_edge="doe"``: the sharp
+            cut on the final plane, the default; ``stop_edge="exit_pupil", edge_step="asm"``: the stop's edge formed
+            at each rim point's image and propagated by the angular spectrum, 3× closer to the reference for the
+            strong order at ~10-20× the cost; see docs/ray-wave.md, "A DOE inside the lens").
         min_efficiency: the orders (products of the DOEs' orders) with ``|c|²`` below it are left out.
         orders: the diffraction orders to keep (integers; default: every order that ``min_efficiency`` keeps); with
             several DOEs, one such set (or None) per DOE.
@@ -337,7 +339,7 @@ class MidSystemLens(nn.Module):
 
     def __init__(self, lens: Lens, doe, after, distance, final_distance: float, final_size: float,
                  final_pitch: float, sensor_pitch: float | None = None, stop_edge: str | None = "doe",
-                 min_efficiency: float = 0.01, orders=None):
+                 min_efficiency: float = 0.01, orders=None, edge_step: str | None = None):
         super().__init__()
         does = list(doe) if isinstance(doe, (list, tuple)) else [doe]
         n = len(does)
@@ -360,6 +362,7 @@ class MidSystemLens(nn.Module):
         self.final = BlankDOE(grid, final_pitch)
         self.final_distance = float(final_distance)
         self.sensor_pitch, self.stop_edge = sensor_pitch, stop_edge
+        self.edge_step = edge_step
         self.min_efficiency = float(min_efficiency)
         self._transfer_cache = OrderedDict()
         self.build_lens([1.0] * n)  # checks the placements now
@@ -400,8 +403,9 @@ class MidSystemLens(nn.Module):
         pms = phase_map if isinstance(phase_map, (list, tuple)) else [phase_map] * n
         disp = [self._continuous(i) for i in range(n)] if dispersive is None else _as_list(dispersive, n, "dispersive")
         lens_m, idx = self.build_lens(scales, pms, disp)
+        edge = {} if self.edge_step is None else {"edge_step": self.edge_step}
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
-                        stop_edge=self.stop_edge)
+                        stop_edge=self.stop_edge, **edge)
         hl._transfer_cache = self._transfer_cache  # shared memo of window transfer functions
         hl._doe_indices = idx
         return hl

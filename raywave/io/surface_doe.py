@@ -3,7 +3,9 @@
 ``"doe"`` on a surface (or a list of them) is a DOE plane ``distance`` mm after that surface's vertex, inside the
 gap to the next surface (``0 <= distance < thickness``), with the keys of the top-level ``"doe"`` section
 (``pitch``, ``size`` / ``shape``, ``aperture``, ``phase`` / ``phase_model``, ``design_wavelength``, ``material``,
-``levels``, ``wrap``; docs/lens-format.md). The top-level ``"doe"`` stays the DOE before the sensor. Built by
+``levels``, ``wrap``; docs/lens-format.md). ``"conformal": true`` (and no ``distance``) puts the DOE on the
+surface itself instead: its phase on the surface's sag, refracting in the same step (a DOE on a curved substrate;
+the surface must refract). The top-level ``"doe"`` stays the DOE before the sensor. Built by
 :func:`raywave.assembly.midsystem.midsystem_from_spec`.
 """
 
@@ -31,6 +33,19 @@ class _AtSurface:
         return call
 
 
+def is_conformal(doe: dict) -> bool:
+    """Whether a surface DOE object sits on the surface itself (``"conformal": true``)."""
+    return isinstance(doe, dict) and doe.get("conformal") is True
+
+
+def without_conformal(doe: dict) -> dict:
+    """A conformal surface DOE object as the top-level section's keys (``conformal`` dropped, ``distance`` 0):
+    what :func:`raywave.io.doe.validate_doe` and :func:`raywave.io.doe.resolve_doe` read."""
+    out = {k: v for k, v in doe.items() if k != "conformal"}
+    out.setdefault("distance", 0.0)
+    return out
+
+
 def surface_does(s: dict) -> list:
     """The DOE objects of a surface spec's ``"doe"`` (none, one object or a list), as a list."""
     d = s.get("doe")
@@ -50,4 +65,13 @@ def validate_surface_doe(v, s: dict, path: tuple) -> None:
         v.err(path + ("doe",), "an empty list: give a DOE object, a list of them, or leave the key out")
     gap = {"surfaces": [{"thickness": s.get("thickness")}]}  # the distance's limit: this surface's thickness
     for doe, p in items:
+        if isinstance(doe, dict) and "conformal" in doe:
+            if not isinstance(doe["conformal"], bool):
+                v.err(p + ("conformal",), f"must be true or false, got {doe['conformal']!r}")
+            elif doe["conformal"]:
+                if "distance" in doe:
+                    v.err(p + ("distance",), "a conformal DOE sits on the surface itself: leave 'distance' out")
+                doe = without_conformal(doe)
+            else:
+                doe = {k: x for k, x in doe.items() if k != "conformal"}
         validate_doe(_AtSurface(v, p), doe, gap)

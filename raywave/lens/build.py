@@ -253,20 +253,40 @@ def lens_to_spec(lens: Lens) -> dict:
     return spec
 
 
+class SurfaceDOEWarning(UserWarning):
+    """A lens file places a DOE at a surface (inside the lens, issue 46), which the refractive :class:`Lens` of
+    :func:`load_lens` leaves out: ``raywave.load_midsystem`` builds the lens with it."""
+
+
 def load_lens(path: str | Path, config: int | None = None) -> Lens:
     """Read any lens file raywave knows (.json raywave or DeepLens-style, .zmx), or a bundled lens by name
     (``"cooke_triplet"``, see :func:`bundled_lens_path`), into a :class:`Lens`.
 
-    ``config``: the configuration of a multi-configuration .zmx file (1-based; default 1, reported in a warning)."""
+    ``config``: the configuration of a multi-configuration .zmx file (1-based; default 1, reported in a warning).
+    A DOE placed at a surface (a surface's ``"doe"``, a ``.zmx`` BINARY_2 / DGRATING inside the lens) is not part of
+    the refractive lens: :class:`SurfaceDOEWarning` names the surfaces that carry one."""
     from raywave.io import read_lens_spec
     from raywave.io.errors import with_location
 
     path = resolve_lens_path(path)
     spec = read_lens_spec(path) if config is None else read_lens_spec(path, config=config)
     try:
-        return lens_from_spec(spec)
+        lens = lens_from_spec(spec)
     except ValueError as err:  # a spec that validates but builds no lens: name the file
         raise with_location(_with_glass_line(err, path), path)
+    _warn_surface_does(spec, path)
+    return lens
+
+
+def _warn_surface_does(spec: dict, path) -> None:
+    """:class:`SurfaceDOEWarning` naming the surfaces of ``spec`` that carry a ``"doe"``, if any."""
+    inside = [i for i, s in enumerate(spec.get("surfaces", [])) if isinstance(s, dict) and s.get("doe")]
+    if inside:
+        where = ", ".join(str(i) for i in inside)
+        warnings.warn(SurfaceDOEWarning(
+            f"{path}: surface{'s' if len(inside) > 1 else ''} {where} carr{'y' if len(inside) > 1 else 'ies'} a DOE "
+            "inside the lens, which this refractive lens leaves out (its rays do not see it): "
+            "raywave.load_midsystem builds the lens with it"), stacklevel=3)
 
 
 def _with_glass_line(err: Exception, path) -> Exception:

@@ -12,11 +12,11 @@ from raywave.io.errors import LensFileError, LensFileWarning
 from raywave.io.zmx.tables import MAX_BINARY2_TERMS
 
 
-def _diffractive_phase(p, where, path, scale, line):
+def _diffractive_phase(p, where, path, scale, line, curved_ok: bool = False):
     """The phase model of a diffractive surface (BINARY_2 and DGRATING; None for the other types, with a
     warning)."""
     typ = p["zemax_type"]
-    if p["curv"] != 0.0:
+    if p["curv"] != 0.0 and not curved_ok:  # inside the lens a curved one is a conformal DOE (doe_inside)
         raise LensFileError(f"{where}: {typ} surface with curvature {p['curv']!r}: raywave's DOE is a thin phase "
                             "element on a plane (CURV 0)", path, line)
     if typ == "DGRATING":
@@ -88,18 +88,15 @@ def doe_inside(d, path, scale) -> dict:
     its thickness, glass (a change of medium is the plane's refraction, then the DOE in the medium after it: the
     same ray bending, ``n2 sinθ2 − n1 sinθ1 = M λ ∂φ/∂s / 2π``, on a plane), aperture, stop and comment stay the
     surface's; the DOE (``phase_model`` of BINARY_2 / DGRATING, else blank) sits 0 mm after the vertex, sized by
-    the surface's aperture (else its semi-diameter, as a circle). A curved one (a DOE on a curved substrate) is
-    refused: conformal DOEs are not read from .zmx files yet."""
+    the surface's aperture (else its semi-diameter, as a circle). A curved one (a DOE on a curved substrate) keeps
+    its curvature and carries a conformal DOE (``"conformal": true``): the phase, a function of the surface's x, y as
+    OpticStudio defines it, on the sag, refracting in the same step."""
     where = f"surface {d['number']}"
-    if d["curv"] != 0.0:
-        raise LensFileError(f"{where}: {d['zemax_type']} surface with curvature {d['curv']!r} inside the lens: a DOE "
-                            "on a curved substrate is not read from .zmx files yet (raywave reads a plane diffractive "
-                            "surface, CURV 0, anywhere in the lens)", path, d["line"])
-    model = _diffractive_phase(d, where, path, scale, d["line"])
-    if d["disz"] is None or not math.isfinite(d["disz"]) or not d["disz"] > 0:
+    model = _diffractive_phase(d, where, path, scale, d["line"], curved_ok=True)
+    if d["curv"] == 0.0 and (d["disz"] is None or not math.isfinite(d["disz"]) or not d["disz"] > 0):
         raise LensFileError(f"{where}: a diffractive surface inside the lens needs a thickness (DISZ) > 0 mm to the "
                             f"next surface (its DOE plane lies in that gap), got {d['disz']!r}", path, d["line"])
-    doe: dict = {"distance": 0.0}
+    doe: dict = {"distance": 0.0} if d["curv"] == 0.0 else {"conformal": True}
     doe.update(_surface_aperture_size(d))
     if "size" not in doe and d["diam"]:
         doe.update(aperture="circle", size=[2.0 * d["diam"], 2.0 * d["diam"]])
