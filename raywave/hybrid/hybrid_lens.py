@@ -34,6 +34,7 @@ from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
                                      doe_clippings, entrance_pupil, exit_pupil_field_steps, faithful_field, footprints,
                                      run_batched, stop_rim_images_many)
+from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import OUT_MARGIN, Planned, SensorWindow, TransferMemo, plan_groups, propagate_group
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
@@ -81,8 +82,9 @@ class _CallGeometry:
     source, None or its mirror source ``(j, flip_x, flip_y)`` (``src``); ``todo`` the built sources (indices into
     ``f``) and, per built source (its row in ``todo``): ``boxes`` ``[R][W]`` the lit footprints (False: none),
     ``clips`` ``[R][W]`` the DOE-aperture diagnostics; ``entrance`` the entrance pupil; with the exit-pupil edge
-    ``edge`` = ``(z_xps, rims, cx)``: its planes per wavelength, ``[W][R]`` the stop rim's images and the chief rays
-    on the exit pupil (None: the DOE-plane edge)."""
+    ``edge`` = ``(z_xps, rims, cx, steps)``: its planes per wavelength, ``[W][R]`` the stop rim's images and the
+    chief rays on the exit pupil, ``[R][W]`` the adaptive edge step's choice (None: another edge step) (``edge``
+    None: the DOE-plane edge)."""
 
     f: torch.Tensor
     wls: list
@@ -539,7 +541,10 @@ class HybridLens(nn.Module):
                     warnings.simplefilter("ignore", VignettingWarning)
                     cx = [chief_rays(optics, ft, torch.tensor([wl], dtype=torch.float64, device=optics.device),
                                      depth, zx, z_sen)[0][:, 0] for wl, zx in zip(wls, z_xps)]
-            geo.edge = (z_xps, rims, cx)
+            steps = None
+            if self.edge_step == "adaptive":  # every built source's step from one trace of their edge rays
+                steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen))
+            geo.edge = (z_xps, rims, cx, steps)
         # the DOE-aperture diagnostic of every built field, from one trace (a mirror image's are its source's)
         geo.clips = doe_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True)
         return geo
@@ -578,10 +583,11 @@ class HybridLens(nn.Module):
                                                     ChiefRays(cd[i, j], cs[i, j], uv=cuv[i, j]), settings,
                                                     Known(geo.boxes[r][j], geo.entrance)))
                 else:
-                    z_xps, rims, cx = geo.edge
+                    z_xps, rims, cx, steps = geo.edge
                     out.append(exit_pupil_field_steps(optics, self.doe, source, Planes(z_doe, z_sen, z_xps[j]),
                                                       ChiefRays(cd[i, j], cs[i, j], cx[j][r], cuv[i, j]), settings,
-                                                      Known(geo.boxes[r][j], geo.entrance, rims[j][r])))
+                                                      Known(geo.boxes[r][j], geo.entrance, rims[j][r],
+                                                            None if steps is None else steps[r][j])))
         return out
 
     def _field_groups(self, geo: "_CallGeometry") -> list[list[int]]:
