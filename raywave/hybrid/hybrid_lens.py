@@ -73,6 +73,10 @@ DEFAULT_EDGE_STEP = "adaptive"
 #: bytes (:meth:`HybridLens._field_groups`; issue 43): the call's traces (chief rays, footprints, the stop rim's
 #: images, the DOE-aperture diagnostics) are shared by all its groups, and a group's Newton rounds are one trace
 FIELD_GROUP_BYTES = 2**29
+#: the ray stages (aiming, Newton inversion, node traces) of a call's groups are run together for up to about this
+#: many nodes (:meth:`HybridLens._stage_chunks`; the default 64 nodes a side: ~128 constructions): the paused
+#: constructions keep their node maps (~10 float64 channels a node) until their group's fields are built
+RAY_STAGE_NODES = 2**21
 
 
 @dataclass
@@ -549,15 +553,20 @@ class HybridLens(nn.Module):
         geo.clips = doe_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True)
         return geo
 
-    def _accurate_group(self, geo: "_CallGeometry", members: list[int], nodes: int, check: bool) -> tuple:
+    def _accurate_group(self, geo: "_CallGeometry", members: list[int], nodes: int, check: bool,
+                        staged: dict | None = None) -> tuple:
         """The accurate fields of the call's sources ``members`` (indices into ``geo.f``; every mirror image's source
         among them), built together (:func:`raywave.hybrid.coherent.run_batched`): ``(members, flat field-major
         list of their F·W :class:`DOEField`)``. A mirror image (:func:`~raywave.hybrid.mirror.mirror_sources`, with
         :attr:`mirror` on a mirror-symmetric lens) is not built: its fields are its source's mirrored
         (:func:`~raywave.hybrid.mirror.mirror_field`; the same to the construction's rounding, at a quarter of the
-        field stage's cost for a map's symmetric grid)."""
+        field stage's cost for a map's symmetric grid). ``staged``: the constructions of the built sources' rows
+        with their ray stage done (:meth:`_ray_stage`; taken out of it here), else built from the start."""
         rows = [geo.row[i] for i in members if geo.src[i] is None]  # rows of the built sources (geo.todo)
-        done = run_batched(self._accurate_constructions(geo, rows, nodes, check))
+        if staged is None:
+            done = run_batched(self._accurate_constructions(geo, rows, nodes, check))
+        else:
+            done = run_batched([c for r in rows for c in staged.pop(r)])
         nw = len(geo.wls)
         at = {geo.todo[r]: k for k, r in enumerate(rows)}
         sim = self.doe.sim_grid(self.oversample)
@@ -589,6 +598,34 @@ class HybridLens(nn.Module):
                                                       Known(geo.boxes[r][j], geo.entrance, rims[j][r],
                                                             None if steps is None else steps[r][j])))
         return out
+
+    def _ray_stage(self, geo: "_CallGeometry", groups: list[list[int]], nodes: int, check: bool) -> dict:
+        """The ray stage of the accurate constructions of every built source in ``groups`` (their aiming, Newton
+        inversion and node traces: :func:`~raywave.hybrid.coherent.run_batched` with ``pause=True``), in one pass
+        for all the groups (issue 43: one batched trace per round for the call instead of one per group): ``{row in
+        geo.todo: [W] constructions paused before their field stage}`` (or their fields where they finished)."""
+        rows = [geo.row[i] for members in groups for i in members if geo.src[i] is None]
+        nw = len(geo.wls)
+        done = run_batched(self._accurate_constructions(geo, rows, nodes, check), pause=True)
+        return {r: done[k * nw:(k + 1) * nw] for k, r in enumerate(rows)}
+
+    def _stage_chunks(self, geo: "_CallGeometry", groups: list[list[int]], nodes: int) -> list[list[list[int]]]:
+        """``groups`` (:meth:`_field_groups`) in consecutive runs whose ray stages are done together
+        (:meth:`_ray_stage`): each run's constructions hold at most about :data:`RAY_STAGE_NODES` nodes (estimated
+        ``(2·nodes)²`` each: the footprint's grid and its margin), which bounds the paused constructions' node
+        maps and the batched Newton rounds' rays."""
+        per = (2 * nodes) ** 2 * len(geo.wls)
+        chunks, cur, size = [], [], 0
+        for members in groups:
+            est = per * sum(1 for i in members if geo.src[i] is None)
+            if cur and size + est > RAY_STAGE_NODES:
+                chunks.append(cur)
+                cur, size = [], 0
+            cur.append(members)
+            size += est
+        if cur:
+            chunks.append(cur)
+        return chunks
 
     def _field_groups(self, geo: "_CallGeometry") -> list[list[int]]:
         """The call's sources in groups whose DOE-plane fields are built and propagated together (issue 43): every
@@ -808,21 +845,24 @@ class HybridLens(nn.Module):
 
     def _accurate_psfs(self, fields, wavelengths, depth, rays, check: bool, ks: int, propagation_dtype):
         """:meth:`psf_result`'s accurate path without a cache (issue 43): the call's shared traces once
-        (:meth:`_accurate_geometry`), then per group of sources (:meth:`_field_groups`, bounded by the fields'
-        memory) the fields built together and propagated in batches (:meth:`propagate_fields`), each group's fields
-        dropped before the next is built. Returns ``(psf (F, W, ks, ks), centres (F, W, 2), energy outside (F, W),
+        (:meth:`_accurate_geometry`), the ray stage of many groups in one pass (:meth:`_ray_stage`), then per group
+        of sources (:meth:`_field_groups`, bounded by the fields' memory) the fields built together and propagated
+        in batches (:meth:`propagate_fields`), each group's fields dropped before the next is built. Returns ``(psf (F, W, ks, ks), centres (F, W, 2), energy outside (F, W),
         rays (F, W), clipped fractions [F][W])``; the aperture and caustic warnings once for the call."""
         f = self._engine_fields(fields)
         wls = self.wavelength_list(wavelengths)
         geo = self._accurate_geometry(f, wls, depth)
         pending: tuple = ([], [])
         order, parts, clip = [], [], {}
-        for members in self._field_groups(geo):
-            fds = self._finish_fields(self._accurate_group(geo, members, rays or 64, check), geo, pending)
-            parts.append(self.propagate_fields(fds, ks, propagation_dtype))
-            clip.update({i: [fd.clipped for fd in row] for i, row in zip(members, fds)})
-            order.extend(members)
-            del fds
+        nodes = rays or 64
+        for chunk in self._stage_chunks(geo, self._field_groups(geo), nodes):
+            staged = self._ray_stage(geo, chunk, nodes, check)  # the traces of all the chunk's groups at once
+            for members in chunk:
+                fds = self._finish_fields(self._accurate_group(geo, members, nodes, check, staged), geo, pending)
+                parts.append(self.propagate_fields(fds, ks, propagation_dtype))
+                clip.update({i: [fd.clipped for fd in row] for i, row in zip(members, fds)})
+                order.extend(members)
+                del fds
         self._warn_clipped(pending[0])
         self._warn_caustic(pending[1])
         if len(parts) == 1 and order == list(range(f.shape[0])):

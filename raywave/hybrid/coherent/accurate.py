@@ -20,7 +20,7 @@ from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning,
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_cubic,
                                                _rim_z, _zone_estimate, edge_envelope)
-from raywave.hybrid.coherent.tracing import _Aim, _invert_to_nodes, _nearest_fill, _solve2, run_serial
+from raywave.hybrid.coherent.tracing import PAUSE, _Aim, _invert_to_nodes, _nearest_fill, _solve2, run_serial
 
 
 def accurate_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
@@ -122,7 +122,8 @@ def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: Chief
     Steps: the node grid over the footprint (:func:`_node_layout`), exactly aimed rays to every node
     (:func:`_trace_nodes`), the smooth per-node maps (:func:`_node_maps`: optical path, ray density, distances
     to the edges; :func:`_stop_edge_maps`: the stop edge's Fresnel channels), the checks (:func:`_check_nodes`),
-    and the fine field (:func:`_fine_field`)."""
+    a :data:`~raywave.hybrid.coherent.tracing.PAUSE` (the ray stage done), and the fine field
+    (:func:`_fine_field`)."""
     b = _Build(lens, doe, source, float(planes.z_doe), float(planes.z_sensor), chief, settings or FieldSettings(),
                known or Known())
     bbox = _lit_footprint(b)
@@ -143,11 +144,20 @@ def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: Chief
         maps.update(_stop_edge_maps(b, nd, nodes, maps))
     if b.cfg.check:
         _check_nodes(b, nd, maps, good, nodes[2].d[0, 0])
+    # the ray stage is done: a caller may stop here (run_batched(pause=True)) and build the fine field later, holding
+    # only the maps the field stage reads (the traced rays and their records are dropped)
+    maps = {k: v for k, v in maps.items() if k in _FIELD_MAPS}
+    del nodes, good
+    yield PAUSE
     sim = doe.sim_grid(b.cfg.oversample)
     out = _fine_field(b, nd, maps, sim)
     if out is None:
         return b.empty(n_rays)
     return _window_field(b, *out, sim, n_rays + 1)
+
+
+#: the node maps that the field stage (:func:`_fine_field`) reads
+_FIELD_MAPS = ("phi_env", "amp2", "dist", "other", "nu", "nu_raw", "kappa", "g_max")
 
 
 def _lit_footprint(b: _Build):
