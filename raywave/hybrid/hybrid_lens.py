@@ -33,8 +33,9 @@ from torch import nn
 from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
                                      doe_clippings, entrance_pupil, exit_pupil_field_steps, faithful_field, footprints,
-                                     run_batched, stop_rim_images_many)
+                                     run_batched)
 from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps
+from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import OUT_MARGIN, Planned, SensorWindow, TransferMemo, plan_groups, propagate_group
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
@@ -537,7 +538,7 @@ class HybridLens(nn.Module):
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
         z_xps = self._exit_pupil_planes(wls)
         if z_xps is not None:
-            rims = [stop_rim_images_many(optics, ft, wl, depth) for wl in wls]  # one trace per wavelength
+            rims = stop_rim_images_all(optics, ft, wls, depth)  # one trace for every source and wavelength
             if self.edge_step in ("fresnel", "adaptive"):  # these steps need no chief ray on the exit-pupil plane
                 cx = [[None] * ft.shape[0] for _ in wls]
             else:

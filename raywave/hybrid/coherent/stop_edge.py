@@ -96,11 +96,11 @@ def _fresnel_scale(slopes, nx, ny, h_node: float, dz: float, lam_m: float, pitch
     distance from the edge's plane to the DOE plane (a converging wave: the Fresnel scaling theorem,
     ``L = d (R − d)/R`` for a sphere of radius R). ``L`` is kept ≥ ``(1.5 p)²/λ_m`` so that the edge is never
     sharper than 1.5 pixels (anti-aliasing when the DOE sits at the exit pupil). Args: ``slopes`` (4, ky, kx):
-    ``t_x/γ, t_y/γ, t_x, t_y`` at the nodes; ``nx, ny`` (ky, kx) the edge normal; ``h_node`` node spacing (mm).
-    Differentiable with respect to the ray directions."""
+    ``t_x/γ, t_y/γ, t_x, t_y`` at the nodes; ``nx, ny`` (ky, kx) the edge normal (or (M, ky, kx): M directions at
+    once, e.g. across and along the edge); ``h_node`` node spacing (mm). Differentiable with respect to the ray
+    directions."""
     a, b, tx, ty = slopes
-    da_dy, da_dx = torch.gradient(a, spacing=h_node, dim=(0, 1))
-    db_dy, db_dx = torch.gradient(b, spacing=h_node, dim=(0, 1))
+    (da_dy, db_dy), (da_dx, db_dx) = torch.gradient(slopes[:2], spacing=h_node, dim=(1, 2))
     k00, k01, k10, k11 = 1 - dz * da_dx, -dz * da_dy, -dz * db_dx, 1 - dz * db_dy
     det = k00 * k11 - k01 * k10
     det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, 1e-12))
@@ -431,6 +431,14 @@ def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str
                          k: int = RIM_POINTS) -> list:
     """:func:`stop_rim_images` of the sources ``fields`` (F, 2) at one wavelength (µm), from one trace of all their
     rim rays (5·F sources × k rim points): a list of F results (``(theta, z)`` or None)."""
+    return stop_rim_images_all(lens, fields, [float(wavelength)], depth, field_type, k)[0]
+
+
+def stop_rim_images_all(lens, fields, wavelengths, depth, field_type: str | None = None,
+                        k: int = RIM_POINTS) -> list:
+    """:func:`stop_rim_images` of the sources ``fields`` (F, 2) at every wavelength of ``wavelengths`` (W,) µm, from
+    one trace of all their rim rays (5·F sources × W wavelengths × k rim points; issue 43: one trace per call instead
+    of one per wavelength): ``[W][F]`` results (``(theta, z)`` or None)."""
     field_type = field_type or lens.field_type
     f = torch.as_tensor(fields, dtype=torch.float64, device=lens.device).reshape(-1, 2)
     nf = f.shape[0]
@@ -442,25 +450,26 @@ def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str
     srcs = torch.stack([f, f + ex, f + ey, f - ex, f - ey], 1).reshape(-1, 2)
     theta = torch.arange(k, dtype=torch.float64, device=lens.device) * (2 * math.pi / k)
     c, s = torch.cos(theta), torch.sin(theta)
+    wl = torch.tensor([float(w) for w in wavelengths], dtype=torch.float64, device=lens.device)
     with warnings.catch_warnings():
         # a diagnostic trace of nudged sources through the rim, apertures off: the field construction of the
         # source itself reports its vignetting. Other warnings pass through.
         warnings.simplefilter("ignore", VignettingWarning)
-        rays = point_source_rays(lens, srcs, torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device),
-                                 pupil=(c, s), aim="full", depth=depth, field_type=field_type)
+        rays = point_source_rays(lens, srcs, wl, pupil=(c, s), aim="full", depth=depth, field_type=field_type)
         out, rec = lens.trace(rays, apertures=False, record=True)
-    o, d = out.o[:, 0].reshape(nf, 5, k, 3), out.d[:, 0].reshape(nf, 5, k, 3)
-    opl = out.opl[:, 0].reshape(nf, 5, k)
-    n_img = lens.surfaces[-1].material.n(out.wavelength.reshape(-1)[:1].reshape(())).to(opl.dtype)  # image medium
-    v = out.valid[:, 0].reshape(nf, 5, k)
+    nw = wl.numel()
+    o, d = out.o.reshape(nf, 5, nw, k, 3), out.d.reshape(nf, 5, nw, k, 3)
+    opl = out.opl.reshape(nf, 5, nw, k)
+    n_img = lens.surfaces[-1].material.n(wl).to(opl.dtype)  # the image medium's index (W,)
+    v = out.valid.reshape(nf, 5, nw, k).all(-1).all(1).tolist()  # (F, W)
     stop = lens.stop_index
     if stop == 0:  # the rays' own directions reach the first surface
-        dv = rays.d[:, 0]
+        dv = rays.d
     else:
-        dv = torch.stack(rec.points[stop + 1], -1)[:, 0] - torch.stack(rec.points[stop], -1)[:, 0]
-    dv = dv.reshape(nf, 5, k, 3)
-    return [_rim_crossing(o[i], d[i], dv[i], c, s, theta, opl[i, 0], n_img) if bool(v[i].all()) else None
-            for i in range(nf)]
+        dv = torch.stack(rec.points[stop + 1], -1) - torch.stack(rec.points[stop], -1)
+    dv = dv.reshape(nf, 5, nw, k, 3)
+    return [[_rim_crossing(o[i, :, j], d[i, :, j], dv[i, :, j], c, s, theta, opl[i, 0, j], n_img[j])
+             if v[i][j] else None for i in range(nf)] for j in range(nw)]
 
 
 class RimImages(tuple):
