@@ -468,8 +468,17 @@ def stop_rim_images_all(lens, fields, wavelengths, depth, field_type: str | None
     else:
         dv = torch.stack(rec.points[stop + 1], -1) - torch.stack(rec.points[stop], -1)
     dv = dv.reshape(nf, 5, nw, k, 3)
-    return [[_rim_crossing(o[i, :, j], d[i, :, j], dv[i, :, j], c, s, theta, opl[i, 0, j], n_img[j])
-             if v[i][j] else None for i in range(nf)] for j in range(nw)]
+    # every source and wavelength at once: (F·W, 5, k, ...) rows, source-major
+    rows = nf * nw
+    # a source with an invalid ray is left out: its rows set to ones (through where, so that no NaN of theirs reaches
+    # the gradients of the others; its nudges then do not turn the rays) and dropped as degenerate
+    live = torch.tensor([v[i][j] for i in range(nf) for j in range(nw)], device=o.device)[:, None, None, None]
+    o, d, dv = (torch.where(live, t_, torch.ones_like(t_)) for t_ in
+                (t.transpose(1, 2).reshape(rows, 5, k, 3) for t in (o, d, dv)))
+    z, points, paths, ok = _rim_crossings(o, d, dv, c, s, opl[:, 0].reshape(rows, k), n_img.repeat(nf)[:, None])
+    ok = ok.tolist()
+    return [[RimImages(theta, z[i * nw + j], points[i * nw + j], paths[i * nw + j])
+             if v[i][j] and ok[i * nw + j] else None for i in range(nf)] for j in range(nw)]
 
 
 class RimImages(tuple):
@@ -483,46 +492,43 @@ class RimImages(tuple):
         return obj
 
 
-def _rim_crossing(o, d, dv, c, s, theta, opl0=None, n_img: float = 1.0):
-    """The rim images of one source from its rays (5, k, 3) (the source and its four nudges) through the rim points
-    at azimuths ``theta`` (k,): :class:`RimImages` (with the image points and the optical paths to them when the
-    source's rays' paths ``opl0`` (k,) at ``o[0]`` are given, ``n_img`` the image medium's index), or None (a
-    degenerate source, a non-finite crossing)."""
-    w = _radial_nudge(dv, c, s)
-    if w is None:
-        return None
-    # (k, 3): the ray of the source nudged so that its ray through the rim point turns along the rim's normal
-    do = w[:, :1] * (o[1] - o[3]) + w[:, 1:] * (o[2] - o[4])
-    dd = w[:, :1] * (d[1] - d[3]) + w[:, 1:] * (d[2] - d[4])
-    a = d[0]
+def _rim_crossings(o, d, dv, c, s, opl0, n_img):
+    """The rim images of B sources at once from their rays (B, 5, k, 3) (each source and its four nudges) through the
+    rim points at azimuths with cosines and sines ``c``, ``s`` (k,): ``(z (B, k) mm, image points (B, k, 3), optical
+    paths to them (B, k) mm, ok (B,) bool)`` (``opl0`` (B, k) the source's rays' paths at ``o[:, 0]``, ``n_img``
+    (B, 1) the image medium's index); ``ok`` False for a degenerate source (:func:`_radial_nudge`) or a non-finite
+    crossing."""
+    w, turns = _radial_nudge(dv, c, s)
+    # (B, k, 3): the ray of the source nudged so that its ray through the rim point turns along the rim's normal
+    do = w[..., :1] * (o[:, 1] - o[:, 3]) + w[..., 1:] * (o[:, 2] - o[:, 4])
+    dd = w[..., :1] * (d[:, 1] - d[:, 3]) + w[..., 1:] * (d[:, 2] - d[:, 4])
+    a = d[:, 0]
 
     def perp(v_):
         return v_ - (v_ * a).sum(-1, keepdim=True) * a
 
     po, pd = perp(do), perp(dd)
     t = -(po * pd).sum(-1) / (pd * pd).sum(-1).clamp_min(1e-300)
-    z = o[0, :, 2] + t * a[:, 2]
-    if not bool(torch.isfinite(z.detach()).all()):
-        return None
-    if opl0 is None:
-        return RimImages(theta, z)
-    return RimImages(theta, z, o[0] + t[:, None] * a, opl0 + n_img * t)
+    z = o[:, 0, :, 2] + t * a[..., 2]
+    ok = turns & torch.isfinite(z.detach()).all(-1)
+    return z, o[:, 0] + t[..., None] * a, opl0 + n_img * t, ok
 
 
 def _radial_nudge(dv: torch.Tensor, c: torch.Tensor, s: torch.Tensor):
-    """Weights (k, 2) of the x and y source nudges (central differences: sources 1, 3 and 2, 4 of the rays'
-    directions ``dv`` (5, k, 3) as they arrive at the stop) whose combination turns the ray through each rim point
-    along the rim's normal ``(c, s)`` as it arrives at the stop: the edge's image for its normal diffraction, the
-    same whatever units (angle, object height) the field takes; None if the nudges do not turn the rays (a
-    degenerate source)."""
-    slope = dv[..., :2] / dv[..., 2:3]  # (5, k, 2): the incoming ray's slopes at the stop
-    jac = torch.stack([slope[1] - slope[3], slope[2] - slope[4]], -1)  # (k, 2 slope, 2 nudge)
-    det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
-    if not bool((det.detach().abs() > 1e-300).all()):
-        return None
-    w0 = (jac[:, 1, 1] * c - jac[:, 0, 1] * s) / det
-    w1 = (-jac[:, 1, 0] * c + jac[:, 0, 0] * s) / det
-    return torch.stack([w0, w1], -1)
+    """Weights (B, k, 2) of the x and y source nudges (central differences: sources 1, 3 and 2, 4 of the rays'
+    directions ``dv`` (B, 5, k, 3) as they arrive at the stop) whose combination turns the ray through each rim
+    point along the rim's normal ``(c, s)`` as it arrives at the stop: the edge's image for its normal diffraction,
+    the same whatever units (angle, object height) the field takes; and (B,) bool: False where the nudges do not
+    turn the rays (a degenerate source; its weights are then meaningless, but finite)."""
+    slope = dv[..., :2] / dv[..., 2:3]  # (B, 5, k, 2): the incoming ray's slopes at the stop
+    jac = torch.stack([slope[:, 1] - slope[:, 3], slope[:, 2] - slope[:, 4]], -1)  # (B, k, 2 slope, 2 nudge)
+    det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+    nonzero = det.detach().abs() > 1e-300
+    det = torch.where(nonzero, det, torch.ones_like(det))  # (finite weights, and gradients, for a degenerate source)
+    w0 = (jac[..., 1, 1] * c - jac[..., 0, 1] * s) / det
+    w1 = (-jac[..., 1, 0] * c + jac[..., 0, 0] * s) / det
+    turns = nonzero.all(-1)
+    return torch.stack([w0, w1], -1), turns
 
 
 def _rim_azimuth_index(k: int, xs: torch.Tensor, ys: torch.Tensor):
