@@ -29,7 +29,8 @@ WAVELENGTHS = (0.66, 0.53, 0.47)
 PHASES = (
     ("backward", ("backward",)),
     ("chief_rays", ("chief_rays", "_chief_rays", "chief_ray")),
-    ("footprints", ("footprints", "_footprint", "doe_clippings", "stop_rim_images_many", "stop_rim_images")),
+    ("footprints", ("footprints", "_footprint", "doe_clippings", "stop_rim_images_all", "stop_rim_images_many",
+                    "stop_rim_images", "edge_focus_many")),
     ("coarse_start", ("_coarse_start",)),
     ("invert", ("_invert_group", "_invert_to_nodes", "_landing_rounds", "_trace_rows")),
     ("landing_jacobian", ("_landing_and_jacobian",)),

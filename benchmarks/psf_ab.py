@@ -91,6 +91,7 @@ def main() -> None:
                     help="doe / exit_pupil for both trees (default: each tree's own default edge)")
     ap.add_argument("--modes", default="map",
                     help="map (no grad), grad (forward + backward, 8 field points × 3 λ per call) or map,grad")
+    ap.add_argument("--scratch", default="/tmp", help="folder for the runs' PSF files (one per mode and tree)")
     ap.add_argument("-o", "--output")
     args = ap.parse_args()
     import torch
@@ -102,10 +103,11 @@ def main() -> None:
         runs = {"a": [], "b": []}
         for r in range(args.repeat):
             for key in ("a", "b"):
-                runs[key].append(_run(getattr(args, key), args.grid, args.threads,
-                                      f"/tmp/raywave_psf_ab_{mode}_{key}.pt", args.stop_edge, mode == "grad"))
+                out_pt = os.path.join(args.scratch, f"raywave_psf_ab_{mode}_{key}.pt")
+                runs[key].append(_run(getattr(args, key), args.grid, args.threads, out_pt, args.stop_edge,
+                                      mode == "grad"))
                 print(mode, key, r, runs[key][-1], file=sys.stderr, flush=True)
-        a, b = (torch.load(f"/tmp/raywave_psf_ab_{mode}_{k}.pt") for k in ("a", "b"))
+        a, b = (torch.load(os.path.join(args.scratch, f"raywave_psf_ab_{mode}_{k}.pt")) for k in ("a", "b"))
         rel_l1 = (a - b).abs().sum((-2, -1)) / a.abs().sum((-2, -1)).clamp_min(1e-300)  # per PSF
         med = {k: {m: statistics.median(x[m] for x in v) for m in ("wall_per_psf", "cpu_per_psf")}
                for k, v in runs.items()}

@@ -113,3 +113,52 @@ def test_construction_functions_take_at_most_ten_parameters():
                 if k > 10:
                     long.append(f"{path.name}:{node.name} ({k})")
     assert not long, long
+
+
+def test_the_ray_stage_of_all_groups_runs_in_one_pass(asphere, monkeypatch):
+    """With many field groups (a tiny group budget) the constructions' ray stages (aiming, Newton inversion, node
+    traces) of all groups run together, paused before their fine fields (:data:`raywave.hybrid.coherent.tracing.
+    PAUSE`): the Newton inversions are one batched solve per round for the call, not one per group. The PSFs equal
+    one ray stage per group (a tiny :data:`RAY_STAGE_NODES`) and the serial construction's pause-free path."""
+    wls = [0.55, 0.47]
+    monkeypatch.setattr(hybrid_mod, "FIELD_GROUP_BYTES", 1)
+    calls = []
+    real = tracing_mod._invert_group
+
+    def spy(reqs):
+        calls.append(len(reqs))
+        return real(reqs)
+
+    monkeypatch.setattr(tracing_mod, "_invert_group", spy)
+    together = _psfs(asphere, FIELDS, wls)
+    geo = asphere._accurate_geometry(torch.tensor(FIELDS, dtype=torch.float64), wls, None)
+    n_built = len(geo.todo) * len(wls)
+    assert len(asphere._field_groups(geo)) == len(geo.todo) > 1
+    assert calls == [n_built, n_built]  # the coarse and the fine inversion, each of every construction at once
+    calls.clear()
+    monkeypatch.setattr(hybrid_mod, "RAY_STAGE_NODES", 1)
+    per_group = _psfs(asphere, FIELDS, wls)
+    assert len(calls) == 2 * len(geo.todo)
+    rel = (per_group.psf - together.psf).abs().sum((-2, -1)) / together.psf.abs().sum((-2, -1))
+    assert float(rel.max()) < 1e-12
+    assert torch.equal(per_group.center, together.center) and torch.equal(per_group.rays, together.rays)
+
+
+def test_paused_constructions_finish_as_the_unpaused_ones(asphere):
+    """run_batched(pause=True) stops every construction after its ray stage (a Paused); run_batched on those
+    finishes them: the same fields as one run (and as run_serial)."""
+    hl = asphere
+    wls = [0.55]
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        geo = hl._accurate_geometry(torch.tensor(FIELDS[:2], dtype=torch.float64), wls, None)
+        rows = list(range(len(geo.todo)))
+        paused = tracing_mod.run_batched(hl._accurate_constructions(geo, rows, 24, True), pause=True)
+        assert all(isinstance(p, tracing_mod.Paused) for p in paused)
+        done = tracing_mod.run_batched(paused)
+        straight = tracing_mod.run_batched(hl._accurate_constructions(geo, rows, 24, True))
+        serial = [tracing_mod.run_serial(g) for g in hl._accurate_constructions(geo, rows, 24, True)]
+    for a, b, c in zip(done, straight, serial):
+        assert a.box == b.box == c.box
+        assert float((a.envelope - b.envelope).abs().max()) == 0.0
+        assert float((a.envelope - c.envelope).abs().max()) < 1e-12 * float(c.envelope.abs().max())

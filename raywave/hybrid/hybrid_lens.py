@@ -33,7 +33,9 @@ from torch import nn
 from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
                                      doe_clippings, entrance_pupil, exit_pupil_field_steps, faithful_field, footprints,
-                                     run_batched, stop_rim_images_many)
+                                     run_batched)
+from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps
+from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import OUT_MARGIN, Planned, SensorWindow, TransferMemo, plan_groups, propagate_group
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
@@ -72,6 +74,10 @@ DEFAULT_EDGE_STEP = "adaptive"
 #: bytes (:meth:`HybridLens._field_groups`; issue 43): the call's traces (chief rays, footprints, the stop rim's
 #: images, the DOE-aperture diagnostics) are shared by all its groups, and a group's Newton rounds are one trace
 FIELD_GROUP_BYTES = 2**29
+#: the ray stages (aiming, Newton inversion, node traces) of a call's groups are run together for up to about this
+#: many nodes (:meth:`HybridLens._stage_chunks`; the default 64 nodes a side: ~128 constructions): the paused
+#: constructions keep their node maps (~10 float64 channels a node) until their group's fields are built
+RAY_STAGE_NODES = 2**21
 
 
 @dataclass
@@ -81,8 +87,9 @@ class _CallGeometry:
     source, None or its mirror source ``(j, flip_x, flip_y)`` (``src``); ``todo`` the built sources (indices into
     ``f``) and, per built source (its row in ``todo``): ``boxes`` ``[R][W]`` the lit footprints (False: none),
     ``clips`` ``[R][W]`` the DOE-aperture diagnostics; ``entrance`` the entrance pupil; with the exit-pupil edge
-    ``edge`` = ``(z_xps, rims, cx)``: its planes per wavelength, ``[W][R]`` the stop rim's images and the chief rays
-    on the exit pupil (None: the DOE-plane edge)."""
+    ``edge`` = ``(z_xps, rims, cx, steps)``: its planes per wavelength, ``[W][R]`` the stop rim's images and the
+    chief rays on the exit pupil, ``[R][W]`` the adaptive edge step's choice (None: another edge step) (``edge``
+    None: the DOE-plane edge)."""
 
     f: torch.Tensor
     wls: list
@@ -531,7 +538,7 @@ class HybridLens(nn.Module):
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
         z_xps = self._exit_pupil_planes(wls)
         if z_xps is not None:
-            rims = [stop_rim_images_many(optics, ft, wl, depth) for wl in wls]  # one trace per wavelength
+            rims = stop_rim_images_all(optics, ft, wls, depth)  # one trace for every source and wavelength
             if self.edge_step in ("fresnel", "adaptive"):  # these steps need no chief ray on the exit-pupil plane
                 cx = [[None] * ft.shape[0] for _ in wls]
             else:
@@ -539,20 +546,28 @@ class HybridLens(nn.Module):
                     warnings.simplefilter("ignore", VignettingWarning)
                     cx = [chief_rays(optics, ft, torch.tensor([wl], dtype=torch.float64, device=optics.device),
                                      depth, zx, z_sen)[0][:, 0] for wl, zx in zip(wls, z_xps)]
-            geo.edge = (z_xps, rims, cx)
+            steps = None
+            if self.edge_step == "adaptive":  # every built source's step from one trace of their edge rays
+                steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen))
+            geo.edge = (z_xps, rims, cx, steps)
         # the DOE-aperture diagnostic of every built field, from one trace (a mirror image's are its source's)
         geo.clips = doe_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True)
         return geo
 
-    def _accurate_group(self, geo: "_CallGeometry", members: list[int], nodes: int, check: bool) -> tuple:
+    def _accurate_group(self, geo: "_CallGeometry", members: list[int], nodes: int, check: bool,
+                        staged: dict | None = None) -> tuple:
         """The accurate fields of the call's sources ``members`` (indices into ``geo.f``; every mirror image's source
         among them), built together (:func:`raywave.hybrid.coherent.run_batched`): ``(members, flat field-major
         list of their F·W :class:`DOEField`)``. A mirror image (:func:`~raywave.hybrid.mirror.mirror_sources`, with
         :attr:`mirror` on a mirror-symmetric lens) is not built: its fields are its source's mirrored
         (:func:`~raywave.hybrid.mirror.mirror_field`; the same to the construction's rounding, at a quarter of the
-        field stage's cost for a map's symmetric grid)."""
+        field stage's cost for a map's symmetric grid). ``staged``: the constructions of the built sources' rows
+        with their ray stage done (:meth:`_ray_stage`; taken out of it here), else built from the start."""
         rows = [geo.row[i] for i in members if geo.src[i] is None]  # rows of the built sources (geo.todo)
-        done = run_batched(self._accurate_constructions(geo, rows, nodes, check))
+        if staged is None:
+            done = run_batched(self._accurate_constructions(geo, rows, nodes, check))
+        else:
+            done = run_batched([c for r in rows for c in staged.pop(r)])
         nw = len(geo.wls)
         at = {geo.todo[r]: k for k, r in enumerate(rows)}
         sim = self.doe.sim_grid(self.oversample)
@@ -578,11 +593,40 @@ class HybridLens(nn.Module):
                                                     ChiefRays(cd[i, j], cs[i, j], uv=cuv[i, j]), settings,
                                                     Known(geo.boxes[r][j], geo.entrance)))
                 else:
-                    z_xps, rims, cx = geo.edge
+                    z_xps, rims, cx, steps = geo.edge
                     out.append(exit_pupil_field_steps(optics, self.doe, source, Planes(z_doe, z_sen, z_xps[j]),
                                                       ChiefRays(cd[i, j], cs[i, j], cx[j][r], cuv[i, j]), settings,
-                                                      Known(geo.boxes[r][j], geo.entrance, rims[j][r])))
+                                                      Known(geo.boxes[r][j], geo.entrance, rims[j][r],
+                                                            None if steps is None else steps[r][j])))
         return out
+
+    def _ray_stage(self, geo: "_CallGeometry", groups: list[list[int]], nodes: int, check: bool) -> dict:
+        """The ray stage of the accurate constructions of every built source in ``groups`` (their aiming, Newton
+        inversion and node traces: :func:`~raywave.hybrid.coherent.run_batched` with ``pause=True``), in one pass
+        for all the groups (issue 43: one batched trace per round for the call instead of one per group): ``{row in
+        geo.todo: [W] constructions paused before their field stage}`` (or their fields where they finished)."""
+        rows = [geo.row[i] for members in groups for i in members if geo.src[i] is None]
+        nw = len(geo.wls)
+        done = run_batched(self._accurate_constructions(geo, rows, nodes, check), pause=True)
+        return {r: done[k * nw:(k + 1) * nw] for k, r in enumerate(rows)}
+
+    def _stage_chunks(self, geo: "_CallGeometry", groups: list[list[int]], nodes: int) -> list[list[list[int]]]:
+        """``groups`` (:meth:`_field_groups`) in consecutive runs whose ray stages are done together
+        (:meth:`_ray_stage`): each run's constructions hold at most about :data:`RAY_STAGE_NODES` nodes (estimated
+        ``(2·nodes)²`` each: the footprint's grid and its margin), which bounds the paused constructions' node
+        maps and the batched Newton rounds' rays."""
+        per = (2 * nodes) ** 2 * len(geo.wls)
+        chunks, cur, size = [], [], 0
+        for members in groups:
+            est = per * sum(1 for i in members if geo.src[i] is None)
+            if cur and size + est > RAY_STAGE_NODES:
+                chunks.append(cur)
+                cur, size = [], 0
+            cur.append(members)
+            size += est
+        if cur:
+            chunks.append(cur)
+        return chunks
 
     def _field_groups(self, geo: "_CallGeometry") -> list[list[int]]:
         """The call's sources in groups whose DOE-plane fields are built and propagated together (issue 43): every
@@ -802,21 +846,24 @@ class HybridLens(nn.Module):
 
     def _accurate_psfs(self, fields, wavelengths, depth, rays, check: bool, ks: int, propagation_dtype):
         """:meth:`psf_result`'s accurate path without a cache (issue 43): the call's shared traces once
-        (:meth:`_accurate_geometry`), then per group of sources (:meth:`_field_groups`, bounded by the fields'
-        memory) the fields built together and propagated in batches (:meth:`propagate_fields`), each group's fields
-        dropped before the next is built. Returns ``(psf (F, W, ks, ks), centres (F, W, 2), energy outside (F, W),
+        (:meth:`_accurate_geometry`), the ray stage of many groups in one pass (:meth:`_ray_stage`), then per group
+        of sources (:meth:`_field_groups`, bounded by the fields' memory) the fields built together and propagated
+        in batches (:meth:`propagate_fields`), each group's fields dropped before the next is built. Returns ``(psf (F, W, ks, ks), centres (F, W, 2), energy outside (F, W),
         rays (F, W), clipped fractions [F][W])``; the aperture and caustic warnings once for the call."""
         f = self._engine_fields(fields)
         wls = self.wavelength_list(wavelengths)
         geo = self._accurate_geometry(f, wls, depth)
         pending: tuple = ([], [])
         order, parts, clip = [], [], {}
-        for members in self._field_groups(geo):
-            fds = self._finish_fields(self._accurate_group(geo, members, rays or 64, check), geo, pending)
-            parts.append(self.propagate_fields(fds, ks, propagation_dtype))
-            clip.update({i: [fd.clipped for fd in row] for i, row in zip(members, fds)})
-            order.extend(members)
-            del fds
+        nodes = rays or 64
+        for chunk in self._stage_chunks(geo, self._field_groups(geo), nodes):
+            staged = self._ray_stage(geo, chunk, nodes, check)  # the traces of all the chunk's groups at once
+            for members in chunk:
+                fds = self._finish_fields(self._accurate_group(geo, members, nodes, check, staged), geo, pending)
+                parts.append(self.propagate_fields(fds, ks, propagation_dtype))
+                clip.update({i: [fd.clipped for fd in row] for i, row in zip(members, fds)})
+                order.extend(members)
+                del fds
         self._warn_clipped(pending[0])
         self._warn_caustic(pending[1])
         if len(parts) == 1 and order == list(range(f.shape[0])):

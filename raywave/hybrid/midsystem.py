@@ -27,6 +27,7 @@ import cmath
 import math
 import warnings
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -315,6 +316,48 @@ def _as_list(v, n: int, name: str) -> list:
     return [v] * n
 
 
+@dataclass(frozen=True)
+class FinalPlane:
+    """The blank plane behind the lens where a :class:`MidSystemLens` builds the engine's field: ``distance`` mm
+    after the last vertex (see :class:`~raywave.hybrid.HybridLens` ``doe_distance``), its square grid ``size`` mm
+    a side at ``pitch`` mm (also its simulation pitch)."""
+
+    distance: float
+    size: float
+    pitch: float
+
+
+#: :class:`MidSystemLens`'s arguments after ``distance`` before the final plane became a value type, in their order
+_LEGACY_ARGS = ("final_distance", "final_size", "final_pitch", "sensor_pitch", "stop_edge", "min_efficiency", "orders")
+
+
+def _final_plane(final: tuple, legacy: dict, options: dict) -> FinalPlane:
+    """The :class:`FinalPlane` of :class:`MidSystemLens`'s ``*final`` (one :class:`FinalPlane`, or the pre-value-type
+    positional ``final_distance, final_size, final_pitch[, sensor_pitch, stop_edge, min_efficiency, orders]``,
+    the options among them written into ``options``) and ``legacy`` keywords (``final_distance=``, ``final_size=``,
+    ``final_pitch=``); TypeError naming what is missing or unknown."""
+    unknown = set(legacy) - set(_LEGACY_ARGS[:3])
+    if unknown:
+        raise TypeError(f"MidSystemLens: unexpected keyword argument(s) {sorted(unknown)}")
+    if len(final) == 1 and isinstance(final[0], FinalPlane) and not legacy:
+        return final[0]
+    if len(final) > len(_LEGACY_ARGS):
+        raise TypeError(f"MidSystemLens takes at most {4 + len(_LEGACY_ARGS)} positional arguments")
+    given = dict(zip(_LEGACY_ARGS, final))
+    for k, v in legacy.items():
+        if k in given:
+            raise TypeError(f"MidSystemLens: {k} given twice")
+        given[k] = v
+    for k in _LEGACY_ARGS[3:]:
+        if k in given:
+            options[k] = given[k]
+    missing = [k for k in _LEGACY_ARGS[:3] if k not in given]
+    if missing:
+        raise TypeError(f"MidSystemLens: give the final plane as final=FinalPlane(distance, size, pitch) (or "
+                        f"final_distance=, final_size=, final_pitch=); missing {', '.join(missing)}")
+    return FinalPlane(float(given["final_distance"]), float(given["final_size"]), float(given["final_pitch"]))
+
+
 class MidSystemLens(nn.Module):
     """A lens with thin DOEs inside it (planes in its gaps, or conformal on its surfaces), and the sensor.
 
@@ -325,9 +368,10 @@ class MidSystemLens(nn.Module):
         after, distance: where each DOE sits: ``distance`` mm after the vertex of surface ``after`` (inside the
             gap after it); ``distance=None``: on surface ``after`` itself (conformal: the phase on its sag). With
             several DOEs, lists (or one value for all).
-        final_distance: mm after the last vertex of the blank plane where the engine's field is built
-            (see :class:`~raywave.hybrid.HybridLens` ``doe_distance``).
-        final_size, final_pitch: that plane's grid (square, mm); its simulation pitch is ``final_pitch``.
+        final: the blank plane where the engine's field is built (:class:`FinalPlane`: its distance mm after the
+            last vertex, see :class:`~raywave.hybrid.HybridLens` ``doe_distance``, and its square grid's size and
+            pitch, mm; the pitch is its simulation pitch). The earlier form ``final_distance, final_size,
+            final_pitch`` (positional or keywords) is still accepted.
         sensor_pitch, stop_edge, edge_step: as :class:`~raywave.hybrid.HybridLens` (``stop_edge="doe"``: the sharp
             cut on the final plane, the default; ``stop_edge="exit_pupil", edge_step="asm"``: the stop's edge formed
             at each rim point's image and propagated by the angular spectrum, 3× closer to the reference for the
@@ -337,9 +381,13 @@ class MidSystemLens(nn.Module):
             several DOEs, one such set (or None) per DOE.
     """
 
-    def __init__(self, lens: Lens, doe, after, distance, final_distance: float, final_size: float,
-                 final_pitch: float, sensor_pitch: float | None = None, stop_edge: str | None = "doe",
-                 min_efficiency: float = 0.01, orders=None, edge_step: str | None = None):
+    def __init__(self, lens: Lens, doe, after, distance, *final, sensor_pitch: float | None = None,
+                 stop_edge: str | None = "doe", min_efficiency: float = 0.01, orders=None, edge_step: str | None = None,
+                 **legacy):
+        opts = {"sensor_pitch": sensor_pitch, "stop_edge": stop_edge, "min_efficiency": min_efficiency,
+                "orders": orders}
+        plane = _final_plane(final, legacy, opts)
+        sensor_pitch, stop_edge, min_efficiency, orders = (opts[k] for k in _LEGACY_ARGS[3:])
         super().__init__()
         does = list(doe) if isinstance(doe, (list, tuple)) else [doe]
         n = len(does)
@@ -358,9 +406,9 @@ class MidSystemLens(nn.Module):
         keys = [(a, -1.0 if d is None else d) for a, d in self.placements]
         if len(set(keys)) != n:
             raise ValueError(f"MidSystemLens: two DOEs at the same place {self.placements}")
-        grid = int(math.ceil(final_size / final_pitch))
-        self.final = BlankDOE(grid, final_pitch)
-        self.final_distance = float(final_distance)
+        grid = int(math.ceil(plane.size / plane.pitch))
+        self.final = BlankDOE(grid, plane.pitch)
+        self.final_distance = float(plane.distance)
         self.sensor_pitch, self.stop_edge = sensor_pitch, stop_edge
         self.edge_step = edge_step
         self.min_efficiency = float(min_efficiency)

@@ -44,12 +44,10 @@ def cubic_matrix(pos: torch.Tensor, n_nodes: int) -> torch.Tensor:
     k = base[:, None] + torch.arange(-1, 3, dtype=pos.dtype, device=pos.device)  # (n, 4)
     rows = torch.arange(n, device=pos.device)[:, None].expand(n, 4)
     m.index_put_((rows, (k + 1).long()), _keys(pos[:, None] - k), accumulate=True)
-    out = m[:, 1:-1].clone()
-    for ghost, (a, b, c) in ((m[:, 0], (0, 1, 2)), (m[:, -1], (-1, -2, -3))):
-        out[:, a] += 3 * ghost
-        out[:, b] -= 3 * ghost
-        out[:, c] += ghost
-    return out
+    # the ghosts folded onto the nodes (f₋₁ = 3f₀ − 3f₁ + f₂ at either end) as two broadcast products (a row has at
+    # most one ghost, so each entry sums at most two terms: the same values as folding column by column)
+    fold_lo = torch.tensor([3.0, -3.0, 1.0] + [0.0] * (n_nodes - 3), dtype=pos.dtype, device=pos.device)
+    return m[:, 1:-1] + m[:, :1] * fold_lo + m[:, -1:] * fold_lo.flip(0)
 
 
 def keys_matrix(n_nodes: int, stride: int, dtype=torch.float64, device=None) -> torch.Tensor:

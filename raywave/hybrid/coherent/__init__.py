@@ -51,7 +51,8 @@ from raywave.hybrid.coherent.tracing import (_Aim, _TraceRequest, _invert_to_nod
                                              run_serial)  # noqa: F401
 from raywave.hybrid.coherent.stop_edge import (INNER_TAIL, RIM_POINTS, RIPPLE_ZONES, _fresnel_scale,
                                                _nu_inner, _rim_z, _smoothstep, _zone_estimate, stop_edge_factor,
-                                               stop_rim_images, stop_rim_images_many)  # noqa: F401
+                                               stop_rim_images, stop_rim_images_all,
+                                               stop_rim_images_many)  # noqa: F401
 from raywave.hybrid.coherent.accurate import (accurate_field, accurate_field_steps, entrance_pupil)  # noqa: F401
 from raywave.hybrid.coherent.exit_pupil import (AUTO_ASM_SAMPLES, MAX_XP_SAMPLES, exit_pupil_field,
                                                 exit_pupil_field_steps)  # noqa: F401

@@ -20,7 +20,7 @@ from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning,
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_cubic,
                                                _rim_z, _zone_estimate, edge_envelope)
-from raywave.hybrid.coherent.tracing import _Aim, _invert_to_nodes, _nearest_fill, _solve2, run_serial
+from raywave.hybrid.coherent.tracing import PAUSE, _Aim, _invert_to_nodes, _nearest_fill, _solve2, run_serial
 
 
 def accurate_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
@@ -122,7 +122,8 @@ def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: Chief
     Steps: the node grid over the footprint (:func:`_node_layout`), exactly aimed rays to every node
     (:func:`_trace_nodes`), the smooth per-node maps (:func:`_node_maps`: optical path, ray density, distances
     to the edges; :func:`_stop_edge_maps`: the stop edge's Fresnel channels), the checks (:func:`_check_nodes`),
-    and the fine field (:func:`_fine_field`)."""
+    a :data:`~raywave.hybrid.coherent.tracing.PAUSE` (the ray stage done), and the fine field
+    (:func:`_fine_field`)."""
     b = _Build(lens, doe, source, float(planes.z_doe), float(planes.z_sensor), chief, settings or FieldSettings(),
                known or Known())
     bbox = _lit_footprint(b)
@@ -143,11 +144,20 @@ def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: Chief
         maps.update(_stop_edge_maps(b, nd, nodes, maps))
     if b.cfg.check:
         _check_nodes(b, nd, maps, good, nodes[2].d[0, 0])
+    # the ray stage is done: a caller may stop here (run_batched(pause=True)) and build the fine field later, holding
+    # only the maps the field stage reads (the traced rays and their records are dropped)
+    maps = {k: v for k, v in maps.items() if k in _FIELD_MAPS}
+    del nodes, good
+    yield PAUSE
     sim = doe.sim_grid(b.cfg.oversample)
     out = _fine_field(b, nd, maps, sim)
     if out is None:
         return b.empty(n_rays)
     return _window_field(b, *out, sim, n_rays + 1)
+
+
+#: the node maps that the field stage (:func:`_fine_field`) reads
+_FIELD_MAPS = ("phi_env", "amp2", "dist", "other", "nu", "nu_raw", "kappa", "g_max")
 
 
 def _lit_footprint(b: _Build):
@@ -293,7 +303,7 @@ def _coarse_start(aim: _Aim, nd: _Nodes, chief: tuple, max_step: float):
     unsure = (my.abs() @ bad @ mx.abs().T) > 0
     fine = torch.where(unsure, torch.full_like(fine, math.nan), fine)
     # ∂uv/∂X by central differences over the node grid (NaN spreads from unsure nodes), inverted to ∂X/∂uv
-    (du_dy, du_dx), (dv_dy, dv_dx) = (torch.gradient(c, spacing=nd.h, dim=(0, 1)) for c in fine)
+    (du_dy, dv_dy), (du_dx, dv_dx) = torch.gradient(fine, spacing=nd.h, dim=(1, 2))
     a = torch.stack([torch.stack([du_dx, du_dy], -1), torch.stack([dv_dx, dv_dy], -1)], -2).reshape(-1, 2, 2)
     det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
     jac0 = torch.stack([torch.stack([a[:, 1, 1], -a[:, 0, 1]], -1), torch.stack([-a[:, 1, 0], a[:, 0, 0]], -1)],
@@ -318,10 +328,9 @@ def _node_maps(b: _Build, nd: _Nodes, traced: tuple, is_stop, diffracting) -> di
     slopes = [dvec[:, 0] / dvec[:, 2], dvec[:, 1] / dvec[:, 2], dvec[:, 0], dvec[:, 1]] if diffracting else []
     chan = torch.stack([phi, w0, dvec[:, 2], uv_lin[:, 0], uv_lin[:, 1]] + slacks + slopes, -1)
     grid = nd.as_map(_nearest_fill(chan, good, nd.targets, grad_xy=n * dvec[:, :2]))
-    phi_g, w0_g, gamma_g, u_g, v_g = grid[:5]
+    phi_g, w0_g, gamma_g = grid[:3]
     # ray density |det ∂uv/∂x| by central differences over the node grid
-    du_dy, du_dx = torch.gradient(u_g, spacing=nd.h, dim=(0, 1))
-    dv_dy, dv_dx = torch.gradient(v_g, spacing=nd.h, dim=(0, 1))
+    (du_dy, dv_dy), (du_dx, dv_dx) = torch.gradient(grid[3:5], spacing=nd.h, dim=(1, 2))
     det = du_dx * dv_dy - du_dy * dv_dx
     ky, kx = nd.ky, nd.kx
     phi_env = phi_g - phi_g[ky // 2, kx // 2].detach() - n * (carrier[0] * nd.tx + carrier[1] * nd.ty)
@@ -337,27 +346,31 @@ def _edge_distances(slack_maps, is_stop, diffracting: bool, h_node: float) -> di
     """Distance (plane mm) to the nearest aperture edge, ``slack / |∇_x slack|``, clamped to ±3h (only the
     distance near an edge matters; clamping keeps the cubic interpolation from ringing where the slack has a kink,
     a circular aperture's centre, or far from any edge); with ``diffracting`` the stop's edge apart (``stop``:
-    distance and unit normal, differentiated) and ``other`` (the other edges)."""
-    dist, stop, other = None, None, None
-    for j, sl in enumerate(slack_maps):
-        gy_, gx_ = torch.gradient(sl.detach(), spacing=h_node, dim=(0, 1))
-        gn = torch.sqrt(gx_**2 + gy_**2).clamp_min(1e-12)
-        dj = sl / gn
-        dist = dj if dist is None else torch.minimum(dist, dj)
-        if diffracting and is_stop[j]:
+    distance and unit normal, differentiated) and ``other`` (the other edges). ``slack_maps`` (A, ky, kx): every
+    aperture's slack, their gradients taken at once."""
+    if len(slack_maps) == 0:
+        return {"dist": None, "stop": None, "other": None}
+    gy_, gx_ = torch.gradient(slack_maps.detach(), spacing=h_node, dim=(1, 2))
+    dj = slack_maps / torch.sqrt(gx_**2 + gy_**2).clamp_min(1e-12)  # (A, ky, kx)
+    dist = dj.amin(0)
+    stop, other = None, None
+    if diffracting:
+        stops = [j for j, s_ in enumerate(is_stop) if s_]
+        others = [j for j, s_ in enumerate(is_stop) if not s_]
+        if stops:
             # the Fresnel step reads the distance far from the edge (ν = g·s over several zones) and the edge's
             # normal (Fresnel length, curvature): both differentiated, |∇ slack| (the ray map's magnification of
             # the stop) included; same values as the detached ones
+            sl = slack_maps[stops[-1]]
             gy_l, gx_l = torch.gradient(sl, spacing=h_node, dim=(0, 1))
             n2 = gx_l**2 + gy_l**2
             ok = n2 > 1e-24  # = the clamp at 1e-12 below, with a finite derivative at the stop's centre (kink)
             gn_l = torch.where(ok, safe_sqrt(n2, ok), torch.full_like(n2, 1e-12))
             stop = (sl / gn_l, gx_l / gn_l, gy_l / gn_l)
-        elif diffracting:
-            other = dj if other is None else torch.minimum(other, dj)
+        if others:
+            other = dj[others].amin(0)
     lim = 3.0 * h_node
-    return {"dist": None if dist is None else dist.clamp(-lim, lim), "stop": stop,
-            "other": None if other is None else other.clamp(-lim, lim)}
+    return {"dist": dist.clamp(-lim, lim), "stop": stop, "other": None if other is None else other.clamp(-lim, lim)}
 
 
 def _stop_edge_maps(b: _Build, nd: _Nodes, traced: tuple, maps: dict) -> dict:
@@ -378,10 +391,11 @@ def _stop_edge_maps(b: _Build, nd: _Nodes, traced: tuple, maps: dict) -> dict:
         if bool((dz_n * dz_edge > 0).all()):  # same side of the DOE plane as the pupil (else: the plane)
             dz_edge, rim_ok = dz_n, True
     s_stop, nx_, ny_ = maps["stop"]
-    g_s = _fresnel_scale(maps["slopes"], nx_, ny_, nd.h, dz_edge, wavelength * 1e-3 / n, p)
-    # the Fresnel scale along the edge: the edge's curvature in Fresnel units is κ·g/g_t² (the kernel's lengths
-    # across and along the edge differ off axis, and on axis where the wave's two curvatures do)
-    g_t = _fresnel_scale(maps["slopes"], -ny_, nx_, nd.h, dz_edge, wavelength * 1e-3 / n, p)
+    # the Fresnel scales across the edge (g_s) and along it (g_t), in one evaluation: the edge's curvature in Fresnel
+    # units is κ·g/g_t² (the kernel's lengths across and along the edge differ off axis, and on axis where the
+    # wave's two curvatures do)
+    g_s, g_t = _fresnel_scale(maps["slopes"], torch.stack([nx_, -ny_]), torch.stack([ny_, nx_]), nd.h, dz_edge,
+                              wavelength * 1e-3 / n, p)
     # ν = g·s and κ·g/g_t² vary smoothly: interpolated as they are
     nu_lim = _nu_inner(ripple_zones) + 4.0
     div_n = torch.gradient(nx_, spacing=nd.h, dim=1)[0] + torch.gradient(ny_, spacing=nd.h, dim=0)[0]

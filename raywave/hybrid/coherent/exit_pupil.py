@@ -94,8 +94,9 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     ripple_zones = RIPPLE_ZONES if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
     on_doe = ChiefRays(chief_doe, chief_sensor, uv=chief_uv)  # the chief ray on the DOE plane
-    if method == "adaptive":
-        method = adaptive_edge_step(lens, doe, field, wavelength, depth, z_doe, z_sensor, field_type)
+    if method == "adaptive":  # the caller's choice (decided for all its sources at once), else this source's own
+        method = known.edge_step or adaptive_edge_step(lens, doe, field, wavelength, depth, z_doe, z_sensor,
+                                                       field_type)
     if method == "doe":  # exact for this source (see adaptive_edge_step): the edge cut on the DOE plane
         fd = yield from accurate_field_steps(lens, doe, source, Planes(z_doe, z_sensor), on_doe,
                                              replace(settings, virtual=False, stop_plane=None), Known(bbox, entrance))
@@ -224,33 +225,45 @@ def edge_aberration(lens, field, wavelength: float, depth, field_type: str | Non
 def _edge_focus(lens, field, wavelength: float, depth, field_type: str | None = None):
     """``(waves, focus z mm, NA, n)`` of :func:`edge_aberration` (``waves`` inf, the rest None, where a ray cannot
     be traced): the aberration, the z of the point closest to the edge's rays, their spread ``n·sin`` and the image
-    medium's index."""
+    medium's index (:func:`edge_focus_many` of the one source)."""
+    return edge_focus_many(lens, field, [float(wavelength)], depth, field_type)[0][0]
+
+
+def edge_focus_many(lens, fields, wavelengths, depth, field_type: str | None = None) -> list:
+    """:func:`_edge_focus` of every source of ``fields`` (F, 2) × ``wavelengths`` (W,) µm, from one trace of their
+    F·W·48 edge rays (issue 43: a map's sources share it): ``[F][W]`` tuples ``(waves, focus z mm, NA, n)``. Each
+    ray is aimed and traced on its own, so each source's values are its own call's (to the aiming's rounding)."""
     dev = lens.device
-    f = torch.as_tensor(field, dtype=torch.float64, device=dev).reshape(1, 2)
+    f = torch.as_tensor(fields, dtype=torch.float64, device=dev).reshape(-1, 2)
     th = torch.arange(SPHERE_AZIMUTHS, dtype=torch.float64, device=dev) * (2 * math.pi / SPHERE_AZIMUTHS)
     r = torch.tensor(SPHERE_RINGS, dtype=torch.float64, device=dev)[:, None]
     px, py = (r * torch.cos(th)).reshape(-1), (r * torch.sin(th)).reshape(-1)
-    wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=dev)
+    wl = torch.tensor([float(w) for w in wavelengths], dtype=torch.float64, device=dev)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # a diagnostic trace, apertures off
         rays = point_source_rays(lens, f, wl, pupil=(px, py), aim="full", depth=depth,
                                  field_type=field_type or lens.field_type)
         out = lens.trace(rays, apertures=False)
-        if not bool(out.valid.all()):
-            return math.inf, None, None, None
-        o, d = out.o[0, 0], out.d[0, 0]
+        ok = out.valid.all(-1)  # (F, W)
+        o, d = out.o, out.d  # (F, W, N, 3)
         d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
-        proj = torch.eye(3, dtype=torch.float64, device=dev) - d[:, :, None] * d[:, None, :]  # (N, 3, 3)
-        x = torch.linalg.solve(proj.sum(0), (proj @ o[:, :, None]).sum(0))[:, 0]
-        dist = torch.linalg.vector_norm((proj @ (x - o)[:, :, None])[:, :, 0], dim=-1)
-        mean = d.mean(0)
-        mean = mean / torch.linalg.vector_norm(mean)
-        n = float(lens.surfaces[-1].material.n(wl[0]))
-        na = n * float(torch.linalg.vector_norm(torch.linalg.cross(d, mean.expand_as(d)), dim=-1).max())
-    value = float(dist.max()) * na / (float(wavelength) * 1e-3 / n)
-    if not (math.isfinite(value) and math.isfinite(float(x[2]))):
-        return math.inf, None, None, None
-    return value, float(x[2]), na, n
+        proj = torch.eye(3, dtype=torch.float64, device=dev) - d[..., :, None] * d[..., None, :]  # (F, W, N, 3, 3)
+        a = torch.where(ok[..., None, None], proj.sum(-3), torch.eye(3, dtype=torch.float64, device=dev))
+        x = torch.linalg.solve(a, (proj @ o[..., None]).sum(-3))[..., 0]  # (F, W, 3)
+        dist = torch.linalg.vector_norm((proj @ (x[..., None, :] - o)[..., None])[..., 0], dim=-1).amax(-1)
+        mean = d.mean(-2)
+        mean = mean / torch.linalg.vector_norm(mean, dim=-1, keepdim=True)
+        n = lens.surfaces[-1].material.n(wl).to(torch.float64)  # (W,)
+        na = n * torch.linalg.vector_norm(torch.linalg.cross(d, mean[..., None, :].expand_as(d)), dim=-1).amax(-1)
+        value = dist * na / (wl * 1e-3 / n)
+        host = torch.stack([value, x[..., 2], na, n.expand_as(na), ok.to(torch.float64)], -1).cpu().tolist()
+    out = []
+    for row in host:
+        out.append([])
+        for v, z, na_, n_, good in row:
+            fine = good == 1.0 and math.isfinite(v) and math.isfinite(z)
+            out[-1].append((v, z, na_, n_) if fine else (math.inf, None, None, None))
+    return out
 
 
 #: ``method="adaptive"``: the wave near the stop's edge is taken for a sphere (:func:`edge_aberration`, waves) up to
@@ -278,9 +291,25 @@ def adaptive_edge_step(lens, doe, field, wavelength: float, depth, z_doe: float,
     A blank DOE's PSF and a phase DOE's PSF of the same lens may so come from different edge constructions: their
     difference then holds the Fresnel step's own error (1.3e-3 in a grating's first-order efficiency unmixed with
     the blank PSF at F/4, tests/test_doe_params.py); pass ``edge_step="fresnel"`` to compare them like for like."""
+    return adaptive_edge_steps(lens, doe, field, [float(wavelength)], depth, (z_doe, z_sensor), field_type)[0][0]
+
+
+def adaptive_edge_steps(lens, doe, fields, wavelengths, depth, planes: tuple, field_type: str | None = None) -> list:
+    """:func:`adaptive_edge_step` of every source of ``fields`` (F, 2) × ``wavelengths`` (W,) µm (``planes`` =
+    ``(z_doe, z_sensor)`` mm): ``[F][W]`` of "doe" or "fresnel", the edge rays of all sources traced once
+    (:func:`edge_focus_many`; issue 43: a map's call decides them together in its shared geometry step)."""
+    nf = torch.as_tensor(fields).reshape(-1, 2).shape[0]
     if not is_blank(doe):
-        return "fresnel"
-    waves, z_focus, na, n = _edge_focus(lens, field, wavelength, depth, field_type)
+        return [["fresnel"] * len(wavelengths) for _ in range(nf)]
+    z_doe, z_sensor = planes
+    return [[_sphere_step(foc, wl, z_doe, z_sensor) for foc, wl in zip(row, wavelengths)]
+            for row in edge_focus_many(lens, fields, wavelengths, depth, field_type)]
+
+
+def _sphere_step(focus: tuple, wavelength: float, z_doe: float, z_sensor: float) -> str:
+    """"doe" where the edge's wave ``focus`` (:func:`_edge_focus`) is a sphere focused on the sensor (both to
+    :data:`SPHERE_TOL`), else "fresnel"."""
+    waves, z_focus, na, n = focus
     if not waves <= SPHERE_TOL:
         return "fresnel"
     if defocus_mismatch(z_focus, na, n, wavelength, z_doe, z_sensor) > SPHERE_TOL:

@@ -97,11 +97,14 @@ class Known:
     """What a caller that builds many fields traced already (None: traced by the construction): ``bbox`` the lit
     footprint on the DOE plane (:func:`~raywave.hybrid.coherent.footprints`; ``False``: none), ``entrance`` ``(z,
     radius)`` mm of the paraxial entrance pupil, ``stop_rim`` the stop rim's images
-    (:func:`~raywave.hybrid.coherent.stop_rim_images`)."""
+    (:func:`~raywave.hybrid.coherent.stop_rim_images`), ``edge_step`` the exit-pupil edge's step of
+    ``method="adaptive"`` for this source, "doe" or "fresnel" (:func:`~raywave.hybrid.coherent.exit_pupil.
+    adaptive_edge_steps`, decided for all of a call's sources from one trace)."""
 
     bbox: object = None
     entrance: object = None
     stop_rim: object = None
+    edge_step: str | None = None
 
 
 def check_types(where: str, source, planes, chief, settings) -> None:

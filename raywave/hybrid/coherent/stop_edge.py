@@ -96,11 +96,11 @@ def _fresnel_scale(slopes, nx, ny, h_node: float, dz: float, lam_m: float, pitch
     distance from the edge's plane to the DOE plane (a converging wave: the Fresnel scaling theorem,
     ``L = d (R − d)/R`` for a sphere of radius R). ``L`` is kept ≥ ``(1.5 p)²/λ_m`` so that the edge is never
     sharper than 1.5 pixels (anti-aliasing when the DOE sits at the exit pupil). Args: ``slopes`` (4, ky, kx):
-    ``t_x/γ, t_y/γ, t_x, t_y`` at the nodes; ``nx, ny`` (ky, kx) the edge normal; ``h_node`` node spacing (mm).
-    Differentiable with respect to the ray directions."""
+    ``t_x/γ, t_y/γ, t_x, t_y`` at the nodes; ``nx, ny`` (ky, kx) the edge normal (or (M, ky, kx): M directions at
+    once, e.g. across and along the edge); ``h_node`` node spacing (mm). Differentiable with respect to the ray
+    directions."""
     a, b, tx, ty = slopes
-    da_dy, da_dx = torch.gradient(a, spacing=h_node, dim=(0, 1))
-    db_dy, db_dx = torch.gradient(b, spacing=h_node, dim=(0, 1))
+    (da_dy, db_dy), (da_dx, db_dx) = torch.gradient(slopes[:2], spacing=h_node, dim=(1, 2))
     k00, k01, k10, k11 = 1 - dz * da_dx, -dz * da_dy, -dz * db_dx, 1 - dz * db_dy
     det = k00 * k11 - k01 * k10
     det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, 1e-12))
@@ -431,6 +431,14 @@ def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str
                          k: int = RIM_POINTS) -> list:
     """:func:`stop_rim_images` of the sources ``fields`` (F, 2) at one wavelength (µm), from one trace of all their
     rim rays (5·F sources × k rim points): a list of F results (``(theta, z)`` or None)."""
+    return stop_rim_images_all(lens, fields, [float(wavelength)], depth, field_type, k)[0]
+
+
+def stop_rim_images_all(lens, fields, wavelengths, depth, field_type: str | None = None,
+                        k: int = RIM_POINTS) -> list:
+    """:func:`stop_rim_images` of the sources ``fields`` (F, 2) at every wavelength of ``wavelengths`` (W,) µm, from
+    one trace of all their rim rays (5·F sources × W wavelengths × k rim points; issue 43: one trace per call instead
+    of one per wavelength): ``[W][F]`` results (``(theta, z)`` or None)."""
     field_type = field_type or lens.field_type
     f = torch.as_tensor(fields, dtype=torch.float64, device=lens.device).reshape(-1, 2)
     nf = f.shape[0]
@@ -442,25 +450,35 @@ def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str
     srcs = torch.stack([f, f + ex, f + ey, f - ex, f - ey], 1).reshape(-1, 2)
     theta = torch.arange(k, dtype=torch.float64, device=lens.device) * (2 * math.pi / k)
     c, s = torch.cos(theta), torch.sin(theta)
+    wl = torch.tensor([float(w) for w in wavelengths], dtype=torch.float64, device=lens.device)
     with warnings.catch_warnings():
         # a diagnostic trace of nudged sources through the rim, apertures off: the field construction of the
         # source itself reports its vignetting. Other warnings pass through.
         warnings.simplefilter("ignore", VignettingWarning)
-        rays = point_source_rays(lens, srcs, torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device),
-                                 pupil=(c, s), aim="full", depth=depth, field_type=field_type)
+        rays = point_source_rays(lens, srcs, wl, pupil=(c, s), aim="full", depth=depth, field_type=field_type)
         out, rec = lens.trace(rays, apertures=False, record=True)
-    o, d = out.o[:, 0].reshape(nf, 5, k, 3), out.d[:, 0].reshape(nf, 5, k, 3)
-    opl = out.opl[:, 0].reshape(nf, 5, k)
-    n_img = lens.surfaces[-1].material.n(out.wavelength.reshape(-1)[:1].reshape(())).to(opl.dtype)  # image medium
-    v = out.valid[:, 0].reshape(nf, 5, k)
+    nw = wl.numel()
+    o, d = out.o.reshape(nf, 5, nw, k, 3), out.d.reshape(nf, 5, nw, k, 3)
+    opl = out.opl.reshape(nf, 5, nw, k)
+    n_img = lens.surfaces[-1].material.n(wl).to(opl.dtype)  # the image medium's index (W,)
+    v = out.valid.reshape(nf, 5, nw, k).all(-1).all(1).tolist()  # (F, W)
     stop = lens.stop_index
     if stop == 0:  # the rays' own directions reach the first surface
-        dv = rays.d[:, 0]
+        dv = rays.d
     else:
-        dv = torch.stack(rec.points[stop + 1], -1)[:, 0] - torch.stack(rec.points[stop], -1)[:, 0]
-    dv = dv.reshape(nf, 5, k, 3)
-    return [_rim_crossing(o[i], d[i], dv[i], c, s, theta, opl[i, 0], n_img) if bool(v[i].all()) else None
-            for i in range(nf)]
+        dv = torch.stack(rec.points[stop + 1], -1) - torch.stack(rec.points[stop], -1)
+    dv = dv.reshape(nf, 5, nw, k, 3)
+    # every source and wavelength at once: (F·W, 5, k, ...) rows, source-major
+    rows = nf * nw
+    # a source with an invalid ray is left out: its rows set to ones (through where, so that no NaN of theirs reaches
+    # the gradients of the others; its nudges then do not turn the rays) and dropped as degenerate
+    live = torch.tensor([v[i][j] for i in range(nf) for j in range(nw)], device=o.device)[:, None, None, None]
+    o, d, dv = (torch.where(live, t_, torch.ones_like(t_)) for t_ in
+                (t.transpose(1, 2).reshape(rows, 5, k, 3) for t in (o, d, dv)))
+    z, points, paths, ok = _rim_crossings(o, d, dv, c, s, opl[:, 0].reshape(rows, k), n_img.repeat(nf)[:, None])
+    ok = ok.tolist()
+    return [[RimImages(theta, z[i * nw + j], points[i * nw + j], paths[i * nw + j])
+             if v[i][j] and ok[i * nw + j] else None for i in range(nf)] for j in range(nw)]
 
 
 class RimImages(tuple):
@@ -474,46 +492,43 @@ class RimImages(tuple):
         return obj
 
 
-def _rim_crossing(o, d, dv, c, s, theta, opl0=None, n_img: float = 1.0):
-    """The rim images of one source from its rays (5, k, 3) (the source and its four nudges) through the rim points
-    at azimuths ``theta`` (k,): :class:`RimImages` (with the image points and the optical paths to them when the
-    source's rays' paths ``opl0`` (k,) at ``o[0]`` are given, ``n_img`` the image medium's index), or None (a
-    degenerate source, a non-finite crossing)."""
-    w = _radial_nudge(dv, c, s)
-    if w is None:
-        return None
-    # (k, 3): the ray of the source nudged so that its ray through the rim point turns along the rim's normal
-    do = w[:, :1] * (o[1] - o[3]) + w[:, 1:] * (o[2] - o[4])
-    dd = w[:, :1] * (d[1] - d[3]) + w[:, 1:] * (d[2] - d[4])
-    a = d[0]
+def _rim_crossings(o, d, dv, c, s, opl0, n_img):
+    """The rim images of B sources at once from their rays (B, 5, k, 3) (each source and its four nudges) through the
+    rim points at azimuths with cosines and sines ``c``, ``s`` (k,): ``(z (B, k) mm, image points (B, k, 3), optical
+    paths to them (B, k) mm, ok (B,) bool)`` (``opl0`` (B, k) the source's rays' paths at ``o[:, 0]``, ``n_img``
+    (B, 1) the image medium's index); ``ok`` False for a degenerate source (:func:`_radial_nudge`) or a non-finite
+    crossing."""
+    w, turns = _radial_nudge(dv, c, s)
+    # (B, k, 3): the ray of the source nudged so that its ray through the rim point turns along the rim's normal
+    do = w[..., :1] * (o[:, 1] - o[:, 3]) + w[..., 1:] * (o[:, 2] - o[:, 4])
+    dd = w[..., :1] * (d[:, 1] - d[:, 3]) + w[..., 1:] * (d[:, 2] - d[:, 4])
+    a = d[:, 0]
 
     def perp(v_):
         return v_ - (v_ * a).sum(-1, keepdim=True) * a
 
     po, pd = perp(do), perp(dd)
     t = -(po * pd).sum(-1) / (pd * pd).sum(-1).clamp_min(1e-300)
-    z = o[0, :, 2] + t * a[:, 2]
-    if not bool(torch.isfinite(z.detach()).all()):
-        return None
-    if opl0 is None:
-        return RimImages(theta, z)
-    return RimImages(theta, z, o[0] + t[:, None] * a, opl0 + n_img * t)
+    z = o[:, 0, :, 2] + t * a[..., 2]
+    ok = turns & torch.isfinite(z.detach()).all(-1)
+    return z, o[:, 0] + t[..., None] * a, opl0 + n_img * t, ok
 
 
 def _radial_nudge(dv: torch.Tensor, c: torch.Tensor, s: torch.Tensor):
-    """Weights (k, 2) of the x and y source nudges (central differences: sources 1, 3 and 2, 4 of the rays'
-    directions ``dv`` (5, k, 3) as they arrive at the stop) whose combination turns the ray through each rim point
-    along the rim's normal ``(c, s)`` as it arrives at the stop: the edge's image for its normal diffraction, the
-    same whatever units (angle, object height) the field takes; None if the nudges do not turn the rays (a
-    degenerate source)."""
-    slope = dv[..., :2] / dv[..., 2:3]  # (5, k, 2): the incoming ray's slopes at the stop
-    jac = torch.stack([slope[1] - slope[3], slope[2] - slope[4]], -1)  # (k, 2 slope, 2 nudge)
-    det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
-    if not bool((det.detach().abs() > 1e-300).all()):
-        return None
-    w0 = (jac[:, 1, 1] * c - jac[:, 0, 1] * s) / det
-    w1 = (-jac[:, 1, 0] * c + jac[:, 0, 0] * s) / det
-    return torch.stack([w0, w1], -1)
+    """Weights (B, k, 2) of the x and y source nudges (central differences: sources 1, 3 and 2, 4 of the rays'
+    directions ``dv`` (B, 5, k, 3) as they arrive at the stop) whose combination turns the ray through each rim
+    point along the rim's normal ``(c, s)`` as it arrives at the stop: the edge's image for its normal diffraction,
+    the same whatever units (angle, object height) the field takes; and (B,) bool: False where the nudges do not
+    turn the rays (a degenerate source; its weights are then meaningless, but finite)."""
+    slope = dv[..., :2] / dv[..., 2:3]  # (B, 5, k, 2): the incoming ray's slopes at the stop
+    jac = torch.stack([slope[:, 1] - slope[:, 3], slope[:, 2] - slope[:, 4]], -1)  # (B, k, 2 slope, 2 nudge)
+    det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+    nonzero = det.detach().abs() > 1e-300
+    det = torch.where(nonzero, det, torch.ones_like(det))  # (finite weights, and gradients, for a degenerate source)
+    w0 = (jac[..., 1, 1] * c - jac[..., 0, 1] * s) / det
+    w1 = (-jac[..., 1, 0] * c + jac[..., 0, 0] * s) / det
+    turns = nonzero.all(-1)
+    return torch.stack([w0, w1], -1), turns
 
 
 def _rim_azimuth_index(k: int, xs: torch.Tensor, ys: torch.Tensor):

@@ -100,20 +100,67 @@ def run_serial(gen):
         return stop.value
 
 
-def run_batched(gens: list) -> list:
+class _Pause:
+    """What a field construction yields (:data:`PAUSE`) between its ray stage (every trace done; the per-node maps
+    formed) and its field stage (the fine envelope on the simulation grid, the construction's largest arrays):
+    :func:`run_serial` and :func:`run_batched` go on at once; ``run_batched(..., pause=True)`` stops it there (a
+    :class:`Paused`), so that a caller can run the ray stage of many groups of sources in one pass and then build
+    the groups' fields one group at a time (issue 43)."""
+
+    def run(self):
+        return None
+
+
+#: the marker a construction yields between its ray stage and its field stage (:class:`_Pause`)
+PAUSE = _Pause()
+
+
+@dataclass
+class Paused:
+    """A field construction stopped at its :data:`PAUSE` (:func:`run_batched` with ``pause=True``): hand it to
+    :func:`run_batched` again to finish it."""
+
+    gen: object
+
+
+def _advance(gen, value, start: bool, pause: bool):
+    """``(request, None)``: the construction ``gen``'s next trace request after receiving ``value`` (``start``: its
+    first), past every :data:`PAUSE` unless ``pause`` (then the marker itself); ``(None, result)`` when it
+    returned."""
+    try:
+        req = next(gen) if start else gen.send(value)
+        while isinstance(req, _Pause) and not pause:
+            req = gen.send(None)
+    except StopIteration as stop:
+        return None, stop.value
+    return req, None
+
+
+def run_batched(gens: list, pause: bool = False) -> list:
     """Run several field constructions (generators that yield :class:`_TraceRequest` and return a
     :class:`DOEField`) together: in every round, the pending trace requests of all constructions that share a lens,
     plane and mode (whatever their wavelengths) are traced as one batch (:func:`_trace_group`: one ray trace for all
     fields instead of one per field, large enough for the elementwise kernels to use every thread). Each construction
     sees the results its own calls would give, so the fields equal :func:`run_serial`'s. Returns their results in
-    order."""
+    order. ``pause``: each construction stops at its :data:`PAUSE` (its ray stage done) and is returned as a
+    :class:`Paused`; ``gens`` may hold :class:`Paused` constructions (they go on from there) and finished results
+    (passed through)."""
     results = [None] * len(gens)
+    running = {}
     pending = {}
     for i, g in enumerate(gens):
-        try:
-            pending[i] = next(g)
-        except StopIteration as stop:
-            results[i] = stop.value
+        resume = isinstance(g, Paused)
+        if not (resume or hasattr(g, "send")):
+            results[i] = g  # finished already
+            continue
+        running[i] = g.gen if resume else g
+        req, res = _advance(running[i], None, not resume, pause)
+        if req is None:
+            results[i] = res
+        elif isinstance(req, _Pause):
+            results[i] = Paused(running[i])
+        else:
+            pending[i] = req
     while pending:
         groups: dict = {}
         for i, req in pending.items():
@@ -126,10 +173,13 @@ def run_batched(gens: list) -> list:
                 answers[i] = res
         pending = {}
         for i, res in answers.items():
-            try:
-                pending[i] = gens[i].send(res)
-            except StopIteration as stop:
-                results[i] = stop.value
+            req, out = _advance(running[i], res, False, pause)
+            if req is None:
+                results[i] = out
+            elif isinstance(req, _Pause):
+                results[i] = Paused(running[i])
+            else:
+                pending[i] = req
     return results
 
 
