@@ -31,8 +31,8 @@ SERIES_TOL = 1e-12
 _CHUNK = 1 << 15
 
 
-def _dist_step(v_comp: torch.Tensor, r0: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-    """r(s) − r₀ (…, N) for the point moved by ``s`` (…, 1) along one axis, ``v_comp`` (N,) the component of
+def _dist_step(v_comp: torch.Tensor, r0: torch.Tensor, s) -> torch.Tensor:
+    """r(s) − r₀ (…, N) for the point moved by ``s`` (a float or (…, 1)) along one axis, ``v_comp`` (N,) the component of
     v = Q − P₀ along it: r(s)² = r₀² − 2 s v + s², formed as (s² − 2 s v) / (r(s) + r₀) (no cancellation)."""
     num = s * s - 2.0 * s * v_comp
     return num / (torch.sqrt(r0 * r0 + num) + r0)
@@ -51,7 +51,7 @@ def _mixed_residual(q: torch.Tensor, r0: torch.Tensor, h11: torch.Tensor, ax: fl
     worst = 0.0
     for a in (-ax, ax):
         for b in (-by, by):
-            ra, rb = _dist_step(vx, r0, torch.tensor(a, dtype=q.dtype)), _dist_step(vy, r0, torch.tensor(b, dtype=q.dtype))
+            ra, rb = _dist_step(vx, r0, a), _dist_step(vy, r0, b)
             num = a * a + b * b - 2.0 * (a * vx + b * vy)
             rab = num / (torch.sqrt(r0 * r0 + num) + r0)
             worst = max(worst, float((rab - ra - rb - h11 * (a * b)).abs().max()))
