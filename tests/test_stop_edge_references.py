@@ -21,7 +21,8 @@ DATA = Path(__file__).resolve().parent / "data"
 
 def _plane_waves(n: int, p: float, waves):
     """A field (n, n) of plane waves ``(amplitude, fx, fy)`` (cycles/mm, rounded to whole cycles a window) sampled at
-    pitch p (sample (0, 0) at the origin), and its exact intensity's pixel integral over pixels of ``ps`` centred at ``c + (j, i)·ps``."""
+    pitch p (sample (0, 0) at the origin), and its exact intensity's pixel integral over pixels of ``ps`` centred at
+    ``c + (j, i)·ps``."""
     x = torch.arange(n, dtype=F64) * p
     df = 1.0 / (n * p)  # periodic in the window (the upsampling treats it so): whole cycles a period
     waves = [(a, round(fx / df) * df, round(fy / df) * df) for a, fx, fy in waves]

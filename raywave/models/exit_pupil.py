@@ -35,6 +35,12 @@ sum 1. ``energy_fraction`` = crop power / Σ_j dP_j / cos γ_j (γ_j: ray angle 
 axis), the Parseval total of |U|² over the whole plane in the Debye approximation — the same convention
 as :mod:`raywave.models.debye`.
 
+Quadrature: ``quadrature="grid"`` (the cells of a square grid, as above) or ``"polar"`` (:func:`polar_nodes`: Gauss–
+Legendre rings × the trapezoid rule in azimuth, spectrally convergent for a circular stop; the default of
+``n_pupil="auto"``). The sum over the sphere runs as matrix products on tiles of the sensor's tensor grid of nodes
+(:mod:`raywave.models.huygens_sum`, ~1e-6 of the point-by-point sum, ~10× faster), the point-by-point sum only with
+``obliquity``.
+
 Sampling limits: the discrete sum replicates the PSF with period λ/(n Δ(sinθ)) ≈ λ·n_pupil/(2·NA) on the
 sensor, so n_pupil must exceed 2·NA·(crop width + PSF extent)/λ; and the wavefront must change by less than
 about half a wave per pupil cell; :func:`huygens_psf` warns (RuntimeWarning) when either fails.
@@ -439,9 +445,15 @@ def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: fl
         field: (x, y) field point (degrees or mm, the lens's field type); ``wavelength``: µm (default primary).
         ks: crop size (pixels); ``pitch``: pixel size (mm, default the sensor's pixel pitch, else 1 µm).
         center: (x, y) mm of pixel [ks//2, ks//2] (default: the chief ray's sensor intercept).
-        n_pupil: pupil grid cells per side over the stop diameter, or ``"auto"``: the grid is chosen and
-            refined until converged (:func:`auto_n_pupil` for the first grid, then ×1.5 per level up to
-            ``max_n_pupil``, until the estimated error is at most ``tol``). The sum's error from the pupil
+        n_pupil: pupil grid cells per side over the stop diameter (the polar quadrature: nodes as dense), or
+            ``"auto"``: chosen and refined until converged. With ``quadrature="polar"`` (the default for "auto"):
+            the first level :data:`POLAR_FIRST` × :func:`auto_n_pupil`'s grid, then ×:data:`POLAR_RATIO` per level
+            up to ``max_n_pupil`` until two levels differ by at most ``tol``; that change is ``error_estimate`` (an
+            upper bound: the error falls faster than any power of n once the wavefront is resolved, and resolved
+            levels agree to ~1e-10: the double Gauss at full field 384 vs 512 nodes 5.5e-11, where the grid needs
+            ~1200 cells for 1e-3), and the finer level is returned. With ``quadrature="grid"``: :func:`auto_n_pupil`
+            for the first grid, then ×1.5 per level, until the estimated error is at most ``tol``. The grid sum's
+            error from the pupil
             sampling falls as 1/n² (measured on the bundled asphere on axis, ks 32 at 3 µm: 128 / 192 / 256 /
             384 cells are 1.43e-3 / 6.1e-4 / 3.0e-4 / 7.9e-5 from 512, i.e. ≈ 25/n²), so two levels n₀ < n₁ = 1.5 n₀ give the estimate
             ``|P₁ − P₀| / (1.5² − 1)`` of P₁'s error and the Richardson extrapolation ``(2.25 P₁ − P₀) / 1.25``
@@ -459,6 +471,13 @@ def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: fl
             lie on one circle, which the sphere then holds exactly; the paraxial sphere misses it by the pupil's
             spherical aberration and its own sag: 52 µm on the bundled asphere, 0.35 mm on the f/3 double Gauss,
             1 mm on the F/1.3 asphere, where the Kirchhoff cut on it is not where the edge is sharp).
+        quadrature: the pupil sum's nodes. "grid" (the default for an integer ``n_pupil``): the cells of a square
+            grid, the stop's edge anti-aliased by each cell's coverage (error ∝ 1/n²). "polar" (the default for
+            "auto"): :func:`polar_nodes`, Gauss–Legendre rings × the trapezoid rule in azimuth, the circular stop's
+            edge exactly the outer ring, each node's Jacobians from four neighbouring rays (error falling faster
+            than any power of n for a smooth wavefront: 1.6e-6 from the Debye focus at 64 nodes, where the grid is
+            1.07e-3). A vignetting aperture other than the stop (a hard cut inside the pupil) takes that
+            convergence back to the grid's.
     Returns: :class:`HuygensPSF` (float64 psf (ks, ks) summing to 1, centre, sensor z, energy fraction).
     """
     if quadrature is None:

@@ -32,8 +32,8 @@ _CHUNK = 1 << 15
 
 
 def _dist_step(v_comp: torch.Tensor, r0: torch.Tensor, s) -> torch.Tensor:
-    """r(s) − r₀ (…, N) for the point moved by ``s`` (a float or (…, 1)) along one axis, ``v_comp`` (N,) the component of
-    v = Q − P₀ along it: r(s)² = r₀² − 2 s v + s², formed as (s² − 2 s v) / (r(s) + r₀) (no cancellation)."""
+    """r(s) − r₀ (…, N) for the point moved by ``s`` (a float or (…, 1)) along one axis, ``v_comp`` (N,) the
+    component of v = Q − P₀ along it: r(s)² = r₀² − 2 s v + s², formed as (s² − 2 s v) / (r(s) + r₀) (no cancellation)."""
     num = s * s - 2.0 * s * v_comp
     return num / (torch.sqrt(r0 * r0 + num) + r0)
 

@@ -181,9 +181,9 @@ def integrated_upsampled_intensity(u: torch.Tensor, q: int, in_pitch: float, in_
 
         refine: also the pixel integral at ``2q`` (from the same ``2N`` grid: the cost of two small matrix
             products), and for each image whose ``2q`` integral differs from the ``q`` one by more than
-            :data:`REFINE_TOL` (relative L1 of the two normalised to sum 1) that one instead: the cubic pixel quadrature where ``q`` leaves more
-            than that (a PSF as sharp as the field's grid allows on pixels of about its pitch); elsewhere the ``q``
-            result as it was. The choice is not differentiated (both are differentiable).
+            :data:`REFINE_TOL` (relative L1 of the two normalised to sum 1) that one instead: the cubic pixel
+            quadrature where ``q`` leaves more than that (a PSF as sharp as the field's grid allows on pixels of
+            about its pitch); elsewhere the ``q`` result as it was. The choice is not differentiated (both are differentiable).
 
     Returns:
         float64 ``(..., Ny_out, Nx_out)``, differentiable with respect to ``u`` and ``out_origin``.
