@@ -1,6 +1,7 @@
 """The exit-pupil (Huygens) reference PSF (raywave.models.exit_pupil) against the Debye focus and symmetry."""
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -218,3 +219,10 @@ def test_undersampled_pupil_warns(asphere):
         huygens_psf(asphere, (0.0, 17.5), 0.53, ks=5, n_pupil=32, oversample=1)
     with pytest.warns(RuntimeWarning, match="replicas"):
         huygens_psf(ideal_lens(), (0.0, 0.0), LAM, ks=40, pitch=2e-3, n_pupil=12, oversample=1)
+    # the polar nodes: 32 for the 17.5° wavefront warn, the levels of n_pupil="auto" do not (their agreement checks)
+    with pytest.warns(RuntimeWarning, match="polar pupil nodes under-sample"):
+        huygens_psf(asphere, (0.0, 17.5), 0.53, ks=5, n_pupil=32, oversample=1, quadrature="polar")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        h = huygens_psf(asphere, (0.0, 7.0), 0.53, ks=8, n_pupil="auto", oversample=1)
+    assert h.error_estimate < 1e-4
