@@ -7,9 +7,10 @@ References:
 - ``real:NAME:FRAC`` (the lenses of tests/test_stop_edge_real_lenses.py through ``raywave psf``'s defaults, their
   blank DOE, at FRAC of the lens's largest field; sensor pitch as the slow test's SETTINGS) and ``asphere:DEG`` (the
   bundled hybrid_asphere's lens, a 6 mm blank DOE of 1 µm pixels at 0.7 mm, 3 µm sensor pixels, λ 0.53 µm): the
-  Huygens exit-pupil PSF, :func:`raywave.models.exit_pupil.huygens_psf` with ``n_pupil="auto"`` (levels ×1.5 up to
-  ``--max-n`` cells, the Richardson extrapolation of the last two; ``ref_error`` its own estimate, an upper bound for
-  the extrapolation while its 1/n² law holds; ``ref_levels`` each level's change).
+  Huygens exit-pupil PSF, :func:`raywave.models.exit_pupil.huygens_psf` with ``n_pupil="auto"`` (since 2026-11-29
+  the polar pupil quadrature: levels ×1.25 up to ``--max-n`` until two agree to ``tol``; ``ref_error`` the last
+  change, an upper bound for the finer level's error, ~1e-10 once the wavefront is resolved; ``ref_levels`` each
+  level's change).
 - ``two_lens:DEG`` (tests/test_ideal_lens_truth.py's two ideal lenses, a blank DOE 5 mm behind lens B) and
   ``single:CASE`` (one ideal lens, a DOE 1 mm behind it: binary, 16level, fresnel200 (a Fresnel DOE, object at
   200 mm), blank): the independent wave-optics truths of tests/wave_truth.py (no rays, no exit pupil: the stop's

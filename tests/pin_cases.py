@@ -61,6 +61,10 @@ def _ideal_exit_pupil():
 #: agree to L1 3e-5, at 17.5° the rim images bring the bundled asphere from 2.0e-3 to 5.9e-4 of the Huygens PSF);
 #: with ``hybrid_asphere_default`` (the Fresnel step) again the same day, when the step's Fresnel parameter came
 #: from each node's optical path difference to the edge (17.5°: 4.3e-3 -> 2.0e-3 from Huygens).
+#: ``cooke_triplet`` and ``ideal_binary2_exit_pupil`` (sensor pixels of the DOE's pitch) were re-pinned on 2026-11-29
+#: (issue 47) when the engine's pixel quadrature began refining itself (``integrated_upsampled_intensity(refine=True)``:
+#: q = 8 where q = 4 leaves more than 2e-4): rel L1 2.1e-3 and 3.3e-4 (benchmarks/results/
+#: psf_pins_refine_2026-11-29_j47.json has every pin's old-vs-new difference; the others move by < 1e-11).
 CASES = {
     "hybrid_asphere": (_hybrid_asphere, dict(fields=[(0.0, 0.0), (0.0, 7.0), (0.0, 14.0), (3.0, 10.0)],
                                              wavelengths=[0.47, 0.53, 0.66], ks=32)),

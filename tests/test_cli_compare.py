@@ -38,7 +38,8 @@ def test_compare_writes_grid_and_table_with_ground_truth(ideal_file, tmp_path, c
     assert len(report["pairs"]) == 2 * 15
     # the exit-pupil reference converges its own pupil sampling and says how far it may be off (issue 47)
     ep = [r for r in report["rows"] if r["model"] == "exit_pupil"]
-    assert all(r["n_pupil"] >= 128 and 0 < r["error_estimate"] < 1e-3 for r in ep)
+    # (polar pupil nodes by default: their levels agree to ~1e-10 once the wavefront is resolved)
+    assert all(r["n_pupil"] >= 32 and 0 <= r["error_estimate"] < 1e-3 for r in ep)
     assert "pupil cells, own error" in text
 
 

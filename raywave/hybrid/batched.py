@@ -150,7 +150,7 @@ def sensor_psfs(out: torch.Tensor, kk: int, p: float, sensor: SensorWindow, powe
     ks, ps = sensor.ks, sensor.pitch
     rel = (ks // 2) * ps - kk * p  # every window's sample (0, 0) relative to its crop's pixel (0, 0) centre
     crop = integrated_upsampled_intensity(out, sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks),
-                                          edge_taper(out.shape[-1], OUT_MARGIN - 2, out.device))
+                                          edge_taper(out.shape[-1], OUT_MARGIN - 2, out.device), refine=True)
     total = crop.sum((-2, -1))
     power = power.to(torch.float64)
     lit = power > 0

@@ -763,7 +763,7 @@ class HybridLens(nn.Module):
         # sensor pixels through its cubic interpolant; computed on the 2× grid (the q grid's weights folded onto it)
         q = self.intensity_upsample
         crop = integrated_upsampled_intensity(out, q, p, out_origin, ps, integrate_origin, (ks, ks),
-                                              _edge_taper(out.shape[-2:], _OUT_MARGIN - 2, out.device))
+                                              _edge_taper(out.shape[-2:], _OUT_MARGIN - 2, out.device), refine=True)
         total = crop.sum()
         outside = 1.0 - total / power.to(torch.float64)
         psf = safe_div(crop, total, total > 0)  # a crop with no light stays 0, with finite gradients
