@@ -65,6 +65,8 @@ def _ideal_exit_pupil():
 #: (issue 47) when the engine's pixel quadrature began refining itself (``integrated_upsampled_intensity(refine=True)``:
 #: q = 8 where q = 4 leaves more than 2e-4): rel L1 2.1e-3 and 3.3e-4 (benchmarks/results/
 #: psf_pins_refine_2026-11-29_j47.json has every pin's old-vs-new difference; the others move by < 1e-11).
+#: ``hybrid_asphere_exit_pupil`` (slow) was re-pinned on 2026-11-29: stale since 284053a (it differed already at the
+#: commit that regenerated the pins); rel L1 8.8e-5 (benchmarks/results/psf_pin_slow_exit_pupil_2026-11-29.json).
 CASES = {
     "hybrid_asphere": (_hybrid_asphere, dict(fields=[(0.0, 0.0), (0.0, 7.0), (0.0, 14.0), (3.0, 10.0)],
                                              wavelengths=[0.47, 0.53, 0.66], ks=32)),
