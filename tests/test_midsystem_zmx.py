@@ -5,6 +5,7 @@ optiland's real-ray trace of the same phase profile."""
 import math
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -95,6 +96,32 @@ def doublet(tmp_path):
     return path
 
 
+
+def _optiland_doublet_efl(radius_doe: float) -> float:
+    """The doublet's EFL (mm) in optiland, with the BINARY_2's radial phase on its surface 2 of radius ``radius_doe``
+    (mm; inf: plane): a paraxial real ray at pupil height 4e-4 mm (skips where optiland is absent)."""
+    pytest.importorskip("optiland")
+    from optiland.materials import IdealMaterial  # lazy: optiland is a test-only dependency
+    from optiland.optic import Optic
+    from optiland.phase import RadialPhaseProfile
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        o = Optic()
+        o.surfaces.add(index=0, radius=np.inf, thickness=np.inf)
+        o.surfaces.add(index=1, radius=50.0, thickness=4.0, material=IdealMaterial(1.5), is_stop=True)
+        o.surfaces.add(index=2, radius=radius_doe, thickness=2.0, material="air",
+                       phase_profile=RadialPhaseProfile([M * A1 / R_NORM ** 2, M * A2 / R_NORM ** 4]))
+        o.surfaces.add(index=3, radius=60.0, thickness=3.0, material=IdealMaterial(1.6))
+        o.surfaces.add(index=4, radius=-80.0, thickness=40.0, material="air")
+        o.surfaces.add(index=5)
+        o.set_aperture("EPD", 8.0)
+        o.fields.set_type("angle")
+        o.fields.add(y=0.0)
+        o.wavelengths.add(WL, is_primary=True)
+        rays = o.trace_generic(0.0, 0.0, 0.0, 1e-4, WL)  # pupil y 1e-4: h = 4e-4 mm
+    return -4e-4 * float(rays.N[0]) / float(rays.M[0])
+
 def test_binary2_inside_a_doublet_is_read_as_a_surface_doe(doublet):
     spec = read_lens_spec(doublet)
     s = spec["surfaces"][1]
@@ -121,29 +148,7 @@ def test_binary2_power_against_hand_trace_and_optiland(doublet):
     assert len(info) == 1 and info[0]["surface"] == 1 and info[0]["type"] == "binary_2"
     assert abs(info[0]["power"] - _doe_power()) < 1e-15 and abs(info[0]["efl_with_doe"] - efl_hand) < 1e-7 * efl_hand
 
-    pytest.importorskip("optiland")
-    import numpy as np
-    from optiland.materials import IdealMaterial
-    from optiland.optic import Optic
-    from optiland.phase import RadialPhaseProfile
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        o = Optic()
-        o.surfaces.add(index=0, radius=np.inf, thickness=np.inf)
-        o.surfaces.add(index=1, radius=50.0, thickness=4.0, material=IdealMaterial(1.5), is_stop=True)
-        o.surfaces.add(index=2, radius=np.inf, thickness=2.0, material="air",
-                       phase_profile=RadialPhaseProfile([M * A1 / R_NORM ** 2, M * A2 / R_NORM ** 4]))
-        o.surfaces.add(index=3, radius=60.0, thickness=3.0, material=IdealMaterial(1.6))
-        o.surfaces.add(index=4, radius=-80.0, thickness=40.0, material="air")
-        o.surfaces.add(index=5)
-        o.set_aperture("EPD", 8.0)
-        o.fields.set_type("angle")
-        o.fields.add(y=0.0)
-        o.wavelengths.add(WL, is_primary=True)
-        rays = o.trace_generic(0.0, 0.0, 0.0, 1e-4, WL)  # pupil y 1e-4: h = 4e-4 mm
-    efl_optiland = -4e-4 * float(rays.N[0]) / float(rays.M[0])
-    assert abs(efl_ray - efl_optiland) < 1e-7 * efl_optiland
+    assert abs(efl_ray - _optiland_doublet_efl(np.inf)) < 1e-7 * efl_ray
 
 
 DGRATING = DOUBLET.replace("""  TYPE BINARY_2
@@ -215,29 +220,7 @@ def test_curved_binary2_is_a_conformal_doe(tmp_path):
     ml = load_midsystem(path)
     assert ml.placements == [(1, None)]
 
-    pytest.importorskip("optiland")
-    import numpy as np
-    from optiland.materials import IdealMaterial
-    from optiland.optic import Optic
-    from optiland.phase import RadialPhaseProfile
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        o = Optic()
-        o.surfaces.add(index=0, radius=np.inf, thickness=np.inf)
-        o.surfaces.add(index=1, radius=50.0, thickness=4.0, material=IdealMaterial(1.5), is_stop=True)
-        o.surfaces.add(index=2, radius=-100.0, thickness=2.0, material="air",
-                       phase_profile=RadialPhaseProfile([M * A1 / R_NORM ** 2, M * A2 / R_NORM ** 4]))
-        o.surfaces.add(index=3, radius=60.0, thickness=3.0, material=IdealMaterial(1.6))
-        o.surfaces.add(index=4, radius=-80.0, thickness=40.0, material="air")
-        o.surfaces.add(index=5)
-        o.set_aperture("EPD", 8.0)
-        o.fields.set_type("angle")
-        o.fields.add(y=0.0)
-        o.wavelengths.add(WL, is_primary=True)
-        rays = o.trace_generic(0.0, 0.0, 0.0, 1e-4, WL)
-    efl_optiland = -4e-4 * float(rays.N[0]) / float(rays.M[0])
-    assert abs(efl_ray - efl_optiland) < 1e-7 * efl_optiland
+    assert abs(efl_ray - _optiland_doublet_efl(-100.0)) < 1e-7 * efl_ray
 
 
 @pytest.mark.parametrize("edit, expected", [
