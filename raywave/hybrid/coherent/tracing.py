@@ -155,12 +155,7 @@ def run_batched(gens: list, pause: bool = False) -> list:
             continue
         running[i] = g.gen if resume else g
         req, res = _advance(running[i], None, not resume, pause)
-        if req is None:
-            results[i] = res
-        elif isinstance(req, _Pause):
-            results[i] = Paused(running[i])
-        else:
-            pending[i] = req
+        _file_step(i, req, res, running[i], results, pending)
     while pending:
         groups: dict = {}
         for i, req in pending.items():
@@ -174,13 +169,19 @@ def run_batched(gens: list, pause: bool = False) -> list:
         pending = {}
         for i, res in answers.items():
             req, out = _advance(running[i], res, False, pause)
-            if req is None:
-                results[i] = out
-            elif isinstance(req, _Pause):
-                results[i] = Paused(running[i])
-            else:
-                pending[i] = req
+            _file_step(i, req, out, running[i], results, pending)
     return results
+
+
+def _file_step(i: int, req, out, gen, results: list, pending: dict) -> None:
+    """File construction ``i`` after one step of its generator ``gen``: finished (``out`` into ``results``), paused
+    at its ray stage (a :class:`Paused` into ``results``), or waiting on the request ``req`` (into ``pending``)."""
+    if req is None:
+        results[i] = out
+    elif isinstance(req, _Pause):
+        results[i] = Paused(gen)
+    else:
+        pending[i] = req
 
 
 def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z, need_jac=None):
