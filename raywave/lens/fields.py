@@ -338,7 +338,7 @@ def _beam_trace(lens, theta: torch.Tensor, s: torch.Tensor, ep_z: float, wl: flo
     """(height at the stop (M,), height on the image surface (M,), valid (M,), index (M,) of the first surface
     that stops the ray (-1: none; len(surfaces): the image surface)) of :func:`_beam_rays`."""
     with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+        warnings.simplefilter("ignore")  # trial rays of the solve: blocked ones come back in `first_dead`, named by its warning
         out, rec = lens.trace_to_image(_beam_rays(lens, theta, s, ep_z, wl), record=True)
     y_stop = rec.points[lens.stop_index + 1][1]
     y_img = out.o[..., 1]
