@@ -36,7 +36,7 @@ from raywave.lens.lens import Lens
 from raywave.lens.prescription import binary2_power
 from raywave.lens.sources import point_source_rays
 from raywave.rays.bundle import RayBundle
-from raywave.rays.pupil import RIM_INSET
+from raywave.rays.pupil import rim_and_grid
 
 __all__ = ["MAX_SIDE_PIXELS", "PHASE_STEP", "doe_lens", "does_lens", "lens_with_doe", "load_midsystem", "midsystem_from_spec",
            "midsystem_of", "surface_doe_info", "surface_doe_pitch", "surface_doe_positions"]
@@ -111,12 +111,7 @@ def _footprint(lens: Lens, after: int, distance: float | None, fields=None) -> t
     ``fields`` ((F, 2) in the lens's field type; default the lens's fields along y) and on axis, at its
     wavelengths."""
     probe = insert_doe(lens, after, distance, lambda x, y, w: (0 * x, 0 * x, 0 * x))
-    t = torch.linspace(0, 2 * math.pi, 37, dtype=torch.float64)[:-1]
-    g = torch.linspace(-1, 1, 7, dtype=torch.float64)
-    gx, gy = torch.meshgrid(g, g, indexing="xy")
-    inside = gx ** 2 + gy ** 2 <= 1
-    px = torch.cat([torch.cos(t), gx[inside]]) * RIM_INSET
-    py = torch.cat([torch.sin(t), gy[inside]]) * RIM_INSET
+    px, py = rim_and_grid(36, 7)
     fields = [(0.0, 0.0)] + ([(0.0, float(f)) for f in probe.fields] if fields is None else
                              [tuple(float(v) for v in row) for row in torch.as_tensor(fields).reshape(-1, 2)])
     with torch.no_grad():

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from raywave.rays.pupil import RIM_INSET
+from raywave.rays.pupil import rim_and_grid
 from raywave.doe.base import DOE, BlankDOE
 from raywave.hybrid.coherent.record import CausticWarning, DOEField, SamplingWarning
 from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
@@ -506,12 +506,7 @@ class MidSystemLens(nn.Module):
         scales = [doe_orders(self.does[j], wavelength, self.min_efficiency)[0][0] for j in range(n)]
         pms = phase_maps if phase_maps is not None else [None] * n
         lens_m, idx = self.build_lens(scales, pms)
-        t = torch.linspace(0, 2 * math.pi, 73, dtype=torch.float64)[:-1]
-        g = torch.linspace(-1, 1, 9, dtype=torch.float64)
-        gx, gy = torch.meshgrid(g, g, indexing="xy")
-        inside = gx**2 + gy**2 <= 1
-        px = torch.cat([torch.cos(t), gx[inside]]) * RIM_INSET
-        py = torch.cat([torch.sin(t), gy[inside]]) * RIM_INSET
+        px, py = rim_and_grid(72, 9)
         k = idx[i]
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the footprint's probe rays: vignetted ones drop out by `ok`; the PSF warns

@@ -35,6 +35,17 @@ def inset_rim(px: torch.Tensor, py: torch.Tensor) -> tuple[torch.Tensor, torch.T
     return torch.where(rim, px * scale, px), torch.where(rim, py * scale, py)
 
 
+def rim_and_grid(n_rim: int, n_grid: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normalised pupil points (float64, shape (n_rim + K,)): ``n_rim`` points evenly round the rim, then the K points
+    of an ``n_grid`` × ``n_grid`` square grid on [-1, 1]² inside the unit circle; all scaled by :data:`RIM_INSET`
+    so that the rim rays pass the stop. A probe of a beam's extent (footprints)."""
+    t = torch.linspace(0, 2 * math.pi, n_rim + 1, dtype=torch.float64)[:-1]
+    g = torch.linspace(-1, 1, n_grid, dtype=torch.float64)
+    gx, gy = torch.meshgrid(g, g, indexing="xy")
+    inside = gx**2 + gy**2 <= 1
+    return torch.cat([torch.cos(t), gx[inside]]) * RIM_INSET, torch.cat([torch.sin(t), gy[inside]]) * RIM_INSET
+
+
 def grid(n: int, shape: str = "circle", dtype=torch.float64, device=None) -> tuple[torch.Tensor, torch.Tensor]:
     """An n×n square grid over [-1, 1]² (pixel centres), keeping the points inside the unit circle
     (``shape="circle"``) or all of them (``shape="square"``)."""
