@@ -38,7 +38,7 @@ from raywave.hybrid.coherent.record import CausticWarning, DOEField, SamplingWar
 from raywave.hybrid.coherent.tracing import per_source
 from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
 from raywave.lens.lens import Lens
-from raywave.lens.sources import chief_ray, point_source_rays
+from raywave.lens.sources import chief_ray, point_source_rays, rays_through
 from raywave.surfaces.aperture import CircularAperture, SquareAperture
 from raywave.surfaces.geometry import Plane
 from raywave.surfaces.interaction import Diffraction
@@ -695,7 +695,8 @@ class MidSystemLens(nn.Module):
             hl._warn_caustic([(geo.clips[0][0][2], list(field), float(wavelength))])
         if len(keep) == 1:
             return fds[0][0], hl, orders
-        nc = self._caustic_counts(hl, field, wavelength, depth, [values[j] for j in keep])
+        nc = self._caustic_counts(hl, geo, values)
+        nc = [nc[j] for j in keep]
         cd = geo.chief[0]
         parts = []
         for k, j in enumerate(keep):  # the Gouy phase of the foci each order crosses, relative to the strongest
@@ -704,29 +705,34 @@ class MidSystemLens(nn.Module):
             parts.append((fd, c, _phase_at(cd[j, 0], fd, float(wavelength))))
         return _sum_orders(parts, self.final, float(wavelength)), hl, orders
 
-    def _caustic_counts(self, hl: HybridLens, field, wavelength: float, depth, values) -> list:
-        """:meth:`caustics` of the orders ``values`` (their per-source scales) of ``hl`` (:meth:`orders_engine`), from
-        one batched probe."""
+    def _caustic_counts(self, hl: HybridLens, geo, values) -> list:
+        """:meth:`caustics` of the orders ``values`` (their per-source scales; the call's first sources) of ``hl``
+        (:meth:`orders_engine`) whose call shared ``geo`` (its chief rays' entrance-plane points and entrance
+        pupil), from one batched trace: 3 rays a source, its chief ray and two offset by 1e-3 of the entrance pupil's
+        radius on the entrance plane (the map ``M`` from the DOE to the plane does not depend on how the probe is
+        parametrised)."""
         lens_m = hl.lens
-        e = 1e-3
-        px = torch.tensor([0.0, e, 0.0], dtype=torch.float64)
-        py = torch.tensor([0.0, 0.0, e], dtype=torch.float64)
-        f = hl._engine_fields([tuple(field)] * len(values))
-        with torch.no_grad(), warnings.catch_warnings(), per_source(lens_m, values):
-            warnings.simplefilter("ignore")  # 3 probe rays near each chief ray, apertures off; the PSF itself warns
-            rays = point_source_rays(lens_m, f, [wavelength], pupil=(px, py), aim="full", depth=depth)
-            at_doe = lens_m.trace(rays, stop=hl._doe_indices[0] + 1, apertures=False)
-            out = lens_m.trace(rays, apertures=False)
+        m = len(values)
+        ep_z, r_ep = geo.entrance
+        e = 1e-3 * max(r_ep, 1e-3)
+        uv = geo.chief[2][:m, :1, None, :].detach() + torch.tensor([[0.0, 0.0], [e, 0.0], [0.0, e]],
+                                                                   dtype=torch.float64, device=lens_m.device)
+        wl = torch.tensor(geo.wls, dtype=torch.float64, device=lens_m.device)
+        with torch.no_grad(), per_source(lens_m, values):
+            rays = rays_through(lens_m, uv, geo.f[:m], lens_m.field_type, wl, depth=geo.depth, ep_z=ep_z)
+            out, rec = lens_m.trace(rays, apertures=False, record=True)
             nmed = lens_m.surfaces[-1].material.n(out.wavelength).to(out.dtype)
             out = out.propagate_to_z(float(lens_m.vertex_z()[-1].detach()) + hl.doe_distance, nmed)
-        a, b = at_doe.o[:, 0, :3, :2], out.o[:, 0, :3, :2]
+        pts = rec.points[hl._doe_indices[0] + 1]
+        a = torch.stack([pts[0][:, 0], pts[1][:, 0]], -1)  # (M, 3, 2) on the first DOE
+        b = out.o[:, 0, :, :2]
         j0 = torch.stack([a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]], -1)
         j1 = torch.stack([b[:, 1] - b[:, 0], b[:, 2] - b[:, 0]], -1)
-        m = j1 @ torch.linalg.inv(j0)
-        out_n = []
-        for det, tr in zip(torch.linalg.det(m).tolist(), m.diagonal(dim1=-2, dim2=-1).sum(-1).tolist()):
-            out_n.append(0 if not (math.isfinite(det) and math.isfinite(tr)) else 1 if det < 0 else 2 if tr < 0 else 0)
-        return out_n
+        mm = j1 @ torch.linalg.inv(j0)
+        counts = []
+        for det, tr in zip(torch.linalg.det(mm).tolist(), mm.diagonal(dim1=-2, dim2=-1).sum(-1).tolist()):
+            counts.append(0 if not (math.isfinite(det) and math.isfinite(tr)) else 1 if det < 0 else 2 if tr < 0 else 0)
+        return counts
 
     def psf_result(self, fields=(0.0, 0.0), wavelengths=0.55, ks: int = 64, depth=None) -> PSFResult:
         """PSFs ``(F, W, ks, ks)`` (sum 1, centred on the strongest order's chief ray) as :class:`PSFResult`."""
@@ -806,10 +812,12 @@ def _sum_orders(parts, final: DOE, wavelength: float) -> DOEField:
         K0 = K.detach() if K0 is None else K0
         a, b = fd.carrier
         gx, gy = fd.grid.coordinates(device=env.device)
-        ramp = k * fd.n * ((a - a0) * gx[None, :] + (b - b0) * gy[:, None]) + k * (K - K0)
-        part = c * fd.envelope * torch.polar(torch.ones_like(ramp), ramp)
+        # the carrier change and the absolute phase as a separable phasor: exp(i rx(x)) exp(i ry(y))
+        rx = k * fd.n * (a - a0) * gx + k * (K - K0)
+        ry = k * fd.n * (b - b0) * gy
+        ex, ey = torch.polar(torch.ones_like(rx), rx), torch.polar(torch.ones_like(ry), ry)
+        part = (c * ex)[None, :] * fd.envelope * ey[:, None]
         by0, by1, bx0, bx1 = fd.box
-        env = env.index_put((torch.arange(by0 - iy0, by1 - iy0, device=env.device)[:, None],
-                             torch.arange(bx0 - ix0, bx1 - ix0, device=env.device)[None, :]), part, accumulate=True)
+        env[by0 - iy0:by1 - iy0, bx0 - ix0:bx1 - ix0] += part
     return DOEField(Field(env, grid, wavelength, fd0.n, fd0.carrier), (iy0, iy1, ix0, ix1), fd0.z, fd0.center,
                     fd0.info, fd0.chief_tan)
