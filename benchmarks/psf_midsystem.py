@@ -11,14 +11,24 @@ too). Cases:
 * ``last``: the same DOE class before the sensor, :class:`raywave.hybrid.HybridLens` (the engine's one path).
 
 Times: median wall time of ``--repeat`` PSFs (forward; and forward + backward w.r.t. the DOE's parameters), one
-thread. Prints one JSON object (and writes it with ``-o``)."""
+thread. Prints one JSON object (and writes it with ``-o``).
+
+A/B of two source trees (issue 46's cost, measured in one run): ``--a /old/tree --b . [--rounds 2]`` runs this
+benchmark in each tree as its own process (``OMP_NUM_THREADS=1``), interleaved A, B, A, B, …, and reports every
+time's median over the rounds per tree, the mid/last ratios, and the B/A speed-up of the mid-system PSF::
+
+    git worktree add --detach /tmp/m46_base 4b765c7
+    python benchmarks/psf_midsystem.py --a /tmp/m46_base --b . --rounds 2 -o out.json"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import os
 import statistics
+import subprocess
+import sys
 import time
 import warnings
 
@@ -119,13 +129,50 @@ def run(repeat: int, field: float) -> dict:
     return out
 
 
+def _child(tree: str, repeat: int, field: float) -> dict:
+    """One run of this benchmark in the source tree ``tree`` (its own copy of this script), one thread."""
+    env = dict(os.environ, PYTHONPATH=os.path.abspath(tree), OMP_NUM_THREADS="1")
+    out = subprocess.run([sys.executable, os.path.join("benchmarks", "psf_midsystem.py"), "--repeat", str(repeat),
+                          "--field", str(field)], cwd=tree, env=env, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout)
+
+
+def run_ab(tree_a: str, tree_b: str, rounds: int, repeat: int, field: float) -> dict:
+    """:func:`run` in two trees, interleaved A, B, A, B, … (``rounds`` each); medians per tree and case, the
+    mid/last ratios of each tree and the B/A speed-up of the mid-system PSF."""
+    runs = {"a": [], "b": []}
+    for _ in range(rounds):
+        for key, tree in (("a", tree_a), ("b", tree_b)):
+            runs[key].append(_child(tree, repeat, field))
+    first = runs["a"][0]
+    out = {"system": first["system"], "field_deg": field, "repeat": repeat, "rounds": rounds, "threads": 1,
+           "a": os.path.abspath(tree_a), "b": os.path.abspath(tree_b), "cases": {}}
+    times = ("mid_forward_s", "last_forward_s", "mid_backward_s", "last_backward_s")
+    for case in first["cases"]:
+        row = {"orders": first["cases"][case]["orders"]}
+        for key in ("a", "b"):
+            med = {t: statistics.median(r["cases"][case][t] for r in runs[key]) for t in times}
+            med["forward_ratio"] = med["mid_forward_s"] / med["last_forward_s"]
+            med["backward_ratio"] = med["mid_backward_s"] / med["last_backward_s"]
+            row[key] = med
+        row["mid_forward_speedup_b_over_a"] = row["a"]["mid_forward_s"] / row["b"]["mid_forward_s"]
+        row["mid_backward_speedup_b_over_a"] = row["a"]["mid_backward_s"] / row["b"]["mid_backward_s"]
+        out["cases"][case] = row
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--field", type=float, default=1.5, help="field angle (deg, along y)")
+    ap.add_argument("--a", help="A/B: the first (old) source tree")
+    ap.add_argument("--b", help="A/B: the second (new) source tree")
+    ap.add_argument("--rounds", type=int, default=2, help="A/B: runs of each tree, interleaved")
     ap.add_argument("-o", "--output")
     a = ap.parse_args(argv)
-    res = run(a.repeat, a.field)
+    if (a.a is None) != (a.b is None):
+        ap.error("give both --a and --b for an A/B")
+    res = run_ab(a.a, a.b, a.rounds, a.repeat, a.field) if a.a else run(a.repeat, a.field)
     text = json.dumps(res, indent=1)
     print(text)
     if a.output:
