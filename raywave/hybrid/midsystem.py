@@ -190,10 +190,11 @@ class DOEPhaseSurface(nn.Module):
         iv = torch.floor(v.detach()).clamp(1, ny + 1)
         wu, dwu = _keys(u - iu)
         wv, dwv = _keys(v - iv)
-        off = torch.arange(-1, 3, device=u.device)
-        cols = (iu.long()[:, None] + off).clamp(0, nx + 3)
-        rows = (iv.long()[:, None] + off).clamp(0, ny + 3)
-        vals = pm[rows[:, :, None], cols[:, None, :]]  # (N, 4, 4)
+        # the 4×4 taps iv−1 … iv+2 × iu−1 … iu+2 as one gather of the flat map (rows of nx + 4 samples)
+        w = nx + 4
+        off = (torch.arange(-1, 3, device=u.device)[:, None] * w + torch.arange(-1, 3, device=u.device)).reshape(-1)
+        at = iv.long().clamp(1, ny + 1) * w + iu.long().clamp(1, nx + 1)
+        vals = pm.reshape(-1).take(at[:, None] + off).reshape(-1, 4, 4)  # (N, 4, 4)
         phi = torch.einsum("nij,ni,nj->n", vals, wv, wu)
         gx = torch.einsum("nij,ni,nj->n", vals, wv, dwu) / pitch
         gy = torch.einsum("nij,ni,nj->n", vals, dwv, wu) / pitch
