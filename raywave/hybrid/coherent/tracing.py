@@ -217,13 +217,12 @@ def _file_step(i: int, req, out, gen, results: list, pending: dict) -> None:
         pending[i] = req
 
 
-def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z, need_jac=None, order=None):
+def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z, need_jac=None):
     """Landing points X (N, 2), validity (N,) and ∂X/∂uv (N, 2, 2) (forward differences, step h), from one
     batched trace of the 3N rays uv, uv + h·e_u, uv + h·e_v (a generator: yields that trace's request).
-    ``need_jac`` (N,) bool: only those rays get their two neighbours traced (the others' Jacobians are NaN).
-    ``order``: the source's per-source value (:func:`per_source`)."""
+    ``need_jac`` (N,) bool: only those rays get their two neighbours traced (the others' Jacobians are NaN)."""
     allv = _with_neighbours(uv, h, need_jac)
-    _, _, at, _ = yield _TraceRequest(lens, allv, field, wl, depth, z_doe, field_type, False, ep_z, False, order)
+    _, _, at, _ = yield _TraceRequest(lens, allv, field, wl, depth, z_doe, field_type, False, ep_z, False)
     return _landing_from(at, uv.shape[0], h, need_jac)
 
 
@@ -282,9 +281,10 @@ class _Aim:
     order: object = None
 
     def landing(self, uv, need_jac=None):
-        """Generator: :func:`_landing_and_jacobian` of the rays ``uv`` (N, 2)."""
-        return (yield from _landing_and_jacobian(self.lens, uv, self.field, self.wavelength, self.depth, self.z_doe,
-                                                 self.field_type, self.h, self.ep_z, need_jac, self.order))
+        """Generator: :func:`_landing_and_jacobian` of the rays ``uv`` (N, 2) (with this source's ``order``)."""
+        allv = _with_neighbours(uv, self.h, need_jac)
+        _, _, at, _ = yield self.request(allv, False, False)
+        return _landing_from(at, uv.shape[0], self.h, need_jac)
 
     def request(self, uv, record: bool, grad: bool) -> "_TraceRequest":
         """The :class:`_TraceRequest` of the rays ``uv`` (N, 2)."""
@@ -413,7 +413,10 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     uj = uv_l[need]
     rows = torch.cat([rid_l, rid_l[need], rid_l[need]])
     allv = torch.cat([uv_l, uj + du[0], uj + du[1]])
-    x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows], sources[2], rows)
+    if any(o is not None for o in sources[2]):  # per-source values (a mid-system DOE's orders): each row's own
+        x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows], sources[2], rows)
+    else:
+        x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows])
     x0, xu, xv = x[:nl], x[nl:nl + nj], x[nl + nj:]
     jac = torch.full((nl, 2, 2), math.nan, dtype=x.dtype, device=x.device)
     jac[need] = torch.stack([(xu - x0[need]) / h, (xv - x0[need]) / h], -1)
