@@ -153,6 +153,8 @@ class DOEPhaseSurface(nn.Module):
             self._rows = None
             return
         k = self.source_index
+        if any(o is None for o in orders) and not isinstance(self.scale, (int, float)):
+            raise ValueError("mid-system DOE: a source without its order traced through a per-source phase surface")
         vals = [float(self.scale) if o is None else float(o[k]) for o in orders]
         t = torch.tensor(vals, dtype=torch.float64, device=self.doe.device)
         if index is not None:
