@@ -605,11 +605,12 @@ class MidSystemLens(nn.Module):
                              f"{wavelength:g} µm: lower min_efficiency")
         return keep
 
-    def source_field(self, field, wavelength: float, depth=None, report: bool = True):
+    def source_field(self, field, wavelength: float, depth=None, report: bool = True, phase_maps=None):
         """The combined field on the final plane for one source: ``(DOEField, HybridLens of the strongest
-        order, orders)``."""
+        order, orders)``. ``phase_maps``: the DOEs' :meth:`DOEPhaseSurface.phase_map` when the caller built them
+        (once for all its sources); else built here."""
         n = len(self.does)
-        pms = [DOEPhaseSurface(d).phase_map() for d in self.does]  # once per source (with autograd if on)
+        pms = phase_maps if phase_maps is not None else [DOEPhaseSurface(d).phase_map() for d in self.does]
         per = [self.doe_order_list(i, wavelength) for i in range(n)]
         if report:
             for i in range(n):
@@ -742,10 +743,11 @@ class MidSystemLens(nn.Module):
         fields = torch.as_tensor(fields, dtype=torch.float64).reshape(-1, 2).tolist()
         wls = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
         psfs, centers, outs, rays = [], [], [], []
+        pms = [DOEPhaseSurface(d).phase_map() for d in self.does]  # once per call (with autograd if on)
         for f in fields:
             pr, cr, orow, rr = [], [], [], []
             for wl in wls:
-                fd, hl, orders = self.source_field(f, wl, depth)
+                fd, hl, orders = self.source_field(f, wl, depth, phase_maps=pms)
                 psf, c, o = hl.propagate(fd, ks)
                 pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays * len(orders))
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
