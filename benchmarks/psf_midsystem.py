@@ -11,14 +11,25 @@ too). Cases:
 * ``last``: the same DOE class before the sensor, :class:`raywave.hybrid.HybridLens` (the engine's one path).
 
 Times: median wall time of ``--repeat`` PSFs (forward; and forward + backward w.r.t. the DOE's parameters), one
-thread. Prints one JSON object (and writes it with ``-o``)."""
+thread. Prints one JSON object (and writes it with ``-o``).
+
+Wall and CPU (``process_time``: on a shared machine, the work itself) seconds. A/B of two source trees (issue
+46's cost, measured in one run): ``--a /old/tree --b . [--rounds 2]`` runs this script on each tree's ``raywave``
+in its own process (``OMP_NUM_THREADS=1``), interleaved A, B, A, B, …, and reports every time's median over the
+rounds per tree (and each round's), the mid/last ratios, and the B/A speed-up of the mid-system PSF::
+
+    git worktree add --detach /tmp/m46_base 4b765c7
+    python benchmarks/psf_midsystem.py --a /tmp/m46_base --b . --rounds 2 -o out.json"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import os
 import statistics
+import subprocess
+import sys
 import time
 import warnings
 
@@ -72,12 +83,17 @@ def _doe(kind):
     return (d.fabricate(16) if kind == "fresnel16" else d), 50.0
 
 
-def _time(fn, repeat):
-    ts = []
+def _time(fn, repeat, cpu: dict | None = None, key: str = ""):
+    """Median wall seconds of ``repeat`` calls of ``fn``; the median CPU seconds (``process_time``: on a shared
+    machine, the work itself, whatever the waiting) into ``cpu[key]``."""
+    ts, cs = [], []
     for _ in range(repeat):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         fn()
         ts.append(time.perf_counter() - t)
+        cs.append(time.process_time() - c)
+    if cpu is not None:
+        cpu[key] = statistics.median(cs)
     return statistics.median(ts)
 
 
@@ -109,13 +125,54 @@ def run(repeat: int, field: float) -> dict:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             fwd_mid(), fwd_last()  # warm-up (imports, caches)
+            cpu: dict = {}
             row = {"orders": len(mid.orders(WL)),
-                   "mid_forward_s": _time(fwd_mid, repeat), "last_forward_s": _time(fwd_last, repeat),
-                   "mid_backward_s": _time(bwd(fwd_mid, params), repeat),
-                   "last_backward_s": _time(bwd(fwd_last, params2), repeat)}
+                   "mid_forward_s": _time(fwd_mid, repeat, cpu, "mid_forward_cpu_s"),
+                   "last_forward_s": _time(fwd_last, repeat, cpu, "last_forward_cpu_s"),
+                   "mid_backward_s": _time(bwd(fwd_mid, params), repeat, cpu, "mid_backward_cpu_s"),
+                   "last_backward_s": _time(bwd(fwd_last, params2), repeat, cpu, "last_backward_cpu_s")}
+            row.update(cpu)
         row["forward_ratio"] = row["mid_forward_s"] / row["last_forward_s"]
         row["backward_ratio"] = row["mid_backward_s"] / row["last_backward_s"]
+        row["forward_ratio_cpu"] = row["mid_forward_cpu_s"] / row["last_forward_cpu_s"]
+        row["backward_ratio_cpu"] = row["mid_backward_cpu_s"] / row["last_backward_cpu_s"]
         out["cases"][kind] = row
+    return out
+
+
+def _child(tree: str, repeat: int, field: float) -> dict:
+    """One run of this script (the same harness for both trees) on the ``raywave`` of source tree ``tree``, one
+    thread, in its own process."""
+    env = dict(os.environ, PYTHONPATH=os.path.abspath(tree), OMP_NUM_THREADS="1")
+    out = subprocess.run([sys.executable, os.path.abspath(__file__), "--repeat", str(repeat), "--field", str(field)],
+                         cwd=tree, env=env, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout)
+
+
+def run_ab(tree_a: str, tree_b: str, rounds: int, repeat: int, field: float) -> dict:
+    """:func:`run` in two trees, interleaved A, B, A, B, … (``rounds`` each); medians per tree and case, the
+    mid/last ratios of each tree and the B/A speed-up of the mid-system PSF."""
+    runs = {"a": [], "b": []}
+    for _ in range(rounds):
+        for key, tree in (("a", tree_a), ("b", tree_b)):
+            runs[key].append(_child(tree, repeat, field))
+    first = runs["a"][0]
+    out = {"system": first["system"], "field_deg": field, "repeat": repeat, "rounds": rounds, "threads": 1,
+           "a": os.path.abspath(tree_a), "b": os.path.abspath(tree_b), "cases": {}}
+    times = [f"{w}_{d}_{u}" for u in ("s", "cpu_s") for d in ("forward", "backward") for w in ("mid", "last")]
+    for case in first["cases"]:
+        row = {"orders": first["cases"][case]["orders"]}
+        for key in ("a", "b"):
+            med = {t: statistics.median(r["cases"][case][t] for r in runs[key]) for t in times}
+            for d in ("forward", "backward"):
+                med[f"{d}_ratio"] = med[f"mid_{d}_s"] / med[f"last_{d}_s"]
+                med[f"{d}_ratio_cpu"] = med[f"mid_{d}_cpu_s"] / med[f"last_{d}_cpu_s"]
+            med["rounds"] = [{t: r["cases"][case][t] for t in times} for r in runs[key]]
+            row[key] = med
+        for d in ("forward", "backward"):
+            row[f"mid_{d}_speedup_b_over_a"] = row["a"][f"mid_{d}_s"] / row["b"][f"mid_{d}_s"]
+            row[f"mid_{d}_speedup_b_over_a_cpu"] = row["a"][f"mid_{d}_cpu_s"] / row["b"][f"mid_{d}_cpu_s"]
+        out["cases"][case] = row
     return out
 
 
@@ -123,9 +180,14 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--field", type=float, default=1.5, help="field angle (deg, along y)")
+    ap.add_argument("--a", help="A/B: the first (old) source tree")
+    ap.add_argument("--b", help="A/B: the second (new) source tree")
+    ap.add_argument("--rounds", type=int, default=2, help="A/B: runs of each tree, interleaved")
     ap.add_argument("-o", "--output")
     a = ap.parse_args(argv)
-    res = run(a.repeat, a.field)
+    if (a.a is None) != (a.b is None):
+        ap.error("give both --a and --b for an A/B")
+    res = run_ab(a.a, a.b, a.rounds, a.repeat, a.field) if a.a else run(a.repeat, a.field)
     text = json.dumps(res, indent=1)
     print(text)
     if a.output:

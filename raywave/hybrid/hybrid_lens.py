@@ -89,7 +89,8 @@ class _CallGeometry:
     ``clips`` ``[R][W]`` the DOE-aperture diagnostics; ``entrance`` the entrance pupil; with the exit-pupil edge
     ``edge`` = ``(z_xps, rims, cx, steps)``: its planes per wavelength, ``[W][R]`` the stop rim's images and the
     chief rays on the exit pupil, ``[R][W]`` the adaptive edge step's choice (None: another edge step) (``edge``
-    None: the DOE-plane edge)."""
+    None: the DOE-plane edge); ``orders`` None, or per source of ``f`` its per-source value (:class:`~raywave.hybrid.
+    coherent.settings.Source` ``order``: a mid-system DOE's orders, issue 46)."""
 
     f: torch.Tensor
     wls: list
@@ -101,6 +102,7 @@ class _CallGeometry:
     entrance: tuple | None = None
     clips: list | None = None
     edge: tuple | None = None
+    orders: list | None = None
 
     def __post_init__(self):
         if self.todo is None:
@@ -587,7 +589,7 @@ class HybridLens(nn.Module):
         for r in rows:
             i = geo.todo[r]
             for j, wl in enumerate(geo.wls):
-                source = Source(geo.f[i], wl, geo.depth)
+                source = Source(geo.f[i], wl, geo.depth, order=None if geo.orders is None else geo.orders[i])
                 if geo.edge is None:
                     out.append(accurate_field_steps(optics, self.doe, source, Planes(z_doe, z_sen),
                                                     ChiefRays(cd[i, j], cs[i, j], uv=cuv[i, j]), settings,

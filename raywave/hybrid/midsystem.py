@@ -35,9 +35,10 @@ from torch import nn
 from raywave.rays.pupil import rim_and_grid
 from raywave.doe.base import DOE, BlankDOE
 from raywave.hybrid.coherent.record import CausticWarning, DOEField, SamplingWarning
+from raywave.hybrid.coherent.tracing import per_source
 from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
 from raywave.lens.lens import Lens
-from raywave.lens.sources import chief_ray, point_source_rays
+from raywave.lens.sources import chief_ray, point_source_rays, rays_through
 from raywave.surfaces.aperture import CircularAperture, SquareAperture
 from raywave.surfaces.geometry import Plane
 from raywave.surfaces.interaction import Diffraction
@@ -129,13 +130,39 @@ class DOEPhaseSurface(nn.Module):
     dispersion α(λ)). Points off the grid take the edge pixels' linear extrapolation (the DOE's aperture, a surface
     aperture, blocks them). ``phase_map``: the map of :meth:`phase_map` when already built (shared by the
     orders and traces of one PSF call); else it is built at the first call (make a new instance after changing
-    the DOE). Traces without autograd read it detached."""
+    the DOE). Traces without autograd read it detached.
 
-    def __init__(self, doe: DOE, scale=1.0, phase_map: torch.Tensor | None = None):
+    ``source_index``: the surface takes its scale per source (issue 46: the orders of a PSF call traced as the
+    sources of one engine call): while :func:`raywave.hybrid.coherent.tracing.per_source` is open, each traced row
+    (the bundles' first axis) takes ``value[source_index]`` of its source's value (a tuple of every DOE's scale; a
+    None value: ``scale``); traced outside one, ``scale`` (None: an error)."""
+
+    def __init__(self, doe: DOE, scale=1.0, phase_map: torch.Tensor | None = None, source_index: int | None = None):
         super().__init__()
         self.doe = doe
         self.scale = scale
         self._map = phase_map
+        self.source_index = source_index
+        self._rows = None
+
+    def source_rows(self, orders, index=None) -> None:
+        """Set (``orders``: the per-source values, ``index`` (R,) long: each row's source, None: row r is source r)
+        or clear (``orders`` None) the per-row scales of :func:`raywave.hybrid.coherent.tracing.per_source`: (R, 1,
+        1) float64, or a 0-d tensor for one source (it broadcasts with any bundle shape)."""
+        if orders is None or self.source_index is None:
+            self._rows = None
+            return
+        k = self.source_index
+        if any(o is None for o in orders) and not isinstance(self.scale, (int, float)):
+            raise ValueError("mid-system DOE: a source without its order traced through a per-source phase surface")
+        vals = [float(self.scale) if o is None else float(o[k]) for o in orders]
+        t = torch.tensor(vals, dtype=torch.float64, device=self.doe.device)
+        if index is not None:
+            self._rows = t.to(index.device)[index].reshape(-1, 1, 1)
+        elif len(vals) == 1:
+            self._rows = t.reshape(())
+        else:
+            self._rows = t.reshape(-1, 1, 1)
 
     def phase_map(self) -> torch.Tensor:
         """``φ0`` on the DOE pixels (ny, nx), unwrapped, with two pixels of linear extrapolation on every side."""
@@ -165,15 +192,32 @@ class DOEPhaseSurface(nn.Module):
         iv = torch.floor(v.detach()).clamp(1, ny + 1)
         wu, dwu = _keys(u - iu)
         wv, dwv = _keys(v - iv)
-        off = torch.arange(-1, 3, device=u.device)
-        cols = (iu.long()[:, None] + off).clamp(0, nx + 3)
-        rows = (iv.long()[:, None] + off).clamp(0, ny + 3)
-        vals = pm[rows[:, :, None], cols[:, None, :]]  # (N, 4, 4)
+        # the 4×4 taps iv−1 … iv+2 × iu−1 … iu+2 as one gather of the flat map (rows of nx + 4 samples)
+        w = nx + 4
+        off = (torch.arange(-1, 3, device=u.device)[:, None] * w + torch.arange(-1, 3, device=u.device)).reshape(-1)
+        at = iv.long().clamp(1, ny + 1) * w + iu.long().clamp(1, nx + 1)
+        vals = pm.reshape(-1).take(at[:, None] + off).reshape(-1, 4, 4)  # (N, 4, 4)
         phi = torch.einsum("nij,ni,nj->n", vals, wv, wu)
         gx = torch.einsum("nij,ni,nj->n", vals, wv, dwu) / pitch
         gy = torch.einsum("nij,ni,nj->n", vals, dwv, wu) / pitch
-        s = self.scale(wavelength) if callable(self.scale) else self.scale
+        s = self._row_scale(shape) if self._rows is not None or self.scale is None else (
+            self.scale(wavelength) if callable(self.scale) else self.scale)
         return tuple(s * t.reshape(shape) for t in (phi, gx, gy))
+
+    def _row_scale(self, shape):
+        """The per-row scales for traced points of ``shape`` (R, W, N); a RuntimeError when their rows are not the
+        sources' (a bundle flattened or cut, or traced outside :func:`~raywave.hybrid.coherent.tracing.
+        per_source`)."""
+        r = self._rows
+        if r is None:
+            raise RuntimeError("mid-system DOE: a per-source phase surface traced without its sources' orders "
+                               "(raywave.hybrid.coherent.tracing.per_source)")
+        if r.ndim == 0:
+            return r
+        if len(shape) != 3 or shape[0] != r.shape[0]:
+            raise RuntimeError(f"mid-system DOE: a bundle of shape {tuple(shape)} traced with {r.shape[0]} per-source "
+                               "orders: its rows are not the sources")
+        return r
 
 
 def _doe_aperture(doe: DOE):
@@ -415,9 +459,11 @@ class MidSystemLens(nn.Module):
         self._transfer_cache = OrderedDict()
         self.build_lens([1.0] * n)  # checks the placements now
 
-    def build_lens(self, scales, phase_maps=None, dispersive=None):
+    def build_lens(self, scales, phase_maps=None, dispersive=None, per_source: bool = False):
         """``(lens, indices)``: the lens with every DOE's order phase (``scales[i]·φ0`` of DOE ``i``; a callable
-        scale: α(λ)) and the index of each DOE's surface in it."""
+        scale: α(λ)) and the index of each DOE's surface in it. ``per_source``: the non-dispersive DOEs take their
+        scale per source (:class:`DOEPhaseSurface` ``source_index``; ``scales`` unused for them): one lens for
+        every order of a call."""
         n = len(self.does)
         pms = phase_maps if phase_maps is not None else [None] * n
         lens_m = self.lens
@@ -426,8 +472,12 @@ class MidSystemLens(nn.Module):
                                                else self.placements[i][1]), reverse=True)
         for i in todo:
             a, d = self.placements[i]
-            sc = self._scale_fn(i) if dispersive is not None and dispersive[i] else float(scales[i])
-            lens_m = insert_doe(lens_m, a, d, DOEPhaseSurface(self.does[i], sc, pms[i]), 1.0, self.does[i])
+            disp = dispersive is not None and dispersive[i]
+            if per_source and not disp:
+                surf = DOEPhaseSurface(self.does[i], None, pms[i], source_index=i)
+            else:
+                surf = DOEPhaseSurface(self.does[i], self._scale_fn(i) if disp else float(scales[i]), pms[i])
+            lens_m = insert_doe(lens_m, a, d, surf, 1.0, self.does[i])
         idx = []
         for i in range(n):
             a, d = self.placements[i]
@@ -555,11 +605,12 @@ class MidSystemLens(nn.Module):
                              f"{wavelength:g} µm: lower min_efficiency")
         return keep
 
-    def source_field(self, field, wavelength: float, depth=None, report: bool = True):
+    def source_field(self, field, wavelength: float, depth=None, report: bool = True, phase_maps=None):
         """The combined field on the final plane for one source: ``(DOEField, HybridLens of the strongest
-        order, orders)``."""
+        order, orders)``. ``phase_maps``: the DOEs' :meth:`DOEPhaseSurface.phase_map` when the caller built them
+        (once for all its sources); else built here."""
         n = len(self.does)
-        pms = [DOEPhaseSurface(d).phase_map() for d in self.does]  # once per source (with autograd if on)
+        pms = phase_maps if phase_maps is not None else [DOEPhaseSurface(d).phase_map() for d in self.does]
         per = [self.doe_order_list(i, wavelength) for i in range(n)]
         if report:
             for i in range(n):
@@ -572,6 +623,8 @@ class MidSystemLens(nn.Module):
                         "the DOE larger than its footprint"), stacklevel=3)
                 per[i] = sampling_report(self.does[i], per[i], box=box, phase_map=pms[i])["kept"]
         orders = self.orders(wavelength, per)
+        if len(orders) > 1 and self.stop_edge == "doe":
+            return self._orders_field(field, wavelength, depth, pms, orders)
         parts = []
         for j, (scale, c) in enumerate(orders):
             hl = self.order_lens(scale, None, pms)
@@ -597,15 +650,104 @@ class MidSystemLens(nn.Module):
             return fd, hl, orders
         return _combine(parts, self.final, field, wavelength, depth), parts[0][0], orders
 
+    def orders_engine(self, phase_map=None) -> HybridLens:
+        """The engine for every order of a call at once (issue 46): the lens whose non-dispersive DOEs take their
+        scale per source (:meth:`build_lens` ``per_source``), the blank final plane, the sensor, no mirroring (the
+        orders of one source are sources at the same field point). ``phase_map``: as :meth:`order_lens`."""
+        n = len(self.does)
+        pms = phase_map if isinstance(phase_map, (list, tuple)) else [phase_map] * n
+        disp = [self._continuous(i) for i in range(n)]
+        lens_m, idx = self.build_lens([None] * n, pms, disp, per_source=True)
+        edge = {} if self.edge_step is None else {"edge_step": self.edge_step}
+        hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
+                        stop_edge=self.stop_edge, mirror=False, **edge)
+        hl._transfer_cache = self._transfer_cache
+        hl._doe_indices = idx
+        return hl
+
+    def _orders_field(self, field, wavelength: float, depth, pms, orders):
+        """:meth:`source_field` of ``orders`` (``[(scale, c)]``, strongest first, more than one) with the DOE-plane
+        edge: the orders are the sources of ONE engine call (:meth:`orders_engine`; their traces, geometry, chief
+        rays and Gouy probes batched across orders: :func:`~raywave.hybrid.coherent.tracing.per_source`), each
+        order's field the one its own engine builds (to the batched aiming's rounding)."""
+        hl = self.orders_engine(pms)
+        lens_m = hl.lens
+        values = [tuple(sc) if isinstance(sc, (tuple, list)) else (sc,) for sc, _ in orders]
+        f = hl._engine_fields([tuple(field)] * len(orders))
+        wls = [float(wavelength)]
+        pending = ([], [])
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with per_source(lens_m, values):
+                geo = hl._accurate_geometry(f, wls, depth)
+            geo.orders = values
+            fds = hl._finish_fields(hl._accurate_group(geo, list(range(len(orders))), 64, True), geo, pending)
+        keep = []
+        for j, (scale, c) in enumerate(orders):
+            if j > 0 and geo.clips[j][0][2] > 0:  # a weak order that folds before the engine's plane: left out
+                warnings.warn(SamplingWarning(
+                    f"mid-system DOE: order {scale} ({100 * abs(c) ** 2:.2g} % of the light) "
+                    f"folds (a caustic) before the plane {self.final_distance:g} mm after the last surface: left out"),
+                    stacklevel=4)
+                continue
+            keep.append(j)
+        for w in caught:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        kept_fds = [fds[j][0] for j in keep]
+        hl._warn_clipped([e for e in pending[0] if any(e[0] is fd for fd in kept_fds)])
+        if geo.clips[0][0][2] > 0:
+            hl._warn_caustic([(geo.clips[0][0][2], list(field), float(wavelength))])
+        if len(keep) == 1:
+            return fds[0][0], hl, orders
+        nc = self._caustic_counts(hl, geo, values)
+        nc = [nc[j] for j in keep]
+        cd = geo.chief[0]
+        parts = []
+        for k, j in enumerate(keep):  # the Gouy phase of the foci each order crosses, relative to the strongest
+            c = orders[j][1] * cmath.exp(-0.5j * math.pi * (nc[k] - nc[0]))
+            fd = fds[j][0]
+            parts.append((fd, c, _phase_at(cd[j, 0], fd, float(wavelength))))
+        return _sum_orders(parts, self.final, float(wavelength)), hl, orders
+
+    def _caustic_counts(self, hl: HybridLens, geo, values) -> list:
+        """:meth:`caustics` of the orders ``values`` (their per-source scales; the call's first sources) of ``hl``
+        (:meth:`orders_engine`) whose call shared ``geo`` (its chief rays' entrance-plane points and entrance
+        pupil), from one batched trace: 3 rays a source, its chief ray and two offset by 1e-3 of the entrance pupil's
+        radius on the entrance plane (the map ``M`` from the DOE to the plane does not depend on how the probe is
+        parametrised)."""
+        lens_m = hl.lens
+        m = len(values)
+        ep_z, r_ep = geo.entrance
+        e = 1e-3 * max(r_ep, 1e-3)
+        uv = geo.chief[2][:m, :1, None, :].detach() + torch.tensor([[0.0, 0.0], [e, 0.0], [0.0, e]],
+                                                                   dtype=torch.float64, device=lens_m.device)
+        wl = torch.tensor(geo.wls, dtype=torch.float64, device=lens_m.device)
+        with torch.no_grad(), per_source(lens_m, values):
+            rays = rays_through(lens_m, uv, geo.f[:m], lens_m.field_type, wl, depth=geo.depth, ep_z=ep_z)
+            out, rec = lens_m.trace(rays, apertures=False, record=True)
+            nmed = lens_m.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+            out = out.propagate_to_z(float(lens_m.vertex_z()[-1].detach()) + hl.doe_distance, nmed)
+        pts = rec.points[hl._doe_indices[0] + 1]
+        a = torch.stack([pts[0][:, 0], pts[1][:, 0]], -1)  # (M, 3, 2) on the first DOE
+        b = out.o[:, 0, :, :2]
+        j0 = torch.stack([a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]], -1)
+        j1 = torch.stack([b[:, 1] - b[:, 0], b[:, 2] - b[:, 0]], -1)
+        mm = j1 @ torch.linalg.inv(j0)
+        counts = []
+        for det, tr in zip(torch.linalg.det(mm).tolist(), mm.diagonal(dim1=-2, dim2=-1).sum(-1).tolist()):
+            counts.append(0 if not (math.isfinite(det) and math.isfinite(tr)) else 1 if det < 0 else 2 if tr < 0 else 0)
+        return counts
+
     def psf_result(self, fields=(0.0, 0.0), wavelengths=0.55, ks: int = 64, depth=None) -> PSFResult:
         """PSFs ``(F, W, ks, ks)`` (sum 1, centred on the strongest order's chief ray) as :class:`PSFResult`."""
         fields = torch.as_tensor(fields, dtype=torch.float64).reshape(-1, 2).tolist()
         wls = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
         psfs, centers, outs, rays = [], [], [], []
+        pms = [DOEPhaseSurface(d).phase_map() for d in self.does]  # once per call (with autograd if on)
         for f in fields:
             pr, cr, orow, rr = [], [], [], []
             for wl in wls:
-                fd, hl, orders = self.source_field(f, wl, depth)
+                fd, hl, orders = self.source_field(f, wl, depth, phase_maps=pms)
                 psf, c, o = hl.propagate(fd, ks)
                 pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays * len(orders))
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
@@ -629,7 +771,13 @@ def _absolute_phase(hl: HybridLens, fd: DOEField, field, wavelength: float, dept
     out = lens.trace(cr, apertures=False)
     nmed = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
     at = out.propagate_to_z(z, nmed)
-    x, y, opl = at.o[0, 0, 0, 0], at.o[0, 0, 0, 1], at.opl[0, 0, 0]
+    return _phase_at(at[0, 0, 0], fd, wavelength)
+
+
+def _phase_at(chief, fd: DOEField, wavelength: float) -> torch.Tensor:
+    """:func:`_absolute_phase` from the order's chief ray on the final plane (a scalar-batch bundle: its point and
+    optical path)."""
+    x, y, opl = chief.o[0], chief.o[1], chief.opl
     g = fd.grid
     (x0, y0), p = g.origin, fd.pitch
     fx, fy = (float(x.detach()) - x0) / p, (float(y.detach()) - y0) / p
@@ -647,25 +795,34 @@ def _absolute_phase(hl: HybridLens, fd: DOEField, field, wavelength: float, dept
 
 def _combine(parts, final: DOE, field, wavelength: float, depth) -> DOEField:
     """The orders' fields ``[(hl, fd, c)]`` summed coherently on the union of their windows, on the first
-    (strongest) order's carrier; its sensor point, distance and diagnostics."""
-    hl0, fd0, _ = parts[0]
+    (strongest) order's carrier; its sensor point, distance and diagnostics (:func:`_sum_orders`, each order's
+    absolute phase from its own chief ray: :func:`_absolute_phase`)."""
+    return _sum_orders([(fd, c, _absolute_phase(hl, fd, field, wavelength, depth)) for hl, fd, c in parts], final,
+                       wavelength)
+
+
+def _sum_orders(parts, final: DOE, wavelength: float) -> DOEField:
+    """The orders' fields ``[(fd, c, K)]`` (``K``: :func:`_absolute_phase`) summed coherently on the union of their
+    windows, on the first (strongest) order's carrier; its sensor point, distance and diagnostics."""
+    fd0 = parts[0][0]
     k = _TWO_PI / (wavelength * 1e-3)
-    boxes = [fd.box for _, fd, _ in parts]
+    boxes = [fd.box for fd, _, _ in parts]
     iy0, iy1 = min(b[0] for b in boxes), max(b[1] for b in boxes)
     ix0, ix1 = min(b[2] for b in boxes), max(b[3] for b in boxes)
     grid = final.sim_grid(1).window(iy0, iy1, ix0, ix1)
     env = torch.zeros((iy1 - iy0, ix1 - ix0), dtype=torch.complex128, device=fd0.envelope.device)
     K0 = None
     a0, b0 = fd0.carrier
-    for hl, fd, c in parts:
-        K = _absolute_phase(hl, fd, field, wavelength, depth)
+    for fd, c, K in parts:
         K0 = K.detach() if K0 is None else K0
         a, b = fd.carrier
         gx, gy = fd.grid.coordinates(device=env.device)
-        ramp = k * fd.n * ((a - a0) * gx[None, :] + (b - b0) * gy[:, None]) + k * (K - K0)
-        part = c * fd.envelope * torch.polar(torch.ones_like(ramp), ramp)
+        # the carrier change and the absolute phase as a separable phasor: exp(i rx(x)) exp(i ry(y))
+        rx = k * fd.n * (a - a0) * gx + k * (K - K0)
+        ry = k * fd.n * (b - b0) * gy
+        ex, ey = torch.polar(torch.ones_like(rx), rx), torch.polar(torch.ones_like(ry), ry)
+        part = (c * ex)[None, :] * fd.envelope * ey[:, None]
         by0, by1, bx0, bx1 = fd.box
-        env = env.index_put((torch.arange(by0 - iy0, by1 - iy0, device=env.device)[:, None],
-                             torch.arange(bx0 - ix0, bx1 - ix0, device=env.device)[None, :]), part, accumulate=True)
+        env[by0 - iy0:by1 - iy0, bx0 - ix0:bx1 - ix0] += part
     return DOEField(Field(env, grid, wavelength, fd0.n, fd0.carrier), (iy0, iy1, ix0, ix1), fd0.z, fd0.center,
                     fd0.info, fd0.chief_tan)

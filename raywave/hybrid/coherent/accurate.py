@@ -20,7 +20,7 @@ from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning,
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_cubic,
                                                _rim_z, _zone_estimate, edge_envelope)
-from raywave.hybrid.coherent.tracing import PAUSE, _Aim, _invert_to_nodes, _nearest_fill, _solve2, run_serial
+from raywave.hybrid.coherent.tracing import PAUSE, _Aim, _invert_to_nodes, _nearest_fill, _solve2, per_source, run_serial
 
 
 def accurate_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
@@ -236,11 +236,12 @@ def _trace_nodes(b: _Build, nd: _Nodes):
     ep_z, r_ep = entrance_pupil(lens) if b.given.entrance is None else b.given.entrance
     chief_uv = b.chief.uv
     if chief_uv is None:
-        ep_rays = point_source_rays(lens, b.field, b.wl, pupil=chief_pupil(lens), aim="full", depth=b.src.depth)
+        with per_source(lens, [b.src.order]):
+            ep_rays = point_source_rays(lens, b.field, b.wl, pupil=chief_pupil(lens), aim="full", depth=b.src.depth)
         o, d = ep_rays.o[0, 0, 0].detach(), ep_rays.d[0, 0, 0].detach()
         chief_uv = o[:2] + d[:2] * (ep_z - o[2]) / d[2]
     uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device).reshape(1, 2)
-    aim = _Aim(lens, b.field, b.wl, b.src.depth, b.z_doe, b.field_type, 1e-6 * max(r_ep, 1e-3), ep_z)
+    aim = _Aim(lens, b.field, b.wl, b.src.depth, b.z_doe, b.field_type, 1e-6 * max(r_ep, 1e-3), ep_z, b.src.order)
     x_c, _, jac_c = yield from aim.landing(uv_c)
     chief = (uv_c, x_c, jac_c)
     start = yield from _coarse_start(aim, nd, chief, 0.25 * r_ep)

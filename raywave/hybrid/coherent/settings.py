@@ -25,12 +25,15 @@ __all__ = ["ChiefRays", "FieldSettings", "Known", "Planes", "Source"]
 class Source:
     """One point source: ``field`` (2,) (degrees, or mm on a finite object: ``field_type``, default the lens's), the
     vacuum ``wavelength`` (µm) and the object ``depth`` (mm from the first vertex; None: the lens's, ``inf``:
-    distant)."""
+    distant); ``order``: an opaque per-source value that the lens's traces carry for this source
+    (:func:`raywave.hybrid.coherent.tracing.per_source`: a mid-system DOE's diffraction order, issue 46; None:
+    none)."""
 
     field: object
     wavelength: float
     depth: object = None
     field_type: str | None = None
+    order: object = None
 
 
 @dataclass(frozen=True)

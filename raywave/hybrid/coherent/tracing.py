@@ -5,19 +5,44 @@ from __future__ import annotations
 
 import itertools
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
 
+from raywave.lens.lens import TRACE_CHUNK
 from raywave.lens.sources import rays_through
 from raywave.hybrid.coherent.record import _NEWTON_ITERS, _NEWTON_TOL
 from raywave.utils.errors import check_allocation
 
 
-def _trace_uv(lens, uv, field, wavelength, depth, z_doe, field_type, record=False, ep_z=None):
-    """Trace rays crossing the entrance plane at ``uv`` (N, 2) to the DOE plane (apertures ignored)."""
+@contextmanager
+def per_source(lens, orders, index=None):
+    """While it is open, the traces of ``lens`` carry a per-source value (issue 46: a mid-system DOE's diffraction
+    order, :class:`raywave.hybrid.midsystem.DOEPhaseSurface`): every module of ``lens`` with a ``source_rows``
+    method is handed ``orders`` (a list of opaque per-source values, one per source; None entries: the module's own
+    default) and ``index`` ((R,) long: row r of the traced bundles (R, W, N) is source ``index[r]``; None: row r is
+    source r), and cleared on exit. A no-op when ``orders`` is None or all None (an ordinary lens, an ordinary
+    source)."""
+    if orders is None or all(o is None for o in orders):
+        yield
+        return
+    mods = [m for m in lens.modules() if hasattr(m, "source_rows")]
+    for m in mods:
+        m.source_rows(list(orders), index)
+    try:
+        yield
+    finally:
+        for m in mods:
+            m.source_rows(None, None)
+
+
+def _trace_uv(lens, uv, field, wavelength, depth, z_doe, field_type, record=False, ep_z=None, order=None):
+    """Trace rays crossing the entrance plane at ``uv`` (N, 2) to the DOE plane (apertures ignored); ``order``: the
+    source's per-source value (:func:`per_source`)."""
     rays = rays_through(lens, uv[None, None], field[None], field_type, wavelength.reshape(1), depth=depth, ep_z=ep_z)
-    res = lens.trace(rays, apertures=False, record=record)
+    with per_source(lens, [order]):
+        res = lens.trace(rays, apertures=False, record=record)
     out, rec = res if record else (res, None)
     n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
     at = out.propagate_to_z(z_doe, n)
@@ -28,7 +53,8 @@ def _trace_uv(lens, uv, field, wavelength, depth, z_doe, field_type, record=Fals
 class _TraceRequest:
     """One :func:`_trace_uv` call that a field construction (a generator, see :func:`run_batched`) asks for:
     rays through the entrance-plane points ``uv`` (N, 2) mm of field (2,) at wavelength (1,) µm, traced to the
-    plane ``z_doe`` mm. ``grad``: traced with autograd (when the caller has it on); else without."""
+    plane ``z_doe`` mm. ``grad``: traced with autograd (when the caller has it on); else without. ``order``: the
+    source's per-source value (:func:`per_source`; requests that differ only in it are traced together)."""
 
     lens: object
     uv: torch.Tensor
@@ -40,11 +66,12 @@ class _TraceRequest:
     record: bool
     ep_z: float | None
     grad: bool
+    order: object = None
 
     def run(self):
         with torch.set_grad_enabled(self.grad and torch.is_grad_enabled()):
             return _trace_uv(self.lens, self.uv, self.field, self.wavelength, self.depth, self.z_doe, self.field_type,
-                             record=self.record, ep_z=self.ep_z)
+                             record=self.record, ep_z=self.ep_z, order=self.order)
 
     def group_key(self) -> tuple:
         d = self.depth
@@ -69,13 +96,19 @@ def _trace_group(reqs: list) -> list:
     r0 = reqs[0]
     sizes = [r.uv.shape[0] for r in reqs]
     n_max = max(sizes)
+    orders = [r.order for r in reqs]
+    if any(o is not None for o in orders) and len(reqs) * n_max > 2 * TRACE_CHUNK:
+        # per-source rows must stay rows: the lens would trace so large a bundle in flat chunks
+        half = len(reqs) // 2
+        return _trace_group(reqs[:half]) + _trace_group(reqs[half:])
     uv = torch.stack([torch.cat([r.uv, r.uv[:1].expand(n_max - r.uv.shape[0], 2)]) if r.uv.shape[0] < n_max
                       else r.uv for r in reqs])[:, None]
     fields = torch.stack([r.field.reshape(2) for r in reqs])
     wls = torch.cat([r.wavelength.reshape(1) for r in reqs]).reshape(-1, 1, 1)  # a wavelength per row
     with torch.set_grad_enabled(r0.grad and torch.is_grad_enabled()):
         rays = rays_through(r0.lens, uv, fields, r0.field_type, wls, depth=r0.depth, ep_z=r0.ep_z)
-        res = r0.lens.trace(rays, apertures=False, record=r0.record)
+        with per_source(r0.lens, orders):
+            res = r0.lens.trace(rays, apertures=False, record=r0.record)
         out, rec = res if r0.record else (res, None)
         n = r0.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(r0.z_doe, n)
@@ -234,7 +267,8 @@ CHORD_ROUNDS = 3
 class _Aim:
     """How a construction's rays are aimed: rays of ``field`` (2,) at ``wavelength`` (1,) µm and ``depth`` through
     entrance-plane points (the plane ``ep_z`` mm), traced to the plane ``z_doe`` mm (``field_type``: the lens's
-    field type), Jacobians by forward differences of step ``h`` mm on the entrance plane."""
+    field type), Jacobians by forward differences of step ``h`` mm on the entrance plane; ``order``: the source's
+    per-source value (:func:`per_source`)."""
 
     lens: object
     field: torch.Tensor
@@ -244,16 +278,18 @@ class _Aim:
     field_type: str
     h: float
     ep_z: float | None
+    order: object = None
 
     def landing(self, uv, need_jac=None):
-        """Generator: :func:`_landing_and_jacobian` of the rays ``uv`` (N, 2)."""
-        return (yield from _landing_and_jacobian(self.lens, uv, self.field, self.wavelength, self.depth, self.z_doe,
-                                                 self.field_type, self.h, self.ep_z, need_jac))
+        """Generator: :func:`_landing_and_jacobian` of the rays ``uv`` (N, 2) (with this source's ``order``)."""
+        allv = _with_neighbours(uv, self.h, need_jac)
+        _, _, at, _ = yield self.request(allv, False, False)
+        return _landing_from(at, uv.shape[0], self.h, need_jac)
 
     def request(self, uv, record: bool, grad: bool) -> "_TraceRequest":
         """The :class:`_TraceRequest` of the rays ``uv`` (N, 2)."""
         return _TraceRequest(self.lens, uv, self.field, self.wavelength, self.depth, self.z_doe, self.field_type,
-                             record, self.ep_z, grad)
+                             record, self.ep_z, grad, self.order)
 
 
 def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: tuple | None = None):
@@ -315,7 +351,7 @@ def _invert_group(reqs: list) -> list:
     max_step = torch.tensor([r.max_step for r in reqs], dtype=targets.dtype, device=dev)[rid][:, None]
     n = targets.shape[0]
     sources = (torch.stack([r.aim.field.reshape(2) for r in reqs]),
-               torch.cat([r.aim.wavelength.reshape(1) for r in reqs]))
+               torch.cat([r.aim.wavelength.reshape(1) for r in reqs]), [r.aim.order for r in reqs])
     step0, _ = _solve2(jac_c, targets - x_c)
     uv = uv_c + step0
     chord = torch.zeros(n, dtype=torch.bool, device=dev)
@@ -365,9 +401,9 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     """One Newton round's trace for the ``live`` rays (sorted indices into the set of :func:`_invert_group`): each
     ray and, unless it takes chord steps, its two finite-difference neighbours (the rays of
     :func:`_landing_and_jacobian`), all requests' rays as one bundle of single-ray rows (each with its own source and
-    wavelength, shape (R, 1, 1): no per-request slicing, issue 43; ``sources`` = the requests' fields (G, 2) and
-    wavelengths (G,) µm). Returns the landing points (L, 2), validity (L,)
-    and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
+    wavelength, shape (R, 1, 1): no per-request slicing, issue 43; ``sources`` = the requests' fields (G, 2),
+    wavelengths (G,) µm and per-source values [G] (:func:`per_source`)). Returns the landing points (L, 2), validity
+    (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
     r0 = reqs[0].aim
     h = r0.h  # one per group (:meth:`_InvertRequest.group_key`)
     rid_l, uv_l = rid[live], uv[live]
@@ -377,21 +413,30 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     uj = uv_l[need]
     rows = torch.cat([rid_l, rid_l[need], rid_l[need]])
     allv = torch.cat([uv_l, uj + du[0], uj + du[1]])
-    x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows])
+    if any(o is not None for o in sources[2]):  # per-source values (a mid-system DOE's orders): each row's own
+        x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows], sources[2], rows)
+    else:
+        x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows])
     x0, xu, xv = x[:nl], x[nl:nl + nj], x[nl + nj:]
     jac = torch.full((nl, 2, 2), math.nan, dtype=x.dtype, device=x.device)
     jac[need] = torch.stack([(xu - x0[need]) / h, (xv - x0[need]) / h], -1)
     return x0, valid[:nl], jac
 
 
-def _trace_rows(aim: _Aim, uv, fields, wavelengths):
+def _trace_rows(aim: _Aim, uv, fields, wavelengths, orders=None, rows=None):
     """Landing points (R, 2) and validity (R,) on ``aim``'s plane of R rays, each with its own source: entrance-plane
     points ``uv`` (R, 2) mm, ``fields`` (R, 2), ``wavelengths`` (R,) µm (``aim``'s lens, depth, field type and
-    entrance plane), traced without autograd as one bundle (R, 1, 1) (every ray on its own)."""
+    entrance plane), traced without autograd as one bundle (R, 1, 1) (every ray on its own). ``orders``: the
+    sources' per-source values (:func:`per_source`), ``rows`` (R,) long: each ray's source among them."""
+    if orders is not None and any(o is not None for o in orders) and uv.shape[0] > 2 * TRACE_CHUNK:
+        parts = [_trace_rows(aim, uv[i:i + TRACE_CHUNK], fields[i:i + TRACE_CHUNK], wavelengths[i:i + TRACE_CHUNK],
+                             orders, rows[i:i + TRACE_CHUNK]) for i in range(0, uv.shape[0], TRACE_CHUNK)]
+        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     with torch.no_grad():
         rays = rays_through(aim.lens, uv[:, None, None], fields, aim.field_type, wavelengths.reshape(-1, 1, 1),
                             depth=aim.depth, ep_z=aim.ep_z)
-        out = aim.lens.trace(rays, apertures=False)
+        with per_source(aim.lens, orders, rows):
+            out = aim.lens.trace(rays, apertures=False)
         n = aim.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(aim.z_doe, n)
     return at.o[:, 0, 0, :2], at.valid[:, 0, 0]
