@@ -67,6 +67,10 @@ def _ideal_exit_pupil():
 #: psf_pins_refine_2026-11-29_j47.json has every pin's old-vs-new difference; the others move by < 1e-11).
 #: ``hybrid_asphere_exit_pupil`` (slow) was re-pinned on 2026-11-29: stale since 284053a (it differed already at the
 #: commit that regenerated the pins); rel L1 8.8e-5 (benchmarks/results/psf_pin_slow_exit_pupil_2026-11-29.json).
+#: ``hybrid_asphere_default``, ``hybrid_asphere_exit_pupil`` and ``ideal_binary2_exit_pupil`` were re-pinned on
+#: 2026-11-29 (issue 47, k47) when the Fresnel edge step began reading the stop rim's images by trigonometric
+#: interpolation (raywave.hybrid.coherent.stop_edge._rim_fourier): rel L1 1.9e-4, 4.8e-5 and 1.4e-5; the others moved
+#: by < 1e-11 (benchmarks/results/psf_pins_rim_fourier_2026-11-29_k47.json).
 CASES = {
     "hybrid_asphere": (_hybrid_asphere, dict(fields=[(0.0, 0.0), (0.0, 7.0), (0.0, 14.0), (3.0, 10.0)],
                                              wavelengths=[0.47, 0.53, 0.66], ks=32)),

@@ -29,10 +29,17 @@ LENSES = {
     "singlet_nbk7_50": str(DATA / "real_lenses" / "singlet_nbk7_50.zmx"),
     "asphere_f13": str(DATA / "real_lenses" / "asphere_f13_nsf11.zmx"),
 }
-#: largest rel L1 (sum |psf − huygens|, 0..2) accepted; measured values in docs/ray-wave.md
-TOL = 2e-2
+#: largest rel L1 (sum |psf − huygens|, 0..2) accepted against the converged reference: issue 47's 1e-3, met since
+#: the Fresnel step reads the rim images by trigonometric interpolation (2026-11-29, k47; measured values in
+#: docs/ray-wave.md and benchmarks/results/stop_edge_references_2026-11-29_k47.json)
+TOL = 1e-3
+#: the cases not yet within TOL, with their own bound: the double Gauss's default DOE plane lies close before its
+#: first caustic (1.5× the caustic's beam width, raywave.assembly.build.CAUSTIC_MARGIN), where the field built there
+#: from rays is off (1.07e-3 / 2.47e-3 / 2.73e-3; the same construction a few mm further from the caustic, carried to
+#: this plane by the angular spectrum: 2.9e-4 on axis, 8.3e-4 at 0.7)
+TOL_NOT_YET = {("double_gauss", 0.0): 1.5e-3, ("double_gauss", 0.7): 3.5e-3, ("double_gauss", 1.0): 3.5e-3}
 #: the reference's own error estimate above which a comparison gives no verdict (issue 47)
-REF_TOL = 5e-3
+REF_TOL = 1e-4
 #: (lens, field fraction) → Huygens pupil cells and sensor pitch (mm) where the defaults (192², the DOE pitch) do not
 #: settle the comparison: the reference's 192² grid under-samples these off-axis wavefronts (it warns: 0.8–1.1 waves
 #: between neighbouring cells) and most of the PSF falls outside a 32-pixel crop of the sub-micron DOE pitch. (Until
@@ -123,16 +130,14 @@ def _reference(hl, fld, ks, center, n0):
 @pytest.mark.parametrize("name", list(LENSES))
 def test_exit_pupil_edge_psf_matches_huygens_on_real_lenses(name, frac):
     """Against the converged reference (issue 47; docs/ray-wave.md "Real lenses" and "The adaptive step" have the
-    tables, the reference's estimate beside each figure). Not yet 1e-3 everywhere: the double Gauss on axis is 1.07e-2
-    from a reference converged to 4.8e-4 (the Fresnel step near the focus of an aberrated beam); the F/1.3 asphere on
-    axis 1.6e-3 (the default cuts its edge on the DOE plane, exact for its spherical wave: 1.2e-4 with
-    intensity_upsample=8, the remainder is the pixel quadrature)."""
+    tables, the reference's estimate beside each figure): within 1e-3 (TOL) on the Cooke triplet, the 50 mm singlet
+    and the F/1.3 asphere at every field; the double Gauss not yet (TOL_NOT_YET: its DOE plane near its caustic)."""
     n_pupil, pitch = SETTINGS.get((name, frac), (192, None))
     err, est = _case(name, frac, n_pupil=n_pupil, sensor_pitch=pitch)
     print(f"{name} at {frac} field: rel L1 {err:.3g} from the Huygens exit-pupil PSF (its own error ~{est:.2g})")
     if est > REF_TOL:  # e.g. the double Gauss at full field: ~1 wave between neighbouring cells at 288²
         pytest.xfail(f"the reference is not converged (its own error ~{est:.2g}): no verdict")
-    assert err < TOL
+    assert err < TOL_NOT_YET.get((name, frac), TOL)
 
 
 @pytest.mark.slow  # ~4 min: the Huygens reference at 192 and 288 pupil cells

@@ -19,8 +19,9 @@ from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empt
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_cubic,
-                                               _rim_z, _zone_estimate, edge_envelope)
-from raywave.hybrid.coherent.tracing import PAUSE, _Aim, _invert_to_nodes, _nearest_fill, _solve2, per_source, run_serial
+                                               _rim_fourier, _rim_z, _zone_estimate, edge_envelope)
+from raywave.hybrid.coherent.tracing import (PAUSE, _Aim, _invert_to_nodes, _nearest_fill, _solve2, per_source,
+                                             run_serial)
 
 
 def accurate_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
@@ -420,6 +421,11 @@ def _stop_edge_maps(b: _Build, nd: _Nodes, traced: tuple, maps: dict) -> dict:
 PATH_DIFFERENCE_NU = True
 
 
+#: the rim images' points and paths at a node's azimuth by trigonometric interpolation (:func:`_rim_fourier`, exact
+#: for their smooth periodic dependence on the azimuth); False: the cubic (:func:`_rim_cubic`, before issue 47's fix)
+RIM_FOURIER = True
+
+
 def _path_difference_nu(b: _Build, nd: _Nodes, stop_xy: tuple, good, edge: tuple) -> torch.Tensor:
     """The knife edge's Fresnel parameter at the nodes ``(ky, kx)`` from the optical path difference ``Δ`` between
     the wave diffracted at the edge and the geometric one: ``ν = sign(s)·2·sqrt(Δ/λ)``, ``Δ = Φ_E + n|P − E| − Φ_P``
@@ -437,7 +443,8 @@ def _path_difference_nu(b: _Build, nd: _Nodes, stop_xy: tuple, good, edge: tuple
     rim, z_doe, wavelength, n = b.given.stop_rim, b.z_doe, b.src.wavelength, b.n
     sx, sy = stop_xy
     phi, s_stop, g_s = edge
-    at_rim = _rim_cubic(torch.cat([rim.points, rim.opl[:, None]], -1), sx, sy)  # (N, 4): x, y, z, Φ_E
+    interp = _rim_fourier if RIM_FOURIER else _rim_cubic
+    at_rim = interp(torch.cat([rim.points, rim.opl[:, None]], -1), sx, sy)  # (N, 4): x, y, z, Φ_E
     filled = nd.as_map(_nearest_fill(at_rim, good, nd.targets))  # (4, ky, kx)
     ex, ey, ez, phi_e = filled
     dx, dy, dz = nd.tx - ex, nd.ty - ey, z_doe - ez

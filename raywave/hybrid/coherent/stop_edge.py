@@ -553,6 +553,25 @@ def _rim_cubic(values: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torc
     return p1 + 0.5 * w * (p2 - p0 + w * (2 * p0 - 5 * p1 + 4 * p2 - p3 + w * (3 * (p1 - p2) + p3 - p0)))
 
 
+def _rim_fourier(values: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
+    """Per-rim-point ``values`` (k, C) (k equal azimuth steps from 0) at the azimuths of stop points (xs, ys) (N,):
+    trigonometric interpolation, (N, C). The rim's images and their optical paths are smooth periodic functions of
+    the azimuth (a circle on axis, its first harmonics off axis), so this is exact to the rounding where
+    :func:`_rim_cubic` is not (issue 47: 64 points on the double Gauss's 21 mm rim image; the cubic's chords moved
+    the edge's path difference by ~0.005 waves, 1.07e-2 rel L1 of its PSF, against 1.06e-3 with 256 points);
+    differentiable. The stop's centre gets the azimuth 0."""
+    k = values.shape[0]
+    ok = (xs * xs + ys * ys).detach() > 0
+    az = torch.atan2(torch.where(ok, ys, torch.zeros_like(ys)), torch.where(ok, xs, torch.ones_like(xs)))
+    c = torch.fft.rfft(values, dim=0) / k  # (k//2 + 1, C)
+    w = torch.full((c.shape[0], 1), 2.0, dtype=values.dtype, device=values.device)
+    w[0] = 1.0
+    if k % 2 == 0:
+        w[-1] = 1.0
+    ph = az[:, None] * torch.arange(c.shape[0], dtype=values.dtype, device=values.device)[None, :]  # (N, M)
+    return torch.cos(ph) @ (w * c.real) - torch.sin(ph) @ (w * c.imag)
+
+
 def _rim_z(rim, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
     """z of the stop rim's image (:func:`stop_rim_images`) at the azimuth of stop points (xs, ys), periodic linear
     interpolation (differentiable; the stop's centre, where the azimuth is undefined, gets the image of azimuth 0)."""
