@@ -414,7 +414,7 @@ class _EdgeBand(torch.autograd.Function):
         else:  # m = w·sqrt(1 + clamp(ν κ/g))
             m = v * kap
             m.clamp_(-0.9, 3.0).add_(1.0).sqrt_().mul_(w)
-        e_re = torch.where(pos, d_re - 1.0, d_re)  # the edge wave D − H
+        e_re = torch.sub(d_re, pos.to(d_re.dtype))  # the edge wave D − H (H = [ν > 0]: 1 or 0)
         re = e_re * m
         re.add_(w_out.mul_(pos))  # w_out + (D − 1)·m inside, D·m in the shadow
         im = d_im * m
