@@ -22,6 +22,7 @@ import os
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 import warnings
 
@@ -39,6 +40,7 @@ def _parser():
     ap.add_argument("--edges", default="default,fresnel,doe", help="comma-separated, of " + ", ".join(EDGES))
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall")
     ap.add_argument("--ab", default=None, help="source tree of the old code (A/B in alternating subprocesses)")
+    ap.add_argument("--psfs-out", default=None, help="save each edge's last map PSFs (torch.save of a dict)")
     ap.add_argument("-o", "--output")
     return ap
 
@@ -69,6 +71,7 @@ def measure(a) -> dict:
             psf_map(hl, (2, 2), wavelengths=WAVELENGTHS, ks=64, progress=False)
     single = {k: [] for k in hls}
     maps = {k: [] for k in hls}
+    last = {}
     for _ in range(a.repeat):
         for _ in range(a.singles):
             for k, hl in hls.items():
@@ -76,8 +79,10 @@ def measure(a) -> dict:
         if a.grid:
             n = a.grid * a.grid * len(WAVELENGTHS)
             for k, hl in hls.items():
-                maps[k].append(timed(lambda: psf_map(hl, (a.grid, a.grid), wavelengths=WAVELENGTHS, ks=64,
-                                                     progress=False)) / n)
+                maps[k].append(timed(lambda: last.__setitem__(k, psf_map(hl, (a.grid, a.grid), wavelengths=WAVELENGTHS,
+                                                                         ks=64, progress=False))) / n)
+    if a.psfs_out and last:
+        torch.save({k: m.psf.detach().cpu() for k, m in last.items()}, a.psfs_out)
     med = {k: statistics.median(v) for k, v in single.items()}
     out = dict(case=f"hybrid_asphere, single PSF at {a.field} deg 0.53 um ks 64; map {a.grid}x{a.grid}x3 ks 64",
                threads=a.threads, clock=a.clock, repeat=a.repeat, single_s=single, map_s_per_psf=maps,
@@ -99,10 +104,12 @@ def ab(a) -> dict:
     args = ["--grid", str(a.grid), "--repeat", "1", "--singles", str(a.singles), "--threads", str(a.threads),
             "--field", str(a.field), "--edges", a.edges, "--clock", a.clock]
     runs = {k: [] for k in trees}
+    saved = {k: os.path.join(tempfile.mkdtemp(prefix="stop_edge_cost_"), "psfs.pt") for k in trees}
     for r in range(a.repeat):
         for name, tree in trees.items():
             env = dict(os.environ, PYTHONPATH=tree, OMP_NUM_THREADS=str(a.threads))
-            res = subprocess.run([sys.executable, os.path.abspath(__file__)] + args, env=env, cwd=here,
+            extra = ["--psfs-out", saved[name]] if r == 0 and a.grid else []
+            res = subprocess.run([sys.executable, os.path.abspath(__file__)] + args + extra, env=env, cwd=here,
                                  capture_output=True, text=True, check=True)
             runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]))
             print(f"round {r} {name}: single {runs[name][-1]['single_ratio_vs_doe']} map "
@@ -119,6 +126,15 @@ def ab(a) -> dict:
                                                   for k in edges} for name, p in per.items()}
         out[f"{what}_new_over_old"] = {k: statistics.median([x / y for x, y in zip(per["new"][k], per["old"][k])])
                                        for k in edges}
+    if a.grid:  # the new tree's map PSFs against the old one's (first round)
+        import torch
+
+        old, new = (torch.load(saved[k]) for k in ("old", "new"))
+        out["map_psfs_new_vs_old"] = {
+            k: dict(max_abs=float((new[k] - old[k]).abs().max()),
+                    max_rel_l1=float(((new[k] - old[k]).abs().sum((-2, -1))
+                                      / old[k].abs().sum((-2, -1)).clamp_min(1e-300)).max()),
+                    psfs=int(old[k][..., 0, 0].numel())) for k in edges}
     return out
 
 
