@@ -40,6 +40,10 @@ def _parser():
     ap.add_argument("--edges", default="default,fresnel,doe", help="comma-separated, of " + ", ".join(EDGES))
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall")
     ap.add_argument("--ab", default=None, help="source tree of the old code (A/B in alternating subprocesses)")
+    ap.add_argument("--parallel", action="store_true", help="--ab: each round's two subprocesses at once (a machine "
+                    "shared with other work: both see the same load; with --clock cpu)")
+    ap.add_argument("--inner", type=int, default=1, help="--ab: repetitions inside each subprocess (the last one's "
+                    "ratios are the warm ones: its maps follow a map of the same size)")
     ap.add_argument("--psfs-out", default=None, help="save each edge's last map PSFs (torch.save of a dict)")
     ap.add_argument("-o", "--output")
     return ap
@@ -101,21 +105,29 @@ def ab(a) -> dict:
 
     new_tree = os.path.dirname(os.path.dirname(os.path.abspath(raywave.__file__)))
     trees = {"old": os.path.abspath(a.ab), "new": new_tree}
-    args = ["--grid", str(a.grid), "--repeat", "1", "--singles", str(a.singles), "--threads", str(a.threads),
+    args = ["--grid", str(a.grid), "--repeat", str(a.inner), "--singles", str(a.singles), "--threads", str(a.threads),
             "--field", str(a.field), "--edges", a.edges, "--clock", a.clock]
     runs = {k: [] for k in trees}
     saved = {k: os.path.join(tempfile.mkdtemp(prefix="stop_edge_cost_"), "psfs.pt") for k in trees}
     for r in range(a.repeat):
+        procs = {}
         for name, tree in trees.items():
             env = dict(os.environ, PYTHONPATH=tree, OMP_NUM_THREADS=str(a.threads))
             extra = ["--psfs-out", saved[name]] if r == 0 and a.grid else []
-            res = subprocess.run([sys.executable, os.path.abspath(__file__)] + args + extra, env=env, cwd=here,
-                                 capture_output=True, text=True, check=True)
-            runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]))
+            procs[name] = subprocess.Popen([sys.executable, os.path.abspath(__file__)] + args + extra, env=env,
+                                           cwd=here, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            if not a.parallel:
+                procs[name].wait()
+        for name, proc in procs.items():
+            stdout, stderr = proc.communicate()
+            if proc.returncode:
+                raise RuntimeError(f"{name} run failed:\n{stderr[-2000:]}")
+            runs[name].append(json.loads(stdout.strip().splitlines()[-1]))
             print(f"round {r} {name}: single {runs[name][-1]['single_ratio_vs_doe']} map "
                   f"{runs[name][-1].get('map_ratio_vs_doe')}", file=sys.stderr, flush=True)
     edges = a.edges.split(",")
-    out = dict(case=runs["new"][0]["case"], threads=a.threads, clock=a.clock, rounds=a.repeat, trees=trees, runs=runs)
+    out = dict(case=runs["new"][0]["case"], threads=a.threads, clock=a.clock, rounds=a.repeat, inner=a.inner,
+               parallel=a.parallel, trees=trees, runs=runs)
     for what, key in (("single", "single_s"), ("map", "map_s_per_psf")):
         if what == "map" and not a.grid:
             continue
@@ -126,6 +138,17 @@ def ab(a) -> dict:
                                                   for k in edges} for name, p in per.items()}
         out[f"{what}_new_over_old"] = {k: statistics.median([x / y for x, y in zip(per["new"][k], per["old"][k])])
                                        for k in edges}
+    if a.inner > 1:  # the last repetition inside each subprocess (its maps follow maps of the same size)
+        for what, key in (("single", "single_s"), ("map", "map_s_per_psf")):
+            if (what == "map" and not a.grid) or "doe" not in edges:
+                continue
+            step = a.singles if what == "single" else 1
+            last = {name: [{k: statistics.median(run[key][k][-step:]) for k in edges} for run in rs]
+                    for name, rs in runs.items()}
+            out[f"{what}_ratio_vs_doe_last_inner"] = {
+                name: {k: statistics.median([v[k] / v["doe"] for v in ls]) for k in edges} for name, ls in last.items()}
+            out[f"{what}_new_over_old_last_inner"] = {
+                k: statistics.median([x[k] / y[k] for x, y in zip(last["new"], last["old"])]) for k in edges}
     if a.grid:  # the new tree's map PSFs against the old one's (first round)
         import torch
 
