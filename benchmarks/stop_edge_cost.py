@@ -99,7 +99,8 @@ def measure(a) -> dict:
 
 
 def ab(a) -> dict:
-    """``--ab``: alternate subprocesses of this script on the old tree and on this one, one repetition each."""
+    """``--ab``: subprocesses of this script on the old tree and on this one, alternating (or, with ``--parallel``,
+    each round's two at once), ``--inner`` repetitions each."""
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     import raywave
 
