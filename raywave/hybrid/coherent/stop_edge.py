@@ -149,10 +149,10 @@ def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.
     return out.index_put_(idx, torch.complex(re, im))  # in place: ``out`` is new and carries no graph
 
 
-def _edge_band(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
-    """Where :func:`stop_edge_factor` is 1 and where it is evaluated: ``(inside (bool, nu's shape), idx (the band
-    samples' indices, a tuple of int64 tensors), nb (the band's ν_b, float64 (B,)), ν_max)`` (from ``ν`` detached:
-    no graph)."""
+def _band_masks(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
+    """``(inside, band, ν_b, ν_max)`` of the knife-edge factor on ``ν`` (detached): ``inside`` (bool) where the factor
+    is 1 (ν ≥ ν_b, ν_b from the local scale ``g`` (1/mm, a tensor or one value) and ``pitch`` mm: the band the grid
+    resolves), ``band`` (bool) where it is evaluated (−ν_max < ν < ν_b; ν_max = √2 · ``ripple_zones``)."""
     nu_max = math.sqrt(2.0) * ripple_zones
     if isinstance(g, torch.Tensor):
         nu_b = torch.clamp(0.6 / (g.detach() * pitch), max=_nu_inner(ripple_zones)).clamp_min(2.0)
@@ -160,7 +160,16 @@ def _edge_band(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
         nu_b = max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0)
     nu = nu.detach()
     inside = nu >= nu_b
-    idx = ((nu > -nu_max) & ~inside).nonzero(as_tuple=True)
+    return inside, (nu > -nu_max) & ~inside, nu_b, nu_max
+
+
+def _edge_band(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
+    """Where :func:`stop_edge_factor` is 1 and where it is evaluated: ``(inside (bool, nu's shape), idx (the band
+    samples' indices, a tuple of int64 tensors), nb (the band's ν_b, float64 (B,)), ν_max)`` (from ``ν`` detached:
+    no graph)."""
+    inside, band, nu_b, nu_max = _band_masks(nu, ripple_zones, g, pitch)
+    nu = nu.detach()
+    idx = band.nonzero(as_tuple=True)
     nb = nu_b[idx] if isinstance(nu_b, torch.Tensor) else torch.full(idx[0].shape, nu_b, dtype=nu.dtype,
                                                                         device=nu.device)
     return inside, idx, nb, nu_max
@@ -256,14 +265,8 @@ class _EdgeEnvelope(torch.autograd.Function):
         (torch's own: ``(x·Re D − y·Im D) + i(y·Re D + x·Im D)``). Returns the block band's Fresnel integrals
         ``(C, S)`` (None where it has none)."""
         forward_edge, ripple_zones, g, pitch = consts
-        nu_max = math.sqrt(2.0) * ripple_zones
-        if isinstance(g, torch.Tensor):
-            nu_b = torch.clamp(0.6 / (g.detach() * pitch), max=_nu_inner(ripple_zones)).clamp_min(2.0)
-        else:  # one value for the whole window
-            nu_b = max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0)
+        inside, band, nu_b, nu_max = _band_masks(nu, ripple_zones, g, pitch)  # _edge_band's, as masks
         nu = nu.detach()
-        inside = nu >= nu_b
-        band = (nu > -nu_max) & ~inside  # _edge_band's, as a mask (its samples in the same row-major order)
         x, y = torch.cos(angle), torch.sin(angle)
         x.mul_(amp)  # polar's parts: cos·amp, sin·amp
         y.mul_(amp)
