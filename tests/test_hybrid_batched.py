@@ -91,3 +91,22 @@ def test_batched_psfs_keep_their_gradients():
         (g_single,) = torch.autograd.grad(loss, t)
     assert float(g_single.abs()) > 0
     assert float((g_batch - g_single).abs()) <= 1e-10 * float(g_single.abs())
+
+
+@pytest.mark.parametrize("ks, ps, p", [(32, 0.003, 0.001), (64, 0.002, 0.001), (48, 0.00345, 0.00115)])
+def test_output_window_does_not_depend_on_the_last_bits_of_the_chief_ray(ks, ps, p):
+    """The output window's half width is the ceil of spans that are exact integers in samples when the sensor pixel is
+    a whole number of simulation samples: the chief ray's position rounded differently (1e-13 mm) must not add a
+    sample (issue 46: one sample more moved a grating's PSF by 1.1e-5). Before SPAN_ROUNDING, ks 64 / 2 µm / 1 µm gave
+    73 or 74 samples depending on where the chief ray landed."""
+    import random
+
+    from raywave.hybrid.batched import SensorWindow, out_half_width
+
+    rng = random.Random(0)
+    s = SensorWindow(ks, ps, 2)
+    widths = {out_half_width(s, p, (xc + d, 0.0)) for xc in (rng.uniform(-3.0, 3.0) for _ in range(500))
+              for d in (0.0, 1e-13, -1e-13, 3e-13)}
+    assert len(widths) == 1
+    kk = widths.pop()
+    assert 2 * kk + 1 >= ks * ps / p  # the window still covers the crop

@@ -56,6 +56,18 @@ class Planned:
     center: tuple[float, float]
 
 
+#: a window's sample count is the ``ceil`` of a span in samples that is often an exact integer (ks sensor pixels of a
+#: whole number of simulation samples): spans within this many samples above an integer count as that integer, so that
+#: the rounding of the chief ray's position (~1e-13 mm) cannot add a sample (issue 46: a window one sample wider moved a
+#: grating's PSF by 1.1e-5)
+SPAN_ROUNDING = 1e-9
+
+
+def ceil_samples(span: float) -> int:
+    """``ceil(span)`` of a span in samples, robust to its last bits (:data:`SPAN_ROUNDING`)."""
+    return math.ceil(span - SPAN_ROUNDING)
+
+
 def out_half_width(sensor: SensorWindow, p: float, center: tuple[float, float]) -> int:
     """``kk``: the output window on the simulation pitch ``p`` mm is ``2·kk + 1`` samples about the chief ray's image
     point ``center``, covering the ks × ks sensor pixels plus :data:`OUT_MARGIN` samples (the engine's
@@ -68,8 +80,8 @@ def out_half_width(sensor: SensorWindow, p: float, center: tuple[float, float]) 
     m = OUT_MARGIN
     xc = center[0]
     lo_x = xc - (ks // 2) * ps - 0.5 * ps - m * p
-    n_out = int(math.ceil(span)) + 2 + 2 * m
-    return max(math.ceil((xc - lo_x) / p), math.ceil((lo_x + n_out * p - xc) / p))
+    n_out = ceil_samples(span) + 2 + 2 * m
+    return max(ceil_samples((xc - lo_x) / p), ceil_samples((lo_x + n_out * p - xc) / p))
 
 
 def _fft_size(pl: Planned, n_out: int, kk: int) -> tuple[int, int]:

@@ -37,7 +37,8 @@ from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, 
 from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps
 from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
-from raywave.hybrid.batched import OUT_MARGIN, Planned, SensorWindow, TransferMemo, plan_groups, propagate_group
+from raywave.hybrid.batched import (OUT_MARGIN, Planned, SensorWindow, TransferMemo, ceil_samples, plan_groups,
+                                    propagate_group)
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
@@ -755,7 +756,7 @@ class HybridLens(nn.Module):
         if not (math.isfinite(span) and span < 2**31):
             raise ValueError(f"the {ks}×{ks} PSF crop of {ps:g} mm sensor pixels spans {span:g} simulation samples of "
                              f"{p:g} mm: not a usable window (check the sensor pitch and the DOE pitch)")
-        n_out = int(math.ceil(span)) + 2 + 2 * m
+        n_out = ceil_samples(span) + 2 + 2 * m
         if full_grid:
             out, out_origin = _full_grid_window(u, fd, dz, (lo_x, lo_y), n_out)
         else:
@@ -791,7 +792,7 @@ class HybridLens(nn.Module):
         symmetric PSF stays symmetric), band-limited windowed angular spectrum; returns ``(field, origin)``. The
         window moves with the chief ray: a zero-valued shift carries d(center)/dθ (``crop_origin``) into it."""
         p, (xc, yc) = fd.pitch, center
-        kk = max(math.ceil((xc - lo_x) / p), math.ceil((lo_x + n_out * p - xc) / p))
+        kk = max(ceil_samples((xc - lo_x) / p), ceil_samples((lo_x + n_out * p - xc) / p))
         out_origin = (xc - kk * p, yc - kk * p)
         n_out = 2 * kk + 1
         shift = crop_origin - crop_origin.detach() if crop_origin.requires_grad else None
