@@ -315,6 +315,15 @@ class HybridLens(nn.Module):
         self._transfer_memo = TransferMemo()  # the batched path's (raywave.hybrid.batched)
         self._xp_memo: dict = {}  # exit-pupil planes per (lens state, wavelength): plain memo, not state
 
+    def use_transfer_cache(self, cache: OrderedDict) -> "HybridLens":
+        """Share ``cache``, a memo of window transfer functions (see :meth:`_transfer`), with other engines on the
+        same geometry (e.g. a :class:`~raywave.hybrid.MidSystemLens`'s engines for its diffraction orders); returns
+        ``self``."""
+        if not isinstance(cache, OrderedDict):
+            raise TypeError(f"use_transfer_cache: an OrderedDict, got {type(cache).__name__}")
+        self._transfer_cache = cache
+        return self
+
     def with_doe(self, doe: DOE, **overrides) -> "HybridLens":
         """A new :class:`HybridLens` on the same refractive lens (shared, not copied) with ``doe`` in place of
         this one's and every setting kept (DOE distance, sensor pitch, oversample, intensity upsampling, stop edge,

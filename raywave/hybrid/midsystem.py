@@ -478,6 +478,11 @@ class MidSystemLens(nn.Module):
             else:
                 surf = DOEPhaseSurface(self.does[i], self._scale_fn(i) if disp else float(scales[i]), pms[i])
             lens_m = insert_doe(lens_m, a, d, surf, 1.0, self.does[i])
+        return lens_m, self.doe_surface_indices()
+
+    def doe_surface_indices(self) -> list:
+        """The index of each DOE's surface in the lenses of :meth:`build_lens` (the placements alone decide it)."""
+        n = len(self.does)
         idx = []
         for i in range(n):
             a, d = self.placements[i]
@@ -485,7 +490,7 @@ class MidSystemLens(nn.Module):
                          (self.placements[j][0] < a or (self.placements[j][0] == a and d is not None and
                                                         self.placements[j][1] < d)))
             idx.append(a + before + (0 if d is None else 1))
-        return lens_m, idx
+        return idx
 
     def _continuous(self, i: int) -> bool:
         d = self.does[i]
@@ -500,13 +505,11 @@ class MidSystemLens(nn.Module):
         scales = list(scale) if isinstance(scale, (tuple, list)) else [scale] * n
         pms = phase_map if isinstance(phase_map, (list, tuple)) else [phase_map] * n
         disp = [self._continuous(i) for i in range(n)] if dispersive is None else _as_list(dispersive, n, "dispersive")
-        lens_m, idx = self.build_lens(scales, pms, disp)
+        lens_m, _ = self.build_lens(scales, pms, disp)
         edge = {} if self.edge_step is None else {"edge_step": self.edge_step}
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
                         stop_edge=self.stop_edge, **edge)
-        hl._transfer_cache = self._transfer_cache  # shared memo of window transfer functions
-        hl._doe_indices = idx
-        return hl
+        return hl.use_transfer_cache(self._transfer_cache)  # one memo of window transfer functions for every order
 
     def caustics(self, hl: HybridLens, field, wavelength: float, depth=None) -> int:
         """How many line foci (caustics) an order's beam crosses between the first DOE and the engine's plane
@@ -522,7 +525,7 @@ class MidSystemLens(nn.Module):
             warnings.simplefilter("ignore")  # 3 probe rays near the chief ray, apertures off; the PSF itself warns
             rays = point_source_rays(lens_m, torch.tensor([list(field)], dtype=torch.float64), [wavelength],
                                      pupil=(px, py), aim="full", depth=depth)
-            at_doe = lens_m.trace(rays, stop=hl._doe_indices[0] + 1, apertures=False)
+            at_doe = lens_m.trace(rays, stop=self.doe_surface_indices()[0] + 1, apertures=False)
             out = lens_m.trace(rays, apertures=False)
             nmed = lens_m.surfaces[-1].material.n(out.wavelength).to(out.dtype)
             out = out.propagate_to_z(float(lens_m.vertex_z()[-1].detach()) + hl.doe_distance, nmed)
@@ -657,13 +660,11 @@ class MidSystemLens(nn.Module):
         n = len(self.does)
         pms = phase_map if isinstance(phase_map, (list, tuple)) else [phase_map] * n
         disp = [self._continuous(i) for i in range(n)]
-        lens_m, idx = self.build_lens([None] * n, pms, disp, per_source=True)
+        lens_m, _ = self.build_lens([None] * n, pms, disp, per_source=True)
         edge = {} if self.edge_step is None else {"edge_step": self.edge_step}
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
                         stop_edge=self.stop_edge, mirror=False, **edge)
-        hl._transfer_cache = self._transfer_cache
-        hl._doe_indices = idx
-        return hl
+        return hl.use_transfer_cache(self._transfer_cache)
 
     def _orders_field(self, field, wavelength: float, depth, pms, orders):
         """:meth:`source_field` of ``orders`` (``[(scale, c)]``, strongest first, more than one) with the DOE-plane
@@ -727,7 +728,7 @@ class MidSystemLens(nn.Module):
             out, rec = lens_m.trace(rays, apertures=False, record=True)
             nmed = lens_m.surfaces[-1].material.n(out.wavelength).to(out.dtype)
             out = out.propagate_to_z(float(lens_m.vertex_z()[-1].detach()) + hl.doe_distance, nmed)
-        pts = rec.points[hl._doe_indices[0] + 1]
+        pts = rec.points[self.doe_surface_indices()[0] + 1]
         a = torch.stack([pts[0][:, 0], pts[1][:, 0]], -1)  # (M, 3, 2) on the first DOE
         b = out.o[:, 0, :, :2]
         j0 = torch.stack([a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]], -1)
