@@ -5,7 +5,7 @@ the issue (the beam's width ratio to its first crossing plane, the ray map's sma
 distance to the nearest local focus in depths of focus λ/NA², and the edge rays' aberration over their Fresnel
 number). Tracing only (seconds per case). One JSON line per case (and the list with ``-o``).
 
-    PYTHONPATH=. python benchmarks/caustic_estimate.py [CASES] [--errors benchmarks/results/stop_edge_references_2026-11-29_k47.json] [-o F]
+    PYTHONPATH=. python benchmarks/caustic_estimate.py [CASES] [--errors F.json] [-o F]
 """
 
 import argparse

@@ -216,13 +216,14 @@ def go_phase_error(lens, source: Source, z_xp: float, z_doe: float):
     ``|δφ − mean δφ|`` over the stop of the second-order (diffraction) term of the eikonal that geometric optics
     drops,
 
-        ``δφ(p, z) = (1/2k) ∫_{z_xp}^{z} ∇⊥²A / A dz'``,   ``A = |det ∂x/∂p|^(-1/2)``,   ``k = 2π n / λ``,
+        ``δφ(p, z) = (1/2k) ∫_{z_xp}^{z} ∇⊥²A / A dz'``,  ``A = |det ∂x/∂p|^(-1/2)``,  ``k = 2π n / λ``,
 
     along each ray p of a :data:`GO_GRID`² stop grid (traced once, apertures off, straight lines in the image
     medium; the paraxial wave equation's phase correction, the next term of the WKB series). A plane near a
     caustic, where the rays' density varies fast on the scale of a Fresnel zone, has a large ``δφ``: it grows as
     1/distance towards the rays' local foci. A sphere (an ideal lens) has ``δφ`` 0 (to rounding). Cost: one trace of
-    1 024 rays (and one with apertures, for the lit ones) and :data:`GO_PLANES` planes of finite differences. ``error`` 0 where no ray is traced."""
+    1 024 rays (and one with apertures, for the lit ones) and :data:`GO_PLANES` planes of finite differences.
+    ``error`` 0 where no ray is traced."""
     dev = lens.device
     ext, ng = 1.1, GO_GRID
     g = ((torch.arange(ng, dtype=torch.float64, device=dev) + 0.5) / ng * 2 - 1) * ext
@@ -244,7 +245,7 @@ def go_phase_error(lens, source: Source, z_xp: float, z_doe: float):
         u = torch.linspace(0.0, 1.0, GO_PLANES + 1, dtype=torch.float64, device=dev)
         zs = z_xp + (z_doe - z_xp) * (1 - (1 - u) ** 2)  # denser towards the DOE plane
         h = 2 * ext / ng
-        lap = torch.stack([_lap_over_amp(x0 + (float(z) - z_doe) * tan, h) for z in zs])  # (P, ng, ng)
+        lap = _lap_over_amp(x0 + (zs - z_doe)[:, None, None, None] * tan, h)  # (P, ng, ng)
         k = 2 * math.pi * n / (wl * 1e-3)
         dz = (zs[1:] - zs[:-1]).abs()[:, None, None]
         dphi = torch.cat([torch.zeros_like(lap[:1]), torch.cumsum(0.5 * (lap[1:] + lap[:-1]) * dz, 0)]) / (2 * k)
@@ -257,17 +258,16 @@ def go_phase_error(lens, source: Source, z_xp: float, z_doe: float):
 
 
 def _lap_over_amp(x: torch.Tensor, h: float) -> torch.Tensor:
-    """``∇⊥²A / A`` (1/mm²) on a plane of the ray map ``x`` (ng, ng, 2) mm over a stop grid of spacing ``h``
+    """``∇⊥²A / A`` (1/mm²) on planes of the ray map ``x`` (..., ng, ng, 2) mm over a stop grid of spacing ``h``
     (normalised stop units), ``A = |det ∂x/∂p|^(-1/2)``: central differences with the chain rule
     ``∇_x = (∂x/∂p)^(-T) ∇_p``; NaN where a stencil lacks a ray (the grid's outer rows, vignetted rays)."""
-    def dp(f):  # central differences along the grid's columns (p) and rows (q), NaN at the border
+    def dp(f):  # central differences along the grid's columns (p) and rows (q) of f (..., ng, ng), NaN at the border
         fp, fq = torch.full_like(f, math.nan), torch.full_like(f, math.nan)
-        fp[:, 1:-1] = (f[:, 2:] - f[:, :-2]) / (2 * h)
-        fq[1:-1, :] = (f[2:, :] - f[:-2, :]) / (2 * h)
+        fp[..., :, 1:-1] = (f[..., :, 2:] - f[..., :, :-2]) / (2 * h)
+        fq[..., 1:-1, :] = (f[..., 2:, :] - f[..., :-2, :]) / (2 * h)
         return fp, fq
 
-    xp, xq = dp(x)
-    m00, m01, m10, m11 = xp[..., 0], xq[..., 0], xp[..., 1], xq[..., 1]  # dx/dp, dx/dq, dy/dp, dy/dq
+    (m00, m01), (m10, m11) = dp(x[..., 0]), dp(x[..., 1])  # dx/dp, dx/dq, dy/dp, dy/dq
     det = m00 * m11 - m01 * m10
     amp = det.abs() ** -0.5
     ap, aq = dp(amp)
@@ -295,9 +295,9 @@ def go_fallback_plane(lens, source: Source, z_xp: float, z_doe: float):
 
 def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: float, est: float):
     """``z_from`` when the beam there spans at most :data:`MAX_XP_SAMPLES` simulation samples of ``p_sim`` mm a
-    side (the exact construction's limit; the window's memory is checked as for any field), with a :class:`StopEdgeWarning` naming the fallback; else None with a
-    warning that the DOE plane ``z_doe`` is too near the rays' focus for the construction (``est``: the
-    :func:`go_phase_error` there, rad)."""
+    side (the exact construction's limit; the window's memory is checked as for any field), with a
+    :class:`StopEdgeWarning` naming the fallback; else None with a warning that the DOE plane ``z_doe`` is too near
+    the rays' focus for the construction (``est``: the :func:`go_phase_error` there, rad)."""
     fld = torch.as_tensor(source.field, dtype=torch.float64, device=lens.device).reshape(2)
     wl = float(source.wavelength)
     xb = _footprint(lens, fld, torch.tensor([wl], dtype=torch.float64, device=lens.device), source.depth, z_from,
