@@ -11,6 +11,7 @@ import torch
 
 from raywave.doe.base import BlankDOE
 from raywave.lens.sources import VignettingWarning, point_source_rays
+from raywave.utils.errors import MemoryLimitError
 from raywave.wave.grid import Field
 from raywave.wave.propagation import propagate_window
 from raywave.hybrid.coherent.accurate import accurate_field_steps
@@ -306,10 +307,17 @@ def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: flo
     where = (f"the DOE plane z = {z_doe:.4g} mm lies near the rays' focus for field "
              f"{[round(float(v), 6) for v in fld.tolist()]} at {wl:g} µm: the geometric-optics field there is off by "
              f"~{est:.2g} rad (go_phase_error > {GO_PHASE_TOL:g} rad)")
-    if side > MAX_XP_SAMPLES:
+    fits = side <= MAX_XP_SAMPLES
+    if fits:
+        try:  # the window (beam and edge band, 1.2x) in memory, as the construction will check it
+            check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
+                                p_sim, lens.device)
+        except MemoryLimitError:
+            fits = False
+    if not fits:
         warnings.warn(f"{where}, and building it {z_doe - z_from:.3g} mm before would take {side:.0f} samples a side "
-                      f"(over {MAX_XP_SAMPLES}): built on the plane itself; move the DOE towards the lens or use a "
-                      "coarser DOE pitch", StopEdgeWarning, stacklevel=4)
+                      f"(over {MAX_XP_SAMPLES}, or more than the memory holds): built on the plane itself; move the "
+                      "DOE towards the lens or use a coarser DOE pitch", StopEdgeWarning, stacklevel=4)
         return None
     warnings.warn(f"{where}; the field is built {z_doe - z_from:.3g} mm before it and carried to it by the angular "
                   "spectrum (slower)", StopEdgeWarning, stacklevel=4)
