@@ -100,6 +100,9 @@ def main():
     ap.add_argument("--grad", action="store_true", help="also count forward + backward")
     ap.add_argument("--top", type=int, default=25, help="functions listed")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--accelerator", action="store_true",
+                    help="count the ops of the path an accelerator takes (the lens traces chunked as on CUDA: "
+                         "raywave.lens.lens.trace_chunk; the same values, fewer chunks)")
     ap.add_argument("-o", "--output", default=None)
     args = ap.parse_args()
 
@@ -116,6 +119,12 @@ def main():
 
     global _ROOT
     _ROOT = os.path.dirname(os.path.abspath(raywave.__file__))
+    if args.accelerator:
+        import raywave.lens.lens as lens_mod
+
+        if not hasattr(lens_mod, "TRACE_CHUNK_ACCELERATOR"):
+            raise SystemExit("--accelerator: this tree has no per-device trace chunk (raywave.lens.lens.trace_chunk)")
+        lens_mod.TRACE_CHUNK = lens_mod.TRACE_CHUNK_ACCELERATOR
     torch.set_num_threads(args.threads)
     warnings.simplefilter("ignore")
     n, m, w = (int(v) for v in args.map.split("x"))
@@ -141,7 +150,8 @@ def main():
         (r.psf * wt.to(r.psf.device)).sum().backward()
 
     out = {"benchmark": "ops_breakdown", "lens": "hybrid_asphere", "grid": [n, m], "wavelengths": wls, "ks": KS,
-           "stop_edge": hl.stop_edge, "torch": torch.__version__}
+           "stop_edge": hl.stop_edge, "torch": torch.__version__,
+           "path": "accelerator (CUDA trace chunks)" if args.accelerator else "cpu"}
     cases = [("no_grad", nograd, f0.shape[0] * w)] + ([("grad", fwd_bwd, f.shape[0] * w)] if args.grad else [])
     for name, fn, k in cases:
         total, funcs, phases, openers = breakdown(fn)

@@ -160,6 +160,14 @@ def _center_of(fd: DOEField):
     return tuple(float(v) for v in c)
 
 
+def _chief_tans(chief_doe, members: list[int]) -> list:
+    """The chief rays' slopes ``(dx/dz, dy/dz)`` (host floats) on the DOE plane of the sources ``members`` (indices
+    into the (F, W) bundle ``chief_doe``), ``[len(members)][W]`` pairs: one division and one host read for all of
+    them (issue 43; the same values as each source's own)."""
+    d = chief_doe.d.detach()[torch.tensor(members, dtype=torch.long, device=chief_doe.d.device)]  # (M, W, 3)
+    return [[tuple(t) for t in row] for row in (d[..., :2] / d[..., 2:]).tolist()]
+
+
 def _dark(fd: DOEField) -> bool:
     """No light in the field (its power is 0): every envelope sample is 0 (a cheap test, no |U|² sum; counting
     the real view's non-zeros is ~2.5× faster than a complex ``!= 0``)."""
@@ -668,13 +676,18 @@ class HybridLens(nn.Module):
         before the DOE plane."""
         members, built = group
         nw, out, clipped, folded = len(geo.wls), [], [], []
-        chief_doe = geo.chief[0]
+        tans = _chief_tans(geo.chief[0], members)
+        dark = {}  # a mirror image is dark where its source is (its envelope is the source's, mirrored)
+        for k, i in enumerate(members):
+            if geo.src[i] is None:
+                for j in range(nw):
+                    dark[i, j] = _dark(built[k * nw + j])
         for k, i in enumerate(members):
             row = []
             own = i if geo.src[i] is None else geo.src[i][0]
             for j, wl in enumerate(geo.wls):
                 fd = built[k * nw + j]
-                if _dark(fd):
+                if dark[own, j] if (own, j) in dark else _dark(fd):
                     warnings.warn(f"field {geo.f[i].tolist()} at {wl:g} µm: no light reaches the DOE (every ray is "
                                   "vignetted or misses the DOE aperture); its PSF is all zeros",
                                   VignettingWarning, stacklevel=3)
@@ -684,8 +697,7 @@ class HybridLens(nn.Module):
                         folded.append((fold, geo.f[i].tolist(), wl))
                 if fd.clipped > CLIP_WARN:
                     clipped.append((fd, geo.f[i]))
-                d_c = chief_doe[i, j].d.detach()
-                fd.chief_tan = (float(d_c[0] / d_c[2]), float(d_c[1] / d_c[2]))
+                fd.chief_tan = tans[k][j]
                 row.append(fd)
             out.append(row)
         if pending is None:
