@@ -928,8 +928,13 @@ class HybridLens(nn.Module):
         by the zero-valued sensor-distance ``dz`` for live fields (``chief_tan`` set: :meth:`_chief_image`), and that
         ``dz`` (None for a frozen lens)."""
         dev = self.lens.device
-        centers = torch.stack([c if isinstance(c, torch.Tensor) else torch.tensor(c, dtype=torch.float64)
-                               for c in (_center_of(fd) for fd in flat)]).to(dev)
+        if flat and all(isinstance(v, torch.Tensor) and v.ndim == 0 and v.device == flat[0].center[0].device
+                        for fd in flat for v in fd.center):
+            # every centre a pair of 0-d tensors (the accurate path): one stack for the call, not one per field
+            centers = torch.stack([v for fd in flat for v in fd.center]).reshape(-1, 2).to(torch.float64).to(dev)
+        else:
+            centers = torch.stack([c if isinstance(c, torch.Tensor) else torch.tensor(c, dtype=torch.float64)
+                                   for c in (_center_of(fd) for fd in flat)]).to(dev)
         live = [fd.chief_tan for fd in flat]
         dz = self._sensor_dz() if any(t is not None for t in live) else None
         if dz is not None:
