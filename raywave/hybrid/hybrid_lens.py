@@ -32,9 +32,9 @@ from torch import nn
 
 from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
-                                     doe_clippings, entrance_pupil, exit_pupil_field_steps, faithful_field, footprints,
-                                     run_batched)
+                                     entrance_pupil, exit_pupil_field_steps, faithful_field, run_batched)
 from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps
+from raywave.hybrid.coherent.geometry import footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import OUT_MARGIN, Planned, SensorWindow, TransferMemo, plan_groups, propagate_group
@@ -544,7 +544,10 @@ class HybridLens(nn.Module):
         geo = _CallGeometry(f, wls, depth, (cd, cs, cuv), src, todo=todo)
         ft = f[torch.tensor(todo, dtype=torch.long, device=f.device)]
         wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
-        geo.boxes = [[False if b is None else b for b in row] for row in footprints(optics, ft, wls_t, depth, z_doe)]
+        # the lit footprints and the DOE-aperture diagnostic (a mirror image's are its source's) of every built
+        # field, from one aimed trace of both ray sets
+        boxes, geo.clips = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True)
+        geo.boxes = [[False if b is None else b for b in row] for row in boxes]
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
         z_xps = self._exit_pupil_planes(wls)
         if z_xps is not None:
@@ -560,8 +563,6 @@ class HybridLens(nn.Module):
             if self.edge_step == "adaptive":  # every built source's step from one trace of their edge rays
                 steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen))
             geo.edge = (z_xps, rims, cx, steps)
-        # the DOE-aperture diagnostic of every built field, from one trace (a mirror image's are its source's)
-        geo.clips = doe_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True)
         return geo
 
     def _accurate_group(self, geo: "_CallGeometry", members: list[int], nodes: int, check: bool,
