@@ -283,7 +283,10 @@ def go_fallback_plane(lens, source: Source, z_xp: float, z_doe: float):
     when the DOE plane ``z_doe`` lies too near the rays' focus (:func:`go_phase_error` ``error`` rad >
     :data:`GO_PHASE_TOL` there): the plane nearest the DOE plane, between it and the exit pupil ``z_xp``, where the
     error is at most :data:`GO_FALLBACK_FRACTION` × the tolerance (the field is then carried to the DOE plane by the
-    angular spectrum, exact over that step); ``(None, error)`` when the DOE plane is fine (or no plane is)."""
+    angular spectrum, exact over that step); ``(None, error)`` when the DOE plane is fine (or no plane is), and
+    ``(None, 0.0)`` when it lies before the exit pupil."""
+    if not z_xp < z_doe:  # a DOE plane before the exit pupil (its edge stepped backwards): no earlier plane
+        return None, 0.0
     zs, err = go_phase_error(lens, source, z_xp, z_doe)
     e = float(err[-1])
     if not e > GO_PHASE_TOL:
