@@ -94,12 +94,29 @@ def breakdown(fn) -> tuple[int, collections.Counter, collections.Counter, collec
     return c.n, funcs, phases, openers
 
 
+def _accelerator_sizes() -> None:
+    """Set the CPU's block sizes to an accelerator's (the lens traces' chunks, the edge envelope's blocks, the band
+    convolution's column chunks: the same values, fewer loops), so that the count is the ops a CUDA run dispatches."""
+    import raywave.hybrid.coherent.stop_edge as edge_mod
+    import raywave.lens.lens as lens_mod
+    import raywave.wave.propagation.window as window_mod
+
+    pairs = ((lens_mod, "TRACE_CHUNK"), (edge_mod, "ENVELOPE_BLOCK_SAMPLES"), (window_mod, "BAND_CHUNK_BYTES"))
+    for mod, name in pairs:
+        if not hasattr(mod, name + "_ACCELERATOR"):
+            raise SystemExit(f"--accelerator: this tree has no {mod.__name__}.{name}_ACCELERATOR (per-device sizes)")
+        setattr(mod, name, getattr(mod, name + "_ACCELERATOR"))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--map", default="10x10x3", metavar="NxMxW")
     ap.add_argument("--grad", action="store_true", help="also count forward + backward")
     ap.add_argument("--top", type=int, default=25, help="functions listed")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--accelerator", action="store_true",
+                    help="count the ops of the path an accelerator takes (the lens traces, the edge envelope and the "
+                         "band convolution in CUDA's block sizes: the same values, fewer blocks)")
     ap.add_argument("-o", "--output", default=None)
     args = ap.parse_args()
 
@@ -116,6 +133,8 @@ def main():
 
     global _ROOT
     _ROOT = os.path.dirname(os.path.abspath(raywave.__file__))
+    if args.accelerator:
+        _accelerator_sizes()
     torch.set_num_threads(args.threads)
     warnings.simplefilter("ignore")
     n, m, w = (int(v) for v in args.map.split("x"))
@@ -141,7 +160,8 @@ def main():
         (r.psf * wt.to(r.psf.device)).sum().backward()
 
     out = {"benchmark": "ops_breakdown", "lens": "hybrid_asphere", "grid": [n, m], "wavelengths": wls, "ks": KS,
-           "stop_edge": hl.stop_edge, "torch": torch.__version__}
+           "stop_edge": hl.stop_edge, "torch": torch.__version__,
+           "path": "accelerator (CUDA block sizes)" if args.accelerator else "cpu"}
     cases = [("no_grad", nograd, f0.shape[0] * w)] + ([("grad", fwd_bwd, f.shape[0] * w)] if args.grad else [])
     for name, fn, k in cases:
         total, funcs, phases, openers = breakdown(fn)

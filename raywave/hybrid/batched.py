@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from raywave.utils.safe import safe_div
-from raywave.wave.propagation import integrated_upsampled_intensity
+from raywave.wave.propagation import integrated_upsampled_intensity, upsampled_pixel_weights
 from raywave.wave.propagation.batch import WindowBatch, WindowSource, batch_transfer, propagate_batch
 from raywave.wave.propagation.transfer import _geometry
 
@@ -154,15 +154,25 @@ def edge_taper(n: int, width: int, device) -> torch.Tensor:
     return w[:, None] * w[None, :]
 
 
-def sensor_psfs(out: torch.Tensor, kk: int, p: float, sensor: SensorWindow, power: torch.Tensor):
+def sensor_psfs(out: torch.Tensor, kk: int, p: float, sensor: SensorWindow, power: torch.Tensor, memo=None):
     """The PSFs ``(B, ks, ks)`` (each summing to 1; all zeros where no light arrives) and the energy outside the
     crops ``(B,)`` from the sensor-plane fields ``out`` ``(B, 2kk+1, 2kk+1)`` (pitch ``p`` mm, each window's centre
     sample on its chief ray's image point, the centre of pixel ``[ks//2, ks//2]``), ``power`` ``(B,)`` the power
-    reaching the DOE."""
+    reaching the DOE. ``memo`` (:class:`TransferMemo` or None): where the pixel integration's weights and the
+    window's taper are kept, built once per geometry (``kk``, ``p``, the sensor; issue 43) instead of per batch."""
     ks, ps = sensor.ks, sensor.pitch
     rel = (ks // 2) * ps - kk * p  # every window's sample (0, 0) relative to its crop's pixel (0, 0) centre
-    crop = integrated_upsampled_intensity(out, sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks),
-                                          edge_taper(out.shape[-1], OUT_MARGIN - 2, out.device), refine=True)
+    n = out.shape[-1]
+
+    def build():
+        return (upsampled_pixel_weights((out.shape[-2], n), sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks),
+                                        out.device, refine=True),
+                edge_taper(n, OUT_MARGIN - 2, out.device))
+
+    key = ("pixel_weights", tuple(out.shape[-2:]), kk, float(p), sensor, str(out.device))
+    weights, taper = build() if memo is None else memo.cached(key, build)
+    crop = integrated_upsampled_intensity(out, sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks), taper, refine=True,
+                                          weights=weights)
     total = crop.sum((-2, -1))
     power = power.to(torch.float64)
     lit = power > 0
@@ -173,7 +183,8 @@ def sensor_psfs(out: torch.Tensor, kk: int, p: float, sensor: SensorWindow, powe
 
 class TransferMemo:
     """The batch transfer functions of recent batches (a training loop with a frozen lens reuses them), kept while
-    they take at most ``max_bytes`` together (least recently used dropped first). Plain per-engine memo."""
+    they take at most ``max_bytes`` together (least recently used dropped first); and other geometry-keyed
+    constants of the batched path (:meth:`cached`: the pixel integration's weights). Plain per-engine memo."""
 
     def __init__(self, max_bytes: int = 64 * 2**20):
         from collections import OrderedDict
@@ -188,23 +199,34 @@ class TransferMemo:
         return len(self._items)
 
     def get(self, wb: WindowBatch, device, weight_derivative: bool):
-        key = (wb, str(device), bool(weight_derivative))
+        """:func:`batch_transfer` of ``wb`` on ``device``, built once while it stays in the memo."""
+        return self.cached((wb, str(device), bool(weight_derivative)),
+                           lambda: batch_transfer(wb, device, weight_derivative))
+
+    def cached(self, key, build):
+        """The value of ``build()`` for the hashable ``key`` (host values that fix it: a geometry), built once while
+        it stays in the memo (values that take more than ``max_bytes`` are not kept)."""
         hit = self._items.get(key)
         if hit is not None:
             self._items.move_to_end(key)
             return hit
-        hit = batch_transfer(wb, device, weight_derivative)
-        size = hit.band.numel() * hit.band.element_size() + (0 if hit.rel is None else
-                                                              hit.rel.numel() * hit.rel.element_size())
-        if size <= self.max_bytes:
+        hit = build()
+        if _nbytes(hit) <= self.max_bytes:
             self._items[key] = hit
             while sum(_nbytes(v) for v in self._items.values()) > self.max_bytes:
                 self._items.popitem(last=False)
         return hit
 
 
-def _nbytes(t) -> int:
-    return t.band.numel() * t.band.element_size() + (0 if t.rel is None else t.rel.numel() * t.rel.element_size())
+def _nbytes(v) -> int:
+    """Bytes of the tensors in ``v`` (a :class:`BatchTransfer`, a tensor, or tuples of them)."""
+    if isinstance(v, torch.Tensor):
+        return v.numel() * v.element_size()
+    if isinstance(v, (tuple, list)):
+        return sum(_nbytes(x) for x in v)
+    if hasattr(v, "band"):  # a BatchTransfer
+        return _nbytes(v.band) + (0 if v.rel is None else _nbytes(v.rel))
+    return 0
 
 
 def propagate_group(engine, batch: list[Planned], centers: torch.Tensor, dz, dtype, sensor: SensorWindow):
@@ -218,4 +240,4 @@ def propagate_group(engine, batch: list[Planned], centers: torch.Tensor, dz, dty
     transfer = engine._transfer_memo.get(wb, u.device, dz is not None or shift is not None)
     out = propagate_batch(wb.field(u), wb.out_grids(), wb.distances(), transfer=transfer, shift=shift, dz=dz).envelope
     del u
-    return sensor_psfs(out, kk, wb.pitch, sensor, power)
+    return sensor_psfs(out, kk, wb.pitch, sensor, power, engine._transfer_memo)

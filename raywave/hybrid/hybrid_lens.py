@@ -32,9 +32,9 @@ from torch import nn
 
 from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
-                                     doe_clippings, entrance_pupil, exit_pupil_field_steps, faithful_field, footprints,
-                                     run_batched)
+                                     entrance_pupil, exit_pupil_field_steps, faithful_field, run_batched)
 from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps
+from raywave.hybrid.coherent.geometry import footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, Planned, SensorWindow, TransferMemo, ceil_samples, plan_groups,
@@ -159,6 +159,14 @@ def _center_of(fd: DOEField):
     if all(isinstance(v, torch.Tensor) for v in c):
         return torch.stack(list(c)).to(torch.float64)
     return tuple(float(v) for v in c)
+
+
+def _chief_tans(chief_doe, members: list[int]) -> list:
+    """The chief rays' slopes ``(dx/dz, dy/dz)`` (host floats) on the DOE plane of the sources ``members`` (indices
+    into the (F, W) bundle ``chief_doe``), ``[len(members)][W]`` pairs: one division and one host read for all of
+    them (issue 43; the same values as each source's own)."""
+    d = chief_doe.d.detach()[torch.tensor(members, dtype=torch.long, device=chief_doe.d.device)]  # (M, W, 3)
+    return [[tuple(t) for t in row] for row in (d[..., :2] / d[..., 2:]).tolist()]
 
 
 def _dark(fd: DOEField) -> bool:
@@ -546,7 +554,10 @@ class HybridLens(nn.Module):
         geo = _CallGeometry(f, wls, depth, (cd, cs, cuv), src, todo=todo)
         ft = f[torch.tensor(todo, dtype=torch.long, device=f.device)]
         wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
-        geo.boxes = [[False if b is None else b for b in row] for row in footprints(optics, ft, wls_t, depth, z_doe)]
+        # the lit footprints and the DOE-aperture diagnostic (a mirror image's are its source's) of every built
+        # field, from one aimed trace of both ray sets
+        boxes, geo.clips = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True)
+        geo.boxes = [[False if b is None else b for b in row] for row in boxes]
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
         z_xps = self._exit_pupil_planes(wls)
         if z_xps is not None:
@@ -562,8 +573,6 @@ class HybridLens(nn.Module):
             if self.edge_step == "adaptive":  # every built source's step from one trace of their edge rays
                 steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen))
             geo.edge = (z_xps, rims, cx, steps)
-        # the DOE-aperture diagnostic of every built field, from one trace (a mirror image's are its source's)
-        geo.clips = doe_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True)
         return geo
 
     def _accurate_group(self, geo: "_CallGeometry", members: list[int], nodes: int, check: bool,
@@ -678,13 +687,18 @@ class HybridLens(nn.Module):
         before the DOE plane."""
         members, built = group
         nw, out, clipped, folded = len(geo.wls), [], [], []
-        chief_doe = geo.chief[0]
+        tans = _chief_tans(geo.chief[0], members)
+        dark = {}  # a mirror image is dark where its source is (its envelope is the source's, mirrored)
+        for k, i in enumerate(members):
+            if geo.src[i] is None:
+                for j in range(nw):
+                    dark[i, j] = _dark(built[k * nw + j])
         for k, i in enumerate(members):
             row = []
             own = i if geo.src[i] is None else geo.src[i][0]
             for j, wl in enumerate(geo.wls):
                 fd = built[k * nw + j]
-                if _dark(fd):
+                if dark[own, j] if (own, j) in dark else _dark(fd):
                     warnings.warn(f"field {geo.f[i].tolist()} at {wl:g} µm: no light reaches the DOE (every ray is "
                                   "vignetted or misses the DOE aperture); its PSF is all zeros",
                                   VignettingWarning, stacklevel=3)
@@ -694,8 +708,7 @@ class HybridLens(nn.Module):
                         folded.append((fold, geo.f[i].tolist(), wl))
                 if fd.clipped > CLIP_WARN:
                     clipped.append((fd, geo.f[i]))
-                d_c = chief_doe[i, j].d.detach()
-                fd.chief_tan = (float(d_c[0] / d_c[2]), float(d_c[1] / d_c[2]))
+                fd.chief_tan = tans[k][j]
                 row.append(fd)
             out.append(row)
         if pending is None:
@@ -926,8 +939,13 @@ class HybridLens(nn.Module):
         by the zero-valued sensor-distance ``dz`` for live fields (``chief_tan`` set: :meth:`_chief_image`), and that
         ``dz`` (None for a frozen lens)."""
         dev = self.lens.device
-        centers = torch.stack([c if isinstance(c, torch.Tensor) else torch.tensor(c, dtype=torch.float64)
-                               for c in (_center_of(fd) for fd in flat)]).to(dev)
+        if flat and all(isinstance(v, torch.Tensor) and v.ndim == 0 and v.device == flat[0].center[0].device
+                        for fd in flat for v in fd.center):
+            # every centre a pair of 0-d tensors (the accurate path): one stack for the call, not one per field
+            centers = torch.stack([v for fd in flat for v in fd.center]).reshape(-1, 2).to(torch.float64).to(dev)
+        else:
+            centers = torch.stack([c if isinstance(c, torch.Tensor) else torch.tensor(c, dtype=torch.float64)
+                                   for c in (_center_of(fd) for fd in flat)]).to(dev)
         live = [fd.chief_tan for fd in flat]
         dz = self._sensor_dz() if any(t is not None for t in live) else None
         if dz is not None:

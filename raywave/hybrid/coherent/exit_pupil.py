@@ -11,11 +11,12 @@ import torch
 
 from raywave.doe.base import BlankDOE
 from raywave.lens.sources import VignettingWarning, point_source_rays
+from raywave.utils.errors import MemoryLimitError
 from raywave.wave.grid import Field
 from raywave.wave.propagation import propagate_window
 from raywave.hybrid.coherent.accurate import accurate_field_steps
 from raywave.hybrid.coherent.geometry import _common_setup, _empty_field, _footprint, check_window_memory, lit_box
-from raywave.hybrid.coherent.record import DOEField, FieldInfo
+from raywave.hybrid.coherent.record import DOEField, FieldInfo, StopEdgeWarning
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source, check_types
 from raywave.hybrid.coherent.stop_edge import RIPPLE_ZONES, stop_rim_images
 from raywave.hybrid.coherent.tracing import run_serial
@@ -102,6 +103,13 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                                              replace(settings, virtual=False, stop_plane=None), Known(bbox, entrance))
         return fd.with_info(stop_edge="exit_pupil")
     method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
+    z_from = None
+    if method == "fresnel" and settings.check:  # the plane too near a caustic: built before it, carried by the ASM
+        z_from, est = go_fallback_plane(lens, source, z_xp, z_doe)
+        if z_from is not None:
+            z_from = _fallback_fits(lens, source, z_from, z_doe, p_sim, est)
+        if z_from is not None:
+            method = "asm"
     if method == "fresnel":
         rim = None
         if rim_images:
@@ -116,9 +124,13 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     _, fld, wl, n, (p, x0, y0, sy, sx), _, center, zprop = _common_setup(
         lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
     rim = None
-    if rim_images:
+    if rim_images or z_from is not None:
         rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
-    z_edge, z_far = _rim_step_plane(rim, z_xp, z_doe, wavelength, n, p)
+    if z_from is not None:  # the caustic fallback: the Fresnel step to z_from, the angular spectrum beyond
+        z_edge, z_far = z_from, _rim_step_plane(rim, z_xp, z_doe, wavelength, n, 0.0)[1]
+        chief_xp = chief_doe
+    else:
+        z_edge, z_far = _rim_step_plane(rim, z_xp, z_doe, wavelength, n, p)
     if z_edge is None:  # the edge sharp on the exit-pupil plane
         fx = yield from accurate_field_steps(lens, doe, source, Planes(z_xp, z_sensor),
                                              ChiefRays(chief_xp, chief_sensor, uv=chief_uv),
@@ -181,6 +193,138 @@ def _edge_method(lens, field, wavelength: float, depth, z_xp: float, p_sim: floa
         big = xb is not None and max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > AUTO_ASM_SAMPLES
         method = "fresnel" if big else "asm"
     return method, xb
+
+
+#: :func:`go_fallback_plane`: the largest geometric-optics phase error (rad, :func:`go_phase_error`) accepted on the
+#: DOE plane before the field is built on an earlier plane and carried there by the angular spectrum. Measured on 22
+#: cases (benchmarks/results/caustic_estimate_2026-11-29_p47.json; rel L1 of the default from converged references):
+#: the double Gauss on axis 3.2e-4 rad (1.07e-3 rel L1; with the fallback 2.9e-4) and at 0.7 field 2.0e-4 (2.46e-3;
+#: 8.3e-4); every case within 1e-3 has at most 8.6e-5 (the F/1.3 asphere at full field, 3.7e-4); ideal lenses < 1e-14.
+#: The double Gauss at full field, 1.06e-4 (2.73e-3), stays below it on purpose: the fallback does not mend it (built
+#: 4 / 8 mm before its plane: 1.83e-3 / 1.98e-3, at 7-9x the time). The estimate ranks the cases; it does not
+#: predict the error's size (error / estimate 3 to 30)
+GO_PHASE_TOL = 1.25e-4
+#: the fallback's plane: where :func:`go_phase_error` has fallen to this fraction of :data:`GO_PHASE_TOL`
+GO_FALLBACK_FRACTION = 0.5
+#: :func:`go_phase_error`'s pupil grid (a side, over 1.1 × the stop's radius) and planes from the exit pupil
+GO_GRID = 32
+GO_PLANES = 32
+
+
+def go_phase_error(lens, source: Source, z_xp: float, z_doe: float):
+    """How far the geometric-optics field on the planes between the exit pupil ``z_xp`` and ``z_doe`` (mm from the
+    first vertex) is from the wave, for one source: ``(z (P,) mm, error (P,) rad)``, ``error`` the largest
+    ``|δφ − mean δφ|`` over the stop of the second-order (diffraction) term of the eikonal that geometric optics
+    drops,
+
+        ``δφ(p, z) = (1/2k) ∫_{z_xp}^{z} ∇⊥²A / A dz'``,  ``A = |det ∂x/∂p|^(-1/2)``,  ``k = 2π n / λ``,
+
+    along each ray p of a :data:`GO_GRID`² stop grid (traced once, apertures off, straight lines in the image
+    medium; the paraxial wave equation's phase correction, the next term of the WKB series). A plane near a
+    caustic, where the rays' density varies fast on the scale of a Fresnel zone, has a large ``δφ``: it grows as
+    1/distance towards the rays' local foci. A sphere (an ideal lens) has ``δφ`` 0 (to rounding). Cost: one trace of
+    1 024 rays (and one with apertures, for the lit ones) and :data:`GO_PLANES` planes of finite differences.
+    ``error`` 0 where no ray is traced."""
+    dev = lens.device
+    ext, ng = 1.1, GO_GRID
+    g = ((torch.arange(ng, dtype=torch.float64, device=dev) + 0.5) / ng * 2 - 1) * ext
+    gx, gy = torch.meshgrid(g, g, indexing="xy")
+    wl = float(source.wavelength)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", VignettingWarning)  # a diagnostic trace, apertures off
+        rays = point_source_rays(lens, torch.as_tensor(source.field, dtype=torch.float64, device=dev).reshape(1, 2),
+                                 [wl], pupil=(gx.flatten(), gy.flatten()), aim="full", depth=source.depth,
+                                 field_type=source.field_type or lens.field_type)
+        out = lens.trace(rays, apertures=False)
+        lit = lens.trace(rays).valid[0, 0].reshape(ng, ng)  # the rays every aperture passes (inside the stop)
+        n = float(lens.surfaces[-1].material.n(torch.tensor([wl], dtype=torch.float64, device=dev)))
+        o, d = out.o[0, 0], out.d[0, 0]
+        tan = (d[:, :2] / d[:, 2:]).reshape(ng, ng, 2)
+        x0 = (o[:, :2] + (d[:, :2] / d[:, 2:]) * (z_doe - o[:, 2:])).reshape(ng, ng, 2)
+        bad = ~(out.valid[0, 0].reshape(ng, ng) & torch.isfinite(x0).all(-1) & torch.isfinite(tan).all(-1))
+        x0 = x0.masked_fill(bad[..., None], math.nan)
+        u = torch.linspace(0.0, 1.0, GO_PLANES + 1, dtype=torch.float64, device=dev)
+        zs = z_xp + (z_doe - z_xp) * (1 - (1 - u) ** 2)  # denser towards the DOE plane
+        h = 2 * ext / ng
+        lap = _lap_over_amp(x0 + (zs - z_doe)[:, None, None, None] * tan, h)  # (P, ng, ng)
+        k = 2 * math.pi * n / (wl * 1e-3)
+        dz = (zs[1:] - zs[:-1]).abs()[:, None, None]
+        dphi = torch.cat([torch.zeros_like(lap[:1]), torch.cumsum(0.5 * (lap[1:] + lap[:-1]) * dz, 0)]) / (2 * k)
+        ok = (lit & (gx**2 + gy**2 <= 1.0))[None] & torch.isfinite(dphi)
+        cnt = ok.sum((1, 2)).clamp_min(1)
+        v = torch.where(ok, dphi, torch.zeros_like(dphi))
+        mean = v.sum((1, 2)) / cnt
+        err = torch.where(ok, (dphi - mean[:, None, None]).abs(), torch.zeros_like(dphi)).amax((1, 2))
+    return zs, err
+
+
+def _lap_over_amp(x: torch.Tensor, h: float) -> torch.Tensor:
+    """``∇⊥²A / A`` (1/mm²) on planes of the ray map ``x`` (..., ng, ng, 2) mm over a stop grid of spacing ``h``
+    (normalised stop units), ``A = |det ∂x/∂p|^(-1/2)``: central differences with the chain rule
+    ``∇_x = (∂x/∂p)^(-T) ∇_p``; NaN where a stencil lacks a ray (the grid's outer rows, vignetted rays)."""
+    def dp(f):  # central differences along the grid's columns (p) and rows (q) of f (..., ng, ng), NaN at the border
+        fp, fq = torch.full_like(f, math.nan), torch.full_like(f, math.nan)
+        fp[..., :, 1:-1] = (f[..., :, 2:] - f[..., :, :-2]) / (2 * h)
+        fq[..., 1:-1, :] = (f[..., 2:, :] - f[..., :-2, :]) / (2 * h)
+        return fp, fq
+
+    (m00, m01), (m10, m11) = dp(x[..., 0]), dp(x[..., 1])  # dx/dp, dx/dq, dy/dp, dy/dq
+    det = m00 * m11 - m01 * m10
+    amp = det.abs() ** -0.5
+    ap, aq = dp(amp)
+    gx, gy = (m11 * ap - m10 * aq) / det, (-m01 * ap + m00 * aq) / det  # ∇_x A
+    gxp, gxq = dp(gx)
+    gyp, gyq = dp(gy)
+    return (m11 * gxp - m10 * gxq - m01 * gyp + m00 * gyq) / det / amp
+
+
+def go_fallback_plane(lens, source: Source, z_xp: float, z_doe: float):
+    """``(z_from, error)``: where the exit-pupil edge's Fresnel step builds its geometric-optics field for one source
+    when the DOE plane ``z_doe`` lies too near the rays' focus (:func:`go_phase_error` ``error`` rad >
+    :data:`GO_PHASE_TOL` there): the plane nearest the DOE plane, between it and the exit pupil ``z_xp``, where the
+    error is at most :data:`GO_FALLBACK_FRACTION` × the tolerance (the field is then carried to the DOE plane by the
+    angular spectrum, exact over that step); ``(None, error)`` when the DOE plane is fine (or no plane is), and
+    ``(None, 0.0)`` when it lies before the exit pupil."""
+    if not z_xp < z_doe:  # a DOE plane before the exit pupil (its edge stepped backwards): no earlier plane
+        return None, 0.0
+    zs, err = go_phase_error(lens, source, z_xp, z_doe)
+    e = float(err[-1])
+    if not e > GO_PHASE_TOL:
+        return None, e
+    fine = torch.nonzero(err <= GO_FALLBACK_FRACTION * GO_PHASE_TOL).squeeze(1)
+    if fine.numel() == 0 or int(fine[-1]) == 0:
+        return None, e
+    return float(zs[int(fine[-1])]), e
+
+
+def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: float, est: float):
+    """``z_from`` when the beam there spans at most :data:`MAX_XP_SAMPLES` simulation samples of ``p_sim`` mm a
+    side (the exact construction's limit; the window's memory is checked as for any field), with a
+    :class:`StopEdgeWarning` naming the fallback; else None with a warning that the DOE plane ``z_doe`` is too near
+    the rays' focus for the construction (``est``: the :func:`go_phase_error` there, rad)."""
+    fld = torch.as_tensor(source.field, dtype=torch.float64, device=lens.device).reshape(2)
+    wl = float(source.wavelength)
+    xb = _footprint(lens, fld, torch.tensor([wl], dtype=torch.float64, device=lens.device), source.depth, z_from,
+                    virtual=True)
+    side = math.inf if xb is None else max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim
+    where = (f"the DOE plane z = {z_doe:.4g} mm lies near the rays' focus for field "
+             f"{[round(float(v), 6) for v in fld.tolist()]} at {wl:g} µm: the geometric-optics field there is off by "
+             f"~{est:.2g} rad (go_phase_error > {GO_PHASE_TOL:g} rad)")
+    fits = side <= MAX_XP_SAMPLES
+    if fits:
+        try:  # the window (beam and edge band, 1.2x) in memory, as the construction will check it
+            check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
+                                p_sim, lens.device)
+        except MemoryLimitError:
+            fits = False
+    if not fits:
+        warnings.warn(f"{where}, and building it {z_doe - z_from:.3g} mm before would take {side:.0f} samples a side "
+                      f"(over {MAX_XP_SAMPLES}, or more than the memory holds): built on the plane itself; move the "
+                      "DOE towards the lens or use a coarser DOE pitch", StopEdgeWarning, stacklevel=4)
+        return None
+    warnings.warn(f"{where}; the field is built {z_doe - z_from:.3g} mm before it and carried to it by the angular "
+                  "spectrum (slower)", StopEdgeWarning, stacklevel=4)
+    return z_from
 
 
 def edge_fresnel_number(beam_half: float, wavelength: float, n: float, d: float, r: float) -> float:

@@ -62,30 +62,58 @@ def footprints(lens, fields, wavelengths, depth, z_doe: float, n_grid: int = 15,
     """Lit bounding boxes ``(xmin, xmax, ymin, ymax)`` (mm) on the plane ``z_doe`` of fields (F, 2) at wavelengths
     (W,) µm, a nested list ``[F][W]`` (None where every ray is vignetted), from one trace of all F×W beams (~250
     rays each: the rim of the pupil and a grid inside, every ray aimed at its stop point). See :func:`_footprint`."""
-    t = torch.linspace(0, 2 * math.pi, n_rim + 1, dtype=torch.float64, device=lens.device)[:-1]
-    g = torch.linspace(-1, 1, n_grid, dtype=torch.float64, device=lens.device)
+    px, py = _footprint_pupil(n_grid, n_rim, lens.device)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", VignettingWarning)  # the caller reports vignetting once
+        rays = point_source_rays(lens, fields, wavelengths, pupil=(px, py), aim="full", depth=depth)
+        out = lens.trace(rays)
+        return _boxes(lens, out, z_doe, virtual)
+
+
+def _footprint_pupil(n_grid: int, n_rim: int, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The normalised stop points ``(px, py)`` of :func:`footprints`' rays: ``n_rim`` on the rim, a hair inside it,
+    and the ``n_grid``² grid's points inside the circle."""
+    t = torch.linspace(0, 2 * math.pi, n_rim + 1, dtype=torch.float64, device=device)[:-1]
+    g = torch.linspace(-1, 1, n_grid, dtype=torch.float64, device=device)
     gx, gy = torch.meshgrid(g, g, indexing="xy")
     inside = gx**2 + gy**2 <= 1
     # the rim a hair inside the stop's edge: a ray aimed exactly at it passes or is stopped by the rounding of its
     # aim (a mirror-image source could lose a rim ray its twin keeps, and its footprint, node spacing and field
     # would differ by the construction's sampling: ~1e-7 of the PSF)
-    px = torch.cat([torch.cos(t), gx[inside]]) * RIM_INSET
-    py = torch.cat([torch.sin(t), gy[inside]]) * RIM_INSET
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", VignettingWarning)  # the caller reports vignetting once
-        rays = point_source_rays(lens, fields, wavelengths, pupil=(px, py), aim="full", depth=depth)
-        out = lens.trace(rays)
-        if not virtual:
-            _check_beyond_last_surface(out, z_doe)
-        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
-        at = out.propagate_to_z(z_doe, n)
-        valid, x, y = at.valid, at.o[..., 0], at.o[..., 1]
-        inf = torch.full_like(x, math.inf)
-        box = torch.stack([torch.where(valid, x, inf).amin(-1), torch.where(valid, x, -inf).amax(-1),
-                           torch.where(valid, y, inf).amin(-1), torch.where(valid, y, -inf).amax(-1)], -1).cpu()
-        lit = valid.any(-1).cpu()
+    return torch.cat([torch.cos(t), gx[inside]]) * RIM_INSET, torch.cat([torch.sin(t), gy[inside]]) * RIM_INSET
+
+
+def _boxes(lens, out, z_doe: float, virtual: bool) -> list:
+    """:func:`footprints`' nested list ``[F][W]`` of lit boxes from the traced rays ``out`` (F, W, N) (after the last
+    surface, apertures applied; no autograd)."""
+    if not virtual:
+        _check_beyond_last_surface(out, z_doe)
+    n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+    at = out.propagate_to_z(z_doe, n)
+    valid, x, y = at.valid, at.o[..., 0], at.o[..., 1]
+    inf = torch.full_like(x, math.inf)
+    box = torch.stack([torch.where(valid, x, inf).amin(-1), torch.where(valid, x, -inf).amax(-1),
+                       torch.where(valid, y, inf).amin(-1), torch.where(valid, y, -inf).amax(-1)], -1).cpu()
+    lit = valid.any(-1).cpu()
     return [[tuple(float(v) for v in box[i, j]) if bool(lit[i, j]) else None for j in range(box.shape[1])]
             for i in range(box.shape[0])]
+
+
+def footprints_and_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, folds: bool = False) -> tuple:
+    """``(footprints(...), doe_clippings(..., folds=folds))`` of the same F×W beams (default samplings) from one
+    aimed trace of both ray sets (issue 43: one aiming, one paraxial set-up and one trace for the call instead of
+    two)."""
+    fx, fy = _footprint_pupil(15, 72, lens.device)
+    cx, cy, index = pupil_grid(48, lens.device)
+    k = fx.numel()
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", VignettingWarning)  # the caller reports vignetting once
+        rays = point_source_rays(lens, fields, wavelengths, pupil=(torch.cat([fx, cx]), torch.cat([fy, cy])),
+                                 aim="full", depth=depth)
+        out = lens.trace(rays)
+        boxes = _boxes(lens, out[..., :k], z_doe, False)
+        clips = _clippings(lens, doe, rays[..., k:], out[..., k:], z_doe, (index, 48) if folds else None, depth)
+    return boxes, clips
 
 
 def inside_doe(doe, xy: torch.Tensor) -> torch.Tensor:
@@ -124,25 +152,32 @@ def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: i
         warnings.simplefilter("ignore", VignettingWarning)  # the caller reports vignetting once
         rays = point_source_rays(lens, fields, wavelengths, pupil=(px, py), aim="full", depth=depth)
         out = lens.trace(rays)
-        n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
-        at = out.propagate_to_z(z_doe, n)
-        v = at.valid
-        xy = at.o[..., :2]
-        w = torch.where(v, source_weight(lens, rays, depth).expand_as(v), torch.zeros((), dtype=xy.dtype,
-                                                                                        device=xy.device))
-        blocked = (w * ~inside_doe(doe, xy)).sum(-1) / w.sum(-1).clamp_min(1e-300)
-        half = torch.where(v[..., None], xy.abs(), torch.zeros((), dtype=xy.dtype, device=xy.device)).amax((-1, -2))
-        lit = v.any(-1)
-        folded = fold_fraction(xy, v, index, n_grid).cpu() if folds else None
-        blocked, half, lit = blocked.cpu(), half.cpu(), lit.cpu()
-    out = []
+        return _clippings(lens, doe, rays, out, z_doe, (index, n_grid) if folds else None, depth)
+
+
+def _clippings(lens, doe, rays, out, z_doe: float, folds, depth) -> list:
+    """:func:`doe_clippings`' nested list from the aimed rays ``rays`` (F, W, N) of the :func:`pupil_grid` and
+    their trace ``out`` (apertures applied; no autograd); ``folds``: ``(index, n_grid)`` of that grid, or None;
+    ``depth`` the object distance (:func:`source_weight`)."""
+    n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+    at = out.propagate_to_z(z_doe, n)
+    v = at.valid
+    xy = at.o[..., :2]
+    w = torch.where(v, source_weight(lens, rays, depth).expand_as(v), torch.zeros((), dtype=xy.dtype,
+                                                                                  device=xy.device))
+    blocked = (w * ~inside_doe(doe, xy)).sum(-1) / w.sum(-1).clamp_min(1e-300)
+    half = torch.where(v[..., None], xy.abs(), torch.zeros((), dtype=xy.dtype, device=xy.device)).amax((-1, -2))
+    lit = v.any(-1)
+    folded = fold_fraction(xy, v, folds[0], folds[1]).cpu() if folds is not None else None
+    blocked, half, lit = blocked.cpu(), half.cpu(), lit.cpu()
+    result = []
     for i in range(v.shape[0]):
         row = []
         for j in range(v.shape[1]):
             entry = (float(blocked[i, j]), float(half[i, j])) if bool(lit[i, j]) else (0.0, 0.0)
             row.append(entry if folded is None else entry + (float(folded[i, j]),))
-        out.append(row)
-    return out
+        result.append(row)
+    return result
 
 
 def _sim_grid(doe, oversample: int):

@@ -194,6 +194,17 @@ ENVELOPE_BLOCK_ROWS = 64
 #: samples per block of :class:`_EdgeEnvelope` (~15 temporaries of 8–16 bytes each: ~100 MB): a window of up to
 #: this many samples is one block (issue 43: each block costs ~25 dispatched ops)
 ENVELOPE_BLOCK_SAMPLES = 2**19
+#: :data:`ENVELOPE_BLOCK_SAMPLES` on an accelerator (CUDA: every op a kernel launch, memory aplenty; ~1.6 GB of
+#: temporaries): a map's windows are one block each
+ENVELOPE_BLOCK_SAMPLES_ACCELERATOR = 2**23
+
+
+def _block_rows(nu: torch.Tensor) -> int:
+    """Rows per block of :class:`_EdgeEnvelope` for the window ``nu`` ((ny, nx) or 1-D): at least
+    :data:`ENVELOPE_BLOCK_ROWS`, as many as the device's block size (:data:`ENVELOPE_BLOCK_SAMPLES` on the CPU,
+    :data:`ENVELOPE_BLOCK_SAMPLES_ACCELERATOR` elsewhere) allows. The values do not depend on it (elementwise)."""
+    samples = ENVELOPE_BLOCK_SAMPLES if nu.device.type == "cpu" else ENVELOPE_BLOCK_SAMPLES_ACCELERATOR
+    return max(ENVELOPE_BLOCK_ROWS, samples // max(nu.shape[-1] if nu.ndim > 1 else 1, 1))
 
 
 class _EdgeEnvelope(torch.autograd.Function):
@@ -225,7 +236,7 @@ class _EdgeEnvelope(torch.autograd.Function):
         :meth:`_block`, each block's Fresnel integrals taken from where the previous block's ended."""
         forward_edge, ripple_zones, g, pitch = consts
         start = 0
-        step = max(ENVELOPE_BLOCK_ROWS, ENVELOPE_BLOCK_SAMPLES // max(nu.shape[-1] if nu.ndim > 1 else 1, 1))
+        step = _block_rows(nu)
         for r in range(0, nu.shape[0], step):
             rows = slice(r, r + step)
             g_r = g[rows] if isinstance(g, torch.Tensor) else g
@@ -240,7 +251,7 @@ class _EdgeEnvelope(torch.autograd.Function):
         (no graph), block by block (:meth:`_block_values`; the blocks of :meth:`_walk`)."""
         out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
         g = consts[2]
-        step = max(ENVELOPE_BLOCK_ROWS, ENVELOPE_BLOCK_SAMPLES // max(nu.shape[-1] if nu.ndim > 1 else 1, 1))
+        step = _block_rows(nu)
         parts = []
         for r in range(0, nu.shape[0], step):
             rows = slice(r, r + step)

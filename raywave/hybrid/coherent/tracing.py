@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import torch
 
-from raywave.lens.lens import TRACE_CHUNK
+from raywave.lens.lens import trace_chunk
 from raywave.lens.sources import rays_through
 from raywave.hybrid.coherent.record import _NEWTON_ITERS, _NEWTON_TOL
 from raywave.utils.errors import check_allocation
@@ -97,7 +97,7 @@ def _trace_group(reqs: list) -> list:
     sizes = [r.uv.shape[0] for r in reqs]
     n_max = max(sizes)
     orders = [r.order for r in reqs]
-    if any(o is not None for o in orders) and len(reqs) * n_max > 2 * TRACE_CHUNK:
+    if any(o is not None for o in orders) and len(reqs) * n_max > 2 * trace_chunk(r0.uv.device):
         # per-source rows must stay rows: the lens would trace so large a bundle in flat chunks
         half = len(reqs) // 2
         return _trace_group(reqs[:half]) + _trace_group(reqs[half:])
@@ -428,9 +428,10 @@ def _trace_rows(aim: _Aim, uv, fields, wavelengths, orders=None, rows=None):
     points ``uv`` (R, 2) mm, ``fields`` (R, 2), ``wavelengths`` (R,) µm (``aim``'s lens, depth, field type and
     entrance plane), traced without autograd as one bundle (R, 1, 1) (every ray on its own). ``orders``: the
     sources' per-source values (:func:`per_source`), ``rows`` (R,) long: each ray's source among them."""
-    if orders is not None and any(o is not None for o in orders) and uv.shape[0] > 2 * TRACE_CHUNK:
-        parts = [_trace_rows(aim, uv[i:i + TRACE_CHUNK], fields[i:i + TRACE_CHUNK], wavelengths[i:i + TRACE_CHUNK],
-                             orders, rows[i:i + TRACE_CHUNK]) for i in range(0, uv.shape[0], TRACE_CHUNK)]
+    chunk = trace_chunk(uv.device)
+    if orders is not None and any(o is not None for o in orders) and uv.shape[0] > 2 * chunk:
+        parts = [_trace_rows(aim, uv[i:i + chunk], fields[i:i + chunk], wavelengths[i:i + chunk],
+                             orders, rows[i:i + chunk]) for i in range(0, uv.shape[0], chunk)]
         return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     with torch.no_grad():
         rays = rays_through(aim.lens, uv[:, None, None], fields, aim.field_type, wavelengths.reshape(-1, 1, 1),

@@ -24,7 +24,7 @@ Split by concern (issue 17), every name importable from here as before: ``_commo
 coordinates), ``full_grid`` (:func:`angular_spectrum`), ``transfer`` (:func:`window_transfer`), ``window``
 (:func:`propagate_window`: a Field in, a Grid out), ``batch`` (:func:`propagate_batch`: many windows as one batch,
 issue 43), ``sampling``
-(:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`, :func:`integrated_upsampled_intensity`), ``fields`` (the same on :class:`~raywave.wave.grid.Field` values:
+(:func:`nyquist_check`), ``resample`` (:func:`pixel_integrate`, :func:`integrated_upsampled_intensity` and its :func:`upsampled_pixel_weights`), ``fields`` (the same on :class:`~raywave.wave.grid.Field` values:
 :func:`propagate_field`, :func:`angular_spectrum_field`, :func:`field_transfer`).
 """
 
@@ -35,7 +35,8 @@ from raywave.wave.propagation.batch import (BatchTransfer, WindowBatch, WindowSo
 from raywave.wave.propagation.fields import angular_spectrum_field, field_transfer, propagate_field
 from raywave.wave.propagation.full_grid import angular_spectrum
 from raywave.wave.propagation.resample import (_cubic_overlap_matrix, _keys_antiderivative, _overlap_matrix,
-                                               integrated_upsampled_intensity, pixel_integrate)
+                                               integrated_upsampled_intensity, pixel_integrate,
+                                               upsampled_pixel_weights)
 from raywave.wave.propagation.sampling import NyquistReport, nyquist_check
 from raywave.wave.propagation.transfer import WindowTransfer, window_transfer
 from raywave.wave.propagation.window import _axial_frequency, _dz_tensor, _Perturbed, propagate_window
@@ -58,6 +59,7 @@ __all__ = [
     "propagate_batch",
     "propagate_field",
     "propagate_window",
+    "upsampled_pixel_weights",
     "window_transfer",
     # private names that were importable from the single module before the split (tests import _Perturbed)
     "_Perturbed",

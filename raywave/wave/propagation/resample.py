@@ -158,9 +158,36 @@ def _through_double_grid(w: torch.Tensor, n: int, q: int) -> torch.Tensor:
 REFINE_TOL = 2e-4
 
 
+def upsampled_pixel_weights(shape, q: int, in_pitch, in_origin, out_pitch, out_origin, out_shape: Sequence[int],
+                            device=None, refine: bool = False) -> tuple:
+    """The weights of :func:`integrated_upsampled_intensity` for fields of ``shape`` ``(Ny, Nx)`` (the other
+    arguments as there): one ``(W_y0, W_y1, W_x0, W_x1)`` float64 quadruple for ``q`` (and one for ``2q`` with
+    ``refine``), each ``W`` on one of the ``2N`` grid's interleaved sample sets. They depend on the geometry alone
+    (host numbers; ``out_origin`` a tensor that requires grad keeps them differentiable), so a caller that
+    integrates many batches of one geometry builds them once (issue 43: the pixel integration's weights once per
+    geometry, not once per batch) and passes them as ``weights``."""
+    q = int(q)
+    if q < 2:
+        raise ValueError(f"q must be >= 2 (|u|² has twice the field's bandwidth), got {q}")
+    ny, nx = (int(v) for v in shape)
+    (ipx, ipy), (opx, opy) = _pitches(in_pitch, out_pitch)
+    xi0, yi0 = _xy(in_origin, "in_origin")
+    xo0, yo0 = _out_origin(out_origin)
+    noy, nox = (int(s) for s in out_shape)
+
+    def one(qq: int) -> tuple:
+        wx, wy = _weights("cubic", (qq * nx, ipx / qq, xi0, nox, opx, xo0), (qq * ny, ipy / qq, yi0, noy, opy, yo0),
+                          device)
+        if qq != 2:
+            wx, wy = _through_double_grid(wx, nx, qq), _through_double_grid(wy, ny, qq)
+        return wy[:, 0::2], wy[:, 1::2], wx[:, 0::2], wx[:, 1::2]
+
+    return (one(q), one(2 * q)) if refine else (one(q),)
+
+
 def integrated_upsampled_intensity(u: torch.Tensor, q: int, in_pitch: float, in_origin, out_pitch: float, out_origin,
                                    out_shape: Sequence[int], window: torch.Tensor | None = None,
-                                   refine: bool = False) -> torch.Tensor:
+                                   refine: bool = False, weights: tuple | None = None) -> torch.Tensor:
     """The irradiance ``|u|²`` of a band-limited field, Fourier-interpolated ``q``-fold and integrated over
     sensor pixels through the cubic interpolant of those samples: ``pixel_integrate(upsampled_intensity(u, q,
     window), in_pitch/q, out_pitch, in_origin, out_origin, out_shape, kernel="cubic")`` up to round-off, at the
@@ -184,36 +211,32 @@ def integrated_upsampled_intensity(u: torch.Tensor, q: int, in_pitch: float, in_
             :data:`REFINE_TOL` (relative L1 of the two normalised to sum 1) that one instead: the cubic pixel
             quadrature where ``q`` leaves more than that (a PSF as sharp as the field's grid allows on pixels of
             about its pitch); elsewhere the ``q`` result as it was. The choice is not differentiated (both are differentiable).
+        weights: :func:`upsampled_pixel_weights` of this geometry (the same ``q`` and ``refine``), built once by a
+            caller that integrates many batches of it; None: built here (the same values).
 
     Returns:
         float64 ``(..., Ny_out, Nx_out)``, differentiable with respect to ``u`` and ``out_origin``.
     """
     from raywave.wave.field import double_grid_intensity  # same package, a sibling module (no cycle at import)
 
-    q = int(q)
-    if q < 2:
-        raise ValueError(f"q must be >= 2 (|u|² has twice the field's bandwidth), got {q}")
-    ny, nx = u.shape[-2:]
-    (ipx, ipy), (opx, opy) = _pitches(in_pitch, out_pitch)
-    xi0, yi0 = _xy(in_origin, "in_origin")
-    xo0, yo0 = _out_origin(out_origin)
-    noy, nox = (int(s) for s in out_shape)
+    if weights is None:
+        weights = upsampled_pixel_weights(u.shape[-2:], q, in_pitch, in_origin, out_pitch, out_origin, out_shape,
+                                          u.device, refine)
+    elif len(weights) != (2 if refine else 1):
+        raise ValueError(f"integrated_upsampled_intensity: weights for refine={refine} hold {2 if refine else 1} "
+                         f"sets, got {len(weights)} (build them with upsampled_pixel_weights(..., refine={refine}))")
     blocks = double_grid_intensity(u, window).to(torch.float64)  # (..., 2, 2, Ny, Nx): samples [2i + a, 2j + b]
     b = blocks.unbind(-4)
 
-    def integral(qq: int) -> torch.Tensor:
-        wx, wy = _weights("cubic", (qq * nx, ipx / qq, xi0, nox, opx, xo0), (qq * ny, ipy / qq, yi0, noy, opy, yo0),
-                          u.device)
-        if qq != 2:
-            wx, wy = _through_double_grid(wx, nx, qq), _through_double_grid(wy, ny, qq)
-        wy0, wy1, wx0, wx1 = wy[:, 0::2], wy[:, 1::2], wx[:, 0::2], wx[:, 1::2]
+    def integral(w: tuple) -> torch.Tensor:
+        wy0, wy1, wx0, wx1 = w
         return ((wy0 @ b[0][..., 0, :, :] + wy1 @ b[1][..., 0, :, :]) @ wx0.transpose(0, 1)
                 + (wy0 @ b[0][..., 1, :, :] + wy1 @ b[1][..., 1, :, :]) @ wx1.transpose(0, 1))
 
-    out = integral(q)
+    out = integral(weights[0])
     if not refine:
         return out
-    fine = integral(2 * q)
+    fine = integral(weights[1])
     with torch.no_grad():
         a, b = (t / t.sum((-2, -1), keepdim=True).abs().clamp_min(1e-300) for t in (out, fine))
         change = (b - a).abs().sum((-2, -1))  # of the normalised integrals (the PSF's relative L1)

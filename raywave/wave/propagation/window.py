@@ -166,13 +166,18 @@ def _convolve_band(u, h, size, rows, cols, noy, nox):
 #: field of the batch runs in column chunks of about this size per field (without autograd): the same FFTs on the
 #: same values, a lower peak (a batch of B fields: B times this, the chunks as many as for one field)
 BAND_CHUNK_BYTES = 8 * 2**20
+#: :data:`BAND_CHUNK_BYTES` on an accelerator (CUDA: every op a kernel launch, memory aplenty): a map's bands run
+#: in one block
+BAND_CHUNK_BYTES_ACCELERATOR = 256 * 2**20
 
 
 def _band_chunks(u, my: int, n_cols: int) -> int:
     """How many column chunks :func:`_convolve_band` splits a band of ``n_cols`` columns into (1: none), for a
-    field ``u`` ``(..., Ny, Nx)`` and the FFT height ``my`` (per field of the batch: see :data:`BAND_CHUNK_BYTES`)."""
+    field ``u`` ``(..., Ny, Nx)`` and the FFT height ``my`` (per field of the batch: see :data:`BAND_CHUNK_BYTES`, on
+    an accelerator :data:`BAND_CHUNK_BYTES_ACCELERATOR`)."""
     per_col = my * u.element_size()
-    return max(1, min(n_cols, math.ceil(per_col * n_cols / BAND_CHUNK_BYTES)))
+    limit = BAND_CHUNK_BYTES if u.device.type == "cpu" else BAND_CHUNK_BYTES_ACCELERATOR
+    return max(1, min(n_cols, math.ceil(per_col * n_cols / limit)))
 
 
 def _convolve_band_chunked(u, h, size, rows, cols, noy: int, nox: int, chunks: int):

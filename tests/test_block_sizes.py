@@ -1,0 +1,81 @@
+"""The engine's block sizes (issue 43): the lens traces' chunks, the edge envelope's row blocks and the band
+convolution's column chunks are loops over blocks that bound memory on the CPU; an accelerator takes larger blocks
+(fewer ops to launch). The values must not depend on them, and the pixel integration's weights, built once per
+geometry, must be those built per call."""
+
+import pytest
+import torch
+
+import raywave.hybrid.coherent.stop_edge as edge_mod
+import raywave.lens.lens as lens_mod
+import raywave.wave.propagation.window as window_mod
+from raywave.assembly.build import load_hybrid
+from raywave.hybrid.batched import TransferMemo
+from raywave.lens.build import bundled_lens_path
+from raywave.wave.propagation import integrated_upsampled_intensity, upsampled_pixel_weights
+
+
+def test_block_sizes_per_device():
+    """The CPU's sizes on the CPU, the accelerator's elsewhere (a meta tensor stands in for a CUDA one)."""
+    assert lens_mod.trace_chunk("cpu") == lens_mod.TRACE_CHUNK
+    assert lens_mod.trace_chunk(torch.device("cuda", 0)) == lens_mod.TRACE_CHUNK_ACCELERATOR
+    for dev, samples in (("cpu", edge_mod.ENVELOPE_BLOCK_SAMPLES), ("meta", edge_mod.ENVELOPE_BLOCK_SAMPLES_ACCELERATOR)):
+        nu = torch.zeros((2, 1000), dtype=torch.float64, device=dev)
+        assert edge_mod._block_rows(nu) == max(edge_mod.ENVELOPE_BLOCK_ROWS, samples // 1000)
+    # a 4096-row band of 4096 columns, complex128: 256 MB per field
+    for dev, limit in (("cpu", window_mod.BAND_CHUNK_BYTES), ("meta", window_mod.BAND_CHUNK_BYTES_ACCELERATOR)):
+        u = torch.zeros((1, 4, 4), dtype=torch.complex128, device=dev)
+        assert window_mod._band_chunks(u, 4096, 4096) == min(4096, -(-(4096 * 4096 * 16) // limit))
+
+
+@pytest.fixture(scope="module")
+def asphere_psfs():
+    """The bundled hybrid asphere (default exit-pupil edge) and its PSFs on axis and off axis at 0.53 µm with the
+    CPU's default block sizes."""
+    hl = load_hybrid(bundled_lens_path("hybrid_asphere"))
+    with torch.no_grad():
+        return hl, hl.psf_result(FIELDS, [0.53], ks=32).psf
+
+
+FIELDS = [(0.0, 0.0), (3.0, 4.0)]
+
+
+@pytest.mark.parametrize("mod, name, size, exact", [
+    (lens_mod, "TRACE_CHUNK", 4096, True),  # hundreds of trace chunks
+    (lens_mod, "TRACE_CHUNK", lens_mod.TRACE_CHUNK_ACCELERATOR, True),
+    (edge_mod, "ENVELOPE_BLOCK_SAMPLES", 4096, True),  # blocks of 64 rows
+    (edge_mod, "ENVELOPE_BLOCK_SAMPLES", edge_mod.ENVELOPE_BLOCK_SAMPLES_ACCELERATOR, True),
+    # the unchunked band takes the cheaper of the two transform orders, the chunked one x first: rounding apart
+    (window_mod, "BAND_CHUNK_BYTES", 2**16, False),
+    (window_mod, "BAND_CHUNK_BYTES", window_mod.BAND_CHUNK_BYTES_ACCELERATOR, False),
+], ids=["trace-small", "trace-accelerator", "envelope-small", "envelope-accelerator", "band-small",
+        "band-accelerator"])
+def test_psfs_do_not_depend_on_the_block_sizes(asphere_psfs, monkeypatch, mod, name, size, exact):
+    """The PSFs with another block size (small ones: many loops; the accelerator's: one block) equal the default's
+    bit for bit (the trace and the edge envelope are elementwise), the band convolution's to rounding."""
+    hl, ref = asphere_psfs
+    monkeypatch.setattr(mod, name, size)
+    hl._transfer_memo.clear()
+    with torch.no_grad():
+        got = hl.psf_result(FIELDS, [0.53], ks=32).psf
+    hl._transfer_memo.clear()
+    if exact:
+        assert torch.equal(got, ref)
+    else:
+        rel = (got - ref).abs().sum((-2, -1)) / ref.abs().sum((-2, -1))
+        assert float(rel.max()) < 1e-14
+
+
+def test_pixel_weights_built_once_are_those_built_per_call():
+    g = torch.Generator().manual_seed(1)
+    u = torch.randn((3, 41, 41), dtype=torch.complex128, generator=g)
+    args = (4, 2e-3, (-0.05, -0.05), 3e-3, (0.0, 0.0), (16, 16))
+    direct = integrated_upsampled_intensity(u, *args, refine=True)
+    w = upsampled_pixel_weights(u.shape[-2:], *args, device=u.device, refine=True)
+    assert torch.equal(integrated_upsampled_intensity(u, *args, refine=True, weights=w), direct)
+    memo = TransferMemo()
+    calls = []
+    for _ in range(2):
+        got = memo.cached(("k", 1), lambda: calls.append(1) or w)
+        assert got is w
+    assert len(calls) == 1 and len(memo) == 1
