@@ -99,7 +99,7 @@ def _accelerator_sizes() -> None:
     convolution's column chunks: the same values, fewer loops), so that the count is the ops a CUDA run dispatches."""
     import raywave.hybrid.coherent.stop_edge as edge_mod
     import raywave.lens.lens as lens_mod
-    import raywave.wave.propagation.window as window_mod
+    import raywave.wave.propagation.band as window_mod
 
     pairs = ((lens_mod, "TRACE_CHUNK"), (edge_mod, "ENVELOPE_BLOCK_SAMPLES"), (window_mod, "BAND_CHUNK_BYTES"))
     for mod, name in pairs:

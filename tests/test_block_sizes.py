@@ -8,7 +8,7 @@ import torch
 
 import raywave.hybrid.coherent.stop_edge as edge_mod
 import raywave.lens.lens as lens_mod
-import raywave.wave.propagation.window as window_mod
+import raywave.wave.propagation.band as window_mod
 from raywave.assembly.build import load_hybrid
 from raywave.hybrid.batched import TransferMemo
 from raywave.lens.build import bundled_lens_path
@@ -25,7 +25,7 @@ def test_block_sizes_per_device():
     # a 4096-row band of 4096 columns, complex128: 256 MB per field
     for dev, limit in (("cpu", window_mod.BAND_CHUNK_BYTES), ("meta", window_mod.BAND_CHUNK_BYTES_ACCELERATOR)):
         u = torch.zeros((1, 4, 4), dtype=torch.complex128, device=dev)
-        assert window_mod._band_chunks(u, 4096, 4096) == min(4096, -(-(4096 * 4096 * 16) // limit))
+        assert window_mod.band_chunks(u, 4096, 4096) == min(4096, -(-(4096 * 4096 * 16) // limit))
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +45,7 @@ FIELDS = [(0.0, 0.0), (3.0, 4.0)]
     (lens_mod, "TRACE_CHUNK", lens_mod.TRACE_CHUNK_ACCELERATOR, True),
     (edge_mod, "ENVELOPE_BLOCK_SAMPLES", 4096, True),  # blocks of 64 rows
     (edge_mod, "ENVELOPE_BLOCK_SAMPLES", edge_mod.ENVELOPE_BLOCK_SAMPLES_ACCELERATOR, True),
-    # the unchunked band takes the cheaper of the two transform orders, the chunked one x first: rounding apart
+    # other column blocks: the same transforms on other shapes of arrays: rounding apart
     (window_mod, "BAND_CHUNK_BYTES", 2**16, False),
     (window_mod, "BAND_CHUNK_BYTES", window_mod.BAND_CHUNK_BYTES_ACCELERATOR, False),
 ], ids=["trace-small", "trace-accelerator", "envelope-small", "envelope-accelerator", "band-small",

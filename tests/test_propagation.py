@@ -465,7 +465,8 @@ def test_band_convolution_backward_is_the_adjoint():
     """The band convolution's hand-written backward (``_BandConvolve``, which keeps the inputs instead of four
     band-sized intermediates): gradcheck in the field and the transfer function, with and without leading batch
     dimensions, equal to autograd through the plain operations to rounding, and the forward values unchanged."""
-    from raywave.wave.propagation.window import _BandConvolve, _convolve_band
+    from raywave.wave.propagation.band import BandConvolve as _BandConvolve
+    from raywave.wave.propagation.band import convolve_band as _convolve_band
 
     g = torch.Generator().manual_seed(6)
     rows, cols = torch.tensor([0, 1, 2, 5, 9, 14, 15]), torch.tensor([0, 3, 4, 7, 16, 17])
@@ -500,7 +501,7 @@ def _band_case():
 def test_band_convolution_in_column_chunks_equals_the_whole_band(monkeypatch):
     """A band taller than BAND_CHUNK_BYTES goes through in column blocks, forward and backward: the same 1-D
     transforms, so the same values and gradients to rounding."""
-    import raywave.wave.propagation.window as W
+    import raywave.wave.propagation.band as W
 
     u0, tr, gout = _band_case()
     results = []
@@ -508,12 +509,12 @@ def test_band_convolution_in_column_chunks_equals_the_whole_band(monkeypatch):
         monkeypatch.setattr(W, "BAND_CHUNK_BYTES", limit)
         u = u0.clone().requires_grad_()
         h = tr.band.clone().requires_grad_()
-        out = W._BandConvolve.apply(u, h, tr.size, tr.rows, tr.cols, 97, 97)
+        out = W.BandConvolve.apply(u, h, tr.size, tr.rows, tr.cols, 97, 97)
         gu, gh = torch.autograd.grad(out, (u, h), gout)
         with torch.no_grad():
-            plain = W._convolve_band(u0, tr.band, tr.size, tr.rows, tr.cols, 97, 97)
+            plain = W.convolve_band(u0, tr.band, tr.size, tr.rows, tr.cols, 97, 97)
         results.append((out.detach(), plain, gu, gh))
-    assert W._band_chunks(u0, tr.size[0], tr.cols.numel()) > 4
+    assert W.band_chunks(u0, tr.size[0], tr.cols.numel()) > 4
     for whole, chunked in zip(*results):
         assert float((whole - chunked).abs().max()) <= 1e-14 * float(whole.abs().max())
 

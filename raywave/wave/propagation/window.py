@@ -19,6 +19,7 @@ import torch
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _positive, _sqrt_kz, _xy, check_single_field,
                                               legacy_call)
+from raywave.wave.propagation.band import BandConvolve, convolve_band
 from raywave.wave.propagation.transfer import WindowSource, WindowTransfer, _window_transfer
 
 
@@ -106,8 +107,8 @@ def _convolve(u, h, size, rows, cols, noy: int, nox: int):
     if rows is None:
         return _convolve_full(u, h, size, noy, nox)
     if torch.is_grad_enabled() and (u.requires_grad or h.requires_grad) and rows.numel() and cols.numel():
-        return _BandConvolve.apply(u, h, size, rows, cols, noy, nox)
-    return _convolve_band(u, h, size, rows, cols, noy, nox)
+        return BandConvolve.apply(u, h, size, rows, cols, noy, nox)
+    return convolve_band(u, h, size, rows, cols, noy, nox)
 
 
 def _perturbed(h, rel, band, field: Field, shift, dz):
@@ -135,166 +136,6 @@ def _convolve_full(u, h, size, noy, nox):
     spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1), n=my, dim=-2)
     out = torch.fft.ifft(torch.fft.ifft(spec * h, dim=-2)[..., :noy, :], dim=-1)
     return out[..., :nox]
-
-
-def _convolve_band(u, h, size, rows, cols, noy, nox):
-    """:func:`_convolve_full` for an ``h`` that is zero outside the rectangle ``rows × cols`` (given as ``h`` on it,
-    ``(R, C)``): the transforms along y run only over the ``C`` columns of the band (the others are zero after the
-    product), and the product and the inverse transform along y only over the band's rows resp. columns. The
-    same FFTs on the same values as the full product, without the columns that are zero."""
-    my, mx = size
-    lead = u.shape[:-2]
-    if rows.numel() == 0 or cols.numel() == 0:
-        return torch.zeros((*lead, noy, nox), dtype=u.dtype, device=u.device) + 0 * u.sum()
-    chunks = _band_chunks(u, my, cols.numel())
-    if chunks > 1 and not (torch.is_grad_enabled() and (u.requires_grad or h.requires_grad)):
-        return _convolve_band_chunked(u, h, size, rows, cols, noy, nox, chunks)
-    # peak memory: every full-size intermediate is released before the next one is made
-    prod = _band_spectrum(u, size, rows, cols)
-    # in place unless autograd needs the factors (the product's backward keeps both)
-    prod = prod.mul_(h) if not (torch.is_grad_enabled() and (prod.requires_grad or h.requires_grad)) else prod * h
-    full_y = _scatter(prod, -2, rows, my)
-    del prod  # before the inverse transform: the band and both full-height grids would be alive at once
-    part = torch.fft.ifft(full_y, dim=-2)
-    del full_y
-    full_x = _scatter(part[..., :noy, :], -1, cols, mx)
-    del part
-    return torch.fft.ifft(full_x, dim=-1)[..., :nox]
-
-
-#: a band convolution whose full-height band (My × C samples of the field's dtype) takes more bytes than this per
-#: field of the batch runs in column chunks of about this size per field (without autograd): the same FFTs on the
-#: same values, a lower peak (a batch of B fields: B times this, the chunks as many as for one field)
-BAND_CHUNK_BYTES = 8 * 2**20
-#: :data:`BAND_CHUNK_BYTES` on an accelerator (CUDA: every op a kernel launch, memory aplenty): a map's bands run
-#: in one block
-BAND_CHUNK_BYTES_ACCELERATOR = 256 * 2**20
-
-
-def _band_chunks(u, my: int, n_cols: int) -> int:
-    """How many column chunks :func:`_convolve_band` splits a band of ``n_cols`` columns into (1: none), for a
-    field ``u`` ``(..., Ny, Nx)`` and the FFT height ``my`` (per field of the batch: see :data:`BAND_CHUNK_BYTES`, on
-    an accelerator :data:`BAND_CHUNK_BYTES_ACCELERATOR`)."""
-    per_col = my * u.element_size()
-    limit = BAND_CHUNK_BYTES if u.device.type == "cpu" else BAND_CHUNK_BYTES_ACCELERATOR
-    return max(1, min(n_cols, math.ceil(per_col * n_cols / limit)))
-
-
-def _convolve_band_chunked(u, h, size, rows, cols, noy: int, nox: int, chunks: int):
-    """:func:`_convolve_band` (no autograd) in ``chunks`` blocks of the band's columns: the transform along x runs
-    over blocks of rows and keeps only the band's columns, then each column block goes through the transform along
-    y, the product, the inverse along y and into the output's columns. The same 1-D FFTs on the same values; the
-    full-height (My × C) arrays never exist."""
-    my, mx = size
-    ny = u.shape[-2]
-    n_cols = cols.numel()
-    step_r = max(1, math.ceil(ny / chunks))
-    ux = torch.cat([torch.fft.fft(u[..., r0:r0 + step_r, :], n=mx, dim=-1).index_select(-1, cols)
-                    for r0 in range(0, ny, step_r)], dim=-2)  # (..., ny, C)
-    out = torch.zeros((*u.shape[:-2], noy, mx), dtype=u.dtype, device=u.device)
-    step = math.ceil(n_cols / chunks)
-    for c0 in range(0, n_cols, step):
-        spec = torch.fft.fft(ux[..., c0:c0 + step], n=my, dim=-2).index_select(-2, rows)
-        spec.mul_(h[..., c0:c0 + step])
-        part = torch.fft.ifft(_scatter(spec, -2, rows, my), dim=-2)[..., :noy, :]
-        del spec
-        out.index_copy_(-1, cols[c0:c0 + step], part)
-        del part
-    del ux
-    return torch.fft.ifft(out, dim=-1)[..., :nox]
-
-
-def _band_spectrum(u, size, rows, cols):
-    """The band ``rows × cols`` of ``fft2(u, s=size)``: the first pass along one axis, then only the band's lines
-    along the other (the cheaper order of the two)."""
-    my, mx = size
-    ny, nx = u.shape[-2:]
-    # the two orders give the same DFT (to rounding); the cheaper one transforms fewer / shorter lines: x first
-    # costs ny transforms of mx and C of my, y first nx of my and R of mx
-    if ny * _fft_cost(mx) + cols.numel() * _fft_cost(my) <= nx * _fft_cost(my) + rows.numel() * _fft_cost(mx):
-        spec = torch.fft.fft(torch.fft.fft(u, n=mx, dim=-1).index_select(-1, cols), n=my, dim=-2)
-        return spec.index_select(-2, rows)
-    spec = torch.fft.fft(torch.fft.fft(u, n=my, dim=-2).index_select(-2, rows), n=mx, dim=-1)
-    return spec.index_select(-1, cols)
-
-
-def _fft_cost(n: int) -> float:
-    """Relative cost of one FFT of length ``n`` (n·log2 n)."""
-    return n * math.log2(max(n, 2))
-
-
-def _scatter(x, dim: int, index, n: int):
-    """``x`` placed at ``index`` along ``dim`` of a zero array ``n`` long there, filled in place (the zeros carry no
-    graph, so autograd keeps the copy's gradient)."""
-    shape = list(x.shape)
-    shape[dim] = n
-    return torch.zeros(shape, dtype=x.dtype, device=x.device).index_copy_(dim, index, x)
-
-
-class _BandConvolve(torch.autograd.Function):
-    """:func:`_convolve_band` with a hand-written backward (the adjoint transforms): autograd would keep the band
-    spectrum, the product and both zero-filled grids (~4 band-sized complex arrays per PSF, the largest share of a
-    trained lens's propagation memory); this keeps the inputs it needs and recomputes the input's band spectrum
-    for the transfer function's gradient. Linear in ``u`` for fixed ``h`` and in ``h`` for fixed ``u``:
-    ``∂/∂u`` is the adjoint convolution with ``conj(h)``, ``∂/∂h`` the product of the output gradient's band
-    spectrum with the input's conjugate band spectrum."""
-
-    @staticmethod
-    def forward(ctx, u, h, size, rows, cols, noy: int, nox: int):
-        ctx.size, ctx.noy, ctx.nox, ctx.u_shape, ctx.h_shape = size, noy, nox, u.shape, h.shape
-        ctx.save_for_backward(u if ctx.needs_input_grad[1] else None, h if ctx.needs_input_grad[0] else None,
-                              rows, cols)
-        return _convolve_band(u, h, size, rows, cols, noy, nox)
-
-    @staticmethod
-    def backward(ctx, g):
-        u, h, rows, cols = ctx.saved_tensors
-        chunks = _band_chunks(g, ctx.size[0], cols.numel())
-        if chunks > 1:
-            return _BandConvolve._backward_chunked(ctx, g, u, h, rows, cols, chunks)
-        (my, mx), noy, nox, (ny, nx) = ctx.size, ctx.noy, ctx.nox, ctx.u_shape[-2:]
-        # the output's adjoint chain: ifft along x (fft / mx), the columns' copy, ifft along y over the kept rows
-        g = torch.fft.fft(g, n=mx, dim=-1).index_select(-1, cols) / mx  # (..., noy, C)
-        g = torch.fft.fft(g, n=my, dim=-2).index_select(-2, rows) / my  # (..., R, C): ∂L/∂(product)
-        grad_u = grad_h = None
-        if ctx.needs_input_grad[1]:
-            grad_h = (g * _band_spectrum(u, (my, mx), rows, cols).conj()).sum_to_size(ctx.h_shape)
-        if ctx.needs_input_grad[0]:
-            part = torch.fft.ifft(_scatter(g * h.conj(), -2, rows, my), dim=-2)[..., :ny, :] * my  # fft(n=my)'s adjoint
-            del g
-            full = _scatter(part, -1, cols, mx)
-            del part
-            grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).sum_to_size(ctx.u_shape)
-        return grad_u, grad_h, None, None, None, None, None
-
-    @staticmethod
-    def _backward_chunked(ctx, g, u, h, rows, cols, chunks: int):
-        """:meth:`backward` in ``chunks`` blocks of the band's columns (a large band: the same 1-D transforms on the
-        same values, without the full-height My × C arrays; see :func:`_convolve_band_chunked`)."""
-        (my, mx), (ny, nx) = ctx.size, ctx.u_shape[-2:]
-        need_u, need_h = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        n_cols = cols.numel()
-        step = math.ceil(n_cols / chunks)
-        g = torch.fft.fft(g, n=mx, dim=-1).index_select(-1, cols) / mx  # (..., noy, C)
-        ux = torch.fft.fft(u, n=mx, dim=-1).index_select(-1, cols) if need_h else None  # (..., ny, C)
-        full = torch.zeros((*g.shape[:-2], ny, mx), dtype=g.dtype, device=g.device) if need_u else None
-        grad_h = []
-        for c0 in range(0, n_cols, step):
-            gc = torch.fft.fft(g[..., c0:c0 + step], n=my, dim=-2).index_select(-2, rows) / my  # (..., R, c)
-            if need_h:
-                spec = torch.fft.fft(ux[..., c0:c0 + step], n=my, dim=-2).index_select(-2, rows)
-                width = spec.shape[-1]
-                grad_h.append((gc * spec.conj()).sum_to_size(*ctx.h_shape[:-1], width))
-                del spec
-            if need_u:
-                part = torch.fft.ifft(_scatter(gc * h[..., c0:c0 + step].conj(), -2, rows, my), dim=-2)[..., :ny, :]
-                full.index_copy_(-1, cols[c0:c0 + step], part * my)
-                del part
-            del gc
-        del g, ux
-        grad_h = torch.cat(grad_h, dim=-1) if need_h else None
-        grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).sum_to_size(ctx.u_shape) if need_u else None
-        return grad_u, grad_h, None, None, None, None, None
 
 
 class _Perturbed(torch.autograd.Function):

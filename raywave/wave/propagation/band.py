@@ -1,0 +1,172 @@
+"""The band convolution of the window-to-window angular spectrum (:mod:`raywave.wave.propagation.window`,
+:mod:`raywave.wave.propagation.batch`): ``ifft2(fft2(u, s=(My, Mx))·h)[..., :noy, :nox]`` for a transfer function
+``h`` that is zero outside the rectangle ``rows × cols`` of the FFT grid (given on it, ``(..., R, C)``).
+
+Every 1-D transform runs along the contiguous last axis (issue 43): the band's columns are transposed once, in
+blocks, so that the transforms along y, the product and the inverse along y run on rows of memory. A transform
+along a strided axis costs ~1.7–2× the same transform along the last one on a CPU (pocketfft copies each line),
+and gathering the band with ``index_select`` along the last axis ~7× a copy of its contiguous runs; the band is
+one or two runs of the ``fftfreq`` grid (it wraps at the Nyquist frequency), so it is taken and put back by
+slices. The same transforms on the same values as the plain product, to rounding.
+
+Memory: the band runs in blocks of columns (:func:`band_chunks`): the full-height ``My × C`` arrays never exist.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+#: a band convolution whose full-height band (My × C samples of the field's dtype) takes more bytes than this per
+#: field of the batch runs in column blocks of about this size per field: the same FFTs on the same values, a lower
+#: peak (a batch of B fields: B times this, the blocks as many as for one field)
+BAND_CHUNK_BYTES = 8 * 2**20
+#: :data:`BAND_CHUNK_BYTES` on an accelerator (CUDA: every op a kernel launch, memory aplenty): a map's bands run
+#: in one block
+BAND_CHUNK_BYTES_ACCELERATOR = 256 * 2**20
+
+
+def band_chunks(u: torch.Tensor, my: int, n_cols: int) -> int:
+    """How many column blocks :func:`convolve_band` splits a band of ``n_cols`` columns into (1: one block), for a
+    field ``u`` ``(..., Ny, Nx)`` and the FFT height ``my`` (per field of the batch: see :data:`BAND_CHUNK_BYTES`, on
+    an accelerator :data:`BAND_CHUNK_BYTES_ACCELERATOR`)."""
+    per_col = my * u.element_size()
+    limit = BAND_CHUNK_BYTES if u.device.type == "cpu" else BAND_CHUNK_BYTES_ACCELERATOR
+    return max(1, min(n_cols, math.ceil(per_col * n_cols / limit)))
+
+
+def index_runs(idx: torch.Tensor) -> tuple[tuple[int, int], ...]:
+    """The sorted indices ``idx`` (K,) as half-open runs ``((a, b), …)`` of consecutive values (one host read)."""
+    v = idx.tolist()
+    if not v:
+        return ()
+    runs, a = [], v[0]
+    for prev, cur in zip(v, v[1:]):
+        if cur != prev + 1:
+            runs.append((a, prev + 1))
+            a = cur
+    runs.append((a, v[-1] + 1))
+    return tuple(runs)
+
+
+def take(x: torch.Tensor, runs, start: int = 0, stop: int | None = None) -> torch.Tensor:
+    """The last-axis entries of ``x`` at the indices ``runs`` (:func:`index_runs`) in order, restricted to the
+    positions ``start:stop`` of that index list: ``x[..., idx[start:stop]]`` by slices (a view for one run)."""
+    parts, pos = [], 0
+    stop = sum(b - a for a, b in runs) if stop is None else stop
+    for a, b in runs:
+        lo, hi = max(start, pos), min(stop, pos + b - a)
+        if lo < hi:
+            parts.append(x[..., a + lo - pos:a + hi - pos])
+        pos += b - a
+    if not parts:
+        return x[..., :0]
+    return parts[0] if len(parts) == 1 else torch.cat(parts, -1)
+
+
+def put(out: torch.Tensor, runs, x: torch.Tensor, start: int = 0) -> torch.Tensor:
+    """``out[..., idx[start:start + K]] = x`` (``x`` ``(..., K)``) by slices, in place (autograd keeps the copies);
+    returns ``out``."""
+    stop, pos, done = start + x.shape[-1], 0, 0
+    for a, b in runs:
+        lo, hi = max(start, pos), min(stop, pos + b - a)
+        if lo < hi:
+            out[..., a + lo - pos:a + hi - pos].copy_(x[..., done:done + hi - lo])
+            done += hi - lo
+        pos += b - a
+    return out
+
+
+def _scattered(x: torch.Tensor, runs, n: int) -> torch.Tensor:
+    """``x`` ``(..., K)`` placed at the indices ``runs`` of a zero array ``(..., n)``."""
+    return put(torch.zeros((*x.shape[:-1], n), dtype=x.dtype, device=x.device), runs, x)
+
+
+def _blocks(n_cols: int, chunks: int):
+    """The column blocks ``(c0, c1)`` of a band of ``n_cols`` columns in ``chunks`` pieces."""
+    step = max(1, math.ceil(n_cols / chunks))
+    return [(c0, min(c0 + step, n_cols)) for c0 in range(0, n_cols, step)]
+
+
+def _x_band(u: torch.Tensor, mx: int, col_runs) -> torch.Tensor:
+    """``fft(u, n=mx)`` along x on the band's columns, transposed: ``(..., C, Ny)`` (a column per row of memory)."""
+    return take(torch.fft.fft(u, n=mx, dim=-1), col_runs).transpose(-1, -2)
+
+
+def _y_band(ux_t: torch.Tensor, c0: int, c1: int, my: int, row_runs) -> torch.Tensor:
+    """The band's spectrum on the columns ``c0:c1``, transposed ``(..., c, R)``: the transform along y (length
+    ``my``) of the block of ``ux_t`` (:func:`_x_band`), on its rows."""
+    return take(torch.fft.fft(ux_t[..., c0:c1, :].contiguous(), n=my, dim=-1), row_runs)
+
+
+def convolve_band(u: torch.Tensor, h: torch.Tensor, size, rows: torch.Tensor, cols: torch.Tensor, noy: int,
+                  nox: int) -> torch.Tensor:
+    """``ifft2(fft2(u, s=size)·H)[..., :noy, :nox]`` for ``H`` zero outside ``rows × cols`` (``h`` on it,
+    ``(..., R, C)``; ``rows`` ``(R,)``, ``cols`` ``(C,)`` sorted int64 indices into the FFT grid ``size`` = ``(My,
+    Mx)``), for ``u`` ``(..., Ny, Nx)``: the output window ``(..., noy, nox)``. Autograd records it where its
+    inputs require grad (the plain operations; :class:`BandConvolve` keeps less for the backward)."""
+    my, mx = size
+    lead = torch.broadcast_shapes(u.shape[:-2], h.shape[:-2])
+    if rows.numel() == 0 or cols.numel() == 0:
+        return torch.zeros((*lead, noy, nox), dtype=u.dtype, device=u.device) + 0 * u.sum()
+    row_runs, col_runs = index_runs(rows), index_runs(cols)
+    grad = torch.is_grad_enabled() and (u.requires_grad or h.requires_grad)
+    ux_t = _x_band(u, mx, col_runs)  # (..., C, Ny)
+    h_t = h.transpose(-1, -2)  # (..., C, R)
+    out = torch.zeros((*lead, noy, mx), dtype=u.dtype, device=u.device)
+    for c0, c1 in _blocks(cols.numel(), band_chunks(u, my, cols.numel())):
+        spec = _y_band(ux_t, c0, c1, my, row_runs)  # (..., c, R)
+        spec = spec * h_t[..., c0:c1, :] if grad else spec.mul_(h_t[..., c0:c1, :])
+        part = torch.fft.ifft(_scattered(spec, row_runs, my), dim=-1)[..., :noy]  # (..., c, noy)
+        del spec
+        put(out, col_runs, part.transpose(-1, -2), c0)
+        del part
+    del ux_t
+    return torch.fft.ifft(out, dim=-1)[..., :nox]
+
+
+class BandConvolve(torch.autograd.Function):
+    """:func:`convolve_band` with a hand-written backward (the adjoint transforms, in the same column blocks):
+    autograd would keep the band spectrum, the product and both zero-filled grids; this keeps the inputs it needs
+    and recomputes the input's band spectrum for the transfer function's gradient. Linear in ``u`` for fixed ``h``
+    and in ``h`` for fixed ``u``: ``∂/∂u`` is the adjoint convolution with ``conj(h)``, ``∂/∂h`` the product of the
+    output gradient's band spectrum with the input's conjugate band spectrum."""
+
+    @staticmethod
+    def forward(ctx, u, h, size, rows, cols, noy: int, nox: int):
+        ctx.size, ctx.noy, ctx.nox, ctx.u_shape, ctx.h_shape = size, noy, nox, u.shape, h.shape
+        ctx.save_for_backward(u if ctx.needs_input_grad[1] else None, h if ctx.needs_input_grad[0] else None,
+                              rows, cols)
+        return convolve_band(u, h, size, rows, cols, noy, nox)
+
+    @staticmethod
+    def backward(ctx, g):
+        u, h, rows, cols = ctx.saved_tensors
+        (my, mx), (ny, nx) = ctx.size, ctx.u_shape[-2:]
+        need_u, need_h = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        row_runs, col_runs = index_runs(rows), index_runs(cols)
+        # the output's adjoint chain: ifft along x (its adjoint fft / mx) and the columns' copy, then per block the
+        # kept rows' ifft along y (fft / my) and the rows' copy: ∂L/∂(product) on the band
+        g_t = _x_band(g, mx, col_runs)  # (..., C, noy), not yet / mx
+        ux_t = _x_band(u, mx, col_runs) if need_h else None
+        full = torch.zeros((*g.shape[:-2], ny, mx), dtype=g.dtype, device=g.device) if need_u else None
+        h_t = h.transpose(-1, -2) if need_u else None
+        grad_h = []
+        for c0, c1 in _blocks(cols.numel(), band_chunks(g, my, cols.numel())):
+            gc = _y_band(g_t, c0, c1, my, row_runs).div_(my * mx)  # (..., c, R)
+            if need_h:
+                spec = _y_band(ux_t, c0, c1, my, row_runs)
+                grad_h.append((gc * spec.conj()).transpose(-1, -2))
+                del spec
+            if need_u:
+                q = _scattered(gc * h_t[..., c0:c1, :].conj(), row_runs, my)
+                part = torch.fft.ifft(q, dim=-1)[..., :ny].mul_(my)  # fft(n=my)'s adjoint: (..., c, ny)
+                del q
+                put(full, col_runs, part.transpose(-1, -2), c0)
+                del part
+            del gc
+        del g_t, ux_t
+        grad_h = torch.cat(grad_h, dim=-1).sum_to_size(ctx.h_shape) if need_h else None
+        grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).sum_to_size(ctx.u_shape) if need_u else None
+        return grad_u, grad_h, None, None, None, None, None
