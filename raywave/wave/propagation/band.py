@@ -89,15 +89,28 @@ def _blocks(n_cols: int, chunks: int):
     return [(c0, min(c0 + step, n_cols)) for c0 in range(0, n_cols, step)]
 
 
-def _x_band(u: torch.Tensor, mx: int, col_runs) -> torch.Tensor:
-    """``fft(u, n=mx)`` along x on the band's columns, transposed: ``(..., C, Ny)`` (a column per row of memory)."""
-    return take(torch.fft.fft(u, n=mx, dim=-1), col_runs).transpose(-1, -2)
+def _x_spectrum(u: torch.Tensor, mx: int) -> torch.Tensor:
+    """``fft(u, n=mx)`` along x: ``(..., Ny, Mx)``."""
+    return torch.fft.fft(u, n=mx, dim=-1)
 
 
-def _y_band(ux_t: torch.Tensor, c0: int, c1: int, my: int, row_runs) -> torch.Tensor:
-    """The band's spectrum on the columns ``c0:c1``, transposed ``(..., c, R)``: the transform along y (length
-    ``my``) of the block of ``ux_t`` (:func:`_x_band`), on its rows."""
-    return take(torch.fft.fft(ux_t[..., c0:c1, :].contiguous(), n=my, dim=-1), row_runs)
+def _columns_t(x: torch.Tensor, runs, c0: int, c1: int) -> torch.Tensor:
+    """The entries ``idx[c0:c1]`` (``runs``: :func:`index_runs`) of the last axis of ``x`` ``(..., N, M)``,
+    transposed into a contiguous ``(..., c1 − c0, N)`` (one copy)."""
+    parts, pos = [], 0
+    for a, b in runs:
+        lo, hi = max(c0, pos), min(c1, pos + b - a)
+        if lo < hi:
+            parts.append(x[..., a + lo - pos:a + hi - pos].transpose(-1, -2))
+        pos += b - a
+    return parts[0].contiguous() if len(parts) == 1 else torch.cat(parts, -2)
+
+
+def _y_band(ux: torch.Tensor, col_runs, c0: int, c1: int, my: int, row_runs) -> torch.Tensor:
+    """The band's spectrum on its columns ``c0:c1``, transposed ``(..., c, R)``: those columns of ``ux``
+    (:func:`_x_spectrum`, ``(..., Ny, Mx)``) gathered transposed into rows of memory, transformed along y (length
+    ``my``), the band's rows kept."""
+    return take(torch.fft.fft(_columns_t(ux, col_runs, c0, c1), n=my, dim=-1), row_runs)
 
 
 def convolve_band(u: torch.Tensor, h: torch.Tensor, size, rows: torch.Tensor, cols: torch.Tensor, noy: int,
@@ -112,17 +125,24 @@ def convolve_band(u: torch.Tensor, h: torch.Tensor, size, rows: torch.Tensor, co
         return torch.zeros((*lead, noy, nox), dtype=u.dtype, device=u.device) + 0 * u.sum()
     row_runs, col_runs = index_runs(rows), index_runs(cols)
     grad = torch.is_grad_enabled() and (u.requires_grad or h.requires_grad)
-    ux_t = _x_band(u, mx, col_runs)  # (..., C, Ny)
+    ux = _x_spectrum(u, mx)  # (..., Ny, Mx)
     h_t = h.transpose(-1, -2)  # (..., C, R)
     out = torch.zeros((*lead, noy, mx), dtype=u.dtype, device=u.device)
-    for c0, c1 in _blocks(cols.numel(), band_chunks(u, my, cols.numel())):
-        spec = _y_band(ux_t, c0, c1, my, row_runs)  # (..., c, R)
-        spec = spec * h_t[..., c0:c1, :] if grad else spec.mul_(h_t[..., c0:c1, :])
-        part = torch.fft.ifft(_scattered(spec, row_runs, my), dim=-1)[..., :noy]  # (..., c, noy)
+    blocks = _blocks(cols.numel(), band_chunks(u, my, cols.numel()))
+    # without autograd one zero-filled buffer serves every block (the rows off the band are never written)
+    buf = None if grad else torch.zeros((*lead, blocks[0][1], my), dtype=u.dtype, device=u.device)
+    for c0, c1 in blocks:
+        spec = _y_band(ux, col_runs, c0, c1, my, row_runs)  # (..., c, R)
+        if grad:
+            full = _scattered(spec * h_t[..., c0:c1, :], row_runs, my)
+        else:
+            full = put(buf[..., :c1 - c0, :], row_runs, spec.mul_(h_t[..., c0:c1, :]))
         del spec
+        part = torch.fft.ifft(full, dim=-1)[..., :noy]  # (..., c, noy)
+        del full
         put(out, col_runs, part.transpose(-1, -2), c0)
         del part
-    del ux_t
+    del ux, buf
     return torch.fft.ifft(out, dim=-1)[..., :nox]
 
 
@@ -148,15 +168,15 @@ class BandConvolve(torch.autograd.Function):
         row_runs, col_runs = index_runs(rows), index_runs(cols)
         # the output's adjoint chain: ifft along x (its adjoint fft / mx) and the columns' copy, then per block the
         # kept rows' ifft along y (fft / my) and the rows' copy: ∂L/∂(product) on the band
-        g_t = _x_band(g, mx, col_runs)  # (..., C, noy), not yet / mx
-        ux_t = _x_band(u, mx, col_runs) if need_h else None
+        gx = _x_spectrum(g, mx)  # (..., noy, Mx), not yet / mx
+        ux = _x_spectrum(u, mx) if need_h else None
         full = torch.zeros((*g.shape[:-2], ny, mx), dtype=g.dtype, device=g.device) if need_u else None
         h_t = h.transpose(-1, -2) if need_u else None
         grad_h = []
         for c0, c1 in _blocks(cols.numel(), band_chunks(g, my, cols.numel())):
-            gc = _y_band(g_t, c0, c1, my, row_runs).div_(my * mx)  # (..., c, R)
+            gc = _y_band(gx, col_runs, c0, c1, my, row_runs).div_(my * mx)  # (..., c, R)
             if need_h:
-                spec = _y_band(ux_t, c0, c1, my, row_runs)
+                spec = _y_band(ux, col_runs, c0, c1, my, row_runs)
                 grad_h.append((gc * spec.conj()).transpose(-1, -2))
                 del spec
             if need_u:
@@ -166,7 +186,7 @@ class BandConvolve(torch.autograd.Function):
                 put(full, col_runs, part.transpose(-1, -2), c0)
                 del part
             del gc
-        del g_t, ux_t
+        del gx, ux
         grad_h = torch.cat(grad_h, dim=-1).sum_to_size(ctx.h_shape) if need_h else None
         grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).sum_to_size(ctx.u_shape) if need_u else None
         return grad_u, grad_h, None, None, None, None, None
