@@ -161,8 +161,14 @@ class _Perturbed(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, h, sx, sy, dz, fx, fy, axial, rel):
-        e, amp = _Perturbed._factors(sx, sy, dz, fx, fy, axial, rel, h.dtype)
-        y = h * e if amp is None else h * e * amp.to(h.real.dtype)
+        # zero-valued perturbations (they carry derivatives only): the value is h itself, bit for bit, without the
+        # band-sized factors (one host read)
+        ctx.zero = not bool(torch.stack([sx, sy, dz]).any())
+        if ctx.zero:
+            y = h.view_as(h)
+        else:
+            e, amp = _Perturbed._factors(sx, sy, dz, fx, fy, axial, rel, h.dtype)
+            y = h * e if amp is None else h * e * amp.to(h.real.dtype)
         # the band-sized factors are recomputed in backward (the same values): only the output and the inputs
         # other than h are kept
         ctx.axial = axial
@@ -173,7 +179,9 @@ class _Perturbed(torch.autograd.Function):
     def backward(ctx, g):
         y, sx, sy, dz, fx, fy, rel = ctx.saved_tensors
         grads = [None] * 8
-        if ctx.needs_input_grad[0]:
+        if ctx.needs_input_grad[0] and ctx.zero:
+            grads[0] = g
+        elif ctx.needs_input_grad[0]:
             e, amp = _Perturbed._factors(sx, sy, dz, fx, fy, ctx.axial, rel, y.dtype)
             grads[0] = g * e.conj() if amp is None else g * e.conj() * amp.to(g.real.dtype)
         if any(ctx.needs_input_grad[1:4]):
