@@ -33,7 +33,7 @@ from torch import nn
 from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
                                      entrance_pupil, exit_pupil_field_steps, faithful_field, run_batched)
-from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps
+from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps, go_phase_errors
 from raywave.hybrid.coherent.geometry import footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
@@ -604,8 +604,9 @@ class HybridLens(nn.Module):
         optics, z_doe, z_sen = self.optics, self.doe_z(), self.sensor_z()
         cd, cs, cuv = geo.chief
         settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step)
+        go = self._go_errors(geo, rows) if check else None
         out = []
-        for r in rows:
+        for k, r in enumerate(rows):
             i = geo.todo[r]
             for j, wl in enumerate(geo.wls):
                 source = Source(geo.f[i], wl, geo.depth, order=None if geo.orders is None else geo.orders[i])
@@ -618,8 +619,26 @@ class HybridLens(nn.Module):
                     out.append(exit_pupil_field_steps(optics, self.doe, source, Planes(z_doe, z_sen, z_xps[j]),
                                                       ChiefRays(cd[i, j], cs[i, j], cx[j][r], cuv[i, j]), settings,
                                                       Known(geo.boxes[r][j], geo.entrance, rims[j][r],
-                                                            None if steps is None else steps[r][j])))
+                                                            None if steps is None else steps[r][j],
+                                                            None if go is None else (go[0][j], go[1][k, j]))))
         return out
+
+    def _go_errors(self, geo: "_CallGeometry", rows: list[int]):
+        """The geometric-optics phase errors of the exit-pupil edge's Fresnel step for the built sources ``rows``
+        (indices into ``geo.todo``) × the call's wavelengths, from one trace of all their stop grids
+        (:func:`~raywave.hybrid.coherent.exit_pupil.go_phase_errors`: ``(zs (W, P), error (R, W, P))``); None
+        where no source can take that step (the DOE-plane edge, the exact step, a DOE plane before the exit pupil, or
+        no source with the Fresnel step)."""
+        if geo.edge is None or self.edge_step not in ("fresnel", "adaptive") or not rows or geo.orders is not None:
+            return None  # (a mid-system DOE's orders: each source computes its own)
+        z_xps, _, _, steps = geo.edge
+        z_doe = self.doe_z()
+        if not any(zx < z_doe for zx in z_xps):
+            return None
+        if steps is not None and not any(steps[r][j] == "fresnel" for r in rows for j in range(len(geo.wls))):
+            return None
+        idx = torch.tensor([geo.todo[r] for r in rows], dtype=torch.long, device=geo.f.device)
+        return go_phase_errors(self.optics, geo.f[idx], geo.wls, geo.depth, None, (z_xps, z_doe))
 
     def _ray_stage(self, geo: "_CallGeometry", groups: list[list[int]], nodes: int, check: bool) -> dict:
         """The ray stage of the accurate constructions of every built source in ``groups`` (their aiming, Newton

@@ -105,7 +105,7 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
     z_from = None
     if method == "fresnel" and settings.check:  # the plane too near a caustic: built before it, carried by the ASM
-        z_from, est = go_fallback_plane(lens, source, z_xp, z_doe)
+        z_from, est = go_fallback_plane(lens, source, z_xp, z_doe, known.go_error)
         if z_from is not None:
             z_from = _fallback_fits(lens, source, z_from, z_doe, p_sim, est)
         if z_from is not None:
@@ -224,38 +224,73 @@ def go_phase_error(lens, source: Source, z_xp: float, z_doe: float):
     caustic, where the rays' density varies fast on the scale of a Fresnel zone, has a large ``δφ``: it grows as
     1/distance towards the rays' local foci. A sphere (an ideal lens) has ``δφ`` 0 (to rounding). Cost: one trace of
     1 024 rays (and one with apertures, for the lit ones) and :data:`GO_PLANES` planes of finite differences.
-    ``error`` 0 where no ray is traced."""
+    ``error`` 0 where no ray is traced. Many sources at once: :func:`go_phase_errors`."""
+    fld = torch.as_tensor(source.field, dtype=torch.float64, device=lens.device).reshape(1, 2)
+    zs, err = go_phase_errors(lens, fld, [float(source.wavelength)], source.depth, source.field_type,
+                              ([z_xp], z_doe))
+    return zs[0], err[0, 0]
+
+
+#: :func:`go_phase_errors` evaluates the finite differences of this many sources at a time (memory: ~15 arrays of
+#: GO_PLANES × GO_GRID² samples per source)
+GO_SOURCE_BLOCK = 16
+
+
+def go_phase_errors(lens, fields: torch.Tensor, wls: list[float], depth, field_type, planes):
+    """:func:`go_phase_error` of the sources ``fields`` (F, 2) × ``wls`` (W wavelengths, µm) from one trace of all
+    their stop grids (F·W·1 024 rays, apertures off, and one with apertures): ``planes`` = ``(z_xps, z_doe)``, the
+    exit-pupil plane of each wavelength (W,) and the DOE plane (mm). Returns ``(zs (W, P) mm, error (F, W, P)
+    rad)``."""
     dev = lens.device
+    z_xps, z_doe = [float(z) for z in planes[0]], float(planes[1])
     ext, ng = 1.1, GO_GRID
     g = ((torch.arange(ng, dtype=torch.float64, device=dev) + 0.5) / ng * 2 - 1) * ext
     gx, gy = torch.meshgrid(g, g, indexing="xy")
-    wl = float(source.wavelength)
+    f = fields.reshape(-1, 2).to(device=dev, dtype=torch.float64)
+    nf, nw = f.shape[0], len(wls)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # a diagnostic trace, apertures off
-        rays = point_source_rays(lens, torch.as_tensor(source.field, dtype=torch.float64, device=dev).reshape(1, 2),
-                                 [wl], pupil=(gx.flatten(), gy.flatten()), aim="full", depth=source.depth,
-                                 field_type=source.field_type or lens.field_type)
+        rays = point_source_rays(lens, f, list(wls), pupil=(gx.flatten(), gy.flatten()), aim="full", depth=depth,
+                                 field_type=field_type or lens.field_type)
         out = lens.trace(rays, apertures=False)
-        lit = lens.trace(rays).valid[0, 0].reshape(ng, ng)  # the rays every aperture passes (inside the stop)
-        n = float(lens.surfaces[-1].material.n(torch.tensor([wl], dtype=torch.float64, device=dev)))
-        o, d = out.o[0, 0], out.d[0, 0]
-        tan = (d[:, :2] / d[:, 2:]).reshape(ng, ng, 2)
-        x0 = (o[:, :2] + (d[:, :2] / d[:, 2:]) * (z_doe - o[:, 2:])).reshape(ng, ng, 2)
-        bad = ~(out.valid[0, 0].reshape(ng, ng) & torch.isfinite(x0).all(-1) & torch.isfinite(tan).all(-1))
+        lit = lens.trace(rays).valid.reshape(nf, nw, ng, ng)  # the rays every aperture passes (inside the stop)
+        n = lens.surfaces[-1].material.n(torch.tensor(list(wls), dtype=torch.float64, device=dev))  # (W,)
+        o, d = out.o, out.d  # (F, W, N, 3)
+        tan = (d[..., :2] / d[..., 2:]).reshape(nf, nw, ng, ng, 2)
+        x0 = (o[..., :2] + (d[..., :2] / d[..., 2:]) * (z_doe - o[..., 2:])).reshape(nf, nw, ng, ng, 2)
+        bad = ~(out.valid.reshape(nf, nw, ng, ng) & torch.isfinite(x0).all(-1) & torch.isfinite(tan).all(-1))
         x0 = x0.masked_fill(bad[..., None], math.nan)
         u = torch.linspace(0.0, 1.0, GO_PLANES + 1, dtype=torch.float64, device=dev)
-        zs = z_xp + (z_doe - z_xp) * (1 - (1 - u) ** 2)  # denser towards the DOE plane
-        h = 2 * ext / ng
-        lap = _lap_over_amp(x0 + (zs - z_doe)[:, None, None, None] * tan, h)  # (P, ng, ng)
-        k = 2 * math.pi * n / (wl * 1e-3)
-        dz = (zs[1:] - zs[:-1]).abs()[:, None, None]
-        dphi = torch.cat([torch.zeros_like(lap[:1]), torch.cumsum(0.5 * (lap[1:] + lap[:-1]) * dz, 0)]) / (2 * k)
-        ok = (lit & (gx**2 + gy**2 <= 1.0))[None] & torch.isfinite(dphi)
-        cnt = ok.sum((1, 2)).clamp_min(1)
-        v = torch.where(ok, dphi, torch.zeros_like(dphi))
-        mean = v.sum((1, 2)) / cnt
-        err = torch.where(ok, (dphi - mean[:, None, None]).abs(), torch.zeros_like(dphi)).amax((1, 2))
-    return zs, err
+        zx = torch.tensor(z_xps, dtype=torch.float64, device=dev)[:, None]
+        zs = zx + (z_doe - zx) * (1 - (1 - u) ** 2)  # (W, P), denser towards the DOE plane
+        k = 2 * math.pi * n / (torch.tensor(list(wls), dtype=torch.float64, device=dev) * 1e-3)  # (W,)
+        inside = (gx**2 + gy**2 <= 1.0)
+        # every source's planes, a block of sources at a time (flattened F·W)
+        src_x0, src_tan = x0.reshape(nf * nw, ng, ng, 2), tan.reshape(nf * nw, ng, ng, 2)
+        src_ok = (lit & inside).reshape(nf * nw, ng, ng)
+        wi = torch.arange(nw, device=dev).repeat(nf)  # each flattened source's wavelength
+        err = torch.cat([_go_error_block(src_x0[i:i + GO_SOURCE_BLOCK], src_tan[i:i + GO_SOURCE_BLOCK],
+                                         src_ok[i:i + GO_SOURCE_BLOCK], zs[wi[i:i + GO_SOURCE_BLOCK]],
+                                         k[wi[i:i + GO_SOURCE_BLOCK]], (z_doe, 2 * ext / ng))
+                         for i in range(0, nf * nw, GO_SOURCE_BLOCK)])
+    return zs, err.reshape(nf, nw, -1)
+
+
+def _go_error_block(x0, tan, ok, zs, k, plane) -> torch.Tensor:
+    """:func:`go_phase_errors` for a block of S sources: the ray map ``x0`` (S, ng, ng, 2) mm on the DOE plane and its
+    slopes ``tan`` (S, ng, ng, 2), the lit rays inside the stop ``ok`` (S, ng, ng), each source's planes ``zs`` (S,
+    P) mm and wave number ``k`` (S,) 1/mm; ``plane`` = ``(z_doe mm, grid spacing in stop units)``. Returns the error
+    (S, P) rad."""
+    z_doe, h = plane
+    lap = _lap_over_amp(x0[:, None] + (zs - z_doe)[:, :, None, None, None] * tan[:, None], h)  # (S, P, ng, ng)
+    dz = (zs[:, 1:] - zs[:, :-1]).abs()[:, :, None, None]
+    dphi = torch.cat([torch.zeros_like(lap[:, :1]), torch.cumsum(0.5 * (lap[:, 1:] + lap[:, :-1]) * dz, 1)], 1)
+    dphi = dphi / (2 * k[:, None, None, None])
+    good = ok[:, None] & torch.isfinite(dphi)
+    cnt = good.sum((2, 3)).clamp_min(1)
+    v = torch.where(good, dphi, torch.zeros_like(dphi))
+    mean = v.sum((2, 3)) / cnt
+    return torch.where(good, (dphi - mean[..., None, None]).abs(), torch.zeros_like(dphi)).amax((2, 3))
 
 
 def _lap_over_amp(x: torch.Tensor, h: float) -> torch.Tensor:
@@ -278,16 +313,17 @@ def _lap_over_amp(x: torch.Tensor, h: float) -> torch.Tensor:
     return (m11 * gxp - m10 * gxq - m01 * gyp + m00 * gyq) / det / amp
 
 
-def go_fallback_plane(lens, source: Source, z_xp: float, z_doe: float):
+def go_fallback_plane(lens, source: Source, z_xp: float, z_doe: float, known: tuple | None = None):
     """``(z_from, error)``: where the exit-pupil edge's Fresnel step builds its geometric-optics field for one source
     when the DOE plane ``z_doe`` lies too near the rays' focus (:func:`go_phase_error` ``error`` rad >
     :data:`GO_PHASE_TOL` there): the plane nearest the DOE plane, between it and the exit pupil ``z_xp``, where the
     error is at most :data:`GO_FALLBACK_FRACTION` × the tolerance (the field is then carried to the DOE plane by the
     angular spectrum, exact over that step); ``(None, error)`` when the DOE plane is fine (or no plane is), and
-    ``(None, 0.0)`` when it lies before the exit pupil."""
+    ``(None, 0.0)`` when it lies before the exit pupil. ``known``: this source's :func:`go_phase_error` ``(z,
+    error)`` when the caller computed it for many sources (:func:`go_phase_errors`)."""
     if not z_xp < z_doe:  # a DOE plane before the exit pupil (its edge stepped backwards): no earlier plane
         return None, 0.0
-    zs, err = go_phase_error(lens, source, z_xp, z_doe)
+    zs, err = go_phase_error(lens, source, z_xp, z_doe) if known is None else known
     e = float(err[-1])
     if not e > GO_PHASE_TOL:
         return None, e

@@ -102,12 +102,15 @@ class Known:
     radius)`` mm of the paraxial entrance pupil, ``stop_rim`` the stop rim's images
     (:func:`~raywave.hybrid.coherent.stop_rim_images`), ``edge_step`` the exit-pupil edge's step of
     ``method="adaptive"`` for this source, "doe" or "fresnel" (:func:`~raywave.hybrid.coherent.exit_pupil.
-    adaptive_edge_steps`, decided for all of a call's sources from one trace)."""
+    adaptive_edge_steps`, decided for all of a call's sources from one trace), ``go_error`` ``(z (P,), error (P,))``
+    this source's geometric-optics phase error (:func:`~raywave.hybrid.coherent.exit_pupil.go_phase_errors`, for
+    all of a call's sources from one trace)."""
 
     bbox: object = None
     entrance: object = None
     stop_rim: object = None
     edge_step: str | None = None
+    go_error: tuple | None = None
 
 
 def check_types(where: str, source, planes, chief, settings) -> None:
