@@ -89,28 +89,45 @@ def _blocks(n_cols: int, chunks: int):
     return [(c0, min(c0 + step, n_cols)) for c0 in range(0, n_cols, step)]
 
 
-def _x_spectrum(u: torch.Tensor, mx: int) -> torch.Tensor:
-    """``fft(u, n=mx)`` along x: ``(..., Ny, Mx)``."""
-    return torch.fft.fft(u, n=mx, dim=-1)
+def _x_band(u: torch.Tensor, mx: int, col_runs, chunks: int) -> torch.Tensor:
+    """``fft(u, n=mx)`` along x on the band's columns: ``(..., Ny, C)``, transformed in ``chunks`` blocks of rows
+    (the full-width spectrum exists a block at a time)."""
+    ny = u.shape[-2]
+    n_cols = sum(b - a for a, b in col_runs)
+    out = torch.empty((*u.shape[:-2], ny, n_cols), dtype=u.dtype, device=u.device)
+    step = max(1, math.ceil(ny / chunks))
+    for r0 in range(0, ny, step):
+        full = torch.fft.fft(u[..., r0:r0 + step, :], n=mx, dim=-1)
+        pos = 0
+        for a, b in col_runs:
+            out[..., r0:r0 + step, pos:pos + b - a].copy_(full[..., a:b])
+            pos += b - a
+        del full
+    return out
 
 
-def _columns_t(x: torch.Tensor, runs, c0: int, c1: int) -> torch.Tensor:
-    """The entries ``idx[c0:c1]`` (``runs``: :func:`index_runs`) of the last axis of ``x`` ``(..., N, M)``,
-    transposed into a contiguous ``(..., c1 − c0, N)`` (one copy)."""
-    parts, pos = [], 0
-    for a, b in runs:
-        lo, hi = max(c0, pos), min(c1, pos + b - a)
-        if lo < hi:
-            parts.append(x[..., a + lo - pos:a + hi - pos].transpose(-1, -2))
-        pos += b - a
-    return parts[0].contiguous() if len(parts) == 1 else torch.cat(parts, -2)
+def _y_spectrum(ux: torch.Tensor, c0: int, c1: int, my: int) -> torch.Tensor:
+    """The transform along y (length ``my``) of the columns ``c0:c1`` of ``ux`` (:func:`_x_band`, ``(..., Ny, C)``),
+    transposed into rows of memory: ``(..., c, My)``."""
+    return torch.fft.fft(ux[..., c0:c1].transpose(-1, -2).contiguous(), n=my, dim=-1)
 
 
-def _y_band(ux: torch.Tensor, col_runs, c0: int, c1: int, my: int, row_runs) -> torch.Tensor:
-    """The band's spectrum on its columns ``c0:c1``, transposed ``(..., c, R)``: those columns of ``ux``
-    (:func:`_x_spectrum`, ``(..., Ny, Mx)``) gathered transposed into rows of memory, transformed along y (length
-    ``my``), the band's rows kept."""
-    return take(torch.fft.fft(_columns_t(ux, col_runs, c0, c1), n=my, dim=-1), row_runs)
+def _y_band(ux: torch.Tensor, c0: int, c1: int, my: int, row_runs) -> torch.Tensor:
+    """The band's spectrum on its columns ``c0:c1``, transposed ``(..., c, R)`` (:func:`_y_spectrum` on the band's
+    rows)."""
+    return take(_y_spectrum(ux, c0, c1, my), row_runs)
+
+
+def _band_product_(spec: torch.Tensor, row_runs, h_block: torch.Tensor) -> torch.Tensor:
+    """In place on a full-length spectrum ``spec`` ``(..., c, My)``: its band rows times ``h_block`` ``(..., c,
+    R)``, every other entry 0 (the product scattered onto the FFT grid without a second array); returns ``spec``."""
+    pos = prev = 0
+    for a, b in row_runs:
+        spec[..., prev:a].zero_()
+        spec[..., a:b].mul_(h_block[..., pos:pos + b - a])
+        pos, prev = pos + b - a, b
+    spec[..., prev:].zero_()
+    return spec
 
 
 def convolve_band(u: torch.Tensor, h: torch.Tensor, size, rows: torch.Tensor, cols: torch.Tensor, noy: int,
@@ -125,24 +142,20 @@ def convolve_band(u: torch.Tensor, h: torch.Tensor, size, rows: torch.Tensor, co
         return torch.zeros((*lead, noy, nox), dtype=u.dtype, device=u.device) + 0 * u.sum()
     row_runs, col_runs = index_runs(rows), index_runs(cols)
     grad = torch.is_grad_enabled() and (u.requires_grad or h.requires_grad)
-    ux = _x_spectrum(u, mx)  # (..., Ny, Mx)
+    chunks = band_chunks(u, my, cols.numel())
+    ux = _x_band(u, mx, col_runs, chunks)  # (..., Ny, C)
     h_t = h.transpose(-1, -2)  # (..., C, R)
     out = torch.zeros((*lead, noy, mx), dtype=u.dtype, device=u.device)
-    blocks = _blocks(cols.numel(), band_chunks(u, my, cols.numel()))
-    # without autograd one zero-filled buffer serves every block (the rows off the band are never written)
-    buf = None if grad else torch.zeros((*lead, blocks[0][1], my), dtype=u.dtype, device=u.device)
-    for c0, c1 in blocks:
-        spec = _y_band(ux, col_runs, c0, c1, my, row_runs)  # (..., c, R)
+    for c0, c1 in _blocks(cols.numel(), chunks):
         if grad:
-            full = _scattered(spec * h_t[..., c0:c1, :], row_runs, my)
-        else:
-            full = put(buf[..., :c1 - c0, :], row_runs, spec.mul_(h_t[..., c0:c1, :]))
-        del spec
+            full = _scattered(_y_band(ux, c0, c1, my, row_runs) * h_t[..., c0:c1, :], row_runs, my)
+        else:  # the product in place on the block's spectrum (no band copy, no second full-length array)
+            full = _band_product_(_y_spectrum(ux, c0, c1, my), row_runs, h_t[..., c0:c1, :])
         part = torch.fft.ifft(full, dim=-1)[..., :noy]  # (..., c, noy)
         del full
         put(out, col_runs, part.transpose(-1, -2), c0)
         del part
-    del ux, buf
+    del ux
     return torch.fft.ifft(out, dim=-1)[..., :nox]
 
 
@@ -168,24 +181,25 @@ class BandConvolve(torch.autograd.Function):
         row_runs, col_runs = index_runs(rows), index_runs(cols)
         # the output's adjoint chain: ifft along x (its adjoint fft / mx) and the columns' copy, then per block the
         # kept rows' ifft along y (fft / my) and the rows' copy: ∂L/∂(product) on the band
-        gx = _x_spectrum(g, mx)  # (..., noy, Mx), not yet / mx
-        ux = _x_spectrum(u, mx) if need_h else None
+        chunks = band_chunks(g, my, cols.numel())
+        gx = _x_band(g, mx, col_runs, chunks)  # (..., noy, C), not yet / mx
+        ux = _x_band(u, mx, col_runs, chunks) if need_h else None
         full = torch.zeros((*g.shape[:-2], ny, mx), dtype=g.dtype, device=g.device) if need_u else None
         h_t = h.transpose(-1, -2) if need_u else None
         grad_h = []
-        for c0, c1 in _blocks(cols.numel(), band_chunks(g, my, cols.numel())):
-            gc = _y_band(gx, col_runs, c0, c1, my, row_runs).div_(my * mx)  # (..., c, R)
+        for c0, c1 in _blocks(cols.numel(), chunks):
+            gs = _y_spectrum(gx, c0, c1, my).div_(my * mx)  # (..., c, My); on the band rows ∂L/∂(product)
             if need_h:
-                spec = _y_band(ux, col_runs, c0, c1, my, row_runs)
-                grad_h.append((gc * spec.conj()).transpose(-1, -2))
+                spec = _y_band(ux, c0, c1, my, row_runs)
+                grad_h.append((take(gs, row_runs) * spec.conj()).transpose(-1, -2))
                 del spec
-            if need_u:
-                q = _scattered(gc * h_t[..., c0:c1, :].conj(), row_runs, my)
+            if need_u:  # in place: the band rows times conj(h), the others 0
+                q = _band_product_(gs, row_runs, h_t[..., c0:c1, :].conj())
                 part = torch.fft.ifft(q, dim=-1)[..., :ny].mul_(my)  # fft(n=my)'s adjoint: (..., c, ny)
                 del q
                 put(full, col_runs, part.transpose(-1, -2), c0)
                 del part
-            del gc
+            del gs
         del gx, ux
         grad_h = torch.cat(grad_h, dim=-1).sum_to_size(ctx.h_shape) if need_h else None
         grad_u = (torch.fft.ifft(full, dim=-1)[..., :nx] * mx).sum_to_size(ctx.u_shape) if need_u else None
