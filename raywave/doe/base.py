@@ -375,10 +375,14 @@ class DOE(nn.Module):
         lo_x, hi_x = max(0, min(ix0s)), min(sx, max(ix0s) + nx)
         if hi_y <= lo_y or hi_x <= lo_x:  # no window meets the grid
             return torch.ones((len(iy0s), ny, nx), dtype=torch.complex128, device=self.device)
+        inside = all(0 <= y and y + ny <= sy for y in iy0s) and all(0 <= x and x + nx <= sx for x in ix0s)
+        if inside and len(iy0s) * ny * nx < (hi_y - lo_y) * (hi_x - lo_x):
+            # windows far apart (a map's mirror images): each window's own phase, not their union's (the same
+            # pixels, fewer of them)
+            return unit_phasor(torch.stack([self.phase(wavelength, (y, x, ny, nx), q) for y, x in zip(iy0s, ix0s)]))
         # the phase of the windows' union through phase() (a subclass's own phase map, e.g. a PerturbedDOE's, holds)
         ph = self.phase(wavelength, (lo_y, lo_x, hi_y - lo_y, hi_x - lo_x), q)
-        if all(lo_y <= y and y + ny <= hi_y for y in iy0s) and all(lo_x <= x and x + nx <= hi_x for x in ix0s):
-            # every window inside the grid: slices of the union (a copy each instead of an indexed gather)
+        if inside:  # slices of the union (a copy each instead of an indexed gather)
             return unit_phasor(torch.stack([ph[y - lo_y:y - lo_y + ny, x - lo_x:x - lo_x + nx]
                                             for y, x in zip(iy0s, ix0s)]))
         dev = ph.device
