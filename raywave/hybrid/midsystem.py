@@ -850,6 +850,26 @@ def _combine(parts, final: DOE, field, wavelength: float, depth) -> DOEField:
                        wavelength)
 
 
+class _PlacedSum(torch.autograd.Function):
+    """``Σ_j`` of the complex ``parts`` (each its own shape) placed in a zero array of ``shape`` at the
+    ``windows`` (a (rows, columns) slice pair each), added in order in place; the backward hands each part its
+    window of the gradient (what autograd gives through the in-place slice additions, without cloning the whole
+    array once per part)."""
+
+    @staticmethod
+    def forward(ctx, shape, windows, *parts):
+        env = torch.zeros(shape, dtype=torch.complex128, device=parts[0].device)
+        for w, part in zip(windows, parts):
+            env[w] += part
+        ctx.windows = windows
+        return env
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        return (None, None, *[grad[w] for w in ctx.windows])
+
+
 def _sum_orders(parts, final: DOE, wavelength: float) -> DOEField:
     """The orders' fields ``[(fd, c, K)]`` (``K``: :func:`_absolute_phase`) summed coherently on the union of their
     windows, on the first (strongest) order's carrier; its sensor point, distance and diagnostics."""
@@ -859,20 +879,21 @@ def _sum_orders(parts, final: DOE, wavelength: float) -> DOEField:
     iy0, iy1 = min(b[0] for b in boxes), max(b[1] for b in boxes)
     ix0, ix1 = min(b[2] for b in boxes), max(b[3] for b in boxes)
     grid = final.sim_grid(1).window(iy0, iy1, ix0, ix1)
-    env = torch.zeros((iy1 - iy0, ix1 - ix0), dtype=torch.complex128, device=fd0.envelope.device)
+    placed = []
     K0 = None
     a0, b0 = fd0.carrier
     for fd, c, K in parts:
         K0 = K.detach() if K0 is None else K0
         a, b = fd.carrier
-        gx, gy = fd.grid.coordinates(device=env.device)
+        gx, gy = fd.grid.coordinates(device=fd0.envelope.device)
         # the carrier change and the absolute phase as a separable phasor: exp(i rx(x)) exp(i ry(y))
         rx = k * fd.n * (a - a0) * gx + k * (K - K0)
         ry = k * fd.n * (b - b0) * gy
         ex, ey = torch.polar(torch.ones_like(rx), rx), torch.polar(torch.ones_like(ry), ry)
         part = (c * ex)[None, :] * fd.envelope * ey[:, None]
         by0, by1, bx0, bx1 = fd.box
-        env[by0 - iy0:by1 - iy0, bx0 - ix0:bx1 - ix0] += part
+        placed.append(((slice(by0 - iy0, by1 - iy0), slice(bx0 - ix0, bx1 - ix0)), part))
+    env = _PlacedSum.apply((iy1 - iy0, ix1 - ix0), [w for w, _ in placed], *[q for _, q in placed])
     return DOEField(Field(env, grid, wavelength, fd0.n, fd0.carrier), (iy0, iy1, ix0, ix1), fd0.z, fd0.center,
                     fd0.info, fd0.chief_tan)
 
