@@ -231,8 +231,13 @@ class DOEPhaseSurface(nn.Module):
         p = _unwrapped(p) if min(p.shape) > 1 else p
         for dim in (0, 1):  # linear extrapolation: two samples before and after
             n = p.shape[dim]
-            a, b = p.narrow(dim, 0, 1), p.narrow(dim, min(1, n - 1), 1)
-            c, d = p.narrow(dim, n - 1, 1), p.narrow(dim, max(n - 2, 0), 1)
+            if n >= 4:  # the two edge samples of each side from one narrow (one full-size gradient in the backward)
+                head, tail = p.narrow(dim, 0, 2), p.narrow(dim, n - 2, 2)
+                a, b = head.narrow(dim, 0, 1), head.narrow(dim, 1, 1)
+                c, d = tail.narrow(dim, 1, 1), tail.narrow(dim, 0, 1)
+            else:
+                a, b = p.narrow(dim, 0, 1), p.narrow(dim, min(1, n - 1), 1)
+                c, d = p.narrow(dim, n - 1, 1), p.narrow(dim, max(n - 2, 0), 1)
             p = torch.cat([a + 2 * (a - b), a + (a - b), p, c + (c - d), c + 2 * (c - d)], dim)
         return p
 
