@@ -112,14 +112,6 @@ def _unwrapped(phase: torch.Tensor) -> torch.Tensor:
     return torch.cat([col, col + rows], 1)
 
 
-#: the Keys weights (a = −½) of the taps −1, 0, 1, 2 (columns 0-3) and their derivatives (4-7), times 2, as the
-#: coefficients of t³, t², t, 1 (rows)
-_KEYS_2X = ((-1.0, 3.0, -3.0, 1.0, 0.0, 0.0, 0.0, 0.0),
-            (2.0, -5.0, 4.0, -1.0, -3.0, 9.0, -9.0, 3.0),
-            (-1.0, 0.0, 1.0, 0.0, 4.0, -10.0, 8.0, -2.0),
-            (0.0, 2.0, 0.0, 0.0, -1.0, 0.0, 1.0, 0.0))
-
-
 def _keys_rows(t: torch.Tensor) -> torch.Tensor:
     """:func:`_keys` as one (..., 2, 4) tensor: the weights of the taps −1 … 2 at fractions ``t`` (...) (row 0) and
     their derivatives (row 1), by the same expressions (the same values, bit for bit)."""
@@ -145,7 +137,8 @@ def _cubic_eval(pm: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Ten
     """``out`` (N, 2, 2), ``out[n, a, b] = ∂^a_v ∂^b_u φ`` (a, b ≤ 1, index units) of the Keys interpolant of ``pm``
     at ``u``, ``v`` (N,) (no autograd), as two batched products ``(rows · vals) · cols`` (rows (N, 2, 4): the row
     weights and their derivatives; cols (N, 4, 2): the columns'): the order in which :func:`_cubic_autograd`'s
-    ``einsum("nij,ni,nj->n")`` contracts, so its values bit for bit, for a third of the work."""
+    ``einsum("nij,ni,nj->n")`` contracts, so its values bit for bit, the three from one gather and one pair of
+    products."""
     vals, iu, iv = _cubic_taps(pm, u, v)
     k = _keys_rows(torch.stack([u - iu, v - iv]))
     return torch.bmm(torch.bmm(k[1], vals), k[0].transpose(1, 2))
