@@ -13,6 +13,9 @@ too). Cases:
 Times: median wall time of ``--repeat`` PSFs (forward; and forward + backward w.r.t. the DOE's parameters), one
 thread. Prints one JSON object (and writes it with ``-o``).
 
+For a DOE with several orders, ``last_forward_nsrc``: the last-surface DOE's PSF call with as many ordinary
+sources as the mid-system DOE has orders (fields 0.01° apart), the floor of the orders' batched engine call.
+
 Wall and CPU (``process_time``: on a shared machine, the work itself) seconds. A/B of two source trees (issue
 46's cost, measured in one run): ``--a /old/tree --b . [--rounds 2]`` runs this script on each tree's ``raywave``
 in its own process (``OMP_NUM_THREADS=1``), interleaved A, B, A, B, …, and reports every time's median over the
@@ -131,6 +134,12 @@ def run(repeat: int, field: float) -> dict:
                    "last_forward_s": _time(fwd_last, repeat, cpu, "last_forward_cpu_s"),
                    "mid_backward_s": _time(bwd(fwd_mid, params), repeat, cpu, "mid_backward_cpu_s"),
                    "last_backward_s": _time(bwd(fwd_last, params2), repeat, cpu, "last_backward_cpu_s")}
+            n = row["orders"]
+            if n > 1:  # the engine's floor: the last-surface DOE with as many ordinary sources (fields 0.01° apart)
+                many = [(0.0, field - 0.01 * i) for i in range(n)]
+                last.psf(many, WL, ks=KS)
+                row["last_forward_nsrc_s"] = _time(lambda: last.psf(many, WL, ks=KS), repeat, cpu,
+                                                   "last_forward_nsrc_cpu_s")
             row.update(cpu)
         row["forward_ratio"] = row["mid_forward_s"] / row["last_forward_s"]
         row["backward_ratio"] = row["mid_backward_s"] / row["last_backward_s"]
@@ -162,8 +171,11 @@ def run_ab(tree_a: str, tree_b: str, rounds: int, repeat: int, field: float) -> 
     times = [f"{w}_{d}_{u}" for u in ("s", "cpu_s") for d in ("forward", "backward") for w in ("mid", "last")]
     for case in first["cases"]:
         row = {"orders": first["cases"][case]["orders"]}
+        extra = [t for t in ("last_forward_nsrc_s", "last_forward_nsrc_cpu_s") if t in first["cases"][case]]
         for key in ("a", "b"):
-            med = {t: statistics.median(r["cases"][case][t] for r in runs[key]) for t in times}
+            med = {t: statistics.median(r["cases"][case][t] for r in runs[key]) for t in times + extra}
+            if extra:  # the engine alone with as many sources as orders, over one source
+                med["nsrc_over_one_cpu"] = med["last_forward_nsrc_cpu_s"] / med["last_forward_cpu_s"]
             for d in ("forward", "backward"):
                 med[f"{d}_ratio"] = med[f"mid_{d}_s"] / med[f"last_{d}_s"]
                 med[f"{d}_ratio_cpu"] = med[f"mid_{d}_cpu_s"] / med[f"last_{d}_cpu_s"]

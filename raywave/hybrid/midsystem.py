@@ -112,6 +112,38 @@ def _unwrapped(phase: torch.Tensor) -> torch.Tensor:
     return torch.cat([col, col + rows], 1)
 
 
+def _keys_rows(t: torch.Tensor) -> torch.Tensor:
+    """:func:`_keys` as one (..., 2, 4) tensor: the weights of the taps −1 … 2 at fractions ``t`` (...) (row 0) and
+    their derivatives (row 1), by the same expressions (the same values, bit for bit)."""
+    t2, t3 = t * t, t * t * t
+    return torch.stack([(-t3 + 2 * t2 - t) / 2, (3 * t3 - 5 * t2 + 2) / 2, (-3 * t3 + 4 * t2 + t) / 2, (t3 - t2) / 2,
+                        (-3 * t2 + 4 * t - 1) / 2, (9 * t2 - 10 * t) / 2, (-9 * t2 + 8 * t + 1) / 2,
+                        (3 * t2 - 2 * t) / 2], -1).reshape(t.shape + (2, 4))
+
+
+def _cubic_taps(pm: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
+    """The 4×4 taps of the padded map ``pm`` (ny + 4, nx + 4) around the index points ``u``, ``v`` (N,) (columns,
+    rows; detached) and the points' cells: ``(vals (N, 4, 4) [rows, columns], iu (N,), iv (N,))``."""
+    ny, nx = pm.shape[0] - 4, pm.shape[1] - 4
+    iu = torch.floor(u).clamp(1, nx + 1)  # the 4 taps iu−1 … iu+2 stay inside the padded map
+    iv = torch.floor(v).clamp(1, ny + 1)
+    w = nx + 4
+    off = (torch.arange(-1, 3, device=u.device)[:, None] * w + torch.arange(-1, 3, device=u.device)).reshape(-1)
+    at = iv.long() * w + iu.long()
+    return pm.reshape(-1).take(at[:, None] + off).reshape(-1, 4, 4), iu, iv
+
+
+def _cubic_eval(pm: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``out`` (N, 2, 2), ``out[n, a, b] = ∂^a_v ∂^b_u φ`` (a, b ≤ 1, index units) of the Keys interpolant of ``pm``
+    at ``u``, ``v`` (N,) (no autograd), as two batched products ``(rows · vals) · cols`` (rows (N, 2, 4): the row
+    weights and their derivatives; cols (N, 4, 2): the columns'): the order in which :func:`_cubic_autograd`'s
+    ``einsum("nij,ni,nj->n")`` contracts, so its values bit for bit, the three from one gather and one pair of
+    products."""
+    vals, iu, iv = _cubic_taps(pm, u, v)
+    k = _keys_rows(torch.stack([u - iu, v - iv]))
+    return torch.bmm(torch.bmm(k[1], vals), k[0].transpose(1, 2))
+
+
 def _keys(t: torch.Tensor):
     """Keys cubic-convolution weights (a = −½) for offsets −1, 0, 1, 2 at fractions ``t`` and their derivatives."""
     t2, t3 = t * t, t * t * t
@@ -119,6 +151,26 @@ def _keys(t: torch.Tensor):
     dw = torch.stack([(-3 * t2 + 4 * t - 1) / 2, (9 * t2 - 10 * t) / 2, (-9 * t2 + 8 * t + 1) / 2, (3 * t2 - 2 * t) / 2],
                      -1)
     return w, dw
+
+
+def _cubic_autograd(pm: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
+    """:func:`cubic_phase` with autograd through the weights, the gather and three contractions (the values of
+    :func:`_cubic_eval`, bit for bit; kept as it is so that the gradients are too)."""
+    vals, iu, iv = _cubic_taps(pm, u.detach(), v.detach())
+    wu, dwu = _keys(u - iu)
+    wv, dwv = _keys(v - iv)
+    return (torch.einsum("nij,ni,nj->n", vals, wv, wu), torch.einsum("nij,ni,nj->n", vals, wv, dwu),
+            torch.einsum("nij,ni,nj->n", vals, dwv, wu))
+
+
+def cubic_phase(pm: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
+    """``(φ, ∂φ/∂u, ∂φ/∂v)`` (N,) of the padded phase map ``pm`` (ny + 4, nx + 4) at the index points ``u``
+    (columns), ``v`` (rows) (N,) (Keys cubic convolution, C¹, exact for quadratics): :func:`_cubic_autograd` when
+    autograd needs it (differentiable in ``pm`` and the points), else :func:`_cubic_eval` (the same values)."""
+    if torch.is_grad_enabled() and (pm.requires_grad or u.requires_grad or v.requires_grad):
+        return _cubic_autograd(pm, u, v)
+    out = _cubic_eval(pm, u, v)
+    return out[:, 0, 0], out[:, 0, 1], out[:, 1, 0]
 
 
 class DOEPhaseSurface(nn.Module):
@@ -172,8 +224,13 @@ class DOEPhaseSurface(nn.Module):
         p = _unwrapped(p) if min(p.shape) > 1 else p
         for dim in (0, 1):  # linear extrapolation: two samples before and after
             n = p.shape[dim]
-            a, b = p.narrow(dim, 0, 1), p.narrow(dim, min(1, n - 1), 1)
-            c, d = p.narrow(dim, n - 1, 1), p.narrow(dim, max(n - 2, 0), 1)
+            if n >= 4:  # the two edge samples of each side from one narrow (one full-size gradient in the backward)
+                head, tail = p.narrow(dim, 0, 2), p.narrow(dim, n - 2, 2)
+                a, b = head.narrow(dim, 0, 1), head.narrow(dim, 1, 1)
+                c, d = tail.narrow(dim, 1, 1), tail.narrow(dim, 0, 1)
+            else:
+                a, b = p.narrow(dim, 0, 1), p.narrow(dim, min(1, n - 1), 1)
+                c, d = p.narrow(dim, n - 1, 1), p.narrow(dim, max(n - 2, 0), 1)
             p = torch.cat([a + 2 * (a - b), a + (a - b), p, c + (c - d), c + 2 * (c - d)], dim)
         return p
 
@@ -187,19 +244,8 @@ class DOEPhaseSurface(nn.Module):
         u = x / pitch + (nx - 1) / 2 + 2.0  # index in the padded map
         v = y / pitch + (ny - 1) / 2 + 2.0
         shape = u.shape
-        u, v = u.reshape(-1), v.reshape(-1)
-        iu = torch.floor(u.detach()).clamp(1, nx + 1)  # the 4 taps iu−1 … iu+2 stay inside the padded map
-        iv = torch.floor(v.detach()).clamp(1, ny + 1)
-        wu, dwu = _keys(u - iu)
-        wv, dwv = _keys(v - iv)
-        # the 4×4 taps iv−1 … iv+2 × iu−1 … iu+2 as one gather of the flat map (rows of nx + 4 samples)
-        w = nx + 4
-        off = (torch.arange(-1, 3, device=u.device)[:, None] * w + torch.arange(-1, 3, device=u.device)).reshape(-1)
-        at = iv.long().clamp(1, ny + 1) * w + iu.long().clamp(1, nx + 1)
-        vals = pm.reshape(-1).take(at[:, None] + off).reshape(-1, 4, 4)  # (N, 4, 4)
-        phi = torch.einsum("nij,ni,nj->n", vals, wv, wu)
-        gx = torch.einsum("nij,ni,nj->n", vals, wv, dwu) / pitch
-        gy = torch.einsum("nij,ni,nj->n", vals, dwv, wu) / pitch
+        phi, gx, gy = cubic_phase(pm, u.reshape(-1), v.reshape(-1))
+        gx, gy = gx / pitch, gy / pitch
         s = self._row_scale(shape) if self._rows is not None or self.scale is None else (
             self.scale(wavelength) if callable(self.scale) else self.scale)
         return tuple(s * t.reshape(shape) for t in (phi, gx, gy))
@@ -802,6 +848,26 @@ def _combine(parts, final: DOE, field, wavelength: float, depth) -> DOEField:
                        wavelength)
 
 
+class _PlacedSum(torch.autograd.Function):
+    """``Σ_j`` of the complex ``parts`` (each its own shape) placed in a zero array of ``shape`` at the
+    ``windows`` (a (rows, columns) slice pair each), added in order in place; the backward hands each part its
+    window of the gradient (what autograd gives through the in-place slice additions, without cloning the whole
+    array once per part)."""
+
+    @staticmethod
+    def forward(ctx, shape, windows, *parts):
+        env = torch.zeros(shape, dtype=torch.complex128, device=parts[0].device)
+        for w, part in zip(windows, parts):
+            env[w] += part
+        ctx.windows = windows
+        return env
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        return (None, None, *[grad[w] for w in ctx.windows])
+
+
 def _sum_orders(parts, final: DOE, wavelength: float) -> DOEField:
     """The orders' fields ``[(fd, c, K)]`` (``K``: :func:`_absolute_phase`) summed coherently on the union of their
     windows, on the first (strongest) order's carrier; its sensor point, distance and diagnostics."""
@@ -811,19 +877,21 @@ def _sum_orders(parts, final: DOE, wavelength: float) -> DOEField:
     iy0, iy1 = min(b[0] for b in boxes), max(b[1] for b in boxes)
     ix0, ix1 = min(b[2] for b in boxes), max(b[3] for b in boxes)
     grid = final.sim_grid(1).window(iy0, iy1, ix0, ix1)
-    env = torch.zeros((iy1 - iy0, ix1 - ix0), dtype=torch.complex128, device=fd0.envelope.device)
+    placed = []
     K0 = None
     a0, b0 = fd0.carrier
     for fd, c, K in parts:
         K0 = K.detach() if K0 is None else K0
         a, b = fd.carrier
-        gx, gy = fd.grid.coordinates(device=env.device)
+        gx, gy = fd.grid.coordinates(device=fd0.envelope.device)
         # the carrier change and the absolute phase as a separable phasor: exp(i rx(x)) exp(i ry(y))
         rx = k * fd.n * (a - a0) * gx + k * (K - K0)
         ry = k * fd.n * (b - b0) * gy
         ex, ey = torch.polar(torch.ones_like(rx), rx), torch.polar(torch.ones_like(ry), ry)
         part = (c * ex)[None, :] * fd.envelope * ey[:, None]
         by0, by1, bx0, bx1 = fd.box
-        env[by0 - iy0:by1 - iy0, bx0 - ix0:bx1 - ix0] += part
+        placed.append(((slice(by0 - iy0, by1 - iy0), slice(bx0 - ix0, bx1 - ix0)), part))
+    env = _PlacedSum.apply((iy1 - iy0, ix1 - ix0), [w for w, _ in placed], *[q for _, q in placed])
     return DOEField(Field(env, grid, wavelength, fd0.n, fd0.carrier), (iy0, iy1, ix0, ix1), fd0.z, fd0.center,
                     fd0.info, fd0.chief_tan)
+
