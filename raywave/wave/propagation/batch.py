@@ -31,6 +31,7 @@ import torch
 from raywave.utils.phasor import polar
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation._common import _TWO_PI, _pair
+from raywave.wave.propagation.band import index_runs
 from raywave.wave.propagation.transfer import WindowSource, _geometry
 from raywave.wave.propagation.window import _convolve
 
@@ -190,20 +191,6 @@ def _roll_off(shift: torch.Tensor, band, zf, weight: torch.Tensor, weight_deriva
     return factor
 
 
-def _runs(idx: torch.Tensor) -> list[tuple[int, int]]:
-    """The sorted indices ``idx`` (K,) as half-open runs ``[(a, b), …]`` of consecutive values (one host read)."""
-    v = idx.tolist()
-    if not v:
-        return []
-    runs, a = [], v[0]
-    for prev, cur in zip(v, v[1:]):
-        if cur != prev + 1:
-            runs.append((a, prev + 1))
-            a = cur
-    runs.append((a, v[-1] + 1))
-    return runs
-
-
 def _ramp_lines(g, g_other, k, zf, band) -> torch.Tensor:
     """Indices of the band's lines (``g`` (B, 1, C) or (B, R, 1): one axis's physical frequencies; ``g_other`` the
     other's) where some source's lateral shift may leave its ``[lo, hi]`` (the batched
@@ -227,7 +214,7 @@ def _roll_off_lines(g, g_other, kz, inv_w, band, weight, weight_derivative: bool
     can roll off alone (:func:`_ramp_lines`; the same values: elsewhere the factor is 1 and its derivatives 0), a
     contiguous run of lines at a time (views). Returns the factors with ``weight_derivative``, else None."""
     k, zf = kz
-    runs = _runs(_ramp_lines(g, g_other, k, zf, band))
+    runs = index_runs(_ramp_lines(g, g_other, k, zf, band))
     facs = (torch.zeros_like(weight), torch.zeros_like(weight)) if weight_derivative else None
     for a, b in runs:
         gl, iw = g.narrow(dim, a, b - a), inv_w.narrow(dim, a, b - a)
@@ -323,8 +310,8 @@ def _placed_band_values(params: tuple, freqs: tuple, band_index: tuple, weight_d
         if c_own.numel() == 0 or r_own.numel() == 0:
             continue
         v, r = _band_values(one, fx[c_own], fy[r_own], weight_derivative)
-        rp = _runs(torch.searchsorted(rows, r_own))
-        cp = _runs(torch.searchsorted(cols, c_own))
+        rp = index_runs(torch.searchsorted(rows, r_own))
+        cp = index_runs(torch.searchsorted(cols, c_own))
         _place(band[i], v[0], rp, cp)
         if weight_derivative:
             _place(rel[i], r[0], rp, cp)
@@ -332,7 +319,8 @@ def _placed_band_values(params: tuple, freqs: tuple, band_index: tuple, weight_d
 
 
 def _place(dst: torch.Tensor, src: torch.Tensor, row_runs, col_runs) -> None:
-    """``dst[..., rpos, cpos] = src`` for the positions given as runs (:func:`_runs`), by block copies."""
+    """``dst[..., rpos, cpos] = src`` for the positions given as runs
+    (:func:`~raywave.wave.propagation.band.index_runs`), by block copies."""
     r0 = 0
     for ra, rb in row_runs:
         c0 = 0

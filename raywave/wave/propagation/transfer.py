@@ -12,6 +12,7 @@ import torch
 
 from raywave.utils.phasor import polar
 from raywave.wave.grid import Field, Grid
+from raywave.wave.propagation.band import index_runs
 from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _pair, _positive, _sqrt_kz, _xy, _z_value,
                                               check_single_field, fast_fft_size, legacy_call)
 
@@ -174,7 +175,7 @@ def _roll_off_lines(g, g_other, k: float, zf: float, inv_w, band, weight, weight
         shift = (zf * g)[None, :] * inv_w if dim == 1 else (zf * g)[:, None] * inv_w
         return _roll_off(shift, band, zf, weight, weight_derivative)
     facs = (torch.zeros_like(weight), torch.zeros_like(weight)) if weight_derivative else None
-    for a, b in _runs(lines):
+    for a, b in index_runs(lines):
         gl = (zf * g)[a:b]
         iw = inv_w.narrow(dim, a, b - a)
         shift = gl[None, :] * iw if dim == 1 else gl[:, None] * iw
@@ -183,20 +184,6 @@ def _roll_off_lines(g, g_other, k: float, zf: float, inv_w, band, weight, weight
             for full, part in zip(facs, fac):
                 full.narrow(dim, a, b - a).copy_(part.expand_as(shift))
     return facs
-
-
-def _runs(idx: torch.Tensor) -> list[tuple[int, int]]:
-    """The sorted indices ``idx`` (K,) as half-open runs ``[(a, b), …]`` of consecutive values."""
-    if idx.numel() == 0:
-        return []
-    v = idx.tolist()
-    runs, a = [], v[0]
-    for prev, cur in zip(v, v[1:]):
-        if cur != prev + 1:
-            runs.append((a, prev + 1))
-            a = cur
-    runs.append((a, v[-1] + 1))
-    return runs
 
 
 def _band_values(geo: _Geometry, fx, fy, rows, cols, weight_derivative: bool):
