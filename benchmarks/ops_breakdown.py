@@ -96,7 +96,8 @@ def breakdown(fn) -> tuple[int, collections.Counter, collections.Counter, collec
 
 def _accelerator_sizes() -> None:
     """Set the CPU's block sizes to an accelerator's (the lens traces' chunks, the edge envelope's blocks, the band
-    convolution's column chunks: the same values, fewer loops), so that the count is the ops a CUDA run dispatches."""
+    convolution's column chunks: the same values, fewer loops) and its one batched evaluation of the transfer
+    functions, so that the count is the ops a CUDA run dispatches."""
     import raywave.hybrid.coherent.stop_edge as edge_mod
     import raywave.lens.lens as lens_mod
     import raywave.wave.propagation.band as window_mod
@@ -106,6 +107,10 @@ def _accelerator_sizes() -> None:
         if not hasattr(mod, name + "_ACCELERATOR"):
             raise SystemExit(f"--accelerator: this tree has no {mod.__name__}.{name}_ACCELERATOR (per-device sizes)")
         setattr(mod, name, getattr(mod, name + "_ACCELERATOR"))
+    import raywave.wave.propagation.batch as batch_mod
+
+    if hasattr(batch_mod, "_by_source"):  # an accelerator evaluates a batch's transfer functions at once
+        batch_mod._by_source = lambda device, b: False
 
 
 def main():

@@ -79,3 +79,33 @@ def test_pixel_weights_built_once_are_those_built_per_call():
         got = memo.cached(("k", 1), lambda: calls.append(1) or w)
         assert got is w
     assert len(calls) == 1 and len(memo) == 1
+
+
+def test_transfer_per_source_on_a_cpu_equals_the_union_evaluation(monkeypatch):
+    """A CPU evaluates each source's transfer function on its own band and roll-off lines and places it into the
+    batch's union (an accelerator evaluates the union at once): the same tensor bit for bit, with and without the
+    roll-off weights' derivatives, for sources whose carriers, windows and bands differ (mirror images, a shifted
+    window, another size)."""
+    import raywave.wave.propagation.batch as batch_mod
+    from raywave.wave.propagation.batch import WindowBatch, batch_transfer
+    from raywave.wave.propagation.transfer import WindowSource
+
+    assert batch_mod._by_source("cpu", 4) and not batch_mod._by_source("cpu", 1)
+    assert not batch_mod._by_source(torch.device("cuda", 0), 4)
+    p, z = 1e-3, 4.0
+    sources = tuple(WindowSource(shape, (x0, y0), (x0 + dx, y0 + dy), 0.53, z, 1.0, carrier)
+                    for shape, (x0, y0), (dx, dy), carrier in (
+                        ((180, 150), (-0.30, -0.10), (0.02, 0.01), (0.08, 0.03)),
+                        ((180, 150), (0.15, -0.10), (-0.02, 0.01), (-0.08, 0.03)),
+                        ((170, 160), (-0.05, 0.12), (0.0, -0.03), (0.0, -0.05))))
+    wb = WindowBatch(sources, (41, 41), p)
+    for wd in (False, True):
+        monkeypatch.setattr(batch_mod, "_by_source", lambda device, b: False)
+        union = batch_transfer(wb, "cpu", wd)
+        monkeypatch.setattr(batch_mod, "_by_source", lambda device, b: b > 1)
+        placed = batch_transfer(wb, "cpu", wd)
+        assert torch.equal(union.rows, placed.rows) and torch.equal(union.cols, placed.cols)
+        assert torch.equal(union.band, placed.band)
+        assert (union.rel is None and placed.rel is None) or torch.equal(union.rel, placed.rel)
+        # every source has light on the band, and some of the union lies outside each source's own band
+        assert all(bool((b != 0).any()) and bool((b == 0).any()) for b in placed.band)

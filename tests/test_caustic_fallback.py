@@ -59,6 +59,25 @@ def test_the_estimate_grows_towards_focus_and_is_zero_for_a_sphere():
     assert float(e[-1]) < 1e-9
 
 
+def test_the_estimate_of_many_sources_is_each_sources_own():
+    """A call estimates every built source at once (one trace of all their stop grids): each source's planes and
+    errors are those of its own estimate (the batched aiming converges each ray as its own does, to rounding)."""
+    hl = _singlet(NEAR)
+    lens = hl.lens
+    fields = torch.tensor([[0.0, 0.0], [0.0, 0.6 * float(max(lens.fields))]], dtype=torch.float64)
+    wls = [0.5, lens.primary_wavelength]
+    z_xps = [hl.exit_pupil_z(w) for w in wls]
+    with torch.no_grad():
+        zs, err = ep.go_phase_errors(lens, fields, wls, None, lens.field_type, (z_xps, hl.doe_z()))
+        for i in range(2):
+            for j, wl in enumerate(wls):
+                z1, e1 = ep.go_phase_error(lens, Source(tuple(fields[i].tolist()), wl, None, lens.field_type),
+                                           z_xps[j], hl.doe_z())
+                assert torch.equal(zs[j], z1)
+                torch.testing.assert_close(err[i, j], e1, rtol=1e-9, atol=1e-15)
+    assert float(err[0, 1, -1]) > ep.GO_PHASE_TOL  # the case triggers the fallback
+
+
 def _near_psfs():
     """``(far, fallback, warnings)``: the PSF with the DOE far from focus and the default's near it (2 mm wide, so
     that its aperture keeps the edge's ripples)."""

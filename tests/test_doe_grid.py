@@ -65,3 +65,23 @@ def test_hybrid_lens_is_a_module_with_real_parameters():
     assert torch.equal(hl2.doe.phase_map, hl.doe.phase_map)
     assert hl.to("cpu") is hl and hl.doe.device.type == "cpu"
     assert torch.get_default_dtype() == torch.float32  # the library never changes the global default
+
+
+def test_window_phasors_of_far_apart_windows_are_each_windows_phase():
+    """A batch of windows far apart (a map's mirror images) takes each window's own phase instead of their union's;
+    windows that overlap, or reach beyond the grid, take the union's: every path gives exp(iφ) of each window's phase
+    (a pixel map and an analytic phase, oversampled)."""
+    from raywave.doe.params import RadialDOE
+    from raywave.utils.phasor import unit_phasor
+
+    g = torch.Generator().manual_seed(4)
+    does = [PixelDOE(torch.randn((300, 300), generator=g, dtype=torch.float64), 2e-3),
+            RadialDOE(torch.linspace(0.0, 40.0, 64, dtype=torch.float64), 300, 2e-3, radius=0.3)]
+    for doe in does:
+        for corners in ([(10, 20), (400, 450), (10, 450), (400, 20)],  # far apart: per window
+                        [(100, 100), (130, 110)],  # overlapping: the union
+                        [(-5, 500), (300, 300)]):  # one beyond the grid: the union, edges repeated
+            ph = doe.window_phasors(0.53, corners, (90, 80), 2)
+            for (iy, ix), got in zip(corners, ph):
+                if iy >= 0 and iy + 90 <= 600 and ix >= 0 and ix + 80 <= 600:
+                    assert torch.equal(got, unit_phasor(doe.phase(0.53, (iy, ix, 90, 80), 2)))
