@@ -89,13 +89,17 @@ def _blocks(n_cols: int, chunks: int):
     return [(c0, min(c0 + step, n_cols)) for c0 in range(0, n_cols, step)]
 
 
+#: :func:`_x_band` transforms at least this many blocks of rows (its full-width transient a fraction of the band)
+X_ROW_BLOCKS = 4
+
+
 def _x_band(u: torch.Tensor, mx: int, col_runs, chunks: int) -> torch.Tensor:
     """``fft(u, n=mx)`` along x on the band's columns: ``(..., Ny, C)``, transformed in ``chunks`` blocks of rows
     (the full-width spectrum exists a block at a time)."""
     ny = u.shape[-2]
     n_cols = sum(b - a for a, b in col_runs)
     out = torch.empty((*u.shape[:-2], ny, n_cols), dtype=u.dtype, device=u.device)
-    step = max(1, math.ceil(ny / chunks))
+    step = max(1, math.ceil(ny / max(chunks, X_ROW_BLOCKS)))
     for r0 in range(0, ny, step):
         full = torch.fft.fft(u[..., r0:r0 + step, :], n=mx, dim=-1)
         pos = 0
@@ -146,16 +150,22 @@ def convolve_band(u: torch.Tensor, h: torch.Tensor, size, rows: torch.Tensor, co
     ux = _x_band(u, mx, col_runs, chunks)  # (..., Ny, C)
     h_t = h.transpose(-1, -2)  # (..., C, R)
     out = torch.zeros((*lead, noy, mx), dtype=u.dtype, device=u.device)
-    for c0, c1 in _blocks(cols.numel(), chunks):
+    blocks = _blocks(cols.numel(), chunks)
+    for c0, c1 in blocks:
+        blk = ux[..., c0:c1].transpose(-1, -2).contiguous()  # (..., c, Ny)
+        if c1 == blocks[-1][1]:
+            ux = None  # the last block: the x band is no longer needed (a lower peak for a one-block band)
+        spec = torch.fft.fft(blk, n=my, dim=-1)
+        del blk
         if grad:
-            full = _scattered(_y_band(ux, c0, c1, my, row_runs) * h_t[..., c0:c1, :], row_runs, my)
+            full = _scattered(take(spec, row_runs) * h_t[..., c0:c1, :], row_runs, my)
         else:  # the product in place on the block's spectrum (no band copy, no second full-length array)
-            full = _band_product_(_y_spectrum(ux, c0, c1, my), row_runs, h_t[..., c0:c1, :])
+            full = _band_product_(spec, row_runs, h_t[..., c0:c1, :])
+        del spec
         part = torch.fft.ifft(full, dim=-1)[..., :noy]  # (..., c, noy)
         del full
         put(out, col_runs, part.transpose(-1, -2), c0)
         del part
-    del ux
     return torch.fft.ifft(out, dim=-1)[..., :nox]
 
 
