@@ -23,7 +23,6 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
 from raywave.utils.safe import safe_div
 from raywave.wave.propagation import integrated_upsampled_intensity, upsampled_pixel_weights
@@ -134,14 +133,11 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
     (:meth:`raywave.doe.DOE.window_phasors`), cast to ``dtype``: ``(B, Ny, Nx)``; and each field's power ``(B,)``
     (∫|U|² dA, no autograd: a diagnostic)."""
     ny, nx = shape
-    if torch.is_grad_enabled() and any(pl.fd.envelope.requires_grad for pl in batch):
-        env = torch.stack([F.pad(pl.fd.envelope, (0, nx - pl.fd.envelope.shape[-1], 0, ny - pl.fd.envelope.shape[-2]))
-                           for pl in batch])
-    else:  # one zero-filled array, each envelope copied into its corner
-        env = torch.zeros((len(batch), ny, nx), dtype=batch[0].fd.envelope.dtype, device=batch[0].fd.envelope.device)
-        for i, pl in enumerate(batch):
-            e = pl.fd.envelope
-            env[i, :e.shape[-2], :e.shape[-1]].copy_(e)
+    # one zero-filled array, each envelope copied into its corner (autograd keeps the copies' gradients)
+    env = torch.zeros((len(batch), ny, nx), dtype=batch[0].fd.envelope.dtype, device=batch[0].fd.envelope.device)
+    for i, pl in enumerate(batch):
+        e = pl.fd.envelope
+        env[i, :e.shape[-2], :e.shape[-1]].copy_(e)
     p = batch[0].fd.pitch
     with torch.no_grad():
         power = torch.linalg.vector_norm(torch.view_as_real(env.detach()), dim=(-3, -2, -1)).square() * (p * p)

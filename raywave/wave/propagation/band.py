@@ -50,16 +50,10 @@ def index_runs(idx: torch.Tensor) -> tuple[tuple[int, int], ...]:
     return tuple(runs)
 
 
-def take(x: torch.Tensor, runs, start: int = 0, stop: int | None = None) -> torch.Tensor:
-    """The last-axis entries of ``x`` at the indices ``runs`` (:func:`index_runs`) in order, restricted to the
-    positions ``start:stop`` of that index list: ``x[..., idx[start:stop]]`` by slices (a view for one run)."""
-    parts, pos = [], 0
-    stop = sum(b - a for a, b in runs) if stop is None else stop
-    for a, b in runs:
-        lo, hi = max(start, pos), min(stop, pos + b - a)
-        if lo < hi:
-            parts.append(x[..., a + lo - pos:a + hi - pos])
-        pos += b - a
+def take(x: torch.Tensor, runs) -> torch.Tensor:
+    """The last-axis entries of ``x`` at the indices ``runs`` (:func:`index_runs`) in order: ``x[..., idx]`` by
+    slices (a view for one run)."""
+    parts = [x[..., a:b] for a, b in runs]
     if not parts:
         return x[..., :0]
     return parts[0] if len(parts) == 1 else torch.cat(parts, -1)
@@ -103,7 +97,7 @@ def _x_band(u: torch.Tensor, mx: int, col_runs, chunks: int) -> torch.Tensor:
     for r0 in range(0, ny, step):
         full = torch.fft.fft(u[..., r0:r0 + step, :], n=mx, dim=-1)
         pos = 0
-        for a, b in col_runs:
+        for a, b in col_runs:  # take(full, col_runs) written straight into its rows of out
             out[..., r0:r0 + step, pos:pos + b - a].copy_(full[..., a:b])
             pos += b - a
         del full
