@@ -10,7 +10,7 @@ import raywave.hybrid.coherent.stop_edge as edge_mod
 import raywave.lens.lens as lens_mod
 import raywave.wave.propagation.band as window_mod
 from raywave.assembly.build import load_hybrid
-from raywave.hybrid.batched import TransferMemo
+from raywave.hybrid.batched import GeometryMemo
 from raywave.lens.build import bundled_lens_path
 from raywave.wave.propagation import integrated_upsampled_intensity, upsampled_pixel_weights
 
@@ -55,10 +55,8 @@ def test_psfs_do_not_depend_on_the_block_sizes(asphere_psfs, monkeypatch, mod, n
     bit for bit (the trace and the edge envelope are elementwise), the band convolution's to rounding."""
     hl, ref = asphere_psfs
     monkeypatch.setattr(mod, name, size)
-    hl._transfer_memo.clear()
     with torch.no_grad():
         got = hl.psf_result(FIELDS, [0.53], ks=32).psf
-    hl._transfer_memo.clear()
     if exact:
         assert torch.equal(got, ref)
     else:
@@ -73,7 +71,7 @@ def test_pixel_weights_built_once_are_those_built_per_call():
     direct = integrated_upsampled_intensity(u, *args, refine=True)
     w = upsampled_pixel_weights(u.shape[-2:], *args, device=u.device, refine=True)
     assert torch.equal(integrated_upsampled_intensity(u, *args, refine=True, weights=w), direct)
-    memo = TransferMemo()
+    memo = GeometryMemo()
     calls = []
     for _ in range(2):
         got = memo.cached(("k", 1), lambda: calls.append(1) or w)

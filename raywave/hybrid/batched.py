@@ -162,7 +162,7 @@ def sensor_psfs(out: torch.Tensor, kk: int, p: float, sensor: SensorWindow, powe
     """The PSFs ``(B, ks, ks)`` (each summing to 1; all zeros where no light arrives) and the energy outside the
     crops ``(B,)`` from the sensor-plane fields ``out`` ``(B, 2kk+1, 2kk+1)`` (pitch ``p`` mm, each window's centre
     sample on its chief ray's image point, the centre of pixel ``[ks//2, ks//2]``), ``power`` ``(B,)`` the power
-    reaching the DOE. ``memo`` (:class:`TransferMemo` or None): where the pixel integration's weights and the
+    reaching the DOE. ``memo`` (:class:`GeometryMemo` or None): where the pixel integration's weights and the
     window's taper are kept, built once per geometry (``kk``, ``p``, the sensor; issue 43) instead of per batch."""
     ks, ps = sensor.ks, sensor.pitch
     rel = (ks // 2) * ps - kk * p  # every window's sample (0, 0) relative to its crop's pixel (0, 0) centre
@@ -185,12 +185,17 @@ def sensor_psfs(out: torch.Tensor, kk: int, p: float, sensor: SensorWindow, powe
     return psf, outside
 
 
-class TransferMemo:
-    """The batch transfer functions of recent batches (a training loop with a frozen lens reuses them), kept while
-    they take at most ``max_bytes`` together (least recently used dropped first); and other geometry-keyed
-    constants of the batched path (:meth:`cached`: the pixel integration's weights). Plain per-engine memo."""
+class GeometryMemo:
+    """Geometry-keyed constants of the batched path (the pixel integration's weights and taper: built once per
+    window shape, pitch and sensor), kept while they take at most ``max_bytes`` together (least recently used
+    dropped first). Plain per-engine memo, never state.
 
-    def __init__(self, max_bytes: int = 64 * 2**20):
+    The batch transfer functions are not memoised: a map's batches (and a replay's per-field recomputes) cycle
+    through more transfer functions than any fixed budget holds, so a least-recently-used memo of them never hits
+    (the replay benchmark's 5×5 map over two iterations: 0 hits in 300) and only raised the peak memory by its size
+    (issue 43: 64 MB of the replay's 10×10 peak)."""
+
+    def __init__(self, max_bytes: int = 16 * 2**20):
         from collections import OrderedDict
 
         self.max_bytes = int(max_bytes)
@@ -201,11 +206,6 @@ class TransferMemo:
 
     def __len__(self) -> int:
         return len(self._items)
-
-    def get(self, wb: WindowBatch, device, weight_derivative: bool):
-        """:func:`batch_transfer` of ``wb`` on ``device``, built once while it stays in the memo."""
-        return self.cached((wb, str(device), bool(weight_derivative)),
-                           lambda: batch_transfer(wb, device, weight_derivative))
 
     def cached(self, key, build):
         """The value of ``build()`` for the hashable ``key`` (host values that fix it: a geometry), built once while
@@ -223,13 +223,11 @@ class TransferMemo:
 
 
 def _nbytes(v) -> int:
-    """Bytes of the tensors in ``v`` (a :class:`BatchTransfer`, a tensor, or tuples of them)."""
+    """Bytes of the tensors in ``v`` (a tensor, or tuples of them)."""
     if isinstance(v, torch.Tensor):
         return v.numel() * v.element_size()
     if isinstance(v, (tuple, list)):
         return sum(_nbytes(x) for x in v)
-    if hasattr(v, "band"):  # a BatchTransfer
-        return _nbytes(v.band) + (0 if v.rel is None else _nbytes(v.rel))
     return 0
 
 
@@ -241,7 +239,7 @@ def propagate_group(engine, batch: list[Planned], centers: torch.Tensor, dz, dty
     wb, kk = window_batch(batch, sensor)
     u, power = modulated_batch(engine.doe, batch, wb.in_shape(), engine.oversample, dtype)
     shift = centers - centers.detach() if centers.requires_grad else None
-    transfer = engine._transfer_memo.get(wb, u.device, dz is not None or shift is not None)
+    transfer = batch_transfer(wb, u.device, dz is not None or shift is not None)
     out = propagate_batch(wb.field(u), wb.out_grids(), wb.distances(), transfer=transfer, shift=shift, dz=dz).envelope
     del u
-    return sensor_psfs(out, kk, wb.pitch, sensor, power, engine._transfer_memo)
+    return sensor_psfs(out, kk, wb.pitch, sensor, power, engine._geometry_memo)

@@ -37,7 +37,7 @@ from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps, go_phase_err
 from raywave.hybrid.coherent.geometry import footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
-from raywave.hybrid.batched import (OUT_MARGIN, Planned, SensorWindow, TransferMemo, ceil_samples, plan_groups,
+from raywave.hybrid.batched import (OUT_MARGIN, Planned, SensorWindow, GeometryMemo, ceil_samples, plan_groups,
                                     propagate_group)
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
@@ -320,7 +320,7 @@ class HybridLens(nn.Module):
         # transfer functions of recent window pairs (a training loop with a frozen lens reuses them); plain
         # per-instance memo, never part of the state_dict
         self._transfer_cache: OrderedDict = OrderedDict()
-        self._transfer_memo = TransferMemo()  # the batched path's (raywave.hybrid.batched)
+        self._geometry_memo = GeometryMemo()  # the batched path's pixel weights (raywave.hybrid.batched)
         self._xp_memo: dict = {}  # exit-pupil planes per (lens state, wavelength): plain memo, not state
 
     def use_transfer_cache(self, cache: OrderedDict) -> "HybridLens":
