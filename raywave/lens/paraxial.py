@@ -327,6 +327,14 @@ def paraxial_image_distance(lens, wavelength: float) -> torch.Tensor:
     return z_last - y1 * n[-1] / nu1
 
 
+def entrance_pupil_diameter(lens, wavelength: float | None = None) -> float:
+    """The paraxial entrance-pupil diameter (mm) at ``wavelength`` µm (default the lens's primary): the same float as
+    :func:`paraxial_data`'s ``epd``, without the rest of the first-order data (~0.2 ms instead of ~2 ms on the bundled
+    asphere; the aiming of every ray bundle asks for it, ~10 times per PSF call)."""
+    _, m_ep = stop_to_entrance_pupil(lens, lens.primary_wavelength if wavelength is None else wavelength)
+    return 2.0 * lens.stop_radius() / abs(float(m_ep.detach()))
+
+
 def paraxial_data(lens, wavelength: float) -> ParaxialData:
     """All first-order properties of ``lens`` at ``wavelength`` (µm)."""
     m = system_matrix(lens, wavelength).detach()

@@ -267,7 +267,7 @@ def aim_chief_rays(lens, fields, field_type, wavelength, depth=None, ep_z=None) 
     in field (0 → full) for wide-angle lenses where the paraxial guess misses."""
     F = fields.shape[0]
     W = torch.as_tensor(wavelength).numel()
-    r_ep = 0.5 * lens.paraxial().epd
+    r_ep = 0.5 * paraxial.entrance_pupil_diameter(lens)
     h = 1e-7 * max(r_ep, 1e-3)
     uv = torch.zeros((F, W, 1, 2), dtype=torch.float64, device=lens.device)
     target = torch.zeros_like(uv)
@@ -408,8 +408,7 @@ def point_source_rays(
                          device=lens.device).reshape(-1)
     px, py = _pupil_samples(lens, pupil, generator)
     F, W, N = fields.shape[0], wl.numel(), px.numel()
-    pdata = lens.paraxial()
-    r_ep = 0.5 * pdata.epd
+    r_ep = 0.5 * paraxial.entrance_pupil_diameter(lens)
     ep_z = entrance_plane_z(lens)  # once: every aiming iteration needs it
     r_stop = lens.stop_radius()
     pn = torch.stack([px, py], -1)[None, None].expand(F, W, N, 2)

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
+from raywave.lens.paraxial import entrance_pupil_diameter
 from raywave.lens.sources import chief_pupil, entrance_plane_z, point_source_rays, source_weight
 from raywave.utils.phasor import polar
 from raywave.utils.safe import safe_sqrt
@@ -58,7 +59,7 @@ def entrance_pupil(lens) -> tuple[float, float]:
     """``(z, radius)`` mm of the lens's paraxial entrance pupil: the plane of the entrance-plane coordinates ``uv``
     (:func:`raywave.lens.sources.entrance_plane_z`) and half the paraxial entrance-pupil diameter (which scales the
     aiming's finite-difference step and its longest Newton step)."""
-    return entrance_plane_z(lens), 0.5 * float(lens.paraxial().epd)
+    return entrance_plane_z(lens), 0.5 * entrance_pupil_diameter(lens)
 
 
 @dataclass
