@@ -4,7 +4,12 @@ function on the Python stack (and, coarser, to a phase of the data path).
 The calls are :func:`benchmarks.imaging.ops_case`'s: the first model call of the bundled ``hybrid_asphere``'s N×M×W
 map (field points in :func:`raywave.imaging.psf_map`'s order, mirror images together), ks = 64, default edge, no
 autograd (and, with ``--grad``, forward + backward of a weighted sum of the PSFs). Prints one JSON object (and
-writes it with ``-o``): ops per PSF in total, per phase and for the ``--top`` heaviest functions.
+writes it with ``-o``): ops per PSF in total, per phase and for the ``--top`` heaviest functions; and the host
+synchronisations per PSF (``syncs_per_psf``, with their ``--top`` sites): the ops whose result the host must read
+before it can go on (``_local_scalar_dense``: ``.item()``, ``float()``, ``bool()`` of a tensor; ``nonzero``,
+``masked_select``, ``unique``: outputs sized by the data). On a GPU each one stalls the host until the device is
+idle (issue 43: "no per-PSF ``.item()`` round trips"). Counted on the CPU, they are a lower bound: a ``.tolist()`` or
+``.cpu()`` of a CUDA tensor is a copy to the host, which a CPU run cannot see.
 
     OMP_NUM_THREADS=1 PYTHONPATH=$PWD python benchmarks/ops_breakdown.py [--map 10x10x3] [--grad] [-o out.json]
 
@@ -71,12 +76,17 @@ def _attribute(frame, phase_of: dict) -> tuple[str, str, str]:
     return inner or "(outside raywave)", phase or "other", opener or "(none)"
 
 
-def breakdown(fn) -> tuple[int, collections.Counter, collections.Counter, collections.Counter]:
-    """Run ``fn`` counting its aten ops: ``(total, per function, per phase, per phase opener < its caller)``."""
+#: aten ops that make the host wait for the device: a scalar read, or an output whose size the data decide
+SYNC_OPS = ("_local_scalar_dense", "nonzero", "masked_select", "unique", "_unique2", "unique_consecutive")
+
+
+def breakdown(fn) -> tuple[int, collections.Counter, collections.Counter, collections.Counter, collections.Counter]:
+    """Run ``fn`` counting its aten ops: ``(total, per function, per phase, per phase opener < its caller, host
+    synchronisations per raywave function (:data:`SYNC_OPS`))``."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
     phase_of = {name: p for p, names in PHASES for name in names}
-    funcs, phases, openers = collections.Counter(), collections.Counter(), collections.Counter()
+    funcs, phases, openers, syncs = (collections.Counter() for _ in range(4))
 
     class _Attr(TorchDispatchMode):
         n = 0
@@ -87,11 +97,13 @@ def breakdown(fn) -> tuple[int, collections.Counter, collections.Counter, collec
             funcs[inner] += 1
             phases[phase] += 1
             openers[opener] += 1
+            if func._schema.name.split("::")[-1] in SYNC_OPS:
+                syncs[inner] += 1
             return func(*args, **(kwargs or {}))
 
     with _Attr() as c:
         fn()
-    return c.n, funcs, phases, openers
+    return c.n, funcs, phases, openers, syncs
 
 
 def _accelerator_sizes() -> None:
@@ -169,8 +181,10 @@ def main():
            "path": "accelerator (CUDA block sizes)" if args.accelerator else "cpu"}
     cases = [("no_grad", nograd, f0.shape[0] * w)] + ([("grad", fwd_bwd, f.shape[0] * w)] if args.grad else [])
     for name, fn, k in cases:
-        total, funcs, phases, openers = breakdown(fn)
+        total, funcs, phases, openers, syncs = breakdown(fn)
         out[name] = {"psfs_in_call": k, "ops_per_psf": round(total / k, 1),
+                     "syncs_per_psf": round(sum(syncs.values()) / k, 2),
+                     "sync_sites_per_psf": {f_: round(c / k, 2) for f_, c in syncs.most_common(args.top)},
                      "phases_per_psf": {p: round(c / k, 1) for p, c in phases.most_common()},
                      "openers_per_psf": {o: round(c / k, 1) for o, c in openers.most_common(args.top)},
                      "functions_per_psf": {f_: round(c / k, 1) for f_, c in funcs.most_common(args.top)}}

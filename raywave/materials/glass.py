@@ -57,7 +57,7 @@ class DispersiveGlass(Material):
     def _check_range(self, wl: torch.Tensor) -> None:
         lo, hi = self.wavelength_range
         w = wl.detach()
-        if w.numel() and (bool((w < lo - 1e-12).any()) or bool((w > hi + 1e-12).any())):
+        if w.numel() and bool(((w < lo - 1e-12) | (w > hi + 1e-12)).any()):  # one host read (a GPU sync)
             bad = float(w[(w < lo) | (w > hi)].flatten()[0])
             where = f" ({self.catalog})" if self.catalog else ""
             warnings.warn(

@@ -539,14 +539,14 @@ def _span_window(nd: _Nodes, sim: Grid, clamp: bool):
     (:func:`check_window_memory`) before any array of its size exists."""
     p = sim.pitch[0]
     (x0, y0), (sy, sx) = sim.origin, sim.shape
-    gx, gy = nd.gx, nd.gy
-    iy0, ix0 = math.ceil((float(gy[0]) - y0) / p), math.ceil((float(gx[0]) - x0) / p)
-    iy1, ix1 = math.floor((float(gy[-1]) - y0) / p) + 1, math.floor((float(gx[-1]) - x0) / p) + 1
+    gy0, gx0, gy1, gx1 = torch.stack([nd.gy[0], nd.gx[0], nd.gy[-1], nd.gx[-1]]).tolist()  # one host read
+    iy0, ix0 = math.ceil((gy0 - y0) / p), math.ceil((gx0 - x0) / p)
+    iy1, ix1 = math.floor((gy1 - y0) / p) + 1, math.floor((gx1 - x0) / p) + 1
     if clamp:
         iy0, iy1, ix0, ix1 = max(0, iy0), min(sy, iy1), max(0, ix0), min(sx, ix1)
     if iy1 <= iy0 or ix1 <= ix0:
         return None
-    check_window_memory(iy1 - iy0, ix1 - ix0, p, gx.device)  # before any array of the window's size
+    check_window_memory(iy1 - iy0, ix1 - ix0, p, nd.gx.device)  # before any array of the window's size
     return iy0, iy1, ix0, ix1
 
 

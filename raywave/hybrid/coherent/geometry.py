@@ -94,9 +94,8 @@ def _boxes(lens, out, z_doe: float, virtual: bool) -> list:
     inf = torch.full_like(x, math.inf)
     box = torch.stack([torch.where(valid, x, inf).amin(-1), torch.where(valid, x, -inf).amax(-1),
                        torch.where(valid, y, inf).amin(-1), torch.where(valid, y, -inf).amax(-1)], -1).cpu()
-    lit = valid.any(-1).cpu()
-    return [[tuple(float(v) for v in box[i, j]) if bool(lit[i, j]) else None for j in range(box.shape[1])]
-            for i in range(box.shape[0])]
+    box, lit = box.tolist(), valid.any(-1).cpu().tolist()  # host values: no read per element
+    return [[tuple(b) if on else None for b, on in zip(box_row, lit_row)] for box_row, lit_row in zip(box, lit)]
 
 
 def footprints_and_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, folds: bool = False) -> tuple:
@@ -168,14 +167,14 @@ def _clippings(lens, doe, rays, out, z_doe: float, folds, depth) -> list:
     blocked = (w * ~inside_doe(doe, xy)).sum(-1) / w.sum(-1).clamp_min(1e-300)
     half = torch.where(v[..., None], xy.abs(), torch.zeros((), dtype=xy.dtype, device=xy.device)).amax((-1, -2))
     lit = v.any(-1)
-    folded = fold_fraction(xy, v, folds[0], folds[1]).cpu() if folds is not None else None
-    blocked, half, lit = blocked.cpu(), half.cpu(), lit.cpu()
+    folded = fold_fraction(xy, v, folds[0], folds[1]).cpu().tolist() if folds is not None else None
+    blocked, half, lit = blocked.cpu().tolist(), half.cpu().tolist(), lit.cpu().tolist()  # host values
     result = []
     for i in range(v.shape[0]):
         row = []
         for j in range(v.shape[1]):
-            entry = (float(blocked[i, j]), float(half[i, j])) if bool(lit[i, j]) else (0.0, 0.0)
-            row.append(entry if folded is None else entry + (float(folded[i, j]),))
+            entry = (blocked[i][j], half[i][j]) if lit[i][j] else (0.0, 0.0)
+            row.append(entry if folded is None else entry + (folded[i][j],))
         result.append(row)
     return result
 
@@ -189,11 +188,14 @@ def _sim_grid(doe, oversample: int):
 
 def _warn_nyquist(slope_ratio: torch.Tensor, lit: torch.Tensor, xy: torch.Tensor, field, wavelength, pitch) -> None:
     """Warn when the envelope's local phase slope exceeds Nyquist on lit samples."""
-    if not bool(lit.any()):
+    if slope_ratio.numel() == 0:
         return
     r = torch.where(lit, slope_ratio.detach(), torch.zeros_like(slope_ratio))
-    worst = int(torch.argmax(r))
-    ratio = float(r.reshape(-1)[worst])
+    at = torch.argmax(r)
+    any_lit, worst, ratio = torch.stack([lit.any().to(r.dtype), at.to(r.dtype), r.reshape(-1)[at]]).tolist()
+    if not any_lit:  # (one host read for the three)
+        return
+    worst = int(worst)
     if ratio > 1.0:
         x, y = (float(v) for v in xy.reshape(-1, 2)[worst])
         warnings.warn(
@@ -239,31 +241,41 @@ def _empty_field(doe, oversample, carrier, n, wavelength, z, center, rays, mode)
                            FieldInfo(int(rays), mode))
 
 
+def _first_last(mask: torch.Tensor) -> list:
+    """``[any, first, last + 1]`` of the 1-D bool ``mask`` as 0-d int64 tensors (on its device; first and last are 0
+    and 1 where nothing is set): the indices that ``nonzero`` would give, without reading them."""
+    n = mask.numel()
+    if n == 0:
+        return [torch.zeros((), dtype=torch.int64, device=mask.device)] * 3
+    m = mask.to(torch.int64)
+    return [m.amax(), torch.argmax(m), n - torch.argmax(m.flip(0))]
+
+
 def _crop_to_lit(weight: torch.Tensor, *tensors):
-    """Row/column bounds of the non-zero part of ``weight`` (ny, nx)."""
-    rows = torch.nonzero(weight.detach().amax(1) > 0).squeeze(1)
-    cols = torch.nonzero(weight.detach().amax(0) > 0).squeeze(1)
-    if rows.numel() == 0:
+    """Row/column bounds of the non-zero part of ``weight`` (ny, nx) (one host read)."""
+    w = weight.detach()
+    rows, cols = _first_last(w.amax(1) > 0), _first_last(w.amax(0) > 0)
+    lit, r0, r1, _, c0, c1 = torch.stack(rows + cols).tolist()
+    if not lit:
         return None
-    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    return r0, r1, c0, c1
 
 
 def _near_nodes(keep: torch.Tensor, pos_y: torch.Tensor, pos_x: torch.Tensor, margin: int = 3):
     """Half-open ranges ``((ya, yb), (xa, xb))`` of the fine samples (positions ``pos_y`` (Ny,), ``pos_x`` (Nx,) in
     node units) within ``margin`` node spacings of the rows / columns of ``keep`` (ky, kx) that hold a kept node,
     or None when no node is kept: the only samples whose interpolated values can be lit (cubic interpolation
-    reaches 2 nodes), so the rest of the node span is never interpolated."""
-    rows = torch.nonzero(keep.any(1)).squeeze(1)
-    cols = torch.nonzero(keep.any(0)).squeeze(1)
-    if rows.numel() == 0:
+    reaches 2 nodes), so the rest of the node span is never interpolated. One host read."""
+    rows, cols = _first_last(keep.any(1)), _first_last(keep.any(0))
+
+    def span(pos, lo, hi):  # lo, hi: the kept nodes' first and last index (0-d int64)
+        return _first_last((pos >= lo - margin) & (pos <= hi + margin))
+
+    ys, xs = span(pos_y, rows[1], rows[2] - 1), span(pos_x, cols[1], cols[2] - 1)
+    kept, y_any, ya, yb, x_any, xa, xb = torch.stack([rows[0], *ys, *xs]).tolist()
+    if not kept or not y_any or not x_any:
         return None
-
-    def span(pos, lo, hi):
-        inside = torch.nonzero((pos >= lo - margin) & (pos <= hi + margin)).squeeze(1)
-        return (int(inside[0]), int(inside[-1]) + 1) if inside.numel() else None
-
-    ys, xs = span(pos_y, int(rows[0]), int(rows[-1])), span(pos_x, int(cols[0]), int(cols[-1]))
-    return None if ys is None or xs is None else (ys, xs)
+    return (ya, yb), (xa, xb)
 
 
 def _common_setup(lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type):
