@@ -37,7 +37,7 @@ from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps, go_phase_err
 from raywave.hybrid.coherent.geometry import footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
-from raywave.hybrid.batched import (OUT_MARGIN, Planned, SensorWindow, GeometryMemo, ceil_samples, plan_groups,
+from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, ceil_samples, plan_groups,
                                     propagate_group)
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space

@@ -242,8 +242,8 @@ def _empty_field(doe, oversample, carrier, n, wavelength, z, center, rays, mode)
 
 
 def _first_last(mask: torch.Tensor) -> list:
-    """``[any, first, last + 1]`` of the 1-D bool ``mask`` as 0-d int64 tensors (on its device; first and last are 0
-    and 1 where nothing is set): the indices that ``nonzero`` would give, without reading them."""
+    """``[any, first, last + 1]`` of the 1-D bool ``mask`` as 0-d int64 tensors on its device (where nothing is set:
+    0, 0 and the mask's length): the indices that ``nonzero`` would give, without reading them on the host."""
     n = mask.numel()
     if n == 0:
         return [torch.zeros((), dtype=torch.int64, device=mask.device)] * 3
