@@ -16,6 +16,15 @@ References:
   200 mm), blank): the independent wave-optics truths of tests/wave_truth.py (no rays, no exit pupil: the stop's
   edge diffracts from the stop itself); ``ref_error``: the two-lens truth's change from 2 to 1 µm sampling.
 
+``--sphere rim_images`` (issue 47, h47: the double Gauss at full field): the Huygens reference with the stop's edge
+where it is sharp, at each rim point's own image (:func:`raywave.hybrid.coherent.stop_rim_images`), instead of on
+the sphere through the paraxial exit pupil: the sum runs over a surface that meets each rim ray at its rim image's
+distance ``rho(theta)`` from the sphere's centre and blends smoothly into the paraxial sphere inside (``rho``'s
+azimuthal harmonics ``m`` weighted by ``r^|m|``, the mean by ``r²``), with each node's amplitude from its ray
+tube's cross-section normal to the ray (:func:`_edge_at_rim_images`). Inside the stop the surface does not matter
+(geometric optics: a surface through 139.2 mm at the rim only agrees with the 139.2 mm sphere to 3e-7); only where
+the edge sits does. Cached as ``ref_CASE_ksK_rim_images.pt``.
+
 Variants: ``default`` (the engine's default), ``fresnel`` / ``asm`` (``edge_step``), ``doe`` (``stop_edge="doe"``,
 the paper's edge), and ``*_iu8`` (the same with ``intensity_upsample=8``: the sensor pixels' quadrature, which at
 4 leaves ~1e-3 on a PSF as sharp as the DOE grid allows, e.g. the F/1.3 asphere at its 0.56 µm Nyquist pitch).
@@ -34,6 +43,8 @@ import warnings
 from pathlib import Path
 
 import torch
+
+from raywave.lens.sources import entrance_plane_z, point_source_rays, source_weight
 
 ROOT = Path(__file__).resolve().parents[1]
 LENSES = {
@@ -118,9 +129,116 @@ def engine_psfs(case: str, ks: int, variants):
     return out, geo
 
 
-def reference(case: str, geo, ks: int, max_n: int, cache: Path | None):
-    """``(reference psf, row)``: the converged reference of the case and its convergence (cached in ``cache``)."""
-    fn = None if cache is None else cache / f"ref_{case.replace(':', '_')}_ks{ks}.pt"
+def _rim_surface(rim, sph):
+    """``radius(px, py)``: the distance (mm) from the reference sphere's centre ``sph.center`` of the surface through
+    the rim images ``rim`` (:func:`raywave.hybrid.coherent.stop_rim_images`) at the stop's normalised coordinates
+    (px, py): the rim images' distances ``rho(theta)`` at r = 1 (their trigonometric interpolation), the paraxial
+    sphere's radius at the centre, each azimuthal harmonic m of ``rho − R`` weighted by ``r^|m|`` (the mean by r²):
+    a polynomial in px, py, smooth everywhere."""
+    rho = torch.linalg.vector_norm(rim.points.detach() - sph.center, dim=-1)
+    k = rho.numel()
+    coef = torch.fft.rfft(rho) / k
+    r0 = float(sph.radius)
+
+    def radius(x, y):
+        r, th = torch.sqrt(x * x + y * y), torch.atan2(y, x)
+        out = r0 + (float(coef[0].real) - r0) * r * r
+        for m in range(1, coef.shape[0]):
+            w = 1.0 if (k % 2 == 0 and m == coef.shape[0] - 1) else 2.0
+            out = out + w * (float(coef[m].real) * torch.cos(m * th) - float(coef[m].imag) * torch.sin(m * th)) * r**m
+        return out
+    return radius
+
+
+def _rim_polar_samples(lens, field, wl, depth, n_pupil, z_s, n_img, sph, crop, check=True):
+    """:func:`raywave.models.exit_pupil._polar_samples` with the nodes on the surface of :func:`_rim_surface` instead
+    of the reference sphere (each ray carried to its own radius about the sphere's centre) and the area of each node
+    its ray tube's cross-section normal to the ray (``|(∂q/∂px × ∂q/∂py)·d|``; on the sphere the same to ~1e-7, the
+    rays being nearly normal to it). No sampling warning (the levels' agreement is the check)."""
+    from raywave.hybrid.coherent import stop_rim_images
+    from raywave.models import exit_pupil as mx
+
+    rim = stop_rim_images(lens, field, wl, depth)
+    if rim is None:
+        raise ValueError(f"field {field}: no stop-rim images")
+    radius = _rim_surface(rim, sph)
+    px, py, w = mx.polar_nodes(n_pupil, False, device=lens.device)
+    e, ep_z = mx.POLAR_FD_STEP, entrance_plane_z(lens)
+    res = {k: [] for k in ("q", "opl", "dp", "ds", "d", "ok")}
+    for c0 in range(0, px.numel(), mx._POLAR_CHUNK):
+        x, y = px[c0:c0 + mx._POLAR_CHUNK], py[c0:c0 + mx._POLAR_CHUNK]
+        m = x.numel()
+        allx, ally = torch.cat([x, x + e, x - e, x, x]), torch.cat([y, y, y, y + e, y - e])
+        rays = point_source_rays(lens, field, wl, pupil=(allx, ally), aim="full", depth=depth)
+        out, rec = lens.trace(rays, record=True, apertures=False)
+        vig = mx._vignetting(lens, rec, out.valid).reshape(-1)[:m]
+        out = out.propagate_to_z(z_s, n_img)
+        rad = radius(allx, ally).reshape(out.o.shape[:-1])
+        wv = out.o - sph.center
+        b = (wv * out.d).sum(-1)
+        disc = b * b - ((wv * wv).sum(-1) - rad * rad)
+        t = -b + sph.side * torch.sqrt(disc.clamp_min(0))
+        q = (out.o + t[..., None] * out.d).reshape(5, m, 3)
+        opl = (out.opl + n_img * t - sph.opl_ref).reshape(5, m)
+        ep = rays.o + rays.d * ((ep_z - rays.o[..., 2]) / rays.d[..., 2])[..., None]
+        ep = ep.reshape(5, m, 3)[..., :2]
+        dqx, dqy = (q[1] - q[2]) / (2 * e), (q[3] - q[4]) / (2 * e)
+        dex, dey = (ep[1] - ep[2]) / (2 * e), (ep[3] - ep[4]) / (2 * e)
+        d0 = out.d.reshape(5, m, 3)[0]
+        d0 = d0 / torch.linalg.vector_norm(d0, dim=-1, keepdim=True)
+        js = (torch.linalg.cross(dqx, dqy, dim=-1) * d0).sum(-1).abs()
+        jep = (dex[:, 0] * dey[:, 1] - dex[:, 1] * dey[:, 0]).abs()
+        wt = w[c0:c0 + mx._POLAR_CHUNK]
+        res["q"].append(q[0]), res["opl"].append(opl[0]), res["d"].append(d0), res["ds"].append(js * wt)
+        res["dp"].append(source_weight(lens, rays, depth).reshape(5, m)[0] * jep * wt)
+        res["ok"].append(vig & (disc >= 0).reshape(5, m).all(0) & out.valid.reshape(5, m).all(0))
+    q, opl, dp, ds, d, ok = (torch.cat(res[k]) for k in ("q", "opl", "dp", "ds", "d", "ok"))
+    ok = ok & torch.isfinite(dp) & torch.isfinite(ds) & (dp > 0)
+    return q[ok], opl[ok], dp[ok], ds[ok], d[ok]
+
+
+def _edge_at_rim_images(fn):
+    """Run ``fn()`` with the Huygens reference's polar nodes on the rim images' surface (:func:`_rim_polar_samples`)."""
+    from raywave.models import exit_pupil as mx
+
+    orig = mx._polar_samples
+    mx._polar_samples = _rim_polar_samples
+    try:
+        return fn()
+    finally:
+        mx._polar_samples = orig
+
+
+def _edge_on_sphere(fn, radius: float):
+    """Run ``fn()`` (a ``huygens_psf(sphere="rim")`` call) with the reference sphere's radius set to ``radius`` mm
+    (about the same centre): where the Huygens reference's edge sits, moved along the rim rays."""
+    from raywave.models import exit_pupil as mx
+
+    orig = mx._rim_radius
+    mx._rim_radius = lambda *a, **k: float(radius)
+    try:
+        return fn()
+    finally:
+        mx._rim_radius = orig
+
+
+def _sphere_kind(sphere: str):
+    """``sphere`` of :func:`reference`: "paraxial", "rim_images" or a radius in mm (a number)."""
+    if sphere in ("paraxial", "rim_images"):
+        return sphere
+    try:
+        return float(sphere)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--sphere: 'paraxial', 'rim_images' or a radius in mm, got {sphere!r}")
+
+
+def reference(case: str, geo, ks: int, max_n: int, cache: Path | None, sphere: str = "paraxial"):
+    """``(reference psf, row)``: the converged reference of the case and its convergence (cached in ``cache``);
+    ``sphere``: where the Huygens reference's edge sits ("paraxial": the sphere through the paraxial exit pupil;
+    "rim_images": at each rim point's image, :func:`_edge_at_rim_images`; a number: on the sphere of that radius in
+    mm about the chief ray's sensor intercept, :func:`_edge_on_sphere`)."""
+    tail = "" if sphere == "paraxial" else f"_{sphere}" if isinstance(sphere, str) else f"_R{sphere:g}"
+    fn = None if cache is None else cache / f"ref_{case.replace(':', '_')}_ks{ks}{tail}.pt"
     if fn is not None and fn.exists():
         d = torch.load(fn, weights_only=False)
         return d["psf"], d["row"]
@@ -130,12 +248,22 @@ def reference(case: str, geo, ks: int, max_n: int, cache: Path | None):
     if kind in ("real", "asphere"):
         from raywave.models.exit_pupil import huygens_psf
 
+        def run():
+            return huygens_psf(hl.lens, fld, wl, ks=ks, pitch=hl.sensor_pitch, center=center, n_pupil="auto",
+                               sensor_z=float(hl.sensor_z()), max_n_pupil=max_n,
+                               sphere="paraxial" if sphere in ("paraxial", "rim_images") else "rim")
+
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            r = huygens_psf(hl.lens, fld, wl, ks=ks, pitch=hl.sensor_pitch, center=center, n_pupil="auto",
-                            sensor_z=float(hl.sensor_z()), max_n_pupil=max_n)
+            if sphere == "paraxial":
+                r = run()
+            elif sphere == "rim_images":
+                r = _edge_at_rim_images(run)
+            else:
+                r = _edge_on_sphere(run, sphere)
         psf = r.psf
-        row = dict(reference="huygens_psf(n_pupil='auto')", ref_error=r.error_estimate, ref_n_pupil=r.n_pupil,
+        row = dict(reference="huygens_psf(n_pupil='auto')" + ("" if sphere == "paraxial" else f", edge at {sphere}"),
+                   ref_error=r.error_estimate, ref_n_pupil=r.n_pupil,
                    ref_levels=[list(lv) for lv in r.levels],
                    ref_warnings=sorted({str(w.message)[:120] for w in caught}))
     else:
@@ -160,11 +288,12 @@ def reference(case: str, geo, ks: int, max_n: int, cache: Path | None):
     return psf, row
 
 
-def run(case: str, ks: int, variants, max_n: int, cache):
+def run(case: str, ks: int, variants, max_n: int, cache, sphere: str = "paraxial"):
     eng, geo = engine_psfs(case, ks, variants)
     if geo is None:
         return dict(case=case, error={v: r for v, r in eng.items()})
-    ref, row = reference(case, geo, ks, max_n, cache)
+    ref, row = reference(case, geo, ks, max_n, cache, sphere)
+    row["sphere"] = sphere
     hl, fld, wl, depth, center = geo
     res = dict(case=case, ks=ks, field=list(fld), wavelength=wl, depth=depth, pitch=hl.sensor_pitch,
                doe_distance=hl.doe_distance, doe_pitch=float(hl.doe.pitch), **row)
@@ -180,13 +309,16 @@ def main(argv=None):
     ap.add_argument("--max-n", type=int, default=432, help="the Huygens reference's finest pupil grid")
     ap.add_argument("--variants", nargs="+", default=["default", "fresnel", "asm", "doe", "default_iu8"])
     ap.add_argument("--cache", type=Path, default=None, help="a folder for the references (resumable sweeps)")
+    ap.add_argument("--sphere", type=_sphere_kind, default="paraxial",
+                    help="the Huygens reference's edge: 'paraxial' (on the sphere through the paraxial exit pupil), "
+                         "'rim_images' (at the stop rim's images) or a sphere radius in mm")
     ap.add_argument("-o", "--output")
     a = ap.parse_args(argv)
     if a.cache is not None:
         a.cache.mkdir(parents=True, exist_ok=True)
     rows = []
     for c in a.cases:
-        r = run(c, a.ks, a.variants, a.max_n, a.cache)
+        r = run(c, a.ks, a.variants, a.max_n, a.cache, a.sphere)
         print(json.dumps(r), flush=True)
         rows.append(r)
         if a.output:

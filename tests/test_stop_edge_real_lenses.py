@@ -34,12 +34,14 @@ LENSES = {
 #: docs/ray-wave.md and benchmarks/results/stop_edge_references_2026-11-29_k47.json), on the double Gauss on axis and
 #: at 0.7 field since the caustic fallback (p47)
 TOL = 1e-3
-#: the cases not yet within TOL, with their own bound: the double Gauss at full field (2.73e-3). Its DOE plane lies
-#: 4 mm before its first caustic, but the field built there is not what is off: built 4 / 8 mm before the plane and
-#: carried to it by the angular spectrum it is 1.83e-3 / 1.98e-3, and its geometric-optics phase error
-#: (raywave.hybrid.coherent.exit_pupil.go_phase_error, 1.06e-4 rad) stays below the fallback's GO_PHASE_TOL. On axis and
-#: at 0.7 field the fallback builds the field 4.1 / 4.0 mm before the plane (1.07e-3 -> 2.87e-4, 2.46e-3 -> 8.3e-4;
-#: tests/test_caustic_fallback.py, docs/ray-wave.md)
+#: the cases not yet within TOL, with their own bound: the double Gauss at full field (2.73e-3). Three causes
+#: (h47; docs/ray-wave.md "The double Gauss at full field", benchmarks/stop_edge_full_field.py): the reference cuts
+#: the edge on the paraxial sphere, 7-32 mm from the stop rim's images, where the crop (the coma's cusp, lit by the
+#: inner pupil only) is reached by edge waves whose phase depends on where the edge sits (the reference with the edge
+#: at the rim images is 2.22e-3 from this one); the 5-zone ripple band drops those edge waves (12 zones: converged);
+#: the DOE plane 4 mm before the first caustic. With the rim-image reference, 12 zones and the plane at 50 mm: 4.1e-4.
+#: On axis and at 0.7 field the caustic fallback (p47) builds the field 4.1 / 4.0 mm before the plane (1.07e-3 ->
+#: 2.87e-4, 2.46e-3 -> 8.3e-4; tests/test_caustic_fallback.py, docs/ray-wave.md)
 TOL_NOT_YET = {("double_gauss", 1.0): 3.5e-3}
 #: the reference's own error estimate above which a comparison gives no verdict (issue 47)
 REF_TOL = 1e-4
