@@ -17,7 +17,7 @@ import wave_truth_doe as W  # noqa: E402
 
 from raywave.doe.params import FresnelDOE, GratingDOE  # noqa: E402
 from raywave.hybrid.coherent.tracing import per_source  # noqa: E402
-from raywave.hybrid.midsystem import DOEPhaseSurface, MidSystemLens, _combine  # noqa: E402
+from raywave.hybrid.midsystem import DOEPhaseSurface, MidSystemLens, _absolute_phase, _sum_orders  # noqa: E402
 
 
 def _grating(field):
@@ -30,7 +30,8 @@ def _grating(field):
 
 
 def _per_order(ml, field, wl):
-    """The field of ``field`` summed from one engine call per order (the path before batching)."""
+    """The field of ``field`` summed from one engine call per order (the path before batching; each order's absolute
+    phase at its chief ray's point, as the batched path reads it)."""
     orders = ml.orders(wl)
     pms = [DOEPhaseSurface(d).phase_map() for d in ml.does]
     parts = []
@@ -40,7 +41,8 @@ def _per_order(ml, field, wl):
         nc = ml.caustics(hl, field, wl)
         nc0 = nc if j == 0 else nc0
         parts.append((hl, fd, c * complex(math.cos(-0.5 * math.pi * (nc - nc0)), math.sin(-0.5 * math.pi * (nc - nc0)))))
-    return _combine(parts, ml.final, field, wl, None), orders
+    return _sum_orders([(fd, c, _absolute_phase(hl, fd, field, wl, None)) for hl, fd, c in parts], ml.final,
+                       wl), orders
 
 
 @pytest.mark.parametrize("field", [(0.0, 0.0), (0.0, 1.5)])

@@ -322,6 +322,18 @@ class HybridLens(nn.Module):
         self._transfer_cache: OrderedDict = OrderedDict()
         self._geometry_memo = GeometryMemo()  # the batched path's pixel weights (raywave.hybrid.batched)
         self._xp_memo: dict = {}  # exit-pupil planes per (lens state, wavelength): plain memo, not state
+        self._rim_images = None  # use_rim_images: the exact edge's stop-rim images, replaced by a caller's
+
+    def use_rim_images(self, fn) -> "HybridLens":
+        """Let ``fn(optics, fields (F, 2), wavelengths [W], depth, rims)`` replace the stop rim's images that the
+        exit-pupil edge uses (``rims``: :func:`~raywave.hybrid.coherent.stop_rim_images_all`'s ``[W][F]`` results; it
+        returns the same structure), e.g. a :class:`~raywave.hybrid.MidSystemLens`'s weak diffraction orders, whose
+        edge wave reaches the PSF crop far from the rim ray (issue 46); None: the rim images as traced. Returns
+        ``self``."""
+        if fn is not None and not callable(fn):
+            raise TypeError(f"use_rim_images: a callable or None, got {type(fn).__name__}")
+        self._rim_images = fn
+        return self
 
     def use_transfer_cache(self, cache: OrderedDict) -> "HybridLens":
         """Share ``cache``, a memo of window transfer functions (see :meth:`_transfer`), with other engines on the
@@ -562,6 +574,8 @@ class HybridLens(nn.Module):
         z_xps = self._exit_pupil_planes(wls)
         if z_xps is not None:
             rims = stop_rim_images_all(optics, ft, wls, depth)  # one trace for every source and wavelength
+            if self._rim_images is not None:
+                rims = self._rim_images(optics, ft, wls, depth, rims)
             if self.edge_step in ("fresnel", "adaptive"):  # these steps need no chief ray on the exit-pupil plane
                 cx = [[None] * ft.shape[0] for _ in wls]
             else:
