@@ -45,9 +45,9 @@ def _warn_edge_curvature(div_n: torch.Tensor, g: torch.Tensor, near: torch.Tenso
     """Warn (:class:`StopEdgeWarning`) where the Fresnel step's edge curves too much for its Fresnel zone.
     ``div_n`` (ky, kx): divergence of the edge normal (−curvature, 1/mm); ``g``: Fresnel scale (1/mm, zone = √2/g);
     ``near``: the nodes within 2 Fresnel parameters of the edge."""
-    if not bool(near.any()):
+    if near.numel() == 0:
         return
-    ratio = float((div_n.abs() * math.sqrt(2.0) / g)[near].max())
+    ratio = float(torch.where(near, div_n.abs() * math.sqrt(2.0) / g, -math.inf).amax())  # −inf: none near
     if ratio > EDGE_CURVATURE_LIMIT:
         warnings.warn(f"field {field} at {wavelength:g} µm: the stop edge's Fresnel zone on the DOE plane is "
                       f"{ratio:.2g} × its radius of curvature there (a small obscuration or stop, or a DOE far from "
@@ -410,7 +410,8 @@ def _stop_edge_maps(b: _Build, nd: _Nodes, traced: tuple, maps: dict) -> dict:
     # deeper inside, a small beam's centre (an undefined edge normal) can have any scale
     nu_d = nu.detach()
     near = (nu_d > -math.sqrt(2.0) * ripple_zones) & (nu_d < _nu_inner(ripple_zones))
-    g_max = float(g_s.detach()[near].max()) if bool(near.any()) else float(g_s.detach().max())
+    g_d = g_s.detach()
+    g_max = float(torch.where(near.any(), torch.where(near, g_d, -math.inf).amax(), g_d.amax()))  # one host read
     if b.cfg.check:
         _warn_edge_curvature(div_n.detach(), g_s.detach(), nu.detach().abs() < 2.0, b.field.tolist(), wavelength)
     return {"nu": nu.clamp(-nu_lim, nu_lim), "nu_raw": nu.detach(),
@@ -489,8 +490,9 @@ def _fine_field(b: _Build, nd: _Nodes, maps: dict, sim: Grid):
     if win is None:
         return None
     iy0, iy1, ix0, ix1 = win
-    pos_x = (x0 + torch.arange(ix0, ix1, dtype=torch.float64, device=gx.device) * p - float(gx[0])) / h_node
-    pos_y = (y0 + torch.arange(iy0, iy1, dtype=torch.float64, device=gx.device) * p - float(gy[0])) / h_node
+    gx0, gy0 = torch.stack([gx[0], gy[0]]).tolist()  # (one host read)
+    pos_x = (x0 + torch.arange(ix0, ix1, dtype=torch.float64, device=gx.device) * p - gx0) / h_node
+    pos_y = (y0 + torch.arange(iy0, iy1, dtype=torch.float64, device=gx.device) * p - gy0) / h_node
     # interpolate only near the nodes that can be lit (inside the ripple band / the edges): the node span reaches
     # further (the traced margin), and the fine channels are the construction's largest arrays
     keep = (maps["nu_raw"] > -math.sqrt(2.0) * ripple_zones) if diffracting else dist.detach() > -2 * h_node

@@ -447,7 +447,7 @@ def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, gr
     """Replace values (K, C) at ``~good`` nodes by their nearest good node's value, plus a first-order
     extension ``grad_xy·(x − x_v)`` for the first channel when ``grad_xy`` (K, 2) is given."""
     bad = ~good
-    if not bool(bad.any()) or not bool(good.any()):
+    if not all(torch.stack([bad.any(), good.any()]).tolist()):  # (one host read)
         return values
     gi = torch.nonzero(good).squeeze(1)
     bi = torch.nonzero(bad).squeeze(1)
