@@ -205,7 +205,7 @@ def _node_layout(b: _Build, bbox) -> _Nodes:
     exactly symmetric field), covering the footprint ``bbox`` + a margin (with the stop edge diffracting from
     the stop plane, its ripple band too); nodes need not sit on simulation pixels."""
     p, nodes, z_doe, stop_plane, stop_rim = b.p, b.cfg.nodes, b.z_doe, b.cfg.stop_plane, b.given.stop_rim
-    xcd, ycd = (float(v) for v in b.chief.doe.o[:2].detach())
+    xcd, ycd = b.chief.doe.o[:2].detach().tolist()  # (one host read)
     extent = max(bbox[1] - bbox[0], bbox[3] - bbox[2], p)
     h_node = extent / max(nodes - 1, 2)
     margin = 2.5 * h_node + 2 * p

@@ -283,6 +283,6 @@ def _common_setup(lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chie
     simulation grid (p, x0, y0, sy, sx), carrier (α, β), chief-ray centre on the sensor, DOE → sensor distance."""
     field = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
     wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device)
-    carrier = tuple(float(v) for v in chief_doe.d[:2].detach())
+    carrier = tuple(chief_doe.d[:2].detach().tolist())  # (one host read)
     return (field_type or lens.field_type, field, wl, _medium_index(lens, wavelength), _sim_grid(doe, oversample),
             carrier, (chief_sensor.o[0], chief_sensor.o[1]), z_sensor - z_doe)
