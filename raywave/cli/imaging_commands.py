@@ -1,7 +1,7 @@
 """The ``psfmap`` and ``render`` commands: PSF maps of a hybrid lens and images simulated through it.
 
     raywave psfmap LENS [--grid N [M]] [--depths Z ...] [--wavelengths W ...] [--ks N] [-o map.npz] [--png map.png]
-                   [--mapping chief_ray|paraxial] [--batch B] [--quiet] [--json] [DOE options]
+                   [--mapping chief_ray|paraxial] [--batch B] [--checkpoint DIR] [--quiet] [--json] [DOE options]
     raywave render LENS IMAGE [--depth Z] [--grid N [M]] [--ks N] [--wavelengths R G B | --average] -o out.png
                    [--map map.npz] [--noise] [--seed S] [--save-map map.npz] [--quiet] [--json] [DOE options]
 
@@ -58,6 +58,9 @@ def _add_lens_options(p) -> None:
     p.add_argument("--doe-material", default=None, metavar="NAME",
                    help="fabricate the DOE: a dispersive height map in this glass (default FUSED_SILICA)")
     p.add_argument("--device", default="cpu", metavar="DEV", help=DEVICE_HELP)
+    p.add_argument("--checkpoint", default=None, metavar="DIR",
+                   help="resumable map: each finished chunk of PSFs is written to DIR; run the same command again "
+                        "after an interruption and it computes only the rest (a DIR of another map is refused)")
 
 
 def _grid(values, default=(10, 10)) -> tuple[int, int]:
@@ -83,7 +86,8 @@ def parse_lens_args(args) -> dict:
         raise CommandError(str(e)) from None
     out = {"path": path, "ks": _integer(args.ks, "--ks"), "mode": args.mode, "mapping": args.mapping,
            "batch": None if args.batch is None else _integer(args.batch, "--batch"),
-           "rays": None if args.rays is None else _integer(args.rays, "--rays"), "device": device_arg(args.device)}
+           "rays": None if args.rays is None else _integer(args.rays, "--rays"), "device": device_arg(args.device),
+           "checkpoint": getattr(args, "checkpoint", None)}
     out.update(parse_doe_options(args))
     return out
 
@@ -116,8 +120,13 @@ def _compute_map(a: dict, grid, depths, wavelengths, progress: bool):
     kw = {"mode": a["mode"]}
     if a["rays"] is not None:
         kw["rays"] = a["rays"]
-    pmap = psf_map(hl, grid, depths, wavelengths, ks=a["ks"], batch=a["batch"], progress=progress,
-                   fields=fields, sensor_size=hl.lens.sensor_size, **kw)
+    try:
+        pmap = psf_map(hl, grid, depths, wavelengths, ks=a["ks"], batch=a["batch"], progress=progress,
+                       fields=fields, sensor_size=hl.lens.sensor_size, checkpoint=a.get("checkpoint"), **kw)
+    except ValueError as e:
+        if a.get("checkpoint") is None or not str(e).startswith("checkpoint:"):
+            raise
+        raise CommandError(f"--checkpoint {e}") from None
     pmap.info["mapping"] = a["mapping"]
     return hl, pmap
 

@@ -49,6 +49,8 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
+from raywave.imaging.map_checkpoint import MapCheckpoint, map_key
+
 __all__ = ["DOEFieldCache", "PSFCropWarning", "PSFMap", "field_grid", "field_signature", "fields_at", "node_values",
            "normalised_grid", "psf_map", "psf_map_points", "sensor_size_of"]
 
@@ -586,18 +588,34 @@ def _one_aperture_warning():
         warnings.warn(DOEApertureWarning.merged(aperture, "map"), stacklevel=4)
 
 
-def _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw):
+def _model_device(model) -> torch.device:
+    """The device of a model's parameters (the CPU for a model without any)."""
+    params = model.parameters() if isinstance(model, torch.nn.Module) else iter(())
+    return next(params, torch.empty(0)).device
+
+
+def _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw, store=None):
     """Per depth of ``ds`` (mm), the chunks' PSFs ``(F, W, ks, ks)``, centres ``(F, W, 2)`` mm (float64) and
     energies outside ``(F, W)``, each concatenated over the ``flat`` ``(F, 2)`` field points (deg); and the PSF
-    pitch (mm). Runs in the caller's autograd mode; the ``bar`` counts PSFs (a chunk's field points × wavelengths)."""
+    pitch (mm). Runs in the caller's autograd mode; the ``bar`` counts PSFs (a chunk's field points × wavelengths).
+    ``store``: a :class:`~raywave.imaging.map_checkpoint.MapCheckpoint`: its finished chunks are loaded, the others
+    computed and written to it as they finish."""
     psfs, cens, outs = [], [], []
     pitch = None
-    for d in ds:
+    dev = _model_device(model)
+    for di, d in enumerate(ds):
         dp, dc, do = [], [], []
         for s, e in chunks:
-            res = psf_map_points(model, flat[s:e], wls, d, ks, cache, **psf_kw)
-            dp.append(res.psf), dc.append(res.center.to(torch.float64)), do.append(res.energy_outside)
-            pitch = float(res.pitch)
+            got = store.load(di, (s, e)) if store is not None else None
+            if got is not None:
+                psf, cen, eo, pitch = got
+                psf, cen, eo = psf.to(dev), cen.to(dev), eo.to(dev)
+            else:
+                res = psf_map_points(model, flat[s:e], wls, d, ks, cache, **psf_kw)
+                psf, cen, eo, pitch = res.psf, res.center.to(torch.float64), res.energy_outside, float(res.pitch)
+                if store is not None:
+                    store.save(di, (s, e), psf, cen, eo, pitch)
+            dp.append(psf), dc.append(cen), do.append(eo)
             bar.update((e - s) * len(wls))
         psfs.append(torch.cat(dp)), cens.append(torch.cat(dc)), outs.append(torch.cat(do))
     return psfs, cens, outs, pitch
@@ -606,7 +624,7 @@ def _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw):
 def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int = 64, batch: int | None = None,
             progress: bool | None = None, cache: DOEFieldCache | None = None, fields=None, sensor_size=None,
             mapping: str = "chief_ray", reference_wavelength: float | None = None, grad: bool = False,
-            **psf_kw) -> PSFMap:
+            checkpoint=None, **psf_kw) -> PSFMap:
     """The PSF map of ``model``: ``(D, W, N, M, ks, ks)`` PSFs on the N×M grid of :func:`field_grid`.
 
     Args:
@@ -626,6 +644,9 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
             ``grid``).
         sensor_size, mapping, reference_wavelength: see :func:`field_grid`.
         grad: keep autograd (default False: the map is computed without a graph).
+        checkpoint: a folder (path) that makes the map resumable: each finished chunk is written there, and a
+            map run again with the same folder after an interruption loads them and computes only the rest
+            (:mod:`raywave.imaging.map_checkpoint`; a folder of another map is refused). Not with ``grad``.
         psf_kw: passed to ``model.psf_result`` (``mode``, ``rays``, ...).
     """
     from tqdm.auto import tqdm
@@ -640,12 +661,18 @@ def psf_map(model, grid=(10, 10), depths=(math.inf,), wavelengths=None, ks: int 
     order = _pair_order(n, m)  # mirror-image nodes side by side: a chunk holds both (built once, mirrored)
     flat = f_nm.reshape(-1, 2)[order]
     chunks = _map_chunks(flat.shape[0], len(wls), batch, map_call_size(model, grad, cache))
+    store = None
+    if checkpoint is not None:
+        if grad:
+            raise ValueError("psf_map: checkpoint= keeps finished PSFs on disk, without their autograd graph: it "
+                             "cannot be used with grad=True")
+        store = MapCheckpoint(checkpoint, map_key(model, flat, ds, wls, ks, chunks, psf_kw))
     disable = _progress_disable(progress, len(ds) * len(wls) * flat.shape[0])
     bar = tqdm(total=len(ds) * len(wls) * flat.shape[0], desc=f"PSF map {n}×{m}×{len(wls)}λ×{len(ds)} depth",
                unit="PSF", disable=disable, leave=False)
     ctx = torch.enable_grad() if grad else torch.no_grad()
     with ctx, _one_aperture_warning():
-        psfs, cens, outs, pitch = _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw)
+        psfs, cens, outs, pitch = _map_depths(model, flat, chunks, ds, wls, ks, cache, bar, psf_kw, store)
     bar.close()
     back = torch.argsort(order)  # the chunks' order back to row-major
     psfs, cens, outs = ([t[back] for t in ts] for ts in (psfs, cens, [torch.as_tensor(o) for o in outs]))

@@ -31,6 +31,7 @@ import copy
 import json
 import math
 import re
+import shutil
 import time
 import warnings
 from pathlib import Path
@@ -53,6 +54,30 @@ STAGES = ("pre", "stage1", "stage2", "done")
 
 class CropWarning(UserWarning):
     """A PSF window (``optics.ks`` / ``optics.eval_ks``) misses a noticeable part of a PSF's energy."""
+
+
+#: an evaluation map of this many PSFs or more (the paper's 40×40 × 9 wavelengths: 14,400, ~1 CPU hour) keeps its
+#: finished chunks in the run folder while it is computed (``eval_map_<model>``, removed once the map is whole): a run
+#: resumed after an interruption computes only the rest
+RESUMABLE_MAP_PSFS = 2000
+
+
+def _resumable_map(folder, model, **kw):
+    """``psf_map(model, **kw)`` with its chunks kept in ``folder`` (None: without) until the map is whole; a folder
+    left by another map (the optics changed before the run was resumed) is replaced."""
+    from raywave.imaging.psfmap import psf_map
+
+    if folder is None:
+        return psf_map(model, **kw)
+    try:
+        pm = psf_map(model, checkpoint=folder, **kw)
+    except ValueError as e:
+        if not str(e).startswith("checkpoint:"):
+            raise
+        shutil.rmtree(folder)
+        pm = psf_map(model, checkpoint=folder, **kw)
+    shutil.rmtree(folder, ignore_errors=True)
+    return pm
 
 
 def build_hybrid(lc):
@@ -542,13 +567,17 @@ class Trainer(FabricationSchedule, StageSteps):
     def evaluation_map(self, model=None):
         """The stage-2 / evaluation PSF map of ``model`` (default the reconstruction's, :attr:`recon_model`):
         ``optics.eval_grid``, all wavelengths averaged per channel."""
-        from raywave.imaging.psfmap import psf_map
-
         oc = self.cfg.optics
         model = self.recon_model if model is None else model
+        wls = self.color.all_wavelengths()
+        # no DOE-field cache: each of the map's sources is built once, and the engine's own groups (hundreds of
+        # sources a call) are ~10 % faster than the cache's calls of a few field points; a large map is resumable
+        kw = {**self._map_kwargs(model), "cache": None}
+        n_psfs = len(self.depths) * wls.numel() * int(oc.eval_grid[0]) * int(oc.eval_grid[1])
+        folder = self.run_dir / f"eval_map_{type(model).__name__}" if n_psfs >= RESUMABLE_MAP_PSFS else None
         with self.surface_warnings():
-            pm = psf_map(model, grid=tuple(oc.eval_grid), depths=self.depths, wavelengths=self.color.all_wavelengths(),
-                         ks=self.eval_ks, progress=self.progress, **self._map_kwargs(model))
+            pm = _resumable_map(folder, model, grid=tuple(oc.eval_grid), depths=self.depths, wavelengths=wls,
+                                ks=self.eval_ks, progress=self.progress, **kw)
         out = pm.channel_average(self.color).detach()
         if pm.energy_outside is not None:
             lost = float(pm.energy_outside.max())
