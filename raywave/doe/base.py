@@ -48,7 +48,7 @@ from raywave.utils.phasor import unit_phasor
 from raywave.wave.grid import Field, Grid
 
 __all__ = ["DEFAULT_DESIGN_WAVELENGTH", "DEFAULT_LEVELS", "DEFAULT_MATERIAL", "DISPERSIONS", "DOE", "BlankDOE",
-           "PixelDOE", "SumDOE", "Window", "check_levels", "phase_levels", "quantize_phase"]
+           "has_zero_phase", "PixelDOE", "SumDOE", "Window", "check_levels", "phase_levels", "quantize_phase"]
 
 Window = tuple  # (iy0, ix0, ny, nx) in simulation-grid indices, or a sub-Grid of DOE.sim_grid
 
@@ -359,6 +359,8 @@ class DOE(nn.Module):
     def modulate(self, field: Field, oversample: int = 1) -> Field:
         """The field just after the DOE: ``field``'s envelope (any leading batch dims, on a window of
         :meth:`sim_grid`) times ``exp(iφ)`` of this DOE at the field's wavelength (the envelope's dtype kept)."""
+        if has_zero_phase(self):  # exp(i·0) = 1: the field as it is (no phase map, no product)
+            return field
         phase = self.phase(field.wavelength, field.grid, oversample)
         return field.with_envelope(field.envelope * unit_phasor(phase).to(field.envelope.dtype))
 
@@ -437,6 +439,15 @@ class BlankDOE(DOE):
 
     def model_spec(self) -> dict:
         return {"type": "blank"}
+
+
+def has_zero_phase(doe) -> bool:
+    """Whether ``doe``'s phase is exactly 0 at every pixel and wavelength by construction: a :class:`BlankDOE` that
+    computes its phase through the base class (a subclass that overrides any step of it is not assumed blank).
+    Then ``exp(iφ) = 1`` and the engine skips the phase map and its product (the same PSFs)."""
+    cls = type(doe)
+    return (isinstance(doe, BlankDOE) and cls.phase is DOE.phase and cls.phase_pixels is DOE.phase_pixels
+            and cls.profile_pixels is DOE.profile_pixels and cls.design_phase_pixels is BlankDOE.design_phase_pixels)
 
 
 class PixelDOE(DOE):

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
+from raywave.doe.base import has_zero_phase
 from raywave.utils.safe import safe_div
 from raywave.wave.propagation import integrated_upsampled_intensity, upsampled_pixel_weights
 from raywave.wave.propagation.batch import WindowBatch, WindowSource, batch_transfer, propagate_batch
@@ -141,6 +142,8 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
     p = batch[0].fd.pitch
     with torch.no_grad():
         power = torch.linalg.vector_norm(torch.view_as_real(env.detach()), dim=(-3, -2, -1)).square() * (p * p)
+    if has_zero_phase(doe):  # exp(i·0) = 1: no phase maps, no product
+        return env.to(dtype), power
     corners = [(pl.fd.box[0], pl.fd.box[2]) for pl in batch]
     phasors = doe.window_phasors(batch[0].fd.wavelength, corners, shape, oversample).to(env.device)
     if env.requires_grad or phasors.requires_grad:
