@@ -126,7 +126,7 @@ def _compute_map(a: dict, grid, depths, wavelengths, progress: bool):
     except ValueError as e:
         if a.get("checkpoint") is None or not str(e).startswith("checkpoint:"):
             raise
-        raise CommandError(f"--checkpoint {e}") from None
+        raise CommandError(f"--checkpoint: {str(e).removeprefix('checkpoint: ')}") from None
     pmap.info["mapping"] = a["mapping"]
     return hl, pmap
 

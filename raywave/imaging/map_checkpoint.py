@@ -76,7 +76,10 @@ class MapCheckpoint:
         self.folder = Path(folder)
         if self.folder.exists() and not self.folder.is_dir():
             raise ValueError(f"checkpoint: {self.folder} is a file, not a folder")
-        self.folder.mkdir(parents=True, exist_ok=True)
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ValueError(f"checkpoint: cannot make the folder {self.folder} ({e.strerror or e})") from None
         path = self.folder / KEY_FILE
         if path.exists():
             try:
