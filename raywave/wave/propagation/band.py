@@ -104,10 +104,21 @@ def _x_band(u: torch.Tensor, mx: int, col_runs, chunks: int) -> torch.Tensor:
     return out
 
 
+def _padded_columns(ux: torch.Tensor, c0: int, c1: int, my: int) -> torch.Tensor:
+    """The columns ``c0:c1`` of ``ux`` ``(..., Ny, C)`` transposed into rows of memory and zero-padded to ``my``:
+    ``(..., c, My)``, in one copy (``fft(x.transpose().contiguous(), n=my)`` copies twice: the transpose, then
+    the padding; the same values)."""
+    ny = ux.shape[-2]
+    buf = torch.empty((*ux.shape[:-2], c1 - c0, my), dtype=ux.dtype, device=ux.device)
+    buf[..., ny:].zero_()
+    buf[..., :ny].copy_(ux[..., c0:c1].transpose(-1, -2))
+    return buf
+
+
 def _y_spectrum(ux: torch.Tensor, c0: int, c1: int, my: int) -> torch.Tensor:
     """The transform along y (length ``my``) of the columns ``c0:c1`` of ``ux`` (:func:`_x_band`, ``(..., Ny, C)``),
     transposed into rows of memory: ``(..., c, My)``."""
-    return torch.fft.fft(ux[..., c0:c1].transpose(-1, -2).contiguous(), n=my, dim=-1)
+    return torch.fft.fft(_padded_columns(ux, c0, c1, my), dim=-1)
 
 
 def _y_band(ux: torch.Tensor, c0: int, c1: int, my: int, row_runs) -> torch.Tensor:
@@ -146,10 +157,10 @@ def convolve_band(u: torch.Tensor, h: torch.Tensor, size, rows: torch.Tensor, co
     out = torch.zeros((*lead, noy, mx), dtype=u.dtype, device=u.device)
     blocks = _blocks(cols.numel(), chunks)
     for c0, c1 in blocks:
-        blk = ux[..., c0:c1].transpose(-1, -2).contiguous()  # (..., c, Ny)
+        blk = _padded_columns(ux, c0, c1, my)  # (..., c, My)
         if c1 == blocks[-1][1]:
             ux = None  # the last block: the x band is no longer needed (a lower peak for a one-block band)
-        spec = torch.fft.fft(blk, n=my, dim=-1)
+        spec = torch.fft.fft(blk, dim=-1)
         del blk
         if grad:
             full = _scattered(take(spec, row_runs) * h_t[..., c0:c1, :], row_runs, my)
