@@ -101,7 +101,11 @@ def test_transfer_per_source_on_a_cpu_equals_the_union_evaluation(monkeypatch):
         monkeypatch.setattr(batch_mod, "_by_source", lambda device, b: False)
         union = batch_transfer(wb, "cpu", wd)
         monkeypatch.setattr(batch_mod, "_by_source", lambda device, b: b > 1)
+        real_empty = torch.empty
+        # uninitialised memory filled with NaN: any entry of the union neither written nor zeroed would show
+        monkeypatch.setattr(torch, "empty", lambda *a, **k: real_empty(*a, **k).fill_(float("nan")))
         placed = batch_transfer(wb, "cpu", wd)
+        monkeypatch.setattr(torch, "empty", real_empty)
         assert torch.equal(union.rows, placed.rows) and torch.equal(union.cols, placed.cols)
         assert torch.equal(union.band, placed.band)
         assert (union.rel is None and placed.rel is None) or torch.equal(union.rel, placed.rel)
