@@ -8,6 +8,7 @@ sensor plane, must be the point whose reach is ``s`` in Fresnel zones ``s / sqrt
 """
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -76,3 +77,39 @@ def test_the_band_widens_from_ripple_zones_up_to_its_cap():
     assert ripple_band(_rim(), Z_D, Z_S, mid, LAM) == pytest.approx(6.0 + REACH_MARGIN, rel=1e-9)
     far = torch.tensor([_landing(40.0 * _zone()), 0.0], dtype=F64)
     assert ripple_band(_rim(), Z_D, Z_S, far, LAM) == MAX_RIPPLE_ZONES
+
+
+def _bands(hl, fields, wavelengths):
+    """``ripple_band`` of each source (fields (F, 2) deg × wavelengths µm) of a HybridLens at its DOE plane."""
+    from raywave.hybrid.coherent.geometry import chief_rays
+    from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
+
+    lens, zd, zs = hl.optics, hl.doe_z(), float(hl.sensor_z())
+    f = torch.as_tensor(fields, dtype=F64).reshape(-1, 2)
+    wl = torch.tensor(list(wavelengths), dtype=F64)
+    _, at_sensor, _ = chief_rays(lens, f, wl, None, zd, zs)
+    rims = stop_rim_images_all(lens, f, list(wavelengths), None)
+    n = lens.surfaces[-1].material.n(wl)
+    return [[ripple_band(rims[j][i], zd, zs, at_sensor.o[i, j, :2], float(w) * 1e-3 / float(n[j]))
+             for j, w in enumerate(wavelengths)] for i in range(f.shape[0])]
+
+
+def test_the_bundled_asphere_keeps_five_zones_and_the_double_gauss_at_full_field_widens():
+    """The rule leaves the bundled hybrid_asphere's 6×6 map (R, G, B) at RIPPLE_ZONES on every source (its reach ≤
+    3.9: the same PSFs, the same cost) and widens the double Gauss at full field (reach 8.9: the crop is the coma's
+    cusp, lit by the inner pupil only)."""
+    import warnings
+
+    from raywave.assembly.build import load_hybrid
+    from raywave.imaging.psfmap import field_grid
+    from raywave.lens.build import bundled_lens_path
+
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        hl = load_hybrid(bundled_lens_path("hybrid_asphere"))
+        bands = _bands(hl, field_grid(hl, (6, 6)).reshape(-1, 2), (0.66, 0.53, 0.47))
+        assert all(b == RIPPLE_ZONES for row in bands for b in row)
+        dg = load_hybrid(str(Path(__file__).resolve().parent / "data" / "zmx" / "double_gauss_ohara_cdgm_hoya.zmx"),
+                         sensor_pitch=3e-3, fields=[[0.0, 14.0]], field_type="angle")
+        (band,), = _bands(dg, [[0.0, 14.0]], [dg.lens.primary_wavelength])
+    assert 9.0 < band < 11.0
