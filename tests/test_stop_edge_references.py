@@ -11,7 +11,6 @@
 """
 
 import math
-import sys
 import warnings
 from pathlib import Path
 
@@ -102,16 +101,12 @@ KNOWN: dict = {}
 
 def _rim_image_reference(hl, fld, center, ks: int = 32):
     """The Huygens exit-pupil PSF with the stop's edge where it is sharp: at each stop-rim point's own image
-    (benchmarks/stop_edge_references.py ``--sphere rim_images``; tests/test_stop_edge_rim_reference.py checks its
-    surface), ``n_pupil="auto"`` (levels ×1.25 until two agree)."""
+    (``huygens_psf(sphere="rim_images")``; tests/test_stop_edge_rim_reference.py checks its surface),
+    ``n_pupil="auto"`` (levels ×1.25 until two agree)."""
     from raywave.models.exit_pupil import huygens_psf
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import stop_edge_references as ser
-
-    return ser._edge_at_rim_images(lambda: huygens_psf(hl.lens, fld, hl.lens.primary_wavelength, ks=ks,
-                                                       pitch=hl.sensor_pitch, center=center, n_pupil="auto",
-                                                       sensor_z=float(hl.sensor_z()), max_n_pupil=1024))
+    return huygens_psf(hl.lens, fld, hl.lens.primary_wavelength, ks=ks, pitch=hl.sensor_pitch, center=center,
+                       n_pupil="auto", sensor_z=float(hl.sensor_z()), max_n_pupil=1024, sphere="rim_images")
 
 
 @pytest.mark.slow  # the Huygens reference: seconds on axis, up to ~10 min at full field (the double Gauss)
