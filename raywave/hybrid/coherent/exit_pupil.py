@@ -223,7 +223,7 @@ def _edge_method(lens, field, wavelength: float, depth, z_xp: float, p_sim: floa
 #: The double Gauss at full field, 1.06e-4 (2.73e-3), was left below it (1.25e-4 until 2026-11-29, h47b) while the
 #: fallback did not mend it (1.83e-3 / 1.98e-3 built 4 / 8 mm before its plane); with the ripple band's reach rule
 #: (:func:`~raywave.hybrid.coherent.stop_edge.ripple_band`) and against the reference whose edge sits at the rim
-#: images it does (5.9e-4 against 1.40e-3 on the plane itself; benchmarks/results/stop_edge_references_xiv_h47b.json),
+#: images it does (6.8e-4 against 1.40e-3 on the plane itself; benchmarks/results/stop_edge_references_xiv_h47b.json),
 #: so the tolerance now sits between 8.6e-5 and 1.06e-4. The estimate ranks the cases; it does not predict the
 #: error's size (error / estimate 3 to 30)
 GO_PHASE_TOL = 1.0e-4
