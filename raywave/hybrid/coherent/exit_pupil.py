@@ -147,7 +147,8 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays,
                             "accurate").with_info(stop_edge="exit_pupil")
     dz = z_doe - (z_xp if z_edge is None else z_edge)
-    margin = _window_margin(ripple_zones, rim, (z_doe, z_sensor, z_far), chief_sensor, (wavelength, n, carrier)) + 4 * p
+    margin = _window_margin(ripple_zones, rim, (z_doe, z_sensor, z_far), chief_sensor,
+                            (wavelength, n, carrier)) + 4 * p
     sim = doe.sim_grid(oversample)
     box = lit_box(sim, bbox, margin)
     if box is None:
