@@ -32,10 +32,9 @@ def ripple_zones(zones: float, coupled: bool, windows: list):
     """The exit-pupil edge with ``zones`` Fresnel zones of ripple band (the inner tail at 5 zones unless
     ``coupled``), the DOE-plane windows' shapes appended to ``windows``."""
     import raywave.hybrid.coherent.accurate as ac
-    import raywave.hybrid.coherent.exit_pupil as xp
     import raywave.hybrid.coherent.stop_edge as se
 
-    saved = (ac.RIPPLE_ZONES, xp.RIPPLE_ZONES, ac._nu_inner, se._nu_inner, ac._window_field)
+    saved = (se.RIPPLE_ZONES, se.MAX_RIPPLE_ZONES, ac._nu_inner, se._nu_inner, ac._window_field)
     full = se.RIPPLE_ZONES
     window_field = ac._window_field
 
@@ -43,14 +42,14 @@ def ripple_zones(zones: float, coupled: bool, windows: list):
         windows.append(tuple(env.shape))
         return window_field(b, env, box, sim, rays)
 
-    ac.RIPPLE_ZONES = xp.RIPPLE_ZONES = float(zones)
+    se.RIPPLE_ZONES = se.MAX_RIPPLE_ZONES = float(zones)  # fixed (no reach rule)
     if not coupled:
         ac._nu_inner = se._nu_inner = lambda _zones: se.INNER_TAIL * math.sqrt(2.0) * full
     ac._window_field = recorded
     try:
         yield
     finally:
-        ac.RIPPLE_ZONES, xp.RIPPLE_ZONES, ac._nu_inner, se._nu_inner, ac._window_field = saved
+        se.RIPPLE_ZONES, se.MAX_RIPPLE_ZONES, ac._nu_inner, se._nu_inner, ac._window_field = saved
 
 
 def run_cases(a):

@@ -7,7 +7,9 @@ Variants (``NAME``; the engine's constants set for the variant's PSF only, a dia
 
 - ``default``;  ``nodes128`` / ``nodes32`` (the node grid);  ``rim256`` (256 rim points instead of 64);
 - ``no_rim`` (the edge sharp on the paraxial exit-pupil plane instead of at the rim's images);
-- ``rzN`` (the ripple band ``RIPPLE_ZONES = N`` Fresnel zones, the inner tail scaling with it as in the library);
+- ``rzN`` (the ripple band fixed at ``N`` Fresnel zones, no reach rule, the inner tail scaling with it as in the
+  library);  ``norule`` (the band fixed at ``RIPPLE_ZONES``, 5: the default before the reach rule of h47b);
+- ``gotolX`` (the caustic fallback's ``GO_PHASE_TOL = X`` rad);  ``rmX`` (the reach rule's ``REACH_MARGIN = X``);
   ``rzN_no_rim``;  ``rzN_in5`` (the inner tail held where 5 zones put it);
 - ``tailX`` (``INNER_TAIL = X``);  ``doeD`` (the blank DOE ``D`` mm after the last vertex instead of the default).
 
@@ -41,10 +43,15 @@ def _settings(name: str):
     for part in parts:
         if m := re.fullmatch(r"rz(\d+(?:\.\d+)?)", part):
             rz = float(m[1])
-            consts.setdefault(f"{X}.exit_pupil", {})["RIPPLE_ZONES"] = rz
-            consts.setdefault(f"{X}.accurate", {})["RIPPLE_ZONES"] = rz
+            consts.setdefault(f"{X}.stop_edge", {}).update(RIPPLE_ZONES=rz, MAX_RIPPLE_ZONES=rz)  # fixed: no rule
             if "in5" in parts:  # the inner tail where 5 zones put it
                 consts.setdefault(f"{X}.stop_edge", {})["INNER_TAIL"] = 0.8 * 5.0 / rz
+        elif part == "norule":  # the band fixed at RIPPLE_ZONES (before the reach rule, h47b)
+            consts.setdefault(f"{X}.stop_edge", {})["MAX_RIPPLE_ZONES"] = 5.0
+        elif m := re.fullmatch(r"gotol(\d+(?:\.\d+)?(?:e-?\d+)?)", part):  # the caustic fallback's tolerance
+            consts.setdefault(f"{X}.exit_pupil", {})["GO_PHASE_TOL"] = float(m[1])
+        elif m := re.fullmatch(r"rm(\d+(?:\.\d+)?)", part):  # the reach rule's margin (zones)
+            consts.setdefault(f"{X}.stop_edge", {})["REACH_MARGIN"] = float(m[1])
         elif m := re.fullmatch(r"tail(\d+(?:\.\d+)?)", part):
             consts.setdefault(f"{X}.stop_edge", {})["INNER_TAIL"] = float(m[1])
         elif m := re.fullmatch(r"nodes(\d+)", part):

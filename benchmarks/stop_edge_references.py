@@ -130,71 +130,18 @@ def engine_psfs(case: str, ks: int, variants):
 
 
 def _rim_surface(rim, sph):
-    """``radius(px, py)``: the distance (mm) from the reference sphere's centre ``sph.center`` of the surface through
-    the rim images ``rim`` (:func:`raywave.hybrid.coherent.stop_rim_images`) at the stop's normalised coordinates
-    (px, py): the rim images' distances ``rho(theta)`` at r = 1 (their trigonometric interpolation), the paraxial
-    sphere's radius at the centre, each azimuthal harmonic m of ``rho − R`` weighted by ``r^|m|`` (the mean by r²):
-    a polynomial in px, py, smooth everywhere."""
-    rho = torch.linalg.vector_norm(rim.points.detach() - sph.center, dim=-1)
-    k = rho.numel()
-    coef = torch.fft.rfft(rho) / k
-    r0 = float(sph.radius)
+    """:func:`raywave.models.exit_pupil._rim_surface` (moved there in h47b)."""
+    from raywave.models import exit_pupil as mx
 
-    def radius(x, y):
-        r, th = torch.sqrt(x * x + y * y), torch.atan2(y, x)
-        out = r0 + (float(coef[0].real) - r0) * r * r
-        for m in range(1, coef.shape[0]):
-            w = 1.0 if (k % 2 == 0 and m == coef.shape[0] - 1) else 2.0
-            out = out + w * (float(coef[m].real) * torch.cos(m * th) - float(coef[m].imag) * torch.sin(m * th)) * r**m
-        return out
-    return radius
+    return mx._rim_surface(rim, sph)
 
 
 def _rim_polar_samples(lens, field, wl, depth, n_pupil, z_s, n_img, sph, crop, check=True):
-    """:func:`raywave.models.exit_pupil._polar_samples` with the nodes on the surface of :func:`_rim_surface` instead
-    of the reference sphere (each ray carried to its own radius about the sphere's centre) and the area of each node
-    its ray tube's cross-section normal to the ray (``|(∂q/∂px × ∂q/∂py)·d|``; on the sphere the same to ~1e-7, the
-    rays being nearly normal to it). No sampling warning (the levels' agreement is the check)."""
-    from raywave.hybrid.coherent import stop_rim_images
+    """:func:`raywave.models.exit_pupil._rim_image_samples` (``huygens_psf(sphere="rim_images")``; moved there in
+    h47b)."""
     from raywave.models import exit_pupil as mx
 
-    rim = stop_rim_images(lens, field, wl, depth)
-    if rim is None:
-        raise ValueError(f"field {field}: no stop-rim images")
-    radius = _rim_surface(rim, sph)
-    px, py, w = mx.polar_nodes(n_pupil, False, device=lens.device)
-    e, ep_z = mx.POLAR_FD_STEP, entrance_plane_z(lens)
-    res = {k: [] for k in ("q", "opl", "dp", "ds", "d", "ok")}
-    for c0 in range(0, px.numel(), mx._POLAR_CHUNK):
-        x, y = px[c0:c0 + mx._POLAR_CHUNK], py[c0:c0 + mx._POLAR_CHUNK]
-        m = x.numel()
-        allx, ally = torch.cat([x, x + e, x - e, x, x]), torch.cat([y, y, y, y + e, y - e])
-        rays = point_source_rays(lens, field, wl, pupil=(allx, ally), aim="full", depth=depth)
-        out, rec = lens.trace(rays, record=True, apertures=False)
-        vig = mx._vignetting(lens, rec, out.valid).reshape(-1)[:m]
-        out = out.propagate_to_z(z_s, n_img)
-        rad = radius(allx, ally).reshape(out.o.shape[:-1])
-        wv = out.o - sph.center
-        b = (wv * out.d).sum(-1)
-        disc = b * b - ((wv * wv).sum(-1) - rad * rad)
-        t = -b + sph.side * torch.sqrt(disc.clamp_min(0))
-        q = (out.o + t[..., None] * out.d).reshape(5, m, 3)
-        opl = (out.opl + n_img * t - sph.opl_ref).reshape(5, m)
-        ep = rays.o + rays.d * ((ep_z - rays.o[..., 2]) / rays.d[..., 2])[..., None]
-        ep = ep.reshape(5, m, 3)[..., :2]
-        dqx, dqy = (q[1] - q[2]) / (2 * e), (q[3] - q[4]) / (2 * e)
-        dex, dey = (ep[1] - ep[2]) / (2 * e), (ep[3] - ep[4]) / (2 * e)
-        d0 = out.d.reshape(5, m, 3)[0]
-        d0 = d0 / torch.linalg.vector_norm(d0, dim=-1, keepdim=True)
-        js = (torch.linalg.cross(dqx, dqy, dim=-1) * d0).sum(-1).abs()
-        jep = (dex[:, 0] * dey[:, 1] - dex[:, 1] * dey[:, 0]).abs()
-        wt = w[c0:c0 + mx._POLAR_CHUNK]
-        res["q"].append(q[0]), res["opl"].append(opl[0]), res["d"].append(d0), res["ds"].append(js * wt)
-        res["dp"].append(source_weight(lens, rays, depth).reshape(5, m)[0] * jep * wt)
-        res["ok"].append(vig & (disc >= 0).reshape(5, m).all(0) & out.valid.reshape(5, m).all(0))
-    q, opl, dp, ds, d, ok = (torch.cat(res[k]) for k in ("q", "opl", "dp", "ds", "d", "ok"))
-    ok = ok & torch.isfinite(dp) & torch.isfinite(ds) & (dp > 0)
-    return q[ok], opl[ok], dp[ok], ds[ok], d[ok]
+    return mx._rim_image_samples(lens, field, wl, depth, n_pupil, z_s, n_img, sph, crop, check)
 
 
 def _edge_at_rim_images(fn):

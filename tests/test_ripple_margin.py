@@ -29,12 +29,11 @@ pytestmark = pytest.mark.filterwarnings("ignore::raywave.hybrid.SensorCropWarnin
 def _band(monkeypatch, zones: float):
     """The exit-pupil edge's outer ripple band at ``zones`` Fresnel zones (the inner tail at its default)."""
     import raywave.hybrid.coherent.accurate as ac
-    import raywave.hybrid.coherent.exit_pupil as xp
     import raywave.hybrid.coherent.stop_edge as se
 
     full = se.RIPPLE_ZONES
-    monkeypatch.setattr(ac, "RIPPLE_ZONES", float(zones))
-    monkeypatch.setattr(xp, "RIPPLE_ZONES", float(zones))
+    monkeypatch.setattr(se, "RIPPLE_ZONES", float(zones))  # the band fixed (no reach rule: MAX at the same)
+    monkeypatch.setattr(se, "MAX_RIPPLE_ZONES", float(zones))
     inner = se.INNER_TAIL * math.sqrt(2.0) * full
     monkeypatch.setattr(ac, "_nu_inner", lambda _z: inner)
     monkeypatch.setattr(se, "_nu_inner", lambda _z: inner)

@@ -106,3 +106,18 @@ def test_engine_and_reference_agree_where_their_edges_sit():
     print(out)
     assert out["default"]["rim_images"] < 2e-4 < 4e-4 < out["default"]["paraxial"]
     assert out["no_rim"]["paraxial"] < 3e-4 < 6e-4 < out["no_rim"]["rim_images"]
+
+
+def test_huygens_psf_rim_images_is_the_rim_surface():
+    """``huygens_psf(sphere="rim_images")`` (the library's reference, issue 47's slow test) is the benchmarks'
+    ``--sphere rim_images`` sum bit for bit, and refuses the grid quadrature."""
+    from raywave.models import exit_pupil as mx
+
+    hl, fld, wl, sph, kw = _setup()
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lib = mx._huygens_fixed(hl.lens, fld, wl, **dict(kw, sphere="rim_images"))
+        bench = ser._edge_at_rim_images(lambda: mx._huygens_fixed(hl.lens, fld, wl, **kw))
+        assert torch.equal(lib.psf, bench.psf)
+        with pytest.raises(ValueError, match="rim_images"):
+            mx.huygens_psf(hl.lens, fld, wl, ks=8, pitch=hl.sensor_pitch, n_pupil=32, sphere="rim_images")

@@ -234,8 +234,8 @@ def _reference_sphere(lens, field, wl: float, depth, z_s: float, n_img: float, s
     side = math.copysign(1.0, xp_z - z_s)  # the sphere lies on the exit-pupil side of the sensor
     if sphere == "rim":
         radius = _rim_radius(lens, field, wl, depth, cen, radius)
-    elif sphere != "paraxial":
-        raise ValueError(f"sphere must be 'paraxial' or 'rim', got {sphere!r}")
+    elif sphere not in ("paraxial", "rim_images"):  # rim_images: the paraxial sphere inside, the rim images at the rim
+        raise ValueError(f"sphere must be 'paraxial', 'rim' or 'rim_images', got {sphere!r}")
     return _Sphere(cen, d_ch, radius, side, opl_ch + n_img * side * radius)
 
 
@@ -367,6 +367,78 @@ def _polar_samples(lens, field, wl: float, depth, n_pupil: int, z_s: float, n_im
     return q[ok], opl[ok], dp[ok], ds[ok], d[ok]
 
 
+def _rim_surface(rim, sph: _Sphere):
+    """``radius(px, py)``: the distance (mm) from the reference sphere's centre ``sph.center`` of the surface through
+    the stop rim's images ``rim`` (:func:`raywave.hybrid.coherent.stop_rim_images`) at the stop's normalised
+    coordinates (px, py): the rim images' distances ``rho(theta)`` at r = 1 (their trigonometric interpolation), the
+    sphere's radius at the centre, each azimuthal harmonic m of ``rho − R`` weighted by ``r^|m|`` (the mean by r²): a
+    polynomial in px, py, smooth everywhere (issue 47, h47/h47b)."""
+    rho = torch.linalg.vector_norm(rim.points.detach() - sph.center, dim=-1)
+    k = rho.numel()
+    coef = torch.fft.rfft(rho) / k
+    r0 = float(sph.radius)
+
+    def radius(x, y):
+        r, th = torch.sqrt(x * x + y * y), torch.atan2(y, x)
+        out = r0 + (float(coef[0].real) - r0) * r * r
+        for m in range(1, coef.shape[0]):
+            w = 1.0 if (k % 2 == 0 and m == coef.shape[0] - 1) else 2.0
+            out = out + w * (float(coef[m].real) * torch.cos(m * th) - float(coef[m].imag) * torch.sin(m * th)) * r**m
+        return out
+    return radius
+
+
+def _rim_image_samples(lens, field, wl: float, depth, n_pupil: int, z_s: float, n_img: float, sph: _Sphere,
+                       crop: float, check: bool = True):
+    """:func:`_polar_samples` (the same returns) with the nodes on the surface of :func:`_rim_surface` instead of
+    the sphere (``sphere="rim_images"``: each ray carried to its own radius about the sphere's centre, so that the
+    stop's edge, the outer ring, sits at each rim point's own image, where the edge is sharp) and each node's area its
+    ray tube's cross-section normal to the ray (``|(∂q/∂px × ∂q/∂py)·d|``; on the sphere the same to ~1e-7, the rays
+    being nearly normal to it). No sampling warning (``crop``, ``check`` unused: the levels' agreement of
+    ``n_pupil="auto"`` is the check). A ValueError where the rim images cannot be traced."""
+    from raywave.hybrid.coherent import stop_rim_images  # (the package's name: a study may move the images)
+
+    rim = stop_rim_images(lens, field, wl, depth)
+    if rim is None:
+        raise ValueError(f"field {field}: no stop-rim images (sphere='rim_images')")
+    radius = _rim_surface(rim, sph)
+    px, py, w = polar_nodes(n_pupil, False, device=lens.device)
+    e, ep_z = POLAR_FD_STEP, entrance_plane_z(lens)
+    res = {k: [] for k in ("q", "opl", "dp", "ds", "d", "ok")}
+    for c0 in range(0, px.numel(), _POLAR_CHUNK):
+        x, y = px[c0:c0 + _POLAR_CHUNK], py[c0:c0 + _POLAR_CHUNK]
+        m = x.numel()
+        allx, ally = torch.cat([x, x + e, x - e, x, x]), torch.cat([y, y, y, y + e, y - e])
+        rays = point_source_rays(lens, field, wl, pupil=(allx, ally), aim="full", depth=depth)
+        out, rec = lens.trace(rays, record=True, apertures=False)
+        vig = _vignetting(lens, rec, out.valid).reshape(-1)[:m]
+        out = out.propagate_to_z(z_s, n_img)
+        rad = radius(allx, ally).reshape(out.o.shape[:-1])
+        wv = out.o - sph.center
+        b = (wv * out.d).sum(-1)
+        disc = b * b - ((wv * wv).sum(-1) - rad * rad)
+        t = -b + sph.side * torch.sqrt(disc.clamp_min(0))
+        q = (out.o + t[..., None] * out.d).reshape(5, m, 3)
+        opl = (out.opl + n_img * t - sph.opl_ref).reshape(5, m)
+        ep = rays.o + rays.d * ((ep_z - rays.o[..., 2]) / rays.d[..., 2])[..., None]
+        ep = ep.reshape(5, m, 3)[..., :2]
+        dqx, dqy = (q[1] - q[2]) / (2 * e), (q[3] - q[4]) / (2 * e)
+        dex, dey = (ep[1] - ep[2]) / (2 * e), (ep[3] - ep[4]) / (2 * e)
+        d0 = out.d.reshape(5, m, 3)[0]
+        d0 = d0 / torch.linalg.vector_norm(d0, dim=-1, keepdim=True)
+        js = (torch.linalg.cross(dqx, dqy, dim=-1) * d0).sum(-1).abs()
+        jep = (dex[:, 0] * dey[:, 1] - dex[:, 1] * dey[:, 0]).abs()
+        wt = w[c0:c0 + _POLAR_CHUNK]
+        res["q"].append(q[0]), res["opl"].append(opl[0]), res["d"].append(d0), res["ds"].append(js * wt)
+        res["dp"].append(source_weight(lens, rays, depth).reshape(5, m)[0] * jep * wt)
+        res["ok"].append(vig & (disc >= 0).reshape(5, m).all(0) & out.valid.reshape(5, m).all(0))
+    q, opl, dp, ds, d, ok = (torch.cat(res[k]) for k in ("q", "opl", "dp", "ds", "d", "ok"))
+    ok = ok & torch.isfinite(dp) & torch.isfinite(ds) & (dp > 0)
+    if not bool(ok.any()):
+        raise ValueError(f"field {field} at {wl} µm: every ray is vignetted")
+    return q[ok], opl[ok], dp[ok], ds[ok], d[ok]
+
+
 def _onto_sphere(out, sph: _Sphere, n_img: float):
     """Carry the rays ``out`` (on the sensor plane) straight to the reference sphere (forwards or backwards).
     Returns their points (…, 3) mm, OPL (…) mm relative to the chief ray's and the mask of those that meet it."""
@@ -475,7 +547,12 @@ def huygens_psf(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch: fl
             distance from C of the stop rim's images, where the GO field's edge is physically sharp (on axis they
             lie on one circle, which the sphere then holds exactly; the paraxial sphere misses it by the pupil's
             spherical aberration and its own sag: 52 µm on the bundled asphere, 0.35 mm on the f/3 double Gauss,
-            1 mm on the F/1.3 asphere, where the Kirchhoff cut on it is not where the edge is sharp).
+            1 mm on the F/1.3 asphere, where the Kirchhoff cut on it is not where the edge is sharp);
+            "rim_images" (polar quadrature only): the sum over a surface through each rim point's own image (off
+            axis the pupil's aberrations spread them along the rays: 129–154 mm from C on the double Gauss at full
+            field, whose paraxial sphere has 121.8), blending into the paraxial sphere inside (:func:`_rim_surface`),
+            so that the sharp cut sits where the stop's edge is imaged: the reference issue 47's slow test uses
+            (2.2e-3 from the paraxial one on the double Gauss at full field, 5e-6 – 6e-4 elsewhere).
         quadrature: the pupil sum's nodes. "grid" (the default for an integer ``n_pupil``): the cells of a square
             grid, the stop's edge anti-aliased by each cell's coverage (error ∝ 1/n²). "polar" (the default for
             "auto"): :func:`polar_nodes`, Gauss–Legendre rings × the trapezoid rule in azimuth, the circular stop's
@@ -580,9 +657,11 @@ def _huygens_fixed(lens, field=(0.0, 0.0), wavelength=None, ks: int = 64, pitch:
         z_s = float(lens.image_z() if sensor_z is None else sensor_z)
         n_img = float(lens.surfaces[-1].material.n(torch.tensor(wl, dtype=dtype, device="cpu")))
         sph = _reference_sphere(lens, field, wl, depth, z_s, n_img, sphere)
+        if sphere == "rim_images" and quadrature != "polar":
+            raise ValueError("sphere='rim_images' needs quadrature='polar' (or n_pupil='auto')")
         if quadrature == "polar":
-            q, opl, dp, ds, d_all = _polar_samples(lens, field, wl, depth, n_pupil, z_s, n_img, sph, ks * pitch,
-                                                   check)
+            samples = _rim_image_samples if sphere == "rim_images" else _polar_samples
+            q, opl, dp, ds, d_all = samples(lens, field, wl, depth, n_pupil, z_s, n_img, sph, ks * pitch, check)
             amp = torch.sqrt(dp * ds)
             q = q - sph.center
             dz = d_all[:, 2]

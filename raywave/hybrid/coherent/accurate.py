@@ -19,8 +19,8 @@ from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empt
                                               _warn_nyquist, check_window_memory)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
-from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, RIPPLE_ZONES, _fresnel_scale, _nu_inner, _rim_cubic,
-                                               _rim_fourier, _rim_z, _zone_estimate, edge_envelope)
+from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, _fresnel_scale, _nu_inner, _rim_cubic, _rim_fourier,
+                                               _rim_z, _zone_estimate, edge_envelope, ripple_band)
 from raywave.hybrid.coherent.tracing import (PAUSE, _Aim, _invert_to_nodes, _nearest_fill, _solve2, per_source,
                                              run_serial)
 
@@ -105,8 +105,10 @@ class _Build:
             self.chief.sensor, cfg.oversample, src.field_type)
         self.p = sim[0]
         self.ripple = None
-        if cfg.stop_plane is not None:
-            self.ripple = RIPPLE_ZONES if cfg.ripple_zones is None else float(cfg.ripple_zones)
+        if cfg.stop_plane is not None:  # the band: the caller's, else RIPPLE_ZONES widened by the edge waves' reach
+            self.ripple = float(cfg.ripple_zones) if cfg.ripple_zones is not None else ripple_band(
+                self.given.stop_rim, self.z_doe, self.z_sensor, self.chief.sensor.o[:2].detach(),
+                self.src.wavelength * 1e-3 / self.n)
 
     def empty(self, rays: int) -> DOEField:
         """The field without light (``rays`` traced)."""

@@ -69,7 +69,8 @@ class FieldSettings:
     * ``full_grid``: faithful only: the whole DOE grid, no carrier (the paper's full propagation);
     * ``generator``: faithful only: the ``torch.Generator`` of the pupil samples (replayable);
     * ``trace_dtype``: faithful only: the ray-tracing precision (float32 only to study its failure);
-    * ``ripple_zones``: exit-pupil edge: Fresnel zones of the edge's ripples kept (None: ``RIPPLE_ZONES``);
+    * ``ripple_zones``: exit-pupil edge: Fresnel zones of the edge's ripples kept (None: ``RIPPLE_ZONES``, widened
+      to the edge waves' reach at the crop's centre: :func:`~raywave.hybrid.coherent.stop_edge.ripple_band`);
     * ``method``: exit-pupil edge step, "auto", "fresnel" or "asm" (:func:`~raywave.hybrid.coherent.exit_pupil.
       exit_pupil_field`);
     * ``rim_images``: exit-pupil edge: each node's edge sharp at its stop-rim point's own image;

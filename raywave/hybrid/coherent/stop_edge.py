@@ -20,6 +20,18 @@ from raywave.utils.phasor import polar
 #: back into the PSF crop: 4 zones (the default before 2026-11-28) left 1.5e-3 L1 there, 5 zones 8.8e-4
 RIPPLE_ZONES = 5.0
 
+#: the most Fresnel zones :func:`ripple_band` widens the band to (the double Gauss at full field needs ~11: its
+#: band converges at 12, 12 vs 16 zones 6e-5 of its PSF; issue 47)
+MAX_RIPPLE_ZONES = 16.0
+
+#: :func:`ripple_band`: the band reaches this many Fresnel zones beyond the edge waves' reach at the crop's centre.
+#: The fixed 5-zone band holds every measured case whose reach is at most 5.1 (the bundled asphere at 17.5°, 2.8, and
+#: its 6×6×3 map's corners up to 3.9; the F/1.3 asphere at 0.7 / 1.0 field, 3.9 / 5.1: 8.2e-4 / 2.5e-4 / 4.5e-4 rel
+#: L1 from converged references), so the band is the reach itself where that is wider (those cases keep 5 zones bit
+#: for bit, the F/1.3 asphere at full field 5.09). 1 zone more took the double Gauss at full field from 6.8e-4 to
+#: 6.0e-4 but the F/1.3 asphere at full field to a 12.6 GiB DOE-plane window (6.1 zones; 2.0e-4 there)
+REACH_MARGIN = 0.0
+
 #: Fresnel zones over which the ripple band rolls off to 0 at its outer end (its shape hardly matters, its
 #: extent does: at 17.5° full weight out to 3 zones and a roll-off over 1 / 1.5 / 2 zones: 1.5e-3 / 1.1e-3 /
 #: 8.8e-4 L1 from the Huygens PSF)
@@ -579,18 +591,20 @@ def stop_rim_images_all(lens, fields, wavelengths, depth, field_type: str | None
                 (t.transpose(1, 2).reshape(rows, 5, k, 3) for t in (o, d, dv)))
     z, points, paths, ok = _rim_crossings(o, d, dv, c, s, opl[:, 0].reshape(rows, k), n_img.repeat(nf)[:, None])
     ok = ok.tolist()
-    return [[RimImages(theta, z[i * nw + j], points[i * nw + j], paths[i * nw + j])
+    dirs = d[:, 0]  # (rows, k, 3): the source's own rim rays in the image medium
+    return [[RimImages(theta, z[i * nw + j], points[i * nw + j], paths[i * nw + j], dirs[i * nw + j])
              if v[i][j] and ok[i * nw + j] else None for i in range(nf)] for j in range(nw)]
 
 
 class RimImages(tuple):
     """What :func:`stop_rim_images` returns: the tuple ``(theta, z)`` (rim azimuths on the stop (k,), z (k,) mm of
     each rim point's image) with, as attributes, ``points`` (k, 3) mm (the image point on the source's own ray
-    through the rim point) and ``opl`` (k,) mm (that ray's optical path from the source to the point), or None."""
+    through the rim point), ``opl`` (k,) mm (that ray's optical path from the source to the point) and
+    ``directions`` (k, 3) (that ray's unit direction in the image medium), or None."""
 
-    def __new__(cls, theta, z, points=None, opl=None):
+    def __new__(cls, theta, z, points=None, opl=None, directions=None):
         obj = super().__new__(cls, (theta, z))
-        obj.points, obj.opl = points, opl
+        obj.points, obj.opl, obj.directions = points, opl, directions
         return obj
 
 
@@ -681,3 +695,71 @@ def _rim_z(rim, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
     k = theta.numel()
     i0, w = _rim_azimuth_index(k, xs, ys)
     return z[i0] * (1 - w) + z[(i0 + 1) % k] * w
+
+
+def edge_reach_zones(rim, z_doe: float, z_sensor: float, point, lam_m: float, half: float = 0.0):
+    """How far outside (or inside) the geometric shadow on the DOE plane the stop edge's waves that reach a sensor
+    point start, in DOE-plane Fresnel zones of the ripple band (:data:`RIPPLE_ZONES`'s unit: ``s / sqrt(λ_m L)``,
+    ``L = d (R − d) / R`` with ``d``, ``R`` the rim image's distances to the DOE plane and to the sensor along its rim
+    ray): the largest over the rim points whose edge wave is stationary at the point, the inner side divided by
+    :data:`INNER_TAIL` (the band's inner tail is that fraction of its outer width); None where the rim images carry no
+    ray directions (or a rim ray runs parallel to the planes).
+
+    Edge waves leave each rim image ``E`` on straight lines (the image medium): the one leaving the DOE plane ``s``
+    mm outside the shadow's edge ``S`` (along the shadow's outward normal ``n̂``) reaches the sensor at ``L + s·m·n̂``,
+    ``L`` the rim ray's landing, ``m = (z_s − z_E) / (z_d − z_E)``. A sensor point ``P`` receives rim point ``j``'s
+    edge wave (stationary phase along the rim) where the normal line ``L_j + t·n̂_j`` passes through it: the sign
+    changes of ``(P − L_j)·t̂_j`` between consecutive rim points (``t̂`` the tangent), interpolated. ``point`` (2,)
+    mm the sensor point (the crop's centre), ``half`` (mm) the crop's half-width (the reach grows by its projection
+    on the normal), ``lam_m`` (mm) the wavelength in the image medium. Host arithmetic on (k,) values, no autograd."""
+    if rim is None or getattr(rim, "directions", None) is None or getattr(rim, "points", None) is None:
+        return None
+    e, a = rim.points.detach().double(), rim.directions.detach().double()
+    if not bool((a[:, 2].abs() > 1e-9).all()):
+        return None
+    t_s = (z_doe - e[:, 2]) / a[:, 2]
+    t_l = (z_sensor - e[:, 2]) / a[:, 2]
+    if not bool((t_s.abs() > 1e-9).all() and (t_l.abs() > 1e-9).all()):
+        return None
+    s_pt = e[:, :2] + t_s[:, None] * a[:, :2]
+    l_pt = e[:, :2] + t_l[:, None] * a[:, :2]
+    m = t_l / t_s
+    tang = torch.roll(s_pt, -1, 0) - torch.roll(s_pt, 1, 0)
+    tang = tang / tang.norm(dim=1, keepdim=True).clamp_min(1e-300)
+    normal = torch.stack([tang[:, 1], -tang[:, 0]], 1)
+    normal = normal * torch.sign(((s_pt - s_pt.mean(0)) * normal).sum(1) + 1e-300)[:, None]
+    zone = torch.sqrt(lam_m * (t_s * (t_l - t_s) / t_l).abs()).clamp_min(1e-300)
+    rel = torch.as_tensor(point, dtype=e.dtype, device=e.device).reshape(1, 2) - l_pt
+    scale = (m.abs() * zone)
+    zones = (rel * normal).sum(1) / scale  # signed: > 0 outside the shadow
+    crop = half * (normal.abs().sum(1)) / scale
+    t = (rel * tang).sum(1)
+    t1, z1, c1 = torch.roll(t, -1), torch.roll(zones, -1), torch.roll(crop, -1)
+    hit = (t * t1 <= 0) & ((t - t1).abs() > 0)
+    w = (t / (t - t1).where(hit, torch.ones_like(t)))[hit]
+    z = zones[hit] + w * (z1[hit] - zones[hit])
+    c = crop[hit] + w * (c1[hit] - crop[hit])
+    near = t.abs() <= half * tang.abs().sum(1)  # the normal line crosses the crop away from its centre
+    z, c = torch.cat([z, zones[near]]), torch.cat([c, crop[near]])
+    if z.numel() == 0:
+        return 0.0
+    outer = (z + c).clamp_min(0.0)
+    inner = (c - z).clamp_min(0.0) / INNER_TAIL
+    return float(torch.maximum(outer, inner).max())
+
+
+def ripple_band(rim, z_plane: float, z_sensor: float, point, lam_m: float) -> float:
+    """The ripple band's width (Fresnel zones) for one source's field on the plane ``z_plane``: :data:`RIPPLE_ZONES`,
+    widened where the stop edge's waves that reach the sensor point ``point`` (2,) mm (the PSF crop's centre, the
+    chief ray's landing) start farther out: :func:`edge_reach_zones` + :data:`REACH_MARGIN`, at most
+    :data:`MAX_RIPPLE_ZONES` (issue 47). Where the crop holds the geometric spot's light from near the rim (a
+    diffraction-limited spot, most aberrated ones) the reach is a few zones and the band stays :data:`RIPPLE_ZONES`;
+    where only the inner pupil lights it (the cusp of a wide coma spot: the double Gauss at full field, 8.9 zones;
+    at 0.7 field 6.5; the F/1.3 asphere at full field 5.1) the edge waves it receives start far out, and the band
+    widens to them. ``lam_m`` (mm):
+    the wavelength in the image medium. :data:`RIPPLE_ZONES` where the rim images carry no ray directions (a
+    mid-system DOE's rim images). A few host reads of (k,) values per construction."""
+    reach = edge_reach_zones(rim, z_plane, z_sensor, point, lam_m)
+    if reach is None:
+        return RIPPLE_ZONES
+    return max(RIPPLE_ZONES, min(reach + REACH_MARGIN, MAX_RIPPLE_ZONES))
