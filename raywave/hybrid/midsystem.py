@@ -473,13 +473,19 @@ class MidSystemLens(nn.Module):
             paths: a 16-level DOE within 1e-3 of the reference with ``min_efficiency=1e-3``; see docs/ray-wave.md,
             "A DOE inside the lens").
         min_efficiency: the orders (products of the DOEs' orders) with ``|c|²`` below it are left out.
+        weak_edge: the stop edge of the orders after the strongest when ``stop_edge="exit_pupil"``. None: the same
+            as the strongest order's (one engine call per order); ``"doe"``: the sharp cut on the final plane, all
+            of them the sources of ONE engine call (:meth:`orders_engine`), the strongest order alone with the exact
+            edge: the 16-level DOE with ``min_efficiency=1e-3`` and ``edge_step="asm"`` within 6.7e-4 / 7.7e-4 of
+            the reference at 0° / 1.5° (5.0e-4 / 5.6e-4 with every order's exact edge) at a third of the cost
+            (benchmarks/psf_midsystem.py, docs/ray-wave.md "A DOE inside the lens").
         orders: the diffraction orders to keep (integers; default: every order that ``min_efficiency`` keeps); with
             several DOEs, one such set (or None) per DOE.
     """
 
     def __init__(self, lens: Lens, doe, after, distance, *final, sensor_pitch: float | None = None,
                  stop_edge: str | None = "doe", min_efficiency: float = 0.01, orders=None, edge_step: str | None = None,
-                 **legacy):
+                 weak_edge: str | None = None, **legacy):
         opts = {"sensor_pitch": sensor_pitch, "stop_edge": stop_edge, "min_efficiency": min_efficiency,
                 "orders": orders}
         plane = _final_plane(final, legacy, opts)
@@ -507,6 +513,9 @@ class MidSystemLens(nn.Module):
         self.final_distance = float(plane.distance)
         self.sensor_pitch, self.stop_edge = sensor_pitch, stop_edge
         self.edge_step = edge_step
+        if weak_edge not in (None, "doe"):
+            raise ValueError(f"MidSystemLens: weak_edge must be None or 'doe', got {weak_edge!r}")
+        self.weak_edge = weak_edge
         self.min_efficiency = float(min_efficiency)
         self._transfer_cache = OrderedDict()
         self.build_lens([1.0] * n)  # checks the placements now
@@ -680,6 +689,8 @@ class MidSystemLens(nn.Module):
         orders = self.orders(wavelength, per)
         if len(orders) > 1 and self.stop_edge == "doe":
             return self._orders_field(field, wavelength, depth, pms, orders)
+        if len(orders) > 1 and self.stop_edge == "exit_pupil" and self.weak_edge == "doe":
+            return self._split_field(field, wavelength, depth, pms, orders)
         parts = []
         for j, (scale, c) in enumerate(orders):
             hl = self.order_lens(scale, None, pms)
@@ -707,17 +718,21 @@ class MidSystemLens(nn.Module):
             return fd, hl, orders
         return _combine(parts, self.final, field, wavelength, depth), parts[0][0], orders
 
-    def orders_engine(self, phase_map=None) -> HybridLens:
+    def orders_engine(self, phase_map=None, stop_edge: str | None = None) -> HybridLens:
         """The engine for every order of a call at once (issue 46): the lens whose non-dispersive DOEs take their
         scale per source (:meth:`build_lens` ``per_source``), the blank final plane, the sensor, no mirroring (the
-        orders of one source are sources at the same field point). ``phase_map``: as :meth:`order_lens`."""
+        orders of one source are sources at the same field point). ``phase_map``: as :meth:`order_lens`;
+        ``stop_edge``: the engine's edge (default :attr:`stop_edge`)."""
         n = len(self.does)
         pms = phase_map if isinstance(phase_map, (list, tuple)) else [phase_map] * n
         disp = [self._continuous(i) for i in range(n)]
         lens_m, _ = self.build_lens([None] * n, pms, disp, per_source=True)
         edge = {} if self.edge_step is None else {"edge_step": self.edge_step}
+        edge_at = self.stop_edge if stop_edge is None else stop_edge
+        if stop_edge is not None and stop_edge != "exit_pupil":
+            edge = {}
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
-                        stop_edge=self.stop_edge, mirror=False, **edge)
+                        stop_edge=edge_at, mirror=False, **edge)
         return hl.use_transfer_cache(self._transfer_cache)
 
     def _orders_field(self, field, wavelength: float, depth, pms, orders):
@@ -725,7 +740,27 @@ class MidSystemLens(nn.Module):
         edge: the orders are the sources of ONE engine call (:meth:`orders_engine`; their traces, geometry, chief
         rays and Gouy probes batched across orders: :func:`~raywave.hybrid.coherent.tracing.per_source`), each
         order's field the one its own engine builds (to the batched aiming's rounding)."""
-        hl = self.orders_engine(pms)
+        hl, geo, fds, keep, values = self._batched_orders(field, wavelength, depth, pms, orders, first=0)
+        if len(keep) == 1:
+            return fds[0][0], hl, orders
+        nc = self._caustic_counts(hl, geo, values)
+        nc = [nc[j] for j in keep]
+        cd = geo.chief[0]
+        parts = []
+        for k, j in enumerate(keep):  # the Gouy phase of the foci each order crosses, relative to the strongest
+            c = orders[j][1] * cmath.exp(-0.5j * math.pi * (nc[k] - nc[0]))
+            fd = fds[j][0]
+            parts.append((fd, c, _phase_at(cd[j, 0], fd, float(wavelength))))
+        return _sum_orders(parts, self.final, float(wavelength)), hl, orders
+
+    def _batched_orders(self, field, wavelength: float, depth, pms, orders, first: int | None,
+                        stop_edge: str | None = None):
+        """The fields of ``orders`` (``[(scale, c)]``) on the final plane as the sources of ONE engine call
+        (:meth:`orders_engine` with ``stop_edge``): ``(hl, geo, fds [M][1], keep, values)``. An order that folds
+        before the engine's plane (a caustic) is left out with a :class:`~raywave.hybrid.SamplingWarning`, unless
+        it is order ``first`` (the strongest: its caustic is warned as the engine does); ``keep``: the indices of
+        the kept orders; ``values``: their per-source scales."""
+        hl = self.orders_engine(pms, stop_edge)
         lens_m = hl.lens
         values = [tuple(sc) if isinstance(sc, (tuple, list)) else (sc,) for sc, _ in orders]
         f = hl._engine_fields([tuple(field)] * len(orders))
@@ -739,30 +774,42 @@ class MidSystemLens(nn.Module):
             fds = hl._finish_fields(hl._accurate_group(geo, list(range(len(orders))), 64, True), geo, pending)
         keep = []
         for j, (scale, c) in enumerate(orders):
-            if j > 0 and geo.clips[j][0][2] > 0:  # a weak order that folds before the engine's plane: left out
+            if j != first and geo.clips[j][0][2] > 0:  # a weak order that folds before the engine's plane: left out
                 warnings.warn(SamplingWarning(
                     f"mid-system DOE: order {scale} ({100 * abs(c) ** 2:.2g} % of the light) "
                     f"folds (a caustic) before the plane {self.final_distance:g} mm after the last surface: left out"),
-                    stacklevel=4)
+                    stacklevel=5)
                 continue
             keep.append(j)
         for w in caught:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         kept_fds = [fds[j][0] for j in keep]
         hl._warn_clipped([e for e in pending[0] if any(e[0] is fd for fd in kept_fds)])
-        if geo.clips[0][0][2] > 0:
-            hl._warn_caustic([(geo.clips[0][0][2], list(field), float(wavelength))])
-        if len(keep) == 1:
-            return fds[0][0], hl, orders
+        if first is not None and geo.clips[first][0][2] > 0:
+            hl._warn_caustic([(geo.clips[first][0][2], list(field), float(wavelength))])
+        return hl, geo, fds, keep, values
+
+    def _split_field(self, field, wavelength: float, depth, pms, orders):
+        """:meth:`source_field` of ``orders`` (more than one) with ``weak_edge="doe"``: the strongest order with the
+        exact edge (its own engine, :meth:`order_lens`; its absolute phase over the pupil, :func:`_pupil_phase`),
+        the weaker ones with the DOE-plane edge as the sources of ONE engine call (:meth:`_batched_orders`; each
+        one's phase at its chief ray, :func:`_phase_at`: no edge waves inside their beams), summed coherently
+        with their Gouy phases relative to the strongest."""
+        scale0, c0 = orders[0]
+        hl0 = self.order_lens(scale0, None, pms)
+        fd0 = hl0.doe_fields([tuple(field)], [wavelength], depth)[0][0]
+        hl, geo, fds, keep, values = self._batched_orders(field, wavelength, depth, pms, orders[1:], None, "doe")
+        if not keep:
+            return fd0, hl0, orders
+        nc0 = self.caustics(hl0, field, wavelength, depth)
         nc = self._caustic_counts(hl, geo, values)
-        nc = [nc[j] for j in keep]
         cd = geo.chief[0]
-        parts = []
-        for k, j in enumerate(keep):  # the Gouy phase of the foci each order crosses, relative to the strongest
-            c = orders[j][1] * cmath.exp(-0.5j * math.pi * (nc[k] - nc[0]))
+        parts = [(fd0, c0, _pupil_phase(hl0, fd0, field, float(wavelength), depth))]
+        for j in keep:
+            c = orders[j + 1][1] * cmath.exp(-0.5j * math.pi * (nc[j] - nc0))
             fd = fds[j][0]
             parts.append((fd, c, _phase_at(cd[j, 0], fd, float(wavelength))))
-        return _sum_orders(parts, self.final, float(wavelength)), hl, orders
+        return _sum_orders(parts, self.final, float(wavelength)), hl0, orders
 
     def _caustic_counts(self, hl: HybridLens, geo, values) -> list:
         """:meth:`caustics` of the orders ``values`` (their per-source scales; the call's first sources) of ``hl``
