@@ -671,12 +671,27 @@ class MidSystemLens(nn.Module):
                              f"{wavelength:g} µm: lower min_efficiency")
         return keep
 
-    def source_field(self, field, wavelength: float, depth=None, report: bool = True, phase_maps=None):
+    def source_field(self, field, wavelength: float, depth=None, report: bool = True, phase_maps=None,
+                     orders=None):
         """The combined field on the final plane for one source: ``(DOEField, HybridLens of the strongest
         order, orders)``. ``phase_maps``: the DOEs' :meth:`DOEPhaseSurface.phase_map` when the caller built them
-        (once for all its sources); else built here."""
-        n = len(self.does)
+        (once for all its sources); else built here. ``orders``: the source's :meth:`source_orders` when the
+        caller has them."""
         pms = phase_maps if phase_maps is not None else [DOEPhaseSurface(d).phase_map() for d in self.does]
+        if orders is None:
+            orders = self.source_orders(field, wavelength, depth, pms, report)
+        if len(orders) > 1 and self.stop_edge == "doe":
+            return self._orders_field(field, wavelength, depth, pms, orders)
+        if len(orders) > 1 and self.stop_edge == "exit_pupil" and self.weak_edge == "doe":
+            return self._split_field(field, wavelength, depth, pms, orders)
+        return self._orders_loop(field, wavelength, depth, pms, orders)
+
+    def source_orders(self, field, wavelength: float, depth=None, pms=None, report: bool = True) -> list:
+        """The orders ``[(scale, c)]`` (:meth:`orders`) of the source ``field`` at ``wavelength`` µm; with ``report``,
+        those that its lit footprint on each DOE samples (:func:`sampling_report`, warning of the orders left
+        out), and a :class:`DOEClipWarning` where a DOE's grid cuts its beam. ``pms``: the DOEs' phase maps."""
+        n = len(self.does)
+        pms = pms if pms is not None else [DOEPhaseSurface(d).phase_map() for d in self.does]
         per = [self.doe_order_list(i, wavelength) for i in range(n)]
         if report:
             for i in range(n):
@@ -688,11 +703,10 @@ class MidSystemLens(nn.Module):
                         "the probe rays): a hard edge inside the lens whose position is not differentiated; make "
                         "the DOE larger than its footprint"), stacklevel=3)
                 per[i] = sampling_report(self.does[i], per[i], box=box, phase_map=pms[i])["kept"]
-        orders = self.orders(wavelength, per)
-        if len(orders) > 1 and self.stop_edge == "doe":
-            return self._orders_field(field, wavelength, depth, pms, orders)
-        if len(orders) > 1 and self.stop_edge == "exit_pupil" and self.weak_edge == "doe":
-            return self._split_field(field, wavelength, depth, pms, orders)
+        return self.orders(wavelength, per)
+
+    def _orders_loop(self, field, wavelength: float, depth, pms, orders):
+        """:meth:`source_field` with one engine call per order (one order; or the exit-pupil edge for every order)."""
         parts = []
         for j, (scale, c) in enumerate(orders):
             hl = self.order_lens(scale, None, pms)
@@ -848,16 +862,34 @@ class MidSystemLens(nn.Module):
         wls = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
         psfs, centers, outs, rays = [], [], [], []
         pms = [DOEPhaseSurface(d).phase_map() for d in self.does]  # once per call (with autograd if on)
-        for f in fields:
+        built = {}
+        for j, wl in enumerate(wls):
+            for i, (fd, hl, orders) in enumerate(self._wavelength_fields(fields, wl, depth, pms)):
+                built[i, j] = (fd, hl, orders)
+        for i in range(len(fields)):
             pr, cr, orow, rr = [], [], [], []
-            for wl in wls:
-                fd, hl, orders = self.source_field(f, wl, depth, phase_maps=pms)
+            for j in range(len(wls)):
+                fd, hl, orders = built[i, j]
                 psf, c, o = hl.propagate(fd, ks)
                 pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays * len(orders))
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
             rays.append(rr)
         return PSFResult(torch.stack(psfs), torch.stack(centers), torch.stack(outs), hl.sensor_pitch,
                          torch.tensor(rays))
+
+    def _wavelength_fields(self, fields: list, wavelength: float, depth, pms) -> list:
+        """:meth:`source_field` of every source ``fields`` ([F] of (2,)) at ``wavelength``: ``[(DOEField, HybridLens,
+        orders)]``. Where every source has one order, the same (a continuous DOE; a fabricated one whose strongest
+        order alone is kept), they are the sources of ONE engine call (its traces batched across them; each field
+        the one its own call builds, to the batched aiming's rounding); else one :meth:`source_field` per source."""
+        orders = [self.source_orders(f, wavelength, depth, pms) for f in fields]
+        one = [o[0][0] for o in orders if len(o) == 1]
+        if len(fields) > 1 and len(one) == len(fields) and all(s == one[0] for s in one):
+            hl = self.order_lens(one[0], None, pms)
+            hl.mirror = False  # a DOE inside the lens may break the lens's mirror symmetry
+            fds = hl.doe_fields([tuple(f) for f in fields], [wavelength], depth)
+            return [(fds[i][0], hl, orders[i]) for i in range(len(fields))]
+        return [self.source_field(f, wavelength, depth, phase_maps=pms, orders=o) for f, o in zip(fields, orders)]
 
     def psf(self, fields=(0.0, 0.0), wavelengths=0.55, ks: int = 64, depth=None) -> torch.Tensor:
         return self.psf_result(fields, wavelengths, ks, depth).psf
