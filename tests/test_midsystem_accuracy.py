@@ -110,7 +110,7 @@ def test_midsystem_16_levels_with_weak_orders(field, bar):
 @pytest.mark.parametrize("field,bar", [((0.0, 0.0), 8e-4), ((0.0, 1.5), 9e-4)])
 def test_midsystem_16_levels_weak_orders_doe_edge(field, bar):
     """The same with ``weak_edge="doe"``: order 1 with the exact edge, the weak orders −15 / +17 with the DOE-plane
-    edge as the sources of one engine call (a third of the cost, benchmarks/psf_midsystem.py): measured 6.7e-4 on
+    edge as the sources of one engine call (~¼ of the cost, benchmarks/psf_midsystem.py): measured 6.7e-4 on
     axis, 7.7e-4 at 1.5° (the issue's bar 1e-3)."""
     assert _compare("16-level", field, min_efficiency=1e-3, weak_edge="doe", **ASM) < bar
 

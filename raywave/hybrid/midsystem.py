@@ -479,7 +479,7 @@ class MidSystemLens(nn.Module):
             as the strongest order's (one engine call per order); ``"doe"``: the sharp cut on the final plane, all
             of them the sources of ONE engine call (:meth:`orders_engine`), the strongest order alone with the exact
             edge: the 16-level DOE with ``min_efficiency=1e-3`` and ``edge_step="asm"`` within 6.7e-4 / 7.7e-4 of
-            the reference at 0° / 1.5° (5.0e-4 / 5.6e-4 with every order's exact edge) at a third of the cost
+            the reference at 0° / 1.5° (5.0e-4 / 5.6e-4 with every order's exact edge) at ~¼ of the cost
             (benchmarks/psf_midsystem.py, docs/ray-wave.md "A DOE inside the lens").
         orders: the diffraction orders to keep (integers; default: every order that ``min_efficiency`` keeps); with
             several DOEs, one such set (or None) per DOE.
