@@ -76,3 +76,23 @@ def test_per_source_surface_needs_its_rows():
     one = DOEPhaseSurface(doe, 1.0)(x + 0.01, x, 0.55)
     assert torch.equal(phi[1], -one[0][1]) and torch.equal(gx[2], 3.0 * one[1][2])
     assert surf._rows is None  # cleared when the block closes
+
+
+def test_psf_result_batches_single_order_sources():
+    """A continuous DOE (one order) at three fields and two wavelengths: :meth:`MidSystemLens.psf_result` builds each
+    wavelength's fields in ONE engine call (:meth:`MidSystemLens._wavelength_fields`); each PSF equals the call for
+    its source alone to the batched aiming's rounding."""
+    sys_ = W.TwoLensSystem(f_doe=50.0)
+    doe = FresnelDOE(50.0, 600, 1e-3, wavelength=0.55)
+    ml = MidSystemLens(M.two_lens(sys_), doe, 0, sys_.gap1, final_distance=0.01, final_size=0.6, final_pitch=1e-3,
+                       sensor_pitch=2e-3)
+    fields, wls = [(0.0, 0.0), (0.0, 0.5), (0.3, -0.4)], [0.5, 0.55]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = ml.psf_result(fields, wls, ks=16)
+        for i, f in enumerate(fields):
+            for j, wl in enumerate(wls):
+                one = ml.psf_result([f], wl, ks=16)
+                assert torch.allclose(res.center[i, j], one.center[0, 0], rtol=0, atol=1e-12)
+                err = float((res.psf[i, j] - one.psf[0, 0]).abs().sum() / one.psf[0, 0].abs().sum())
+                assert err < 1e-9, (f, wl, err)

@@ -107,12 +107,14 @@ def doe_orders(doe: DOE, wavelength: float, min_efficiency: float = 1e-3, max_or
 
 def _unwrapped(phase: torch.Tensor) -> torch.Tensor:
     """``phase`` (ny, nx) rad unwrapped by phasor differences (each step taken in (−π, π]): along the first column,
-    then along every row. Differentiable (the steps' gradient is the identity's)."""
-    def steps(d):
-        return d - _TWO_PI * torch.round(d.detach() / _TWO_PI)
-
-    col = torch.cat([phase[:1, :1], phase[:1, :1] + torch.cumsum(steps(phase[1:, :1] - phase[:-1, :1]), 0)], 0)
-    rows = torch.cumsum(steps(phase[:, 1:] - phase[:, :-1]), 1)
+    then along every row; ``phase`` itself where no step passes ±π (a DOE's design phase, unwrapped already: no
+    cumulative sum's rounding, and a fifth of the cost). Differentiable (the steps' gradient is the identity's)."""
+    dc, dr = phase[1:, :1] - phase[:-1, :1], phase[:, 1:] - phase[:, :-1]
+    kc, kr = torch.round(dc.detach() / _TWO_PI), torch.round(dr.detach() / _TWO_PI)
+    if not (bool(kc.any()) or bool(kr.any())):  # no step of 2π (a design phase, already unwrapped): as it is
+        return phase
+    col = torch.cat([phase[:1, :1], phase[:1, :1] + torch.cumsum(dc - _TWO_PI * kc, 0)], 0)
+    rows = torch.cumsum(dr - _TWO_PI * kr, 1)
     return torch.cat([col, col + rows], 1)
 
 
@@ -473,13 +475,19 @@ class MidSystemLens(nn.Module):
             paths: a 16-level DOE within 1e-3 of the reference with ``min_efficiency=1e-3``; see docs/ray-wave.md,
             "A DOE inside the lens").
         min_efficiency: the orders (products of the DOEs' orders) with ``|c|²`` below it are left out.
+        weak_edge: the stop edge of the orders after the strongest when ``stop_edge="exit_pupil"``. None: the same
+            as the strongest order's (one engine call per order); ``"doe"``: the sharp cut on the final plane, all
+            of them the sources of ONE engine call (:meth:`orders_engine`), the strongest order alone with the exact
+            edge: the 16-level DOE with ``min_efficiency=1e-3`` and ``edge_step="asm"`` within 6.7e-4 / 7.7e-4 of
+            the reference at 0° / 1.5° (5.0e-4 / 5.6e-4 with every order's exact edge) at ~¼ of the cost
+            (benchmarks/psf_midsystem.py, docs/ray-wave.md "A DOE inside the lens").
         orders: the diffraction orders to keep (integers; default: every order that ``min_efficiency`` keeps); with
             several DOEs, one such set (or None) per DOE.
     """
 
     def __init__(self, lens: Lens, doe, after, distance, *final, sensor_pitch: float | None = None,
                  stop_edge: str | None = "doe", min_efficiency: float = 0.01, orders=None, edge_step: str | None = None,
-                 **legacy):
+                 weak_edge: str | None = None, **legacy):
         opts = {"sensor_pitch": sensor_pitch, "stop_edge": stop_edge, "min_efficiency": min_efficiency,
                 "orders": orders}
         plane = _final_plane(final, legacy, opts)
@@ -507,6 +515,9 @@ class MidSystemLens(nn.Module):
         self.final_distance = float(plane.distance)
         self.sensor_pitch, self.stop_edge = sensor_pitch, stop_edge
         self.edge_step = edge_step
+        if weak_edge not in (None, "doe"):
+            raise ValueError(f"MidSystemLens: weak_edge must be None or 'doe', got {weak_edge!r}")
+        self.weak_edge = weak_edge
         self.min_efficiency = float(min_efficiency)
         self._transfer_cache = OrderedDict()
         self.build_lens([1.0] * n)  # checks the placements now
@@ -660,12 +671,27 @@ class MidSystemLens(nn.Module):
                              f"{wavelength:g} µm: lower min_efficiency")
         return keep
 
-    def source_field(self, field, wavelength: float, depth=None, report: bool = True, phase_maps=None):
+    def source_field(self, field, wavelength: float, depth=None, report: bool = True, phase_maps=None,
+                     orders=None):
         """The combined field on the final plane for one source: ``(DOEField, HybridLens of the strongest
         order, orders)``. ``phase_maps``: the DOEs' :meth:`DOEPhaseSurface.phase_map` when the caller built them
-        (once for all its sources); else built here."""
-        n = len(self.does)
+        (once for all its sources); else built here. ``orders``: the source's :meth:`source_orders` when the
+        caller has them."""
         pms = phase_maps if phase_maps is not None else [DOEPhaseSurface(d).phase_map() for d in self.does]
+        if orders is None:
+            orders = self.source_orders(field, wavelength, depth, pms, report)
+        if len(orders) > 1 and self.stop_edge == "doe":
+            return self._orders_field(field, wavelength, depth, pms, orders)
+        if len(orders) > 1 and self.stop_edge == "exit_pupil" and self.weak_edge == "doe":
+            return self._split_field(field, wavelength, depth, pms, orders)
+        return self._orders_loop(field, wavelength, depth, pms, orders)
+
+    def source_orders(self, field, wavelength: float, depth=None, pms=None, report: bool = True) -> list:
+        """The orders ``[(scale, c)]`` (:meth:`orders`) of the source ``field`` at ``wavelength`` µm; with ``report``,
+        those that its lit footprint on each DOE samples (:func:`sampling_report`, warning of the orders left
+        out), and a :class:`DOEClipWarning` where a DOE's grid cuts its beam. ``pms``: the DOEs' phase maps."""
+        n = len(self.does)
+        pms = pms if pms is not None else [DOEPhaseSurface(d).phase_map() for d in self.does]
         per = [self.doe_order_list(i, wavelength) for i in range(n)]
         if report:
             for i in range(n):
@@ -677,9 +703,10 @@ class MidSystemLens(nn.Module):
                         "the probe rays): a hard edge inside the lens whose position is not differentiated; make "
                         "the DOE larger than its footprint"), stacklevel=3)
                 per[i] = sampling_report(self.does[i], per[i], box=box, phase_map=pms[i])["kept"]
-        orders = self.orders(wavelength, per)
-        if len(orders) > 1 and self.stop_edge == "doe":
-            return self._orders_field(field, wavelength, depth, pms, orders)
+        return self.orders(wavelength, per)
+
+    def _orders_loop(self, field, wavelength: float, depth, pms, orders):
+        """:meth:`source_field` with one engine call per order (one order; or the exit-pupil edge for every order)."""
         parts = []
         for j, (scale, c) in enumerate(orders):
             hl = self.order_lens(scale, None, pms)
@@ -707,17 +734,21 @@ class MidSystemLens(nn.Module):
             return fd, hl, orders
         return _combine(parts, self.final, field, wavelength, depth), parts[0][0], orders
 
-    def orders_engine(self, phase_map=None) -> HybridLens:
+    def orders_engine(self, phase_map=None, stop_edge: str | None = None) -> HybridLens:
         """The engine for every order of a call at once (issue 46): the lens whose non-dispersive DOEs take their
         scale per source (:meth:`build_lens` ``per_source``), the blank final plane, the sensor, no mirroring (the
-        orders of one source are sources at the same field point). ``phase_map``: as :meth:`order_lens`."""
+        orders of one source are sources at the same field point). ``phase_map``: as :meth:`order_lens`;
+        ``stop_edge``: the engine's edge (default :attr:`stop_edge`)."""
         n = len(self.does)
         pms = phase_map if isinstance(phase_map, (list, tuple)) else [phase_map] * n
         disp = [self._continuous(i) for i in range(n)]
         lens_m, _ = self.build_lens([None] * n, pms, disp, per_source=True)
         edge = {} if self.edge_step is None else {"edge_step": self.edge_step}
+        edge_at = self.stop_edge if stop_edge is None else stop_edge
+        if stop_edge is not None and stop_edge != "exit_pupil":
+            edge = {}
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
-                        stop_edge=self.stop_edge, mirror=False, **edge)
+                        stop_edge=edge_at, mirror=False, **edge)
         return hl.use_transfer_cache(self._transfer_cache)
 
     def _orders_field(self, field, wavelength: float, depth, pms, orders):
@@ -725,7 +756,27 @@ class MidSystemLens(nn.Module):
         edge: the orders are the sources of ONE engine call (:meth:`orders_engine`; their traces, geometry, chief
         rays and Gouy probes batched across orders: :func:`~raywave.hybrid.coherent.tracing.per_source`), each
         order's field the one its own engine builds (to the batched aiming's rounding)."""
-        hl = self.orders_engine(pms)
+        hl, geo, fds, keep, values = self._batched_orders(field, wavelength, depth, pms, orders, first=0)
+        if len(keep) == 1:
+            return fds[0][0], hl, orders
+        nc = self._caustic_counts(hl, geo, values)
+        nc = [nc[j] for j in keep]
+        cd = geo.chief[0]
+        parts = []
+        for k, j in enumerate(keep):  # the Gouy phase of the foci each order crosses, relative to the strongest
+            c = orders[j][1] * cmath.exp(-0.5j * math.pi * (nc[k] - nc[0]))
+            fd = fds[j][0]
+            parts.append((fd, c, _phase_at(cd[j, 0], fd, float(wavelength))))
+        return _sum_orders(parts, self.final, float(wavelength)), hl, orders
+
+    def _batched_orders(self, field, wavelength: float, depth, pms, orders, first: int | None,
+                        stop_edge: str | None = None):
+        """The fields of ``orders`` (``[(scale, c)]``) on the final plane as the sources of ONE engine call
+        (:meth:`orders_engine` with ``stop_edge``): ``(hl, geo, fds [M][1], keep, values)``. An order that folds
+        before the engine's plane (a caustic) is left out with a :class:`~raywave.hybrid.SamplingWarning`, unless
+        it is order ``first`` (the strongest: its caustic is warned as the engine does); ``keep``: the indices of
+        the kept orders; ``values``: their per-source scales."""
+        hl = self.orders_engine(pms, stop_edge)
         lens_m = hl.lens
         values = [tuple(sc) if isinstance(sc, (tuple, list)) else (sc,) for sc, _ in orders]
         f = hl._engine_fields([tuple(field)] * len(orders))
@@ -739,30 +790,42 @@ class MidSystemLens(nn.Module):
             fds = hl._finish_fields(hl._accurate_group(geo, list(range(len(orders))), 64, True), geo, pending)
         keep = []
         for j, (scale, c) in enumerate(orders):
-            if j > 0 and geo.clips[j][0][2] > 0:  # a weak order that folds before the engine's plane: left out
+            if j != first and geo.clips[j][0][2] > 0:  # a weak order that folds before the engine's plane: left out
                 warnings.warn(SamplingWarning(
                     f"mid-system DOE: order {scale} ({100 * abs(c) ** 2:.2g} % of the light) "
                     f"folds (a caustic) before the plane {self.final_distance:g} mm after the last surface: left out"),
-                    stacklevel=4)
+                    stacklevel=5)
                 continue
             keep.append(j)
         for w in caught:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         kept_fds = [fds[j][0] for j in keep]
         hl._warn_clipped([e for e in pending[0] if any(e[0] is fd for fd in kept_fds)])
-        if geo.clips[0][0][2] > 0:
-            hl._warn_caustic([(geo.clips[0][0][2], list(field), float(wavelength))])
-        if len(keep) == 1:
-            return fds[0][0], hl, orders
+        if first is not None and geo.clips[first][0][2] > 0:
+            hl._warn_caustic([(geo.clips[first][0][2], list(field), float(wavelength))])
+        return hl, geo, fds, keep, values
+
+    def _split_field(self, field, wavelength: float, depth, pms, orders):
+        """:meth:`source_field` of ``orders`` (more than one) with ``weak_edge="doe"``: the strongest order with the
+        exact edge (its own engine, :meth:`order_lens`; its absolute phase over the pupil, :func:`_pupil_phase`),
+        the weaker ones with the DOE-plane edge as the sources of ONE engine call (:meth:`_batched_orders`; each
+        one's phase at its chief ray, :func:`_phase_at`: no edge waves inside their beams), summed coherently
+        with their Gouy phases relative to the strongest."""
+        scale0, c0 = orders[0]
+        hl0 = self.order_lens(scale0, None, pms)
+        fd0 = hl0.doe_fields([tuple(field)], [wavelength], depth)[0][0]
+        hl, geo, fds, keep, values = self._batched_orders(field, wavelength, depth, pms, orders[1:], None, "doe")
+        if not keep:
+            return fd0, hl0, orders
+        nc0 = self.caustics(hl0, field, wavelength, depth)
         nc = self._caustic_counts(hl, geo, values)
-        nc = [nc[j] for j in keep]
         cd = geo.chief[0]
-        parts = []
-        for k, j in enumerate(keep):  # the Gouy phase of the foci each order crosses, relative to the strongest
-            c = orders[j][1] * cmath.exp(-0.5j * math.pi * (nc[k] - nc[0]))
+        parts = [(fd0, c0, _pupil_phase(hl0, fd0, field, float(wavelength), depth))]
+        for j in keep:
+            c = orders[j + 1][1] * cmath.exp(-0.5j * math.pi * (nc[j] - nc0))
             fd = fds[j][0]
             parts.append((fd, c, _phase_at(cd[j, 0], fd, float(wavelength))))
-        return _sum_orders(parts, self.final, float(wavelength)), hl, orders
+        return _sum_orders(parts, self.final, float(wavelength)), hl0, orders
 
     def _caustic_counts(self, hl: HybridLens, geo, values) -> list:
         """:meth:`caustics` of the orders ``values`` (their per-source scales; the call's first sources) of ``hl``
@@ -799,16 +862,34 @@ class MidSystemLens(nn.Module):
         wls = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
         psfs, centers, outs, rays = [], [], [], []
         pms = [DOEPhaseSurface(d).phase_map() for d in self.does]  # once per call (with autograd if on)
-        for f in fields:
+        built = {}
+        for j, wl in enumerate(wls):
+            for i, (fd, hl, orders) in enumerate(self._wavelength_fields(fields, wl, depth, pms)):
+                built[i, j] = (fd, hl, orders)
+        for i in range(len(fields)):
             pr, cr, orow, rr = [], [], [], []
-            for wl in wls:
-                fd, hl, orders = self.source_field(f, wl, depth, phase_maps=pms)
+            for j in range(len(wls)):
+                fd, hl, orders = built[i, j]
                 psf, c, o = hl.propagate(fd, ks)
                 pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays * len(orders))
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
             rays.append(rr)
         return PSFResult(torch.stack(psfs), torch.stack(centers), torch.stack(outs), hl.sensor_pitch,
                          torch.tensor(rays))
+
+    def _wavelength_fields(self, fields: list, wavelength: float, depth, pms) -> list:
+        """:meth:`source_field` of every source ``fields`` ([F] of (2,)) at ``wavelength``: ``[(DOEField, HybridLens,
+        orders)]``. Where every source has one order, the same (a continuous DOE; a fabricated one whose strongest
+        order alone is kept), they are the sources of ONE engine call (its traces batched across them; each field
+        the one its own call builds, to the batched aiming's rounding); else one :meth:`source_field` per source."""
+        orders = [self.source_orders(f, wavelength, depth, pms) for f in fields]
+        one = [o[0][0] for o in orders if len(o) == 1]
+        if len(fields) > 1 and len(one) == len(fields) and all(s == one[0] for s in one):
+            hl = self.order_lens(one[0], None, pms)
+            hl.mirror = False  # a DOE inside the lens may break the lens's mirror symmetry
+            fds = hl.doe_fields([tuple(f) for f in fields], [wavelength], depth)
+            return [(fds[i][0], hl, orders[i]) for i in range(len(fields))]
+        return [self.source_field(f, wavelength, depth, phase_maps=pms, orders=o) for f, o in zip(fields, orders)]
 
     def psf(self, fields=(0.0, 0.0), wavelengths=0.55, ks: int = 64, depth=None) -> torch.Tensor:
         return self.psf_result(fields, wavelengths, ks, depth).psf
