@@ -529,11 +529,14 @@ def _envelope(fine: torch.Tensor, cov: torch.Tensor | None, k: float, edge: tupl
     """The envelope ``a·cov·exp(i k φ)`` (complex128 (ny, nx)) from the fine channels ``fine`` (C, ny, nx) (0: φ
     mm, 1: amplitude, with ``edge`` ``(dz, ripple_zones, g_max, pitch)``: ``[-2]`` ν and ``[-1]`` the edge's
     κ/g), times the knife-edge factor (:func:`edge_envelope`) with ``edge``; ``k = 2π/λ`` (1/mm)."""
-    amp = fine[1] if cov is None else fine[1] * cov
+    # the channels as views of one unbind: its backward stacks their gradients into one array, where each indexed
+    # read's backward would allocate (and add) a zero array of the whole stack
+    ch = fine.unbind(0)
+    amp = ch[1] if cov is None else ch[1] * cov
     if edge is None:
-        return polar(amp, k * fine[0])
+        return polar(amp, k * ch[0])
     dz, ripple_zones, g_max, p = edge
-    return edge_envelope(amp, k * fine[0], fine[-2], dz, ripple_zones, g_max, p, kappa=fine[-1])
+    return edge_envelope(amp, k * ch[0], ch[-2], dz, ripple_zones, g_max, p, kappa=ch[-1])
 
 
 def _span_window(nd: _Nodes, sim: Grid, clamp: bool):
