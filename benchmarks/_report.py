@@ -13,3 +13,13 @@ def emit_json(obj, output: str | None = None, indent: int = 2) -> str:
         with open(output, "w") as fh:
             fh.write(text + "\n")
     return text
+
+
+def emit_row(rows: list, row: dict, output: str | None = None) -> None:
+    """A benchmark's streamed row: printed as one JSON line at once, appended to ``rows``, and all rows so far
+    rewritten to ``output`` (indented JSON) if given, so an interrupted run keeps what it measured."""
+    print(json.dumps(row), flush=True)
+    rows.append(row)
+    if output:
+        with open(output, "w") as fh:
+            fh.write(json.dumps(rows, indent=1))

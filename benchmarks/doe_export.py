@@ -15,13 +15,14 @@ Prints one JSON object (and writes it with ``-o``).
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from _report import emit_json  # noqa: E402  (benchmarks/ is on sys.path)
 
 
 def test_phase(n: int, pitch: float = 1e-3, focal: float = 100.0, wavelength: float = 0.55, seed: int = 0):
@@ -92,10 +93,7 @@ def main(argv=None):
     ap.add_argument("-o", "--output", default=None)
     a = ap.parse_args(argv)
     res = run(a.n, a.levels, a.repeat)
-    text = json.dumps(res, indent=2)
-    print(text)
-    if a.output:
-        Path(a.output).write_text(text + "\n")
+    emit_json(res, a.output)
 
 
 if __name__ == "__main__":

@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import sys
 import time
 import warnings
 from pathlib import Path
 
 import torch
+
+from _report import emit_json  # noqa: E402  (benchmarks/ is on sys.path)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import midsystem_systems as M  # noqa: E402
@@ -86,10 +87,7 @@ def main(argv=None):
            "edge). orders: those kept (at 3 deg "
            "+17 steps by more than pi/2 per 1 um pixel over the lit footprint: left out by the sampling report). "
            "CPU seconds of the PSF call (one thread, shared machine).", "command": "python benchmarks/midsystem_orders_accuracy.py", "rows": rows}
-    text = json.dumps(out, indent=1)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
+    emit_json(out, args.out, indent=1)
 
 
 if __name__ == "__main__":

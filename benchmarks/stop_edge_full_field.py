@@ -21,13 +21,14 @@ The references are computed (and cached in ``--cache``) by stop_edge_references.
 
 import argparse
 import contextlib
-import json
 import re
 import sys
 import time
 from pathlib import Path
 
 import torch
+
+from _report import emit_row  # noqa: E402  (benchmarks/ is on sys.path)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import stop_edge_references as ser  # noqa: E402
@@ -132,10 +133,7 @@ def main(argv=None):
             row = dict(case=a.case, variant=v, time_s=secs, doe_distance=geo[0].doe_distance,
                        **{f"l1_{s}": ser.l1(psf, r[0]) for s, r in refs.items()},
                        **{f"ref_error_{s}": r[1].get("ref_error") for s, r in refs.items()})
-        print(json.dumps(row), flush=True)
-        rows.append(row)
-        if a.output:
-            Path(a.output).write_text(json.dumps(rows, indent=1))
+        emit_row(rows, row, a.output)
     return rows
 
 

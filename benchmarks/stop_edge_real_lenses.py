@@ -8,12 +8,13 @@ tests/test_stop_edge_real_lenses.py (384² cells and 3 µm pixels where 192² ce
 """
 
 import argparse
-import json
 import time
 import warnings
 from pathlib import Path
 
 import torch
+
+from _report import emit_row  # noqa: E402  (benchmarks/ is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
 #: (lens, field fraction) → (Huygens pupil cells, sensor pitch mm): as tests/test_stop_edge_real_lenses.py SETTINGS
@@ -69,10 +70,7 @@ def main(argv=None):
             n_pupil, pitch = a.n_pupil or n_pupil, a.sensor_pitch or pitch
             r = dict(lens=name, field_frac=frac, ks=a.ks, n_pupil=n_pupil or 192,
                      **run_case(LENSES[name], frac, a.ks, n_pupil, pitch))
-            print(json.dumps(r), flush=True)
-            rows.append(r)
-            if a.output:
-                Path(a.output).write_text(json.dumps(rows, indent=1))
+            emit_row(rows, r, a.output)
     return rows
 
 

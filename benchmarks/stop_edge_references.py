@@ -35,7 +35,6 @@ the paper's edge), and ``*_iu8`` (the same with ``intensity_upsample=8``: the se
 """
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -43,6 +42,8 @@ import warnings
 from pathlib import Path
 
 import torch
+
+from _report import emit_row  # noqa: E402  (benchmarks/ is on sys.path)
 
 from raywave.lens.sources import entrance_plane_z, point_source_rays, source_weight
 
@@ -266,10 +267,7 @@ def main(argv=None):
     rows = []
     for c in a.cases:
         r = run(c, a.ks, a.variants, a.max_n, a.cache, a.sphere)
-        print(json.dumps(r), flush=True)
-        rows.append(r)
-        if a.output:
-            Path(a.output).write_text(json.dumps(rows, indent=1))
+        emit_row(rows, r, a.output)
     return rows
 
 
