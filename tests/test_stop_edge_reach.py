@@ -113,3 +113,21 @@ def test_the_bundled_asphere_keeps_five_zones_and_the_double_gauss_at_full_field
                          sensor_pitch=3e-3, fields=[[0.0, 14.0]], field_type="angle")
         (band,), = _bands(dg, [[0.0, 14.0]], [dg.lens.primary_wavelength])
     assert 8.0 < band < 10.0
+
+
+def test_many_sources_at_once_give_each_source_its_own_reach_bit_for_bit():
+    """``edge_reach_many`` (issue 43: a call's sources in one pass, one host read) is the one-source rule row by row:
+    the same floats as :func:`edge_reach_zones` of each (sensor points on and off the axis, both sides, with and
+    without a crop half-width), None for a source without rim images or without ray directions, and rims of
+    different point counts in one call."""
+    from raywave.hybrid.coherent.stop_edge import edge_reach_many
+
+    rims = [_rim(), _rim(256), None, _rim(with_dirs=False), _rim(96), _rim()]
+    pts = torch.tensor([[0.0, 0.0], [0.31, -0.2], [0.1, 0.0], [0.1, 0.0], [-1.2, 0.4], [2.5, 2.5]], dtype=F64)
+    lams = [LAM, 0.47e-3, LAM, LAM, 0.66e-3, LAM]
+    for half in (0.0, 0.02):
+        got = edge_reach_many(rims, Z_D, Z_S, pts, lams, half)
+        want = [edge_reach_zones(r, Z_D, Z_S, p, lam, half) for r, p, lam in zip(rims, pts, lams)]
+        assert got[2] is None and got[3] is None
+        assert got == want  # exact equality: each row's arithmetic is the one-source rule's
+        assert all(isinstance(v, float) for i, v in enumerate(got) if i not in (2, 3))

@@ -34,8 +34,8 @@ from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
                                      entrance_pupil, exit_pupil_field_steps, faithful_field, run_batched)
 from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps, go_phase_errors
-from raywave.hybrid.coherent.geometry import footprints_and_clippings
-from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
+from raywave.hybrid.coherent.geometry import _medium_index, footprints_and_clippings
+from raywave.hybrid.coherent.stop_edge import edge_reach_many, stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, ceil_samples, plan_groups,
                                     propagate_group)
@@ -91,7 +91,8 @@ class _CallGeometry:
     ``edge`` = ``(z_xps, rims, cx, steps)``: its planes per wavelength, ``[W][R]`` the stop rim's images and the
     chief rays on the exit pupil, ``[R][W]`` the adaptive edge step's choice (None: another edge step) (``edge``
     None: the DOE-plane edge); ``orders`` None, or per source of ``f`` its per-source value (:class:`~raywave.hybrid.
-    coherent.settings.Source` ``order``: a mid-system DOE's orders, issue 46)."""
+    coherent.settings.Source` ``order``: a mid-system DOE's orders, issue 46); ``reach`` None, or ``[R][W]`` the stop
+    edge's waves' reach on the DOE plane for the Fresnel step's ripple band (:func:`_edge_reaches`)."""
 
     f: torch.Tensor
     wls: list
@@ -104,6 +105,7 @@ class _CallGeometry:
     clips: list | None = None
     edge: tuple | None = None
     orders: list | None = None
+    reach: list | None = None
 
     def __post_init__(self):
         if self.todo is None:
@@ -151,6 +153,22 @@ def _quiet_chief_rays(optics, f: torch.Tensor, wls: list[float], depth, z_doe: f
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always", VignettingWarning)
         return chief_rays(optics, f, torch.tensor(wls, dtype=torch.float64, device=optics.device), depth, z_doe, z_sen)
+
+
+def _edge_reaches(optics, rims: list, chief_sensor, todo: list, wls: list, planes: tuple) -> list:
+    """``[R][W]``: the stop edge's waves' reach (Fresnel zones, or None) on the DOE plane at each built source's crop
+    centre (its chief ray on the sensor, ``chief_sensor`` (F, W)), from its rim images ``rims`` ``[W][R]``, for the
+    Fresnel step's ripple band (:func:`~raywave.hybrid.coherent.stop_edge.edge_reach_many`: one host read for the
+    call, issue 43; each value that of the construction's own :func:`~raywave.hybrid.coherent.stop_edge.ripple_band`).
+    ``planes`` = ``(z_doe, z_sensor)`` mm."""
+    nr, nw = len(todo), len(wls)
+    if nr == 0:
+        return []
+    pts = chief_sensor.o.detach()[torch.tensor(todo, dtype=torch.long, device=chief_sensor.o.device)][..., :2]
+    lam = [wl * 1e-3 / _medium_index(optics, wl) for wl in wls]  # the image medium's wavelength (mm), as _Build's
+    flat = edge_reach_many([rims[j][r] for j in range(nw) for r in range(nr)], *planes,
+                           pts.transpose(0, 1).reshape(-1, 2), [lam[j] for j in range(nw) for _ in range(nr)])
+    return [[flat[j * nr + r] for j in range(nw)] for r in range(nr)]
 
 
 def _center_of(fd: DOEField):
@@ -587,6 +605,8 @@ class HybridLens(nn.Module):
             if self.edge_step == "adaptive":  # every built source's step from one trace of their edge rays
                 steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen))
             geo.edge = (z_xps, rims, cx, steps)
+            if self.edge_step in ("fresnel", "adaptive"):  # the Fresnel step's ripple band, for every source at once
+                geo.reach = _edge_reaches(optics, rims, cs, todo, wls, (z_doe, z_sen))
         return geo
 
     def _accurate_group(self, geo: "_CallGeometry", members: list[int], nodes: int, check: bool,
@@ -634,7 +654,8 @@ class HybridLens(nn.Module):
                                                       ChiefRays(cd[i, j], cs[i, j], cx[j][r], cuv[i, j]), settings,
                                                       Known(geo.boxes[r][j], geo.entrance, rims[j][r],
                                                             None if steps is None else steps[r][j],
-                                                            None if go is None else (go[0][j], go[1][k, j]))))
+                                                            None if go is None else (go[0][j], go[1][k, j]),
+                                                            ... if geo.reach is None else geo.reach[r][j])))
         return out
 
     def _go_errors(self, geo: "_CallGeometry", rows: list[int]):

@@ -108,7 +108,7 @@ class _Build:
         if cfg.stop_plane is not None:  # the band: the caller's, else RIPPLE_ZONES widened by the edge waves' reach
             self.ripple = float(cfg.ripple_zones) if cfg.ripple_zones is not None else ripple_band(
                 self.given.stop_rim, self.z_doe, self.z_sensor, self.chief.sensor.o[:2].detach(),
-                self.src.wavelength * 1e-3 / self.n)
+                self.src.wavelength * 1e-3 / self.n, self.given.reach)
 
     def empty(self, rays: int) -> DOEField:
         """The field without light (``rays`` traced)."""

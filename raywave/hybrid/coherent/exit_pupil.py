@@ -117,7 +117,8 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
             rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
         fd = yield from accurate_field_steps(lens, doe, source, Planes(z_doe, z_sensor), on_doe,
                                              replace(settings, virtual=False, stop_plane=z_xp,
-                                                     ripple_zones=ripple_zones), Known(bbox, entrance, rim))
+                                                     ripple_zones=ripple_zones),
+                                             Known(bbox, entrance, rim, reach=known.reach if rim is stop_rim else ...))
         return fd.with_info(stop_edge="exit_pupil")
     if method != "asm":
         raise ValueError(f"method must be 'adaptive', 'auto', 'fresnel' or 'asm', got {method!r}")

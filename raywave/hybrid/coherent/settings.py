@@ -105,13 +105,16 @@ class Known:
     ``method="adaptive"`` for this source, "doe" or "fresnel" (:func:`~raywave.hybrid.coherent.exit_pupil.
     adaptive_edge_steps`, decided for all of a call's sources from one trace), ``go_error`` ``(z (P,), error (P,))``
     this source's geometric-optics phase error (:func:`~raywave.hybrid.coherent.exit_pupil.go_phase_errors`, for
-    all of a call's sources from one trace)."""
+    all of a call's sources from one trace), ``reach`` the stop edge's waves' reach (Fresnel zones, or None: unknown)
+    at the crop's centre on the DOE plane from ``stop_rim`` (:func:`~raywave.hybrid.coherent.stop_edge.
+    edge_reach_many`, for all of a call's sources at once; ``...``: not given, computed by the construction)."""
 
     bbox: object = None
     entrance: object = None
     stop_rim: object = None
     edge_step: str | None = None
     go_error: tuple | None = None
+    reach: object = ...
 
 
 def check_types(where: str, source, planes, chief, settings) -> None:

@@ -711,44 +711,75 @@ def edge_reach_zones(rim, z_doe: float, z_sensor: float, point, lam_m: float, ha
     edge wave (stationary phase along the rim) where the normal line ``L_j + t·n̂_j`` passes through it: the sign
     changes of ``(P − L_j)·t̂_j`` between consecutive rim points (``t̂`` the tangent), interpolated. ``point`` (2,)
     mm the sensor point (the crop's centre), ``half`` (mm) the crop's half-width (the reach grows by its projection
-    on the normal), ``lam_m`` (mm) the wavelength in the image medium. Host arithmetic on (k,) values, no autograd."""
-    if rim is None or getattr(rim, "directions", None) is None or getattr(rim, "points", None) is None:
-        return None
-    e, a = rim.points.detach().double(), rim.directions.detach().double()
-    if not bool((a[:, 2].abs() > 1e-9).all()):
-        return None
-    t_s = (z_doe - e[:, 2]) / a[:, 2]
-    t_l = (z_sensor - e[:, 2]) / a[:, 2]
-    if not bool((t_s.abs() > 1e-9).all() and (t_l.abs() > 1e-9).all()):
-        return None
-    s_pt = e[:, :2] + t_s[:, None] * a[:, :2]
-    l_pt = e[:, :2] + t_l[:, None] * a[:, :2]
-    m = t_l / t_s
-    tang = torch.roll(s_pt, -1, 0) - torch.roll(s_pt, 1, 0)
-    tang = tang / tang.norm(dim=1, keepdim=True).clamp_min(1e-300)
-    normal = torch.stack([tang[:, 1], -tang[:, 0]], 1)
-    normal = normal * torch.sign(((s_pt - s_pt.mean(0)) * normal).sum(1) + 1e-300)[:, None]
-    zone = torch.sqrt(lam_m * (t_s * (t_l - t_s) / t_l).abs()).clamp_min(1e-300)
-    rel = torch.as_tensor(point, dtype=e.dtype, device=e.device).reshape(1, 2) - l_pt
-    scale = (m.abs() * zone)
-    zones = (rel * normal).sum(1) / scale  # signed: > 0 outside the shadow
-    crop = half * (normal.abs().sum(1)) / scale
-    t = (rel * tang).sum(1)
-    t1, z1, c1 = torch.roll(t, -1), torch.roll(zones, -1), torch.roll(crop, -1)
-    hit = (t * t1 <= 0) & ((t - t1).abs() > 0)
-    w = (t / (t - t1).where(hit, torch.ones_like(t)))[hit]
-    z = zones[hit] + w * (z1[hit] - zones[hit])
-    c = crop[hit] + w * (c1[hit] - crop[hit])
-    near = t.abs() <= half * tang.abs().sum(1)  # the normal line crosses the crop away from its centre
-    z, c = torch.cat([z, zones[near]]), torch.cat([c, crop[near]])
-    if z.numel() == 0:
-        return 0.0
-    outer = (z + c).clamp_min(0.0)
-    inner = (c - z).clamp_min(0.0) / INNER_TAIL
-    return float(torch.maximum(outer, inner).max())
+    on the normal), ``lam_m`` (mm) the wavelength in the image medium. No autograd; one host read (:func:`edge_reach_many`
+    of the one source)."""
+    return edge_reach_many([rim], z_doe, z_sensor, torch.as_tensor(point).reshape(1, 2), [lam_m], half)[0]
 
 
-def ripple_band(rim, z_plane: float, z_sensor: float, point, lam_m: float) -> float:
+def _reach_rows(rims: list):
+    """The rim images of ``rims`` that carry ray directions and image points, stacked: ``(rows (indices into rims),
+    e (R, k, 3) image points, a (R, k, 3) directions)`` (detached float64), grouped by their rim point count k
+    (a list of such triples)."""
+    by_k: dict = {}
+    for i, rim in enumerate(rims):
+        if rim is None or getattr(rim, "directions", None) is None or getattr(rim, "points", None) is None:
+            continue
+        by_k.setdefault(int(rim.points.shape[0]), []).append(i)
+    return [(rows, torch.stack([rims[i].points.detach().double() for i in rows]),
+             torch.stack([rims[i].directions.detach().double() for i in rows])) for rows in by_k.values()]
+
+
+def edge_reach_many(rims: list, z_doe: float, z_sensor: float, points: torch.Tensor, lam_ms: list,
+                    half: float = 0.0) -> list:
+    """:func:`edge_reach_zones` of many sources at once: their rim images ``rims`` (S), sensor points ``points``
+    (S, 2) mm and wavelengths in the image medium ``lam_ms`` (S,) mm, on the planes ``z_doe``, ``z_sensor`` (issue 43:
+    one host read for a call's sources instead of a few per construction). Returns S values (zones, or None), each the
+    arithmetic of the one-source rule on its row."""
+    out: list = [None] * len(rims)
+    for rows, e, a in _reach_rows(rims):
+        idx = torch.tensor(rows, device=e.device)
+        pt = points.detach().to(device=e.device, dtype=e.dtype)[idx]  # (R, 2)
+        lam = torch.tensor([float(lam_ms[i]) for i in rows], dtype=e.dtype, device=e.device)[:, None]
+        ok = (a[..., 2].abs() > 1e-9).all(1)  # (R,)
+        az = torch.where(ok[:, None], a[..., 2], torch.ones_like(a[..., 2]))
+        t_s = (z_doe - e[..., 2]) / az
+        t_l = (z_sensor - e[..., 2]) / az
+        ok = ok & (t_s.abs() > 1e-9).all(1) & (t_l.abs() > 1e-9).all(1)
+        t_s = torch.where(ok[:, None], t_s, torch.ones_like(t_s))
+        t_l = torch.where(ok[:, None], t_l, 2 * torch.ones_like(t_l))
+        s_pt = e[..., :2] + t_s[..., None] * a[..., :2]  # (R, k, 2)
+        l_pt = e[..., :2] + t_l[..., None] * a[..., :2]
+        m = t_l / t_s
+        tang = torch.roll(s_pt, -1, 1) - torch.roll(s_pt, 1, 1)
+        tang = tang / tang.norm(dim=2, keepdim=True).clamp_min(1e-300)
+        normal = torch.stack([tang[..., 1], -tang[..., 0]], 2)
+        normal = normal * torch.sign(((s_pt - s_pt.mean(1, keepdim=True)) * normal).sum(2) + 1e-300)[..., None]
+        zone = torch.sqrt(lam * (t_s * (t_l - t_s) / t_l).abs()).clamp_min(1e-300)
+        rel = pt[:, None, :] - l_pt
+        scale = (m.abs() * zone)
+        zones = (rel * normal).sum(2) / scale  # signed: > 0 outside the shadow
+        crop = half * (normal.abs().sum(2)) / scale
+        t = (rel * tang).sum(2)
+        t1, z1, c1 = torch.roll(t, -1, 1), torch.roll(zones, -1, 1), torch.roll(crop, -1, 1)
+        hit = (t * t1 <= 0) & ((t - t1).abs() > 0)
+        w = t / (t - t1).where(hit, torch.ones_like(t))
+        z = zones + w * (z1 - zones)
+        c = crop + w * (c1 - crop)
+        near = t.abs() <= half * tang.abs().sum(2)  # the normal line crosses the crop away from its centre
+
+        def reach(z_, c_, mask):
+            outer = (z_ + c_).clamp_min(0.0)
+            inner = (c_ - z_).clamp_min(0.0) / INNER_TAIL
+            return torch.where(mask, torch.maximum(outer, inner), -math.inf).amax(1)
+
+        best = torch.maximum(reach(z, c, hit), reach(zones, crop, near))
+        best = torch.where(torch.isneginf(best), torch.zeros_like(best), best)  # no stationary rim point: 0
+        for i, v, good in zip(rows, best.tolist(), ok.tolist()):
+            out[i] = float(v) if good else None
+    return out
+
+
+def ripple_band(rim, z_plane: float, z_sensor: float, point, lam_m: float, reach=...) -> float:
     """The ripple band's width (Fresnel zones) for one source's field on the plane ``z_plane``: :data:`RIPPLE_ZONES`,
     widened where the stop edge's waves that reach the sensor point ``point`` (2,) mm (the PSF crop's centre, the
     chief ray's landing) start farther out: :func:`edge_reach_zones` + :data:`REACH_MARGIN`, at most
@@ -758,8 +789,10 @@ def ripple_band(rim, z_plane: float, z_sensor: float, point, lam_m: float) -> fl
     at 0.7 field 6.5; the F/1.3 asphere at full field 5.1) the edge waves it receives start far out, and the band
     widens to them. ``lam_m`` (mm):
     the wavelength in the image medium. :data:`RIPPLE_ZONES` where the rim images carry no ray directions (a
-    mid-system DOE's rim images). A few host reads of (k,) values per construction."""
-    reach = edge_reach_zones(rim, z_plane, z_sensor, point, lam_m)
+    mid-system DOE's rim images). ``reach``: the caller's :func:`edge_reach_zones` of these arguments (e.g. from
+    :func:`edge_reach_many` for all of a call's sources), else computed here (one host read)."""
+    if reach is ...:
+        reach = edge_reach_zones(rim, z_plane, z_sensor, point, lam_m)
     if reach is None:
         return RIPPLE_ZONES
     return max(RIPPLE_ZONES, min(reach + REACH_MARGIN, MAX_RIPPLE_ZONES))
