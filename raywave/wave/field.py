@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 
 __all__ = ["cubic_matrix", "upsampled_intensity", "double_grid_intensity", "keys_matrix", "upsample_nodes",
-           "splat_bilinear", "edge_coverage"]
+           "splat_bilinear", "edge_coverage", "fourier_upsample"]
 
 
 def _keys(t: torch.Tensor) -> torch.Tensor:
@@ -164,3 +164,35 @@ def upsampled_intensity(u: torch.Tensor, factor: int, window: torch.Tensor | Non
         return r[..., 0].square() + r[..., 1].square()
     out = r[..., 0].square()  # without autograd: one array less at the peak (the same sums)
     return out.add_(r[..., 1].square())
+
+
+def _padded_spectrum(spec: torch.Tensor, n_big: int, dim: int) -> torch.Tensor:
+    """The DFT ``spec`` (length ``n`` along ``dim``, FFT order) of a band-limited periodic signal as the DFT of its
+    ``n_big``-sample resampling (same frequencies, zeros above them; an even ``n``'s Nyquist term split evenly
+    between ``±n/2``, so a real signal stays real)."""
+    n = spec.shape[dim]
+    h = n // 2
+    zeros_shape = list(spec.shape)
+    if n % 2:  # frequencies −h … h
+        zeros_shape[dim] = n_big - n
+        return torch.cat([spec.narrow(dim, 0, h + 1), spec.new_zeros(zeros_shape), spec.narrow(dim, h + 1, h)], dim)
+    nyq = spec.narrow(dim, h, 1) * 0.5
+    zeros_shape[dim] = n_big - n - 1
+    return torch.cat([spec.narrow(dim, 0, h), nyq, spec.new_zeros(zeros_shape), nyq, spec.narrow(dim, h + 1, h - 1)],
+                     dim)
+
+
+def fourier_upsample(u: torch.Tensor, factor: int) -> torch.Tensor:
+    """The band-limited (periodic sinc) interpolation of the complex field ``u`` ``(..., ny, nx)`` on a grid
+    ``factor`` times finer: ``(..., factor·ny, factor·nx)``, output sample ``[f·i, f·j]`` = input ``[i, j]``
+    (exact for a field whose spectrum lies within the input grid's band; the window is periodic: taper the field
+    to ~0 at its edges). Differentiable (FFTs and a zero padding of the spectrum)."""
+    f = int(factor)
+    if f < 1:
+        raise ValueError(f"fourier_upsample: factor must be a positive integer, got {factor}")
+    if f == 1:
+        return u
+    ny, nx = u.shape[-2:]
+    spec = torch.fft.fft2(u)
+    spec = _padded_spectrum(_padded_spectrum(spec, f * ny, -2), f * nx, -1)
+    return torch.fft.ifft2(spec) * float(f * f)

@@ -12,7 +12,8 @@ import torch
 from raywave.doe.base import BlankDOE
 from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.utils.errors import MemoryLimitError
-from raywave.wave.grid import Field
+from raywave.wave.field import fourier_upsample
+from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation import propagate_window
 from raywave.hybrid.coherent.accurate import accurate_field_steps
 from raywave.hybrid.coherent.geometry import _common_setup, _empty_field, _footprint, check_window_memory, lit_box
@@ -128,19 +129,24 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     rim = None
     if rim_images or z_from is not None:
         rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
+    # the construction and its angular spectrum on a lattice m× coarser than the DOE's where the wave's own
+    # bandwidth allows (the envelope upsampled to the DOE pitch at the end): its cost falls ~m²
+    m = asm_coarsening(rim, chief_doe, wavelength, n, p)
+    lattice = doe if m == 1 else CoarseLattice.of(doe.sim_grid(oversample), m, doe.device)
+    coarse = settings if m == 1 else replace(settings, oversample=1)
     if z_from is not None:  # the caustic fallback: the Fresnel step to z_from, the angular spectrum beyond
         z_edge, z_far = z_from, _rim_step_plane(rim, z_xp, z_doe, wavelength, n, 0.0)[1]
         chief_xp = chief_doe
     else:
-        z_edge, z_far = _rim_step_plane(rim, z_xp, z_doe, wavelength, n, p)
+        z_edge, z_far = _rim_step_plane(rim, z_xp, z_doe, wavelength, n, m * p)
     if z_edge is None:  # the edge sharp on the exit-pupil plane
-        fx = yield from accurate_field_steps(lens, doe, source, Planes(z_xp, z_sensor),
+        fx = yield from accurate_field_steps(lens, lattice, source, Planes(z_xp, z_sensor),
                                              ChiefRays(chief_xp, chief_sensor, uv=chief_uv),
-                                             replace(settings, virtual=True, stop_plane=None))
+                                             replace(coarse, virtual=True, stop_plane=None))
     else:  # sharp at every rim point's image, stepped to z_edge (chief ray: a straight line in the image medium)
-        fx = yield from accurate_field_steps(lens, doe, source, Planes(z_edge, z_sensor),
+        fx = yield from accurate_field_steps(lens, lattice, source, Planes(z_edge, z_sensor),
                                              ChiefRays(chief_xp.propagate_to_z(z_edge, n), chief_sensor, uv=chief_uv),
-                                             replace(settings, virtual=True, stop_plane=z_xp,
+                                             replace(coarse, virtual=True, stop_plane=z_xp,
                                                      ripple_zones=ripple_zones), Known(stop_rim=rim))
     carrier = fx.carrier  # the chief ray's direction: the same on both planes
     bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
@@ -149,7 +155,7 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                             "accurate").with_info(stop_edge="exit_pupil")
     dz = z_doe - (z_xp if z_edge is None else z_edge)
     margin = _window_margin(ripple_zones, rim, (z_doe, z_sensor, z_far), chief_sensor,
-                            (wavelength, n, carrier)) + 4 * p
+                            (wavelength, n, carrier)) + 4 * m * p
     sim = doe.sim_grid(oversample)
     box = lit_box(sim, bbox, margin)
     if box is None:
@@ -157,10 +163,99 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                             "accurate").with_info(stop_edge="exit_pupil")
     grid = sim.window(*box)
     check_window_memory(*grid.shape, p, lens.device)
-    u = propagate_window(Field(fx.envelope, fx.grid, float(wavelength), n, carrier), grid, dz).envelope
+    fin = Field(fx.envelope, fx.grid, float(wavelength), n, carrier)
+    u = propagate_window(fin, grid, dz).envelope if m == 1 else _coarse_propagate(fin, sim, box, dz, m)
     u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)
     return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
                     FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil"))
+
+
+#: the exact construction's lattice is coarsened (:func:`asm_coarsening`) while its pitch stays within this fraction
+#: of the Nyquist pitch of the wave's envelope (the rim rays' largest direction-cosine difference from the chief
+#: ray's, whose carrier the envelope has removed): ½ keeps the envelope's spectrum in the inner half of the coarse
+#: band, which the Fourier upsampling to the DOE pitch then interpolates exactly
+ASM_NYQUIST_FRACTION = 0.5
+#: the most the exact construction's lattice is coarsened
+MAX_ASM_COARSENING = 8
+#: coarse samples added on each side of the DOE-plane window before the Fourier upsampling, the outer ones tapered
+#: to 0 (a raised cosine): the upsampling's periodic window then has no jump at its edges
+ASM_UPSAMPLE_PAD = 8
+
+
+def asm_coarsening(rim, chief_doe, wavelength: float, n: float, p: float) -> int:
+    """``m`` ≥ 1: how many DOE-lattice samples (pitch ``p`` mm) one sample of the exact construction's lattice spans
+    (:func:`exit_pupil_field`, ``method="asm"`` and the caustic fallback; issue 46: a mid-system DOE's strongest order
+    at 1 µm spent ≥ 90 % of its PSF's time on a 2307² field its phase needs only a quarter of): the largest integer
+    with ``m·p ≤`` :data:`ASM_NYQUIST_FRACTION` · ``λ/(2 n Δ)``, ``Δ`` the largest difference of a rim ray's
+    direction cosine (:class:`~raywave.hybrid.coherent.stop_edge.RimImages` ``directions``, the image medium) from
+    the chief ray's on the DOE plane (``chief_doe``: the envelope's carrier), at most :data:`MAX_ASM_COARSENING`; 1
+    without rim rays (the DOE's own lattice, as before). ``wavelength`` µm, ``n`` the image medium's index."""
+    dirs = getattr(rim, "directions", None) if rim is not None else None
+    if dirs is None or MAX_ASM_COARSENING <= 1:
+        return 1
+    c = chief_doe.d.detach()[:2].to(dirs.dtype)
+    spread = float((dirs.detach()[:, :2] - c).abs().max())  # (one host read)
+    if not math.isfinite(spread) or spread <= 0.0:
+        return 1
+    p_max = ASM_NYQUIST_FRACTION * wavelength * 1e-3 / (2.0 * n * spread)
+    return max(1, min(MAX_ASM_COARSENING, int(math.floor(p_max / p + 1e-9))))
+
+
+class CoarseLattice:
+    """A virtual plane's simulation lattice every ``m``-th sample of a DOE's (``fine``: its simulation
+    :class:`~raywave.wave.Grid`), the same origin, ``m`` times its pitch, extended without bound: what the exact
+    construction reads of a DOE (``pitch``, ``sim_origin``, ``sim_shape``, ``sim_grid`` at ``oversample`` 1,
+    ``device``) when :func:`asm_coarsening` allows a coarser grid."""
+
+    def __init__(self, origin, pitch: float, shape, device):
+        self.origin, self.pitch, self.shape, self.device = tuple(origin), float(pitch), tuple(shape), device
+
+    @classmethod
+    def of(cls, fine: Grid, m: int, device=None) -> "CoarseLattice":
+        sy, sx = fine.shape
+        return cls(fine.origin, fine.pitch[0] * m, (-(-sy // m), -(-sx // m)), device)
+
+    def sim_origin(self, oversample: int = 1):
+        return self.origin
+
+    def sim_shape(self, oversample: int = 1):
+        return self.shape
+
+    def sim_grid(self, oversample: int = 1) -> Grid:
+        return Grid(self.origin, self.pitch, self.shape)
+
+
+def _coarse_propagate(field: Field, sim: Grid, box, dz: float, m: int) -> torch.Tensor:
+    """The envelope (complex128 on the window ``box`` ``(iy0, iy1, ix0, ix1)`` of the DOE's simulation lattice
+    ``sim``) of ``field`` (on the coarse lattice: ``sim``'s origin, ``m`` times its pitch) propagated ``dz`` mm:
+    :func:`~raywave.wave.propagation.propagate_window` onto the coarse window that covers ``box`` plus
+    :data:`ASM_UPSAMPLE_PAD` samples a side (an odd number a side: no Nyquist term), those tapered to 0, then
+    :func:`~raywave.wave.field.fourier_upsample` by ``m`` and the crop to ``box``."""
+    iy0, iy1, ix0, ix1 = box
+    pad = ASM_UPSAMPLE_PAD
+
+    def span(i0, i1):  # coarse indices covering fine [i0, i1) plus the pad, an odd count
+        j0, j1 = i0 // m - pad, -(-(i1 - 1) // m) + 1 + pad
+        return j0, j1 + (1 - (j1 - j0) % 2)
+
+    (jy0, jy1), (jx0, jx1) = span(iy0, iy1), span(ix0, ix1)
+    out = Grid(sim.position(jy0 * m, jx0 * m), m * sim.pitch[0], (jy1 - jy0, jx1 - jx0))
+    uc = propagate_window(field, out, dz).envelope
+    taper = [_edge_taper(n_, pad, uc.device) for n_ in (jy1 - jy0, jx1 - jx0)]
+    up = fourier_upsample(uc * (taper[0][:, None] * taper[1][None, :]).to(uc.dtype), m)
+    oy, ox = iy0 - jy0 * m, ix0 - jx0 * m
+    return up[oy:oy + iy1 - iy0, ox:ox + ix1 - ix0]
+
+
+def _edge_taper(n: int, pad: int, device) -> torch.Tensor:
+    """(n,) float64: 1 except the outer ``pad`` samples at either end, a raised cosine from 1 down to 0 (the
+    outermost sample 0)."""
+    w = torch.ones(n, dtype=torch.float64, device=device)
+    if pad > 0:
+        ramp = 0.5 - 0.5 * torch.cos(math.pi * torch.arange(pad, dtype=torch.float64, device=device) / pad)
+        w[:pad] = ramp
+        w[n - pad:] = ramp.flip(0)
+    return w
 
 
 def _window_margin(ripple_zones, rim, zs, chief_sensor, medium) -> float:
