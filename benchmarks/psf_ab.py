@@ -14,6 +14,10 @@ the trees (``max_rel_l1_per_psf``): issue 43's A/B is
 ``git worktree add /tmp/base d9ddfa8`` then
 ``python benchmarks/psf_ab.py --a /tmp/base --grid 10 --repeat 1 --threads 2 --modes map,grad``.
 
+``--b-set MODULE.NAME=VALUE`` (repeatable) sets a module constant in tree B's runs before they build the lens (VALUE
+a Python literal): e.g. ``--b-set raywave.hybrid.coherent.accurate.RIM_FOURIER=False`` switches off issue 47's
+deliberate numeric change of the rim images' interpolation, so that the PSF difference left is the refactor's own.
+
 Issue 17's bar (the 10×10×3 map ≥ 3× faster per PSF than at 17ade15, where it was filed; the DOE-plane edge,
 that tree's default): ``git worktree add /tmp/old 17ade15`` then
 ``python benchmarks/psf_ab.py --a /tmp/old --grid 10 --repeat 2 --threads 2 --stop-edge doe``.
@@ -40,6 +44,11 @@ except ImportError:  # trees from before the assembly layer (e.g. 17ade15, where
     from raywave.hybrid.build import load_hybrid
 from raywave.lens.build import bundled_lens_path
 from raywave.imaging import psf_map
+import ast, importlib
+for item in json.loads(sys.argv[6]):  # --b-set: module constants of this tree's run
+    target, value = item.split("=", 1)
+    mod, name = target.rsplit(".", 1)
+    setattr(importlib.import_module(mod), name, ast.literal_eval(value))
 n = int(sys.argv[1])
 wls = (0.66, 0.53, 0.47)
 edge = sys.argv[4]
@@ -70,11 +79,12 @@ print(json.dumps({"wall_per_psf": wall / k, "cpu_per_psf": cpu / k, "raywave": r
 """
 
 
-def _run(tree: str, n: int, threads: int, out: str, edge: str = "default", grad: bool = False) -> dict:
+def _run(tree: str, n: int, threads: int, out: str, edge: str = "default", grad: bool = False,
+         sets: list | None = None) -> dict:
     env = dict(os.environ, PYTHONPATH=os.path.abspath(tree), OMP_NUM_THREADS=str(threads))
     # run in the tree itself: ``python -c`` puts the working directory ahead of PYTHONPATH on sys.path
-    res = subprocess.run([sys.executable, "-c", _CHILD, str(n), str(threads), out, edge, "grad" if grad else "map"],
-                         capture_output=True, text=True, env=env, cwd=os.path.abspath(tree))
+    res = subprocess.run([sys.executable, "-c", _CHILD, str(n), str(threads), out, edge, "grad" if grad else "map",
+                          json.dumps(sets or [])], capture_output=True, text=True, env=env, cwd=os.path.abspath(tree))
     if res.returncode != 0:
         raise RuntimeError(res.stderr[-3000:])
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -92,20 +102,22 @@ def main() -> None:
     ap.add_argument("--modes", default="map",
                     help="map (no grad), grad (forward + backward, 8 field points × 3 λ per call) or map,grad")
     ap.add_argument("--scratch", default="/tmp", help="folder for the runs' PSF files (one per mode and tree)")
+    ap.add_argument("--b-set", action="append", default=[], metavar="MODULE.NAME=VALUE",
+                    help="set a module constant in tree B's runs (repeatable; VALUE a Python literal)")
     ap.add_argument("-o", "--output")
     args = ap.parse_args()
     import torch
 
     out = {"benchmark": "psf_ab", "lens": "hybrid_asphere", "grid": [args.grid, args.grid], "wavelengths": 3, "ks": 64,
            "threads": args.threads, "stop_edge": args.stop_edge, "a": os.path.abspath(args.a),
-           "b": os.path.abspath(args.b)}
+           "b": os.path.abspath(args.b), "b_set": args.b_set}
     for mode in args.modes.split(","):
         runs = {"a": [], "b": []}
         for r in range(args.repeat):
             for key in ("a", "b"):
                 out_pt = os.path.join(args.scratch, f"raywave_psf_ab_{mode}_{key}.pt")
                 runs[key].append(_run(getattr(args, key), args.grid, args.threads, out_pt, args.stop_edge,
-                                      mode == "grad"))
+                                      mode == "grad", args.b_set if key == "b" else None))
                 print(mode, key, r, runs[key][-1], file=sys.stderr, flush=True)
         a, b = (torch.load(os.path.join(args.scratch, f"raywave_psf_ab_{mode}_{k}.pt")) for k in ("a", "b"))
         rel_l1 = (a - b).abs().sum((-2, -1)) / a.abs().sum((-2, -1)).clamp_min(1e-300)  # per PSF
