@@ -63,3 +63,28 @@ def test_default_psf_of_other_lens_classes_within_1e_3_of_the_converged_referenc
           f"levels {ref.levels})")
     assert ref.error_estimate is not None and ref.error_estimate < REF_TOL
     assert err < 1e-3
+
+
+#: lens classes where the default does not yet meet 1e-3, with the measured figure and its cause (docs/ray-wave.md
+#: "Other lens classes"): the test bounds them and is an expected failure until they do
+NOT_YET = {
+    "tessar_on_axis": ("Zeiss Tessar f2.8 50mm.zmx", 0.0, None,
+                       "2.75e-3 (h47c): the Fresnel step's path-difference nu outside the stop's shadow; with g*s "
+                       "there 5.4e-4, which the bundled asphere at 17.5 deg does not allow (7.4e-4 -> 3.9e-3)"),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(NOT_YET))
+def test_default_psf_of_lens_classes_not_yet_within_1e_3(name):
+    """The Zeiss Tessar 50 mm F/2.8 on axis (the caustic fallback: its DOE plane 5.7 mm before focus): 2.75e-3 from
+    the reference converged to 8.0e-11 (the DOE-plane edge 2.88e-2). Bounded at 4e-3 so that a change for the worse
+    shows; xfail until within 1e-3."""
+    fname, frac, pitch, why = NOT_YET[name]
+    psf, ref = _default_and_reference(DATA / fname, frac, pitch)
+    err = float((psf - ref.psf).abs().sum())
+    print(f"{name}: {err:.3g} from the Huygens PSF (its own error ~{ref.error_estimate:.2g})")
+    assert ref.error_estimate is not None and ref.error_estimate < REF_TOL
+    assert err < 4e-3
+    if err >= 1e-3:
+        pytest.xfail(f"not yet 1e-3: {why}")
