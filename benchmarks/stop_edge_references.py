@@ -11,6 +11,12 @@ References:
   the polar pupil quadrature: levels ×1.25 up to ``--max-n`` until two agree to ``tol``; ``ref_error`` the last
   change, an upper bound for the finer level's error, ~1e-10 once the wavefront is resolved; ``ref_levels`` each
   level's change).
+- ``file:PATH:FRAC[:PITCH_UM]`` (issue 47, h47c: any lens file, e.g. of the OpticExplorer database in
+  ../shared/data/opticsdatabase, through ``raywave psf``'s defaults and its blank DOE, as ``real:``; ``FRAC`` a
+  fraction of the file's largest field or ``NNdeg`` an angle, for files with only an on-axis field such as a
+  catalogue achromat; ``PITCH_UM`` the sensor pitch, default the DOE pitch): the same Huygens reference. Each row
+  also names the step the default took (``step``: "doe cut", "fresnel" or "caustic fallback", :func:`default_step`)
+  and the lens's F-number. ``--tol`` sets the reference's level agreement (1e-6: ~1e-10 once resolved).
 - ``two_lens:DEG`` (tests/test_ideal_lens_truth.py's two ideal lenses, a blank DOE 5 mm behind lens B) and
   ``single:CASE`` (one ideal lens, a DOE 1 mm behind it: binary, 16level, fresnel200 (a Fresnel DOE, object at
   200 mm), blank): the independent wave-optics truths of tests/wave_truth.py (no rays, no exit pupil: the stop's
@@ -32,6 +38,8 @@ the paper's edge), and ``*_iu8`` (the same with ``intensity_upsample=8``: the se
 
     PYTHONPATH=. python benchmarks/stop_edge_references.py real:double_gauss:0 asphere:0 two_lens:0 single:blank \
         [--variants default doe] [--max-n 432] [--cache DIR] [-o F]
+    PYTHONPATH=. python benchmarks/stop_edge_references.py "file:/tmp/db/Optics/.../Lens.zmx:0.7:3" \
+        --variants default doe --sphere rim_images --max-n 1024 --tol 1e-6 --cache DIR
 """
 
 import argparse
@@ -68,6 +76,58 @@ def l1(a, b) -> float:
     return float((torch.as_tensor(a) - torch.as_tensor(b)).abs().sum())
 
 
+def _file_case(rest: list) -> tuple:
+    """``(path, frac, sensor pitch mm or None)`` of a ``file:PATH:FRAC[:PITCH_UM]`` case's parts after "file"."""
+    if len(rest) < 2:
+        raise ValueError(f"a file case is file:PATH:FRAC[:PITCH_UM], got file:{':'.join(rest)}")
+    if len(rest) >= 3 and _is_number(rest[-1]) and (rest[-2].endswith("deg") or _is_number(rest[-2])):
+        return ":".join(rest[:-2]), rest[-2], float(rest[-1]) * 1e-3
+    return ":".join(rest[:-1]), rest[-1], None
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _field_angle(frac: str, lens) -> float:
+    """The field angle (degrees) of a case's ``FRAC``: a fraction of the lens's largest field, or ``"2deg"``: an
+    angle (for a lens file with only an on-axis field, e.g. a catalogue achromat)."""
+    if frac.endswith("deg"):
+        return float(frac[:-3])
+    return float(frac) * max(float(f) for f in lens.fields)
+
+
+def _case_tag(case: str) -> str:
+    """A file-name-safe tag of a case (a ``file:`` case by its lens file's stem)."""
+    kind, *rest = case.split(":")
+    if kind == "file":
+        path, frac, pitch = _file_case(rest)
+        tail = "" if pitch is None else f"_{pitch * 1e3:g}um"
+        return "file_" + "".join(c if c.isalnum() or c in ".-" else "_" for c in Path(path).stem) + f"_{frac}{tail}"
+    return case.replace(":", "_")
+
+
+def default_step(hl, fld, wl, depth, caught) -> str:
+    """The step the default (``edge_step="adaptive"``) took for the source: "doe cut" (a blank DOE on a spherical
+    wave: the edge cut on the DOE plane, exact there), "fresnel" (the knife-edge step from the rim images) or
+    "caustic fallback" (the DOE plane too near the rays' focus: the Fresnel step to an earlier plane, the angular
+    spectrum beyond; named by its StopEdgeWarning in ``caught``)."""
+    from raywave.hybrid.coherent.exit_pupil import adaptive_edge_step
+
+    if hl.stop_edge != "exit_pupil":
+        return f"{hl.stop_edge} edge"
+    if hl.edge_step != "adaptive":
+        return hl.edge_step
+    step = adaptive_edge_step(hl.lens, hl.doe, fld, wl, depth, float(hl.doe_z()), float(hl.sensor_z()), "angle")
+    if step == "fresnel" and any("carried to it by the angular spectrum" in w for w in caught):
+        return "caustic fallback"
+    return step if step == "fresnel" else "doe cut"
+
+
 def _hybrid(case: str, kw: dict):
     """``(HybridLens, field (2,), wavelength µm, depth)`` of a case with the variant's keywords ``kw``."""
     from raywave.doe import BlankDOE
@@ -82,17 +142,19 @@ def _hybrid(case: str, kw: dict):
         lens = load_lens(bundled_lens_path("asphere_hk51"))
         hl = HybridLens(lens, BlankDOE(6000, 1e-3), 0.7, sensor_pitch=3e-3, intensity_upsample=iu, **kw)
         return hl, (0.0, float(rest[0])), 0.53, None
-    if kind == "real":
+    if kind in ("real", "file"):
         from raywave.assembly.build import load_hybrid
         from raywave.lens.build import load_lens, resolve_lens_path
 
-        name, frac = rest[0], float(rest[1])
-        lens = load_lens(resolve_lens_path(LENSES[name]))
-        fld = (0.0, frac * max(float(f) for f in lens.fields))
+        if kind == "real":
+            path, frac, pitch = LENSES[rest[0]], rest[1], PITCH.get((rest[0], float(rest[1])))
+        else:
+            path, frac, pitch = _file_case(rest)
+        lens = load_lens(resolve_lens_path(path))
+        fld = (0.0, _field_angle(frac, lens))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            hl = load_hybrid(LENSES[name], sensor_pitch=PITCH.get((name, frac)), fields=[list(fld), [0.0, 0.0]],
-                             field_type="angle", **kw)
+            hl = load_hybrid(path, sensor_pitch=pitch, fields=[list(fld), [0.0, 0.0]], field_type="angle", **kw)
         hl.intensity_upsample = iu
         return hl, fld, hl.lens.primary_wavelength, None
     sys.path.insert(0, str(ROOT / "tests"))
@@ -123,9 +185,11 @@ def engine_psfs(case: str, ks: int, variants):
             except ValueError as e:
                 out[v] = str(e)[:200]
                 continue
-        out[v] = (r.psf[0, 0].detach(), time.perf_counter() - t,
+        dt = time.perf_counter() - t
+        out[v] = (r.psf[0, 0].detach(), dt,
                   sorted({f"{w.category.__name__}: {str(w.message)[:100]}" for w in caught
-                          if w.category.__name__ != "SensorCropWarning"}))
+                          if w.category.__name__ != "SensorCropWarning"}),
+                  default_step(hl, fld, wl, depth, [str(w.message) for w in caught]))
         geo = (hl, fld, wl, depth, tuple(float(c) for c in r.center[0, 0]))
     return out, geo
 
@@ -180,26 +244,30 @@ def _sphere_kind(sphere: str):
         raise argparse.ArgumentTypeError(f"--sphere: 'paraxial', 'rim_images' or a radius in mm, got {sphere!r}")
 
 
-def reference(case: str, geo, ks: int, max_n: int, cache: Path | None, sphere: str = "paraxial"):
+def reference(case: str, geo, ks: int, max_n: int, cache: Path | None, sphere: str = "paraxial",
+              tol: float | None = None):
     """``(reference psf, row)``: the converged reference of the case and its convergence (cached in ``cache``);
     ``sphere``: where the Huygens reference's edge sits ("paraxial": the sphere through the paraxial exit pupil;
     "rim_images": at each rim point's image, :func:`_edge_at_rim_images`; a number: on the sphere of that radius in
-    mm about the chief ray's sensor intercept, :func:`_edge_on_sphere`)."""
+    mm about the chief ray's sensor intercept, :func:`_edge_on_sphere`); ``tol``: the Huygens levels' agreement that
+    ends the refinement (None: huygens_psf's own AUTO_TOL)."""
     tail = "" if sphere == "paraxial" else f"_{sphere}" if isinstance(sphere, str) else f"_R{sphere:g}"
-    fn = None if cache is None else cache / f"ref_{case.replace(':', '_')}_ks{ks}{tail}.pt"
+    tail += "" if tol is None else f"_tol{tol:g}"
+    fn = None if cache is None else cache / f"ref_{_case_tag(case)}_ks{ks}{tail}.pt"
     if fn is not None and fn.exists():
         d = torch.load(fn, weights_only=False)
         return d["psf"], d["row"]
     hl, fld, wl, depth, center = geo
     kind, *rest = case.split(":")
     t = time.perf_counter()
-    if kind in ("real", "asphere"):
+    if kind in ("real", "file", "asphere"):
         from raywave.models.exit_pupil import huygens_psf
 
         def run():
+            extra = {} if tol is None else {"tol": tol}
             return huygens_psf(hl.lens, fld, wl, ks=ks, pitch=hl.sensor_pitch, center=center, n_pupil="auto",
                                sensor_z=float(hl.sensor_z()), max_n_pupil=max_n,
-                               sphere="paraxial" if sphere in ("paraxial", "rim_images") else "rim")
+                               sphere="paraxial" if sphere in ("paraxial", "rim_images") else "rim", **extra)
 
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -236,17 +304,20 @@ def reference(case: str, geo, ks: int, max_n: int, cache: Path | None, sphere: s
     return psf, row
 
 
-def run(case: str, ks: int, variants, max_n: int, cache, sphere: str = "paraxial"):
+def run(case: str, ks: int, variants, max_n: int, cache, sphere: str = "paraxial", tol: float | None = None):
     eng, geo = engine_psfs(case, ks, variants)
     if geo is None:
         return dict(case=case, error={v: r for v, r in eng.items()})
-    ref, row = reference(case, geo, ks, max_n, cache, sphere)
+    ref, row = reference(case, geo, ks, max_n, cache, sphere, tol)
     row["sphere"] = sphere
     hl, fld, wl, depth, center = geo
     res = dict(case=case, ks=ks, field=list(fld), wavelength=wl, depth=depth, pitch=hl.sensor_pitch,
                doe_distance=hl.doe_distance, doe_pitch=float(hl.doe.pitch), **row)
+    if case.startswith("file:"):
+        par = hl.lens.paraxial()
+        res["f_number"] = float(par.efl) / float(par.epd)
     for v, r in eng.items():
-        res[v] = r if isinstance(r, str) else dict(l1=l1(r[0], ref), time_s=r[1], warnings=r[2])
+        res[v] = r if isinstance(r, str) else dict(l1=l1(r[0], ref), time_s=r[1], step=r[3], warnings=r[2])
     return res
 
 
@@ -260,13 +331,15 @@ def main(argv=None):
     ap.add_argument("--sphere", type=_sphere_kind, default="paraxial",
                     help="the Huygens reference's edge: 'paraxial' (on the sphere through the paraxial exit pupil), "
                          "'rim_images' (at the stop rim's images) or a sphere radius in mm")
+    ap.add_argument("--tol", type=float, default=None,
+                    help="the Huygens reference's levels must agree to this (default: huygens_psf's AUTO_TOL, 2e-4)")
     ap.add_argument("-o", "--output")
     a = ap.parse_args(argv)
     if a.cache is not None:
         a.cache.mkdir(parents=True, exist_ok=True)
     rows = []
     for c in a.cases:
-        r = run(c, a.ks, a.variants, a.max_n, a.cache, a.sphere)
+        r = run(c, a.ks, a.variants, a.max_n, a.cache, a.sphere, a.tol)
         emit_row(rows, r, a.output)
     return rows
 

@@ -1,0 +1,90 @@
+"""Issue 47 on lens classes beyond the four of tests/test_stop_edge_references.py: the default PSF (``raywave psf``'s
+defaults: exit-pupil stop edge, ``edge_step="adaptive"``, the lens file's default blank DOE) of real lens files from
+the OpticExplorer Optics Database (tests/data/opticsdatabase, MIT, attributed there) against the Huygens exit-pupil
+PSF with its stop edge at the stop rim's images (``huygens_psf(sphere="rim_images")``, ``n_pupil="auto"``, its levels
+agreeing to 1e-6), the reference's own error beside the figure. Slow (the reference's pupil sum).
+
+The sweep behind it (h47c, 2026-11-29; ``benchmarks/stop_edge_references.py "file:PATH:FRAC[:PITCH_UM]" --sphere
+rim_images --tol 1e-6``, benchmarks/results/stop_edge_other_lenses_2026-11-29_xv_h47c.json, docs/ray-wave.md
+"Other lens classes") covers a Tessar, a telephoto, a Planar, an air-spaced achromat objective and a catalogue
+cemented achromat; the cases that hold are pinned here, the others are described there.
+"""
+
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+
+DATA = Path(__file__).resolve().parent / "data" / "opticsdatabase"
+#: the reference's own error estimate must be below this (resolved polar levels agree to ~1e-10)
+REF_TOL = 1e-5
+
+
+def _default_and_reference(path: Path, frac: float, pitch: float | None):
+    """``(default psf (32, 32), Huygens result)`` at ``frac`` of the file's largest field (an angle), primary
+    wavelength, ks 32, as the benchmark's ``file:`` cases."""
+    from raywave.assembly.build import load_hybrid
+    from raywave.lens.build import load_lens
+    from raywave.models.exit_pupil import huygens_psf
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lens = load_lens(path)
+        fld = (0.0, frac * max(float(f) for f in lens.fields))
+        hl = load_hybrid(path, sensor_pitch=pitch, fields=[list(fld), [0.0, 0.0]], field_type="angle")
+        wl = hl.lens.primary_wavelength
+        with torch.no_grad():
+            r = hl.psf_result(fld, wl, ks=32)
+            ref = huygens_psf(hl.lens, fld, wl, ks=32, pitch=hl.sensor_pitch,
+                              center=tuple(float(c) for c in r.center[0, 0]), n_pupil="auto",
+                              sensor_z=float(hl.sensor_z()), max_n_pupil=1024, sphere="rim_images", tol=1e-6)
+    return r.psf[0, 0], ref
+
+
+CASES = {
+    # name: (file, field fraction, sensor pitch mm or None: the DOE pitch) -> measured (docstring below)
+    "telephoto": ("Cosina Voigtlander Tele-Dynar 100mm f6.3.zmx", 0.7, 3e-3),
+    "achromat": ("Telescope Fraunhofer.zmx", 1.0, None),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(CASES))
+def test_default_psf_of_other_lens_classes_within_1e_3_of_the_converged_reference(name):
+    """Measured (h47c): the Cosina Voigtländer Tele-Dynar 100 mm F/6.3 (a telephoto, 11.8° field) at 0.7 field
+    (8.25°), 3 µm pixels: 1.66e-4 (the Fresnel step; the reference's own error 3.0e-9; the DOE-plane edge 1.1e-2);
+    the Fraunhofer telescope objective (an air-spaced achromat, 100 mm F/7, 0.57° field) at full field, its 2.7 µm
+    DOE pitch as the pixels: 3.91e-4 (the Fresnel step; own error 5.4e-10; the DOE-plane edge 6.7e-4)."""
+    fname, frac, pitch = CASES[name]
+    psf, ref = _default_and_reference(DATA / fname, frac, pitch)
+    err = float((psf - ref.psf).abs().sum())
+    print(f"{name} at {frac} field: {err:.3g} from the Huygens PSF (its own error ~{ref.error_estimate:.2g}, "
+          f"levels {ref.levels})")
+    assert ref.error_estimate is not None and ref.error_estimate < REF_TOL
+    assert err < 1e-3
+
+
+#: lens classes where the default does not yet meet 1e-3, with the measured figure and its cause (docs/ray-wave.md
+#: "Other lens classes"): the test bounds them and is an expected failure until they do
+NOT_YET = {
+    "tessar_on_axis": ("Zeiss Tessar f2.8 50mm.zmx", 0.0, None,
+                       "2.75e-3 (h47c): the Fresnel step's path-difference nu outside the stop's shadow; with g*s "
+                       "there 5.4e-4, which the bundled asphere at 17.5 deg does not allow (7.4e-4 -> 3.9e-3)"),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(NOT_YET))
+def test_default_psf_of_lens_classes_not_yet_within_1e_3(name):
+    """The Zeiss Tessar 50 mm F/2.8 on axis (the caustic fallback: its DOE plane 5.7 mm before focus): 2.75e-3 from
+    the reference converged to 8.0e-11 (the DOE-plane edge 2.88e-2). Bounded at 4e-3 so that a change for the worse
+    shows; xfail until within 1e-3."""
+    fname, frac, pitch, why = NOT_YET[name]
+    psf, ref = _default_and_reference(DATA / fname, frac, pitch)
+    err = float((psf - ref.psf).abs().sum())
+    print(f"{name}: {err:.3g} from the Huygens PSF (its own error ~{ref.error_estimate:.2g})")
+    assert ref.error_estimate is not None and ref.error_estimate < REF_TOL
+    assert err < 4e-3
+    if err >= 1e-3:
+        pytest.xfail(f"not yet 1e-3: {why}")
