@@ -13,6 +13,8 @@ Cases (the helpers of benchmarks/stop_edge_references.py build the engine and lo
   reference ``huygens_psf(sphere="rim_images")`` (``ref_CASE_ks32_rim_images.pt``);
 - ``asphere:DEG``: the bundled asphere's lens (6 mm blank DOE of 1 µm pixels at 0.7 mm, 3 µm sensor pixels,
   λ 0.53 µm), reference ``huygens_psf`` on the paraxial sphere (``ref_asphere_DEG_ks32.pt``);
+- ``coarse:DEG``: ``asphere:DEG`` on a 4 µm DOE grid (1500², the same 6 mm): a field the grid does not resolve (the
+  engine's SamplingWarning: its phase slope passes the Nyquist limit), compared with the same reference;
 - ``rgb:NAME:FRAC``: the lens at every one of its wavelengths (no reference: the change alone), for the sources where
   the FFT size matters most.
 
@@ -44,7 +46,7 @@ import raywave.wave.propagation.transfer as transfer
 
 CASES = ([f"real:{n}:{f}" for n in ("cooke_triplet", "double_gauss", "singlet_nbk7_50", "asphere_f13")
           for f in ("0", "0.7", "1.0")] + [f"asphere:{d}" for d in ("0", "7", "14", "17.5")]
-         + ["rgb:cooke_triplet:1.0", "rgb:cooke_triplet:1.2"])
+         + ["rgb:cooke_triplet:1.0", "rgb:cooke_triplet:1.2"] + [f"coarse:{d}" for d in ("0", "7", "14")])
 #: measured peaks (issue 47's sweep): these need more than any budget a shared 2-core machine gives
 TOO_LARGE = {"real:asphere_f13:1.0": "needs ~12.6 GiB at its own FFT size"}
 
@@ -77,8 +79,15 @@ def scaled_psf(case: str, scale: float, ks: int):
     """``(psf (W, ks, ks), centres, geometry for the reference, batches seen, seconds)`` of ``case`` with the FFT
     sizes multiplied by ``scale``."""
     kind, *rest = case.split(":")
-    real = "real:" + ":".join(rest) if kind == "rgb" else case
-    hl, fld, wl, depth = _hybrid(real, {})
+    if kind == "coarse":
+        from raywave.doe import BlankDOE
+        from raywave.hybrid import HybridLens
+        from raywave.lens.build import bundled_lens_path, load_lens
+
+        hl = HybridLens(load_lens(bundled_lens_path("asphere_hk51")), BlankDOE(1500, 4e-3), 0.7, sensor_pitch=3e-3)
+        fld, wl, depth = (0.0, float(rest[0])), 0.53, None
+    else:
+        hl, fld, wl, depth = _hybrid("real:" + ":".join(rest) if kind == "rgb" else case, {})
     wls = list(hl.lens.wavelengths) if kind == "rgb" else [wl]
     if kind == "rgb":
         fld = (0.0, float(rest[1]) * max(float(f) for f in hl.lens.fields))
@@ -86,13 +95,14 @@ def scaled_psf(case: str, scale: float, ks: int):
     transfer.FFT_SIZE_SCALE = float(scale)
     t = time.process_time()
     try:
-        with _Sizes() as sizes, warnings.catch_warnings(), torch.no_grad():
-            warnings.simplefilter("ignore")
+        with _Sizes() as sizes, warnings.catch_warnings(record=True) as caught, torch.no_grad():
+            warnings.simplefilter("always")
             r = hl.psf_result(fld, wls, ks=ks, depth=depth)
     finally:
         transfer.FFT_SIZE_SCALE = old
     center = tuple(float(c) for c in r.center[0, 0])
-    return r.psf[0].detach(), (hl, fld, wl, depth, center), sizes.seen, time.process_time() - t, wls
+    sampling = sorted({str(w.message)[:110] for w in caught if w.category.__name__ == "SamplingWarning"})
+    return r.psf[0].detach(), (hl, fld, wl, depth, center), sizes.seen, time.process_time() - t, wls, sampling
 
 
 def run_case(case: str, scales, ks: int, cache: Path, max_gb: float, peak_per_sample: float | None):
@@ -108,17 +118,18 @@ def run_case(case: str, scales, ks: int, cache: Path, max_gb: float, peak_per_sa
             if est > max_gb:
                 row["scales"][str(s)] = dict(skipped=f"estimated peak {est:.1f} GiB > --max-gb {max_gb:g}")
                 continue
-        psf, geo, seen, sec, wls = scaled_psf(case, s, ks)
+        psf, geo, seen, sec, wls, sampling = scaled_psf(case, s, ks)
         ent = dict(fft=[list(x[0]) for x in seen], batch=[x[1] for x in seen], in_shape=[list(x[2]) for x in seen],
                    cpu_s=round(sec, 2), maxrss_gib=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2))
         if base is None:
             base = dict(psf=psf, fft=seen[0][0], geo=geo)
-            row.update(wavelengths=wls, field=list(geo[1]), in_shape=list(seen[0][2]), out_shape=list(seen[0][3]))
+            row.update(wavelengths=wls, field=list(geo[1]), in_shape=list(seen[0][2]), out_shape=list(seen[0][3]),
+                       sampling_warnings=sampling)
         else:
             ent["change_from_own"] = [_rel(psf[w], base["psf"][w]) for w in range(psf.shape[0])]
         if not case.startswith("rgb:"):
             sphere = "rim_images" if case.startswith("real:") else "paraxial"
-            ref, rrow = reference(case, base["geo"], ks, 432, cache, sphere)
+            ref, rrow = reference(case.replace("coarse:", "asphere:"), base["geo"], ks, 432, cache, sphere)
             ent["vs_ref"] = _rel(psf[0], ref)
             row.update(ref_error=rrow.get("ref_error"), ref_n_pupil=rrow.get("ref_n_pupil"), ref_sphere=sphere)
         row["scales"][str(s)] = ent
@@ -154,7 +165,6 @@ def map_ab(spec: str, repeat: int) -> dict:
     n, m, w = (int(v) for v in spec.split("x"))
     wls = [0.66, 0.53, 0.47][:w]
     hl = _lens()
-    warnings.simplefilter("ignore")
     hl.psf_result((0.0, 0.0), wls[:1], ks=64)  # warm-up
     times, psfs, batches = {False: [], True: []}, {}, {}
     old = batched.COMMON_FFT
@@ -162,21 +172,28 @@ def map_ab(spec: str, repeat: int) -> dict:
         for _ in range(repeat):
             for flag in (False, True):
                 batched.COMMON_FFT = flag
-                with _Batches() as seen:
+                with _Batches() as seen, warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
                     t = time.process_time()
                     pm = psf_map(hl, grid=(n, m), wavelengths=wls, ks=64, progress=False)
                     times[flag].append((time.process_time() - t) / (n * m * w))
+                sampling = sorted({str(c.message)[:90] for c in caught if c.category.__name__ == "SamplingWarning"})
                 psfs[flag], batches[flag] = pm.psf.detach(), seen.sizes
     finally:
         batched.COMMON_FFT = old
     a, b = psfs[False], psfs[True]
-    rel = (a - b).abs().sum((-2, -1)) / a.abs().sum((-2, -1))
+    rel = (a - b).abs().sum((-2, -1)) / a.abs().sum((-2, -1))  # (D, W, N, M)
+    top = torch.topk(rel.reshape(-1), min(5, rel.numel()))
+    worst = [dict(rel_l1=float(v), wavelength=wls[int(i) // (n * m) % w],
+                  field_deg=[float(x) for x in pm.fields.reshape(-1, 2)[int(i) % (n * m)]])
+             for v, i in zip(top.values, top.indices)]
     med = {k: statistics.median(v) for k, v in times.items()}
     return dict(map=[n, m], wavelengths=wls, ks=64, psfs=n * m * w, repeat=repeat, threads=torch.get_num_threads(),
                 cpu_s_per_psf_off=med[False], cpu_s_per_psf_on=med[True], ratio_on_over_off=med[True] / med[False],
                 cpu_s_per_psf_all={"off": times[False], "on": times[True]},
                 batches_off=len(batches[False]), batches_on=len(batches[True]),
-                batch_sizes_off=batches[False], batch_sizes_on=batches[True], max_rel_l1_on_vs_off=float(rel.max()))
+                batch_sizes_off=batches[False], batch_sizes_on=batches[True], max_rel_l1_on_vs_off=float(rel.max()),
+                median_rel_l1_on_vs_off=float(rel.median()), worst=worst, sampling_warnings=sampling)
 
 
 def main(argv=None):

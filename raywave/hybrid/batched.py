@@ -2,7 +2,8 @@
 the pixel integration of a group of DOE-plane fields as batched tensor operations.
 
 The sources of a call are grouped (:func:`plan_groups`): one group per wavelength, medium, distance, mode and
-the FFT size each source needs on its own, cut into batches whose FFT-grid arrays stay within :data:`BATCH_BYTES`.
+the FFT size each source needs on its own (with :data:`COMMON_FFT`: not the FFT size, each batch on the largest its
+members need), cut into batches whose FFT-grid arrays stay within :data:`BATCH_BYTES`.
 Every discrete choice (the padded window shape, the FFT size, the band's rows and columns, the output window) is
 made once per batch on the host from the sources' geometry (host floats that the fields carry), so the hot path
 has no per-PSF device→host round trip. A batch then runs (:func:`propagate_group`):
@@ -94,11 +95,15 @@ def _fft_size(pl: Planned, n_out: int, kk: int) -> tuple[int, int]:
     return _geometry(src, (n_out, n_out), p, 0.5, 2.0).size
 
 
-#: one FFT size per group (issue 43): the sources of a wavelength, medium, distance, pitch and mode share one batch
+#: one FFT size per group (issue 43): the sources of a wavelength, medium, distance, pitch and mode share batches
 #: (cut at :data:`BATCH_BYTES`), each batch on the largest FFT size any of its members needs, instead of one group per
-#: own FFT size. A larger FFT grid changes a PSF only by the rolled-off kernel's wrap-around at the own size: ≤ 1.1e-10
-#: relative L1 on the real lenses and the bundled asphere (benchmarks/fft_size_convergence.py,
-#: benchmarks/results/fft_size_convergence_2026-11-29_xv_h43f.json). Off by default: main's PSFs bit for bit.
+#: own FFT size. A larger FFT grid than a source's own changes its PSF only by the rolled-off kernel's tails, which wrap
+#: around at the own size (benchmarks/fft_size_convergence.py, benchmarks/results/
+#: fft_size_convergence_2026-11-29_xv_h43f.json): ≤ 6.4e-9 relative L1 on the four real lenses and the bundled asphere
+#: (their errors against converged references, 6e-5 … 8e-4, move by ≤ 2.2e-9), ≤ 1.5e-7 on the hybrid_asphere 6×6×3
+#: map (its corner beams clipped by the DOE's edge). Fields the grid does not resolve (a SamplingWarning) move by up to
+#: 1e-2: there the band covers the whole FFT grid, and their PSFs are wrong by far more anyway. Off by default: main's
+#: PSFs bit for bit; on, the 6×6×3 map runs 18 batches instead of 22 and is not faster on a CPU (larger FFTs).
 COMMON_FFT = False
 
 
@@ -106,10 +111,10 @@ def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int)
     """The batches of ``planned`` (lattice-path sources with light): grouped by wavelength, medium index, distance,
     pitch, whether the sensor distance is differentiated (``chief_tan``) and (unless :data:`COMMON_FFT`) the FFT size
     each source needs on its own, so that every PSF is the one-source path's to rounding; each group cut where a batch
-    would pass :data:`BATCH_BYTES` (``element_size`` bytes per complex sample of the FFT grid). A larger FFT grid than
-    a source's own moves its PSF by ≤ 1.1e-10 relative L1 (the kernel's tails beyond its roll-off, which wrap around
-    at the own size; benchmarks/fft_size_convergence.py). With :data:`COMMON_FFT` a group's sources are sorted by
-    their own FFT area (largest first) and cut greedily: each batch runs on its first member's FFT size."""
+    would pass :data:`BATCH_BYTES` (``element_size`` bytes per complex sample of the FFT grid). (A larger FFT grid
+    than a source's own moves a resolved source's PSF by ≤ 6.4e-9 relative L1, ≤ 1.5e-7 for a beam clipped by the
+    DOE's edge: :data:`COMMON_FFT`.) With :data:`COMMON_FFT` a group's sources are sorted by their own FFT area
+    (largest first) and cut greedily: each batch runs on the largest size per axis that its members need."""
     by_wave: dict = {}
     for pl in planned:
         fd = pl.fd
