@@ -204,7 +204,7 @@ def main(argv=None):
     ap.add_argument("--cache", type=Path, default=Path("/tmp/k47/cache"), help="the cached references")
     ap.add_argument("--max-gb", type=float, default=8.0, help="skip a scale whose estimated peak passes this")
     ap.add_argument("--peak-per-sample", type=float, default=150.0,
-                    help="bytes of peak per FFT-grid sample, for the estimate (~110 B measured: 0.69 GiB at 2560², Cooke triplet on axis)")
+                    help="bytes of peak per FFT-grid sample, for the estimate (50-110 B measured on these cases)")
     ap.add_argument("--map-ab", metavar="NxMxW", help="time COMMON_FFT off vs on on this map instead")
     ap.add_argument("--repeat", type=int, default=3, help="--map-ab: interleaved rounds")
     ap.add_argument("-o", "--output")

@@ -103,9 +103,9 @@ def _fft_size(pl: Planned, n_out: int, kk: int) -> tuple[int, int]:
 #: (their errors against converged references, 6e-5 … 8e-4, move by ≤ 2.2e-9), ≤ 1.5e-7 on the hybrid_asphere 6×6×3
 #: map (its corner beams clipped by the DOE's edge). Fields the grid does not resolve (a SamplingWarning) move by up to
 #: 1e-2: there the band covers the whole FFT grid, and their PSFs are wrong by far more anyway. Off by default: main's
-#: PSFs bit for bit; on, the 6×6×3 map runs 18 batches instead of 22 at 1.11× the CPU time per PSF (larger FFTs), and the
-#: 10×10×3 map dispatches 528 ops per PSF instead of 557; the pins of tests/pin_cases.py would move (≤ 9.4e-8; the Cooke
-#: triplet on its unresolved 4 µm grid 2.0e-3) and need regenerating.
+#: PSFs bit for bit; on, the 6×6×3 map runs 18 batches instead of 22 at 1.11× the CPU time per PSF (larger FFTs), and
+#: the 10×10×3 map dispatches 528 ops per PSF instead of 557; the pins of tests/pin_cases.py would move (≤ 9.4e-8; the
+#: Cooke triplet on its unresolved 4 µm grid 2.0e-3) and need regenerating.
 COMMON_FFT = False
 
 

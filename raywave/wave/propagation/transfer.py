@@ -17,11 +17,11 @@ from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _pair, _positi
                                               check_single_field, fast_fft_size, legacy_call)
 
 
-#: the FFT size of every window pair (:func:`window_transfer`, the batched engine) multiplied by this factor per axis and
-#: rounded up to a fast size: 1 (the default) leaves the smallest size that keeps the circular convolution linear, bit
-#: for bit. A convergence hook, not a setting (benchmarks/fft_size_convergence.py): on fields the grid resolves, a larger
-#: size moves a PSF by ≤ 6.4e-9 relative L1 (the rolled-off kernel's tails, which wrap at the own size), ≤ 1.5e-7 where
-#: the DOE's edge clips the beam (issue 43)
+#: the FFT size of every window pair (:func:`window_transfer`, the batched engine) multiplied by this factor per axis
+#: and rounded up to a fast size: 1 (the default) leaves the smallest size that keeps the circular convolution linear,
+#: bit for bit. A convergence hook, not a setting (benchmarks/fft_size_convergence.py): on fields the grid resolves, a
+#: larger size moves a PSF by ≤ 6.4e-9 relative L1 (the rolled-off kernel's tails, which wrap at the own size),
+#: ≤ 1.5e-7 where the DOE's edge clips the beam (issue 43)
 FFT_SIZE_SCALE = 1.0
 
 
