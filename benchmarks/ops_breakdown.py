@@ -134,6 +134,8 @@ def main():
     ap.add_argument("--accelerator", action="store_true",
                     help="count the ops of the path an accelerator takes (the lens traces, the edge envelope and the "
                          "band convolution in CUDA's block sizes: the same values, fewer blocks)")
+    ap.add_argument("--common-fft", action="store_true",
+                    help="one FFT size per group of sources (raywave.hybrid.batched.COMMON_FFT, issue 43)")
     ap.add_argument("-o", "--output", default=None)
     args = ap.parse_args()
 
@@ -152,6 +154,10 @@ def main():
     _ROOT = os.path.dirname(os.path.abspath(raywave.__file__))
     if args.accelerator:
         _accelerator_sizes()
+    if args.common_fft:
+        import raywave.hybrid.batched as batched_mod
+
+        batched_mod.COMMON_FFT = True
     torch.set_num_threads(args.threads)
     warnings.simplefilter("ignore")
     n, m, w = (int(v) for v in args.map.split("x"))
@@ -178,7 +184,7 @@ def main():
 
     out = {"benchmark": "ops_breakdown", "lens": "hybrid_asphere", "grid": [n, m], "wavelengths": wls, "ks": KS,
            "stop_edge": hl.stop_edge, "torch": torch.__version__,
-           "path": "accelerator (CUDA block sizes)" if args.accelerator else "cpu"}
+           "path": "accelerator (CUDA block sizes)" if args.accelerator else "cpu", "common_fft": args.common_fft}
     cases = [("no_grad", nograd, f0.shape[0] * w)] + ([("grad", fwd_bwd, f.shape[0] * w)] if args.grad else [])
     for name, fn, k in cases:
         total, funcs, phases, openers, syncs = breakdown(fn)

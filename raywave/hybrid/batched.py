@@ -2,7 +2,8 @@
 the pixel integration of a group of DOE-plane fields as batched tensor operations.
 
 The sources of a call are grouped (:func:`plan_groups`): one group per wavelength, medium, distance, mode and
-the FFT size each source needs on its own, cut into batches whose FFT-grid arrays stay within :data:`BATCH_BYTES`.
+the FFT size each source needs on its own (with :data:`COMMON_FFT`: not the FFT size, each batch on the largest its
+members need), cut into batches whose FFT-grid arrays stay within :data:`BATCH_BYTES`.
 Every discrete choice (the padded window shape, the FFT size, the band's rows and columns, the output window) is
 made once per batch on the host from the sources' geometry (host floats that the fields carry), so the hot path
 has no per-PSF device→host round trip. A batch then runs (:func:`propagate_group`):
@@ -94,13 +95,28 @@ def _fft_size(pl: Planned, n_out: int, kk: int) -> tuple[int, int]:
     return _geometry(src, (n_out, n_out), p, 0.5, 2.0).size
 
 
+#: one FFT size per group (issue 43): the sources of a wavelength, medium, distance, pitch and mode share batches
+#: (cut at :data:`BATCH_BYTES`), each batch on the largest FFT size any of its members needs, instead of one group per
+#: own FFT size. A larger FFT grid than a source's own changes its PSF only by the rolled-off kernel's tails, which wrap
+#: around at the own size (benchmarks/fft_size_convergence.py, benchmarks/results/
+#: fft_size_convergence_2026-11-29_xv_h43f.json): ≤ 6.4e-9 relative L1 on the four real lenses and the bundled asphere
+#: (their errors against converged references, 6e-5 … 8e-4, move by ≤ 2.2e-9), ≤ 1.5e-7 on the hybrid_asphere 6×6×3
+#: map (its corner beams clipped by the DOE's edge). Fields the grid does not resolve (a SamplingWarning) move by up to
+#: 1e-2: there the band covers the whole FFT grid, and their PSFs are wrong by far more anyway. Off by default: main's
+#: PSFs bit for bit; on, the 6×6×3 map runs 18 batches instead of 22 at 1.11× the CPU time per PSF (larger FFTs), and
+#: the 10×10×3 map dispatches 528 ops per PSF instead of 557; the pins of tests/pin_cases.py would move (≤ 9.4e-8; the
+#: Cooke triplet on its unresolved 4 µm grid 2.0e-3) and need regenerating.
+COMMON_FFT = False
+
+
 def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int) -> list[list[Planned]]:
     """The batches of ``planned`` (lattice-path sources with light): grouped by wavelength, medium index, distance,
-    pitch, whether the sensor distance is differentiated (``chief_tan``) and the FFT size each source needs on its
-    own (so that every PSF is the one-source path's to rounding: a larger FFT grid samples the rolled-off kernel's
-    spectrum more finely, which moves a strongly aberrated PSF such as the Cooke triplet's by up to 2e-3 L1), each
-    group cut where a batch would pass :data:`BATCH_BYTES` (``element_size`` bytes per complex sample of the FFT
-    grid)."""
+    pitch, whether the sensor distance is differentiated (``chief_tan``) and (unless :data:`COMMON_FFT`) the FFT size
+    each source needs on its own, so that every PSF is the one-source path's to rounding; each group cut where a batch
+    would pass :data:`BATCH_BYTES` (``element_size`` bytes per complex sample of the FFT grid). (A larger FFT grid
+    than a source's own moves a resolved source's PSF by ≤ 6.4e-9 relative L1, ≤ 1.5e-7 for a beam clipped by the
+    DOE's edge: :data:`COMMON_FFT`.) With :data:`COMMON_FFT` a group's sources are sorted by their own FFT area
+    (largest first) and cut greedily: each batch runs on the largest size per axis that its members need."""
     by_wave: dict = {}
     for pl in planned:
         fd = pl.fd
@@ -109,12 +125,33 @@ def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int)
     for key in sorted(by_wave, key=str):
         members = by_wave[key]
         kk = max(out_half_width(sensor, key[3], pl.center) for pl in members)
+        if COMMON_FFT:
+            batches.extend(_common_batches(members, kk, element_size))
+            continue
         groups: dict = {}
         for pl in members:
             groups.setdefault(_fft_size(pl, 2 * kk + 1, kk), []).append(pl)
         for (my, mx), group in sorted(groups.items()):
             per = max(1, BATCH_BYTES // (my * mx * element_size))
             batches.extend(group[i:i + per] for i in range(0, len(group), per))
+    return batches
+
+
+def _common_batches(members: list[Planned], kk: int, element_size: int) -> list[list[Planned]]:
+    """:data:`COMMON_FFT`'s batches of one group (output half-width ``kk``): the members by own FFT size, largest
+    first (a stable sort: ties keep the call's order), cut where a batch on the FFT size its members need (each
+    axis's largest) would pass :data:`BATCH_BYTES`."""
+    sized = sorted(((_fft_size(pl, 2 * kk + 1, kk), pl) for pl in members), key=lambda t: -t[0][0] * t[0][1])
+    batches, cur, (my, mx) = [], [], (0, 0)
+    for (sy, sx), pl in sized:
+        ny, nx = max(my, sy), max(mx, sx)
+        if cur and (len(cur) + 1) * ny * nx * element_size > BATCH_BYTES:
+            batches.append(cur)
+            cur, ny, nx = [], sy, sx
+        cur.append(pl)
+        my, mx = ny, nx
+    if cur:
+        batches.append(cur)
     return batches
 
 

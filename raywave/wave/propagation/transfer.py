@@ -17,6 +17,14 @@ from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _pair, _positi
                                               check_single_field, fast_fft_size, legacy_call)
 
 
+#: the FFT size of every window pair (:func:`window_transfer`, the batched engine) multiplied by this factor per axis
+#: and rounded up to a fast size: 1 (the default) leaves the smallest size that keeps the circular convolution linear,
+#: bit for bit. A convergence hook, not a setting (benchmarks/fft_size_convergence.py): on fields the grid resolves, a
+#: larger size moves a PSF by ≤ 6.4e-9 relative L1 (the rolled-off kernel's tails, which wrap at the own size),
+#: ≤ 1.5e-7 where the DOE's edge clips the beam (issue 43)
+FFT_SIZE_SCALE = 1.0
+
+
 class _Geometry(NamedTuple):
     """The checked scalars of one window pair: FFT size, the band of the lateral shift Δ per axis."""
 
@@ -96,6 +104,8 @@ def _geometry(src: WindowSource, out_shape, pitch, margin, guard) -> _Geometry:
     ex = int(math.ceil(margin + tx / px - 1e-9))
     ey = int(math.ceil(margin + ty / py - 1e-9))
     mx, my = fast_fft_size(nix + nox - 1 + 2 * ex), fast_fft_size(niy + noy - 1 + 2 * ey)
+    if FFT_SIZE_SCALE != 1.0:
+        mx, my = fast_fft_size(math.ceil(FFT_SIZE_SCALE * mx)), fast_fft_size(math.ceil(FFT_SIZE_SCALE * my))
 
     dx, dy = xo0 - xi0, yo0 - yi0
     bx = (dx - (nix - 1 + margin) * px, dx + (nox - 1 + margin) * px, tx)  # (lo, hi, roll-off) of Δx
