@@ -116,3 +116,24 @@ def test_focused_weak_order_gradients_by_finite_differences():
 
     params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
     M.assert_central_differences(loss, params, 2e-4, step=1e-7)
+
+
+@pytest.mark.slow
+def test_focused_weak_order_with_order_1_gradients_by_finite_differences():
+    """Orders 1 (the exact edge) and +17 (the DOE-plane edge, ``weak_edge="doe"``) at 1°: d(Σ w·PSF) against central
+    differences at the step 1e-7 (see :func:`test_focused_weak_order_gradients_by_finite_differences`), measured
+    6.4e-4 (the DOE's focal length) and 4.3e-6 (lens A's) relative; before the edge distance's |∇slack| was
+    differentiated 1.6e-3 and 7.8e-5, and at the step 1e-6 (a coverage kink inside it) 1.5 %. This derivative is
+    small (7.5e-5, the orders' terms nearly cancel): the PSF's rounding (~1e-12 between calls, the aiming's
+    tolerance) over the 1e-5 mm difference is ~1e-3 of it, hence the bar."""
+    field = (0.0, 1.0)
+    doe, lens, ml = _lens(field, min_efficiency=1e-3, orders=[1, 17], weak_edge="doe", **EXACT)
+    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+
+    def loss():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # order +17's pixel loss (named by the sampling report)
+            return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
+
+    params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
+    M.assert_central_differences(loss, params, 2e-3, step=1e-7)
