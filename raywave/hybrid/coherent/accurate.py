@@ -355,8 +355,14 @@ def _edge_distances(slack_maps, is_stop, diffracting: bool, h_node: float) -> di
     aperture's slack, their gradients taken at once."""
     if len(slack_maps) == 0:
         return {"dist": None, "stop": None, "other": None}
-    gy_, gx_ = torch.gradient(slack_maps.detach(), spacing=h_node, dim=(1, 2))
-    dj = slack_maps / torch.sqrt(gx_**2 + gy_**2).clamp_min(1e-12)  # (A, ky, kx)
+    # |∇ slack| differentiated too (issue 46): the interpolated distance near an edge is a cubic combination of
+    # nodes up to 2h from it, where slack ≠ 0, so its derivative needs d|∇ slack|/dθ (the ray map's magnification of
+    # the aperture; 1e-3 of the PSF gradient for a DOE order focused between the DOE and the next surface when it
+    # was detached). The same values as before (the clamp at 1e-12 as a mask: finite derivatives at a kink's centre)
+    gy_, gx_ = torch.gradient(slack_maps, spacing=h_node, dim=(1, 2))
+    n2_all = gx_**2 + gy_**2
+    ok_all = n2_all > 1e-24
+    dj = slack_maps / torch.where(ok_all, safe_sqrt(n2_all, ok_all), torch.full_like(n2_all, 1e-12))  # (A, ky, kx)
     dist = dj.amin(0)
     stop, other = None, None
     if diffracting:
