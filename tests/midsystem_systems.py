@@ -59,20 +59,30 @@ def two_lens_split(sys) -> Lens:
     return Lens([a, s, b], wavelengths=(sys.wavelength,), primary=0, fields=(0.0,))
 
 
+def central_differences(loss, params: dict, steps=(1e-6,)) -> list:
+    """``[(name, step, autograd gradient, central difference)]``: the autograd gradient of the scalar ``loss()`` with
+    respect to each 0-d parameter of ``params`` (name → tensor) and its central difference at each relative step of
+    ``steps`` (× max(|value|, 1); the parameter is restored)."""
+    grads = torch.autograd.grad(loss(), list(params.values()))
+    out = []
+    for (name, prm), g in zip(params.items(), grads):
+        for step in steps:
+            h = step * max(abs(float(prm.detach())), 1.0)
+            with torch.no_grad():
+                prm += h
+            lp = float(loss().detach())
+            with torch.no_grad():
+                prm -= 2 * h
+            lm = float(loss().detach())
+            with torch.no_grad():
+                prm += h
+            out.append((name, step, float(g), (lp - lm) / (2 * h)))
+    return out
+
+
 def assert_central_differences(loss, params: dict, rel: float, step: float = 1e-6) -> None:
     """The autograd gradient of the scalar ``loss()`` with respect to each 0-d parameter of ``params`` (name →
     tensor) within ``rel`` of its central difference at the step ``step`` × max(|value|, 1) (the parameter is
-    restored)."""
-    grads = torch.autograd.grad(loss(), list(params.values()))
-    for (name, prm), g in zip(params.items(), grads):
-        h = step * max(abs(float(prm.detach())), 1.0)
-        with torch.no_grad():
-            prm += h
-        lp = float(loss().detach())
-        with torch.no_grad():
-            prm -= 2 * h
-        lm = float(loss().detach())
-        with torch.no_grad():
-            prm += h
-        fd = (lp - lm) / (2 * h)
-        assert abs(float(g) - fd) <= rel * abs(fd), (name, float(g), fd)
+    restored; :func:`central_differences`)."""
+    for name, _, g, fd in central_differences(loss, params, (step,)):
+        assert abs(g - fd) <= rel * abs(fd), (name, g, fd)
