@@ -13,7 +13,8 @@ Rows:
 * ``ops_10x10x3`` (``--ops``): aten ops dispatched per PSF of the map's first call, no grad and forward + backward
   (on a GPU each op is a kernel launch).
 
-    python benchmarks/gpu_issue43.py --device cuda [--map-seconds 90] [--ops] [-o rows.json]
+    python benchmarks/gpu_issue43.py --device cuda [--map-seconds 90] [--ops] [--rows map,fwd_bwd,big_map]
+        [--per-call 8] [-o rows.json]
 """
 
 from __future__ import annotations
@@ -128,6 +129,8 @@ def main(argv=None) -> list:
     ap.add_argument("--big-grid", type=int, default=100, help="N of the N×N×1 map")
     ap.add_argument("--map-seconds", type=float, default=90.0, help="stop the N×N×1 map after this long")
     ap.add_argument("--ops", action="store_true", help="also the aten ops per PSF (TorchDispatchMode)")
+    ap.add_argument("--rows", default="map,fwd_bwd,big_map", help="which rows (comma-separated: map, fwd_bwd, big_map)")
+    ap.add_argument("--per-call", type=int, default=8, help="field points a call of the forward + backward row")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("-o", "--output", default=None)
     args = ap.parse_args(argv)
@@ -145,10 +148,12 @@ def main(argv=None) -> list:
     emit_row(rows, {"case": "env", "device": str(dev), "torch": torch.__version__, "python": platform.python_version(),
                     "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor(),
                     "threads": torch.get_num_threads(), "stop_edge": hl.stop_edge, "ks": KS}, args.output)
-    for row in map_rows(hl, dev, args.grid):
+    wanted = set(args.rows.split(","))
+    for row in map_rows(hl, dev, args.grid) if "map" in wanted else []:
         emit_row(rows, row, args.output)
-    emit_row(rows, fwd_bwd_row(hl, dev, args.grid), args.output)
-    if args.map_seconds > 0:
+    if "fwd_bwd" in wanted:
+        emit_row(rows, fwd_bwd_row(hl, dev, args.grid, args.per_call), args.output)
+    if "big_map" in wanted and args.map_seconds > 0:
         emit_row(rows, big_map_row(hl, dev, args.big_grid, args.map_seconds), args.output)
     if args.ops:
         from imaging import ops_case  # noqa: E402  (benchmarks/imaging.py)

@@ -94,6 +94,7 @@ def main(argv=None) -> dict:
         trainer = _trainer_class(args.steps, args.seconds, times, sync, peaks)(cfg, run_dir, progress=False)
         sync()
         setup = time.perf_counter() - t0
+        chunk = trainer.chunk
         setup_cuda = torch.cuda.max_memory_allocated(device) / 1e6 if cuda else None
         t1 = time.perf_counter()
         try:
@@ -110,7 +111,8 @@ def main(argv=None) -> dict:
         "threads": torch.get_num_threads(), "torch": torch.__version__, "python": platform.python_version(),
         "grid": list(cfg.optics.grid), "wavelengths_per_psf_map": sum(len(v) for v in cfg.optics.wavelengths.values()),
         "ks": cfg.optics.ks, "batch_size": cfg.stage1.batch_size, "patch_size": cfg.data.patch_size,
-        "replay": cfg.optics.replay, "steps": len(times), "setup_seconds": setup, "run_seconds": wall,
+        "replay": cfg.optics.replay, "chunk_setting": cfg.optics.chunk, "chunk_field_points": chunk,
+        "steps": len(times), "setup_seconds": setup, "run_seconds": wall,
         "first_step_seconds": times[0] if times else None, "step_seconds_median": med,
         "step_seconds": times, "steps_per_second": 1.0 / med if med else None,
         "peak_rss_mb": status_mb("VmHWM") - base_mb,

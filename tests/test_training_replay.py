@@ -212,3 +212,33 @@ def test_replay_autograd_memory_does_not_grow_with_the_number_of_psfs():
     assert rep4 <= 1.05 * rep2  # one chunk's graph whatever the number of chunks
     assert full4 > 3 * full2
     assert rep4 + render4 < 0.25 * full4
+
+
+def test_auto_chunk_takes_a_quarter_of_the_accelerators_free_memory(monkeypatch):
+    """``optics.chunk: auto``: on a CPU 4 field points (at most the map's); on a GPU as many as a quarter of its free
+    memory holds at REPLAY_BYTES_PER_DOE_SAMPLE per DOE sample and source (mem_get_info stubbed: no GPU needed)."""
+    import raywave.training.replay as replay
+
+    assert replay.auto_chunk(100, 3, 9_000_000, "cpu") == replay.CPU_AUTO_CHUNK == 4
+    assert replay.auto_chunk(2, 3, 9_000_000, "cpu") == 2
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (130e9, 141e9))
+    per_point = 3 * 9_000_000 * replay.REPLAY_BYTES_PER_DOE_SAMPLE
+    assert replay.auto_chunk(1000, 3, 9_000_000, "cuda") == int(0.25 * 130e9 // per_point) == 150
+    assert replay.auto_chunk(100, 3, 9_000_000, "cuda") == 100  # the whole map in one chunk
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (1e6, 141e9))
+    assert replay.auto_chunk(100, 3, 9_000_000, "cuda") == 1  # never less than one field point
+    assert replay.auto_chunk(100, 3, 0, "cuda") == 4  # no DOE grid to size it by: the CPU's choice
+
+
+def test_the_chunk_setting_takes_a_count_or_auto(tmp_path):
+    """The config accepts ``chunk: auto`` or an integer ≥ 1, and names the setting when it gets anything else."""
+    from raywave.training.config import ConfigError, load_config
+
+    for value, ok in (("auto", True), (3, True), (0, False), ("big", False)):
+        p = tmp_path / "c.yaml"
+        p.write_text(f"name: t\noptics:\n  chunk: {value}\n")
+        if ok:
+            assert load_config(p).optics.chunk == value
+        else:
+            with pytest.raises(ConfigError, match="chunk"):
+                load_config(p)

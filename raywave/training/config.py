@@ -88,7 +88,9 @@ class OpticsConfig:
         rays: traced nodes per PSF (None: the engine default).
         wavelengths: per colour channel R, G, B the candidate wavelengths (µm), one drawn per channel and
             iteration in stage 1, all averaged in stage 2 / evaluation.
-        chunk: PSFs (field points) recomputed together in the replay (memory ∝ chunk).
+        chunk: field points computed together in the map's forward pass and recomputed together in the replay
+            (memory ∝ chunk), or ``auto`` (:func:`raywave.training.replay.auto_chunk`): on a GPU as many as a
+            quarter of its free memory holds (fewer chunks: less host time a step), on a CPU 4.
         replay: use the memory-saving replay (False: one full autograd graph; small maps only).
         field_jitter: shift the whole ``grid`` of nodes by a random offset each pre-stage / stage-1 step,
             uniform in ±``field_jitter``/2 of a grid cell along x and y (drawn from the run's generator, so a
@@ -116,7 +118,7 @@ class OpticsConfig:
     rays: Optional[int] = None
     wavelengths: dict = field(default_factory=lambda: {"R": [0.62, 0.66, 0.70], "G": [0.50, 0.53, 0.56],
                                                        "B": [0.45, 0.47, 0.49]})
-    chunk: int = 1
+    chunk: Union[int, str] = 1
     replay: bool = True
     field_jitter: float = 0.0
     eval_ks: Optional[int] = None
@@ -312,7 +314,7 @@ RULES: dict[str, Rule] = {
     "OpticsConfig.ks": _COUNT,
     "OpticsConfig.rays": Rule(lo=2),
     "OpticsConfig.wavelengths": Rule(lo=0, lo_open=True, hi=100.0, nonempty=True),
-    "OpticsConfig.chunk": _COUNT,
+    "OpticsConfig.chunk": Rule(lo=1, choices=("auto",)),
     "OpticsConfig.field_jitter": _UNIT,
     "OpticsConfig.eval_ks": _COUNT,
     "OpticsConfig.doe_levels": Rule(lo=2),

@@ -36,7 +36,7 @@ from typing import Any, Callable, Sequence
 
 import torch
 
-__all__ = ["OpticsStep", "ChunkContext", "ReplayMismatchError", "chunk_ranges"]
+__all__ = ["OpticsStep", "ChunkContext", "ReplayMismatchError", "chunk_ranges", "auto_chunk"]
 
 
 class ReplayMismatchError(RuntimeError):
@@ -64,6 +64,38 @@ def chunk_ranges(n: int, chunk: int) -> list[range]:
     if n < 0 or chunk < 1:
         raise ValueError(f"need n >= 0 and chunk >= 1, got n={n}, chunk={chunk}")
     return [range(i, min(i + chunk, n)) for i in range(0, n, chunk)]
+
+
+#: field points per chunk that ``chunk: auto`` takes on a CPU: there the chunk's ops are compute-bound, and chunks of
+#: 1, 5 and 25 field points of the paper's map ran at the same time per PSF (2026-11-30), while memory grows with
+#: the chunk
+CPU_AUTO_CHUNK = 4
+#: bytes of autograd graph a replayed source (field point × wavelength) holds per sample of the DOE's simulation grid
+#: (an upper bound: measured 3.3–3.7 B on the bundled asphere's 3000² and 2000² DOEs with a frozen lens, 2026-11-30;
+#: its window covers part of the DOE)
+REPLAY_BYTES_PER_DOE_SAMPLE = 8
+#: fraction of the accelerator's free memory that ``chunk: auto`` gives one chunk's graph
+AUTO_CHUNK_MEMORY_FRACTION = 0.25
+
+
+def auto_chunk(n_points: int, sources_per_point: int, doe_samples: int, device) -> int:
+    """Field points per replay chunk for ``optics.chunk: auto``: on an accelerator, as many as a quarter of its
+    free memory holds at :data:`REPLAY_BYTES_PER_DOE_SAMPLE` per DOE sample and source (fewer, larger chunks: each
+    chunk is a few hundred kernel launches, whatever its size, so the GPU's step time falls with the chunk
+    count); on a CPU :data:`CPU_AUTO_CHUNK`.
+
+    Args:
+        n_points: field points of the map (the most a chunk can hold).
+        sources_per_point: sources per field point in one chunk (wavelengths: 3 in stage 1).
+        doe_samples: samples of the DOE's simulation grid (0: unknown, e.g. a DOE inside the lens).
+        device: the torch device of the optics.
+    """
+    dev = torch.device(device)
+    if dev.type != "cuda" or doe_samples <= 0:
+        return max(1, min(CPU_AUTO_CHUNK, n_points))
+    free, _ = torch.cuda.mem_get_info(dev)
+    per_point = max(1, sources_per_point) * doe_samples * REPLAY_BYTES_PER_DOE_SAMPLE
+    return max(1, min(n_points, int(AUTO_CHUNK_MEMORY_FRACTION * free // per_point)))
 
 
 def _as_tuple(x) -> tuple[torch.Tensor, ...]:

@@ -43,7 +43,7 @@ from raywave.training.config import TrainConfig, dump_config
 from raywave.training.fabricating import FabricationSchedule
 from raywave.training.losses import image_loss
 from raywave.training.networks import DepthSelect, PSFAwareNet, build_network
-from raywave.training.replay import OpticsStep, chunk_ranges
+from raywave.training.replay import OpticsStep, auto_chunk, chunk_ranges
 from raywave.training.schedule import build_optimizer, param_groups, warmup_cosine_scheduler
 from raywave.training.steps import _LIT_DRAWS, DarkRegionWarning, StageSteps, _lit_nodes, _nearest_node
 
@@ -284,6 +284,7 @@ class Trainer(FabricationSchedule, StageSteps):
         with torch.no_grad():
             self.fields = field_grid(self.hl, self.grid, depth=self.depths[0]).reshape(-1, 2)
         self.positions = normalised_grid(self.grid, device=self.device)
+        self.chunk = self._replay_chunk()
         self.pitch = self.hl.sensor_pitch
         self.train_data = train_data if train_data is not None else self._dataset("train")
         with torch.random.fork_rng(devices=[]):  # the initial weights depend on the seed only (global RNG untouched)
@@ -516,15 +517,25 @@ class Trainer(FabricationSchedule, StageSteps):
             self.cache.clear()
         return fields, pos.to(self.device)
 
+    def _replay_chunk(self) -> int:
+        """Field points per chunk of a step's map: ``optics.chunk``, or for ``auto`` :func:`auto_chunk` from the
+        device's free memory and the DOE's simulation grid (3 wavelengths a source in stage 1)."""
+        chunk = self.cfg.optics.chunk
+        if chunk != "auto":
+            return int(chunk)
+        doe = getattr(self.hl, "doe", None)
+        shape = doe.sim_shape(1) if hasattr(doe, "sim_shape") else (0, 0)
+        return auto_chunk(self.fields.shape[0], 3, int(shape[0]) * int(shape[1]), self.device)
+
     def optics_step(self, grid_fields=None, wavelengths=None) -> OpticsStep:
-        """The step's PSF map as an :class:`OpticsStep`: chunks = (depth, ``optics.chunk`` field points); outputs
+        """The step's PSF map as an :class:`OpticsStep`: chunks = (depth, :attr:`chunk` field points); outputs
         psf ``(D·F, 3, ks, ks)`` and centres ``(D·F, 3, 2)``; one wavelength per channel drawn from the run's
         generator. ``wavelengths`` ``(W,)`` µm: these instead (outputs ``(D·F, W, ...)``), no draw (the
         generator is not touched)."""
         from raywave.imaging.psfmap import psf_map_points
 
         fields = self.fields if grid_fields is None else grid_fields
-        ranges = chunk_ranges(fields.shape[0], int(self.cfg.optics.chunk))
+        ranges = chunk_ranges(fields.shape[0], self.chunk)
         nf = len(ranges)
         oc = self.cfg.optics
 
