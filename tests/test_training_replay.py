@@ -225,6 +225,8 @@ def test_auto_chunk_takes_a_quarter_of_the_accelerators_free_memory(monkeypatch)
     per_point = 3 * 9_000_000 * replay.REPLAY_BYTES_PER_DOE_SAMPLE
     assert replay.auto_chunk(1000, 3, 9_000_000, "cuda") == int(0.25 * 130e9 // per_point) == 150
     assert replay.auto_chunk(100, 3, 9_000_000, "cuda") == 100  # the whole map in one chunk
+    assert replay.auto_chunk(1000, 3, 9_000_000, "cuda", traced=True) == int(
+        0.25 * 130e9 // (3 * 9_000_000 * replay.REPLAY_BYTES_PER_DOE_SAMPLE_TRACED))  # the lens traced: a larger graph
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (1e6, 141e9))
     assert replay.auto_chunk(100, 3, 9_000_000, "cuda") == 1  # never less than one field point
     assert replay.auto_chunk(100, 3, 0, "cuda") == 4  # no DOE grid to size it by: the CPU's choice

@@ -70,17 +70,21 @@ def chunk_ranges(n: int, chunk: int) -> list[range]:
 #: 1, 5 and 25 field points of the paper's map ran at the same time per PSF (2026-11-30), while memory grows with
 #: the chunk
 CPU_AUTO_CHUNK = 4
-#: bytes of autograd graph a replayed source (field point × wavelength) holds per sample of the DOE's simulation grid
-#: (an upper bound: measured 3.3–3.7 B on the bundled asphere's 3000² and 2000² DOEs with a frozen lens, 2026-11-30;
-#: its window covers part of the DOE)
+#: bytes of autograd graph a replayed source (field point × wavelength) holds per sample of the DOE's simulation grid,
+#: with the frozen lens's DOE fields cached (only their propagation replayed): an upper bound, measured 3.3–3.7 B on
+#: the bundled asphere's 3000² and 2000² DOEs (CPU, 2026-11-30; a source's window covers part of the DOE)
 REPLAY_BYTES_PER_DOE_SAMPLE = 8
+#: the same with the lens traced in the replay (a trained lens: the rays, node maps and fine field in the graph):
+#: measured 11 B (a 10×10×3 map forward + backward in calls of 100 field points on an H200: 29.9 GB, 2026-11-30)
+REPLAY_BYTES_PER_DOE_SAMPLE_TRACED = 16
 #: fraction of the accelerator's free memory that ``chunk: auto`` gives one chunk's graph
 AUTO_CHUNK_MEMORY_FRACTION = 0.25
 
 
-def auto_chunk(n_points: int, sources_per_point: int, doe_samples: int, device) -> int:
+def auto_chunk(n_points: int, sources_per_point: int, doe_samples: int, device, traced: bool = False) -> int:
     """Field points per replay chunk for ``optics.chunk: auto``: on an accelerator, as many as a quarter of its
-    free memory holds at :data:`REPLAY_BYTES_PER_DOE_SAMPLE` per DOE sample and source (fewer, larger chunks: each
+    free memory holds at :data:`REPLAY_BYTES_PER_DOE_SAMPLE` per DOE sample and source (``traced``:
+    :data:`REPLAY_BYTES_PER_DOE_SAMPLE_TRACED`) (fewer, larger chunks: each
     chunk is a few hundred kernel launches, whatever its size, so the GPU's step time falls with the chunk
     count); on a CPU :data:`CPU_AUTO_CHUNK`.
 
@@ -89,12 +93,14 @@ def auto_chunk(n_points: int, sources_per_point: int, doe_samples: int, device) 
         sources_per_point: sources per field point in one chunk (wavelengths: 3 in stage 1).
         doe_samples: samples of the DOE's simulation grid (0: unknown, e.g. a DOE inside the lens).
         device: the torch device of the optics.
+        traced: the replay traces the lens (no DOE-field cache): :data:`REPLAY_BYTES_PER_DOE_SAMPLE_TRACED`.
     """
     dev = torch.device(device)
     if dev.type != "cuda" or doe_samples <= 0:
         return max(1, min(CPU_AUTO_CHUNK, n_points))
     free, _ = torch.cuda.mem_get_info(dev)
-    per_point = max(1, sources_per_point) * doe_samples * REPLAY_BYTES_PER_DOE_SAMPLE
+    per_sample = REPLAY_BYTES_PER_DOE_SAMPLE_TRACED if traced else REPLAY_BYTES_PER_DOE_SAMPLE
+    per_point = max(1, sources_per_point) * doe_samples * per_sample
     return max(1, min(n_points, int(AUTO_CHUNK_MEMORY_FRACTION * free // per_point)))
 
 

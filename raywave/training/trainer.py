@@ -525,7 +525,8 @@ class Trainer(FabricationSchedule, StageSteps):
             return int(chunk)
         doe = getattr(self.hl, "doe", None)
         shape = doe.sim_shape(1) if hasattr(doe, "sim_shape") else (0, 0)
-        return auto_chunk(self.fields.shape[0], 3, int(shape[0]) * int(shape[1]), self.device)
+        return auto_chunk(self.fields.shape[0], 3, int(shape[0]) * int(shape[1]), self.device,
+                          traced=self.cache is None)
 
     def optics_step(self, grid_fields=None, wavelengths=None) -> OpticsStep:
         """The step's PSF map as an :class:`OpticsStep`: chunks = (depth, :attr:`chunk` field points); outputs
