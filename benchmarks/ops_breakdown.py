@@ -123,6 +123,13 @@ def _accelerator_sizes() -> None:
 
     if hasattr(batch_mod, "_by_source"):  # an accelerator evaluates a batch's transfer functions at once
         batch_mod._by_source = lambda device, b: False
+    import raywave.hybrid.batched as batched_mod
+
+    if hasattr(batched_mod, "_accelerator"):  # and shares FFT sizes between resolved sources, in larger batches
+        batched_mod._accelerator = lambda planned: bool(planned)
+        cap = os.environ.get("RAYWAVE_OPS_BATCH_BYTES")  # a smaller cap than the accelerator's, for a CPU's memory
+        if cap:
+            batched_mod.BATCH_BYTES_ACCELERATOR = int(float(cap))
 
 
 def main():

@@ -97,3 +97,27 @@ def test_common_fft_batches_stay_within_the_byte_budget(monkeypatch):
     monkeypatch.setattr(batched, "BATCH_BYTES", 1)
     _, sizes = _run(monkeypatch, True, (0.53,))
     assert sizes == [1] * len(FIELDS)
+
+
+
+def test_an_accelerator_shares_fft_sizes_between_resolved_sources_only(monkeypatch):
+    """On an accelerator (forced here on the CPU) the resolved sources of a wavelength share batches on a common FFT
+    size (2 batches instead of 7, within the FFT-size bound of the own-size PSFs), while fields the pitch does not
+    resolve (the Cooke triplet on a 4 µm grid: their bands reach the grid's highest frequencies, where a shared FFT
+    size moves the PSF by 7.5e-5 of its 0.18 peak) keep their own sizes: their PSFs are the CPU's bit for bit."""
+    own, own_batches = _run(monkeypatch, False)
+    monkeypatch.setattr(batched, "_accelerator", lambda planned: bool(planned))
+    shared, shared_batches = _run(monkeypatch, False)
+    assert len(shared_batches) == 2 < len(own_batches) and sum(shared_batches) == len(FIELDS) * 2
+    assert float(_rel(shared, own).max()) < BOUND
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        hl = load_hybrid(bundled_lens_path("cooke_triplet"), doe_pitch=4e-3, sensor_pitch=4e-3, stop_edge="doe")
+        fields, wl = [(0.0, 0.0), (0.0, 14.0)], [hl.lens.primary_wavelength]
+        accel = hl.psf(fields, wl, ks=24)
+        monkeypatch.setattr(batched, "_resolved", lambda *a: True)
+        forced = hl.psf(fields, wl, ks=24)
+        monkeypatch.setattr(batched, "_accelerator", lambda planned: False)
+        cpu = hl.psf(fields, wl, ks=24)
+    assert torch.equal(accel, cpu)
+    assert float((forced - cpu).abs().max()) > 1e-5  # sharing would have moved them

@@ -22,7 +22,10 @@ SLOW = {"hybrid_asphere_exit_pupil"}
 # the CPU. The node grid is a discrete choice: its spacing flips from 65.70 to 65.95 µm (the beam's extent crosses a
 # whole number of samples), and the field interpolated from the other nodes differs by its interpolation error
 # (±0.13 % in amplitude). A GPU's rounding moved the PSF by 1.4e-8 (H200, 2026-11-27).
+# On an accelerator the resolved sources of a call share FFT sizes (raywave.hybrid.batched.plan_groups): the pins of
+# several sources move by ≤ 3.9e-9 (the ideal-lens case; measured with that plan forced on the CPU, 2026-11-30).
 GPU_FLOOR = {"cooke_triplet": 1e-7}
+GPU_DEFAULT_FLOOR = 1e-8
 FLOOR = {"cooke_triplet": 3e-12}  # ~10 s; the ideal-lens case covers stop_edge="exit_pupil" by default
 
 CASES = [pytest.param(name, marks=pytest.mark.slow) if name in SLOW else name for name in pin_cases.CASES]
@@ -32,8 +35,9 @@ CASES = [pytest.param(name, marks=pytest.mark.slow) if name in SLOW else name fo
 def test_psfs_match_their_pins(name, device):
     ref = np.load(pin_cases.PINS)
     got = pin_cases.compute(name, device)
-    # CUDA's FFTs round differently from pocketfft's: the pins hold to 1e-12 on the CPU, ~1e-9 on a GPU
-    tol = FLOOR.get(name, 1e-12) if device == "cpu" else GPU_FLOOR.get(name, 1e-9)
+    # CUDA's FFTs round differently from pocketfft's, and its batches share FFT sizes: the pins hold to 1e-12 on the
+    # CPU, 1e-8 on a GPU
+    tol = FLOOR.get(name, 1e-12) if device == "cpu" else GPU_FLOOR.get(name, GPU_DEFAULT_FLOOR)
     for key, value in got.items():
         want = ref[f"{name}/{key}"]
         assert value.shape == want.shape, key

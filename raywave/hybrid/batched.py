@@ -34,6 +34,10 @@ from raywave.wave.propagation.transfer import _geometry
 #: a batch holds at most this many bytes of FFT-grid arrays (B × (Ny + n) × (Nx + n) complex samples): it bounds the
 #: batched intermediates (the band spectra, the transfer functions), i.e. the peak memory of one batch
 BATCH_BYTES = 2**28
+#: :data:`BATCH_BYTES` on an accelerator (CUDA: every op a kernel launch, memory aplenty), where the sources of a
+#: group also share one FFT size (:func:`plan_groups`): a 10×10×3 map of the bundled asphere's 3000² DOE runs in a few
+#: batches instead of ~100
+BATCH_BYTES_ACCELERATOR = 2**32
 #: samples of simulation pitch around the PSF window (keeps the periodic upsampling's edge effects out of it)
 OUT_MARGIN = 8
 
@@ -85,14 +89,47 @@ def out_half_width(sensor: SensorWindow, p: float, center: tuple[float, float]) 
     return max(ceil_samples((xc - lo_x) / p), ceil_samples((lo_x + n_out * p - xc) / p))
 
 
-def _fft_size(pl: Planned, n_out: int, kk: int) -> tuple[int, int]:
-    """The FFT size ``(My, Mx)`` that the source ``pl`` needs on its own (:func:`window_transfer`'s, host math) for
-    an output window of ``n_out`` samples whose centre sample lies on its chief ray's image point."""
+def _own_geometry(pl: Planned, n_out: int, kk: int):
+    """The window geometry (:func:`~raywave.wave.propagation.transfer._geometry`, host math) of the source ``pl``
+    on its own, for an output window of ``n_out`` samples whose centre sample lies on its chief ray's image point."""
     fd = pl.fd
     p = fd.pitch
     out = (pl.center[0] - kk * p, pl.center[1] - kk * p)
     src = WindowSource(fd.field.grid.shape, fd.origin, out, fd.wavelength, float(fd.z), fd.n, fd.carrier)
-    return _geometry(src, (n_out, n_out), p, 0.5, 2.0).size
+    return _geometry(src, (n_out, n_out), p, 0.5, 2.0)
+
+
+def _fft_size(pl: Planned, n_out: int, kk: int) -> tuple[int, int]:
+    """The FFT size ``(My, Mx)`` that the source ``pl`` needs on its own (:func:`window_transfer`'s, host math) for
+    an output window of ``n_out`` samples whose centre sample lies on its chief ray's image point."""
+    return _own_geometry(pl, n_out, kk).size
+
+
+def _edge_in_band(m: int, pitch: float, k: float, offset: float, zf: float, band) -> bool:
+    """Whether the transfer function's band (``band`` = (lo, hi, roll-off) of the lateral shift Δ, mm) reaches the
+    highest positive or negative frequency of an ``m``-point FFT grid of ``pitch`` mm (host math of
+    :func:`~raywave.wave.propagation.batch._union_candidates`; ``offset`` the carrier's frequency k·α)."""
+    lo, hi, taper = band
+    for f in ((m + 1) // 2 - 1) / (m * pitch), -(m // 2) / (m * pitch):
+        g = f + offset
+        q = k * k - g * g
+        if q <= 0:
+            continue  # evanescent: never in the band
+        s1 = zf * g / math.sqrt(q)
+        if s1 > 0 and s1 <= hi + taper or s1 < 0 and s1 >= lo - taper or s1 == 0 and lo - taper <= 0 <= hi + taper:
+            return True
+    return False
+
+
+def _resolved(pl: Planned, n_out: int, kk: int) -> bool:
+    """Whether the source's band stays inside its own FFT grid on both axes (its spectrum is resolved: a larger
+    grid moves its PSF only by the kernel's tails, ≤ 6.4e-9 relative L1; see :data:`COMMON_FFT`). A band that
+    reaches the grid's highest frequencies (a field the pitch does not resolve: its PSF moves by up to 1e-2 with the
+    FFT size) keeps its own size."""
+    g = _own_geometry(pl, n_out, kk)
+    (my, mx), (px, py) = g.size, g.pitch
+    return not (_edge_in_band(mx, px, g.k, g.k * g.carrier[0], g.zf, g.bx)
+                or _edge_in_band(my, py, g.k, g.k * g.carrier[1], g.zf, g.by))
 
 
 #: one FFT size per group (issue 43): the sources of a wavelength, medium, distance, pitch and mode share batches
@@ -109,6 +146,20 @@ def _fft_size(pl: Planned, n_out: int, kk: int) -> tuple[int, int]:
 COMMON_FFT = False
 
 
+def _accelerator(planned: list[Planned]) -> bool:
+    """Whether the sources' fields live on an accelerator (not the CPU)."""
+    return bool(planned) and planned[0].fd.envelope.device.type != "cpu"
+
+
+def _accelerator_cap(device) -> int:
+    """:data:`BATCH_BYTES_ACCELERATOR`, at most a 32nd of a CUDA device's memory (a batch's intermediates are
+    several times its FFT-grid arrays)."""
+    dev = torch.device(device)
+    if dev.type != "cuda":
+        return BATCH_BYTES_ACCELERATOR
+    return max(BATCH_BYTES, min(BATCH_BYTES_ACCELERATOR, torch.cuda.get_device_properties(dev).total_memory // 32))
+
+
 def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int) -> list[list[Planned]]:
     """The batches of ``planned`` (lattice-path sources with light): grouped by wavelength, medium index, distance,
     pitch, whether the sensor distance is differentiated (``chief_tan``) and (unless :data:`COMMON_FFT`) the FFT size
@@ -116,7 +167,14 @@ def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int)
     would pass :data:`BATCH_BYTES` (``element_size`` bytes per complex sample of the FFT grid). (A larger FFT grid
     than a source's own moves a resolved source's PSF by ≤ 6.4e-9 relative L1, ≤ 1.5e-7 for a beam clipped by the
     DOE's edge: :data:`COMMON_FFT`.) With :data:`COMMON_FFT` a group's sources are sorted by their own FFT area
-    (largest first) and cut greedily: each batch runs on the largest size per axis that its members need."""
+    (largest first) and cut greedily: each batch runs on the largest size per axis that its members need.
+
+    On an accelerator the resolved sources (:func:`_resolved`) always share FFT sizes this way, in batches of up to
+    :data:`BATCH_BYTES_ACCELERATOR` (each batch is a few hundred kernel launches whatever its size); the others keep
+    their own size. Its PSFs then differ from the CPU's by the FFT size's ≤ 6.4e-9 (≤ 1.5e-7 for a beam clipped by the
+    DOE's edge)."""
+    accel = _accelerator(planned)
+    cap = _accelerator_cap(planned[0].fd.envelope.device) if accel else BATCH_BYTES
     by_wave: dict = {}
     for pl in planned:
         fd = pl.fd
@@ -126,26 +184,30 @@ def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int)
         members = by_wave[key]
         kk = max(out_half_width(sensor, key[3], pl.center) for pl in members)
         if COMMON_FFT:
-            batches.extend(_common_batches(members, kk, element_size))
+            batches.extend(_common_batches(members, kk, element_size, cap))
             continue
+        if accel:
+            shared = [pl for pl in members if _resolved(pl, 2 * kk + 1, kk)]
+            batches.extend(_common_batches(shared, kk, element_size, cap))
+            members = [pl for pl in members if pl not in shared]
         groups: dict = {}
         for pl in members:
             groups.setdefault(_fft_size(pl, 2 * kk + 1, kk), []).append(pl)
         for (my, mx), group in sorted(groups.items()):
-            per = max(1, BATCH_BYTES // (my * mx * element_size))
+            per = max(1, cap // (my * mx * element_size))
             batches.extend(group[i:i + per] for i in range(0, len(group), per))
     return batches
 
 
-def _common_batches(members: list[Planned], kk: int, element_size: int) -> list[list[Planned]]:
+def _common_batches(members: list[Planned], kk: int, element_size: int, cap: int) -> list[list[Planned]]:
     """:data:`COMMON_FFT`'s batches of one group (output half-width ``kk``): the members by own FFT size, largest
     first (a stable sort: ties keep the call's order), cut where a batch on the FFT size its members need (each
-    axis's largest) would pass :data:`BATCH_BYTES`."""
+    axis's largest) would pass ``cap`` bytes."""
     sized = sorted(((_fft_size(pl, 2 * kk + 1, kk), pl) for pl in members), key=lambda t: -t[0][0] * t[0][1])
     batches, cur, (my, mx) = [], [], (0, 0)
     for (sy, sx), pl in sized:
         ny, nx = max(my, sy), max(mx, sx)
-        if cur and (len(cur) + 1) * ny * nx * element_size > BATCH_BYTES:
+        if cur and (len(cur) + 1) * ny * nx * element_size > cap:
             batches.append(cur)
             cur, ny, nx = [], sy, sx
         cur.append(pl)
