@@ -2,9 +2,10 @@
 # The GPU checks of issues 15, 17 and 43, in one short run (about 6 minutes; under 7 at the steps' own timeouts) on
 # a machine with a CUDA GPU (raywave never needs one), most valuable first:
 #   1. issue 43 (benchmarks/gpu_issue43.py): a 10×10×3 map without autograd (cold and warm), the same 300 PSFs
-#      forward + backward (target ≤ 1 s), the 100×100×1 map (10,000 PSFs, target ≤ 10 s; stopped after MAP_SECONDS,
+#      forward + backward in calls of 100 field points (as the replay's `optics.chunk: auto` on a large GPU; ≤ 1 s), the 100×100×1 map (10,000 PSFs, target ≤ 10 s; stopped after MAP_SECONDS,
 #      the projected time of all 10,000 reported), the aten ops per PSF on the device;
-#   2. the paper config's stage-1 step (configs/aberration_paper.yaml, bundled photos instead of DIV2K; target ≤ 3 s);
+#   2. the paper config's stage-1 step (configs/aberration_paper.yaml, `optics.chunk: auto`, bundled photos instead of
+#      DIV2K; target ≤ 3 s; 2026-11-30: 3.6–3.9 s before the accelerator's shared FFT sizes);
 #   3. the device-fixture tests on CUDA (the PSF map equals the CPU's, the pins, a tiny training run on the device);
 #   4. a profile of one node's PSFs (device busy fraction = kernel time / wall time).
 # Results go to $OUT (default /tmp/raywave_gpu): issue43_cuda.json, train_paper_cuda.json, tests.txt,
@@ -35,7 +36,7 @@ step() {  # step NAME TIMEOUT_S COMMAND...: run with a timeout, log to $out/NAME
     timeout "$limit" "$@" > "$out/$name.log" 2>&1 || { echo "== $name: rc $? =="; tail -15 "$out/$name.log"; }
     echo "$name: $(( $(date +%s) - t )) s" | tee -a "$out/env.txt"
 }
-step issue43 170 $py benchmarks/gpu_issue43.py --device cuda --map-seconds "$map_seconds" --ops \
+step issue43 170 $py benchmarks/gpu_issue43.py --device cuda --map-seconds "$map_seconds" --ops --per-call 100 \
     -o "$out/issue43_cuda.json"
 step train 140 $py benchmarks/train_steps.py configs/aberration_paper.yaml --set device=cuda \
     --set data.source=samples --steps 300 --seconds "$train_seconds" -o "$out/train_paper_cuda.json"
