@@ -121,11 +121,21 @@ def _edge_in_band(m: int, pitch: float, k: float, offset: float, zf: float, band
     return False
 
 
+#: sources whose beam the DOE's aperture blocks by more than this fraction keep their own FFT size on an accelerator:
+#: their PSF is mostly the aperture edge's diffraction, whose spectrum fills the band's roll-off (on the bundled
+#: asphere's 10×10×3 map a shared size moved those by up to 1.7e-6 relative L1, beams blocked by ≤ 50 % by ≤ 3.0e-8,
+#: unblocked ones by ≤ 1.0e-10: benchmarks/results/accelerator_plan_accuracy_2026-11-30_xvi.json)
+SHARED_FFT_MAX_CLIPPED = 0.5
+
+
 def _resolved(pl: Planned, n_out: int, kk: int) -> bool:
-    """Whether the source's band stays inside its own FFT grid on both axes (its spectrum is resolved: a larger
-    grid moves its PSF only by the kernel's tails, ≤ 6.4e-9 relative L1; see :data:`COMMON_FFT`). A band that
-    reaches the grid's highest frequencies (a field the pitch does not resolve: its PSF moves by up to 1e-2 with the
-    FFT size) keeps its own size."""
+    """Whether the source may share a larger FFT size: its band stays inside its own FFT grid on both axes (its
+    spectrum is resolved: a larger grid moves its PSF only by the kernel's tails, ≤ 6.4e-9 relative L1; see
+    :data:`COMMON_FFT`) and the DOE's aperture blocks at most :data:`SHARED_FFT_MAX_CLIPPED` of its beam. A band
+    that reaches the grid's highest frequencies (a field the pitch does not resolve: its PSF moves by up to 1e-2 with
+    the FFT size) or a beam mostly blocked keeps its own size."""
+    if float(getattr(pl.fd.info, "clipped", 0.0)) > SHARED_FFT_MAX_CLIPPED:
+        return False
     g = _own_geometry(pl, n_out, kk)
     (my, mx), (px, py) = g.size, g.pitch
     return not (_edge_in_band(mx, px, g.k, g.k * g.carrier[0], g.zf, g.bx)
