@@ -205,7 +205,7 @@ def edge_envelope(amp: torch.Tensor, angle: torch.Tensor, nu: torch.Tensor, dz: 
 ENVELOPE_BLOCK_ROWS = 64
 #: samples per block of :class:`_EdgeEnvelope` (~15 temporaries of 8–16 bytes each: ~100 MB): a window of up to
 #: this many samples is one block (issue 43: each block costs ~25 dispatched ops)
-ENVELOPE_BLOCK_SAMPLES = 2**19
+ENVELOPE_BLOCK_SAMPLES = 2**17
 #: :data:`ENVELOPE_BLOCK_SAMPLES` on an accelerator (CUDA: every op a kernel launch, memory aplenty; ~1.6 GB of
 #: temporaries): a map's windows are one block each
 ENVELOPE_BLOCK_SAMPLES_ACCELERATOR = 2**23
