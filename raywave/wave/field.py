@@ -102,7 +102,7 @@ def _banded_upsample(values: torch.Tensor, my: torch.Tensor, mx: torch.Tensor) -
     lead = values.shape[:-2]
     v = values.reshape(-1, ky, kx)
     ny, nx = my.shape[0], mx.shape[0]
-    grad = torch.is_grad_enabled() and values.requires_grad
+    grad = torch.is_grad_enabled() and any(x.requires_grad for x in (values, my, mx))
     xs, ys = _row_spans(mx, UPSAMPLE_BLOCK), _row_spans(my, UPSAMPLE_BLOCK)
     t = torch.empty((v.shape[0], nx, ky), dtype=v.dtype, device=v.device) if not grad else None
     parts = []
