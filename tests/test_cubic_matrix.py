@@ -4,7 +4,7 @@ onto the first and last three nodes)."""
 
 import torch
 
-from raywave.wave.field import cubic_matrix
+from raywave.wave.field import cubic_matrix, upsample_nodes
 
 
 def test_cubic_matrix_reproduces_quadratics_to_the_boundary():
@@ -21,3 +21,31 @@ def test_cubic_matrix_reproduces_quadratics_to_the_boundary():
         # at a node the interpolant is the node's value
         on = cubic_matrix(x, n_nodes)
         assert torch.allclose(on, torch.eye(n_nodes, dtype=torch.float64), rtol=0, atol=1e-15)
+
+
+def test_banded_upsample_equals_the_dense_products():
+    """upsample_nodes on the CPU (block products over the nodes each block of fine samples touches, issue 47) equals
+    the dense ``my @ values @ mx.T`` to rounding, and its gradient too; with and without autograd bit for bit (a
+    replay compares the two). Blocks of several rows and a last partial block (5 × 37 nodes → 301 × 290 samples)."""
+    g = torch.Generator().manual_seed(5)
+    values = torch.randn((3, 37, 41), generator=g, dtype=torch.float64)
+    pos_y = torch.linspace(0.0, 36.0, 301, dtype=torch.float64)
+    pos_x = torch.linspace(0.3, 39.1, 290, dtype=torch.float64)
+    my, mx = cubic_matrix(pos_y, 37), cubic_matrix(pos_x, 41)
+    dense = my @ values @ mx.T
+    with torch.no_grad():
+        got = upsample_nodes(values, pos_y=pos_y, pos_x=pos_x)
+    assert got.shape == dense.shape
+    assert float((got - dense).abs().max()) < 1e-13
+    v = values.clone().requires_grad_()
+    out = upsample_nodes(v, pos_y=pos_y, pos_x=pos_x)
+    assert torch.equal(out.detach(), got)
+    w = torch.randn(out.shape, generator=g, dtype=torch.float64)
+    (out * w).sum().backward()
+    assert torch.allclose(v.grad, my.T @ w @ mx, rtol=0, atol=1e-12)
+    # the stride form and one channel without a leading axis
+    with torch.no_grad():
+        one = upsample_nodes(values[0], stride=4)
+    fine = torch.arange(36 * 4 + 1, dtype=torch.float64) / 4
+    ref = cubic_matrix(fine, 37) @ values[0] @ cubic_matrix(torch.arange(40 * 4 + 1, dtype=torch.float64) / 4, 41).T
+    assert one.shape == ref.shape and float((one - ref).abs().max()) < 1e-13

@@ -69,7 +69,59 @@ def upsample_nodes(values: torch.Tensor, stride: int | None = None, pos_y: torch
         mx = keys_matrix(kx, stride, values.dtype, values.device)
     else:
         my, mx = cubic_matrix(pos_y.to(values.dtype), ky), cubic_matrix(pos_x.to(values.dtype), kx)
-    return my @ values @ mx.T
+    if values.device.type != "cpu":  # an accelerator: two dense products (two kernels)
+        return my @ values @ mx.T
+    return _banded_upsample(values, my, mx)
+
+
+#: fine samples per block of :func:`_banded_upsample` (a block's taps span about ``UPSAMPLE_BLOCK / stride + 3``
+#: nodes)
+UPSAMPLE_BLOCK = 64
+
+
+def _row_spans(m: torch.Tensor, block: int) -> list[tuple[int, int, int, int]]:
+    """The blocks ``(r0, r1, k0, k1)`` of ``block`` rows of the interpolation matrix ``m`` (n, K) with the half-open
+    column span ``k0:k1`` holding every nonzero of their rows (one host read)."""
+    nz = m.detach() != 0
+    col = torch.arange(m.shape[1], device=m.device)
+    lo = torch.where(nz, col, m.shape[1]).amin(1)
+    hi = torch.where(nz, col, -1).amax(1) + 1
+    starts = list(range(0, m.shape[0], block))
+    bounds = torch.stack([torch.stack([lo[r:r + block].min(), hi[r:r + block].max()]) for r in starts]).tolist()
+    return [(r, min(r + block, m.shape[0]), max(k0, 0), max(k1, k0, 0)) for r, (k0, k1) in zip(starts, bounds)]
+
+
+def _banded_upsample(values: torch.Tensor, my: torch.Tensor, mx: torch.Tensor) -> torch.Tensor:
+    """``my @ values @ mx.T`` for the cubic matrices ``my`` (Ny, Ky), ``mx`` (Nx, Kx) (four taps a row) on a CPU:
+    block by block of :data:`UPSAMPLE_BLOCK` fine samples, each product over the nodes its rows touch only (the
+    same sums of the same nonzero terms as the dense products, to rounding; ~3× faster for a 117² → 877 × 1106
+    window: the dense products spend ~90 % of their work on zeros). First ``t = mx @ valuesᵀ`` (..., Nx, Ky) in
+    blocks of x, then each block of y rows ``my[rows, span] @ t[..., span]ᵀ`` into its rows of the output; the
+    same operations with and without autograd (bit for bit: a replay compares the two)."""
+    ky, kx = values.shape[-2:]
+    lead = values.shape[:-2]
+    v = values.reshape(-1, ky, kx)
+    ny, nx = my.shape[0], mx.shape[0]
+    grad = torch.is_grad_enabled() and any(x.requires_grad for x in (values, my, mx))
+    xs, ys = _row_spans(mx, UPSAMPLE_BLOCK), _row_spans(my, UPSAMPLE_BLOCK)
+    t = torch.empty((v.shape[0], nx, ky), dtype=v.dtype, device=v.device) if not grad else None
+    parts = []
+    for b in range(v.shape[0]):
+        rows = []
+        for x0, x1, k0, k1 in xs:
+            a, w = mx[x0:x1, k0:k1], v[b, :, k0:k1].T
+            rows.append(torch.mm(a, w) if grad else torch.mm(a, w, out=t[b, x0:x1]))
+        parts.append(torch.cat(rows) if grad else t[b])
+    out = torch.empty((v.shape[0], ny, nx), dtype=v.dtype, device=v.device) if not grad else None
+    res = []
+    for b in range(v.shape[0]):
+        rows = []
+        for y0, y1, k0, k1 in ys:
+            a, w = my[y0:y1, k0:k1], parts[b][:, k0:k1].T
+            rows.append(torch.mm(a, w) if grad else torch.mm(a, w, out=out[b, y0:y1]))
+        if grad:
+            res.append(torch.cat(rows))
+    return (torch.stack(res) if grad else out).reshape(*lead, ny, nx)
 
 
 def _roll_modulation(n: int, device) -> torch.Tensor:

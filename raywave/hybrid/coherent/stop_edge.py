@@ -203,9 +203,11 @@ def edge_envelope(amp: torch.Tensor, angle: torch.Tensor, nu: torch.Tensor, dz: 
 #: rows per block of :class:`_EdgeEnvelope` (its window-sized temporaries exist a block at a time): at least this
 #: many, and as many as :data:`ENVELOPE_BLOCK_SAMPLES` allows
 ENVELOPE_BLOCK_ROWS = 64
-#: samples per block of :class:`_EdgeEnvelope` (~15 temporaries of 8–16 bytes each: ~100 MB): a window of up to
-#: this many samples is one block (issue 43: each block costs ~25 dispatched ops)
-ENVELOPE_BLOCK_SAMPLES = 2**19
+#: samples per block of :class:`_EdgeEnvelope` (~15 temporaries of 8–16 bytes each: ~25 MB): a window of up to
+#: this many samples is one block (issue 43: each block costs ~25 dispatched ops). 2¹⁷ since issue 47 (2¹⁹ before): the
+#: bundled asphere's single PSF (845 × 1040 samples) in 7 blocks instead of 2, a fifth of the page faults (30 k → 6 k
+#: per PSF, 42 → 24 ms of system time), the same values
+ENVELOPE_BLOCK_SAMPLES = 2**17
 #: :data:`ENVELOPE_BLOCK_SAMPLES` on an accelerator (CUDA: every op a kernel launch, memory aplenty; ~1.6 GB of
 #: temporaries): a map's windows are one block each
 ENVELOPE_BLOCK_SAMPLES_ACCELERATOR = 2**23

@@ -300,8 +300,9 @@ def _placed_band_values(params: tuple, freqs: tuple, band_index: tuple, weight_d
     fx, fy = freqs
     rows, cols = band_index
     b = params[0].shape[0]
-    band = torch.zeros((b, rows.numel(), cols.numel()), dtype=torch.complex128, device=fx.device)
-    rel = torch.zeros((b, 3, rows.numel(), cols.numel()), dtype=torch.float64, device=fx.device) \
+    # not zero-filled: each source's entries are written once, its own band's or (outside it) zeros
+    band = torch.empty((b, rows.numel(), cols.numel()), dtype=torch.complex128, device=fx.device)
+    rel = torch.empty((b, 3, rows.numel(), cols.numel()), dtype=torch.float64, device=fx.device) \
         if weight_derivative else None
     for i in range(b):
         one = tuple(p[i:i + 1] if isinstance(p, torch.Tensor) else tuple(q[i:i + 1] for q in p) for p in params)
@@ -309,14 +310,42 @@ def _placed_band_values(params: tuple, freqs: tuple, band_index: tuple, weight_d
         c_own = _union_candidates(fx, k, kax, zf, *bx)
         r_own = _union_candidates(fy, k, kay, zf, *by)
         if c_own.numel() == 0 or r_own.numel() == 0:
+            band[i].zero_()
+            if weight_derivative:
+                rel[i].zero_()
             continue
         v, r = _band_values(one, fx[c_own], fy[r_own], weight_derivative)
         rp = index_runs(torch.searchsorted(rows, r_own))
         cp = index_runs(torch.searchsorted(cols, c_own))
         _place(band[i], v[0], rp, cp)
+        _zero_outside(band[i], rp, cp)
         if weight_derivative:
             _place(rel[i], r[0], rp, cp)
+            _zero_outside(rel[i], rp, cp)
     return band, rel
+
+
+def _complement(runs, n: int) -> list[tuple[int, int]]:
+    """The half-open runs of ``0 … n − 1`` outside the sorted runs ``runs``."""
+    out, prev = [], 0
+    for a, b in runs:
+        if a > prev:
+            out.append((prev, a))
+        prev = b
+    if prev < n:
+        out.append((prev, n))
+    return out
+
+
+def _zero_outside(dst: torch.Tensor, row_runs, col_runs) -> None:
+    """Zero ``dst`` ``(..., R, C)`` outside the rows ``row_runs`` × columns ``col_runs`` (what :func:`_place` wrote), in
+    place: the rows outside whole, the columns outside on the rows inside."""
+    for a, b in _complement(row_runs, dst.shape[-2]):
+        dst[..., a:b, :].zero_()
+    cols_out = _complement(col_runs, dst.shape[-1])
+    for ra, rb in row_runs:
+        for ca, cb in cols_out:
+            dst[..., ra:rb, ca:cb].zero_()
 
 
 def _place(dst: torch.Tensor, src: torch.Tensor, row_runs, col_runs) -> None:
