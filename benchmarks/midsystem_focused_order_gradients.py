@@ -13,15 +13,16 @@ holds them (tests/midsystem_systems.py ``FrozenMesh``: the first call's choices 
 held) and the planes' derivatives with respect to both focal lengths.
 
 What it shows (2026-11-30, h46d; docs/ray-wave.md "A DOE inside the lens";
-benchmarks/results/midsystem_focused_order_gradients_2026-11-30_xvi_h46d.json): with the mesh held and the nudge 1e-3
-the gradient agrees with central differences at 1e-6 / 3e-6 / 1e-5: order +17 alone 3.5e-4 / 1.4e-4 / 1.8e-4 (DOE
-focal length) and 3.5e-4 / 5.2e-5 / 1.4e-8 (lens A's), orders 1 and +17 exact 2.8e-6 / 2.9e-6 / 1.4e-3 and 7.7e-9 /
-1.0e-6 / 2.4e-7. The −8.3e-5 against +2.25e-4 read with the mesh free is the mesh's motion: dL/dz_edge = 4.305e-4 per
-mm times the plane's 0.599 mm per mm of the DOE's focal length (+2.58e-4; the differences with the plane alone free
-read it to 2e-8), the node grid the rest. Lens A's 25 % (h46c, both held, the engine's nudge) was that nudge's
-rounding of the rim images (~1e-10 of the loss: 2.5 % at the step 1e-6, 2.4e-5 at 1e-5). With the DOE-plane cut
-(h46c) the gradient agrees at the step 1e-7 (2.5e-5 for order +17 alone); steps ≥ 1e-6 straddle the cut's coverage
-kinks (1.4 %).
+benchmarks/results/midsystem_focused_order_gradients_2026-11-30_xvi_h46d.json): order +17's step plane lies before its
+rim images, where its stop edge was not formed (the converging path difference taken with the wrong sign: ν ≈ 0 over
+the plane); with it fixed its derivative with respect to the DOE's focal length is −2.21e-2 (it read −8.3e-5, against
+central differences' +2.27e-4), and with the rim nudge 1e-3 the gradient agrees with central differences, nothing
+held, to 8.5e-4 / 8.3e-4 at the steps 1e-6 / 1e-5 (lens A's 7.1e-5 / 8.1e-5; orders 1 and +17 exact 1.7e-3 and ≤ 2.4e-6
+at 1e-6 … 3e-6), and with the mesh held to 2.6e-5 / 4.4e-5 and 6.2e-5 / 6.9e-5 (1 and +17: ≤ 1.2e-5 and ≤ 3.7e-6). The
+mesh's share: dL/dz_edge = −1.84e-5 per mm, the plane moving 0.599 mm per mm of the DOE's focal length. Lens A's 25 %
+(h46c, both held, the engine's nudge) was that nudge's rounding of the rim images (~1e-10 of the loss). With the
+DOE-plane cut (h46c) the gradient agrees at the step 1e-7 (2.5e-5 for order +17 alone); steps ≥ 1e-6 straddle the
+cut's coverage kinks (1.4 %).
 
 Usage: ``python benchmarks/midsystem_focused_order_gradients.py [--configs "17 doe" ...] [--steps 1e-7,1e-6]
 [--freeze-edge-plane] [--freeze-nodes] [--rim-nudge 1e-3] [--plane-shifts 1e-5,1e-4] [--out FILE]`` (prints JSON

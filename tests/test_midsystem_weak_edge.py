@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import midsystem_systems as M  # noqa: E402
 import wave_truth_doe as W  # noqa: E402
 
+import raywave.hybrid.coherent.accurate as accurate  # noqa: E402
 from raywave.doe.params import FresnelDOE  # noqa: E402
 from raywave.hybrid.midsystem import (DOEPhaseSurface, MidSystemLens, _absolute_phase, _pupil_phase,  # noqa: E402
                                       _sum_orders)
@@ -144,15 +145,16 @@ def test_focused_weak_order_with_order_1_gradients_by_finite_differences():
 def test_focused_order_exact_edge_gradients_by_finite_differences(orders):
     """Order +17 (it focuses 2.1 mm after the DOE, before lens B) with the exact stop edge, alone and with order 1
     (every order exact), at 1°: d(Σ w·PSF) with respect to the DOE's focal length and lens A's against central
-    differences at the step 1e-6 with the construction's mesh held (:class:`midsystem_systems.FrozenMesh`: the step
-    plane and the node grid, as the gradient holds them, and the rim images' source nudge 1e-3, whose default
-    1e-5 rounds the loss at ~1e-10). Measured (benchmarks/midsystem_focused_order_gradients.py, steps 1e-6 and
-    1e-5): +17 alone 3.5e-4 / 1.7e-4 (the DOE's focal length, a derivative of 8.3e-5) and 6.1e-5 / 2.1e-5 (lens
-    A's); 1 and +17: 2.8e-6 and 6.4e-7. With the mesh free the differences add the derivative of the construction's
-    discretisation error along the plane's motion (+17 alone: +2.58e-4 = 4.3e-4 per mm × 0.60 mm per mm, the
-    7.2 % / "−8.3e-5 against +2.27e-4" read before), which the gradient leaves out by design (docs/ray-wave.md
-    "A DOE inside the lens"); with the engine's rim nudge, the 25 % read for lens A at the step 1e-6 was that nudge's
-    rounding."""
+    differences (steps 1e-6 and 1e-5), the rim images' source nudge 1e-3 (the engine's 1e-5 rounds the loss at
+    ~1e-10).
+
+    With the construction's mesh held as the gradient holds it (:class:`midsystem_systems.FrozenMesh`: the step plane
+    beyond the rim images and the node grid), measured 2.6e-5 / 6.9e-5 (+17 alone: the DOE's focal length, lens A's)
+    and 1.2e-5 / 1.8e-7 (1 and +17); with the mesh free 8.5e-4 / 8.1e-5 and 1.7e-3 / 2.4e-6: the mesh's motion, the
+    derivative of the construction's discretisation error (dL/dz_edge = −1.84e-5 per mm, the plane moving 0.60 mm per
+    mm of the DOE's focal length). Before 2026-11-30 (h46d) +17's stop edge was not formed at all on its step plane,
+    which lies before the rim images (the path difference of the converging edge wave taken with the wrong sign, ν ≈ 0
+    over the plane), and its gradient read −8.3e-5 against +2.27e-4 (the derivative is −2.2e-2)."""
     field = (0.0, 1.0)
     doe, lens, ml = _lens(field, min_efficiency=1e-3, orders=orders, **EXACT)
     w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
@@ -162,6 +164,42 @@ def test_focused_order_exact_edge_gradients_by_finite_differences(orders):
             warnings.simplefilter("ignore")  # order +17's pixel loss (named by the sampling report)
             return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
 
-    params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
+    # the DOE's focal length at the step 1e-6 (1 and +17: a small jump lies within 5e-6), lens A's at 1e-5 (the loss
+    # still rounds at ~3e-11 with the nudge 1e-3: ~2e-4 of this derivative at 1e-6)
+    doe_f, lens_f = {"doe focal length": doe.focal_length}, {"lens A": lens.surfaces[0].interaction.focal_length}
     with M.FrozenMesh() as mesh:
-        M.assert_central_differences(mesh.loss(loss), params, 1e-3, step=1e-6)
+        held = mesh.loss(loss)
+        M.assert_central_differences(held, doe_f, 2e-4, step=1e-6)
+        M.assert_central_differences(held, lens_f, 2e-4, step=1e-5)
+    with M.FrozenMesh(plane=False, nodes=False):  # the nudge alone
+        M.assert_central_differences(loss, doe_f, 3e-3, step=1e-6)
+        M.assert_central_differences(loss, lens_f, 3e-3, step=1e-5)
+
+
+def test_edge_formed_on_a_step_plane_before_the_rim_images(monkeypatch):
+    """Order +17 alone with the exact edge at 1°: its step plane (z 14.60 mm) lies 0.46 mm before its rim images
+    (15.06–15.25 mm), where the stop's edge wave still converges on them. The knife edge's Fresnel parameter ν has the
+    sign of the distance to the edge's shadow and grows inside the beam (measured 71 at the node nearest the stop's
+    centre, ±23 at the grid's rim); before 2026-11-30 (h46d) the converging path difference was taken with the other
+    sign, ≤ 0 at every node, and ν was ~1e-150 over the whole plane (no edge)."""
+    seen = []
+    orig = accurate._stop_edge_maps
+
+    def spy(b, nd, traced, maps):
+        out = orig(b, nd, traced, maps)
+        seen.append((b.z_doe, b.given.stop_rim, maps["stop"][0].detach(), out["nu_raw"]))
+        return out
+
+    monkeypatch.setattr(accurate, "_stop_edge_maps", spy)
+    field = (0.0, 1.0)
+    _, _, ml = _lens(field, min_efficiency=1e-3, orders=[17], **EXACT)
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")  # order +17's pixel loss (named by the sampling report)
+        ml.psf([field], 0.55, ks=16)
+    (z, rim, s, nu), = seen
+    assert z < float(rim[1].min())  # the plane before every rim image
+    ky, kx = nu.shape
+    assert float(nu[ky // 2, kx // 2]) > 50.0
+    far = s.abs() > 0.05  # nodes more than 50 µm from the shadow's edge (~3 Fresnel units)
+    assert bool((torch.sign(nu[far]) == torch.sign(s[far])).all())
+    assert float(nu[far].abs().min()) > 2.0

@@ -441,10 +441,10 @@ def _path_difference_nu(b: _Build, nd: _Nodes, stop_xy: tuple, good, edge: tuple
     the wave diffracted at the edge and the geometric one: ``ν = sign(s)·2·sqrt(Δ/λ)``, ``Δ = Φ_E + n|P − E| − Φ_P``
     with ``E`` the image of the stop's rim point at the node ray's azimuth (:class:`RimImages`: the edge's
     diffracted wave leaves it, on straight lines in the image medium), ``Φ_E`` the optical path to it, ``P`` the
-    node on the plane ``z_doe`` and ``Φ_P`` its optical path (``phi``); ``Δ = Φ_E − n|P − E| − Φ_P`` where the
+    node on the plane ``z_doe`` and ``Φ_P`` its optical path (``phi``); ``Δ = Φ_P + n|P − E| − Φ_E`` where the
     plane lies before the rim's images (the wave still converges on them; the knife edge's factor is then the
-    mirrored one). In the quadratic approximation this is
-    ``g·s`` (:func:`_fresnel_scale`: ``Δ = n s²/(2L)``); unlike it, it holds where the wave's convergence changes
+    mirrored one). Both are ≥ 0 (``|Φ_E − Φ_P| ≤ n|P − E|``), 0 on the shadow's edge. In the quadratic
+    approximation this is ``g·s`` (:func:`_fresnel_scale`: ``Δ = n s²/(2L)``); unlike it, it holds where the wave's convergence changes
     across the edge's Fresnel zones (an aberrated beam, off axis: the local ``L`` at the node is not that of the
     path from the edge). Near the shadow's edge (``|s|`` below a tenth of a Fresnel unit) it blends into ``g·s``:
     ``g_eff² = (4Δ/λ + g² s₀²)/(s² + s₀²)``, smooth and with finite derivatives where ``Δ`` and ``s`` vanish
@@ -458,9 +458,12 @@ def _path_difference_nu(b: _Build, nd: _Nodes, stop_xy: tuple, good, edge: tuple
     filled = nd.as_map(_nearest_fill(at_rim, good, nd.targets))  # (4, ky, kx)
     ex, ey, ez, phi_e = filled
     dx, dy, dz = nd.tx - ex, nd.ty - ey, z_doe - ez
-    # the diffracted wave leaves E on its way to P, or (a DOE plane before the edge's images) converges on it
+    # the diffracted wave leaves E on its way to P, or (a DOE plane before the edge's images) converges on it. Both
+    # differences are ≥ 0 (the optical path is n-Lipschitz: |Φ_E − Φ_P| ≤ n|P − E|) and 0 on the shadow's edge; the
+    # converging one is Φ_P + n|P − E| − Φ_E (issue 46: it was taken with the other sign, < 0 at every node, and
+    # the clamp below then set ν ≈ 0 over the whole plane: no stop edge, the factor D(0) everywhere)
     sgn = 1.0 if bool((dz.detach() > 0).all()) else -1.0
-    delta = phi_e + sgn * n * torch.sqrt(dx * dx + dy * dy + dz * dz) - phi
+    delta = sgn * (phi_e - phi) + n * torch.sqrt(dx * dx + dy * dy + dz * dz)
     lam = wavelength * 1e-3
     s0 = 0.1 / g_s.detach()
     g2 = ((4.0 * delta / lam + g_s * g_s * s0 * s0) / (s_stop * s_stop + s0 * s0)).clamp_min(1e-300)
