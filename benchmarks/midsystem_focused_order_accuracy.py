@@ -1,10 +1,12 @@
 """Issue 46 (diagnostic): order +17 of the 16-level Fresnel DOE (f 50 mm, 1000 × 1 µm pixels; it focuses 2.1 mm after
 the DOE, before lens B) ALONE, with the exact stop edge (``stop_edge="exit_pupil", edge_step="asm"``), against the
 independent wave reference of tests/wave_truth_doe.py fed the same order (transmission ``exp(17 i φ)`` of the
-fabricated phase map), rel L1 of the 32² PSF crop, at the fields given. ``--old-nu``: the exact edge's Fresnel parameter
-as it was before 2026-11-30 (h46d): the converging path difference taken with the wrong sign (ν ≈ 0 over the plane).
+fabricated phase map), rel L1 of the 32² PSF crop, at the fields given. ``--old-nu``: the exact edge's Fresnel
+parameter as it was before 2026-11-30 (h46d): the converging path difference's sign that holds with a focus between
+the plane and the rim images (here ≤ 0 at every node, clamped: ν ≈ 0 over the plane).
 
-Usage: ``python benchmarks/midsystem_focused_order_accuracy.py [--fields 0,1] [--old-nu] [--edge asm|doe] [--out FILE]``."""
+Usage: ``python benchmarks/midsystem_focused_order_accuracy.py [--fields 0,1] [--old-nu] [--edge asm|doe] [--out
+FILE]``."""
 
 from __future__ import annotations
 

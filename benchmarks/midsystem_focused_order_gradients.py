@@ -1,32 +1,32 @@
-"""Issue 46 (diagnostic): the gradient of a mid-system DOE's order that focuses before the next surface, against
-central differences. The 16-level Fresnel DOE (f 50 mm, 800 × 1 µm pixels) 3 mm after lens A of the two-lens system
-of tests/wave_truth_doe.py, at 1°: order +17 focuses 2.1 mm after it, before lens B. ``d(Σ w·PSF)`` (ks 16, the
-weights of tests/test_midsystem_weak_edge.py) with respect to the DOE's focal length and lens A's, analytic against
-central differences at several relative steps, for: order +17 alone with the DOE-plane cut (``"17 doe"``) and with
-the exact edge (``"17 exact"``), orders 1 and +17 with ``weak_edge="doe"`` and with the exact edge for both.
-``--freeze-edge-plane`` / ``--freeze-nodes``: the exact edge's step plane (``exit_pupil._rim_step_plane``, chosen
-from the rim images' detached z) / the accurate construction's node grid (``accurate._node_layout``: its spacing from
-the footprint, centred on the chief ray's point), the construction's mesh, held in the differences as the gradient
-holds them (tests/midsystem_systems.py ``FrozenMesh``: the first call's choices replayed in call order);
-``--rim-nudge``: the stop rim images' source nudge (``stop_edge.RIM_NUDGE``, the engine's 1e-5) for this run;
-``--plane-shifts``: instead of the gradients, ``dL/dz_edge`` (every step plane moved by ± each shift, the node grids
-held) and the planes' derivatives with respect to both focal lengths.
+"""Issue 46 (diagnostic): the gradient of a mid-system DOE's order that focuses before the next surface, against central
+differences. The 16-level Fresnel DOE (f 50 mm, 800 × 1 µm pixels) 3 mm after lens A of the two-lens system of
+tests/wave_truth_doe.py, at 1°: order +17 focuses 2.1 mm after it, before lens B. ``d(Σ w·PSF)`` (ks 16, the weights
+of tests/test_midsystem_weak_edge.py) with respect to the DOE's focal length and lens A's, analytic against central
+differences at several relative steps, for: order +17 alone with the DOE-plane cut (``"17 doe"``) and with the exact
+edge (``"17 exact"``), orders 1 and +17 with ``weak_edge="doe"`` and with the exact edge for both.
+``--freeze-edge-plane`` / ``--freeze-nodes``: the exact edge's step plane (``exit_pupil._rim_step_plane``, chosen from
+the rim images' detached z) / the accurate construction's node grid (``accurate._node_layout``: its spacing from the
+footprint, centred on the chief ray's point), the construction's mesh, held in the differences as the gradient holds
+them (tests/midsystem_systems.py ``FrozenMesh``: the first call's choices replayed in call order); ``--rim-nudge``:
+the stop rim images' source nudge (``stop_edge.RIM_NUDGE``, the engine's 1e-5) for this run; ``--plane-shifts``:
+instead of the gradients, ``dL/dz_edge`` (every step plane moved by ± each shift, the node grids held) and the planes'
+derivatives with respect to both focal lengths.
 
 What it shows (2026-11-30, h46d; docs/ray-wave.md "A DOE inside the lens";
 benchmarks/results/midsystem_focused_order_gradients_2026-11-30_xvi_h46d.json): order +17's step plane lies before its
-rim images, where its stop edge was not formed (the converging path difference taken with the wrong sign: ν ≈ 0 over
-the plane); with it fixed its derivative with respect to the DOE's focal length is −2.21e-2 (it read −8.3e-5, against
-central differences' +2.27e-4), and with the rim nudge 1e-3 the gradient agrees with central differences, nothing
-held, to 8.5e-4 / 8.3e-4 at the steps 1e-6 / 1e-5 (lens A's 7.1e-5 / 8.1e-5; orders 1 and +17 exact 1.7e-3 and ≤ 2.4e-6
-at 1e-6 … 3e-6), and with the mesh held to 2.6e-5 / 4.4e-5 and 6.2e-5 / 6.9e-5 (1 and +17: ≤ 1.2e-5 and ≤ 3.7e-6). The
-mesh's share: dL/dz_edge = −1.84e-5 per mm, the plane moving 0.599 mm per mm of the DOE's focal length. Lens A's 25 %
-(h46c, both held, the engine's nudge) was that nudge's rounding of the rim images (~1e-10 of the loss). With the
-DOE-plane cut (h46c) the gradient agrees at the step 1e-7 (2.5e-5 for order +17 alone); steps ≥ 1e-6 straddle the
-cut's coverage kinks (1.4 %).
+rim images with no focus of the beam between, where its stop edge was not formed (the converging path difference kept
+the sign it has with a focus between: ≤ 0 at every node, clamped, ν ≈ 0 over the plane); with it fixed its derivative
+with respect to the DOE's focal length is −2.21e-2 (it read −8.3e-5, against central differences' +2.27e-4), and with
+the rim nudge 1e-3 the gradient agrees with central differences, nothing held, to 8.5e-4 / 8.3e-4 at the steps 1e-6 /
+1e-5 (lens A's 7.1e-5 / 8.1e-5; orders 1 and +17 exact 1.7e-3 and ≤ 2.4e-6 at 1e-6 … 3e-6), and with the mesh held to
+2.6e-5 / 4.4e-5 and 6.2e-5 / 6.9e-5 (1 and +17: ≤ 1.2e-5 and ≤ 3.7e-6). The mesh's share: dL/dz_edge = −1.84e-5 per
+mm, the plane moving 0.599 mm per mm of the DOE's focal length. Lens A's 25 % (h46c, both held, the engine's nudge)
+was that nudge's rounding of the rim images (~1e-10 of the loss). With the DOE-plane cut (h46c) the gradient agrees at
+the step 1e-7 (2.5e-5 for order +17 alone); steps ≥ 1e-6 straddle the cut's coverage kinks (1.4 %).
 
 Usage: ``python benchmarks/midsystem_focused_order_gradients.py [--configs "17 doe" ...] [--steps 1e-7,1e-6]
-[--freeze-edge-plane] [--freeze-nodes] [--rim-nudge 1e-3] [--plane-shifts 1e-5,1e-4] [--out FILE]`` (prints JSON
-rows as it goes; ~1 min per exact-edge row on one CPU thread).
+[--freeze-edge-plane] [--freeze-nodes] [--rim-nudge 1e-3] [--plane-shifts 1e-5,1e-4] [--out FILE]`` (prints JSON rows
+as it goes; ~1 min per exact-edge row on one CPU thread).
 """
 
 from __future__ import annotations

@@ -103,8 +103,8 @@ class FrozenMesh:
     The plane and the grid are the construction's mesh: the field it builds on the engine's plane does not depend
     on them but for its discretisation error, so their motion under a perturbation adds only that error's
     derivative (measured: ``dL/dz_edge`` = −1.84e-5 per mm for order +17 of the 16-level DOE, the plane moving 0.6 mm
-    per mm of the DOE's focal length, against ``dL/df`` = −2.2e-2; docs/ray-wave.md "A DOE inside the lens"). ``plane``, ``nodes``: which to hold;
-    ``rim_nudge`` None: the engine's."""
+    per mm of the DOE's focal length, against ``dL/df`` = −2.2e-2; docs/ray-wave.md "A DOE inside the lens").
+    ``plane``, ``nodes``: which to hold; ``rim_nudge`` None: the engine's."""
 
     def __init__(self, rim_nudge: float | None = 1e-3, plane: bool = True, nodes: bool = True):
         self.rim_nudge, self.hold = rim_nudge, (plane, nodes)

@@ -153,8 +153,8 @@ def test_focused_order_exact_edge_gradients_by_finite_differences(orders):
     and 1.2e-5 / 1.8e-7 (1 and +17); with the mesh free 8.5e-4 / 8.1e-5 and 1.7e-3 / 2.4e-6: the mesh's motion, the
     derivative of the construction's discretisation error (dL/dz_edge = −1.84e-5 per mm, the plane moving 0.60 mm per
     mm of the DOE's focal length). Before 2026-11-30 (h46d) +17's stop edge was not formed at all on its step plane,
-    which lies before the rim images (the path difference of the converging edge wave taken with the wrong sign, ν ≈ 0
-    over the plane), and its gradient read −8.3e-5 against +2.27e-4 (the derivative is −2.2e-2)."""
+    which lies before the rim images (:func:`test_edge_formed_on_a_step_plane_before_the_rim_images`), and its
+    gradient read −8.3e-5 against +2.27e-4 (the derivative is −2.2e-2)."""
     field = (0.0, 1.0)
     doe, lens, ml = _lens(field, min_efficiency=1e-3, orders=orders, **EXACT)
     w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
@@ -178,10 +178,13 @@ def test_focused_order_exact_edge_gradients_by_finite_differences(orders):
 
 def test_edge_formed_on_a_step_plane_before_the_rim_images(monkeypatch):
     """Order +17 alone with the exact edge at 1°: its step plane (z 14.60 mm) lies 0.46 mm before its rim images
-    (15.06–15.25 mm), where the stop's edge wave still converges on them. The knife edge's Fresnel parameter ν has the
-    sign of the distance to the edge's shadow and grows inside the beam (measured 71 at the node nearest the stop's
-    centre, ±23 at the grid's rim); before 2026-11-30 (h46d) the converging path difference was taken with the other
-    sign, ≤ 0 at every node, and ν was ~1e-150 over the whole plane (no edge)."""
+    (15.06–15.25 mm), where the stop's edge wave still converges on them and no focus of the beam lies between. The
+    knife edge's Fresnel parameter ν has the sign of the distance to the edge's shadow and grows inside the beam
+    (measured 71 at the node nearest the stop's centre, ±23 at the grid's rim), and the PSF (ks 32) is 3.3e-3 (L1)
+    from the one with ν from the local Fresnel scale (``PATH_DIFFERENCE_NU=False``, ``ν = g·s``). Before 2026-11-30
+    (h46d) the path difference kept the sign it has with a focus between the plane and the images
+    (tests/test_hybrid_stop_edge.py::test_path_difference_nu_before_the_rims_images), ≤ 0 at every node here: ν was
+    ~1e-150 over the whole plane (no edge), 4.8e-2 from the local scale's PSF."""
     seen = []
     orig = accurate._stop_edge_maps
 
@@ -192,11 +195,16 @@ def test_edge_formed_on_a_step_plane_before_the_rim_images(monkeypatch):
 
     monkeypatch.setattr(accurate, "_stop_edge_maps", spy)
     field = (0.0, 1.0)
-    _, _, ml = _lens(field, min_efficiency=1e-3, orders=[17], **EXACT)
-    with warnings.catch_warnings(), torch.no_grad():
-        warnings.simplefilter("ignore")  # order +17's pixel loss (named by the sampling report)
-        ml.psf([field], 0.55, ks=16)
-    (z, rim, s, nu), = seen
+    psfs = []
+    for flag in (True, False):
+        monkeypatch.setattr(accurate, "PATH_DIFFERENCE_NU", flag)
+        _, _, ml = _lens(field, min_efficiency=1e-3, orders=[17], **EXACT)
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")  # order +17's pixel loss (named by the sampling report)
+            p = ml.psf([field], 0.55, ks=32)[0, 0]
+        psfs.append(p / p.sum())
+    assert float((psfs[0] - psfs[1]).abs().sum()) < 6e-3
+    z, rim, s, nu = seen[0]
     assert z < float(rim[1].min())  # the plane before every rim image
     ky, kx = nu.shape
     assert float(nu[ky // 2, kx // 2]) > 50.0
