@@ -8,6 +8,9 @@ import math
 
 import torch
 
+import raywave.hybrid.coherent.accurate as _accurate
+import raywave.hybrid.coherent.exit_pupil as _exit_pupil
+import raywave.hybrid.coherent.stop_edge as _stop_edge
 from raywave.lens.lens import Lens
 from raywave.materials import get_material
 from raywave.surfaces.aperture import CircularAperture
@@ -86,3 +89,60 @@ def assert_central_differences(loss, params: dict, rel: float, step: float = 1e-
     restored; :func:`central_differences`)."""
     for name, _, g, fd in central_differences(loss, params, (step,)):
         assert abs(g - fd) <= rel * abs(fd), (name, g, fd)
+
+
+class FrozenMesh:
+    """The exact stop edge's discretisation held in finite differences, as the engine's gradient holds it (issue 46):
+    while active, the step plane (``exit_pupil._rim_step_plane``: the plane ``z_edge`` just beyond the stop rim's
+    images where the construction builds its field before the angular spectrum carries it to the engine's plane) and
+    the node grid (``accurate._node_layout``: its spacing from the beam's extent, centred on the chief ray's point)
+    that the first call of a loss wrapped by :meth:`loss` chose are replayed, in the same order, by every later call;
+    and the stop rim images' source nudge (``stop_edge.RIM_NUDGE``) is ``rim_nudge`` (the engine's 1e-5 rounds the
+    rim images' crossing at ~1e-10 of a weighted PSF sum, noise that central differences divide by their step).
+
+    The plane and the grid are the construction's mesh: the field it builds on the engine's plane does not depend
+    on them but for its discretisation error, so their motion under a perturbation adds only that error's
+    derivative (measured: ``dL/dz_edge`` = −1.84e-5 per mm for order +17 of the 16-level DOE, the plane moving 0.6 mm
+    per mm of the DOE's focal length, against ``dL/df`` = −2.2e-2; docs/ray-wave.md "A DOE inside the lens").
+    ``plane``, ``nodes``: which to hold; ``rim_nudge`` None: the engine's."""
+
+    def __init__(self, rim_nudge: float | None = 1e-3, plane: bool = True, nodes: bool = True):
+        self.rim_nudge, self.hold = rim_nudge, (plane, nodes)
+        self.memo, self.calls, self.recording, self.saved = {}, {}, True, None
+
+    def __enter__(self):
+        self.saved = (_exit_pupil._rim_step_plane, _accurate._node_layout, _stop_edge.RIM_NUDGE)
+        plane, nodes, nudge = self.saved
+        if self.hold[0]:
+            _exit_pupil._rim_step_plane = lambda *a: self._replay("plane", plane(*a))
+        if self.hold[1]:
+            _accurate._node_layout = lambda b, bbox: self._nodes(nodes(b, bbox))
+        _stop_edge.RIM_NUDGE = nudge if self.rim_nudge is None else float(self.rim_nudge)
+        return self
+
+    def __exit__(self, *exc):
+        _exit_pupil._rim_step_plane, _accurate._node_layout, _stop_edge.RIM_NUDGE = self.saved
+
+    def _replay(self, name: str, value):
+        i = self.calls.get(name, 0)
+        self.calls[name] = i + 1
+        if self.recording:
+            self.memo[name, i] = value
+            return value
+        if (name, i) not in self.memo:
+            raise RuntimeError(f"FrozenMesh: call {i} of {name} was not made by the first evaluation")
+        return self.memo[name, i]
+
+    def _nodes(self, nd):
+        kept = self._replay("nodes", nd)
+        return _accurate._Nodes(kept.gx.clone(), kept.gy.clone(), kept.h)
+
+    def loss(self, fn):
+        """``fn`` (a loss without arguments) whose first call records the mesh and later calls replay it."""
+        def wrapped():
+            self.calls = {}
+            try:
+                return fn()
+            finally:
+                self.recording = False
+        return wrapped

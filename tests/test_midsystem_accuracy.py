@@ -98,7 +98,8 @@ def test_midsystem_doe_exact_edge(kind, field, bar):
 @pytest.mark.parametrize("field,bar", [((0.0, 0.0), 7e-4), ((0.0, 1.5), 8e-4)])
 def test_midsystem_16_levels_with_weak_orders(field, bar):
     """The 16-level DOE with its weak orders (``min_efficiency=1e-3``: orders 1, −15, +17; −31 dropped as
-    under-sampled) and the exact edge: measured 5.0e-4 on axis, 5.6e-4 at 1.5° (the issue's bar 1e-3). Before
+    under-sampled) and the exact edge: measured 3.4e-4 on axis, 7.3e-4 at 1.5° (the issue's bar 1e-3; 5.0e-4 / 5.6e-4
+    while order +17's stop edge was not formed on its step plane, before its rim images: 2026-11-30, h46d). Before
     (2026-11-29, h46) 1.10e-3 / 1.76e-3: each order's absolute phase was read at its chief ray's point, where order
     −15's edge waves converge (its Poisson spot: 4.4e-3 at 1.5° with the rim fix alone), and order −15's edge wave
     reached the crop 0.37 wave off (its stop rim imaged with aberrations; 6.3e-4 on axis with the phase fix alone,

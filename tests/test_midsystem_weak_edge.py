@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import midsystem_systems as M  # noqa: E402
 import wave_truth_doe as W  # noqa: E402
 
+import raywave.hybrid.coherent.accurate as accurate  # noqa: E402
 from raywave.doe.params import FresnelDOE  # noqa: E402
 from raywave.hybrid.midsystem import (DOEPhaseSurface, MidSystemLens, _absolute_phase, _pupil_phase,  # noqa: E402
                                       _sum_orders)
@@ -79,8 +80,8 @@ def test_weak_edge_gradients_by_finite_differences():
     """d(Σ w·PSF) with respect to the DOE's focal length and lens A's, at 1°, orders 1 (the exact edge) and −15 (the
     DOE-plane edge), against central differences (measured 3.3e-5 relative for the DOE's focal length). Order +17
     (it focuses 2.1 mm after the DOE, before lens B): :func:`test_focused_weak_order_gradients_by_finite_differences`
-    (the DOE-plane edge; with the exact edge on both orders the DOE's focal length still reads 7.2 % off: open,
-    docs/ray-wave.md "A DOE inside the lens")."""
+    (the DOE-plane edge; with the exact edge: :func:`test_focused_order_exact_edge_gradients_by_finite_differences`,
+    the construction's mesh held)."""
     field = (0.0, 1.0)
     doe, lens, ml = _lens(field, min_efficiency=1e-3, orders=[1, -15], weak_edge="doe", **EXACT)
     w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
@@ -137,3 +138,76 @@ def test_focused_weak_order_with_order_1_gradients_by_finite_differences():
 
     params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
     M.assert_central_differences(loss, params, 2e-3, step=1e-7)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("orders", [[17], [1, 17]])
+def test_focused_order_exact_edge_gradients_by_finite_differences(orders):
+    """Order +17 (it focuses 2.1 mm after the DOE, before lens B) with the exact stop edge, alone and with order 1
+    (every order exact), at 1°: d(Σ w·PSF) with respect to the DOE's focal length and lens A's against central
+    differences (steps 1e-6 and 1e-5), the rim images' source nudge 1e-3 (the engine's 1e-5 rounds the loss at
+    ~1e-10).
+
+    With the construction's mesh held as the gradient holds it (:class:`midsystem_systems.FrozenMesh`: the step plane
+    beyond the rim images and the node grid), measured 2.6e-5 / 6.9e-5 (+17 alone: the DOE's focal length, lens A's)
+    and 1.2e-5 / 1.8e-7 (1 and +17); with the mesh free 8.5e-4 / 8.1e-5 and 1.7e-3 / 2.4e-6: the mesh's motion, the
+    derivative of the construction's discretisation error (dL/dz_edge = −1.84e-5 per mm, the plane moving 0.60 mm per
+    mm of the DOE's focal length). Before 2026-11-30 (h46d) +17's stop edge was not formed at all on its step plane,
+    which lies before the rim images (:func:`test_edge_formed_on_a_step_plane_before_the_rim_images`), and its
+    gradient read −8.3e-5 against +2.27e-4 (the derivative is −2.2e-2)."""
+    field = (0.0, 1.0)
+    doe, lens, ml = _lens(field, min_efficiency=1e-3, orders=orders, **EXACT)
+    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+
+    def loss():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # order +17's pixel loss (named by the sampling report)
+            return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
+
+    # the DOE's focal length at the step 1e-6 (1 and +17: a small jump lies within 5e-6), lens A's at 1e-5 (the loss
+    # still rounds at ~3e-11 with the nudge 1e-3: ~2e-4 of this derivative at 1e-6)
+    doe_f, lens_f = {"doe focal length": doe.focal_length}, {"lens A": lens.surfaces[0].interaction.focal_length}
+    with M.FrozenMesh() as mesh:
+        held = mesh.loss(loss)
+        M.assert_central_differences(held, doe_f, 2e-4, step=1e-6)
+        M.assert_central_differences(held, lens_f, 2e-4, step=1e-5)
+    with M.FrozenMesh(plane=False, nodes=False):  # the nudge alone
+        M.assert_central_differences(loss, doe_f, 3e-3, step=1e-6)
+        M.assert_central_differences(loss, lens_f, 3e-3, step=1e-5)
+
+
+def test_edge_formed_on_a_step_plane_before_the_rim_images(monkeypatch):
+    """Order +17 alone with the exact edge at 1°: its step plane (z 14.60 mm) lies 0.46 mm before its rim images
+    (15.06–15.25 mm), where the stop's edge wave still converges on them and no focus of the beam lies between. The
+    knife edge's Fresnel parameter ν has the sign of the distance to the edge's shadow and grows inside the beam
+    (measured 71 at the node nearest the stop's centre, ±23 at the grid's rim), and the PSF (ks 32) is 3.3e-3 (L1)
+    from the one with ν from the local Fresnel scale (``PATH_DIFFERENCE_NU=False``, ``ν = g·s``). Before 2026-11-30
+    (h46d) the path difference kept the sign it has with a focus between the plane and the images
+    (tests/test_hybrid_stop_edge.py::test_path_difference_nu_before_the_rims_images), ≤ 0 at every node here: ν was
+    ~1e-150 over the whole plane (no edge), 4.8e-2 from the local scale's PSF."""
+    seen = []
+    orig = accurate._stop_edge_maps
+
+    def spy(b, nd, traced, maps):
+        out = orig(b, nd, traced, maps)
+        seen.append((b.z_doe, b.given.stop_rim, maps["stop"][0].detach(), out["nu_raw"]))
+        return out
+
+    monkeypatch.setattr(accurate, "_stop_edge_maps", spy)
+    field = (0.0, 1.0)
+    psfs = []
+    for flag in (True, False):
+        monkeypatch.setattr(accurate, "PATH_DIFFERENCE_NU", flag)
+        _, _, ml = _lens(field, min_efficiency=1e-3, orders=[17], **EXACT)
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")  # order +17's pixel loss (named by the sampling report)
+            p = ml.psf([field], 0.55, ks=32)[0, 0]
+        psfs.append(p / p.sum())
+    assert float((psfs[0] - psfs[1]).abs().sum()) < 6e-3
+    z, rim, s, nu = seen[0]
+    assert z < float(rim[1].min())  # the plane before every rim image
+    ky, kx = nu.shape
+    assert float(nu[ky // 2, kx // 2]) > 50.0
+    far = s.abs() > 0.05  # nodes more than 50 µm from the shadow's edge (~3 Fresnel units)
+    assert bool((torch.sign(nu[far]) == torch.sign(s[far])).all())
+    assert float(nu[far].abs().min()) > 2.0

@@ -441,14 +441,15 @@ def _path_difference_nu(b: _Build, nd: _Nodes, stop_xy: tuple, good, edge: tuple
     the wave diffracted at the edge and the geometric one: ``ν = sign(s)·2·sqrt(Δ/λ)``, ``Δ = Φ_E + n|P − E| − Φ_P``
     with ``E`` the image of the stop's rim point at the node ray's azimuth (:class:`RimImages`: the edge's
     diffracted wave leaves it, on straight lines in the image medium), ``Φ_E`` the optical path to it, ``P`` the
-    node on the plane ``z_doe`` and ``Φ_P`` its optical path (``phi``); ``Δ = Φ_E − n|P − E| − Φ_P`` where the
+    node on the plane ``z_doe`` and ``Φ_P`` its optical path (``phi``); ``Δ = ±(Φ_E − n|P − E| − Φ_P)`` where the
     plane lies before the rim's images (the wave still converges on them; the knife edge's factor is then the
-    mirrored one). In the quadratic approximation this is
-    ``g·s`` (:func:`_fresnel_scale`: ``Δ = n s²/(2L)``); unlike it, it holds where the wave's convergence changes
-    across the edge's Fresnel zones (an aberrated beam, off axis: the local ``L`` at the node is not that of the
-    path from the edge). Near the shadow's edge (``|s|`` below a tenth of a Fresnel unit) it blends into ``g·s``:
-    ``g_eff² = (4Δ/λ + g² s₀²)/(s² + s₀²)``, smooth and with finite derivatives where ``Δ`` and ``s`` vanish
-    together. ``stop_xy`` = ``(sx, sy)`` (N,) the node rays' stop coordinates, ``edge`` = ``(phi, s_stop, g_s)``
+    mirrored one): ``+`` where the beam passes a focus between the plane and the images (the difference is then
+    ≥ 0), ``−`` where it does not (≤ 0: ``|Φ_E − Φ_P| ≤ n|P − E|``), chosen by the sign most nodes have. In the
+    quadratic approximation this is ``g·s`` (:func:`_fresnel_scale`: ``Δ = n s²/(2L)``); unlike it, it holds where
+    the wave's convergence changes across the edge's Fresnel zones (an aberrated beam, off axis: the local ``L`` at
+    the node is not that of the path from the edge). Near the shadow's edge (``|s|`` below a tenth of a Fresnel
+    unit) it blends into ``g·s``: ``g_eff² = (4Δ/λ + g² s₀²)/(s² + s₀²)``, smooth and with finite derivatives where
+    ``Δ`` and ``s`` vanish together. ``stop_xy`` = ``(sx, sy)`` (N,) the node rays' stop coordinates, ``edge`` = ``(phi, s_stop, g_s)``
     (ky, kx); the rim images are ``b.given.stop_rim``. Differentiable."""
     rim, z_doe, wavelength, n = b.given.stop_rim, b.z_doe, b.src.wavelength, b.n
     sx, sy = stop_xy
@@ -461,6 +462,12 @@ def _path_difference_nu(b: _Build, nd: _Nodes, stop_xy: tuple, good, edge: tuple
     # the diffracted wave leaves E on its way to P, or (a DOE plane before the edge's images) converges on it
     sgn = 1.0 if bool((dz.detach() > 0).all()) else -1.0
     delta = phi_e + sgn * n * torch.sqrt(dx * dx + dy * dy + dz * dz) - phi
+    if sgn < 0 and bool((delta.detach() < 0).sum() > (delta.detach() > 0).sum()):
+        # converging on E with no focus of the beam between the plane and E: the difference is ≤ 0 (the optical path
+        # is n-Lipschitz there, |Φ_E − Φ_P| ≤ n|P − E|), its size the knife edge's (issue 46: order +17 of a
+        # mid-system 16-level DOE, its step plane 0.46 mm before its rim images; clamped, it set ν ≈ 0 over the whole
+        # plane: no stop edge). With a focus between them (the stop imaged beyond the beam's focus) it is ≥ 0
+        delta = -delta
     lam = wavelength * 1e-3
     s0 = 0.1 / g_s.detach()
     g2 = ((4.0 * delta / lam + g_s * g_s * s0 * s0) / (s_stop * s_stop + s0 * s0)).clamp_min(1e-300)
