@@ -9,12 +9,13 @@ the stages it calls). Prints one JSON object (and writes it with ``-o``).
 
 import argparse
 import functools
-import json
 import resource
 import statistics
 import warnings
 
 import torch
+
+from _report import emit_json  # noqa: E402  (benchmarks/ is on sys.path)
 
 _HL, _ACC = "raywave.hybrid.hybrid_lens", "raywave.hybrid.coherent.accurate"
 #: (module, name) of the wrapped stages: where the module looks them up
@@ -98,10 +99,7 @@ def main(argv=None):
                       for i, f in enumerate(("user_ms", "sys_ms", "minflt"))} for s in rs[0]}
     tot = {k: out[k]["total"]["user_ms"] + out[k]["total"]["sys_ms"] for k in hls}
     out["ratio_vs_doe"] = tot["default"] / tot["doe"]
-    print(json.dumps(out))
-    if a.output:
-        with open(a.output, "w") as f:
-            json.dump(out, f, indent=1)
+    emit_json(out, a.output)
     return out
 
 
