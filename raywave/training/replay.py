@@ -82,11 +82,10 @@ AUTO_CHUNK_MEMORY_FRACTION = 0.25
 
 
 def auto_chunk(n_points: int, sources_per_point: int, doe_samples: int, device, traced: bool = False) -> int:
-    """Field points per replay chunk for ``optics.chunk: auto``: on an accelerator, as many as a quarter of its
-    free memory holds at :data:`REPLAY_BYTES_PER_DOE_SAMPLE` per DOE sample and source (``traced``:
-    :data:`REPLAY_BYTES_PER_DOE_SAMPLE_TRACED`) (fewer, larger chunks: each
-    chunk is a few hundred kernel launches, whatever its size, so the GPU's step time falls with the chunk
-    count); on a CPU :data:`CPU_AUTO_CHUNK`.
+    """Field points per replay chunk for ``optics.chunk: auto``. On a GPU, as many as a quarter of its free memory
+    holds at :data:`REPLAY_BYTES_PER_DOE_SAMPLE` (``traced``: :data:`REPLAY_BYTES_PER_DOE_SAMPLE_TRACED`) per DOE
+    sample and source: each chunk is a few hundred kernel launches whatever its size, so the step's time falls with
+    the chunk count. On a CPU (or without a DOE grid to size it by) :data:`CPU_AUTO_CHUNK`.
 
     Args:
         n_points: field points of the map (the most a chunk can hold).
