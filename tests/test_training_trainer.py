@@ -222,3 +222,16 @@ def test_a_jittered_run_resumes_with_identical_results(tiny, tmp_path):
     second.run()
     for a, b in zip(params(straight), params(second)):
         assert torch.allclose(a, b, rtol=0, atol=1e-12)
+
+
+def test_auto_chunk_on_the_cpu_takes_four_field_points(tiny, tmp_path):
+    """``optics.chunk: auto`` resolves once, when the Trainer is built: on the CPU to 4 field points (the tiny 2×2 map:
+    one chunk), and the step's map is split into chunks of that size."""
+    from raywave.training.config import apply_overrides
+
+    cfg = apply_overrides(load_config(tiny / "tiny.yaml"), ["optics.chunk=auto"])
+    tr = Trainer(cfg, tmp_path, progress=False)
+    assert tr.chunk == 4 and tr.optics_step().n_chunks == 1
+    tr1 = Trainer(apply_overrides(load_config(tiny / "tiny.yaml"), ["optics.chunk=1"]), tmp_path / "one",
+                  progress=False)
+    assert tr1.chunk == 1 and tr1.optics_step().n_chunks == 4
