@@ -93,6 +93,23 @@ def test_map_without_grad_takes_the_lens_call_size(asphere):
     assert len(psfmap_mod._map_chunks(100, 3, None, None)) == 13
 
 
+def test_map_with_grad_on_an_accelerator_takes_the_lens_call_size():
+    """With autograd on an accelerator a map's call takes ``map_sources_per_call`` sources too (a meta-device model
+    stands in for a GPU's); on the CPU it keeps :func:`default_batch`."""
+    import torch
+
+    class Model(torch.nn.Module):
+        map_sources_per_call = 512
+
+        def __init__(self, device):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(1, device=device))
+
+    assert psfmap_mod.map_call_size(Model("meta"), True, None) == 512
+    assert psfmap_mod.map_call_size(Model("cpu"), True, None) is None
+    assert psfmap_mod.map_call_size(Model("meta"), True, object()) is None
+
+
 def test_construction_functions_take_at_most_ten_parameters():
     """The accurate construction's functions take value types (:class:`~raywave.hybrid.coherent.settings.Source`,
     :class:`~raywave.hybrid.coherent.settings.FieldSettings`, :class:`~raywave.hybrid.coherent.settings.Known`, the tracing's
