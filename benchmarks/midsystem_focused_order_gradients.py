@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import torch
@@ -69,14 +68,8 @@ def system(orders, **kw):
 def measure(name: str, steps, freeze: bool, freeze_nodes: bool = False, rim_nudge: float | None = None) -> list:
     orders, kw = CONFIGS[name]
     doe, lens, ml = system(orders, **kw)
-    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-
-    def loss():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # order +17's pixel loss (named by the sampling report)
-            return (ml.psf([FIELD], 0.55, ks=16)[0, 0] * w).sum()
-
-    params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
+    loss = M.weighted_psf_loss(ml, FIELD)
+    params = M.focal_lengths(doe, lens)
     rows = []
     with M.FrozenMesh(rim_nudge, plane=freeze, nodes=freeze_nodes) as mesh:
         t0 = time.perf_counter()
@@ -94,7 +87,7 @@ def plane_slope(name: str, shifts, rim_nudge: float | None = None) -> list:
     ``shifts``), the node grids held (:class:`midsystem_systems.FrozenMesh`), central differences; and the planes."""
     orders, kw = CONFIGS[name]
     doe, lens, ml = system(orders, **kw)
-    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    weighted = M.weighted_psf_loss(ml, FIELD)
     shift, planes = [0.0], []
     rows = []
     with M.FrozenMesh(rim_nudge) as mesh, torch.no_grad():
@@ -109,9 +102,7 @@ def plane_slope(name: str, shifts, rim_nudge: float | None = None) -> list:
 
         def loss():
             planes.clear()
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                return float((ml.psf([FIELD], 0.55, ks=16)[0, 0] * w).sum())
+            return float(weighted())
 
         lossm = mesh.loss(loss)
         lossm()

@@ -62,6 +62,28 @@ def two_lens_split(sys) -> Lens:
     return Lens([a, s, b], wavelengths=(sys.wavelength,), primary=0, fields=(0.0,))
 
 
+def weighted_psf_loss(ml, field, ks: int = 16, wavelength: float = 0.55):
+    """``loss()`` = Σ w·PSF of the mid-system lens ``ml`` at ``field`` (deg) and ``wavelength`` (µm), ``ks`` × ``ks``
+    pixels, with fixed random weights ``w`` (seed 3): the scalar the finite-difference checks differentiate. Its
+    warnings are silenced inside (the weak orders' sampling: pixel loss, orders left out, named by the sampling
+    report of a plain PSF call)."""
+    import warnings
+
+    w = torch.rand(ks, ks, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+
+    def loss():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return (ml.psf([field], wavelength, ks=ks)[0, 0] * w).sum()
+
+    return loss
+
+
+def focal_lengths(doe, lens) -> dict:
+    """The parameters of the checks: the DOE's focal length and lens A's (the first surface's ideal lens)."""
+    return {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
+
+
 def central_differences(loss, params: dict, steps=(1e-6,)) -> list:
     """``[(name, step, autograd gradient, central difference)]``: the autograd gradient of the scalar ``loss()`` with
     respect to each 0-d parameter of ``params`` (name → tensor) and its central difference at each relative step of

@@ -84,14 +84,9 @@ def test_weak_edge_gradients_by_finite_differences():
     the construction's mesh held)."""
     field = (0.0, 1.0)
     doe, lens, ml = _lens(field, min_efficiency=1e-3, orders=[1, -15], weak_edge="doe", **EXACT)
-    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    loss = M.weighted_psf_loss(ml, field)
 
-    def loss():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # order −31: under-sampled, left out
-            return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
-
-    params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
+    params = M.focal_lengths(doe, lens)
     M.assert_central_differences(loss, params, 2e-4)
 
 
@@ -108,14 +103,9 @@ def test_focused_weak_order_gradients_by_finite_differences():
     is the slope of the piece; a step of 1e-6, ±50 nm, straddles such kinks and reads 1.4 %)."""
     field = (0.0, 1.0)
     doe, lens, ml = _lens(field, min_efficiency=1e-3, orders=[17])
-    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    loss = M.weighted_psf_loss(ml, field)
 
-    def loss():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # order +17's pixel loss (11 %, named by the sampling report)
-            return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
-
-    params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
+    params = M.focal_lengths(doe, lens)
     M.assert_central_differences(loss, params, 2e-4, step=1e-7)
 
 
@@ -129,14 +119,9 @@ def test_focused_weak_order_with_order_1_gradients_by_finite_differences():
     tolerance) over the 1e-5 mm difference is ~1e-3 of it, hence the bar."""
     field = (0.0, 1.0)
     doe, lens, ml = _lens(field, min_efficiency=1e-3, orders=[1, 17], weak_edge="doe", **EXACT)
-    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    loss = M.weighted_psf_loss(ml, field)
 
-    def loss():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # order +17's pixel loss (named by the sampling report)
-            return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
-
-    params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
+    params = M.focal_lengths(doe, lens)
     M.assert_central_differences(loss, params, 2e-3, step=1e-7)
 
 
@@ -157,16 +142,11 @@ def test_focused_order_exact_edge_gradients_by_finite_differences(orders):
     gradient read −8.3e-5 against +2.27e-4 (the derivative is −2.2e-2)."""
     field = (0.0, 1.0)
     doe, lens, ml = _lens(field, min_efficiency=1e-3, orders=orders, **EXACT)
-    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-
-    def loss():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # order +17's pixel loss (named by the sampling report)
-            return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
+    loss = M.weighted_psf_loss(ml, field)
 
     # the DOE's focal length at the step 1e-6 (1 and +17: a small jump lies within 5e-6), lens A's at 1e-5 (the loss
     # still rounds at ~3e-11 with the nudge 1e-3: ~2e-4 of this derivative at 1e-6)
-    doe_f, lens_f = {"doe focal length": doe.focal_length}, {"lens A": lens.surfaces[0].interaction.focal_length}
+    doe_f, lens_f = ({k: v} for k, v in M.focal_lengths(doe, lens).items())
     with M.FrozenMesh() as mesh:
         held = mesh.loss(loss)
         M.assert_central_differences(held, doe_f, 2e-4, step=1e-6)
