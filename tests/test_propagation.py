@@ -563,3 +563,26 @@ def test_double_grid_intensity_is_the_2x_upsampled_intensity(shape, device):
     assert torch.allclose(gg, gw, rtol=1e-11, atol=1e-12 * float(gw.abs().max()))
     with torch.no_grad():
         assert torch.allclose(double_grid_intensity(u, window), blocks.detach(), rtol=0, atol=0)
+
+
+def test_band_convolution_field_by_field_equals_the_batch(monkeypatch):
+    """On a CPU a batch's band convolution runs field by field (cache-sized blocks): the same values and gradients as
+    the whole batch at once (the accelerator's way), for two leading axes, a per-field and a shared transfer."""
+    import raywave.wave.propagation.band as W
+
+    g = torch.Generator().manual_seed(7)
+    rows, cols = torch.tensor([0, 1, 2, 5, 9, 14, 15]), torch.tensor([0, 3, 4, 7, 16, 17])
+    size, noy, nox = (16, 18), 6, 5
+    per_field = W.per_field
+    assert per_field(torch.zeros(1), (2, 3)) and not per_field(torch.zeros(1), (1,))
+    u0 = torch.randn(2, 3, 7, 9, dtype=C128, generator=g)
+    w = torch.randn(2, 3, noy, nox, dtype=C128, generator=g)
+    for h0 in (torch.randn(2, 3, 7, 6, dtype=C128, generator=g), torch.randn(7, 6, dtype=C128, generator=g)):
+        results = []
+        for batch in (False, True):
+            monkeypatch.setattr(W, "per_field", (lambda u, lead: False) if batch else per_field)
+            u, h = u0.clone().requires_grad_(), h0.clone().requires_grad_()
+            out = W.BandConvolve.apply(u, h, size, rows, cols, noy, nox)
+            results.append((out.detach(), *torch.autograd.grad((out * w.conj()).real.sum(), (u, h))))
+        for a, b in zip(*results):
+            assert float((a - b).abs().max()) <= 1e-14 * float(b.abs().max())
