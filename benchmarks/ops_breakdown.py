@@ -107,29 +107,37 @@ def breakdown(fn) -> tuple[int, collections.Counter, collections.Counter, collec
 
 
 def _accelerator_sizes() -> None:
-    """Set the CPU's block sizes to an accelerator's (the lens traces' chunks, the edge envelope's blocks, the band
-    convolution's column chunks: the same values, fewer loops) and its one batched evaluation of the transfer
-    functions, so that the count is the ops a CUDA run dispatches."""
-    import raywave.hybrid.coherent.stop_edge as edge_mod
-    import raywave.lens.lens as lens_mod
-    import raywave.wave.propagation.band as window_mod
-
-    pairs = ((lens_mod, "TRACE_CHUNK"), (edge_mod, "ENVELOPE_BLOCK_SAMPLES"), (window_mod, "BAND_CHUNK_BYTES"))
-    for mod, name in pairs:
-        if not hasattr(mod, name + "_ACCELERATOR"):
-            raise SystemExit(f"--accelerator: this tree has no {mod.__name__}.{name}_ACCELERATOR (per-device sizes)")
-        setattr(mod, name, getattr(mod, name + "_ACCELERATOR"))
-    import raywave.wave.propagation.batch as batch_mod
-
-    if hasattr(batch_mod, "_by_source"):  # an accelerator evaluates a batch's transfer functions at once
-        batch_mod._by_source = lambda device, b: False
+    """Take an accelerator's plan on the CPU (the lens traces' chunks, the edge envelope's blocks, the band
+    convolution's column chunks and whole batches, the dense interpolation, the one batched evaluation of the
+    transfer functions, the shared FFT sizes: the same values, fewer and larger ops), so that the count is the ops
+    a CUDA run dispatches: one switch, :func:`raywave.utils.devices.accelerator`, in trees that have it."""
     import raywave.hybrid.batched as batched_mod
 
-    if hasattr(batched_mod, "_accelerator"):  # and shares FFT sizes between resolved sources, in larger batches
-        batched_mod._accelerator = lambda planned: bool(planned)
-        cap = os.environ.get("RAYWAVE_OPS_BATCH_BYTES")  # a smaller cap than the accelerator's, for a CPU's memory
-        if cap:
-            batched_mod.BATCH_BYTES_ACCELERATOR = int(float(cap))
+    try:
+        import raywave.utils.devices as devices_mod
+    except ImportError:  # trees before the one switch: each module's sizes and checks
+        devices_mod = None
+    if devices_mod is not None:
+        devices_mod.accelerator = lambda x: True
+    else:
+        import raywave.hybrid.coherent.stop_edge as edge_mod
+        import raywave.lens.lens as lens_mod
+        import raywave.wave.propagation.band as window_mod
+        import raywave.wave.propagation.batch as batch_mod
+
+        pairs = ((lens_mod, "TRACE_CHUNK"), (edge_mod, "ENVELOPE_BLOCK_SAMPLES"), (window_mod, "BAND_CHUNK_BYTES"))
+        for mod, name in pairs:
+            if not hasattr(mod, name + "_ACCELERATOR"):
+                raise SystemExit(f"--accelerator: this tree has no {mod.__name__}.{name}_ACCELERATOR (per-device "
+                                 "sizes)")
+            setattr(mod, name, getattr(mod, name + "_ACCELERATOR"))
+        if hasattr(batch_mod, "_by_source"):  # an accelerator evaluates a batch's transfer functions at once
+            batch_mod._by_source = lambda device, b: False
+        if hasattr(batched_mod, "_accelerator"):  # and shares FFT sizes between resolved sources
+            batched_mod._accelerator = lambda planned: bool(planned)
+    cap = os.environ.get("RAYWAVE_OPS_BATCH_BYTES")  # a smaller cap than the accelerator's, for a CPU's memory
+    if cap:
+        batched_mod.BATCH_BYTES_ACCELERATOR = int(float(cap))
 
 
 def main():

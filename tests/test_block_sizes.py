@@ -104,10 +104,29 @@ def test_transfer_per_source_on_a_cpu_equals_the_union_evaluation(monkeypatch):
         real_empty = torch.empty
         # uninitialised memory filled with NaN: any entry of the union neither written nor zeroed would show
         monkeypatch.setattr(torch, "empty", lambda *a, **k: real_empty(*a, **k).fill_(float("nan")))
-        placed = batch_transfer(wb, "cpu", wd)
+        own = batch_transfer(wb, "cpu", wd)
+        assert own.band is None and own.count == 3  # each source's own band, placed on demand
+        placed = own.placed()
         monkeypatch.setattr(torch, "empty", real_empty)
         assert torch.equal(union.rows, placed.rows) and torch.equal(union.cols, placed.cols)
         assert torch.equal(union.band, placed.band)
         assert (union.rel is None and placed.rel is None) or torch.equal(union.rel, placed.rel)
         # every source has light on the band, and some of the union lies outside each source's own band
         assert all(bool((b != 0).any()) and bool((b == 0).any()) for b in placed.band)
+
+
+def test_the_accelerator_plan_forced_on_a_cpu_keeps_the_psfs(asphere_psfs, monkeypatch):
+    """One switch (:func:`raywave.utils.devices.accelerator`) picks every accelerator-plan choice (block sizes, whole
+    batches, dense interpolation, the union transfer, shared FFT sizes): forced on the CPU (how
+    ``benchmarks/ops_breakdown.py --accelerator`` counts a GPU's ops) the PSFs stay within the shared FFT sizes'
+    1e-7 (measured ≤ 3e-8 on the 10×10×3 map), and the CPU's own plan is the default."""
+    import raywave.utils.devices as devices
+
+    assert not devices.accelerator("cpu") and not devices.accelerator(None) and devices.accelerator("meta")
+    assert not devices.accelerator(torch.zeros(1)) and devices.accelerator(torch.device("cuda", 0))
+    hl, ref = asphere_psfs
+    monkeypatch.setattr(devices, "accelerator", lambda x: True)
+    with torch.no_grad():
+        got = hl.psf_result(FIELDS, [0.53], ks=32).psf
+    rel = (got - ref).abs().sum((-2, -1)) / ref.abs().sum((-2, -1))
+    assert float(rel.max()) < 1e-7

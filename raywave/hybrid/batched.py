@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from raywave.doe.base import has_zero_phase
+from raywave.utils import devices
 from raywave.utils.safe import safe_div
 from raywave.wave.propagation import integrated_upsampled_intensity, upsampled_pixel_weights
 from raywave.wave.propagation.batch import WindowBatch, WindowSource, batch_transfer, propagate_batch
@@ -158,7 +159,7 @@ COMMON_FFT = False
 
 def _accelerator(planned: list[Planned]) -> bool:
     """Whether the sources' fields live on an accelerator (not the CPU)."""
-    return bool(planned) and planned[0].fd.envelope.device.type != "cpu"
+    return bool(planned) and devices.accelerator(planned[0].fd.envelope)
 
 
 def _accelerator_cap(device) -> int:

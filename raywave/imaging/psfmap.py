@@ -50,6 +50,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from raywave.imaging.map_checkpoint import MapCheckpoint, map_key
+from raywave.utils import devices
 
 __all__ = ["DOEFieldCache", "PSFCropWarning", "PSFMap", "field_grid", "field_signature", "fields_at", "node_values",
            "normalised_grid", "psf_map", "psf_map_points", "sensor_size_of"]
@@ -514,7 +515,7 @@ def _on_accelerator(model) -> bool:
         return False
     t = next(iter(model.parameters()), None)
     t = next(iter(model.buffers()), None) if t is None else t
-    return t is not None and t.device.type != "cpu"
+    return t is not None and devices.accelerator(t)
 
 
 def map_call_size(model, grad: bool, cache) -> int | None:

@@ -12,6 +12,7 @@ from torch import nn
 from raywave.materials.base import Air, Material
 from raywave.rays.bundle import RayBundle
 from raywave.surfaces.surface import Surface
+from raywave.utils import devices
 from raywave.utils.checks import wavelength_um, wavelengths_um
 
 
@@ -29,7 +30,7 @@ def trace_chunk(device) -> int:
     """Rays per chunk of :meth:`Lens.trace` on ``device`` (a bundle of more than twice this many is traced in
     chunks; the values do not depend on it): :data:`TRACE_CHUNK` on the CPU, :data:`TRACE_CHUNK_ACCELERATOR`
     elsewhere."""
-    return TRACE_CHUNK if torch.device(device).type == "cpu" else TRACE_CHUNK_ACCELERATOR
+    return TRACE_CHUNK_ACCELERATOR if devices.accelerator(device) else TRACE_CHUNK
 
 
 class LensGeometryWarning(UserWarning):

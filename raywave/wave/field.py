@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import torch
 
+from raywave.utils import devices
+
 __all__ = ["cubic_matrix", "upsampled_intensity", "double_grid_intensity", "keys_matrix", "upsample_nodes",
            "splat_bilinear", "edge_coverage", "fourier_upsample"]
 
@@ -69,7 +71,7 @@ def upsample_nodes(values: torch.Tensor, stride: int | None = None, pos_y: torch
         mx = keys_matrix(kx, stride, values.dtype, values.device)
     else:
         my, mx = cubic_matrix(pos_y.to(values.dtype), ky), cubic_matrix(pos_x.to(values.dtype), kx)
-    if values.device.type != "cpu":  # an accelerator: two dense products (two kernels)
+    if devices.accelerator(values):  # an accelerator: two dense products (two kernels)
         return my @ values @ mx.T
     return _banded_upsample(values, my, mx)
 

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from raywave.lens.sources import VignettingWarning, point_source_rays
+from raywave.utils import devices
 from raywave.utils.phasor import polar
 
 
@@ -217,7 +218,7 @@ def _block_rows(nu: torch.Tensor) -> int:
     """Rows per block of :class:`_EdgeEnvelope` for the window ``nu`` ((ny, nx) or 1-D): at least
     :data:`ENVELOPE_BLOCK_ROWS`, as many as the device's block size (:data:`ENVELOPE_BLOCK_SAMPLES` on the CPU,
     :data:`ENVELOPE_BLOCK_SAMPLES_ACCELERATOR` elsewhere) allows. The values do not depend on it (elementwise)."""
-    samples = ENVELOPE_BLOCK_SAMPLES if nu.device.type == "cpu" else ENVELOPE_BLOCK_SAMPLES_ACCELERATOR
+    samples = ENVELOPE_BLOCK_SAMPLES_ACCELERATOR if devices.accelerator(nu) else ENVELOPE_BLOCK_SAMPLES
     return max(ENVELOPE_BLOCK_ROWS, samples // max(nu.shape[-1] if nu.ndim > 1 else 1, 1))
 
 

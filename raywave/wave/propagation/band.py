@@ -19,6 +19,8 @@ import math
 
 import torch
 
+from raywave.utils import devices
+
 #: a band convolution whose full-height band (My × C samples of the field's dtype) takes more bytes than this per
 #: field of the batch runs in column blocks of about this size per field: the same FFTs on the same values, a lower
 #: peak (a batch of B fields: B times this, the blocks as many as for one field)
@@ -33,7 +35,7 @@ def band_chunks(u: torch.Tensor, my: int, n_cols: int) -> int:
     field ``u`` ``(..., Ny, Nx)`` and the FFT height ``my`` (per field of the batch: see :data:`BAND_CHUNK_BYTES`, on
     an accelerator :data:`BAND_CHUNK_BYTES_ACCELERATOR`)."""
     per_col = my * u.element_size()
-    limit = BAND_CHUNK_BYTES if u.device.type == "cpu" else BAND_CHUNK_BYTES_ACCELERATOR
+    limit = BAND_CHUNK_BYTES_ACCELERATOR if devices.accelerator(u) else BAND_CHUNK_BYTES
     return max(1, min(n_cols, math.ceil(per_col * n_cols / limit)))
 
 
@@ -89,7 +91,7 @@ def per_field(u: torch.Tensor, lead) -> bool:
     than one field. Each field's column blocks then stay within :data:`BAND_CHUNK_BYTES` (cache-sized); the whole
     batch's blocks (B times larger) ran 1.6–2.9× slower per field on 2 threads (the 10×10×3 map's groups of 4–8
     fields: 58 vs 20 ms per field at 1440², bit for bit the same values). An accelerator keeps the batch."""
-    return u.device.type == "cpu" and math.prod(lead) > 1
+    return not devices.accelerator(u) and math.prod(lead) > 1
 
 
 def _fields(fn, tensors: tuple, lead) -> list:

@@ -29,10 +29,11 @@ from dataclasses import dataclass
 
 import torch
 
+from raywave.utils import devices
 from raywave.utils.phasor import polar
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation._common import _TWO_PI, _pair
-from raywave.wave.propagation.band import index_runs
+from raywave.wave.propagation.band import index_runs, per_field
 from raywave.wave.propagation.transfer import WindowSource, _geometry
 from raywave.wave.propagation.window import _convolve
 
@@ -140,11 +141,40 @@ class BatchTransfer:
     size: tuple[int, int]
     rows: torch.Tensor
     cols: torch.Tensor
-    band: torch.Tensor
+    band: torch.Tensor | None
     rel: torch.Tensor | None
     wave: torch.Tensor
     pitch: tuple[float, float]
     batch: WindowBatch | None = None
+    #: on a CPU: each source's own band (:class:`OwnBand`), which :func:`propagate_batch` convolves field by field;
+    #: ``band`` / ``rel`` are then None until :meth:`placed` puts them on the union
+    parts: tuple | None = None
+
+    @property
+    def count(self) -> int:
+        """The number of sources B."""
+        return len(self.parts) if self.parts is not None else int(self.band.shape[0])
+
+    def placed(self) -> "BatchTransfer":
+        """This transfer with ``band`` (and ``rel``) on the union of the bands (zeros outside each source's own):
+        itself when they are there, else :attr:`parts` placed by block copies."""
+        if self.band is not None:
+            return self
+        wd = any(p.rel is not None for p in self.parts)
+        band, rel = _place_parts(self.parts, (self.rows, self.cols), wd)
+        return BatchTransfer(self.size, self.rows, self.cols, band, rel, self.wave, self.pitch, self.batch)
+
+
+@dataclass
+class OwnBand:
+    """One source's transfer function on its own band: ``band`` complex128 ``(R_i, C_i)`` on the rows ``rows``
+    (R_i,) × columns ``cols`` (C_i,) of the FFT grid (None: the band is empty), ``rel`` float64 ``(3, R_i, C_i)`` or
+    None (:class:`BatchTransfer`'s, for this source)."""
+
+    rows: torch.Tensor
+    cols: torch.Tensor
+    band: torch.Tensor | None
+    rel: torch.Tensor | None
 
 
 def _columns(values: list[list[float]], device) -> list[torch.Tensor]:
@@ -253,9 +283,9 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
         return BatchTransfer((my, mx), rows, cols, empty, rel, wave, (px, py), batch)
     params = (k, zf, kax, kay, dx, dy, (bxl, bxh, bxt), (byl, byh, byt))
     if _by_source(device, b):
-        band, rel = _placed_band_values(params, (fx, fy), (rows, cols), weight_derivative)
-    else:
-        band, rel = _band_values(params, fx[cols], fy[rows], weight_derivative)
+        parts = _own_band_values(params, (fx, fy), weight_derivative)
+        return BatchTransfer((my, mx), rows, cols, None, None, wave, (px, py), batch, parts)
+    band, rel = _band_values(params, fx[cols], fy[rows], weight_derivative)
     return BatchTransfer((my, mx), rows, cols, band, rel, wave, (px, py), batch)
 
 
@@ -263,7 +293,7 @@ def _by_source(device, b: int) -> bool:
     """Whether :func:`batch_transfer` evaluates each source on its own band (a CPU: the work follows each source's own
     band and roll-off lines, ~3× less than on the union for a map's batches) rather than the batch at once on the
     union (an accelerator: one set of kernels)."""
-    return b > 1 and torch.device(device if device is not None else "cpu").type == "cpu"
+    return b > 1 and not devices.accelerator(device)
 
 
 def _band_values(params: tuple, fxc: torch.Tensor, fyr: torch.Tensor, weight_derivative: bool):
@@ -293,34 +323,47 @@ def _band_values(params: tuple, fxc: torch.Tensor, fyr: torch.Tensor, weight_der
     return band, rel
 
 
-def _placed_band_values(params: tuple, freqs: tuple, band_index: tuple, weight_derivative: bool):
+def _own_band_values(params: tuple, freqs: tuple, weight_derivative: bool) -> tuple:
     """:func:`_band_values` of each source on its own band (its own candidate rows and columns, the lines where it
-    alone can roll off), placed into the union ``band_index`` = ``(rows, cols)`` (zeros elsewhere: there its weight
-    is exactly 0, as the union's evaluation gives). The same values as :func:`_band_values` on the union."""
+    alone can roll off): a tuple of :class:`OwnBand`. The same values as :func:`_band_values` on the union, where the
+    union holds exact zeros outside each source's band (:meth:`BatchTransfer.placed`)."""
     fx, fy = freqs
-    rows, cols = band_index
-    b = params[0].shape[0]
-    # not zero-filled: each source's entries are written once, its own band's or (outside it) zeros
-    band = torch.empty((b, rows.numel(), cols.numel()), dtype=torch.complex128, device=fx.device)
-    rel = torch.empty((b, 3, rows.numel(), cols.numel()), dtype=torch.float64, device=fx.device) \
-        if weight_derivative else None
-    for i in range(b):
+    parts = []
+    for i in range(params[0].shape[0]):
         one = tuple(p[i:i + 1] if isinstance(p, torch.Tensor) else tuple(q[i:i + 1] for q in p) for p in params)
         k, zf, kax, kay, _, _, bx, by = one
         c_own = _union_candidates(fx, k, kax, zf, *bx)
         r_own = _union_candidates(fy, k, kay, zf, *by)
         if c_own.numel() == 0 or r_own.numel() == 0:
+            parts.append(OwnBand(r_own, c_own, None, None))
+            continue
+        v, r = _band_values(one, fx[c_own], fy[r_own], weight_derivative)
+        parts.append(OwnBand(r_own, c_own, v[0], None if r is None else r[0]))
+    return tuple(parts)
+
+
+def _place_parts(parts: tuple, band_index: tuple, weight_derivative: bool):
+    """The sources' own bands ``parts`` (:class:`OwnBand`) placed into the union ``band_index`` = ``(rows, cols)``:
+    ``(band (B, R, C), rel (B, 3, R, C) or None)``, zeros outside each source's band (there its weight is exactly
+    0, as the union's evaluation gives)."""
+    rows, cols = band_index
+    b, dev = len(parts), rows.device
+    # not zero-filled: each source's entries are written once, its own band's or (outside it) zeros
+    band = torch.empty((b, rows.numel(), cols.numel()), dtype=torch.complex128, device=dev)
+    rel = torch.empty((b, 3, rows.numel(), cols.numel()), dtype=torch.float64, device=dev) \
+        if weight_derivative else None
+    for i, part in enumerate(parts):
+        if part.band is None:
             band[i].zero_()
             if weight_derivative:
                 rel[i].zero_()
             continue
-        v, r = _band_values(one, fx[c_own], fy[r_own], weight_derivative)
-        rp = index_runs(torch.searchsorted(rows, r_own))
-        cp = index_runs(torch.searchsorted(cols, c_own))
-        _place(band[i], v[0], rp, cp)
+        rp = index_runs(torch.searchsorted(rows, part.rows))
+        cp = index_runs(torch.searchsorted(cols, part.cols))
+        _place(band[i], part.band, rp, cp)
         _zero_outside(band[i], rp, cp)
         if weight_derivative:
-            _place(rel[i], r[0], rp, cp)
+            _place(rel[i], part.rel, rp, cp)
             _zero_outside(rel[i], rp, cp)
     return band, rel
 
@@ -454,8 +497,8 @@ def propagate_batch(field: Field, out, z=None, *legacy, transfer: BatchTransfer 
     b = field.count
     if transfer is None:
         transfer = batch_transfer(wb, field.envelope.device, shift is not None or dz is not None)
-    elif transfer.band.shape[0] != b or (transfer.batch is not None and transfer.batch != wb):
-        raise ValueError(f"propagate_batch: the transfer was built for another batch (its {transfer.band.shape[0]} "
+    elif transfer.count != b or (transfer.batch is not None and transfer.batch != wb):
+        raise ValueError(f"propagate_batch: the transfer was built for another batch (its {transfer.count} "
                          f"sources vs the field's {b}, or another geometry): build it with "
                          "batch_transfer(WindowBatch.of(field, out, z, margin, guard))")
     if shift is not None:
@@ -474,18 +517,36 @@ def _propagate_flat(u: torch.Tensor, transfer: BatchTransfer, out_shape, shift: 
                     dz: torch.Tensor | None) -> torch.Tensor:
     """The envelopes ``u`` ``(B, Ny, Nx)`` (each source's window zero-padded at its end to the batch's input shape)
     propagated by the transfer functions of :func:`batch_transfer` onto their output windows ``(B, ny, nx)``
-    (``out_shape``); ``shift`` ``(B, 2)`` mm and ``dz`` (0-d mm) as :func:`propagate_batch`."""
+    (``out_shape``); ``shift`` ``(B, 2)`` mm and ``dz`` (0-d mm) as :func:`propagate_batch`. A transfer with each
+    source's own band (:attr:`BatchTransfer.parts`, a CPU's) runs field by field on those bands (the union's
+    columns outside a source's band hold zeros: the same values without their transforms)."""
     noy, nox = (int(s) for s in out_shape)
+    b, dev = u.shape[0], u.device
+    zero = torch.zeros((b, 1, 1), dtype=torch.float64, device=dev)
+    sx, sy = (zero, zero) if shift is None else (s.reshape(b, 1, 1) for s in shift.to(torch.float64).unbind(-1))
+    dzt = torch.zeros((), dtype=torch.float64, device=dev) if dz is None else dz.reshape(()).to(torch.float64)
+    perturbed = shift is not None or dz is not None
+    my, mx = transfer.size
+    px, py = transfer.pitch
+    fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=dev)
+    fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=dev)
+    if transfer.parts is not None and per_field(u, (b,)):
+        outs = []
+        for i, part in enumerate(transfer.parts):
+            if part.band is None:  # nothing passes: zeros (that keep u in the graph)
+                outs.append(torch.zeros((noy, nox), dtype=u.dtype, device=dev) + 0 * u[i].sum())
+                continue
+            h = part.band
+            if perturbed:
+                wave = None if dz is None else transfer.wave[:, i:i + 1]
+                rel = None if part.rel is None else part.rel[None]
+                h = _Perturbed.apply(h[None], sx[i:i + 1], sy[i:i + 1], dzt, fx[part.cols], fy[part.rows], wave,
+                                     rel)[0]
+            outs.append(_convolve(u[i], h.to(u.dtype), transfer.size, part.rows, part.cols, noy, nox))
+        return torch.stack(outs)
+    transfer = transfer.placed()
     h = transfer.band
-    if shift is not None or dz is not None:
-        my, mx = transfer.size
-        dev = u.device
-        px, py = transfer.pitch
-        fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=dev)[transfer.cols]
-        fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=dev)[transfer.rows]
-        b = h.shape[0]
-        zero = torch.zeros((b, 1, 1), dtype=torch.float64, device=dev)
-        sx, sy = (zero, zero) if shift is None else (s.reshape(b, 1, 1) for s in shift.to(torch.float64).unbind(-1))
-        dzt = torch.zeros((), dtype=torch.float64, device=dev) if dz is None else dz.reshape(()).to(torch.float64)
-        h = _Perturbed.apply(h, sx, sy, dzt, fx, fy, None if dz is None else transfer.wave, transfer.rel)
+    if perturbed:
+        h = _Perturbed.apply(h, sx, sy, dzt, fx[transfer.cols], fy[transfer.rows],
+                             None if dz is None else transfer.wave, transfer.rel)
     return _convolve(u, h.to(u.dtype), transfer.size, transfer.rows, transfer.cols, noy, nox)
