@@ -145,3 +145,29 @@ def test_hybrid_batched_gradients_equal_the_one_source_path():
     (gd_b, gt_b), (gd_s, gt_s) = grads
     assert float((gd_b - gd_s).abs().max()) < 1e-6 * float(gd_s.abs().max())
     assert math.isclose(float(gt_b), float(gt_s), rel_tol=1e-6)
+
+
+def test_roll_off_derivatives_kept_on_their_lines_equal_the_dense_ones(monkeypatch):
+    """The roll-off weights' derivatives are kept on the roll-off lines only (``RollOffRel``): their sums against a
+    band-sized array and the perturbed amplitude equal the dense ``(B, 3, R, C)`` array's (zero off the lines), for
+    the union's evaluation and each source's own band, and a non-zero window shift perturbs the same."""
+    import raywave.wave.propagation.batch as batch_mod
+    from raywave.wave.propagation.batch import RollOffRel
+
+    us, srcs = _sources([(120, 100), (90, 130), (60, 60)])
+    wb = WindowBatch(tuple(srcs), (41, 41), P)
+    monkeypatch.setattr(batch_mod, "_by_source", lambda device, b: False)
+    tr = batch_transfer(wb, weight_derivative=True)
+    rel = tr.rel
+    assert isinstance(rel, RollOffRel) and (rel.x or rel.y)
+    dense = rel.dense()
+    assert tuple(dense.shape) == (3, 3, *tr.band.shape[1:])
+    q = torch.randn(tr.band.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    for c in range(3):
+        ref = (q * dense[:, c]).sum((-2, -1), keepdim=True)
+        assert torch.allclose(rel.sums(q, c), ref, rtol=1e-13, atol=1e-13 * float(ref.abs().max()))
+    sx, sy = (torch.full((3, 1, 1), v, dtype=torch.float64) for v in (1e-3, -2e-3))
+    dz = torch.tensor(3e-3, dtype=torch.float64)
+    assert torch.equal(rel.amplitude(sx, sy, dz), 1.0 + (sx * dense[:, 1] + sy * dense[:, 2] + dz * dense[:, 0]))
+    one = rel.source(1)
+    assert one.shape == (1, *rel.shape[1:]) and torch.equal(one.dense()[0], dense[1])

@@ -133,8 +133,9 @@ def _per_source(v, b: int, name: str) -> tuple:
 class BatchTransfer:
     """The transfer functions of a :class:`WindowBatch` on the union of their bands: ``band`` complex128
     ``(B, R, C)`` on the rows ``rows`` (R,) × columns ``cols`` (C,) (int64 indices into the ``fftfreq`` grids of
-    ``size`` ``(My, Mx)``); ``rel`` float64 ``(B, 3, R, C)`` or None: the roll-off weights' relative first-order
-    changes ``(∂W/∂z, ∂W/∂s_x, ∂W/∂s_y)/W`` (``weight_derivative``); ``wave`` float64 ``(3, B, 1, 1)``: each
+    ``size`` ``(My, Mx)``); ``rel`` a :class:`RollOffRel` (or, :meth:`placed`, a dense float64 ``(B, 3, R, C)``) or
+    None: the roll-off weights' relative first-order changes ``(∂W/∂z, ∂W/∂s_x, ∂W/∂s_y)/W``
+    (``weight_derivative``); ``wave`` float64 ``(3, B, 1, 1)``: each
     source's ``(n/λ, n α/λ, n β/λ)`` (1/mm), for the axial frequency of the distance perturbation; ``pitch``
     ``(px, py)`` mm; ``batch`` the :class:`WindowBatch` it was built for."""
 
@@ -142,7 +143,7 @@ class BatchTransfer:
     rows: torch.Tensor
     cols: torch.Tensor
     band: torch.Tensor | None
-    rel: torch.Tensor | None
+    rel: "torch.Tensor | RollOffRel | None"
     wave: torch.Tensor
     pitch: tuple[float, float]
     batch: WindowBatch | None = None
@@ -168,14 +169,67 @@ class BatchTransfer:
 @dataclass
 class OwnBand:
     """One source's transfer function on its own band: ``band`` complex128 ``(R_i, C_i)`` on the rows ``rows``
-    (R_i,) × columns ``cols`` (C_i,) of the FFT grid (None: the band is empty), ``rel`` float64 ``(3, R_i, C_i)`` or
-    None (:class:`BatchTransfer`'s, for this source)."""
+    (R_i,) × columns ``cols`` (C_i,) of the FFT grid (None: the band is empty), ``rel`` a :class:`RollOffRel` of one
+    source or None (:class:`BatchTransfer`'s, for this source)."""
 
     rows: torch.Tensor
     cols: torch.Tensor
     band: torch.Tensor | None
     rel: torch.Tensor | None
 
+
+
+@dataclass
+class RollOffRel:
+    """The roll-off weights' relative first-order changes ``(∂W/∂z, ∂W/∂s_x, ∂W/∂s_y)/W`` of a band ``(B, R, C)``,
+    kept on the lines where they can be non-zero (the roll-off lines of :func:`_ramp_lines`; elsewhere the factor is
+    1 and its derivatives 0): ``x`` the column runs ``((a, b, ∂z (B, R, b − a), ∂s_x (B, R, b − a)), …)``, ``y`` the
+    row runs ``((a, b, ∂z (B, b − a, C), ∂s_y (B, b − a, C)), …)``. A dense ``(B, 3, R, C)`` array is ~36 MB per
+    source of a map and was saved for every backward; its uses are sums over the band (:meth:`sums`) and, for a
+    non-zero perturbation, the amplitude (:meth:`amplitude`). Entries where the weight is 0 (evanescent, rolled
+    off) may be non-zero here: they multiply a transfer function that is 0 there."""
+
+    shape: tuple
+    x: tuple
+    y: tuple
+    device: torch.device | None = None
+
+    def dense(self, live: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, 3, R, C)`` float64 (0 off the roll-off lines, and where ``live`` (B, R, C) bool is False)."""
+        b, r, c = self.shape
+        out = torch.zeros((b, 3, r, c), dtype=torch.float64, device=self.device)
+        for a, e, fz, fs in self.x:
+            out[:, 0, :, a:e] += fz
+            out[:, 1, :, a:e] = fs
+        for a, e, fz, fs in self.y:
+            out[:, 0, a:e, :] += fz
+            out[:, 2, a:e, :] = fs
+        return out if live is None else torch.where(live[:, None], out, torch.zeros((), dtype=out.dtype,
+                                                                                     device=out.device))
+
+    def sums(self, q: torch.Tensor, chan: int) -> torch.Tensor:
+        """``Σ q·rel[:, chan]`` over the band, ``(B, 1, 1)``, for ``q`` ``(B, R, C)`` (``chan`` 0: ∂z, 1: ∂s_x,
+        2: ∂s_y), over the roll-off lines alone."""
+        out = torch.zeros_like(q[..., :1, :1])
+        if chan in (0, 1):
+            for a, e, fz, fs in self.x:
+                out = out + (q[..., :, a:e] * (fz if chan == 0 else fs)).sum((-2, -1), keepdim=True)
+        if chan in (0, 2):
+            for a, e, fz, fs in self.y:
+                out = out + (q[..., a:e, :] * (fz if chan == 0 else fs)).sum((-2, -1), keepdim=True)
+        return out
+
+    def amplitude(self, sx, sy, dz) -> torch.Tensor:
+        """``1 + s_x R_x + s_y R_y + dz R_z`` ``(B, R, C)`` (``sx``, ``sy`` ``(B, 1, 1)``, ``dz`` 0-d)."""
+        d = self.dense()
+        return 1.0 + (sx * d[:, 1] + sy * d[:, 2] + dz * d[:, 0])
+
+    def source(self, i: int) -> "RollOffRel":
+        """The source ``i``'s (a batch of one)."""
+        def one(runs):
+            return tuple((a, e, fz[i:i + 1], fs[i:i + 1]) for a, e, fz, fs in runs)
+
+        return RollOffRel((1, *self.shape[1:]), one(self.x), one(self.y), self.device)
 
 def _columns(values: list[list[float]], device) -> list[torch.Tensor]:
     """Per-source host values ``[B][K]`` as K float64 ``(B, 1, 1)`` tensors (one transfer to the device)."""
@@ -243,17 +297,17 @@ def _roll_off_lines(g, g_other, kz, inv_w, band, weight, weight_derivative: bool
     """:func:`_roll_off` of one axis (``dim`` −1: x, the band's columns; −2: y, its rows; ``g`` that axis's physical
     frequencies, ``kz`` = ``(k, zf)``, ``inv_w`` (B, R, C) 1/w) on ``weight`` in place, evaluated on the lines that
     can roll off alone (:func:`_ramp_lines`; the same values: elsewhere the factor is 1 and its derivatives 0), a
-    contiguous run of lines at a time (views). Returns the factors with ``weight_derivative``, else None."""
+    contiguous run of lines at a time (views). Returns the factors with ``weight_derivative`` (the runs of
+    :class:`RollOffRel`: ``((a, b, ∂ log W/∂z, ∂ log W/∂s), …)`` on the lines ``a:b`` of ``dim``), else None."""
     k, zf = kz
     runs = index_runs(_ramp_lines(g, g_other, k, zf, band))
-    facs = (torch.zeros_like(weight), torch.zeros_like(weight)) if weight_derivative else None
+    facs = [] if weight_derivative else None
     for a, b in runs:
         gl, iw = g.narrow(dim, a, b - a), inv_w.narrow(dim, a, b - a)
         fac = _roll_off((zf * gl) * iw, band, zf, weight.narrow(dim, a, b - a), weight_derivative)
         if weight_derivative:
-            for full, part in zip(facs, fac):
-                full.narrow(dim, a, b - a).copy_(part)
-    return facs
+            facs.append((a, b, *fac))
+    return None if facs is None else tuple(facs)
 
 
 def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = False) -> BatchTransfer:
@@ -279,7 +333,7 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
     b = len(geos)
     if cols.numel() == 0 or rows.numel() == 0:
         empty = torch.zeros((b, rows.numel(), cols.numel()), dtype=torch.complex128, device=device)
-        rel = torch.zeros((b, 3, *empty.shape[1:]), dtype=torch.float64, device=device) if weight_derivative else None
+        rel = RollOffRel(tuple(empty.shape), (), (), empty.device) if weight_derivative else None
         return BatchTransfer((my, mx), rows, cols, empty, rel, wave, (px, py), batch)
     params = (k, zf, kax, kay, dx, dy, (bxl, bxh, bxt), (byl, byh, byt))
     if _by_source(device, b):
@@ -297,7 +351,7 @@ def _by_source(device, b: int) -> bool:
 
 
 def _band_values(params: tuple, fxc: torch.Tensor, fyr: torch.Tensor, weight_derivative: bool):
-    """``(band (B, R, C) complex128, rel (B, 3, R, C) float64 or None)``: the transfer functions of the sources
+    """``(band (B, R, C) complex128, rel (:class:`RollOffRel`) or None)``: the transfer functions of the sources
     ``params`` (:func:`batch_transfer`'s ``(k, zf, kα, kβ, dx, dy, x band, y band)``, each ``(B, 1, 1)``) on the
     frequencies ``fyr[:, None], fxc`` (1/mm)."""
     k, zf, kax, kay, dx, dy, bx, by = params
@@ -314,12 +368,7 @@ def _band_values(params: tuple, fxc: torch.Tensor, fyr: torch.Tensor, weight_der
     phase = w.mul_(_TWO_PI * zf).add_(_TWO_PI * ((fxc * dx) + (fyr[:, None] * dy)))
     band = polar(weight, phase)
     del phase
-    rel = None
-    if weight_derivative:
-        live = weight > 0
-        zero = torch.zeros((), dtype=torch.float64, device=weight.device)
-        rel = torch.stack([torch.where(live, fac_x[0] + fac_y[0], zero), torch.where(live, fac_x[1], zero),
-                           torch.where(live, fac_y[1], zero)], 1)
+    rel = RollOffRel(tuple(band.shape), fac_x, fac_y, band.device) if weight_derivative else None
     return band, rel
 
 
@@ -338,7 +387,7 @@ def _own_band_values(params: tuple, freqs: tuple, weight_derivative: bool) -> tu
             parts.append(OwnBand(r_own, c_own, None, None))
             continue
         v, r = _band_values(one, fx[c_own], fy[r_own], weight_derivative)
-        parts.append(OwnBand(r_own, c_own, v[0], None if r is None else r[0]))
+        parts.append(OwnBand(r_own, c_own, v[0], r))
     return tuple(parts)
 
 
@@ -363,7 +412,7 @@ def _place_parts(parts: tuple, band_index: tuple, weight_derivative: bool):
         _place(band[i], part.band, rp, cp)
         _zero_outside(band[i], rp, cp)
         if weight_derivative:
-            _place(rel[i], part.rel, rp, cp)
+            _place(rel[i], part.rel.dense(part.band[None] != 0)[0], rp, cp)
             _zero_outside(rel[i], rp, cp)
     return band, rel
 
@@ -412,6 +461,16 @@ def _axial(fx: torch.Tensor, fy: torch.Tensor, wave: torch.Tensor) -> torch.Tens
     return torch.where(ok, torch.sqrt(torch.where(ok, arg, 1.0)), torch.zeros((), dtype=arg.dtype, device=arg.device))
 
 
+
+def _amplitude(rel, sx, sy, dz):
+    """``1 + s_x R_x + s_y R_y + dz R_z`` (B, R, C) of the roll-off derivatives ``rel`` (a :class:`RollOffRel` or a
+    dense ``(B, 3, R, C)`` tensor), or None without them."""
+    if rel is None:
+        return None
+    if isinstance(rel, RollOffRel):
+        return rel.amplitude(sx, sy, dz)
+    return 1.0 + (sx * rel[:, 1] + sy * rel[:, 2] + dz * rel[:, 0])
+
 class _Perturbed(torch.autograd.Function):
     """The batched :class:`~raywave.wave.propagation.window._Perturbed`: ``h·a·exp(iφ)`` with ``φ = 2π(f_x s_x +
     f_y s_y + w·dz)``, ``a = 1 + s_x R_x + s_y R_y + dz R_z``, per source (``sx``, ``sy`` ``(B, 1, 1)`` mm; ``dz``
@@ -424,8 +483,7 @@ class _Perturbed(torch.autograd.Function):
         if wave is not None:
             phase = phase + _TWO_PI * dz * _axial(fx, fy, wave)
         e = polar(torch.ones((), dtype=phase.dtype, device=phase.device), phase).to(dtype)
-        amp = None if rel is None else 1.0 + (sx * rel[:, 1] + sy * rel[:, 2] + dz * rel[:, 0])
-        return e, amp
+        return e, _amplitude(rel, sx, sy, dz)
 
     @staticmethod
     def forward(ctx, h, sx, sy, dz, fx, fy, wave, rel):
@@ -437,15 +495,17 @@ class _Perturbed(torch.autograd.Function):
         else:
             e, amp = _Perturbed._factors(sx, sy, dz, fx, fy, wave, rel, h.dtype)
             y = h * e if amp is None else h * e * amp.to(h.real.dtype)
-        ctx.save_for_backward(y, sx, sy, dz, fx, fy, wave, rel)
+        ctx.rel = rel  # a RollOffRel (its tensors are the transfer's, which no one modifies) or a dense tensor
+        ctx.save_for_backward(y, sx, sy, dz, fx, fy, wave)
         return y
 
     @staticmethod
     def backward(ctx, g):
-        y, sx, sy, dz, fx, fy, wave, rel = ctx.saved_tensors
+        y, sx, sy, dz, fx, fy, wave = ctx.saved_tensors
+        rel = ctx.rel
         qa_c = (g.conj() * y).to(torch.complex128)  # conj(g)·h·e^{iφ}·a
         qa = qa_c.imag
-        amp = None if rel is None or ctx.zero else 1.0 + (sx * rel[:, 1] + sy * rel[:, 2] + dz * rel[:, 0])
+        amp = None if rel is None or ctx.zero else _amplitude(rel, sx, sy, dz)
         q_re = qa_c.real if amp is None else qa_c.real / amp
         del qa_c
         w = None if wave is None else _axial(fx, fy, wave)
@@ -456,7 +516,9 @@ class _Perturbed(torch.autograd.Function):
             part = torch.zeros_like(qa[..., :1, :1])
             if freq is not None:
                 part = part - _TWO_PI * (qa * freq).sum((-2, -1), keepdim=True)
-            if rel is not None:
+            if isinstance(rel, RollOffRel):
+                part = part + rel.sums(q_re, chan)
+            elif rel is not None:
                 part = part + (q_re * rel[:, chan]).sum((-2, -1), keepdim=True)
             grads[i + 1] = part.sum_to_size(target.shape)
         return tuple(grads)
@@ -539,7 +601,7 @@ def _propagate_flat(u: torch.Tensor, transfer: BatchTransfer, out_shape, shift: 
             h = part.band
             if perturbed:
                 wave = None if dz is None else transfer.wave[:, i:i + 1]
-                rel = None if part.rel is None else part.rel[None]
+                rel = part.rel
                 h = _Perturbed.apply(h[None], sx[i:i + 1], sy[i:i + 1], dzt, fx[part.cols], fy[part.rows], wave,
                                      rel)[0]
             outs.append(_convolve(u[i], h.to(u.dtype), transfer.size, part.rows, part.cols, noy, nox))
