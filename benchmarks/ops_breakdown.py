@@ -123,6 +123,10 @@ def _accelerator_sizes() -> None:
 
     if hasattr(batch_mod, "_by_source"):  # an accelerator evaluates a batch's transfer functions at once
         batch_mod._by_source = lambda device, b: False
+    import raywave.wave.field as field_mod
+
+    if hasattr(field_mod, "_dense_products"):  # the node maps' interpolation as two dense products
+        field_mod._dense_products = lambda device: True
     import raywave.hybrid.batched as batched_mod
 
     if hasattr(batched_mod, "_accelerator"):  # and shares FFT sizes between resolved sources, in larger batches

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["cubic_matrix", "upsampled_intensity", "double_grid_intensity", "keys_matrix", "upsample_nodes",
+__all__ = ["cubic_matrix", "cubic_matrices", "upsampled_intensity", "double_grid_intensity", "keys_matrix", "upsample_nodes",
            "splat_bilinear", "edge_coverage", "fourier_upsample"]
 
 
@@ -50,6 +50,28 @@ def cubic_matrix(pos: torch.Tensor, n_nodes: int) -> torch.Tensor:
     return m[:, 1:-1] + m[:, :1] * fold_lo + m[:, -1:] * fold_lo.flip(0)
 
 
+def cubic_matrices(pos: torch.Tensor, n_nodes: torch.Tensor, k_max: int) -> torch.Tensor:
+    """:func:`cubic_matrix` of B node grids at once, zero-padded to ``k_max`` columns: ``(B, N, k_max)`` from the
+    positions ``pos`` (B, N) (node units, row b within [0, n_nodes[b] − 1]) and the node counts ``n_nodes`` (B, 1)
+    float64 (each ≥ 3, ≤ ``k_max``). Row b's first ``n_nodes[b]`` columns equal :func:`cubic_matrix`'s bit for bit
+    (the same taps, the same ghost folding in the same order); its columns beyond are 0."""
+    b, n = pos.shape
+    dev, dt = pos.device, pos.dtype
+    base = torch.minimum(torch.floor(pos).clamp_min(0), n_nodes - 2)
+    k = base[..., None] + torch.arange(-1, 3, dtype=dt, device=dev)  # (B, N, 4)
+    m = torch.zeros((b, n, k_max + 2), dtype=dt, device=dev)  # columns: ghost, nodes..., ghost, padding
+    m.scatter_add_(-1, (k + 1).long(), _keys(pos[..., None] - k))
+    j = torch.arange(k_max, dtype=dt, device=dev)
+    three = torch.tensor([3.0, -3.0, 1.0], dtype=dt, device=dev)
+
+    def fold(d):  # 3, −3, 1 at d = 0, 1, 2, else 0
+        return torch.where((d >= 0) & (d <= 2), three[d.clamp(0, 2).long()], torch.zeros_like(d))
+
+    hi = m.gather(-1, (n_nodes + 1).long()[:, :, None].expand(b, n, 1))  # (B, N, 1): each row's high ghost
+    out = m[..., 1:k_max + 1] + m[..., :1] * fold(j) + hi * fold(n_nodes[:, :, None] - 1 - j)
+    return torch.where(j < n_nodes[:, :, None], out, torch.zeros_like(out))
+
+
 def keys_matrix(n_nodes: int, stride: int, dtype=torch.float64, device=None) -> torch.Tensor:
     """:func:`cubic_matrix` for nodes at every ``stride``-th fine sample: ``((n_nodes − 1)·stride + 1, n_nodes)``."""
     n_fine = (n_nodes - 1) * stride + 1
@@ -69,9 +91,15 @@ def upsample_nodes(values: torch.Tensor, stride: int | None = None, pos_y: torch
         mx = keys_matrix(kx, stride, values.dtype, values.device)
     else:
         my, mx = cubic_matrix(pos_y.to(values.dtype), ky), cubic_matrix(pos_x.to(values.dtype), kx)
-    if values.device.type != "cpu":  # an accelerator: two dense products (two kernels)
+    if _dense_products(values.device):  # an accelerator: two dense products (two kernels)
         return my @ values @ mx.T
     return _banded_upsample(values, my, mx)
+
+
+def _dense_products(device) -> bool:
+    """Whether :func:`upsample_nodes` takes two dense products (an accelerator: two kernels) rather than the CPU's
+    banded blocks (:func:`_banded_upsample`); benchmarks/ops_breakdown.py ``--accelerator`` makes the CPU take them."""
+    return torch.device(device).type != "cpu"
 
 
 #: fine samples per block of :func:`_banded_upsample` (a block's taps span about ``UPSAMPLE_BLOCK / stride + 3``
