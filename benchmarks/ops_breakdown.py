@@ -44,7 +44,7 @@ PHASES = (
     ("node_maps", ("_node_maps",)),
     ("stop_edge_maps", ("_stop_edge_maps",)),
     ("check_nodes", ("_check_nodes",)),
-    ("fine_field", ("_fine_field", "_window_field")),
+    ("fine_field", ("_fine_field", "_window_field", "_fine_fields", "_fine_field_batch")),
     ("field_setup", ("accurate_field_steps", "_common_setup")),
     ("propagation", ("propagate_group", "propagate_fields", "propagate", "modulated_batch", "sensor_psfs")),
 )
@@ -127,6 +127,14 @@ def _accelerator_sizes() -> None:
 
     if hasattr(field_mod, "_dense_products"):  # the node maps' interpolation as two dense products
         field_mod._dense_products = lambda device: True
+    import raywave.hybrid.coherent.accurate as accurate_mod
+
+    if hasattr(accurate_mod, "BATCHED_FIELD_STAGE"):  # the constructions' field stages in padded batches
+        accurate_mod.BATCHED_FIELD_STAGE = True
+        accurate_mod.FIELD_BATCH_SAMPLES = accurate_mod.FIELD_BATCH_SAMPLES_ACCELERATOR
+        cap = os.environ.get("RAYWAVE_OPS_FIELD_SAMPLES")  # a smaller batch than the accelerator's, for a CPU's memory
+        if cap:
+            accurate_mod.FIELD_BATCH_SAMPLES = int(float(cap))
     import raywave.hybrid.batched as batched_mod
 
     if hasattr(batched_mod, "_accelerator"):  # and shares FFT sizes between resolved sources, in larger batches
@@ -134,6 +142,22 @@ def _accelerator_sizes() -> None:
         cap = os.environ.get("RAYWAVE_OPS_BATCH_BYTES")  # a smaller cap than the accelerator's, for a CPU's memory
         if cap:
             batched_mod.BATCH_BYTES_ACCELERATOR = int(float(cap))
+
+
+def _count_field_batches() -> list:
+    """A list that receives the size of every batch of the batched field stage (issue 43; the accurate construction's
+    ``_fine_field_batch``, where this tree has one) while the cases run."""
+    import raywave.hybrid.coherent.accurate as accurate_mod
+
+    sizes: list = []
+    real = getattr(accurate_mod, "_fine_field_batch", None)
+    if real is not None:
+        def counted(reqs, *a):
+            sizes.append(len(reqs))
+            return real(reqs, *a)
+
+        accurate_mod._fine_field_batch = counted
+    return sizes
 
 
 def main():
@@ -197,14 +221,17 @@ def main():
            "stop_edge": hl.stop_edge, "torch": torch.__version__,
            "path": "accelerator (CUDA block sizes)" if args.accelerator else "cpu", "common_fft": args.common_fft}
     cases = [("no_grad", nograd, f0.shape[0] * w)] + ([("grad", fwd_bwd, f.shape[0] * w)] if args.grad else [])
+    batches = _count_field_batches()
     for name, fn, k in cases:
+        batches.clear()
         total, funcs, phases, openers, syncs = breakdown(fn)
         out[name] = {"psfs_in_call": k, "ops_per_psf": round(total / k, 1),
                      "syncs_per_psf": round(sum(syncs.values()) / k, 2),
                      "sync_sites_per_psf": {f_: round(c / k, 2) for f_, c in syncs.most_common(args.top)},
                      "phases_per_psf": {p: round(c / k, 1) for p, c in phases.most_common()},
                      "openers_per_psf": {o: round(c / k, 1) for o, c in openers.most_common(args.top)},
-                     "functions_per_psf": {f_: round(c / k, 1) for f_, c in funcs.most_common(args.top)}}
+                     "functions_per_psf": {f_: round(c / k, 1) for f_, c in funcs.most_common(args.top)},
+                     "field_stage_batches": list(batches)}
     emit_json(out, args.output)
 
 

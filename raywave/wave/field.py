@@ -52,9 +52,10 @@ def cubic_matrix(pos: torch.Tensor, n_nodes: int) -> torch.Tensor:
 
 def cubic_matrices(pos: torch.Tensor, n_nodes: torch.Tensor, k_max: int) -> torch.Tensor:
     """:func:`cubic_matrix` of B node grids at once, zero-padded to ``k_max`` columns: ``(B, N, k_max)`` from the
-    positions ``pos`` (B, N) (node units, row b within [0, n_nodes[b] − 1]) and the node counts ``n_nodes`` (B, 1)
-    float64 (each ≥ 3, ≤ ``k_max``). Row b's first ``n_nodes[b]`` columns equal :func:`cubic_matrix`'s bit for bit
-    (the same taps, the same ghost folding in the same order); its columns beyond are 0."""
+    positions ``pos`` (B, N) (node units, within [0, n_nodes − 1]) and the node counts ``n_nodes`` float64 (each ≥ 3,
+    ≤ ``k_max``): (B, 1), one per grid, or (B, N), one per position (e.g. a grid's y and x positions in one call).
+    Each row's first ``n_nodes`` columns equal :func:`cubic_matrix`'s bit for bit (the same taps, the same ghost
+    folding in the same order); its columns beyond are 0."""
     b, n = pos.shape
     dev, dt = pos.device, pos.dtype
     base = torch.minimum(torch.floor(pos).clamp_min(0), n_nodes - 2)
@@ -62,10 +63,10 @@ def cubic_matrices(pos: torch.Tensor, n_nodes: torch.Tensor, k_max: int) -> torc
     m = torch.zeros((b, n, k_max + 2), dtype=dt, device=dev)  # columns: ghost, nodes..., ghost, padding
     m.scatter_add_(-1, (k + 1).long(), _keys(pos[..., None] - k))
     j = torch.arange(k_max, dtype=dt, device=dev)
-    three = torch.tensor([3.0, -3.0, 1.0], dtype=dt, device=dev)
+    table = torch.tensor([0.0, 3.0, -3.0, 1.0, 0.0], dtype=dt, device=dev)
 
-    def fold(d):  # 3, −3, 1 at d = 0, 1, 2, else 0
-        return torch.where((d >= 0) & (d <= 2), three[d.clamp(0, 2).long()], torch.zeros_like(d))
+    def fold(d):  # 3, −3, 1 at d = 0, 1, 2, else 0 (d: whole numbers)
+        return table[(d + 1).clamp(0, 4).long()]
 
     hi = m.gather(-1, (n_nodes + 1).long()[:, :, None].expand(b, n, 1))  # (B, N, 1): each row's high ghost
     out = m[..., 1:k_max + 1] + m[..., :1] * fold(j) + hi * fold(n_nodes[:, :, None] - 1 - j)

@@ -3,6 +3,7 @@ quantities interpolated, the phase formed last."""
 
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 from dataclasses import dataclass
@@ -661,7 +662,7 @@ def _fine_fields(reqs: list) -> list:
     doe = None if r0.b.cfg.virtual else r0.b.doe
     if doe is not None and (type(doe).coverage is not DOE.coverage or doe.aperture not in ("square", "circle")):
         return [r.run() for r in reqs]  # an aperture of its own: the DOE's coverage per window
-    ends = torch.stack([torch.stack([r.nd.gy[0], r.nd.gx[0], r.nd.gy[-1], r.nd.gx[-1]]) for r in reqs]).tolist()
+    ends = _node_span_ends([r.nd for r in reqs])
     wins = [_span_bounds(e, r0.sim, doe is not None, dev) for e in ends]
     cap = FIELD_BATCH_SAMPLES if dev.type == "cpu" else FIELD_BATCH_SAMPLES_ACCELERATOR
     out: list = [None] * len(reqs)
@@ -680,6 +681,21 @@ def _fine_fields(reqs: list) -> list:
         if k is not None:
             chunk, ny, nx = [k], wins[k][1] - wins[k][0], wins[k][3] - wins[k][2]
     return out
+
+
+def _node_span_ends(nds: list) -> list:
+    """``[(gy0, gx0, gy1, gx1)]`` mm: the first and last node of every :class:`_Nodes` of ``nds`` (one host read;
+    the node coordinates of all grids gathered at once)."""
+    dev = nds[0].gx.device
+    ends = []
+    for axis in ("gy", "gx"):
+        sizes = [getattr(nd, axis).numel() for nd in nds]
+        last = list(itertools.accumulate(sizes))
+        first = [a - n for a, n in zip(last, sizes)]
+        ends.append(torch.cat([getattr(nd, axis) for nd in nds])[torch.tensor(first + [a - 1 for a in last],
+                                                                              device=dev)])
+    b = len(nds)
+    return torch.stack([ends[0][:b], ends[1][:b], ends[0][b:], ends[1][b:]], 1).tolist()
 
 
 def _first_last_rows(mask: torch.Tensor) -> list:
@@ -786,8 +802,10 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
     hs = [hs[k] for k in sel]
     py = _lattice_positions(iy0, max(ny), y0, p, [ends[k][0] for k in sel], hs, dev)
     px = _lattice_positions(ix0, max(nx), x0, p, [ends[k][1] for k in sel], hs, dev)
-    my = cubic_matrices(torch.minimum(py.clamp_min(0), kyt - 1), kyt, vals.shape[-2])
-    mx = cubic_matrices(torch.minimum(px.clamp_min(0), kxt - 1), kxt, vals.shape[-1])
+    # both axes' matrices in one call: (B, ny + nx, K), each position with its own axis's node count
+    n_nodes = torch.cat([kyt.expand(-1, max(ny)), kxt.expand(-1, max(nx))], 1)
+    m = cubic_matrices(torch.minimum(torch.cat([py, px], 1).clamp_min(0), n_nodes - 1), n_nodes, max(vals.shape[-2:]))
+    my, mx = m[:, :max(ny), :vals.shape[-2]], m[:, max(ny):, :vals.shape[-1]]
     fine = my @ vals @ mx.mT  # (C, B, ny, nx)
     # the coverage, the ripple band and the lit crop (_fine_coverage, _crop_to_lit): one host read
     cov = None
@@ -838,8 +856,7 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
         env = edge_envelope(amp.reshape(shape2), angle.reshape(shape2), nu.reshape(shape2),
                             bs[0].z_doe - bs[0].cfg.stop_plane, rzr, gr, p,
                             kappa=ch[-1].reshape(shape2)).reshape(amp.shape)
-    for t, j in enumerate(lit):
-        k = sel[j]
+    for t, (e, j) in enumerate(zip(env.unbind(0), lit)):
         _, a0, a1, b0, b1 = crops[j]
-        out[k] = env[t, :a1 - a0, :b1 - b0], (iy0[j] + a0, iy0[j] + a1, ix0[j] + b0, ix0[j] + b1)
+        out[sel[j]] = e[:a1 - a0, :b1 - b0], (iy0[j] + a0, iy0[j] + a1, ix0[j] + b0, ix0[j] + b1)
     return out
