@@ -140,3 +140,54 @@ def test_run_serial_is_a_group_of_one(asphere, monkeypatch):
         with torch.no_grad():
             one = asphere.doe_fields([(0.0, 6.0)], [0.53], rays=24)
     assert one[0][0].envelope.abs().max() > 0
+
+
+def test_cubic_matrices_are_cubic_matrix_bit_for_bit():
+    """:func:`raywave.wave.field.cubic_matrices`: each grid's rows equal :func:`cubic_matrix`'s bit for bit (its
+    ghost folding at both ends included), zeros beyond its nodes; one node count per grid or per position."""
+    gen = torch.Generator().manual_seed(0)
+    ns = [3, 5, 17, 40]
+    pos = [(torch.rand(50, dtype=torch.float64, generator=gen) * (n + 3) - 2).clamp(0, n - 1) for n in ns]
+    nn = torch.tensor(ns, dtype=torch.float64)[:, None]
+    for counts in (nn, nn.expand(-1, 50)):
+        m = field_mod.cubic_matrices(torch.stack(pos), counts, max(ns))
+        for i, n in enumerate(ns):
+            assert torch.equal(m[i, :, :n], field_mod.cubic_matrix(pos[i], n))
+            assert not m[i, :, n:].any()
+
+
+def test_edge_envelope_with_per_row_constants():
+    """:func:`~raywave.hybrid.coherent.stop_edge.edge_envelope` on windows stacked by rows, each row with its own
+    window's ripple zones and Fresnel scale ((R, 1) tensors), equals one call per window with its floats bit for
+    bit, and so do its gradients (the hand-written backward)."""
+    from raywave.hybrid.coherent.stop_edge import edge_envelope
+
+    gen = torch.Generator().manual_seed(1)
+    consts = [(5.0, 40.0), (7.5, 25.0), (5.0, 90.0)]  # (ripple zones, g_max 1/mm)
+    ny, nx, p = 6, 50, 1e-3
+
+    def inputs():
+        amp = torch.rand(3, ny, nx, dtype=torch.float64, generator=gen).requires_grad_(True)
+        angle = (100 * torch.rand(3, ny, nx, dtype=torch.float64, generator=gen)).requires_grad_(True)
+        nu = (30 * torch.rand(3, ny, nx, dtype=torch.float64, generator=gen) - 15).requires_grad_(True)
+        kap = (torch.rand(3, ny, nx, dtype=torch.float64, generator=gen) - 0.5).requires_grad_(True)
+        return amp, angle, nu, kap
+
+    ins = inputs()
+    w = torch.rand(3, ny, nx, dtype=torch.complex128, generator=gen)
+    rz = torch.tensor([c[0] for c in consts], dtype=torch.float64).repeat_interleave(ny)[:, None]
+    g = torch.tensor([c[1] for c in consts], dtype=torch.float64).repeat_interleave(ny)[:, None]
+    flat = [t.reshape(-1, nx) for t in ins]
+    env = edge_envelope(flat[0], flat[1], flat[2], 0.5, rz, g, p, kappa=flat[3]).reshape(3, ny, nx)
+    (env * w).real.sum().backward()
+    grads = [t.grad.clone() for t in ins]
+    for t in ins:
+        t.grad = None
+    one = torch.stack([edge_envelope(ins[0][i], ins[1][i], ins[2][i], 0.5, c[0], c[1], p, kappa=ins[3][i])
+                       for i, c in enumerate(consts)])
+    (one * w).real.sum().backward()
+    assert torch.equal(env, one)
+    for a, t in zip(grads, ins):
+        assert torch.equal(a, t.grad)
+    with torch.no_grad():
+        assert torch.equal(edge_envelope(*flat[:3], 0.5, rz, g, p, kappa=flat[3]).reshape(3, ny, nx), one)

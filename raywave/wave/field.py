@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["cubic_matrix", "cubic_matrices", "upsampled_intensity", "double_grid_intensity", "keys_matrix", "upsample_nodes",
-           "splat_bilinear", "edge_coverage", "fourier_upsample"]
+__all__ = ["cubic_matrix", "cubic_matrices", "upsampled_intensity", "double_grid_intensity", "keys_matrix",
+           "upsample_nodes", "splat_bilinear", "edge_coverage", "fourier_upsample"]
 
 
 def _keys(t: torch.Tensor) -> torch.Tensor:

@@ -638,9 +638,24 @@ class _FieldRequest:
 #: always / never (tests and benchmarks/ops_breakdown.py ``--accelerator`` force it on the CPU)
 BATCHED_FIELD_STAGE = None
 #: a batch of :func:`_fine_field_batch` spans at most this many padded samples of the constructions' node-span
-#: windows (~10 float64 arrays of it at the peak) on the CPU; :data:`FIELD_BATCH_SAMPLES_ACCELERATOR` elsewhere
+#: windows (~100 bytes a sample at the peak) on the CPU; :data:`FIELD_BATCH_SAMPLES_ACCELERATOR` elsewhere
+#: (:func:`_field_batch_cap`; the bundled asphere's 10×10×3 map: one batch per field group, ~9 constructions of
+#: ~2·10⁶ samples)
 FIELD_BATCH_SAMPLES = 2**23
 FIELD_BATCH_SAMPLES_ACCELERATOR = 2**27
+
+
+def _field_batch_cap(device) -> int:
+    """Padded samples a batch of :func:`_fine_field_batch` may span on ``device``: :data:`FIELD_BATCH_SAMPLES` on the
+    CPU, else :data:`FIELD_BATCH_SAMPLES_ACCELERATOR`, on CUDA at most a 256th of the device's memory in samples (a
+    batch's arrays take ~100 bytes a sample at its peak: at most ~40 % of the memory)."""
+    dev = torch.device(device)
+    if dev.type == "cpu":
+        return FIELD_BATCH_SAMPLES
+    if dev.type != "cuda":
+        return FIELD_BATCH_SAMPLES_ACCELERATOR
+    return max(FIELD_BATCH_SAMPLES, min(FIELD_BATCH_SAMPLES_ACCELERATOR,
+                                        torch.cuda.get_device_properties(dev).total_memory // 256))
 
 
 def _batched_field_stage(device) -> bool:
@@ -664,23 +679,29 @@ def _fine_fields(reqs: list) -> list:
         return [r.run() for r in reqs]  # an aperture of its own: the DOE's coverage per window
     ends = _node_span_ends([r.nd for r in reqs])
     wins = [_span_bounds(e, r0.sim, doe is not None, dev) for e in ends]
-    cap = FIELD_BATCH_SAMPLES if dev.type == "cpu" else FIELD_BATCH_SAMPLES_ACCELERATOR
     out: list = [None] * len(reqs)
-    chunk, ny, nx = [], 0, 0
-    for k in [k for k, w in enumerate(wins) if w is not None] + [None]:
-        if k is not None:
-            w = wins[k]
-            ny2, nx2 = max(ny, w[1] - w[0]), max(nx, w[3] - w[2])
-            if not chunk or (len(chunk) + 1) * ny2 * nx2 <= cap:
-                chunk.append(k)
-                ny, nx = ny2, nx2
-                continue
-        for j, res in zip(chunk, [] if not chunk else _fine_field_batch([reqs[j] for j in chunk], [wins[j] for j in chunk],
+    for chunk in _field_chunks(wins, _field_batch_cap(dev)):
+        for j, res in zip(chunk, _fine_field_batch([reqs[j] for j in chunk], [wins[j] for j in chunk],
                                                    [ends[j] for j in chunk], doe)):
             out[j] = res
-        if k is not None:
-            chunk, ny, nx = [k], wins[k][1] - wins[k][0], wins[k][3] - wins[k][2]
     return out
+
+
+def _field_chunks(wins: list, cap: int) -> list:
+    """The windows ``wins`` (``(iy0, iy1, ix0, ix1)`` or None: nothing to build) in consecutive batches whose
+    padded size (count × the largest height × the largest width) stays within ``cap`` samples (a batch holds at
+    least one): ``[[index into wins]]``."""
+    chunks, cur, ny, nx = [], [], 0, 0
+    for k, w in enumerate(wins):
+        if w is None:
+            continue
+        ny2, nx2 = max(ny, w[1] - w[0]), max(nx, w[3] - w[2])
+        if cur and (len(cur) + 1) * ny2 * nx2 > cap:
+            chunks.append(cur)
+            cur, ny2, nx2 = [], w[1] - w[0], w[3] - w[2]
+        cur.append(k)
+        ny, nx = ny2, nx2
+    return chunks + ([cur] if cur else [])
 
 
 def _node_span_ends(nds: list) -> list:
