@@ -108,8 +108,10 @@ def breakdown(fn) -> tuple[int, collections.Counter, collections.Counter, collec
 
 def _accelerator_sizes() -> None:
     """Set the CPU's block sizes to an accelerator's (the lens traces' chunks, the edge envelope's blocks, the band
-    convolution's column chunks: the same values, fewer loops) and its one batched evaluation of the transfer
-    functions, so that the count is the ops a CUDA run dispatches."""
+    convolution's column chunks: the same values, fewer loops), its one batched evaluation of the transfer
+    functions, its dense interpolation products and its batched field stage (``RAYWAVE_OPS_FIELD_SAMPLES``: a smaller
+    batch than the accelerator's 2²⁷ samples, for a CPU's memory), so that the count is the ops a CUDA run
+    dispatches."""
     import raywave.hybrid.coherent.stop_edge as edge_mod
     import raywave.lens.lens as lens_mod
     import raywave.wave.propagation.band as window_mod
@@ -169,6 +171,9 @@ def main():
     ap.add_argument("--accelerator", action="store_true",
                     help="count the ops of the path an accelerator takes (the lens traces, the edge envelope and the "
                          "band convolution in CUDA's block sizes: the same values, fewer blocks)")
+    ap.add_argument("--per-construction-fields", action="store_true",
+                    help="with --accelerator: the field stage one construction at a time (the accelerator's path "
+                         "before the batched field stage, raywave.hybrid.coherent.accurate.BATCHED_FIELD_STAGE)")
     ap.add_argument("--common-fft", action="store_true",
                     help="one FFT size per group of sources (raywave.hybrid.batched.COMMON_FFT, issue 43)")
     ap.add_argument("-o", "--output", default=None)
@@ -189,6 +194,10 @@ def main():
     _ROOT = os.path.dirname(os.path.abspath(raywave.__file__))
     if args.accelerator:
         _accelerator_sizes()
+    if args.per_construction_fields:
+        import raywave.hybrid.coherent.accurate as accurate_mod
+
+        accurate_mod.BATCHED_FIELD_STAGE = False
     if args.common_fft:
         import raywave.hybrid.batched as batched_mod
 
@@ -219,7 +228,8 @@ def main():
 
     out = {"benchmark": "ops_breakdown", "lens": "hybrid_asphere", "grid": [n, m], "wavelengths": wls, "ks": KS,
            "stop_edge": hl.stop_edge, "torch": torch.__version__,
-           "path": "accelerator (CUDA block sizes)" if args.accelerator else "cpu", "common_fft": args.common_fft}
+           "path": "accelerator (CUDA block sizes)" if args.accelerator else "cpu", "common_fft": args.common_fft,
+           "batched_field_stage": not args.per_construction_fields}
     cases = [("no_grad", nograd, f0.shape[0] * w)] + ([("grad", fwd_bwd, f.shape[0] * w)] if args.grad else [])
     batches = _count_field_batches()
     for name, fn, k in cases:
