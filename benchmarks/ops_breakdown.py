@@ -229,7 +229,7 @@ def main():
     out = {"benchmark": "ops_breakdown", "lens": "hybrid_asphere", "grid": [n, m], "wavelengths": wls, "ks": KS,
            "stop_edge": hl.stop_edge, "torch": torch.__version__,
            "path": "accelerator (CUDA block sizes)" if args.accelerator else "cpu", "common_fft": args.common_fft,
-           "batched_field_stage": not args.per_construction_fields}
+           "batched_field_stage": args.accelerator and not args.per_construction_fields}
     cases = [("no_grad", nograd, f0.shape[0] * w)] + ([("grad", fwd_bwd, f.shape[0] * w)] if args.grad else [])
     batches = _count_field_batches()
     for name, fn, k in cases:
