@@ -618,13 +618,17 @@ class _FieldRequest:
     deferred: ClassVar[bool] = True
 
     def run(self):
+        """This construction's field stage alone (:func:`_fine_field`; :func:`run_serial`)."""
         return _fine_field(self.b, self.nd, self.maps, self.sim)
 
     @staticmethod
     def run_group(reqs: list) -> list:
+        """The answers of a group of requests (one ``group_key``), in order (:func:`_fine_fields`)."""
         return _fine_fields(reqs)
 
     def group_key(self) -> tuple:
+        """What the requests batched together share: the DOE (its simulation grid), virtual plane, oversampling,
+        stop-edge mode (diffracting, other edges) and the knife edge's side, and the device."""
         b, maps = self.b, self.maps
         diffracting = "nu" in maps
         edge = (b.z_doe - b.cfg.stop_plane >= 0) if diffracting else None  # the knife edge's side: one per batch
