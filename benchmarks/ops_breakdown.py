@@ -44,7 +44,7 @@ PHASES = (
     ("node_maps", ("_node_maps",)),
     ("stop_edge_maps", ("_stop_edge_maps",)),
     ("check_nodes", ("_check_nodes",)),
-    ("fine_field", ("_fine_field", "_window_field")),
+    ("fine_field", ("_fine_field", "_window_field", "_fine_fields", "_fine_field_batch")),
     ("field_setup", ("accurate_field_steps", "_common_setup")),
     ("propagation", ("propagate_group", "propagate_fields", "propagate", "modulated_batch", "sensor_psfs")),
 )
@@ -109,8 +109,16 @@ def breakdown(fn) -> tuple[int, collections.Counter, collections.Counter, collec
 def _accelerator_sizes() -> None:
     """Take an accelerator's plan on the CPU (the lens traces' chunks, the edge envelope's blocks, the band
     convolution's column chunks and whole batches, the dense interpolation, the one batched evaluation of the
-    transfer functions, the shared FFT sizes: the same values, fewer and larger ops), so that the count is the ops
-    a CUDA run dispatches: one switch, :func:`raywave.utils.devices.accelerator`, in trees that have it."""
+    transfer functions, the shared FFT sizes, the batched field stage: the same values, fewer and larger ops), so
+    that the count is the ops a CUDA run dispatches: one switch, :func:`raywave.utils.devices.accelerator`, in trees
+    that have it (``RAYWAVE_OPS_FIELD_SAMPLES`` / ``RAYWAVE_OPS_BATCH_BYTES``: smaller batches than an accelerator's,
+    for a CPU's memory)."""
+    import raywave.hybrid.coherent.accurate as accurate_mod
+
+    if hasattr(accurate_mod, "FIELD_BATCH_SAMPLES_ACCELERATOR"):  # the field stages' padded batches
+        cap = os.environ.get("RAYWAVE_OPS_FIELD_SAMPLES")
+        accurate_mod.FIELD_BATCH_SAMPLES_ACCELERATOR = int(float(cap)) if cap else \
+            accurate_mod.FIELD_BATCH_SAMPLES_ACCELERATOR
     import raywave.hybrid.batched as batched_mod
 
     try:
@@ -140,6 +148,22 @@ def _accelerator_sizes() -> None:
         batched_mod.BATCH_BYTES_ACCELERATOR = int(float(cap))
 
 
+def _count_field_batches() -> list:
+    """A list that receives the size of every batch of the batched field stage (issue 43; the accurate construction's
+    ``_fine_field_batch``, where this tree has one) while the cases run."""
+    import raywave.hybrid.coherent.accurate as accurate_mod
+
+    sizes: list = []
+    real = getattr(accurate_mod, "_fine_field_batch", None)
+    if real is not None:
+        def counted(reqs, *a):
+            sizes.append(len(reqs))
+            return real(reqs, *a)
+
+        accurate_mod._fine_field_batch = counted
+    return sizes
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--map", default="10x10x3", metavar="NxMxW")
@@ -149,6 +173,9 @@ def main():
     ap.add_argument("--accelerator", action="store_true",
                     help="count the ops of the path an accelerator takes (the lens traces, the edge envelope and the "
                          "band convolution in CUDA's block sizes: the same values, fewer blocks)")
+    ap.add_argument("--per-construction-fields", action="store_true",
+                    help="with --accelerator: the field stage one construction at a time (the accelerator's path "
+                         "before the batched field stage, raywave.hybrid.coherent.accurate.BATCHED_FIELD_STAGE)")
     ap.add_argument("--common-fft", action="store_true",
                     help="one FFT size per group of sources (raywave.hybrid.batched.COMMON_FFT, issue 43)")
     ap.add_argument("-o", "--output", default=None)
@@ -169,6 +196,10 @@ def main():
     _ROOT = os.path.dirname(os.path.abspath(raywave.__file__))
     if args.accelerator:
         _accelerator_sizes()
+    if args.per_construction_fields:
+        import raywave.hybrid.coherent.accurate as accurate_mod
+
+        accurate_mod.BATCHED_FIELD_STAGE = False
     if args.common_fft:
         import raywave.hybrid.batched as batched_mod
 
@@ -199,16 +230,20 @@ def main():
 
     out = {"benchmark": "ops_breakdown", "lens": "hybrid_asphere", "grid": [n, m], "wavelengths": wls, "ks": KS,
            "stop_edge": hl.stop_edge, "torch": torch.__version__,
-           "path": "accelerator (CUDA block sizes)" if args.accelerator else "cpu", "common_fft": args.common_fft}
+           "path": "accelerator (CUDA block sizes)" if args.accelerator else "cpu", "common_fft": args.common_fft,
+           "batched_field_stage": args.accelerator and not args.per_construction_fields}
     cases = [("no_grad", nograd, f0.shape[0] * w)] + ([("grad", fwd_bwd, f.shape[0] * w)] if args.grad else [])
+    batches = _count_field_batches()
     for name, fn, k in cases:
+        batches.clear()
         total, funcs, phases, openers, syncs = breakdown(fn)
         out[name] = {"psfs_in_call": k, "ops_per_psf": round(total / k, 1),
                      "syncs_per_psf": round(sum(syncs.values()) / k, 2),
                      "sync_sites_per_psf": {f_: round(c / k, 2) for f_, c in syncs.most_common(args.top)},
                      "phases_per_psf": {p: round(c / k, 1) for p, c in phases.most_common()},
                      "openers_per_psf": {o: round(c / k, 1) for o, c in openers.most_common(args.top)},
-                     "functions_per_psf": {f_: round(c / k, 1) for f_, c in funcs.most_common(args.top)}}
+                     "functions_per_psf": {f_: round(c / k, 1) for f_, c in funcs.most_common(args.top)},
+                     "field_stage_batches": list(batches)}
     emit_json(out, args.output)
 
 

@@ -18,8 +18,8 @@ import torch
 
 from raywave.utils import devices
 
-__all__ = ["cubic_matrix", "upsampled_intensity", "double_grid_intensity", "keys_matrix", "upsample_nodes",
-           "splat_bilinear", "edge_coverage", "fourier_upsample"]
+__all__ = ["cubic_matrix", "cubic_matrices", "upsampled_intensity", "double_grid_intensity", "keys_matrix",
+           "upsample_nodes", "splat_bilinear", "edge_coverage", "fourier_upsample"]
 
 
 def _keys(t: torch.Tensor) -> torch.Tensor:
@@ -50,6 +50,29 @@ def cubic_matrix(pos: torch.Tensor, n_nodes: int) -> torch.Tensor:
     # most one ghost, so each entry sums at most two terms: the same values as folding column by column)
     fold_lo = torch.tensor([3.0, -3.0, 1.0] + [0.0] * (n_nodes - 3), dtype=pos.dtype, device=pos.device)
     return m[:, 1:-1] + m[:, :1] * fold_lo + m[:, -1:] * fold_lo.flip(0)
+
+
+def cubic_matrices(pos: torch.Tensor, n_nodes: torch.Tensor, k_max: int) -> torch.Tensor:
+    """:func:`cubic_matrix` of B node grids at once, zero-padded to ``k_max`` columns: ``(B, N, k_max)`` from the
+    positions ``pos`` (B, N) (node units, within [0, n_nodes − 1]) and the node counts ``n_nodes`` float64 (each ≥ 3,
+    ≤ ``k_max``): (B, 1), one per grid, or (B, N), one per position (e.g. a grid's y and x positions in one call).
+    Each row's first ``n_nodes`` columns equal :func:`cubic_matrix`'s bit for bit (the same taps, the same ghost
+    folding in the same order); its columns beyond are 0."""
+    b, n = pos.shape
+    dev, dt = pos.device, pos.dtype
+    base = torch.minimum(torch.floor(pos).clamp_min(0), n_nodes - 2)
+    k = base[..., None] + torch.arange(-1, 3, dtype=dt, device=dev)  # (B, N, 4)
+    m = torch.zeros((b, n, k_max + 2), dtype=dt, device=dev)  # columns: ghost, nodes..., ghost, padding
+    m.scatter_add_(-1, (k + 1).long(), _keys(pos[..., None] - k))
+    j = torch.arange(k_max, dtype=dt, device=dev)
+    table = torch.tensor([0.0, 3.0, -3.0, 1.0, 0.0], dtype=dt, device=dev)
+
+    def fold(d):  # 3, −3, 1 at d = 0, 1, 2, else 0 (d: whole numbers)
+        return table[(d + 1).clamp(0, 4).long()]
+
+    hi = m.gather(-1, (n_nodes + 1).long()[:, :, None].expand(b, n, 1))  # (B, N, 1): each row's high ghost
+    out = m[..., 1:k_max + 1] + m[..., :1] * fold(j) + hi * fold(n_nodes[:, :, None] - 1 - j)
+    return torch.where(j < n_nodes[:, :, None], out, torch.zeros_like(out))
 
 
 def keys_matrix(n_nodes: int, stride: int, dtype=torch.float64, device=None) -> torch.Tensor:

@@ -3,17 +3,21 @@ quantities interpolated, the phase formed last."""
 
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 
 from raywave.lens.paraxial import entrance_pupil_diameter
 from raywave.lens.sources import chief_pupil, entrance_plane_z, point_source_rays, source_weight
+from raywave.utils import devices
 from raywave.utils.phasor import polar
 from raywave.utils.safe import safe_sqrt
-from raywave.wave.field import cubic_matrix, edge_coverage, upsample_nodes
+from raywave.doe.base import DOE
+from raywave.wave.field import cubic_matrices, cubic_matrix, edge_coverage, upsample_nodes
 from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _warn_nyquist, check_window_memory)
@@ -126,8 +130,8 @@ def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: Chief
     Steps: the node grid over the footprint (:func:`_node_layout`), exactly aimed rays to every node
     (:func:`_trace_nodes`), the smooth per-node maps (:func:`_node_maps`: optical path, ray density, distances
     to the edges; :func:`_stop_edge_maps`: the stop edge's Fresnel channels), the checks (:func:`_check_nodes`),
-    a :data:`~raywave.hybrid.coherent.tracing.PAUSE` (the ray stage done), and the fine field
-    (:func:`_fine_field`)."""
+    a :data:`~raywave.hybrid.coherent.tracing.PAUSE` (the ray stage done), and the fine field (a
+    :class:`_FieldRequest`: :func:`_fine_field`, or with other constructions' :func:`_fine_fields`)."""
     b = _Build(lens, doe, source, float(planes.z_doe), float(planes.z_sensor), chief, settings or FieldSettings(),
                known or Known())
     bbox = _lit_footprint(b)
@@ -154,7 +158,8 @@ def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: Chief
     del nodes, good
     yield PAUSE
     sim = doe.sim_grid(b.cfg.oversample)
-    out = _fine_field(b, nd, maps, sim)
+    # the field stage: a request that run_batched answers for many constructions at once (_fine_fields)
+    out = yield _FieldRequest(b, nd, maps, sim)
     if out is None:
         return b.empty(n_rays)
     return _window_field(b, *out, sim, n_rays + 1)
@@ -557,16 +562,22 @@ def _span_window(nd: _Nodes, sim: Grid, clamp: bool):
     ``sim``'s lattice (pitch mm), clamped to the DOE grid with ``clamp`` (a virtual plane's window is not: it lies
     on the DOE grid's lattice extended); None when empty. Refuses a window too large for memory
     (:func:`check_window_memory`) before any array of its size exists."""
+    ends = torch.stack([nd.gy[0], nd.gx[0], nd.gy[-1], nd.gx[-1]]).tolist()  # one host read
+    return _span_bounds(ends, sim, clamp, nd.gx.device)
+
+
+def _span_bounds(ends, sim: Grid, clamp: bool, device):
+    """:func:`_span_window` from the node span's ends ``(gy0, gx0, gy1, gx1)`` mm (host floats)."""
     p = sim.pitch[0]
     (x0, y0), (sy, sx) = sim.origin, sim.shape
-    gy0, gx0, gy1, gx1 = torch.stack([nd.gy[0], nd.gx[0], nd.gy[-1], nd.gx[-1]]).tolist()  # one host read
+    gy0, gx0, gy1, gx1 = ends
     iy0, ix0 = math.ceil((gy0 - y0) / p), math.ceil((gx0 - x0) / p)
     iy1, ix1 = math.floor((gy1 - y0) / p) + 1, math.floor((gx1 - x0) / p) + 1
     if clamp:
         iy0, iy1, ix0, ix1 = max(0, iy0), min(sy, iy1), max(0, ix0), min(sx, ix1)
     if iy1 <= iy0 or ix1 <= ix0:
         return None
-    check_window_memory(iy1 - iy0, ix1 - ix0, p, nd.gx.device)  # before any array of the window's size
+    check_window_memory(iy1 - iy0, ix1 - ix0, p, device)  # before any array of the window's size
     return iy0, iy1, ix0, ix1
 
 
@@ -590,3 +601,288 @@ def _fine_coverage(fine: torch.Tensor, diffracting: bool, has_other: bool, sim: 
         band = (fine[-2].detach() > -math.sqrt(2.0) * ripple_zones).to(torch.float64)
         return cov, _crop_to_lit(band if cov is None else cov * band)
     return cov, _crop_to_lit(cov)
+
+
+@dataclass
+class _FieldRequest:
+    """The field stage of one construction (:func:`_fine_field`'s arguments: the :class:`_Build`, its
+    :class:`_Nodes`, the node maps :data:`_FIELD_MAPS` and the simulation grid ``sim``), yielded by
+    :func:`accurate_field_steps` after its :data:`~raywave.hybrid.coherent.tracing.PAUSE`; answered with
+    ``(envelope, box)`` or None. :func:`~raywave.hybrid.coherent.tracing.run_batched` answers the pending requests
+    that share a plane, DOE and mode with one :func:`_fine_fields` (``run_group``), after every pending trace
+    (``deferred``: the constructions still tracing join the batch)."""
+
+    b: _Build
+    nd: _Nodes
+    maps: dict
+    sim: Grid
+    deferred: ClassVar[bool] = True
+
+    def run(self):
+        """This construction's field stage alone (:func:`_fine_field`; :func:`run_serial`)."""
+        return _fine_field(self.b, self.nd, self.maps, self.sim)
+
+    @staticmethod
+    def run_group(reqs: list) -> list:
+        """The answers of a group of requests (one ``group_key``), in order (:func:`_fine_fields`)."""
+        return _fine_fields(reqs)
+
+    def group_key(self) -> tuple:
+        """What the requests batched together share: the DOE (its simulation grid), virtual plane, oversampling,
+        stop-edge mode (diffracting, other edges) and the knife edge's side, and the device."""
+        b, maps = self.b, self.maps
+        diffracting = "nu" in maps
+        edge = (b.z_doe - b.cfg.stop_plane >= 0) if diffracting else None  # the knife edge's side: one per batch
+        return ("field", id(b.doe), bool(b.cfg.virtual), int(b.cfg.oversample), diffracting,
+                diffracting and maps.get("other") is not None, edge, self.nd.gx.device)
+
+
+#: the field stage of a group of constructions (:func:`_fine_fields`) as one batched computation
+#: (:func:`_fine_field_batch`): None on an accelerator only (every op a kernel launch; the CPU keeps
+#: :func:`_fine_field` per construction, its banded interpolation ~3× cheaper than the dense products); True / False:
+#: always / never (tests and benchmarks/ops_breakdown.py ``--accelerator`` force it on the CPU)
+BATCHED_FIELD_STAGE = None
+#: a batch of :func:`_fine_field_batch` spans at most this many padded samples of the constructions' node-span
+#: windows (~100 bytes a sample at the peak) on the CPU; :data:`FIELD_BATCH_SAMPLES_ACCELERATOR` elsewhere
+#: (:func:`_field_batch_cap`; the bundled asphere's 10×10×3 map: one batch per field group, ~9 constructions of
+#: ~2·10⁶ samples)
+FIELD_BATCH_SAMPLES = 2**23
+FIELD_BATCH_SAMPLES_ACCELERATOR = 2**27
+
+
+def _field_batch_cap(device) -> int:
+    """Padded samples a batch of :func:`_fine_field_batch` may span on ``device``: :data:`FIELD_BATCH_SAMPLES` on the
+    CPU, else :data:`FIELD_BATCH_SAMPLES_ACCELERATOR`, on CUDA at most a 256th of the device's memory in samples (a
+    batch's arrays take ~100 bytes a sample at its peak: at most ~40 % of the memory)."""
+    dev = torch.device(device)
+    if not devices.accelerator(dev):
+        return FIELD_BATCH_SAMPLES
+    if dev.type != "cuda":
+        return FIELD_BATCH_SAMPLES_ACCELERATOR
+    return max(FIELD_BATCH_SAMPLES, min(FIELD_BATCH_SAMPLES_ACCELERATOR,
+                                        torch.cuda.get_device_properties(dev).total_memory // 256))
+
+
+def _batched_field_stage(device) -> bool:
+    """Whether :func:`_fine_fields` batches on ``device`` (:data:`BATCHED_FIELD_STAGE`)."""
+    if BATCHED_FIELD_STAGE is not None:
+        return bool(BATCHED_FIELD_STAGE)
+    return devices.accelerator(device)
+
+
+def _fine_fields(reqs: list) -> list:
+    """:func:`_fine_field` of every :class:`_FieldRequest` of ``reqs`` (one plane, DOE and mode: ``group_key``):
+    ``[(envelope, box) or None]``. On an accelerator (:data:`BATCHED_FIELD_STAGE`) in padded batches
+    (:func:`_fine_field_batch`: a few dozen kernels per batch instead of ~70 per construction), each result equal to
+    its own call's to rounding (the dense products' sums); else one call each."""
+    r0 = reqs[0]
+    dev = r0.nd.gx.device
+    if len(reqs) < 2 or not _batched_field_stage(dev):
+        return [r.run() for r in reqs]
+    doe = None if r0.b.cfg.virtual else r0.b.doe
+    if doe is not None and (type(doe).coverage is not DOE.coverage or doe.aperture not in ("square", "circle")):
+        return [r.run() for r in reqs]  # an aperture of its own: the DOE's coverage per window
+    ends = _node_span_ends([r.nd for r in reqs])
+    wins = [_span_bounds(e, r0.sim, doe is not None, dev) for e in ends]
+    out: list = [None] * len(reqs)
+    for chunk in _field_chunks(wins, _field_batch_cap(dev)):
+        for j, res in zip(chunk, _fine_field_batch([reqs[j] for j in chunk], [wins[j] for j in chunk],
+                                                   [ends[j] for j in chunk], doe)):
+            out[j] = res
+    return out
+
+
+def _field_chunks(wins: list, cap: int) -> list:
+    """The windows ``wins`` (``(iy0, iy1, ix0, ix1)`` or None: nothing to build) in consecutive batches whose
+    padded size (count × the largest height × the largest width) stays within ``cap`` samples (a batch holds at
+    least one): ``[[index into wins]]``."""
+    chunks, cur, ny, nx = [], [], 0, 0
+    for k, w in enumerate(wins):
+        if w is None:
+            continue
+        ny2, nx2 = max(ny, w[1] - w[0]), max(nx, w[3] - w[2])
+        if cur and (len(cur) + 1) * ny2 * nx2 > cap:
+            chunks.append(cur)
+            cur, ny2, nx2 = [], w[1] - w[0], w[3] - w[2]
+        cur.append(k)
+        ny, nx = ny2, nx2
+    return chunks + ([cur] if cur else [])
+
+
+def _node_span_ends(nds: list) -> list:
+    """``[(gy0, gx0, gy1, gx1)]`` mm: the first and last node of every :class:`_Nodes` of ``nds`` (one host read;
+    the node coordinates of all grids gathered at once)."""
+    dev = nds[0].gx.device
+    ends = []
+    for axis in ("gy", "gx"):
+        sizes = [getattr(nd, axis).numel() for nd in nds]
+        last = list(itertools.accumulate(sizes))
+        first = [a - n for a, n in zip(last, sizes)]
+        ends.append(torch.cat([getattr(nd, axis) for nd in nds])[torch.tensor(first + [a - 1 for a in last],
+                                                                              device=dev)])
+    b = len(nds)
+    return torch.stack([ends[0][:b], ends[1][:b], ends[0][b:], ends[1][b:]], 1).tolist()
+
+
+def _first_last_rows(mask: torch.Tensor) -> list:
+    """:func:`~raywave.hybrid.coherent.geometry._first_last` of every row of the bool ``mask`` (B, n): ``[any,
+    first, last + 1]`` (B,) int64 each (valid where ``any``)."""
+    n = mask.shape[-1]
+    m = mask.to(torch.int64)
+    return [m.amax(-1), torch.argmax(m, -1), n - torch.argmax(m.flip(-1), -1)]
+
+
+def _lattice_positions(start: list, n: int, origin: float, p: float, node0: list, h: list, dev) -> torch.Tensor:
+    """``(B, n)``: node-unit positions ``(origin + (start[b] + i)·p − node0[b]) / h[b]`` of the lattice samples
+    ``start[b] + i`` (pitch ``p`` mm, origin mm) on construction b's node grid (first node ``node0[b]`` mm, spacing
+    ``h[b]`` mm): :func:`_fine_field`'s arithmetic, the same values."""
+    f64 = dict(dtype=torch.float64, device=dev)
+    idx = torch.tensor(start, **f64)[:, None] + torch.arange(n, **f64)
+    return (origin + idx * p - torch.tensor(node0, **f64)[:, None]) / torch.tensor(h, **f64)[:, None]
+
+
+def _doe_coverage_batch(doe, oversample: int, starts: tuple, shape: tuple, dev):
+    """:meth:`raywave.doe.DOE.coverage` of B windows at once: ``(B, ny, nx)`` float64 for the windows whose sample
+    (0, 0) lies at ``starts`` = (iy0 (B,), ix0 (B,)) on the DOE's simulation grid (``shape`` (ny, nx): their padded
+    size; samples beyond a window's own size are computed too), the same values; None for a square aperture (1)."""
+    if doe.aperture == "square":
+        return None
+    f64 = dict(dtype=torch.float64, device=dev)
+    x0, y0 = doe.sim_origin(oversample)
+    p = doe.pitch / oversample
+    x = x0 + (torch.tensor(starts[1], **f64)[:, None] + torch.arange(shape[1], **f64)) * p
+    y = y0 + (torch.tensor(starts[0], **f64)[:, None] + torch.arange(shape[0], **f64)) * p
+    r = torch.sqrt(x[:, None, :] ** 2 + y[:, :, None] ** 2)
+    radius = 0.5 * min(doe.size)
+    return (0.5 + (radius - r) / p).clamp(0.0, 1.0)
+
+
+def _padded_node_maps(reqs: list, diffracting: bool, has_other: bool):
+    """The constructions' node maps zero-padded to common ``(KY, KX)``: ``(channels (C, B, KY, KX) in
+    :func:`_fine_field`'s order (φ, amplitude, [distance], [other edges, ν, κ/g]), the keep source (B, KY, KX)
+    detached (``nu_raw`` or the distance), valid nodes (B, KY, KX) bool)``. Differentiable."""
+    ks = [(r.nd.ky, r.nd.kx) for r in reqs]
+    ky_max, kx_max = max(k[0] for k in ks), max(k[1] for k in ks)
+    names = ["phi_env", "amp2"] + ([] if diffracting else ["dist"]) + (["other"] if has_other else []) \
+        + (["nu", "kappa"] if diffracting else [])
+    keep = "nu_raw" if diffracting else "dist"
+    v = torch.stack([torch.nn.functional.pad(torch.stack([r.maps[n] for n in names] + [r.maps[keep].detach()]),
+                                             (0, kx_max - kx, 0, ky_max - ky)) for r, (ky, kx) in zip(reqs, ks)])
+    ch = v.unbind(1)
+    amp2 = ch[1]
+    lit_amp = amp2 > 0  # (the zero padding: 0)
+    amp = torch.where(lit_amp, safe_sqrt(amp2, lit_amp), torch.zeros_like(amp2))
+    dev = v.device
+    kyt = torch.tensor([k[0] for k in ks], device=dev)[:, None, None]
+    kxt = torch.tensor([k[1] for k in ks], device=dev)[:, None, None]
+    valid = (torch.arange(ky_max, device=dev)[:, None] < kyt) & (torch.arange(kx_max, device=dev) < kxt)
+    return torch.stack([ch[0], amp, *ch[2:-1]]), ch[-1].detach(), valid
+
+
+def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
+    """:func:`_fine_field` of B constructions (:class:`_FieldRequest`, one ``group_key``) as batched tensor ops:
+    their node maps padded to a common node grid (:func:`_padded_node_maps`), their fine windows to a common size,
+    the cubic interpolation as two batched products (:func:`~raywave.wave.field.cubic_matrices`), the coverage, the
+    ripple band, the crop to the lit samples (three host reads for the batch: the near-node ranges, the lit crops,
+    and before, in :func:`_fine_fields`, the node spans ``wins``/``ends``) and the envelope with its knife-edge
+    factor (:func:`~raywave.hybrid.coherent.stop_edge.edge_envelope`, each row with its window's constants).
+    Returns ``[(envelope (ny, nx) complex128, box) or None]``, each a view of the batch's envelope."""
+    r0 = reqs[0]
+    sim, dev = r0.sim, r0.nd.gx.device
+    p = sim.pitch[0]
+    x0, y0 = sim.origin
+    diffracting = "nu" in r0.maps
+    has_other = diffracting and r0.maps["other"] is not None
+    f64 = dict(dtype=torch.float64, device=dev)
+    hs = [r.nd.h for r in reqs]
+    rz = [r.b.ripple for r in reqs]
+    vals, keep_src, valid = _padded_node_maps(reqs, diffracting, has_other)
+    # the near-node ranges (_near_nodes) of every construction's span window: one host read
+    thr = torch.tensor([-math.sqrt(2.0) * z if diffracting else -2 * h for z, h in zip(rz, hs)], **f64)
+    keep = (keep_src > thr[:, None, None]) & valid
+    ny0 = [w[1] - w[0] for w in wins]
+    nx0 = [w[3] - w[2] for w in wins]
+    pos_y = _lattice_positions([w[0] for w in wins], max(ny0), y0, p, [e[0] for e in ends], hs, dev)
+    pos_x = _lattice_positions([w[2] for w in wins], max(nx0), x0, p, [e[1] for e in ends], hs, dev)
+    rows, cols = _first_last_rows(keep.any(2)), _first_last_rows(keep.any(1))
+
+    def span(pos, n, lo, hi):  # within 3 node spacings of the kept nodes, inside the window's own samples
+        own = torch.arange(pos.shape[1], device=dev) < torch.tensor(n, device=dev)[:, None]
+        return _first_last_rows((pos >= (lo - 3)[:, None]) & (pos <= (hi + 3)[:, None]) & own)
+
+    near = torch.stack([rows[0], *span(pos_y, ny0, rows[1], rows[2] - 1),
+                        *span(pos_x, nx0, cols[1], cols[2] - 1)], 1).tolist()
+    sel = [k for k, (kept, y_any, _, _, x_any, _, _) in enumerate(near) if kept and y_any and x_any]
+    out: list = [None] * len(reqs)
+    if not sel:
+        return out
+    if len(sel) < len(reqs):
+        idx = torch.tensor(sel, device=dev)
+        vals, valid = vals[:, idx], valid[idx]
+    iy0 = [wins[k][0] + near[k][2] for k in sel]
+    ix0 = [wins[k][2] + near[k][5] for k in sel]
+    ny = [near[k][3] - near[k][2] for k in sel]
+    nx = [near[k][6] - near[k][5] for k in sel]
+    kyt = torch.tensor([float(reqs[k].nd.ky) for k in sel], **f64)[:, None]
+    kxt = torch.tensor([float(reqs[k].nd.kx) for k in sel], **f64)[:, None]
+    hs = [hs[k] for k in sel]
+    py = _lattice_positions(iy0, max(ny), y0, p, [ends[k][0] for k in sel], hs, dev)
+    px = _lattice_positions(ix0, max(nx), x0, p, [ends[k][1] for k in sel], hs, dev)
+    # both axes' matrices in one call: (B, ny + nx, K), each position with its own axis's node count
+    n_nodes = torch.cat([kyt.expand(-1, max(ny)), kxt.expand(-1, max(nx))], 1)
+    m = cubic_matrices(torch.minimum(torch.cat([py, px], 1).clamp_min(0), n_nodes - 1), n_nodes, max(vals.shape[-2:]))
+    my, mx = m[:, :max(ny), :vals.shape[-2]], m[:, max(ny):, :vals.shape[-1]]
+    fine = my @ vals @ mx.mT  # (C, B, ny, nx)
+    # the coverage, the ripple band and the lit crop (_fine_coverage, _crop_to_lit): one host read
+    cov = None
+    if not diffracting or has_other:
+        cov = edge_coverage(fine[2], p)
+    if doe is not None:
+        dcov = _doe_coverage_batch(doe, r0.b.cfg.oversample, (iy0, ix0), fine.shape[-2:], dev)
+        if dcov is not None:
+            cov = dcov if cov is None else cov * dcov
+    own = ((torch.arange(max(ny), device=dev) < torch.tensor(ny, device=dev)[:, None])[:, :, None]
+           & (torch.arange(max(nx), device=dev) < torch.tensor(nx, device=dev)[:, None])[:, None, :])
+    if diffracting:
+        band_thr = torch.tensor([-math.sqrt(2.0) * rz[k] for k in sel], **f64)[:, None, None]
+        band = (fine[-2].detach() > band_thr).to(torch.float64)
+        weight = band if cov is None else cov.detach() * band
+    else:
+        weight = cov.detach()
+    weight = weight.masked_fill(~own, 0.0)
+    lit_r, lit_c = _first_last_rows(weight.amax(2) > 0), _first_last_rows(weight.amax(1) > 0)
+    crops = torch.stack([lit_r[0], lit_r[1], lit_r[2], lit_c[1], lit_c[2]], 1).tolist()
+    lit = [j for j, c in enumerate(crops) if c[0]]
+    if not lit:
+        return out
+    # the lit crops gathered into one padded batch (B', hy, hx); samples beyond a crop: amplitude 0, outside the band
+    hy = [crops[j][2] - crops[j][1] for j in lit]
+    hx = [crops[j][4] - crops[j][3] for j in lit]
+    bi = torch.tensor(lit, device=dev)[:, None, None]
+    ri = (torch.tensor([crops[j][1] for j in lit], device=dev)[:, None]
+          + torch.arange(max(hy), device=dev)).clamp(max=fine.shape[-2] - 1)[:, :, None]
+    ci = (torch.tensor([crops[j][3] for j in lit], device=dev)[:, None]
+          + torch.arange(max(hx), device=dev)).clamp(max=fine.shape[-1] - 1)[:, None, :]
+    fine = fine[:, bi, ri, ci]
+    inner = ((torch.arange(max(hy), device=dev) < torch.tensor(hy, device=dev)[:, None])[:, :, None]
+             & (torch.arange(max(hx), device=dev) < torch.tensor(hx, device=dev)[:, None])[:, None, :])
+    ch = fine.unbind(0)
+    amp = ch[1] if cov is None else ch[1] * cov[bi, ri, ci]
+    amp = torch.where(inner, amp, torch.zeros_like(amp))
+    ks = torch.tensor([2 * math.pi / (reqs[sel[j]].b.src.wavelength * 1e-3) for j in lit], **f64)[:, None, None]
+    angle = ks * ch[0]
+    if not diffracting:
+        env = polar(amp, angle)
+    else:
+        bs = [reqs[sel[j]].b for j in lit]
+        rzr = torch.tensor([rz[sel[j]] for j in lit], **f64).repeat_interleave(max(hy))[:, None]
+        gr = torch.tensor([reqs[sel[j]].maps["g_max"] for j in lit], **f64).repeat_interleave(max(hy))[:, None]
+        nu = torch.where(inner, ch[-2], torch.full_like(ch[-2], -math.inf))
+        shape2 = (-1, max(hx))
+        env = edge_envelope(amp.reshape(shape2), angle.reshape(shape2), nu.reshape(shape2),
+                            bs[0].z_doe - bs[0].cfg.stop_plane, rzr, gr, p,
+                            kappa=ch[-1].reshape(shape2)).reshape(amp.shape)
+    for t, (e, j) in enumerate(zip(env.unbind(0), lit)):
+        _, a0, a1, b0, b1 = crops[j]
+        out[sel[j]] = e[:a1 - a0, :b1 - b0], (iy0[j] + a0, iy0[j] + a1, ix0[j] + b0, ix0[j] + b1)
+    return out

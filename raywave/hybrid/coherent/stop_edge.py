@@ -165,9 +165,15 @@ def stop_edge_factor(nu: torch.Tensor, dz: float, ripple_zones: float, g: torch.
 def _band_masks(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
     """``(inside, band, ν_b, ν_max)`` of the knife-edge factor on ``ν`` (detached): ``inside`` (bool) where the factor
     is 1 (ν ≥ ν_b, ν_b from the local scale ``g`` (1/mm, a tensor or one value) and ``pitch`` mm: the band the grid
-    resolves), ``band`` (bool) where it is evaluated (−ν_max < ν < ν_b; ν_max = √2 · ``ripple_zones``)."""
+    resolves), ``band`` (bool) where it is evaluated (−ν_max < ν < ν_b; ν_max = √2 · ``ripple_zones``).
+    ``ripple_zones`` a tensor: per-row constants of a batch of windows stacked by rows (issue 43, the batched field
+    stage): ``ripple_zones`` and ``g`` (R, 1) float64, one value per row of ``nu`` (R, N); ν_b and ν_max are then
+    (R, 1), each row's the values its own window's floats give (true divisions, as on the host)."""
     nu_max = math.sqrt(2.0) * ripple_zones
-    if isinstance(g, torch.Tensor):
+    if isinstance(ripple_zones, torch.Tensor):  # per-row constants: the host formula below, row by row
+        nu_b = torch.maximum(torch.minimum(torch.full_like(g, 0.6) / (g * pitch), _nu_inner(ripple_zones)),
+                             torch.full_like(g, 2.0))
+    elif isinstance(g, torch.Tensor):
         nu_b = torch.clamp(0.6 / (g.detach() * pitch), max=_nu_inner(ripple_zones)).clamp_min(2.0)
     else:  # one value for the whole window
         nu_b = max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0)
@@ -183,8 +189,10 @@ def _edge_band(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
     inside, band, nu_b, nu_max = _band_masks(nu, ripple_zones, g, pitch)
     nu = nu.detach()
     idx = band.nonzero(as_tuple=True)
-    nb = nu_b[idx] if isinstance(nu_b, torch.Tensor) else torch.full(idx[0].shape, nu_b, dtype=nu.dtype,
-                                                                        device=nu.device)
+    nb = nu_b.expand(nu.shape)[idx] if isinstance(nu_b, torch.Tensor) else torch.full(
+        idx[0].shape, nu_b, dtype=nu.dtype, device=nu.device)
+    if isinstance(nu_max, torch.Tensor):  # per-row constants (:func:`_band_masks`): each band sample's own
+        nu_max = nu_max.expand(nu.shape)[idx]
     return inside, idx, nb, nu_max
 
 
@@ -194,7 +202,9 @@ def edge_envelope(amp: torch.Tensor, angle: torch.Tensor, nu: torch.Tensor, dz: 
     ``amp``): the geometric envelope times the knife edge, the same values, with a hand-written backward when
     autograd records it (a trainable lens). Autograd would keep ~14 window-sized arrays (the phasor, the factor,
     both factors of their product, the band's indices and terms); this keeps the four inputs and the band's
-    Fresnel integrals, and recomputes the rest (no Fresnel integral: their derivatives are ``cos``, ``sin``)."""
+    Fresnel integrals, and recomputes the rest (no Fresnel integral: their derivatives are ``cos``, ``sin``).
+    ``ripple_zones`` and ``g`` may be (R, 1) tensors for the inputs (R, N): the windows of a batch stacked by rows,
+    each row with its own window's constants (:func:`_band_masks`; the batched field stage, issue 43)."""
     graph = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (amp, angle, nu, kappa))
     if not graph:  # the same blocks as with a graph: the same values bit for bit (a replay compares the two)
         return _EdgeEnvelope.values(amp, angle, nu, kappa, (dz >= 0, ripple_zones, g, pitch), False)[0]
@@ -230,8 +240,8 @@ class _EdgeEnvelope(torch.autograd.Function):
 
     @staticmethod
     def _block(nu, kap, fresnel, start: int, consts):
-        """``(D (complex128, the block's shape), idx (the block's band samples), band terms (v, kap, nb, C, S) or
-        None, the number of band samples)`` of one block of rows (:func:`stop_edge_factor`'s values, no graph),
+        """``(D (complex128, the block's shape), idx (the block's band samples), band terms (v, kap, nb, C, S, ν_max)
+        or None, the number of band samples)`` of one block of rows (:func:`stop_edge_factor`'s values, no graph),
         with the band's Fresnel integrals ``fresnel`` from the block's first band sample ``start`` on."""
         forward_edge, ripple_zones, g, pitch = consts
         inside, idx, nb, nu_max = _edge_band(nu, ripple_zones, g, pitch)
@@ -243,7 +253,7 @@ class _EdgeEnvelope(torch.autograd.Function):
         cv = None if kap is None else kap.detach()[idx]
         c_, s_ = fresnel[0][start:start + k], fresnel[1][start:start + k]
         re, im = _EdgeBand._values(v, cv, nb, c_, s_, nu_max, forward_edge)
-        return d.index_put_(idx, torch.complex(re, im)), idx, (v, cv, nb, c_, s_), k
+        return d.index_put_(idx, torch.complex(re, im)), idx, (v, cv, nb, c_, s_, nu_max), k
 
     @staticmethod
     def _walk(nu, kap, fresnel, consts):
@@ -254,9 +264,8 @@ class _EdgeEnvelope(torch.autograd.Function):
         step = _block_rows(nu)
         for r in range(0, nu.shape[0], step):
             rows = slice(r, r + step)
-            g_r = g[rows] if isinstance(g, torch.Tensor) else g
             d, idx, band, k = _EdgeEnvelope._block(nu[rows], None if kap is None else kap[rows], fresnel, start,
-                                                   (forward_edge, ripple_zones, g_r, pitch))
+                                                   (forward_edge, _rows(ripple_zones, rows), _rows(g, rows), pitch))
             start += k
             yield rows, d, idx, band
 
@@ -272,7 +281,7 @@ class _EdgeEnvelope(torch.autograd.Function):
             rows = slice(r, r + step)
             fr = _EdgeEnvelope._block_values(amp[rows] if amp.ndim else amp, angle[rows], nu[rows],
                                              None if kap is None else kap[rows],
-                                             consts[:2] + (g[rows] if isinstance(g, torch.Tensor) else g, consts[3]),
+                                             (consts[0], _rows(consts[1], rows), _rows(g, rows), consts[3]),
                                              out[rows])
             if keep_fresnel and fr is not None:
                 parts.append(fr)
@@ -304,6 +313,8 @@ class _EdgeEnvelope(torch.autograd.Function):
             torch.mul(y, d_re, out=im_out)
             return None
         nb = nu_b.masked_select(band) if isinstance(nu_b, torch.Tensor) else nu_b
+        if isinstance(nu_max, torch.Tensor):  # per-row constants (:func:`_band_masks`)
+            nu_max = nu_max.expand(nu.shape).masked_select(band)
         fresnel = tuple(torch.from_numpy(a).to(v) for a in _fresnel_threads(v.cpu().numpy()))
         re, im = _EdgeBand._values(v, None if kap is None else kap.detach().masked_select(band), nb, *fresnel, nu_max,
                                    forward_edge)
@@ -327,13 +338,12 @@ class _EdgeEnvelope(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         amp, angle, nu, kap, *fresnel = ctx.saved_tensors
-        forward_edge, ripple_zones = ctx.consts[:2]
+        forward_edge = ctx.consts[0]
         need = ctx.needs_input_grad
         g_amp = torch.zeros_like(amp) if need[0] else None
         g_angle = torch.zeros_like(angle) if need[1] else None
         g_nu = torch.zeros_like(nu) if need[2] else None
         g_kap = torch.zeros_like(kap) if need[3] and kap is not None else None
-        nu_max = math.sqrt(2.0) * ripple_zones
         for rows, d, idx, band in _EdgeEnvelope._walk(nu, kap, fresnel, ctx.consts):
             a_r = amp[rows] if amp.ndim else amp
             unit = polar(torch.ones((), dtype=angle.dtype, device=angle.device), angle[rows])
@@ -345,12 +355,18 @@ class _EdgeEnvelope(torch.autograd.Function):
                 g_angle[rows] = -(a_r * t.imag)  # Re(conj(G)·i·z)
             if band is not None and (g_nu is not None or g_kap is not None):
                 g_d = (gr * (unit * a_r).conj())[idx]  # ∂L/∂D on the band
-                gv, gc = _EdgeBand.grads(*band, nu_max, forward_edge, g_d.real, g_d.imag, g_kap is not None)
+                gv, gc = _EdgeBand.grads(*band, forward_edge, g_d.real, g_d.imag, g_kap is not None)
                 if g_nu is not None:
                     g_nu[rows].index_put_(idx, gv)
                 if g_kap is not None:
                     g_kap[rows].index_put_(idx, gc)
         return g_amp, g_angle, g_nu, g_kap, None, None, None, None
+
+
+def _rows(c, rows: slice):
+    """A constant of :class:`_EdgeEnvelope` for a block of ``rows``: a tensor's rows (per-row or per-sample values),
+    a float as it is."""
+    return c[rows] if isinstance(c, torch.Tensor) else c
 
 
 def _compact(t: torch.Tensor | None) -> torch.Tensor | None:

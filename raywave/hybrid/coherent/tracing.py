@@ -173,7 +173,9 @@ def run_batched(gens: list, pause: bool = False) -> list:
     """Run several field constructions (generators that yield :class:`_TraceRequest` and return a
     :class:`DOEField`) together: in every round, the pending trace requests of all constructions that share a lens,
     plane and mode (whatever their wavelengths) are traced as one batch (:func:`_trace_group`: one ray trace for all
-    fields instead of one per field, large enough for the elementwise kernels to use every thread). Each construction
+    fields instead of one per field, large enough for the elementwise kernels to use every thread). A request with a
+    ``run_group`` (the field stage's :class:`~raywave.hybrid.coherent.accurate._FieldRequest`) is answered for its
+    group by that function; one marked ``deferred`` waits until no other request is pending. Each construction
     sees the results its own calls would give, so the fields equal :func:`run_serial`'s. Returns their results in
     order. ``pause``: each construction stops at its :data:`PAUSE` (its ray stage done) and is returned as a
     :class:`Paused`; ``gens`` may hold :class:`Paused` constructions (they go on from there) and finished results
@@ -190,16 +192,20 @@ def run_batched(gens: list, pause: bool = False) -> list:
         req, res = _advance(running[i], None, not resume, pause)
         _file_step(i, req, res, running[i], results, pending)
     while pending:
+        # a deferred request (a construction's field stage) waits until no trace is pending: the constructions still
+        # tracing then join its batch
+        now = {i: r for i, r in pending.items() if not getattr(r, "deferred", False)} or pending
         groups: dict = {}
-        for i, req in pending.items():
+        for i, req in now.items():
             groups.setdefault(req.group_key(), []).append(i)
         answers = {}
         for idx in groups.values():
             reqs = [pending[i] for i in idx]
-            run = _invert_group if isinstance(reqs[0], _InvertRequest) else _trace_group
+            run = getattr(reqs[0], "run_group", None) or (
+                _invert_group if isinstance(reqs[0], _InvertRequest) else _trace_group)
             for i, res in zip(idx, run(reqs)):
                 answers[i] = res
-        pending = {}
+        pending = {i: r for i, r in pending.items() if i not in now}
         for i, res in answers.items():
             req, out = _advance(running[i], res, False, pause)
             _file_step(i, req, out, running[i], results, pending)
