@@ -1,9 +1,10 @@
 """Issue 43: how far an accelerator's batching plan moves the PSFs of a map, measured on the CPU.
 
 On a GPU :func:`raywave.hybrid.batched.plan_groups` lets the resolved sources of a wavelength share one FFT size in
-large batches. This computes the bundled ``hybrid_asphere``'s N×N × R, G, B map (default edge, ks 64, no autograd)
-with the CPU's plan and with the accelerator's plan forced on the CPU (``--batch-bytes``: its batch cap, smaller
-than a GPU's for a CPU's memory), and prints the relative L1 difference of every PSF (max, median, how many moved)
+large batches, the fields are built in larger groups (``FIELD_GROUP_BYTES_ACCELERATOR``) and the field stage is
+batched. This computes the bundled ``hybrid_asphere``'s N×N × R, G, B map (default edge, ks 64, no autograd)
+with the CPU's plan and with the accelerator's whole plan forced on the CPU (:func:`raywave.utils.devices.
+accelerator`; ``--batch-bytes``: its propagation batch cap, smaller than a GPU's for a CPU's memory), and prints the relative L1 difference of every PSF (max, median, how many moved)
 as JSON (``-o`` writes it too).
 
     OMP_NUM_THREADS=1 python benchmarks/accelerator_plan_accuracy.py [--grid 10] [--batch-bytes 1e9] [-o F]
@@ -40,7 +41,11 @@ def main(argv=None) -> dict:
     n = args.grid
     with torch.no_grad():
         cpu = psf_map(hl, (n, n), wavelengths=RGB, ks=64, progress=False).psf
-        batched._accelerator = lambda planned: bool(planned)  # this process only
+        try:  # this process only: the whole accelerator plan (trees before the one switch: the FFT sizes' plan)
+            import raywave.utils.devices as devices
+            devices.accelerator = lambda x: True
+        except ImportError:
+            batched._accelerator = lambda planned: bool(planned)
         batched.BATCH_BYTES_ACCELERATOR = int(args.batch_bytes)
         accel = psf_map(hl, (n, n), wavelengths=RGB, ks=64, progress=False).psf
     rel = (accel - cpu).abs().sum((-2, -1)) / cpu.abs().sum((-2, -1)).clamp_min(1e-300)

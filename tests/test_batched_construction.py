@@ -179,3 +179,17 @@ def test_paused_constructions_finish_as_the_unpaused_ones(asphere):
         assert a.box == b.box == c.box
         assert float((a.envelope - b.envelope).abs().max()) == 0.0
         assert float((a.envelope - c.envelope).abs().max()) < 1e-12 * float(c.envelope.abs().max())
+
+
+def test_an_accelerator_takes_larger_field_groups(asphere, monkeypatch):
+    """On an accelerator the fields are grouped up to FIELD_GROUP_BYTES_ACCELERATOR (fewer groups: each is a fixed
+    number of kernel launches), on a CPU up to FIELD_GROUP_BYTES."""
+    import raywave.utils.devices as devices
+
+    geo = asphere._accurate_geometry(torch.tensor(FIELDS, dtype=torch.float64), [0.55, 0.47], None)
+    monkeypatch.setattr(hybrid_mod, "FIELD_GROUP_BYTES", 1)
+    assert len(asphere._field_groups(geo)) == len(geo.todo) > 1
+    monkeypatch.setattr(devices, "accelerator", lambda x: True)
+    assert len(asphere._field_groups(geo)) == 1
+    monkeypatch.setattr(hybrid_mod, "FIELD_GROUP_BYTES_ACCELERATOR", 1)
+    assert len(asphere._field_groups(geo)) == len(geo.todo)

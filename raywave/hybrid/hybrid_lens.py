@@ -37,12 +37,13 @@ from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps, go_phase_err
 from raywave.hybrid.coherent.geometry import _medium_index, footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import edge_reach_many, stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
-from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, ceil_samples, plan_groups,
-                                    propagate_group)
+from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, _accelerator_cap, ceil_samples,
+                                    plan_groups, propagate_group)
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
+from raywave.utils import devices
 from raywave.utils.checks import MAX_FIELD_ANGLE, wavelengths_um
 from raywave.utils.safe import safe_div
 from raywave.wave.grid import Grid
@@ -75,6 +76,10 @@ DEFAULT_EDGE_STEP = "adaptive"
 #: bytes (:meth:`HybridLens._field_groups`; issue 43): the call's traces (chief rays, footprints, the stop rim's
 #: images, the DOE-aperture diagnostics) are shared by all its groups, and a group's Newton rounds are one trace
 FIELD_GROUP_BYTES = 2**29
+#: :data:`FIELD_GROUP_BYTES` on an accelerator (at most a 32nd of a CUDA device's memory, as a propagation batch:
+#: :func:`~raywave.hybrid.batched._accelerator_cap`): fewer, larger groups, each a fixed number of kernel launches
+#: (the bundled asphere's 10×10×3 map: 8 groups of 512 MB; one of 4 GB)
+FIELD_GROUP_BYTES_ACCELERATOR = 2**32
 #: the ray stages (aiming, Newton inversion, node traces) of a call's groups are run together for up to about this
 #: many nodes (:meth:`HybridLens._stage_chunks`; the default 64 nodes a side: ~128 constructions): the paused
 #: constructions keep their node maps (~10 float64 channels a node) until their group's fields are built
@@ -706,9 +711,13 @@ class HybridLens(nn.Module):
     def _field_groups(self, geo: "_CallGeometry") -> list[list[int]]:
         """The call's sources in groups whose DOE-plane fields are built and propagated together (issue 43): every
         built source with its mirror images, the groups cut where their envelopes' estimated size (the lit
-        footprints with a margin, complex128) would pass :data:`FIELD_GROUP_BYTES` (the fields of one group are
+        footprints with a margin, complex128) would pass :data:`FIELD_GROUP_BYTES` (on an accelerator
+        :data:`FIELD_GROUP_BYTES_ACCELERATOR`) (the fields of one group are
         held at once; the call's traces are shared by all groups)."""
         p = self.doe.pitch / self.oversample
+        cap = FIELD_GROUP_BYTES
+        if devices.accelerator(geo.f):
+            cap = max(FIELD_GROUP_BYTES, min(FIELD_GROUP_BYTES_ACCELERATOR, _accelerator_cap(geo.f.device)))
         deps: dict = {i: [i] for i in geo.todo}
         for i, s_ in enumerate(geo.src):
             if s_ is not None:
@@ -722,7 +731,7 @@ class HybridLens(nn.Module):
                     m = 0.1 * max(w, h) + 16 * p  # the edge's ripple band and the window's margin, roughly
                     est += 16.0 * ((w + 2 * m) / p + 1) * ((h + 2 * m) / p + 1)
             est *= len(deps[i])
-            if cur and size + est > FIELD_GROUP_BYTES:
+            if cur and size + est > cap:
                 groups.append(cur)
                 cur, size = [], 0.0
             cur.extend(deps[i])
