@@ -9,6 +9,7 @@ import warnings
 from dataclasses import dataclass
 from typing import ClassVar
 
+import numpy as np
 import torch
 
 from raywave.lens.paraxial import entrance_pupil_diameter
@@ -288,7 +289,8 @@ def _coarse_start(aim: _Aim, nd: _Nodes, chief: tuple, max_step: float):
     :data:`COARSE_STRIDE`-th node interpolated (separable cubic) to all nodes (entrance-plane mm), and the
     Jacobian ∂X/∂uv of that interpolant (the inverse of its node-grid differences); NaN where a coarse node that
     the interpolation uses did not converge (that node keeps the chief ray's linear guess and Newton). None
-    for small grids.
+    for small grids. The interpolation is a :class:`_CoarseRequest` (batched over the constructions on an
+    accelerator).
 
     The ray map is smooth, so the interpolated start lands within ~1e-6 mm of the node's own solution and its
     Jacobian is good to ~1e-4: chord steps (one ray per node, no finite-difference neighbours) converge in one or
@@ -305,20 +307,118 @@ def _coarse_start(aim: _Aim, nd: _Nodes, chief: tuple, max_step: float):
     tx, ty = torch.meshgrid(gxc, gyc, indexing="xy")
     targets = torch.stack([tx, ty], -1).reshape(-1, 2)
     uv, conv, _, _ = yield from _invert_to_nodes(aim, targets, chief, max_step)
-    my = cubic_matrix(torch.arange(nd.ky, dtype=torch.float64, device=dev) / s, kyc)
-    mx = cubic_matrix(torch.arange(nd.kx, dtype=torch.float64, device=dev) / s, kxc)
-    uv_map = uv.T.reshape(2, kyc, kxc)
-    bad = (~conv).to(torch.float64).reshape(kyc, kxc)
-    fine = my @ torch.where(conv.reshape(kyc, kxc), uv_map, torch.zeros_like(uv_map)) @ mx.T  # (2, ky, kx)
-    unsure = (my.abs() @ bad @ mx.abs().T) > 0
-    fine = torch.where(unsure, torch.full_like(fine, math.nan), fine)
-    # ∂uv/∂X by central differences over the node grid (NaN spreads from unsure nodes), inverted to ∂X/∂uv
-    (du_dy, dv_dy), (du_dx, dv_dx) = torch.gradient(fine, spacing=nd.h, dim=(1, 2))
+    return (yield _CoarseRequest(uv, conv, (kyc, kxc), (nd.ky, nd.kx), nd.h))
+
+
+@dataclass
+class _CoarseRequest:
+    """The coarse start's interpolation of one construction (:func:`_coarse_start`): the solutions ``uv`` (Nc, 2)
+    and their convergence ``conv`` (Nc,) on the ``coarse`` = ``(kyc, kxc)`` grid of every :data:`COARSE_STRIDE`-th
+    node, to the ``nodes`` = ``(ky, kx)`` grid of spacing ``h`` mm; answered with ``(uv0 (N, 2), jac0 (N, 2, 2))``.
+    :func:`~raywave.hybrid.coherent.tracing.run_batched` answers the requests of a round together (``run_group``):
+    on an accelerator as one padded batch (:func:`_coarse_batch`), on a CPU one by one (:func:`_coarse_one`)."""
+
+    uv: torch.Tensor
+    conv: torch.Tensor
+    coarse: tuple
+    nodes: tuple
+    h: float
+
+    def run(self):
+        """This construction's interpolation alone (:func:`run_serial`)."""
+        return _coarse_one(self)
+
+    @staticmethod
+    def run_group(reqs: list) -> list:
+        """The answers of a group of requests, in order."""
+        if len(reqs) > 1 and devices.accelerator(reqs[0].uv):
+            return _coarse_batch(reqs)
+        return [_coarse_one(r) for r in reqs]
+
+    def group_key(self) -> tuple:
+        return ("coarse", self.uv.device)
+
+
+def _start_jacobian(fine: torch.Tensor, grads: tuple) -> tuple:
+    """``(uv0 (N, 2), jac0 (N, 2, 2))`` from the interpolated start ``fine`` (2, ky, kx) and its node-grid
+    differences ``grads`` = ``((du/dy, dv/dy), (du/dx, dv/dx))`` (each (ky, kx)): ∂uv/∂X inverted to ∂X/∂uv."""
+    (du_dy, dv_dy), (du_dx, dv_dx) = grads
     a = torch.stack([torch.stack([du_dx, du_dy], -1), torch.stack([dv_dx, dv_dy], -1)], -2).reshape(-1, 2, 2)
     det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
     jac0 = torch.stack([torch.stack([a[:, 1, 1], -a[:, 0, 1]], -1), torch.stack([-a[:, 1, 0], a[:, 0, 0]], -1)],
                        -2) / det[:, None, None]
     return fine.reshape(2, -1).T, jac0
+
+
+def _coarse_one(r: _CoarseRequest) -> tuple:
+    """:class:`_CoarseRequest`'s answer: the coarse solutions interpolated (NaN where an unconverged coarse node is
+    used), their central differences over the node grid (NaN spreads from unsure nodes), inverted."""
+    s, (kyc, kxc), (ky, kx) = COARSE_STRIDE, r.coarse, r.nodes
+    dev = r.uv.device
+    my = cubic_matrix(torch.arange(ky, dtype=torch.float64, device=dev) / s, kyc)
+    mx = cubic_matrix(torch.arange(kx, dtype=torch.float64, device=dev) / s, kxc)
+    uv_map = r.uv.T.reshape(2, kyc, kxc)
+    bad = (~r.conv).to(torch.float64).reshape(kyc, kxc)
+    fine = my @ torch.where(r.conv.reshape(kyc, kxc), uv_map, torch.zeros_like(uv_map)) @ mx.T  # (2, ky, kx)
+    unsure = (my.abs() @ bad @ mx.abs().T) > 0
+    fine = torch.where(unsure, torch.full_like(fine, math.nan), fine)
+    # ∂uv/∂X by central differences over the node grid (NaN spreads from unsure nodes), inverted to ∂X/∂uv
+    return _start_jacobian(fine, torch.gradient(fine, spacing=r.h, dim=(1, 2)))
+
+
+def _padded_gradient(f: torch.Tensor, h: torch.Tensor, n: torch.Tensor, dim: int) -> torch.Tensor:
+    """:func:`torch.gradient` (edge order 1) along ``dim`` of zero-padded grids ``f`` (B, C, Y, X): grid ``b`` holds
+    ``n[b]`` samples along ``dim`` (spacing ``h[b]``), the rest padding. Central differences inside, one-sided at
+    both of each grid's own ends (the same arithmetic as :func:`torch.gradient` on the grid alone)."""
+    f = f.movedim(dim, -1)
+    out = torch.empty_like(f)
+    hb = h.reshape(-1, 1, 1, 1)
+    out[..., 1:-1] = (f[..., 2:] - f[..., :-2]) / (2 * hb)
+    out[..., :1] = (f[..., 1:2] - f[..., :1]) / hb
+    last = (n - 1).reshape(-1, 1, 1, 1).expand(*f.shape[:-1], 1)
+    end = (f.gather(-1, last) - f.gather(-1, last - 1)) / hb
+    out.scatter_(-1, last, end)
+    return out.movedim(-1, dim)
+
+
+def _coarse_batch(reqs: list) -> list:
+    """The answers of :class:`_CoarseRequest` ``reqs`` as one padded batch (an accelerator: a fixed number of kernel
+    launches for any number of constructions): the coarse maps scattered into the largest coarse grid, both axes'
+    cubic matrices (:func:`~raywave.wave.field.cubic_matrices`, zero beyond each grid's nodes), the differences per
+    grid (:func:`_padded_gradient`) and the inversion batched. The same values as :func:`_coarse_one` up to the
+    products' summation order (a Newton start: the nodes then converge on their own)."""
+    s, dev = COARSE_STRIDE, reqs[0].uv.device
+    kyc, kxc = max(r.coarse[0] for r in reqs), max(r.coarse[1] for r in reqs)
+    ky, kx = max(r.nodes[0] for r in reqs), max(r.nodes[1] for r in reqs)
+    nb = len(reqs)
+    # every coarse node's flat place in the (B, kyc, kxc) padding (host integers: one transfer)
+    place = np.concatenate([i * kyc * kxc + (np.arange(a * c) // c) * kxc + np.arange(a * c) % c
+                            for i, (a, c) in enumerate(r.coarse for r in reqs)])
+    place = torch.from_numpy(place).to(dev)
+    conv = torch.cat([r.conv for r in reqs])
+    uv = torch.where(conv[:, None], torch.cat([r.uv for r in reqs]), 0.0)
+    uv_map = torch.zeros((nb * kyc * kxc, 2), dtype=torch.float64, device=dev).index_put_((place,), uv)
+    uv_map = uv_map.reshape(nb, kyc, kxc, 2).permute(0, 3, 1, 2)
+    bad = torch.zeros(nb * kyc * kxc, dtype=torch.float64, device=dev).index_put_((place,), (~conv).to(torch.float64))
+    bad = bad.reshape(nb, kyc, kxc)
+    sizes = torch.tensor([[*r.coarse, *r.nodes, r.h] for r in reqs], dtype=torch.float64, device=dev)
+    # positions: node j of a grid at j / s coarse units (rows past a grid's own nodes: 0, discarded)
+    pos_y = torch.arange(ky, dtype=torch.float64, device=dev)[None] / s
+    pos_x = torch.arange(kx, dtype=torch.float64, device=dev)[None] / s
+    pos_y = torch.where(pos_y <= (sizes[:, 2:3] - 1) / s, pos_y, 0.0)
+    pos_x = torch.where(pos_x <= (sizes[:, 3:4] - 1) / s, pos_x, 0.0)
+    my = cubic_matrices(pos_y, sizes[:, 0:1], kyc)  # (B, ky, kyc)
+    mx = cubic_matrices(pos_x, sizes[:, 1:2], kxc)  # (B, kx, kxc)
+    fine = my[:, None] @ uv_map @ mx.transpose(-1, -2)[:, None]  # (B, 2, ky, kx)
+    unsure = (my.abs() @ bad @ mx.abs().transpose(-1, -2)) > 0
+    fine = torch.where(unsure[:, None], math.nan, fine)
+    h = sizes[:, 4]
+    du_dy, dv_dy = _padded_gradient(fine, h, sizes[:, 2].long(), -2).unbind(1)
+    du_dx, dv_dx = _padded_gradient(fine, h, sizes[:, 3].long(), -1).unbind(1)
+    det = du_dx * dv_dy - du_dy * dv_dx  # (B, ky, kx)
+    jac = torch.stack([torch.stack([dv_dy, -du_dy], -1), torch.stack([-dv_dx, du_dx], -1)], -2) / det[..., None, None]
+    return [(fine[i, :, :a, :c].reshape(2, -1).T, jac[i, :a, :c].reshape(-1, 2, 2))
+            for i, (a, c) in enumerate(r.nodes for r in reqs)]
 
 
 def _node_maps(b: _Build, nd: _Nodes, traced: tuple, is_stop, diffracting) -> dict:
