@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from raywave.lens.sources import VignettingWarning, point_source_rays
+from raywave.utils.fresnel import fresnel as fresnel_torch
 from raywave.utils.phasor import polar
 
 
@@ -66,6 +67,24 @@ def _fresnel_threads(x):
     with ThreadPoolExecutor(parts) as pool:
         list(pool.map(run, range(parts)))
     return c_, s_
+
+
+#: where the knife-edge factor's Fresnel integrals are evaluated on the CPU: "scipy" (:func:`_fresnel_threads`,
+#: cephes' rational functions) or "torch" (:func:`raywave.utils.fresnel.fresnel`, ~150 whole-array torch operations).
+#: On an accelerator always "torch" (no device → host → device round trip). Measured A/B on a 10×10×3 map's band
+#: values (benchmarks/fresnel_ab.py, issue 47): see docs/ray-wave.md
+FRESNEL_CPU = "scipy"
+
+
+def _fresnel_integrals(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Fresnel integrals ``(C, S)`` of ``v`` (detached; ``v``'s dtype and device): torch's
+    (:func:`raywave.utils.fresnel.fresnel`) on an accelerator, on the CPU the backend :data:`FRESNEL_CPU`."""
+    v = v.detach()
+    if v.device.type != "cpu" or FRESNEL_CPU == "torch":
+        return tuple(t.to(v.dtype) for t in fresnel_torch(v))
+    if FRESNEL_CPU != "scipy":
+        raise ValueError(f"FRESNEL_CPU must be 'scipy' or 'torch', got {FRESNEL_CPU!r}")
+    return tuple(torch.from_numpy(a).to(v.dtype) for a in _fresnel_threads(v.numpy()))
 
 
 def _smoothstep(t: torch.Tensor) -> torch.Tensor:
@@ -303,7 +322,7 @@ class _EdgeEnvelope(torch.autograd.Function):
             torch.mul(y, d_re, out=im_out)
             return None
         nb = nu_b.masked_select(band) if isinstance(nu_b, torch.Tensor) else nu_b
-        fresnel = tuple(torch.from_numpy(a).to(v) for a in _fresnel_threads(v.cpu().numpy()))
+        fresnel = _fresnel_integrals(v)
         re, im = _EdgeBand._values(v, None if kap is None else kap.detach().masked_select(band), nb, *fresnel, nu_max,
                                    forward_edge)
         d_re.masked_scatter_(band, re)
@@ -464,7 +483,7 @@ class _EdgeBand(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, v, kap, nb, nu_max: float, forward_edge: bool):
-        c_, s_ = (torch.from_numpy(a).to(v) for a in _fresnel_threads(v.detach().cpu().numpy()))
+        c_, s_ = _fresnel_integrals(v)
         re, im = torch.empty_like(v), torch.empty_like(v)
         # in chunks: the ~15 band-sized temporaries of the arithmetic stay small (elementwise: the same values)
         for a in range(0, v.numel(), _BAND_CHUNK):
