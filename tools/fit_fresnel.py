@@ -20,8 +20,10 @@ Two fits, both against mpmath's Fresnel integrals (``mp.fresnelc``, ``mp.fresnel
 Prints the coefficients as Python literals (paste into raywave/utils/fresnel.py) and the fits' maximum relative
 errors at 4000 points of each interval (in mpmath, and of the float64 evaluation).
 
-    python tools/fit_fresnel.py
+    python tools/fit_fresnel.py [M [N]]   (rational degrees, default 9/9: the module's)
 """
+
+import sys
 
 import mpmath as mp
 
@@ -113,7 +115,6 @@ def main():
                 break
         out[name] = (c,)
         print(f"# {name}: degree {deg}, max rel err {float(e):.1e}")
-    import sys
     m = int(sys.argv[1]) if len(sys.argv) > 1 else 9
     n = int(sys.argv[2]) if len(sys.argv) > 2 else m
     for name, fun in (("F_RATIONAL", big_f), ("G_RATIONAL", big_g)):

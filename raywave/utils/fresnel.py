@@ -71,27 +71,29 @@ _SPLITTER = 134217729.0
 #: |x| is clamped here: every float64 beyond is a multiple of 4, and ``C``, ``S`` round to ½
 _X_HUGE = 2.0 ** 54
 
-_TABLES = (C_SERIES, S_SERIES, F_RATIONAL, F_RATIONAL_DEN, G_RATIONAL, G_RATIONAL_DEN)
-#: all coefficients in one float64 CPU tensor (moved to an accelerator once per call, without a sync)
-_PACKED = torch.tensor([c for t in _TABLES for c in t], dtype=torch.float64)
+#: the series' coefficients as ``(12, 2, 1)`` (term, [C, S], 1) and the rationals' as ``(10, 4, 1)`` (term,
+#: [P_F, Q_F, P_G, Q_G], 1): one fused multiply-add per term evaluates a whole group (one float64 CPU tensor, moved
+#: to an accelerator once per call without a synchronisation)
+_PACKED = torch.tensor([c for k in range(len(C_SERIES)) for c in (C_SERIES[k], S_SERIES[k])]
+                       + [c for k in range(len(F_RATIONAL)) for c in (F_RATIONAL[k], F_RATIONAL_DEN[k],
+                                                                      G_RATIONAL[k], G_RATIONAL_DEN[k])],
+                       dtype=torch.float64)
 
 
-def _coefficients(device: torch.device) -> list[tuple[torch.Tensor, ...]]:
-    """The tables of :data:`_TABLES` as tuples of 0-dim float64 tensors on ``device`` (CPU: views of
-    :data:`_PACKED`; elsewhere one non-blocking host-to-device copy, no synchronisation)."""
+def _coefficients(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(series (12, 2, 1), rationals (10, 4, 1))`` coefficient tensors on ``device`` (views of :data:`_PACKED` on
+    the CPU; elsewhere one non-blocking host-to-device copy: no synchronisation, no host read)."""
     packed = _PACKED if device.type == "cpu" else _PACKED.to(device, non_blocking=True)
-    out, i = [], 0
-    for t in _TABLES:
-        out.append(tuple(packed[i:i + len(t)].unbind(0)))
-        i += len(t)
-    return out
+    ns = 2 * len(C_SERIES)
+    return packed[:ns].view(-1, 2, 1), packed[ns:].view(-1, 4, 1)
 
 
-def _horner(coef: tuple[torch.Tensor, ...], s: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-    """``Σ coef[k]·sᵏ`` written into ``out`` (returned), one fused multiply-add pass per coefficient."""
+def _horner(coef: torch.Tensor, s: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """``Σ coef[k]·sᵏ`` for a group of polynomials at once (``coef`` (K, R, 1), ``s`` (n,), ``out`` (R, n):
+    returned), one fused multiply-add pass per term."""
     torch.addcmul(coef[-2], s, coef[-1], out=out)
-    for c in coef[-3::-1]:
-        torch.addcmul(c, out, s, out=out)
+    for k in range(coef.shape[0] - 3, -1, -1):
+        torch.addcmul(coef[k], out, s, out=out)
     return out
 
 
@@ -108,43 +110,52 @@ def fresnel(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     two float64 tensors of ``x``'s shape on its device. Within 2e-15 absolute of the exact values (relative near 0);
     NaN → NaN, ±inf → ±½. No graph (``dC/dx = cos(πx²/2)``, ``dS/dx = sin(πx²/2)``). Method: the module docstring.
     Every step is a whole-array torch operation (both branches evaluated everywhere, finite by clamping, then
-    selected), written in place into eight work arrays: no data-dependent control flow, no host read."""
+    selected; ~70 of them), written in place into a few work arrays: no data-dependent control flow, no host
+    read."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"fresnel: x must be a torch.Tensor, got {type(x).__name__}")
     if x.is_complex():
         raise TypeError("fresnel: x must be real, got a complex tensor")
-    x = x.detach().to(torch.float64)
-    cs, ss, fn, fd, gn, gd = _coefficients(x.device)
-    b0, b1, b2, b3, b4, b5, b6, b7 = (torch.empty_like(x) for _ in range(8))
+    shape = x.shape
+    x = x.detach().to(torch.float64).reshape(-1)
+    c_series, c_rational = _coefficients(x.device)
+    b0, b1, b2 = (torch.empty_like(x) for _ in range(3))
+    series = x.new_empty((2,) + x.shape)
+    rational = x.new_empty((4,) + x.shape)
     a = torch.abs(x, out=b0)
     small = a < X_SPLIT
     # |x| < X_SPLIT: C = x·P_C(s), S = x³·P_S(s), s = (x/X_SPLIT)⁴ (clamped: finite everywhere, used only there)
     s = torch.clamp(a, max=X_SPLIT, out=b1).mul_(1.0 / X_SPLIT)
     s.mul_(s)
     s.mul_(s)
-    c_small = _horner(cs, s, b2).mul_(x)
-    s_small = _horner(ss, s, b3).mul_(x).mul_(x).mul_(x)
-    # |x| ≥ X_SPLIT: f = F/(πa), g = G/(π²a³), F, G rational in s = (X_SPLIT/a)⁴
+    _horner(c_series, s, series).mul_(x)
+    series[1].mul_(x).mul_(x)
+    # |x| ≥ X_SPLIT: f = F/(πa), g = G/(π²a³), F = P_F/Q_F, G = P_G/Q_G in s = (X_SPLIT/a)⁴
     a.clamp_(X_SPLIT, _X_HUGE)
     s = torch.reciprocal(a, out=b1).mul_(X_SPLIT)
     s.mul_(s)
     s.mul_(s)
-    rc = torch.reciprocal(a, out=b4).mul_(1.0 / math.pi)  # 1/(πa)
-    f = _horner(fn, s, b5).div_(_horner(fd, s, b6)).mul_(rc)
-    g = _horner(gn, s, b6).div_(_horner(gd, s, b7)).mul_(rc)
+    _horner(c_rational, s, rational)
+    fg = rational[0::2].div_(rational[1::2])  # (F, G)
+    rc = torch.reciprocal(a, out=b2).mul_(1.0 / math.pi)  # 1/(πa)
+    fg.mul_(rc)
+    f, g = fg.unbind(0)
     g.mul_(rc).mul_(rc).mul_(math.pi)  # G/(π²a³) = G·π·(1/(πa))³
     # the phase πa²/2 from a² mod 4: Veltkamp's split a = hi + lo, hi = γ − (γ − a), γ = a·(2²⁷ + 1)
     gam = torch.mul(a, _SPLITTER, out=b1)
-    hi = torch.sub(gam, torch.sub(gam, a, out=b7), out=b1)
-    lo = torch.sub(a, hi, out=b7)
-    r = _mod4_(torch.mul(hi, hi, out=b0), b4)  # a is not needed any more
-    r.add_(_mod4_(torch.mul(hi, lo, out=b4).mul_(2.0), b1))
-    r.add_(_mod4_(torch.mul(lo, lo, out=b4), b1))
+    tmp = rational[1]  # Q_F, free now
+    hi = torch.sub(gam, torch.sub(gam, a, out=tmp), out=b1)
+    lo = torch.sub(a, hi, out=tmp)
+    r = _mod4_(torch.mul(hi, hi, out=b0), b2)  # a is not needed any more
+    r.add_(_mod4_(torch.mul(hi, lo, out=b2).mul_(2.0), b1))
+    r.add_(_mod4_(torch.mul(lo, lo, out=b2), b1))
     r.mul_(0.5 * math.pi)
     cos_, sin_ = torch.cos(r, out=b1), r.sin_()
     # C = ½ + f sin − g cos, S = ½ − f cos − g sin, with the sign of x
-    c_big = torch.mul(f, sin_, out=b4)
+    c_big = torch.mul(f, sin_, out=b2)
     torch.addcmul(c_big, g, cos_, value=-1.0, out=c_big).add_(0.5).copysign_(x)
     s_big = f.mul_(cos_)
     torch.addcmul(s_big, g, sin_, out=s_big).sub_(0.5).neg_().copysign_(x)
-    return torch.where(small, c_small, c_big, out=c_big), torch.where(small, s_small, s_big, out=s_big)
+    c_out = torch.where(small, series[0], c_big, out=c_big)
+    s_out = torch.where(small, series[1], s_big, out=b0)  # sin_ is used up: each output owns its own storage
+    return c_out.reshape(shape), s_out.reshape(shape)
