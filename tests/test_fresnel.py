@@ -142,3 +142,24 @@ def test_knife_edge_backends_agree():
         se.FRESNEL_CPU = old
     for a, b in zip(outs["scipy"], outs["torch"]):
         assert float((a - b).abs().max()) <= 5e-15
+
+
+@pytest.mark.slow
+def test_fit_script_reproduces_the_coefficients():
+    """tools/fit_fresnel.py (mpmath) prints exactly the module's coefficients (~10 s)."""
+    import pathlib
+    import subprocess
+    import sys
+
+    import raywave.utils.fresnel as mod
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, str(root / "tools" / "fit_fresnel.py")], capture_output=True, text=True,
+                         check=True).stdout
+    seen = 0
+    for line in out.splitlines():
+        if "=" in line and not line.startswith("#"):
+            name, value = (t.strip() for t in line.split("=", 1))
+            assert getattr(mod, name) == eval(value), name  # noqa: S307 (our own script's literals)
+            seen += 1
+    assert seen == 7

@@ -17,8 +17,9 @@ Two fits, both against mpmath's Fresnel integrals (``mp.fresnelc``, ``mp.fresnel
   least squares ``min Σ wᵢ (P(sᵢ) − Fᵢ Q(sᵢ))²`` at Chebyshev points with the weights ``1/Q_prev(sᵢ)²``
   (Sanathanan–Koerner iteration), then Lawson reweighting towards the minimax relative error.
 
-Prints the coefficients as Python literals (paste into raywave/utils/fresnel.py) and the fits' maximum relative
-errors at 4000 points of each interval (in mpmath, and of the float64 evaluation).
+Prints the fits' maximum relative errors (in mpmath, at 800 / 1000 evenly spaced points of ``s``) as comments and
+the coefficients as Python literals, those of raywave/utils/fresnel.py (tests/test_fresnel.py, slow, checks that
+they are; the float64 evaluation's accuracy is tested there against scipy and mpmath).
 
     python tools/fit_fresnel.py [M [N]]   (rational degrees, default 9/9: the module's)
 """
