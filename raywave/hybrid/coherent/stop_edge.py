@@ -69,13 +69,14 @@ def _fresnel_threads(x):
     return c_, s_
 
 
-#: where the knife-edge factor's Fresnel integrals are evaluated on the CPU: "torch"
-#: (:func:`raywave.utils.fresnel.fresnel`, ~70 whole-array torch operations; on an accelerator always, with no
-#: device → host → device round trip) or "scipy" (:func:`_fresnel_threads`, cephes on the host; kept for A/B
-#: measurements). Measured A/B in one process (benchmarks/fresnel_ab.py, issue 47, 2026-11-30): on a 10×10×3 map's
-#: band values torch takes 0.88× scipy's time on 1 thread; a single PSF and a 6×6×3 map per PSF 0.66–1.25× (median
-#: 1.03×, within this shared machine's noise) on 1 and 2 threads; the PSFs move by ≤ 3.6e-16 rel L1: one code path
-FRESNEL_CPU = "torch"
+#: where the knife-edge factor's Fresnel integrals are evaluated on the CPU: "scipy" (:func:`_fresnel_threads`, cephes
+#: on the host) or "torch" (:func:`raywave.utils.fresnel.fresnel`, ~70 whole-array torch operations; on an
+#: accelerator always, with no device → host → device round trip). Measured A/B in one process
+#: (benchmarks/fresnel_ab.py, issue 47, 2026-11-30) on a 10×10×3 map's band values: torch 0.88× scipy's time on 1
+#: thread, but on 2 threads of a loaded machine 13–200× (each of its operations on ~80 k values is an OpenMP region
+#: that waits for the second thread to be scheduled; scipy's runs such arrays on one thread); PSFs ≤ 3.6e-16 rel L1
+#: apart. So the CPU keeps scipy
+FRESNEL_CPU = "scipy"
 
 
 def _fresnel_integrals(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
