@@ -11,6 +11,7 @@ import torch
 
 from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.utils import devices
+from raywave.utils.fresnel import fresnel as fresnel_torch
 from raywave.utils.phasor import polar
 
 
@@ -67,6 +68,27 @@ def _fresnel_threads(x):
     with ThreadPoolExecutor(parts) as pool:
         list(pool.map(run, range(parts)))
     return c_, s_
+
+
+#: where the knife-edge factor's Fresnel integrals are evaluated on the CPU: "scipy" (:func:`_fresnel_threads`, cephes
+#: on the host) or "torch" (:func:`raywave.utils.fresnel.fresnel`, ~70 whole-array torch operations; on an
+#: accelerator always, with no device → host → device round trip). Measured A/B in one process
+#: (benchmarks/fresnel_ab.py, issue 47, 2026-11-30) on a 10×10×3 map's band values: torch 0.88× scipy's time on 1
+#: thread, but on 2 threads of a loaded machine 13–200× (each of its operations on ~80 k values is an OpenMP region
+#: that waits for the second thread to be scheduled; scipy's runs such arrays on one thread); PSFs ≤ 3.6e-16 rel L1
+#: apart. So the CPU keeps scipy
+FRESNEL_CPU = "scipy"
+
+
+def _fresnel_integrals(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Fresnel integrals ``(C, S)`` of ``v`` (detached; ``v``'s dtype and device): torch's
+    (:func:`raywave.utils.fresnel.fresnel`) on an accelerator, on the CPU the backend :data:`FRESNEL_CPU`."""
+    v = v.detach()
+    if devices.accelerator(v) or FRESNEL_CPU == "torch":
+        return tuple(t.to(v.dtype) for t in fresnel_torch(v))
+    if FRESNEL_CPU != "scipy":
+        raise ValueError(f"FRESNEL_CPU must be 'scipy' or 'torch', got {FRESNEL_CPU!r}")
+    return tuple(torch.from_numpy(a).to(v.dtype) for a in _fresnel_threads(v.numpy()))
 
 
 def _smoothstep(t: torch.Tensor) -> torch.Tensor:
@@ -315,7 +337,7 @@ class _EdgeEnvelope(torch.autograd.Function):
         nb = nu_b.masked_select(band) if isinstance(nu_b, torch.Tensor) else nu_b
         if isinstance(nu_max, torch.Tensor):  # per-row constants (:func:`_band_masks`)
             nu_max = nu_max.expand(nu.shape).masked_select(band)
-        fresnel = tuple(torch.from_numpy(a).to(v) for a in _fresnel_threads(v.cpu().numpy()))
+        fresnel = _fresnel_integrals(v)
         re, im = _EdgeBand._values(v, None if kap is None else kap.detach().masked_select(band), nb, *fresnel, nu_max,
                                    forward_edge)
         d_re.masked_scatter_(band, re)
@@ -481,7 +503,7 @@ class _EdgeBand(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, v, kap, nb, nu_max: float, forward_edge: bool):
-        c_, s_ = (torch.from_numpy(a).to(v) for a in _fresnel_threads(v.detach().cpu().numpy()))
+        c_, s_ = _fresnel_integrals(v)
         re, im = torch.empty_like(v), torch.empty_like(v)
         # in chunks: the ~15 band-sized temporaries of the arithmetic stay small (elementwise: the same values)
         for a in range(0, v.numel(), _BAND_CHUNK):
