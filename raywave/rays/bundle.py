@@ -88,6 +88,13 @@ class RayBundle:
         vec = idx + (slice(None),) if Ellipsis in idx else idx  # keep the xyz axis last
         return RayBundle(self.o[vec], self.d[vec], wl[index], self.valid[index], self.opl[index])
 
+    def unbind(self, dim: int = 0) -> tuple["RayBundle", ...]:
+        """The bundles along batch dimension ``dim`` (≥ 0), as :meth:`__getitem__` of each index gives them, from one
+        ``unbind`` per field (a view each; indexing element by element dispatches several ops per element)."""
+        wl = torch.broadcast_to(self.wavelength, self.shape)
+        parts = (self.o.unbind(dim), self.d.unbind(dim), wl.unbind(dim), self.valid.unbind(dim), self.opl.unbind(dim))
+        return tuple(RayBundle(*f) for f in zip(*parts))
+
     def propagate_to_z(self, z: float | torch.Tensor, n: float | torch.Tensor = 1.0) -> "RayBundle":
         """Straight propagation to the plane ``z`` (mm) in a medium of index ``n``; OPL accumulates n·t."""
         t = (z - self.o[..., 2]) / self.d[..., 2]
