@@ -47,7 +47,7 @@ from raywave.hybrid.coherent.geometry import (WINDOW_BYTES_PER_SAMPLE, _check_be
                                               _warn_nyquist, check_window_memory, chief_rays, lit_box,
                                               doe_clipping, doe_clippings, footprints, inside_doe)  # noqa: F401
 from raywave.hybrid.coherent.tracing import (_Aim, _TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
-                                             _slice_bundle, _solve2, _trace_group, _trace_uv, run_batched,
+                                             _solve2, _split_bundle, _trace_group, _trace_uv, run_batched,
                                              run_serial)  # noqa: F401
 from raywave.hybrid.coherent.stop_edge import (INNER_TAIL, RIM_POINTS, RIPPLE_ZONES, _fresnel_scale,
                                                _nu_inner, _rim_z, _smoothstep, _zone_estimate, stop_edge_factor,

@@ -336,6 +336,7 @@ class _CoarseRequest:
         return [_coarse_one(r) for r in reqs]
 
     def group_key(self) -> tuple:
+        """What the requests batched together share: the device (each carries its own grids)."""
         return ("coarse", self.uv.device)
 
 

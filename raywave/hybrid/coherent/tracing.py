@@ -80,10 +80,19 @@ class _TraceRequest:
                 None if d is None else float(d), self.uv.device)
 
 
-def _slice_bundle(b, g: int, n: int):
-    """Request ``g``'s first ``n`` rays of a batched bundle (G, 1, N_max), as a (1, 1, n) bundle."""
-    wl = b.wavelength if b.wavelength.ndim < 3 or b.wavelength.shape[0] == 1 else b.wavelength[g:g + 1]
-    return type(b)(b.o[g:g + 1, :, :n], b.d[g:g + 1, :, :n], wl, b.valid[g:g + 1, :, :n], b.opl[g:g + 1, :, :n])
+def _rows(t: torch.Tensor, sizes: list) -> list:
+    """Each request's row of a batched ``t`` (G, 1, N_max, ...): ``t[g:g + 1, :, :sizes[g]]`` for every g, as views
+    from one split (slicing each row dispatches two or three ops; a GPU launches each)."""
+    n_max = t.shape[2]
+    return [p if k == n_max else p.narrow(2, 0, k) for p, k in zip(t.split(1, 0), sizes)]
+
+
+def _split_bundle(b, sizes: list) -> list:
+    """Request g's first ``sizes[g]`` rays of a batched bundle (G, 1, N_max), as (1, 1, n) bundles, for every g."""
+    wl = b.wavelength
+    wls = [wl] * len(sizes) if wl.ndim < 3 or wl.shape[0] == 1 else wl.split(1, 0)
+    return [type(b)(*f) for f in zip(_rows(b.o, sizes), _rows(b.d, sizes), wls, _rows(b.valid, sizes),
+                                     _rows(b.opl, sizes))]
 
 
 def _trace_group(reqs: list) -> list:
@@ -112,14 +121,13 @@ def _trace_group(reqs: list) -> list:
         out, rec = res if r0.record else (res, None)
         n = r0.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(r0.z_doe, n)
-    results = []
-    for g, k in enumerate(sizes):
-        rec_g = None
-        if rec is not None:
-            rec_g = type(rec)([tuple(c[g:g + 1, :, :k] for c in pts) for pts in rec.points],
-                              [v[g:g + 1, :, :k] for v in rec.valid])
-        results.append((_slice_bundle(rays, g, k), _slice_bundle(out, g, k), _slice_bundle(at, g, k), rec_g))
-    return results
+    recs = [None] * len(sizes)
+    if rec is not None:  # every surface's points and validity, split once into the requests' rows
+        points = [tuple(_rows(c, sizes) for c in pts) for pts in rec.points]
+        valid = [_rows(v, sizes) for v in rec.valid]
+        recs = [type(rec)([tuple(c[g] for c in pts) for pts in points], [v[g] for v in valid])
+                for g in range(len(sizes))]
+    return list(zip(_split_bundle(rays, sizes), _split_bundle(out, sizes), _split_bundle(at, sizes), recs))
 
 
 def run_serial(gen):
