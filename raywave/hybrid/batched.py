@@ -162,7 +162,7 @@ def _accelerator(planned: list[Planned]) -> bool:
     return bool(planned) and devices.accelerator(planned[0].fd.envelope)
 
 
-def _accelerator_cap(device) -> int:
+def accelerator_cap(device) -> int:
     """:data:`BATCH_BYTES_ACCELERATOR`, at most a 32nd of a CUDA device's memory (a batch's intermediates are
     several times its FFT-grid arrays)."""
     dev = torch.device(device)
@@ -185,7 +185,7 @@ def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int)
     their own size. Its PSFs then differ from the CPU's by the FFT size's ≤ 3.0e-8 relative L1 (the bundled asphere's
     10×10×3 map, benchmarks/accelerator_plan_accuracy.py)."""
     accel = _accelerator(planned)
-    cap = _accelerator_cap(planned[0].fd.envelope.device) if accel else BATCH_BYTES
+    cap = accelerator_cap(planned[0].fd.envelope.device) if accel else BATCH_BYTES
     by_wave: dict = {}
     for pl in planned:
         fd = pl.fd

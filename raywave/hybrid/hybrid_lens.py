@@ -37,7 +37,7 @@ from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps, go_phase_err
 from raywave.hybrid.coherent.geometry import _medium_index, footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import edge_reach_many, stop_rim_images_all
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
-from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, _accelerator_cap, ceil_samples,
+from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, accelerator_cap, ceil_samples,
                                     plan_groups, propagate_group)
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
@@ -77,7 +77,7 @@ DEFAULT_EDGE_STEP = "adaptive"
 #: images, the DOE-aperture diagnostics) are shared by all its groups, and a group's Newton rounds are one trace
 FIELD_GROUP_BYTES = 2**29
 #: :data:`FIELD_GROUP_BYTES` on an accelerator (at most a 32nd of a CUDA device's memory, as a propagation batch:
-#: :func:`~raywave.hybrid.batched._accelerator_cap`): fewer, larger groups, each a fixed number of kernel launches
+#: :func:`~raywave.hybrid.batched.accelerator_cap`): fewer, larger groups, each a fixed number of kernel launches
 #: (the bundled asphere's 10×10×3 map: 8 groups of 512 MB; one of 4 GB)
 FIELD_GROUP_BYTES_ACCELERATOR = 2**32
 #: the ray stages (aiming, Newton inversion, node traces) of a call's groups are run together for up to about this
@@ -719,7 +719,7 @@ class HybridLens(nn.Module):
         p = self.doe.pitch / self.oversample
         cap = FIELD_GROUP_BYTES
         if devices.accelerator(geo.f):
-            cap = max(FIELD_GROUP_BYTES, min(FIELD_GROUP_BYTES_ACCELERATOR, _accelerator_cap(geo.f.device)))
+            cap = max(FIELD_GROUP_BYTES, min(FIELD_GROUP_BYTES_ACCELERATOR, accelerator_cap(geo.f.device)))
         deps: dict = {i: [i] for i in geo.todo}
         for i, s_ in enumerate(geo.src):
             if s_ is not None:

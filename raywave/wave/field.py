@@ -39,17 +39,9 @@ def cubic_matrix(pos: torch.Tensor, n_nodes: int) -> torch.Tensor:
     (f₋₁ = 3f₀ − 3f₁ + f₂), which keeps the scheme exact for quadratics up to the boundary."""
     if n_nodes < 3:
         raise ValueError("need at least 3 nodes to interpolate")
-    n = pos.numel()
-    base = torch.floor(pos).clamp(0, n_nodes - 2)
-    m = torch.zeros((n, n_nodes + 2), dtype=pos.dtype, device=pos.device)  # columns: ghost, nodes..., ghost
-    # the four taps of every row at once: their columns differ, so each lands on a zero (the sums of a per-tap loop)
-    k = base[:, None] + torch.arange(-1, 3, dtype=pos.dtype, device=pos.device)  # (n, 4)
-    rows = torch.arange(n, device=pos.device)[:, None].expand(n, 4)
-    m.index_put_((rows, (k + 1).long()), _keys(pos[:, None] - k), accumulate=True)
-    # the ghosts folded onto the nodes (f₋₁ = 3f₀ − 3f₁ + f₂ at either end) as two broadcast products (a row has at
-    # most one ghost, so each entry sums at most two terms: the same values as folding column by column)
-    fold_lo = torch.tensor([3.0, -3.0, 1.0] + [0.0] * (n_nodes - 3), dtype=pos.dtype, device=pos.device)
-    return m[:, 1:-1] + m[:, :1] * fold_lo + m[:, -1:] * fold_lo.flip(0)
+    # one grid of :func:`cubic_matrices` (the same taps and ghost folding: one implementation for both)
+    counts = torch.full((1, 1), float(n_nodes), dtype=pos.dtype, device=pos.device)
+    return cubic_matrices(pos.reshape(1, -1), counts, n_nodes)[0]
 
 
 def cubic_matrices(pos: torch.Tensor, n_nodes: torch.Tensor, k_max: int) -> torch.Tensor:
