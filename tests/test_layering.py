@@ -286,3 +286,27 @@ def test_import_raywave_is_light_and_leaves_torch_alone():
 @pytest.mark.parametrize("edge", sorted(ALLOWED))
 def test_allowed_edges_say_why(edge):
     assert len(ALLOWED[edge]) > 30
+
+
+# ---------------------------------------------------------------------------- value types over long lists (issue 43)
+#: the most parameters a function of the engine's packages takes (``*args`` and ``**kwargs`` count one each)
+MAX_PARAMETERS = 10
+
+
+def _parameter_count(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    a = fn.args
+    names = [x.arg for x in a.posonlyargs + a.args + a.kwonlyargs if x.arg not in ("self", "cls")]
+    return len(names) + (a.vararg is not None) + (a.kwarg is not None)
+
+
+def test_engine_functions_take_at_most_ten_parameters():
+    """Issue 43: ≤ 10 parameters per function in ``raywave/hybrid`` and ``raywave/wave`` (value types instead)."""
+    long = []
+    for pkg in ("hybrid", "wave"):
+        for path in sorted((PKG / pkg).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    k = _parameter_count(node)
+                    if k > MAX_PARAMETERS:
+                        long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({k})")
+    assert not long, "functions with more than 10 parameters: " + "; ".join(long)

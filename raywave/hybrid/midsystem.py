@@ -423,8 +423,37 @@ class FinalPlane:
     pitch: float
 
 
+@dataclass(frozen=True)
+class Orders:
+    """Which diffraction orders a :class:`MidSystemLens` traces, and how the weak ones' stop edge is formed.
+
+    Args:
+        keep: the orders to keep (integers); with several DOEs, one such set (or None) per DOE. None: every order
+            that ``min_efficiency`` keeps.
+        min_efficiency: the orders (products of the DOEs' orders) with ``|c|²`` below it are left out.
+        weak_edge: the stop edge of the orders after the strongest when ``stop_edge="exit_pupil"``. None: the same
+            as the strongest order's (one engine call per order); ``"doe"``: the sharp cut on the final plane, all
+            of them the sources of ONE engine call (:meth:`MidSystemLens.orders_engine`), the strongest order alone
+            with the exact edge: the 16-level DOE with ``min_efficiency=1e-3`` and ``edge_step="asm"`` within
+            6.7e-4 / 7.7e-4 of the reference at 0° / 1.5° (5.0e-4 / 5.6e-4 with every order's exact edge) at ~¼ of
+            the cost (benchmarks/psf_midsystem.py, docs/ray-wave.md "A DOE inside the lens").
+    """
+
+    keep: object = None
+    min_efficiency: float = 0.01
+    weak_edge: str | None = None
+
+    def __post_init__(self):
+        if self.weak_edge not in (None, "doe"):
+            raise ValueError(f"MidSystemLens: weak_edge must be None or 'doe', got {self.weak_edge!r}")
+        if not (self.min_efficiency >= 0.0):
+            raise ValueError(f"MidSystemLens: min_efficiency must be ≥ 0, got {self.min_efficiency!r}")
+
+
 #: :class:`MidSystemLens`'s arguments after ``distance`` before the final plane became a value type, in their order
 _LEGACY_ARGS = ("final_distance", "final_size", "final_pitch", "sensor_pitch", "stop_edge", "min_efficiency", "orders")
+#: the short keywords of :class:`Orders`' fields that :class:`MidSystemLens` still takes
+_ORDER_KEYWORDS = ("min_efficiency", "weak_edge")
 
 
 def _final_plane(final: tuple, legacy: dict, options: dict) -> FinalPlane:
@@ -454,6 +483,17 @@ def _final_plane(final: tuple, legacy: dict, options: dict) -> FinalPlane:
     return FinalPlane(float(given["final_distance"]), float(given["final_size"]), float(given["final_pitch"]))
 
 
+def _orders(orders, min_efficiency, weak_edge) -> Orders:
+    """:class:`MidSystemLens`'s :class:`Orders` from its ``orders`` argument (an :class:`Orders`, or the orders to keep)
+    and the short keywords ``min_efficiency`` / ``weak_edge`` (None: not given); TypeError where both forms are
+    given."""
+    if isinstance(orders, Orders):
+        if min_efficiency is not None or weak_edge is not None:
+            raise TypeError("MidSystemLens: give min_efficiency / weak_edge inside orders=Orders(...), not beside it")
+        return orders
+    return Orders(orders, 0.01 if min_efficiency is None else float(min_efficiency), weak_edge)
+
+
 class MidSystemLens(nn.Module):
     """A lens with thin DOEs inside it (planes in its gaps, or conformal on its surfaces), and the sensor.
 
@@ -474,24 +514,19 @@ class MidSystemLens(nn.Module):
             strong order at ~10-20× the cost; with it the weak orders' edge waves reach the crop with their traced
             paths: a 16-level DOE within 1e-3 of the reference with ``min_efficiency=1e-3``; see docs/ray-wave.md,
             "A DOE inside the lens").
-        min_efficiency: the orders (products of the DOEs' orders) with ``|c|²`` below it are left out.
-        weak_edge: the stop edge of the orders after the strongest when ``stop_edge="exit_pupil"``. None: the same
-            as the strongest order's (one engine call per order); ``"doe"``: the sharp cut on the final plane, all
-            of them the sources of ONE engine call (:meth:`orders_engine`), the strongest order alone with the exact
-            edge: the 16-level DOE with ``min_efficiency=1e-3`` and ``edge_step="asm"`` within 6.7e-4 / 7.7e-4 of
-            the reference at 0° / 1.5° (5.0e-4 / 5.6e-4 with every order's exact edge) at ~¼ of the cost
-            (benchmarks/psf_midsystem.py, docs/ray-wave.md "A DOE inside the lens").
-        orders: the diffraction orders to keep (integers; default: every order that ``min_efficiency`` keeps); with
-            several DOEs, one such set (or None) per DOE.
+        orders: which diffraction orders are traced and how the weak ones' edge is formed (:class:`Orders`); the
+            short forms: the orders to keep themselves (``orders=[1, -1]``: :class:`Orders` ``keep``), and the
+            keywords ``min_efficiency=`` and ``weak_edge=`` (:class:`Orders`' fields).
     """
 
     def __init__(self, lens: Lens, doe, after, distance, *final, sensor_pitch: float | None = None,
-                 stop_edge: str | None = "doe", min_efficiency: float = 0.01, orders=None, edge_step: str | None = None,
-                 weak_edge: str | None = None, **legacy):
-        opts = {"sensor_pitch": sensor_pitch, "stop_edge": stop_edge, "min_efficiency": min_efficiency,
+                 stop_edge: str | None = "doe", edge_step: str | None = None, orders=None, **legacy):
+        short = {k: legacy.pop(k) for k in _ORDER_KEYWORDS if k in legacy}
+        opts = {"sensor_pitch": sensor_pitch, "stop_edge": stop_edge, "min_efficiency": short.get("min_efficiency"),
                 "orders": orders}
         plane = _final_plane(final, legacy, opts)
-        sensor_pitch, stop_edge, min_efficiency, orders = (opts[k] for k in _LEGACY_ARGS[3:])
+        sensor_pitch, stop_edge = opts["sensor_pitch"], opts["stop_edge"]
+        choice = _orders(opts["orders"], opts["min_efficiency"], short.get("weak_edge"))
         super().__init__()
         does = list(doe) if isinstance(doe, (list, tuple)) else [doe]
         n = len(does)
@@ -499,8 +534,9 @@ class MidSystemLens(nn.Module):
             raise ValueError("MidSystemLens: no DOE given")
         afters = [int(a) for a in _as_list(after, n, "after")]
         dists = [None if d is None else float(d) for d in _as_list(distance, n, "distance")]
-        only = orders if n > 1 and isinstance(orders, (list, tuple)) and len(orders) == n and \
-            all(o is None or isinstance(o, (list, tuple, set, range)) for o in orders) else [orders] * n
+        keep = choice.keep
+        only = keep if n > 1 and isinstance(keep, (list, tuple)) and len(keep) == n and \
+            all(o is None or isinstance(o, (list, tuple, set, range)) for o in keep) else [keep] * n
         self.only = [None if o is None else {int(m) for m in o} for o in only]
         self.lens = lens
         self.does = nn.ModuleList(does)
@@ -515,10 +551,8 @@ class MidSystemLens(nn.Module):
         self.final_distance = float(plane.distance)
         self.sensor_pitch, self.stop_edge = sensor_pitch, stop_edge
         self.edge_step = edge_step
-        if weak_edge not in (None, "doe"):
-            raise ValueError(f"MidSystemLens: weak_edge must be None or 'doe', got {weak_edge!r}")
-        self.weak_edge = weak_edge
-        self.min_efficiency = float(min_efficiency)
+        self.weak_edge = choice.weak_edge
+        self.min_efficiency = float(choice.min_efficiency)
         self._transfer_cache = OrderedDict()
         self.build_lens([1.0] * n)  # checks the placements now
 
