@@ -171,3 +171,62 @@ def test_roll_off_derivatives_kept_on_their_lines_equal_the_dense_ones(monkeypat
     assert torch.equal(rel.amplitude(sx, sy, dz), 1.0 + (sx * dense[:, 1] + sy * dense[:, 2] + dz * dense[:, 0]))
     one = rel.source(1)
     assert one.shape == (1, *rel.shape[1:]) and torch.equal(one.dense()[0], dense[1])
+
+
+def _mirror_images(in_shape, in_origin, out_origin, carrier, nout):
+    """A source and its three mirror images (x, y, both): windows mirrored about the axes, carriers negated."""
+    (niy, nix), (x0, y0), (cx, cy), (ax, ay) = in_shape, in_origin, out_origin, carrier
+    out = []
+    for sx, sy in ((1, 1), (-1, 1), (1, -1), (-1, -1)):
+        xi = x0 if sx > 0 else -(x0 + (nix - 1) * P)
+        yi = y0 if sy > 0 else -(y0 + (niy - 1) * P)
+        xo = cx if sx > 0 else -(cx + (nout - 1) * P)
+        yo = cy if sy > 0 else -(cy + (nout - 1) * P)
+        out.append(WindowSource(in_shape, (xi, yi), (xo, yo), 0.53, 1.5, 1.0, (sx * ax, sy * ay)))
+    return out
+
+
+@pytest.mark.parametrize("in_shape, in_origin, out_origin, carrier", [
+    ((120, 100), (0.01, -0.03), (0.05, 0.02), (0.03, -0.02)),   # even FFT sizes, off-axis in x and y
+    ((121, 101), (-0.06, -0.06), (-0.02, -0.02), (0.0, 0.0)),    # on axis, its window symmetric in y
+    ((90, 131), (0.2, -0.045), (0.27, -0.02), (0.12, 0.0)),      # a large carrier along x only
+])
+def test_mirror_images_take_the_flipped_band(monkeypatch, in_shape, in_origin, out_origin, carrier):
+    """On the CPU a source that is an earlier one's mirror image takes its band flipped and turned by the windows'
+    linear phase (``_mirrored_twin``): the same rows, columns and values as evaluating it (to the phases' rounding,
+    ~1e-11 of the band for phases of ~1e4 rad), and the propagated fields the same to 1e-11."""
+    import raywave.wave.propagation.batch as batch_mod
+
+    nout = 41
+    srcs = _mirror_images(in_shape, in_origin, out_origin, carrier, nout)
+    wb = WindowBatch(tuple(srcs), (nout, nout), P)
+    geos = wb.geometries()
+    pairs = [batch_mod._mirror_axes(geos[0], g) for g in geos]  # (a window symmetric about an axis: equal there)
+    assert pairs[0] == (False, False) and all(p is not None for p in pairs) and any(any(p) for p in pairs)
+    fast = batch_transfer(wb)
+    monkeypatch.setattr(batch_mod, "_mirrored_twin", lambda *a: None)
+    slow = batch_transfer(wb)
+    monkeypatch.undo()
+    for a, b in zip(slow.parts, fast.parts):
+        assert torch.equal(a.rows, b.rows) and torch.equal(a.cols, b.cols)
+        scale = float(a.band.abs().max())
+        assert scale > 0 and float((a.band - b.band).abs().max()) <= 1e-10 * scale
+    g = torch.Generator().manual_seed(5)
+    u = torch.randn((4, *in_shape), dtype=torch.complex128, generator=g)
+    v_fast, v_slow = _run(wb, u, fast), _run(wb, u, slow)
+    assert float((v_fast - v_slow).abs().max()) <= 1e-11 * float(v_slow.abs().max())
+
+
+def test_mirror_images_need_a_matching_geometry():
+    """``_mirror_axes`` pairs only geometries equal to rounding except for negated carriers and shift bands: another
+    distance, wavelength or a shifted window is no mirror image."""
+    import raywave.wave.propagation.batch as batch_mod
+
+    srcs = _mirror_images((60, 60), (0.01, 0.02), (0.03, 0.04), (0.02, 0.01), 21)
+    a = srcs[0]
+    others = [WindowSource(a.in_shape, a.in_origin, a.out_origin, 0.53, 1.6, 1.0, a.carrier),
+              WindowSource(a.in_shape, a.in_origin, a.out_origin, 0.47, 1.5, 1.0, a.carrier),
+              WindowSource(srcs[1].in_shape, (srcs[1].in_origin[0] + P, srcs[1].in_origin[1]), srcs[1].out_origin,
+                           0.53, 1.5, 1.0, srcs[1].carrier)]
+    geos = WindowBatch((a, *others), (21, 21), P).geometries()
+    assert all(batch_mod._mirror_axes(geos[0], g) is None for g in geos[1:])

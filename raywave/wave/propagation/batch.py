@@ -337,7 +337,7 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
         return BatchTransfer((my, mx), rows, cols, empty, rel, wave, (px, py), batch)
     params = (k, zf, kax, kay, dx, dy, (bxl, bxh, bxt), (byl, byh, byt))
     if _by_source(device, b):
-        parts = _own_band_values(params, (fx, fy), weight_derivative)
+        parts = _own_band_values(params, (fx, fy), weight_derivative, None if weight_derivative else geos)
         return BatchTransfer((my, mx), rows, cols, None, None, wave, (px, py), batch, parts)
     band, rel = _band_values(params, fx[cols], fy[rows], weight_derivative)
     return BatchTransfer((my, mx), rows, cols, band, rel, wave, (px, py), batch)
@@ -372,10 +372,15 @@ def _band_values(params: tuple, fxc: torch.Tensor, fyr: torch.Tensor, weight_der
     return band, rel
 
 
-def _own_band_values(params: tuple, freqs: tuple, weight_derivative: bool) -> tuple:
+def _own_band_values(params: tuple, freqs: tuple, weight_derivative: bool, geos: list | None = None) -> tuple:
     """:func:`_band_values` of each source on its own band (its own candidate rows and columns, the lines where it
     alone can roll off): a tuple of :class:`OwnBand`. The same values as :func:`_band_values` on the union, where the
-    union holds exact zeros outside each source's band (:meth:`BatchTransfer.placed`)."""
+    union holds exact zeros outside each source's band (:meth:`BatchTransfer.placed`).
+
+    ``geos`` (the sources' host geometries, :func:`~raywave.wave.propagation.transfer._geometry`; None: every source
+    evaluated): a source that is an earlier one's mirror image (a symmetric lens's map: its four images of a field
+    point, :func:`_mirror_axes`) takes that one's band flipped and turned by a linear phase (:func:`_mirrored_band`)
+    instead of its own ``sqrt`` and ``cos``/``sin`` over the band, ~10× less work: the same function to rounding."""
     fx, fy = freqs
     parts = []
     for i in range(params[0].shape[0]):
@@ -386,9 +391,79 @@ def _own_band_values(params: tuple, freqs: tuple, weight_derivative: bool) -> tu
         if c_own.numel() == 0 or r_own.numel() == 0:
             parts.append(OwnBand(r_own, c_own, None, None))
             continue
+        twin = None if geos is None else _mirrored_twin(geos, i, parts, freqs, (r_own, c_own))
+        if twin is not None:
+            parts.append(twin)
+            continue
         v, r = _band_values(one, fx[c_own], fy[r_own], weight_derivative)
         parts.append(OwnBand(r_own, c_own, v[0], r))
     return tuple(parts)
+
+
+def _close(a: float, b: float) -> bool:
+    """``a`` and ``b`` equal to rounding (1e-12 of their size; lengths in mm, direction cosines)."""
+    return abs(a - b) <= 1e-12 * max(abs(a), abs(b), 1.0)
+
+
+def _mirror_axes(a, b) -> tuple[bool, bool] | None:
+    """``(flip_x, flip_y)`` when the geometry ``b`` is ``a``'s mirror image along the flipped axes and equal along
+    the others (:func:`~raywave.wave.propagation.transfer._geometry`: the same k, distance, FFT size and pitch; per
+    axis its carrier and its lateral shift's band ``(lo, hi)`` negated, ``(−hi, −lo)``, or equal; to rounding), else
+    None. Then ``b``'s transfer function is ``a``'s at the negated frequencies times ``exp(2πi f (d_a + d_b))``
+    along each flipped axis (``d`` the output-to-input window shift; :func:`_mirrored_band`)."""
+    if a.k != b.k or a.zf != b.zf or a.size != b.size or a.pitch != b.pitch:
+        return None
+    flips = []
+    for ca, cb, ba, bb in ((a.carrier[0], b.carrier[0], a.bx, b.bx), (a.carrier[1], b.carrier[1], a.by, b.by)):
+        if not _close(ba[2], bb[2]):
+            return None
+        if _close(ca, cb) and _close(ba[0], bb[0]) and _close(ba[1], bb[1]):
+            flips.append(False)
+        elif _close(ca, -cb) and _close(ba[0], -bb[1]) and _close(ba[1], -bb[0]):
+            flips.append(True)
+        else:
+            return None
+    return flips[0], flips[1]
+
+
+def _mirrored_twin(geos: list, i: int, parts: list, freqs: tuple, own: tuple) -> OwnBand | None:
+    """Source ``i``'s :class:`OwnBand` from an earlier source's ``parts[j]`` whose mirror image it is
+    (:func:`_mirror_axes`, :func:`_mirrored_band`), or None: no such source, or the flipped band's lines are not
+    source ``i``'s own candidate lines ``own`` = ``(rows, cols)`` (an even FFT size's Nyquist line, whose negated
+    frequency is not on the grid; a line at the band's edge that rounding puts in or out)."""
+    for j in range(i):
+        flips = _mirror_axes(geos[j], geos[i])
+        if flips is None or parts[j].band is None:
+            continue
+        out = _mirrored_band(parts[j], flips, (geos[j].shift[0] + geos[i].shift[0],
+                                               geos[j].shift[1] + geos[i].shift[1]), freqs)
+        if out is not None and torch.equal(out.rows, own[0]) and torch.equal(out.cols, own[1]):
+            return out
+    return None
+
+
+def _mirrored_band(part: OwnBand, flips: tuple, shifts: tuple, freqs: tuple) -> OwnBand | None:
+    """The mirror image's band of ``part`` (one source's :class:`OwnBand`): along each flipped axis (``flips`` =
+    ``(x, y)``) the band at the negated frequencies (FFT index ``i → (M − i) mod M``: its lines reversed, line 0
+    kept first) times ``exp(2πi f·s)``, ``s`` = ``shifts`` (mm) that axis's ``d_a + d_b``; None where a flipped axis's
+    band holds the Nyquist line of an even size ``M`` (its own negative only by aliasing). ``freqs`` = ``(fx, fy)``
+    the FFT grid's frequencies."""
+    band, idx = part.band, [part.cols, part.rows]
+    for axis, (flip, f, s) in enumerate(zip(flips, freqs, shifts)):
+        if not flip:
+            continue
+        dim, n, lines, m = -1 - axis, f.numel(), idx[axis], band.shape[-1 - axis]
+        if n % 2 == 0 and bool((lines == n // 2).any()):  # (host reads: the CPU path)
+            return None
+        keep = 1 if int(lines[0]) == 0 else 0  # frequency 0 is its own negative
+        order = torch.cat([torch.arange(keep, device=lines.device), torch.arange(m - 1, keep - 1, -1,
+                                                                                  device=lines.device)])
+        lines = torch.cat([lines[:keep], (n - lines[keep:]).flip(0)])
+        ramp = polar(torch.ones_like(f[lines]), _TWO_PI * s * f[lines])
+        # one gather into a new array (a flip and a concatenation allocate twice: fresh pages cost more than the copy)
+        band = band.index_select(dim, order).mul_(ramp if axis == 0 else ramp[:, None])
+        idx[axis] = lines
+    return OwnBand(idx[1], idx[0], band, None)
 
 
 def _place_parts(parts: tuple, band_index: tuple, weight_derivative: bool):
