@@ -43,6 +43,7 @@ from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields
+from raywave.rays.bundle import RayBundle
 from raywave.utils import devices
 from raywave.utils.checks import MAX_FIELD_ANGLE, wavelengths_um
 from raywave.utils.safe import safe_div
@@ -174,6 +175,25 @@ def _edge_reaches(optics, rims: list, chief_sensor, todo: list, wls: list, plane
     flat = edge_reach_many([rims[j][r] for j in range(nw) for r in range(nr)], *planes,
                            pts.transpose(0, 1).reshape(-1, 2), [lam[j] for j in range(nw) for _ in range(nr)])
     return [[flat[j * nr + r] for j in range(nw)] for r in range(nr)]
+
+
+def _source_elements(t, sources: list[int], nw: int) -> dict:
+    """``{i: [W] elements}`` of the (F, W) chief-ray bundle or (F, W, 2) tensor ``t`` at the sources ``sources``
+    (indices into its first axis): each element what ``t[i][j]`` gives, from one gather and one unbind per field
+    (issue 43: not a few ops per source)."""
+    if not sources:
+        return {}
+    idx = torch.tensor(sources, dtype=torch.long, device=t.o.device if isinstance(t, RayBundle) else t.device)
+
+    def rows(x):
+        return x.index_select(0, idx).flatten(0, 1).unbind(0)
+
+    if isinstance(t, RayBundle):
+        wl = torch.broadcast_to(t.wavelength, t.shape)
+        flat = [RayBundle(*f) for f in zip(rows(t.o), rows(t.d), rows(wl), rows(t.valid), rows(t.opl))]
+    else:
+        flat = rows(t)
+    return {i: flat[k * nw:(k + 1) * nw] for k, i in enumerate(sources)}
 
 
 def _center_of(fd: DOEField):
@@ -641,9 +661,10 @@ class HybridLens(nn.Module):
         together: their ray traces batched per round) of the built sources ``rows`` (indices into ``geo.todo``) ×
         wavelength, field-major: the stop edge on the DOE plane or at the exit pupil."""
         optics, z_doe, z_sen = self.optics, self.doe_z(), self.sensor_z()
-        cd, cs, cuv = geo.chief
-        # every (source, wavelength) element as views from a few unbinds (indexing each dispatches ~25 ops)
-        cd, cs, cuv = ([row.unbind(0) for row in t.unbind(0)] for t in (cd, cs, cuv))
+        # the built sources' (source, wavelength) elements from one gather and one unbind per field (indexing each
+        # dispatches ~25 ops; unbinding every source's row ~5 per source)
+        built = [geo.todo[r] for r in rows]
+        cd, cs, cuv = (_source_elements(t, built, len(geo.wls)) for t in geo.chief)
         settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step)
         go = self._go_errors(geo, rows) if check else None
         out = []

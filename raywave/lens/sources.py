@@ -330,10 +330,11 @@ def _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, 
     at the chief rays ``uv_c`` (F, W, 1, 2) mm, by forward differences of step ``h`` mm; and ``bad`` (F, W, 1):
     fields without a usable Jacobian (chief ray not aimed, ``ok_c`` False, or singular), where the identity
     stands in."""
-    p0, _ = _stop_hit(lens, uv_c, fields, field_type, wl, depth, ep_z)
     dx, dy = torch.tensor([[h, 0.0], [0.0, h]], dtype=torch.float64, device=uv_c.device)
-    p1, _ = _stop_hit(lens, uv_c + dx, fields, field_type, wl, depth, ep_z)
-    p2, _ = _stop_hit(lens, uv_c + dy, fields, field_type, wl, depth, ep_z)
+    # the chief rays and their two neighbours in one trace (each ray is traced on its own; issue 43: one trace's
+    # ops instead of three)
+    p3, _ = _stop_hit(lens, torch.cat([uv_c, uv_c + dx, uv_c + dy], dim=-2), fields, field_type, wl, depth, ep_z)
+    p0, p1, p2 = p3.split(uv_c.shape[-2], dim=-2)
     j = torch.stack([(p1 - p0) / h, (p2 - p0) / h], -1)  # (F, W, 1, 2, 2)
     # A field whose chief ray cannot be aimed (e.g. beyond the lens's field) has no usable Jacobian.
     det = torch.linalg.det(j)
