@@ -441,6 +441,7 @@ class Lens(nn.Module):
         dx, dy, dz = rays.d.unbind(-1)
         valid, opl = rays.valid, rays.opl
         rec = TraceRecord([(x, y, rays.o[..., 2])], [valid]) if record else None
+        zero = one = None
         for i in range(start, stop):
             s = self.surfaces[i]
             if s.interaction.kind == "coordinate_break":  # an identity break: nothing happens
@@ -467,10 +468,12 @@ class Lens(nn.Module):
             z = zl + zs[i]
             # Park dead rays on the axis, at this vertex, so that later surfaces see harmless numbers (no NaN, no
             # inf, no huge z whose quadratic cancels to an exactly zero discriminant: an infinite sqrt derivative)
-            x, y = torch.where(valid, x, 0.0), torch.where(valid, y, 0.0)
+            if zero is None:  # 0-d constants once per trace (a Python number costs a scalar tensor per use)
+                zero, one = x.new_zeros(()), x.new_ones(())
+            x, y = torch.where(valid, x, zero), torch.where(valid, y, zero)
             z = torch.where(valid, z, zs[i].expand_as(z))
-            opl = torch.where(valid, opl, 0.0)
-            dx, dy, dz = torch.where(valid, dx, 0.0), torch.where(valid, dy, 0.0), torch.where(valid, dz, 1.0)
+            opl = torch.where(valid, opl, zero)
+            dx, dy, dz = torch.where(valid, dx, zero), torch.where(valid, dy, zero), torch.where(valid, dz, one)
             if record:
                 rec.points.append((x, y, z))
                 rec.valid.append(valid)
