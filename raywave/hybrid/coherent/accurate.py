@@ -255,7 +255,8 @@ def _trace_nodes(b: _Build, nd: _Nodes):
     x_c, _, jac_c = yield from aim.landing(uv_c)
     chief = (uv_c, x_c, jac_c)
     start = yield from _coarse_start(aim, nd, chief, 0.25 * r_ep)
-    uv, conv, jac, x_at = yield from _invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep, start)
+    inverted = yield from _invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep, start)
+    uv, conv, jac, x_at = inverted
     # the differentiable trace of the node rays. The landing point of a node's ray must stay on its node when
     # the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals uv
     # in value and carries d(uv)/dθ = −J⁻¹ ∂X/∂θ, so everything traced at uv_lin (path, directions, aperture
@@ -271,6 +272,8 @@ def _trace_nodes(b: _Build, nd: _Nodes):
         _, _, jac_exact = yield from aim.landing(uv)
         jinv_step, _ = _solve2(jac, x_at.detach() - nd.targets)
         jinv_step = jinv_step + _solve2(jac_exact, x_at - x_at.detach())[0]
+    elif getattr(inverted, "step", None) is not None and not torch.is_grad_enabled():
+        jinv_step = inverted.step  # the inversion's own solve at these landing points (the same values)
     else:
         jinv_step, _ = _solve2(jac, (x_at - nd.targets))
     uv_lin = uv - jinv_step

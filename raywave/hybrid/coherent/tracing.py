@@ -400,11 +400,26 @@ def _invert_group(reqs: list) -> list:
         uv[live] = uv[live] - step[move]
         if it == _NEWTON_ITERS - 1:  # the last iteration moved these requests' rays: their landing points are stale
             moved_last.update(torch.unique(rid[live]).tolist())
-    conv = valid & ((x - targets).abs().amax(-1) <= _NEWTON_TOL)
+    err = x - targets
+    conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL)
+    # the Newton step J⁻¹(X − T) at the last iterate of every ray at once (what a construction's node trace takes
+    # without autograd; issue 43: one 2×2 solve for the group instead of one per construction)
+    step, _ = _solve2(jac, err)
     # each request's rows as views from one split per tensor (slicing and copying each dispatches 8 ops a request;
     # the requests hold all their rows anyway)
-    parts = zip(uv.split(sizes), conv.split(sizes), jac.split(sizes), x.split(sizes))
-    return [(u, c, j, None if g in moved_last else xg) for g, (u, c, j, xg) in enumerate(parts)]
+    parts = zip(uv.split(sizes), conv.split(sizes), jac.split(sizes), x.split(sizes), step.split(sizes))
+    return [_Inverted((u, c, j, None if g in moved_last else xg), None if g in moved_last else sg)
+            for g, (u, c, j, xg, sg) in enumerate(parts)]
+
+
+class _Inverted(tuple):
+    """:func:`_invert_to_nodes`' answer ``(uv, converged, Jacobian, landing points or None)``, with ``step`` (N, 2):
+    the Newton step J⁻¹(X − T) at ``uv`` from the group's one solve (None where the landing points are None)."""
+
+    def __new__(cls, values: tuple, step):
+        out = super().__new__(cls, values)
+        out.step = step
+        return out
 
 
 def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
