@@ -109,10 +109,9 @@ def _trace_group(reqs: list) -> list:
         # per-source rows must stay rows: the lens would trace so large a bundle in flat chunks
         half = len(reqs) // 2
         return _trace_group(reqs[:half]) + _trace_group(reqs[half:])
-    uv = torch.stack([torch.cat([r.uv, r.uv[:1].expand(n_max - r.uv.shape[0], 2)]) if r.uv.shape[0] < n_max
-                      else r.uv for r in reqs])[:, None]
-    fields = torch.stack([r.field.reshape(2) for r in reqs])
-    wls = torch.cat([r.wavelength.reshape(1) for r in reqs]).reshape(-1, 1, 1)  # a wavelength per row
+    uv = _padded_rows([r.uv for r in reqs], sizes, n_max)[:, None]
+    fields = torch.stack([_shaped(r.field, (2,)) for r in reqs])
+    wls = torch.cat([_shaped(r.wavelength, (1,)) for r in reqs]).reshape(-1, 1, 1)  # a wavelength per row
     with torch.set_grad_enabled(r0.grad and torch.is_grad_enabled()):
         rays = rays_through(r0.lens, uv, fields, r0.field_type, wls, depth=r0.depth, ep_z=r0.ep_z)
         with per_source(r0.lens, orders):
@@ -121,12 +120,70 @@ def _trace_group(reqs: list) -> list:
         n = r0.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(r0.z_doe, n)
     recs = [None] * len(sizes)
-    if rec is not None:  # every surface's points and validity, split once into the requests' rows
-        points = [tuple(_rows(c, sizes) for c in pts) for pts in rec.points]
-        valid = [_rows(v, sizes) for v in rec.valid]
-        recs = [type(rec)([tuple(c[g] for c in pts) for pts in points], [v[g] for v in valid])
-                for g in range(len(sizes))]
+    if rec is not None:  # every surface's points and validity, split into the requests' rows when first read
+        shared = _SplitRecord(rec, sizes)
+        recs = [_RowRecord(shared, g) for g in range(len(sizes))]
     return list(zip(_split_bundle(rays, sizes), _split_bundle(out, sizes), _split_bundle(at, sizes), recs))
+
+
+def _shaped(t: torch.Tensor, shape: tuple) -> torch.Tensor:
+    """``t.reshape(shape)``, or ``t`` itself when it has that shape already (a reshape dispatches an op)."""
+    return t if tuple(t.shape) == shape else t.reshape(shape)
+
+
+def _padded_rows(parts: list, sizes: list, n_max: int) -> torch.Tensor:
+    """The rows ``parts`` (each (n_g, 2)) as one (G, n_max, 2) tensor, each row padded with copies of its first
+    point: one concatenation and one gather (issue 43: not a concatenation per row)."""
+    if all(k == n_max for k in sizes):
+        return torch.stack(parts)
+    flat = torch.cat(parts)
+    dev = flat.device
+    size = torch.tensor(sizes, dtype=torch.long, device=dev)
+    start = torch.cumsum(size, 0) - size
+    j = torch.arange(n_max, dtype=torch.long, device=dev)
+    idx = start[:, None] + torch.where(j[None] < size[:, None], j[None], 0)  # (G, n_max)
+    return flat[idx]
+
+
+class _SplitRecord:
+    """A batched trace's :class:`~raywave.lens.lens.TraceRecord` (rows (G, 1, N_max)) whose surfaces are split into
+    the requests' rows (:func:`_rows`) when first read: most readers need a surface or two (issue 43)."""
+
+    def __init__(self, rec, sizes: list):
+        self.rec, self.sizes, self.cache = rec, sizes, {}
+
+    def rows(self, kind: str, k: int) -> list:
+        """Every request's rows of ``rec.points[k]`` (a tuple each) or ``rec.valid[k]``."""
+        hit = self.cache.get((kind, k))
+        if hit is None:
+            v = getattr(self.rec, kind)[k]
+            hit = list(zip(*(_rows(c, self.sizes) for c in v))) if kind == "points" else _rows(v, self.sizes)
+            self.cache[kind, k] = hit
+        return hit
+
+
+class _RowSurfaces:
+    """Request ``g``'s ``points`` or ``valid`` list of a :class:`_SplitRecord` (a read-only sequence)."""
+
+    def __init__(self, shared: _SplitRecord, g: int, kind: str):
+        self.shared, self.g, self.kind = shared, g, kind
+
+    def __len__(self) -> int:
+        return len(getattr(self.shared.rec, self.kind))
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(len(self))[k]]
+        return self.shared.rows(self.kind, range(len(self))[k])[self.g]
+
+
+class _RowRecord:
+    """Request ``g``'s :class:`~raywave.lens.lens.TraceRecord` of a batched trace: ``points`` (per surface (x, y, z)
+    (1, 1, n) each) and ``valid`` (per surface (1, 1, n)), as its own trace's record gives them."""
+
+    def __init__(self, shared: _SplitRecord, g: int):
+        self.points = _RowSurfaces(shared, g, "points")
+        self.valid = _RowSurfaces(shared, g, "valid")
 
 
 def run_serial(gen):
