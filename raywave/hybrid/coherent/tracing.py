@@ -362,6 +362,51 @@ class _Aim:
                              record, self.ep_z, grad, self.order)
 
 
+@dataclass
+class _LandingRequest:
+    """A construction's chief-ray landing (:meth:`_Aim.landing` of its one ray ``uv`` (1, 2), no autograd): answered
+    with ``(X (1, 2), ∂X/∂uv (1, 2, 2))``. :func:`run_batched` answers the pending ones of constructions that share
+    a lens, plane and mode with one trace of all their rays and neighbours, a single-ray row each
+    (:func:`_trace_rows`; issue 43: no per-construction slicing): each value its own call's."""
+
+    aim: _Aim
+    uv: torch.Tensor
+
+    def run(self):
+        return _landing_group([self])[0]
+
+    @staticmethod
+    def run_group(reqs: list) -> list:
+        return _landing_group(reqs)
+
+    def group_key(self) -> tuple:
+        a = self.aim
+        d = a.depth
+        return ("landing", id(a.lens), float(a.z_doe), a.field_type, a.ep_z, a.h, None if d is None else float(d),
+                self.uv.device)
+
+
+def _landing_group(reqs: list) -> list:
+    """The answers ``[(X (1, 2), ∂X/∂uv (1, 2, 2))]`` of :class:`_LandingRequest` s (one lens, plane and mode): the
+    rays and their finite-difference neighbours ``+h·e_u``, ``+h·e_v`` of all requests in one trace."""
+    a0 = reqs[0].aim
+    h, g = a0.h, len(reqs)
+    uv = torch.cat([_shaped(r.uv, (1, 2)) for r in reqs])  # (G, 2)
+    du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
+    allv = torch.cat([uv, uv + du[0], uv + du[1]])  # (3G, 2): the rays, then each neighbour set
+    rows = torch.arange(g, device=uv.device).repeat(3)
+    fields = torch.stack([_shaped(r.aim.field, (2,)) for r in reqs])[rows]
+    wls = torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs])[rows]
+    orders = [r.aim.order for r in reqs]
+    if any(o is not None for o in orders):
+        x, _ = _trace_rows(a0, allv, fields, wls, orders, rows)
+    else:
+        x, _ = _trace_rows(a0, allv, fields, wls)
+    x0, xu, xv = x.split(g)
+    jac = torch.stack([(xu - x0) / h, (xv - x0) / h], -1)  # (G, 2, 2), as _landing_from's
+    return list(zip(x0.split(1), jac.split(1)))
+
+
 def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: tuple | None = None):
     """Newton: entrance-plane uv (N, 2) whose rays (``aim``) land on ``targets`` (N, 2) on the DOE plane, from the
     chief ray's linear guess (``chief`` = its entrance-plane point (1, 2), landing point (1, 2) and Jacobian
