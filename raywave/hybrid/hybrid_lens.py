@@ -113,7 +113,14 @@ class _CallGeometry:
     orders: list | None = None
     reach: list | None = None
 
+    def host_fields(self) -> list:
+        """The fields ``f`` as host values ``[F][2]`` (one read for the call, on first use: the warnings' text)."""
+        if self._host is None:
+            self._host = self.f.detach().cpu().tolist()
+        return self._host
+
     def __post_init__(self):
+        self._host = None
         if self.todo is None:
             self.todo = [i for i, s_ in enumerate(self.src) if s_ is None]
         self.row = {i: r for r, i in enumerate(self.todo)}
@@ -792,8 +799,8 @@ class HybridLens(nn.Module):
                     fd.clipped, fd.beam_half, fold = geo.clips[geo.row[own]][j]
                     if fold > 0:
                         folded.append((fold, geo.f[i].tolist(), wl))
-                if fd.clipped > CLIP_WARN:
-                    clipped.append((fd, geo.f[i]))
+                if fd.clipped > CLIP_WARN:  # the field as host values, read once for the call (not per warning)
+                    clipped.append((fd, geo.host_fields()[i]))
                 fd.chief_tan = tans[k][j]
                 row.append(fd)
             out.append(row)
