@@ -372,8 +372,18 @@ def go_phase_errors(lens, fields: torch.Tensor, wls: list[float], depth, field_t
         warnings.simplefilter("ignore", VignettingWarning)  # a diagnostic trace, apertures off
         rays = point_source_rays(lens, f, list(wls), pupil=(gx.flatten(), gy.flatten()), aim="full", depth=depth,
                                  field_type=field_type or lens.field_type)
-        out = lens.trace(rays, apertures=False)
-        lit = lens.trace(rays).valid.reshape(nf, nw, ng, ng)  # the rays every aperture passes (inside the stop)
+        lit = None
+        if lens.is_folded:
+            out = lens.trace(rays, apertures=False)
+        else:  # one trace: a ray passes every aperture where it passes each on its own path (issue 43: not two)
+            out, rec = lens.trace(rays, apertures=False, record=True)
+            lit = out.valid
+            for i, srf in enumerate(lens.surfaces):
+                if srf.aperture is not None and srf.interaction.kind != "coordinate_break":
+                    lit = lit & srf.aperture.contains(*rec.points[i + 1][:2])
+        if lit is None:
+            lit = lens.trace(rays).valid
+        lit = lit.reshape(nf, nw, ng, ng)  # the rays every aperture passes (inside the stop)
         n = lens.surfaces[-1].material.n(torch.tensor(list(wls), dtype=torch.float64, device=dev))  # (W,)
         o, d = out.o, out.d  # (F, W, N, 3)
         tan = (d[..., :2] / d[..., 2:]).reshape(nf, nw, ng, ng, 2)
