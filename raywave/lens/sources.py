@@ -195,26 +195,40 @@ def source_weight(lens, rays: RayBundle, depth=None) -> torch.Tensor:
     return dz**3 / gap**2
 
 
-def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=torch.float64, depth=None,
-                 ep_z: float | None = None) -> RayBundle:
-    """Rays from each field point crossing the entrance-pupil plane at ``uv`` (F, W, N, 2) (mm).
-
-    ``ep_z``: the entrance-plane z (:func:`entrance_plane_z`) when the caller already has it (it costs a
-    paraxial trace)."""
+def _source_part(lens, fields, field_type, wavelength, dtype=torch.float64, depth=None, ep_z: float | None = None):
+    """What :func:`rays_through` computes from the sources alone (not from their rays' ``uv``): ``(wavelengths
+    (F or 1, W, 1) µm, ep_z mm, beam directions (F, 3) or None, object points (F, 3) or None, wide fields (F,) bool
+    or None where none is wide, the object medium's index)``; an iteration over ``uv`` (ray aiming) takes it once."""
     device = lens.device
     wl = torch.as_tensor(wavelength, dtype=dtype, device=device)
     wl = wl if wl.ndim == 3 else wl.reshape(1, -1, 1)  # (F, 1, 1): a wavelength per field row
     ep_z = entrance_plane_z(lens) if ep_z is None else float(ep_z)
     d_inf, pts = _directions_and_points(lens, fields, field_type, ep_z, dtype, depth)
+    wide = None
+    if d_inf is not None:
+        w = wide_fields(torch.as_tensor(fields, dtype=dtype, device=device).reshape(-1, 2))
+        wide = w if bool(w.any()) else None
+    n0 = lens.object_material.n(wl).to(dtype)
+    return wl, ep_z, d_inf, pts, wide, n0
+
+
+def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=torch.float64, depth=None,
+                 ep_z: float | None = None, source: tuple | None = None) -> RayBundle:
+    """Rays from each field point crossing the entrance-pupil plane at ``uv`` (F, W, N, 2) (mm).
+
+    ``ep_z``: the entrance-plane z (:func:`entrance_plane_z`) when the caller already has it (it costs a
+    paraxial trace). ``source``: :func:`_source_part` of these arguments when the caller has it (an iteration
+    over ``uv``: the sources' directions, checks and index once, not once per step)."""
+    device = lens.device
+    wl, ep_z, d_inf, pts, wide, n0 = (_source_part(lens, fields, field_type, wavelength, dtype, depth, ep_z)
+                                      if source is None else source)
     F, W, N = uv.shape[:3]
     target = torch.cat([uv, torch.full_like(uv[..., :1], ep_z)], -1)
-    n0 = lens.object_material.n(wl).to(dtype)
     if d_inf is not None:
         d = d_inf[:, None, None, :].expand(F, W, N, 3)
         z_start = min(ep_z, 0.0) - 1.0
         o = target + d * ((z_start - ep_z) / d[..., 2:3])
-        wide = wide_fields(torch.as_tensor(fields, dtype=dtype, device=device).reshape(-1, 2))
-        if bool(wide.any()):  # uv on the plane across the beam through (0, 0, ep_z); start well before the lens
+        if wide is not None:  # uv on the plane across the beam through (0, 0, ep_z); start well before the lens
             e1, e2 = (e[:, None, None, :] for e in beam_basis(d_inf))
             across = target.new_tensor([0.0, 0.0, ep_z]) + uv[..., :1] * e1 + uv[..., 1:2] * e2
             o = torch.where(wide[:, None, None, None], across - d * _wide_start_distance(lens, ep_z), o)
@@ -227,8 +241,8 @@ def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=t
     return RayBundle.create(o, d, wl, opl=opl, dtype=dtype, device=device)
 
 
-def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None, ep_z=None):
-    rays = rays_through(lens, uv, fields, field_type, wavelength, depth=depth, ep_z=ep_z)
+def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None, ep_z=None, source=None):
+    rays = rays_through(lens, uv, fields, field_type, wavelength, depth=depth, ep_z=ep_z, source=source)
     out = lens.trace(rays, stop=lens.stop_index + 1, apertures=False)
     if lens.is_folded:  # the stop's own frame: its centre is the origin of its local x, y
         out = lens.surface_coordinates(out, lens.stop_index)
@@ -239,13 +253,16 @@ def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None,
     """Solve stop_hit(uv) = target for uv (F, W, N, 2) by Newton with a finite-difference Jacobian."""
     dx, dy = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)  # the finite-difference steps
     n = uv.shape[-2]
+    # what the sources alone decide (directions, checks, index) and the target's scale: once, not every step
+    source = _source_part(lens, fields, field_type, wavelength, depth=depth, ep_z=ep_z)
+    scale = max(1.0, float(target.abs().max()))
     for _ in range(AIM_MAX_ITER):
         # the rays and their two finite-difference neighbours in one trace (each ray is traced on its own)
         p3, v3 = _stop_hit(lens, torch.cat([uv, uv + dx, uv + dy], dim=-2), fields, field_type, wavelength, depth,
-                           ep_z)
+                           ep_z, source)
         p, v, px, py = p3[..., :n, :], v3[..., :n], p3[..., n:2 * n, :], p3[..., 2 * n:, :]
         err = p - target
-        conv = err.abs().amax(-1) <= AIM_TOL * max(1.0, float(target.abs().max()))
+        conv = err.abs().amax(-1) <= AIM_TOL * scale
         if bool((conv | ~v).all()):
             break  # p, v are those of the final uv
         j = torch.stack([(px - p) / h, (py - p) / h], -1)  # (..., 2 out, 2 in)
@@ -257,8 +274,8 @@ def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None,
         step = torch.stack([du, dv], -1)
         uv = torch.where(good[..., None], uv - step, uv)
     else:  # the last step moved uv: its stop hits
-        p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth, ep_z)
-    ok = v & ((p - target).abs().amax(-1) <= 1e-9 * max(1.0, float(target.abs().max())))
+        p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth, ep_z, source)
+    ok = v & ((p - target).abs().amax(-1) <= 1e-9 * scale)
     return uv, ok
 
 
