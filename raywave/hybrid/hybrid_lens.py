@@ -42,7 +42,7 @@ from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWin
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
-from raywave.lens.sources import VignettingWarning, _as_fields
+from raywave.lens.sources import VignettingWarning, _as_fields, chief_aim
 from raywave.rays.bundle import RayBundle
 from raywave.utils import devices
 from raywave.utils.checks import MAX_FIELD_ANGLE, wavelengths_um
@@ -98,7 +98,8 @@ class _CallGeometry:
     chief rays on the exit pupil, ``[R][W]`` the adaptive edge step's choice (None: another edge step) (``edge``
     None: the DOE-plane edge); ``orders`` None, or per source of ``f`` its per-source value (:class:`~raywave.hybrid.
     coherent.settings.Source` ``order``: a mid-system DOE's orders, issue 46); ``reach`` None, or ``[R][W]`` the stop
-    edge's waves' reach on the DOE plane for the Fresnel step's ripple band (:func:`_edge_reaches`)."""
+    edge's waves' reach on the DOE plane for the Fresnel step's ripple band (:func:`_edge_reaches`); ``aim`` the
+    built sources' chief-ray aim (:func:`~raywave.lens.sources.chief_aim`), shared by their diagnostic ray sets."""
 
     f: torch.Tensor
     wls: list
@@ -112,6 +113,7 @@ class _CallGeometry:
     edge: tuple | None = None
     orders: list | None = None
     reach: list | None = None
+    aim: tuple | None = None
 
     def host_fields(self) -> list:
         """The fields ``f`` as host values ``[F][2]`` (one read for the call, on first use: the warnings' text)."""
@@ -618,7 +620,12 @@ class HybridLens(nn.Module):
         wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
         # the lit footprints and the DOE-aperture diagnostic (a mirror image's are its source's) of every built
         # field, from one aimed trace of both ray sets
-        boxes, geo.clips = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True)
+        # the built sources' chief-ray aim, shared by their footprints, edge rays and stop grids (one aiming)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", VignettingWarning)
+            geo.aim = chief_aim(optics, ft, wls_t, depth=depth)
+        boxes, geo.clips = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True,
+                                                    chief=geo.aim)
         geo.boxes = [[False if b is None else b for b in row] for row in boxes]
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
         z_xps = self._exit_pupil_planes(wls)
@@ -635,7 +642,7 @@ class HybridLens(nn.Module):
                                      depth, zx, z_sen)[0][:, 0] for wl, zx in zip(wls, z_xps)]
             steps = None
             if self.edge_step == "adaptive":  # every built source's step from one trace of their edge rays
-                steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen))
+                steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen), chief=geo.aim)
             geo.edge = (z_xps, rims, cx, steps)
             if self.edge_step in ("fresnel", "adaptive"):  # the Fresnel step's ripple band, for every source at once
                 geo.reach = _edge_reaches(optics, rims, cs, todo, wls, (z_doe, z_sen))
@@ -708,7 +715,10 @@ class HybridLens(nn.Module):
         if steps is not None and not any(steps[r][j] == "fresnel" for r in rows for j in range(len(geo.wls))):
             return None
         idx = torch.tensor([geo.todo[r] for r in rows], dtype=torch.long, device=geo.f.device)
-        return go_phase_errors(self.optics, geo.f[idx], geo.wls, geo.depth, None, (z_xps, z_doe))
+        # the shared chief-ray aim where these are all the built sources (an aim's Newton runs over its whole batch:
+        # a part of them aims on its own)
+        aim = geo.aim if list(rows) == list(range(len(geo.todo))) else None
+        return go_phase_errors(self.optics, geo.f[idx], geo.wls, geo.depth, None, (z_xps, z_doe), aim)
 
     def _ray_stage(self, geo: "_CallGeometry", groups: list[list[int]], nodes: int, check: bool) -> dict:
         """The ray stage of the accurate constructions of every built source in ``groups`` (their aiming, Newton

@@ -361,25 +361,51 @@ def _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, 
     return torch.linalg.inv(j), bad
 
 
-def _aimed_uv(lens, pn, fields, field_type, wl, aim, r_ep, r_stop, depth, ep_z):
+def _aimed_uv(lens, pn, fields, field_type, wl, aim, radii: tuple, depth, ep_z, chief: tuple | None = None):
     """Entrance-plane crossings uv (F, W, N, 2) mm of the rays with normalised pupil coordinates ``pn``
     (F, W, N, 2), aimed as ``aim`` says (see :func:`point_source_rays`), and their validity (F, W, N): False
-    where aiming failed. ``wl`` (W,) µm; ``r_ep``, ``r_stop``: entrance-pupil and stop radii (mm). No autograd."""
+    where aiming failed. ``wl`` (W,) µm; ``radii`` = (entrance-pupil radius, stop radius) (mm); ``chief``: these
+    sources' :func:`chief_aim` when the caller has it. No autograd."""
+    r_ep, r_stop = radii
     valid = torch.ones(pn.shape[:3], dtype=torch.bool, device=lens.device)
     if aim == "paraxial":
         return pn * r_ep, valid
     if aim not in ("full", "chief"):
         raise ValueError(f"aim must be 'full', 'chief' or 'paraxial', got {aim!r}")
-    uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth, ep_z)
     h = 1e-6 * max(r_ep, 1e-3)
+    if chief is None:
+        chief = _chief_aim(lens, fields, field_type, wl, (r_ep, h), depth, ep_z)
+    uv_c, ok_c, jinv, bad = chief
     # Linear map pupil -> entrance plane from the chief ray's Jacobian.
-    jinv, bad = _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, ep_z)
     valid = valid & ~bad
     uv = uv_c + torch.einsum("fwnij,fwmj->fwmi", jinv, pn * r_stop)
     if aim == "full":
         uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h, depth, ep_z)
         valid = valid & ok
     return uv, valid & ok_c
+
+
+def _chief_aim(lens, fields, field_type, wl, steps: tuple, depth, ep_z) -> tuple:
+    """``(uv_c (F, W, 1, 2), ok_c (F, W, 1), J⁻¹ (F, W, 1, 2, 2), bad (F, W, 1))``: the chief rays aimed at the stop
+    centre and the inverse Jacobian of the stop crossing around them (:func:`aim_chief_rays`,
+    :func:`_chief_jacobian_inverse`); ``steps`` = (entrance-pupil radius mm, finite-difference step mm)."""
+    uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth, ep_z)
+    jinv, bad = _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, steps[1], depth, ep_z)
+    return uv_c, ok_c, jinv, bad
+
+
+def chief_aim(lens, field=(0.0, 0.0), wavelength=None, field_type: str | None = None, depth=None) -> tuple:
+    """The chief rays' aim that :func:`point_source_rays` computes for these sources (``aim`` "full" or "chief"):
+    pass it as its ``chief`` to several ray sets of the same sources (the same ``field``, ``wavelength``,
+    ``field_type`` and ``depth``), which then share one aiming (issue 43: a map's footprints, edge rays and stop
+    grids), each with the values its own call gives. No autograd."""
+    field_type = field_type or lens.field_type
+    fields = _as_fields(field, torch.float64, lens.device)
+    wl = torch.as_tensor(lens.primary_wavelength if wavelength is None else wavelength, dtype=torch.float64,
+                         device=lens.device).reshape(-1)
+    r_ep = 0.5 * paraxial.entrance_pupil_diameter(lens)
+    with torch.no_grad():
+        return _chief_aim(lens, fields, field_type, wl, (r_ep, 1e-6 * max(r_ep, 1e-3)), depth, entrance_plane_z(lens))
 
 
 def _warn_dead_fields(rays: RayBundle, fields: torch.Tensor, wl: torch.Tensor) -> None:
@@ -406,6 +432,7 @@ def point_source_rays(
     generator: torch.Generator | None = None,
     dtype=torch.float64,
     depth: float | None = None,
+    chief: tuple | None = None,
 ) -> RayBundle:
     """Rays from field point(s) through the pupil, shape (F, W, N).
 
@@ -416,6 +443,8 @@ def point_source_rays(
         depth: object distance (mm from the first vertex; ``inf``: distant) overriding the lens's own.
         aim: "full" (every ray aimed at its stop point), "chief" (chief ray aimed, pupil mapped linearly
             around it), or "paraxial" (paraxial entrance pupil).
+        chief: :func:`chief_aim` of these sources (the same ``field``, ``wavelength``, ``field_type``, ``depth``),
+            when several ray sets share it.
     Rays whose aiming fails (vignetted in front of the stop) are returned invalid.
     """
     field_type = field_type or lens.field_type
@@ -431,7 +460,7 @@ def point_source_rays(
     r_stop = lens.stop_radius()
     pn = torch.stack([px, py], -1)[None, None].expand(F, W, N, 2)
     with torch.no_grad():
-        uv, valid = _aimed_uv(lens, pn, fields, field_type, wl, aim, r_ep, r_stop, depth, ep_z)
+        uv, valid = _aimed_uv(lens, pn, fields, field_type, wl, aim, (r_ep, r_stop), depth, ep_z, chief)
     uv = torch.nan_to_num(uv.detach())
     rays = rays_through(lens, uv, fields, field_type, wl, dtype=dtype, depth=depth, ep_z=ep_z)
     if not bool(valid.all()):
