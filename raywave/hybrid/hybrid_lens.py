@@ -221,6 +221,14 @@ def _chief_tans(chief_doe, members: list[int]) -> list:
     return [[tuple(t) for t in row] for row in (d[..., :2] / d[..., 2:]).tolist()]
 
 
+def _dark_many(fds: list) -> list[bool]:
+    """:func:`_dark` of every field of ``fds`` from one host read."""
+    if not fds:
+        return []
+    counts = torch.stack([torch.count_nonzero(torch.view_as_real(fd.envelope.detach())) for fd in fds])
+    return [c == 0 for c in counts.tolist()]
+
+
 def _dark(fd: DOEField) -> bool:
     """No light in the field (its power is 0): every envelope sample is 0 (a cheap test, no |U|² sum; counting
     the real view's non-zeros is ~2.5× faster than a complex ``!= 0``)."""
@@ -791,11 +799,10 @@ class HybridLens(nn.Module):
         members, built = group
         nw, out, clipped, folded = len(geo.wls), [], [], []
         tans = _chief_tans(geo.chief[0], members)
-        dark = {}  # a mirror image is dark where its source is (its envelope is the source's, mirrored)
-        for k, i in enumerate(members):
-            if geo.src[i] is None:
-                for j in range(nw):
-                    dark[i, j] = _dark(built[k * nw + j])
+        # a mirror image is dark where its source is (its envelope is the source's, mirrored); the built fields'
+        # flags from one host read (issue 43: not one per field)
+        own_fields = [(i, j, built[k * nw + j]) for k, i in enumerate(members) if geo.src[i] is None for j in range(nw)]
+        dark = dict(zip([(i, j) for i, j, _ in own_fields], _dark_many([fd for _, _, fd in own_fields])))
         for k, i in enumerate(members):
             row = []
             own = i if geo.src[i] is None else geo.src[i][0]
