@@ -255,13 +255,25 @@ class _FrozenPoly:
 
     def __init__(self, geom, terms: tuple):
         self.geom, self.terms = geom, terms
+        c, k = geom.curvature, geom.conic
+        self.q = (1.0 + k) * c * c  # the conic's (1 + k)·c², as its sag and slope form it (the same rounding)
+
+    def _arg(self, r2):
+        return 1.0 - self.q * r2
 
     def sag(self, x, y):
         r2 = x * x + y * y
-        return self.geom._conic_sag(r2) + self.geom._poly(r2, self.terms)[0]
+        c, arg = self.geom.curvature, self._arg(r2)
+        return c * r2 / (1.0 + safe_sqrt(arg, arg >= 0, fill=1.0)) + self.geom._poly(r2, self.terms)[0]
 
     def sag_and_gradient(self, x, y):
-        return self.geom.sag_and_gradient(x, y, self.terms)
+        # EvenAsphere.sag_and_gradient with the conic's square-root argument formed once for its sag and slope
+        r2 = x * x + y * y
+        poly, der = self.geom._poly(r2, self.terms)
+        c, arg = self.geom.curvature, self._arg(r2)
+        s = c / safe_sqrt(arg, arg > 0, fill=1.0)
+        sag = c * r2 / (1.0 + safe_sqrt(arg, arg >= 0, fill=1.0))
+        return sag + poly, (s * x + 2.0 * der * x, s * y + 2.0 * der * y)
 
     def in_domain(self, x, y):
         return self.geom.in_domain(x, y)
