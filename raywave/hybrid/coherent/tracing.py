@@ -462,11 +462,11 @@ def _invert_group(reqs: list) -> list:
     rid = torch.repeat_interleave(torch.arange(len(reqs), device=dev), torch.tensor(sizes, device=dev))
     targets = torch.cat([r.targets for r in reqs])
     uv_c, x_c = torch.cat([r.chief[0] for r in reqs])[rid], torch.cat([r.chief[1] for r in reqs])[rid]
-    jac_c = torch.cat([r.chief[2].reshape(1, 2, 2) for r in reqs])[rid]
+    jac_c = torch.cat([_shaped(r.chief[2], (1, 2, 2)) for r in reqs])[rid]
     max_step = torch.tensor([r.max_step for r in reqs], dtype=targets.dtype, device=dev)[rid][:, None]
     n = targets.shape[0]
-    sources = (torch.stack([r.aim.field.reshape(2) for r in reqs]),
-               torch.cat([r.aim.wavelength.reshape(1) for r in reqs]), [r.aim.order for r in reqs])
+    sources = (torch.stack([_shaped(r.aim.field, (2,)) for r in reqs]),
+               torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs]), [r.aim.order for r in reqs])
     step0, _ = _solve2(jac_c, targets - x_c)
     uv = uv_c + step0
     chord = torch.zeros(n, dtype=torch.bool, device=dev)
