@@ -42,7 +42,8 @@ from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWin
 from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
-from raywave.lens.sources import VignettingWarning, _as_fields
+from raywave.lens.sources import VignettingWarning, _as_fields, chief_aim
+from raywave.rays.bundle import RayBundle
 from raywave.utils import devices
 from raywave.utils.checks import MAX_FIELD_ANGLE, wavelengths_um
 from raywave.utils.safe import safe_div
@@ -97,7 +98,8 @@ class _CallGeometry:
     chief rays on the exit pupil, ``[R][W]`` the adaptive edge step's choice (None: another edge step) (``edge``
     None: the DOE-plane edge); ``orders`` None, or per source of ``f`` its per-source value (:class:`~raywave.hybrid.
     coherent.settings.Source` ``order``: a mid-system DOE's orders, issue 46); ``reach`` None, or ``[R][W]`` the stop
-    edge's waves' reach on the DOE plane for the Fresnel step's ripple band (:func:`_edge_reaches`)."""
+    edge's waves' reach on the DOE plane for the Fresnel step's ripple band (:func:`_edge_reaches`); ``aim`` the
+    built sources' chief-ray aim (:func:`~raywave.lens.sources.chief_aim`), shared by their diagnostic ray sets."""
 
     f: torch.Tensor
     wls: list
@@ -111,8 +113,16 @@ class _CallGeometry:
     edge: tuple | None = None
     orders: list | None = None
     reach: list | None = None
+    aim: tuple | None = None
+
+    def host_fields(self) -> list:
+        """The fields ``f`` as host values ``[F][2]`` (one read for the call, on first use: the warnings' text)."""
+        if self._host is None:
+            self._host = self.f.detach().cpu().tolist()
+        return self._host
 
     def __post_init__(self):
+        self._host = None
         if self.todo is None:
             self.todo = [i for i, s_ in enumerate(self.src) if s_ is None]
         self.row = {i: r for r, i in enumerate(self.todo)}
@@ -176,6 +186,25 @@ def _edge_reaches(optics, rims: list, chief_sensor, todo: list, wls: list, plane
     return [[flat[j * nr + r] for j in range(nw)] for r in range(nr)]
 
 
+def _source_elements(t, sources: list[int], nw: int) -> dict:
+    """``{i: [W] elements}`` of the (F, W) chief-ray bundle or (F, W, 2) tensor ``t`` at the sources ``sources``
+    (indices into its first axis): each element what ``t[i][j]`` gives, from one gather and one unbind per field
+    (issue 43: not a few ops per source)."""
+    if not sources:
+        return {}
+    idx = torch.tensor(sources, dtype=torch.long, device=t.o.device if isinstance(t, RayBundle) else t.device)
+
+    def rows(x):
+        return x.index_select(0, idx).flatten(0, 1).unbind(0)
+
+    if isinstance(t, RayBundle):
+        wl = torch.broadcast_to(t.wavelength, t.shape)
+        flat = [RayBundle(*f) for f in zip(rows(t.o), rows(t.d), rows(wl), rows(t.valid), rows(t.opl))]
+    else:
+        flat = rows(t)
+    return {i: flat[k * nw:(k + 1) * nw] for k, i in enumerate(sources)}
+
+
 def _center_of(fd: DOEField):
     """``fd.center`` as one float64 (2,) tensor (its two 0-d tensors stacked) or a host pair."""
     c = fd.center
@@ -190,6 +219,14 @@ def _chief_tans(chief_doe, members: list[int]) -> list:
     them (issue 43; the same values as each source's own)."""
     d = chief_doe.d.detach()[torch.tensor(members, dtype=torch.long, device=chief_doe.d.device)]  # (M, W, 3)
     return [[tuple(t) for t in row] for row in (d[..., :2] / d[..., 2:]).tolist()]
+
+
+def _dark_many(fds: list) -> list[bool]:
+    """:func:`_dark` of every field of ``fds`` from one host read."""
+    if not fds:
+        return []
+    counts = torch.stack([torch.count_nonzero(torch.view_as_real(fd.envelope.detach())) for fd in fds])
+    return [c == 0 for c in counts.tolist()]
 
 
 def _dark(fd: DOEField) -> bool:
@@ -591,7 +628,12 @@ class HybridLens(nn.Module):
         wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
         # the lit footprints and the DOE-aperture diagnostic (a mirror image's are its source's) of every built
         # field, from one aimed trace of both ray sets
-        boxes, geo.clips = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True)
+        # the built sources' chief-ray aim, shared by their footprints, edge rays and stop grids (one aiming)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", VignettingWarning)
+            geo.aim = chief_aim(optics, ft, wls_t, depth=depth)
+        boxes, geo.clips = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True,
+                                                    chief=geo.aim)
         geo.boxes = [[False if b is None else b for b in row] for row in boxes]
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
         z_xps = self._exit_pupil_planes(wls)
@@ -608,7 +650,7 @@ class HybridLens(nn.Module):
                                      depth, zx, z_sen)[0][:, 0] for wl, zx in zip(wls, z_xps)]
             steps = None
             if self.edge_step == "adaptive":  # every built source's step from one trace of their edge rays
-                steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen))
+                steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen), chief=geo.aim)
             geo.edge = (z_xps, rims, cx, steps)
             if self.edge_step in ("fresnel", "adaptive"):  # the Fresnel step's ripple band, for every source at once
                 geo.reach = _edge_reaches(optics, rims, cs, todo, wls, (z_doe, z_sen))
@@ -641,9 +683,10 @@ class HybridLens(nn.Module):
         together: their ray traces batched per round) of the built sources ``rows`` (indices into ``geo.todo``) ×
         wavelength, field-major: the stop edge on the DOE plane or at the exit pupil."""
         optics, z_doe, z_sen = self.optics, self.doe_z(), self.sensor_z()
-        cd, cs, cuv = geo.chief
-        # every (source, wavelength) element as views from a few unbinds (indexing each dispatches ~25 ops)
-        cd, cs, cuv = ([row.unbind(0) for row in t.unbind(0)] for t in (cd, cs, cuv))
+        # the built sources' (source, wavelength) elements from one gather and one unbind per field (indexing each
+        # dispatches ~25 ops; unbinding every source's row ~5 per source)
+        built = [geo.todo[r] for r in rows]
+        cd, cs, cuv = (_source_elements(t, built, len(geo.wls)) for t in geo.chief)
         settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step)
         go = self._go_errors(geo, rows) if check else None
         out = []
@@ -680,7 +723,10 @@ class HybridLens(nn.Module):
         if steps is not None and not any(steps[r][j] == "fresnel" for r in rows for j in range(len(geo.wls))):
             return None
         idx = torch.tensor([geo.todo[r] for r in rows], dtype=torch.long, device=geo.f.device)
-        return go_phase_errors(self.optics, geo.f[idx], geo.wls, geo.depth, None, (z_xps, z_doe))
+        # the shared chief-ray aim where these are all the built sources (an aim's Newton runs over its whole batch:
+        # a part of them aims on its own)
+        aim = geo.aim if list(rows) == list(range(len(geo.todo))) else None
+        return go_phase_errors(self.optics, geo.f[idx], geo.wls, geo.depth, None, (z_xps, z_doe), aim)
 
     def _ray_stage(self, geo: "_CallGeometry", groups: list[list[int]], nodes: int, check: bool) -> dict:
         """The ray stage of the accurate constructions of every built source in ``groups`` (their aiming, Newton
@@ -753,11 +799,10 @@ class HybridLens(nn.Module):
         members, built = group
         nw, out, clipped, folded = len(geo.wls), [], [], []
         tans = _chief_tans(geo.chief[0], members)
-        dark = {}  # a mirror image is dark where its source is (its envelope is the source's, mirrored)
-        for k, i in enumerate(members):
-            if geo.src[i] is None:
-                for j in range(nw):
-                    dark[i, j] = _dark(built[k * nw + j])
+        # a mirror image is dark where its source is (its envelope is the source's, mirrored); the built fields'
+        # flags from one host read (issue 43: not one per field)
+        own_fields = [(i, j, built[k * nw + j]) for k, i in enumerate(members) if geo.src[i] is None for j in range(nw)]
+        dark = dict(zip([(i, j) for i, j, _ in own_fields], _dark_many([fd for _, _, fd in own_fields])))
         for k, i in enumerate(members):
             row = []
             own = i if geo.src[i] is None else geo.src[i][0]
@@ -771,8 +816,8 @@ class HybridLens(nn.Module):
                     fd.clipped, fd.beam_half, fold = geo.clips[geo.row[own]][j]
                     if fold > 0:
                         folded.append((fold, geo.f[i].tolist(), wl))
-                if fd.clipped > CLIP_WARN:
-                    clipped.append((fd, geo.f[i]))
+                if fd.clipped > CLIP_WARN:  # the field as host values, read once for the call (not per warning)
+                    clipped.append((fd, geo.host_fields()[i]))
                 fd.chief_tan = tans[k][j]
                 row.append(fd)
             out.append(row)

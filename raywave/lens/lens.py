@@ -384,10 +384,13 @@ class Lens(nn.Module):
         return r
 
     # ------------------------------------------------------------------ media
-    def indices(self, wavelength: torch.Tensor) -> list[torch.Tensor]:
-        """Refractive indices [n_object, n_after_surface_0, ..., n_after_last] at ``wavelength`` (µm)."""
+    def indices(self, wavelength: torch.Tensor, surfaces: tuple | None = None) -> list:
+        """Refractive indices [n_object, n_after_surface_0, ..., n_after_last] at ``wavelength`` (µm);
+        ``surfaces`` = ``(start, stop)``: only the media that a trace through surfaces ``start .. stop-1`` meets
+        (entries ``start .. stop``), the others None (a trace to the stop evaluates no glass behind it)."""
         media = [self.object_material] + [s.material for s in self.surfaces]
-        return [m.n(wavelength) for m in media]
+        lo, hi = (0, len(media) - 1) if surfaces is None else surfaces
+        return [m.n(wavelength) if lo <= k <= hi else None for k, m in enumerate(media)]
 
     # ------------------------------------------------------------------ tracing
     def trace(self, rays: RayBundle, start: int = 0, stop: int | None = None, record: bool = False,
@@ -416,9 +419,10 @@ class Lens(nn.Module):
         # the media's indices once for the bundle (elementwise in the wavelength: each chunk's slice is what its own
         # evaluation gives), not once per chunk (issue 43)
         n_rays = flat.valid.numel()
-        n_all = self.indices(flat.wavelength)
+        n_all = self.indices(flat.wavelength, (start, stop))
         outs = [self._trace_kernel(flat[i:i + step], start, stop, False, apertures,
-                                   [n[i:i + step] if n.ndim == 1 and n.shape[0] == n_rays else n for n in n_all])
+                                   [n[i:i + step] if n is not None and n.ndim == 1 and n.shape[0] == n_rays else n
+                                    for n in n_all])
                 for i in range(0, n_rays, step)]
         return RayBundle(torch.cat([o.o for o in outs]).reshape(shape + (3,)),
                          torch.cat([o.d for o in outs]).reshape(shape + (3,)),
@@ -434,13 +438,14 @@ class Lens(nn.Module):
             return self._trace_kernel_frames(rays, start, stop, record, apertures, n_all)
         wl = rays.wavelength
         mirrors = self.has_mirrors
-        n_all = self.indices(wl) if n_all is None else n_all
+        n_all = self.indices(wl, (start, stop)) if n_all is None else n_all
         zs = self.vertex_z().to(rays.dtype)
         signs = self.direction_signs() if mirrors else None
         x, y, z = rays.o.unbind(-1)
         dx, dy, dz = rays.d.unbind(-1)
         valid, opl = rays.valid, rays.opl
         rec = TraceRecord([(x, y, rays.o[..., 2])], [valid]) if record else None
+        zero = one = None
         for i in range(start, stop):
             s = self.surfaces[i]
             if s.interaction.kind == "coordinate_break":  # an identity break: nothing happens
@@ -467,10 +472,12 @@ class Lens(nn.Module):
             z = zl + zs[i]
             # Park dead rays on the axis, at this vertex, so that later surfaces see harmless numbers (no NaN, no
             # inf, no huge z whose quadratic cancels to an exactly zero discriminant: an infinite sqrt derivative)
-            x, y = torch.where(valid, x, 0.0), torch.where(valid, y, 0.0)
+            if zero is None:  # 0-d constants once per trace (a Python number costs a scalar tensor per use)
+                zero, one = x.new_zeros(()), x.new_ones(())
+            x, y = torch.where(valid, x, zero), torch.where(valid, y, zero)
             z = torch.where(valid, z, zs[i].expand_as(z))
-            opl = torch.where(valid, opl, 0.0)
-            dx, dy, dz = torch.where(valid, dx, 0.0), torch.where(valid, dy, 0.0), torch.where(valid, dz, 1.0)
+            opl = torch.where(valid, opl, zero)
+            dx, dy, dz = torch.where(valid, dx, zero), torch.where(valid, dy, zero), torch.where(valid, dz, one)
             if record:
                 rec.points.append((x, y, z))
                 rec.valid.append(valid)
@@ -482,7 +489,7 @@ class Lens(nn.Module):
         """The tracer for a lens with coordinate breaks: rays in global coordinates, each surface met in its local
         frame (:meth:`surface_frames`)."""
         wl = rays.wavelength
-        n_all = self.indices(wl) if n_all is None else n_all
+        n_all = self.indices(wl, (start, stop)) if n_all is None else n_all
         frames, _ = self.surface_frames()
         signs = self.direction_signs()
         x, y, z = rays.o.unbind(-1)

@@ -195,26 +195,40 @@ def source_weight(lens, rays: RayBundle, depth=None) -> torch.Tensor:
     return dz**3 / gap**2
 
 
-def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=torch.float64, depth=None,
-                 ep_z: float | None = None) -> RayBundle:
-    """Rays from each field point crossing the entrance-pupil plane at ``uv`` (F, W, N, 2) (mm).
-
-    ``ep_z``: the entrance-plane z (:func:`entrance_plane_z`) when the caller already has it (it costs a
-    paraxial trace)."""
+def _source_part(lens, fields, field_type, wavelength, dtype=torch.float64, depth=None, ep_z: float | None = None):
+    """What :func:`rays_through` computes from the sources alone (not from their rays' ``uv``): ``(wavelengths
+    (F or 1, W, 1) µm, ep_z mm, beam directions (F, 3) or None, object points (F, 3) or None, wide fields (F,) bool
+    or None where none is wide, the object medium's index)``; an iteration over ``uv`` (ray aiming) takes it once."""
     device = lens.device
     wl = torch.as_tensor(wavelength, dtype=dtype, device=device)
     wl = wl if wl.ndim == 3 else wl.reshape(1, -1, 1)  # (F, 1, 1): a wavelength per field row
     ep_z = entrance_plane_z(lens) if ep_z is None else float(ep_z)
     d_inf, pts = _directions_and_points(lens, fields, field_type, ep_z, dtype, depth)
+    wide = None
+    if d_inf is not None:
+        w = wide_fields(torch.as_tensor(fields, dtype=dtype, device=device).reshape(-1, 2))
+        wide = w if bool(w.any()) else None
+    n0 = lens.object_material.n(wl).to(dtype)
+    return wl, ep_z, d_inf, pts, wide, n0
+
+
+def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=torch.float64, depth=None,
+                 ep_z: float | None = None, source: tuple | None = None) -> RayBundle:
+    """Rays from each field point crossing the entrance-pupil plane at ``uv`` (F, W, N, 2) (mm).
+
+    ``ep_z``: the entrance-plane z (:func:`entrance_plane_z`) when the caller already has it (it costs a
+    paraxial trace). ``source``: :func:`_source_part` of these arguments when the caller has it (an iteration
+    over ``uv``: the sources' directions, checks and index once, not once per step)."""
+    device = lens.device
+    wl, ep_z, d_inf, pts, wide, n0 = (_source_part(lens, fields, field_type, wavelength, dtype, depth, ep_z)
+                                      if source is None else source)
     F, W, N = uv.shape[:3]
     target = torch.cat([uv, torch.full_like(uv[..., :1], ep_z)], -1)
-    n0 = lens.object_material.n(wl).to(dtype)
     if d_inf is not None:
         d = d_inf[:, None, None, :].expand(F, W, N, 3)
         z_start = min(ep_z, 0.0) - 1.0
         o = target + d * ((z_start - ep_z) / d[..., 2:3])
-        wide = wide_fields(torch.as_tensor(fields, dtype=dtype, device=device).reshape(-1, 2))
-        if bool(wide.any()):  # uv on the plane across the beam through (0, 0, ep_z); start well before the lens
+        if wide is not None:  # uv on the plane across the beam through (0, 0, ep_z); start well before the lens
             e1, e2 = (e[:, None, None, :] for e in beam_basis(d_inf))
             across = target.new_tensor([0.0, 0.0, ep_z]) + uv[..., :1] * e1 + uv[..., 1:2] * e2
             o = torch.where(wide[:, None, None, None], across - d * _wide_start_distance(lens, ep_z), o)
@@ -227,8 +241,8 @@ def rays_through(lens, uv: torch.Tensor, fields, field_type, wavelength, dtype=t
     return RayBundle.create(o, d, wl, opl=opl, dtype=dtype, device=device)
 
 
-def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None, ep_z=None):
-    rays = rays_through(lens, uv, fields, field_type, wavelength, depth=depth, ep_z=ep_z)
+def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None, ep_z=None, source=None):
+    rays = rays_through(lens, uv, fields, field_type, wavelength, depth=depth, ep_z=ep_z, source=source)
     out = lens.trace(rays, stop=lens.stop_index + 1, apertures=False)
     if lens.is_folded:  # the stop's own frame: its centre is the origin of its local x, y
         out = lens.surface_coordinates(out, lens.stop_index)
@@ -239,13 +253,16 @@ def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None,
     """Solve stop_hit(uv) = target for uv (F, W, N, 2) by Newton with a finite-difference Jacobian."""
     dx, dy = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)  # the finite-difference steps
     n = uv.shape[-2]
+    # what the sources alone decide (directions, checks, index) and the target's scale: once, not every step
+    source = _source_part(lens, fields, field_type, wavelength, depth=depth, ep_z=ep_z)
+    scale = max(1.0, float(target.abs().max()))
     for _ in range(AIM_MAX_ITER):
         # the rays and their two finite-difference neighbours in one trace (each ray is traced on its own)
         p3, v3 = _stop_hit(lens, torch.cat([uv, uv + dx, uv + dy], dim=-2), fields, field_type, wavelength, depth,
-                           ep_z)
+                           ep_z, source)
         p, v, px, py = p3[..., :n, :], v3[..., :n], p3[..., n:2 * n, :], p3[..., 2 * n:, :]
         err = p - target
-        conv = err.abs().amax(-1) <= AIM_TOL * max(1.0, float(target.abs().max()))
+        conv = err.abs().amax(-1) <= AIM_TOL * scale
         if bool((conv | ~v).all()):
             break  # p, v are those of the final uv
         j = torch.stack([(px - p) / h, (py - p) / h], -1)  # (..., 2 out, 2 in)
@@ -257,8 +274,8 @@ def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None,
         step = torch.stack([du, dv], -1)
         uv = torch.where(good[..., None], uv - step, uv)
     else:  # the last step moved uv: its stop hits
-        p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth, ep_z)
-    ok = v & ((p - target).abs().amax(-1) <= 1e-9 * max(1.0, float(target.abs().max())))
+        p, v = _stop_hit(lens, uv, fields, field_type, wavelength, depth, ep_z, source)
+    ok = v & ((p - target).abs().amax(-1) <= 1e-9 * scale)
     return uv, ok
 
 
@@ -330,10 +347,11 @@ def _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, 
     at the chief rays ``uv_c`` (F, W, 1, 2) mm, by forward differences of step ``h`` mm; and ``bad`` (F, W, 1):
     fields without a usable Jacobian (chief ray not aimed, ``ok_c`` False, or singular), where the identity
     stands in."""
-    p0, _ = _stop_hit(lens, uv_c, fields, field_type, wl, depth, ep_z)
     dx, dy = torch.tensor([[h, 0.0], [0.0, h]], dtype=torch.float64, device=uv_c.device)
-    p1, _ = _stop_hit(lens, uv_c + dx, fields, field_type, wl, depth, ep_z)
-    p2, _ = _stop_hit(lens, uv_c + dy, fields, field_type, wl, depth, ep_z)
+    # the chief rays and their two neighbours in one trace (each ray is traced on its own; issue 43: one trace's
+    # ops instead of three)
+    p3, _ = _stop_hit(lens, torch.cat([uv_c, uv_c + dx, uv_c + dy], dim=-2), fields, field_type, wl, depth, ep_z)
+    p0, p1, p2 = p3.split(uv_c.shape[-2], dim=-2)
     j = torch.stack([(p1 - p0) / h, (p2 - p0) / h], -1)  # (F, W, 1, 2, 2)
     # A field whose chief ray cannot be aimed (e.g. beyond the lens's field) has no usable Jacobian.
     det = torch.linalg.det(j)
@@ -343,25 +361,51 @@ def _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, 
     return torch.linalg.inv(j), bad
 
 
-def _aimed_uv(lens, pn, fields, field_type, wl, aim, r_ep, r_stop, depth, ep_z):
+def _aimed_uv(lens, pn, fields, field_type, wl, aim, radii: tuple, depth, ep_z, chief: tuple | None = None):
     """Entrance-plane crossings uv (F, W, N, 2) mm of the rays with normalised pupil coordinates ``pn``
     (F, W, N, 2), aimed as ``aim`` says (see :func:`point_source_rays`), and their validity (F, W, N): False
-    where aiming failed. ``wl`` (W,) µm; ``r_ep``, ``r_stop``: entrance-pupil and stop radii (mm). No autograd."""
+    where aiming failed. ``wl`` (W,) µm; ``radii`` = (entrance-pupil radius, stop radius) (mm); ``chief``: these
+    sources' :func:`chief_aim` when the caller has it. No autograd."""
+    r_ep, r_stop = radii
     valid = torch.ones(pn.shape[:3], dtype=torch.bool, device=lens.device)
     if aim == "paraxial":
         return pn * r_ep, valid
     if aim not in ("full", "chief"):
         raise ValueError(f"aim must be 'full', 'chief' or 'paraxial', got {aim!r}")
-    uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth, ep_z)
     h = 1e-6 * max(r_ep, 1e-3)
+    if chief is None:
+        chief = _chief_aim(lens, fields, field_type, wl, (r_ep, h), depth, ep_z)
+    uv_c, ok_c, jinv, bad = chief
     # Linear map pupil -> entrance plane from the chief ray's Jacobian.
-    jinv, bad = _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, ep_z)
     valid = valid & ~bad
     uv = uv_c + torch.einsum("fwnij,fwmj->fwmi", jinv, pn * r_stop)
     if aim == "full":
         uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h, depth, ep_z)
         valid = valid & ok
     return uv, valid & ok_c
+
+
+def _chief_aim(lens, fields, field_type, wl, steps: tuple, depth, ep_z) -> tuple:
+    """``(uv_c (F, W, 1, 2), ok_c (F, W, 1), J⁻¹ (F, W, 1, 2, 2), bad (F, W, 1))``: the chief rays aimed at the stop
+    centre and the inverse Jacobian of the stop crossing around them (:func:`aim_chief_rays`,
+    :func:`_chief_jacobian_inverse`); ``steps`` = (entrance-pupil radius mm, finite-difference step mm)."""
+    uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth, ep_z)
+    jinv, bad = _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, steps[1], depth, ep_z)
+    return uv_c, ok_c, jinv, bad
+
+
+def chief_aim(lens, field=(0.0, 0.0), wavelength=None, field_type: str | None = None, depth=None) -> tuple:
+    """The chief rays' aim that :func:`point_source_rays` computes for these sources (``aim`` "full" or "chief"):
+    pass it as its ``chief`` to several ray sets of the same sources (the same ``field``, ``wavelength``,
+    ``field_type`` and ``depth``), which then share one aiming (issue 43: a map's footprints, edge rays and stop
+    grids), each with the values its own call gives. No autograd."""
+    field_type = field_type or lens.field_type
+    fields = _as_fields(field, torch.float64, lens.device)
+    wl = torch.as_tensor(lens.primary_wavelength if wavelength is None else wavelength, dtype=torch.float64,
+                         device=lens.device).reshape(-1)
+    r_ep = 0.5 * paraxial.entrance_pupil_diameter(lens)
+    with torch.no_grad():
+        return _chief_aim(lens, fields, field_type, wl, (r_ep, 1e-6 * max(r_ep, 1e-3)), depth, entrance_plane_z(lens))
 
 
 def _warn_dead_fields(rays: RayBundle, fields: torch.Tensor, wl: torch.Tensor) -> None:
@@ -388,6 +432,7 @@ def point_source_rays(
     generator: torch.Generator | None = None,
     dtype=torch.float64,
     depth: float | None = None,
+    chief: tuple | None = None,
 ) -> RayBundle:
     """Rays from field point(s) through the pupil, shape (F, W, N).
 
@@ -398,6 +443,8 @@ def point_source_rays(
         depth: object distance (mm from the first vertex; ``inf``: distant) overriding the lens's own.
         aim: "full" (every ray aimed at its stop point), "chief" (chief ray aimed, pupil mapped linearly
             around it), or "paraxial" (paraxial entrance pupil).
+        chief: :func:`chief_aim` of these sources (the same ``field``, ``wavelength``, ``field_type``, ``depth``),
+            when several ray sets share it.
     Rays whose aiming fails (vignetted in front of the stop) are returned invalid.
     """
     field_type = field_type or lens.field_type
@@ -413,7 +460,7 @@ def point_source_rays(
     r_stop = lens.stop_radius()
     pn = torch.stack([px, py], -1)[None, None].expand(F, W, N, 2)
     with torch.no_grad():
-        uv, valid = _aimed_uv(lens, pn, fields, field_type, wl, aim, r_ep, r_stop, depth, ep_z)
+        uv, valid = _aimed_uv(lens, pn, fields, field_type, wl, aim, (r_ep, r_stop), depth, ep_z, chief)
     uv = torch.nan_to_num(uv.detach())
     rays = rays_through(lens, uv, fields, field_type, wl, dtype=dtype, depth=depth, ep_z=ep_z)
     if not bool(valid.all()):

@@ -26,8 +26,8 @@ from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning,
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, _fresnel_scale, _nu_inner, _rim_cubic, _rim_fourier,
                                                _rim_z, _zone_estimate, edge_envelope, ripple_band)
-from raywave.hybrid.coherent.tracing import (PAUSE, _Aim, _invert_to_nodes, _nearest_fill, _solve2, per_source,
-                                             run_serial)
+from raywave.hybrid.coherent.tracing import (PAUSE, _Aim, _LandingRequest, _invert_to_nodes, _nearest_fill, _solve2,
+                                             per_source, run_serial)
 
 
 def accurate_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
@@ -252,10 +252,11 @@ def _trace_nodes(b: _Build, nd: _Nodes):
         chief_uv = o[:2] + d[:2] * (ep_z - o[2]) / d[2]
     uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device).reshape(1, 2)
     aim = _Aim(lens, b.field, b.wl, b.src.depth, b.z_doe, b.field_type, 1e-6 * max(r_ep, 1e-3), ep_z, b.src.order)
-    x_c, _, jac_c = yield from aim.landing(uv_c)
+    x_c, jac_c = yield _LandingRequest(aim, uv_c)  # batched with the other constructions' chief rays
     chief = (uv_c, x_c, jac_c)
     start = yield from _coarse_start(aim, nd, chief, 0.25 * r_ep)
-    uv, conv, jac, x_at = yield from _invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep, start)
+    inverted = yield from _invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep, start)
+    uv, conv, jac, x_at = inverted
     # the differentiable trace of the node rays. The landing point of a node's ray must stay on its node when
     # the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals uv
     # in value and carries d(uv)/dθ = −J⁻¹ ∂X/∂θ, so everything traced at uv_lin (path, directions, aperture
@@ -271,6 +272,8 @@ def _trace_nodes(b: _Build, nd: _Nodes):
         _, _, jac_exact = yield from aim.landing(uv)
         jinv_step, _ = _solve2(jac, x_at.detach() - nd.targets)
         jinv_step = jinv_step + _solve2(jac_exact, x_at - x_at.detach())[0]
+    elif getattr(inverted, "step", None) is not None and not torch.is_grad_enabled():
+        jinv_step = inverted.step  # the inversion's own solve at these landing points (the same values)
     else:
         jinv_step, _ = _solve2(jac, (x_at - nd.targets))
     uv_lin = uv - jinv_step

@@ -356,10 +356,12 @@ def go_phase_error(lens, source: Source, z_xp: float, z_doe: float):
 GO_SOURCE_BLOCK = 16
 
 
-def go_phase_errors(lens, fields: torch.Tensor, wls: list[float], depth, field_type, planes):
+def go_phase_errors(lens, fields: torch.Tensor, wls: list[float], depth, field_type, planes,
+                    chief: tuple | None = None):
     """:func:`go_phase_error` of the sources ``fields`` (F, 2) × ``wls`` (W wavelengths, µm) from one trace of all
     their stop grids (F·W·1 024 rays, apertures off, and one with apertures): ``planes`` = ``(z_xps, z_doe)``, the
-    exit-pupil plane of each wavelength (W,) and the DOE plane (mm). Returns ``(zs (W, P) mm, error (F, W, P)
+    exit-pupil plane of each wavelength (W,) and the DOE plane (mm); ``chief``: these sources'
+    :func:`~raywave.lens.sources.chief_aim` when the caller shares it. Returns ``(zs (W, P) mm, error (F, W, P)
     rad)``."""
     dev = lens.device
     z_xps, z_doe = [float(z) for z in planes[0]], float(planes[1])
@@ -371,9 +373,19 @@ def go_phase_errors(lens, fields: torch.Tensor, wls: list[float], depth, field_t
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # a diagnostic trace, apertures off
         rays = point_source_rays(lens, f, list(wls), pupil=(gx.flatten(), gy.flatten()), aim="full", depth=depth,
-                                 field_type=field_type or lens.field_type)
-        out = lens.trace(rays, apertures=False)
-        lit = lens.trace(rays).valid.reshape(nf, nw, ng, ng)  # the rays every aperture passes (inside the stop)
+                                 field_type=field_type or lens.field_type, chief=chief)
+        lit = None
+        if lens.is_folded:
+            out = lens.trace(rays, apertures=False)
+        else:  # one trace: a ray passes every aperture where it passes each on its own path (issue 43: not two)
+            out, rec = lens.trace(rays, apertures=False, record=True)
+            lit = out.valid
+            for i, srf in enumerate(lens.surfaces):
+                if srf.aperture is not None and srf.interaction.kind != "coordinate_break":
+                    lit = lit & srf.aperture.contains(*rec.points[i + 1][:2])
+        if lit is None:
+            lit = lens.trace(rays).valid
+        lit = lit.reshape(nf, nw, ng, ng)  # the rays every aperture passes (inside the stop)
         n = lens.surfaces[-1].material.n(torch.tensor(list(wls), dtype=torch.float64, device=dev))  # (W,)
         o, d = out.o, out.d  # (F, W, N, 3)
         tan = (d[..., :2] / d[..., 2:]).reshape(nf, nw, ng, ng, 2)
@@ -529,10 +541,12 @@ def _edge_focus(lens, field, wavelength: float, depth, field_type: str | None = 
     return edge_focus_many(lens, field, [float(wavelength)], depth, field_type)[0][0]
 
 
-def edge_focus_many(lens, fields, wavelengths, depth, field_type: str | None = None) -> list:
+def edge_focus_many(lens, fields, wavelengths, depth, field_type: str | None = None,
+                    chief: tuple | None = None) -> list:
     """:func:`_edge_focus` of every source of ``fields`` (F, 2) × ``wavelengths`` (W,) µm, from one trace of their
     F·W·48 edge rays (issue 43: a map's sources share it): ``[F][W]`` tuples ``(waves, focus z mm, NA, n)``. Each
-    ray is aimed and traced on its own, so each source's values are its own call's (to the aiming's rounding)."""
+    ray is aimed and traced on its own, so each source's values are its own call's (to the aiming's rounding).
+    ``chief``: these sources' :func:`~raywave.lens.sources.chief_aim` when the caller shares it."""
     dev = lens.device
     f = torch.as_tensor(fields, dtype=torch.float64, device=dev).reshape(-1, 2)
     th = torch.arange(SPHERE_AZIMUTHS, dtype=torch.float64, device=dev) * (2 * math.pi / SPHERE_AZIMUTHS)
@@ -542,7 +556,7 @@ def edge_focus_many(lens, fields, wavelengths, depth, field_type: str | None = N
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # a diagnostic trace, apertures off
         rays = point_source_rays(lens, f, wl, pupil=(px, py), aim="full", depth=depth,
-                                 field_type=field_type or lens.field_type)
+                                 field_type=field_type or lens.field_type, chief=chief)
         out = lens.trace(rays, apertures=False)
         ok = out.valid.all(-1)  # (F, W)
         o, d = out.o, out.d  # (F, W, N, 3)
@@ -594,16 +608,18 @@ def adaptive_edge_step(lens, doe, field, wavelength: float, depth, z_doe: float,
     return adaptive_edge_steps(lens, doe, field, [float(wavelength)], depth, (z_doe, z_sensor), field_type)[0][0]
 
 
-def adaptive_edge_steps(lens, doe, fields, wavelengths, depth, planes: tuple, field_type: str | None = None) -> list:
+def adaptive_edge_steps(lens, doe, fields, wavelengths, depth, planes: tuple, field_type: str | None = None,
+                        chief: tuple | None = None) -> list:
     """:func:`adaptive_edge_step` of every source of ``fields`` (F, 2) × ``wavelengths`` (W,) µm (``planes`` =
     ``(z_doe, z_sensor)`` mm): ``[F][W]`` of "doe" or "fresnel", the edge rays of all sources traced once
-    (:func:`edge_focus_many`; issue 43: a map's call decides them together in its shared geometry step)."""
+    (:func:`edge_focus_many`; issue 43: a map's call decides them together in its shared geometry step);
+    ``chief``: these sources' :func:`~raywave.lens.sources.chief_aim` when the caller shares it."""
     nf = torch.as_tensor(fields).reshape(-1, 2).shape[0]
     if not is_blank(doe):
         return [["fresnel"] * len(wavelengths) for _ in range(nf)]
     z_doe, z_sensor = planes
     return [[_sphere_step(foc, wl, z_doe, z_sensor) for foc, wl in zip(row, wavelengths)]
-            for row in edge_focus_many(lens, fields, wavelengths, depth, field_type)]
+            for row in edge_focus_many(lens, fields, wavelengths, depth, field_type, chief)]
 
 
 def _sphere_step(focus: tuple, wavelength: float, z_doe: float, z_sensor: float) -> str:

@@ -98,17 +98,18 @@ def _boxes(lens, out, z_doe: float, virtual: bool) -> list:
     return [[tuple(b) if on else None for b, on in zip(box_row, lit_row)] for box_row, lit_row in zip(box, lit)]
 
 
-def footprints_and_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, folds: bool = False) -> tuple:
+def footprints_and_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, folds: bool = False,
+                             chief: tuple | None = None) -> tuple:
     """``(footprints(...), doe_clippings(..., folds=folds))`` of the same F×W beams (default samplings) from one
     aimed trace of both ray sets (issue 43: one aiming, one paraxial set-up and one trace for the call instead of
-    two)."""
+    two); ``chief``: these sources' :func:`~raywave.lens.sources.chief_aim` when the caller shares it."""
     fx, fy = _footprint_pupil(15, 72, lens.device)
     cx, cy, index = pupil_grid(48, lens.device)
     k = fx.numel()
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # the caller reports vignetting once
         rays = point_source_rays(lens, fields, wavelengths, pupil=(torch.cat([fx, cx]), torch.cat([fy, cy])),
-                                 aim="full", depth=depth)
+                                 aim="full", depth=depth, chief=chief)
         out = lens.trace(rays)
         boxes = _boxes(lens, out[..., :k], z_doe, False)
         clips = _clippings(lens, doe, rays[..., k:], out[..., k:], z_doe, (index, 48) if folds else None, depth)

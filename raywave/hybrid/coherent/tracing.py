@@ -109,10 +109,9 @@ def _trace_group(reqs: list) -> list:
         # per-source rows must stay rows: the lens would trace so large a bundle in flat chunks
         half = len(reqs) // 2
         return _trace_group(reqs[:half]) + _trace_group(reqs[half:])
-    uv = torch.stack([torch.cat([r.uv, r.uv[:1].expand(n_max - r.uv.shape[0], 2)]) if r.uv.shape[0] < n_max
-                      else r.uv for r in reqs])[:, None]
-    fields = torch.stack([r.field.reshape(2) for r in reqs])
-    wls = torch.cat([r.wavelength.reshape(1) for r in reqs]).reshape(-1, 1, 1)  # a wavelength per row
+    uv = _padded_rows([r.uv for r in reqs], sizes, n_max)[:, None]
+    fields = torch.stack([_shaped(r.field, (2,)) for r in reqs])
+    wls = torch.cat([_shaped(r.wavelength, (1,)) for r in reqs]).reshape(-1, 1, 1)  # a wavelength per row
     with torch.set_grad_enabled(r0.grad and torch.is_grad_enabled()):
         rays = rays_through(r0.lens, uv, fields, r0.field_type, wls, depth=r0.depth, ep_z=r0.ep_z)
         with per_source(r0.lens, orders):
@@ -121,12 +120,70 @@ def _trace_group(reqs: list) -> list:
         n = r0.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(r0.z_doe, n)
     recs = [None] * len(sizes)
-    if rec is not None:  # every surface's points and validity, split once into the requests' rows
-        points = [tuple(_rows(c, sizes) for c in pts) for pts in rec.points]
-        valid = [_rows(v, sizes) for v in rec.valid]
-        recs = [type(rec)([tuple(c[g] for c in pts) for pts in points], [v[g] for v in valid])
-                for g in range(len(sizes))]
+    if rec is not None:  # every surface's points and validity, split into the requests' rows when first read
+        shared = _SplitRecord(rec, sizes)
+        recs = [_RowRecord(shared, g) for g in range(len(sizes))]
     return list(zip(_split_bundle(rays, sizes), _split_bundle(out, sizes), _split_bundle(at, sizes), recs))
+
+
+def _shaped(t: torch.Tensor, shape: tuple) -> torch.Tensor:
+    """``t.reshape(shape)``, or ``t`` itself when it has that shape already (a reshape dispatches an op)."""
+    return t if tuple(t.shape) == shape else t.reshape(shape)
+
+
+def _padded_rows(parts: list, sizes: list, n_max: int) -> torch.Tensor:
+    """The rows ``parts`` (each (n_g, 2)) as one (G, n_max, 2) tensor, each row padded with copies of its first
+    point: one concatenation and one gather (issue 43: not a concatenation per row)."""
+    if all(k == n_max for k in sizes):
+        return torch.stack(parts)
+    flat = torch.cat(parts)
+    dev = flat.device
+    size = torch.tensor(sizes, dtype=torch.long, device=dev)
+    start = torch.cumsum(size, 0) - size
+    j = torch.arange(n_max, dtype=torch.long, device=dev)
+    idx = start[:, None] + torch.where(j[None] < size[:, None], j[None], 0)  # (G, n_max)
+    return flat[idx]
+
+
+class _SplitRecord:
+    """A batched trace's :class:`~raywave.lens.lens.TraceRecord` (rows (G, 1, N_max)) whose surfaces are split into
+    the requests' rows (:func:`_rows`) when first read: most readers need a surface or two (issue 43)."""
+
+    def __init__(self, rec, sizes: list):
+        self.rec, self.sizes, self.cache = rec, sizes, {}
+
+    def rows(self, kind: str, k: int) -> list:
+        """Every request's rows of ``rec.points[k]`` (a tuple each) or ``rec.valid[k]``."""
+        hit = self.cache.get((kind, k))
+        if hit is None:
+            v = getattr(self.rec, kind)[k]
+            hit = list(zip(*(_rows(c, self.sizes) for c in v))) if kind == "points" else _rows(v, self.sizes)
+            self.cache[kind, k] = hit
+        return hit
+
+
+class _RowSurfaces:
+    """Request ``g``'s ``points`` or ``valid`` list of a :class:`_SplitRecord` (a read-only sequence)."""
+
+    def __init__(self, shared: _SplitRecord, g: int, kind: str):
+        self.shared, self.g, self.kind = shared, g, kind
+
+    def __len__(self) -> int:
+        return len(getattr(self.shared.rec, self.kind))
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(len(self))[k]]
+        return self.shared.rows(self.kind, range(len(self))[k])[self.g]
+
+
+class _RowRecord:
+    """Request ``g``'s :class:`~raywave.lens.lens.TraceRecord` of a batched trace: ``points`` (per surface (x, y, z)
+    (1, 1, n) each) and ``valid`` (per surface (1, 1, n)), as its own trace's record gives them."""
+
+    def __init__(self, shared: _SplitRecord, g: int):
+        self.points = _RowSurfaces(shared, g, "points")
+        self.valid = _RowSurfaces(shared, g, "valid")
 
 
 def run_serial(gen):
@@ -305,6 +362,51 @@ class _Aim:
                              record, self.ep_z, grad, self.order)
 
 
+@dataclass
+class _LandingRequest:
+    """A construction's chief-ray landing (:meth:`_Aim.landing` of its one ray ``uv`` (1, 2), no autograd): answered
+    with ``(X (1, 2), ∂X/∂uv (1, 2, 2))``. :func:`run_batched` answers the pending ones of constructions that share
+    a lens, plane and mode with one trace of all their rays and neighbours, a single-ray row each
+    (:func:`_trace_rows`; issue 43: no per-construction slicing): each value its own call's."""
+
+    aim: _Aim
+    uv: torch.Tensor
+
+    def run(self):
+        return _landing_group([self])[0]
+
+    @staticmethod
+    def run_group(reqs: list) -> list:
+        return _landing_group(reqs)
+
+    def group_key(self) -> tuple:
+        a = self.aim
+        d = a.depth
+        return ("landing", id(a.lens), float(a.z_doe), a.field_type, a.ep_z, a.h, None if d is None else float(d),
+                self.uv.device)
+
+
+def _landing_group(reqs: list) -> list:
+    """The answers ``[(X (1, 2), ∂X/∂uv (1, 2, 2))]`` of :class:`_LandingRequest` s (one lens, plane and mode): the
+    rays and their finite-difference neighbours ``+h·e_u``, ``+h·e_v`` of all requests in one trace."""
+    a0 = reqs[0].aim
+    h, g = a0.h, len(reqs)
+    uv = torch.cat([_shaped(r.uv, (1, 2)) for r in reqs])  # (G, 2)
+    du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
+    allv = torch.cat([uv, uv + du[0], uv + du[1]])  # (3G, 2): the rays, then each neighbour set
+    rows = torch.arange(g, device=uv.device).repeat(3)
+    fields = torch.stack([_shaped(r.aim.field, (2,)) for r in reqs])[rows]
+    wls = torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs])[rows]
+    orders = [r.aim.order for r in reqs]
+    if any(o is not None for o in orders):
+        x, _ = _trace_rows(a0, allv, fields, wls, orders, rows)
+    else:
+        x, _ = _trace_rows(a0, allv, fields, wls)
+    x0, xu, xv = x.split(g)
+    jac = torch.stack([(xu - x0) / h, (xv - x0) / h], -1)  # (G, 2, 2), as _landing_from's
+    return list(zip(x0.split(1), jac.split(1)))
+
+
 def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: tuple | None = None):
     """Newton: entrance-plane uv (N, 2) whose rays (``aim``) land on ``targets`` (N, 2) on the DOE plane, from the
     chief ray's linear guess (``chief`` = its entrance-plane point (1, 2), landing point (1, 2) and Jacobian
@@ -360,11 +462,11 @@ def _invert_group(reqs: list) -> list:
     rid = torch.repeat_interleave(torch.arange(len(reqs), device=dev), torch.tensor(sizes, device=dev))
     targets = torch.cat([r.targets for r in reqs])
     uv_c, x_c = torch.cat([r.chief[0] for r in reqs])[rid], torch.cat([r.chief[1] for r in reqs])[rid]
-    jac_c = torch.cat([r.chief[2].reshape(1, 2, 2) for r in reqs])[rid]
+    jac_c = torch.cat([_shaped(r.chief[2], (1, 2, 2)) for r in reqs])[rid]
     max_step = torch.tensor([r.max_step for r in reqs], dtype=targets.dtype, device=dev)[rid][:, None]
     n = targets.shape[0]
-    sources = (torch.stack([r.aim.field.reshape(2) for r in reqs]),
-               torch.cat([r.aim.wavelength.reshape(1) for r in reqs]), [r.aim.order for r in reqs])
+    sources = (torch.stack([_shaped(r.aim.field, (2,)) for r in reqs]),
+               torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs]), [r.aim.order for r in reqs])
     step0, _ = _solve2(jac_c, targets - x_c)
     uv = uv_c + step0
     chord = torch.zeros(n, dtype=torch.bool, device=dev)
@@ -400,11 +502,26 @@ def _invert_group(reqs: list) -> list:
         uv[live] = uv[live] - step[move]
         if it == _NEWTON_ITERS - 1:  # the last iteration moved these requests' rays: their landing points are stale
             moved_last.update(torch.unique(rid[live]).tolist())
-    conv = valid & ((x - targets).abs().amax(-1) <= _NEWTON_TOL)
+    err = x - targets
+    conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL)
+    # the Newton step J⁻¹(X − T) at the last iterate of every ray at once (what a construction's node trace takes
+    # without autograd; issue 43: one 2×2 solve for the group instead of one per construction)
+    step, _ = _solve2(jac, err)
     # each request's rows as views from one split per tensor (slicing and copying each dispatches 8 ops a request;
     # the requests hold all their rows anyway)
-    parts = zip(uv.split(sizes), conv.split(sizes), jac.split(sizes), x.split(sizes))
-    return [(u, c, j, None if g in moved_last else xg) for g, (u, c, j, xg) in enumerate(parts)]
+    parts = zip(uv.split(sizes), conv.split(sizes), jac.split(sizes), x.split(sizes), step.split(sizes))
+    return [_Inverted((u, c, j, None if g in moved_last else xg), None if g in moved_last else sg)
+            for g, (u, c, j, xg, sg) in enumerate(parts)]
+
+
+class _Inverted(tuple):
+    """:func:`_invert_to_nodes`' answer ``(uv, converged, Jacobian, landing points or None)``, with ``step`` (N, 2):
+    the Newton step J⁻¹(X − T) at ``uv`` from the group's one solve (None where the landing points are None)."""
+
+    def __new__(cls, values: tuple, step):
+        out = super().__new__(cls, values)
+        out.step = step
+        return out
 
 
 def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
