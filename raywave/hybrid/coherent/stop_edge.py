@@ -741,11 +741,21 @@ def _rim_fourier(values: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> to
     return torch.cos(ph) @ (w * c.real) - torch.sin(ph) @ (w * c.imag)
 
 
+#: :func:`_rim_fourier_rows` evaluates its (B, N, k/2 + 1) harmonics in blocks of rows of at most this many elements
+#: (128 MB a float64 array: the cosines, the sines and their phases are the construction's largest node arrays)
+RIM_FOURIER_BLOCK = 2**24
+
+
 def _rim_fourier_rows(values: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
     """:func:`_rim_fourier` of B rims at once: ``values`` (B, k, C) at the azimuths of the stop points ``xs``, ``ys``
-    (B, N) (row b on rim b), (B, N, C); the same arithmetic as each row's own call (up to the products' summation
-    order). Differentiable."""
+    (B, N) (row b on rim b), (B, N, C), in blocks of rows (:data:`RIM_FOURIER_BLOCK`); the same arithmetic as each
+    row's own call (up to the last-bit rounding of the vectorised cos, sin and atan2, which depends on an element's
+    place in memory). Differentiable."""
     k = values.shape[1]
+    rows = max(1, RIM_FOURIER_BLOCK // (xs.shape[1] * (k // 2 + 1)))
+    if xs.shape[0] > rows:
+        return torch.cat([_rim_fourier_rows(values[i:i + rows], xs[i:i + rows], ys[i:i + rows])
+                          for i in range(0, xs.shape[0], rows)])
     ok = (xs * xs + ys * ys).detach() > 0
     az = torch.atan2(torch.where(ok, ys, torch.zeros_like(ys)), torch.where(ok, xs, torch.ones_like(xs)))
     c = torch.fft.rfft(values, dim=1) / k  # (B, k//2 + 1, C)
