@@ -1022,14 +1022,14 @@ def _batch_answers(reqs: list, nb: _NodeBatch, maps: dict, checks: list, diffrac
     check = reqs[0].b.cfg.check
     names = ["phi_env", "amp2", "dist"] + (["other"] if maps["other"] is not None else []) \
         + (["nu", "nu_raw", "kappa"] if diffracting else [])
-    stack = torch.stack([maps[k] for k in names], 1)
+    stack = torch.stack([maps[k] for k in names], 1).unbind(0)  # (C, KY, KX) views, one op for the batch
     rows = [[] for _ in reqs]
     if checks:  # host read 2: the Fresnel scales' maxima and the checks, with the fields they name
         fields = torch.stack([r.b.field for r in reqs])
         rows = torch.cat([torch.stack([t.to(torch.float64) for t in checks], 1), fields], 1).tolist()
     out = []
     for j, (r, row, (ky, kx)) in enumerate(zip(reqs, rows, nb.sizes)):
-        m = dict(zip(names, stack[j, :, :ky, :kx].unbind(0)))
+        m = dict(zip(names, stack[j][:, :ky, :kx].unbind(0)))
         m.setdefault("other", None)
         if diffracting:
             m["nu_raw"] = m["nu_raw"].detach()
