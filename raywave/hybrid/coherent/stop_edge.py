@@ -748,14 +748,10 @@ RIM_FOURIER_BLOCK = 2**24
 
 def _rim_fourier_rows(values: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
     """:func:`_rim_fourier` of B rims at once: ``values`` (B, k, C) at the azimuths of the stop points ``xs``, ``ys``
-    (B, N) (row b on rim b), (B, N, C), in blocks of rows (:data:`RIM_FOURIER_BLOCK`); the same arithmetic as each
-    row's own call (up to the last-bit rounding of the vectorised cos, sin and atan2, which depends on an element's
-    place in memory). Differentiable."""
+    (B, N) (row b on rim b), (B, N, C), the harmonics in blocks of rows (:data:`RIM_FOURIER_BLOCK`); the same
+    arithmetic as each row's own call (up to the last-bit rounding of the vectorised cos, sin and atan2, which depends
+    on an element's place in memory). Differentiable."""
     k = values.shape[1]
-    rows = max(1, RIM_FOURIER_BLOCK // (xs.shape[1] * (k // 2 + 1)))
-    if xs.shape[0] > rows:
-        return torch.cat([_rim_fourier_rows(values[i:i + rows], xs[i:i + rows], ys[i:i + rows])
-                          for i in range(0, xs.shape[0], rows)])
     ok = (xs * xs + ys * ys).detach() > 0
     az = torch.atan2(torch.where(ok, ys, torch.zeros_like(ys)), torch.where(ok, xs, torch.ones_like(xs)))
     c = torch.fft.rfft(values, dim=1) / k  # (B, k//2 + 1, C)
@@ -764,8 +760,14 @@ def _rim_fourier_rows(values: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) 
     w[0] = 1.0
     if k % 2 == 0:
         w[-1] = 1.0
-    ph = az[..., None] * torch.arange(m, dtype=values.dtype, device=values.device)  # (B, N, M)
-    return torch.cos(ph) @ (w * c.real) - torch.sin(ph) @ (w * c.imag)
+    wc, ws = w * c.real, w * c.imag
+    harmonics = torch.arange(m, dtype=values.dtype, device=values.device)
+    rows = max(1, RIM_FOURIER_BLOCK // (xs.shape[1] * m))
+    parts = []
+    for i in range(0, xs.shape[0], rows):
+        ph = az[i:i + rows, :, None] * harmonics  # (b, N, M)
+        parts.append(torch.cos(ph) @ wc[i:i + rows] - torch.sin(ph) @ ws[i:i + rows])
+    return parts[0] if len(parts) == 1 else torch.cat(parts)
 
 
 def _rim_z_rows(z: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
