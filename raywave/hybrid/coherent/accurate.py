@@ -664,8 +664,8 @@ class _NodeMapRequest:
 
 
 #: a batch of :func:`_node_stage_batch` spans at most this many padded nodes (every construction's node grid padded
-#: to the batch's largest; ~2 kB a node at the peak with the stop edge's trigonometric rim interpolation: the bundled
-#: asphere's ~150² nodes a construction, ~90 constructions)
+#: to the batch's largest; ~1 kB a node at the peak, its channels, differences and maps, the rims' harmonics in
+#: blocks of :data:`~raywave.hybrid.coherent.stop_edge.RIM_FOURIER_BLOCK`: ~90 of the bundled asphere's ~150² grids)
 NODE_BATCH_SAMPLES = 2**21
 
 
@@ -674,7 +674,8 @@ def _node_stages(reqs: list) -> list:
     accelerator (:func:`raywave.utils.devices.accelerator`) in padded batches of at most :data:`NODE_BATCH_SAMPLES`
     nodes (:func:`_node_stage_batch`: a fixed number of kernels and two host reads per batch instead of ~480 ops
     and ~8 reads per construction), each construction's maps equal to its own call's to rounding; else one call
-    each (the CPU: the per-construction arithmetic is as cheap, and its maps are the reference)."""
+    each (the CPU: batched there, the padding and the rims' harmonics over every padded node make the stage 2.5×
+    slower, 1.7× with autograd; its maps are the reference)."""
     if len(reqs) < 2 or not devices.accelerator(reqs[0].nd.gx) or not RIM_FOURIER:
         return [r.run() for r in reqs]
     out: list = [None] * len(reqs)
@@ -734,18 +735,16 @@ class _NodeBatch:
         return mask & self.valid
 
 
-def _batch_inputs(reqs: list, is_stop: list) -> dict:
+def _batch_inputs(reqs: list, good: torch.Tensor) -> dict:
     """The traced node rays of the constructions ``reqs`` (:class:`_NodeMapRequest`) concatenated in order (one op
     per tensor): ``uv`` (N, 2) entrance-plane mm, ``rays_d`` (1, 1, N, 3) the rays' directions at the source,
-    ``o``, ``d`` (N, 3) and ``opl`` (N,) on the plane, ``good`` (N,), ``targets`` (N, 2) mm and ``stop_xy`` [(x, y)]
-    (N,) the node rays on every surface with an aperture (``is_stop`` of those surfaces)."""
+    ``o``, ``d`` (N, 3) and ``opl`` (N,) on the plane, ``good`` (N,) (given, concatenated), ``targets`` (N, 2) mm and
+    ``xy`` [(x, y)] (N,) mm the node rays on every surface with an aperture, in the lens's order."""
     tr = [r.traced for r in reqs]
-    lens = reqs[0].b.lens
-    on = [i for i, s in enumerate(lens.surfaces) if s.aperture is not None]
-    assert len(on) == len(is_stop)
+    on = [i for i, s in enumerate(reqs[0].b.lens.surfaces) if s.aperture is not None]
     return {"uv": torch.cat([t[0] for t in tr]), "rays_d": torch.cat([t[1].d for t in tr], 2),
             "o": torch.cat([t[2].o for t in tr], 2)[0, 0], "d": torch.cat([t[2].d for t in tr], 2)[0, 0],
-            "opl": torch.cat([t[2].opl for t in tr], 2)[0, 0], "good": torch.cat([t[4] for t in tr]),
+            "opl": torch.cat([t[2].opl for t in tr], 2)[0, 0], "good": good,
             "targets": torch.cat([r.nd.targets for r in reqs]),
             "xy": [tuple(torch.cat([t[3].points[i + 1][c] for t in tr], 2)[0, 0] for c in (0, 1)) for i in on]}
 
@@ -777,11 +776,10 @@ def _node_stage_batch(reqs: list) -> list:
     values as :func:`_node_stage` to rounding) or None (no node traced), the checks' warnings worded and ordered as
     each construction's own."""
     nodes = [r.nd for r in reqs]
-    dev = nodes[0].gx.device
-    rid_host = np.repeat(np.arange(len(reqs)), [nd.ky * nd.kx for nd in nodes])
+    nb = _NodeBatch.of(nodes)
     good = torch.cat([r.traced[4] for r in reqs])
-    count = torch.zeros(len(reqs), dtype=torch.float64, device=dev).index_add_(
-        0, torch.from_numpy(rid_host).to(dev), good.to(torch.float64)).tolist()  # host read 1: the traced nodes
+    count = torch.zeros(len(reqs), dtype=torch.float64, device=good.device).index_add_(
+        0, nb.rid, good.to(torch.float64)).tolist()  # host read 1: the traced nodes
     lit = [k for k, c in enumerate(count) if c > 0]
     out: list = [None] * len(reqs)
     if not lit:
@@ -791,8 +789,7 @@ def _node_stage_batch(reqs: list) -> list:
             out[k] = res
         return out
     is_stop, diffracting = _aperture_roles(reqs[0].b)
-    nb = _NodeBatch.of(nodes)
-    x = _batch_inputs(reqs, is_stop)
+    x = _batch_inputs(reqs, good)
     spans = [(int(a), int(a + nd.ky * nd.kx)) for a, nd, c in
              zip(np.cumsum([0] + [nd.ky * nd.kx for nd in nodes]), nodes, count) if c < nd.ky * nd.kx]
     grid, k_of = _batch_node_channels(reqs, nb, x, spans, diffracting)
@@ -867,8 +864,8 @@ def _padded_axis(axes: list, sizes: list) -> torch.Tensor:
 def _batch_node_maps(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict, roles: tuple) -> dict:
     """:func:`_node_maps` (and :func:`_edge_distances`) of the batch from its padded channels ``grid``
     (:func:`_batch_node_channels`): the same maps, each (B, KY, KX) (``slopes`` (B, 4, KY, KX)), and ``tx``, ``ty``
-    the node positions mm, ``center`` (B,) the flat index of each grid's centre node, ``grads`` the y and x
-    differences of ``u, v``, the slacks and (diffracting) the slopes."""
+    the node positions mm, ``center`` (B,) the flat index of each grid's centre node and (diffracting)
+    ``slope_grads`` the y and x differences of the slopes ``t_x/γ, t_y/γ`` ((B, 2, KY, KX) each)."""
     is_stop, diffracting = roles
     c = _batch_scalars(reqs, lambda r: [r.b.n, r.b.carrier[0], r.b.carrier[1], 3.0 * r.nd.h])[:, :, None, None]
     n, c0, c1, lim = c.unbind(1)
