@@ -16,16 +16,18 @@ from raywave.lens.paraxial import entrance_pupil_diameter
 from raywave.lens.sources import chief_pupil, entrance_plane_z, point_source_rays, source_weight
 from raywave.utils import devices
 from raywave.utils.phasor import polar
+from raywave.utils.errors import check_allocation
 from raywave.utils.safe import safe_sqrt
 from raywave.doe.base import DOE
 from raywave.wave.field import cubic_matrices, cubic_matrix, edge_coverage, upsample_nodes
 from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
-                                              _warn_nyquist, check_window_memory)
+                                              _nyquist_warning, _warn_nyquist, check_window_memory)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
-from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, _fresnel_scale, _nu_inner, _rim_cubic, _rim_fourier,
-                                               _rim_z, _zone_estimate, edge_envelope, ripple_band)
+from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, _fresnel_scale, _fresnel_scale_at, _nu_inner, _rim_cubic,
+                                               _rim_fourier, _rim_fourier_rows, _rim_z, _rim_z_rows, _zone_estimate,
+                                               edge_envelope, ripple_band)
 from raywave.hybrid.coherent.tracing import (PAUSE, _Aim, _LandingRequest, _invert_to_nodes, _nearest_fill, _solve2,
                                              per_source, run_serial)
 
@@ -53,11 +55,18 @@ def _warn_edge_curvature(div_n: torch.Tensor, g: torch.Tensor, near: torch.Tenso
     if near.numel() == 0:
         return
     ratio = float(torch.where(near, div_n.abs() * math.sqrt(2.0) / g, -math.inf).amax())  # −inf: none near
+    _edge_curvature_warning(ratio, field, wavelength, stacklevel=4)
+
+
+def _edge_curvature_warning(ratio: float, field, wavelength: float, stacklevel: int) -> None:
+    """:func:`_warn_edge_curvature`'s :class:`StopEdgeWarning` when the largest Fresnel zone / radius of curvature
+    ``ratio`` (a host float) exceeds :data:`EDGE_CURVATURE_LIMIT` (``field`` a list, ``wavelength`` µm)."""
     if ratio > EDGE_CURVATURE_LIMIT:
         warnings.warn(f"field {field} at {wavelength:g} µm: the stop edge's Fresnel zone on the DOE plane is "
                       f"{ratio:.2g} × its radius of curvature there (a small obscuration or stop, or a DOE far from "
                       "the exit pupil): the Fresnel edge step is approximate (it can miss the power by a few %); "
-                      "use HybridLens(edge_step='asm'), the exact construction", StopEdgeWarning, stacklevel=3)
+                      "use HybridLens(edge_step='asm'), the exact construction", StopEdgeWarning,
+                      stacklevel=stacklevel)
 
 
 def entrance_pupil(lens) -> tuple[float, float]:
@@ -129,8 +138,9 @@ def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: Chief
     caller traced already for many sources at once (the lit footprint, the stop rim's images, the entrance pupil).
 
     Steps: the node grid over the footprint (:func:`_node_layout`), exactly aimed rays to every node
-    (:func:`_trace_nodes`), the smooth per-node maps (:func:`_node_maps`: optical path, ray density, distances
-    to the edges; :func:`_stop_edge_maps`: the stop edge's Fresnel channels), the checks (:func:`_check_nodes`),
+    (:func:`_trace_nodes`), the smooth per-node maps (a :class:`_NodeMapRequest`, :func:`_node_stage`, or with
+    other constructions' :func:`_node_stages`: :func:`_node_maps`: optical path, ray density, distances
+    to the edges; :func:`_stop_edge_maps`: the stop edge's Fresnel channels; the checks, :func:`_check_nodes`),
     a :data:`~raywave.hybrid.coherent.tracing.PAUSE` (the ray stage done), and the fine field (a
     :class:`_FieldRequest`: :func:`_fine_field`, or with other constructions' :func:`_fine_fields`)."""
     b = _Build(lens, doe, source, float(planes.z_doe), float(planes.z_sensor), chief, settings or FieldSettings(),
@@ -140,23 +150,17 @@ def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: Chief
         return b.empty(0)
     nd = _node_layout(b, bbox)
     nodes = yield from _trace_nodes(b, nd)
-    good = nodes[-1]
     n_rays = nd.targets.shape[0]
-    if not bool(good.any()):
+    # the node-map stage: a request that run_batched answers for many constructions at once (_node_stages); the
+    # maps the field stage reads (:data:`_FIELD_MAPS`), or None where no node's ray was traced
+    maps = yield _NodeMapRequest(b, nd, nodes)
+    del nodes
+    if maps is None:
         warnings.warn(f"no ray could be traced to the DOE plane for field {b.field.tolist()} at "
                       f"{source.wavelength:g} µm", SamplingWarning, stacklevel=3)
         return b.empty(n_rays)
-    is_stop = [i == lens.stop_index for i, s in enumerate(lens.surfaces) if s.aperture is not None]
-    diffracting = b.cfg.stop_plane is not None and any(is_stop)
-    maps = _node_maps(b, nd, nodes, is_stop, diffracting)
-    if diffracting:
-        maps.update(_stop_edge_maps(b, nd, nodes, maps))
-    if b.cfg.check:
-        _check_nodes(b, nd, maps, good, nodes[2].d[0, 0])
     # the ray stage is done: a caller may stop here (run_batched(pause=True)) and build the fine field later, holding
     # only the maps the field stage reads (the traced rays and their records are dropped)
-    maps = {k: v for k, v in maps.items() if k in _FIELD_MAPS}
-    del nodes, good
     yield PAUSE
     sim = doe.sim_grid(b.cfg.oversample)
     # the field stage: a request that run_batched answers for many constructions at once (_fine_fields)
@@ -373,9 +377,10 @@ def _coarse_one(r: _CoarseRequest) -> tuple:
 def _padded_gradient(f: torch.Tensor, h: torch.Tensor, n: torch.Tensor, dim: int) -> torch.Tensor:
     """:func:`torch.gradient` (edge order 1) along ``dim`` of zero-padded grids ``f`` (B, C, Y, X): grid ``b`` holds
     ``n[b]`` samples along ``dim`` (spacing ``h[b]``), the rest padding. Central differences inside, one-sided at
-    both of each grid's own ends (the same arithmetic as :func:`torch.gradient` on the grid alone)."""
+    both of each grid's own ends (the same arithmetic as :func:`torch.gradient` on the grid alone); 0 at the last
+    place of a grid shorter than ``f`` (finite everywhere: autograd through the padding stays finite)."""
     f = f.movedim(dim, -1)
-    out = torch.empty_like(f)
+    out = torch.zeros_like(f)
     hb = h.reshape(-1, 1, 1, 1)
     out[..., 1:-1] = (f[..., 2:] - f[..., :-2]) / (2 * hb)
     out[..., :1] = (f[..., 1:2] - f[..., :1]) / hb
@@ -591,11 +596,456 @@ def _check_nodes(b: _Build, nd: _Nodes, maps: dict, good, dvec) -> None:
     lit_nodes = (maps["dist"] > -nd.h) & good.reshape(ky, kx)
     det = maps["det"].detach()
     if bool(((det * det[ky // 2, kx // 2] <= 0) & lit_nodes).any()):
-        warnings.warn(f"the ray map from the pupil to the DOE plane folds (a caustic lies between the lens and the "
-                      f"DOE) for field {field.tolist()} at {wavelength:g} µm; the accurate field is wrong there: "
-                      "use mode='faithful' or move the DOE", SamplingWarning, stacklevel=4)
+        _fold_warning(field.tolist(), wavelength, stacklevel=5)
     slope = n * torch.sqrt((dvec[:, 0] - carrier[0]) ** 2 + (dvec[:, 1] - carrier[1]) ** 2).reshape(ky, kx)
     _warn_nyquist(slope * (2 * p) / (wavelength * 1e-3), lit_nodes, nd.targets, field.tolist(), wavelength, p)
+
+
+def _fold_warning(field: list, wavelength: float, stacklevel: int) -> None:
+    """:func:`_check_nodes`' :class:`SamplingWarning` that the ray map folds (``field`` a list, ``wavelength`` µm)."""
+    warnings.warn(f"the ray map from the pupil to the DOE plane folds (a caustic lies between the lens and the "
+                  f"DOE) for field {field} at {wavelength:g} µm; the accurate field is wrong there: "
+                  "use mode='faithful' or move the DOE", SamplingWarning, stacklevel=stacklevel)
+
+
+def _aperture_roles(b: _Build) -> tuple[list, bool]:
+    """``(is_stop, diffracting)``: for every surface of the lens with an aperture, whether it is the stop; and
+    whether the stop's edge diffracts from a plane of its own (``stop_plane`` set and a stop with an aperture)."""
+    lens = b.lens
+    is_stop = [i == lens.stop_index for i, s in enumerate(lens.surfaces) if s.aperture is not None]
+    return is_stop, b.cfg.stop_plane is not None and any(is_stop)
+
+
+def _node_stage(b: _Build, nd: _Nodes, traced: tuple) -> dict | None:
+    """The node-map stage of one construction: :func:`_node_maps`, :func:`_stop_edge_maps` (the stop edge
+    diffracting), :func:`_check_nodes` (``check``); returns the maps the field stage reads (:data:`_FIELD_MAPS`), or
+    None when no node's ray was traced (``traced``: :func:`_trace_nodes`' ``(uv_lin, rays, at, rec, good)``)."""
+    good = traced[-1]
+    if not bool(good.any()):
+        return None
+    is_stop, diffracting = _aperture_roles(b)
+    maps = _node_maps(b, nd, traced, is_stop, diffracting)
+    if diffracting:
+        maps.update(_stop_edge_maps(b, nd, traced, maps))
+    if b.cfg.check:
+        _check_nodes(b, nd, maps, good, traced[2].d[0, 0])
+    return {k: v for k, v in maps.items() if k in _FIELD_MAPS}
+
+
+class _NodeMapRequest:
+    """The node-map stage of one construction (:func:`_node_stage`'s arguments: the :class:`_Build`, its
+    :class:`_Nodes` and :func:`_trace_nodes`' result ``traced``), yielded by :func:`accurate_field_steps` after its
+    node rays are traced; answered with the maps of :data:`_FIELD_MAPS` or None (no node traced).
+    :func:`~raywave.hybrid.coherent.tracing.run_batched` answers the pending requests of a lens, mode and device
+    together (``run_group``, :func:`_node_stages`): on an accelerator as padded batches (:func:`_node_stage_batch`),
+    waiting (``deferred``) until no trace is pending so that every construction joins; on a CPU one by one."""
+
+    def __init__(self, b: _Build, nd: _Nodes, traced: tuple):
+        self.b, self.nd, self.traced = b, nd, traced
+        self.deferred = devices.accelerator(nd.gx)
+
+    def run(self):
+        """This construction's node maps alone (:func:`_node_stage`; :func:`run_serial`)."""
+        return _node_stage(self.b, self.nd, self.traced)
+
+    @staticmethod
+    def run_group(reqs: list) -> list:
+        """The answers of a group of requests (one ``group_key``), in order (:func:`_node_stages`)."""
+        return _node_stages(reqs)
+
+    def group_key(self) -> tuple:
+        """What the requests batched together share: the lens (its apertures and stop), whether the stop edge
+        diffracts from a plane of its own, the checks, the stop rim's sampling (its points' count, whether it carries
+        image points), the object depth and the device; each construction carries its own node grid, wavelength,
+        medium, carrier, planes and ripple band."""
+        b = self.b
+        rim = b.given.stop_rim
+        rim_key = None if rim is None else (int(rim[0].numel()), getattr(rim, "points", None) is not None)
+        depth = b.src.depth
+        return ("nodes", id(b.lens), b.cfg.stop_plane is not None, bool(b.cfg.check), rim_key,
+                None if depth is None else float(depth), self.nd.gx.device)
+
+
+#: a batch of :func:`_node_stage_batch` spans at most this many padded nodes (every construction's node grid padded
+#: to the batch's largest; ~1 kB a node at the peak, its channels, differences and maps, the rims' harmonics in
+#: blocks of :data:`~raywave.hybrid.coherent.stop_edge.RIM_FOURIER_BLOCK`: ~90 of the bundled asphere's ~150² grids)
+NODE_BATCH_SAMPLES = 2**21
+
+
+def _node_stages(reqs: list) -> list:
+    """:func:`_node_stage` of every :class:`_NodeMapRequest` of ``reqs`` (one ``group_key``), in order. On an
+    accelerator (:func:`raywave.utils.devices.accelerator`) in padded batches of at most :data:`NODE_BATCH_SAMPLES`
+    nodes (:func:`_node_stage_batch`: a fixed number of kernels and two host reads per batch instead of ~480 ops
+    and ~8 reads per construction), each construction's maps equal to its own call's to rounding; else one call
+    each (the CPU: batched there, the padding and the rims' harmonics over every padded node make the stage 2.5×
+    slower, 1.7× with autograd; its maps are the reference)."""
+    if len(reqs) < 2 or not devices.accelerator(reqs[0].nd.gx) or not RIM_FOURIER:
+        return [r.run() for r in reqs]
+    out: list = [None] * len(reqs)
+    for chunk in _field_chunks([(0, r.nd.ky, 0, r.nd.kx) for r in reqs], NODE_BATCH_SAMPLES):
+        for j, res in zip(chunk, _node_stage_batch([reqs[j] for j in chunk])):
+            out[j] = res
+    return out
+
+
+@dataclass
+class _NodeBatch:
+    """B node grids (one per construction) as one padded batch: every grid's nodes in the corner of a common
+    ``(KY, KX)`` grid. ``sizes`` [(ky, kx)], ``pad`` (B·KY·KX,) long: the node (an index into the constructions'
+    nodes concatenated in order) each padded place copies (beyond a grid: its nearest node, so that every padded
+    value is one of its own grid's), ``valid`` (B, KY, KX) bool: the grid's own nodes, ``rid`` (N,) long: each
+    concatenated node's construction, ``h`` (B,) mm the spacings."""
+
+    sizes: list
+    pad: torch.Tensor
+    valid: torch.Tensor
+    rid: torch.Tensor
+    h: torch.Tensor
+
+    @staticmethod
+    def of(nds: list) -> "_NodeBatch":
+        """The batch of the :class:`_Nodes` ``nds`` (host integers: one transfer each)."""
+        dev = nds[0].gx.device
+        sizes = [(nd.ky, nd.kx) for nd in nds]
+        ky_max, kx_max = max(a for a, _ in sizes), max(c for _, c in sizes)
+        jj, ii = np.arange(ky_max)[:, None], np.arange(kx_max)[None, :]
+        offs = np.cumsum([0] + [a * c for a, c in sizes])
+        pad = np.stack([o + np.minimum(jj, a - 1) * c + np.minimum(ii, c - 1) for o, (a, c) in zip(offs, sizes)])
+        valid = np.stack([(jj < a) & (ii < c) for a, c in sizes])
+        rid = np.repeat(np.arange(len(nds)), np.diff(offs))
+        return _NodeBatch(sizes, torch.from_numpy(pad.reshape(-1)).to(dev), torch.from_numpy(valid).to(dev),
+                          torch.from_numpy(rid).to(dev),
+                          torch.tensor([nd.h for nd in nds], dtype=torch.float64, device=dev))
+
+    @property
+    def shape(self) -> tuple:
+        """``(B, KY, KX)``."""
+        return tuple(self.valid.shape)
+
+    def padded(self, flat: torch.Tensor) -> torch.Tensor:
+        """Per-node values ``flat`` (N, C) of the concatenated grids → padded maps (B, C, KY, KX)."""
+        return flat[self.pad].reshape(*self.shape, -1).permute(0, 3, 1, 2)
+
+    def gradients(self, f: torch.Tensor) -> tuple:
+        """``(∂f/∂y, ∂f/∂x)`` of the padded maps ``f`` (B, C, KY, KX) by each grid's own differences
+        (:func:`torch.gradient`'s edge rule per grid, :func:`_padded_gradient`): the values of ``torch.gradient(f[b],
+        spacing=h[b], dim=(1, 2))`` on each grid alone."""
+        size = torch.tensor(self.sizes, device=f.device)
+        return _padded_gradient(f, self.h, size[:, 0], -2), _padded_gradient(f, self.h, size[:, 1], -1)
+
+    def own(self, mask: torch.Tensor) -> torch.Tensor:
+        """``mask`` (B, KY, KX) bool on each grid's own nodes only (False beyond)."""
+        return mask & self.valid
+
+
+def _batch_inputs(reqs: list, good: torch.Tensor) -> dict:
+    """The traced node rays of the constructions ``reqs`` (:class:`_NodeMapRequest`) concatenated in order (one op
+    per tensor): ``uv`` (N, 2) entrance-plane mm, ``rays_d`` (1, 1, N, 3) the rays' directions at the source,
+    ``o``, ``d`` (N, 3) and ``opl`` (N,) on the plane, ``good`` (N,) (given, concatenated), ``targets`` (N, 2) mm and
+    ``xy`` [(x, y)] (N,) mm the node rays on every surface with an aperture, in the lens's order."""
+    tr = [r.traced for r in reqs]
+    on = [i for i, s in enumerate(reqs[0].b.lens.surfaces) if s.aperture is not None]
+    return {"uv": torch.cat([t[0] for t in tr]), "rays_d": torch.cat([t[1].d for t in tr], 2),
+            "o": torch.cat([t[2].o for t in tr], 2)[0, 0], "d": torch.cat([t[2].d for t in tr], 2)[0, 0],
+            "opl": torch.cat([t[2].opl for t in tr], 2)[0, 0], "good": good,
+            "targets": torch.cat([r.nd.targets for r in reqs]),
+            "xy": [tuple(torch.cat([t[3].points[i + 1][c] for t in tr], 2)[0, 0] for c in (0, 1)) for i in on]}
+
+
+def _nearest_good(good: torch.Tensor, xy: torch.Tensor, spans: list) -> tuple:
+    """The nearest good node of every bad node (:func:`~raywave.hybrid.coherent.tracing._nearest_fill`'s choice) in
+    the concatenated grids: ``good`` (N,), node positions ``xy`` (N, 2) mm, ``spans`` [(start, end)] the grids that
+    have both good and bad nodes. Returns ``(bad (M,), near (M,))`` long indices."""
+    bads, nears = [], []
+    for a, e in spans:
+        gi = torch.nonzero(good[a:e]).squeeze(1)
+        bi = torch.nonzero(~good[a:e]).squeeze(1)
+        check_allocation(16.0 * bi.numel() * gi.numel(), f"the node grid's nearest-node fill ({bi.numel()} × "
+                         f"{gi.numel()} distances)", "fewer nodes (rays; raywave: --rays) or a finer DOE pitch "
+                         "(--doe-pitch, in mm: a pitch as large as the beam widens the node grid's margin)", xy.device)
+        d = torch.cdist(xy[a:e][bi].detach(), xy[a:e][gi].detach())
+        bads.append(bi + a)
+        nears.append(gi[d.argmin(1)] + a)
+    return torch.cat(bads), torch.cat(nears)
+
+
+def _node_stage_batch(reqs: list) -> list:
+    """:func:`_node_stage` of B constructions (:class:`_NodeMapRequest`, one ``group_key``) as batched tensor ops on
+    their node grids padded to a common grid (:class:`_NodeBatch`): the per-node channels of every construction at
+    once, the nearest-node fill, each grid's own boundary differences, the per-construction constants as (B, 1, 1)
+    tensors and the discrete choices (the path difference's signs, the rim images' plane) as masks: two host reads
+    for the batch (the traced nodes' counts; the Fresnel scales' maxima ``g_max`` with the checks' results) instead
+    of ~8 per construction. Returns the maps of :data:`_FIELD_MAPS` of each (views of one padded batch; the same
+    values as :func:`_node_stage` to rounding) or None (no node traced), the checks' warnings worded and ordered as
+    each construction's own."""
+    nodes = [r.nd for r in reqs]
+    nb = _NodeBatch.of(nodes)
+    good = torch.cat([r.traced[4] for r in reqs])
+    count = torch.zeros(len(reqs), dtype=torch.float64, device=good.device).index_add_(
+        0, nb.rid, good.to(torch.float64)).tolist()  # host read 1: the traced nodes
+    lit = [k for k, c in enumerate(count) if c > 0]
+    out: list = [None] * len(reqs)
+    if not lit:
+        return out
+    if len(lit) < len(reqs):  # constructions without a traced node: None (their warning is the generator's)
+        for k, res in zip(lit, _node_stage_batch([reqs[k] for k in lit])):
+            out[k] = res
+        return out
+    is_stop, diffracting = _aperture_roles(reqs[0].b)
+    x = _batch_inputs(reqs, good)
+    spans = [(int(a), int(a + nd.ky * nd.kx)) for a, nd, c in
+             zip(np.cumsum([0] + [nd.ky * nd.kx for nd in nodes]), nodes, count) if c < nd.ky * nd.kx]
+    grid, k_of = _batch_node_channels(reqs, nb, x, spans, diffracting)
+    maps = _batch_node_maps(reqs, nb, grid, k_of, (is_stop, diffracting))
+    checks = []
+    if diffracting:
+        edge = _stop_edge_batch(reqs, nb, grid, k_of, maps)
+        checks.append(edge.pop("g_max"))
+        if "curvature" in edge:
+            checks.append(edge.pop("curvature"))
+        maps.update(edge)
+    if reqs[0].b.cfg.check:
+        checks.extend(_check_nodes_batch(reqs, nb, grid, k_of, maps, x["good"]))
+    return _batch_answers(reqs, nb, maps, checks, diffracting)
+
+
+def _batch_node_channels(reqs: list, nb: _NodeBatch, x: dict, spans: list, diffracting: bool) -> tuple:
+    """The per-node channels of :func:`_node_maps` for the batch's constructions, filled (:func:`_nearest_good`:
+    bad nodes take their nearest good node's values, the optical path extended to first order) and padded
+    (B, C, KY, KX): ``(grid, k_of)``, ``k_of`` the channel names' indices (``phi``, ``w0``, ``dx``, ``dy``, ``dz``
+    the node rays' direction, ``u``, ``v`` entrance-plane mm, ``slack`` (first of the apertures' slacks), with the
+    stop's edge diffracting ``sx``, ``sy`` the node rays on the stop)."""
+    r0 = reqs[0].b
+    lens, dev = r0.lens, x["o"].device
+    n_node = torch.tensor([r.b.n for r in reqs], dtype=torch.float64, device=dev)[nb.rid]
+    X, dvec = x["o"][:, :2], x["d"]
+    phi = x["opl"] + n_node * ((x["targets"] - X) * dvec[:, :2]).sum(-1)  # Malus–Dupin: Φ at the node itself
+    w0 = source_weight(lens, _Directions(x["rays_d"]), r0.src.depth)[0, 0]
+    apertures = [s.aperture for s in lens.surfaces if s.aperture is not None]
+    slacks = [a.slack(*xy) for a, xy in zip(apertures, x["xy"])]
+    stop_xy = []
+    if diffracting:
+        stop_xy = list(x["xy"][[i == lens.stop_index for i, s in enumerate(lens.surfaces)
+                                if s.aperture is not None].index(True)])
+    names = ["phi", "w0", "dx", "dy", "dz", "u", "v"] + ["slack"] * len(slacks) + (["sx", "sy"] if stop_xy else [])
+    chan = torch.stack([phi, w0, dvec[:, 0], dvec[:, 1], dvec[:, 2], x["uv"][:, 0], x["uv"][:, 1]] + slacks
+                       + stop_xy, -1)
+    if spans:  # nodes whose ray failed: their nearest good node's values (_nearest_fill's arithmetic)
+        bi, near = _nearest_good(x["good"], x["targets"], spans)
+        grad_xy = n_node[:, None] * dvec[:, :2]
+        filled = chan[near].clone()
+        filled[:, 0] = filled[:, 0] + (grad_xy[near] * (x["targets"][bi] - x["targets"][near])).sum(-1)
+        chan = chan.index_put((bi,), filled)
+    k_of = {}
+    for k, name in enumerate(names):
+        k_of.setdefault(name, k)
+    return nb.padded(chan), k_of
+
+
+class _Directions:
+    """The directions ``d`` of a bundle of rays (what :func:`~raywave.lens.sources.source_weight` reads)."""
+
+    def __init__(self, d: torch.Tensor):
+        self.d = d
+
+
+def _batch_scalars(reqs: list, columns) -> torch.Tensor:
+    """Per-construction constants as one (B, K) float64 tensor (one transfer): ``columns(r)`` gives the K host floats
+    of a :class:`_NodeMapRequest` (computed with the per-construction path's own expressions: the same doubles)."""
+    return torch.tensor([columns(r) for r in reqs], dtype=torch.float64, device=reqs[0].nd.gx.device)
+
+
+def _padded_axis(axes: list, sizes: list) -> torch.Tensor:
+    """The node coordinates ``axes`` [(k_b,)] of B grids padded to (B·K,) with K = max k_b (beyond a grid's own: its
+    last)."""
+    k_max = max(sizes)
+    start = np.concatenate([[0], np.cumsum(sizes)])[:-1]
+    idx = np.stack([o + np.minimum(np.arange(k_max), k - 1) for o, k in zip(start, sizes)]).reshape(-1)
+    return torch.cat(axes)[torch.from_numpy(idx).to(axes[0].device)]
+
+
+def _batch_node_maps(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict, roles: tuple) -> dict:
+    """:func:`_node_maps` (and :func:`_edge_distances`) of the batch from its padded channels ``grid``
+    (:func:`_batch_node_channels`): the same maps, each (B, KY, KX) (``slopes`` (B, 4, KY, KX)), and ``tx``, ``ty``
+    the node positions mm, ``center`` (B,) the flat index of each grid's centre node and (diffracting)
+    ``slope_grads`` the y and x differences of the slopes ``t_x/γ, t_y/γ`` ((B, 2, KY, KX) each)."""
+    is_stop, diffracting = roles
+    c = _batch_scalars(reqs, lambda r: [r.b.n, r.b.carrier[0], r.b.carrier[1], 3.0 * r.nd.h])[:, :, None, None]
+    n, c0, c1, lim = c.unbind(1)
+    dev = grid.device
+    bsz, _, ky_max, kx_max = grid.shape
+    ch = grid.unbind(1)
+    phi_g, w0_g, dx, dy, gamma_g = ch[:5]
+    n_ap = len(is_stop)
+    # the node positions (mm): grid b's gx at its columns, gy at its rows (clamped beyond its own, like the padding)
+    tx = _padded_axis([r.nd.gx for r in reqs], [kx for _, kx in nb.sizes]).reshape(bsz, 1, kx_max)
+    ty = _padded_axis([r.nd.gy for r in reqs], [ky for ky, _ in nb.sizes]).reshape(bsz, ky_max, 1)
+    tx, ty = tx.expand(bsz, ky_max, kx_max), ty.expand(bsz, ky_max, kx_max)
+    k_uv = k_of["u"]
+    diff = [grid[:, k_uv:k_uv + 2 + n_ap]]
+    slopes = None
+    if diffracting:
+        slopes = torch.stack([dx / gamma_g, dy / gamma_g, dx, dy], 1)
+        diff.append(slopes[:, :2])
+    grads = nb.gradients(torch.cat(diff, 1) if len(diff) > 1 else diff[0])
+    if diffracting:  # the slopes' differences (_fresnel_scale's), (B, 2, KY, KX) each
+        slope_grads = tuple(g_[:, 2 + n_ap:4 + n_ap] for g_ in grads)
+    (du_dy, dv_dy), (du_dx, dv_dx) = (g[:, :2].unbind(1) for g in grads)
+    det = du_dx * dv_dy - du_dy * dv_dx
+    center = torch.tensor([(ky // 2) * kx_max + kx // 2 for ky, kx in nb.sizes], device=dev)
+    phi_c = phi_g.reshape(bsz, -1).gather(1, center[:, None]).detach()[:, :, None]
+    phi_env = phi_g - phi_c - n * (c0 * tx + c1 * ty)
+    maps = {"phi_env": phi_env, "amp2": w0_g * det.abs() / gamma_g, "det": det, "slopes": slopes, "phi": phi_g,
+            "tx": tx, "ty": ty, "center": center, "slope_grads": slope_grads if diffracting else None}
+    if n_ap == 0:  # no aperture at all: far from every edge
+        maps.update(dist=lim.expand(bsz, ky_max, kx_max), stop=None, other=None)
+        return maps
+    # distance to the nearest aperture edge, slack / |∇ slack| (_edge_distances: the same values)
+    sl = grid[:, k_of["slack"]:k_of["slack"] + n_ap]
+    gy_, gx_ = grads[0][:, 2:2 + n_ap], grads[1][:, 2:2 + n_ap]
+    n2_all = gx_**2 + gy_**2
+    ok_all = n2_all > 1e-24
+    den = torch.where(ok_all, safe_sqrt(n2_all, ok_all), torch.full_like(n2_all, 1e-12))
+    dj = sl / den  # (B, A, KY, KX)
+    dist = dj.amin(1)
+    stop, other = None, None
+    if diffracting:
+        j = [k for k, s_ in enumerate(is_stop) if s_][-1]
+        stop = (dj[:, j], gx_[:, j] / den[:, j], gy_[:, j] / den[:, j])
+        others = [k for k, s_ in enumerate(is_stop) if not s_]
+        if others:
+            other = dj[:, others].amin(1)
+    maps.update(dist=dist.clamp(-lim, lim), stop=stop, other=None if other is None else other.clamp(-lim, lim))
+    return maps
+
+
+def _stop_edge_batch(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict, maps: dict) -> dict:
+    """:func:`_stop_edge_maps` of the batch (``maps``: :func:`_batch_node_maps`'): ``nu``, ``nu_raw``, ``kappa``
+    (B, KY, KX), ``g_max`` (B,) (a tensor: read with the checks) and with ``check`` ``curvature`` (B,): the ratio
+    :func:`_warn_edge_curvature` compares with :data:`EDGE_CURVATURE_LIMIT`. Each construction's edge plane (its rim
+    images where they all lie on the pupil's side of the plane, else the stop plane) and its ν (the path difference
+    with rim images, :func:`_path_difference_batch`) chosen by masks, with no host read."""
+    r0 = reqs[0].b
+    bsz, _, ky_max, kx_max = grid.shape
+
+    def columns(r):
+        b = r.b
+        lam_m = b.src.wavelength * 1e-3 / b.n
+        return [b.z_doe, b.z_doe - b.cfg.stop_plane, b.src.wavelength * 1e-3, lam_m, (1.5 * b.p) ** 2 / lam_m,
+                _nu_inner(b.ripple) + 4.0, -math.sqrt(2.0) * b.ripple, _nu_inner(b.ripple), b.n]
+
+    z_doe, dz0, lam, lam_m, min_len, nu_lim, band_lo, band_hi, n = _batch_scalars(reqs, columns)[:, :, None,
+                                                                                                 None].unbind(1)
+    rim_ok, dz_edge = None, dz0
+    if r0.given.stop_rim is not None:  # the rim point's own image, by the node ray's azimuth on the stop
+        sx, sy = grid[:, k_of["sx"]].reshape(bsz, -1), grid[:, k_of["sy"]].reshape(bsz, -1)
+        z_rim = torch.stack([r.b.given.stop_rim[1] for r in reqs])
+        dz_n = (z_doe[:, 0] - _rim_z_rows(z_rim, sx, sy)).reshape(bsz, ky_max, kx_max)
+        rim_ok = ((dz_n * dz0 > 0) | ~nb.valid).flatten(1).all(1)  # same side of the DOE plane as the pupil
+        dz_edge = torch.where(rim_ok[:, None, None], dz_n, dz0)
+    s_stop, nx_, ny_ = maps["stop"]
+    slopes, (gy, gx) = maps["slopes"], maps["slope_grads"]
+    g = _fresnel_scale_at(((gy[:, :1], gy[:, 1:]), (gx[:, :1], gx[:, 1:])), (slopes[:, 2:3], slopes[:, 3:4]),
+                          (torch.stack([nx_, -ny_], 1), torch.stack([ny_, nx_], 1)), dz_edge[:, None],
+                          lam_m[:, None], min_len[:, None])
+    g_s, g_t = g.unbind(1)
+    gy_n, gx_n = nb.gradients(torch.stack([nx_, ny_], 1))
+    div_n = gx_n[:, 0] + gy_n[:, 1]
+    nu = s_stop * g_s
+    if rim_ok is not None and getattr(r0.given.stop_rim, "points", None) is not None and PATH_DIFFERENCE_NU:
+        nu = torch.where(rim_ok[:, None, None], _path_difference_batch(reqs, nb, grid, k_of, maps,
+                                                                       (g_s, lam, n, z_doe)), nu)
+    nu_d, g_d = nu.detach(), g_s.detach()
+    near = nb.own((nu_d > band_lo) & (nu_d < band_hi))
+    g_max = torch.where(near.flatten(1).any(1), torch.where(near, g_d, -math.inf).flatten(1).amax(1),
+                        torch.where(nb.valid, g_d, -math.inf).flatten(1).amax(1))
+    out = {"nu": nu.clamp(-nu_lim, nu_lim), "nu_raw": nu_d,
+           "kappa": (-div_n * g_s / (g_t * g_t)).clamp(-KAPPA_MAX, KAPPA_MAX), "g_max": g_max}
+    if r0.cfg.check:
+        out["curvature"] = torch.where(nb.own(nu_d.abs() < 2.0), div_n.detach().abs() * math.sqrt(2.0) / g_d,
+                                       -math.inf).flatten(1).amax(1)
+    return out
+
+
+def _path_difference_batch(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict, maps: dict,
+                           consts: tuple) -> torch.Tensor:
+    """:func:`_path_difference_nu` of the batch (B, KY, KX): every construction's rim images interpolated at its node
+    rays' azimuths (:func:`~raywave.hybrid.coherent.stop_edge._rim_fourier_rows`), the two sign choices per
+    construction as (B, 1, 1) masks. ``consts`` = ``(g_s (B, KY, KX), λ (mm), n, z_doe (mm))`` (the last three
+    (B, 1, 1))."""
+    g_s, lam, n, z_doe = consts
+    bsz, _, ky_max, kx_max = grid.shape
+    rims = [r.b.given.stop_rim for r in reqs]
+    values = torch.cat([torch.stack([rm.points for rm in rims]), torch.stack([rm.opl for rm in rims])[..., None]], -1)
+    at_rim = _rim_fourier_rows(values, grid[:, k_of["sx"]].reshape(bsz, -1), grid[:, k_of["sy"]].reshape(bsz, -1))
+    ex, ey, ez, phi_e = at_rim.reshape(bsz, ky_max, kx_max, 4).unbind(-1)
+    dx, dy, dz = maps["tx"] - ex, maps["ty"] - ey, z_doe - ez
+    # the diffracted wave leaves E on its way to P, or (a DOE plane before the edge's images) converges on it
+    sgn = ((dz.detach() > 0) | ~nb.valid).flatten(1).all(1).to(torch.float64)[:, None, None] * 2.0 - 1.0
+    delta = phi_e + sgn * n * torch.sqrt(dx * dx + dy * dy + dz * dz) - maps["phi"]
+    d_ = delta.detach()
+    more_negative = nb.own(d_ < 0).flatten(1).sum(1) > nb.own(d_ > 0).flatten(1).sum(1)
+    delta = torch.where(((sgn[:, 0, 0] < 0) & more_negative)[:, None, None], -delta, delta)
+    s_stop = maps["stop"][0]
+    s0 = 0.1 / g_s.detach()
+    g2 = ((4.0 * delta / lam + g_s * g_s * s0 * s0) / (s_stop * s_stop + s0 * s0)).clamp_min(1e-300)
+    return s_stop * torch.sqrt(g2)
+
+
+def _check_nodes_batch(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict, maps: dict,
+                       good: torch.Tensor) -> list:
+    """:func:`_check_nodes` of the batch, evaluated but not read: ``[fold, any lit, Nyquist ratio, x, y]`` (B,) each:
+    whether the ray map folds among the lit nodes, whether any node is lit, the largest phase slope / Nyquist on the
+    lit nodes and the node (mm) where it is (the first, as :func:`~raywave.hybrid.coherent.geometry._warn_nyquist`
+    finds it). ``good`` (N,): the concatenated nodes' traced flags."""
+    bsz = grid.shape[0]
+    c = _batch_scalars(reqs, lambda r: [r.b.n, r.b.carrier[0], r.b.carrier[1], -r.nd.h, 2 * r.b.p,
+                                        r.b.src.wavelength * 1e-3])
+    n, c0, c1, neg_h, two_p, lam = c[:, :, None, None].unbind(1)
+    lit = nb.own((maps["dist"] > neg_h) & nb.padded(good[:, None])[:, 0])
+    det = maps["det"].detach()
+    det_c = det.reshape(bsz, -1).gather(1, maps["center"][:, None])[:, :, None]
+    fold = ((det * det_c <= 0) & lit).flatten(1).any(1)
+    slope = n * torch.sqrt((grid[:, k_of["dx"]] - c0) ** 2 + (grid[:, k_of["dy"]] - c1) ** 2)
+    ratio = slope * two_p / lam
+    r = torch.where(lit, ratio.detach(), torch.zeros_like(ratio)).flatten(1)
+    at = torch.argmax(r, 1, keepdim=True)
+    xy = torch.stack([maps["tx"], maps["ty"]], 1).reshape(bsz, 2, -1).gather(2, at[:, None].expand(bsz, 2, 1))
+    return [fold, lit.flatten(1).any(1), r.gather(1, at)[:, 0], xy[:, 0, 0], xy[:, 1, 0]]
+
+
+def _batch_answers(reqs: list, nb: _NodeBatch, maps: dict, checks: list, diffracting: bool) -> list:
+    """Each construction's maps of :data:`_FIELD_MAPS` as views of one padded stack (its own grid's corner), and the
+    checks' warnings (the edge's curvature, the fold, Nyquist: each construction's in its own call's order and
+    words) from one host read of ``checks`` ((B,) tensors: ``g_max`` first with ``diffracting``, then the edge's
+    curvature and :func:`_check_nodes_batch`'s with ``check``) and the constructions' fields."""
+    check = reqs[0].b.cfg.check
+    names = ["phi_env", "amp2", "dist"] + (["other"] if maps["other"] is not None else []) \
+        + (["nu", "nu_raw", "kappa"] if diffracting else [])
+    stack = torch.stack([maps[k] for k in names], 1).unbind(0)  # (C, KY, KX) views, one op for the batch
+    rows = [[] for _ in reqs]
+    if checks:  # host read 2: the Fresnel scales' maxima and the checks, with the fields they name
+        fields = torch.stack([r.b.field for r in reqs])
+        rows = torch.cat([torch.stack([t.to(torch.float64) for t in checks], 1), fields], 1).tolist()
+    out = []
+    for j, (r, row, (ky, kx)) in enumerate(zip(reqs, rows, nb.sizes)):
+        m = dict(zip(names, stack[j][:, :ky, :kx].unbind(0)))
+        m.setdefault("other", None)
+        if diffracting:
+            m["nu_raw"] = m["nu_raw"].detach()
+            m["g_max"] = row[0]
+        if check:
+            field, wavelength, vals = row[-2:], r.b.src.wavelength, row[1:] if diffracting else row
+            if diffracting:
+                _edge_curvature_warning(vals[0], field, wavelength, stacklevel=2)
+                vals = vals[1:]
+            fold, any_lit, ratio, x, y = vals[:5]
+            if fold:
+                _fold_warning(field, wavelength, stacklevel=2)
+            if any_lit and ratio > 1.0:
+                _nyquist_warning(ratio, (x, y), field, wavelength, r.b.p, stacklevel=2)
+        out.append(m)
+    return out
 
 
 def _fine_field(b: _Build, nd: _Nodes, maps: dict, sim: Grid):

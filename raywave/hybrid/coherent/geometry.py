@@ -199,11 +199,18 @@ def _warn_nyquist(slope_ratio: torch.Tensor, lit: torch.Tensor, xy: torch.Tensor
     worst = int(worst)
     if ratio > 1.0:
         x, y = (float(v) for v in xy.reshape(-1, 2)[worst])
-        warnings.warn(
-            f"DOE grid too coarse for field {list(map(float, field))} at {wavelength:g} µm: the wavefront's phase "
-            f"slope reaches {ratio:.2f}× the Nyquist limit of the {pitch * 1e3:g} µm simulation pitch at "
-            f"(x, y) = ({x:.4g}, {y:.4g}) mm on the DOE plane; the field aliases. Use a finer DOE pitch or "
-            f"oversample ≥ {math.ceil(ratio * 1.05)}.", SamplingWarning, stacklevel=4)
+        _nyquist_warning(ratio, (x, y), field, wavelength, pitch, stacklevel=5)
+
+
+def _nyquist_warning(ratio: float, at: tuple, field, wavelength: float, pitch: float, stacklevel: int) -> None:
+    """The :class:`SamplingWarning` of :func:`_warn_nyquist`: the phase slope ``ratio`` × Nyquist at the point ``at``
+    = (x, y) mm of the DOE plane (host floats), for ``field`` at ``wavelength`` µm, simulation pitch ``pitch`` mm."""
+    x, y = at
+    warnings.warn(
+        f"DOE grid too coarse for field {list(map(float, field))} at {wavelength:g} µm: the wavefront's phase "
+        f"slope reaches {ratio:.2f}× the Nyquist limit of the {pitch * 1e3:g} µm simulation pitch at "
+        f"(x, y) = ({x:.4g}, {y:.4g}) mm on the DOE plane; the field aliases. Use a finer DOE pitch or "
+        f"oversample ≥ {math.ceil(ratio * 1.05)}.", SamplingWarning, stacklevel=stacklevel)
 
 
 #: peak bytes per simulation sample of building and propagating a DOE-plane field window (float64 interpolated

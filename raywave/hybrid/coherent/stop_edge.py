@@ -143,8 +143,20 @@ def _fresnel_scale(slopes, nx, ny, h_node: float, dz: float, lam_m: float, pitch
     ``t_x/γ, t_y/γ, t_x, t_y`` at the nodes; ``nx, ny`` (ky, kx) the edge normal (or (M, ky, kx): M directions at
     once, e.g. across and along the edge); ``h_node`` node spacing (mm). Differentiable with respect to the ray
     directions."""
-    a, b, tx, ty = slopes
-    (da_dy, db_dy), (da_dx, db_dx) = torch.gradient(slopes[:2], spacing=h_node, dim=(1, 2))
+    _, _, tx, ty = slopes
+    grads = torch.gradient(slopes[:2], spacing=h_node, dim=(1, 2))
+    return _fresnel_scale_at(grads, (tx, ty), (nx, ny), dz, lam_m, (1.5 * pitch) ** 2 / lam_m)
+
+
+def _fresnel_scale_at(grads, t: tuple, normal: tuple, dz, lam_m, min_length) -> torch.Tensor:
+    """:func:`_fresnel_scale` from the node-grid differences of the slopes ``grads`` = ``((da/dy, db/dy), (da/dx,
+    db/dx))`` (``a, b = t_x/γ, t_y/γ``), the direction cosines ``t`` = ``(t_x, t_y)``, the edge normal ``normal`` =
+    ``(nx, ny)``, ``dz`` (mm, a float or a map), ``lam_m`` (mm) and the shortest length ``min_length`` mm (``(1.5
+    p)²/λ_m``): floats, or tensors that broadcast (many constructions at once, each with its own; the same
+    arithmetic)."""
+    (da_dy, db_dy), (da_dx, db_dx) = grads
+    tx, ty = t
+    nx, ny = normal
     k00, k01, k10, k11 = 1 - dz * da_dx, -dz * da_dy, -dz * db_dx, 1 - dz * db_dy
     det = k00 * k11 - k01 * k10
     det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, 1e-12))
@@ -153,7 +165,7 @@ def _fresnel_scale(slopes, nx, ny, h_node: float, dz: float, lam_m: float, pitch
     m_n = torch.sqrt(mx * mx + my * my + 1e-300)
     g2 = (1 - tx * tx - ty * ty).clamp_min(1e-6)
     q = (1 - (nx * ty - ny * tx) ** 2) / (g2 * torch.sqrt(g2))
-    length = (abs(dz) * q * m_n).clamp_min((1.5 * pitch) ** 2 / lam_m)
+    length = (abs(dz) * q * m_n).clamp_min(min_length)
     return torch.sqrt(2.0 / (lam_m * length))
 
 
@@ -727,6 +739,43 @@ def _rim_fourier(values: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> to
         w[-1] = 1.0
     ph = az[:, None] * torch.arange(c.shape[0], dtype=values.dtype, device=values.device)[None, :]  # (N, M)
     return torch.cos(ph) @ (w * c.real) - torch.sin(ph) @ (w * c.imag)
+
+
+#: :func:`_rim_fourier_rows` evaluates its (B, N, k/2 + 1) harmonics in blocks of rows of at most this many elements
+#: (128 MB a float64 array: the cosines, the sines and their phases are the construction's largest node arrays)
+RIM_FOURIER_BLOCK = 2**24
+
+
+def _rim_fourier_rows(values: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
+    """:func:`_rim_fourier` of B rims at once: ``values`` (B, k, C) at the azimuths of the stop points ``xs``, ``ys``
+    (B, N) (row b on rim b), (B, N, C), the harmonics in blocks of rows (:data:`RIM_FOURIER_BLOCK`); the same
+    arithmetic as each row's own call (up to the last-bit rounding of the vectorised cos, sin and atan2, which depends
+    on an element's place in memory). Differentiable."""
+    k = values.shape[1]
+    ok = (xs * xs + ys * ys).detach() > 0
+    az = torch.atan2(torch.where(ok, ys, torch.zeros_like(ys)), torch.where(ok, xs, torch.ones_like(xs)))
+    c = torch.fft.rfft(values, dim=1) / k  # (B, k//2 + 1, C)
+    m = c.shape[1]
+    w = torch.full((m, 1), 2.0, dtype=values.dtype, device=values.device)
+    w[0] = 1.0
+    if k % 2 == 0:
+        w[-1] = 1.0
+    wc, ws = w * c.real, w * c.imag
+    harmonics = torch.arange(m, dtype=values.dtype, device=values.device)
+    rows = max(1, RIM_FOURIER_BLOCK // (xs.shape[1] * m))
+    parts = []
+    for i in range(0, xs.shape[0], rows):
+        ph = az[i:i + rows, :, None] * harmonics  # (b, N, M)
+        parts.append(torch.cos(ph) @ wc[i:i + rows] - torch.sin(ph) @ ws[i:i + rows])
+    return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+
+def _rim_z_rows(z: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
+    """:func:`_rim_z` of B rims at once: the rim images' z (B, k) mm at the azimuths of the stop points ``xs``,
+    ``ys`` (B, N) (row b on rim b), (B, N); the same arithmetic as each row's own call."""
+    k = z.shape[1]
+    i0, w = _rim_azimuth_index(k, xs, ys)
+    return z.gather(1, i0) * (1 - w) + z.gather(1, (i0 + 1) % k) * w
 
 
 def _rim_z(rim, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
