@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 
@@ -70,14 +71,78 @@ def _fresnel_threads(x):
     return c_, s_
 
 
-#: where the knife-edge factor's Fresnel integrals are evaluated on the CPU: "scipy" (:func:`_fresnel_threads`, cephes
-#: on the host) or "torch" (:func:`raywave.utils.fresnel.fresnel`, ~70 whole-array torch operations; on an
-#: accelerator always, with no device → host → device round trip). Measured A/B in one process
-#: (benchmarks/fresnel_ab.py, issue 47, 2026-11-30) on a 10×10×3 map's band values: torch 0.88× scipy's time on 1
-#: thread, but on 2 threads of a loaded machine 13–200× (each of its operations on ~80 k values is an OpenMP region
-#: that waits for the second thread to be scheduled; scipy's runs such arrays on one thread); PSFs ≤ 3.6e-16 rel L1
-#: apart. So the CPU keeps scipy
-FRESNEL_CPU = "scipy"
+#: where the knife-edge factor's Fresnel integrals are evaluated on the CPU: "table" (:func:`_fresnel_table_values`:
+#: quintic Hermite interpolation of scipy's values and their first two derivatives on a fine grid, ~1.5–3× faster than
+#: scipy, within 1e-15 of it on |x| ≤ 8 and 1e-13 on |x| ≤ 22.7, the widest band's), "scipy"
+#: (:func:`_fresnel_threads`, cephes on the host) or "torch" (:func:`raywave.utils.fresnel.fresnel`, ~70 whole-array
+#: torch operations; on an accelerator always, with no device → host → device round trip). Measured A/B in one
+#: process (benchmarks/fresnel_ab.py, issue 47, 2026-11-30) on a 10×10×3 map's band values: torch 0.88× scipy's time
+#: on 1 thread, but on 2 threads of a loaded machine 13–200× (each of its operations on ~80 k values is an OpenMP
+#: region that waits for the second thread to be scheduled; scipy's runs such arrays on one thread); PSFs ≤ 3.6e-16
+#: rel L1 apart. The table since issue 47's twelfth session (h47g; scipy's own cost is mostly its libm sin/cos)
+FRESNEL_CPU = "table"
+
+#: :func:`_fresnel_table`'s grid step: the quintic Hermite interpolation's error is ~h⁶/46080·max|f⁽⁶⁾|,
+#: |f⁽⁶⁾| ≈ (π|x|)⁵: ~1e-16 at |x| = 8, ~4e-14 at 22.7 (the band's largest |ν|, √2·:data:`MAX_RIPPLE_ZONES`); a
+#: cubic table as accurate needs 2⁻¹³ (8× the rows: it falls out of the cache between the envelope's blocks)
+FRESNEL_TABLE_STEP = 2.0**-10
+#: :func:`_fresnel_table`'s smallest half-range (it doubles up to :data:`FRESNEL_TABLE_MAX`, beyond which
+#: :func:`_fresnel_table_values` takes scipy's values): 8 covers the default 5-zone band (|ν| ≤ 7.1)
+FRESNEL_TABLE_HALF = 8.0
+FRESNEL_TABLE_MAX = 32.0
+
+
+@functools.lru_cache(maxsize=4)
+def _fresnel_table(half: float) -> torch.Tensor:
+    """The quintic (Hermite) polynomials of ``(C, S)`` on each interval of the grid ``x_i = −half + i·h`` (h =
+    :data:`FRESNEL_TABLE_STEP`): float64 ``(12, n − 1)``, column i ``(c0 … c5, s0 … s5)`` with ``C(x_i + t·h) = Σ
+    c_j t^j`` for t in [0, 1], matching scipy's ``C``, ``S`` at both nodes and their exact first and second derivatives
+    (``C' = cos u``, ``S' = sin u``, ``C'' = −πx sin u``, ``S'' = πx cos u``, ``u = πx²/2``). A memo of a pure
+    function: built once per range (1.5 MB for ``half`` 8)."""
+    from scipy.special import fresnel
+
+    step = FRESNEL_TABLE_STEP
+    x = -half + step * np.arange(int(round(2 * half / step)) + 1)
+    s_, c_ = fresnel(x)
+    ph = 0.5 * np.pi * (x * x)  # x² exact on this grid
+    cos_, sin_ = np.cos(ph), np.sin(ph)
+    rows = []
+    for f, d1, d2 in ((c_, cos_, -np.pi * x * sin_), (s_, sin_, np.pi * x * cos_)):
+        f0, f1 = f[:-1], f[1:]
+        m0, m1 = step * d1[:-1], step * d1[1:]
+        q0, q1 = step * step * d2[:-1], step * step * d2[1:]
+        df = f1 - f0
+        rows += [f0, m0, 0.5 * q0,
+                 10.0 * df - 6.0 * m0 - 4.0 * m1 - 1.5 * q0 + 0.5 * q1,
+                 -15.0 * df + 8.0 * m0 + 7.0 * m1 + 1.5 * q0 - q1,
+                 6.0 * df - 3.0 * m0 - 3.0 * m1 - 0.5 * q0 + 0.5 * q1]
+    return torch.from_numpy(np.stack(rows, 0))
+
+
+def _fresnel_table_values(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Fresnel integrals ``(C, S)`` of ``v`` (float64, CPU, 1-D) from :func:`_fresnel_table` (one gather of each
+    value's interval's coefficients and two quintics: ~30 whole-array operations), or scipy's beyond |x| ≥
+    :data:`FRESNEL_TABLE_MAX`."""
+    if v.numel() == 0:
+        return v.clone(), v.clone()
+    top = float(v.abs().max())
+    if not top < FRESNEL_TABLE_MAX:  # (NaN too)
+        return tuple(torch.from_numpy(a) for a in _fresnel_threads(v.numpy()))
+    half = FRESNEL_TABLE_HALF
+    while top >= half:
+        half *= 2.0
+    tab = _fresnel_table(half)
+    pos = (v + half).mul_(1.0 / FRESNEL_TABLE_STEP)
+    i = pos.floor().clamp_(0, tab.shape[1] - 1)
+    t = pos.sub_(i)
+    idx = i.long()
+    out = []
+    for k in (0, 6):  # Horner, each coefficient gathered into a contiguous array (~2× faster than one gather of rows)
+        f = tab[k + 5].index_select(0, idx).mul_(t)
+        for j in (4, 3, 2, 1):
+            f.add_(tab[k + j].index_select(0, idx)).mul_(t)
+        out.append(f.add_(tab[k].index_select(0, idx)))
+    return out[0], out[1]
 
 
 def _fresnel_integrals(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -86,8 +151,10 @@ def _fresnel_integrals(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     v = v.detach()
     if devices.accelerator(v) or FRESNEL_CPU == "torch":
         return tuple(t.to(v.dtype) for t in fresnel_torch(v))
+    if FRESNEL_CPU == "table":
+        return tuple(t.to(v.dtype).reshape(v.shape) for t in _fresnel_table_values(v.to(torch.float64).reshape(-1)))
     if FRESNEL_CPU != "scipy":
-        raise ValueError(f"FRESNEL_CPU must be 'scipy' or 'torch', got {FRESNEL_CPU!r}")
+        raise ValueError(f"FRESNEL_CPU must be 'table', 'scipy' or 'torch', got {FRESNEL_CPU!r}")
     return tuple(torch.from_numpy(a).to(v.dtype) for a in _fresnel_threads(v.numpy()))
 
 
