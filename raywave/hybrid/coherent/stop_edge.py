@@ -395,20 +395,27 @@ class _EdgeEnvelope(torch.autograd.Function):
         x.mul_(amp)  # polar's parts: cos·amp, sin·amp
         y.mul_(amp)
         re_out, im_out = torch.view_as_real(out).unbind(-1)
-        d_re = inside.to(x.dtype)
-        v = nu.masked_select(band)
-        if v.numel() == 0:
+        d_re = inside.to(x.dtype).contiguous()  # (written through a flat view below)
+        # the band's samples by their flat indices (row-major: masked_select's order), gathered and scattered back
+        # with index_select / index_copy_: the same values, ~half masked_select's and masked_scatter_'s time
+        idx = band.reshape(-1).nonzero().squeeze(1)
+        if idx.numel() == 0:
             torch.mul(x, d_re, out=re_out)
             torch.mul(y, d_re, out=im_out)
             return None
-        nb = nu_b.masked_select(band) if isinstance(nu_b, torch.Tensor) else nu_b
+
+        def take(t):
+            return t.expand(nu.shape).reshape(-1).index_select(0, idx)
+
+        v = take(nu)
+        nb = take(nu_b) if isinstance(nu_b, torch.Tensor) else nu_b
         if isinstance(nu_max, torch.Tensor):  # per-row constants (:func:`_band_masks`)
-            nu_max = nu_max.expand(nu.shape).masked_select(band)
+            nu_max = take(nu_max)
         fresnel = _fresnel_integrals(v)
-        re, im = _EdgeBand._values(v, None if kap is None else kap.detach().masked_select(band), nb, *fresnel, nu_max,
-                                   forward_edge)
-        d_re.masked_scatter_(band, re)
-        d_im = torch.zeros_like(x).masked_scatter_(band, im)
+        re, im = _EdgeBand._values(v, None if kap is None else take(kap.detach()), nb, *fresnel, nu_max, forward_edge)
+        d_re.view(-1).index_copy_(0, idx, re)
+        d_im = torch.zeros(x.shape, dtype=x.dtype, device=x.device)
+        d_im.view(-1).index_copy_(0, idx, im)
         torch.mul(x, d_re, out=re_out)
         re_out.sub_(y * d_im)
         torch.mul(y, d_re, out=im_out)
