@@ -149,7 +149,8 @@ def test_knife_edge_backends_agree():
 def test_cpu_table_against_scipy_and_mpmath():
     """The knife-edge factor's CPU Fresnel integrals (quintic Hermite table, FRESNEL_CPU='table'): within 2e-15 of
     scipy on the default band's range (|x| ≤ 8), 5e-14 on the widest band's (|x| ≤ √2·16), and of mpmath at points
-    between the table's nodes; scipy's own values beyond its range (|x| ≥ 32) and for an empty input."""
+    between the table's nodes; the same bits whichever range's table a call uses; scipy's own values beyond its range
+    (|x| ≥ 32) and for an empty input."""
     from raywave.hybrid.coherent import stop_edge as se
 
     rng = np.random.default_rng(4747)
@@ -163,6 +164,11 @@ def test_cpu_table_against_scipy_and_mpmath():
     c_, s_ = se._fresnel_table_values(torch.from_numpy(pts))
     for x, c, s in zip(pts, c_.tolist(), s_.tolist()):  # mpmath's fresnelc/fresnels: the same πt²/2 convention
         assert abs(c - float(mp.fresnelc(mp.mpf(x)))) <= 3e-15 and abs(s - float(mp.fresnels(mp.mpf(x)))) <= 3e-15, x
+    # a value's integrals do not depend on the table the call picks (a batch of windows and each window alone)
+    x = torch.from_numpy(rng.uniform(-7.9, 7.9, 10_000))
+    one = se._fresnel_table_values(x)
+    wide = se._fresnel_table_values(torch.cat([x, torch.tensor([20.0, -31.0], dtype=torch.float64)]))
+    assert all(torch.equal(a, b[:x.numel()]) for a, b in zip(one, wide))
     big = torch.tensor([-40.0, 0.5, 33.0], dtype=torch.float64)
     c_, s_ = se._fresnel_table_values(big)
     cr, sr = _scipy(big.numpy())

@@ -73,7 +73,7 @@ def _fresnel_threads(x):
 
 #: where the knife-edge factor's Fresnel integrals are evaluated on the CPU: "table" (:func:`_fresnel_table_values`:
 #: quintic Hermite interpolation of scipy's values and their first two derivatives on a fine grid, ~1.5–3× faster than
-#: scipy, within 1e-15 of it on |x| ≤ 8 and 1e-13 on |x| ≤ 22.7, the widest band's), "scipy"
+#: scipy, within 5e-16 of it on |x| ≤ 8 and 3.5e-14 on |x| ≤ 22.7, the widest band's), "scipy"
 #: (:func:`_fresnel_threads`, cephes on the host) or "torch" (:func:`raywave.utils.fresnel.fresnel`, ~70 whole-array
 #: torch operations; on an accelerator always, with no device → host → device round trip). Measured A/B in one
 #: process (benchmarks/fresnel_ab.py, issue 47, 2026-11-30) on a 10×10×3 map's band values: torch 0.88× scipy's time
@@ -85,7 +85,7 @@ FRESNEL_CPU = "table"
 #: :func:`_fresnel_table`'s grid step: the quintic Hermite interpolation's error is ~h⁶/46080·max|f⁽⁶⁾|,
 #: |f⁽⁶⁾| ≈ (π|x|)⁵: ~1e-16 at |x| = 8, ~4e-14 at 22.7 (the band's largest |ν|, √2·:data:`MAX_RIPPLE_ZONES`); a
 #: cubic table as accurate needs 2⁻¹³ (8× the rows: it falls out of the cache between the envelope's blocks)
-FRESNEL_TABLE_STEP = 2.0**-10
+FRESNEL_TABLE_STEP = 2.0**-10  # a power of two (:func:`_fresnel_table_values`' exact positions)
 #: :func:`_fresnel_table`'s smallest half-range (it doubles up to :data:`FRESNEL_TABLE_MAX`, beyond which
 #: :func:`_fresnel_table_values` takes scipy's values): 8 covers the default 5-zone band (|ν| ≤ 7.1)
 FRESNEL_TABLE_HALF = 8.0
@@ -132,10 +132,12 @@ def _fresnel_table_values(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     while top >= half:
         half *= 2.0
     tab = _fresnel_table(half)
-    pos = (v + half).mul_(1.0 / FRESNEL_TABLE_STEP)
-    i = pos.floor().clamp_(0, tab.shape[1] - 1)
+    # the position in steps, v/h, and its fraction t are exact (h a power of two): the same t, and so the same values
+    # bit for bit, whichever half-range's table a call uses (a batch of windows and each window alone)
+    pos = v * (1.0 / FRESNEL_TABLE_STEP)
+    i = pos.floor()
     t = pos.sub_(i)
-    idx = i.long()
+    idx = i.long().add_(round(half / FRESNEL_TABLE_STEP)).clamp_(0, tab.shape[1] - 1)
     out = []
     for k in (0, 6):  # Horner, each coefficient gathered into a contiguous array (~2× faster than one gather of rows)
         f = tab[k + 5].index_select(0, idx).mul_(t)
