@@ -171,7 +171,8 @@ def main(argv=None):
                     if rep == 0:
                         geo[what][k] = _summary(sizes, n)
     out = {"case": f"hybrid_asphere ks 64, 1 thread: single PSF at 12.25 deg 0.53 um; map {a.grid}x{a.grid}x3",
-           "unit": "ms CPU (user + system) per PSF ('sys: ': the system part; 'minflt/1000: ' thousands of minor page faults per PSF); medians over the repetitions, the edges interleaved",
+           "unit": "ms CPU (user + system) per PSF ('sys: ': the system part; 'minflt/1000: ' thousands of minor "
+                   "page faults per PSF); medians over the repetitions, the edges interleaved",
            "repeat": a.repeat, "singles": a.singles, "torch": torch.__version__}
     labels = ["total"] + [s[0] for s in STAGES]
     labels += [f"{p}: {s}" for p in ("sys", "minflt/1000") for s in labels]
