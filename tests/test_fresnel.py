@@ -1,6 +1,7 @@
 """The Fresnel integrals in torch (:func:`raywave.utils.fresnel.fresnel`) against two independent references:
 scipy (cephes) and mpmath (arbitrary precision); odd symmetry, limits, dtype and device; the knife-edge factor's
-two backends (:data:`raywave.hybrid.coherent.stop_edge.FRESNEL_CPU`) agree."""
+CPU table (:func:`raywave.hybrid.coherent.stop_edge._fresnel_table_values`) against both; the knife-edge factor's
+three backends (:data:`raywave.hybrid.coherent.stop_edge.FRESNEL_CPU`) agree."""
 
 import math
 
@@ -131,7 +132,7 @@ def test_knife_edge_backends_agree():
     outs = {}
     old = se.FRESNEL_CPU
     try:
-        for k in ("scipy", "torch"):
+        for k in ("scipy", "torch", "table"):
             se.FRESNEL_CPU = k
             outs[k] = (se.stop_edge_factor(nu, 1.0, 5.0, torch.full_like(nu, 2.0), 1e-3, kap),
                        se.edge_envelope(amp, angle, nu, 1.0, 5.0, 2.0, 1e-3, kap))
@@ -140,8 +141,40 @@ def test_knife_edge_backends_agree():
             se.stop_edge_factor(nu, 1.0, 5.0, torch.full_like(nu, 2.0), 1e-3, kap)
     finally:
         se.FRESNEL_CPU = old
-    for a, b in zip(outs["scipy"], outs["torch"]):
-        assert float((a - b).abs().max()) <= 5e-15
+    for k in ("torch", "table"):
+        for a, b in zip(outs["scipy"], outs[k]):
+            assert float((a - b).abs().max()) <= 5e-15
+
+
+def test_cpu_table_against_scipy_and_mpmath():
+    """The knife-edge factor's CPU Fresnel integrals (quintic Hermite table, FRESNEL_CPU='table'): within 2e-15 of
+    scipy on the default band's range (|x| ≤ 8), 5e-14 on the widest band's (|x| ≤ √2·16), and of mpmath at points
+    between the table's nodes; the same bits whichever range's table a call uses; scipy's own values beyond its range
+    (|x| ≥ 32) and for an empty input."""
+    from raywave.hybrid.coherent import stop_edge as se
+
+    rng = np.random.default_rng(4747)
+    for lim, tol in ((8.0, 2e-15), (math.sqrt(2.0) * se.MAX_RIPPLE_ZONES, 5e-14)):
+        x = np.concatenate([rng.uniform(-lim, lim, 400_000), np.linspace(-lim * 0.999, lim * 0.999, 10_001)])
+        c_, s_ = se._fresnel_table_values(torch.from_numpy(x))
+        cr, sr = _scipy(x)
+        assert float(np.abs(c_.numpy() - cr).max()) <= tol and float(np.abs(s_.numpy() - sr).max()) <= tol
+    mp.mp.dps = 30
+    pts = rng.uniform(-7.1, 7.1, 40)
+    c_, s_ = se._fresnel_table_values(torch.from_numpy(pts))
+    for x, c, s in zip(pts, c_.tolist(), s_.tolist()):  # mpmath's fresnelc/fresnels: the same πt²/2 convention
+        assert abs(c - float(mp.fresnelc(mp.mpf(x)))) <= 3e-15 and abs(s - float(mp.fresnels(mp.mpf(x)))) <= 3e-15, x
+    # a value's integrals do not depend on the table the call picks (a batch of windows and each window alone)
+    x = torch.from_numpy(rng.uniform(-7.9, 7.9, 10_000))
+    one = se._fresnel_table_values(x)
+    wide = se._fresnel_table_values(torch.cat([x, torch.tensor([20.0, -31.0], dtype=torch.float64)]))
+    assert all(torch.equal(a, b[:x.numel()]) for a, b in zip(one, wide))
+    big = torch.tensor([-40.0, 0.5, 33.0], dtype=torch.float64)
+    c_, s_ = se._fresnel_table_values(big)
+    cr, sr = _scipy(big.numpy())
+    assert np.array_equal(c_.numpy(), cr) and np.array_equal(s_.numpy(), sr)
+    empty = torch.empty(0, dtype=torch.float64)
+    assert all(t.numel() == 0 for t in se._fresnel_table_values(empty))
 
 
 @pytest.mark.slow

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 
@@ -70,14 +71,80 @@ def _fresnel_threads(x):
     return c_, s_
 
 
-#: where the knife-edge factor's Fresnel integrals are evaluated on the CPU: "scipy" (:func:`_fresnel_threads`, cephes
-#: on the host) or "torch" (:func:`raywave.utils.fresnel.fresnel`, ~70 whole-array torch operations; on an
-#: accelerator always, with no device → host → device round trip). Measured A/B in one process
-#: (benchmarks/fresnel_ab.py, issue 47, 2026-11-30) on a 10×10×3 map's band values: torch 0.88× scipy's time on 1
-#: thread, but on 2 threads of a loaded machine 13–200× (each of its operations on ~80 k values is an OpenMP region
-#: that waits for the second thread to be scheduled; scipy's runs such arrays on one thread); PSFs ≤ 3.6e-16 rel L1
-#: apart. So the CPU keeps scipy
-FRESNEL_CPU = "scipy"
+#: where the knife-edge factor's Fresnel integrals are evaluated on the CPU: "table" (:func:`_fresnel_table_values`:
+#: quintic Hermite interpolation of scipy's values and their first two derivatives on a fine grid, ~1.5–3× faster than
+#: scipy, within 5e-16 of it on |x| ≤ 8 and 3.5e-14 on |x| ≤ 22.7, the widest band's), "scipy"
+#: (:func:`_fresnel_threads`, cephes on the host) or "torch" (:func:`raywave.utils.fresnel.fresnel`, ~70 whole-array
+#: torch operations; on an accelerator always, with no device → host → device round trip). Measured A/B in one
+#: process (benchmarks/fresnel_ab.py, issue 47, 2026-11-30) on a 10×10×3 map's band values: torch 0.88× scipy's time
+#: on 1 thread, but on 2 threads of a loaded machine 13–200× (each of its operations on ~80 k values is an OpenMP
+#: region that waits for the second thread to be scheduled; scipy's runs such arrays on one thread); PSFs ≤ 3.6e-16
+#: rel L1 apart. The table since issue 47's twelfth session (h47g; scipy's own cost is mostly its libm sin/cos)
+FRESNEL_CPU = "table"
+
+#: :func:`_fresnel_table`'s grid step: the quintic Hermite interpolation's error is ~h⁶/46080·max|f⁽⁶⁾|,
+#: |f⁽⁶⁾| ≈ (π|x|)⁵: ~1e-16 at |x| = 8, ~4e-14 at 22.7 (the band's largest |ν|, √2·:data:`MAX_RIPPLE_ZONES`); a
+#: cubic table as accurate needs 2⁻¹³ (8× the rows: it falls out of the cache between the envelope's blocks)
+FRESNEL_TABLE_STEP = 2.0**-10  # a power of two (:func:`_fresnel_table_values`' exact positions)
+#: :func:`_fresnel_table`'s smallest half-range (it doubles up to :data:`FRESNEL_TABLE_MAX`, beyond which
+#: :func:`_fresnel_table_values` takes scipy's values): 8 covers the default 5-zone band (|ν| ≤ 7.1)
+FRESNEL_TABLE_HALF = 8.0
+FRESNEL_TABLE_MAX = 32.0
+
+
+@functools.lru_cache(maxsize=4)
+def _fresnel_table(half: float) -> torch.Tensor:
+    """The quintic (Hermite) polynomials of ``(C, S)`` on each interval of the grid ``x_i = −half + i·h`` (h =
+    :data:`FRESNEL_TABLE_STEP`): float64 ``(12, n − 1)``, column i ``(c0 … c5, s0 … s5)`` with ``C(x_i + t·h) = Σ
+    c_j t^j`` for t in [0, 1], matching scipy's ``C``, ``S`` at both nodes and their exact first and second derivatives
+    (``C' = cos u``, ``S' = sin u``, ``C'' = −πx sin u``, ``S'' = πx cos u``, ``u = πx²/2``). A memo of a pure
+    function: built once per range (1.5 MB for ``half`` 8)."""
+    from scipy.special import fresnel
+
+    step = FRESNEL_TABLE_STEP
+    x = -half + step * np.arange(int(round(2 * half / step)) + 1)
+    s_, c_ = fresnel(x)
+    ph = 0.5 * np.pi * (x * x)  # x² exact on this grid
+    cos_, sin_ = np.cos(ph), np.sin(ph)
+    rows = []
+    for f, d1, d2 in ((c_, cos_, -np.pi * x * sin_), (s_, sin_, np.pi * x * cos_)):
+        f0, f1 = f[:-1], f[1:]
+        m0, m1 = step * d1[:-1], step * d1[1:]
+        q0, q1 = step * step * d2[:-1], step * step * d2[1:]
+        df = f1 - f0
+        rows += [f0, m0, 0.5 * q0,
+                 10.0 * df - 6.0 * m0 - 4.0 * m1 - 1.5 * q0 + 0.5 * q1,
+                 -15.0 * df + 8.0 * m0 + 7.0 * m1 + 1.5 * q0 - q1,
+                 6.0 * df - 3.0 * m0 - 3.0 * m1 - 0.5 * q0 + 0.5 * q1]
+    return torch.from_numpy(np.stack(rows, 0))
+
+
+def _fresnel_table_values(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Fresnel integrals ``(C, S)`` of ``v`` (float64, CPU, 1-D) from :func:`_fresnel_table` (one gather of each
+    value's interval's coefficients and two quintics: ~30 whole-array operations), or scipy's beyond |x| ≥
+    :data:`FRESNEL_TABLE_MAX`."""
+    if v.numel() == 0:
+        return v.clone(), v.clone()
+    top = float(v.abs().max())
+    if not top < FRESNEL_TABLE_MAX:  # (NaN too)
+        return tuple(torch.from_numpy(a) for a in _fresnel_threads(v.numpy()))
+    half = FRESNEL_TABLE_HALF
+    while top >= half:
+        half *= 2.0
+    tab = _fresnel_table(half)
+    # the position in steps, v/h, and its fraction t are exact (h a power of two): the same t, and so the same values
+    # bit for bit, whichever half-range's table a call uses (a batch of windows and each window alone)
+    pos = v * (1.0 / FRESNEL_TABLE_STEP)
+    i = pos.floor()
+    t = pos.sub_(i)
+    idx = i.long().add_(round(half / FRESNEL_TABLE_STEP)).clamp_(0, tab.shape[1] - 1)
+    out = []
+    for k in (0, 6):  # Horner, each coefficient gathered into a contiguous array (~2× faster than one gather of rows)
+        f = tab[k + 5].index_select(0, idx).mul_(t)
+        for j in (4, 3, 2, 1):
+            f.add_(tab[k + j].index_select(0, idx)).mul_(t)
+        out.append(f.add_(tab[k].index_select(0, idx)))
+    return out[0], out[1]
 
 
 def _fresnel_integrals(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -86,8 +153,10 @@ def _fresnel_integrals(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     v = v.detach()
     if devices.accelerator(v) or FRESNEL_CPU == "torch":
         return tuple(t.to(v.dtype) for t in fresnel_torch(v))
+    if FRESNEL_CPU == "table":
+        return tuple(t.to(v.dtype).reshape(v.shape) for t in _fresnel_table_values(v.to(torch.float64).reshape(-1)))
     if FRESNEL_CPU != "scipy":
-        raise ValueError(f"FRESNEL_CPU must be 'scipy' or 'torch', got {FRESNEL_CPU!r}")
+        raise ValueError(f"FRESNEL_CPU must be 'table', 'scipy' or 'torch', got {FRESNEL_CPU!r}")
     return tuple(torch.from_numpy(a).to(v.dtype) for a in _fresnel_threads(v.numpy()))
 
 
@@ -340,20 +409,27 @@ class _EdgeEnvelope(torch.autograd.Function):
         x.mul_(amp)  # polar's parts: cos·amp, sin·amp
         y.mul_(amp)
         re_out, im_out = torch.view_as_real(out).unbind(-1)
-        d_re = inside.to(x.dtype)
-        v = nu.masked_select(band)
-        if v.numel() == 0:
+        d_re = inside.to(x.dtype).contiguous()  # (written through a flat view below)
+        # the band's samples by their flat indices (row-major: masked_select's order), gathered and scattered back
+        # with index_select / index_copy_: the same values, ~half masked_select's and masked_scatter_'s time
+        idx = band.reshape(-1).nonzero().squeeze(1)
+        if idx.numel() == 0:
             torch.mul(x, d_re, out=re_out)
             torch.mul(y, d_re, out=im_out)
             return None
-        nb = nu_b.masked_select(band) if isinstance(nu_b, torch.Tensor) else nu_b
+
+        def take(t):
+            return t.expand(nu.shape).reshape(-1).index_select(0, idx)
+
+        v = take(nu)
+        nb = take(nu_b) if isinstance(nu_b, torch.Tensor) else nu_b
         if isinstance(nu_max, torch.Tensor):  # per-row constants (:func:`_band_masks`)
-            nu_max = nu_max.expand(nu.shape).masked_select(band)
+            nu_max = take(nu_max)
         fresnel = _fresnel_integrals(v)
-        re, im = _EdgeBand._values(v, None if kap is None else kap.detach().masked_select(band), nb, *fresnel, nu_max,
-                                   forward_edge)
-        d_re.masked_scatter_(band, re)
-        d_im = torch.zeros_like(x).masked_scatter_(band, im)
+        re, im = _EdgeBand._values(v, None if kap is None else take(kap.detach()), nb, *fresnel, nu_max, forward_edge)
+        d_re.view(-1).index_copy_(0, idx, re)
+        d_im = torch.zeros(x.shape, dtype=x.dtype, device=x.device)
+        d_im.view(-1).index_copy_(0, idx, im)
         torch.mul(x, d_re, out=re_out)
         re_out.sub_(y * d_im)
         torch.mul(y, d_re, out=im_out)

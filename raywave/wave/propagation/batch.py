@@ -361,15 +361,32 @@ def _band_values(params: tuple, fxc: torch.Tensor, fyr: torch.Tensor, weight_der
     w = arg.masked_fill_(~prop, 1.0).sqrt_()  # (n/λ)·cosθ; 1 on evanescent entries
     weight = prop.to(torch.float64)  # evanescent: exactly 0
     del prop
-    inv_w = w.reciprocal()
+    inv_w = _LineReciprocal(w)  # 1/w on the roll-off lines alone (the only place it is read)
     fac_x = _roll_off_lines(gxs, gys, (k, zf), inv_w, bx, weight, weight_derivative, -1)
     fac_y = _roll_off_lines(gys, gxs, (k, zf), inv_w, by, weight, weight_derivative, -2)
     del inv_w
-    phase = w.mul_(_TWO_PI * zf).add_(_TWO_PI * ((fxc * dx) + (fyr[:, None] * dy)))
-    band = polar(weight, phase)
-    del phase
+    # polar(weight, phase) with one band-sized temporary (the linear phase's, reused for the cosine) instead of
+    # four, the product in contiguous arrays: the same values bit for bit (issue 47: ~5 % of the map's transfer time)
+    lin = torch.add(fxc * dx, fyr[:, None] * dy)
+    phase = w.mul_(_TWO_PI * zf).add_(lin.mul_(_TWO_PI))
+    re = torch.cos(phase, out=lin).mul_(weight)
+    im = phase.sin_().mul_(weight)
+    del weight
+    band = torch.complex(re, im)
+    del re, im, phase
     rel = RollOffRel(tuple(band.shape), fac_x, fac_y, band.device) if weight_derivative else None
     return band, rel
+
+
+class _LineReciprocal:
+    """``1/w`` of a band ``w`` (B, R, C) evaluated on the lines :func:`_roll_off_lines` narrows it to (the same values
+    as ``w.reciprocal().narrow(...)``, without the band-sized reciprocal)."""
+
+    def __init__(self, w: torch.Tensor):
+        self.w = w
+
+    def narrow(self, dim: int, start: int, length: int) -> torch.Tensor:
+        return self.w.narrow(dim, start, length).reciprocal()
 
 
 def _own_band_values(params: tuple, freqs: tuple, weight_derivative: bool, geos: list | None = None) -> tuple:
