@@ -249,3 +249,19 @@ def test_batched_checks_warn_as_each_construction(monkeypatch):
         assert len(mine) >= 2
         assert [m for c, m in got if c is category and words in m] == mine
         assert got == ref
+
+
+def test_node_batch_cap_follows_the_device_memory(monkeypatch):
+    """The node-map batches are capped by the device's memory on CUDA (~1 kB a node at the peak), by
+    ``NODE_BATCH_SAMPLES`` elsewhere."""
+    from raywave.hybrid.coherent import accurate as A
+
+    assert A._node_batch_cap("cpu") == A.NODE_BATCH_SAMPLES
+
+    class Props:
+        total_memory = 16 * 2**30
+
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda dev: Props)
+    assert A._node_batch_cap("cuda:0") == 16 * 2**30 // 16384 < A.NODE_BATCH_SAMPLES
+    Props.total_memory = 141 * 2**30
+    assert A._node_batch_cap("cuda:0") == A.NODE_BATCH_SAMPLES

@@ -672,9 +672,19 @@ class _NodeMapRequest:
 NODE_BATCH_SAMPLES = 2**21
 
 
+def _node_batch_cap(device) -> int:
+    """Padded nodes a batch of :func:`_node_stage_batch` may span on ``device``: :data:`NODE_BATCH_SAMPLES`, on CUDA at
+    most a 16 384th of the device's memory in nodes (~1 kB a node at the peak: at most ~6 % of the memory; a 16 GB
+    GPU takes ~10⁶ nodes a batch, an H200 the full 2²¹)."""
+    dev = torch.device(device)
+    if dev.type != "cuda":
+        return NODE_BATCH_SAMPLES
+    return max(2**16, min(NODE_BATCH_SAMPLES, torch.cuda.get_device_properties(dev).total_memory // 16384))
+
+
 def _node_stages(reqs: list) -> list:
     """:func:`_node_stage` of every :class:`_NodeMapRequest` of ``reqs`` (one ``group_key``), in order. On an
-    accelerator (:func:`raywave.utils.devices.accelerator`) in padded batches of at most :data:`NODE_BATCH_SAMPLES`
+    accelerator (:func:`raywave.utils.devices.accelerator`) in padded batches of at most :func:`_node_batch_cap`
     nodes (:func:`_node_stage_batch`: a fixed number of kernels and two host reads per batch instead of ~480 ops
     and ~8 reads per construction), each construction's maps equal to its own call's to rounding; else one call
     each (the CPU: batched there, the padding and the rims' harmonics over every padded node make the stage 2.5×
@@ -682,7 +692,7 @@ def _node_stages(reqs: list) -> list:
     if len(reqs) < 2 or not devices.accelerator(reqs[0].nd.gx) or not RIM_FOURIER:
         return [r.run() for r in reqs]
     out: list = [None] * len(reqs)
-    for chunk in _field_chunks([(0, r.nd.ky, 0, r.nd.kx) for r in reqs], NODE_BATCH_SAMPLES):
+    for chunk in _field_chunks([(0, r.nd.ky, 0, r.nd.kx) for r in reqs], _node_batch_cap(reqs[0].nd.gx.device)):
         for j, res in zip(chunk, _node_stage_batch([reqs[j] for j in chunk])):
             out[j] = res
     return out
