@@ -15,7 +15,9 @@ forced: what an accelerator's per-construction path does); the CPU's banded prod
 by up to ~2e-12 of its peak (its phase k·φ, k ≈ 1.3e4 /mm, carries φ's rounding), in either path.
 """
 
+import sys
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -27,6 +29,9 @@ from raywave.assembly.build import load_hybrid
 from raywave.doe import Binary2DOE
 from raywave.hybrid import HybridLens
 from raywave.lens.build import bundled_lens_path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from loss_grads import loss_and_grads  # noqa: E402
 
 FIELDS = [(0.0, 0.0), (0.0, 6.0), (4.0, 3.0), (-7.0, -9.0)]
 WLS = [0.66, 0.47]
@@ -101,15 +106,7 @@ def test_batched_field_stage_against_the_cpu_path(asphere, monkeypatch):
 
 def _loss_grads(hl, batched: bool, monkeypatch):
     monkeypatch.setattr(acc, "BATCHED_FIELD_STAGE", batched)
-    params = [p for p in hl.doe.parameters() if p.requires_grad] + [hl.lens.surfaces[1].geometry.curvature]
-    hl.zero_grad()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        r = hl.psf_result(FIELDS[1:3], WLS, ks=24, rays=24)
-    w = torch.rand(r.psf.shape, dtype=r.psf.dtype, generator=torch.Generator().manual_seed(0))
-    loss = (r.psf * w).sum()
-    loss.backward()
-    return float(loss.detach()), [p.grad.detach().clone() for p in params]
+    return loss_and_grads(hl, FIELDS[1:3], WLS)
 
 
 @pytest.mark.parametrize("stop_edge", ["exit_pupil", "doe"])

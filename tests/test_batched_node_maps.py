@@ -38,6 +38,7 @@ from raywave.lens.build import bundled_lens_path, load_lens
 from raywave.surfaces.aperture import CircularAperture
 
 sys.path.insert(0, str(Path(__file__).parent))
+from loss_grads import loss_and_grads  # noqa: E402
 
 FIELDS = [(0.0, 0.0), (0.0, 6.0), (4.0, 3.0), (-7.0, -9.0)]
 WLS = [0.66, 0.47]
@@ -185,16 +186,9 @@ def _loss_grads(hl, batched: bool, monkeypatch):
     sizes = []
     monkeypatch.setattr(acc._NodeMapRequest, "run_group", staticmethod(
         (lambda reqs: sizes.append(len(reqs)) or real(reqs)) if batched else (lambda reqs: [r.run() for r in reqs])))
-    params = [p for p in hl.doe.parameters() if p.requires_grad] + [hl.lens.surfaces[1].geometry.curvature]
-    hl.zero_grad()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        r = hl.psf_result(FIELDS[1:3], WLS, ks=24, rays=24)
-    w = torch.rand(r.psf.shape, dtype=r.psf.dtype, generator=torch.Generator().manual_seed(0))
-    loss = (r.psf * w).sum()
-    loss.backward()
+    out = loss_and_grads(hl, FIELDS[1:3], WLS)
     assert not batched or max(sizes) > 1
-    return float(loss.detach()), [p.grad.detach().clone() for p in params]
+    return out
 
 
 @pytest.mark.parametrize("stop_edge_mode", ["exit_pupil", "doe"])
