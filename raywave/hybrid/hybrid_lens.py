@@ -629,7 +629,7 @@ class HybridLens(nn.Module):
         # the lit footprints and the DOE-aperture diagnostic (a mirror image's are its source's) of every built
         # field, from one aimed trace of both ray sets
         # the built sources' chief-ray aim, shared by their footprints, edge rays and stop grids (one aiming)
-        with warnings.catch_warnings():
+        with warnings.catch_warnings():  # vignetting is reported once, by the PSF (as footprints_and_clippings does)
             warnings.simplefilter("ignore", VignettingWarning)
             geo.aim = chief_aim(optics, ft, wls_t, depth=depth)
         boxes, geo.clips = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True,
