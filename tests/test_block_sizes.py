@@ -154,9 +154,12 @@ def test_planned_pixel_integration_equals_the_cpu_plan(refine):
     sharp = torch.exp(-(xx**2 + yy**2) / 2.0).to(torch.complex128)  # a PSF as sharp as the grid: refined
     u = torch.stack([torch.randn((ny, nx), dtype=torch.complex128, generator=g), sharp,
                      torch.exp(-(xx**2 + yy**2) / 60.0).to(torch.complex128)]).requires_grad_()
-    window = torch.rand((ny, nx), dtype=torch.float64, generator=g)
-    args = (4, 2e-3, (-0.04, -0.04), 3e-3, (0.0, 0.0), (16, 16))
+    window = 1.0 - 0.01 * torch.rand((ny, nx), dtype=torch.float64, generator=g)
+    args = (4, 2e-3, (-0.04, -0.04), 3e-3, (0.0, 0.0), (12, 12))
     want = integrated_upsampled_intensity(u, *args, window, refine=refine)
+    if refine:  # the sharp PSF takes the refined integral, the smooth one not
+        plain = integrated_upsampled_intensity(u, *args, window)
+        assert not torch.equal(want[1], plain[1]) and torch.equal(want[2], plain[2])
     plan = pixel_plan(upsampled_pixel_weights(u.shape[-2:], *args, device=u.device, refine=refine), window, u.dtype)
     got = integrated_intensity_planned(u, plan)
     assert got.shape == want.shape and plan.sets == (2 if refine else 1)

@@ -423,7 +423,15 @@ class _EdgeEnvelope(torch.autograd.Function):
             torch.mul(y, d_re, out=im_out)
             return None
 
+        row = None
+        if nu.ndim == 2 and isinstance(nu_b, torch.Tensor) and tuple(nu_b.shape) == (nu.shape[0], 1):
+            # per-row constants (:func:`_band_masks`): gathered by each band sample's row (not expanded to the
+            # block's size first: two block-sized copies less at the peak), the same values
+            row = torch.div(idx, nu.shape[1], rounding_mode="floor")
+
         def take(t):
+            if row is not None and t.shape[-1] == 1:
+                return t.reshape(-1).index_select(0, row)
             return t.expand(nu.shape).reshape(-1).index_select(0, idx)
 
         v = take(nu)

@@ -299,9 +299,11 @@ def _roll_off(shift: torch.Tensor, band, zf, weight: torch.Tensor, weight_deriva
 
 def _roll_off_whole(shift: torch.Tensor, band, weight: torch.Tensor) -> None:
     """:func:`_roll_off` without the weights' derivatives, in place with two band-sized temporaries (an accelerator's
-    whole band at once: its peak memory): the same operations on the same values (bit for bit)."""
-    lo, hi, taper = band
-    t = shift.sub_(0.5 * (lo + hi)).abs_().sub_(0.5 * (hi - lo)).clamp_(min=0.0).div_(taper).clamp_(max=1.0)
+    whole band at once: its peak memory): the same operations on the same values (bit for bit). ``band``: ``(lo, hi,
+    roll-off)``, or with the middle and half width ``0.5·(lo ± hi)`` as two more (host values: no op)."""
+    lo, hi, taper, *mid_half = band
+    mid, half = mid_half if mid_half else (0.5 * (lo + hi), 0.5 * (hi - lo))
+    t = shift.sub_(mid).abs_().sub_(half).clamp_(min=0.0).div_(taper).clamp_(max=1.0)
     q = t * 6.0
     q.sub_(15.0).mul_(t).add_(10.0)  # 10 + t·(6t − 15)
     s = t * t
@@ -359,8 +361,9 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
                          "window_transfer for the sharp band limit")
     my, mx = batch.fft_size()
     (px, py) = geos[0].pitch
-    k, zf, ax, ay, dx, dy, bxl, bxh, bxt, byl, byh, byt = _columns(
-        [[g.k, g.zf, g.carrier[0], g.carrier[1], g.shift[0], g.shift[1], *g.bx, *g.by] for g in geos], device)
+    k, zf, ax, ay, dx, dy, bxl, bxh, bxt, byl, byh, byt, *mid_half = _columns(
+        [[g.k, g.zf, g.carrier[0], g.carrier[1], g.shift[0], g.shift[1], *g.bx, *g.by, *_mid_half(g.bx),
+          *_mid_half(g.by)] for g in geos], device)
     kax, kay = k * ax, k * ay
     wave = torch.stack([k, kax, kay])
     b = len(geos)
@@ -370,8 +373,10 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
         cols, rows, fxc, fyr = (torch.tensor(v, device=device) for v in (cols, rows, fxc, fyr))
         if cols.numel() == 0 or rows.numel() == 0:
             return _empty_transfer(batch, (rows, cols), wave, weight_derivative, device)
-        band, rel = _band_values((k, zf, kax, kay, dx, dy, (bxl, bxh, bxt), (byl, byh, byt)), fxc, fyr,
-                                 weight_derivative)
+        bx, by = (bxl, bxh, bxt), (byl, byh, byt)
+        if not weight_derivative:  # each band's middle and half width from the host (for _roll_off_whole)
+            bx, by = bx + tuple(mid_half[:2]), by + tuple(mid_half[2:])
+        band, rel = _band_values((k, zf, kax, kay, dx, dy, bx, by), fxc, fyr, weight_derivative)
         return BatchTransfer((my, mx), rows, cols, band, rel, wave, (px, py), batch)
     fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=device)
     fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=device)
@@ -385,6 +390,12 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
         return BatchTransfer((my, mx), rows, cols, None, None, wave, (px, py), batch, parts)
     band, rel = _band_values(params, fx[cols], fy[rows], weight_derivative)
     return BatchTransfer((my, mx), rows, cols, band, rel, wave, (px, py), batch)
+
+
+def _mid_half(band: tuple) -> tuple[float, float]:
+    """``(middle, half width)`` of a band ``(lo, hi, roll-off)`` (host floats: :func:`_roll_off`'s arithmetic)."""
+    lo, hi, _ = band
+    return 0.5 * (lo + hi), 0.5 * (hi - lo)
 
 
 def _empty_transfer(batch: WindowBatch, lines: tuple, wave: torch.Tensor, weight_derivative: bool,
