@@ -76,6 +76,8 @@ def _assert_batch_equals_one_by_one(reqs: list) -> dict:
         if r is None:
             assert g is None
             continue
+        # the batch's maps also say where they lie in its padded stack (the field stage reads them from there)
+        assert isinstance(g.pop("batch"), acc._BatchedMaps)
         assert g.keys() == r.keys() == set(acc._FIELD_MAPS) & set(r)
         for k in r:
             if r[k] is None:

@@ -113,6 +113,14 @@ def test_transfer_per_source_on_a_cpu_equals_the_union_evaluation(monkeypatch):
         assert (union.rel is None and placed.rel is None) or torch.equal(union.rel.dense(union.band != 0), placed.rel)
         # every source has light on the band, and some of the union lies outside each source's own band
         assert all(bool((b != 0).any()) and bool((b == 0).any()) for b in placed.band)
+        # an accelerator's plan: the band's lines from host arithmetic, the roll-off on every line without the
+        # weights' derivatives: the same tensor bit for bit
+        monkeypatch.setattr(batch_mod.devices, "accelerator", lambda x: True)
+        accel = batch_transfer(wb, "cpu", wd)
+        monkeypatch.undo()
+        assert torch.equal(union.rows, accel.rows) and torch.equal(union.cols, accel.cols)
+        assert torch.equal(union.band, accel.band)
+        assert (union.rel is None and accel.rel is None) or torch.equal(union.rel.dense(), accel.rel.dense())
 
 
 def test_the_accelerator_plan_forced_on_a_cpu_keeps_the_psfs(asphere_psfs, monkeypatch):
@@ -130,3 +138,33 @@ def test_the_accelerator_plan_forced_on_a_cpu_keeps_the_psfs(asphere_psfs, monke
         got = hl.psf_result(FIELDS, [0.53], ks=32).psf
     rel = (got - ref).abs().sum((-2, -1)) / ref.abs().sum((-2, -1))
     assert float(rel.max()) < 1e-7
+
+
+@pytest.mark.parametrize("refine", [False, True])
+def test_planned_pixel_integration_equals_the_cpu_plan(refine):
+    """An accelerator's pixel integration (:func:`~raywave.wave.propagation.resample.integrated_intensity_planned`:
+    the weights, window and ramps laid out once per geometry, both weight sets from two batched products) equals
+    :func:`integrated_upsampled_intensity` to rounding, with its gradient; with ``refine`` for PSFs that do and do
+    not take the refined integral."""
+    from raywave.wave.propagation.resample import integrated_intensity_planned, pixel_plan
+
+    g = torch.Generator().manual_seed(2)
+    ny = nx = 41
+    yy, xx = torch.meshgrid(torch.arange(ny) - 20.0, torch.arange(nx) - 20.0, indexing="ij")
+    sharp = torch.exp(-(xx**2 + yy**2) / 2.0).to(torch.complex128)  # a PSF as sharp as the grid: refined
+    u = torch.stack([torch.randn((ny, nx), dtype=torch.complex128, generator=g), sharp,
+                     torch.exp(-(xx**2 + yy**2) / 60.0).to(torch.complex128)]).requires_grad_()
+    window = 1.0 - 0.01 * torch.rand((ny, nx), dtype=torch.float64, generator=g)
+    args = (4, 2e-3, (-0.04, -0.04), 3e-3, (0.0, 0.0), (12, 12))
+    want = integrated_upsampled_intensity(u, *args, window, refine=refine)
+    if refine:  # the sharp PSF takes the refined integral, the smooth one not
+        plain = integrated_upsampled_intensity(u, *args, window)
+        assert not torch.equal(want[1], plain[1]) and torch.equal(want[2], plain[2])
+    plan = pixel_plan(upsampled_pixel_weights(u.shape[-2:], *args, device=u.device, refine=refine), window, u.dtype)
+    got = integrated_intensity_planned(u, plan)
+    assert got.shape == want.shape and plan.sets == (2 if refine else 1)
+    assert float((got - want).detach().abs().max()) <= 1e-13 * float(want.detach().abs().max())
+    wt = torch.rand(want.shape, dtype=torch.float64, generator=g)
+    (gw,) = torch.autograd.grad((want * wt).sum(), u)
+    (gg,) = torch.autograd.grad((got * wt).sum(), u)
+    assert float((gg - gw).abs().max()) <= 1e-12 * float(gw.abs().max())

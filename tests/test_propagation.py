@@ -586,3 +586,31 @@ def test_band_convolution_field_by_field_equals_the_batch(monkeypatch):
             results.append((out.detach(), *torch.autograd.grad((out * w.conj()).real.sum(), (u, h))))
         for a, b in zip(*results):
             assert float((a - b).abs().max()) <= 1e-14 * float(b.abs().max())
+
+
+def test_band_convolution_on_an_accelerator_equals_the_cpu_plan(monkeypatch):
+    """An accelerator's band convolution (the band's rows and columns by indexed gathers and copies, the x transform
+    in one pass) equals the CPU's (slices of the runs, row blocks) to rounding: a batch, a shared transfer, column
+    chunks, and with autograd through the plain operations."""
+    import raywave.utils.devices as devices
+    import raywave.wave.propagation.band as W
+
+    g = torch.Generator().manual_seed(8)
+    rows, cols = torch.tensor([0, 1, 2, 5, 9, 14, 15]), torch.tensor([0, 3, 4, 7, 16, 17])
+    size, noy, nox = (16, 18), 6, 5
+    u0 = torch.randn(2, 3, 7, 9, dtype=C128, generator=g)
+    w = torch.randn(2, 3, noy, nox, dtype=C128, generator=g)
+    for h0 in (torch.randn(2, 3, 7, 6, dtype=C128, generator=g), torch.randn(7, 6, dtype=C128, generator=g)):
+        for limit in (2**60, 64):  # one block, then a block per column
+            results = []
+            for accel in (False, True):
+                monkeypatch.setattr(devices, "accelerator", lambda x, a=accel: a)
+                monkeypatch.setattr(W, "BAND_CHUNK_BYTES", limit)
+                monkeypatch.setattr(W, "BAND_CHUNK_BYTES_ACCELERATOR", limit)
+                with torch.no_grad():
+                    plain = W.convolve_band(u0, h0, size, rows, cols, noy, nox)
+                u, h = u0.clone().requires_grad_(), h0.clone().requires_grad_()
+                out = W.convolve_band(u, h, size, rows, cols, noy, nox)
+                results.append((plain, out.detach(), *torch.autograd.grad((out * w.conj()).real.sum(), (u, h))))
+            for a, b in zip(*results):
+                assert float((a - b).abs().max()) <= 1e-14 * float(b.abs().max())

@@ -29,6 +29,7 @@ from raywave.doe.base import has_zero_phase
 from raywave.utils import devices
 from raywave.utils.safe import safe_div
 from raywave.wave.propagation import integrated_upsampled_intensity, upsampled_pixel_weights
+from raywave.wave.propagation.resample import integrated_intensity_planned, pixel_plan
 from raywave.wave.propagation.batch import WindowBatch, WindowSource, batch_transfer, propagate_batch
 from raywave.wave.propagation.transfer import _geometry
 
@@ -244,11 +245,18 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
     (:meth:`raywave.doe.DOE.window_phasors`), cast to ``dtype``: ``(B, Ny, Nx)``; and each field's power ``(B,)``
     (∫|U|² dA, no autograd: a diagnostic)."""
     ny, nx = shape
-    # one zero-filled array, each envelope copied into its corner (autograd keeps the copies' gradients)
-    env = torch.zeros((len(batch), ny, nx), dtype=batch[0].fd.envelope.dtype, device=batch[0].fd.envelope.device)
-    for i, pl in enumerate(batch):
-        e = pl.fd.envelope
-        env[i, :e.shape[-2], :e.shape[-1]].copy_(e)
+    e0 = batch[0].fd.envelope
+    if devices.accelerator(e0):
+        # each envelope zero-padded at its end and the batch stacked: one op a source and one for the batch (the copy
+        # into slices of a zero-filled array dispatches four a source), the same values
+        env = torch.stack([torch.nn.functional.pad(e, (0, nx - e.shape[-1], 0, ny - e.shape[-2]))
+                           for e in (pl.fd.envelope for pl in batch)])
+    else:
+        # one zero-filled array, each envelope copied into its corner (autograd keeps the copies' gradients)
+        env = torch.zeros((len(batch), ny, nx), dtype=e0.dtype, device=e0.device)
+        for i, pl in enumerate(batch):
+            e = pl.fd.envelope
+            env[i, :e.shape[-2], :e.shape[-1]].copy_(e)
     p = batch[0].fd.pitch
     with torch.no_grad():
         power = torch.linalg.vector_norm(torch.view_as_real(env.detach()), dim=(-3, -2, -1)).square() * (p * p)
@@ -281,15 +289,22 @@ def sensor_psfs(out: torch.Tensor, kk: int, p: float, sensor: SensorWindow, powe
     rel = (ks // 2) * ps - kk * p  # every window's sample (0, 0) relative to its crop's pixel (0, 0) centre
     n = out.shape[-1]
 
-    def build():
-        return (upsampled_pixel_weights((out.shape[-2], n), sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks),
-                                        out.device, refine=True),
-                edge_taper(n, OUT_MARGIN - 2, out.device))
+    accel = devices.accelerator(out)
 
-    key = ("pixel_weights", tuple(out.shape[-2:]), kk, float(p), sensor, str(out.device))
+    def build():
+        w = upsampled_pixel_weights((out.shape[-2], n), sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks),
+                                    out.device, refine=True)
+        taper = edge_taper(n, OUT_MARGIN - 2, out.device)
+        # an accelerator: the weights, the taper and the upsampling's constants laid out for few ops (PixelPlan)
+        return (pixel_plan(w, taper, out.dtype), None) if accel else (w, taper)
+
+    key = ("pixel_weights", tuple(out.shape[-2:]), kk, float(p), sensor, str(out.device), accel, out.dtype)
     weights, taper = build() if memo is None else memo.cached(key, build)
-    crop = integrated_upsampled_intensity(out, sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks), taper, refine=True,
-                                          weights=weights)
+    if accel:
+        crop = integrated_intensity_planned(out, weights)
+    else:
+        crop = integrated_upsampled_intensity(out, sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks), taper,
+                                              refine=True, weights=weights)
     total = crop.sum((-2, -1))
     power = power.to(torch.float64)
     lit = power > 0
@@ -341,6 +356,8 @@ def _nbytes(v) -> int:
         return v.numel() * v.element_size()
     if isinstance(v, (tuple, list)):
         return sum(_nbytes(x) for x in v)
+    if hasattr(v, "__dataclass_fields__"):  # (a PixelPlan)
+        return sum(_nbytes(getattr(v, f)) for f in v.__dataclass_fields__)
     return 0
 
 

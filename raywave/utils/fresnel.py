@@ -92,9 +92,10 @@ def _coefficients(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
 def _horner(coef: torch.Tensor, s: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
     """``Σ coef[k]·sᵏ`` for a group of polynomials at once (``coef`` (K, R, 1), ``s`` (n,), ``out`` (R, n):
     returned), one fused multiply-add pass per term."""
-    torch.addcmul(coef[-2], s, coef[-1], out=out)
-    for k in range(coef.shape[0] - 3, -1, -1):
-        torch.addcmul(coef[k], out, s, out=out)
+    c = coef.unbind(0)  # the terms' views in one op (an index each would dispatch one op a term)
+    torch.addcmul(c[-2], s, c[-1], out=out)
+    for k in range(len(c) - 3, -1, -1):
+        torch.addcmul(c[k], out, s, out=out)
     return out
 
 

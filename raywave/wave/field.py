@@ -148,12 +148,16 @@ def _roll_modulation(n: int, device) -> torch.Tensor:
     return torch.polar(torch.ones(n, dtype=torch.float64, device=device), 2 * torch.pi * (n // 2) * k / n)
 
 
+def _half_sample_ramp(n: int, device) -> torch.Tensor:
+    """``e^{iπk/n}`` (n,) complex128: the spectrum's factor of a half-sample shift (:func:`_half_sample_shift`)."""
+    k = torch.arange(n, dtype=torch.float64, device=device)
+    return torch.polar(torch.ones(n, dtype=torch.float64, device=device), torch.pi * k / n)
+
+
 def _half_sample_shift(v: torch.Tensor, dim: int) -> torch.Tensor:
     """The band-limited interpolant of the rolled field ``v`` (see :func:`_roll_modulation`) half a sample along
     ``dim``: ``ifft(fft(v)·e^{iπk/n})`` — the odd samples of its 2× upsampling (the even ones are ``v``)."""
-    n = v.shape[dim]
-    k = torch.arange(n, dtype=torch.float64, device=v.device)
-    ramp = torch.polar(torch.ones(n, dtype=torch.float64, device=v.device), torch.pi * k / n).to(v.dtype)
+    ramp = _half_sample_ramp(v.shape[dim], v.device).to(v.dtype)
     if dim in (-2, v.ndim - 2):
         ramp = ramp[:, None]
     return torch.fft.ifft(torch.fft.fft(v, dim=dim) * ramp, dim=dim)

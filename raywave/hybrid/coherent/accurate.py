@@ -1032,7 +1032,8 @@ def _batch_answers(reqs: list, nb: _NodeBatch, maps: dict, checks: list, diffrac
     check = reqs[0].b.cfg.check
     names = ["phi_env", "amp2", "dist"] + (["other"] if maps["other"] is not None else []) \
         + (["nu", "nu_raw", "kappa"] if diffracting else [])
-    stack = torch.stack([maps[k] for k in names], 1).unbind(0)  # (C, KY, KX) views, one op for the batch
+    full = torch.stack([maps[k] for k in names], 1)  # (B, C, KY, KX)
+    stack = full.unbind(0)  # (C, KY, KX) views, one op for the batch
     rows = [[] for _ in reqs]
     if checks:  # host read 2: the Fresnel scales' maxima and the checks, with the fields they name
         fields = torch.stack([r.b.field for r in reqs])
@@ -1041,6 +1042,7 @@ def _batch_answers(reqs: list, nb: _NodeBatch, maps: dict, checks: list, diffrac
     for j, (r, row, (ky, kx)) in enumerate(zip(reqs, rows, nb.sizes)):
         m = dict(zip(names, stack[j][:, :ky, :kx].unbind(0)))
         m.setdefault("other", None)
+        m["batch"] = _BatchedMaps(full, j, tuple(names))  # the field stage's padded node maps (_padded_node_maps)
         if diffracting:
             m["nu_raw"] = m["nu_raw"].detach()
             m["g_max"] = row[0]
@@ -1321,6 +1323,16 @@ def _doe_coverage_batch(doe, oversample: int, starts: tuple, shape: tuple, dev):
     return (0.5 + (radius - r) / p).clamp(0.0, 1.0)
 
 
+@dataclass(frozen=True)
+class _BatchedMaps:
+    """Where a construction's node maps lie in the padded stack of its node-map batch (:func:`_batch_answers`):
+    ``full`` (B, C, KY, KX) (beyond a grid its nearest node's values), ``row`` its index, ``names`` the channels'."""
+
+    full: torch.Tensor
+    row: int
+    names: tuple
+
+
 def _padded_node_maps(reqs: list, diffracting: bool, has_other: bool):
     """The constructions' node maps zero-padded to common ``(KY, KX)``: ``(channels (C, B, KY, KX) in
     :func:`_fine_field`'s order (φ, amplitude, [distance], [other edges, ν, κ/g]), the keep source (B, KY, KX)
@@ -1330,17 +1342,38 @@ def _padded_node_maps(reqs: list, diffracting: bool, has_other: bool):
     names = ["phi_env", "amp2"] + ([] if diffracting else ["dist"]) + (["other"] if has_other else []) \
         + (["nu", "kappa"] if diffracting else [])
     keep = "nu_raw" if diffracting else "dist"
-    v = torch.stack([torch.nn.functional.pad(torch.stack([r.maps[n] for n in names] + [r.maps[keep].detach()]),
-                                             (0, kx_max - kx, 0, ky_max - ky)) for r, (ky, kx) in zip(reqs, ks)])
+    dev = reqs[0].nd.gx.device
+    kyt = torch.tensor([k[0] for k in ks], device=dev)[:, None, None]
+    kxt = torch.tensor([k[1] for k in ks], device=dev)[:, None, None]
+    valid = (torch.arange(ky_max, device=dev)[:, None] < kyt) & (torch.arange(kx_max, device=dev) < kxt)
+    v = _from_node_batch(reqs, names + [keep], (ky_max, kx_max), valid)
+    if v is None:  # each construction's maps stacked and zero-padded
+        v = torch.stack([torch.nn.functional.pad(torch.stack([r.maps[n] for n in names] + [r.maps[keep].detach()]),
+                                                 (0, kx_max - kx, 0, ky_max - ky)) for r, (ky, kx) in zip(reqs, ks)])
     ch = v.unbind(1)
     amp2 = ch[1]
     lit_amp = amp2 > 0  # (the zero padding: 0)
     amp = torch.where(lit_amp, safe_sqrt(amp2, lit_amp), torch.zeros_like(amp2))
-    dev = v.device
-    kyt = torch.tensor([k[0] for k in ks], device=dev)[:, None, None]
-    kxt = torch.tensor([k[1] for k in ks], device=dev)[:, None, None]
-    valid = (torch.arange(ky_max, device=dev)[:, None] < kyt) & (torch.arange(kx_max, device=dev) < kxt)
     return torch.stack([ch[0], amp, *ch[2:-1]]), ch[-1].detach(), valid
+
+
+def _from_node_batch(reqs: list, names: list, shape: tuple, valid: torch.Tensor):
+    """The channels ``names`` of the constructions ``reqs`` taken from the padded stack of
+    their node-map batch when they all come from one (:class:`_BatchedMaps`, an accelerator's): ``(B, C, KY, KX)``
+    (``shape`` = ``(KY, KX)``), zero beyond each grid (``valid`` (B, KY, KX) its own nodes): the values of each
+    construction's maps stacked and zero-padded, by a few ops for the batch instead of three a construction. None
+    where they do not."""
+    marks = [r.maps.get("batch") for r in reqs]
+    m0 = marks[0]
+    if m0 is None or any(m is None or m.full is not m0.full for m in marks):
+        return None
+    full = m0.full
+    ky, kx = shape
+    chan = torch.tensor([m0.names.index(n) for n in names], device=full.device)
+    rows = [m.row for m in marks]
+    v = full if rows == list(range(full.shape[0])) else full[torch.tensor(rows, device=full.device)]
+    v = v.index_select(1, chan)[:, :, :ky, :kx]  # (the last channel is read detached: _padded_node_maps)
+    return torch.where(valid[:, None], v, torch.zeros((), dtype=v.dtype, device=v.device))
 
 
 def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
@@ -1446,7 +1479,14 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
         env = edge_envelope(amp.reshape(shape2), angle.reshape(shape2), nu.reshape(shape2),
                             bs[0].z_doe - bs[0].cfg.stop_plane, rzr, gr, p,
                             kappa=ch[-1].reshape(shape2)).reshape(amp.shape)
-    for t, (e, j) in enumerate(zip(env.unbind(0), lit)):
+    # each construction's envelope a view of the batch's: without autograd one strided view each (one op, not three;
+    # an as_strided view's backward would allocate the whole batch per view)
+    strided = not env.requires_grad
+    rows = env.unbind(0) if not strided else [None] * len(lit)
+    (_, s1, s2), base = env.stride(), env.storage_offset()
+    for t, (e, j) in enumerate(zip(rows, lit)):
         _, a0, a1, b0, b1 = crops[j]
-        out[sel[j]] = e[:a1 - a0, :b1 - b0], (iy0[j] + a0, iy0[j] + a1, ix0[j] + b0, ix0[j] + b1)
+        e = torch.as_strided(env, (a1 - a0, b1 - b0), (s1, s2), base + t * env.stride(0)) if strided \
+            else e[:a1 - a0, :b1 - b0]
+        out[sel[j]] = e, (iy0[j] + a0, iy0[j] + a1, ix0[j] + b0, ix0[j] + b1)
     return out

@@ -322,9 +322,11 @@ ENVELOPE_BLOCK_ROWS = 64
 #: bundled asphere's single PSF (845 × 1040 samples) in 7 blocks instead of 2, a fifth of the page faults (30 k → 6 k
 #: per PSF, 42 → 24 ms of system time), the same values
 ENVELOPE_BLOCK_SAMPLES = 2**17
-#: :data:`ENVELOPE_BLOCK_SAMPLES` on an accelerator (CUDA: every op a kernel launch, memory aplenty; ~1.6 GB of
-#: temporaries): a map's windows are one block each
-ENVELOPE_BLOCK_SAMPLES_ACCELERATOR = 2**23
+#: :data:`ENVELOPE_BLOCK_SAMPLES` on an accelerator (CUDA: every op a kernel launch, memory aplenty; ~200 bytes of
+#: temporaries a sample, ~6 GB): a batch of the field stage's windows (:func:`~raywave.hybrid.coherent.accurate.
+#: _fine_field_batch`) in a few blocks (each ~170 dispatched ops); on a CUDA device at most a 2048th of its memory in
+#: samples (:func:`_block_rows`: ~10 % of it; 2²³ on 16 GB, today's size there)
+ENVELOPE_BLOCK_SAMPLES_ACCELERATOR = 2**25
 
 
 def _block_rows(nu: torch.Tensor) -> int:
@@ -332,6 +334,9 @@ def _block_rows(nu: torch.Tensor) -> int:
     :data:`ENVELOPE_BLOCK_ROWS`, as many as the device's block size (:data:`ENVELOPE_BLOCK_SAMPLES` on the CPU,
     :data:`ENVELOPE_BLOCK_SAMPLES_ACCELERATOR` elsewhere) allows. The values do not depend on it (elementwise)."""
     samples = ENVELOPE_BLOCK_SAMPLES_ACCELERATOR if devices.accelerator(nu) else ENVELOPE_BLOCK_SAMPLES
+    if nu.device.type == "cuda":
+        samples = max(ENVELOPE_BLOCK_SAMPLES, min(samples, torch.cuda.get_device_properties(nu.device).total_memory
+                                                  // 2048))
     return max(ENVELOPE_BLOCK_ROWS, samples // max(nu.shape[-1] if nu.ndim > 1 else 1, 1))
 
 
@@ -418,7 +423,15 @@ class _EdgeEnvelope(torch.autograd.Function):
             torch.mul(y, d_re, out=im_out)
             return None
 
+        row = None
+        if nu.ndim == 2 and isinstance(nu_b, torch.Tensor) and tuple(nu_b.shape) == (nu.shape[0], 1):
+            # per-row constants (:func:`_band_masks`): gathered by each band sample's row (not expanded to the
+            # block's size first: two block-sized copies less at the peak), the same values
+            row = torch.div(idx, nu.shape[1], rounding_mode="floor")
+
         def take(t):
+            if row is not None and t.shape[-1] == 1:
+                return t.reshape(-1).index_select(0, row)
             return t.expand(nu.shape).reshape(-1).index_select(0, idx)
 
         v = take(nu)

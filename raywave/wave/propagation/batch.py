@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from raywave.utils import devices
@@ -249,6 +250,26 @@ def _union_candidates(f: torch.Tensor, k, offset, zf, lo, hi, taper) -> torch.Te
     return torch.nonzero(((q > 0) & ok).any(0).reshape(-1)).squeeze(1)
 
 
+def _host_candidates(geos: list, m: int, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_union_candidates` of the sources ``geos`` (their host geometries) on one axis (``axis`` 0: x, the
+    columns; 1: y, the rows) of an ``m``-point FFT grid, in host arithmetic (numpy: the same IEEE operations in the
+    same order, so the same lines): ``(indices (K,) int64, their frequencies (K,) float64 cycles/mm)``. An
+    accelerator's plan (no kernels, no device→host read for the band's lines)."""
+    pitch = geos[0].pitch[axis]
+    f = np.fft.fftfreq(m, d=pitch)
+    col = np.array([[g.k, g.zf, g.carrier[axis], *(g.bx if axis == 0 else g.by)] for g in geos],
+                   dtype=np.float64)[:, :, None]
+    k, zf, a, lo, hi, taper = col.transpose(1, 0, 2)  # each (B, 1)
+    g = f[None, :] + k * a
+    q = k * k - g * g
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s1 = zf * g / np.sqrt(np.maximum(q, 1e-300))
+    at_zero = (lo - taper <= 0.0) & (0.0 <= hi + taper)
+    ok = np.where(s1 > 0, s1 <= hi + taper, np.where(s1 < 0, s1 >= lo - taper, at_zero))
+    idx = np.nonzero(((q > 0) & ok).any(0))[0].astype(np.int64)
+    return idx, f[idx]
+
+
 def _roll_off(shift: torch.Tensor, band, zf, weight: torch.Tensor, weight_derivative: bool):
     """The batched :func:`~raywave.wave.propagation.transfer._roll_off` of one axis: ``weight`` (B, R, C) multiplied
     in place by the quintic roll-off of the lateral shift ``shift`` (B, R, C) (mm, consumed) beyond ``[lo, hi]``
@@ -276,6 +297,19 @@ def _roll_off(shift: torch.Tensor, band, zf, weight: torch.Tensor, weight_deriva
     return factor
 
 
+def _roll_off_whole(shift: torch.Tensor, band, weight: torch.Tensor) -> None:
+    """:func:`_roll_off` without the weights' derivatives, in place with two band-sized temporaries (an accelerator's
+    whole band at once: its peak memory): the same operations on the same values (bit for bit). ``band``: ``(lo, hi,
+    roll-off)``, or with the middle and half width ``0.5·(lo ± hi)`` as two more (host values: no op)."""
+    lo, hi, taper, *mid_half = band
+    mid, half = mid_half if mid_half else (0.5 * (lo + hi), 0.5 * (hi - lo))
+    t = shift.sub_(mid).abs_().sub_(half).clamp_(min=0.0).div_(taper).clamp_(max=1.0)
+    q = t * 6.0
+    q.sub_(15.0).mul_(t).add_(10.0)  # 10 + t·(6t − 15)
+    s = t * t
+    weight.sub_(s.mul_(t).mul_(q).mul_(weight))  # W ← W − W·S(t), S(t) = t³·(10 + t·(6t − 15))
+
+
 def _ramp_lines(g, g_other, k, zf, band) -> torch.Tensor:
     """Indices of the band's lines (``g`` (B, 1, C) or (B, R, 1): one axis's physical frequencies; ``g_other`` the
     other's) where some source's lateral shift may leave its ``[lo, hi]`` (the batched
@@ -300,6 +334,11 @@ def _roll_off_lines(g, g_other, kz, inv_w, band, weight, weight_derivative: bool
     contiguous run of lines at a time (views). Returns the factors with ``weight_derivative`` (the runs of
     :class:`RollOffRel`: ``((a, b, ∂ log W/∂z, ∂ log W/∂s), …)`` on the lines ``a:b`` of ``dim``), else None."""
     k, zf = kz
+    if not weight_derivative and devices.accelerator(weight):
+        # an accelerator: every line at once (no line search, no host read, one set of kernels; the same values:
+        # elsewhere the factor is exactly 1)
+        _roll_off_whole(inv_w.whole().mul_(zf * g), band, weight)
+        return None
     runs = index_runs(_ramp_lines(g, g_other, k, zf, band))
     facs = [] if weight_derivative else None
     for a, b in runs:
@@ -322,25 +361,51 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
                          "window_transfer for the sharp band limit")
     my, mx = batch.fft_size()
     (px, py) = geos[0].pitch
-    k, zf, ax, ay, dx, dy, bxl, bxh, bxt, byl, byh, byt = _columns(
-        [[g.k, g.zf, g.carrier[0], g.carrier[1], g.shift[0], g.shift[1], *g.bx, *g.by] for g in geos], device)
-    fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=device)
-    fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=device)
+    k, zf, ax, ay, dx, dy, bxl, bxh, bxt, byl, byh, byt, *mid_half = _columns(
+        [[g.k, g.zf, g.carrier[0], g.carrier[1], g.shift[0], g.shift[1], *g.bx, *g.by, *_mid_half(g.bx),
+          *_mid_half(g.by)] for g in geos], device)
     kax, kay = k * ax, k * ay
     wave = torch.stack([k, kax, kay])
+    b = len(geos)
+    if devices.accelerator(device):
+        # an accelerator: the band's lines from host arithmetic (the same lines), one transfer each
+        (cols, fxc), (rows, fyr) = _host_candidates(geos, mx, 0), _host_candidates(geos, my, 1)
+        cols, rows, fxc, fyr = (torch.tensor(v, device=device) for v in (cols, rows, fxc, fyr))
+        if cols.numel() == 0 or rows.numel() == 0:
+            return _empty_transfer(batch, (rows, cols), wave, weight_derivative, device)
+        bx, by = (bxl, bxh, bxt), (byl, byh, byt)
+        if not weight_derivative:  # each band's middle and half width from the host (for _roll_off_whole)
+            bx, by = bx + tuple(mid_half[:2]), by + tuple(mid_half[2:])
+        band, rel = _band_values((k, zf, kax, kay, dx, dy, bx, by), fxc, fyr, weight_derivative)
+        return BatchTransfer((my, mx), rows, cols, band, rel, wave, (px, py), batch)
+    fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=device)
+    fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=device)
     cols = _union_candidates(fx, k, kax, zf, bxl, bxh, bxt)
     rows = _union_candidates(fy, k, kay, zf, byl, byh, byt)
-    b = len(geos)
     if cols.numel() == 0 or rows.numel() == 0:
-        empty = torch.zeros((b, rows.numel(), cols.numel()), dtype=torch.complex128, device=device)
-        rel = RollOffRel(tuple(empty.shape), (), (), empty.device) if weight_derivative else None
-        return BatchTransfer((my, mx), rows, cols, empty, rel, wave, (px, py), batch)
+        return _empty_transfer(batch, (rows, cols), wave, weight_derivative, device)
     params = (k, zf, kax, kay, dx, dy, (bxl, bxh, bxt), (byl, byh, byt))
     if _by_source(device, b):
         parts = _own_band_values(params, (fx, fy), weight_derivative, None if weight_derivative else geos)
         return BatchTransfer((my, mx), rows, cols, None, None, wave, (px, py), batch, parts)
     band, rel = _band_values(params, fx[cols], fy[rows], weight_derivative)
     return BatchTransfer((my, mx), rows, cols, band, rel, wave, (px, py), batch)
+
+
+def _mid_half(band: tuple) -> tuple[float, float]:
+    """``(middle, half width)`` of a band ``(lo, hi, roll-off)`` (host floats: :func:`_roll_off`'s arithmetic)."""
+    lo, hi, _ = band
+    return 0.5 * (lo + hi), 0.5 * (hi - lo)
+
+
+def _empty_transfer(batch: WindowBatch, lines: tuple, wave: torch.Tensor, weight_derivative: bool,
+                    device) -> BatchTransfer:
+    """:func:`batch_transfer` where no line of the band passes (``lines`` = ``(rows, cols)``, one of them empty)."""
+    geos = batch.geometries()
+    rows, cols = lines
+    empty = torch.zeros((len(geos), rows.numel(), cols.numel()), dtype=torch.complex128, device=device)
+    rel = RollOffRel(tuple(empty.shape), (), (), empty.device) if weight_derivative else None
+    return BatchTransfer(batch.fft_size(), rows, cols, empty, rel, wave, geos[0].pitch, batch)
 
 
 def _by_source(device, b: int) -> bool:
@@ -387,6 +452,9 @@ class _LineReciprocal:
 
     def narrow(self, dim: int, start: int, length: int) -> torch.Tensor:
         return self.w.narrow(dim, start, length).reciprocal()
+
+    def whole(self) -> torch.Tensor:
+        return self.w.reciprocal()
 
 
 def _own_band_values(params: tuple, freqs: tuple, weight_derivative: bool, geos: list | None = None) -> tuple:
@@ -676,14 +744,15 @@ def _propagate_flat(u: torch.Tensor, transfer: BatchTransfer, out_shape, shift: 
     columns outside a source's band hold zeros: the same values without their transforms)."""
     noy, nox = (int(s) for s in out_shape)
     b, dev = u.shape[0], u.device
-    zero = torch.zeros((b, 1, 1), dtype=torch.float64, device=dev)
-    sx, sy = (zero, zero) if shift is None else (s.reshape(b, 1, 1) for s in shift.to(torch.float64).unbind(-1))
-    dzt = torch.zeros((), dtype=torch.float64, device=dev) if dz is None else dz.reshape(()).to(torch.float64)
     perturbed = shift is not None or dz is not None
-    my, mx = transfer.size
-    px, py = transfer.pitch
-    fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=dev)
-    fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=dev)
+    if perturbed:  # (the perturbation's tensors: none without one)
+        zero = torch.zeros((b, 1, 1), dtype=torch.float64, device=dev)
+        sx, sy = (zero, zero) if shift is None else (s.reshape(b, 1, 1) for s in shift.to(torch.float64).unbind(-1))
+        dzt = torch.zeros((), dtype=torch.float64, device=dev) if dz is None else dz.reshape(()).to(torch.float64)
+        my, mx = transfer.size
+        px, py = transfer.pitch
+        fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=dev)
+        fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=dev)
     if transfer.parts is not None and per_field(u, (b,)):
         outs = []
         for i, part in enumerate(transfer.parts):
