@@ -242,7 +242,7 @@ class EvenAsphere(Standard):
     def frozen(self, ndim: int) -> "_FrozenPoly":
         """This asphere with its polynomial's terms taken once, for an iteration without autograd (call it under
         ``torch.no_grad``; :func:`newton_intersect`): the same values as the surface's own methods, fewer ops per
-        step; ``ndim``: the rays' dimensions)."""
+        step; ``ndim``: the rays' dimensions."""
         return _FrozenPoly(self, ndim)
 
     def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
