@@ -532,9 +532,12 @@ class HybridLens(nn.Module):
         state = self._lens_state_key()
         keys = [(state, float(wl)) for wl in wls]
         todo = list(dict.fromkeys(float(wl) for wl, k in zip(wls, keys) if k not in self._xp_memo))
+        # the wavelengths together unless exit_pupil_z is replaced (a subclass's or an instance's own): then its calls
+        own = getattr(self.exit_pupil_z, "__func__", None) is HybridLens.exit_pupil_z
+        zs = self._exit_pupil_zs(todo) if todo and own else [None] * len(todo)
         if todo:
-            for wl, z in zip(todo, self._exit_pupil_zs(todo)):
-                z = self._checked_pupil(z)
+            for wl, z in zip(todo, zs):
+                z = self._checked_pupil(z) if own else self.exit_pupil_z(wl)
                 if len(self._xp_memo) > 32:
                     self._xp_memo.clear()
                 self._xp_memo[(state, wl)] = z
