@@ -110,6 +110,8 @@ class Standard(Geometry):
         super().__init__()
         self.curvature = _param(curvature)
         self.conic = _param(conic)
+        # a 0-d 1 for the intersection's fills (a fill from a Python number or ones_like costs an op a use; issue 43)
+        self.register_buffer("_one", torch.ones((), dtype=torch.float64), persistent=False)
 
     def paraxial_curvature(self):
         return self.curvature
@@ -161,14 +163,15 @@ class Standard(Geometry):
         # share a sign (the usual case, and the plane limit a -> 0); where they do not (an origin far from the
         # vertex, e.g. on the other sheet of a hyperboloid) the quotient by a is the stable form. ``front``: s = +1 for
         # every ray (the crossing from the front side, a ray travelling backward onto a front surface included).
-        root = safe_sqrt(disc, ok, fill=1.0)
+        one = self._one
+        root = torch.sqrt(torch.where(ok, disc, one))  # safe_sqrt(disc, ok, fill=1.0)
         sroot = root if front else torch.where(dz < 0, -root, root)
         den = sroot - b
         by_a = (b * sroot > 0) & (a != 0)  # -b and s·root of opposite signs: den cancels
         ok = ok & ((den != 0) | by_a)
         by_a = by_a & ok
-        t = cc / torch.where(ok & ~by_a, den, torch.ones_like(den))
-        t = torch.where(by_a, (-b - sroot) / torch.where(by_a, a, torch.ones_like(a)), t)
+        t = cc / torch.where(ok & ~by_a, den, one)
+        t = torch.where(by_a, (-b - sroot) / torch.where(by_a, a, one), t)
         # Keep the branch through the vertex (excludes the far half of a sphere / other hyperbola sheet).
         ok = ok & (kp1 * c * (oz + t * dz) <= 1.0)
         return t, ok
@@ -266,7 +269,7 @@ class _FrozenPoly:
         self.pairs = pairs.reshape((2, n) + (1,) * ndim).unbind(1)
         c, k = geom.curvature, geom.conic
         self.q = (1.0 + k) * c * c  # the conic's (1 + k)·c², as its sag and slope form it (the same rounding)
-        self.one = c.new_ones(())  # a 0-d fill (a Python number costs an accelerator a scalar tensor a use)
+        self.one = geom._one  # a 0-d fill (a Python number or ones_like costs an op a use)
         self.rays = None  # the rays' (x, y) origins and directions as (2, ...) pairs, once per intersection
 
     def _arg(self, r2):
