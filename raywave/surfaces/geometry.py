@@ -135,13 +135,13 @@ class Standard(Geometry):
         """The conic's sag at ``r2 = x² + y²`` (mm²)."""
         c, k = self.curvature, self.conic
         arg = 1.0 - (1.0 + k) * c * c * r2
-        return c * r2 / (1.0 + safe_sqrt(arg, arg >= 0, fill=1.0))
+        return c * r2 / (1.0 + torch.sqrt(torch.where(arg >= 0, arg, self._one)))  # safe_sqrt, a 0-d fill
 
     def _conic_slope(self, r2):
         """``s`` with the conic's sag gradient ``(s·x, s·y)`` at ``r2 = x² + y²`` (1/mm)."""
         c, k = self.curvature, self.conic
         arg = 1.0 - (1.0 + k) * c * c * r2
-        return c / safe_sqrt(arg, arg > 0, fill=1.0)
+        return c / torch.sqrt(torch.where(arg > 0, arg, self._one))  # safe_sqrt, a 0-d fill
 
     def normal(self, x, y, z):
         # Gradient of the implicit form c(x²+y²) + c(1+k) z² - 2z = 0: no square root needed.
@@ -288,7 +288,7 @@ class _FrozenPoly:
     def sag(self, x, y):
         r2 = x * x + y * y
         c, arg = self.geom.curvature, self._arg(r2)
-        return c * r2 / (1.0 + safe_sqrt(arg, arg >= 0, fill=1.0)) + self._poly(r2)[0]
+        return c * r2 / (1.0 + torch.sqrt(torch.where(arg >= 0, arg, self.one))) + self._poly(r2)[0]
 
     def sag_and_gradient(self, x, y):
         sag, g, _ = self._at(torch.stack(torch.broadcast_tensors(x, y)))
