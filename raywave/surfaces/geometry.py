@@ -89,12 +89,13 @@ class Plane(Geometry):
 
     def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
         ok = dz != 0
-        t = -oz / torch.where(ok, dz, torch.ones_like(dz))
+        t = -oz / torch.where(ok, dz, self._one)
         return t, ok
 
     def __init__(self):
         super().__init__()
         self.register_buffer("_zero", torch.zeros((), dtype=torch.float64), persistent=False)
+        self.register_buffer("_one", torch.ones((), dtype=torch.float64), persistent=False)  # intersect's fill
 
     def paraxial_curvature(self):
         return self._zero
@@ -372,7 +373,8 @@ def newton_intersect(geom: Geometry, start, ox, oy, oz, dx, dy, dz):
     grad = torch.is_grad_enabled()
     t0, ok0 = start
     with torch.no_grad():
-        plane_t = -oz / torch.where(dz != 0, dz, torch.ones_like(dz))
+        one = getattr(geom, "_one", None)  # a 0-d fill where the shape has one (a conic's)
+        plane_t = -oz / torch.where(dz != 0, dz, torch.ones_like(dz) if one is None else one)
         t = torch.where(ok0, t0, plane_t).detach()
         args = [a.detach() for a in (ox, oy, oz, dx, dy, dz)]
         # the iteration's constants taken once (an even asphere's frozen form), else the shape's own methods
