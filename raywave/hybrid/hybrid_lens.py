@@ -468,6 +468,21 @@ class HybridLens(nn.Module):
         from raywave.lens.sources import chief_ray
 
         wl = self.lens.primary_wavelength if wavelength is None else float(wavelength)
+        return self._checked_pupil(self._exit_pupil_zs([wl])[0])
+
+    def _checked_pupil(self, z: float) -> float:
+        """``z`` (an exit pupil's z, mm), or :class:`_PupilAtInfinity` where it lies at or near infinity."""
+        if not math.isfinite(z) or abs(z - self.doe_z()) > 1e3:
+            raise _PupilAtInfinity(f"stop_edge='exit_pupil': the lens's exit pupil lies at z = {z:g} mm (at or near "
+                             "infinity: image-space telecentric), where no field can be built; use stop_edge='doe'")
+        return z
+
+    def _exit_pupil_zs(self, wls: list) -> list:
+        """:meth:`exit_pupil_z`'s z (mm) at each wavelength of ``wls`` (µm), unchecked (inf or NaN where it fails):
+        on a lens in its own frame, the wavelengths' chief rays aimed and traced together (issue 43: one aiming, one
+        trace and one host read, not one each per wavelength; every ray is traced on its own)."""
+        from raywave.lens.sources import chief_ray
+
         # the exit pupil is the stop's image by the lens behind it: it does not depend on the object, so the
         # ray comes from a distant object at a small angle whatever the lens's field type and object distance
         # (object-height fields cannot describe a distant object)
@@ -479,12 +494,16 @@ class HybridLens(nn.Module):
             warnings.simplefilter("ignore", VignettingWarning)  # a locating ray (apertures off); the PSF reports
             optics = self.optics
             if optics is self.lens:
-                ray = chief_ray(self.lens, (0.0, angle), wl, field_type="angle", depth=math.inf)
+                ray = chief_ray(self.lens, (0.0, angle), list(wls), field_type="angle", depth=math.inf)  # (1, W, 1)
                 out = self.lens.trace(ray, apertures=False)
-                o, d = out.o.reshape(-1)[:3], out.d.reshape(-1)[:3]
-                ok = bool(out.valid.all()) and abs(float(d[1])) > 1e-15
-                z = float(o[2] - o[1] * d[2] / d[1]) if ok else float(exit_pupil(self.lens, wl)[0])
-            else:  # image-space frame: where the small field's chief ray meets the axial chief ray (closest approach)
+                o, d = out.o.reshape(-1, 3), out.d.reshape(-1, 3)
+                ok = out.valid.reshape(len(wls), -1).all(-1)
+                rows = torch.cat([o[:, 1:], d[:, 1:], ok[:, None].to(o.dtype)], 1).tolist()  # one host read
+                # z = o_z − o_y·d_z/d_y in the same float64 operations as on 0-d tensors
+                return [oz - oy * dz / dy if good == 1.0 and abs(dy) > 1e-15 else float(exit_pupil(self.lens, wl)[0])
+                        for (oy, oz, dy, dz, good), wl in zip(rows, wls)]
+            zs = []
+            for wl in wls:  # image-space frame: where the small field's chief ray meets the axial chief ray
                 rays = chief_ray(self.lens, [(0.0, 0.0), (0.0, angle)], wl, field_type="angle", depth=math.inf)
                 out = optics.trace(rays, apertures=False)
                 o, d = out.o.reshape(2, 3), out.d.reshape(2, 3)
@@ -493,11 +512,8 @@ class HybridLens(nn.Module):
                 u = d[1] - (d[1] @ d[0]) * d[0]
                 uu = float(u @ u)
                 ok = bool(out.valid.all()) and uu > 1e-30
-                z = float(o[1, 2] - d[1, 2] * (w_perp @ u) / uu) if ok else math.nan
-        if not math.isfinite(z) or abs(z - self.doe_z()) > 1e3:
-            raise _PupilAtInfinity(f"stop_edge='exit_pupil': the lens's exit pupil lies at z = {z:g} mm (at or near "
-                             "infinity: image-space telecentric), where no field can be built; use stop_edge='doe'")
-        return z
+                zs.append(float(o[1, 2] - d[1, 2] * (w_perp @ u) / uu) if ok else math.nan)
+            return zs
 
     def _lens_state_key(self) -> tuple:
         """What identifies the refractive lens's current numbers without reading them: each state tensor's storage,
@@ -509,17 +525,23 @@ class HybridLens(nn.Module):
         return (id(lens), state, lens.field_type, tuple(getattr(lens, "fields", []) or ()), lens.primary_wavelength,
                 getattr(lens, "stop_index", None), tuple(id(m) for m in lens.modules()))
 
-    def _exit_pupil_memo(self, wavelength: float) -> float:
-        """:meth:`exit_pupil_z`, memoised per wavelength while the lens's state is unchanged (a map's calls, a
-        training loop with a frozen lens: one chief-ray trace per wavelength instead of one per call)."""
-        key = (self._lens_state_key(), float(wavelength))
-        hit = self._xp_memo.get(key)
-        if hit is None:
-            hit = self.exit_pupil_z(wavelength)
-            if len(self._xp_memo) > 32:
-                self._xp_memo.clear()
-            self._xp_memo[key] = hit
-        return hit
+    def _exit_pupil_memo(self, wls: list) -> list:
+        """:meth:`exit_pupil_z` at each wavelength of ``wls`` (µm), memoised per wavelength while the lens's state is
+        unchanged (a map's calls, a training loop with a frozen lens: one chief-ray trace per wavelength instead of one
+        per call; the missing wavelengths' together, :meth:`_exit_pupil_zs`)."""
+        state = self._lens_state_key()
+        keys = [(state, float(wl)) for wl in wls]
+        todo = list(dict.fromkeys(float(wl) for wl, k in zip(wls, keys) if k not in self._xp_memo))
+        # the wavelengths together unless exit_pupil_z is replaced (a subclass's or an instance's own): then its calls
+        own = getattr(self.exit_pupil_z, "__func__", None) is HybridLens.exit_pupil_z
+        zs = self._exit_pupil_zs(todo) if todo and own else [None] * len(todo)
+        if todo:
+            for wl, z in zip(todo, zs):
+                z = self._checked_pupil(z) if own else self.exit_pupil_z(wl)
+                if len(self._xp_memo) > 32:
+                    self._xp_memo.clear()
+                self._xp_memo[(state, wl)] = z
+        return [self._xp_memo[k] for k in keys]
 
     def _exit_pupil_planes(self, wls: list[float]) -> list[float] | None:
         """z (mm) of every wavelength's exit-pupil plane when the accurate field forms the stop's edge there, else
@@ -537,7 +559,7 @@ class HybridLens(nn.Module):
                           "default exit pupil", StopEdgeWarning, stacklevel=4)
             return None
         try:
-            return [self._exit_pupil_memo(wl) for wl in wls]
+            return self._exit_pupil_memo(wls)
         except _PupilAtInfinity:
             if self._edge_requested is not None:
                 raise

@@ -439,7 +439,7 @@ class Lens(nn.Module):
         wl = rays.wavelength
         mirrors = self.has_mirrors
         n_all = self.indices(wl, (start, stop)) if n_all is None else n_all
-        zs = self.vertex_z().to(rays.dtype)
+        zs = self.vertex_z().to(rays.dtype).unbind()  # each vertex's z as a 0-d view, from one op (not a select a use)
         signs = self.direction_signs() if mirrors else None
         x, y, z = rays.o.unbind(-1)
         dx, dy, dz = rays.d.unbind(-1)
@@ -475,7 +475,7 @@ class Lens(nn.Module):
             if zero is None:  # 0-d constants once per trace (a Python number costs a scalar tensor per use)
                 zero, one = x.new_zeros(()), x.new_ones(())
             x, y = torch.where(valid, x, zero), torch.where(valid, y, zero)
-            z = torch.where(valid, z, zs[i].expand_as(z))
+            z = torch.where(valid, z, zs[i])  # (the 0-d z broadcasts)
             opl = torch.where(valid, opl, zero)
             dx, dy, dz = torch.where(valid, dx, zero), torch.where(valid, dy, zero), torch.where(valid, dz, one)
             if record:

@@ -89,12 +89,13 @@ class Plane(Geometry):
 
     def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
         ok = dz != 0
-        t = -oz / torch.where(ok, dz, torch.ones_like(dz))
+        t = -oz / torch.where(ok, dz, self._one)
         return t, ok
 
     def __init__(self):
         super().__init__()
         self.register_buffer("_zero", torch.zeros((), dtype=torch.float64), persistent=False)
+        self.register_buffer("_one", torch.ones((), dtype=torch.float64), persistent=False)  # intersect's fill
 
     def paraxial_curvature(self):
         return self._zero
@@ -110,6 +111,8 @@ class Standard(Geometry):
         super().__init__()
         self.curvature = _param(curvature)
         self.conic = _param(conic)
+        # a 0-d 1 for the intersection's fills (a fill from a Python number or ones_like costs an op a use; issue 43)
+        self.register_buffer("_one", torch.ones((), dtype=torch.float64), persistent=False)
 
     def paraxial_curvature(self):
         return self.curvature
@@ -133,13 +136,13 @@ class Standard(Geometry):
         """The conic's sag at ``r2 = x² + y²`` (mm²)."""
         c, k = self.curvature, self.conic
         arg = 1.0 - (1.0 + k) * c * c * r2
-        return c * r2 / (1.0 + safe_sqrt(arg, arg >= 0, fill=1.0))
+        return c * r2 / (1.0 + torch.sqrt(torch.where(arg >= 0, arg, self._one)))  # safe_sqrt, a 0-d fill
 
     def _conic_slope(self, r2):
         """``s`` with the conic's sag gradient ``(s·x, s·y)`` at ``r2 = x² + y²`` (1/mm)."""
         c, k = self.curvature, self.conic
         arg = 1.0 - (1.0 + k) * c * c * r2
-        return c / safe_sqrt(arg, arg > 0, fill=1.0)
+        return c / torch.sqrt(torch.where(arg > 0, arg, self._one))  # safe_sqrt, a 0-d fill
 
     def normal(self, x, y, z):
         # Gradient of the implicit form c(x²+y²) + c(1+k) z² - 2z = 0: no square root needed.
@@ -161,14 +164,15 @@ class Standard(Geometry):
         # share a sign (the usual case, and the plane limit a -> 0); where they do not (an origin far from the
         # vertex, e.g. on the other sheet of a hyperboloid) the quotient by a is the stable form. ``front``: s = +1 for
         # every ray (the crossing from the front side, a ray travelling backward onto a front surface included).
-        root = safe_sqrt(disc, ok, fill=1.0)
+        one = self._one
+        root = torch.sqrt(torch.where(ok, disc, one))  # safe_sqrt(disc, ok, fill=1.0)
         sroot = root if front else torch.where(dz < 0, -root, root)
         den = sroot - b
         by_a = (b * sroot > 0) & (a != 0)  # -b and s·root of opposite signs: den cancels
         ok = ok & ((den != 0) | by_a)
         by_a = by_a & ok
-        t = cc / torch.where(ok & ~by_a, den, torch.ones_like(den))
-        t = torch.where(by_a, (-b - sroot) / torch.where(by_a, a, torch.ones_like(a)), t)
+        t = cc / torch.where(ok & ~by_a, den, one)
+        t = torch.where(by_a, (-b - sroot) / torch.where(by_a, a, one), t)
         # Keep the branch through the vertex (excludes the far half of a sphere / other hyperbola sheet).
         ok = ok & (kp1 * c * (oz + t * dz) <= 1.0)
         return t, ok
@@ -239,44 +243,97 @@ class EvenAsphere(Standard):
     def normal(self, x, y, z):
         return Geometry.normal(self, x, y, z)
 
-    def frozen(self) -> "_FrozenPoly":
+    def frozen(self, ndim: int) -> "_FrozenPoly":
         """This asphere with its polynomial's terms taken once, for an iteration without autograd (call it under
         ``torch.no_grad``; :func:`newton_intersect`): the same values as the surface's own methods, fewer ops per
-        step."""
-        return _FrozenPoly(self, self._poly_terms())
+        step; ``ndim``: the rays' dimensions."""
+        return _FrozenPoly(self, ndim)
 
     def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
         return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz, front), ox, oy, oz, dx, dy, dz)
 
 
 class _FrozenPoly:
-    """An :class:`EvenAsphere` whose polynomial terms are taken once (:meth:`EvenAsphere.frozen`): ``sag``,
-    ``sag_and_gradient`` and ``in_domain`` as the surface's own."""
+    """An :class:`EvenAsphere` whose constants are taken once (:meth:`EvenAsphere.frozen`), for a Newton iteration
+    without autograd: ``sag``, ``sag_and_gradient`` and ``in_domain`` with the surface's own values, in fewer ops
+    (issue 43): the polynomial and its slope by one Horner's rule on (2, ...) pairs, the point and the gradient's x
+    and y as pairs too (every element the same op on the same numbers: the same values). (Not ``addcmul``: its
+    vectorised CPU kernel fuses the product and the sum, other values.) ``ndim``: the rays' dimensions."""
 
-    def __init__(self, geom, terms: tuple):
-        self.geom, self.terms = geom, terms
+    def __init__(self, geom, ndim: int):
+        self.geom = geom
+        a = geom.coefficients
+        n = a.shape[0]
+        # (a_i, 2·(i + 1)·a_i) pairs: the slope terms (i + 1)·a_i doubled (exact: a power of two), so that the
+        # gradient's 2·Σ (i + 1) a_i r^(2i) comes out of Horner's rule directly; shaped to broadcast with the rays
+        pairs = torch.stack([a, a * torch.arange(2, 2 * n + 1, 2, dtype=a.dtype, device=a.device)])
+        self.pairs = pairs.reshape((2, n) + (1,) * ndim).unbind(1)
         c, k = geom.curvature, geom.conic
         self.q = (1.0 + k) * c * c  # the conic's (1 + k)·c², as its sag and slope form it (the same rounding)
+        self.one = geom._one  # a 0-d fill (a Python number or ones_like costs an op a use)
+        self.rays = None  # the rays' (x, y) origins and directions as (2, ...) pairs, once per intersection
 
     def _arg(self, r2):
         return 1.0 - self.q * r2
 
+    def _poly(self, r2):
+        """(Σ a_{2i} r^{2i}, 2·d/d(r²) of it): :meth:`EvenAsphere._poly`'s values (the second doubled)."""
+        p = self.pairs
+        n = len(p)
+        v = torch.zeros_like(r2) + p[0] if n == 1 else r2 * p[n - 1] + p[n - 2]
+        for i in range(n - 3, -1, -1):
+            v = v * r2 + p[i]
+        val, der2 = v.unbind(0)
+        return val * r2, der2
+
     def sag(self, x, y):
         r2 = x * x + y * y
         c, arg = self.geom.curvature, self._arg(r2)
-        return c * r2 / (1.0 + safe_sqrt(arg, arg >= 0, fill=1.0)) + self.geom._poly(r2, self.terms)[0]
+        return c * r2 / (1.0 + torch.sqrt(torch.where(arg >= 0, arg, self.one))) + self._poly(r2)[0]
 
     def sag_and_gradient(self, x, y):
-        # EvenAsphere.sag_and_gradient with the conic's square-root argument formed once for its sag and slope
+        sag, g, _ = self._at(torch.stack(torch.broadcast_tensors(x, y)))
+        return sag, g.unbind(0)
+
+    def _at(self, xy):
+        """``(sag, (dz/dx, dz/dy) as a (2, ...) pair, in_domain)`` at the points ``xy`` (2, ...):
+        :meth:`EvenAsphere.sag_and_gradient`'s values and :meth:`Standard.in_domain`'s mask (the conic's
+        ``(1 + k)·c²·r²`` is the same product), the conic's square root taken once for the sag and the slope (the
+        slope's ``arg > 0`` takes the root where the sag's ``arg >= 0`` does, 1 where ``arg = 0``: the same
+        values)."""
+        x, y = xy.unbind(0)
         r2 = x * x + y * y
-        poly, der = self.geom._poly(r2, self.terms)
+        poly, der2 = self._poly(r2)
         c, arg = self.geom.curvature, self._arg(r2)
-        s = c / safe_sqrt(arg, arg > 0, fill=1.0)
-        sag = c * r2 / (1.0 + safe_sqrt(arg, arg >= 0, fill=1.0))
-        return sag + poly, (s * x + 2.0 * der * x, s * y + 2.0 * der * y)
+        dom = arg >= 0
+        root = torch.sqrt(torch.where(dom, arg, self.one))
+        s = c / torch.where(arg > 0, root, self.one)
+        sag = c * r2 / (1.0 + root)
+        return sag + poly, s * xy + der2 * xy, dom
 
     def in_domain(self, x, y):
         return self.geom.in_domain(x, y)
+
+    def step(self, t, args: list):
+        """``(t − f/f', f, f' usable, in_domain)`` at ``t``: :func:`_newton_step`'s values (``t − f/f'`` as one
+        ``addcdiv``: the quotient rounded, then the difference, as two ops round them), and the domain mask at the
+        ray's point (``args``: the ray's ``(ox, oy, oz, dx, dy, dz)``)."""
+        ox, oy, oz, dx, dy, dz = args
+        if not all(v.shape == t.shape for v in (ox, oy, dx, dy)):  # broadcast rays: the components one by one
+            x, y = ox + t * dx, oy + t * dy
+            sag, (zx, zy) = self.sag_and_gradient(x, y)
+            dom = self.in_domain(x, y)
+            fp = dz - zx * dx - zy * dy
+        else:
+            if self.rays is None:
+                self.rays = torch.stack([ox, oy]), torch.stack([dx, dy])
+            o2, d2 = self.rays
+            sag, g, dom = self._at(o2 + t * d2)
+            gx, gy = (g * d2).unbind(0)
+            fp = dz - gx - gy
+        f = oz + t * dz - sag
+        okp = fp.abs() > 1e-12
+        return torch.addcdiv(t, f, torch.where(okp, fp, self.one), value=-1.0), f, okp, dom  # t − f/f'
 
 
 def _newton_step(geom, t, ox, oy, oz, dx, dy, dz):
@@ -288,27 +345,49 @@ def _newton_step(geom, t, ox, oy, oz, dx, dy, dz):
     return t - f / torch.where(okp, fp, torch.ones_like(fp)), f, okp
 
 
+class _Plain:
+    """A shape without a frozen form seen as one (:meth:`_FrozenPoly.step`): its own methods, fills and mask."""
+
+    def __init__(self, geom, like):
+        self.geom, self.one = geom, like.new_ones(())
+
+    def sag(self, x, y):
+        return self.geom.sag(x, y)
+
+    def in_domain(self, x, y):
+        return self.geom.in_domain(x, y)
+
+    def step(self, t, args: list):
+        return (*_newton_step(self.geom, t, *args), None)
+
+
 def newton_intersect(geom: Geometry, start, ox, oy, oz, dx, dy, dz):
     """Ray parameter ``t`` and validity where o + t·d meets ``geom`` (any sag with a gradient), by Newton's method.
 
     ``start``: (t0, ok0), a first guess (e.g. the base conic's intersection; the vertex plane where ok0 is
     False). The iteration runs without autograd; one differentiable Newton step from the converged point then
     gives the implicit-function gradient exactly. Rays whose residual stays above 1e-9 mm, or that land outside
-    the sag's domain, are invalid (t = 0).
+    the sag's domain, are invalid (t = 0). Without autograd (a ray aiming's traces) that last step is the
+    iteration's own and its residual the one checked (:func:`_final_step_no_grad`: the same values, fewer ops).
     """
+    grad = torch.is_grad_enabled()
     t0, ok0 = start
-    plane_t = -oz / torch.where(dz != 0, dz, torch.ones_like(dz))
     with torch.no_grad():
+        one = getattr(geom, "_one", None)  # a 0-d fill where the shape has one (a conic's)
+        plane_t = -oz / torch.where(dz != 0, dz, torch.ones_like(dz) if one is None else one)
         t = torch.where(ok0, t0, plane_t).detach()
         args = [a.detach() for a in (ox, oy, oz, dx, dy, dz)]
-        frozen = geom.frozen() if hasattr(geom, "frozen") else geom  # the iteration's constants taken once
+        # the iteration's constants taken once (an even asphere's frozen form), else the shape's own methods
+        frozen = geom.frozen(t.ndim) if hasattr(geom, "frozen") else _Plain(geom, t)
         for _ in range(NEWTON_MAX_ITER):
-            t_new, _, _ = _newton_step(frozen, t, *args)
+            t_new = frozen.step(t, args)[0]
             t_new = torch.where(torch.isfinite(t_new), t_new, t)
             step = (t_new - t).abs()
             t = t_new
             if not bool((step > NEWTON_TOL).any()):
                 break
+        if not grad:
+            return _final_step_no_grad(frozen, t, args)
         # rays whose iterate is unusable (diverged, outside the sag's domain, not on the surface) restart the
         # differentiable step from t = 0 (their own, finite origin): a huge or non-finite t there would overflow
         # the polynomial and put 0·inf = NaN into the gradients of the valid rays' parameters
@@ -321,6 +400,18 @@ def newton_intersect(geom: Geometry, start, ox, oy, oz, dx, dy, dz):
     ok = pre & okp & torch.isfinite(t_final)
     t_final = torch.where(ok, t_final, torch.zeros_like(t_final))
     return t_final, ok
+
+
+def _final_step_no_grad(frozen, t, args: list):
+    """:func:`newton_intersect`'s last step without autograd (issue 43: the sag evaluated once at the converged
+    ``t``, not twice): the Newton step at ``t`` and the residual ``f`` there, the residual that the differentiable
+    path checks (the same sag at the same point). A ray whose ``t`` is unusable gets ``(0, False)`` either way, and
+    a usable one the step from its own ``t``: the differentiable path's values."""
+    t_final, f, okp, dom = frozen.step(t, args)
+    if dom is None:
+        dom = frozen.in_domain(args[0] + t * args[3], args[1] + t * args[4])
+    ok = torch.isfinite(t) & dom & (f.abs() < 1e-9) & okp & torch.isfinite(t_final)
+    return torch.where(ok, t_final, torch.zeros_like(frozen.one)), ok
 
 
 class OddAsphere(Standard):

@@ -15,18 +15,19 @@ from torch import nn
 from raywave.utils.safe import safe_sqrt
 
 
-def refract(dx, dy, dz, nx, ny, nz, n1, n2):
+def refract(dx, dy, dz, nx, ny, nz, n1, n2, one=None):
     """Vector Snell's law.
 
     Args: unit direction (dx, dy, dz), unit normal (nx, ny, nz) on the same side as the ray's travel
     (d·N > 0), indices n1 (before) and n2 (after), all broadcastable tensors.
     Returns: (dx', dy', dz', ok) with ok False for total internal reflection (direction then finite).
+    ``one``: a 0-d 1 (the square root's fill) when the caller has one (issue 43: ``ones_like`` costs an op a call).
     """
     cos_i = dx * nx + dy * ny + dz * nz
     mu = n1 / n2
     k = 1.0 - mu * mu * (1.0 - cos_i * cos_i)
     ok = k >= 0
-    g = safe_sqrt(k, ok) - mu * cos_i
+    g = (safe_sqrt(k, ok) if one is None else torch.sqrt(torch.where(ok, k, one))) - mu * cos_i
     return mu * dx + g * nx, mu * dy + g * ny, mu * dz + g * nz, ok
 
 
@@ -49,8 +50,12 @@ class Refraction(Interaction):
 
     kind = "refraction"
 
+    def __init__(self):
+        super().__init__()
+        self.register_buffer("_one", torch.ones((), dtype=torch.float64), persistent=False)  # refract's 0-d fill
+
     def forward(self, x, y, dx, dy, dz, nx, ny, nz, n1, n2, wavelength):
-        dx, dy, dz, ok = refract(dx, dy, dz, nx, ny, nz, n1, n2)
+        dx, dy, dz, ok = refract(dx, dy, dz, nx, ny, nz, n1, n2, self._one)
         return dx, dy, dz, None, ok
 
     def paraxial_power(self, curvature, n1, n2):
