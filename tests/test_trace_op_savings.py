@@ -38,3 +38,24 @@ def test_exit_pupils_of_several_wavelengths_equal_their_own_calls():
         single = [hl.exit_pupil_z(w) for w in wls]
         assert hl._exit_pupil_zs(wls) == single, name
         assert all(math.isfinite(z) for z in single)
+
+
+def test_a_float32_trace_stays_float32():
+    """The asphere's Newton constants take the rays' dtype: a float32 trace (raywave.hybrid.precision's comparison)
+    is not promoted to float64 by them."""
+    import warnings as _w
+
+    from raywave.lens.build import bundled_lens_path, load_lens
+    from raywave.lens.sources import point_source_rays
+
+    lens = load_lens(bundled_lens_path("asphere_hk51"))
+    g = torch.linspace(-1, 1, 9, dtype=torch.float64)
+    px, py = torch.meshgrid(g, g, indexing="xy")
+    keep = px**2 + py**2 <= 1
+    with _w.catch_warnings():
+        _w.simplefilter("ignore")
+        rays = point_source_rays(lens, (0.0, 0.0), 0.55, pupil=(px[keep], py[keep]), aim="chief", depth=1e4,
+                                 dtype=torch.float32)
+        out = lens.trace(rays)
+    assert rays.o.dtype == torch.float32
+    assert out.o.dtype == out.d.dtype == out.opl.dtype == torch.float32

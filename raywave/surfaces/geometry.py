@@ -243,11 +243,11 @@ class EvenAsphere(Standard):
     def normal(self, x, y, z):
         return Geometry.normal(self, x, y, z)
 
-    def frozen(self, ndim: int) -> "_FrozenPoly":
+    def frozen(self, like: torch.Tensor) -> "_FrozenPoly":
         """This asphere with its polynomial's terms taken once, for an iteration without autograd (call it under
         ``torch.no_grad``; :func:`newton_intersect`): the same values as the surface's own methods, fewer ops per
-        step; ``ndim``: the rays' dimensions."""
-        return _FrozenPoly(self, ndim)
+        step; ``like``: a tensor of the rays' shape and dtype."""
+        return _FrozenPoly(self, like)
 
     def intersect(self, ox, oy, oz, dx, dy, dz, front: bool = False):
         return newton_intersect(self, Standard.intersect(self, ox, oy, oz, dx, dy, dz, front), ox, oy, oz, dx, dy, dz)
@@ -258,16 +258,17 @@ class _FrozenPoly:
     without autograd: ``sag``, ``sag_and_gradient`` and ``in_domain`` with the surface's own values, in fewer ops
     (issue 43): the polynomial and its slope by one Horner's rule on (2, ...) pairs, the point and the gradient's x
     and y as pairs too (every element the same op on the same numbers: the same values). (Not ``addcmul``: its
-    vectorised CPU kernel fuses the product and the sum, other values.) ``ndim``: the rays' dimensions."""
+    vectorised CPU kernel fuses the product and the sum, other values.) ``like``: a tensor of the rays' shape and
+    dtype (the pairs take its dtype: as 0-d terms would, they must not promote a float32 trace to float64)."""
 
-    def __init__(self, geom, ndim: int):
+    def __init__(self, geom, like: torch.Tensor):
         self.geom = geom
         a = geom.coefficients
         n = a.shape[0]
         # (a_i, 2·(i + 1)·a_i) pairs: the slope terms (i + 1)·a_i doubled (exact: a power of two), so that the
         # gradient's 2·Σ (i + 1) a_i r^(2i) comes out of Horner's rule directly; shaped to broadcast with the rays
         pairs = torch.stack([a, a * torch.arange(2, 2 * n + 1, 2, dtype=a.dtype, device=a.device)])
-        self.pairs = pairs.reshape((2, n) + (1,) * ndim).unbind(1)
+        self.pairs = pairs.to(like.dtype).reshape((2, n) + (1,) * like.ndim).unbind(1)
         c, k = geom.curvature, geom.conic
         self.q = (1.0 + k) * c * c  # the conic's (1 + k)·c², as its sag and slope form it (the same rounding)
         self.one = geom._one  # a 0-d fill (a Python number or ones_like costs an op a use)
@@ -378,7 +379,7 @@ def newton_intersect(geom: Geometry, start, ox, oy, oz, dx, dy, dz):
         t = torch.where(ok0, t0, plane_t).detach()
         args = [a.detach() for a in (ox, oy, oz, dx, dy, dz)]
         # the iteration's constants taken once (an even asphere's frozen form), else the shape's own methods
-        frozen = geom.frozen(t.ndim) if hasattr(geom, "frozen") else _Plain(geom, t)
+        frozen = geom.frozen(t) if hasattr(geom, "frozen") else _Plain(geom, t)
         for _ in range(NEWTON_MAX_ITER):
             t_new = frozen.step(t, args)[0]
             t_new = torch.where(torch.isfinite(t_new), t_new, t)
