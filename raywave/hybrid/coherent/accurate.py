@@ -288,6 +288,11 @@ def _trace_nodes(b: _Build, nd: _Nodes):
 #: node stride of the coarse pre-solve (:func:`_coarse_start`); node grids with fewer than 4 coarse cells a side
 #: skip it
 COARSE_STRIDE = 4
+#: landing error (mm on the DOE plane) at which a coarse node takes its last Newton step without a trace to confirm
+#: it (:func:`~raywave.hybrid.coherent.tracing._invert_to_nodes`' ``finish``): the coarse solutions only seed the
+#: interpolated start, whose own error is ~1e-6 mm, and the step takes 1e-6 mm to ~1e-12 mm (issue 43: the confirming
+#: rounds each cost a whole trace for the last few rays)
+COARSE_FINISH = 1e-6
 
 
 def _coarse_start(aim: _Aim, nd: _Nodes, chief: tuple, max_step: float):
@@ -313,7 +318,7 @@ def _coarse_start(aim: _Aim, nd: _Nodes, chief: tuple, max_step: float):
     gyc = nd.gy[0] + torch.arange(kyc, dtype=torch.float64, device=dev) * (s * nd.h)
     tx, ty = torch.meshgrid(gxc, gyc, indexing="xy")
     targets = torch.stack([tx, ty], -1).reshape(-1, 2)
-    uv, conv, _, _ = yield from _invert_to_nodes(aim, targets, chief, max_step)
+    uv, conv, _, _ = yield from _invert_to_nodes(aim, targets, chief, max_step, finish=COARSE_FINISH)
     return (yield _CoarseRequest(uv, conv, (kyc, kxc), (nd.ky, nd.kx), nd.h))
 
 

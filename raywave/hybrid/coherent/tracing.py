@@ -407,7 +407,8 @@ def _landing_group(reqs: list) -> list:
     return list(zip(x0.split(1), jac.split(1)))
 
 
-def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: tuple | None = None):
+def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: tuple | None = None,
+                     finish: float | None = None):
     """Newton: entrance-plane uv (N, 2) whose rays (``aim``) land on ``targets`` (N, 2) on the DOE plane, from the
     chief ray's linear guess (``chief`` = its entrance-plane point (1, 2), landing point (1, 2) and Jacobian
     ∂X/∂uv (1, 2, 2)), or from ``start[0]`` (N, 2) where it is finite (a better start, e.g. interpolated from a
@@ -422,10 +423,15 @@ def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: t
     ray alone traced, no neighbours), then Newton steps. Returns (uv, converged (N,), Jacobian at the last iterate
     (N, 2, 2) (a chord node's: the start's), landing points (N, 2) at ``uv`` or None where some ray moved after its
     last trace, i.e. the iteration did not settle); all detached (a generator: yields one :class:`_InvertRequest`,
-    which :func:`run_batched` solves together with the other constructions' as one set of rays)."""
+    which :func:`run_batched` solves together with the other constructions' as one set of rays).
+
+    ``finish`` (mm on the DOE plane, for solutions that only seed another solve, e.g. :func:`_coarse_start`'s): a
+    Newton ray whose landing error is at most ``finish`` takes its step and stops there, converged, without the
+    trace that would confirm it (Newton's error after the step is ~ error² × the map's curvature, 1e-12 mm from
+    1e-6 mm); its landing points are then None. Without it, every ray is confirmed by its own trace."""
     uv0, jac0 = (None, None) if start is None else start
     req = _InvertRequest(aim, targets.detach(), tuple(c.detach() for c in chief), float(max_step),
-                         (None if uv0 is None else uv0.detach(), None if jac0 is None else jac0.detach()))
+                         (None if uv0 is None else uv0.detach(), None if jac0 is None else jac0.detach()), finish)
     return (yield req)
 
 
@@ -440,6 +446,7 @@ class _InvertRequest:
     chief: tuple
     max_step: float
     start: tuple
+    finish: float | None = None
 
     def run(self):
         return _invert_group([self])[0]
@@ -448,7 +455,7 @@ class _InvertRequest:
         a = self.aim
         d = a.depth
         return ("invert", id(a.lens), float(a.z_doe), a.field_type, a.ep_z, a.h,
-                None if d is None else float(d), self.targets.device)
+                None if d is None else float(d), self.targets.device, self.finish)
 
 
 def _invert_group(reqs: list) -> list:
@@ -457,6 +464,7 @@ def _invert_group(reqs: list) -> list:
     and one set of elementwise updates. Each ray's iteration is its own (its trace, its 2×2 solve, its step), so
     every request gets what a call of its own gives; a request whose rays all stopped leaves the rounds, as its
     own iteration would have ended there."""
+    finish = reqs[0].finish  # one per group (:meth:`_InvertRequest.group_key`)
     sizes = [r.targets.shape[0] for r in reqs]
     dev = reqs[0].targets.device
     rid = torch.repeat_interleave(torch.arange(len(reqs), device=dev), torch.tensor(sizes, device=dev))
@@ -483,6 +491,7 @@ def _invert_group(reqs: list) -> list:
     x = torch.zeros_like(targets)
     valid = torch.zeros(n, dtype=torch.bool, device=dev)
     live = torch.arange(n, device=dev)  # the rays moved since their last trace
+    finished = torch.zeros(n, dtype=torch.bool, device=dev)  # stopped after an unconfirmed last step (``finish``)
     moved_last: set[int] = set()
     for it in range(_NEWTON_ITERS):
         if it == CHORD_ROUNDS:
@@ -494,16 +503,24 @@ def _invert_group(reqs: list) -> list:
         x[live], valid[live], jac[live] = x_l, valid_l, jac_l
         err = x_l - targets[live]
         step, ok = _solve2(jac_l, err)
-        move = valid_l & ~(err.abs().amax(-1) <= _NEWTON_TOL) & ok
+        e = err.abs().amax(-1)
+        move = valid_l & ~(e <= _NEWTON_TOL) & ok
         big = step.abs().amax(-1, keepdim=True)
         ms = max_step[live]
         step = torch.where(big > ms, step * (ms / big), step)
+        if finish is not None:  # the last step of a seed's ray, unconfirmed (no trace of its own for it)
+            last = move & (e <= finish) & ~(big[:, 0] > ms[:, 0])
+            finished[live[last]] = True
+            uv[live[last]] = uv[live[last]] - step[last]
+            move = move & ~last
         live = live[move]
         uv[live] = uv[live] - step[move]
         if it == _NEWTON_ITERS - 1:  # the last iteration moved these requests' rays: their landing points are stale
             moved_last.update(torch.unique(rid[live]).tolist())
     err = x - targets
-    conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL)
+    conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL) | finished
+    if finish is not None:  # their landing points are those before the last step
+        moved_last.update(torch.unique(rid[finished]).tolist())
     # the Newton step J⁻¹(X − T) at the last iterate of every ray at once (what a construction's node trace takes
     # without autograd; issue 43: one 2×2 solve for the group instead of one per construction)
     step, _ = _solve2(jac, err)
