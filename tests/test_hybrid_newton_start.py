@@ -39,9 +39,9 @@ def _counting(monkeypatch) -> list:
 
     rows = tracing_mod._trace_rows  # the Newton rounds' traces (one bundle of single-ray rows)
 
-    def counted_rows(aim, uv, fields, wavelengths):
+    def counted_rows(aim, uv, *rest):
         counts[-1].append(uv.shape[0])
-        return rows(aim, uv, fields, wavelengths)
+        return rows(aim, uv, *rest)
 
     monkeypatch.setattr(tracing_mod, "_trace_group", counted)
     monkeypatch.setattr(tracing_mod, "_trace_rows", counted_rows)
@@ -151,6 +151,56 @@ def test_a_seed_solve_stops_after_its_last_step_unconfirmed():
     assert ref_x is not None and x is None  # the last steps were not traced: no landing points to give
     assert float((landed - targets).abs().max()) <= _NEWTON_TOL
     assert float((uv - ref_uv).abs().max()) <= 1e-9
+    assert rounds[1] < rounds[0], rounds
+
+
+def test_nodes_settle_before_the_node_traces_own_step():
+    """``settle`` (the node inversion's): a ray whose error after one more step, predicted from its last two, is
+    within ``settle`` stops where it is, converged, and the caller's step J⁻¹(X − T) from there (the node trace's)
+    lands it within ``settle``; fewer rounds than confirming every node by a trace of its own."""
+    from raywave.hybrid.coherent.accurate import NODE_SETTLE, _coarse_start, _Nodes, entrance_pupil
+    from raywave.hybrid.coherent.record import _NEWTON_TOL
+
+    hl = load_hybrid(bundled_lens_path("hybrid_asphere"))
+    lens, z = hl.optics, hl.doe_z()
+    ft = lens.field_type
+    f = torch.tensor([0.0, 14.0], dtype=torch.float64)
+    wl = torch.tensor([0.47], dtype=torch.float64)
+    ep_z, r_ep = entrance_pupil(lens)
+    h = 1e-6 * r_ep
+    rounds = []
+    rows = tracing_mod._landing_rounds
+
+    def counted(*args):
+        rounds[-1] += 1
+        return rows(*args)
+
+    with torch.no_grad():
+        cd = coherent.chief_rays(lens, f[None], wl, None, z, hl.sensor_z())
+        xc = cd[0].o[0, 0, :2].tolist()
+        g = torch.linspace(-1.2, 1.2, 65, dtype=torch.float64)
+        nd = _Nodes(xc[0] + g, xc[1] + g, float(g[1] - g[0]))
+        uv_c = cd[2][0, 0].reshape(1, 2)
+        chief = coherent.run_serial(tracing_mod._landing_and_jacobian(lens, uv_c, f, wl, None, z, ft, h, ep_z))
+        chief = (uv_c, chief[0], chief[2])
+        aim = tracing_mod._Aim(lens, f, wl, None, z, ft, h, ep_z)
+        start = coherent.run_serial(_coarse_start(aim, nd, chief, 0.25 * r_ep))
+        tracing_mod._landing_rounds = counted
+        try:
+            out = []
+            for settle in (None, NODE_SETTLE):
+                rounds.append(0)
+                out.append(coherent.run_serial(tracing_mod._invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep,
+                                                                            start, settle=settle)))
+        finally:
+            tracing_mod._landing_rounds = rows
+        landed = []
+        for inv in out:
+            uv_lin = inv[0] - inv.step  # the node trace's step
+            x, valid = tracing_mod._trace_rows(aim, uv_lin, f.expand(uv_lin.shape[0], 2), wl.expand(uv_lin.shape[0]))
+            landed.append(x[valid & inv[1]] - nd.targets[valid & inv[1]])
+    assert bool(out[0][1].all()) and torch.equal(out[0][1], out[1][1])
+    assert float(landed[0].abs().max()) <= _NEWTON_TOL and float(landed[1].abs().max()) <= NODE_SETTLE
     assert rounds[1] < rounds[0], rounds
 
 

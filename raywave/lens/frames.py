@@ -88,10 +88,10 @@ class ImageSpaceLens:
         return to_image_space(self.lens, rays)
 
     def trace(self, rays: RayBundle, start: int = 0, stop: int | None = None, record: bool = False,
-              apertures: bool = True):
+              apertures: bool = True, n_all: list | None = None):
         """:meth:`Lens.trace <raywave.lens.lens.Lens.trace>`; with ``stop=None`` the result is in the image-space
         frame (and a record's points are in their surfaces' local frames)."""
-        res = self.lens.trace(rays, start=start, stop=stop, record=record, apertures=apertures)
+        res = self.lens.trace(rays, start=start, stop=stop, record=record, apertures=apertures, n_all=n_all)
         if stop is not None:
             return res
         out, rec = res if record else (res, None)

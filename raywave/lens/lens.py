@@ -394,19 +394,21 @@ class Lens(nn.Module):
 
     # ------------------------------------------------------------------ tracing
     def trace(self, rays: RayBundle, start: int = 0, stop: int | None = None, record: bool = False,
-              apertures: bool = True):
+              apertures: bool = True, n_all: list | None = None):
         """Trace ``rays`` through surfaces ``start .. stop-1`` (default: all).
 
         Rays must be in the medium in front of surface ``start``. Returns the bundle at the last surface
         traced (after its interaction); with ``record=True`` also a :class:`TraceRecord`.
         Rays that miss a surface, leave an aperture or meet TIR get ``valid = False`` and stay finite.
-        ``apertures=False`` ignores clear apertures (used by ray aiming).
+        ``apertures=False`` ignores clear apertures (used by ray aiming). ``n_all``: the media's indices at the rays'
+        wavelengths (:meth:`indices`, each broadcastable to the rays' shape) when the caller has them; a bundle
+        traced in chunks takes its own.
         """
         stop = len(self.surfaces) if stop is None else stop
         n_rays = rays.valid.numel()
         if not record and n_rays > 2 * trace_chunk(rays.valid.device):
             return self._trace_chunked(rays, start, stop, apertures)
-        return self._trace_kernel(rays, start, stop, record, apertures)
+        return self._trace_kernel(rays, start, stop, record, apertures, n_all)
 
     def _trace_chunked(self, rays: RayBundle, start: int, stop: int, apertures: bool) -> RayBundle:
         """Trace a large bundle in chunks of :func:`trace_chunk` rays: small temporaries stay in the allocator's

@@ -23,7 +23,7 @@ from raywave.wave.field import cubic_matrices, cubic_matrix, edge_coverage, upsa
 from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _nyquist_warning, _warn_nyquist, check_window_memory)
-from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
+from raywave.hybrid.coherent.record import _NEWTON_TOL, DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, _fresnel_scale, _fresnel_scale_at, _nu_inner, _rim_cubic,
                                                _rim_fourier, _rim_fourier_rows, _rim_z, _rim_z_rows, _zone_estimate,
@@ -259,7 +259,7 @@ def _trace_nodes(b: _Build, nd: _Nodes):
     x_c, jac_c = yield _LandingRequest(aim, uv_c)  # batched with the other constructions' chief rays
     chief = (uv_c, x_c, jac_c)
     start = yield from _coarse_start(aim, nd, chief, 0.25 * r_ep)
-    inverted = yield from _invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep, start)
+    inverted = yield from _invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep, start, settle=NODE_SETTLE)
     uv, conv, jac, x_at = inverted
     # the differentiable trace of the node rays. The landing point of a node's ray must stay on its node when
     # the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals uv
@@ -293,6 +293,12 @@ COARSE_STRIDE = 4
 #: interpolated start, whose own error is ~1e-6 mm, and the step takes 1e-6 mm to ~1e-12 mm (issue 43: the confirming
 #: rounds each cost a whole trace for the last few rays)
 COARSE_FINISH = 1e-6
+#: predicted landing error (mm on the DOE plane) after the node trace's own Newton step at which a node's iteration
+#: stops before confirming it (:func:`~raywave.hybrid.coherent.tracing._invert_to_nodes`' ``settle``; issue 43: the
+#: rounds that only confirmed the last few nodes cost a whole trace each): the iteration's own tolerance, met after
+#: that step instead of before it (a node's phase moves by ≤ 1e-6 rad; the Cooke triplet's DOE-plane fields moved by
+#: 2.5e-9 of their peak)
+NODE_SETTLE = _NEWTON_TOL
 
 
 def _coarse_start(aim: _Aim, nd: _Nodes, chief: tuple, max_step: float):

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import torch
 
 from raywave.lens.lens import trace_chunk
-from raywave.lens.sources import rays_through
+from raywave.lens.sources import _source_part, rays_through
 from raywave.hybrid.coherent.record import _NEWTON_ITERS, _NEWTON_TOL
 from raywave.utils.errors import check_allocation
 
@@ -331,6 +331,12 @@ def _solve2(j, r):
 
 #: chord rounds (the start's Jacobian kept, no finite-difference rays) a node takes before it switches to Newton
 CHORD_ROUNDS = 3
+#: the largest landing error (mm on the DOE plane) from which :func:`_invert_to_nodes`' ``settle`` leaves the last
+#: step to the caller, whatever the predicted convergence
+_SETTLE_CAP = 1e-6
+#: the safety factor on :func:`_invert_to_nodes`' predicted error for ``settle`` (the error vector turns from round to
+#: round: a ray predicted at 1e-11 mm was seen to land at 3.6e-11 mm)
+_SETTLE_MARGIN = 10.0
 
 
 @dataclass(frozen=True)
@@ -408,7 +414,7 @@ def _landing_group(reqs: list) -> list:
 
 
 def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: tuple | None = None,
-                     finish: float | None = None):
+                     finish: float | None = None, settle: float | None = None):
     """Newton: entrance-plane uv (N, 2) whose rays (``aim``) land on ``targets`` (N, 2) on the DOE plane, from the
     chief ray's linear guess (``chief`` = its entrance-plane point (1, 2), landing point (1, 2) and Jacobian
     ∂X/∂uv (1, 2, 2)), or from ``start[0]`` (N, 2) where it is finite (a better start, e.g. interpolated from a
@@ -428,10 +434,17 @@ def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: t
     ``finish`` (mm on the DOE plane, for solutions that only seed another solve, e.g. :func:`_coarse_start`'s): a
     Newton ray whose landing error is at most ``finish`` takes its step and stops there, converged, without the
     trace that would confirm it (Newton's error after the step is ~ error² × the map's curvature, 1e-12 mm from
-    1e-6 mm); its landing points are then None. Without it, every ray is confirmed by its own trace."""
+    1e-6 mm); its landing points are then None. Without it, every ray is confirmed by its own trace.
+
+    ``settle`` (mm, for a caller that takes one more step J⁻¹(X − T) from the last iterate itself and traces its
+    rays there, as :func:`~raywave.hybrid.coherent.accurate._trace_nodes` does): a ray whose error after that step,
+    predicted from its last two (``e²/e_prev``: linear convergence, pessimistic for Newton's), is at most
+    ``settle`` / :data:`_SETTLE_MARGIN` stops where it is, converged, with its landing point and Jacobian: the caller's step is the one the
+    next round would have confirmed."""
     uv0, jac0 = (None, None) if start is None else start
     req = _InvertRequest(aim, targets.detach(), tuple(c.detach() for c in chief), float(max_step),
-                         (None if uv0 is None else uv0.detach(), None if jac0 is None else jac0.detach()), finish)
+                         (None if uv0 is None else uv0.detach(), None if jac0 is None else jac0.detach()), finish,
+                         settle)
     return (yield req)
 
 
@@ -447,6 +460,7 @@ class _InvertRequest:
     max_step: float
     start: tuple
     finish: float | None = None
+    settle: float | None = None
 
     def run(self):
         return _invert_group([self])[0]
@@ -455,7 +469,7 @@ class _InvertRequest:
         a = self.aim
         d = a.depth
         return ("invert", id(a.lens), float(a.z_doe), a.field_type, a.ep_z, a.h,
-                None if d is None else float(d), self.targets.device, self.finish)
+                None if d is None else float(d), self.targets.device, self.finish, self.settle)
 
 
 def _invert_group(reqs: list) -> list:
@@ -464,7 +478,7 @@ def _invert_group(reqs: list) -> list:
     and one set of elementwise updates. Each ray's iteration is its own (its trace, its 2×2 solve, its step), so
     every request gets what a call of its own gives; a request whose rays all stopped leaves the rounds, as its
     own iteration would have ended there."""
-    finish = reqs[0].finish  # one per group (:meth:`_InvertRequest.group_key`)
+    finish, settle = reqs[0].finish, reqs[0].settle  # one per group (:meth:`_InvertRequest.group_key`)
     sizes = [r.targets.shape[0] for r in reqs]
     dev = reqs[0].targets.device
     rid = torch.repeat_interleave(torch.arange(len(reqs), device=dev), torch.tensor(sizes, device=dev))
@@ -473,8 +487,9 @@ def _invert_group(reqs: list) -> list:
     jac_c = torch.cat([_shaped(r.chief[2], (1, 2, 2)) for r in reqs])[rid]
     max_step = torch.tensor([r.max_step for r in reqs], dtype=targets.dtype, device=dev)[rid][:, None]
     n = targets.shape[0]
-    sources = (torch.stack([_shaped(r.aim.field, (2,)) for r in reqs]),
-               torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs]), [r.aim.order for r in reqs])
+    fields = torch.stack([_shaped(r.aim.field, (2,)) for r in reqs])
+    wls = torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs])
+    sources = (fields, wls, [r.aim.order for r in reqs], _SourceRows.of(reqs[0].aim, fields, wls))
     step0, _ = _solve2(jac_c, targets - x_c)
     uv = uv_c + step0
     chord = torch.zeros(n, dtype=torch.bool, device=dev)
@@ -492,6 +507,9 @@ def _invert_group(reqs: list) -> list:
     valid = torch.zeros(n, dtype=torch.bool, device=dev)
     live = torch.arange(n, device=dev)  # the rays moved since their last trace
     finished = torch.zeros(n, dtype=torch.bool, device=dev)  # stopped after an unconfirmed last step (``finish``)
+    settled = torch.zeros(n, dtype=torch.bool, device=dev)  # stopped before the caller's last step (``settle``)
+    # the last traced error of each ray (0 before its first: a first round never settles)
+    e_prev = torch.zeros(n, dtype=targets.dtype, device=dev) if settle is not None else None
     moved_last: set[int] = set()
     for it in range(_NEWTON_ITERS):
         if it == CHORD_ROUNDS:
@@ -513,12 +531,18 @@ def _invert_group(reqs: list) -> list:
             finished[live[last]] = True
             uv[live[last]] = uv[live[last]] - step[last]
             move = move & ~last
+        if settle is not None:  # the caller's own step takes these rays to within ``settle``: no further round
+            stay = (move & (e <= _SETTLE_CAP) & (_SETTLE_MARGIN * e * e <= settle * e_prev[live])
+                    & ~(big[:, 0] > ms[:, 0]))
+            settled[live[stay]] = True
+            e_prev[live] = e
+            move = move & ~stay
         live = live[move]
         uv[live] = uv[live] - step[move]
         if it == _NEWTON_ITERS - 1:  # the last iteration moved these requests' rays: their landing points are stale
             moved_last.update(torch.unique(rid[live]).tolist())
     err = x - targets
-    conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL) | finished
+    conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL) | finished | settled
     if finish is not None:  # their landing points are those before the last step
         moved_last.update(torch.unique(rid[finished]).tolist())
     # the Newton step J⁻¹(X − T) at the last iterate of every ray at once (what a construction's node trace takes
@@ -546,7 +570,7 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     ray and, unless it takes chord steps, its two finite-difference neighbours (the rays of
     :func:`_landing_and_jacobian`), all requests' rays as one bundle of single-ray rows (each with its own source and
     wavelength, shape (R, 1, 1): no per-request slicing, issue 43; ``sources`` = the requests' fields (G, 2),
-    wavelengths (G,) µm and per-source values [G] (:func:`per_source`)). Returns the landing points (L, 2), validity
+    wavelengths (G,) µm, per-source values [G] (:func:`per_source`) and their :class:`_SourceRows`). Returns the landing points (L, 2), validity
     (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
     r0 = reqs[0].aim
     h = r0.h  # one per group (:meth:`_InvertRequest.group_key`)
@@ -557,34 +581,71 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     uj = uv_l[need]
     rows = torch.cat([rid_l, rid_l[need], rid_l[need]])
     allv = torch.cat([uv_l, uj + du[0], uj + du[1]])
-    if any(o is not None for o in sources[2]):  # per-source values (a mid-system DOE's orders): each row's own
-        x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows], sources[2], rows)
-    else:
-        x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows])
+    # per-source values (a mid-system DOE's orders): each row's own
+    orders = sources[2] if any(o is not None for o in sources[2]) else None
+    x, valid = _trace_rows(r0, allv, None, None, orders, rows, sources[3])
     x0, xu, xv = x[:nl], x[nl:nl + nj], x[nl + nj:]
     jac = torch.full((nl, 2, 2), math.nan, dtype=x.dtype, device=x.device)
     jac[need] = torch.stack([(xu - x0[need]) / h, (xv - x0[need]) / h], -1)
     return x0, valid[:nl], jac
 
 
-def _trace_rows(aim: _Aim, uv, fields, wavelengths, orders=None, rows=None):
+def _trace_rows(aim: _Aim, uv, fields, wavelengths, orders=None, rows=None, src: _SourceRows | None = None):
     """Landing points (R, 2) and validity (R,) on ``aim``'s plane of R rays, each with its own source: entrance-plane
     points ``uv`` (R, 2) mm, ``fields`` (R, 2), ``wavelengths`` (R,) µm (``aim``'s lens, depth, field type and
     entrance plane), traced without autograd as one bundle (R, 1, 1) (every ray on its own). ``orders``: the
-    sources' per-source values (:func:`per_source`), ``rows`` (R,) long: each ray's source among them."""
+    sources' per-source values (:func:`per_source`), ``rows`` (R,) long: each ray's source among them. ``src``: the
+    sources' own part of the rays and the media's indices, taken once for a Newton iteration's rounds
+    (:class:`_SourceRows`, each row's by ``rows``); ``fields`` and ``wavelengths`` are then not needed (None)."""
     chunk = trace_chunk(uv.device)
     if orders is not None and any(o is not None for o in orders) and uv.shape[0] > 2 * chunk:
-        parts = [_trace_rows(aim, uv[i:i + chunk], fields[i:i + chunk], wavelengths[i:i + chunk],
-                             orders, rows[i:i + chunk]) for i in range(0, uv.shape[0], chunk)]
+        def part(v, i):
+            return None if v is None else v[i:i + chunk]
+        parts = [_trace_rows(aim, uv[i:i + chunk], part(fields, i), part(wavelengths, i), orders, rows[i:i + chunk],
+                             src) for i in range(0, uv.shape[0], chunk)]
         return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     with torch.no_grad():
-        rays = rays_through(aim.lens, uv[:, None, None], fields, aim.field_type, wavelengths.reshape(-1, 1, 1),
-                            depth=aim.depth, ep_z=aim.ep_z)
-        with per_source(aim.lens, orders, rows):
-            out = aim.lens.trace(rays, apertures=False)
-        n = aim.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        lens = aim.lens
+        if src is None:
+            rays = rays_through(lens, uv[:, None, None], fields, aim.field_type, wavelengths.reshape(-1, 1, 1),
+                                depth=aim.depth, ep_z=aim.ep_z)
+            n_all = None
+        else:
+            source, n_all = src.take(rows)
+            rays = rays_through(lens, uv[:, None, None], None, aim.field_type, None, source=source)
+        with per_source(lens, orders, rows):
+            out = lens.trace(rays, apertures=False, n_all=n_all)
+        n = (lens.surfaces[-1].material.n(out.wavelength) if n_all is None else n_all[-1]).to(out.dtype)
         at = out.propagate_to_z(aim.z_doe, n)
     return at.o[:, 0, 0, :2], at.valid[:, 0, 0]
+
+
+@dataclass
+class _SourceRows:
+    """What the rows of :func:`_trace_rows` take from their sources alone, for G sources at once (a Newton
+    iteration's rounds trace the same sources' rays again and again; issue 43: the beam directions, checks and
+    glass indices once, not once a round): :func:`~raywave.lens.sources._source_part`'s ``(wavelengths (G, 1, 1)
+    µm, ep_z mm, beam directions (G, 3) or None, object points (G, 3) or None, wide fields (G,) or None, the object
+    medium's index (G, 1, 1))`` and the lens media's indices [(G, 1, 1) or None] (:meth:`Lens.indices`)."""
+
+    source: tuple
+    n_all: list
+
+    @classmethod
+    def of(cls, aim: _Aim, fields: torch.Tensor, wavelengths: torch.Tensor) -> _SourceRows:
+        """The part of sources ``fields`` (G, 2) at ``wavelengths`` (G,) µm, with ``aim``'s lens, field type,
+        depth and entrance plane."""
+        source = _source_part(aim.lens, fields, aim.field_type, wavelengths.reshape(-1, 1, 1), depth=aim.depth,
+                              ep_z=aim.ep_z)
+        return cls(source, aim.lens.indices(source[0]))
+
+    def take(self, rows: torch.Tensor) -> tuple:
+        """``(source part, media indices)`` of the rows whose sources are ``rows`` (R,) long: each a gather."""
+        wl, ep_z, d_inf, pts, wide, n0 = self.source
+
+        def pick(v):
+            return None if v is None else v[rows]
+        return (wl[rows], ep_z, pick(d_inf), pick(pts), pick(wide), n0[rows]), [pick(n) for n in self.n_all]
 
 
 def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, grad_xy: torch.Tensor | None = None):
