@@ -380,13 +380,20 @@ def newton_intersect(geom: Geometry, start, ox, oy, oz, dx, dy, dz):
         args = [a.detach() for a in (ox, oy, oz, dx, dy, dz)]
         # the iteration's constants taken once (an even asphere's frozen form), else the shape's own methods
         frozen = geom.frozen(t) if hasattr(geom, "frozen") else _Plain(geom, t)
+        prev = None
         for _ in range(NEWTON_MAX_ITER):
             t_new = frozen.step(t, args)[0]
             t_new = torch.where(torch.isfinite(t_new), t_new, t)
             step = (t_new - t).abs()
             t = t_new
-            if not bool((step > NEWTON_TOL).any()):
+            # converged when the next step is within the tolerance: Newton's next step, step³/prev² (quadratic
+            # convergence, its constant from the last two steps), so that no iteration only confirms a step of
+            # ~1e-16 mm (issue 43: an iteration is ~50 ops of every trace of an asphere); the first by the step
+            # itself. A ray whose steps are 0 (converged, or unusable: kept) gives 0/0 = NaN, not above.
+            nxt = step if prev is None else step * step * step / (prev * prev)
+            if not bool((nxt > NEWTON_TOL).any()):
                 break
+            prev = step
         if not grad:
             return _final_step_no_grad(frozen, t, args)
         # rays whose iterate is unusable (diverged, outside the sag's domain, not on the surface) restart the
