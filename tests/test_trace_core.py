@@ -124,6 +124,38 @@ def test_asphere_intersection_converges_and_matches_sag(asphere_const):
     assert torch.allclose(z, g.sag(x, yy), atol=1e-13, rtol=0)
 
 
+def test_asphere_intersection_equals_an_independent_root(asphere_const):
+    """The intersection's Newton iteration stops when its next step is predicted within 1e-12 mm (issue 43):
+    the ray parameters equal scipy's bracketed root of the sag equation, written out here with numpy, to 1e-12 mm,
+    with and without autograd, for steep and off-axis rays."""
+    from scipy.optimize import brentq
+
+    g = asphere_const.surfaces[1].geometry
+    c, k = float(g.curvature), float(g.conic)
+    a = g.coefficients.detach().numpy()
+
+    def sag(r2):
+        return c * r2 / (1 + math.sqrt(1 - (1 + k) * c * c * r2)) + sum(ai * r2 ** (i + 1) for i, ai in enumerate(a))
+
+    gen = torch.Generator().manual_seed(7)
+    n = 40
+    ox, oy = (torch.rand(n, generator=gen, dtype=torch.float64) - 0.5) * 2.0, torch.linspace(-1.3, 1.3, n,
+                                                                                                dtype=torch.float64)
+    oz = torch.full((n,), -2.0, dtype=torch.float64)
+    d = torch.stack([0.3 * (torch.rand(n, generator=gen, dtype=torch.float64) - 0.5), -0.25 * oy,
+                     torch.ones(n, dtype=torch.float64)], -1)
+    d = d / d.norm(dim=-1, keepdim=True)
+    ref = [brentq(lambda t: oz[i].item() + t * d[i, 2].item()
+                  - sag((ox[i].item() + t * d[i, 0].item()) ** 2 + (oy[i].item() + t * d[i, 1].item()) ** 2),
+                  0.0, 6.0, xtol=1e-15, rtol=1e-15) for i in range(n)]
+    ref = torch.tensor(ref, dtype=torch.float64)
+    for grad in (False, True):
+        with torch.set_grad_enabled(grad):
+            t, ok = g.intersect(ox, oy, oz, *d.unbind(-1))
+        assert bool(ok.all())
+        assert float((t.detach() - ref).abs().max()) <= 1e-12
+
+
 def test_gradcheck_full_trace(asphere_const, cooke_const):
     """Gradients of image-plane positions and OPL w.r.t. curvature, conic, aspheric terms, thickness."""
     from raywave.rays.pupil import hexapolar
