@@ -156,6 +156,25 @@ def test_asphere_intersection_equals_an_independent_root(asphere_const):
         assert float((t.detach() - ref).abs().max()) <= 1e-12
 
 
+def test_a_surface_between_two_airs_keeps_the_directions():
+    """A curved surface with air on both sides (a dummy surface, a stop) refracts nothing: the tracer skips its
+    Snell step (issue 43), and the rays equal those refracted by Snell's law with n1 = n2 to rounding."""
+    dummy = std(12.0, 4.0, ap=6.0)
+    lens = Lens([dummy, std(20.0, 3.0, 1.5, stop=True, ap=3.0), std(-20.0, 30.0)])
+    assert lens._identity_refractions() == [True, False, False]
+    rays = point_source_rays(lens, torch.tensor([[0.0, 8.0]], dtype=torch.float64), 0.55, pupil=("grid", 9))
+    out, rec = lens.trace(rays, stop=1, record=True)
+    d_in = rays.d.unbind(-1)
+    assert all(torch.equal(a, b) for a, b in zip(out.d.unbind(-1), d_in))
+    x, y, z = rec.points[1]
+    nx, ny, nz = dummy.geometry.normal(x, y, z - lens.vertex_z()[0])
+    one = torch.ones((), dtype=torch.float64)
+    dx, dy, dz, ok = refract(*d_in, nx, ny, nz, one, one)
+    assert bool(ok.all())
+    assert max(float((a - b).abs().max()) for a, b in zip((dx, dy, dz), d_in)) <= 1e-15
+    assert torch.equal(out.valid, rays.valid & dummy.aperture.contains(x, y))
+
+
 def test_gradcheck_full_trace(asphere_const, cooke_const):
     """Gradients of image-plane positions and OPL w.r.t. curvature, conic, aspheric terms, thickness."""
     from raywave.rays.pupil import hexapolar

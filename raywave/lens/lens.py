@@ -448,6 +448,7 @@ class Lens(nn.Module):
         valid, opl = rays.valid, rays.opl
         rec = TraceRecord([(x, y, rays.o[..., 2])], [valid]) if record else None
         zero = one = None
+        identity = self._identity_refractions()
         for i in range(start, stop):
             s = self.surfaces[i]
             if s.interaction.kind == "coordinate_break":  # an identity break: nothing happens
@@ -463,14 +464,17 @@ class Lens(nn.Module):
             opl = opl + n1 * t
             if apertures and s.aperture is not None:
                 ok = ok & s.aperture.contains(x, y)
-            nx, ny, nz = s.geometry.normal(x, y, zl)
-            if mirrors:  # rays travelling toward -z meet the normal from behind: turn it to the ray's side
-                flip = torch.where(dx * nx + dy * ny + dz * nz < 0, -1.0, 1.0)
-                nx, ny, nz = nx * flip, ny * flip, nz * flip
-            dx, dy, dz, extra, ok_i = s.interaction(x, y, dx, dy, dz, nx, ny, nz, n1, n2, wl)
-            if extra is not None:
-                opl = opl + extra
-            valid = valid & ok & ok_i
+            if identity[i]:  # refraction from air into air: the direction is kept exactly (no normal, no Snell)
+                valid = valid & ok
+            else:
+                nx, ny, nz = s.geometry.normal(x, y, zl)
+                if mirrors:  # rays travelling toward -z meet the normal from behind: turn it to the ray's side
+                    flip = torch.where(dx * nx + dy * ny + dz * nz < 0, -1.0, 1.0)
+                    nx, ny, nz = nx * flip, ny * flip, nz * flip
+                dx, dy, dz, extra, ok_i = s.interaction(x, y, dx, dy, dz, nx, ny, nz, n1, n2, wl)
+                if extra is not None:
+                    opl = opl + extra
+                valid = valid & ok & ok_i
             z = zl + zs[i]
             # Park dead rays on the axis, at this vertex, so that later surfaces see harmless numbers (no NaN, no
             # inf, no huge z whose quadratic cancels to an exactly zero discriminant: an infinite sqrt derivative)
@@ -485,6 +489,14 @@ class Lens(nn.Module):
                 rec.valid.append(valid)
         out = RayBundle(torch.stack([x, y, z], -1), torch.stack([dx, dy, dz], -1), wl, valid, opl)
         return (out, rec) if record else out
+
+    def _identity_refractions(self) -> list:
+        """Per surface: True where it refracts from air into air (a stop, a dummy or a window-free aperture
+        surface): Snell's law with n1 = n2 keeps every direction, so :meth:`_trace_kernel` skips it (issue 43: the
+        normal and the refraction are ~30 ops a trace; only rounding differs, ~1e-16 in the directions)."""
+        media = [self.object_material] + [s.material for s in self.surfaces]
+        return [s.interaction.kind == "refraction" and isinstance(media[i], Air) and isinstance(media[i + 1], Air)
+                for i, s in enumerate(self.surfaces)]
 
     def _trace_kernel_frames(self, rays: RayBundle, start: int, stop: int, record: bool, apertures: bool,
                              n_all: list | None = None):
