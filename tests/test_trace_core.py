@@ -175,6 +175,30 @@ def test_a_surface_between_two_airs_keeps_the_directions():
     assert torch.equal(out.valid, rays.valid & dummy.aperture.contains(x, y))
 
 
+def test_a_flat_surfaces_intersection_without_autograd_is_the_general_forms():
+    """Without autograd a flat standard surface (c = 0) takes its intersection in a few ops (issue 43): the same
+    values as the general conic form, bit for bit, for rays from either side, along the plane and at its vertex; and
+    after the curvature changes (an optimiser's step) the general form again."""
+    g = Standard(0.0, -0.7)
+    gen = torch.Generator().manual_seed(0)
+    n = 20000
+    o = torch.randn(3, n, generator=gen, dtype=torch.float64) * torch.tensor([[5.0], [5.0], [3.0]],
+                                                                               dtype=torch.float64)
+    d = torch.randn(3, n, generator=gen, dtype=torch.float64)
+    d[2, :10], d[2, 10:20], o[2, 20:30] = 0.0, -0.0, 0.0
+    d = d / d.norm(dim=0)
+    for front in (True, False):
+        with torch.no_grad():
+            fast = g.intersect(*o, *d, front=front)
+        general = g.intersect(*o, *d, front=front)  # with autograd: the general form
+        assert torch.equal(fast[0], general[0].detach()) and torch.equal(fast[1], general[1])
+    with torch.no_grad():
+        g.curvature.add_(0.01)
+        t, _ = g.intersect(*o, *d, front=True)
+    assert not g._is_flat()
+    assert torch.equal(t, g.intersect(*o, *d, front=True)[0].detach())
+
+
 def test_gradcheck_full_trace(asphere_const, cooke_const):
     """Gradients of image-plane positions and OPL w.r.t. curvature, conic, aspheric terms, thickness."""
     from raywave.rays.pupil import hexapolar
