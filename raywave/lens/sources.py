@@ -249,12 +249,14 @@ def _stop_hit(lens, uv, fields, field_type, wavelength, depth=None, ep_z=None, s
     return out.o[..., :2], out.valid
 
 
-def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None, ep_z=None):
-    """Solve stop_hit(uv) = target for uv (F, W, N, 2) by Newton with a finite-difference Jacobian."""
+def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None, ep_z=None, source=None):
+    """Solve stop_hit(uv) = target for uv (F, W, N, 2) by Newton with a finite-difference Jacobian. ``source``:
+    :func:`_source_part` of these sources when the caller has it."""
     dx, dy = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)  # the finite-difference steps
     n = uv.shape[-2]
     # what the sources alone decide (directions, checks, index) and the target's scale: once, not every step
-    source = _source_part(lens, fields, field_type, wavelength, depth=depth, ep_z=ep_z)
+    if source is None:
+        source = _source_part(lens, fields, field_type, wavelength, depth=depth, ep_z=ep_z)
     scale = max(1.0, float(target.abs().max()))
     for _ in range(AIM_MAX_ITER):
         # the rays and their two finite-difference neighbours in one trace (each ray is traced on its own)
@@ -279,16 +281,18 @@ def _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth=None,
     return uv, ok
 
 
-def aim_chief_rays(lens, fields, field_type, wavelength, depth=None, ep_z=None) -> tuple[torch.Tensor, torch.Tensor]:
+def aim_chief_rays(lens, fields, field_type, wavelength, depth=None, ep_z=None,
+                   source: tuple | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Entrance-plane crossing (F, W, 1, 2) of each chief ray, aimed at the stop centre; with continuation
-    in field (0 → full) for wide-angle lenses where the paraxial guess misses."""
+    in field (0 → full) for wide-angle lenses where the paraxial guess misses. ``source``: :func:`_source_part`
+    of these sources when the caller has it."""
     F = fields.shape[0]
     W = torch.as_tensor(wavelength).numel()
     r_ep = 0.5 * paraxial.entrance_pupil_diameter(lens)
     h = 1e-7 * max(r_ep, 1e-3)
     uv = torch.zeros((F, W, 1, 2), dtype=torch.float64, device=lens.device)
     target = torch.zeros_like(uv)
-    uv1, ok = _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth, ep_z)
+    uv1, ok = _newton_aim(lens, uv, target, fields, field_type, wavelength, h, depth, ep_z, source)
     if bool(ok.all()):
         return uv1, ok
     uv_c = uv.clone()
@@ -342,15 +346,16 @@ def _pupil_samples(lens, pupil, generator) -> tuple[torch.Tensor, torch.Tensor]:
     return tuple(torch.as_tensor(p, dtype=torch.float64, device=lens.device).reshape(-1) for p in pupil)
 
 
-def _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, ep_z):
+def _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, ep_z, source=None):
     """Inverse Jacobian (F, W, 1, 2, 2) of the stop crossing (mm) with respect to the entrance-plane crossing (mm)
     at the chief rays ``uv_c`` (F, W, 1, 2) mm, by forward differences of step ``h`` mm; and ``bad`` (F, W, 1):
     fields without a usable Jacobian (chief ray not aimed, ``ok_c`` False, or singular), where the identity
-    stands in."""
+    stands in. ``source``: :func:`_source_part` of these sources when the caller has it."""
     dx, dy = torch.tensor([[h, 0.0], [0.0, h]], dtype=torch.float64, device=uv_c.device)
     # the chief rays and their two neighbours in one trace (each ray is traced on its own; issue 43: one trace's
     # ops instead of three)
-    p3, _ = _stop_hit(lens, torch.cat([uv_c, uv_c + dx, uv_c + dy], dim=-2), fields, field_type, wl, depth, ep_z)
+    p3, _ = _stop_hit(lens, torch.cat([uv_c, uv_c + dx, uv_c + dy], dim=-2), fields, field_type, wl, depth, ep_z,
+                      source)
     p0, p1, p2 = p3.split(uv_c.shape[-2], dim=-2)
     j = torch.stack([(p1 - p0) / h, (p2 - p0) / h], -1)  # (F, W, 1, 2, 2)
     # A field whose chief ray cannot be aimed (e.g. beyond the lens's field) has no usable Jacobian.
@@ -361,11 +366,14 @@ def _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, h, depth, 
     return torch.linalg.inv(j), bad
 
 
-def _aimed_uv(lens, pn, fields, field_type, wl, aim, radii: tuple, depth, ep_z, chief: tuple | None = None):
+def _aimed_uv(lens, pn, fields, field_type, wl, aim, radii: tuple, depth, source: tuple, chief: tuple | None = None):
     """Entrance-plane crossings uv (F, W, N, 2) mm of the rays with normalised pupil coordinates ``pn``
     (F, W, N, 2), aimed as ``aim`` says (see :func:`point_source_rays`), and their validity (F, W, N): False
-    where aiming failed. ``wl`` (W,) µm; ``radii`` = (entrance-pupil radius, stop radius) (mm); ``chief``: these
-    sources' :func:`chief_aim` when the caller has it. No autograd."""
+    where aiming failed. ``wl`` (W,) µm; ``radii`` = (entrance-pupil radius, stop radius) (mm); ``source``:
+    :func:`_source_part` of these sources (its ``ep_z``, the entrance plane, included; issue 43: taken once for
+    every aiming step, not once per step's function); ``chief``: these sources' :func:`chief_aim` when the caller
+    has it. No autograd."""
+    ep_z = source[1]
     r_ep, r_stop = radii
     valid = torch.ones(pn.shape[:3], dtype=torch.bool, device=lens.device)
     if aim == "paraxial":
@@ -374,23 +382,24 @@ def _aimed_uv(lens, pn, fields, field_type, wl, aim, radii: tuple, depth, ep_z, 
         raise ValueError(f"aim must be 'full', 'chief' or 'paraxial', got {aim!r}")
     h = 1e-6 * max(r_ep, 1e-3)
     if chief is None:
-        chief = _chief_aim(lens, fields, field_type, wl, (r_ep, h), depth, ep_z)
+        chief = _chief_aim(lens, fields, field_type, wl, (r_ep, h), depth, ep_z, source)
     uv_c, ok_c, jinv, bad = chief
     # Linear map pupil -> entrance plane from the chief ray's Jacobian.
     valid = valid & ~bad
     uv = uv_c + torch.einsum("fwnij,fwmj->fwmi", jinv, pn * r_stop)
     if aim == "full":
-        uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h, depth, ep_z)
+        uv, ok = _newton_aim(lens, uv, pn * r_stop, fields, field_type, wl, h, depth, ep_z, source)
         valid = valid & ok
     return uv, valid & ok_c
 
 
-def _chief_aim(lens, fields, field_type, wl, steps: tuple, depth, ep_z) -> tuple:
+def _chief_aim(lens, fields, field_type, wl, steps: tuple, depth, ep_z, source: tuple | None = None) -> tuple:
     """``(uv_c (F, W, 1, 2), ok_c (F, W, 1), J⁻¹ (F, W, 1, 2, 2), bad (F, W, 1))``: the chief rays aimed at the stop
     centre and the inverse Jacobian of the stop crossing around them (:func:`aim_chief_rays`,
-    :func:`_chief_jacobian_inverse`); ``steps`` = (entrance-pupil radius mm, finite-difference step mm)."""
-    uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth, ep_z)
-    jinv, bad = _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, steps[1], depth, ep_z)
+    :func:`_chief_jacobian_inverse`); ``steps`` = (entrance-pupil radius mm, finite-difference step mm);
+    ``source``: :func:`_source_part` of these sources when the caller has it."""
+    uv_c, ok_c = aim_chief_rays(lens, fields, field_type, wl, depth, ep_z, source)
+    jinv, bad = _chief_jacobian_inverse(lens, uv_c, ok_c, fields, field_type, wl, steps[1], depth, ep_z, source)
     return uv_c, ok_c, jinv, bad
 
 
@@ -459,10 +468,14 @@ def point_source_rays(
     ep_z = entrance_plane_z(lens)  # once: every aiming iteration needs it
     r_stop = lens.stop_radius()
     pn = torch.stack([px, py], -1)[None, None].expand(F, W, N, 2)
+    # what the sources alone decide (their checks, directions, the object medium's index): once for the aiming
+    # and the rays (issue 43)
+    source = _source_part(lens, fields, field_type, wl, depth=depth, ep_z=ep_z)
     with torch.no_grad():
-        uv, valid = _aimed_uv(lens, pn, fields, field_type, wl, aim, (r_ep, r_stop), depth, ep_z, chief)
+        uv, valid = _aimed_uv(lens, pn, fields, field_type, wl, aim, (r_ep, r_stop), depth, source, chief)
     uv = torch.nan_to_num(uv.detach())
-    rays = rays_through(lens, uv, fields, field_type, wl, dtype=dtype, depth=depth, ep_z=ep_z)
+    rays = rays_through(lens, uv, fields, field_type, wl, dtype=dtype, depth=depth, ep_z=ep_z,
+                        source=source if dtype == torch.float64 else None)
     if not bool(valid.all()):
         rays = rays.replace(valid=rays.valid & valid)
     _warn_dead_fields(rays, fields, wl)
