@@ -31,10 +31,14 @@ def schott(wl, c):
 
 
 def _sellmeier_terms(l2, c, n_terms):
-    s = torch.zeros_like(l2)
+    # the coefficients as 0-d views from one unbind, and the sum started from its first term (0 + x is x exactly):
+    # the same values in fewer ops (issue 43: a glass index is evaluated in every trace)
+    k = c.unbind() if c.shape[0] >= 2 * n_terms else [_c(c, i) for i in range(2 * n_terms)]
+    s = None
     for i in range(n_terms):
-        s = s + _c(c, 2 * i) * l2 / (l2 - _c(c, 2 * i + 1))
-    return s
+        term = k[2 * i] * l2 / (l2 - k[2 * i + 1])
+        s = term if s is None else s + term
+    return torch.zeros_like(l2) if s is None else s
 
 
 def sellmeier1(wl, c):
@@ -137,9 +141,12 @@ def rii_sellmeier(wl, c):
 def rii_sellmeier2(wl, c):
     """formula 2: n² − 1 = C0 + Σ Cᵢ λ² / (λ² − Cᵢ₊₁)."""
     l2 = wl * wl
-    s = _c(c, 0) + torch.zeros_like(l2)
-    for i in range(1, c.shape[0] - 1, 2):
-        s = s + c[i] * l2 / (l2 - c[i + 1])
+    if c.shape[0] < 3:
+        return _sqrt_n2(1 + (_c(c, 0) + torch.zeros_like(l2)))
+    k = c.unbind()  # 0-d views from one op; C0 + (first term) is C0 + 0 + (first term) exactly (issue 43)
+    s = k[0] + k[1] * l2 / (l2 - k[2])
+    for i in range(3, c.shape[0] - 1, 2):
+        s = s + k[i] * l2 / (l2 - k[i + 1])
     return _sqrt_n2(1 + s)
 
 
