@@ -456,13 +456,14 @@ def go_fallback_plane(lens, source: Source, z_xp: float, z_doe: float, known: tu
     if not z_xp < z_doe:  # a DOE plane before the exit pupil (its edge stepped backwards): no earlier plane
         return None, 0.0
     zs, err = go_phase_error(lens, source, z_xp, z_doe) if known is None else known
-    e = float(err[-1])
+    err = err.tolist()  # (one host read; issue 43: no tensor op per source)
+    e = err[-1]
     if not e > GO_PHASE_TOL:
         return None, e
-    fine = torch.nonzero(err <= GO_FALLBACK_FRACTION * GO_PHASE_TOL).squeeze(1)
-    if fine.numel() == 0 or int(fine[-1]) == 0:
+    fine = [k for k, v in enumerate(err) if v <= GO_FALLBACK_FRACTION * GO_PHASE_TOL]
+    if not fine or fine[-1] == 0:
         return None, e
-    return float(zs[int(fine[-1])]), e
+    return float(zs[fine[-1]]), e
 
 
 def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: float, est: float):

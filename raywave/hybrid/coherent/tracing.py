@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
 from raywave.lens.lens import trace_chunk
 from raywave.lens.sources import rays_through
+from raywave.rays.bundle import RayBundle
 from raywave.hybrid.coherent.record import _NEWTON_ITERS, _NEWTON_TOL
 from raywave.utils.errors import check_allocation
 
@@ -87,11 +88,55 @@ def _rows(t: torch.Tensor, sizes: list) -> list:
 
 
 def _split_bundle(b, sizes: list) -> list:
-    """Request g's first ``sizes[g]`` rays of a batched bundle (G, 1, N_max), as (1, 1, n) bundles, for every g."""
-    wl = b.wavelength
-    wls = [wl] * len(sizes) if wl.ndim < 3 or wl.shape[0] == 1 else wl.split(1, 0)
-    return [type(b)(*f) for f in zip(_rows(b.o, sizes), _rows(b.d, sizes), wls, _rows(b.valid, sizes),
-                                     _rows(b.opl, sizes))]
+    """Request g's first ``sizes[g]`` rays of a batched bundle (G, 1, N_max), as (1, 1, n) bundles, for every g: each
+    field split into the rows when first read (:class:`_RowBundle`; issue 43: the readers of a batched trace read a
+    few of its bundles' fields, e.g. none of the rays leaving the last surface)."""
+    shared = _SplitBundle(b, sizes)
+    return [_RowBundle(shared, g) for g in range(len(sizes))]
+
+
+class _SplitBundle:
+    """A batched trace's bundle ``b`` (G, 1, N_max) whose fields are split into the requests' rows (:func:`_rows`)
+    when first read."""
+
+    def __init__(self, b, sizes: list):
+        self.b, self.sizes, self.cache = b, sizes, {}
+
+    def rows(self, name: str) -> list:
+        """Every request's row of the field ``name`` of ``b``."""
+        hit = self.cache.get(name)
+        if hit is None:
+            v = getattr(self.b, name)
+            if name == "wavelength":  # one wavelength for all rows, or one per row
+                hit = [v] * len(self.sizes) if v.ndim < 3 or v.shape[0] == 1 else v.split(1, 0)
+            else:
+                hit = _rows(v, self.sizes)
+            self.cache[name] = hit
+        return hit
+
+
+class _RowBundle(RayBundle):
+    """Request ``g``'s :class:`~raywave.rays.RayBundle` (1, 1, n) of a :class:`_SplitBundle`: a bundle whose fields
+    are the batched bundle's rows, each split when first read (then kept). Built with the bundle's own fields (as
+    :func:`dataclasses.replace` does), an ordinary bundle."""
+
+    def __init__(self, *args, **kwargs):
+        if len(args) != 2 or kwargs or not isinstance(args[0], _SplitBundle):
+            RayBundle.__init__(self, *args, **kwargs)
+            return
+        object.__setattr__(self, "_shared", args[0])
+        object.__setattr__(self, "_g", args[1])
+
+    def __getattr__(self, name: str):
+        if name not in _BUNDLE_FIELDS or "_shared" not in self.__dict__:
+            raise AttributeError(name)
+        value = self._shared.rows(name)[self._g]
+        object.__setattr__(self, name, value)
+        return value
+
+
+#: the fields of a :class:`~raywave.rays.RayBundle`
+_BUNDLE_FIELDS = frozenset(f.name for f in fields(RayBundle))
 
 
 def _trace_group(reqs: list) -> list:
@@ -321,11 +366,13 @@ def _landing_from(at, n: int, h: float, need_jac=None):
 
 def _solve2(j, r):
     """Solve j·s = r for 2×2 systems (N, 2, 2), (N, 2); singular systems give 0."""
-    det = j[:, 0, 0] * j[:, 1, 1] - j[:, 0, 1] * j[:, 1, 0]
+    (j00, j01), (j10, j11) = (row.unbind(1) for row in j.unbind(1))  # views from three ops (issue 43: not eight)
+    r0, r1 = r.unbind(1)
+    det = j00 * j11 - j01 * j10
     ok = det.abs() > 1e-300
     det = torch.where(ok, det, torch.ones_like(det))
-    s0 = (j[:, 1, 1] * r[:, 0] - j[:, 0, 1] * r[:, 1]) / det
-    s1 = (-j[:, 1, 0] * r[:, 0] + j[:, 0, 0] * r[:, 1]) / det
+    s0 = (j11 * r0 - j01 * r1) / det
+    s1 = (-j10 * r0 + j00 * r1) / det
     return torch.where(ok[:, None], torch.stack([s0, s1], -1), torch.zeros_like(r)), ok
 
 
@@ -391,7 +438,7 @@ def _landing_group(reqs: list) -> list:
     rays and their finite-difference neighbours ``+h·e_u``, ``+h·e_v`` of all requests in one trace."""
     a0 = reqs[0].aim
     h, g = a0.h, len(reqs)
-    uv = torch.cat([_shaped(r.uv, (1, 2)) for r in reqs])  # (G, 2)
+    uv = torch.stack([_shaped(r.uv, (2,)) for r in reqs])  # (G, 2)
     du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
     allv = torch.cat([uv, uv + du[0], uv + du[1]])  # (3G, 2): the rays, then each neighbour set
     rows = torch.arange(g, device=uv.device).repeat(3)
@@ -428,18 +475,43 @@ def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: t
     ``finish`` (mm on the DOE plane, for solutions that only seed another solve, e.g. :func:`_coarse_start`'s): a
     Newton ray whose landing error is at most ``finish`` takes its step and stops there, converged, without the
     trace that would confirm it (Newton's error after the step is ~ error² × the map's curvature, 1e-12 mm from
-    1e-6 mm); its landing points are then None. Without it, every ray is confirmed by its own trace."""
+    1e-6 mm); its landing points are then None. Without it, every ray is confirmed by its own trace.
+
+    ``targets`` may also be a node grid (:class:`~raywave.hybrid.coherent.accurate._Nodes`: its ``targets``), whose
+    targets the group then builds for all its grids at once (one transfer; issue 43: not ~14 ops a grid)."""
     uv0, jac0 = (None, None) if start is None else start
-    req = _InvertRequest(aim, targets.detach(), tuple(c.detach() for c in chief), float(max_step),
-                         (None if uv0 is None else uv0.detach(), None if jac0 is None else jac0.detach()), finish)
+    req = _InvertRequest(aim, _detached(targets), tuple(_detached(c) for c in chief), float(max_step),
+                         (_detached(uv0), _detached(jac0)), finish)
     return (yield req)
+
+
+def _detached(t):
+    """``t.detach()`` where ``t`` is a tensor with autograd history, else ``t`` itself (a node grid, None, a tensor
+    without history: issue 43, a detach dispatches an op)."""
+    return t.detach() if isinstance(t, torch.Tensor) and t.requires_grad else t
+
+
+def _group_targets(reqs: list) -> torch.Tensor:
+    """The targets (N, 2) of the :class:`_InvertRequest` s ``reqs`` concatenated in order: tensors as they are, node
+    grids built together (their class's ``concat_targets``: each grid's ``targets`` a view of the result)."""
+    ts = [r.targets for r in reqs]
+    grids = [t for t in ts if not isinstance(t, torch.Tensor)]
+    if not grids:
+        return torch.cat(ts)
+    whole = type(grids[0]).concat_targets(grids)
+    return whole if len(grids) == len(ts) else torch.cat([t if isinstance(t, torch.Tensor) else t.targets for t in ts])
+
+
+def _count(t) -> int:
+    """The number of targets of an :class:`_InvertRequest`'s ``targets`` (a tensor (N, 2) or a node grid)."""
+    return t.shape[0] if isinstance(t, torch.Tensor) else t.count
 
 
 @dataclass
 class _InvertRequest:
-    """One :func:`_invert_to_nodes` call (its arguments, detached): a construction yields it like a trace request,
-    and :func:`run_batched` solves the pending ones of constructions that share a lens, plane and mode together
-    (:func:`_invert_group`)."""
+    """One :func:`_invert_to_nodes` call (its arguments, detached; ``targets`` (N, 2) or a node grid): a construction
+    yields it like a trace request, and :func:`run_batched` solves the pending ones of constructions that share a
+    lens, plane and mode together (:func:`_invert_group`)."""
 
     aim: _Aim
     targets: torch.Tensor
@@ -465,11 +537,12 @@ def _invert_group(reqs: list) -> list:
     every request gets what a call of its own gives; a request whose rays all stopped leaves the rounds, as its
     own iteration would have ended there."""
     finish = reqs[0].finish  # one per group (:meth:`_InvertRequest.group_key`)
-    sizes = [r.targets.shape[0] for r in reqs]
+    sizes = [_count(r.targets) for r in reqs]
     dev = reqs[0].targets.device
     rid = torch.repeat_interleave(torch.arange(len(reqs), device=dev), torch.tensor(sizes, device=dev))
-    targets = torch.cat([r.targets for r in reqs])
-    uv_c, x_c = torch.cat([r.chief[0] for r in reqs])[rid], torch.cat([r.chief[1] for r in reqs])[rid]
+    targets = _group_targets(reqs)
+    uv_c = torch.stack([_shaped(r.chief[0], (2,)) for r in reqs])[rid]  # (each (2,) or (1, 2))
+    x_c = torch.cat([r.chief[1] for r in reqs])[rid]
     jac_c = torch.cat([_shaped(r.chief[2], (1, 2, 2)) for r in reqs])[rid]
     max_step = torch.tensor([r.max_step for r in reqs], dtype=targets.dtype, device=dev)[rid][:, None]
     n = targets.shape[0]
@@ -483,7 +556,9 @@ def _invert_group(reqs: list) -> list:
     start = torch.isfinite(uv0).all(-1)
     uv = torch.where(start[:, None], uv0, uv)
     jac = torch.zeros((n, 2, 2), dtype=targets.dtype, device=dev)
-    if any(r.start[0] is not None and r.start[1] is not None for r in reqs):
+    chording = any(r.start[0] is not None and r.start[1] is not None for r in reqs)  # (else no chord node: none of
+    # the chord masks' ops)
+    if chording:
         jac0 = torch.cat([r.start[1] if (r.start[0] is not None and r.start[1] is not None)
                           else nan2.new_full((k, 2, 2), math.nan) for r, k in zip(reqs, sizes)])
         chord = start & torch.isfinite(jac0).flatten(1).all(-1)
@@ -495,11 +570,12 @@ def _invert_group(reqs: list) -> list:
     moved_last: set[int] = set()
     for it in range(_NEWTON_ITERS):
         if it == CHORD_ROUNDS:
-            chord[:] = False  # from here on every moving node takes Newton steps
+            chording = False  # from here on every moving node takes Newton steps
         if live.numel() == 0:
             break
-        x_l, valid_l, jac_l = _landing_rounds(reqs, sources, rid, live, uv, chord)
-        jac_l = torch.where(chord[live][:, None, None], jac[live], jac_l)
+        x_l, valid_l, jac_l = _landing_rounds(reqs, sources, rid, live, uv, chord if chording else None)
+        if chording:
+            jac_l = torch.where(chord[live][:, None, None], jac[live], jac_l)
         x[live], valid[live], jac[live] = x_l, valid_l, jac_l
         err = x_l - targets[live]
         step, ok = _solve2(jac_l, err)
@@ -521,23 +597,28 @@ def _invert_group(reqs: list) -> list:
     conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL) | finished
     if finish is not None:  # their landing points are those before the last step
         moved_last.update(torch.unique(rid[finished]).tolist())
-    # the Newton step J⁻¹(X − T) at the last iterate of every ray at once (what a construction's node trace takes
-    # without autograd; issue 43: one 2×2 solve for the group instead of one per construction)
-    step, _ = _solve2(jac, err)
     # each request's rows as views from one split per tensor (slicing and copying each dispatches 8 ops a request;
     # the requests hold all their rows anyway)
-    parts = zip(uv.split(sizes), conv.split(sizes), jac.split(sizes), x.split(sizes), step.split(sizes))
-    return [_Inverted((u, c, j, None if g in moved_last else xg), None if g in moved_last else sg)
-            for g, (u, c, j, xg, sg) in enumerate(parts)]
+    parts = zip(uv.split(sizes), conv.split(sizes), jac.split(sizes), x.split(sizes))
+    if finish is not None:  # a seed's solve: no node trace follows, no step
+        return [_Inverted((u, c, j, None if g in moved_last else xg), None) for g, (u, c, j, xg) in enumerate(parts)]
+    # the Newton step J⁻¹(X − T) at the last iterate of every ray at once and the points uv − J⁻¹(X − T) (what a
+    # construction's node trace takes without autograd; issue 43: one 2×2 solve and one difference for the group
+    # instead of one each per construction)
+    step, _ = _solve2(jac, err)
+    steps = zip(step.split(sizes), (uv - step).split(sizes))
+    return [_Inverted((u, c, j, None if g in moved_last else xg), *((None, None) if g in moved_last else st))
+            for g, ((u, c, j, xg), st) in enumerate(zip(parts, steps))]
 
 
 class _Inverted(tuple):
     """:func:`_invert_to_nodes`' answer ``(uv, converged, Jacobian, landing points or None)``, with ``step`` (N, 2):
-    the Newton step J⁻¹(X − T) at ``uv`` from the group's one solve (None where the landing points are None)."""
+    the Newton step J⁻¹(X − T) at ``uv`` from the group's one solve, and ``lin`` (N, 2): ``uv − step`` (both None
+    where the landing points are None, and for a seed's solve: ``finish``)."""
 
-    def __new__(cls, values: tuple, step):
+    def __new__(cls, values: tuple, step, lin=None):
         out = super().__new__(cls, values)
-        out.step = step
+        out.step, out.lin = step, lin
         return out
 
 
@@ -547,20 +628,29 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     :func:`_landing_and_jacobian`), all requests' rays as one bundle of single-ray rows (each with its own source and
     wavelength, shape (R, 1, 1): no per-request slicing, issue 43; ``sources`` = the requests' fields (G, 2),
     wavelengths (G,) µm and per-source values [G] (:func:`per_source`)). Returns the landing points (L, 2), validity
-    (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
+    (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept). ``chord`` None: no
+    chord ray (every live ray with its neighbours, none of the masks' ops)."""
     r0 = reqs[0].aim
     h = r0.h  # one per group (:meth:`_InvertRequest.group_key`)
     rid_l, uv_l = rid[live], uv[live]
-    need = ~chord[live]
-    nl, nj = uv_l.shape[0], int(need.sum())
     du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
-    uj = uv_l[need]
-    rows = torch.cat([rid_l, rid_l[need], rid_l[need]])
-    allv = torch.cat([uv_l, uj + du[0], uj + du[1]])
+    if chord is None:
+        nl = uv_l.shape[0]
+        rows = torch.cat([rid_l, rid_l, rid_l])
+        allv = torch.cat([uv_l, uv_l + du[0], uv_l + du[1]])
+    else:
+        need = ~chord[live]
+        nl, nj = uv_l.shape[0], int(need.sum())
+        uj = uv_l[need]
+        rows = torch.cat([rid_l, rid_l[need], rid_l[need]])
+        allv = torch.cat([uv_l, uj + du[0], uj + du[1]])
     if any(o is not None for o in sources[2]):  # per-source values (a mid-system DOE's orders): each row's own
         x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows], sources[2], rows)
     else:
         x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows])
+    if chord is None:
+        x0, xu, xv = x.split(nl)
+        return x0, valid[:nl], torch.stack([(xu - x0) / h, (xv - x0) / h], -1)
     x0, xu, xv = x[:nl], x[nl:nl + nj], x[nl + nj:]
     jac = torch.full((nl, 2, 2), math.nan, dtype=x.dtype, device=x.device)
     jac[need] = torch.stack([(xu - x0[need]) / h, (xv - x0[need]) / h], -1)
