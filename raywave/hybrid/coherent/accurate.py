@@ -29,7 +29,7 @@ from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, _fresnel_scale, _fresn
                                                _rim_fourier, _rim_fourier_rows, _rim_z, _rim_z_rows, _zone_estimate,
                                                edge_envelope, ripple_band)
 from raywave.hybrid.coherent.tracing import (PAUSE, _Aim, _LandingRequest, _invert_to_nodes, _nearest_fill, _solve2,
-                                             per_source, run_serial)
+                                             cat_points, cat_rows, per_source, run_serial)
 
 
 def accurate_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
@@ -360,7 +360,7 @@ def _trace_nodes(b: _Build, nd: _Nodes):
         jinv_step, _ = _solve2(jac, (x_at - nd.targets))
     uv_lin = inverted.lin if jinv_step is None else uv - jinv_step
     rays, _, at, rec = yield aim.request(uv_lin, True, True)
-    return uv_lin, rays, at, rec, conv & at.valid[0, 0]
+    return uv_lin, rays, at, rec, conv & at.valid.reshape(-1)  # (one op: not two selects)
 
 
 #: node stride of the coarse pre-solve (:func:`_coarse_start`); node grids with fewer than 4 coarse cells a side
@@ -844,11 +844,13 @@ def _batch_inputs(reqs: list, good: torch.Tensor) -> dict:
     ``xy`` [(x, y)] (N,) mm the node rays on every surface with an aperture, in the lens's order."""
     tr = [r.traced for r in reqs]
     on = [i for i, s in enumerate(reqs[0].b.lens.surfaces) if s.aperture is not None]
-    return {"uv": torch.cat([t[0] for t in tr]), "rays_d": torch.cat([t[1].d for t in tr], 2),
-            "o": torch.cat([t[2].o for t in tr], 2)[0, 0], "d": torch.cat([t[2].d for t in tr], 2)[0, 0],
-            "opl": torch.cat([t[2].opl for t in tr], 2)[0, 0], "good": good,
+    # (the rows of one batched trace gathered from it: cat_rows, cat_points)
+    at = [t[2] for t in tr]
+    return {"uv": torch.cat([t[0] for t in tr]), "rays_d": cat_rows([t[1] for t in tr], "d"),
+            "o": cat_rows(at, "o", flat=True), "d": cat_rows(at, "d", flat=True),
+            "opl": cat_rows(at, "opl", flat=True), "good": good,
             "targets": torch.cat([r.nd.targets for r in reqs]),
-            "xy": [tuple(torch.cat([t[3].points[i + 1][c] for t in tr], 2)[0, 0] for c in (0, 1)) for i in on]}
+            "xy": [tuple(cat_points([t[3] for t in tr], i + 1, c, flat=True) for c in (0, 1)) for i in on]}
 
 
 def _nearest_good(good: torch.Tensor, xy: torch.Tensor, spans: list) -> tuple:

@@ -7,6 +7,7 @@ import math
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
 
+import numpy as np
 import torch
 
 from raywave.lens.lens import trace_chunk
@@ -188,6 +189,59 @@ def _padded_rows(parts: list, sizes: list, n_max: int) -> torch.Tensor:
     j = torch.arange(n_max, dtype=torch.long, device=dev)
     idx = start[:, None] + torch.where(j[None] < size[:, None], j[None], 0)  # (G, n_max)
     return flat[idx]
+
+
+def cat_rows(bundles: list, name: str, flat: bool = False) -> torch.Tensor:
+    """``torch.cat([getattr(b, name) for b in bundles], 2)``: the field ``name`` ("o", "d", "valid" or "opl") of
+    bundles (1, 1, n_b, ...) concatenated along the rays (``flat``: ``[0, 0]`` of it, (N, ...)). Rows of one batched
+    trace (:func:`_split_bundle`) whose field is not split yet are gathered from the batched tensor at once (issue 43:
+    one gather for a run of rows instead of a split, a narrow per row and a concatenation); the same values."""
+    return _cat_runs([(getattr(b, "_shared", None), getattr(b, "_g", None), b) for b in bundles],
+                     lambda shared: getattr(shared.b, name), lambda b: getattr(b, name),
+                     lambda b: name in b.__dict__, flat)
+
+
+def cat_points(records: list, k: int, c: int, flat: bool = False) -> torch.Tensor:
+    """``torch.cat([r.points[k][c] for r in records], 2)`` (``flat``: ``[0, 0]`` of it): coordinate ``c`` of the
+    traced points on surface ``k`` of the trace records, concatenated along the rays; rows of one batched trace
+    (:class:`_RowRecord`) gathered from it at once (as :func:`cat_rows`)."""
+    def own(r):
+        shared = getattr(getattr(r, "points", None), "shared", None)
+        return shared, getattr(r.points, "g", None), r
+
+    return _cat_runs([own(r) for r in records], lambda shared: shared.rec.points[k][c],
+                     lambda r: r.points[k][c], lambda r: r.points.shared.cache.get(("points", k)) is not None, flat)
+
+
+def _cat_runs(rows: list, batched, single, split, flat: bool) -> torch.Tensor:
+    """The concatenation of :func:`cat_rows` / :func:`cat_points`: ``rows`` [(shared, g, row)] (shared None: not a
+    row of a batched trace), ``batched(shared)`` the batched tensor (G, 1, N_max, ...), ``single(row)`` a row's own
+    tensor (1, 1, n, ...), ``split(row)`` whether the row's tensor exists already."""
+    parts, run = [], []
+
+    def close():
+        if run:
+            t = batched(run[0][0])
+            n_max = t.shape[2]
+            idx = np.concatenate([g * n_max + np.arange(run[0][0].sizes[g]) for _, g, _ in run])
+            idx = torch.from_numpy(idx if flat else idx[None, None]).to(t.device)
+            parts.append(t.flatten(0, 2)[idx])
+            run.clear()
+
+    for shared, g, row in rows:
+        if shared is not None and not split(row) and (not run or run[0][0] is shared):
+            run.append((shared, g, row))
+            continue
+        close()
+        if shared is not None and not split(row):
+            run.append((shared, g, row))
+        else:
+            t = single(row)
+            parts.append(t[0, 0] if flat else t)
+    close()
+    if len(parts) == 1:
+        return parts[0]
+    return torch.cat(parts, 0 if flat else 2)
 
 
 class _SplitRecord:
@@ -552,9 +606,10 @@ def _invert_group(reqs: list) -> list:
     uv = uv_c + step0
     chord = torch.zeros(n, dtype=torch.bool, device=dev)
     nan2 = torch.full((1, 2), math.nan, dtype=targets.dtype, device=dev)
-    uv0 = torch.cat([r.start[0] if r.start[0] is not None else nan2.expand(k, 2) for r, k in zip(reqs, sizes)])
-    start = torch.isfinite(uv0).all(-1)
-    uv = torch.where(start[:, None], uv0, uv)
+    if any(r.start[0] is not None for r in reqs):  # (else every ray starts from the linear guess)
+        uv0 = torch.cat([r.start[0] if r.start[0] is not None else nan2.expand(k, 2) for r, k in zip(reqs, sizes)])
+        start = torch.isfinite(uv0).all(-1)
+        uv = torch.where(start[:, None], uv0, uv)
     jac = torch.zeros((n, 2, 2), dtype=targets.dtype, device=dev)
     chording = any(r.start[0] is not None and r.start[1] is not None for r in reqs)  # (else no chord node: none of
     # the chord masks' ops)
