@@ -712,6 +712,7 @@ class HybridLens(nn.Module):
         settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step)
         go = self._go_errors(geo, rows) if check else None
         nw = len(geo.wls)
+        media = [_medium_index(optics, wl) for wl in geo.wls]  # (one host read per wavelength, not per source)
         # the sources' field points and phase errors as views from one unbind each (issue 43: indexing them dispatches
         # one to two ops per construction)
         fs = geo.f.unbind(0)
@@ -725,7 +726,7 @@ class HybridLens(nn.Module):
                 if geo.edge is None:
                     out.append(accurate_field_steps(optics, self.doe, source, Planes(z_doe, z_sen),
                                                     ChiefRays(cd[i][j], cs[i][j], uv=cuv[i][j]), settings,
-                                                    Known(geo.boxes[r][j], geo.entrance)))
+                                                    Known(geo.boxes[r][j], geo.entrance, medium=media[j])))
                 else:
                     z_xps, rims, cx, steps = geo.edge
                     out.append(exit_pupil_field_steps(optics, self.doe, source, Planes(z_doe, z_sen, z_xps[j]),
@@ -733,7 +734,8 @@ class HybridLens(nn.Module):
                                                       Known(geo.boxes[r][j], geo.entrance, rims[j][r],
                                                             None if steps is None else steps[r][j],
                                                             None if go is None else (go[0][j], go[1][k * nw + j]),
-                                                            ... if geo.reach is None else geo.reach[r][j])))
+                                                            ... if geo.reach is None else geo.reach[r][j],
+                                                            media[j])))
         return out
 
     def _go_errors(self, geo: "_CallGeometry", rows: list[int]):

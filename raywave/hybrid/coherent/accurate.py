@@ -188,8 +188,7 @@ class _Build:
     def __post_init__(self):
         cfg, src = self.cfg, self.src
         self.field_type, self.field, self.wl, self.n, sim, self.carrier, self.center, self.zprop = _common_setup(
-            self.lens, self.doe, src.field, src.wavelength, self.z_doe, self.z_sensor, self.chief.doe,
-            self.chief.sensor, cfg.oversample, src.field_type)
+            self.lens, self.doe, src, (self.z_doe, self.z_sensor), self.chief, cfg.oversample, self.given.medium)
         self.p = sim[0]
         self.ripple = None
         if cfg.stop_plane is not None:  # the band: the caller's, else RIPPLE_ZONES widened by the edge waves' reach

@@ -289,12 +289,18 @@ def _near_nodes(keep: torch.Tensor, pos_y: torch.Tensor, pos_x: torch.Tensor, ma
     return (ya, yb), (xa, xb)
 
 
-def _common_setup(lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type):
-    """What both field constructions start from: field type, field (2,), wavelength (1,), medium index,
-    simulation grid (p, x0, y0, sy, sx), carrier (α, β), chief-ray centre on the sensor, DOE → sensor distance."""
+def _common_setup(lens, doe, source, planes: tuple, chief, oversample: int, medium: float | None = None):
+    """What both field constructions start from, for the :class:`~raywave.hybrid.coherent.settings.Source` ``source``,
+    the planes ``(z_doe, z_sensor)`` mm and the :class:`~raywave.hybrid.coherent.settings.ChiefRays` ``chief`` (its
+    ``doe`` and ``sensor`` rays): field type, field (2,), wavelength (1,), medium index (``medium``: the caller's,
+    else read here), simulation grid (p, x0, y0, sy, sx), carrier (α, β), chief-ray centre on the sensor, DOE →
+    sensor distance."""
+    field, wavelength, field_type = source.field, source.wavelength, source.field_type
+    (z_doe, z_sensor), chief_doe, chief_sensor = planes, chief.doe, chief.sensor
     field = torch.as_tensor(field, dtype=torch.float64, device=lens.device)
     field = field if field.shape == (2,) else field.reshape(2)  # (issue 43: each op counts, a reshape too)
     wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device)
     carrier = tuple(chief_doe.d.tolist()[:2])  # (one host read)
-    return (field_type or lens.field_type, field, wl, _medium_index(lens, wl), _sim_grid(doe, oversample),
+    n = _medium_index(lens, wl) if medium is None else float(medium)
+    return (field_type or lens.field_type, field, wl, n, _sim_grid(doe, oversample),
             carrier, tuple(chief_sensor.o.unbind()[:2]), z_sensor - z_doe)
