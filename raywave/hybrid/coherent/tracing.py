@@ -600,8 +600,10 @@ def _invert_group(reqs: list) -> list:
     jac_c = torch.cat([_shaped(r.chief[2], (1, 2, 2)) for r in reqs])[rid]
     max_step = torch.tensor([r.max_step for r in reqs], dtype=targets.dtype, device=dev)[rid][:, None]
     n = targets.shape[0]
+    h = reqs[0].aim.h  # one per group (:meth:`_InvertRequest.group_key`)
     sources = (torch.stack([_shaped(r.aim.field, (2,)) for r in reqs]),
-               torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs]), [r.aim.order for r in reqs])
+               torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs]), [r.aim.order for r in reqs],
+               torch.tensor([[h, 0.0], [0.0, h]], dtype=targets.dtype, device=dev).unbind(0))
     step0, _ = _solve2(jac_c, targets - x_c)
     uv = uv_c + step0
     chord = torch.zeros(n, dtype=torch.bool, device=dev)
@@ -638,14 +640,16 @@ def _invert_group(reqs: list) -> list:
         move = valid_l & ~(e <= _NEWTON_TOL) & ok
         big = step.abs().amax(-1, keepdim=True)
         ms = max_step[live]
-        step = torch.where(big > ms, step * (ms / big), step)
+        over = big > ms
+        step = torch.where(over, step * (ms / big), step)
+        moved = live[move]
+        uv[moved] = uv[moved] - step[move]
         if finish is not None:  # the last step of a seed's ray, unconfirmed (no trace of its own for it)
-            last = move & (e <= finish) & ~(big[:, 0] > ms[:, 0])
-            finished[live[last]] = True
-            uv[live[last]] = uv[live[last]] - step[last]
+            last = move & (e <= finish) & ~over[:, 0]
+            finished.index_fill_(0, live[last], True)
             move = move & ~last
-        live = live[move]
-        uv[live] = uv[live] - step[move]
+            moved = live[move]
+        live = moved
         if it == _NEWTON_ITERS - 1:  # the last iteration moved these requests' rays: their landing points are stale
             moved_last.update(torch.unique(rid[live]).tolist())
     err = x - targets
@@ -682,18 +686,19 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     ray and, unless it takes chord steps, its two finite-difference neighbours (the rays of
     :func:`_landing_and_jacobian`), all requests' rays as one bundle of single-ray rows (each with its own source and
     wavelength, shape (R, 1, 1): no per-request slicing, issue 43; ``sources`` = the requests' fields (G, 2),
-    wavelengths (G,) µm and per-source values [G] (:func:`per_source`)). Returns the landing points (L, 2), validity
+    wavelengths (G,) µm, per-source values [G] (:func:`per_source`) and the neighbours' offsets ``(h·e_u, h·e_v)``
+    (each (2,), made once for the group)). Returns the landing points (L, 2), validity
     (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept). ``chord`` None: no
     chord ray (every live ray with its neighbours, none of the masks' ops)."""
     r0 = reqs[0].aim
     h = r0.h  # one per group (:meth:`_InvertRequest.group_key`)
     rid_l, uv_l = rid[live], uv[live]
-    du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
     if chord is None:
         nl = uv_l.shape[0]
         rows = torch.cat([rid_l, rid_l, rid_l])
-        allv = torch.cat([uv_l, uv_l + du[0], uv_l + du[1]])
+        allv = torch.cat([uv_l, uv_l + sources[3][0], uv_l + sources[3][1]])
     else:
+        du = sources[3]
         need = ~chord[live]
         nl, nj = uv_l.shape[0], int(need.sum())
         uj = uv_l[need]
