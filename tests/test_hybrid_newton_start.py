@@ -39,9 +39,9 @@ def _counting(monkeypatch) -> list:
 
     rows = tracing_mod._trace_rows  # the Newton rounds' traces (one bundle of single-ray rows)
 
-    def counted_rows(aim, uv, fields, wavelengths):
+    def counted_rows(aim, uv, *args, **kwargs):
         counts[-1].append(uv.shape[0])
-        return rows(aim, uv, fields, wavelengths)
+        return rows(aim, uv, *args, **kwargs)
 
     monkeypatch.setattr(tracing_mod, "_trace_group", counted)
     monkeypatch.setattr(tracing_mod, "_trace_rows", counted_rows)

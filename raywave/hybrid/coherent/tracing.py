@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from raywave.lens.lens import trace_chunk
-from raywave.lens.sources import rays_through
+from raywave.lens.sources import _source_part, rays_through
 from raywave.rays.bundle import RayBundle
 from raywave.hybrid.coherent.record import _NEWTON_ITERS, _NEWTON_TOL
 from raywave.utils.errors import check_allocation
@@ -604,6 +604,10 @@ def _invert_group(reqs: list) -> list:
     sources = (torch.stack([_shaped(r.aim.field, (2,)) for r in reqs]),
                torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs]), [r.aim.order for r in reqs],
                torch.tensor([[h, 0.0], [0.0, h]], dtype=targets.dtype, device=dev).unbind(0))
+    a0 = reqs[0].aim  # (lens, depth, field type and entrance plane: one per group)
+    with torch.no_grad():
+        sources += (_source_part(a0.lens, sources[0], a0.field_type, sources[1].reshape(-1, 1, 1), depth=a0.depth,
+                                 ep_z=a0.ep_z),)
     step0, _ = _solve2(jac_c, targets - x_c)
     uv = uv_c + step0
     chord = torch.zeros(n, dtype=torch.bool, device=dev)
@@ -686,8 +690,9 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     ray and, unless it takes chord steps, its two finite-difference neighbours (the rays of
     :func:`_landing_and_jacobian`), all requests' rays as one bundle of single-ray rows (each with its own source and
     wavelength, shape (R, 1, 1): no per-request slicing, issue 43; ``sources`` = the requests' fields (G, 2),
-    wavelengths (G,) µm, per-source values [G] (:func:`per_source`) and the neighbours' offsets ``(h·e_u, h·e_v)``
-    (each (2,), made once for the group)). Returns the landing points (L, 2), validity
+    wavelengths (G,) µm, per-source values [G] (:func:`per_source`), the neighbours' offsets ``(h·e_u, h·e_v)``
+    (each (2,)) and the sources' :func:`_source_part` (their directions, checks and index), made once for the group).
+    Returns the landing points (L, 2), validity
     (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept). ``chord`` None: no
     chord ray (every live ray with its neighbours, none of the masks' ops)."""
     r0 = reqs[0].aim
@@ -704,10 +709,11 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
         uj = uv_l[need]
         rows = torch.cat([rid_l, rid_l[need], rid_l[need]])
         allv = torch.cat([uv_l, uj + du[0], uj + du[1]])
+    part = _part_rows(sources[4], rows)  # the sources' directions, checks and index: once for the group
     if any(o is not None for o in sources[2]):  # per-source values (a mid-system DOE's orders): each row's own
-        x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows], sources[2], rows)
+        x, valid = _trace_rows(r0, allv, None, None, sources[2], rows, part)
     else:
-        x, valid = _trace_rows(r0, allv, sources[0][rows], sources[1][rows])
+        x, valid = _trace_rows(r0, allv, None, None, part=part)
     if chord is None:
         x0, xu, xv = x.split(nl)
         return x0, valid[:nl], torch.stack([(xu - x0) / h, (xv - x0) / h], -1)
@@ -717,24 +723,40 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     return x0, valid[:nl], jac
 
 
-def _trace_rows(aim: _Aim, uv, fields, wavelengths, orders=None, rows=None):
+def _trace_rows(aim: _Aim, uv, fields, wavelengths, orders=None, rows=None, part=None):
     """Landing points (R, 2) and validity (R,) on ``aim``'s plane of R rays, each with its own source: entrance-plane
     points ``uv`` (R, 2) mm, ``fields`` (R, 2), ``wavelengths`` (R,) µm (``aim``'s lens, depth, field type and
     entrance plane), traced without autograd as one bundle (R, 1, 1) (every ray on its own). ``orders``: the
-    sources' per-source values (:func:`per_source`), ``rows`` (R,) long: each ray's source among them."""
+    sources' per-source values (:func:`per_source`), ``rows`` (R,) long: each ray's source among them. ``part``:
+    what the rays' sources alone decide (:func:`_source_part` of ``fields`` and ``wavelengths``, each row's, e.g.
+    :func:`_part_rows` of the sources' own), when the caller has it (``fields`` and ``wavelengths`` are then not
+    read, and may be None)."""
     chunk = trace_chunk(uv.device)
     if orders is not None and any(o is not None for o in orders) and uv.shape[0] > 2 * chunk:
-        parts = [_trace_rows(aim, uv[i:i + chunk], fields[i:i + chunk], wavelengths[i:i + chunk],
-                             orders, rows[i:i + chunk]) for i in range(0, uv.shape[0], chunk)]
+        parts = [_trace_rows(aim, uv[i:i + chunk], *(None if t is None else t[i:i + chunk] for t in (fields, wavelengths)),
+                             orders, rows[i:i + chunk], None if part is None else _part_rows(part, slice(i, i + chunk)))
+                 for i in range(0, uv.shape[0], chunk)]
         return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     with torch.no_grad():
-        rays = rays_through(aim.lens, uv[:, None, None], fields, aim.field_type, wavelengths.reshape(-1, 1, 1),
-                            depth=aim.depth, ep_z=aim.ep_z)
+        if part is None:
+            part = _source_part(aim.lens, fields, aim.field_type, wavelengths.reshape(-1, 1, 1), depth=aim.depth,
+                                ep_z=aim.ep_z)
+        rays = rays_through(aim.lens, uv[:, None, None], fields, aim.field_type, None, depth=aim.depth, ep_z=aim.ep_z,
+                            source=part)
         with per_source(aim.lens, orders, rows):
             out = aim.lens.trace(rays, apertures=False)
         n = aim.lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(aim.z_doe, n)
     return at.o[:, 0, 0, :2], at.valid[:, 0, 0]
+
+
+def _part_rows(part: tuple, idx) -> tuple:
+    """:func:`_source_part` ``part`` of G sources (each tensor's first axis a source) → that of the rows ``idx`` (an
+    index tensor or a slice into its sources): ``(wavelengths, ep_z, directions, points, wide, index)``, each
+    source's values gathered (the same values :func:`_source_part` gives for the rows' own fields: it works row by
+    row)."""
+    wl, ep_z, d_inf, pts, wide, n0 = part
+    return (wl[idx], ep_z, *(None if t is None else t[idx] for t in (d_inf, pts, wide)), n0[idx])
 
 
 def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, grad_xy: torch.Tensor | None = None):
