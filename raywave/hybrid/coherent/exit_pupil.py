@@ -149,7 +149,8 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         fx = yield from accurate_field_steps(lens, lattice, source, Planes(z_edge, z_sensor),
                                              ChiefRays(chief_xp.propagate_to_z(z_edge, n), chief_sensor, uv=chief_uv),
                                              replace(coarse, virtual=True, stop_plane=z_xp,
-                                                     ripple_zones=ripple_zones), Known(stop_rim=rim, medium=known.medium))
+                                                     ripple_zones=ripple_zones),
+                                             Known(stop_rim=rim, medium=known.medium))
     carrier = fx.carrier  # the chief ray's direction: the same on both planes
     bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
     if bbox is None or float(fx.power.detach()) == 0.0:

@@ -465,9 +465,9 @@ class _Aim:
 
 @dataclass
 class _LandingRequest:
-    """A construction's chief-ray landing (:meth:`_Aim.landing` of its one ray ``uv`` (1, 2), no autograd): answered
-    with ``(X (1, 2), ∂X/∂uv (1, 2, 2))``. :func:`run_batched` answers the pending ones of constructions that share
-    a lens, plane and mode with one trace of all their rays and neighbours, a single-ray row each
+    """A construction's chief-ray landing (:meth:`_Aim.landing` of its one ray ``uv`` (2,) or (1, 2), no autograd):
+    answered with ``(X (1, 2), ∂X/∂uv (1, 2, 2))``. :func:`run_batched` answers the pending ones of constructions
+    that share a lens, plane and mode with one trace of all their rays and neighbours, a single-ray row each
     (:func:`_trace_rows`; issue 43: no per-construction slicing): each value its own call's."""
 
     aim: _Aim
@@ -733,7 +733,8 @@ def _trace_rows(aim: _Aim, uv, fields, wavelengths, orders=None, rows=None, part
     read, and may be None)."""
     chunk = trace_chunk(uv.device)
     if orders is not None and any(o is not None for o in orders) and uv.shape[0] > 2 * chunk:
-        parts = [_trace_rows(aim, uv[i:i + chunk], *(None if t is None else t[i:i + chunk] for t in (fields, wavelengths)),
+        parts = [_trace_rows(aim, uv[i:i + chunk], *(None if t is None else t[i:i + chunk]
+                                                     for t in (fields, wavelengths)),
                              orders, rows[i:i + chunk], None if part is None else _part_rows(part, slice(i, i + chunk)))
                  for i in range(0, uv.shape[0], chunk)]
         return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
