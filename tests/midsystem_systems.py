@@ -4,6 +4,7 @@ sphere-to-sphere phase (the lens that is perfect for the beam it receives), the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -157,7 +158,7 @@ class FrozenMesh:
 
     def _nodes(self, nd):
         kept = self._replay("nodes", nd)
-        return _accurate._Nodes(kept.gx.clone(), kept.gy.clone(), kept.h)
+        return dataclasses.replace(kept)  # the same grid, its node tensors made afresh
 
     def loss(self, fn):
         """``fn`` (a loss without arguments) whose first call records the mesh and later calls replay it."""

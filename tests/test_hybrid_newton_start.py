@@ -39,9 +39,9 @@ def _counting(monkeypatch) -> list:
 
     rows = tracing_mod._trace_rows  # the Newton rounds' traces (one bundle of single-ray rows)
 
-    def counted_rows(aim, uv, *rest):
+    def counted_rows(aim, uv, *args, **kwargs):
         counts[-1].append(uv.shape[0])
-        return rows(aim, uv, *rest)
+        return rows(aim, uv, *args, **kwargs)
 
     monkeypatch.setattr(tracing_mod, "_trace_group", counted)
     monkeypatch.setattr(tracing_mod, "_trace_rows", counted_rows)
@@ -178,8 +178,7 @@ def test_nodes_settle_before_the_node_traces_own_step():
     with torch.no_grad():
         cd = coherent.chief_rays(lens, f[None], wl, None, z, hl.sensor_z())
         xc = cd[0].o[0, 0, :2].tolist()
-        g = torch.linspace(-1.2, 1.2, 65, dtype=torch.float64)
-        nd = _Nodes(xc[0] + g, xc[1] + g, float(g[1] - g[0]))
+        nd = _Nodes(xc[0], xc[1], 32.0, 32.0, 2.4 / 64, 65, 65, lens.device)  # 65² nodes over ±1.2 mm
         uv_c = cd[2][0, 0].reshape(1, 2)
         chief = coherent.run_serial(tracing_mod._landing_and_jacobian(lens, uv_c, f, wl, None, z, ft, h, ep_z))
         chief = (uv_c, chief[0], chief[2])

@@ -42,7 +42,7 @@ def _frozen_carrier(setup):
 
     def frozen(*args):
         out = list(setup(*args))
-        key = (tuple(torch.as_tensor(args[2], dtype=torch.float64).flatten().tolist()), float(args[3]))
+        key = (tuple(torch.as_tensor(args[2].field, dtype=torch.float64).flatten().tolist()), float(args[2].wavelength))
         out[5] = first.setdefault(key, out[5])
         return tuple(out)
 

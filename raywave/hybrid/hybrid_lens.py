@@ -711,23 +711,31 @@ class HybridLens(nn.Module):
         cd, cs, cuv = (_source_elements(t, built, len(geo.wls)) for t in geo.chief)
         settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step)
         go = self._go_errors(geo, rows) if check else None
+        nw = len(geo.wls)
+        media = [_medium_index(optics, wl) for wl in geo.wls]  # (one host read per wavelength, not per source)
+        # the sources' field points and phase errors as views from one unbind each (issue 43: indexing them dispatches
+        # one to two ops per construction)
+        fs = geo.f.unbind(0)
+        if go is not None:
+            go = (go[0].unbind(0), go[1].flatten(0, 1).unbind(0))
         out = []
         for k, r in enumerate(rows):
             i = geo.todo[r]
             for j, wl in enumerate(geo.wls):
-                source = Source(geo.f[i], wl, geo.depth, order=None if geo.orders is None else geo.orders[i])
+                source = Source(fs[i], wl, geo.depth, order=None if geo.orders is None else geo.orders[i])
                 if geo.edge is None:
                     out.append(accurate_field_steps(optics, self.doe, source, Planes(z_doe, z_sen),
                                                     ChiefRays(cd[i][j], cs[i][j], uv=cuv[i][j]), settings,
-                                                    Known(geo.boxes[r][j], geo.entrance)))
+                                                    Known(geo.boxes[r][j], geo.entrance, medium=media[j])))
                 else:
                     z_xps, rims, cx, steps = geo.edge
                     out.append(exit_pupil_field_steps(optics, self.doe, source, Planes(z_doe, z_sen, z_xps[j]),
                                                       ChiefRays(cd[i][j], cs[i][j], cx[j][r], cuv[i][j]), settings,
                                                       Known(geo.boxes[r][j], geo.entrance, rims[j][r],
                                                             None if steps is None else steps[r][j],
-                                                            None if go is None else (go[0][j], go[1][k, j]),
-                                                            ... if geo.reach is None else geo.reach[r][j])))
+                                                            None if go is None else (go[0][j], go[1][k * nw + j]),
+                                                            ... if geo.reach is None else geo.reach[r][j],
+                                                            media[j])))
         return out
 
     def _go_errors(self, geo: "_CallGeometry", rows: list[int]):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import itertools
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field as dc_field
 from typing import ClassVar
 
 import numpy as np
@@ -29,7 +29,7 @@ from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, _fresnel_scale, _fresn
                                                _rim_fourier, _rim_fourier_rows, _rim_z, _rim_z_rows, _zone_estimate,
                                                edge_envelope, ripple_band)
 from raywave.hybrid.coherent.tracing import (PAUSE, _Aim, _LandingRequest, _invert_to_nodes, _nearest_fill, _solve2,
-                                             per_source, run_serial)
+                                             cat_points, cat_rows, per_source, run_serial)
 
 
 def accurate_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
@@ -76,18 +76,91 @@ def entrance_pupil(lens) -> tuple[float, float]:
     return entrance_plane_z(lens), 0.5 * entrance_pupil_diameter(lens)
 
 
-@dataclass
+@dataclass(eq=False)
 class _Nodes:
-    """The regular node grid on the plane: node ``[j, i]`` at ``(gx[i], gy[j])`` mm, spacing ``h`` mm."""
+    """The regular node grid on the plane: node ``[j, i]`` at ``(gx[i], gy[j])`` mm, spacing ``h`` mm, ``gx[i] = x0 +
+    (i − cx)·h``, ``gy[j] = y0 + (j − cy)·h`` (``x0``, ``y0`` mm and ``cx``, ``cy`` host numbers: the reference point
+    and its place in the grid), ``kx`` × ``ky`` nodes on ``device``. The node coordinates are tensors made from the
+    host numbers when first read: ``gx`` (kx,), ``gy`` (ky,), ``tx``, ``ty`` (ky, kx) and ``targets`` (ky·kx, 2) (the
+    nodes in row-major order); :meth:`concat_targets` makes many grids' at once (issue 43: one transfer for a group
+    instead of ~20 ops a grid)."""
 
-    gx: torch.Tensor
-    gy: torch.Tensor
+    x0: float
+    y0: float
+    cx: float
+    cy: float
     h: float
+    kx: int
+    ky: int
+    device: torch.device
+    cache: dict = dc_field(default_factory=dict, init=False, repr=False)
 
-    def __post_init__(self):
-        self.kx, self.ky = self.gx.numel(), self.gy.numel()
-        self.tx, self.ty = torch.meshgrid(self.gx, self.gy, indexing="xy")  # (ky, kx)
-        self.targets = torch.stack([self.tx, self.ty], -1).reshape(-1, 2)
+    @property
+    def count(self) -> int:
+        """The number of nodes."""
+        return self.kx * self.ky
+
+    def axes(self) -> tuple:
+        """``(gx (kx,), gy (ky,))`` float64 numpy arrays (the host's arithmetic, each step rounded as a tensor's)."""
+        return (self.x0 + (np.arange(self.kx, dtype=np.float64) - self.cx) * self.h,
+                self.y0 + (np.arange(self.ky, dtype=np.float64) - self.cy) * self.h)
+
+    def ends(self) -> tuple:
+        """``(gy[0], gx[0], gy[-1], gx[-1])`` mm: the first and last node, host numbers (no tensor op)."""
+        gx, gy = self.axes()
+        return float(gy[0]), float(gx[0]), float(gy[-1]), float(gx[-1])
+
+    def _host_targets(self) -> np.ndarray:
+        gx, gy = self.axes()
+        return np.stack([np.broadcast_to(gx[None, :], (self.ky, self.kx)),
+                         np.broadcast_to(gy[:, None], (self.ky, self.kx))], -1).reshape(-1, 2)
+
+    @property
+    def gx(self) -> torch.Tensor:
+        if "gx" not in self.cache:
+            self.cache["gx"] = torch.from_numpy(self.axes()[0]).to(self.device)
+        return self.cache["gx"]
+
+    @property
+    def gy(self) -> torch.Tensor:
+        if "gy" not in self.cache:
+            self.cache["gy"] = torch.from_numpy(self.axes()[1]).to(self.device)
+        return self.cache["gy"]
+
+    @property
+    def tx(self) -> torch.Tensor:
+        if "tx" not in self.cache:
+            self.cache["tx"], self.cache["ty"] = torch.meshgrid(self.gx, self.gy, indexing="xy")  # (ky, kx)
+        return self.cache["tx"]
+
+    @property
+    def ty(self) -> torch.Tensor:
+        self.tx  # noqa: B018 (made with tx)
+        return self.cache["ty"]
+
+    @property
+    def targets(self) -> torch.Tensor:
+        if "targets" not in self.cache:
+            self.cache["targets"] = torch.from_numpy(self._host_targets()).to(self.device)
+        return self.cache["targets"]
+
+    @staticmethod
+    def concat_targets(nds: list) -> torch.Tensor:
+        """The ``targets`` of the grids ``nds`` (one device) concatenated (N, 2), from one transfer; each grid's
+        ``targets`` (and its axes ``gx``, ``gy``) then views of one tensor each (one split each)."""
+        host = [nd.axes() for nd in nds]
+        flat = np.concatenate([np.stack([np.broadcast_to(gx[None, :], (nd.ky, nd.kx)),
+                                         np.broadcast_to(gy[:, None], (nd.ky, nd.kx))], -1).reshape(-1, 2)
+                               for nd, (gx, gy) in zip(nds, host)])
+        dev = nds[0].device
+        whole = torch.from_numpy(flat).to(dev)
+        axes = [torch.from_numpy(np.concatenate([h[k] for h in host])).to(dev).split([len(h[k]) for h in host])
+                for k in (0, 1)]
+        for nd, t, gx, gy in zip(nds, whole.split([nd.count for nd in nds]), *axes):
+            nd.cache.setdefault("targets", t)
+            nd.cache.setdefault("gx", gx)
+            nd.cache.setdefault("gy", gy)
+        return whole
 
     def as_map(self, v: torch.Tensor) -> torch.Tensor:
         """Per-node values ``(ky·kx, ...)`` → ``(..., ky, kx)`` maps."""
@@ -115,14 +188,15 @@ class _Build:
     def __post_init__(self):
         cfg, src = self.cfg, self.src
         self.field_type, self.field, self.wl, self.n, sim, self.carrier, self.center, self.zprop = _common_setup(
-            self.lens, self.doe, src.field, src.wavelength, self.z_doe, self.z_sensor, self.chief.doe,
-            self.chief.sensor, cfg.oversample, src.field_type)
+            self.lens, self.doe, src, (self.z_doe, self.z_sensor), self.chief, cfg.oversample, self.given.medium)
         self.p = sim[0]
         self.ripple = None
         if cfg.stop_plane is not None:  # the band: the caller's, else RIPPLE_ZONES widened by the edge waves' reach
+            reach = self.given.reach  # (the caller's: the crop's centre is not read)
             self.ripple = float(cfg.ripple_zones) if cfg.ripple_zones is not None else ripple_band(
-                self.given.stop_rim, self.z_doe, self.z_sensor, self.chief.sensor.o[:2].detach(),
-                self.src.wavelength * 1e-3 / self.n, self.given.reach)
+                self.given.stop_rim, self.z_doe, self.z_sensor,
+                None if reach is not ... else self.chief.sensor.o[:2].detach(), self.src.wavelength * 1e-3 / self.n,
+                reach)
 
     def empty(self, rays: int) -> DOEField:
         """The field without light (``rays`` traced)."""
@@ -150,7 +224,7 @@ def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: Chief
         return b.empty(0)
     nd = _node_layout(b, bbox)
     nodes = yield from _trace_nodes(b, nd)
-    n_rays = nd.targets.shape[0]
+    n_rays = nd.count
     # the node-map stage: a request that run_batched answers for many constructions at once (_node_stages); the
     # maps the field stage reads (:data:`_FIELD_MAPS`), or None where no node's ray was traced
     maps = yield _NodeMapRequest(b, nd, nodes)
@@ -217,15 +291,14 @@ def _node_layout(b: _Build, bbox) -> _Nodes:
     exactly symmetric field), covering the footprint ``bbox`` + a margin (with the stop edge diffracting from
     the stop plane, its ripple band too); nodes need not sit on simulation pixels."""
     p, nodes, z_doe, stop_plane, stop_rim = b.p, b.cfg.nodes, b.z_doe, b.cfg.stop_plane, b.given.stop_rim
-    xcd, ycd = b.chief.doe.o[:2].detach().tolist()  # (one host read)
+    xcd, ycd = b.chief.doe.o.tolist()[:2]  # (one host read)
     extent = max(bbox[1] - bbox[0], bbox[3] - bbox[2], p)
     h_node = extent / max(nodes - 1, 2)
     margin = 2.5 * h_node + 2 * p
     if stop_plane is not None:
         z_edge = stop_plane
         if stop_rim is not None:  # the rim image farthest from the DOE plane sets the widest band
-            zr = stop_rim[1].detach()
-            z_far = float(zr.min() if z_doe >= stop_plane else zr.max())
+            z_far = _host_extreme(stop_rim[1].tolist(), z_doe >= stop_plane)  # (one host read)
             if (z_doe - z_far) * (z_doe - stop_plane) > 0 and abs(z_doe - z_far) > abs(z_doe - stop_plane):
                 z_edge = z_far
         margin += (b.ripple + 1) * _zone_estimate(b.src.wavelength, b.n, z_doe - z_edge, b.z_sensor - z_edge,
@@ -235,10 +308,14 @@ def _node_layout(b: _Build, bbox) -> _Nodes:
     kx = 2 * math.ceil(half_x / h_node) + 1
     ky = 2 * math.ceil(half_y / h_node) + 1
     _check_node_count(kx, ky, nodes, extent, margin, stop_plane)
-    dev = b.lens.device
-    gx = xcd + (torch.arange(kx, dtype=torch.float64, device=dev) - (kx - 1) / 2) * h_node
-    gy = ycd + (torch.arange(ky, dtype=torch.float64, device=dev) - (ky - 1) / 2) * h_node
-    return _Nodes(gx, gy, h_node)
+    return _Nodes(xcd, ycd, (kx - 1) / 2, (ky - 1) / 2, h_node, kx, ky, b.lens.device)
+
+
+def _host_extreme(values: list, smallest: bool) -> float:
+    """The smallest (else the largest) of the host numbers ``values``, NaN if one is NaN (as a tensor's min/max)."""
+    if any(math.isnan(v) for v in values):
+        return math.nan
+    return min(values) if smallest else max(values)
 
 
 def _trace_nodes(b: _Build, nd: _Nodes):
@@ -254,12 +331,12 @@ def _trace_nodes(b: _Build, nd: _Nodes):
             ep_rays = point_source_rays(lens, b.field, b.wl, pupil=chief_pupil(lens), aim="full", depth=b.src.depth)
         o, d = ep_rays.o[0, 0, 0].detach(), ep_rays.d[0, 0, 0].detach()
         chief_uv = o[:2] + d[:2] * (ep_z - o[2]) / d[2]
-    uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device).reshape(1, 2)
+    uv_c = torch.as_tensor(chief_uv, dtype=torch.float64, device=lens.device)  # (2,) or (1, 2): the groups stack it
     aim = _Aim(lens, b.field, b.wl, b.src.depth, b.z_doe, b.field_type, 1e-6 * max(r_ep, 1e-3), ep_z, b.src.order)
     x_c, jac_c = yield _LandingRequest(aim, uv_c)  # batched with the other constructions' chief rays
     chief = (uv_c, x_c, jac_c)
     start = yield from _coarse_start(aim, nd, chief, 0.25 * r_ep)
-    inverted = yield from _invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep, start, settle=NODE_SETTLE)
+    inverted = yield from _invert_to_nodes(aim, nd, chief, 0.25 * r_ep, start, settle=NODE_SETTLE)  # (the group makes nd.targets)
     uv, conv, jac, x_at = inverted
     # the differentiable trace of the node rays. The landing point of a node's ray must stay on its node when
     # the lens changes: one Newton step with the (detached) Jacobian, uv_lin = uv − J⁻¹(X(uv) − T), equals uv
@@ -276,13 +353,13 @@ def _trace_nodes(b: _Build, nd: _Nodes):
         _, _, jac_exact = yield from aim.landing(uv)
         jinv_step, _ = _solve2(jac, x_at.detach() - nd.targets)
         jinv_step = jinv_step + _solve2(jac_exact, x_at - x_at.detach())[0]
-    elif getattr(inverted, "step", None) is not None and not torch.is_grad_enabled():
-        jinv_step = inverted.step  # the inversion's own solve at these landing points (the same values)
+    elif getattr(inverted, "lin", None) is not None and not torch.is_grad_enabled():
+        jinv_step = None  # the inversion's own solve at these landing points and its uv − step (the same values)
     else:
         jinv_step, _ = _solve2(jac, (x_at - nd.targets))
-    uv_lin = uv - jinv_step
+    uv_lin = inverted.lin if jinv_step is None else uv - jinv_step
     rays, _, at, rec = yield aim.request(uv_lin, True, True)
-    return uv_lin, rays, at, rec, conv & at.valid[0, 0]
+    return uv_lin, rays, at, rec, conv & at.valid.reshape(-1)  # (one op: not two selects)
 
 
 #: node stride of the coarse pre-solve (:func:`_coarse_start`); node grids with fewer than 4 coarse cells a side
@@ -319,12 +396,11 @@ def _coarse_start(aim: _Aim, nd: _Nodes, chief: tuple, max_step: float):
     if min(nd.kx, nd.ky) < 4 * s + 1:
         return None
     kxc, kyc = -(-(nd.kx - 1) // s) + 1, -(-(nd.ky - 1) // s) + 1  # the coarse grid covers the node grid
-    dev = nd.gx.device
-    gxc = nd.gx[0] + torch.arange(kxc, dtype=torch.float64, device=dev) * (s * nd.h)
-    gyc = nd.gy[0] + torch.arange(kyc, dtype=torch.float64, device=dev) * (s * nd.h)
-    tx, ty = torch.meshgrid(gxc, gyc, indexing="xy")
-    targets = torch.stack([tx, ty], -1).reshape(-1, 2)
-    uv, conv, _, _ = yield from _invert_to_nodes(aim, targets, chief, max_step, finish=COARSE_FINISH)
+    # every s-th node from the first (host numbers: the coarse grid's targets are made with the group's, in one
+    # transfer)
+    gy0, gx0, _, _ = nd.ends()
+    coarse = _Nodes(gx0, gy0, 0.0, 0.0, s * nd.h, kxc, kyc, nd.device)
+    uv, conv, _, _ = yield from _invert_to_nodes(aim, coarse, chief, max_step, finish=COARSE_FINISH)
     return (yield _CoarseRequest(uv, conv, (kyc, kxc), (nd.ky, nd.kx), nd.h))
 
 
@@ -437,8 +513,15 @@ def _coarse_batch(reqs: list) -> list:
     du_dx, dv_dx = _padded_gradient(fine, h, sizes[:, 3].long(), -1).unbind(1)
     det = du_dx * dv_dy - du_dy * dv_dx  # (B, ky, kx)
     jac = torch.stack([torch.stack([dv_dy, -du_dy], -1), torch.stack([-dv_dx, du_dx], -1)], -2) / det[..., None, None]
-    return [(fine[i, :, :a, :c].reshape(2, -1).T, jac[i, :a, :c].reshape(-1, 2, 2))
-            for i, (a, c) in enumerate(r.nodes for r in reqs)]
+    # every grid's own nodes in row-major order, gathered at once (host indices: one transfer) and split into the
+    # answers (views; issue 43: not ~11 ops a construction)
+    sizes = [a * c for a, c in (r.nodes for r in reqs)]
+    at = np.concatenate([(np.arange(a * c) // c) * kx + np.arange(a * c) % c for a, c in (r.nodes for r in reqs)])
+    grid = torch.from_numpy(np.repeat(np.arange(nb), sizes)).to(dev)
+    at = torch.from_numpy(at).to(dev)
+    uv0 = fine.flatten(2)[grid, :, at]  # (N, 2)
+    jac0 = jac.flatten(1, 2)[grid, at]  # (N, 2, 2)
+    return list(zip(uv0.split(sizes), jac0.split(sizes)))
 
 
 def _node_maps(b: _Build, nd: _Nodes, traced: tuple, is_stop, diffracting) -> dict:
@@ -766,11 +849,13 @@ def _batch_inputs(reqs: list, good: torch.Tensor) -> dict:
     ``xy`` [(x, y)] (N,) mm the node rays on every surface with an aperture, in the lens's order."""
     tr = [r.traced for r in reqs]
     on = [i for i, s in enumerate(reqs[0].b.lens.surfaces) if s.aperture is not None]
-    return {"uv": torch.cat([t[0] for t in tr]), "rays_d": torch.cat([t[1].d for t in tr], 2),
-            "o": torch.cat([t[2].o for t in tr], 2)[0, 0], "d": torch.cat([t[2].d for t in tr], 2)[0, 0],
-            "opl": torch.cat([t[2].opl for t in tr], 2)[0, 0], "good": good,
+    # (the rows of one batched trace gathered from it: cat_rows, cat_points)
+    at = [t[2] for t in tr]
+    return {"uv": torch.cat([t[0] for t in tr]), "rays_d": cat_rows([t[1] for t in tr], "d"),
+            "o": cat_rows(at, "o", flat=True), "d": cat_rows(at, "d", flat=True),
+            "opl": cat_rows(at, "opl", flat=True), "good": good,
             "targets": torch.cat([r.nd.targets for r in reqs]),
-            "xy": [tuple(torch.cat([t[3].points[i + 1][c] for t in tr], 2)[0, 0] for c in (0, 1)) for i in on]}
+            "xy": [tuple(cat_points([t[3] for t in tr], i + 1, c, flat=True) for c in (0, 1)) for i in on]}
 
 
 def _nearest_good(good: torch.Tensor, xy: torch.Tensor, spans: list) -> tuple:

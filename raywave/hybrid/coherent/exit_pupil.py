@@ -102,7 +102,8 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                                                        field_type)
     if method == "doe":  # exact for this source (see adaptive_edge_step): the edge cut on the DOE plane
         fd = yield from accurate_field_steps(lens, doe, source, Planes(z_doe, z_sensor), on_doe,
-                                             replace(settings, virtual=False, stop_plane=None), Known(bbox, entrance))
+                                             replace(settings, virtual=False, stop_plane=None),
+                                             Known(bbox, entrance, medium=known.medium))
         return fd.with_info(stop_edge="exit_pupil")
     method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
     z_from = None
@@ -119,13 +120,14 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         fd = yield from accurate_field_steps(lens, doe, source, Planes(z_doe, z_sensor), on_doe,
                                              replace(settings, virtual=False, stop_plane=z_xp,
                                                      ripple_zones=ripple_zones),
-                                             Known(bbox, entrance, rim, reach=known.reach if rim is stop_rim else ...))
+                                             Known(bbox, entrance, rim, reach=known.reach if rim is stop_rim else ...,
+                                                   medium=known.medium))
         return fd.with_info(stop_edge="exit_pupil")
     if method != "asm":
         raise ValueError(f"method must be 'adaptive', 'auto', 'fresnel' or 'asm', got {method!r}")
     _check_xp_beam(xb, p_sim, z_xp)
     _, fld, wl, n, (p, x0, y0, sy, sx), _, center, zprop = _common_setup(
-        lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type)
+        lens, doe, source, (z_doe, z_sensor), chief, oversample, known.medium)
     rim = None
     if rim_images or z_from is not None:
         rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
@@ -142,12 +144,13 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     if z_edge is None:  # the edge sharp on the exit-pupil plane
         fx = yield from accurate_field_steps(lens, lattice, source, Planes(z_xp, z_sensor),
                                              ChiefRays(chief_xp, chief_sensor, uv=chief_uv),
-                                             replace(coarse, virtual=True, stop_plane=None))
+                                             replace(coarse, virtual=True, stop_plane=None), Known(medium=known.medium))
     else:  # sharp at every rim point's image, stepped to z_edge (chief ray: a straight line in the image medium)
         fx = yield from accurate_field_steps(lens, lattice, source, Planes(z_edge, z_sensor),
                                              ChiefRays(chief_xp.propagate_to_z(z_edge, n), chief_sensor, uv=chief_uv),
                                              replace(coarse, virtual=True, stop_plane=z_xp,
-                                                     ripple_zones=ripple_zones), Known(stop_rim=rim))
+                                                     ripple_zones=ripple_zones),
+                                             Known(stop_rim=rim, medium=known.medium))
     carrier = fx.carrier  # the chief ray's direction: the same on both planes
     bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
     if bbox is None or float(fx.power.detach()) == 0.0:
@@ -456,13 +459,14 @@ def go_fallback_plane(lens, source: Source, z_xp: float, z_doe: float, known: tu
     if not z_xp < z_doe:  # a DOE plane before the exit pupil (its edge stepped backwards): no earlier plane
         return None, 0.0
     zs, err = go_phase_error(lens, source, z_xp, z_doe) if known is None else known
-    e = float(err[-1])
+    err = err.tolist()  # (one host read; issue 43: no tensor op per source)
+    e = err[-1]
     if not e > GO_PHASE_TOL:
         return None, e
-    fine = torch.nonzero(err <= GO_FALLBACK_FRACTION * GO_PHASE_TOL).squeeze(1)
-    if fine.numel() == 0 or int(fine[-1]) == 0:
+    fine = [k for k, v in enumerate(err) if v <= GO_FALLBACK_FRACTION * GO_PHASE_TOL]
+    if not fine or fine[-1] == 0:
         return None, e
-    return float(zs[int(fine[-1])]), e
+    return float(zs[fine[-1]]), e
 
 
 def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: float, est: float):

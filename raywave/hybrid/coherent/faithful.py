@@ -34,8 +34,7 @@ def faithful_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
     n_rays, oversample, full_grid, check = settings.n_rays, settings.oversample, settings.full_grid, settings.check
     generator, dtype = settings.generator, settings.trace_dtype
     field_type, field, wl, n, (p, x0, y0, sy, sx), (alpha, beta), center, zprop = _common_setup(
-        lens, doe, source.field, wavelength, z_doe, planes.z_sensor, chief.doe, chief.sensor, oversample,
-        source.field_type)
+        lens, doe, source, (z_doe, planes.z_sensor), chief, oversample)
     dev = lens.device
     # drawn where the generator lives (the CPU by default: the same sample on every device), then moved
     gdev = generator.device if generator is not None else "cpu"

@@ -17,9 +17,12 @@ from raywave.wave.grid import Grid
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning
 
 
-def _medium_index(lens, wavelength: float) -> float:
-    wl = torch.tensor(wavelength, dtype=torch.float64, device=lens.device)
-    return float(lens.surfaces[-1].material.n(wl).detach())
+def _medium_index(lens, wavelength) -> float:
+    """The image medium's refractive index (host float) at ``wavelength`` µm (a number, or a one-element float64
+    tensor on the lens's device: no tensor made for it)."""
+    wl = wavelength if isinstance(wavelength, torch.Tensor) else torch.tensor(wavelength, dtype=torch.float64,
+                                                                              device=lens.device)
+    return float(lens.surfaces[-1].material.n(wl))
 
 
 def _check_beyond_last_surface(out, z_doe: float) -> None:
@@ -286,11 +289,18 @@ def _near_nodes(keep: torch.Tensor, pos_y: torch.Tensor, pos_x: torch.Tensor, ma
     return (ya, yb), (xa, xb)
 
 
-def _common_setup(lens, doe, field, wavelength, z_doe, z_sensor, chief_doe, chief_sensor, oversample, field_type):
-    """What both field constructions start from: field type, field (2,), wavelength (1,), medium index,
-    simulation grid (p, x0, y0, sy, sx), carrier (α, β), chief-ray centre on the sensor, DOE → sensor distance."""
-    field = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(2)
+def _common_setup(lens, doe, source, planes: tuple, chief, oversample: int, medium: float | None = None):
+    """What both field constructions start from, for the :class:`~raywave.hybrid.coherent.settings.Source` ``source``,
+    the planes ``(z_doe, z_sensor)`` mm and the :class:`~raywave.hybrid.coherent.settings.ChiefRays` ``chief`` (its
+    ``doe`` and ``sensor`` rays): field type, field (2,), wavelength (1,), medium index (``medium``: the caller's,
+    else read here), simulation grid (p, x0, y0, sy, sx), carrier (α, β), chief-ray centre on the sensor, DOE →
+    sensor distance."""
+    field, wavelength, field_type = source.field, source.wavelength, source.field_type
+    (z_doe, z_sensor), chief_doe, chief_sensor = planes, chief.doe, chief.sensor
+    field = torch.as_tensor(field, dtype=torch.float64, device=lens.device)
+    field = field if field.shape == (2,) else field.reshape(2)  # (issue 43: each op counts, a reshape too)
     wl = torch.tensor([float(wavelength)], dtype=torch.float64, device=lens.device)
-    carrier = tuple(chief_doe.d[:2].detach().tolist())  # (one host read)
-    return (field_type or lens.field_type, field, wl, _medium_index(lens, wavelength), _sim_grid(doe, oversample),
-            carrier, (chief_sensor.o[0], chief_sensor.o[1]), z_sensor - z_doe)
+    carrier = tuple(chief_doe.d.tolist()[:2])  # (one host read)
+    n = _medium_index(lens, wl) if medium is None else float(medium)
+    return (field_type or lens.field_type, field, wl, n, _sim_grid(doe, oversample),
+            carrier, tuple(chief_sensor.o.unbind()[:2]), z_sensor - z_doe)

@@ -107,7 +107,9 @@ class Known:
     this source's geometric-optics phase error (:func:`~raywave.hybrid.coherent.exit_pupil.go_phase_errors`, for
     all of a call's sources from one trace), ``reach`` the stop edge's waves' reach (Fresnel zones, or None: unknown)
     at the crop's centre on the DOE plane from ``stop_rim`` (:func:`~raywave.hybrid.coherent.stop_edge.
-    edge_reach_many`, for all of a call's sources at once; ``...``: not given, computed by the construction)."""
+    edge_reach_many`, for all of a call's sources at once; ``...``: not given, computed by the construction),
+    ``medium`` the image medium's refractive index at this source's wavelength (a host float, for all of a call's
+    sources of that wavelength at once; None: read by the construction)."""
 
     bbox: object = None
     entrance: object = None
@@ -115,6 +117,7 @@ class Known:
     edge_step: str | None = None
     go_error: tuple | None = None
     reach: object = ...
+    medium: float | None = None
 
 
 def check_types(where: str, source, planes, chief, settings) -> None:

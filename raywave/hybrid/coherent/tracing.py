@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
+import numpy as np
 import torch
 
 from raywave.lens.lens import trace_chunk
 from raywave.lens.sources import _source_part, rays_through
+from raywave.rays.bundle import RayBundle
 from raywave.hybrid.coherent.record import _NEWTON_ITERS, _NEWTON_TOL
 from raywave.utils.errors import check_allocation
 
@@ -87,11 +89,55 @@ def _rows(t: torch.Tensor, sizes: list) -> list:
 
 
 def _split_bundle(b, sizes: list) -> list:
-    """Request g's first ``sizes[g]`` rays of a batched bundle (G, 1, N_max), as (1, 1, n) bundles, for every g."""
-    wl = b.wavelength
-    wls = [wl] * len(sizes) if wl.ndim < 3 or wl.shape[0] == 1 else wl.split(1, 0)
-    return [type(b)(*f) for f in zip(_rows(b.o, sizes), _rows(b.d, sizes), wls, _rows(b.valid, sizes),
-                                     _rows(b.opl, sizes))]
+    """Request g's first ``sizes[g]`` rays of a batched bundle (G, 1, N_max), as (1, 1, n) bundles, for every g: each
+    field split into the rows when first read (:class:`_RowBundle`; issue 43: the readers of a batched trace read a
+    few of its bundles' fields, e.g. none of the rays leaving the last surface)."""
+    shared = _SplitBundle(b, sizes)
+    return [_RowBundle(shared, g) for g in range(len(sizes))]
+
+
+class _SplitBundle:
+    """A batched trace's bundle ``b`` (G, 1, N_max) whose fields are split into the requests' rows (:func:`_rows`)
+    when first read."""
+
+    def __init__(self, b, sizes: list):
+        self.b, self.sizes, self.cache = b, sizes, {}
+
+    def rows(self, name: str) -> list:
+        """Every request's row of the field ``name`` of ``b``."""
+        hit = self.cache.get(name)
+        if hit is None:
+            v = getattr(self.b, name)
+            if name == "wavelength":  # one wavelength for all rows, or one per row
+                hit = [v] * len(self.sizes) if v.ndim < 3 or v.shape[0] == 1 else v.split(1, 0)
+            else:
+                hit = _rows(v, self.sizes)
+            self.cache[name] = hit
+        return hit
+
+
+class _RowBundle(RayBundle):
+    """Request ``g``'s :class:`~raywave.rays.RayBundle` (1, 1, n) of a :class:`_SplitBundle`: a bundle whose fields
+    are the batched bundle's rows, each split when first read (then kept). Built with the bundle's own fields (as
+    :func:`dataclasses.replace` does), an ordinary bundle."""
+
+    def __init__(self, *args, **kwargs):
+        if len(args) != 2 or kwargs or not isinstance(args[0], _SplitBundle):
+            RayBundle.__init__(self, *args, **kwargs)
+            return
+        object.__setattr__(self, "_shared", args[0])
+        object.__setattr__(self, "_g", args[1])
+
+    def __getattr__(self, name: str):
+        if name not in _BUNDLE_FIELDS or "_shared" not in self.__dict__:
+            raise AttributeError(name)
+        value = self._shared.rows(name)[self._g]
+        object.__setattr__(self, name, value)
+        return value
+
+
+#: the fields of a :class:`~raywave.rays.RayBundle`
+_BUNDLE_FIELDS = frozenset(f.name for f in fields(RayBundle))
 
 
 def _trace_group(reqs: list) -> list:
@@ -143,6 +189,59 @@ def _padded_rows(parts: list, sizes: list, n_max: int) -> torch.Tensor:
     j = torch.arange(n_max, dtype=torch.long, device=dev)
     idx = start[:, None] + torch.where(j[None] < size[:, None], j[None], 0)  # (G, n_max)
     return flat[idx]
+
+
+def cat_rows(bundles: list, name: str, flat: bool = False) -> torch.Tensor:
+    """``torch.cat([getattr(b, name) for b in bundles], 2)``: the field ``name`` ("o", "d", "valid" or "opl") of
+    bundles (1, 1, n_b, ...) concatenated along the rays (``flat``: ``[0, 0]`` of it, (N, ...)). Rows of one batched
+    trace (:func:`_split_bundle`) whose field is not split yet are gathered from the batched tensor at once (issue 43:
+    one gather for a run of rows instead of a split, a narrow per row and a concatenation); the same values."""
+    return _cat_runs([(getattr(b, "_shared", None), getattr(b, "_g", None), b) for b in bundles],
+                     lambda shared: getattr(shared.b, name), lambda b: getattr(b, name),
+                     lambda b: name in b.__dict__, flat)
+
+
+def cat_points(records: list, k: int, c: int, flat: bool = False) -> torch.Tensor:
+    """``torch.cat([r.points[k][c] for r in records], 2)`` (``flat``: ``[0, 0]`` of it): coordinate ``c`` of the
+    traced points on surface ``k`` of the trace records, concatenated along the rays; rows of one batched trace
+    (:class:`_RowRecord`) gathered from it at once (as :func:`cat_rows`)."""
+    def own(r):
+        shared = getattr(getattr(r, "points", None), "shared", None)
+        return shared, getattr(r.points, "g", None), r
+
+    return _cat_runs([own(r) for r in records], lambda shared: shared.rec.points[k][c],
+                     lambda r: r.points[k][c], lambda r: r.points.shared.cache.get(("points", k)) is not None, flat)
+
+
+def _cat_runs(rows: list, batched, single, split, flat: bool) -> torch.Tensor:
+    """The concatenation of :func:`cat_rows` / :func:`cat_points`: ``rows`` [(shared, g, row)] (shared None: not a
+    row of a batched trace), ``batched(shared)`` the batched tensor (G, 1, N_max, ...), ``single(row)`` a row's own
+    tensor (1, 1, n, ...), ``split(row)`` whether the row's tensor exists already."""
+    parts, run = [], []
+
+    def close():
+        if run:
+            t = batched(run[0][0])
+            n_max = t.shape[2]
+            idx = np.concatenate([g * n_max + np.arange(run[0][0].sizes[g]) for _, g, _ in run])
+            idx = torch.from_numpy(idx if flat else idx[None, None]).to(t.device)
+            parts.append(t.flatten(0, 2)[idx])
+            run.clear()
+
+    for shared, g, row in rows:
+        if shared is not None and not split(row) and (not run or run[0][0] is shared):
+            run.append((shared, g, row))
+            continue
+        close()
+        if shared is not None and not split(row):
+            run.append((shared, g, row))
+        else:
+            t = single(row)
+            parts.append(t[0, 0] if flat else t)
+    close()
+    if len(parts) == 1:
+        return parts[0]
+    return torch.cat(parts, 0 if flat else 2)
 
 
 class _SplitRecord:
@@ -321,11 +420,13 @@ def _landing_from(at, n: int, h: float, need_jac=None):
 
 def _solve2(j, r):
     """Solve j·s = r for 2×2 systems (N, 2, 2), (N, 2); singular systems give 0."""
-    det = j[:, 0, 0] * j[:, 1, 1] - j[:, 0, 1] * j[:, 1, 0]
+    (j00, j01), (j10, j11) = (row.unbind(1) for row in j.unbind(1))  # views from three ops (issue 43: not eight)
+    r0, r1 = r.unbind(1)
+    det = j00 * j11 - j01 * j10
     ok = det.abs() > 1e-300
     det = torch.where(ok, det, torch.ones_like(det))
-    s0 = (j[:, 1, 1] * r[:, 0] - j[:, 0, 1] * r[:, 1]) / det
-    s1 = (-j[:, 1, 0] * r[:, 0] + j[:, 0, 0] * r[:, 1]) / det
+    s0 = (j11 * r0 - j01 * r1) / det
+    s1 = (-j10 * r0 + j00 * r1) / det
     return torch.where(ok[:, None], torch.stack([s0, s1], -1), torch.zeros_like(r)), ok
 
 
@@ -370,9 +471,9 @@ class _Aim:
 
 @dataclass
 class _LandingRequest:
-    """A construction's chief-ray landing (:meth:`_Aim.landing` of its one ray ``uv`` (1, 2), no autograd): answered
-    with ``(X (1, 2), ∂X/∂uv (1, 2, 2))``. :func:`run_batched` answers the pending ones of constructions that share
-    a lens, plane and mode with one trace of all their rays and neighbours, a single-ray row each
+    """A construction's chief-ray landing (:meth:`_Aim.landing` of its one ray ``uv`` (2,) or (1, 2), no autograd):
+    answered with ``(X (1, 2), ∂X/∂uv (1, 2, 2))``. :func:`run_batched` answers the pending ones of constructions
+    that share a lens, plane and mode with one trace of all their rays and neighbours, a single-ray row each
     (:func:`_trace_rows`; issue 43: no per-construction slicing): each value its own call's."""
 
     aim: _Aim
@@ -397,7 +498,7 @@ def _landing_group(reqs: list) -> list:
     rays and their finite-difference neighbours ``+h·e_u``, ``+h·e_v`` of all requests in one trace."""
     a0 = reqs[0].aim
     h, g = a0.h, len(reqs)
-    uv = torch.cat([_shaped(r.uv, (1, 2)) for r in reqs])  # (G, 2)
+    uv = torch.stack([_shaped(r.uv, (2,)) for r in reqs])  # (G, 2)
     du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
     allv = torch.cat([uv, uv + du[0], uv + du[1]])  # (3G, 2): the rays, then each neighbour set
     rows = torch.arange(g, device=uv.device).repeat(3)
@@ -439,20 +540,44 @@ def _invert_to_nodes(aim: _Aim, targets, chief: tuple, max_step: float, start: t
     ``settle`` (mm, for a caller that takes one more step J⁻¹(X − T) from the last iterate itself and traces its
     rays there, as :func:`~raywave.hybrid.coherent.accurate._trace_nodes` does): a ray whose error after that step,
     predicted from its last two (``e²/e_prev``: linear convergence, pessimistic for Newton's), is at most
-    ``settle`` / :data:`_SETTLE_MARGIN` stops where it is, converged, with its landing point and Jacobian: the caller's step is the one the
-    next round would have confirmed."""
+    ``settle`` / :data:`_SETTLE_MARGIN` stops where it is, converged, with its landing point and Jacobian: the
+    caller's step is the one the next round would have confirmed.
+
+    ``targets`` may also be a node grid (:class:`~raywave.hybrid.coherent.accurate._Nodes`: its ``targets``), whose
+    targets the group then builds for all its grids at once (one transfer; issue 43: not ~14 ops a grid)."""
     uv0, jac0 = (None, None) if start is None else start
-    req = _InvertRequest(aim, targets.detach(), tuple(c.detach() for c in chief), float(max_step),
-                         (None if uv0 is None else uv0.detach(), None if jac0 is None else jac0.detach()), finish,
-                         settle)
+    req = _InvertRequest(aim, _detached(targets), tuple(_detached(c) for c in chief), float(max_step),
+                         (_detached(uv0), _detached(jac0)), finish, settle)
     return (yield req)
+
+
+def _detached(t):
+    """``t.detach()`` where ``t`` is a tensor with autograd history, else ``t`` itself (a node grid, None, a tensor
+    without history: issue 43, a detach dispatches an op)."""
+    return t.detach() if isinstance(t, torch.Tensor) and t.requires_grad else t
+
+
+def _group_targets(reqs: list) -> torch.Tensor:
+    """The targets (N, 2) of the :class:`_InvertRequest` s ``reqs`` concatenated in order: tensors as they are, node
+    grids built together (their class's ``concat_targets``: each grid's ``targets`` a view of the result)."""
+    ts = [r.targets for r in reqs]
+    grids = [t for t in ts if not isinstance(t, torch.Tensor)]
+    if not grids:
+        return torch.cat(ts)
+    whole = type(grids[0]).concat_targets(grids)
+    return whole if len(grids) == len(ts) else torch.cat([t if isinstance(t, torch.Tensor) else t.targets for t in ts])
+
+
+def _count(t) -> int:
+    """The number of targets of an :class:`_InvertRequest`'s ``targets`` (a tensor (N, 2) or a node grid)."""
+    return t.shape[0] if isinstance(t, torch.Tensor) else t.count
 
 
 @dataclass
 class _InvertRequest:
-    """One :func:`_invert_to_nodes` call (its arguments, detached): a construction yields it like a trace request,
-    and :func:`run_batched` solves the pending ones of constructions that share a lens, plane and mode together
-    (:func:`_invert_group`)."""
+    """One :func:`_invert_to_nodes` call (its arguments, detached; ``targets`` (N, 2) or a node grid): a construction
+    yields it like a trace request, and :func:`run_batched` solves the pending ones of constructions that share a
+    lens, plane and mode together (:func:`_invert_group`)."""
 
     aim: _Aim
     targets: torch.Tensor
@@ -479,26 +604,36 @@ def _invert_group(reqs: list) -> list:
     every request gets what a call of its own gives; a request whose rays all stopped leaves the rounds, as its
     own iteration would have ended there."""
     finish, settle = reqs[0].finish, reqs[0].settle  # one per group (:meth:`_InvertRequest.group_key`)
-    sizes = [r.targets.shape[0] for r in reqs]
+    sizes = [_count(r.targets) for r in reqs]
     dev = reqs[0].targets.device
     rid = torch.repeat_interleave(torch.arange(len(reqs), device=dev), torch.tensor(sizes, device=dev))
-    targets = torch.cat([r.targets for r in reqs])
-    uv_c, x_c = torch.cat([r.chief[0] for r in reqs])[rid], torch.cat([r.chief[1] for r in reqs])[rid]
+    targets = _group_targets(reqs)
+    uv_c = torch.stack([_shaped(r.chief[0], (2,)) for r in reqs])[rid]  # (each (2,) or (1, 2))
+    x_c = torch.cat([r.chief[1] for r in reqs])[rid]
     jac_c = torch.cat([_shaped(r.chief[2], (1, 2, 2)) for r in reqs])[rid]
     max_step = torch.tensor([r.max_step for r in reqs], dtype=targets.dtype, device=dev)[rid][:, None]
     n = targets.shape[0]
-    fields = torch.stack([_shaped(r.aim.field, (2,)) for r in reqs])
-    wls = torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs])
-    sources = (fields, wls, [r.aim.order for r in reqs], _SourceRows.of(reqs[0].aim, fields, wls))
+    h = reqs[0].aim.h  # one per group (:meth:`_InvertRequest.group_key`)
+    sources = (torch.stack([_shaped(r.aim.field, (2,)) for r in reqs]),
+               torch.cat([_shaped(r.aim.wavelength, (1,)) for r in reqs]), [r.aim.order for r in reqs],
+               torch.tensor([[h, 0.0], [0.0, h]], dtype=targets.dtype, device=dev).unbind(0))
+    a0 = reqs[0].aim  # (lens, depth, field type and entrance plane: one per group)
+    with torch.no_grad():
+        part = _source_part(a0.lens, sources[0], a0.field_type, sources[1].reshape(-1, 1, 1), depth=a0.depth,
+                            ep_z=a0.ep_z)
+        sources += (part, a0.lens.indices(part[0]))  # (and the lens media's indices (G, 1, 1): once, not a round)
     step0, _ = _solve2(jac_c, targets - x_c)
     uv = uv_c + step0
     chord = torch.zeros(n, dtype=torch.bool, device=dev)
     nan2 = torch.full((1, 2), math.nan, dtype=targets.dtype, device=dev)
-    uv0 = torch.cat([r.start[0] if r.start[0] is not None else nan2.expand(k, 2) for r, k in zip(reqs, sizes)])
-    start = torch.isfinite(uv0).all(-1)
-    uv = torch.where(start[:, None], uv0, uv)
+    if any(r.start[0] is not None for r in reqs):  # (else every ray starts from the linear guess)
+        uv0 = torch.cat([r.start[0] if r.start[0] is not None else nan2.expand(k, 2) for r, k in zip(reqs, sizes)])
+        start = torch.isfinite(uv0).all(-1)
+        uv = torch.where(start[:, None], uv0, uv)
     jac = torch.zeros((n, 2, 2), dtype=targets.dtype, device=dev)
-    if any(r.start[0] is not None and r.start[1] is not None for r in reqs):
+    chording = any(r.start[0] is not None and r.start[1] is not None for r in reqs)  # (else no chord node: none of
+    # the chord masks' ops)
+    if chording:
         jac0 = torch.cat([r.start[1] if (r.start[0] is not None and r.start[1] is not None)
                           else nan2.new_full((k, 2, 2), math.nan) for r, k in zip(reqs, sizes)])
         chord = start & torch.isfinite(jac0).flatten(1).all(-1)
@@ -513,11 +648,12 @@ def _invert_group(reqs: list) -> list:
     moved_last: set[int] = set()
     for it in range(_NEWTON_ITERS):
         if it == CHORD_ROUNDS:
-            chord[:] = False  # from here on every moving node takes Newton steps
+            chording = False  # from here on every moving node takes Newton steps
         if live.numel() == 0:
             break
-        x_l, valid_l, jac_l = _landing_rounds(reqs, sources, rid, live, uv, chord)
-        jac_l = torch.where(chord[live][:, None, None], jac[live], jac_l)
+        x_l, valid_l, jac_l = _landing_rounds(reqs, sources, rid, live, uv, chord if chording else None)
+        if chording:
+            jac_l = torch.where(chord[live][:, None, None], jac[live], jac_l)
         x[live], valid[live], jac[live] = x_l, valid_l, jac_l
         err = x_l - targets[live]
         step, ok = _solve2(jac_l, err)
@@ -525,43 +661,49 @@ def _invert_group(reqs: list) -> list:
         move = valid_l & ~(e <= _NEWTON_TOL) & ok
         big = step.abs().amax(-1, keepdim=True)
         ms = max_step[live]
-        step = torch.where(big > ms, step * (ms / big), step)
-        if finish is not None:  # the last step of a seed's ray, unconfirmed (no trace of its own for it)
-            last = move & (e <= finish) & ~(big[:, 0] > ms[:, 0])
-            finished[live[last]] = True
-            uv[live[last]] = uv[live[last]] - step[last]
-            move = move & ~last
+        over = big > ms
+        step = torch.where(over, step * (ms / big), step)
         if settle is not None:  # the caller's own step takes these rays to within ``settle``: no further round
-            stay = (move & (e <= _SETTLE_CAP) & (_SETTLE_MARGIN * e * e <= settle * e_prev[live])
-                    & ~(big[:, 0] > ms[:, 0]))
-            settled[live[stay]] = True
+            stay = move & (e <= _SETTLE_CAP) & (_SETTLE_MARGIN * e * e <= settle * e_prev[live]) & ~over[:, 0]
+            settled.index_fill_(0, live[stay], True)
             e_prev[live] = e
             move = move & ~stay
-        live = live[move]
-        uv[live] = uv[live] - step[move]
+        moved = live[move]
+        uv[moved] = uv[moved] - step[move]
+        if finish is not None:  # the last step of a seed's ray, unconfirmed (no trace of its own for it)
+            last = move & (e <= finish) & ~over[:, 0]
+            finished.index_fill_(0, live[last], True)
+            move = move & ~last
+            moved = live[move]
+        live = moved
         if it == _NEWTON_ITERS - 1:  # the last iteration moved these requests' rays: their landing points are stale
             moved_last.update(torch.unique(rid[live]).tolist())
     err = x - targets
     conv = valid & (err.abs().amax(-1) <= _NEWTON_TOL) | finished | settled
     if finish is not None:  # their landing points are those before the last step
         moved_last.update(torch.unique(rid[finished]).tolist())
-    # the Newton step J⁻¹(X − T) at the last iterate of every ray at once (what a construction's node trace takes
-    # without autograd; issue 43: one 2×2 solve for the group instead of one per construction)
-    step, _ = _solve2(jac, err)
     # each request's rows as views from one split per tensor (slicing and copying each dispatches 8 ops a request;
     # the requests hold all their rows anyway)
-    parts = zip(uv.split(sizes), conv.split(sizes), jac.split(sizes), x.split(sizes), step.split(sizes))
-    return [_Inverted((u, c, j, None if g in moved_last else xg), None if g in moved_last else sg)
-            for g, (u, c, j, xg, sg) in enumerate(parts)]
+    parts = zip(uv.split(sizes), conv.split(sizes), jac.split(sizes), x.split(sizes))
+    if finish is not None:  # a seed's solve: no node trace follows, no step
+        return [_Inverted((u, c, j, None if g in moved_last else xg), None) for g, (u, c, j, xg) in enumerate(parts)]
+    # the Newton step J⁻¹(X − T) at the last iterate of every ray at once and the points uv − J⁻¹(X − T) (what a
+    # construction's node trace takes without autograd; issue 43: one 2×2 solve and one difference for the group
+    # instead of one each per construction)
+    step, _ = _solve2(jac, err)
+    steps = zip(step.split(sizes), (uv - step).split(sizes))
+    return [_Inverted((u, c, j, None if g in moved_last else xg), *((None, None) if g in moved_last else st))
+            for g, ((u, c, j, xg), st) in enumerate(zip(parts, steps))]
 
 
 class _Inverted(tuple):
     """:func:`_invert_to_nodes`' answer ``(uv, converged, Jacobian, landing points or None)``, with ``step`` (N, 2):
-    the Newton step J⁻¹(X − T) at ``uv`` from the group's one solve (None where the landing points are None)."""
+    the Newton step J⁻¹(X − T) at ``uv`` from the group's one solve, and ``lin`` (N, 2): ``uv − step`` (both None
+    where the landing points are None, and for a seed's solve: ``finish``)."""
 
-    def __new__(cls, values: tuple, step):
+    def __new__(cls, values: tuple, step, lin=None):
         out = super().__new__(cls, values)
-        out.step = step
+        out.step, out.lin = step, lin
         return out
 
 
@@ -570,82 +712,79 @@ def _landing_rounds(reqs: list, sources: tuple, rid, live, uv, chord):
     ray and, unless it takes chord steps, its two finite-difference neighbours (the rays of
     :func:`_landing_and_jacobian`), all requests' rays as one bundle of single-ray rows (each with its own source and
     wavelength, shape (R, 1, 1): no per-request slicing, issue 43; ``sources`` = the requests' fields (G, 2),
-    wavelengths (G,) µm, per-source values [G] (:func:`per_source`) and their :class:`_SourceRows`). Returns the landing points (L, 2), validity
-    (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept)."""
+    wavelengths (G,) µm, per-source values [G] (:func:`per_source`), the neighbours' offsets ``(h·e_u, h·e_v)``
+    (each (2,)) and the sources' :func:`_source_part` (their directions, checks and index), made once for the group).
+    Returns the landing points (L, 2), validity
+    (L,) and Jacobians (L, 2, 2) of the live rays (NaN for chord rays, whose Jacobian is kept). ``chord`` None: no
+    chord ray (every live ray with its neighbours, none of the masks' ops)."""
     r0 = reqs[0].aim
     h = r0.h  # one per group (:meth:`_InvertRequest.group_key`)
     rid_l, uv_l = rid[live], uv[live]
-    need = ~chord[live]
-    nl, nj = uv_l.shape[0], int(need.sum())
-    du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
-    uj = uv_l[need]
-    rows = torch.cat([rid_l, rid_l[need], rid_l[need]])
-    allv = torch.cat([uv_l, uj + du[0], uj + du[1]])
-    # per-source values (a mid-system DOE's orders): each row's own
-    orders = sources[2] if any(o is not None for o in sources[2]) else None
-    x, valid = _trace_rows(r0, allv, None, None, orders, rows, sources[3])
+    if chord is None:
+        nl = uv_l.shape[0]
+        rows = torch.cat([rid_l, rid_l, rid_l])
+        allv = torch.cat([uv_l, uv_l + sources[3][0], uv_l + sources[3][1]])
+    else:
+        du = sources[3]
+        need = ~chord[live]
+        nl, nj = uv_l.shape[0], int(need.sum())
+        uj = uv_l[need]
+        rows = torch.cat([rid_l, rid_l[need], rid_l[need]])
+        allv = torch.cat([uv_l, uj + du[0], uj + du[1]])
+    part = _part_rows(sources[4], rows)  # the sources' directions, checks and index: once for the group
+    n_all = [None if v is None else v[rows] for v in sources[5]]  # and the glass indices
+    if any(o is not None for o in sources[2]):  # per-source values (a mid-system DOE's orders): each row's own
+        x, valid = _trace_rows(r0, allv, None, None, sources[2], rows, part, n_all)
+    else:
+        x, valid = _trace_rows(r0, allv, None, None, part=part, n_all=n_all)
+    if chord is None:
+        x0, xu, xv = x.split(nl)
+        return x0, valid[:nl], torch.stack([(xu - x0) / h, (xv - x0) / h], -1)
     x0, xu, xv = x[:nl], x[nl:nl + nj], x[nl + nj:]
     jac = torch.full((nl, 2, 2), math.nan, dtype=x.dtype, device=x.device)
     jac[need] = torch.stack([(xu - x0[need]) / h, (xv - x0[need]) / h], -1)
     return x0, valid[:nl], jac
 
 
-def _trace_rows(aim: _Aim, uv, fields, wavelengths, orders=None, rows=None, src: _SourceRows | None = None):
+def _trace_rows(aim: _Aim, uv, fields, wavelengths, orders=None, rows=None, part=None, n_all=None):
     """Landing points (R, 2) and validity (R,) on ``aim``'s plane of R rays, each with its own source: entrance-plane
     points ``uv`` (R, 2) mm, ``fields`` (R, 2), ``wavelengths`` (R,) µm (``aim``'s lens, depth, field type and
     entrance plane), traced without autograd as one bundle (R, 1, 1) (every ray on its own). ``orders``: the
-    sources' per-source values (:func:`per_source`), ``rows`` (R,) long: each ray's source among them. ``src``: the
-    sources' own part of the rays and the media's indices, taken once for a Newton iteration's rounds
-    (:class:`_SourceRows`, each row's by ``rows``); ``fields`` and ``wavelengths`` are then not needed (None)."""
+    sources' per-source values (:func:`per_source`), ``rows`` (R,) long: each ray's source among them. ``part``:
+    what the rays' sources alone decide (:func:`_source_part` of ``fields`` and ``wavelengths``, each row's, e.g.
+    :func:`_part_rows` of the sources' own), when the caller has it (``fields`` and ``wavelengths`` are then not
+    read, and may be None). ``n_all``: the lens media's indices at the rows' wavelengths (:meth:`Lens.indices`,
+    each (R, 1, 1) or None), when the caller has them."""
     chunk = trace_chunk(uv.device)
     if orders is not None and any(o is not None for o in orders) and uv.shape[0] > 2 * chunk:
-        def part(v, i):
-            return None if v is None else v[i:i + chunk]
-        parts = [_trace_rows(aim, uv[i:i + chunk], part(fields, i), part(wavelengths, i), orders, rows[i:i + chunk],
-                             src) for i in range(0, uv.shape[0], chunk)]
+        def cut(i):
+            return None if n_all is None else [None if v is None else v[i:i + chunk] for v in n_all]
+        parts = [_trace_rows(aim, uv[i:i + chunk], *(None if t is None else t[i:i + chunk]
+                                                     for t in (fields, wavelengths)),
+                             orders, rows[i:i + chunk], None if part is None else _part_rows(part, slice(i, i + chunk)),
+                             cut(i))
+                 for i in range(0, uv.shape[0], chunk)]
         return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     with torch.no_grad():
-        lens = aim.lens
-        if src is None:
-            rays = rays_through(lens, uv[:, None, None], fields, aim.field_type, wavelengths.reshape(-1, 1, 1),
-                                depth=aim.depth, ep_z=aim.ep_z)
-            n_all = None
-        else:
-            source, n_all = src.take(rows)
-            rays = rays_through(lens, uv[:, None, None], None, aim.field_type, None, source=source)
-        with per_source(lens, orders, rows):
-            out = lens.trace(rays, apertures=False, n_all=n_all)
-        n = (lens.surfaces[-1].material.n(out.wavelength) if n_all is None else n_all[-1]).to(out.dtype)
+        if part is None:
+            part = _source_part(aim.lens, fields, aim.field_type, wavelengths.reshape(-1, 1, 1), depth=aim.depth,
+                                ep_z=aim.ep_z)
+        rays = rays_through(aim.lens, uv[:, None, None], fields, aim.field_type, None, depth=aim.depth, ep_z=aim.ep_z,
+                            source=part)
+        with per_source(aim.lens, orders, rows):
+            out = aim.lens.trace(rays, apertures=False, n_all=n_all)
+        n = (aim.lens.surfaces[-1].material.n(out.wavelength) if n_all is None else n_all[-1]).to(out.dtype)
         at = out.propagate_to_z(aim.z_doe, n)
     return at.o[:, 0, 0, :2], at.valid[:, 0, 0]
 
 
-@dataclass
-class _SourceRows:
-    """What the rows of :func:`_trace_rows` take from their sources alone, for G sources at once (a Newton
-    iteration's rounds trace the same sources' rays again and again; issue 43: the beam directions, checks and
-    glass indices once, not once a round): :func:`~raywave.lens.sources._source_part`'s ``(wavelengths (G, 1, 1)
-    µm, ep_z mm, beam directions (G, 3) or None, object points (G, 3) or None, wide fields (G,) or None, the object
-    medium's index (G, 1, 1))`` and the lens media's indices [(G, 1, 1) or None] (:meth:`Lens.indices`)."""
-
-    source: tuple
-    n_all: list
-
-    @classmethod
-    def of(cls, aim: _Aim, fields: torch.Tensor, wavelengths: torch.Tensor) -> _SourceRows:
-        """The part of sources ``fields`` (G, 2) at ``wavelengths`` (G,) µm, with ``aim``'s lens, field type,
-        depth and entrance plane."""
-        source = _source_part(aim.lens, fields, aim.field_type, wavelengths.reshape(-1, 1, 1), depth=aim.depth,
-                              ep_z=aim.ep_z)
-        return cls(source, aim.lens.indices(source[0]))
-
-    def take(self, rows: torch.Tensor) -> tuple:
-        """``(source part, media indices)`` of the rows whose sources are ``rows`` (R,) long: each a gather."""
-        wl, ep_z, d_inf, pts, wide, n0 = self.source
-
-        def pick(v):
-            return None if v is None else v[rows]
-        return (wl[rows], ep_z, pick(d_inf), pick(pts), pick(wide), n0[rows]), [pick(n) for n in self.n_all]
+def _part_rows(part: tuple, idx) -> tuple:
+    """:func:`_source_part` ``part`` of G sources (each tensor's first axis a source) → that of the rows ``idx`` (an
+    index tensor or a slice into its sources): ``(wavelengths, ep_z, directions, points, wide, index)``, each
+    source's values gathered (the same values :func:`_source_part` gives for the rows' own fields: it works row by
+    row)."""
+    wl, ep_z, d_inf, pts, wide, n0 = part
+    return (wl[idx], ep_z, *(None if t is None else t[idx] for t in (d_inf, pts, wide)), n0[idx])
 
 
 def _nearest_fill(values: torch.Tensor, good: torch.Tensor, xy: torch.Tensor, grad_xy: torch.Tensor | None = None):
