@@ -39,7 +39,7 @@ from raywave.hybrid.coherent.stop_edge import edge_reach_many, stop_rim_images_a
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, accelerator_cap, ceil_samples,
                                     plan_groups, propagate_group)
-from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
+from raywave.hybrid.mirror import mirror_fields, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields, chief_aim
@@ -696,8 +696,10 @@ class HybridLens(nn.Module):
         at = {geo.todo[r]: k for k, r in enumerate(rows)}
         sim = self.doe.sim_grid(self.oversample)
         src = geo.src
-        return members, [done[at[i] * nw + j] if src[i] is None else
-                         mirror_field(done[at[src[i][0]] * nw + j], sim, src[i][1], src[i][2])
+        # the mirror images' fields together (their centres negated by one op for all)
+        images = iter(mirror_fields([(done[at[src[i][0]] * nw + j], src[i][1], src[i][2])
+                                     for i in members if src[i] is not None for j in range(nw)], sim))
+        return members, [done[at[i] * nw + j] if src[i] is None else next(images)
                          for i in members for j in range(nw)]
 
     def _accurate_constructions(self, geo: "_CallGeometry", rows: list[int], nodes: int, check: bool) -> list:
@@ -711,11 +713,17 @@ class HybridLens(nn.Module):
         cd, cs, cuv = (_source_elements(t, built, len(geo.wls)) for t in geo.chief)
         settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step)
         go = self._go_errors(geo, rows) if check else None
+        # the sources' field rows and the GO errors' per-construction rows from one unbind each (issue 43: indexing
+        # each construction's dispatched four ops)
+        f_rows = geo.f.unbind(0) if rows else ()
+        if go is not None:
+            nw = len(geo.wls)
+            go = (go[0].unbind(0), go[1].flatten(0, 1).unbind(0))
         out = []
         for k, r in enumerate(rows):
             i = geo.todo[r]
             for j, wl in enumerate(geo.wls):
-                source = Source(geo.f[i], wl, geo.depth, order=None if geo.orders is None else geo.orders[i])
+                source = Source(f_rows[i], wl, geo.depth, order=None if geo.orders is None else geo.orders[i])
                 if geo.edge is None:
                     out.append(accurate_field_steps(optics, self.doe, source, Planes(z_doe, z_sen),
                                                     ChiefRays(cd[i][j], cs[i][j], uv=cuv[i][j]), settings,
@@ -726,7 +734,7 @@ class HybridLens(nn.Module):
                                                       ChiefRays(cd[i][j], cs[i][j], cx[j][r], cuv[i][j]), settings,
                                                       Known(geo.boxes[r][j], geo.entrance, rims[j][r],
                                                             None if steps is None else steps[r][j],
-                                                            None if go is None else (go[0][j], go[1][k, j]),
+                                                            None if go is None else (go[0][j], go[1][k * nw + j]),
                                                             ... if geo.reach is None else geo.reach[r][j])))
         return out
 
