@@ -764,7 +764,24 @@ def _batch_inputs(reqs: list, good: torch.Tensor) -> dict:
             "o": torch.cat([t[2].o for t in tr], 2)[0, 0], "d": torch.cat([t[2].d for t in tr], 2)[0, 0],
             "opl": torch.cat([t[2].opl for t in tr], 2)[0, 0], "good": good,
             "targets": torch.cat([r.nd.targets for r in reqs]),
-            "xy": [tuple(torch.cat([t[3].points[i + 1][c] for t in tr], 2)[0, 0] for c in (0, 1)) for i in on]}
+            "xy": _aperture_points([t[3] for t in tr], on)}
+
+
+def _aperture_points(recs: list, on: list) -> list:
+    """``[(x, y)]`` (N,) mm: the node rays of the records ``recs`` (one per construction, in order) on the surfaces
+    ``on`` (indices; their points after the surface), concatenated. Where every record is a row of one batched
+    trace's record (:class:`~raywave.hybrid.coherent.tracing._RowRecord`) from one gather of its padded rows (issue
+    43: not a slice per construction, surface and coordinate and a concatenation), the same values."""
+    shared = [getattr(getattr(r, "points", None), "shared", None) for r in recs]
+    if not on or shared[0] is None or any(s is not shared[0] for s in shared):
+        return [tuple(torch.cat([r.points[i + 1][c] for r in recs], 2)[0, 0] for c in (0, 1)) for i in on]
+    sh = shared[0]
+    pts = sh.rec.points
+    n_max = pts[on[0] + 1][0].shape[-1]
+    idx = np.concatenate([g * n_max + np.arange(sh.sizes[g]) for g in (r.points.g for r in recs)])
+    stack = torch.stack([pts[i + 1][c] for i in on for c in (0, 1)])  # (2S, G, 1, N_max)
+    flat = stack.reshape(stack.shape[0], -1).index_select(1, torch.from_numpy(idx).to(stack.device)).unbind(0)
+    return [(flat[2 * k], flat[2 * k + 1]) for k in range(len(on))]
 
 
 def _nearest_good(good: torch.Tensor, xy: torch.Tensor, spans: list) -> tuple:
@@ -1038,18 +1055,16 @@ def _batch_answers(reqs: list, nb: _NodeBatch, maps: dict, checks: list, diffrac
     names = ["phi_env", "amp2", "dist"] + (["other"] if maps["other"] is not None else []) \
         + (["nu", "nu_raw", "kappa"] if diffracting else [])
     full = torch.stack([maps[k] for k in names], 1)  # (B, C, KY, KX)
-    stack = full.unbind(0)  # (C, KY, KX) views, one op for the batch
     rows = [[] for _ in reqs]
     if checks:  # host read 2: the Fresnel scales' maxima and the checks, with the fields they name
         fields = torch.stack([r.b.field for r in reqs])
         rows = torch.cat([torch.stack([t.to(torch.float64) for t in checks], 1), fields], 1).tolist()
     out = []
-    for j, (r, row, (ky, kx)) in enumerate(zip(reqs, rows, nb.sizes)):
-        m = dict(zip(names, stack[j][:, :ky, :kx].unbind(0)))
+    for j, (r, row, size) in enumerate(zip(reqs, rows, nb.sizes)):
+        # the field stage's padded node maps (_padded_node_maps); each map's own view made when first read
+        m = _LazyMaps(_BatchedMaps(full, j, tuple(names)), size)
         m.setdefault("other", None)
-        m["batch"] = _BatchedMaps(full, j, tuple(names))  # the field stage's padded node maps (_padded_node_maps)
         if diffracting:
-            m["nu_raw"] = m["nu_raw"].detach()
             m["g_max"] = row[0]
         if check:
             field, wavelength, vals = row[-2:], r.b.src.wavelength, row[1:] if diffracting else row
@@ -1336,6 +1351,56 @@ class _BatchedMaps:
     full: torch.Tensor
     row: int
     names: tuple
+
+
+_PENDING = object()  # a _LazyMaps entry not made yet
+
+
+class _LazyMaps(dict):
+    """A construction's node maps (:data:`_FIELD_MAPS`) from a node-map batch (:func:`_batch_answers`): ``"batch"``
+    the :class:`_BatchedMaps` and every channel of its ``names`` a view of the padded stack's row cropped to the
+    construction's own ``size`` ``(ky, kx)`` (``nu_raw`` detached), the views made on the first read of any of them
+    (issue 43: four ops a construction; an accelerator's batched field stage reads the padded stack itself,
+    :func:`_from_node_batch`, and never these). Read through ``[]``, :meth:`get`, :meth:`pop`, :meth:`items` or
+    :meth:`values` (a plain ``dict(...)`` copy would see placeholders)."""
+
+    def __init__(self, batch: _BatchedMaps, size: tuple):
+        super().__init__({n: _PENDING for n in batch.names}, batch=batch)
+        self._batch, self._size = batch, size
+
+    def _fill(self) -> None:
+        batch, (ky, kx) = self._batch, self._size
+        if batch is None:
+            return
+        for n, v in zip(batch.names, batch.full[batch.row, :, :ky, :kx].unbind(0)):
+            if dict.get(self, n) is _PENDING:
+                dict.__setitem__(self, n, v.detach() if n == "nu_raw" else v)
+        self._batch = None
+
+    def __getitem__(self, k):
+        v = dict.__getitem__(self, k)
+        if v is _PENDING:
+            self._fill()
+            v = dict.__getitem__(self, k)
+        return v
+
+    def get(self, k, default=None):
+        return self[k] if k in self else default
+
+    def pop(self, k, *default):
+        if k in self:
+            v = self[k]
+            del self[k]
+            return v
+        return dict.pop(self, k, *default)
+
+    def items(self):
+        self._fill()
+        return dict.items(self)
+
+    def values(self):
+        self._fill()
+        return dict.values(self)
 
 
 def _padded_node_maps(reqs: list, diffracting: bool, has_other: bool):
