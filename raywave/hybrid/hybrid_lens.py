@@ -225,6 +225,33 @@ def _dark_many(fds: list) -> list[bool]:
     """:func:`_dark` of every field of ``fds`` from one host read."""
     if not fds:
         return []
+    rows = [getattr(fd, "row", None) for fd in fds]
+    if len(fds) > 1 and all(r is not None and not r.base.requires_grad for r in rows):
+        # every envelope a row of a padded batch (DOEField.deferred): each batch's rows tested at once, its samples
+        # beyond each envelope masked (issue 43: three ops a field before)
+        bases: dict = {}
+        for k, r in enumerate(rows):
+            bases.setdefault(id(r.base), []).append(k)
+        lit = []
+        for ks in bases.values():
+            base = rows[ks[0]].base
+            _, hy, hx = base.shape
+            sub = [rows[k] for k in ks]
+            picked = [r.row for r in sub]
+            part = base if picked == list(range(base.shape[0])) else \
+                base.index_select(0, torch.tensor(picked, device=base.device))
+            a = torch.tensor([r.shape[0] for r in sub], device=base.device)[:, None]
+            b = torch.tensor([r.shape[1] for r in sub], device=base.device)[:, None]
+            own = ((torch.arange(hy, device=base.device) < a)[:, :, None]
+                   & (torch.arange(hx, device=base.device) < b)[:, None, :])
+            nz = (torch.view_as_real(part) != 0).any(-1) & own
+            lit.append(nz.flatten(1).any(1))
+        order = [k for ks in bases.values() for k in ks]
+        flags = torch.cat(lit).tolist() if len(lit) > 1 else lit[0].tolist()
+        out = [False] * len(fds)
+        for k, f in zip(order, flags):
+            out[k] = not f
+        return out
     counts = torch.stack([torch.count_nonzero(torch.view_as_real(fd.envelope.detach())) for fd in fds])
     return [c == 0 for c in counts.tolist()]
 
@@ -1054,7 +1081,7 @@ class HybridLens(nn.Module):
         centers, dz = self._chief_images(flat)
         host = centers.detach().cpu().tolist()
         lattice = [Planned(i, fd, tuple(host[i])) for i, fd in enumerate(flat)
-                   if not fd.full_grid and fd.envelope.shape[-2:] != (1, 1)]
+                   if not fd.full_grid and tuple(fd.grid.shape) != (1, 1)]
         done = {pl.index for pl in lattice}
         order, psfs, outs = [], [], []
         for i, fd in enumerate(flat):  # the full grid and the fields without light: one at a time

@@ -129,13 +129,17 @@ def mirror_field(fd: DOEField, sim: Grid, flip_x: bool, flip_y: bool, centre: tu
         ix0, ix1 = nx - ix1, nx - ix0
     if flip_y:
         iy0, iy1 = ny - iy1, ny - iy0
-    dims = [d for d, on in ((-1, flip_x), (-2, flip_y)) if on]
-    env = fd.envelope.flip(dims) if dims else fd.envelope
     grid = Grid(sim.position(iy0, ix0), sim.pitch, (iy1 - iy0, ix1 - ix0))
     a, b = fd.carrier
-    field = Field(env, grid, fd.wavelength, fd.n, (-a if flip_x else a, -b if flip_y else b))
+    carrier = (-a if flip_x else a, -b if flip_y else b)
     if centre is None:
         cx, cy = fd.center
         centre = (-cx if flip_x else cx, -cy if flip_y else cy)
     info = FieldInfo(**{k: getattr(fd.info, k) for k in FieldInfo.__dataclass_fields__})
-    return DOEField(field, (iy0, iy1, ix0, ix1), fd.z, centre, info)
+    box = (iy0, iy1, ix0, ix1)
+    if fd.row is not None:  # a row of a batch (DOEField.deferred): the flip made only where the envelope is read
+        return DOEField.deferred(fd.row.flipped(flip_x, flip_y), grid, (fd.wavelength, fd.n, carrier), box, fd.z,
+                                 centre, info)
+    dims = [d for d, on in ((-1, flip_x), (-2, flip_y)) if on]
+    env = fd.envelope.flip(dims) if dims else fd.envelope
+    return DOEField(Field(env, grid, fd.wavelength, fd.n, carrier), box, fd.z, centre, info)

@@ -23,7 +23,7 @@ from raywave.wave.field import cubic_matrices, cubic_matrix, edge_coverage, upsa
 from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _nyquist_warning, _warn_nyquist, check_window_memory)
-from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
+from raywave.hybrid.coherent.record import DOEField, EnvelopeRow, FieldInfo, SamplingWarning, StopEdgeWarning
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, _fresnel_scale, _fresnel_scale_at, _nu_inner, _rim_cubic,
                                                _rim_fourier, _rim_fourier_rows, _rim_z, _rim_z_rows, _zone_estimate,
@@ -190,6 +190,9 @@ def _window_field(b: _Build, env: torch.Tensor, box, sim: Grid, rays: int) -> DO
     ``(iy0, iy1, ix0, ix1)`` of ``sim``'s lattice, built from ``rays`` traced rays."""
     # on the DOE's simulation lattice (a virtual plane's box may extend beyond the DOE grid)
     grid = Grid(sim.position(box[0], box[2]), b.p, (box[1] - box[0], box[3] - box[2]))
+    if isinstance(env, EnvelopeRow):  # a row of the batched field stage's envelopes: made when first read
+        return DOEField.deferred(env, grid, (float(b.src.wavelength), b.n, b.carrier), box, b.zprop, b.center,
+                                 FieldInfo(rays, "accurate"))
     return DOEField(Field(env, grid, float(b.src.wavelength), b.n, b.carrier), box, b.zprop, b.center,
                     FieldInfo(rays, "accurate"))
 
@@ -1549,14 +1552,13 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
         env = edge_envelope(amp.reshape(shape2), angle.reshape(shape2), nu.reshape(shape2),
                             bs[0].z_doe - bs[0].cfg.stop_plane, rzr, gr, p,
                             kappa=ch[-1].reshape(shape2)).reshape(amp.shape)
-    # each construction's envelope a view of the batch's: without autograd one strided view each (one op, not three;
-    # an as_strided view's backward would allocate the whole batch per view)
+    # each construction's envelope a view of the batch's: without autograd its row of the batch (EnvelopeRow: one
+    # strided view when first read, none where the propagation and the darkness test read the batch; an as_strided
+    # view's backward would allocate the whole batch per view)
     strided = not env.requires_grad
     rows = env.unbind(0) if not strided else [None] * len(lit)
-    (_, s1, s2), base = env.stride(), env.storage_offset()
     for t, (e, j) in enumerate(zip(rows, lit)):
         _, a0, a1, b0, b1 = crops[j]
-        e = torch.as_strided(env, (a1 - a0, b1 - b0), (s1, s2), base + t * env.stride(0)) if strided \
-            else e[:a1 - a0, :b1 - b0]
+        e = EnvelopeRow(env, t, (a1 - a0, b1 - b0)) if strided else e[:a1 - a0, :b1 - b0]
         out[sel[j]] = e, (iy0[j] + a0, iy0[j] + a1, ix0[j] + b0, ix0[j] + b1)
     return out
