@@ -356,11 +356,12 @@ def sensor_psfs(out: torch.Tensor, kk: int, p: float, sensor: SensorWindow, powe
     else:
         crop = integrated_upsampled_intensity(out, sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks), taper,
                                               refine=True, weights=weights)
-    total = crop.sum((-2, -1))
+    total3 = crop.sum((-2, -1), keepdim=True)  # (B, 1, 1): one view for the (B,) sums, not four unsqueezes
+    total = total3.view(-1)
     power = power.to(torch.float64)
     lit = power > 0
     outside = torch.where(lit, 1.0 - safe_div(total, power, lit), torch.ones_like(total))
-    psf = safe_div(crop, total[:, None, None], (total > 0)[:, None, None])
+    psf = safe_div(crop, total3, total3 > 0)
     return psf, outside
 
 

@@ -1321,13 +1321,28 @@ def _first_last_rows(mask: torch.Tensor) -> list:
     return [m.amax(-1), torch.argmax(m, -1), n - torch.argmax(m.flip(-1), -1)]
 
 
-def _lattice_positions(start: list, n: int, origin: float, p: float, node0: list, h: list, dev) -> torch.Tensor:
-    """``(B, n)``: node-unit positions ``(origin + (start[b] + i)·p − node0[b]) / h[b]`` of the lattice samples
-    ``start[b] + i`` (pitch ``p`` mm, origin mm) on construction b's node grid (first node ``node0[b]`` mm, spacing
-    ``h[b]`` mm): :func:`_fine_field`'s arithmetic, the same values."""
-    f64 = dict(dtype=torch.float64, device=dev)
-    idx = torch.tensor(start, **f64)[:, None] + torch.arange(n, **f64)
-    return (origin + idx * p - torch.tensor(node0, **f64)[:, None]) / torch.tensor(h, **f64)[:, None]
+def _lattice_positions_host(start: list, n: int, origin: float, p: float, node0: list, h: list) -> np.ndarray:
+    """``(B, n)`` float64 on the host: node-unit positions ``(origin + (start[b] + i)·p − node0[b]) / h[b]`` of the
+    lattice samples ``start[b] + i`` (pitch ``p`` mm, origin mm) on construction b's node grid (first node
+    ``node0[b]`` mm, spacing ``h[b]`` mm): :func:`_fine_field`'s arithmetic in its order (IEEE float64, each
+    operation rounded once: the same values as on a device)."""
+    idx = np.asarray(start, dtype=np.float64)[:, None] + np.arange(n, dtype=np.float64)
+    return (origin + idx * p - np.asarray(node0, dtype=np.float64)[:, None]) / np.asarray(h, dtype=np.float64)[:, None]
+
+
+def _first_last_host(pos: np.ndarray, n: list, lo: np.ndarray, hi: np.ndarray) -> list:
+    """:func:`_first_last_rows` of the positions ``pos`` (B, N) within 3 node spacings of ``[lo, hi]`` (B,) and among
+    each row's own ``n`` samples, on the host: ``[any, first, last + 1]`` (B,) int64 each."""
+    m = (pos >= (lo - 3)[:, None]) & (pos <= (hi + 3)[:, None]) & (np.arange(pos.shape[1]) < np.asarray(n)[:, None])
+    return [m.any(1).astype(np.int64), m.argmax(1), m.shape[1] - m[:, ::-1].argmax(1)]
+
+
+def _beyond_host(ny: list, nx: list, dev) -> torch.Tensor:
+    """``(B, max ny, max nx)`` bool: the samples beyond each window's own ``ny[b] × nx[b]`` (two host masks sent and
+    combined: three ops)."""
+    by = np.arange(max(ny)) >= np.asarray(ny)[:, None]
+    bx = np.arange(max(nx)) >= np.asarray(nx)[:, None]
+    return torch.from_numpy(by[:, :, None]).to(dev) | torch.from_numpy(bx[:, None, :]).to(dev)
 
 
 def _doe_coverage_batch(doe, oversample: int, starts: tuple, shape: tuple, dev):
@@ -1467,21 +1482,19 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
     hs = [r.nd.h for r in reqs]
     rz = [r.b.ripple for r in reqs]
     vals, keep_src, valid = _padded_node_maps(reqs, diffracting, has_other)
-    # the near-node ranges (_near_nodes) of every construction's span window: one host read
-    thr = torch.tensor([-math.sqrt(2.0) * z if diffracting else -2 * h for z, h in zip(rz, hs)], **f64)
-    keep = (keep_src > thr[:, None, None]) & valid
+    # the near-node ranges (_near_nodes) of every construction's span window: one host read. The host's values
+    # (positions, masks, indices, per-construction constants) are built on the host and sent as one tensor each
+    # (issue 43: a few ops each instead of a dozen; the positions the same float64 arithmetic, the same bits)
+    thr = torch.tensor([[[-math.sqrt(2.0) * z if diffracting else -2 * h]] for z, h in zip(rz, hs)], **f64)
+    keep = (keep_src > thr) & valid
     ny0 = [w[1] - w[0] for w in wins]
     nx0 = [w[3] - w[2] for w in wins]
-    pos_y = _lattice_positions([w[0] for w in wins], max(ny0), y0, p, [e[0] for e in ends], hs, dev)
-    pos_x = _lattice_positions([w[2] for w in wins], max(nx0), x0, p, [e[1] for e in ends], hs, dev)
+    pos_y = _lattice_positions_host([w[0] for w in wins], max(ny0), y0, p, [e[0] for e in ends], hs)
+    pos_x = _lattice_positions_host([w[2] for w in wins], max(nx0), x0, p, [e[1] for e in ends], hs)
     rows, cols = _first_last_rows(keep.any(2)), _first_last_rows(keep.any(1))
-
-    def span(pos, n, lo, hi):  # within 3 node spacings of the kept nodes, inside the window's own samples
-        own = torch.arange(pos.shape[1], device=dev) < torch.tensor(n, device=dev)[:, None]
-        return _first_last_rows((pos >= (lo - 3)[:, None]) & (pos <= (hi + 3)[:, None]) & own)
-
-    near = torch.stack([rows[0], *span(pos_y, ny0, rows[1], rows[2] - 1),
-                        *span(pos_x, nx0, cols[1], cols[2] - 1)], 1).tolist()
+    kr = np.array(torch.stack([rows[0], rows[1], rows[2], cols[1], cols[2]], 1).tolist(), dtype=np.int64)
+    near = np.stack([kr[:, 0], *_first_last_host(pos_y, ny0, kr[:, 1], kr[:, 2] - 1),
+                     *_first_last_host(pos_x, nx0, kr[:, 3], kr[:, 4] - 1)], 1).tolist()
     sel = [k for k, (kept, y_any, _, _, x_any, _, _) in enumerate(near) if kept and y_any and x_any]
     out: list = [None] * len(reqs)
     if not sel:
@@ -1493,14 +1506,14 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
     ix0 = [wins[k][2] + near[k][5] for k in sel]
     ny = [near[k][3] - near[k][2] for k in sel]
     nx = [near[k][6] - near[k][5] for k in sel]
-    kyt = torch.tensor([float(reqs[k].nd.ky) for k in sel], **f64)[:, None]
-    kxt = torch.tensor([float(reqs[k].nd.kx) for k in sel], **f64)[:, None]
     hs = [hs[k] for k in sel]
-    py = _lattice_positions(iy0, max(ny), y0, p, [ends[k][0] for k in sel], hs, dev)
-    px = _lattice_positions(ix0, max(nx), x0, p, [ends[k][1] for k in sel], hs, dev)
+    py = _lattice_positions_host(iy0, max(ny), y0, p, [ends[k][0] for k in sel], hs)
+    px = _lattice_positions_host(ix0, max(nx), x0, p, [ends[k][1] for k in sel], hs)
     # both axes' matrices in one call: (B, ny + nx, K), each position with its own axis's node count
-    n_nodes = torch.cat([kyt.expand(-1, max(ny)), kxt.expand(-1, max(nx))], 1)
-    m = cubic_matrices(torch.minimum(torch.cat([py, px], 1).clamp_min(0), n_nodes - 1), n_nodes, max(vals.shape[-2:]))
+    n_nodes = np.concatenate([np.repeat([[float(reqs[k].nd.ky)] for k in sel], max(ny), 1),
+                              np.repeat([[float(reqs[k].nd.kx)] for k in sel], max(nx), 1)], 1)
+    pos = np.minimum(np.maximum(np.concatenate([py, px], 1), 0.0), n_nodes - 1)
+    m = cubic_matrices(torch.from_numpy(pos).to(dev), torch.from_numpy(n_nodes).to(dev), max(vals.shape[-2:]))
     my, mx = m[:, :max(ny), :vals.shape[-2]], m[:, max(ny):, :vals.shape[-1]]
     fine = my @ vals @ mx.mT  # (C, B, ny, nx)
     # the coverage, the ripple band and the lit crop (_fine_coverage, _crop_to_lit): one host read
@@ -1511,15 +1524,14 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
         dcov = _doe_coverage_batch(doe, r0.b.cfg.oversample, (iy0, ix0), fine.shape[-2:], dev)
         if dcov is not None:
             cov = dcov if cov is None else cov * dcov
-    own = ((torch.arange(max(ny), device=dev) < torch.tensor(ny, device=dev)[:, None])[:, :, None]
-           & (torch.arange(max(nx), device=dev) < torch.tensor(nx, device=dev)[:, None])[:, None, :])
+    beyond = _beyond_host(ny, nx, dev)  # the samples beyond each window's own
     if diffracting:
-        band_thr = torch.tensor([-math.sqrt(2.0) * rz[k] for k in sel], **f64)[:, None, None]
+        band_thr = torch.tensor([[[-math.sqrt(2.0) * rz[k]]] for k in sel], **f64)
         band = (fine[-2].detach() > band_thr).to(torch.float64)
         weight = band if cov is None else cov.detach() * band
     else:
         weight = cov.detach()
-    weight = weight.masked_fill(~own, 0.0)
+    weight = weight.masked_fill(beyond, 0.0)
     lit_r, lit_c = _first_last_rows(weight.amax(2) > 0), _first_last_rows(weight.amax(1) > 0)
     crops = torch.stack([lit_r[0], lit_r[1], lit_r[2], lit_c[1], lit_c[2]], 1).tolist()
     lit = [j for j, c in enumerate(crops) if c[0]]
@@ -1528,25 +1540,23 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
     # the lit crops gathered into one padded batch (B', hy, hx); samples beyond a crop: amplitude 0, outside the band
     hy = [crops[j][2] - crops[j][1] for j in lit]
     hx = [crops[j][4] - crops[j][3] for j in lit]
-    bi = torch.tensor(lit, device=dev)[:, None, None]
-    ri = (torch.tensor([crops[j][1] for j in lit], device=dev)[:, None]
-          + torch.arange(max(hy), device=dev)).clamp(max=fine.shape[-2] - 1)[:, :, None]
-    ci = (torch.tensor([crops[j][3] for j in lit], device=dev)[:, None]
-          + torch.arange(max(hx), device=dev)).clamp(max=fine.shape[-1] - 1)[:, None, :]
+    bi = torch.tensor([[[j]] for j in lit], device=dev)
+    ri = np.minimum(np.array([crops[j][1] for j in lit])[:, None] + np.arange(max(hy)), fine.shape[-2] - 1)
+    ci = np.minimum(np.array([crops[j][3] for j in lit])[:, None] + np.arange(max(hx)), fine.shape[-1] - 1)
+    ri, ci = torch.from_numpy(ri[:, :, None]).to(dev), torch.from_numpy(ci[:, None, :]).to(dev)
     fine = fine[:, bi, ri, ci]
-    inner = ((torch.arange(max(hy), device=dev) < torch.tensor(hy, device=dev)[:, None])[:, :, None]
-             & (torch.arange(max(hx), device=dev) < torch.tensor(hx, device=dev)[:, None])[:, None, :])
+    inner = ~_beyond_host(hy, hx, dev)
     ch = fine.unbind(0)
     amp = ch[1] if cov is None else ch[1] * cov[bi, ri, ci]
     amp = torch.where(inner, amp, torch.zeros_like(amp))
-    ks = torch.tensor([2 * math.pi / (reqs[sel[j]].b.src.wavelength * 1e-3) for j in lit], **f64)[:, None, None]
+    ks = torch.tensor([[[2 * math.pi / (reqs[sel[j]].b.src.wavelength * 1e-3)]] for j in lit], **f64)
     angle = ks * ch[0]
     if not diffracting:
         env = polar(amp, angle)
     else:
         bs = [reqs[sel[j]].b for j in lit]
-        rzr = torch.tensor([rz[sel[j]] for j in lit], **f64).repeat_interleave(max(hy))[:, None]
-        gr = torch.tensor([reqs[sel[j]].maps["g_max"] for j in lit], **f64).repeat_interleave(max(hy))[:, None]
+        rzr = torch.tensor([[rz[sel[j]]] for j in lit for _ in range(max(hy))], **f64)
+        gr = torch.tensor([[reqs[sel[j]].maps["g_max"]] for j in lit for _ in range(max(hy))], **f64)
         nu = torch.where(inner, ch[-2], torch.full_like(ch[-2], -math.inf))
         shape2 = (-1, max(hx))
         env = edge_envelope(amp.reshape(shape2), angle.reshape(shape2), nu.reshape(shape2),
