@@ -270,8 +270,9 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
             e = pl.fd.envelope
             env[i, :e.shape[-2], :e.shape[-1]].copy_(e)
     p = batch[0].fd.pitch
-    with torch.no_grad():
-        power = torch.linalg.vector_norm(torch.view_as_real(env.detach()), dim=(-3, -2, -1)).square() * (p * p)
+    with torch.no_grad():  # (env detached only where autograd records it: a detach is an op)
+        power = torch.linalg.vector_norm(torch.view_as_real(env.detach() if env.requires_grad else env),
+                                         dim=(-3, -2, -1)).square() * (p * p)
     if has_zero_phase(doe):  # exp(i·0) = 1: no phase maps, no product
         return env.to(dtype), power
     corners = [(pl.fd.box[0], pl.fd.box[2]) for pl in batch]
@@ -311,8 +312,8 @@ def _gathered_rows(rows: list, shape: tuple) -> torch.Tensor:
         base = rows[ks[0]].base
         dev = base.device
         t, y, x, (in_y, in_x) = row_indices([rows[k] for k in ks], shape)
-        t, y, x, in_y, in_x = (torch.from_numpy(v).to(dev) for v in (t, y, x, in_y, in_x))
-        parts.append(torch.where(in_y & in_x, base[t, y, x], torch.zeros((), dtype=base.dtype, device=dev)))
+        t, y, x, out_y, out_x = (torch.from_numpy(v).to(dev) for v in (t, y, x, ~in_y, ~in_x))
+        parts.append(base[t, y, x].masked_fill_(out_y | out_x, 0))  # (a fresh gather: zeroed in place)
     if len(parts) == 1:
         return parts[0]
     order = [k for ks in bases.values() for k in ks]

@@ -1315,10 +1315,10 @@ def _node_span_ends(nds: list) -> list:
 
 def _first_last_rows(mask: torch.Tensor) -> list:
     """:func:`~raywave.hybrid.coherent.geometry._first_last` of every row of the bool ``mask`` (B, n): ``[any,
-    first, last + 1]`` (B,) int64 each (valid where ``any``)."""
-    n = mask.shape[-1]
+    first, n − (last + 1)]`` (B,) int64 each (valid where ``any``; the caller, who reads them, takes ``last + 1``
+    on the host: one op less)."""
     m = mask.to(torch.int64)
-    return [m.amax(-1), torch.argmax(m, -1), n - torch.argmax(m.flip(-1), -1)]
+    return [m.amax(-1), torch.argmax(m, -1), torch.argmax(m.flip(-1), -1)]
 
 
 def _lattice_positions_host(start: list, n: int, origin: float, p: float, node0: list, h: list) -> np.ndarray:
@@ -1335,6 +1335,14 @@ def _first_last_host(pos: np.ndarray, n: list, lo: np.ndarray, hi: np.ndarray) -
     each row's own ``n`` samples, on the host: ``[any, first, last + 1]`` (B,) int64 each."""
     m = (pos >= (lo - 3)[:, None]) & (pos <= (hi + 3)[:, None]) & (np.arange(pos.shape[1]) < np.asarray(n)[:, None])
     return [m.any(1).astype(np.int64), m.argmax(1), m.shape[1] - m[:, ::-1].argmax(1)]
+
+
+def _inside_host(ny: list, nx: list, dev) -> torch.Tensor:
+    """``(B, max ny, max nx)`` bool: each window's own ``ny[b] × nx[b]`` samples (two host masks sent and combined:
+    three ops)."""
+    iy = np.arange(max(ny)) < np.asarray(ny)[:, None]
+    ix = np.arange(max(nx)) < np.asarray(nx)[:, None]
+    return torch.from_numpy(iy[:, :, None]).to(dev) & torch.from_numpy(ix[:, None, :]).to(dev)
 
 
 def _beyond_host(ny: list, nx: list, dev) -> torch.Tensor:
@@ -1431,9 +1439,7 @@ def _padded_node_maps(reqs: list, diffracting: bool, has_other: bool):
         + (["nu", "kappa"] if diffracting else [])
     keep = "nu_raw" if diffracting else "dist"
     dev = reqs[0].nd.gx.device
-    kyt = torch.tensor([k[0] for k in ks], device=dev)[:, None, None]
-    kxt = torch.tensor([k[1] for k in ks], device=dev)[:, None, None]
-    valid = (torch.arange(ky_max, device=dev)[:, None] < kyt) & (torch.arange(kx_max, device=dev) < kxt)
+    valid = _inside_host([k[0] for k in ks], [k[1] for k in ks], dev)
     v = _from_node_batch(reqs, names + [keep], (ky_max, kx_max), valid)
     if v is None:  # each construction's maps stacked and zero-padded
         v = torch.stack([torch.nn.functional.pad(torch.stack([r.maps[n] for n in names] + [r.maps[keep].detach()]),
@@ -1442,7 +1448,8 @@ def _padded_node_maps(reqs: list, diffracting: bool, has_other: bool):
     amp2 = ch[1]
     lit_amp = amp2 > 0  # (the zero padding: 0)
     amp = torch.where(lit_amp, safe_sqrt(amp2, lit_amp), torch.zeros_like(amp2))
-    return torch.stack([ch[0], amp, *ch[2:-1]]), ch[-1].detach(), valid
+    src = ch[-1]
+    return torch.stack([ch[0], amp, *ch[2:-1]]), src.detach() if src.requires_grad else src, valid
 
 
 def _from_node_batch(reqs: list, names: list, shape: tuple, valid: torch.Tensor):
@@ -1493,6 +1500,7 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
     pos_x = _lattice_positions_host([w[2] for w in wins], max(nx0), x0, p, [e[1] for e in ends], hs)
     rows, cols = _first_last_rows(keep.any(2)), _first_last_rows(keep.any(1))
     kr = np.array(torch.stack([rows[0], rows[1], rows[2], cols[1], cols[2]], 1).tolist(), dtype=np.int64)
+    kr[:, 2], kr[:, 4] = keep.shape[1] - kr[:, 2], keep.shape[2] - kr[:, 4]  # last + 1
     near = np.stack([kr[:, 0], *_first_last_host(pos_y, ny0, kr[:, 1], kr[:, 2] - 1),
                      *_first_last_host(pos_x, nx0, kr[:, 3], kr[:, 4] - 1)], 1).tolist()
     sel = [k for k, (kept, y_any, _, _, x_any, _, _) in enumerate(near) if kept and y_any and x_any]
@@ -1533,7 +1541,8 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
         weight = cov.detach()
     weight = weight.masked_fill(beyond, 0.0)
     lit_r, lit_c = _first_last_rows(weight.amax(2) > 0), _first_last_rows(weight.amax(1) > 0)
-    crops = torch.stack([lit_r[0], lit_r[1], lit_r[2], lit_c[1], lit_c[2]], 1).tolist()
+    crops = [[a, b, weight.shape[1] - c, d, weight.shape[2] - e] for a, b, c, d, e in
+             torch.stack([lit_r[0], lit_r[1], lit_r[2], lit_c[1], lit_c[2]], 1).tolist()]  # (last + 1 on the host)
     lit = [j for j, c in enumerate(crops) if c[0]]
     if not lit:
         return out
@@ -1545,10 +1554,10 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
     ci = np.minimum(np.array([crops[j][3] for j in lit])[:, None] + np.arange(max(hx)), fine.shape[-1] - 1)
     ri, ci = torch.from_numpy(ri[:, :, None]).to(dev), torch.from_numpy(ci[:, None, :]).to(dev)
     fine = fine[:, bi, ri, ci]
-    inner = ~_beyond_host(hy, hx, dev)
+    outer = _beyond_host(hy, hx, dev)
     ch = fine.unbind(0)
     amp = ch[1] if cov is None else ch[1] * cov[bi, ri, ci]
-    amp = torch.where(inner, amp, torch.zeros_like(amp))
+    amp = amp.masked_fill(outer, 0.0)
     ks = torch.tensor([[[2 * math.pi / (reqs[sel[j]].b.src.wavelength * 1e-3)]] for j in lit], **f64)
     angle = ks * ch[0]
     if not diffracting:
@@ -1557,7 +1566,7 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
         bs = [reqs[sel[j]].b for j in lit]
         rzr = torch.tensor([[rz[sel[j]]] for j in lit for _ in range(max(hy))], **f64)
         gr = torch.tensor([[reqs[sel[j]].maps["g_max"]] for j in lit for _ in range(max(hy))], **f64)
-        nu = torch.where(inner, ch[-2], torch.full_like(ch[-2], -math.inf))
+        nu = ch[-2].masked_fill(outer, -math.inf)
         shape2 = (-1, max(hx))
         env = edge_envelope(amp.reshape(shape2), angle.reshape(shape2), nu.reshape(shape2),
                             bs[0].z_doe - bs[0].cfg.stop_plane, rzr, gr, p,
