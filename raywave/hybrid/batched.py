@@ -282,7 +282,7 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
     return env.mul_(phasors).to(dtype), power
 
 
-def row_indices(rows: list, shape: tuple) -> tuple:
+def _row_indices(rows: list, shape: tuple) -> tuple:
     """Host index arrays that gather the envelopes ``rows`` (:class:`~raywave.hybrid.coherent.record.EnvelopeRow`
     of one base) zero-padded at their end to ``shape`` ``(Ny, Nx)``: ``(row (K, 1, 1), y (K, Ny, 1), x (K, 1, Nx),
     inside (y (K, Ny, 1), x (K, 1, Nx)) bool)`` numpy arrays (a flipped row's samples in reverse order; beyond an
@@ -302,8 +302,8 @@ def row_indices(rows: list, shape: tuple) -> tuple:
 
 def _gathered_rows(rows: list, shape: tuple) -> torch.Tensor:
     """The envelopes ``rows`` (:class:`~raywave.hybrid.coherent.record.EnvelopeRow`) zero-padded at their end to
-    ``shape`` and stacked ``(K, Ny, Nx)``: one gather and one select per base batch (and a concatenation and a
-    reorder for several), the values of each envelope's own padded copy."""
+    ``shape`` and stacked ``(K, Ny, Nx)``: one gather and one masked fill per base batch (its index arrays built on
+    the host; and a concatenation and a reorder for several bases), the values of each envelope's own padded copy."""
     bases: dict = {}
     for k, r in enumerate(rows):
         bases.setdefault(id(r.base), []).append(k)
@@ -311,7 +311,7 @@ def _gathered_rows(rows: list, shape: tuple) -> torch.Tensor:
     for ks in bases.values():
         base = rows[ks[0]].base
         dev = base.device
-        t, y, x, (in_y, in_x) = row_indices([rows[k] for k in ks], shape)
+        t, y, x, (in_y, in_x) = _row_indices([rows[k] for k in ks], shape)
         t, y, x, out_y, out_x = (torch.from_numpy(v).to(dev) for v in (t, y, x, ~in_y, ~in_x))
         parts.append(base[t, y, x].masked_fill_(out_y | out_x, 0))  # (a fresh gather: zeroed in place)
     if len(parts) == 1:

@@ -27,6 +27,7 @@ import warnings
 from collections import OrderedDict
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -240,10 +241,10 @@ def _dark_many(fds: list) -> list[bool]:
             picked = [r.row for r in sub]
             part = base if picked == list(range(base.shape[0])) else \
                 base.index_select(0, torch.tensor(picked, device=base.device))
-            a = torch.tensor([r.shape[0] for r in sub], device=base.device)[:, None]
-            b = torch.tensor([r.shape[1] for r in sub], device=base.device)[:, None]
-            own = ((torch.arange(hy, device=base.device) < a)[:, :, None]
-                   & (torch.arange(hx, device=base.device) < b)[:, None, :])
+            own_y = np.arange(hy) < np.array([r.shape[0] for r in sub])[:, None]  # (the masks built on the host)
+            own_x = np.arange(hx) < np.array([r.shape[1] for r in sub])[:, None]
+            own = (torch.from_numpy(own_y[:, :, None]).to(base.device)
+                   & torch.from_numpy(own_x[:, None, :]).to(base.device))
             nz = (torch.view_as_real(part) != 0).any(-1) & own
             lit.append(nz.flatten(1).any(1))
         order = [k for ks in bases.values() for k in ks]
