@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from raywave.doe.base import has_zero_phase
@@ -97,7 +98,7 @@ def _own_geometry(pl: Planned, n_out: int, kk: int):
     fd = pl.fd
     p = fd.pitch
     out = (pl.center[0] - kk * p, pl.center[1] - kk * p)
-    src = WindowSource(fd.field.grid.shape, fd.origin, out, fd.wavelength, float(fd.z), fd.n, fd.carrier)
+    src = WindowSource(fd.grid.shape, fd.origin, out, fd.wavelength, float(fd.z), fd.n, fd.carrier)
     return _geometry(src, (n_out, n_out), p, 0.5, 2.0)
 
 
@@ -160,7 +161,13 @@ COMMON_FFT = False
 
 def _accelerator(planned: list[Planned]) -> bool:
     """Whether the sources' fields live on an accelerator (not the CPU)."""
-    return bool(planned) and devices.accelerator(planned[0].fd.envelope)
+    return bool(planned) and devices.accelerator(_device(planned[0].fd))
+
+
+def _device(fd) -> torch.device:
+    """The device of a DOE-plane field's envelope (a deferred one's without making it: ``DOEField.device``)."""
+    dev = getattr(fd, "device", None)
+    return fd.envelope.device if dev is None else dev
 
 
 def accelerator_cap(device) -> int:
@@ -186,7 +193,7 @@ def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int)
     their own size. Its PSFs then differ from the CPU's by the FFT size's ≤ 3.0e-8 relative L1 (the bundled asphere's
     10×10×3 map, benchmarks/accelerator_plan_accuracy.py)."""
     accel = _accelerator(planned)
-    cap = accelerator_cap(planned[0].fd.envelope.device) if accel else BATCH_BYTES
+    cap = accelerator_cap(_device(planned[0].fd)) if accel else BATCH_BYTES
     by_wave: dict = {}
     for pl in planned:
         fd = pl.fd
@@ -235,7 +242,7 @@ def window_batch(batch: list[Planned], sensor: SensorWindow) -> tuple[WindowBatc
     output half-width ``kk`` common to the batch."""
     p = batch[0].fd.pitch
     kk = max(out_half_width(sensor, p, pl.center) for pl in batch)
-    sources = tuple(WindowSource(pl.fd.field.grid.shape, pl.fd.origin, (pl.center[0] - kk * p, pl.center[1] - kk * p),
+    sources = tuple(WindowSource(pl.fd.grid.shape, pl.fd.origin, (pl.center[0] - kk * p, pl.center[1] - kk * p),
                                  pl.fd.wavelength, float(pl.fd.z), pl.fd.n, pl.fd.carrier) for pl in batch)
     return WindowBatch(sources, (2 * kk + 1, 2 * kk + 1), p), kk
 
@@ -245,21 +252,27 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
     (:meth:`raywave.doe.DOE.window_phasors`), cast to ``dtype``: ``(B, Ny, Nx)``; and each field's power ``(B,)``
     (∫|U|² dA, no autograd: a diagnostic)."""
     ny, nx = shape
-    e0 = batch[0].fd.envelope
-    if devices.accelerator(e0):
+    rows = [getattr(pl.fd, "row", None) for pl in batch]
+    if all(r is not None for r in rows) and devices.accelerator(rows[0].base):
+        # every envelope a row of a padded batch (the batched field stage's, DOEField.deferred): gathered from those
+        # batches, a few ops a batch instead of one a source (and a flip a mirror image), the same values
+        env = _gathered_rows(rows, shape)
+    elif devices.accelerator(_device(batch[0].fd)):
         # each envelope zero-padded at its end and the batch stacked: one op a source and one for the batch (the copy
         # into slices of a zero-filled array dispatches four a source), the same values
         env = torch.stack([torch.nn.functional.pad(e, (0, nx - e.shape[-1], 0, ny - e.shape[-2]))
                            for e in (pl.fd.envelope for pl in batch)])
     else:
+        e0 = batch[0].fd.envelope
         # one zero-filled array, each envelope copied into its corner (autograd keeps the copies' gradients)
         env = torch.zeros((len(batch), ny, nx), dtype=e0.dtype, device=e0.device)
         for i, pl in enumerate(batch):
             e = pl.fd.envelope
             env[i, :e.shape[-2], :e.shape[-1]].copy_(e)
     p = batch[0].fd.pitch
-    with torch.no_grad():
-        power = torch.linalg.vector_norm(torch.view_as_real(env.detach()), dim=(-3, -2, -1)).square() * (p * p)
+    with torch.no_grad():  # (env detached only where autograd records it: a detach is an op)
+        power = torch.linalg.vector_norm(torch.view_as_real(env.detach() if env.requires_grad else env),
+                                         dim=(-3, -2, -1)).square() * (p * p)
     if has_zero_phase(doe):  # exp(i·0) = 1: no phase maps, no product
         return env.to(dtype), power
     corners = [(pl.fd.box[0], pl.fd.box[2]) for pl in batch]
@@ -267,6 +280,45 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
     if env.requires_grad or phasors.requires_grad:
         return (env * phasors).to(dtype), power
     return env.mul_(phasors).to(dtype), power
+
+
+def _row_indices(rows: list, shape: tuple) -> tuple:
+    """Host index arrays that gather the envelopes ``rows`` (:class:`~raywave.hybrid.coherent.record.EnvelopeRow`
+    of one base) zero-padded at their end to ``shape`` ``(Ny, Nx)``: ``(row (K, 1, 1), y (K, Ny, 1), x (K, 1, Nx),
+    inside (y (K, Ny, 1), x (K, 1, Nx)) bool)`` numpy arrays (a flipped row's samples in reverse order; beyond an
+    envelope index 0 and ``inside`` False)."""
+    ny, nx = shape
+    ky, kx = np.arange(ny), np.arange(nx)
+    ri, ci, ins_y, ins_x = [], [], [], []
+    for r in rows:
+        a, b = r.shape
+        ri.append(np.where(ky < a, (a - 1 - ky) if r.flip[1] else ky, 0))
+        ci.append(np.where(kx < b, (b - 1 - kx) if r.flip[0] else kx, 0))
+        ins_y.append(ky < a)
+        ins_x.append(kx < b)
+    return (np.array([r.row for r in rows])[:, None, None], np.stack(ri)[:, :, None], np.stack(ci)[:, None, :],
+            (np.stack(ins_y)[:, :, None], np.stack(ins_x)[:, None, :]))
+
+
+def _gathered_rows(rows: list, shape: tuple) -> torch.Tensor:
+    """The envelopes ``rows`` (:class:`~raywave.hybrid.coherent.record.EnvelopeRow`) zero-padded at their end to
+    ``shape`` and stacked ``(K, Ny, Nx)``: one gather and one masked fill per base batch (its index arrays built on
+    the host; and a concatenation and a reorder for several bases), the values of each envelope's own padded copy."""
+    bases: dict = {}
+    for k, r in enumerate(rows):
+        bases.setdefault(id(r.base), []).append(k)
+    parts = []
+    for ks in bases.values():
+        base = rows[ks[0]].base
+        dev = base.device
+        t, y, x, (in_y, in_x) = _row_indices([rows[k] for k in ks], shape)
+        t, y, x, out_y, out_x = (torch.from_numpy(v).to(dev) for v in (t, y, x, ~in_y, ~in_x))
+        parts.append(base[t, y, x].masked_fill_(out_y | out_x, 0))  # (a fresh gather: zeroed in place)
+    if len(parts) == 1:
+        return parts[0]
+    order = [k for ks in bases.values() for k in ks]
+    back = torch.from_numpy(np.argsort(np.array(order))).to(parts[0].device)
+    return torch.cat(parts).index_select(0, back)
 
 
 def edge_taper(n: int, width: int, device) -> torch.Tensor:
@@ -305,11 +357,12 @@ def sensor_psfs(out: torch.Tensor, kk: int, p: float, sensor: SensorWindow, powe
     else:
         crop = integrated_upsampled_intensity(out, sensor.q, p, (rel, rel), ps, (0.0, 0.0), (ks, ks), taper,
                                               refine=True, weights=weights)
-    total = crop.sum((-2, -1))
+    total3 = crop.sum((-2, -1), keepdim=True)  # (B, 1, 1): one view for the (B,) sums, not four unsqueezes
+    total = total3.view(-1)
     power = power.to(torch.float64)
     lit = power > 0
     outside = torch.where(lit, 1.0 - safe_div(total, power, lit), torch.ones_like(total))
-    psf = safe_div(crop, total[:, None, None], (total > 0)[:, None, None])
+    psf = safe_div(crop, total3, total3 > 0)
     return psf, outside
 
 

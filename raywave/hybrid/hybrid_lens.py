@@ -27,6 +27,7 @@ import warnings
 from collections import OrderedDict
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -39,7 +40,7 @@ from raywave.hybrid.coherent.stop_edge import edge_reach_many, stop_rim_images_a
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, accelerator_cap, ceil_samples,
                                     plan_groups, propagate_group)
-from raywave.hybrid.mirror import mirror_field, mirror_sources, symmetric_axes
+from raywave.hybrid.mirror import mirror_fields, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields, chief_aim
@@ -225,6 +226,33 @@ def _dark_many(fds: list) -> list[bool]:
     """:func:`_dark` of every field of ``fds`` from one host read."""
     if not fds:
         return []
+    rows = [getattr(fd, "row", None) for fd in fds]
+    if len(fds) > 1 and all(r is not None and not r.base.requires_grad for r in rows):
+        # every envelope a row of a padded batch (DOEField.deferred): each batch's rows tested at once, its samples
+        # beyond each envelope masked (issue 43: three ops a field before)
+        bases: dict = {}
+        for k, r in enumerate(rows):
+            bases.setdefault(id(r.base), []).append(k)
+        lit = []
+        for ks in bases.values():
+            base = rows[ks[0]].base
+            _, hy, hx = base.shape
+            sub = [rows[k] for k in ks]
+            picked = [r.row for r in sub]
+            part = base if picked == list(range(base.shape[0])) else \
+                base.index_select(0, torch.tensor(picked, device=base.device))
+            own_y = np.arange(hy) < np.array([r.shape[0] for r in sub])[:, None]  # (the masks built on the host)
+            own_x = np.arange(hx) < np.array([r.shape[1] for r in sub])[:, None]
+            own = (torch.from_numpy(own_y[:, :, None]).to(base.device)
+                   & torch.from_numpy(own_x[:, None, :]).to(base.device))
+            nz = (torch.view_as_real(part) != 0).any(-1) & own
+            lit.append(nz.flatten(1).any(1))
+        order = [k for ks in bases.values() for k in ks]
+        flags = torch.cat(lit).tolist() if len(lit) > 1 else lit[0].tolist()
+        out = [False] * len(fds)
+        for k, f in zip(order, flags):
+            out[k] = not f
+        return out
     counts = torch.stack([torch.count_nonzero(torch.view_as_real(fd.envelope.detach())) for fd in fds])
     return [c == 0 for c in counts.tolist()]
 
@@ -696,8 +724,10 @@ class HybridLens(nn.Module):
         at = {geo.todo[r]: k for k, r in enumerate(rows)}
         sim = self.doe.sim_grid(self.oversample)
         src = geo.src
-        return members, [done[at[i] * nw + j] if src[i] is None else
-                         mirror_field(done[at[src[i][0]] * nw + j], sim, src[i][1], src[i][2])
+        # the mirror images' fields together (their centres negated by one op for all)
+        images = iter(mirror_fields([(done[at[src[i][0]] * nw + j], src[i][1], src[i][2])
+                                     for i in members if src[i] is not None for j in range(nw)], sim))
+        return members, [done[at[i] * nw + j] if src[i] is None else next(images)
                          for i in members for j in range(nw)]
 
     def _accurate_constructions(self, geo: "_CallGeometry", rows: list[int], nodes: int, check: bool) -> list:
@@ -713,16 +743,16 @@ class HybridLens(nn.Module):
         go = self._go_errors(geo, rows) if check else None
         nw = len(geo.wls)
         media = [_medium_index(optics, wl) for wl in geo.wls]  # (one host read per wavelength, not per source)
-        # the sources' field points and phase errors as views from one unbind each (issue 43: indexing them dispatches
-        # one to two ops per construction)
-        fs = geo.f.unbind(0)
+        # the sources' field rows and the GO errors' per-construction rows from one unbind each (issue 43: indexing
+        # each construction's dispatched four ops)
+        f_rows = geo.f.unbind(0) if rows else ()
         if go is not None:
             go = (go[0].unbind(0), go[1].flatten(0, 1).unbind(0))
         out = []
         for k, r in enumerate(rows):
             i = geo.todo[r]
             for j, wl in enumerate(geo.wls):
-                source = Source(fs[i], wl, geo.depth, order=None if geo.orders is None else geo.orders[i])
+                source = Source(f_rows[i], wl, geo.depth, order=None if geo.orders is None else geo.orders[i])
                 if geo.edge is None:
                     out.append(accurate_field_steps(optics, self.doe, source, Planes(z_doe, z_sen),
                                                     ChiefRays(cd[i][j], cs[i][j], uv=cuv[i][j]), settings,
@@ -1054,7 +1084,7 @@ class HybridLens(nn.Module):
         centers, dz = self._chief_images(flat)
         host = centers.detach().cpu().tolist()
         lattice = [Planned(i, fd, tuple(host[i])) for i, fd in enumerate(flat)
-                   if not fd.full_grid and fd.envelope.shape[-2:] != (1, 1)]
+                   if not fd.full_grid and tuple(fd.grid.shape) != (1, 1)]
         done = {pl.index for pl in lattice}
         order, psfs, outs = [], [], []
         for i, fd in enumerate(flat):  # the full grid and the fields without light: one at a time

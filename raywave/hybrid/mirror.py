@@ -13,6 +13,8 @@ Gauss's 6×6×3 maps within 1.1e-12 and 3.3e-12 (tests/test_hybrid_mirror.py).""
 
 from __future__ import annotations
 
+import torch
+
 from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.record import DOEField, FieldInfo
 
@@ -100,23 +102,44 @@ def _flip(a: float, b: float, tol: float, symmetric: bool):
     return None
 
 
-def mirror_field(fd: DOEField, sim: Grid, flip_x: bool, flip_y: bool) -> DOEField:
+def mirror_fields(todo: list, sim: Grid) -> list:
+    """:func:`mirror_field` of every ``(fd, flip_x, flip_y)`` of ``todo``: the same records, the negated centre
+    components (0-d tensors) from one stack, one negation and one unbind for all of them (issue 43: one negation
+    a component dispatched ~300 ops on a 10×10×3 map) where every one is a 0-d tensor on one device."""
+    comps = [(k, a) for k, (fd, fx, fy) in enumerate(todo) for a, on in ((0, fx), (1, fy)) if on]
+    vals = [todo[k][0].center[a] for k, a in comps]
+    if len(vals) < 2 or not all(isinstance(v, torch.Tensor) and v.ndim == 0 and v.device == vals[0].device
+                                and v.dtype == vals[0].dtype for v in vals):
+        return [mirror_field(fd, sim, fx, fy) for fd, fx, fy in todo]
+    neg = dict(zip(comps, torch.stack(vals).neg().unbind(0)))
+    return [mirror_field(fd, sim, fx, fy, centre=tuple(neg.get((k, a), fd.center[a]) for a in (0, 1)))
+            for k, (fd, fx, fy) in enumerate(todo)]
+
+
+def mirror_field(fd: DOEField, sim: Grid, flip_x: bool, flip_y: bool, centre: tuple | None = None) -> DOEField:
     """The DOE-plane field of the mirrored source: ``fd`` (on a window of the simulation grid ``sim``, centred on the
     axis) flipped along x (``flip_x``) and y (``flip_y``), its window mirrored, its carrier's and its chief ray's
     image point's mirrored components negated (differentiable: the flips and the negations carry ``fd``'s graph).
     The diagnostics are copied; ``chief_tan`` is left to the caller (:meth:`HybridLens.doe_fields` sets every
-    field's from its own chief ray). Neither flip: a copy of the record on the same envelope."""
+    field's from its own chief ray). Neither flip: a copy of the record on the same envelope. ``centre``: the
+    mirrored centre when the caller has it (:func:`mirror_fields`)."""
     iy0, iy1, ix0, ix1 = fd.box
     ny, nx = sim.shape
     if flip_x:
         ix0, ix1 = nx - ix1, nx - ix0
     if flip_y:
         iy0, iy1 = ny - iy1, ny - iy0
-    dims = [d for d, on in ((-1, flip_x), (-2, flip_y)) if on]
-    env = fd.envelope.flip(dims) if dims else fd.envelope
     grid = Grid(sim.position(iy0, ix0), sim.pitch, (iy1 - iy0, ix1 - ix0))
     a, b = fd.carrier
-    field = Field(env, grid, fd.wavelength, fd.n, (-a if flip_x else a, -b if flip_y else b))
-    cx, cy = fd.center
+    carrier = (-a if flip_x else a, -b if flip_y else b)
+    if centre is None:
+        cx, cy = fd.center
+        centre = (-cx if flip_x else cx, -cy if flip_y else cy)
     info = FieldInfo(**{k: getattr(fd.info, k) for k in FieldInfo.__dataclass_fields__})
-    return DOEField(field, (iy0, iy1, ix0, ix1), fd.z, (-cx if flip_x else cx, -cy if flip_y else cy), info)
+    box = (iy0, iy1, ix0, ix1)
+    if fd.row is not None:  # a row of a batch (DOEField.deferred): the flip made only where the envelope is read
+        return DOEField.deferred(fd.row.flipped(flip_x, flip_y), grid, (fd.wavelength, fd.n, carrier), box, fd.z,
+                                 centre, info)
+    dims = [d for d, on in ((-1, flip_x), (-2, flip_y)) if on]
+    env = fd.envelope.flip(dims) if dims else fd.envelope
+    return DOEField(Field(env, grid, fd.wavelength, fd.n, carrier), box, fd.z, centre, info)

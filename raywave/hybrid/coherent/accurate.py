@@ -23,7 +23,8 @@ from raywave.wave.field import cubic_matrices, cubic_matrix, edge_coverage, upsa
 from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _nyquist_warning, _warn_nyquist, check_window_memory)
-from raywave.hybrid.coherent.record import _NEWTON_TOL, DOEField, FieldInfo, SamplingWarning, StopEdgeWarning
+from raywave.hybrid.coherent.record import (_NEWTON_TOL, DOEField, EnvelopeRow, FieldInfo, SamplingWarning,
+                                            StopEdgeWarning)
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.coherent.stop_edge import (KAPPA_MAX, _fresnel_scale, _fresnel_scale_at, _nu_inner, _rim_cubic,
                                                _rim_fourier, _rim_fourier_rows, _rim_z, _rim_z_rows, _zone_estimate,
@@ -264,6 +265,9 @@ def _window_field(b: _Build, env: torch.Tensor, box, sim: Grid, rays: int) -> DO
     ``(iy0, iy1, ix0, ix1)`` of ``sim``'s lattice, built from ``rays`` traced rays."""
     # on the DOE's simulation lattice (a virtual plane's box may extend beyond the DOE grid)
     grid = Grid(sim.position(box[0], box[2]), b.p, (box[1] - box[0], box[3] - box[2]))
+    if isinstance(env, EnvelopeRow):  # a row of the batched field stage's envelopes: made when first read
+        return DOEField.deferred(env, grid, (float(b.src.wavelength), b.n, b.carrier), box, b.zprop, b.center,
+                                 FieldInfo(rays, "accurate"))
     return DOEField(Field(env, grid, float(b.src.wavelength), b.n, b.carrier), box, b.zprop, b.center,
                     FieldInfo(rays, "accurate"))
 
@@ -1129,18 +1133,16 @@ def _batch_answers(reqs: list, nb: _NodeBatch, maps: dict, checks: list, diffrac
     names = ["phi_env", "amp2", "dist"] + (["other"] if maps["other"] is not None else []) \
         + (["nu", "nu_raw", "kappa"] if diffracting else [])
     full = torch.stack([maps[k] for k in names], 1)  # (B, C, KY, KX)
-    stack = full.unbind(0)  # (C, KY, KX) views, one op for the batch
     rows = [[] for _ in reqs]
     if checks:  # host read 2: the Fresnel scales' maxima and the checks, with the fields they name
         fields = torch.stack([r.b.field for r in reqs])
         rows = torch.cat([torch.stack([t.to(torch.float64) for t in checks], 1), fields], 1).tolist()
     out = []
-    for j, (r, row, (ky, kx)) in enumerate(zip(reqs, rows, nb.sizes)):
-        m = dict(zip(names, stack[j][:, :ky, :kx].unbind(0)))
+    for j, (r, row, size) in enumerate(zip(reqs, rows, nb.sizes)):
+        # the field stage's padded node maps (_padded_node_maps); each map's own view made when first read
+        m = _LazyMaps(_BatchedMaps(full, j, tuple(names)), size)
         m.setdefault("other", None)
-        m["batch"] = _BatchedMaps(full, j, tuple(names))  # the field stage's padded node maps (_padded_node_maps)
         if diffracting:
-            m["nu_raw"] = m["nu_raw"].detach()
             m["g_max"] = row[0]
         if check:
             field, wavelength, vals = row[-2:], r.b.src.wavelength, row[1:] if diffracting else row
@@ -1388,19 +1390,42 @@ def _node_span_ends(nds: list) -> list:
 
 def _first_last_rows(mask: torch.Tensor) -> list:
     """:func:`~raywave.hybrid.coherent.geometry._first_last` of every row of the bool ``mask`` (B, n): ``[any,
-    first, last + 1]`` (B,) int64 each (valid where ``any``)."""
-    n = mask.shape[-1]
+    first, n − (last + 1)]`` (B,) int64 each (valid where ``any``; the caller, who reads them, takes ``last + 1``
+    on the host: one op less)."""
     m = mask.to(torch.int64)
-    return [m.amax(-1), torch.argmax(m, -1), n - torch.argmax(m.flip(-1), -1)]
+    return [m.amax(-1), torch.argmax(m, -1), torch.argmax(m.flip(-1), -1)]
 
 
-def _lattice_positions(start: list, n: int, origin: float, p: float, node0: list, h: list, dev) -> torch.Tensor:
-    """``(B, n)``: node-unit positions ``(origin + (start[b] + i)·p − node0[b]) / h[b]`` of the lattice samples
-    ``start[b] + i`` (pitch ``p`` mm, origin mm) on construction b's node grid (first node ``node0[b]`` mm, spacing
-    ``h[b]`` mm): :func:`_fine_field`'s arithmetic, the same values."""
-    f64 = dict(dtype=torch.float64, device=dev)
-    idx = torch.tensor(start, **f64)[:, None] + torch.arange(n, **f64)
-    return (origin + idx * p - torch.tensor(node0, **f64)[:, None]) / torch.tensor(h, **f64)[:, None]
+def _lattice_positions_host(start: list, n: int, origin: float, p: float, node0: list, h: list) -> np.ndarray:
+    """``(B, n)`` float64 on the host: node-unit positions ``(origin + (start[b] + i)·p − node0[b]) / h[b]`` of the
+    lattice samples ``start[b] + i`` (pitch ``p`` mm, origin mm) on construction b's node grid (first node
+    ``node0[b]`` mm, spacing ``h[b]`` mm): :func:`_fine_field`'s arithmetic in its order (IEEE float64, each
+    operation rounded once: the same values as on a device)."""
+    idx = np.asarray(start, dtype=np.float64)[:, None] + np.arange(n, dtype=np.float64)
+    return (origin + idx * p - np.asarray(node0, dtype=np.float64)[:, None]) / np.asarray(h, dtype=np.float64)[:, None]
+
+
+def _first_last_host(pos: np.ndarray, n: list, lo: np.ndarray, hi: np.ndarray) -> list:
+    """:func:`_first_last_rows` of the positions ``pos`` (B, N) within 3 node spacings of ``[lo, hi]`` (B,) and among
+    each row's own ``n`` samples, on the host: ``[any, first, last + 1]`` (B,) int64 each."""
+    m = (pos >= (lo - 3)[:, None]) & (pos <= (hi + 3)[:, None]) & (np.arange(pos.shape[1]) < np.asarray(n)[:, None])
+    return [m.any(1).astype(np.int64), m.argmax(1), m.shape[1] - m[:, ::-1].argmax(1)]
+
+
+def _inside_host(ny: list, nx: list, dev) -> torch.Tensor:
+    """``(B, max ny, max nx)`` bool: each window's own ``ny[b] × nx[b]`` samples (two host masks sent and combined:
+    three ops)."""
+    iy = np.arange(max(ny)) < np.asarray(ny)[:, None]
+    ix = np.arange(max(nx)) < np.asarray(nx)[:, None]
+    return torch.from_numpy(iy[:, :, None]).to(dev) & torch.from_numpy(ix[:, None, :]).to(dev)
+
+
+def _beyond_host(ny: list, nx: list, dev) -> torch.Tensor:
+    """``(B, max ny, max nx)`` bool: the samples beyond each window's own ``ny[b] × nx[b]`` (two host masks sent and
+    combined: three ops)."""
+    by = np.arange(max(ny)) >= np.asarray(ny)[:, None]
+    bx = np.arange(max(nx)) >= np.asarray(nx)[:, None]
+    return torch.from_numpy(by[:, :, None]).to(dev) | torch.from_numpy(bx[:, None, :]).to(dev)
 
 
 def _doe_coverage_batch(doe, oversample: int, starts: tuple, shape: tuple, dev):
@@ -1429,6 +1454,56 @@ class _BatchedMaps:
     names: tuple
 
 
+_PENDING = object()  # a _LazyMaps entry not made yet
+
+
+class _LazyMaps(dict):
+    """A construction's node maps (:data:`_FIELD_MAPS`) from a node-map batch (:func:`_batch_answers`): ``"batch"``
+    the :class:`_BatchedMaps` and every channel of its ``names`` a view of the padded stack's row cropped to the
+    construction's own ``size`` ``(ky, kx)`` (``nu_raw`` detached), the views made on the first read of any of them
+    (issue 43: four ops a construction; an accelerator's batched field stage reads the padded stack itself,
+    :func:`_from_node_batch`, and never these). Read through ``[]``, :meth:`get`, :meth:`pop`, :meth:`items` or
+    :meth:`values` (a plain ``dict(...)`` copy would see placeholders)."""
+
+    def __init__(self, batch: _BatchedMaps, size: tuple):
+        super().__init__({n: _PENDING for n in batch.names}, batch=batch)
+        self._batch, self._size = batch, size
+
+    def _fill(self) -> None:
+        batch, (ky, kx) = self._batch, self._size
+        if batch is None:
+            return
+        for n, v in zip(batch.names, batch.full[batch.row, :, :ky, :kx].unbind(0)):
+            if dict.get(self, n) is _PENDING:
+                dict.__setitem__(self, n, v.detach() if n == "nu_raw" else v)
+        self._batch = None
+
+    def __getitem__(self, k):
+        v = dict.__getitem__(self, k)
+        if v is _PENDING:
+            self._fill()
+            v = dict.__getitem__(self, k)
+        return v
+
+    def get(self, k, default=None):
+        return self[k] if k in self else default
+
+    def pop(self, k, *default):
+        if k in self:
+            v = self[k]
+            del self[k]
+            return v
+        return dict.pop(self, k, *default)
+
+    def items(self):
+        self._fill()
+        return dict.items(self)
+
+    def values(self):
+        self._fill()
+        return dict.values(self)
+
+
 def _padded_node_maps(reqs: list, diffracting: bool, has_other: bool):
     """The constructions' node maps zero-padded to common ``(KY, KX)``: ``(channels (C, B, KY, KX) in
     :func:`_fine_field`'s order (φ, amplitude, [distance], [other edges, ν, κ/g]), the keep source (B, KY, KX)
@@ -1439,9 +1514,7 @@ def _padded_node_maps(reqs: list, diffracting: bool, has_other: bool):
         + (["nu", "kappa"] if diffracting else [])
     keep = "nu_raw" if diffracting else "dist"
     dev = reqs[0].nd.gx.device
-    kyt = torch.tensor([k[0] for k in ks], device=dev)[:, None, None]
-    kxt = torch.tensor([k[1] for k in ks], device=dev)[:, None, None]
-    valid = (torch.arange(ky_max, device=dev)[:, None] < kyt) & (torch.arange(kx_max, device=dev) < kxt)
+    valid = _inside_host([k[0] for k in ks], [k[1] for k in ks], dev)
     v = _from_node_batch(reqs, names + [keep], (ky_max, kx_max), valid)
     if v is None:  # each construction's maps stacked and zero-padded
         v = torch.stack([torch.nn.functional.pad(torch.stack([r.maps[n] for n in names] + [r.maps[keep].detach()]),
@@ -1450,7 +1523,8 @@ def _padded_node_maps(reqs: list, diffracting: bool, has_other: bool):
     amp2 = ch[1]
     lit_amp = amp2 > 0  # (the zero padding: 0)
     amp = torch.where(lit_amp, safe_sqrt(amp2, lit_amp), torch.zeros_like(amp2))
-    return torch.stack([ch[0], amp, *ch[2:-1]]), ch[-1].detach(), valid
+    src = ch[-1]
+    return torch.stack([ch[0], amp, *ch[2:-1]]), src.detach() if src.requires_grad else src, valid
 
 
 def _from_node_batch(reqs: list, names: list, shape: tuple, valid: torch.Tensor):
@@ -1490,21 +1564,20 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
     hs = [r.nd.h for r in reqs]
     rz = [r.b.ripple for r in reqs]
     vals, keep_src, valid = _padded_node_maps(reqs, diffracting, has_other)
-    # the near-node ranges (_near_nodes) of every construction's span window: one host read
-    thr = torch.tensor([-math.sqrt(2.0) * z if diffracting else -2 * h for z, h in zip(rz, hs)], **f64)
-    keep = (keep_src > thr[:, None, None]) & valid
+    # the near-node ranges (_near_nodes) of every construction's span window: one host read. The host's values
+    # (positions, masks, indices, per-construction constants) are built on the host and sent as one tensor each
+    # (issue 43: a few ops each instead of a dozen; the positions the same float64 arithmetic, the same bits)
+    thr = torch.tensor([[[-math.sqrt(2.0) * z if diffracting else -2 * h]] for z, h in zip(rz, hs)], **f64)
+    keep = (keep_src > thr) & valid
     ny0 = [w[1] - w[0] for w in wins]
     nx0 = [w[3] - w[2] for w in wins]
-    pos_y = _lattice_positions([w[0] for w in wins], max(ny0), y0, p, [e[0] for e in ends], hs, dev)
-    pos_x = _lattice_positions([w[2] for w in wins], max(nx0), x0, p, [e[1] for e in ends], hs, dev)
+    pos_y = _lattice_positions_host([w[0] for w in wins], max(ny0), y0, p, [e[0] for e in ends], hs)
+    pos_x = _lattice_positions_host([w[2] for w in wins], max(nx0), x0, p, [e[1] for e in ends], hs)
     rows, cols = _first_last_rows(keep.any(2)), _first_last_rows(keep.any(1))
-
-    def span(pos, n, lo, hi):  # within 3 node spacings of the kept nodes, inside the window's own samples
-        own = torch.arange(pos.shape[1], device=dev) < torch.tensor(n, device=dev)[:, None]
-        return _first_last_rows((pos >= (lo - 3)[:, None]) & (pos <= (hi + 3)[:, None]) & own)
-
-    near = torch.stack([rows[0], *span(pos_y, ny0, rows[1], rows[2] - 1),
-                        *span(pos_x, nx0, cols[1], cols[2] - 1)], 1).tolist()
+    kr = np.array(torch.stack([rows[0], rows[1], rows[2], cols[1], cols[2]], 1).tolist(), dtype=np.int64)
+    kr[:, 2], kr[:, 4] = keep.shape[1] - kr[:, 2], keep.shape[2] - kr[:, 4]  # last + 1
+    near = np.stack([kr[:, 0], *_first_last_host(pos_y, ny0, kr[:, 1], kr[:, 2] - 1),
+                     *_first_last_host(pos_x, nx0, kr[:, 3], kr[:, 4] - 1)], 1).tolist()
     sel = [k for k, (kept, y_any, _, _, x_any, _, _) in enumerate(near) if kept and y_any and x_any]
     out: list = [None] * len(reqs)
     if not sel:
@@ -1516,14 +1589,14 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
     ix0 = [wins[k][2] + near[k][5] for k in sel]
     ny = [near[k][3] - near[k][2] for k in sel]
     nx = [near[k][6] - near[k][5] for k in sel]
-    kyt = torch.tensor([float(reqs[k].nd.ky) for k in sel], **f64)[:, None]
-    kxt = torch.tensor([float(reqs[k].nd.kx) for k in sel], **f64)[:, None]
     hs = [hs[k] for k in sel]
-    py = _lattice_positions(iy0, max(ny), y0, p, [ends[k][0] for k in sel], hs, dev)
-    px = _lattice_positions(ix0, max(nx), x0, p, [ends[k][1] for k in sel], hs, dev)
+    py = _lattice_positions_host(iy0, max(ny), y0, p, [ends[k][0] for k in sel], hs)
+    px = _lattice_positions_host(ix0, max(nx), x0, p, [ends[k][1] for k in sel], hs)
     # both axes' matrices in one call: (B, ny + nx, K), each position with its own axis's node count
-    n_nodes = torch.cat([kyt.expand(-1, max(ny)), kxt.expand(-1, max(nx))], 1)
-    m = cubic_matrices(torch.minimum(torch.cat([py, px], 1).clamp_min(0), n_nodes - 1), n_nodes, max(vals.shape[-2:]))
+    n_nodes = np.concatenate([np.repeat([[float(reqs[k].nd.ky)] for k in sel], max(ny), 1),
+                              np.repeat([[float(reqs[k].nd.kx)] for k in sel], max(nx), 1)], 1)
+    pos = np.minimum(np.maximum(np.concatenate([py, px], 1), 0.0), n_nodes - 1)
+    m = cubic_matrices(torch.from_numpy(pos).to(dev), torch.from_numpy(n_nodes).to(dev), max(vals.shape[-2:]))
     my, mx = m[:, :max(ny), :vals.shape[-2]], m[:, max(ny):, :vals.shape[-1]]
     fine = my @ vals @ mx.mT  # (C, B, ny, nx)
     # the coverage, the ripple band and the lit crop (_fine_coverage, _crop_to_lit): one host read
@@ -1534,55 +1607,52 @@ def _fine_field_batch(reqs: list, wins: list, ends: list, doe) -> list:
         dcov = _doe_coverage_batch(doe, r0.b.cfg.oversample, (iy0, ix0), fine.shape[-2:], dev)
         if dcov is not None:
             cov = dcov if cov is None else cov * dcov
-    own = ((torch.arange(max(ny), device=dev) < torch.tensor(ny, device=dev)[:, None])[:, :, None]
-           & (torch.arange(max(nx), device=dev) < torch.tensor(nx, device=dev)[:, None])[:, None, :])
+    beyond = _beyond_host(ny, nx, dev)  # the samples beyond each window's own
     if diffracting:
-        band_thr = torch.tensor([-math.sqrt(2.0) * rz[k] for k in sel], **f64)[:, None, None]
+        band_thr = torch.tensor([[[-math.sqrt(2.0) * rz[k]]] for k in sel], **f64)
         band = (fine[-2].detach() > band_thr).to(torch.float64)
         weight = band if cov is None else cov.detach() * band
     else:
         weight = cov.detach()
-    weight = weight.masked_fill(~own, 0.0)
+    weight = weight.masked_fill(beyond, 0.0)
     lit_r, lit_c = _first_last_rows(weight.amax(2) > 0), _first_last_rows(weight.amax(1) > 0)
-    crops = torch.stack([lit_r[0], lit_r[1], lit_r[2], lit_c[1], lit_c[2]], 1).tolist()
+    crops = [[a, b, weight.shape[1] - c, d, weight.shape[2] - e] for a, b, c, d, e in
+             torch.stack([lit_r[0], lit_r[1], lit_r[2], lit_c[1], lit_c[2]], 1).tolist()]  # (last + 1 on the host)
     lit = [j for j, c in enumerate(crops) if c[0]]
     if not lit:
         return out
     # the lit crops gathered into one padded batch (B', hy, hx); samples beyond a crop: amplitude 0, outside the band
     hy = [crops[j][2] - crops[j][1] for j in lit]
     hx = [crops[j][4] - crops[j][3] for j in lit]
-    bi = torch.tensor(lit, device=dev)[:, None, None]
-    ri = (torch.tensor([crops[j][1] for j in lit], device=dev)[:, None]
-          + torch.arange(max(hy), device=dev)).clamp(max=fine.shape[-2] - 1)[:, :, None]
-    ci = (torch.tensor([crops[j][3] for j in lit], device=dev)[:, None]
-          + torch.arange(max(hx), device=dev)).clamp(max=fine.shape[-1] - 1)[:, None, :]
+    bi = torch.tensor([[[j]] for j in lit], device=dev)
+    ri = np.minimum(np.array([crops[j][1] for j in lit])[:, None] + np.arange(max(hy)), fine.shape[-2] - 1)
+    ci = np.minimum(np.array([crops[j][3] for j in lit])[:, None] + np.arange(max(hx)), fine.shape[-1] - 1)
+    ri, ci = torch.from_numpy(ri[:, :, None]).to(dev), torch.from_numpy(ci[:, None, :]).to(dev)
     fine = fine[:, bi, ri, ci]
-    inner = ((torch.arange(max(hy), device=dev) < torch.tensor(hy, device=dev)[:, None])[:, :, None]
-             & (torch.arange(max(hx), device=dev) < torch.tensor(hx, device=dev)[:, None])[:, None, :])
+    outer = _beyond_host(hy, hx, dev)
     ch = fine.unbind(0)
     amp = ch[1] if cov is None else ch[1] * cov[bi, ri, ci]
-    amp = torch.where(inner, amp, torch.zeros_like(amp))
-    ks = torch.tensor([2 * math.pi / (reqs[sel[j]].b.src.wavelength * 1e-3) for j in lit], **f64)[:, None, None]
+    amp = amp.masked_fill(outer, 0.0)
+    ks = torch.tensor([[[2 * math.pi / (reqs[sel[j]].b.src.wavelength * 1e-3)]] for j in lit], **f64)
     angle = ks * ch[0]
     if not diffracting:
         env = polar(amp, angle)
     else:
         bs = [reqs[sel[j]].b for j in lit]
-        rzr = torch.tensor([rz[sel[j]] for j in lit], **f64).repeat_interleave(max(hy))[:, None]
-        gr = torch.tensor([reqs[sel[j]].maps["g_max"] for j in lit], **f64).repeat_interleave(max(hy))[:, None]
-        nu = torch.where(inner, ch[-2], torch.full_like(ch[-2], -math.inf))
+        rzr = torch.tensor([[rz[sel[j]]] for j in lit for _ in range(max(hy))], **f64)
+        gr = torch.tensor([[reqs[sel[j]].maps["g_max"]] for j in lit for _ in range(max(hy))], **f64)
+        nu = ch[-2].masked_fill(outer, -math.inf)
         shape2 = (-1, max(hx))
         env = edge_envelope(amp.reshape(shape2), angle.reshape(shape2), nu.reshape(shape2),
                             bs[0].z_doe - bs[0].cfg.stop_plane, rzr, gr, p,
                             kappa=ch[-1].reshape(shape2)).reshape(amp.shape)
-    # each construction's envelope a view of the batch's: without autograd one strided view each (one op, not three;
-    # an as_strided view's backward would allocate the whole batch per view)
+    # each construction's envelope a view of the batch's: without autograd its row of the batch (EnvelopeRow: one
+    # strided view when first read, none where the propagation and the darkness test read the batch; an as_strided
+    # view's backward would allocate the whole batch per view)
     strided = not env.requires_grad
     rows = env.unbind(0) if not strided else [None] * len(lit)
-    (_, s1, s2), base = env.stride(), env.storage_offset()
     for t, (e, j) in enumerate(zip(rows, lit)):
         _, a0, a1, b0, b1 = crops[j]
-        e = torch.as_strided(env, (a1 - a0, b1 - b0), (s1, s2), base + t * env.stride(0)) if strided \
-            else e[:a1 - a0, :b1 - b0]
+        e = EnvelopeRow(env, t, (a1 - a0, b1 - b0)) if strided else e[:a1 - a0, :b1 - b0]
         out[sel[j]] = e, (iy0[j] + a0, iy0[j] + a1, ix0[j] + b0, ix0[j] + b1)
     return out

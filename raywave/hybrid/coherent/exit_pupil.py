@@ -11,6 +11,7 @@ import torch
 
 from raywave.doe.base import BlankDOE
 from raywave.lens.sources import VignettingWarning, point_source_rays
+from raywave.utils import devices
 from raywave.utils.errors import MemoryLimitError
 from raywave.wave.field import fourier_upsample
 from raywave.wave.grid import Field, Grid
@@ -357,6 +358,9 @@ def go_phase_error(lens, source: Source, z_xp: float, z_doe: float):
 #: :func:`go_phase_errors` evaluates the finite differences of this many sources at a time (memory: ~15 arrays of
 #: GO_PLANES × GO_GRID² samples per source)
 GO_SOURCE_BLOCK = 16
+#: :data:`GO_SOURCE_BLOCK` on an accelerator (every op a kernel launch, memory aplenty: ~4 MB a source): a call's
+#: sources in one block (issue 43: a 10×10×3 map's 75 sources dispatched ~150 ops a block of 16)
+GO_SOURCE_BLOCK_ACCELERATOR = 512
 
 
 def go_phase_errors(lens, fields: torch.Tensor, wls: list[float], depth, field_type, planes,
@@ -404,10 +408,13 @@ def go_phase_errors(lens, fields: torch.Tensor, wls: list[float], depth, field_t
         src_x0, src_tan = x0.reshape(nf * nw, ng, ng, 2), tan.reshape(nf * nw, ng, ng, 2)
         src_ok = (lit & inside).reshape(nf * nw, ng, ng)
         wi = torch.arange(nw, device=dev).repeat(nf)  # each flattened source's wavelength
-        err = torch.cat([_go_error_block(src_x0[i:i + GO_SOURCE_BLOCK], src_tan[i:i + GO_SOURCE_BLOCK],
-                                         src_ok[i:i + GO_SOURCE_BLOCK], zs[wi[i:i + GO_SOURCE_BLOCK]],
-                                         k[wi[i:i + GO_SOURCE_BLOCK]], (z_doe, 2 * ext / ng))
-                         for i in range(0, nf * nw, GO_SOURCE_BLOCK)])
+        blk = GO_SOURCE_BLOCK_ACCELERATOR if devices.accelerator(dev) else GO_SOURCE_BLOCK
+        if nf * nw <= blk:  # one block: no slices, no concatenation
+            err = _go_error_block(src_x0, src_tan, src_ok, zs[wi], k[wi], (z_doe, 2 * ext / ng))
+        else:
+            err = torch.cat([_go_error_block(src_x0[i:i + blk], src_tan[i:i + blk], src_ok[i:i + blk],
+                                             zs[wi[i:i + blk]], k[wi[i:i + blk]], (z_doe, 2 * ext / ng))
+                             for i in range(0, nf * nw, blk)])
     return zs, err.reshape(nf, nw, -1)
 
 
@@ -433,9 +440,9 @@ def _lap_over_amp(x: torch.Tensor, h: float) -> torch.Tensor:
     (normalised stop units), ``A = |det ∂x/∂p|^(-1/2)``: central differences with the chain rule
     ``∇_x = (∂x/∂p)^(-T) ∇_p``; NaN where a stencil lacks a ray (the grid's outer rows, vignetted rays)."""
     def dp(f):  # central differences along the grid's columns (p) and rows (q) of f (..., ng, ng), NaN at the border
-        fp, fq = torch.full_like(f, math.nan), torch.full_like(f, math.nan)
-        fp[..., :, 1:-1] = (f[..., :, 2:] - f[..., :, :-2]) / (2 * h)
-        fq[..., 1:-1, :] = (f[..., 2:, :] - f[..., :-2, :]) / (2 * h)
+        pad = torch.nn.functional.pad  # (the differences NaN-padded: one op, not a fill, a slice and a copy)
+        fp = pad((f[..., :, 2:] - f[..., :, :-2]) / (2 * h), (1, 1), value=math.nan)
+        fq = pad((f[..., 2:, :] - f[..., :-2, :]) / (2 * h), (0, 0, 1, 1), value=math.nan)
         return fp, fq
 
     (m00, m01), (m10, m11) = dp(x[..., 0]), dp(x[..., 1])  # dx/dp, dx/dq, dy/dp, dy/dq

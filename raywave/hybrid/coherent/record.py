@@ -57,6 +57,39 @@ class FieldInfo:
     stop_edge: str = "doe"
 
 
+@dataclass(frozen=True)
+class _FieldMeta:
+    """A deferred :class:`DOEField`'s :class:`~raywave.wave.Field` without its envelope (the attributes it reads)."""
+
+    grid: Grid
+    wavelength: float
+    n: float
+    carrier: tuple
+
+
+@dataclass(frozen=True, eq=False)
+class EnvelopeRow:
+    """Where a DOE-plane envelope ``(ny, nx)`` = ``shape`` lies in a padded batch ``base`` (B, hy, hx): the corner of
+    row ``row``, flipped along x / y where ``flip`` says (a mirror image's, :func:`raywave.hybrid.mirror.mirror_field`);
+    the samples of the row beyond ``shape`` are not part of it. :meth:`make` gives the envelope itself."""
+
+    base: torch.Tensor
+    row: int
+    shape: tuple
+    flip: tuple = (False, False)
+
+    def make(self) -> torch.Tensor:
+        """The envelope: a strided view of the row's corner (flipped: a copy)."""
+        s0, s1, s2 = self.base.stride()
+        e = torch.as_strided(self.base, tuple(self.shape), (s1, s2), self.base.storage_offset() + self.row * s0)
+        dims = [d for d, on in ((-1, self.flip[0]), (-2, self.flip[1])) if on]
+        return e.flip(dims) if dims else e
+
+    def flipped(self, flip_x: bool, flip_y: bool) -> "EnvelopeRow":
+        """The mirror image's row (no op)."""
+        return EnvelopeRow(self.base, self.row, self.shape, (self.flip[0] != flip_x, self.flip[1] != flip_y))
+
+
 class DOEField:
     """The field arriving at the DOE plane for one point source and one wavelength.
 
@@ -80,7 +113,7 @@ class DOEField:
     (issue 43): the window is :attr:`box`, half-open, or the field's own :attr:`grid`).
     """
 
-    __slots__ = ("field", "box", "z", "center", "info", "chief_tan")
+    __slots__ = ("_field", "_meta", "row", "box", "z", "center", "info", "chief_tan")
 
     def __init__(self, field: Field, box, z: float, center: tuple, info: FieldInfo,
                  chief_tan: tuple | None = None):
@@ -89,8 +122,57 @@ class DOEField:
         iy0, iy1, ix0, ix1 = (int(v) for v in box)
         if (iy1 - iy0, ix1 - ix0) != field.grid.shape:
             raise ValueError(f"DOEField: box {(iy0, iy1, ix0, ix1)} does not have the field's shape {field.grid.shape}")
-        self.field, self.box, self.z, self.center = field, (iy0, iy1, ix0, ix1), z, center
+        self._field, self._meta, self.row = field, field, None
+        self.box, self.z, self.center = (iy0, iy1, ix0, ix1), z, center
         self.info, self.chief_tan = info, chief_tan
+
+    @classmethod
+    def deferred(cls, row: "EnvelopeRow", grid: Grid, wave: tuple, box, z: float, center: tuple, info: FieldInfo,
+                 chief_tan: tuple | None = None) -> "DOEField":
+        """A record whose envelope is the row ``row`` (:class:`EnvelopeRow`) of a padded batch, made (one view, and
+        a flip for a mirror image) when first read (:attr:`field`, :attr:`envelope`); a batched consumer reads the
+        batch itself (issue 43: the propagation's padded windows, the darkness test). ``wave`` = ``(wavelength µm,
+        n, carrier (α, β))`` host floats; the rest as :class:`DOEField`'s."""
+        iy0, iy1, ix0, ix1 = (int(v) for v in box)
+        if (iy1 - iy0, ix1 - ix0) != tuple(grid.shape) or tuple(row.shape) != tuple(grid.shape):
+            raise ValueError(f"DOEField: box {(iy0, iy1, ix0, ix1)}, grid {grid.shape} and envelope row {row.shape} "
+                             "differ")
+        obj = cls.__new__(cls)
+        wavelength, n, carrier = wave
+        obj._field, obj._meta, obj.row = None, _FieldMeta(grid, float(wavelength), float(n),
+                                                          (float(carrier[0]), float(carrier[1]))), row
+        obj.box, obj.z, obj.center, obj.info, obj.chief_tan = (iy0, iy1, ix0, ix1), z, center, info, chief_tan
+        return obj
+
+    @property
+    def field(self) -> Field:
+        """The :class:`~raywave.wave.Field` (a deferred record's envelope made now, once)."""
+        if self._field is None:
+            m = self._meta
+            self._field = Field(self.row.make(), m.grid, m.wavelength, m.n, m.carrier)
+            self._meta = self._field
+        return self._field
+
+    @field.setter
+    def field(self, value: Field) -> None:
+        if not isinstance(value, Field) or tuple(value.grid.shape) != tuple(self.grid.shape):
+            raise ValueError("DOEField.field: a raywave.wave.Field of the record's grid shape is needed")
+        self._field, self._meta, self.row = value, value, None
+
+    @property
+    def device(self) -> torch.device:
+        """The envelope's device (without making a deferred one)."""
+        return self.row.base.device if self._field is None else self._field.envelope.device
+
+    def _with(self, info: FieldInfo, chief_tan, field: Field | None = None, center=None) -> "DOEField":
+        """A copy with ``info``, ``chief_tan`` (and ``field`` / ``center`` where given); a deferred record's copy
+        stays deferred (on the same row) unless given a field."""
+        center = self.center if center is None else center
+        if field is None and self._field is None:
+            m = self._meta
+            return DOEField.deferred(self.row, m.grid, (m.wavelength, m.n, m.carrier), self.box, self.z, center,
+                                     info, chief_tan)
+        return DOEField(self.field if field is None else field, self.box, self.z, center, info, chief_tan)
 
     @classmethod
     def on_box(cls, envelope: torch.Tensor, box, sim: Grid, wave: tuple, z: float, center: tuple,
@@ -106,12 +188,12 @@ class DOEField:
 
     # ---------------------------------------------------------------- the data, by their earlier names
     envelope = property(lambda self: self.field.envelope, doc="complex ``(ny, nx)``: :attr:`field`'s envelope.")
-    grid = property(lambda self: self.field.grid, doc=":attr:`field`'s :class:`~raywave.wave.Grid`.")
-    origin = property(lambda self: self.field.grid.origin, doc="``(x, y)`` mm of the centre of sample (0, 0).")
-    pitch = property(lambda self: self.field.grid.pitch[0], doc="simulation-grid pitch (mm).")
-    carrier = property(lambda self: self.field.carrier, doc="``(α, β)`` direction cosines of the carrier.")
-    n = property(lambda self: self.field.n, doc="refractive index between the DOE and the sensor.")
-    wavelength = property(lambda self: self.field.wavelength, doc="µm.")
+    grid = property(lambda self: self._meta.grid, doc=":attr:`field`'s :class:`~raywave.wave.Grid`.")
+    origin = property(lambda self: self._meta.grid.origin, doc="``(x, y)`` mm of the centre of sample (0, 0).")
+    pitch = property(lambda self: self._meta.grid.pitch[0], doc="simulation-grid pitch (mm).")
+    carrier = property(lambda self: self._meta.carrier, doc="``(α, β)`` direction cosines of the carrier.")
+    n = property(lambda self: self._meta.n, doc="refractive index between the DOE and the sensor.")
+    wavelength = property(lambda self: self._meta.wavelength, doc="µm.")
 
     rays = property(lambda self: self.info.rays)
     mode = property(lambda self: self.info.mode)
@@ -142,7 +224,7 @@ class DOEField:
     # ---------------------------------------------------------------- copies
     def with_info(self, **changes) -> "DOEField":
         """A copy whose :class:`FieldInfo` has ``changes`` (e.g. ``stop_edge="exit_pupil"``)."""
-        return DOEField(self.field, self.box, self.z, self.center, replace(self.info, **changes), self.chief_tan)
+        return self._with(replace(self.info, **changes), self.chief_tan)
 
     def with_envelope(self, envelope: torch.Tensor) -> "DOEField":
         """A copy with another envelope of the same grid (the diagnostics copied)."""

@@ -734,6 +734,8 @@ def stop_rim_images_all(lens, fields, wavelengths, depth, field_type: str | None
     z, points, paths, ok = _rim_crossings(o, d, dv, c, s, opl[:, 0].reshape(rows, k), n_img.repeat(nf)[:, None])
     ok = ok.tolist()
     dirs = d[:, 0]  # (rows, k, 3): the source's own rim rays in the image medium
+    # every row's views from one unbind per tensor (issue 43: not four selects a row)
+    z, points, paths, dirs = (t.unbind(0) for t in (z, points, paths, dirs))
     return [[RimImages(theta, z[i * nw + j], points[i * nw + j], paths[i * nw + j], dirs[i * nw + j])
              if v[i][j] and ok[i * nw + j] else None for i in range(nf)] for j in range(nw)]
 
@@ -904,8 +906,9 @@ def _reach_rows(rims: list):
         if rim is None or getattr(rim, "directions", None) is None or getattr(rim, "points", None) is None:
             continue
         by_k.setdefault(int(rim.points.shape[0]), []).append(i)
-    return [(rows, torch.stack([rims[i].points.detach().double() for i in rows]),
-             torch.stack([rims[i].directions.detach().double() for i in rows])) for rows in by_k.values()]
+    # stacked, then detached: two ops a group, not two a rim (issue 43)
+    return [(rows, torch.stack([rims[i].points for i in rows]).detach().double(),
+             torch.stack([rims[i].directions for i in rows]).detach().double()) for rows in by_k.values()]
 
 
 def edge_reach_many(rims: list, z_doe: float, z_sensor: float, points: torch.Tensor, lam_ms: list,

@@ -370,7 +370,8 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
     if devices.accelerator(device):
         # an accelerator: the band's lines from host arithmetic (the same lines), one transfer each
         (cols, fxc), (rows, fyr) = _host_candidates(geos, mx, 0), _host_candidates(geos, my, 1)
-        cols, rows, fxc, fyr = (torch.tensor(v, device=device) for v in (cols, rows, fxc, fyr))
+        # (fresh host arrays: shared, not copied, then sent; one op each, not two)
+        cols, rows, fxc, fyr = (torch.from_numpy(np.ascontiguousarray(v)).to(device) for v in (cols, rows, fxc, fyr))
         if cols.numel() == 0 or rows.numel() == 0:
             return _empty_transfer(batch, (rows, cols), wave, weight_derivative, device)
         bx, by = (bxl, bxh, bxt), (byl, byh, byt)
