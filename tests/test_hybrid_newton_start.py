@@ -106,21 +106,29 @@ def test_newton_takes_the_linear_start_where_the_given_start_is_missing():
     assert float((uv - ref_uv).abs().max()) <= 1e-9
 
 
-def test_a_seed_solve_stops_after_its_last_step_unconfirmed():
-    """``finish`` (the coarse start's seeds): a ray within ``finish`` of its target takes its Newton step and stops,
-    without the trace that confirms it. Traced afterwards, every such ray lands within the full tolerance (Newton's
-    error after a step from ≤ 1e-6 mm is ~1e-12 mm), and the solve takes fewer rounds."""
-    from raywave.hybrid.coherent.accurate import COARSE_FINISH, entrance_pupil
-    from raywave.hybrid.coherent.record import _NEWTON_TOL
+def _aim_case(field_deg: float, wl_um: float) -> tuple:
+    """The bundled asphere's node aiming for one source (0, ``field_deg``) at ``wl_um``: ``(aim, chief, r_ep,
+    chief ray's landing point (2,) as host numbers)``, as a construction sets it up (no autograd)."""
+    from raywave.hybrid.coherent.accurate import entrance_pupil
 
     hl = load_hybrid(bundled_lens_path("hybrid_asphere"))
     lens, z = hl.optics, hl.doe_z()
-    ft = lens.field_type
-    f = torch.tensor([0.0, 12.0], dtype=torch.float64)
-    wl = torch.tensor([0.47], dtype=torch.float64)
+    f = torch.tensor([0.0, field_deg], dtype=torch.float64)
+    wl = torch.tensor([wl_um], dtype=torch.float64)
     ep_z, r_ep = entrance_pupil(lens)
     h = 1e-6 * r_ep
-    g = torch.linspace(-0.6, 0.6, 9, dtype=torch.float64)
+    with torch.no_grad():
+        cd = coherent.chief_rays(lens, f[None], wl, None, z, hl.sensor_z())
+        uv_c = cd[2][0, 0].reshape(1, 2)
+        x_c, _, jac_c = coherent.run_serial(tracing_mod._landing_and_jacobian(lens, uv_c, f, wl, None, z,
+                                                                              lens.field_type, h, ep_z))
+    aim = tracing_mod._Aim(lens, f, wl, None, z, lens.field_type, h, ep_z)
+    return aim, (uv_c, x_c, jac_c), r_ep, cd[0].o[0, 0, :2].tolist()
+
+
+def _solves_and_rounds(calls: list) -> tuple:
+    """Run each generator factory of ``calls`` (:func:`coherent.run_serial`), counting its Newton rounds: ``(answers,
+    rounds)``."""
     rounds = []
     rows = tracing_mod._landing_rounds
 
@@ -128,25 +136,38 @@ def test_a_seed_solve_stops_after_its_last_step_unconfirmed():
         rounds[-1] += 1
         return rows(*args)
 
+    tracing_mod._landing_rounds = counted
+    try:
+        out = []
+        for call in calls:
+            rounds.append(0)
+            with torch.no_grad():
+                out.append(coherent.run_serial(call()))
+    finally:
+        tracing_mod._landing_rounds = rows
+    return out, rounds
+
+
+def _landed(aim, uv) -> tuple:
+    """Landing points (N, 2) and validity (N,) of ``aim``'s rays through ``uv`` (N, 2)."""
     with torch.no_grad():
-        cd = coherent.chief_rays(lens, f[None], wl, None, z, hl.sensor_z())
-        xc = cd[0].o[0, 0, :2]
-        targets = torch.stack(torch.meshgrid(xc[0] + g, xc[1] + g, indexing="xy"), -1).reshape(-1, 2)
-        uv_c = cd[2][0, 0].reshape(1, 2)
-        chief = coherent.run_serial(tracing_mod._landing_and_jacobian(lens, uv_c, f, wl, None, z, ft, h, ep_z))
-        chief = (uv_c, chief[0], chief[2])
-        aim = tracing_mod._Aim(lens, f, wl, None, z, ft, h, ep_z)
-        tracing_mod._landing_rounds = counted
-        try:
-            out = []
-            for finish in (None, COARSE_FINISH):
-                rounds.append(0)
-                out.append(coherent.run_serial(tracing_mod._invert_to_nodes(aim, targets, chief, 0.25 * r_ep,
-                                                                            finish=finish)))
-        finally:
-            tracing_mod._landing_rounds = rows
-        (ref_uv, ref_conv, _, ref_x), (uv, conv, _, x) = out
-        landed, valid = tracing_mod._trace_rows(aim, uv, f.expand(uv.shape[0], 2), wl.expand(uv.shape[0]))
+        return tracing_mod._trace_rows(aim, uv, aim.field.expand(uv.shape[0], 2), aim.wavelength.expand(uv.shape[0]))
+
+
+def test_a_seed_solve_stops_after_its_last_step_unconfirmed():
+    """``finish`` (the coarse start's seeds): a ray within ``finish`` of its target takes its Newton step and stops,
+    without the trace that confirms it. Traced afterwards, every such ray lands within the full tolerance (Newton's
+    error after a step from ≤ 1e-6 mm is ~1e-12 mm), and the solve takes fewer rounds."""
+    from raywave.hybrid.coherent.accurate import COARSE_FINISH
+    from raywave.hybrid.coherent.record import _NEWTON_TOL
+
+    aim, chief, r_ep, xc = _aim_case(12.0, 0.47)
+    g = torch.linspace(-0.6, 0.6, 9, dtype=torch.float64)
+    targets = torch.stack(torch.meshgrid(xc[0] + g, xc[1] + g, indexing="xy"), -1).reshape(-1, 2)
+    out, rounds = _solves_and_rounds([lambda f=f: tracing_mod._invert_to_nodes(aim, targets, chief, 0.25 * r_ep,
+                                                                               finish=f) for f in (None, COARSE_FINISH)])
+    (ref_uv, ref_conv, _, ref_x), (uv, conv, _, x) = out
+    landed, valid = _landed(aim, uv)
     assert bool(ref_conv.all()) and bool(conv.all()) and bool(valid.all())
     assert ref_x is not None and x is None  # the last steps were not traced: no landing points to give
     assert float((landed - targets).abs().max()) <= _NEWTON_TOL
@@ -158,46 +179,20 @@ def test_nodes_settle_before_the_node_traces_own_step():
     """``settle`` (the node inversion's): a ray whose error after one more step, predicted from its last two, is
     within ``settle`` stops where it is, converged, and the caller's step J⁻¹(X − T) from there (the node trace's)
     lands it within ``settle``; fewer rounds than confirming every node by a trace of its own."""
-    from raywave.hybrid.coherent.accurate import NODE_SETTLE, _coarse_start, _Nodes, entrance_pupil
+    from raywave.hybrid.coherent.accurate import NODE_SETTLE, _coarse_start, _Nodes
     from raywave.hybrid.coherent.record import _NEWTON_TOL
 
-    hl = load_hybrid(bundled_lens_path("hybrid_asphere"))
-    lens, z = hl.optics, hl.doe_z()
-    ft = lens.field_type
-    f = torch.tensor([0.0, 14.0], dtype=torch.float64)
-    wl = torch.tensor([0.47], dtype=torch.float64)
-    ep_z, r_ep = entrance_pupil(lens)
-    h = 1e-6 * r_ep
-    rounds = []
-    rows = tracing_mod._landing_rounds
-
-    def counted(*args):
-        rounds[-1] += 1
-        return rows(*args)
-
+    aim, chief, r_ep, xc = _aim_case(14.0, 0.47)
+    nd = _Nodes(xc[0], xc[1], 32.0, 32.0, 2.4 / 64, 65, 65, aim.field.device)  # 65² nodes over ±1.2 mm
     with torch.no_grad():
-        cd = coherent.chief_rays(lens, f[None], wl, None, z, hl.sensor_z())
-        xc = cd[0].o[0, 0, :2].tolist()
-        nd = _Nodes(xc[0], xc[1], 32.0, 32.0, 2.4 / 64, 65, 65, lens.device)  # 65² nodes over ±1.2 mm
-        uv_c = cd[2][0, 0].reshape(1, 2)
-        chief = coherent.run_serial(tracing_mod._landing_and_jacobian(lens, uv_c, f, wl, None, z, ft, h, ep_z))
-        chief = (uv_c, chief[0], chief[2])
-        aim = tracing_mod._Aim(lens, f, wl, None, z, ft, h, ep_z)
         start = coherent.run_serial(_coarse_start(aim, nd, chief, 0.25 * r_ep))
-        tracing_mod._landing_rounds = counted
-        try:
-            out = []
-            for settle in (None, NODE_SETTLE):
-                rounds.append(0)
-                out.append(coherent.run_serial(tracing_mod._invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep,
-                                                                            start, settle=settle)))
-        finally:
-            tracing_mod._landing_rounds = rows
-        landed = []
-        for inv in out:
-            uv_lin = inv[0] - inv.step  # the node trace's step
-            x, valid = tracing_mod._trace_rows(aim, uv_lin, f.expand(uv_lin.shape[0], 2), wl.expand(uv_lin.shape[0]))
-            landed.append(x[valid & inv[1]] - nd.targets[valid & inv[1]])
+    out, rounds = _solves_and_rounds([lambda s=s: tracing_mod._invert_to_nodes(aim, nd.targets, chief, 0.25 * r_ep,
+                                                                               start, settle=s)
+                                      for s in (None, NODE_SETTLE)])
+    landed = []
+    for inv in out:
+        x, valid = _landed(aim, inv[0] - inv.step)  # the node trace's step
+        landed.append(x[valid & inv[1]] - nd.targets[valid & inv[1]])
     assert bool(out[0][1].all()) and torch.equal(out[0][1], out[1][1])
     assert float(landed[0].abs().max()) <= _NEWTON_TOL and float(landed[1].abs().max()) <= NODE_SETTLE
     assert rounds[1] < rounds[0], rounds

@@ -33,6 +33,7 @@ from raywave.wave.propagation import integrated_upsampled_intensity, upsampled_p
 from raywave.wave.propagation.resample import integrated_intensity_planned, pixel_plan
 from raywave.wave.propagation.batch import WindowBatch, WindowSource, batch_transfer, propagate_batch
 from raywave.wave.propagation.transfer import _geometry
+from raywave.hybrid.coherent.record import EnvelopeRow
 
 #: a batch holds at most this many bytes of FFT-grid arrays (B × (Ny + n) × (Nx + n) complex samples): it bounds the
 #: batched intermediates (the band spectra, the transfer functions), i.e. the peak memory of one batch
@@ -304,11 +305,9 @@ def _gathered_rows(rows: list, shape: tuple) -> torch.Tensor:
     """The envelopes ``rows`` (:class:`~raywave.hybrid.coherent.record.EnvelopeRow`) zero-padded at their end to
     ``shape`` and stacked ``(K, Ny, Nx)``: one gather and one masked fill per base batch (its index arrays built on
     the host; and a concatenation and a reorder for several bases), the values of each envelope's own padded copy."""
-    bases: dict = {}
-    for k, r in enumerate(rows):
-        bases.setdefault(id(r.base), []).append(k)
     parts = []
-    for ks in bases.values():
+    groups = EnvelopeRow.by_base(rows)
+    for ks in groups:
         base = rows[ks[0]].base
         dev = base.device
         t, y, x, (in_y, in_x) = _row_indices([rows[k] for k in ks], shape)
@@ -316,7 +315,7 @@ def _gathered_rows(rows: list, shape: tuple) -> torch.Tensor:
         parts.append(base[t, y, x].masked_fill_(out_y | out_x, 0))  # (a fresh gather: zeroed in place)
     if len(parts) == 1:
         return parts[0]
-    order = [k for ks in bases.values() for k in ks]
+    order = [k for ks in groups for k in ks]
     back = torch.from_numpy(np.argsort(np.array(order))).to(parts[0].device)
     return torch.cat(parts).index_select(0, back)
 

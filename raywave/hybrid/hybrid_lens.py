@@ -37,6 +37,7 @@ from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, 
 from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps, go_phase_errors
 from raywave.hybrid.coherent.geometry import _medium_index, footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import edge_reach_many, stop_rim_images_all
+from raywave.hybrid.coherent.record import EnvelopeRow
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, accelerator_cap, ceil_samples,
                                     plan_groups, propagate_group)
@@ -230,11 +231,9 @@ def _dark_many(fds: list) -> list[bool]:
     if len(fds) > 1 and all(r is not None and not r.base.requires_grad for r in rows):
         # every envelope a row of a padded batch (DOEField.deferred): each batch's rows tested at once, its samples
         # beyond each envelope masked (issue 43: three ops a field before)
-        bases: dict = {}
-        for k, r in enumerate(rows):
-            bases.setdefault(id(r.base), []).append(k)
         lit = []
-        for ks in bases.values():
+        groups = EnvelopeRow.by_base(rows)
+        for ks in groups:
             base = rows[ks[0]].base
             _, hy, hx = base.shape
             sub = [rows[k] for k in ks]
@@ -247,7 +246,7 @@ def _dark_many(fds: list) -> list[bool]:
                    & torch.from_numpy(own_x[:, None, :]).to(base.device))
             nz = (torch.view_as_real(part) != 0).any(-1) & own
             lit.append(nz.flatten(1).any(1))
-        order = [k for ks in bases.values() for k in ks]
+        order = [k for ks in groups for k in ks]
         flags = torch.cat(lit).tolist() if len(lit) > 1 else lit[0].tolist()
         out = [False] * len(fds)
         for k, f in zip(order, flags):

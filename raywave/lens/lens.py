@@ -45,6 +45,20 @@ class TraceRecord:
     valid: list
 
 
+
+def _interact(surface, point: tuple, d: tuple, media: tuple, wavelength, flip: bool) -> tuple:
+    """Surface ``surface``'s interaction with rays at their local ``point`` (x, y, z) mm travelling along ``d``
+    (dx, dy, dz), between the media of indices ``media`` (n1, n2) at ``wavelength`` µm: ``(dx', dy', dz', extra
+    optical path or None, ok)``. ``flip``: rays may travel toward −z (after a mirror), and meet the normal from
+    behind: it is turned to the ray's side."""
+    x, y, z = point
+    dx, dy, dz = d
+    nx, ny, nz = surface.geometry.normal(x, y, z)
+    if flip:
+        sign = torch.where(dx * nx + dy * ny + dz * nz < 0, -1.0, 1.0)
+        nx, ny, nz = nx * sign, ny * sign, nz * sign
+    return surface.interaction(x, y, dx, dy, dz, nx, ny, nz, *media, wavelength)
+
 class Lens(nn.Module):
     """A sequential lens (rotationally symmetric unless a surface is a toroid, a coordinate break or a mirror
     makes it otherwise).
@@ -467,11 +481,7 @@ class Lens(nn.Module):
             if identity[i]:  # refraction from air into air: the direction is kept exactly (no normal, no Snell)
                 valid = valid & ok
             else:
-                nx, ny, nz = s.geometry.normal(x, y, zl)
-                if mirrors:  # rays travelling toward -z meet the normal from behind: turn it to the ray's side
-                    flip = torch.where(dx * nx + dy * ny + dz * nz < 0, -1.0, 1.0)
-                    nx, ny, nz = nx * flip, ny * flip, nz * flip
-                dx, dy, dz, extra, ok_i = s.interaction(x, y, dx, dy, dz, nx, ny, nz, n1, n2, wl)
+                dx, dy, dz, extra, ok_i = _interact(s, (x, y, zl), (dx, dy, dz), (n1, n2), wl, mirrors)
                 if extra is not None:
                     opl = opl + extra
                 valid = valid & ok & ok_i
@@ -530,10 +540,7 @@ class Lens(nn.Module):
             opl = opl + n1 * t
             if apertures and s.aperture is not None:
                 ok = ok & s.aperture.contains(xl, yl)
-            nx, ny, nz = s.geometry.normal(xl, yl, zl)
-            flip = torch.where(ex * nx + ey * ny + ez * nz < 0, -1.0, 1.0)
-            nx, ny, nz = nx * flip, ny * flip, nz * flip
-            ex, ey, ez, extra, ok_i = s.interaction(xl, yl, ex, ey, ez, nx, ny, nz, n1, n2, wl)
+            ex, ey, ez, extra, ok_i = _interact(s, (xl, yl, zl), (ex, ey, ez), (n1, n2), wl, True)
             if extra is not None:
                 opl = opl + extra
             valid = valid & ok & ok_i

@@ -89,6 +89,15 @@ class EnvelopeRow:
         """The mirror image's row (no op)."""
         return EnvelopeRow(self.base, self.row, self.shape, (self.flip[0] != flip_x, self.flip[1] != flip_y))
 
+    @staticmethod
+    def by_base(rows: list) -> list:
+        """The indices into ``rows`` (:class:`EnvelopeRow` s) grouped by their padded batch, each group in order and
+        the groups in the order their batches first appear."""
+        bases: dict = {}
+        for k, r in enumerate(rows):
+            bases.setdefault(id(r.base), []).append(k)
+        return list(bases.values())
+
 
 class DOEField:
     """The field arriving at the DOE plane for one point source and one wavelength.
