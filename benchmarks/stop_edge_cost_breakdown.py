@@ -13,11 +13,11 @@ import functools
 import importlib
 import resource
 import statistics
-import warnings
 
 import torch
 
 from _report import emit_json  # noqa: E402  (benchmarks/ is on sys.path)
+from stop_edge_stages import edge_lenses  # noqa: E402
 
 _HL, _ACC, _SE = "raywave.hybrid.hybrid_lens", "raywave.hybrid.coherent.accurate", "raywave.hybrid.coherent.stop_edge"
 _BAT, _BAND = "raywave.hybrid.batched", "raywave.wave.propagation.band"
@@ -132,20 +132,14 @@ def main(argv=None):
     ap.add_argument("--singles", type=int, default=3, help="single PSFs per edge per repetition")
     ap.add_argument("-o", "--output")
     a = ap.parse_args(argv)
-    torch.set_num_threads(1)
-    torch.set_grad_enabled(False)
-    warnings.simplefilter("ignore")
-    from raywave.assembly.build import load_hybrid
     from raywave.imaging import psf_map
-    from raywave.lens.build import bundled_lens_path
 
     acc: dict = {}
     sizes: dict = {}
     hooks = _sizes_hooks(sizes)
     for label, module, name in STAGES:
         _wrap(acc, label, module, name, hooks.get(name.split(".")[-1]))
-    hls = {"default": load_hybrid(bundled_lens_path("hybrid_asphere")),
-           "doe": load_hybrid(bundled_lens_path("hybrid_asphere"), stop_edge="doe")}
+    hls = edge_lenses()
     wls = (0.66, 0.53, 0.47)
     runs = {"single": (1, lambda hl: hl.psf_result((0.0, 12.25), 0.53, ks=64))}
     if a.grid:

@@ -53,24 +53,31 @@ def _wrap(acc: dict, module: str, name: str) -> None:
     setattr(owner, attr, timed)
 
 
+def edge_lenses() -> dict:
+    """One thread, no autograd, warnings off (a timing run), and the bundled asphere with each edge:
+    ``{"default": exit-pupil edge, "doe": DOE-plane edge}``."""
+    torch.set_num_threads(1)
+    torch.set_grad_enabled(False)
+    warnings.simplefilter("ignore")
+    from raywave.assembly.build import load_hybrid
+    from raywave.lens.build import bundled_lens_path
+
+    return {"default": load_hybrid(bundled_lens_path("hybrid_asphere")),
+            "doe": load_hybrid(bundled_lens_path("hybrid_asphere"), stop_edge="doe")}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--map", action="store_true", help="a 3×3×3 map per PSF instead of a single PSF")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("-o", "--output")
     a = ap.parse_args(argv)
-    torch.set_num_threads(1)
-    torch.set_grad_enabled(False)
-    warnings.simplefilter("ignore")
-    from raywave.assembly.build import load_hybrid
     from raywave.imaging import psf_map
-    from raywave.lens.build import bundled_lens_path
 
     acc: dict = {}
     for module, name in STAGES:
         _wrap(acc, module, name)
-    hls = {"default": load_hybrid(bundled_lens_path("hybrid_asphere")),
-           "doe": load_hybrid(bundled_lens_path("hybrid_asphere"), stop_edge="doe")}
+    hls = edge_lenses()
     if a.map:
         n = 27
 
