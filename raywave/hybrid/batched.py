@@ -258,9 +258,11 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
         # every envelope a row of a padded batch (the batched field stage's, DOEField.deferred): gathered from those
         # batches, a few ops a batch instead of one a source (and a flip a mirror image), the same values
         env = _gathered_rows(rows, shape)
-    elif devices.accelerator(_device(batch[0].fd)):
+    elif devices.accelerator(_device(batch[0].fd)) or (torch.is_grad_enabled()
+                                                        and any(pl.fd.envelope.requires_grad for pl in batch)):
         # each envelope zero-padded at its end and the batch stacked: one op a source and one for the batch (the copy
-        # into slices of a zero-filled array dispatches four a source), the same values
+        # into slices of a zero-filled array dispatches four a source), the same values; with autograd also on a CPU
+        # (each slice copy's backward clones the whole batch's gradient: B² window-sized arrays)
         env = torch.stack([torch.nn.functional.pad(e, (0, nx - e.shape[-1], 0, ny - e.shape[-2]))
                            for e in (pl.fd.envelope for pl in batch)])
     else:

@@ -113,32 +113,67 @@ def _banded_upsample(values: torch.Tensor, my: torch.Tensor, mx: torch.Tensor) -
     block by block of :data:`UPSAMPLE_BLOCK` fine samples, each product over the nodes its rows touch only (the
     same sums of the same nonzero terms as the dense products, to rounding; ~3× faster for a 117² → 877 × 1106
     window: the dense products spend ~90 % of their work on zeros). First ``t = mx @ valuesᵀ`` (..., Nx, Ky) in
-    blocks of x, then each block of y rows ``my[rows, span] @ t[..., span]ᵀ`` into its rows of the output; the
-    same operations with and without autograd (bit for bit: a replay compares the two)."""
+    blocks of x, then each block of y rows ``my[rows, span] @ t[..., span]ᵀ`` into its rows of the output. With
+    autograd (the values' gradient; ``my``, ``mx`` are constants) :class:`_BandedUpsample`: the same forward
+    operations (bit for bit: a replay compares the two), the backward the transposed banded products."""
+    if torch.is_grad_enabled() and values.requires_grad:
+        if my.requires_grad or mx.requires_grad:
+            raise ValueError("upsample_nodes: the interpolation matrices (the fine samples' positions) must not "
+                             "require grad")
+        return _BandedUpsample.apply(values, my, mx)
+    return _banded_values(values, my, mx)
+
+
+def _banded_values(values: torch.Tensor, my: torch.Tensor, mx: torch.Tensor) -> torch.Tensor:
+    """:func:`_banded_upsample`'s products without autograd: ``(..., Ny, Nx)``."""
     ky, kx = values.shape[-2:]
     lead = values.shape[:-2]
     v = values.reshape(-1, ky, kx)
     ny, nx = my.shape[0], mx.shape[0]
-    grad = torch.is_grad_enabled() and any(x.requires_grad for x in (values, my, mx))
     xs, ys = _row_spans(mx, UPSAMPLE_BLOCK), _row_spans(my, UPSAMPLE_BLOCK)
-    t = torch.empty((v.shape[0], nx, ky), dtype=v.dtype, device=v.device) if not grad else None
-    parts = []
+    t = torch.empty((v.shape[0], nx, ky), dtype=v.dtype, device=v.device)
     for b in range(v.shape[0]):
-        rows = []
         for x0, x1, k0, k1 in xs:
-            a, w = mx[x0:x1, k0:k1], v[b, :, k0:k1].T
-            rows.append(torch.mm(a, w) if grad else torch.mm(a, w, out=t[b, x0:x1]))
-        parts.append(torch.cat(rows) if grad else t[b])
-    out = torch.empty((v.shape[0], ny, nx), dtype=v.dtype, device=v.device) if not grad else None
-    res = []
+            torch.mm(mx[x0:x1, k0:k1], v[b, :, k0:k1].T, out=t[b, x0:x1])
+    out = torch.empty((v.shape[0], ny, nx), dtype=v.dtype, device=v.device)
     for b in range(v.shape[0]):
-        rows = []
         for y0, y1, k0, k1 in ys:
-            a, w = my[y0:y1, k0:k1], parts[b][:, k0:k1].T
-            rows.append(torch.mm(a, w) if grad else torch.mm(a, w, out=out[b, y0:y1]))
-        if grad:
-            res.append(torch.cat(rows))
-    return (torch.stack(res) if grad else out).reshape(*lead, ny, nx)
+            torch.mm(my[y0:y1, k0:k1], t[b][:, k0:k1].T, out=out[b, y0:y1])
+    return out.reshape(*lead, ny, nx)
+
+
+def _banded_adjoint(g: torch.Tensor, my: torch.Tensor, mx: torch.Tensor, node_shape: tuple) -> torch.Tensor:
+    """The adjoint of :func:`_banded_values`: ``myᵀ @ g @ mx`` (..., Ky, Kx) for ``g`` (..., Ny, Nx), block by block
+    of fine samples (each block's products onto the node span its rows touch, added where spans overlap)."""
+    ky, kx = node_shape
+    lead = g.shape[:-2]
+    gb = g.reshape(-1, *g.shape[-2:])
+    xs, ys = _row_spans(mx, UPSAMPLE_BLOCK), _row_spans(my, UPSAMPLE_BLOCK)
+    out = torch.zeros((gb.shape[0], ky, kx), dtype=g.dtype, device=g.device)
+    s = torch.zeros((gb.shape[0], gb.shape[1], kx), dtype=g.dtype, device=g.device)
+    for b in range(gb.shape[0]):
+        for x0, x1, k0, k1 in xs:  # s = g @ mx: (Ny, Kx)
+            s[b, :, k0:k1].addmm_(gb[b, :, x0:x1], mx[x0:x1, k0:k1])
+        for y0, y1, k0, k1 in ys:  # out = myᵀ @ s: (Ky, Kx)
+            out[b, k0:k1].addmm_(my[y0:y1, k0:k1].T, s[b, y0:y1])
+    return out.reshape(*lead, ky, kx)
+
+
+class _BandedUpsample(torch.autograd.Function):
+    """:func:`_banded_upsample` with autograd for the node values only: the forward is :func:`_banded_values` (no
+    per-block graph: autograd would keep each block's product and its slices, ~4·Ny/64 nodes a channel, and its
+    backward would add window-sized zero arrays per slice), the backward :func:`_banded_adjoint`."""
+
+    @staticmethod
+    def forward(ctx, values, my, mx):
+        ctx.save_for_backward(my, mx)
+        ctx.node_shape = tuple(values.shape[-2:])
+        return _banded_values(values, my, mx)
+
+    @staticmethod
+    def backward(ctx, g):
+        my, mx = ctx.saved_tensors
+        return _banded_adjoint(g.contiguous(), my, mx, ctx.node_shape), None, None
 
 
 def _roll_modulation(n: int, device) -> torch.Tensor:

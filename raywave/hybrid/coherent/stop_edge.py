@@ -347,40 +347,9 @@ class _EdgeEnvelope(torch.autograd.Function):
     in the forward, and kept (in the band's row-major order, so a block's are a contiguous slice)."""
 
     @staticmethod
-    def _block(nu, kap, fresnel, start: int, consts):
-        """``(D (complex128, the block's shape), idx (the block's band samples), band terms (v, kap, nb, C, S, ν_max)
-        or None, the number of band samples)`` of one block of rows (:func:`stop_edge_factor`'s values, no graph),
-        with the band's Fresnel integrals ``fresnel`` from the block's first band sample ``start`` on."""
-        forward_edge, ripple_zones, g, pitch = consts
-        inside, idx, nb, nu_max = _edge_band(nu, ripple_zones, g, pitch)
-        d = inside.to(torch.complex128)
-        k = idx[0].numel()
-        if k == 0:
-            return d, idx, None, 0
-        v = nu.detach()[idx]
-        cv = None if kap is None else kap.detach()[idx]
-        c_, s_ = fresnel[0][start:start + k], fresnel[1][start:start + k]
-        re, im = _EdgeBand._values(v, cv, nb, c_, s_, nu_max, forward_edge)
-        return d.index_put_(idx, torch.complex(re, im)), idx, (v, cv, nb, c_, s_, nu_max), k
-
-    @staticmethod
-    def _walk(nu, kap, fresnel, consts):
-        """The blocks of rows (:data:`ENVELOPE_BLOCK_ROWS`, :data:`ENVELOPE_BLOCK_SAMPLES`) in order: ``(rows (a slice), D, idx, band terms)`` of
-        :meth:`_block`, each block's Fresnel integrals taken from where the previous block's ended."""
-        forward_edge, ripple_zones, g, pitch = consts
-        start = 0
-        step = _block_rows(nu)
-        for r in range(0, nu.shape[0], step):
-            rows = slice(r, r + step)
-            d, idx, band, k = _EdgeEnvelope._block(nu[rows], None if kap is None else kap[rows], fresnel, start,
-                                                   (forward_edge, _rows(ripple_zones, rows), _rows(g, rows), pitch))
-            start += k
-            yield rows, d, idx, band
-
-    @staticmethod
     def values(amp, angle, nu, kap, consts, keep_fresnel: bool = True):
         """``(z (complex128, nu's shape), the band's Fresnel integrals (C, S) or None without ``keep_fresnel``)``
-        (no graph), block by block (:meth:`_block_values`; the blocks of :meth:`_walk`)."""
+        (no graph), block by block (:meth:`_block_values`; the backward walks the same blocks)."""
         out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
         g = consts[2]
         step = _block_rows(nu)
@@ -423,17 +392,7 @@ class _EdgeEnvelope(torch.autograd.Function):
             torch.mul(y, d_re, out=im_out)
             return None
 
-        row = None
-        if nu.ndim == 2 and isinstance(nu_b, torch.Tensor) and tuple(nu_b.shape) == (nu.shape[0], 1):
-            # per-row constants (:func:`_band_masks`): gathered by each band sample's row (not expanded to the
-            # block's size first: two block-sized copies less at the peak), the same values
-            row = torch.div(idx, nu.shape[1], rounding_mode="floor")
-
-        def take(t):
-            if row is not None and t.shape[-1] == 1:
-                return t.reshape(-1).index_select(0, row)
-            return t.expand(nu.shape).reshape(-1).index_select(0, idx)
-
+        take = _BandTake(nu, idx, nu_b)
         v = take(nu)
         nb = take(nu_b) if isinstance(nu_b, torch.Tensor) else nu_b
         if isinstance(nu_max, torch.Tensor):  # per-row constants (:func:`_band_masks`)
@@ -461,29 +420,101 @@ class _EdgeEnvelope(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         amp, angle, nu, kap, *fresnel = ctx.saved_tensors
-        forward_edge = ctx.consts[0]
+        forward_edge, ripple_zones, g, pitch = ctx.consts
         need = ctx.needs_input_grad
-        g_amp = torch.zeros_like(amp) if need[0] else None
-        g_angle = torch.zeros_like(angle) if need[1] else None
+        g_amp = torch.empty_like(amp) if need[0] else None
+        g_angle = torch.empty_like(angle) if need[1] else None
         g_nu = torch.zeros_like(nu) if need[2] else None
         g_kap = torch.zeros_like(kap) if need[3] and kap is not None else None
-        for rows, d, idx, band in _EdgeEnvelope._walk(nu, kap, fresnel, ctx.consts):
-            a_r = amp[rows] if amp.ndim else amp
-            unit = polar(torch.ones((), dtype=angle.dtype, device=angle.device), angle[rows])
-            gr = grad[rows]
-            t = gr.conj() * (unit * d)  # conj(G)·∂z/∂a
-            if g_amp is not None:
-                g_amp[rows] = t.real
-            if g_angle is not None:
-                g_angle[rows] = -(a_r * t.imag)  # Re(conj(G)·i·z)
-            if band is not None and (g_nu is not None or g_kap is not None):
-                g_d = (gr * (unit * a_r).conj())[idx]  # ∂L/∂D on the band
-                gv, gc = _EdgeBand.grads(*band, forward_edge, g_d.real, g_d.imag, g_kap is not None)
-                if g_nu is not None:
-                    g_nu[rows].index_put_(idx, gv)
-                if g_kap is not None:
-                    g_kap[rows].index_put_(idx, gc)
+        start, step = 0, _block_rows(nu)
+        for r in range(0, nu.shape[0], step):
+            rows = slice(r, r + step)
+            consts = (forward_edge, _rows(ripple_zones, rows), _rows(g, rows), pitch)
+            k = _EdgeEnvelope._block_grads(grad[rows], (amp[rows] if amp.ndim else amp, angle[rows], nu[rows],
+                                                        None if kap is None else kap[rows]),
+                                           (fresnel, start), consts,
+                                           tuple(None if t is None else t[rows] for t in (g_amp, g_angle, g_nu, g_kap)))
+            start += k
         return g_amp, g_angle, g_nu, g_kap, None, None, None, None
+
+    @staticmethod
+    def _block_grads(grad, inputs: tuple, fresnel: tuple, consts, outs: tuple) -> int:
+        """One block of rows of the backward, written into ``outs`` = ``(∂L/∂a, ∂L/∂θ, ∂L/∂ν, ∂L/∂(κ/g))`` (views of
+        the block's rows, or None; ``∂L/∂ν`` and ``∂L/∂(κ/g)`` zero-filled: written on the band) from the output's
+        gradient ``grad`` (complex128) and ``inputs`` = ``(a, θ, ν, κ/g or None)`` of the block. ``fresnel`` =
+        ``((C, S) of the whole window's band, the block's first band sample)``. With ``q = conj(G)·e^{iθ}`` (real
+        arithmetic, one window-sized pass): ``∂L/∂a = Re(q·D)``, ``∂L/∂θ = −a·Im(q·D)`` (``Re(conj(G)·i·z)``) and on
+        the band ``∂L/∂D = conj(q)·a`` (:meth:`_EdgeBand.grads`); ``D`` is 1 / 0 off the band. The band's samples by
+        flat row-major indices, as :meth:`_block_values`. Returns the block's number of band samples."""
+        forward_edge, ripple_zones, g, pitch = consts
+        amp, angle, nu, kap = inputs
+        g_amp, g_angle, g_nu, g_kap = outs
+        inside, band, nu_b, nu_max = _band_masks(nu, ripple_zones, g, pitch)
+        idx = band.reshape(-1).nonzero().squeeze(1)
+        cos_, sin_ = torch.cos(angle), torch.sin(angle)
+        gr = torch.view_as_real(grad)
+        g_re, g_im = gr[..., 0], gr[..., 1]
+        q_re = g_re * cos_
+        q_re.addcmul_(g_im, sin_)  # Re(conj(G)·e^{iθ}) = G_r cos θ + G_i sin θ
+        q_im = sin_.mul_(g_re)
+        q_im.sub_(cos_.mul_(g_im))  # Im(conj(G)·e^{iθ}) = G_r sin θ − G_i cos θ
+        del cos_, sin_
+        d_re = inside.to(torch.float64)
+        k = idx.numel()
+        if k == 0:  # D real: Re(q·D) = q_re·D, Im(q·D) = q_im·D
+            if g_amp is not None:
+                torch.mul(q_re, d_re, out=g_amp)
+            if g_angle is not None:
+                torch.mul(q_im, d_re, out=g_angle).mul_(amp).neg_()
+            return 0
+        fr, start = fresnel
+        take = _BandTake(nu, idx, nu_b)
+        v = take(nu.detach())
+        nb = take(nu_b) if isinstance(nu_b, torch.Tensor) else nu_b
+        if isinstance(nu_max, torch.Tensor):
+            nu_max = take(nu_max)
+        cv = None if kap is None else take(kap.detach())
+        c_, s_ = fr[0][start:start + k], fr[1][start:start + k]
+        if g_amp is not None or g_angle is not None:
+            re, im = _EdgeBand._values(v, cv, nb, c_, s_, nu_max, forward_edge)
+            d_re.view(-1).index_copy_(0, idx, re)
+            d_im = torch.zeros_like(d_re)
+            d_im.view(-1).index_copy_(0, idx, im)
+            del re, im
+            if g_amp is not None:  # Re(q·D) = q_re·D_re − q_im·D_im
+                torch.mul(q_re, d_re, out=g_amp).sub_(q_im * d_im)
+            if g_angle is not None:  # −a·Im(q·D) = −a·(q_re·D_im + q_im·D_re)
+                torch.mul(q_re, d_im, out=g_angle).addcmul_(q_im, d_re).mul_(amp).neg_()
+            del d_im
+        if g_nu is None and g_kap is None:
+            return k
+        a_b = take(amp.detach()) if amp.ndim else amp.detach()
+        gd_re = take(q_re).mul_(a_b)  # ∂L/∂D = conj(q)·a on the band
+        gd_im = take(q_im).mul_(a_b).neg_()
+        gv, gc = _EdgeBand.grads(v, cv, nb, c_, s_, nu_max, forward_edge, gd_re, gd_im, g_kap is not None)
+        if g_nu is not None:
+            g_nu.view(-1).index_copy_(0, idx, gv)
+        if g_kap is not None:
+            g_kap.view(-1).index_copy_(0, idx, gc)
+        return k
+
+
+class _BandTake:
+    """The band samples of a block's arrays by their flat row-major indices ``idx`` (:meth:`_EdgeEnvelope.
+    _block_values`): ``take(t)`` for ``t`` of the block's shape ``nu.shape`` (or broadcast to it), or a per-row
+    constant ``(R, 1)`` gathered by each band sample's row (not expanded to the block's size first: two block-sized
+    copies less at the peak), the same values."""
+
+    def __init__(self, nu: torch.Tensor, idx: torch.Tensor, nu_b):
+        self.shape, self.idx = nu.shape, idx
+        self.row = None
+        if nu.ndim == 2 and isinstance(nu_b, torch.Tensor) and tuple(nu_b.shape) == (nu.shape[0], 1):
+            self.row = torch.div(idx, nu.shape[1], rounding_mode="floor")
+
+    def __call__(self, t: torch.Tensor) -> torch.Tensor:
+        if self.row is not None and t.shape[-1] == 1:
+            return t.reshape(-1).index_select(0, self.row)
+        return t.expand(self.shape).reshape(-1).index_select(0, self.idx)
 
 
 def _rows(c, rows: slice):
