@@ -258,20 +258,13 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
         # every envelope a row of a padded batch (the batched field stage's, DOEField.deferred): gathered from those
         # batches, a few ops a batch instead of one a source (and a flip a mirror image), the same values
         env = _gathered_rows(rows, shape)
-    elif devices.accelerator(_device(batch[0].fd)) or (torch.is_grad_enabled()
-                                                        and any(pl.fd.envelope.requires_grad for pl in batch)):
+    elif devices.accelerator(_device(batch[0].fd)):
         # each envelope zero-padded at its end and the batch stacked: one op a source and one for the batch (the copy
-        # into slices of a zero-filled array dispatches four a source), the same values; with autograd also on a CPU
-        # (each slice copy's backward clones the whole batch's gradient: B² window-sized arrays)
+        # into slices of a zero-filled array dispatches four a source), the same values
         env = torch.stack([torch.nn.functional.pad(e, (0, nx - e.shape[-1], 0, ny - e.shape[-2]))
                            for e in (pl.fd.envelope for pl in batch)])
     else:
-        e0 = batch[0].fd.envelope
-        # one zero-filled array, each envelope copied into its corner (autograd keeps the copies' gradients)
-        env = torch.zeros((len(batch), ny, nx), dtype=e0.dtype, device=e0.device)
-        for i, pl in enumerate(batch):
-            e = pl.fd.envelope
-            env[i, :e.shape[-2], :e.shape[-1]].copy_(e)
+        env = padded_stack([pl.fd.envelope for pl in batch], shape)
     p = batch[0].fd.pitch
     with torch.no_grad():  # (env detached only where autograd records it: a detach is an op)
         power = torch.linalg.vector_norm(torch.view_as_real(env.detach() if env.requires_grad else env),
@@ -283,6 +276,37 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
     if env.requires_grad or phasors.requires_grad:
         return (env * phasors).to(dtype), power
     return env.mul_(phasors).to(dtype), power
+
+
+def padded_stack(envs: list, shape: tuple) -> torch.Tensor:
+    """The envelopes ``envs`` (each ``(ny_i, nx_i)``) zero-padded at their end to ``shape`` ``(Ny, Nx)`` and stacked
+    ``(B, Ny, Nx)``: one zero-filled array with each envelope copied into its corner; with autograd
+    :class:`_PaddedStack` (each envelope's gradient a view of the batch's: a slice copy's backward would clone the
+    whole batch's gradient per source, B² window-sized arrays). The same values either way."""
+    if torch.is_grad_enabled() and any(e.requires_grad for e in envs):
+        return _PaddedStack.apply(tuple(shape), *envs)
+    return _PaddedStack.values(envs, shape)
+
+
+class _PaddedStack(torch.autograd.Function):
+    """:func:`padded_stack` with autograd: the backward hands each envelope its corner of the batch's gradient."""
+
+    @staticmethod
+    def values(envs, shape) -> torch.Tensor:
+        e0 = envs[0]
+        out = torch.zeros((len(envs), *shape), dtype=e0.dtype, device=e0.device)
+        for i, e in enumerate(envs):
+            out[i, :e.shape[-2], :e.shape[-1]].copy_(e)
+        return out
+
+    @staticmethod
+    def forward(ctx, shape, *envs):
+        ctx.shapes = [tuple(e.shape[-2:]) for e in envs]
+        return _PaddedStack.values(envs, shape)
+
+    @staticmethod
+    def backward(ctx, g):
+        return (None, *(g[i, :a, :b] for i, (a, b) in enumerate(ctx.shapes)))
 
 
 def _row_indices(rows: list, shape: tuple) -> tuple:
