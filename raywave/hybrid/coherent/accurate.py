@@ -354,7 +354,7 @@ def _trace_nodes(b: _Build, nd: _Nodes):
         # the lens gradient needs the exact Jacobian at the solution (a chord node carries the coarse one): the
         # step's value comes from the iteration's Jacobian (as without autograd, so that a replay of this
         # construction is bitwise the forward pass), its derivative from the exact one (a zero-valued term)
-        _, _, jac_exact = yield from aim.landing(uv)
+        jac_exact = yield from aim.neighbours_jacobian(uv, x_at.detach())
         jinv_step, _ = _solve2(jac, x_at.detach() - nd.targets)
         jinv_step = jinv_step + _solve2(jac_exact, x_at - x_at.detach())[0]
     elif getattr(inverted, "lin", None) is not None and not torch.is_grad_enabled():
