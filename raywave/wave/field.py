@@ -19,7 +19,7 @@ import torch
 from raywave.utils import devices
 
 __all__ = ["cubic_matrix", "cubic_matrices", "upsampled_intensity", "double_grid_intensity", "keys_matrix",
-           "upsample_nodes", "splat_bilinear", "edge_coverage", "fourier_upsample"]
+           "upsample_nodes", "upsample_nodes_window", "splat_bilinear", "edge_coverage", "fourier_upsample"]
 
 
 def _keys(t: torch.Tensor) -> torch.Tensor:
@@ -139,6 +139,58 @@ def _banded_upsample(values: torch.Tensor, my: torch.Tensor, mx: torch.Tensor) -
         if grad:
             res.append(torch.cat(rows))
     return (torch.stack(res) if grad else out).reshape(*lead, ny, nx)
+
+
+class _CroppedUpsample(torch.autograd.Function):
+    """The window ``box = (a0, a1, b0, b1)`` of :func:`_banded_upsample` ``my @ values @ mx.T`` whose values ``out``
+    (C, a1 − a0, b1 − b0) were computed without autograd, differentiable in ``values`` (C, Ky, Kx): the backward
+    ``myᵀ g mx`` of the window's rows of ``my`` and ``mx`` alone, block by block over the nodes each block touches
+    (no gradient array of the whole window, no per-block slices, products and concatenations in the graph)."""
+
+    @staticmethod
+    def forward(ctx, values, my, mx, out):
+        ctx.save_for_backward(my, mx)
+        ctx.kshape = values.shape
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):
+        my, mx = ctx.saved_tensors
+        c, ky, kx = ctx.kshape
+        t = torch.zeros((c, ky, g.shape[-1]), dtype=g.dtype, device=g.device)
+        for y0, y1, k0, k1 in _row_spans(my, UPSAMPLE_BLOCK):
+            if k1 > k0:
+                t[:, k0:k1] += torch.matmul(my[y0:y1, k0:k1].T, g[:, y0:y1])
+        out = torch.zeros((c, ky, kx), dtype=g.dtype, device=g.device)
+        for x0, x1, k0, k1 in _row_spans(mx, UPSAMPLE_BLOCK):
+            if k1 > k0:
+                out[:, :, k0:k1] += torch.matmul(t[:, :, x0:x1], mx[x0:x1, k0:k1])
+        return out, None, None, None
+
+
+def upsample_nodes_window(values: torch.Tensor, pos_y: torch.Tensor, pos_x: torch.Tensor):
+    """:func:`upsample_nodes` of ``values`` (C, Ky, Kx) at the positions ``pos_y`` (Ny,), ``pos_x`` (Nx,) for a
+    caller that reads the values first and then keeps a window of them: ``(fine, window)``, ``fine`` (C, Ny, Nx)
+    the values (detached) and ``window(box)`` the differentiable window ``box = (a0, a1, b0, b1)`` (half-open
+    rows, columns) of them. On a CPU with autograd the window's backward is the banded transpose of its own rows
+    (:class:`_CroppedUpsample`; issue 46: the interpolation's backward through its blocks' slices and products, and
+    the window's zero-padded gradient of the whole array, were a tenth of a mid-system DOE PSF's backward); the
+    same values bit for bit (the products without autograd are those with it)."""
+    grad = torch.is_grad_enabled() and values.requires_grad
+    if not grad or devices.accelerator(values):
+        fine = upsample_nodes(values, pos_y=pos_y, pos_x=pos_x)
+        return fine.detach(), lambda box: fine[:, box[0]:box[1], box[2]:box[3]]
+    ky, kx = values.shape[-2:]
+    my, mx = cubic_matrix(pos_y.to(values.dtype), ky), cubic_matrix(pos_x.to(values.dtype), kx)
+    with torch.no_grad():
+        fine = _banded_upsample(values, my, mx)
+
+    def window(box):
+        a0, a1, b0, b1 = box
+        return _CroppedUpsample.apply(values, my[a0:a1], mx[b0:b1], fine[:, a0:a1, b0:b1])
+
+    return fine, window
 
 
 def _roll_modulation(n: int, device) -> torch.Tensor:

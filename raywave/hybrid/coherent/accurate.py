@@ -19,7 +19,7 @@ from raywave.utils.phasor import polar
 from raywave.utils.errors import check_allocation
 from raywave.utils.safe import safe_sqrt
 from raywave.doe.base import DOE
-from raywave.wave.field import cubic_matrices, cubic_matrix, edge_coverage, upsample_nodes
+from raywave.wave.field import cubic_matrices, cubic_matrix, edge_coverage, upsample_nodes_window
 from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _nyquist_warning, _warn_nyquist, check_window_memory)
@@ -1193,46 +1193,26 @@ def _fine_field(b: _Build, nd: _Nodes, maps: dict, sim: Grid):
     amp = torch.where(lit_amp, safe_sqrt(amp2, lit_amp), torch.zeros_like(amp2))
     other = maps["other"]
     edge_chan = ([] if other is None else [other]) + [maps["nu"], maps["kappa"]] if diffracting else []
-    fine = upsample_nodes(torch.stack([maps["phi_env"], amp] + ([] if diffracting else [dist]) + edge_chan),
-                          pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
-    grad = torch.is_grad_enabled() and fine.requires_grad
-    # with autograd the crop is read from the channels' values, then the channels cropped by one op and split by one
-    # unbind, the coverage formed on the crop (elementwise: the same values): the backward builds one zero array of
-    # the window, where the reads of the whole window (the coverage's channel, the crop's two slices) built three
-    cov, b, dcov = _fine_coverage(fine.detach() if grad else fine, diffracting, other is not None, sim,
-                                  (iy0, iy1, ix0, ix1), doe, oversample, ripple_zones)
+    nodes = torch.stack([maps["phi_env"], amp] + ([] if diffracting else [dist]) + edge_chan)
+    grad = torch.is_grad_enabled() and nodes.requires_grad
+    # with autograd the crop is read from the channels' values, then the interpolation's window taken by one op
+    # (upsample_nodes_window) and split by one unbind, the coverage formed on the crop (elementwise: the same values):
+    # the backward is the window's own banded products, where the reads of the whole window (the coverage's channel,
+    # the crop's two slices) built three zero arrays of it and the interpolation's blocks a graph of slices
+    fine, window = upsample_nodes_window(nodes, pos_y.clamp(0, ky - 1), pos_x.clamp(0, kx - 1))
+    cov, b, dcov = _fine_coverage(fine, diffracting, other is not None, sim, (iy0, iy1, ix0, ix1), doe, oversample,
+                                  ripple_zones)
     if b is None:
         return None
     a0, a1, b0, b1 = b
-    if grad:
-        ch = _Crop.apply(fine, b).unbind(0)
-        if cov is not None:
-            cov = _coverage(ch[2], p, diffracting, other is not None, None if dcov is None else dcov[a0:a1, b0:b1])
-    else:
-        ch = fine[:, a0:a1, b0:b1].unbind(0)
-        cov = None if cov is None else cov[a0:a1, b0:b1]
+    ch = window(b).unbind(0)
+    if grad and cov is not None:
+        cov = _coverage(ch[2], p, diffracting, other is not None, None if dcov is None else dcov[a0:a1, b0:b1])
+    elif cov is not None:
+        cov = cov[a0:a1, b0:b1]
     edge = (z_doe - stop_plane, ripple_zones, maps["g_max"], p) if diffracting else None
     env = _envelope(ch, cov, 2 * math.pi / (wavelength * 1e-3), edge)
     return env, (iy0 + a0, iy0 + a1, ix0 + b0, ix0 + b1)
-
-
-class _Crop(torch.autograd.Function):
-    """``x[..., a0:a1, b0:b1]`` of ``box = (a0, a1, b0, b1)``, whose backward writes the gradient into one zero array
-    of ``x``'s shape (two slices' backwards build two, the first of the whole of ``x``)."""
-
-    @staticmethod
-    def forward(ctx, x, box):
-        a0, a1, b0, b1 = box
-        ctx.shape, ctx.box = x.shape, box
-        return x[..., a0:a1, b0:b1]
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, g):
-        a0, a1, b0, b1 = ctx.box
-        out = g.new_zeros(ctx.shape)
-        out[..., a0:a1, b0:b1] = g
-        return out, None
 
 
 def _envelope(fine, cov: torch.Tensor | None, k: float, edge: tuple | None) -> torch.Tensor:
