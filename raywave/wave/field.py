@@ -291,33 +291,46 @@ def upsampled_intensity(u: torch.Tensor, factor: int, window: torch.Tensor | Non
     return out.add_(r[..., 1].square())
 
 
-def _padded_spectrum(spec: torch.Tensor, n_big: int, dim: int) -> torch.Tensor:
-    """The DFT ``spec`` (length ``n`` along ``dim``, FFT order) of a band-limited periodic signal as the DFT of its
-    ``n_big``-sample resampling (same frequencies, zeros above them; an even ``n``'s Nyquist term split evenly
-    between ``±n/2``, so a real signal stays real)."""
-    n = spec.shape[dim]
-    h = n // 2
-    zeros_shape = list(spec.shape)
-    if n % 2:  # frequencies −h … h
-        zeros_shape[dim] = n_big - n
-        return torch.cat([spec.narrow(dim, 0, h + 1), spec.new_zeros(zeros_shape), spec.narrow(dim, h + 1, h)], dim)
-    nyq = spec.narrow(dim, h, 1) * 0.5
-    zeros_shape[dim] = n_big - n - 1
-    return torch.cat([spec.narrow(dim, 0, h), nyq, spec.new_zeros(zeros_shape), nyq, spec.narrow(dim, h + 1, h - 1)],
-                     dim)
-
-
 def fourier_upsample(u: torch.Tensor, factor: int) -> torch.Tensor:
     """The band-limited (periodic sinc) interpolation of the complex field ``u`` ``(..., ny, nx)`` on a grid
     ``factor`` times finer: ``(..., factor·ny, factor·nx)``, output sample ``[f·i, f·j]`` = input ``[i, j]``
     (exact for a field whose spectrum lies within the input grid's band; the window is periodic: taper the field
-    to ~0 at its edges). Differentiable (FFTs and a zero padding of the spectrum)."""
+    to ~0 at its edges): the inverse FFT of the spectrum zero-padded to ``factor`` times its length (an even length's
+    Nyquist term split in halves), computed as ``factor`` shifted copies per axis. Differentiable."""
     f = int(factor)
     if f < 1:
         raise ValueError(f"fourier_upsample: factor must be a positive integer, got {factor}")
     if f == 1:
         return u
-    ny, nx = u.shape[-2:]
-    spec = torch.fft.fft2(u)
-    spec = _padded_spectrum(_padded_spectrum(spec, f * ny, -2), f * nx, -1)
-    return torch.fft.ifft2(spec) * float(f * f)
+    # one axis at a time, as f interleaved sample sets of the input's size: set r is the input shifted by r/f of a
+    # sample (its spectrum times a phase ramp, the FFTs of the input's length), set 0 the input itself (issue 46:
+    # the padded spectrum's inverse FFT of f× the length, e.g. 1006 = 2·503 for a 503-sample window, took 2× as
+    # long; the same interpolant to rounding)
+    return _upsampled_axis(_upsampled_axis(u, f, -1), f, -2)
+
+
+def _shift_ramps(n: int, f: int, dtype, device) -> torch.Tensor:
+    """(f − 1, n): the spectrum's factors of the shifts by r/f of a sample (r = 1 … f − 1) of the band-limited
+    interpolant of :func:`fourier_upsample` on ``n`` samples: ``exp(2πi k r/(f n))`` at the centred frequency k, and
+    at the Nyquist frequency of an even ``n`` (split in halves at ±n/2 by the interpolant) ``cos(π r/f)``."""
+    k = torch.fft.fftfreq(n, d=1.0 / n, dtype=torch.float64, device=device)  # centred frequencies (Nyquist: −n/2)
+    r = torch.arange(1, f, dtype=torch.float64, device=device)[:, None]
+    ramps = torch.polar(torch.ones((f - 1, n), dtype=torch.float64, device=device), 2 * torch.pi * k * r / (f * n))
+    if n % 2 == 0:
+        ramps[:, n // 2] = torch.cos(torch.pi * r[:, 0] / f).to(ramps.dtype)
+    return ramps.to(dtype)
+
+
+def _upsampled_axis(u: torch.Tensor, f: int, dim: int) -> torch.Tensor:
+    """:func:`fourier_upsample` of ``u`` along ``dim`` (−1 or −2) alone: ``f·n`` samples, sample ``f·i + r`` the
+    interpolant at ``i + r/f`` (``r = 0``: ``u`` itself)."""
+    n = u.shape[dim]
+    spec = torch.fft.fft(u, dim=dim)
+    ramps = _shift_ramps(n, f, spec.dtype, u.device)
+    if dim == -2:
+        ramps = ramps[:, :, None]
+    sets = [u] + [torch.fft.ifft(spec * ramps[r], dim=dim) for r in range(f - 1)]
+    out = torch.stack(sets, dim=dim)  # (..., n, f, m) along the rows, (..., m, n, f) along the columns
+    shape = list(u.shape)
+    shape[dim] = f * n
+    return out.reshape(shape)
