@@ -74,3 +74,15 @@ def test_upsample_window_is_the_slice_of_the_upsampling():
     with torch.no_grad():
         plain, win = upsample_nodes_window(values, pos_y, pos_x)
         assert torch.equal(win(box), plain[:, box[0]:box[1], box[2]:box[3]]) and torch.equal(plain, fine)
+
+
+def test_upsample_window_of_one_channel():
+    """upsample_nodes_window of a single (Ky, Kx) map: the window and its gradient as for a stack."""
+    g = torch.Generator().manual_seed(9)
+    v = torch.randn((12, 15), generator=g, dtype=torch.float64, requires_grad=True)
+    pos_y, pos_x = torch.linspace(0.0, 11.0, 50, dtype=torch.float64), torch.linspace(0.2, 14.0, 61, dtype=torch.float64)
+    ref = upsample_nodes(v, pos_y=pos_y, pos_x=pos_x)[3:40, 2:55]
+    got = upsample_nodes_window(v, pos_y, pos_x)[1]((3, 40, 2, 55))
+    assert torch.equal(got.detach(), ref.detach())
+    w = torch.randn(ref.shape, generator=g, dtype=torch.float64)
+    assert torch.allclose(torch.autograd.grad(got, v, w)[0], torch.autograd.grad(ref, v, w)[0], rtol=0, atol=1e-13)

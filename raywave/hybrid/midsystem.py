@@ -607,7 +607,8 @@ class MidSystemLens(nn.Module):
         edge = {} if self.edge_step is None else {"edge_step": self.edge_step}
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
                         stop_edge=self.stop_edge, **edge)
-        return hl.use_transfer_cache(self._transfer_cache, self._edge_transfers)  # one memo of window transfer functions for every order
+        # one memo of window transfer functions (and of the exact edge step's) for every order
+        return hl.use_transfer_cache(self._transfer_cache, self._edge_transfers)
 
     def caustics(self, hl: HybridLens, field, wavelength: float, depth=None) -> int:
         """How many line foci (caustics) an order's beam crosses between the first DOE and the engine's plane

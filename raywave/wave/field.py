@@ -143,7 +143,7 @@ def _banded_upsample(values: torch.Tensor, my: torch.Tensor, mx: torch.Tensor) -
 
 class _CroppedUpsample(torch.autograd.Function):
     """The window ``box = (a0, a1, b0, b1)`` of :func:`_banded_upsample` ``my @ values @ mx.T`` whose values ``out``
-    (C, a1 − a0, b1 − b0) were computed without autograd, differentiable in ``values`` (C, Ky, Kx): the backward
+    (..., a1 − a0, b1 − b0) were computed without autograd, differentiable in ``values`` (..., Ky, Kx): the backward
     ``myᵀ g mx`` of the window's rows of ``my`` and ``mx`` alone, block by block over the nodes each block touches
     (no gradient array of the whole window, no per-block slices, products and concatenations in the graph)."""
 
@@ -157,7 +157,9 @@ class _CroppedUpsample(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g):
         my, mx = ctx.saved_tensors
-        c, ky, kx = ctx.kshape
+        ky, kx = ctx.kshape[-2:]
+        g = g.reshape(-1, *g.shape[-2:])
+        c = g.shape[0]
         t = torch.zeros((c, ky, g.shape[-1]), dtype=g.dtype, device=g.device)
         for y0, y1, k0, k1 in _row_spans(my, UPSAMPLE_BLOCK):
             if k1 > k0:
@@ -166,12 +168,12 @@ class _CroppedUpsample(torch.autograd.Function):
         for x0, x1, k0, k1 in _row_spans(mx, UPSAMPLE_BLOCK):
             if k1 > k0:
                 out[:, :, k0:k1] += torch.matmul(t[:, :, x0:x1], mx[x0:x1, k0:k1])
-        return out, None, None, None
+        return out.reshape(ctx.kshape), None, None, None
 
 
 def upsample_nodes_window(values: torch.Tensor, pos_y: torch.Tensor, pos_x: torch.Tensor):
-    """:func:`upsample_nodes` of ``values`` (C, Ky, Kx) at the positions ``pos_y`` (Ny,), ``pos_x`` (Nx,) for a
-    caller that reads the values first and then keeps a window of them: ``(fine, window)``, ``fine`` (C, Ny, Nx)
+    """:func:`upsample_nodes` of ``values`` (..., Ky, Kx) at the positions ``pos_y`` (Ny,), ``pos_x`` (Nx,) for a
+    caller that reads the values first and then keeps a window of them: ``(fine, window)``, ``fine`` (..., Ny, Nx)
     the values (detached) and ``window(box)`` the differentiable window ``box = (a0, a1, b0, b1)`` (half-open
     rows, columns) of them. On a CPU with autograd the window's backward is the banded transpose of its own rows
     (:class:`_CroppedUpsample`; issue 46: the interpolation's backward through its blocks' slices and products, and
@@ -180,7 +182,7 @@ def upsample_nodes_window(values: torch.Tensor, pos_y: torch.Tensor, pos_x: torc
     grad = torch.is_grad_enabled() and values.requires_grad
     if not grad or devices.accelerator(values):
         fine = upsample_nodes(values, pos_y=pos_y, pos_x=pos_x)
-        return fine.detach(), lambda box: fine[:, box[0]:box[1], box[2]:box[3]]
+        return fine.detach(), lambda box: fine[..., box[0]:box[1], box[2]:box[3]]
     ky, kx = values.shape[-2:]
     my, mx = cubic_matrix(pos_y.to(values.dtype), ky), cubic_matrix(pos_x.to(values.dtype), kx)
     with torch.no_grad():
@@ -188,7 +190,7 @@ def upsample_nodes_window(values: torch.Tensor, pos_y: torch.Tensor, pos_x: torc
 
     def window(box):
         a0, a1, b0, b1 = box
-        return _CroppedUpsample.apply(values, my[a0:a1], mx[b0:b1], fine[:, a0:a1, b0:b1])
+        return _CroppedUpsample.apply(values, my[a0:a1], mx[b0:b1], fine[..., a0:a1, b0:b1])
 
     return fine, window
 
