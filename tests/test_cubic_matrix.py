@@ -4,7 +4,7 @@ onto the first and last three nodes)."""
 
 import torch
 
-from raywave.wave.field import cubic_matrix, upsample_nodes
+from raywave.wave.field import cubic_matrix, upsample_nodes, upsample_nodes_window
 
 
 def test_cubic_matrix_reproduces_quadratics_to_the_boundary():
@@ -49,3 +49,40 @@ def test_banded_upsample_equals_the_dense_products():
     fine = torch.arange(36 * 4 + 1, dtype=torch.float64) / 4
     ref = cubic_matrix(fine, 37) @ values[0] @ cubic_matrix(torch.arange(40 * 4 + 1, dtype=torch.float64) / 4, 41).T
     assert one.shape == ref.shape and float((one - ref).abs().max()) < 1e-13
+
+
+def test_upsample_window_is_the_slice_of_the_upsampling():
+    """upsample_nodes_window (issue 46: the fine field's crop): the values (and the window's) are upsample_nodes'
+    bit for bit, and the window's gradient (its banded transpose) equals autograd's through the slice of the whole
+    upsampling to rounding; without autograd the window is a plain slice."""
+    g = torch.Generator().manual_seed(7)
+    values = torch.randn((4, 40, 37), generator=g, dtype=torch.float64)
+    pos_y = torch.linspace(0.3, 38.6, 301, dtype=torch.float64)
+    pos_x = torch.linspace(0.0, 36.0, 290, dtype=torch.float64)
+    box = (17, 260, 5, 281)
+    v = values.clone().requires_grad_()
+    full = upsample_nodes(v, pos_y=pos_y, pos_x=pos_x)
+    ref = full[:, box[0]:box[1], box[2]:box[3]]
+    fine, window = upsample_nodes_window(v, pos_y, pos_x)
+    assert not fine.requires_grad and torch.equal(fine, full.detach())
+    got = window(box)
+    assert got.requires_grad and torch.equal(got.detach(), ref.detach())
+    w = torch.randn(ref.shape, generator=g, dtype=torch.float64)
+    g_ref, = torch.autograd.grad(ref, v, w)
+    g_got, = torch.autograd.grad(got, v, w)
+    assert float((g_got - g_ref).abs().max()) <= 1e-13 * float(g_ref.abs().max())
+    with torch.no_grad():
+        plain, win = upsample_nodes_window(values, pos_y, pos_x)
+        assert torch.equal(win(box), plain[:, box[0]:box[1], box[2]:box[3]]) and torch.equal(plain, fine)
+
+
+def test_upsample_window_of_one_channel():
+    """upsample_nodes_window of a single (Ky, Kx) map: the window and its gradient as for a stack."""
+    g = torch.Generator().manual_seed(9)
+    v = torch.randn((12, 15), generator=g, dtype=torch.float64, requires_grad=True)
+    pos_y, pos_x = torch.linspace(0.0, 11.0, 50, dtype=torch.float64), torch.linspace(0.2, 14.0, 61, dtype=torch.float64)
+    ref = upsample_nodes(v, pos_y=pos_y, pos_x=pos_x)[3:40, 2:55]
+    got = upsample_nodes_window(v, pos_y, pos_x)[1]((3, 40, 2, 55))
+    assert torch.equal(got.detach(), ref.detach())
+    w = torch.randn(ref.shape, generator=g, dtype=torch.float64)
+    assert torch.allclose(torch.autograd.grad(got, v, w)[0], torch.autograd.grad(ref, v, w)[0], rtol=0, atol=1e-13)

@@ -191,3 +191,23 @@ def test_edge_formed_on_a_step_plane_before_the_rim_images(monkeypatch):
     far = s.abs() > 0.05  # nodes more than 50 µm from the shadow's edge (~3 Fresnel units)
     assert bool((torch.sign(nu[far]) == torch.sign(s[far])).all())
     assert float(nu[far].abs().min()) > 2.0
+
+
+def test_exact_edge_step_transfer_is_memoised():
+    """The exact edge step's window transfer function (raywave.hybrid.coherent.exit_pupil.edge_transfer) is kept by
+    the MidSystemLens for its order engines: a second PSF of the unchanged lens reuses it (a hit) and is the first
+    bit for bit; a moved source misses (its own geometry) and gives what a fresh lens gives."""
+    from raywave.hybrid.coherent.exit_pupil import EDGE_TRANSFER_MEMO
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        doe, lens, ml = _lens((0.0, 1.0), min_efficiency=1e-3, weak_edge="doe", **EXACT)
+        first = ml.psf([(0.0, 1.0)], 0.55, ks=32)
+        assert len(ml._edge_transfers) == 1
+        key, kept = next(iter(ml._edge_transfers.items()))
+        again = ml.psf([(0.0, 1.0)], 0.55, ks=32)
+        assert torch.equal(first, again) and ml._edge_transfers[key] is kept and len(ml._edge_transfers) == 1
+        moved = ml.psf([(0.0, 0.5)], 0.55, ks=32)
+        assert len(ml._edge_transfers) == min(2, EDGE_TRANSFER_MEMO)
+        fresh = _lens((0.0, 1.0), parts=(doe, lens), min_efficiency=1e-3, weak_edge="doe", **EXACT)[2]
+        assert torch.equal(moved, fresh.psf([(0.0, 0.5)], 0.55, ks=32))

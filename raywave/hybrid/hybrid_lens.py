@@ -407,6 +407,8 @@ class HybridLens(nn.Module):
         # transfer functions of recent window pairs (a training loop with a frozen lens reuses them); plain
         # per-instance memo, never part of the state_dict
         self._transfer_cache: OrderedDict = OrderedDict()
+        # and of the exact exit-pupil step (raywave.hybrid.coherent.exit_pupil.edge_transfer: its few most recent)
+        self._edge_transfers: OrderedDict = OrderedDict()
         self._geometry_memo = GeometryMemo()  # the batched path's pixel weights (raywave.hybrid.batched)
         self._xp_memo: dict = {}  # exit-pupil planes per (lens state, wavelength): plain memo, not state
         self._rim_images = None  # use_rim_images: the exact edge's stop-rim images, replaced by a caller's
@@ -422,13 +424,18 @@ class HybridLens(nn.Module):
         self._rim_images = fn
         return self
 
-    def use_transfer_cache(self, cache: OrderedDict) -> "HybridLens":
+    def use_transfer_cache(self, cache: OrderedDict, edge: OrderedDict | None = None) -> "HybridLens":
         """Share ``cache``, a memo of window transfer functions (see :meth:`_transfer`), with other engines on the
-        same geometry (e.g. a :class:`~raywave.hybrid.MidSystemLens`'s engines for its diffraction orders); returns
-        ``self``."""
+        same geometry (e.g. a :class:`~raywave.hybrid.MidSystemLens`'s engines for its diffraction orders), and
+        ``edge`` (when given) the memo of the exact exit-pupil step's (:func:`~raywave.hybrid.coherent.exit_pupil.
+        edge_transfer`); returns ``self``."""
         if not isinstance(cache, OrderedDict):
             raise TypeError(f"use_transfer_cache: an OrderedDict, got {type(cache).__name__}")
+        if edge is not None and not isinstance(edge, OrderedDict):
+            raise TypeError(f"use_transfer_cache: edge must be an OrderedDict, got {type(edge).__name__}")
         self._transfer_cache = cache
+        if edge is not None:
+            self._edge_transfers = edge
         return self
 
     def with_doe(self, doe: DOE, **overrides) -> "HybridLens":
@@ -764,7 +771,7 @@ class HybridLens(nn.Module):
                                                             None if steps is None else steps[r][j],
                                                             None if go is None else (go[0][j], go[1][k * nw + j]),
                                                             ... if geo.reach is None else geo.reach[r][j],
-                                                            media[j])))
+                                                            media[j], self._edge_transfers)))
         return out
 
     def _go_errors(self, geo: "_CallGeometry", rows: list[int]):

@@ -554,6 +554,7 @@ class MidSystemLens(nn.Module):
         self.weak_edge = choice.weak_edge
         self.min_efficiency = float(choice.min_efficiency)
         self._transfer_cache = OrderedDict()
+        self._edge_transfers = OrderedDict()  # the exact edge step's (exit_pupil.edge_transfer), shared likewise
         self.build_lens([1.0] * n)  # checks the placements now
 
     def build_lens(self, scales, phase_maps=None, dispersive=None, per_source: bool = False):
@@ -606,7 +607,8 @@ class MidSystemLens(nn.Module):
         edge = {} if self.edge_step is None else {"edge_step": self.edge_step}
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
                         stop_edge=self.stop_edge, **edge)
-        return hl.use_transfer_cache(self._transfer_cache)  # one memo of window transfer functions for every order
+        # one memo of window transfer functions (and of the exact edge step's) for every order
+        return hl.use_transfer_cache(self._transfer_cache, self._edge_transfers)
 
     def caustics(self, hl: HybridLens, field, wavelength: float, depth=None) -> int:
         """How many line foci (caustics) an order's beam crosses between the first DOE and the engine's plane
@@ -783,7 +785,7 @@ class MidSystemLens(nn.Module):
             edge = {}
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
                         stop_edge=edge_at, mirror=False, **edge)
-        return hl.use_transfer_cache(self._transfer_cache)
+        return hl.use_transfer_cache(self._transfer_cache, self._edge_transfers)
 
     def _orders_field(self, field, wavelength: float, depth, pms, orders):
         """:meth:`source_field` of ``orders`` (``[(scale, c)]``, strongest first, more than one) with the DOE-plane

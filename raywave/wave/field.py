@@ -19,7 +19,7 @@ import torch
 from raywave.utils import devices
 
 __all__ = ["cubic_matrix", "cubic_matrices", "upsampled_intensity", "double_grid_intensity", "keys_matrix",
-           "upsample_nodes", "splat_bilinear", "edge_coverage", "fourier_upsample"]
+           "upsample_nodes", "upsample_nodes_window", "splat_bilinear", "edge_coverage", "fourier_upsample"]
 
 
 def _keys(t: torch.Tensor) -> torch.Tensor:
@@ -176,6 +176,60 @@ class _BandedUpsample(torch.autograd.Function):
         return _banded_adjoint(g.contiguous(), my, mx, ctx.node_shape), None, None
 
 
+class _CroppedUpsample(torch.autograd.Function):
+    """The window ``box = (a0, a1, b0, b1)`` of :func:`_banded_upsample` ``my @ values @ mx.T`` whose values ``out``
+    (..., a1 − a0, b1 − b0) were computed without autograd, differentiable in ``values`` (..., Ky, Kx): the backward
+    ``myᵀ g mx`` of the window's rows of ``my`` and ``mx`` alone, block by block over the nodes each block touches
+    (no gradient array of the whole window, no per-block slices, products and concatenations in the graph)."""
+
+    @staticmethod
+    def forward(ctx, values, my, mx, out):
+        ctx.save_for_backward(my, mx)
+        ctx.kshape = values.shape
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):
+        my, mx = ctx.saved_tensors
+        ky, kx = ctx.kshape[-2:]
+        g = g.reshape(-1, *g.shape[-2:])
+        c = g.shape[0]
+        t = torch.zeros((c, ky, g.shape[-1]), dtype=g.dtype, device=g.device)
+        for y0, y1, k0, k1 in _row_spans(my, UPSAMPLE_BLOCK):
+            if k1 > k0:
+                t[:, k0:k1] += torch.matmul(my[y0:y1, k0:k1].T, g[:, y0:y1])
+        out = torch.zeros((c, ky, kx), dtype=g.dtype, device=g.device)
+        for x0, x1, k0, k1 in _row_spans(mx, UPSAMPLE_BLOCK):
+            if k1 > k0:
+                out[:, :, k0:k1] += torch.matmul(t[:, :, x0:x1], mx[x0:x1, k0:k1])
+        return out.reshape(ctx.kshape), None, None, None
+
+
+def upsample_nodes_window(values: torch.Tensor, pos_y: torch.Tensor, pos_x: torch.Tensor):
+    """:func:`upsample_nodes` of ``values`` (..., Ky, Kx) at the positions ``pos_y`` (Ny,), ``pos_x`` (Nx,) for a
+    caller that reads the values first and then keeps a window of them: ``(fine, window)``, ``fine`` (..., Ny, Nx)
+    the values (detached) and ``window(box)`` the differentiable window ``box = (a0, a1, b0, b1)`` (half-open
+    rows, columns) of them. On a CPU with autograd the window's backward is the banded transpose of its own rows
+    (:class:`_CroppedUpsample`; issue 46: the interpolation's backward through its blocks' slices and products, and
+    the window's zero-padded gradient of the whole array, were a tenth of a mid-system DOE PSF's backward); the
+    same values bit for bit (the products without autograd are those with it)."""
+    grad = torch.is_grad_enabled() and values.requires_grad
+    if not grad or devices.accelerator(values):
+        fine = upsample_nodes(values, pos_y=pos_y, pos_x=pos_x)
+        return fine.detach(), lambda box: fine[..., box[0]:box[1], box[2]:box[3]]
+    ky, kx = values.shape[-2:]
+    my, mx = cubic_matrix(pos_y.to(values.dtype), ky), cubic_matrix(pos_x.to(values.dtype), kx)
+    with torch.no_grad():
+        fine = _banded_upsample(values, my, mx)
+
+    def window(box):
+        a0, a1, b0, b1 = box
+        return _CroppedUpsample.apply(values, my[a0:a1], mx[b0:b1], fine[..., a0:a1, b0:b1])
+
+    return fine, window
+
+
 def _roll_modulation(n: int, device) -> torch.Tensor:
     """``e^{2πi·(n//2)·k/n}`` (n,) complex128: multiplying a field by it rolls its spectrum by ``n//2``, so that
     the spectrum's indices ``0 … n−1`` hold the centred frequencies ``−n//2 … n − 1 − n//2`` in order."""
@@ -274,33 +328,46 @@ def upsampled_intensity(u: torch.Tensor, factor: int, window: torch.Tensor | Non
     return out.add_(r[..., 1].square())
 
 
-def _padded_spectrum(spec: torch.Tensor, n_big: int, dim: int) -> torch.Tensor:
-    """The DFT ``spec`` (length ``n`` along ``dim``, FFT order) of a band-limited periodic signal as the DFT of its
-    ``n_big``-sample resampling (same frequencies, zeros above them; an even ``n``'s Nyquist term split evenly
-    between ``±n/2``, so a real signal stays real)."""
-    n = spec.shape[dim]
-    h = n // 2
-    zeros_shape = list(spec.shape)
-    if n % 2:  # frequencies −h … h
-        zeros_shape[dim] = n_big - n
-        return torch.cat([spec.narrow(dim, 0, h + 1), spec.new_zeros(zeros_shape), spec.narrow(dim, h + 1, h)], dim)
-    nyq = spec.narrow(dim, h, 1) * 0.5
-    zeros_shape[dim] = n_big - n - 1
-    return torch.cat([spec.narrow(dim, 0, h), nyq, spec.new_zeros(zeros_shape), nyq, spec.narrow(dim, h + 1, h - 1)],
-                     dim)
-
-
 def fourier_upsample(u: torch.Tensor, factor: int) -> torch.Tensor:
     """The band-limited (periodic sinc) interpolation of the complex field ``u`` ``(..., ny, nx)`` on a grid
     ``factor`` times finer: ``(..., factor·ny, factor·nx)``, output sample ``[f·i, f·j]`` = input ``[i, j]``
     (exact for a field whose spectrum lies within the input grid's band; the window is periodic: taper the field
-    to ~0 at its edges). Differentiable (FFTs and a zero padding of the spectrum)."""
+    to ~0 at its edges): the inverse FFT of the spectrum zero-padded to ``factor`` times its length (an even length's
+    Nyquist term split in halves), computed as ``factor`` shifted copies per axis. Differentiable."""
     f = int(factor)
     if f < 1:
         raise ValueError(f"fourier_upsample: factor must be a positive integer, got {factor}")
     if f == 1:
         return u
-    ny, nx = u.shape[-2:]
-    spec = torch.fft.fft2(u)
-    spec = _padded_spectrum(_padded_spectrum(spec, f * ny, -2), f * nx, -1)
-    return torch.fft.ifft2(spec) * float(f * f)
+    # one axis at a time, as f interleaved sample sets of the input's size: set r is the input shifted by r/f of a
+    # sample (its spectrum times a phase ramp, the FFTs of the input's length), set 0 the input itself (issue 46:
+    # the padded spectrum's inverse FFT of f× the length, e.g. 1006 = 2·503 for a 503-sample window, took 2× as
+    # long; the same interpolant to rounding)
+    return _upsampled_axis(_upsampled_axis(u, f, -1), f, -2)
+
+
+def _shift_ramps(n: int, f: int, dtype, device) -> torch.Tensor:
+    """(f − 1, n): the spectrum's factors of the shifts by r/f of a sample (r = 1 … f − 1) of the band-limited
+    interpolant of :func:`fourier_upsample` on ``n`` samples: ``exp(2πi k r/(f n))`` at the centred frequency k, and
+    at the Nyquist frequency of an even ``n`` (split in halves at ±n/2 by the interpolant) ``cos(π r/f)``."""
+    k = torch.fft.fftfreq(n, d=1.0 / n, dtype=torch.float64, device=device)  # centred frequencies (Nyquist: −n/2)
+    r = torch.arange(1, f, dtype=torch.float64, device=device)[:, None]
+    ramps = torch.polar(torch.ones((f - 1, n), dtype=torch.float64, device=device), 2 * torch.pi * k * r / (f * n))
+    if n % 2 == 0:
+        ramps[:, n // 2] = torch.cos(torch.pi * r[:, 0] / f).to(ramps.dtype)
+    return ramps.to(dtype)
+
+
+def _upsampled_axis(u: torch.Tensor, f: int, dim: int) -> torch.Tensor:
+    """:func:`fourier_upsample` of ``u`` along ``dim`` (−1 or −2) alone: ``f·n`` samples, sample ``f·i + r`` the
+    interpolant at ``i + r/f`` (``r = 0``: ``u`` itself)."""
+    n = u.shape[dim]
+    spec = torch.fft.fft(u, dim=dim)
+    ramps = _shift_ramps(n, f, spec.dtype, u.device)
+    if dim == -2:
+        ramps = ramps[:, :, None]
+    sets = [u] + [torch.fft.ifft(spec * ramps[r], dim=dim) for r in range(f - 1)]
+    out = torch.stack(sets, dim=dim)  # (..., n, f, m) along the rows, (..., m, n, f) along the columns
+    shape = list(u.shape)
+    shape[dim] = f * n
+    return out.reshape(shape)

@@ -19,7 +19,7 @@ from raywave.utils.phasor import polar
 from raywave.utils.errors import check_allocation
 from raywave.utils.safe import safe_sqrt
 from raywave.doe.base import DOE
-from raywave.wave.field import cubic_matrices, cubic_matrix, edge_coverage, upsample_nodes
+from raywave.wave.field import cubic_matrices, cubic_matrix, edge_coverage, upsample_nodes_window
 from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
                                               _nyquist_warning, _warn_nyquist, check_window_memory)
@@ -354,7 +354,7 @@ def _trace_nodes(b: _Build, nd: _Nodes):
         # the lens gradient needs the exact Jacobian at the solution (a chord node carries the coarse one): the
         # step's value comes from the iteration's Jacobian (as without autograd, so that a replay of this
         # construction is bitwise the forward pass), its derivative from the exact one (a zero-valued term)
-        _, _, jac_exact = yield from aim.landing(uv)
+        jac_exact = yield from aim.neighbours_jacobian(uv, x_at.detach())
         jinv_step, _ = _solve2(jac, x_at.detach() - nd.targets)
         jinv_step = jinv_step + _solve2(jac_exact, x_at - x_at.detach())[0]
     elif getattr(inverted, "lin", None) is not None and not torch.is_grad_enabled():
@@ -1193,27 +1193,36 @@ def _fine_field(b: _Build, nd: _Nodes, maps: dict, sim: Grid):
     amp = torch.where(lit_amp, safe_sqrt(amp2, lit_amp), torch.zeros_like(amp2))
     other = maps["other"]
     edge_chan = ([] if other is None else [other]) + [maps["nu"], maps["kappa"]] if diffracting else []
-    fine = upsample_nodes(torch.stack([maps["phi_env"], amp] + ([] if diffracting else [dist]) + edge_chan),
-                          pos_y=pos_y.clamp(0, ky - 1), pos_x=pos_x.clamp(0, kx - 1))
-    cov, b = _fine_coverage(fine, diffracting, other is not None, sim, (iy0, iy1, ix0, ix1), doe, oversample,
-                            ripple_zones)
+    nodes = torch.stack([maps["phi_env"], amp] + ([] if diffracting else [dist]) + edge_chan)
+    grad = torch.is_grad_enabled() and nodes.requires_grad
+    # with autograd the crop is read from the channels' values, then the interpolation's window taken by one op
+    # (upsample_nodes_window) and split by one unbind, the coverage formed on the crop (elementwise: the same values):
+    # the backward is the window's own banded products, where the reads of the whole window (the coverage's channel,
+    # the crop's two slices) built three zero arrays of it and the interpolation's blocks a graph of slices
+    fine, window = upsample_nodes_window(nodes, pos_y.clamp(0, ky - 1), pos_x.clamp(0, kx - 1))
+    cov, b, dcov = _fine_coverage(fine, diffracting, other is not None, sim, (iy0, iy1, ix0, ix1), doe, oversample,
+                                  ripple_zones)
     if b is None:
         return None
     a0, a1, b0, b1 = b
-    fine = fine[:, a0:a1, b0:b1]
-    cov = None if cov is None else cov[a0:a1, b0:b1]
+    ch = window(b).unbind(0)
+    if grad and cov is not None:
+        cov = _coverage(ch[2], p, diffracting, other is not None, None if dcov is None else dcov[a0:a1, b0:b1])
+    elif cov is not None:
+        cov = cov[a0:a1, b0:b1]
     edge = (z_doe - stop_plane, ripple_zones, maps["g_max"], p) if diffracting else None
-    env = _envelope(fine, cov, 2 * math.pi / (wavelength * 1e-3), edge)
+    env = _envelope(ch, cov, 2 * math.pi / (wavelength * 1e-3), edge)
     return env, (iy0 + a0, iy0 + a1, ix0 + b0, ix0 + b1)
 
 
-def _envelope(fine: torch.Tensor, cov: torch.Tensor | None, k: float, edge: tuple | None) -> torch.Tensor:
-    """The envelope ``a·cov·exp(i k φ)`` (complex128 (ny, nx)) from the fine channels ``fine`` (C, ny, nx) (0: φ
-    mm, 1: amplitude, with ``edge`` ``(dz, ripple_zones, g_max, pitch)``: ``[-2]`` ν and ``[-1]`` the edge's
-    κ/g), times the knife-edge factor (:func:`edge_envelope`) with ``edge``; ``k = 2π/λ`` (1/mm)."""
+def _envelope(fine, cov: torch.Tensor | None, k: float, edge: tuple | None) -> torch.Tensor:
+    """The envelope ``a·cov·exp(i k φ)`` (complex128 (ny, nx)) from the fine channels ``fine`` (C, ny, nx), or their
+    views of one unbind (a tuple) (0: φ mm, 1: amplitude, with ``edge`` ``(dz, ripple_zones, g_max, pitch)``:
+    ``[-2]`` ν and ``[-1]`` the edge's κ/g), times the knife-edge factor (:func:`edge_envelope`) with ``edge``;
+    ``k = 2π/λ`` (1/mm)."""
     # the channels as views of one unbind: its backward stacks their gradients into one array, where each indexed
     # read's backward would allocate (and add) a zero array of the whole stack
-    ch = fine.unbind(0)
+    ch = fine.unbind(0) if isinstance(fine, torch.Tensor) else fine
     amp = ch[1] if cov is None else ch[1] * cov
     if edge is None:
         return polar(amp, k * ch[0])
@@ -1250,21 +1259,26 @@ def _fine_coverage(fine: torch.Tensor, diffracting: bool, has_other: bool, sim: 
     """The fine window's amplitude coverage and its lit part. ``fine`` (C, ny, nx): the interpolated channels
     (index 2: the edge distance in mm, the other edges' with ``diffracting`` and ``has_other``; ``fine[-2]``: ν
     with ``diffracting``); ``box``: the window ``(iy0, iy1, ix0, ix1)`` on ``sim``; ``doe``: its aperture (None: a
-    virtual plane). Returns ``(cov (ny, nx) float64 or None: 1 everywhere, crop)``: ``crop`` the half-open
+    virtual plane). Returns ``(cov (ny, nx) float64 or None: 1 everywhere, crop, dcov)``: ``crop`` the half-open
     ``(a0, a1, b0, b1)`` of the lit samples in the window (with ``diffracting`` inside the ripple band), None
-    when none is lit."""
+    when none is lit; ``dcov`` the DOE aperture's coverage of the window (None: a virtual plane)."""
     p = sim.pitch[0]
-    if diffracting:
-        cov = edge_coverage(fine[2], p) if has_other else None
-    else:
-        cov = edge_coverage(fine[2], p)
-    if doe is not None:
-        dcov = doe.coverage(sim.window(*box), oversample, device=fine.device)
-        cov = dcov if cov is None else cov * dcov
+    dcov = None if doe is None else doe.coverage(sim.window(*box), oversample, device=fine.device)
+    cov = _coverage(fine[2], p, diffracting, has_other, dcov)
     if diffracting:  # the Fresnel factor is 0 beyond the ripple band
         band = (fine[-2].detach() > -math.sqrt(2.0) * ripple_zones).to(torch.float64)
-        return cov, _crop_to_lit(band if cov is None else cov * band)
-    return cov, _crop_to_lit(cov)
+        return cov, _crop_to_lit(band if cov is None else cov * band), dcov
+    return cov, _crop_to_lit(cov), dcov
+
+
+def _coverage(dist: torch.Tensor, p: float, diffracting: bool, has_other: bool, dcov: torch.Tensor | None):
+    """The amplitude coverage of :func:`_fine_coverage` (elementwise): the edge distance channel ``dist``'s
+    :func:`~raywave.wave.field.edge_coverage` (pitch ``p`` mm; with ``diffracting`` only when ``has_other``) times
+    the DOE's aperture coverage ``dcov`` (None: none); None where neither applies."""
+    cov = edge_coverage(dist, p) if (has_other or not diffracting) else None
+    if dcov is not None:
+        cov = dcov if cov is None else cov * dcov
+    return cov
 
 
 @dataclass

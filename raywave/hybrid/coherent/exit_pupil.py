@@ -15,7 +15,7 @@ from raywave.utils import devices
 from raywave.utils.errors import MemoryLimitError
 from raywave.wave.field import fourier_upsample
 from raywave.wave.grid import Field, Grid
-from raywave.wave.propagation import propagate_window
+from raywave.wave.propagation import propagate_window, window_transfer
 from raywave.hybrid.coherent.accurate import accurate_field_steps
 from raywave.hybrid.coherent.geometry import _common_setup, _empty_field, _footprint, check_window_memory, lit_box
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, StopEdgeWarning
@@ -168,7 +168,10 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     grid = sim.window(*box)
     check_window_memory(*grid.shape, p, lens.device)
     fin = Field(fx.envelope, fx.grid, float(wavelength), n, carrier)
-    u = propagate_window(fin, grid, dz).envelope if m == 1 else _coarse_propagate(fin, sim, box, dz, m)
+    if m == 1:
+        u = propagate_window(fin, grid, dz, transfer=edge_transfer(known.transfers, fin, grid, dz)).envelope
+    else:
+        u = _coarse_propagate(fin, sim, box, dz, m, known.transfers)
     u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)
     return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
                     FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil"))
@@ -229,12 +232,13 @@ class CoarseLattice:
         return Grid(self.origin, self.pitch, self.shape)
 
 
-def _coarse_propagate(field: Field, sim: Grid, box, dz: float, m: int) -> torch.Tensor:
+def _coarse_propagate(field: Field, sim: Grid, box, dz: float, m: int, transfers=None) -> torch.Tensor:
     """The envelope (complex128 on the window ``box`` ``(iy0, iy1, ix0, ix1)`` of the DOE's simulation lattice
     ``sim``) of ``field`` (on the coarse lattice: ``sim``'s origin, ``m`` times its pitch) propagated ``dz`` mm:
     :func:`~raywave.wave.propagation.propagate_window` onto the coarse window that covers ``box`` plus
     :data:`ASM_UPSAMPLE_PAD` samples a side (an odd number a side: no Nyquist term), those tapered to 0, then
-    :func:`~raywave.wave.field.fourier_upsample` by ``m`` and the crop to ``box``."""
+    :func:`~raywave.wave.field.fourier_upsample` by ``m`` and the crop to ``box``. ``transfers``: the engine's memo
+    of the step's transfer functions (:func:`edge_transfer`), or None."""
     iy0, iy1, ix0, ix1 = box
     pad = ASM_UPSAMPLE_PAD
 
@@ -244,11 +248,41 @@ def _coarse_propagate(field: Field, sim: Grid, box, dz: float, m: int) -> torch.
 
     (jy0, jy1), (jx0, jx1) = span(iy0, iy1), span(ix0, ix1)
     out = Grid(sim.position(jy0 * m, jx0 * m), m * sim.pitch[0], (jy1 - jy0, jx1 - jx0))
-    uc = propagate_window(field, out, dz).envelope
+    uc = propagate_window(field, out, dz, transfer=edge_transfer(transfers, field, out, dz)).envelope
     taper = [_edge_taper(n_, pad, uc.device) for n_ in (jy1 - jy0, jx1 - jx0)]
     up = fourier_upsample(uc * (taper[0][:, None] * taper[1][None, :]).to(uc.dtype), m)
     oy, ox = iy0 - jy0 * m, ix0 - jx0 * m
     return up[oy:oy + iy1 - iy0, ox:ox + ix1 - ix0]
+
+
+#: how many of the exact exit-pupil step's window transfer functions an engine keeps (:func:`edge_transfer`): each
+#: is the band of a wide FFT (the 16-level mid-system DOE of benchmarks/psf_midsystem.py: 1752×1767, 50 MB)
+EDGE_TRANSFER_MEMO = 2
+
+
+def edge_transfer(memo, field: Field, out: Grid, dz: float):
+    """The window transfer function (:func:`~raywave.wave.propagation.window_transfer`) of the exact exit-pupil
+    step, ``field`` (its grid, wavelength, index and carrier) propagated ``dz`` mm onto ``out``, from ``memo`` (an
+    ``OrderedDict``: the engine's, its :data:`EDGE_TRANSFER_MEMO` most recent geometries) when this geometry's is
+    there, else built and kept; None without a memo (:func:`~raywave.wave.propagation.propagate_window` builds it).
+    The key is the geometry's exact numbers, so a hit is the function that would be built (the same values, bit for
+    bit): a lens evaluated again unchanged (a benchmark, a PSF map's second pass) skips the band's ~3·10⁶
+    square roots and phasors (issue 46: a third of the 16-level mid-system DOE's PSF); a lens that moved misses."""
+    if memo is None:
+        return None
+    g = field.grid
+    key = (tuple(g.shape), tuple(float(v) for v in g.origin), tuple(float(v) for v in g.pitch),
+           tuple(float(v) for v in out.origin), tuple(out.shape), float(field.wavelength), float(dz),
+           float(field.n), tuple(float(v) for v in field.carrier), str(field.envelope.device))
+    hit = memo.get(key)
+    if hit is None:
+        hit = window_transfer(field, out, dz)
+        memo[key] = hit
+        while len(memo) > EDGE_TRANSFER_MEMO:
+            memo.popitem(last=False)
+    else:
+        memo.move_to_end(key)
+    return hit
 
 
 def _edge_taper(n: int, pad: int, device) -> torch.Tensor:

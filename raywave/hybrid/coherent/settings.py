@@ -109,7 +109,9 @@ class Known:
     at the crop's centre on the DOE plane from ``stop_rim`` (:func:`~raywave.hybrid.coherent.stop_edge.
     edge_reach_many`, for all of a call's sources at once; ``...``: not given, computed by the construction),
     ``medium`` the image medium's refractive index at this source's wavelength (a host float, for all of a call's
-    sources of that wavelength at once; None: read by the construction)."""
+    sources of that wavelength at once; None: read by the construction), ``transfers`` the engine's memo of the exact
+    exit-pupil step's window transfer functions (an ``OrderedDict``: :func:`~raywave.hybrid.coherent.exit_pupil.
+    edge_transfer`; None: built every time)."""
 
     bbox: object = None
     entrance: object = None
@@ -118,6 +120,7 @@ class Known:
     go_error: tuple | None = None
     reach: object = ...
     medium: float | None = None
+    transfers: object = None
 
 
 def check_types(where: str, source, planes, chief, settings) -> None:
