@@ -114,13 +114,14 @@ def _banded_upsample(values: torch.Tensor, my: torch.Tensor, mx: torch.Tensor) -
     same sums of the same nonzero terms as the dense products, to rounding; ~3× faster for a 117² → 877 × 1106
     window: the dense products spend ~90 % of their work on zeros). First ``t = mx @ valuesᵀ`` (..., Nx, Ky) in
     blocks of x, then each block of y rows ``my[rows, span] @ t[..., span]ᵀ`` into its rows of the output. With
-    autograd (the values' gradient; ``my``, ``mx`` are constants) :class:`_BandedUpsample`: the same forward
+    autograd for the values (``my``, ``mx`` constants) :class:`_BandedUpsample`: the same forward
     operations (bit for bit: a replay compares the two), the backward the transposed banded products."""
+    if torch.is_grad_enabled() and (my.requires_grad or mx.requires_grad):
+        return my @ values @ mx.T  # differentiable positions (no caller in the engine): the dense products
     if torch.is_grad_enabled() and values.requires_grad:
-        if my.requires_grad or mx.requires_grad:
-            raise ValueError("upsample_nodes: the interpolation matrices (the fine samples' positions) must not "
-                             "require grad")
-        return _BandedUpsample.apply(values, my, mx)
+        with torch.no_grad():
+            out = _banded_values(values, my, mx)
+        return _BandedUpsample.apply(values, my, mx, out)
     return _banded_values(values, my, mx)
 
 
@@ -153,34 +154,20 @@ def _banded_adjoint(g: torch.Tensor, my: torch.Tensor, mx: torch.Tensor, node_sh
     s = torch.zeros((gb.shape[0], gb.shape[1], kx), dtype=g.dtype, device=g.device)
     for b in range(gb.shape[0]):
         for x0, x1, k0, k1 in xs:  # s = g @ mx: (Ny, Kx)
-            s[b, :, k0:k1].addmm_(gb[b, :, x0:x1], mx[x0:x1, k0:k1])
+            if k1 > k0:
+                s[b, :, k0:k1].addmm_(gb[b, :, x0:x1], mx[x0:x1, k0:k1])
         for y0, y1, k0, k1 in ys:  # out = myᵀ @ s: (Ky, Kx)
-            out[b, k0:k1].addmm_(my[y0:y1, k0:k1].T, s[b, y0:y1])
+            if k1 > k0:
+                out[b, k0:k1].addmm_(my[y0:y1, k0:k1].T, s[b, y0:y1])
     return out.reshape(*lead, ky, kx)
 
 
 class _BandedUpsample(torch.autograd.Function):
-    """:func:`_banded_upsample` with autograd for the node values only: the forward is :func:`_banded_values` (no
-    per-block graph: autograd would keep each block's product and its slices, ~4·Ny/64 nodes a channel, and its
-    backward would add window-sized zero arrays per slice), the backward :func:`_banded_adjoint`."""
-
-    @staticmethod
-    def forward(ctx, values, my, mx):
-        ctx.save_for_backward(my, mx)
-        ctx.node_shape = tuple(values.shape[-2:])
-        return _banded_values(values, my, mx)
-
-    @staticmethod
-    def backward(ctx, g):
-        my, mx = ctx.saved_tensors
-        return _banded_adjoint(g.contiguous(), my, mx, ctx.node_shape), None, None
-
-
-class _CroppedUpsample(torch.autograd.Function):
-    """The window ``box = (a0, a1, b0, b1)`` of :func:`_banded_upsample` ``my @ values @ mx.T`` whose values ``out``
-    (..., a1 − a0, b1 − b0) were computed without autograd, differentiable in ``values`` (..., Ky, Kx): the backward
-    ``myᵀ g mx`` of the window's rows of ``my`` and ``mx`` alone, block by block over the nodes each block touches
-    (no gradient array of the whole window, no per-block slices, products and concatenations in the graph)."""
+    """``my @ values @ mx.T`` (:func:`_banded_upsample`, or a window of it: ``my``, ``mx`` the window's rows) whose
+    values ``out`` were computed without autograd (:func:`_banded_values`), differentiable in ``values`` (..., Ky,
+    Kx) alone: the backward is :func:`_banded_adjoint` of the rows given (no per-block slices, products and
+    concatenations in the graph, whose backward would add window-sized zero arrays per slice; no gradient array of
+    a whole window for a crop of it)."""
 
     @staticmethod
     def forward(ctx, values, my, mx, out):
@@ -192,18 +179,7 @@ class _CroppedUpsample(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g):
         my, mx = ctx.saved_tensors
-        ky, kx = ctx.kshape[-2:]
-        g = g.reshape(-1, *g.shape[-2:])
-        c = g.shape[0]
-        t = torch.zeros((c, ky, g.shape[-1]), dtype=g.dtype, device=g.device)
-        for y0, y1, k0, k1 in _row_spans(my, UPSAMPLE_BLOCK):
-            if k1 > k0:
-                t[:, k0:k1] += torch.matmul(my[y0:y1, k0:k1].T, g[:, y0:y1])
-        out = torch.zeros((c, ky, kx), dtype=g.dtype, device=g.device)
-        for x0, x1, k0, k1 in _row_spans(mx, UPSAMPLE_BLOCK):
-            if k1 > k0:
-                out[:, :, k0:k1] += torch.matmul(t[:, :, x0:x1], mx[x0:x1, k0:k1])
-        return out.reshape(ctx.kshape), None, None, None
+        return _banded_adjoint(g, my, mx, tuple(ctx.kshape[-2:])).reshape(ctx.kshape), None, None, None
 
 
 def upsample_nodes_window(values: torch.Tensor, pos_y: torch.Tensor, pos_x: torch.Tensor):
@@ -211,7 +187,7 @@ def upsample_nodes_window(values: torch.Tensor, pos_y: torch.Tensor, pos_x: torc
     caller that reads the values first and then keeps a window of them: ``(fine, window)``, ``fine`` (..., Ny, Nx)
     the values (detached) and ``window(box)`` the differentiable window ``box = (a0, a1, b0, b1)`` (half-open
     rows, columns) of them. On a CPU with autograd the window's backward is the banded transpose of its own rows
-    (:class:`_CroppedUpsample`; issue 46: the interpolation's backward through its blocks' slices and products, and
+    (:class:`_BandedUpsample`; issue 46: the interpolation's backward through its blocks' slices and products, and
     the window's zero-padded gradient of the whole array, were a tenth of a mid-system DOE PSF's backward); the
     same values bit for bit (the products without autograd are those with it)."""
     grad = torch.is_grad_enabled() and values.requires_grad
@@ -225,7 +201,7 @@ def upsample_nodes_window(values: torch.Tensor, pos_y: torch.Tensor, pos_x: torc
 
     def window(box):
         a0, a1, b0, b1 = box
-        return _CroppedUpsample.apply(values, my[a0:a1], mx[b0:b1], fine[..., a0:a1, b0:b1])
+        return _BandedUpsample.apply(values, my[a0:a1], mx[b0:b1], fine[..., a0:a1, b0:b1])
 
     return fine, window
 
