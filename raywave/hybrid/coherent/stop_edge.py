@@ -284,8 +284,11 @@ def _band_masks(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
         nu_b = max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0)
     nu = nu.detach()
     inside = nu >= nu_b
-    # inside lies within ν > −ν_max (ν_b ≥ 2 > 0 > −ν_max): the band is the one without the other, an exclusive or
-    return inside, (nu > -nu_max).logical_xor_(inside), nu_b, nu_max
+    outer = nu > -nu_max
+    if isinstance(ripple_zones, torch.Tensor) or ripple_zones < 0:
+        return inside, outer & ~inside, nu_b, nu_max
+    # inside lies within ν > −ν_max (ν_b ≥ 2 > 0 ≥ −ν_max): the band is the one without the other, an exclusive or
+    return inside, outer.logical_xor_(inside), nu_b, nu_max
 
 
 def _edge_band(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
