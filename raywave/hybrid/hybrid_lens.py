@@ -48,6 +48,7 @@ from raywave.lens.sources import VignettingWarning, _as_fields, chief_aim
 from raywave.rays.bundle import RayBundle
 from raywave.utils import devices
 from raywave.utils.checks import MAX_FIELD_ANGLE, wavelengths_um
+from raywave.utils.memo import recent
 from raywave.utils.safe import safe_div
 from raywave.wave.grid import Grid
 from raywave.wave.propagation import (angular_spectrum, integrated_upsampled_intensity, propagate_window,
@@ -1006,16 +1007,9 @@ class HybridLens(nn.Module):
         key = (tuple(u.shape[-2:]), n_out, p, fd.wavelength, float(fd.z), fd.n, fd.carrier,
                round((out_origin[0] - fd.origin[0]) / p, 9), round((out_origin[1] - fd.origin[1]) / p, 9), u.device,
                weight_derivative)
-        hit = self._transfer_cache.get(key)
-        if hit is None:
-            hit = window_transfer(fd.field.with_envelope(u), Grid(out_origin, p, (n_out, n_out)), fd.z,
-                                  weight_derivative=weight_derivative)
-            self._transfer_cache[key] = hit
-            while len(self._transfer_cache) > 8:
-                self._transfer_cache.popitem(last=False)
-        else:
-            self._transfer_cache.move_to_end(key)
-        return hit
+        return recent(self._transfer_cache, key,
+                      lambda: window_transfer(fd.field.with_envelope(u), Grid(out_origin, p, (n_out, n_out)), fd.z,
+                                              weight_derivative=weight_derivative), 8)
 
     def psf_result(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None, mode: str = "accurate",
                    rays: int | None = None, cache=None, propagation_dtype=torch.complex128, **field_kw) -> PSFResult:

@@ -13,6 +13,7 @@ from raywave.doe.base import BlankDOE
 from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.utils import devices
 from raywave.utils.errors import MemoryLimitError
+from raywave.utils.memo import recent
 from raywave.wave.field import fourier_upsample
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation import propagate_window, window_transfer
@@ -274,15 +275,7 @@ def edge_transfer(memo, field: Field, out: Grid, dz: float):
     key = (tuple(g.shape), tuple(float(v) for v in g.origin), tuple(float(v) for v in g.pitch),
            tuple(float(v) for v in out.origin), tuple(out.shape), float(field.wavelength), float(dz),
            float(field.n), tuple(float(v) for v in field.carrier), str(field.envelope.device))
-    hit = memo.get(key)
-    if hit is None:
-        hit = window_transfer(field, out, dz)
-        memo[key] = hit
-        while len(memo) > EDGE_TRANSFER_MEMO:
-            memo.popitem(last=False)
-    else:
-        memo.move_to_end(key)
-    return hit
+    return recent(memo, key, lambda: window_transfer(field, out, dz), EDGE_TRANSFER_MEMO)
 
 
 def _edge_taper(n: int, pad: int, device) -> torch.Tensor:

@@ -398,9 +398,19 @@ def _landing_and_jacobian(lens, uv, field, wl, depth, z_doe, field_type, h, ep_z
 def _with_neighbours(uv, h: float, need_jac=None):
     """The rays ``uv`` (N, 2) followed by the two finite-difference neighbours ``+h·e_u``, ``+h·e_v`` of those that
     ``need_jac`` (N,) bool marks (None: all): (N + 2M, 2)."""
+    return torch.cat([uv, *_neighbours(uv if need_jac is None else uv[need_jac], h)])
+
+
+def _neighbours(uv, h: float) -> tuple:
+    """The two finite-difference neighbour sets ``(uv + h·e_u, uv + h·e_v)`` of the rays ``uv`` (M, 2), each (M, 2)."""
     du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
-    uj = uv if need_jac is None else uv[need_jac]
-    return torch.cat([uv, uj + du[0], uj + du[1]])
+    return uv + du[0], uv + du[1]
+
+
+def _difference_jacobian(x0, xu, xv, h: float):
+    """Forward-difference Jacobians ∂X/∂uv (M, 2, 2) from the landing points ``x0`` (M, 2) and those of the two
+    neighbour sets ``xu``, ``xv`` (:func:`_neighbours`), step ``h`` mm."""
+    return torch.stack([(xu - x0) / h, (xv - x0) / h], -1)
 
 
 def _landing_from(at, n: int, h: float, need_jac=None):
@@ -410,7 +420,7 @@ def _landing_from(at, n: int, h: float, need_jac=None):
     m = (x.shape[0] - n) // 2
     x0, xu, xv = x[:n], x[n:n + m], x[n + m:]
     xj = x0 if need_jac is None else x0[need_jac]
-    jac_j = torch.stack([(xu - xj) / h, (xv - xj) / h], -1)
+    jac_j = _difference_jacobian(xj, xu, xv, h)
     if need_jac is None:
         return x0, at.valid[0, 0, :n], jac_j
     jac = torch.full((n, 2, 2), math.nan, dtype=x.dtype, device=x.device)
@@ -468,11 +478,9 @@ class _Aim:
         trace of them already done): forward differences from one trace of their two neighbour sets alone
         (:meth:`landing`'s Jacobian without tracing the rays themselves again; issue 46: a third of the trace that
         the lens gradient's exact Jacobian costs)."""
-        h = self.h
-        du = torch.tensor([[h, 0.0], [0.0, h]], dtype=uv.dtype, device=uv.device)
-        _, _, at, _ = yield self.request(torch.cat([uv + du[0], uv + du[1]]), False, False)
+        _, _, at, _ = yield self.request(torch.cat(_neighbours(uv, self.h)), False, False)
         xu, xv = at.o[0, 0, :, :2].split(uv.shape[0])
-        return torch.stack([(xu - x0) / h, (xv - x0) / h], -1)
+        return _difference_jacobian(x0, xu, xv, self.h)
 
     def request(self, uv, record: bool, grad: bool) -> "_TraceRequest":
         """The :class:`_TraceRequest` of the rays ``uv`` (N, 2)."""
