@@ -19,7 +19,9 @@ Grid rules (``load_hybrid`` / ``hybrid_from_spec``; explicit arguments override 
   ``doe_size`` (mm, width and height), else the file's ``shape`` or ``size``, else (no DOE in the file) a
   square that holds the beam: :data:`BEAM_MARGIN` × twice the largest ``|x|`` or ``|y|`` any traced ray
   reaches on the DOE plane (pupil rim and a hexapolar grid, for the given fields — default: the lens's
-  fields and (0, 0) — and wavelengths). Sizes are rounded up to whole pixels. A DOE in the file without a
+  fields and (0, 0) — and wavelengths), and with the exit-pupil stop edge (the default) at least the beam's extent
+  plus the edge's diffraction band (:func:`edge_band_reach`), so that the blank DOE's clear aperture does not cut
+  it. Sizes are rounded up to whole pixels. A DOE in the file without a
   size or shape (a .zmx diffractive surface without CLAP / SQAP) is an error unless ``doe_size`` is given.
 * **phase**: the file's phase map (``PixelDOE``), else its ``phase_model`` (``raywave.doe.doe_from_phase_model``:
   BINARY_2, radial, Zernike, Fresnel, grating, cubic, sums), else blank; ``material`` / ``levels`` make it a
