@@ -68,3 +68,22 @@ def test_a_psf_call_traces_the_edge_focus_once_and_keeps_each_sources_step(monke
     # the choice follows the sensor: 0.3 mm out of focus, the sphere's cut plane matters
     assert exit_pupil.adaptive_edge_steps(lens, hl.doe, torch.tensor(fields), wls, None,
                                           (hl.doe_z(), hl.sensor_z() - 0.3)) == [["fresnel", "fresnel"]] * 3
+
+
+def test_parallel_edge_rays_have_no_focus_and_take_the_fresnel_step():
+    """A lens without power (one flat window, the stop on it): the edge rays are parallel, the point closest to all
+    of them is undefined; the edge is no sphere (inf waves, no focus), the adaptive step keeps the Fresnel step and
+    the PSF is finite (was: a raw LinAlgError from a singular solve, a fuzzed lens file)."""
+    from raywave.lens.lens import Lens
+    from raywave.materials import Air
+    from raywave.surfaces.aperture import CircularAperture
+    from raywave.surfaces.geometry import Plane
+    from raywave.surfaces.surface import Surface
+
+    lens = Lens([Surface(Plane(), Air(), 10.0, aperture=CircularAperture(0.4), is_stop=True)], wavelengths=(0.55,),
+                primary=0, fields=(0.0, 1.0))
+    (row,) = exit_pupil.edge_focus_many(lens, [[0.0, 0.0]], [0.55], None)
+    assert row[0] == (math.inf, None, None, None)
+    hl = HybridLens(lens, BlankDOE(1200, 1e-3), 5.0)
+    assert exit_pupil.adaptive_edge_step(lens, hl.doe, (0.0, 0.0), 0.55, None, float(hl.doe_z()),
+                                         float(hl.sensor_z())) == "fresnel"
