@@ -1,0 +1,126 @@
+"""Leaving out the diffraction orders of a mid-system DOE that land far outside the PSF crop (issue 46,
+:func:`raywave.hybrid.midsystem.cull_orders`): the far-field envelope against the Airy pattern (an independent
+closed form), the bound against the change the engine shows when the orders are left out, and the orders that
+land in the crop never left out."""
+
+import math
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.special import j1
+
+sys.path.insert(0, str(Path(__file__).parent))
+import midsystem_systems as M  # noqa: E402
+import wave_truth_doe as W  # noqa: E402
+
+import raywave.hybrid.midsystem as ms  # noqa: E402
+from raywave.doe.params import FresnelDOE, GratingDOE  # noqa: E402
+from raywave.hybrid.midsystem import MidSystemLens, Orders, tail_envelope  # noqa: E402
+
+PITCH, PS, KS, WL = 1e-3, 2e-3, 32, 0.55
+
+
+def _grating(field, period, tol, n=1000):
+    doe = GratingDOE(period, n, PITCH)
+    doe.fabricate(2)  # the 0/π binary grating: orders ±1 (40.5 %), ±3 (4.5 %), ±5 (1.6 %)
+    sys_ = W.TwoLensSystem(field=field)
+    return MidSystemLens(M.two_lens(sys_), doe, 0, sys_.gap1, final_distance=0.01, final_size=n * PITCH,
+                         final_pitch=PITCH, sensor_pitch=PS, orders=Orders(cull_tol=tol))
+
+
+def _psf(ml, field):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return ml.psf_result([field], WL, ks=KS)
+
+
+def test_envelope_bounds_the_airy_pattern():
+    """The Airy pattern of power P, ``P π NA²/λ² [2 J1(v)/v]²``, stays within 1.07 of :func:`tail_envelope` (1.069 at
+    v = 2.17, in the central lobe; 1.012 on the first ring; the safety factor :data:`CULL_SAFETY` covers that),
+    and approaches it on the rings' peaks."""
+    na, lam = 0.056, WL * 1e-3
+    rho = np.linspace(2e-3, 0.5, 20001)
+    v = 2 * math.pi * na * rho / lam
+    airy = math.pi * na ** 2 / lam ** 2 * (2 * j1(v) / v) ** 2
+    env = tail_envelope(torch.tensor(rho), na, WL).numpy()
+    assert (airy <= 1.07 * env).all()
+    assert (airy[v > 4] <= 1.013 * env[v > 4]).all()
+    assert (airy[v > 20] / env[v > 20]).max() > 0.99
+    assert ms.CULL_SAFETY >= 1.07
+
+
+def test_cull_off_by_default_and_with_zero():
+    """``cull_tol=0`` (the default) keeps every order and records nothing."""
+    assert Orders().cull_tol == 0.0
+    ml = _grating((0.0, 0.0), 0.05, 0.0, n=400)
+    assert _psf(ml, (0.0, 0.0)).culled == []
+    with pytest.raises(ValueError, match="cull_tol"):
+        Orders(cull_tol=-1e-3)
+
+
+@pytest.mark.parametrize("field", [(0.0, 0.0), (0.0, 1.5)])
+@pytest.mark.parametrize("tol", [1e-4, 0.1, 0.5])
+def test_culled_psf_within_the_bound(field, tol):
+    """The 50 µm grating (orders 110 µm apart on the sensor, the crop 64 µm wide, centred on order −1): the orders
+    left out never include one landing in or next to the crop (−1, +1), the recorded bound is ≤ ``cull_tol``, and
+    the PSF moves from the all-orders PSF by no more than the bound. At 1e-4 nothing is left out: the interference
+    of order −5's tail with the kept light alone moves the PSF by 5e-4."""
+    full = _psf(_grating(field, 0.05, 0.0), field).psf
+    res = _psf(_grating(field, 0.05, tol), field)
+    (rec,) = res.culled
+    left = [s for s, _ in rec["orders"]]
+    assert -1.0 not in left and 1.0 not in left
+    assert rec["bound"] <= tol
+    change = float(((res.psf - full).abs().sum() / full.abs().sum()).detach())
+    assert change <= max(rec["bound"], 1e-15)
+    if tol == 1e-4:
+        assert left == [] and change == 0.0
+    if tol == 0.5:
+        assert set(left) >= {5.0, -5.0, 3.0}
+
+
+def test_orders_in_the_crop_never_culled():
+    """The 16-level Fresnel DOE with its weak orders (−15, +17: defocused, their footprints over the crop) and a
+    100 µm grating (order +1 lands 55 µm from −1, the crop's centre; −3 at 55 µm too): with any tolerance (0.9), no
+    order whose footprint reaches or nears the crop is left out."""
+    doe = FresnelDOE(50.0, 1000, PITCH, wavelength=WL)
+    doe.fabricate(16)
+    sys_ = W.TwoLensSystem(f_doe=50.0, field=(0.0, 1.5))
+    ml = MidSystemLens(M.two_lens(sys_), doe, 0, sys_.gap1, final_distance=0.01, final_size=1.0,
+                       final_pitch=PITCH, sensor_pitch=PS, min_efficiency=1e-3, orders=None)
+    ml.cull_tol = 0.9
+    pms = [ms.DOEPhaseSurface(d).phase_map() for d in ml.does]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        orders = ml.source_orders((0.0, 1.5), WL, None, pms)
+        assert len(orders) >= 3
+        land = ml.order_landings((0.0, 1.5), WL, None, pms, orders)
+        kept, rec = ml.cull((0.0, 1.5), WL, None, pms, orders, KS)
+    assert all(ld is not None for ld in land)  # every order's footprint known: left in because it reaches the crop
+    assert kept == orders and rec["orders"] == []
+    ml = _grating((0.0, 0.0), 0.1, 0.9)
+    pms = [ms.DOEPhaseSurface(d).phase_map() for d in ml.does]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        orders = ml.source_orders((0.0, 0.0), WL, None, pms)
+        land = ml.order_landings((0.0, 0.0), WL, None, pms, orders)
+        kept, rec = ml.cull((0.0, 0.0), WL, None, pms, orders, KS)
+    near = [s for (s, _), ld in zip(orders, land) if abs(ld[2][0] - land[0][2][0]) < 0.07]
+    assert {-1.0, 1.0} <= set(near)
+    assert all(s not in [t for t, _ in rec["orders"]] for s in near)
+
+
+def test_vignetted_order_not_culled():
+    """An order whose probe rays an aperture cuts (here the DOE's grid, smaller than the beam) has no landing: its
+    edge is not the stop's circle that the envelope bounds."""
+    ml = _grating((0.0, 0.0), 0.05, 0.5, n=400)  # a 0.4 mm grid in a 0.56 mm beam
+    pms = [ms.DOEPhaseSurface(d).phase_map() for d in ml.does]
+    orders = ml.orders(WL)
+    land = ml.order_landings((0.0, 0.0), WL, None, pms, orders)
+    assert all(ld is None for ld in land)
+    kept, rec = ml.cull((0.0, 0.0), WL, None, pms, orders, KS)
+    assert kept == orders and rec["orders"] == []
