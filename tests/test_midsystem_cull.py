@@ -60,6 +60,12 @@ def test_cull_off_by_default_and_with_zero():
     assert _psf(ml, (0.0, 0.0)).culled == []
     with pytest.raises(ValueError, match="cull_tol"):
         Orders(cull_tol=-1e-3)
+    short = MidSystemLens(ml.lens, ml.doe, 0, 3.0, final_distance=0.01, final_size=0.4, final_pitch=PITCH,
+                          sensor_pitch=PS, cull_tol=0.1)  # the short keyword, as min_efficiency= / weak_edge=
+    assert short.cull_tol == 0.1
+    with pytest.raises(TypeError, match="cull_tol"):
+        MidSystemLens(ml.lens, ml.doe, 0, 3.0, final_distance=0.01, final_size=0.4, final_pitch=PITCH,
+                      orders=Orders(), cull_tol=0.1)
 
 
 @pytest.mark.parametrize("field", [(0.0, 0.0), (0.0, 1.5)])
