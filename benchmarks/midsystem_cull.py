@@ -14,7 +14,10 @@ crop of 2 µm pixels, λ 0.55 µm, fields 0° and 1.5°. Per case and field:
 * ``tail_over_envelope``: the largest ratio of order −5's intensity (alone, a 512 µm crop) to
   :func:`~raywave.hybrid.midsystem.tail_envelope` beyond 10 µm of its footprint (50 µm period only).
 
-Usage: ``python benchmarks/midsystem_cull.py [--periods 50 20 100] [--reference] [--out FILE]`` (prints JSON).
+``--diagnose``: only where the 50 µm grating's error against the reference comes from (:func:`grating_diagnosis`).
+
+Usage: ``python benchmarks/midsystem_cull.py [--periods 50 20 100] [--reference] [--diagnose] [--out FILE]`` (prints
+JSON).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import sys
 import warnings
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from _report import emit_json  # noqa: E402  (benchmarks/ is on sys.path)
@@ -119,13 +123,77 @@ def tail_check() -> float:
     return float((p.detach()[sel] / PS ** 2 / ms.tail_envelope(rho[sel], na, WL)).max())
 
 
+def grating_diagnosis() -> dict:
+    """Where the 50 µm grating's error against the wave reference comes from (0°): the six orders (DOE-plane edge, every
+    order's exact edge) against the reference fed the fabricated grating; order −1 alone and ±1 against the
+    reference fed those orders (``c_m e^{imφ0}``), the reference's padding 400 → 800, the best constant phase on
+    ``c₊₁`` (12 values), the cross terms PSF(±1) − PSF(−1) of both (L1 norms, correlation), and order +1's own far
+    tail (alone, a 256 µm crop, both PSFs scaled to the same power in their central 32 µm) ring by ring, with the
+    DOE-plane edge and with the exact edge."""
+    field = (0.0, 0.0)
+    sys_, doe, _ = _lens(50.0, field)
+    phi0 = doe.design_phase_pixels(slice(None), slice(None)).detach().numpy()
+    cs = ms.order_coefficients(2, True, 1.0, range(-1, 2))
+
+    def eng(keep, ks=KS, **kw):
+        ml = ms.MidSystemLens(M.two_lens(sys_), doe, 0, sys_.gap1, final_distance=0.01, final_size=N * PITCH,
+                              final_pitch=PITCH, sensor_pitch=PS, orders=keep, **kw)
+        r = _psf(ml, field, ks)
+        return r.psf[0, 0].detach().numpy() * (1 - float(r.energy_outside[0, 0])), r.center[0, 0].detach().numpy()
+
+    def t(*ms_, phase=0.0):
+        return sum(cs[m] * np.exp(1j * (m * phi0 + (phase if m == 1 else 0.0))) for m in ms_)
+
+    e1, c = eng([-1])
+    e2, _ = eng([-1, 1])
+    e1, e2 = e1 / e1.sum(), e2 / e2.sum()
+    r1 = W.sensor_psf(sys_, N, PITCH, t(-1), c, PS, KS)
+    r2 = W.sensor_psf(sys_, N, PITCH, t(-1, 1), c, PS, KS)
+    r2_pad = W.sensor_psf(sys_, N, PITCH, t(-1, 1), c, PS, KS, pad=800)
+    scan = [float(np.abs(e2 - W.sensor_psf(sys_, N, PITCH, t(-1, 1, phase=2 * math.pi * j / 12), c, PS, KS)).sum())
+            for j in range(12)]
+    de, dr = e2 - e1, r2 - r1
+    out = {"minus1_alone_vs_its_reference": float(np.abs(e1 - r1).sum()),
+           "pm1_vs_its_reference": float(np.abs(e2 - r2).sum()),
+           "reference_pad_400_vs_800": float(np.abs(r2 - r2_pad).sum()),
+           "pm1_best_constant_phase_on_c+1": min(scan), "phase_scan": scan,
+           "cross_term_l1_engine": float(np.abs(de).sum()), "cross_term_l1_reference": float(np.abs(dr).sum()),
+           "cross_term_correlation": float((de * dr).sum() / np.sqrt((de ** 2).sum() * (dr ** 2).sum())),
+           "order+1_far_tail_ring_l1": {}}
+    full = W.sensor_psf(sys_, N, PITCH, doe.phase(WL).detach().numpy(), c, PS, KS)
+    for name, kw in (("doe_edge", {}), ("exact_edge", {"stop_edge": "exit_pupil", "edge_step": "asm"})):
+        e6, c6 = eng(None, **kw)
+        assert np.allclose(c6, c)
+        out[f"six_orders_{name}_vs_reference"] = float(np.abs(e6 / e6.sum() - full).sum())
+    for name, kw in (("doe_edge", {}), ("exact_edge", {"stop_edge": "exit_pupil", "edge_step": "asm"})):
+        ks = 128
+        e, c1 = eng([1], ks, **kw)
+        ref = W.sensor_psf(sys_, N, PITCH, np.exp(1j * phi0), c1, PS, ks)
+        h = ks // 2
+        core = (slice(h - 8, h + 8), slice(h - 8, h + 8))
+        e, ref = e / e[core].sum(), ref / ref[core].sum()
+        idx = np.arange(ks) - h
+        rr = np.hypot(*np.meshgrid(idx, idx)) * PS * 1e3
+        rows = {}
+        for lo, hi in ((0, 10), (10, 30), (30, 60), (60, 90), (90, 130)):
+            sel = (rr >= lo) & (rr < hi)
+            rows[f"{lo}-{hi}um"] = float(np.abs(e[sel] - ref[sel]).sum() / ref[sel].sum())
+        out["order+1_far_tail_ring_l1"][name] = rows
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--periods", type=float, nargs="*", default=[50.0, 20.0, 100.0])
     ap.add_argument("--reference", action="store_true")
+    ap.add_argument("--diagnose", action="store_true", help="only grating_diagnosis() (the 50 µm grating's error)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if a.diagnose:
+        emit_json({"issue": 46, "what": grating_diagnosis.__doc__, "command": "python benchmarks/midsystem_cull.py "
+                   "--diagnose", "diagnosis": grating_diagnosis()}, a.out, indent=1)
+        return
     rows = [case(p, f, a.reference) for p in a.periods for f in [(0.0, 0.0), (0.0, 1.5)]]
     out = {"issue": 46, "what": __doc__.split("\n\n")[1], "command": "python benchmarks/midsystem_cull.py "
            + " ".join(argv if argv is not None else sys.argv[1:]), "rows": rows}
