@@ -155,3 +155,14 @@ def _psf_ks(ml, field, ks):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return ml.psf_result([field], WL, ks=ks)
+
+
+def test_crop_pitch_as_the_engine_resolves_it():
+    """Without ``sensor_pitch`` the crop's pixels are the lens's sensor pixels, else the final plane's (as the
+    engine's)."""
+    ml = _grating((0.0, 0.0), 0.05, 0.1, n=400)
+    assert ml.crop_pitch() == PS
+    ml.sensor_pitch = None
+    pms = [ms.DOEPhaseSurface(d).phase_map() for d in ml.does]
+    hl = ml.order_lens(1.0, None, pms)
+    assert ml.crop_pitch() == hl.sensor_pitch

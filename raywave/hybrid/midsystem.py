@@ -1028,7 +1028,7 @@ class MidSystemLens(nn.Module):
             out = lens_m.trace(rays)
         nmed = lens_m.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(float(lens_m.image_z().detach()), nmed)
-        ps = float(self.sensor_pitch) if self.sensor_pitch is not None else 0.0
+        ps = self.crop_pitch()
         res = []
         for j in range(len(orders)):
             o, d, ok = at.o[j, 0], at.d[j, 0], at.valid[j, 0]
@@ -1043,17 +1043,23 @@ class MidSystemLens(nn.Module):
             res.append((box, na, (float(x[0]), float(y[0]))) if na > 0 else None)
         return res
 
+    def crop_pitch(self) -> float:
+        """The PSF's pixel pitch (mm): ``sensor_pitch``, else the lens's sensor pixel pitch, else the final plane's
+        pitch (as :class:`~raywave.hybrid.HybridLens` resolves it)."""
+        pitch = self.sensor_pitch if self.sensor_pitch is not None else self.lens.pixel_pitch
+        return float(pitch if pitch is not None else self.final.pitch)
+
     def cull(self, field, wavelength: float, depth, pms, orders, ks: int):
         """``(orders kept, record)``: :func:`cull_orders` of the source ``field`` at ``wavelength`` for the ``ks`` ×
         ``ks`` crop (one sensor pixel of margin around it) centred on the strongest order's chief ray;
         ``record``: ``{"field", "wavelength", "orders": [(scale, bound on its power on the crop)], "bound"}``."""
         rec = {"field": list(field), "wavelength": float(wavelength), "orders": [], "bound": 0.0}
-        if self.cull_tol <= 0 or len(orders) < 2 or self.sensor_pitch is None:
+        if self.cull_tol <= 0 or len(orders) < 2:
             return orders, rec
         land = self.order_landings(field, wavelength, depth, pms, orders)
         if land[0] is None:
             return orders, rec
-        ps = float(self.sensor_pitch)
+        ps = self.crop_pitch()
         cx, cy = land[0][2]
         h = (0.5 * ks + 1) * ps
         kept, culled, bound = cull_orders(orders, land, (cx - h, cx + h, cy - h, cy + h), float(wavelength),
