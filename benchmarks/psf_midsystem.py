@@ -15,7 +15,9 @@ within the issue's 1e-3 of the reference (its weak orders −15, +17 kept, ``min
 ``stop_edge="exit_pupil", edge_step="asm"``: 5.0e-4 / 5.6e-4 at 0° / 1.5°; order −31 is listed in ``orders`` but
 left out as under-sampled), and ``fresnel16_1e-3_weak_doe`` the same with ``weak_edge="doe"`` (6.7e-4 / 7.7e-4),
 each against the last-surface 16-level DOE at the engine's defaults (within 1e-3 of its own reference): the
-comparison at equal accuracy (benchmarks/midsystem_orders_accuracy.py). ``--cases`` runs some of them; a case whose
+comparison at equal accuracy (benchmarks/midsystem_orders_accuracy.py). ``grating_cull0.1``: the grating with the
+orders far outside the crop left out (``Orders(cull_tol=0.1)``: +5, −5, +3; NOT at equal accuracy, 1.0e-3 from the
+six orders; benchmarks/midsystem_cull.py). ``--cases`` runs some of them; a case whose
 options an older tree does not have is reported as skipped there.
 
 Times: median wall time of ``--repeat`` PSFs (forward; and forward + backward w.r.t. the DOE's parameters), one
@@ -118,6 +120,9 @@ CASES = (
     ("fresnel16_1e-3", "fresnel16", {"min_efficiency": 1e-3, "stop_edge": "exit_pupil", "edge_step": "asm"}, {}),
     ("fresnel16_1e-3_weak_doe", "fresnel16", {"min_efficiency": 1e-3, "stop_edge": "exit_pupil", "edge_step": "asm",
                                               "weak_edge": "doe"}, {}),
+    # the grating with the orders far outside the crop left out (Orders.cull_tol: +5, −5, +3 here, their bound 0.086):
+    # NOT at equal accuracy against the six orders (1.0e-3 relative L1 from them; benchmarks/midsystem_cull.py)
+    ("grating_cull0.1", "grating", {"cull_tol": 0.1}, {"stop_edge": "doe"}),
 )
 
 
@@ -157,7 +162,10 @@ def run(repeat: int, field: float, only=None) -> dict:
             warnings.simplefilter("ignore")
             fwd_mid(), fwd_last()  # warm-up (imports, caches)
             cpu: dict = {}
+            res = mid.psf_result([(0.0, field)], WL, ks=KS)
+            culled = [list(s for s, _ in r["orders"]) for r in getattr(res, "culled", None) or []]
             row = {"orders": len(mid.orders(WL)), "mid_options": mid_kw, "last_options": last_kw,
+                   "culled": culled[0] if culled else [],
                    "mid_forward_s": _time(fwd_mid, repeat, cpu, "mid_forward_cpu_s"),
                    "last_forward_s": _time(fwd_last, repeat, cpu, "last_forward_cpu_s"),
                    "mid_backward_s": _time(bwd(fwd_mid, params), repeat, cpu, "mid_backward_cpu_s"),
@@ -204,7 +212,8 @@ def run_ab(tree_a: str, tree_b: str, rounds: int, repeat: int, field: float, onl
         if not done:
             continue
         ref = runs[done[0]][0]["cases"][case]
-        row = {"orders": ref["orders"], "mid_options": ref.get("mid_options"), "last_options": ref.get("last_options")}
+        row = {"orders": ref["orders"], "mid_options": ref.get("mid_options"), "last_options": ref.get("last_options"),
+               "culled": runs["b"][0]["cases"][case].get("culled")}
         extra = [t for t in ("last_forward_nsrc_s", "last_forward_nsrc_cpu_s") if t in ref]
         for key in done:
             med = {t: statistics.median(r["cases"][case][t] for r in runs[key]) for t in times + extra}

@@ -49,7 +49,8 @@ from raywave.surfaces.interaction import Diffraction
 from raywave.surfaces.surface import Surface
 from raywave.wave.grid import Field
 
-__all__ = ["DOEClipWarning", "DOEPhaseSurface", "MidSystemLens", "order_coefficients", "sampling_report", "insert_doe"]
+__all__ = ["DOEClipWarning", "DOEPhaseSurface", "MidSystemLens", "MidSystemPSFResult", "cull_orders",
+           "order_coefficients", "sampling_report", "insert_doe", "tail_envelope"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -398,6 +399,104 @@ def sampling_report(doe: DOE, orders, max_step: float = MAX_STEP, box=None, phas
     return rep
 
 
+#: :func:`cull_orders`: the safety factor on :func:`tail_envelope` (the engine's far tail of a grating order reaches
+#: 0.83 of it: benchmarks/midsystem_cull.py), the crop's cells per side for its integral, the pupil probe of an
+#: order's footprint (rim points, grid side: :func:`~raywave.rays.pupil.rim_and_grid`)
+CULL_SAFETY = 4.0
+CULL_CELLS = 16
+CULL_PROBE = (32, 5)
+
+
+def tail_envelope(rho, na: float, wavelength: float):
+    """Upper envelope (1/mm², per unit power of the beam) of the intensity ``ρ`` mm (a float or tensor) outside the
+    geometric footprint of a beam cut by a sharp circular stop: the Airy pattern's ``8 NA²/(λ² v³)``, ``v = 2π NA
+    ρ/λ`` (``= λ/(π³ NA ρ³)``). Airy: ``I = P π NA²/λ² [2 J1(v)/v]²``, ``v J1(v)² → (2/π)(1 + 3/(8v²))``: it
+    reaches 1.069 of the envelope (at v = 2.17, in the central lobe), 1.012 on the first ring. A defocused or
+    aberrated beam: beyond its footprint (geometric rays reach no point there) the field is the stop's edge wave
+    from the rim's stationary points, whose amplitudes go as ``1/ρ`` and ``1/(ρ + 2R)`` (``R``: the footprint's
+    half-width) where the focused beam's go as ``2/ρ``: below the envelope at the same gap ``ρ`` from the
+    footprint. ``na``: n·sin of the beam's half-angle (the smallest
+    over its rim: the envelope falls with NA); ``wavelength`` µm. Not for other edges (a vignetting edge, a
+    square aperture fall as ρ⁻²): :meth:`MidSystemLens.order_landings` marks such beams as not to be culled."""
+    return wavelength * 1e-3 / (math.pi ** 3 * na * rho ** 3)
+
+
+def crop_tail(box, crop, na: float, wavelength: float, cells: int = CULL_CELLS) -> float:
+    """Upper bound on the fraction of a beam's power on the crop ``(x0, x1, y0, y1)`` mm from its footprint ``box``
+    ``(x0, x1, y0, y1)`` mm on the sensor: :data:`CULL_SAFETY` × Σ over ``cells``² cells of the cell's area ×
+    :func:`tail_envelope` at the gap between the footprint and the cell's nearest point; ``inf`` where the
+    footprint reaches the crop."""
+    t = torch.arange(cells, dtype=torch.float64) / cells
+    w, h = (crop[1] - crop[0]) / cells, (crop[3] - crop[2]) / cells
+    lo_x, lo_y = crop[0] + t * (crop[1] - crop[0]), crop[2] + t * (crop[3] - crop[2])
+    gx = torch.clamp(torch.maximum(lo_x - box[1], box[0] - (lo_x + w)), min=0.0)
+    gy = torch.clamp(torch.maximum(lo_y - box[3], box[2] - (lo_y + h)), min=0.0)
+    rho = torch.sqrt(gx[None, :] ** 2 + gy[:, None] ** 2)
+    if bool((rho <= 0).any()):
+        return math.inf
+    return CULL_SAFETY * float((tail_envelope(rho, na, wavelength) * (w * h)).sum())
+
+
+def inside_fraction(box, crop, na: float, wavelength: float) -> float:
+    """Lower bound on the fraction of a beam's power on the crop when its footprint ``box`` lies inside it (0
+    otherwise): ``1 −`` :data:`CULL_SAFETY` × :func:`tail_envelope` integrated over every point farther than ``ρ``
+    (the footprint's smallest gap to the crop's border) from the box (perimeter ``L``): ``λ/(π³ NA) (L/(2ρ²) +
+    2π/ρ)``."""
+    rho = min(box[0] - crop[0], crop[1] - box[1], box[2] - crop[2], crop[3] - box[3])
+    if rho <= 0:
+        return 0.0
+    perim = 2.0 * ((box[1] - box[0]) + (box[3] - box[2]))
+    out = CULL_SAFETY * wavelength * 1e-3 / (math.pi ** 3 * na) * (perim / (2 * rho ** 2) + _TWO_PI / rho)
+    return max(0.0, 1.0 - out)
+
+
+def cull_orders(orders, landings, crop, wavelength: float, tol: float):
+    """Which of a source's ``orders`` (``[(scale, c)]``, strongest first) to leave out: ``(kept indices, [(scale,
+    bound on its power on the crop)], bound)``.
+
+    ``landings``: each order's ``(footprint box, NA, …)`` on the sensor (:meth:`MidSystemLens.order_landings`; None:
+    unknown, or its beam cut by an edge other than the stop: never culled); ``crop``: ``(x0, x1, y0, y1)`` mm around
+    the strongest order's chief ray. With ``ε_j`` (:func:`crop_tail`, × |c_j|²) the power of order ``j`` on the
+    crop, the kept light's ``S ≥ (√(|c_0|² f_0) − Σ_{j>0} √(|c_j|² min(ε_j, 1)))²`` (``f_0``:
+    :func:`inside_fraction`; Minkowski), and leaving out a set ``C`` changes the crop's intensity by ``|U_k + U_C|² −
+    |U_k|²``, of L1 norm ``≤ 2√S b + b²`` (Cauchy–Schwarz; ``b ≤ Σ_C √ε_j``): the normalised PSF moves by at most
+    ``4β + 2β²``, ``β = b/√S``, in relative L1 (the interference with the kept light is what counts: order +5 of a
+    50 µm binary grating brings 6e-7 of the crop's light and moves the PSF by 2.7e-4). Orders are left out
+    weakest-on-the-crop first while that bound stays ``≤ tol``; the strongest order (the crop's centre) never."""
+    m = len(orders)
+    if tol <= 0 or m < 2 or landings[0] is None:
+        return list(range(m)), [], 0.0
+    eff = [abs(c) ** 2 for _, c in orders]
+    box0, na0 = landings[0][:2]
+    f0 = inside_fraction(box0, crop, na0, wavelength)
+    eps = [math.inf] + [math.inf if landings[j] is None else eff[j] * crop_tail(landings[j][0], crop, landings[j][1],
+                                                                                wavelength) for j in range(1, m)]
+    root_s = math.sqrt(eff[0] * f0) - sum(math.sqrt(min(eps[j], eff[j])) for j in range(1, m))
+    if root_s <= 0:
+        return list(range(m)), [], 0.0
+    culled, b, bound = [], 0.0, 0.0
+    for j in sorted(range(1, m), key=lambda i: eps[i]):
+        if not math.isfinite(eps[j]):
+            break
+        beta = (b + math.sqrt(eps[j])) / root_s
+        if 4 * beta + 2 * beta * beta > tol:
+            break
+        b += math.sqrt(eps[j])
+        bound = 4 * beta + 2 * beta * beta
+        culled.append(j)
+    kept = [j for j in range(m) if j not in culled]
+    return kept, [(orders[j][0], eps[j]) for j in culled], bound
+
+
+@dataclass
+class MidSystemPSFResult(PSFResult):
+    """A :class:`~raywave.hybrid.PSFResult` of :class:`MidSystemLens` plus ``culled``: per source with several
+    orders, ``{"field", "wavelength", "orders": [(scale, bound on its power on the crop)] left out, "bound": the
+    bound on the normalised PSF's relative L1 change}`` (:func:`cull_orders`)."""
+
+    culled: list = None
+
+
 class DOEClipWarning(UserWarning):
     """A mid-system DOE's grid (its aperture) cuts the beam that the stop lets through: the cut is a hard edge
     inside the lens, formed geometrically on the engine's plane, whose position is not differentiated."""
@@ -437,23 +536,35 @@ class Orders:
             with the exact edge: the 16-level DOE with ``min_efficiency=1e-3`` and ``edge_step="asm"`` within
             6.7e-4 / 7.7e-4 of the reference at 0° / 1.5° (5.0e-4 / 5.6e-4 with every order's exact edge) at ~¼ of
             the cost (benchmarks/psf_midsystem.py, docs/ray-wave.md "A DOE inside the lens").
+        cull_tol: an order whose light lands outside the PSF crop is left out of a source when a bound on the
+            relative L1 change of its normalised PSF stays below ``cull_tol`` (:func:`cull_orders`: the orders'
+            geometric footprints on the sensor, a sharp circular stop's far-field envelope, and the coherent cross
+            term with the kept light); 0 (the default) keeps every order. The orders left out and the bound are in
+            the result's ``culled`` (:class:`MidSystemPSFResult`). Off by default: an order's tail interferes with
+            the kept light, so the PSF moves by about the square root of the power the tail puts on the crop
+            (order −5 of a 50 µm binary grating, 220 µm from a 64 µm crop: 5e-4 relative L1); at 1e-4 the bound
+            leaves out nothing that lands on a sensor of a few mm, and its probe trace costs ~10 ms a source
+            (docs/ray-wave.md, "A DOE inside the lens").
     """
 
     keep: object = None
     min_efficiency: float = 0.01
     weak_edge: str | None = None
+    cull_tol: float = 0.0
 
     def __post_init__(self):
         if self.weak_edge not in (None, "doe"):
             raise ValueError(f"MidSystemLens: weak_edge must be None or 'doe', got {self.weak_edge!r}")
         if not (self.min_efficiency >= 0.0):
             raise ValueError(f"MidSystemLens: min_efficiency must be ≥ 0, got {self.min_efficiency!r}")
+        if not (0.0 <= self.cull_tol < 1.0):
+            raise ValueError(f"MidSystemLens: cull_tol must be in [0, 1), got {self.cull_tol!r}")
 
 
 #: :class:`MidSystemLens`'s arguments after ``distance`` before the final plane became a value type, in their order
 _LEGACY_ARGS = ("final_distance", "final_size", "final_pitch", "sensor_pitch", "stop_edge", "min_efficiency", "orders")
 #: the short keywords of :class:`Orders`' fields that :class:`MidSystemLens` still takes
-_ORDER_KEYWORDS = ("min_efficiency", "weak_edge")
+_ORDER_KEYWORDS = ("min_efficiency", "weak_edge", "cull_tol")
 
 
 def _final_plane(final: tuple, legacy: dict, options: dict) -> FinalPlane:
@@ -483,15 +594,17 @@ def _final_plane(final: tuple, legacy: dict, options: dict) -> FinalPlane:
     return FinalPlane(float(given["final_distance"]), float(given["final_size"]), float(given["final_pitch"]))
 
 
-def _orders(orders, min_efficiency, weak_edge) -> Orders:
+def _orders(orders, min_efficiency, weak_edge, cull_tol=None) -> Orders:
     """:class:`MidSystemLens`'s :class:`Orders` from its ``orders`` argument (an :class:`Orders`, or the orders to keep)
-    and the short keywords ``min_efficiency`` / ``weak_edge`` (None: not given); TypeError where both forms are
-    given."""
+    and the short keywords ``min_efficiency`` / ``weak_edge`` / ``cull_tol`` (None: not given); TypeError where both
+    forms are given."""
     if isinstance(orders, Orders):
-        if min_efficiency is not None or weak_edge is not None:
-            raise TypeError("MidSystemLens: give min_efficiency / weak_edge inside orders=Orders(...), not beside it")
+        if min_efficiency is not None or weak_edge is not None or cull_tol is not None:
+            raise TypeError("MidSystemLens: give min_efficiency / weak_edge / cull_tol inside orders=Orders(...), not "
+                            "beside it")
         return orders
-    return Orders(orders, 0.01 if min_efficiency is None else float(min_efficiency), weak_edge)
+    return Orders(orders, 0.01 if min_efficiency is None else float(min_efficiency), weak_edge,
+                  Orders.cull_tol if cull_tol is None else float(cull_tol))
 
 
 class MidSystemLens(nn.Module):
@@ -526,7 +639,7 @@ class MidSystemLens(nn.Module):
                 "orders": orders}
         plane = _final_plane(final, legacy, opts)
         sensor_pitch, stop_edge = opts["sensor_pitch"], opts["stop_edge"]
-        choice = _orders(opts["orders"], opts["min_efficiency"], short.get("weak_edge"))
+        choice = _orders(opts["orders"], opts["min_efficiency"], short.get("weak_edge"), short.get("cull_tol"))
         super().__init__()
         does = list(doe) if isinstance(doe, (list, tuple)) else [doe]
         n = len(does)
@@ -553,6 +666,7 @@ class MidSystemLens(nn.Module):
         self.edge_step = edge_step
         self.weak_edge = choice.weak_edge
         self.min_efficiency = float(choice.min_efficiency)
+        self.cull_tol = float(choice.cull_tol)
         self._transfer_cache = OrderedDict()
         self._edge_transfers = OrderedDict()  # the exact edge step's (exit_pupil.edge_transfer), shared likewise
         self.build_lens([1.0] * n)  # checks the placements now
@@ -892,15 +1006,77 @@ class MidSystemLens(nn.Module):
             counts.append(0 if not (math.isfinite(det) and math.isfinite(tr)) else 1 if det < 0 else 2 if tr < 0 else 0)
         return counts
 
-    def psf_result(self, fields=(0.0, 0.0), wavelengths=0.55, ks: int = 64, depth=None) -> PSFResult:
-        """PSFs ``(F, W, ks, ks)`` (sum 1, centred on the strongest order's chief ray) as :class:`PSFResult`."""
+    def order_landings(self, field, wavelength: float, depth, pms, orders) -> list:
+        """Each order's geometric footprint on the sensor, ``[(box (x0, x1, y0, y1) mm, NA, chief ray's landing (x,
+        y) mm) or None]``, from ONE
+        trace of the orders as sources (:func:`~raywave.hybrid.coherent.tracing.per_source`): the chief ray, a rim
+        and a grid over the stop (:data:`CULL_PROBE`), apertures on. The box holds the landings, widened by one
+        sensor pixel; NA: ``n`` × the smallest sine between a rim ray and the chief ray. None for an order whose
+        probe rays an aperture cuts (a vignetting edge, the DOE's grid: not the stop's circular edge that
+        :func:`tail_envelope` bounds) or whose rays do not reach the sensor."""
+        n = len(self.does)
+        lens_m, _ = self.build_lens([None] * n, pms, [self._continuous(i) for i in range(n)], per_source=True)
+        values = [tuple(sc) if isinstance(sc, (tuple, list)) else (sc,) for sc, _ in orders]
+        rx, ry = rim_and_grid(*CULL_PROBE)
+        zero = torch.zeros(1, dtype=torch.float64)
+        px, py = torch.cat([zero, rx]).to(lens_m.device), torch.cat([zero, ry]).to(lens_m.device)
+        f = torch.tensor([list(field)] * len(orders), dtype=torch.float64)
+        wl = torch.tensor([wavelength], dtype=torch.float64, device=lens_m.device)
+        with torch.no_grad(), warnings.catch_warnings(), per_source(lens_m, values):
+            warnings.simplefilter("ignore")  # a vignetted probe marks its order as not to be culled
+            rays = point_source_rays(lens_m, f, wl, pupil=(px, py), aim="full", depth=depth)
+            out = lens_m.trace(rays)
+        nmed = lens_m.surfaces[-1].material.n(out.wavelength).to(out.dtype)
+        at = out.propagate_to_z(float(lens_m.image_z().detach()), nmed)
+        ps = self.crop_pitch()
+        res = []
+        for j in range(len(orders)):
+            o, d, ok = at.o[j, 0], at.d[j, 0], at.valid[j, 0]
+            if not bool(ok.all()) or not bool(torch.isfinite(o).all()):
+                res.append(None)
+                continue
+            x, y = o[:, 0], o[:, 1]
+            box = (float(x.min()) - ps, float(x.max()) + ps, float(y.min()) - ps, float(y.max()) + ps)
+            sin = torch.linalg.vector_norm(torch.cross(d[1:CULL_PROBE[0] + 1], d[:1].expand(CULL_PROBE[0], 3), dim=-1),
+                                           dim=-1)
+            na = float(nmed.reshape(-1)[0]) * float(sin.min())
+            res.append((box, na, (float(x[0]), float(y[0]))) if na > 0 else None)
+        return res
+
+    def crop_pitch(self) -> float:
+        """The PSF's pixel pitch (mm): ``sensor_pitch``, else the lens's sensor pixel pitch, else the final plane's
+        pitch (as :class:`~raywave.hybrid.HybridLens` resolves it)."""
+        pitch = self.sensor_pitch if self.sensor_pitch is not None else self.lens.pixel_pitch
+        return float(pitch if pitch is not None else self.final.pitch)
+
+    def cull(self, field, wavelength: float, depth, pms, orders, ks: int):
+        """``(orders kept, record)``: :func:`cull_orders` of the source ``field`` at ``wavelength`` for the ``ks`` ×
+        ``ks`` crop (one sensor pixel of margin around it) centred on the strongest order's chief ray;
+        ``record``: ``{"field", "wavelength", "orders": [(scale, bound on its power on the crop)], "bound"}``."""
+        rec = {"field": list(field), "wavelength": float(wavelength), "orders": [], "bound": 0.0}
+        if self.cull_tol <= 0 or len(orders) < 2:
+            return orders, rec
+        land = self.order_landings(field, wavelength, depth, pms, orders)
+        if land[0] is None:
+            return orders, rec
+        ps = self.crop_pitch()
+        cx, cy = land[0][2]
+        h = (0.5 * ks + 1) * ps
+        kept, culled, bound = cull_orders(orders, land, (cx - h, cx + h, cy - h, cy + h), float(wavelength),
+                                          self.cull_tol)
+        rec["orders"], rec["bound"] = culled, bound
+        return [orders[j] for j in kept], rec
+
+    def psf_result(self, fields=(0.0, 0.0), wavelengths=0.55, ks: int = 64, depth=None) -> "MidSystemPSFResult":
+        """PSFs ``(F, W, ks, ks)`` (sum 1, centred on the strongest order's chief ray) as :class:`MidSystemPSFResult`
+        (its ``culled``: the orders left out of each source by :meth:`cull`, and the bound)."""
         fields = torch.as_tensor(fields, dtype=torch.float64).reshape(-1, 2).tolist()
         wls = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64).reshape(-1)]
         psfs, centers, outs, rays = [], [], [], []
         pms = [DOEPhaseSurface(d).phase_map() for d in self.does]  # once per call (with autograd if on)
-        built = {}
+        built, culled = {}, []
         for j, wl in enumerate(wls):
-            for i, (fd, hl, orders) in enumerate(self._wavelength_fields(fields, wl, depth, pms)):
+            for i, (fd, hl, orders) in enumerate(self._wavelength_fields(fields, wl, depth, pms, ks, culled)):
                 built[i, j] = (fd, hl, orders)
         for i in range(len(fields)):
             pr, cr, orow, rr = [], [], [], []
@@ -910,15 +1086,24 @@ class MidSystemLens(nn.Module):
                 pr.append(psf), cr.append(c), orow.append(o), rr.append(fd.rays * len(orders))
             psfs.append(torch.stack(pr)), centers.append(torch.stack(cr)), outs.append(torch.stack(orow))
             rays.append(rr)
-        return PSFResult(torch.stack(psfs), torch.stack(centers), torch.stack(outs), hl.sensor_pitch,
-                         torch.tensor(rays))
+        return MidSystemPSFResult(torch.stack(psfs), torch.stack(centers), torch.stack(outs), hl.sensor_pitch,
+                                  torch.tensor(rays), culled=culled)
 
-    def _wavelength_fields(self, fields: list, wavelength: float, depth, pms) -> list:
+    def _wavelength_fields(self, fields: list, wavelength: float, depth, pms, ks: int | None = None,
+                           culled: list | None = None) -> list:
         """:meth:`source_field` of every source ``fields`` ([F] of (2,)) at ``wavelength``: ``[(DOEField, HybridLens,
         orders)]``. Where every source has one order, the same (a continuous DOE; a fabricated one whose strongest
         order alone is kept), they are the sources of ONE engine call (its traces batched across them; each field
-        the one its own call builds, to the batched aiming's rounding); else one :meth:`source_field` per source."""
+        the one its own call builds, to the batched aiming's rounding); else one :meth:`source_field` per source.
+        ``ks``: the crop for which a source's orders far outside it are left out (:meth:`cull`; their records
+        appended to ``culled``); None: none is."""
         orders = [self.source_orders(f, wavelength, depth, pms) for f in fields]
+        if ks is not None and self.cull_tol > 0:
+            for i, f in enumerate(fields):
+                if len(orders[i]) > 1:
+                    orders[i], rec = self.cull(f, wavelength, depth, pms, orders[i], ks)
+                    if culled is not None:
+                        culled.append(rec)
         one = [o[0][0] for o in orders if len(o) == 1]
         if len(fields) > 1 and len(one) == len(fields) and all(s == one[0] for s in one):
             hl = self.order_lens(one[0], None, pms)
