@@ -77,3 +77,12 @@ def test_bad_input_raises_its_own_error_not_a_compiler_warning():
     with pytest.raises(RuntimeError, match="size"):
         _fused_chain(x, y[:5], 1.0)
     assert math.isfinite(float(_fused_chain(x, y, 1.0).sum()))  # still compiled afterwards
+
+
+def test_the_raised_recompile_limit_is_scoped_to_the_fused_call():
+    import torch._dynamo
+
+    before = torch._dynamo.config.cache_size_limit
+    x, y = _inputs(64)
+    _fused_chain(x, y, 1.5)
+    assert torch._dynamo.config.cache_size_limit == before
