@@ -13,6 +13,7 @@ import torch
 from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.utils import devices
 from raywave.utils.fresnel import fresnel as fresnel_torch
+from raywave.utils.fused import compile_enabled, fused
 from raywave.utils.phasor import polar
 
 
@@ -274,6 +275,18 @@ def _band_masks(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
     ``ripple_zones`` a tensor: per-row constants of a batch of windows stacked by rows (issue 43, the batched field
     stage): ``ripple_zones`` and ``g`` (R, 1) float64, one value per row of ``nu`` (R, N); ν_b and ν_max are then
     (R, 1), each row's the values its own window's floats give (true divisions, as on the host)."""
+    nu_b, nu_max = _band_limits(ripple_zones, g, pitch)
+    nu = nu.detach()
+    inside = nu >= nu_b
+    outer = nu > -nu_max
+    if isinstance(ripple_zones, torch.Tensor) or ripple_zones < 0:
+        return inside, outer & ~inside, nu_b, nu_max
+    # inside lies within ν > −ν_max (ν_b ≥ 2 > 0 ≥ −ν_max): the band is the one without the other, an exclusive or
+    return inside, outer.logical_xor_(inside), nu_b, nu_max
+
+
+def _band_limits(ripple_zones, g, pitch: float):
+    """``(ν_b, ν_max)`` of :func:`_band_masks` (floats, or tensors for tensor constants)."""
     nu_max = math.sqrt(2.0) * ripple_zones
     if isinstance(ripple_zones, torch.Tensor):  # per-row constants: the host formula below, row by row
         nu_b = torch.maximum(torch.minimum(torch.full_like(g, 0.6) / (g * pitch), _nu_inner(ripple_zones)),
@@ -282,13 +295,7 @@ def _band_masks(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
         nu_b = torch.clamp(0.6 / (g.detach() * pitch), max=_nu_inner(ripple_zones)).clamp_min(2.0)
     else:  # one value for the whole window
         nu_b = max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0)
-    nu = nu.detach()
-    inside = nu >= nu_b
-    outer = nu > -nu_max
-    if isinstance(ripple_zones, torch.Tensor) or ripple_zones < 0:
-        return inside, outer & ~inside, nu_b, nu_max
-    # inside lies within ν > −ν_max (ν_b ≥ 2 > 0 ≥ −ν_max): the band is the one without the other, an exclusive or
-    return inside, outer.logical_xor_(inside), nu_b, nu_max
+    return nu_b, nu_max
 
 
 def _edge_band(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
@@ -355,7 +362,14 @@ class _EdgeEnvelope(torch.autograd.Function):
     @staticmethod
     def values(amp, angle, nu, kap, consts, keep_fresnel: bool = True):
         """``(z (complex128, nu's shape), the band's Fresnel integrals (C, S) or None without ``keep_fresnel``)``
-        (no graph), block by block (:meth:`_block_values`; the backward walks the same blocks)."""
+        (no graph), block by block (:meth:`_block_values`; the backward walks the same blocks); or, where
+        :func:`_dense_plan` allows, the whole window as one compiled loop (:func:`_envelope_dense`; the Fresnel
+        integrals then ``None``: the backward recomputes them in its own loop)."""
+        plan = _dense_plan(nu, consts)
+        if plan is not None:
+            with torch.no_grad():  # (detached inputs; one graph whether or not autograd records the call)
+                env = _envelope_dense(*_dense_args(amp, angle, nu, kap, plan), *plan[2:])
+            return torch.view_as_complex(env), None
         out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
         g = consts[2]
         step = _block_rows(nu)
@@ -418,9 +432,10 @@ class _EdgeEnvelope(torch.autograd.Function):
     def forward(ctx, amp, angle, nu, kap, forward_edge: bool, ripple_zones: float, g, pitch: float):
         ctx.consts = (forward_edge, ripple_zones, g, pitch)
         out, fresnel = _EdgeEnvelope.values(amp, angle, nu, kap, ctx.consts)
+        ctx.dense = fresnel is None  # the compiled loop's forward: its backward the compiled loop's too
         # a view of a larger tensor (the accurate construction's interpolated channels: ν and κ/g are two of four,
         # before the crop to the lit window) would keep all of it: keep compact copies instead
-        ctx.save_for_backward(amp, angle, *(_compact(t) for t in (nu, kap)), *fresnel)
+        ctx.save_for_backward(amp, angle, *(_compact(t) for t in (nu, kap)), *(fresnel or ()))
         return out
 
     @staticmethod
@@ -428,6 +443,8 @@ class _EdgeEnvelope(torch.autograd.Function):
         amp, angle, nu, kap, *fresnel = ctx.saved_tensors
         forward_edge, ripple_zones, g, pitch = ctx.consts
         need = ctx.needs_input_grad
+        if ctx.dense:
+            return _dense_backward(grad, (amp, angle, nu, kap), ctx.consts, need)
         g_amp = torch.empty_like(amp) if need[0] else None
         g_angle = torch.empty_like(angle) if need[1] else None
         g_nu = torch.zeros_like(nu) if need[2] else None
@@ -694,6 +711,149 @@ class _EdgeBand(torch.autograd.Function):
             de = torch.where((kap >= -KAPPA_MAX) & (kap <= KAPPA_MAX), -0.5 * w, torch.zeros_like(w))  # ∂e/∂(κ/g)·w
             g_k = g_re * (e_re * df + b_re * de) + g_im * (d_im * df + b_im * de)
         return g_v, g_k
+
+
+def _fresnel_table_cs(v, tab, offset):
+    """``(C, S)`` of ``v`` from the table ``tab`` (:func:`_fresnel_table`; ``offset`` = its half-range in steps) for
+    ``|v|`` below its half-range: :func:`_fresnel_table_values`' arithmetic (exact positions, Horner in the same
+    order) as whole-array operations, for :func:`_envelope_dense`'s compiled loop (the gathers are indexed loads
+    there)."""
+    pos = v * (1.0 / FRESNEL_TABLE_STEP)
+    i = pos.floor()
+    t = pos - i
+    idx = i.long() + offset
+    out = []
+    for k in (0, 6):
+        f = tab[k + 5][idx] * t
+        for j in (4, 3, 2, 1):
+            f = (f + tab[k + j][idx]) * t
+        out.append(f + tab[k][idx])
+    return out[0], out[1]
+
+
+def _factor_terms(v, kap, nb, nu_max, fresnel, forward_edge: bool):
+    """``(Re, Im)`` of the knife-edge factor at band values ``v``: :meth:`_EdgeBand._values`' arithmetic in its
+    order, without its in-place writes (for a compiled loop); ``fresnel`` = ``(C, S)`` at ``v``."""
+    c_, s_ = fresnel
+    ha = (c_ + 0.5) * 0.5
+    hb = (s_ + 0.5) * 0.5
+    d_re = ha + hb
+    d_im = hb - ha if forward_edge else ha - hb
+    w_out = _smoothstep((v + nu_max) / (ROLL_ZONES * math.sqrt(2.0)))
+    h = 0.5 * nb
+    w = (1.0 - _smoothstep((v - h) / h)) * w_out
+    m = w if kap is None else torch.sqrt((v * kap).clamp(-0.9, 3.0) + 1.0) * w
+    step = (v > 0).to(v.dtype)
+    e_re = d_re - step
+    re = e_re * m + w_out * step
+    im = d_im * m
+    if kap is None:
+        return re, im
+    ph = (v * (0.5 * math.pi)) * v
+    cos_, sin_ = torch.cos(ph), torch.sin(ph)
+    b_re = v * e_re + (cos_ - sin_) / (2.0 * math.pi)
+    b_c = (cos_ + sin_) / (2.0 * math.pi)
+    b_im = v * d_im + (b_c if forward_edge else -b_c)
+    e = kap.clamp(-KAPPA_MAX, KAPPA_MAX) * -0.5 * w
+    return re + b_re * e, im + b_im * e
+
+
+def _dense_band(nu, kap, nb, nu_max, tab, offset, forward_edge: bool):
+    """``(band, Re D, Im D, (C, S))`` of the knife-edge factor ``D`` on a whole window (:func:`_envelope_dense`):
+    ``band`` where it is evaluated (−ν_max < ν < ν_b), ``D`` 1 inside (ν ≥ ν_b) and 0 beyond; the Fresnel
+    integrals and the factor's terms are computed everywhere (one loop: cheaper than gathering the band) and kept on
+    the band (ν is 0 off it: every table index in range, no NaN)."""
+    inside = nu >= nb
+    band = (nu > -nu_max) & ~inside
+    v = torch.where(band, nu, 0.0)
+    fresnel = _fresnel_table_cs(v, tab, offset)
+    re, im = _factor_terms(v, kap, nb, nu_max, fresnel, forward_edge)
+    return band, v, torch.where(band, re, inside.to(nu.dtype)), torch.where(band, im, 0.0), fresnel
+
+
+@fused
+def _envelope_dense(amp, angle, nu, kap, nb, nu_max, tab, offset: int, forward_edge: bool):
+    """``polar(amp, angle)·D(ν, κ/g)`` (:func:`edge_envelope`) of a whole window as one compiled loop, stacked
+    ``(..., 2)`` (real, imaginary) float64 (``torch.view_as_complex`` of it is the envelope): ``nb`` (ν_b) and
+    ``nu_max`` tensors broadcasting to ``nu`` (per window, per row or per sample), ``tab`` the Fresnel table
+    (:func:`_fresnel_table`) covering the band, ``offset`` its half-range in table steps. The values of
+    :meth:`_EdgeEnvelope._block_values` to rounding (the compiled loop's sin/cos)."""
+    _, _, d_re, d_im, _ = _dense_band(nu, kap, nb, nu_max, tab, offset, forward_edge)
+    x = torch.cos(angle) * amp
+    y = torch.sin(angle) * amp
+    return torch.stack([x * d_re - y * d_im, y * d_re + x * d_im], -1)
+
+
+@fused
+def _envelope_dense_grads(grad, amp, angle, nu, kap, nb, nu_max, tab, offset: int, flags: tuple):
+    """The backward of :func:`_envelope_dense` as one compiled loop: ``(∂L/∂a, ∂L/∂θ, ∂L/∂ν, ∂L/∂(κ/g))`` (the
+    last None without κ/g; ν's and κ/g's None unless ``flags[1]``) from the output's gradient ``grad`` (..., 2)
+    (real, imaginary): :meth:`_EdgeEnvelope._block_grads`' arithmetic (``q = conj(G)·e^{iθ}``, ``∂L/∂a = Re(q·D)``,
+    ``∂L/∂θ = −a·Im(q·D)``, on the band :meth:`_EdgeBand.grads` of ``∂L/∂D = conj(q)·a``), the band's Fresnel
+    integrals recomputed from the table. ``flags`` = ``(forward_edge, ν and κ/g wanted, κ/g wanted)``."""
+    forward_edge, need_band, need_kap = flags
+    g_re, g_im = grad[..., 0], grad[..., 1]
+    cos_, sin_ = torch.cos(angle), torch.sin(angle)
+    q_re = g_re * cos_ + g_im * sin_
+    q_im = sin_ * g_re - cos_ * g_im
+    band, v, d_re, d_im, fresnel = _dense_band(nu, kap, nb, nu_max, tab, offset, forward_edge)
+    g_amp = q_re * d_re - q_im * d_im
+    g_angle = -((q_re * d_im + q_im * d_re) * amp)
+    if not need_band:
+        return g_amp, g_angle, None, None
+    gv, gk = _EdgeBand.grads(v, kap, nb, *fresnel, nu_max, forward_edge, q_re * amp, -(q_im * amp), need_kap)
+    return g_amp, g_angle, torch.where(band, gv, 0.0), None if gk is None else torch.where(band, gk, 0.0)
+
+
+def _dense_plan(nu: torch.Tensor, consts, compiled: bool = True):
+    """Whether :class:`_EdgeEnvelope` runs as one compiled loop (:func:`_envelope_dense`): on the CPU, with the
+    Fresnel table (:data:`FRESNEL_CPU`) covering the band (|ν| < max(ν_max, ν_b) ≤ :data:`FRESNEL_TABLE_MAX`: every
+    band of :data:`MAX_RIPPLE_ZONES` or fewer), compiling switched on (``RAYWAVE_COMPILE``) and not failed. Returns
+    ``(ν_b, ν_max (tensors broadcasting to ν), the table, its half-range in steps)`` or None (the blocks of
+    :meth:`_EdgeEnvelope._block_values`: eager arithmetic on the band's samples alone, the faster one uncompiled).
+    One host read of ν_b's and ν_max's largest value where they are per-row tensors. ``compiled`` False: without
+    the compile switches (the backward of a compiled forward)."""
+    if compiled and (nu.device.type != "cpu" or FRESNEL_CPU != "table" or nu.dtype != torch.float64
+                     or not compile_enabled() or _envelope_dense._failed or nu.numel() == 0 or nu.ndim == 0):
+        return None
+    forward_edge, ripple_zones, g, pitch = consts
+    nb, nm = (_per_row(c, nu) for c in _band_limits(ripple_zones, g, pitch))
+    top = float(torch.maximum(nb.abs().max(), nm.abs().max()))
+    if not top <= FRESNEL_TABLE_MAX:  # (NaN too)
+        return None
+    half = FRESNEL_TABLE_HALF
+    while top > half:
+        half *= 2.0
+    return nb, nm, _fresnel_table(half), round(half / FRESNEL_TABLE_STEP), forward_edge
+
+
+def _per_row(c, nu: torch.Tensor) -> torch.Tensor:
+    """A constant of the knife-edge band (a float, or a tensor broadcasting to ``nu``) as a tensor for
+    :func:`_envelope_dense`: a float or a 0-dim tensor as an ``(R, 1, …)`` column (``nu``'s rows), the same graph as
+    a batch's per-row constants (issue 43) and so the same values bit for bit; a tensor otherwise as it is."""
+    if isinstance(c, torch.Tensor) and c.ndim:
+        return c.detach()
+    return torch.full((nu.shape[0],) + (1,) * (nu.ndim - 1), float(c), dtype=torch.float64, device=nu.device)
+
+
+def _dense_args(amp, angle, nu, kap, plan):
+    """The detached inputs of :func:`_envelope_dense` (and its backward) from :class:`_EdgeEnvelope`'s and a
+    :func:`_dense_plan`."""
+    return (amp.detach(), angle.detach(), nu.detach(), None if kap is None else kap.detach(), plan[0], plan[1])
+
+
+def _dense_backward(grad, inputs: tuple, consts, need):
+    """:meth:`_EdgeEnvelope.backward` of the compiled loop's forward (:func:`_envelope_dense_grads`)."""
+    amp, angle, nu, kap = inputs
+    plan = _dense_plan(nu, consts, compiled=False)  # (the same loop's arithmetic, eager if compiling is off now)
+    need_band = need[2] or (need[3] and kap is not None)
+    need_kap = need[3] and kap is not None
+    with torch.no_grad():
+        g = _envelope_dense_grads(torch.view_as_real(grad.resolve_conj()), *_dense_args(amp, angle, nu, kap, plan),
+                                  plan[2], plan[3], (plan[4], need_band, need_kap))
+    g_amp = g[0].sum_to_size(amp.shape) if need[0] else None
+    return (g_amp, g[1] if need[1] else None, g[2] if need[2] else None, g[3] if need_kap else None,
+            None, None, None, None)
 
 
 #: stop-rim points at which :func:`stop_rim_images` finds the edge's image
