@@ -738,14 +738,15 @@ def _fresnel_table_cs(v, rows, offset):
     return out[0], out[1]
 
 
-def _factor_terms(v, kap, nb, nu_max, fresnel, forward_edge: bool):
+def _factor_terms(v, kap, nb, nu_max, fresnel, sign: float):
     """``(Re, Im)`` of the knife-edge factor at band values ``v``: :meth:`_EdgeBand._values`' arithmetic in its
-    order, without its in-place writes (for a compiled loop); ``fresnel`` = ``(C, S)`` at ``v``."""
+    order, without its in-place writes (for a compiled loop); ``fresnel`` = ``(C, S)`` at ``v``, ``sign`` 1.0 for
+    ``forward_edge``, else −1.0 (a product: exactly the mirrored difference; one compiled graph for both)."""
     c_, s_ = fresnel
     ha = (c_ + 0.5) * 0.5
     hb = (s_ + 0.5) * 0.5
     d_re = ha + hb
-    d_im = hb - ha if forward_edge else ha - hb
+    d_im = (hb - ha) * sign
     w_out = _smoothstep((v + nu_max) / (ROLL_ZONES * math.sqrt(2.0)))
     h = 0.5 * nb
     w = (1.0 - _smoothstep((v - h) / h)) * w_out
@@ -759,13 +760,12 @@ def _factor_terms(v, kap, nb, nu_max, fresnel, forward_edge: bool):
     ph = (v * (0.5 * math.pi)) * v
     cos_, sin_ = torch.cos(ph), torch.sin(ph)
     b_re = v * e_re + (cos_ - sin_) / (2.0 * math.pi)
-    b_c = (cos_ + sin_) / (2.0 * math.pi)
-    b_im = v * d_im + (b_c if forward_edge else -b_c)
+    b_im = v * d_im + (cos_ + sin_) / (2.0 * math.pi) * sign
     e = kap.clamp(-KAPPA_MAX, KAPPA_MAX) * -0.5 * w
     return re + b_re * e, im + b_im * e
 
 
-def _dense_band(nu, kap, nb, nu_max, tab, offset, forward_edge: bool):
+def _dense_band(nu, kap, nb, nu_max, tab, offset, sign: float):
     """``(band, Re D, Im D, (C, S))`` of the knife-edge factor ``D`` on a whole window (:func:`_envelope_dense`):
     ``band`` where it is evaluated (−ν_max < ν < ν_b), ``D`` 1 inside (ν ≥ ν_b) and 0 beyond; the Fresnel
     integrals and the factor's terms are computed everywhere (one loop: cheaper than gathering the band) and kept on
@@ -774,17 +774,18 @@ def _dense_band(nu, kap, nb, nu_max, tab, offset, forward_edge: bool):
     band = (nu > -nu_max) & ~inside
     v = torch.where(band, nu, 0.0)
     fresnel = _fresnel_table_cs(v, tab, offset)
-    re, im = _factor_terms(v, kap, nb, nu_max, fresnel, forward_edge)
+    re, im = _factor_terms(v, kap, nb, nu_max, fresnel, sign)
     return band, v, torch.where(band, re, inside.to(nu.dtype)), torch.where(band, im, 0.0), fresnel
 
 
 @fused
-def _envelope_dense(amp, angle, nu, kap, nb, nu_max, tab, offset: int, forward_edge: bool):
+def _envelope_dense(amp, angle, nu, kap, nb, nu_max, tab, offset: int, sign: float):
     """``polar(amp, angle)·D(ν, κ/g)`` (:func:`edge_envelope`) of a whole window as one compiled loop: its real and
     imaginary parts (float64, ``nu``'s shape): ``nb`` (ν_b) and ``nu_max`` tensors broadcasting to ``nu`` (per
-    window, per row or per sample), ``tab`` the Fresnel table (:func:`_fresnel_table_rows`) covering the band, ``offset`` its half-range in table steps. The values of
+    window, per row or per sample), ``tab`` the Fresnel table (:func:`_fresnel_table_rows`) covering the band,
+    ``offset`` its half-range in table steps, ``sign`` 1.0 for a forward edge (``dz ≥ 0``), else −1.0. The values of
     :meth:`_EdgeEnvelope._block_values` to rounding (the compiled loop's sin/cos)."""
-    _, _, d_re, d_im, _ = _dense_band(nu, kap, nb, nu_max, tab, offset, forward_edge)
+    _, _, d_re, d_im, _ = _dense_band(nu, kap, nb, nu_max, tab, offset, sign)
     x = torch.cos(angle) * amp
     y = torch.sin(angle) * amp
     # two outputs, not one stacked (..., 2): an interleaved store keeps the loop from vectorising (8× slower)
@@ -792,22 +793,55 @@ def _envelope_dense(amp, angle, nu, kap, nb, nu_max, tab, offset: int, forward_e
 
 
 @fused
-def _envelope_dense_grads(g_re, g_im, amp, angle, nu, kap, nb, nu_max, tab, offset: int, flags: tuple):
-    """The backward of :func:`_envelope_dense` as one compiled loop: ``(∂L/∂a, ∂L/∂θ, ∂L/∂ν, ∂L/∂(κ/g))`` (the
-    last None without κ/g; ν's and κ/g's None unless ``flags[1]``) from the output's gradient ``(g_re, g_im)``: :meth:`_EdgeEnvelope._block_grads`' arithmetic (``q = conj(G)·e^{iθ}``, ``∂L/∂a = Re(q·D)``,
-    ``∂L/∂θ = −a·Im(q·D)``, on the band :meth:`_EdgeBand.grads` of ``∂L/∂D = conj(q)·a``), the band's Fresnel
-    integrals recomputed from the table. ``flags`` = ``(forward_edge, ν and κ/g wanted, κ/g wanted)``."""
-    forward_edge, need_band, need_kap = flags
+def _envelope_dense_grads(g_re, g_im, amp, angle, nu, kap, nb, nu_max, tab, offset: int, sign: float):
+    """The backward of :func:`_envelope_dense` as one compiled loop: ``(∂L/∂a, ∂L/∂θ, ∂L/∂ν, ∂L/∂(κ/g) or None)``
+    from the output's gradient ``(g_re, g_im)``: :meth:`_EdgeEnvelope._block_grads`' arithmetic (``q =
+    conj(G)·e^{iθ}``, ``∂L/∂a = Re(q·D)``, ``∂L/∂θ = −a·Im(q·D)``, on the band :meth:`_EdgeBand.grads`' of
+    ``∂L/∂D = conj(q)·a``), the band's Fresnel integrals recomputed from the table. All four always (one graph)."""
     cos_, sin_ = torch.cos(angle), torch.sin(angle)
     q_re = g_re * cos_ + g_im * sin_
     q_im = sin_ * g_re - cos_ * g_im
-    band, v, d_re, d_im, fresnel = _dense_band(nu, kap, nb, nu_max, tab, offset, forward_edge)
+    band, v, d_re, d_im, fresnel = _dense_band(nu, kap, nb, nu_max, tab, offset, sign)
     g_amp = q_re * d_re - q_im * d_im
     g_angle = -((q_re * d_im + q_im * d_re) * amp)
-    if not need_band:
-        return g_amp, g_angle, None, None
-    gv, gk = _EdgeBand.grads(v, kap, nb, *fresnel, nu_max, forward_edge, q_re * amp, -(q_im * amp), need_kap)
+    gv, gk = _band_grads(v, kap, nb, fresnel, nu_max, sign, (q_re * amp, -(q_im * amp)))
     return g_amp, g_angle, torch.where(band, gv, 0.0), None if gk is None else torch.where(band, gk, 0.0)
+
+
+def _band_grads(v, kap, nb, fresnel, nu_max, sign: float, grads: tuple):
+    """:meth:`_EdgeBand.grads` (both gradients, ``∂L/∂(κ/g)`` None without ``kap``) with the edge's direction as
+    ``sign`` (1.0 / −1.0: products, the same values as its branches) for :func:`_envelope_dense_grads`."""
+    g_re, g_im = grads
+    c_, s_ = fresnel
+    t_out, t_in, w_out, w_in, f, ok = _EdgeBand._terms(v, kap, nb, nu_max)
+    a, b = c_ + 0.5, s_ + 0.5
+    d_re, d_im = 0.5 * a + 0.5 * b, (0.5 * b - 0.5 * a) * sign
+    ph = 0.5 * math.pi * v * v  # C' = cos, S' = sin
+    cos_, sin_ = torch.cos(ph), torch.sin(ph)
+    dd_re, dd_im = 0.5 * (cos_ + sin_), sign * 0.5 * (sin_ - cos_)
+    dw_out = _smoothstep_slope(t_out) / (ROLL_ZONES * math.sqrt(2.0))
+    dw_in = -_smoothstep_slope(t_in) / (0.5 * nb)
+    w = w_out * w_in
+    dw = dw_out * w_in + w_out * dw_in
+    lit = v > 0
+    e_re = torch.where(lit, d_re - 1.0, d_re)  # the edge wave D − H
+    if kap is None:
+        m, dm = w, dw
+    else:
+        m, dm = w * f, dw * f + w * torch.where(ok, 0.5 * kap / f, torch.zeros_like(f))
+    dre = torch.where(lit, dw_out, torch.zeros_like(dw_out)) + dd_re * m + e_re * dm
+    dim = dd_im * m + d_im * dm
+    if kap is None:
+        return g_re * dre + g_im * dim, None
+    # curved_edge_term's bracket B; d(c·w)/dν = ∂c/∂ν·w + c·dw/dν, c = e·B, ∂B/∂ν = D − H
+    b_re = v * e_re + (cos_ - sin_) / (2.0 * math.pi)
+    b_im = v * d_im + (cos_ + sin_) / (2.0 * math.pi) * sign
+    e = -0.5 * kap.clamp(-KAPPA_MAX, KAPPA_MAX)
+    dre = dre + e * (e_re * w + b_re * dw)
+    dim = dim + e * (d_im * w + b_im * dw)
+    df = torch.where(ok, 0.5 * v / f, torch.zeros_like(f)) * w  # ∂f/∂(κ/g)·w
+    de = torch.where((kap >= -KAPPA_MAX) & (kap <= KAPPA_MAX), -0.5 * w, torch.zeros_like(w))  # ∂e/∂(κ/g)·w
+    return g_re * dre + g_im * dim, g_re * (e_re * df + b_re * de) + g_im * (d_im * df + b_im * de)
 
 
 def _dense_plan(nu: torch.Tensor, consts, compiled: bool = True):
@@ -829,7 +863,7 @@ def _dense_plan(nu: torch.Tensor, consts, compiled: bool = True):
     half = FRESNEL_TABLE_HALF
     while top > half:
         half *= 2.0
-    return nb, nm, _fresnel_table_rows(half), round(half / FRESNEL_TABLE_STEP), forward_edge
+    return nb, nm, _fresnel_table_rows(half), round(half / FRESNEL_TABLE_STEP), 1.0 if forward_edge else -1.0
 
 
 def _per_row(c, nu: torch.Tensor) -> torch.Tensor:
@@ -851,15 +885,11 @@ def _dense_backward(grad, inputs: tuple, consts, need):
     """:meth:`_EdgeEnvelope.backward` of the compiled loop's forward (:func:`_envelope_dense_grads`)."""
     amp, angle, nu, kap = inputs
     plan = _dense_plan(nu, consts, compiled=False)  # (the same loop's arithmetic, eager if compiling is off now)
-    need_band = need[2] or (need[3] and kap is not None)
-    need_kap = need[3] and kap is not None
     with torch.no_grad():
         gr = torch.view_as_real(grad.resolve_conj())
-        g = _envelope_dense_grads(gr[..., 0], gr[..., 1], *_dense_args(amp, angle, nu, kap, plan), plan[2], plan[3],
-                                  (plan[4], need_band, need_kap))
-    g_amp = g[0].sum_to_size(amp.shape) if need[0] else None
-    return (g_amp, g[1] if need[1] else None, g[2] if need[2] else None, g[3] if need_kap else None,
-            None, None, None, None)
+        g = _envelope_dense_grads(gr[..., 0], gr[..., 1], *_dense_args(amp, angle, nu, kap, plan), *plan[2:])
+    return (g[0].sum_to_size(amp.shape) if need[0] else None, g[1] if need[1] else None, g[2] if need[2] else None,
+            g[3] if need[3] else None, None, None, None, None)
 
 
 #: stop-rim points at which :func:`stop_rim_images` finds the edge's image
