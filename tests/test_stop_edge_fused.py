@@ -76,3 +76,14 @@ def test_a_band_beyond_the_table_takes_the_eager_blocks():
     nu = torch.linspace(-40.0, 5.0, 64, dtype=torch.float64).reshape(8, 8)
     assert se._dense_plan(nu, (True, 30.0, 40.0, 2e-3)) is None
     assert se._dense_plan(nu, (True, 16.0, 40.0, 2e-3)) is not None or not se.compile_enabled()
+
+
+@pytest.mark.parametrize("per_row", [False, True])
+def test_compiled_envelope_in_blocks_of_rows_equals_one_call(per_row, monkeypatch):
+    """A window in several blocks of rows (:data:`DENSE_BLOCK_SAMPLES`) gives the values of one call bit for bit."""
+    amp, angle, nu, kap = (t.detach() for t in _inputs(shape=(23, 41), seed=3))
+    rz = torch.linspace(5.0, 9.0, 23, dtype=torch.float64)[:, None] if per_row else 5.0
+    g = torch.linspace(20.0, 80.0, 23, dtype=torch.float64)[:, None] if per_row else 40.0
+    one = se.edge_envelope(amp, angle, nu, 0.8, rz, g, 2e-3, kappa=kap)
+    monkeypatch.setattr(se, "DENSE_BLOCK_SAMPLES", 5 * 41)  # 5 blocks of 4–5 rows
+    assert torch.equal(se.edge_envelope(amp, angle, nu, 0.8, rz, g, 2e-3, kappa=kap), one)

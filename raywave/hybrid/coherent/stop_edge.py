@@ -370,8 +370,7 @@ class _EdgeEnvelope(torch.autograd.Function):
         integrals then ``None``: the backward recomputes them in its own loop)."""
         plan = _dense_plan(nu, consts)
         if plan is not None:
-            with torch.no_grad():  # (detached inputs; one graph whether or not autograd records the call)
-                return torch.complex(*_envelope_dense(*_dense_args(amp, angle, nu, kap, plan), *plan[2:])), None
+            return _dense_values(amp, angle, nu, kap, plan), None
         out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
         g = consts[2]
         step = _block_rows(nu)
@@ -882,6 +881,31 @@ def _dense_args(amp, angle, nu, kap, plan):
     """The detached inputs of :func:`_envelope_dense` (and its backward) from :class:`_EdgeEnvelope`'s and a
     :func:`_dense_plan`."""
     return (amp.detach(), angle.detach(), nu.detach(), None if kap is None else kap.detach(), plan[0], plan[1])
+
+
+#: samples per call of :func:`_envelope_dense` (its real and imaginary parts exist a block at a time before they
+#: are written into the complex result: 2 × 32 MB, not 2 × 8 bytes a sample of a 64 M-sample window)
+DENSE_BLOCK_SAMPLES = 1 << 22
+
+
+def _dense_values(amp, angle, nu, kap, plan) -> torch.Tensor:
+    """The envelope (complex128, ``nu``'s shape) from :func:`_envelope_dense` in blocks of rows of about
+    :data:`DENSE_BLOCK_SAMPLES` (an even split: never a one-row block, which would compile a graph of its own);
+    elementwise, the same values whatever the blocks."""
+    amp, angle, nu, kap, nb, nm = _dense_args(amp, angle, nu, kap, plan)
+    rows = nu.shape[0]
+    n = max(1, min(rows // 2, -(-nu.numel() // DENSE_BLOCK_SAMPLES)))
+    if n == 1:
+        with torch.no_grad():  # (detached inputs; one graph whether or not autograd records the call)
+            return torch.complex(*_envelope_dense(amp, angle, nu, kap, nb, nm, *plan[2:]))
+    out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
+    bounds = [round(i * rows / n) for i in range(n + 1)]
+    with torch.no_grad():
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            part = (amp[a:b] if amp.ndim else amp, angle[a:b], nu[a:b], None if kap is None else kap[a:b],
+                    *(c[a:b] if c.ndim == nu.ndim and c.shape[0] == rows else c for c in (nb, nm)))
+            torch.complex(*_envelope_dense(*part, *plan[2:]), out=out[a:b])
+    return out
 
 
 def _dense_backward(grad, inputs: tuple, consts, need):
