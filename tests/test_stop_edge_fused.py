@@ -11,6 +11,17 @@ import raywave.hybrid.coherent.stop_edge as se
 TOL = 1e-14
 
 
+@pytest.fixture(autouse=True)
+def fresh_compiled_loops(monkeypatch):
+    """The compiled loops as in a fresh process: a long test session's many window shapes and strides may have used up
+    torch.compile's recompile limit, after which the loops fall back to the eager blocks for the process (by design:
+    one FusedFallbackWarning); these tests check the compiled loop itself."""
+    torch._dynamo.reset()
+    for f in (se._envelope_dense, se._envelope_dense_grads):
+        monkeypatch.setattr(f, "_failed", False)
+        monkeypatch.setattr(f, "_compiled", None)
+
+
 def _inputs(shape=(37, 53), seed=5):
     gen = torch.Generator().manual_seed(seed)
 

@@ -880,7 +880,9 @@ def _per_row(c, nu: torch.Tensor) -> torch.Tensor:
 def _dense_args(amp, angle, nu, kap, plan):
     """The detached inputs of :func:`_envelope_dense` (and its backward) from :class:`_EdgeEnvelope`'s and a
     :func:`_dense_plan`."""
-    return (amp.detach(), angle.detach(), nu.detach(), None if kap is None else kap.detach(), plan[0], plan[1])
+    # contiguous (a copy only of a strided crop): fewer stride patterns, fewer compiled graphs (torch.compile's limit)
+    return (amp.detach().contiguous(), angle.detach().contiguous(), nu.detach().contiguous(),
+            None if kap is None else kap.detach().contiguous(), plan[0], plan[1])
 
 
 #: samples per call of :func:`_envelope_dense` (its real and imaginary parts exist a block at a time before they
