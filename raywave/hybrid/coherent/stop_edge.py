@@ -13,6 +13,7 @@ import torch
 from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.utils import devices
 from raywave.utils.fresnel import fresnel as fresnel_torch
+from raywave.utils.fused import compile_enabled, fused
 from raywave.utils.phasor import polar
 
 
@@ -274,6 +275,18 @@ def _band_masks(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
     ``ripple_zones`` a tensor: per-row constants of a batch of windows stacked by rows (issue 43, the batched field
     stage): ``ripple_zones`` and ``g`` (R, 1) float64, one value per row of ``nu`` (R, N); ν_b and ν_max are then
     (R, 1), each row's the values its own window's floats give (true divisions, as on the host)."""
+    nu_b, nu_max = _band_limits(ripple_zones, g, pitch)
+    nu = nu.detach()
+    inside = nu >= nu_b
+    outer = nu > -nu_max
+    if isinstance(ripple_zones, torch.Tensor) or ripple_zones < 0:
+        return inside, outer & ~inside, nu_b, nu_max
+    # inside lies within ν > −ν_max (ν_b ≥ 2 > 0 ≥ −ν_max): the band is the one without the other, an exclusive or
+    return inside, outer.logical_xor_(inside), nu_b, nu_max
+
+
+def _band_limits(ripple_zones, g, pitch: float):
+    """``(ν_b, ν_max)`` of :func:`_band_masks` (floats, or tensors for tensor constants)."""
     nu_max = math.sqrt(2.0) * ripple_zones
     if isinstance(ripple_zones, torch.Tensor):  # per-row constants: the host formula below, row by row
         nu_b = torch.maximum(torch.minimum(torch.full_like(g, 0.6) / (g * pitch), _nu_inner(ripple_zones)),
@@ -282,13 +295,7 @@ def _band_masks(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
         nu_b = torch.clamp(0.6 / (g.detach() * pitch), max=_nu_inner(ripple_zones)).clamp_min(2.0)
     else:  # one value for the whole window
         nu_b = max(min(0.6 / (float(g) * pitch), _nu_inner(ripple_zones)), 2.0)
-    nu = nu.detach()
-    inside = nu >= nu_b
-    outer = nu > -nu_max
-    if isinstance(ripple_zones, torch.Tensor) or ripple_zones < 0:
-        return inside, outer & ~inside, nu_b, nu_max
-    # inside lies within ν > −ν_max (ν_b ≥ 2 > 0 ≥ −ν_max): the band is the one without the other, an exclusive or
-    return inside, outer.logical_xor_(inside), nu_b, nu_max
+    return nu_b, nu_max
 
 
 def _edge_band(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
@@ -313,7 +320,10 @@ def edge_envelope(amp: torch.Tensor, angle: torch.Tensor, nu: torch.Tensor, dz: 
     both factors of their product, the band's indices and terms); this keeps the four inputs and the band's
     Fresnel integrals, and recomputes the rest (no Fresnel integral: their derivatives are ``cos``, ``sin``).
     ``ripple_zones`` and ``g`` may be (R, 1) tensors for the inputs (R, N): the windows of a batch stacked by rows,
-    each row with its own window's constants (:func:`_band_masks`; the batched field stage, issue 43)."""
+    each row with its own window's constants (:func:`_band_masks`; the batched field stage, issue 43). On the CPU
+    forward and backward each run as one compiled loop over the window (:func:`_envelope_dense`, issue 47: a single
+    PSF's envelope 43 → 24 ms), with ``RAYWAVE_COMPILE=0`` as the eager band arithmetic below (the same values to
+    ~2e-16 relative)."""
     graph = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (amp, angle, nu, kappa))
     if not graph:  # the same blocks as with a graph: the same values bit for bit (a replay compares the two)
         return _EdgeEnvelope.values(amp, angle, nu, kappa, (dz >= 0, ripple_zones, g, pitch), False)[0]
@@ -355,7 +365,12 @@ class _EdgeEnvelope(torch.autograd.Function):
     @staticmethod
     def values(amp, angle, nu, kap, consts, keep_fresnel: bool = True):
         """``(z (complex128, nu's shape), the band's Fresnel integrals (C, S) or None without ``keep_fresnel``)``
-        (no graph), block by block (:meth:`_block_values`; the backward walks the same blocks)."""
+        (no graph), block by block (:meth:`_block_values`; the backward walks the same blocks); or, where
+        :func:`_dense_plan` allows, the whole window as one compiled loop (:func:`_envelope_dense`; the Fresnel
+        integrals then ``None``: the backward recomputes them in its own loop)."""
+        plan = _dense_plan(nu, consts)
+        if plan is not None:
+            return _dense_values(amp, angle, nu, kap, plan), None
         out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
         g = consts[2]
         step = _block_rows(nu)
@@ -418,9 +433,10 @@ class _EdgeEnvelope(torch.autograd.Function):
     def forward(ctx, amp, angle, nu, kap, forward_edge: bool, ripple_zones: float, g, pitch: float):
         ctx.consts = (forward_edge, ripple_zones, g, pitch)
         out, fresnel = _EdgeEnvelope.values(amp, angle, nu, kap, ctx.consts)
+        ctx.dense = fresnel is None  # the compiled loop's forward: its backward the compiled loop's too
         # a view of a larger tensor (the accurate construction's interpolated channels: ν and κ/g are two of four,
         # before the crop to the lit window) would keep all of it: keep compact copies instead
-        ctx.save_for_backward(amp, angle, *(_compact(t) for t in (nu, kap)), *fresnel)
+        ctx.save_for_backward(amp, angle, *(_compact(t) for t in (nu, kap)), *(fresnel or ()))
         return out
 
     @staticmethod
@@ -428,6 +444,8 @@ class _EdgeEnvelope(torch.autograd.Function):
         amp, angle, nu, kap, *fresnel = ctx.saved_tensors
         forward_edge, ripple_zones, g, pitch = ctx.consts
         need = ctx.needs_input_grad
+        if ctx.dense:
+            return _dense_backward(grad, (amp, angle, nu, kap), ctx.consts, need)
         g_amp = torch.empty_like(amp) if need[0] else None
         g_angle = torch.empty_like(angle) if need[1] else None
         g_nu = torch.zeros_like(nu) if need[2] else None
@@ -694,6 +712,213 @@ class _EdgeBand(torch.autograd.Function):
             de = torch.where((kap >= -KAPPA_MAX) & (kap <= KAPPA_MAX), -0.5 * w, torch.zeros_like(w))  # ∂e/∂(κ/g)·w
             g_k = g_re * (e_re * df + b_re * de) + g_im * (d_im * df + b_im * de)
         return g_v, g_k
+
+
+@functools.lru_cache(maxsize=4)
+def _fresnel_table_rows(half: float) -> torch.Tensor:
+    """:func:`_fresnel_table` by rows, ``(n − 1, 12)`` contiguous: an interval's 12 coefficients side by side (the
+    compiled loop's indexed loads of a sample's coefficients then hit one or two cache lines, not twelve: 5.3 vs 8.3
+    ms for 880 k values)."""
+    return _fresnel_table(half).t().contiguous()
+
+
+def _fresnel_table_cs(v, rows, offset):
+    """``(C, S)`` of ``v`` from the table ``rows`` (:func:`_fresnel_table_rows`; ``offset`` = its half-range in steps)
+    for ``|v|`` below its half-range: :func:`_fresnel_table_values`' arithmetic (exact positions, Horner in the same
+    order) as whole-array operations, for :func:`_envelope_dense`'s compiled loop (the gathers are indexed loads
+    there)."""
+    pos = v * (1.0 / FRESNEL_TABLE_STEP)
+    i = pos.floor()
+    t = pos - i
+    idx = i.long() + offset
+    out = []
+    for k in (0, 6):
+        f = rows[idx, k + 5] * t
+        for j in (4, 3, 2, 1):
+            f = (f + rows[idx, k + j]) * t
+        out.append(f + rows[idx, k])
+    return out[0], out[1]
+
+
+def _factor_terms(v, kap, nb, nu_max, fresnel, sign: float):
+    """``(Re, Im)`` of the knife-edge factor at band values ``v``: :meth:`_EdgeBand._values`' arithmetic in its
+    order, without its in-place writes (for a compiled loop); ``fresnel`` = ``(C, S)`` at ``v``, ``sign`` 1.0 for
+    ``forward_edge``, else −1.0 (a product: exactly the mirrored difference; one compiled graph for both)."""
+    c_, s_ = fresnel
+    ha = (c_ + 0.5) * 0.5
+    hb = (s_ + 0.5) * 0.5
+    d_re = ha + hb
+    d_im = (hb - ha) * sign
+    w_out = _smoothstep((v + nu_max) / (ROLL_ZONES * math.sqrt(2.0)))
+    h = 0.5 * nb
+    w = (1.0 - _smoothstep((v - h) / h)) * w_out
+    m = w if kap is None else torch.sqrt((v * kap).clamp(-0.9, 3.0) + 1.0) * w
+    step = (v > 0).to(v.dtype)
+    e_re = d_re - step
+    re = e_re * m + w_out * step
+    im = d_im * m
+    if kap is None:
+        return re, im
+    ph = (v * (0.5 * math.pi)) * v
+    cos_, sin_ = torch.cos(ph), torch.sin(ph)
+    b_re = v * e_re + (cos_ - sin_) / (2.0 * math.pi)
+    b_im = v * d_im + (cos_ + sin_) / (2.0 * math.pi) * sign
+    e = kap.clamp(-KAPPA_MAX, KAPPA_MAX) * -0.5 * w
+    return re + b_re * e, im + b_im * e
+
+
+def _dense_band(nu, kap, nb, nu_max, tab, offset, sign: float):
+    """``(band, Re D, Im D, (C, S))`` of the knife-edge factor ``D`` on a whole window (:func:`_envelope_dense`):
+    ``band`` where it is evaluated (−ν_max < ν < ν_b), ``D`` 1 inside (ν ≥ ν_b) and 0 beyond; the Fresnel
+    integrals and the factor's terms are computed everywhere (one loop: cheaper than gathering the band) and kept on
+    the band (ν is 0 off it: every table index in range, no NaN)."""
+    inside = nu >= nb
+    band = (nu > -nu_max) & ~inside
+    v = torch.where(band, nu, 0.0)
+    fresnel = _fresnel_table_cs(v, tab, offset)
+    re, im = _factor_terms(v, kap, nb, nu_max, fresnel, sign)
+    return band, v, torch.where(band, re, inside.to(nu.dtype)), torch.where(band, im, 0.0), fresnel
+
+
+@fused
+def _envelope_dense(amp, angle, nu, kap, nb, nu_max, tab, offset: int, sign: float):
+    """``polar(amp, angle)·D(ν, κ/g)`` (:func:`edge_envelope`) of a whole window as one compiled loop: its real and
+    imaginary parts (float64, ``nu``'s shape): ``nb`` (ν_b) and ``nu_max`` tensors broadcasting to ``nu`` (per
+    window, per row or per sample), ``tab`` the Fresnel table (:func:`_fresnel_table_rows`) covering the band,
+    ``offset`` its half-range in table steps, ``sign`` 1.0 for a forward edge (``dz ≥ 0``), else −1.0. The values of
+    :meth:`_EdgeEnvelope._block_values` to rounding (the compiled loop's sin/cos)."""
+    _, _, d_re, d_im, _ = _dense_band(nu, kap, nb, nu_max, tab, offset, sign)
+    x = torch.cos(angle) * amp
+    y = torch.sin(angle) * amp
+    # two outputs, not one stacked (..., 2): an interleaved store keeps the loop from vectorising (8× slower)
+    return x * d_re - y * d_im, y * d_re + x * d_im
+
+
+@fused
+def _envelope_dense_grads(g_re, g_im, amp, angle, nu, kap, nb, nu_max, tab, offset: int, sign: float):
+    """The backward of :func:`_envelope_dense` as one compiled loop: ``(∂L/∂a, ∂L/∂θ, ∂L/∂ν, ∂L/∂(κ/g) or None)``
+    from the output's gradient ``(g_re, g_im)``: :meth:`_EdgeEnvelope._block_grads`' arithmetic (``q =
+    conj(G)·e^{iθ}``, ``∂L/∂a = Re(q·D)``, ``∂L/∂θ = −a·Im(q·D)``, on the band :meth:`_EdgeBand.grads`' of
+    ``∂L/∂D = conj(q)·a``), the band's Fresnel integrals recomputed from the table. All four always (one graph)."""
+    cos_, sin_ = torch.cos(angle), torch.sin(angle)
+    q_re = g_re * cos_ + g_im * sin_
+    q_im = sin_ * g_re - cos_ * g_im
+    band, v, d_re, d_im, fresnel = _dense_band(nu, kap, nb, nu_max, tab, offset, sign)
+    g_amp = q_re * d_re - q_im * d_im
+    g_angle = -((q_re * d_im + q_im * d_re) * amp)
+    gv, gk = _band_grads(v, kap, nb, fresnel, nu_max, sign, (q_re * amp, -(q_im * amp)))
+    return g_amp, g_angle, torch.where(band, gv, 0.0), None if gk is None else torch.where(band, gk, 0.0)
+
+
+def _band_grads(v, kap, nb, fresnel, nu_max, sign: float, grads: tuple):
+    """:meth:`_EdgeBand.grads` (both gradients, ``∂L/∂(κ/g)`` None without ``kap``) with the edge's direction as
+    ``sign`` (1.0 / −1.0: products, the same values as its branches) for :func:`_envelope_dense_grads`."""
+    g_re, g_im = grads
+    c_, s_ = fresnel
+    t_out, t_in, w_out, w_in, f, ok = _EdgeBand._terms(v, kap, nb, nu_max)
+    a, b = c_ + 0.5, s_ + 0.5
+    d_re, d_im = 0.5 * a + 0.5 * b, (0.5 * b - 0.5 * a) * sign
+    ph = 0.5 * math.pi * v * v  # C' = cos, S' = sin
+    cos_, sin_ = torch.cos(ph), torch.sin(ph)
+    dd_re, dd_im = 0.5 * (cos_ + sin_), sign * 0.5 * (sin_ - cos_)
+    dw_out = _smoothstep_slope(t_out) / (ROLL_ZONES * math.sqrt(2.0))
+    dw_in = -_smoothstep_slope(t_in) / (0.5 * nb)
+    w = w_out * w_in
+    dw = dw_out * w_in + w_out * dw_in
+    lit = v > 0
+    e_re = torch.where(lit, d_re - 1.0, d_re)  # the edge wave D − H
+    if kap is None:
+        m, dm = w, dw
+    else:
+        m, dm = w * f, dw * f + w * torch.where(ok, 0.5 * kap / f, torch.zeros_like(f))
+    dre = torch.where(lit, dw_out, torch.zeros_like(dw_out)) + dd_re * m + e_re * dm
+    dim = dd_im * m + d_im * dm
+    if kap is None:
+        return g_re * dre + g_im * dim, None
+    # curved_edge_term's bracket B; d(c·w)/dν = ∂c/∂ν·w + c·dw/dν, c = e·B, ∂B/∂ν = D − H
+    b_re = v * e_re + (cos_ - sin_) / (2.0 * math.pi)
+    b_im = v * d_im + (cos_ + sin_) / (2.0 * math.pi) * sign
+    e = -0.5 * kap.clamp(-KAPPA_MAX, KAPPA_MAX)
+    dre = dre + e * (e_re * w + b_re * dw)
+    dim = dim + e * (d_im * w + b_im * dw)
+    df = torch.where(ok, 0.5 * v / f, torch.zeros_like(f)) * w  # ∂f/∂(κ/g)·w
+    de = torch.where((kap >= -KAPPA_MAX) & (kap <= KAPPA_MAX), -0.5 * w, torch.zeros_like(w))  # ∂e/∂(κ/g)·w
+    return g_re * dre + g_im * dim, g_re * (e_re * df + b_re * de) + g_im * (d_im * df + b_im * de)
+
+
+def _dense_plan(nu: torch.Tensor, consts, compiled: bool = True):
+    """Whether :class:`_EdgeEnvelope` runs as one compiled loop (:func:`_envelope_dense`): on the CPU, with the
+    Fresnel table (:data:`FRESNEL_CPU`) covering the band (|ν| < max(ν_max, ν_b) ≤ :data:`FRESNEL_TABLE_MAX`: every
+    band of :data:`MAX_RIPPLE_ZONES` or fewer), compiling switched on (``RAYWAVE_COMPILE``) and not failed. Returns
+    ``(ν_b, ν_max (tensors broadcasting to ν), the table, its half-range in steps)`` or None (the blocks of
+    :meth:`_EdgeEnvelope._block_values`: eager arithmetic on the band's samples alone, the faster one uncompiled).
+    One host read of ν_b's and ν_max's largest value where they are per-row tensors. ``compiled`` False: without
+    the compile switches (the backward of a compiled forward)."""
+    if compiled and (nu.device.type != "cpu" or FRESNEL_CPU != "table" or nu.dtype != torch.float64
+                     or not compile_enabled() or _envelope_dense._failed or nu.numel() == 0 or nu.ndim == 0):
+        return None
+    forward_edge, ripple_zones, g, pitch = consts
+    nb, nm = (_per_row(c, nu) for c in _band_limits(ripple_zones, g, pitch))
+    top = float(torch.maximum(nb.abs().max(), nm.abs().max()))
+    if not top <= FRESNEL_TABLE_MAX:  # (NaN too)
+        return None
+    half = FRESNEL_TABLE_HALF
+    while top > half:
+        half *= 2.0
+    return nb, nm, _fresnel_table_rows(half), round(half / FRESNEL_TABLE_STEP), 1.0 if forward_edge else -1.0
+
+
+def _per_row(c, nu: torch.Tensor) -> torch.Tensor:
+    """A constant of the knife-edge band (a float, or a tensor broadcasting to ``nu``) as a tensor for
+    :func:`_envelope_dense`: a float or a 0-dim tensor as an ``(R, 1, …)`` column (``nu``'s rows), the same graph as
+    a batch's per-row constants (issue 43) and so the same values bit for bit; a tensor otherwise as it is."""
+    if isinstance(c, torch.Tensor) and c.ndim:
+        return c.detach()
+    return torch.full((nu.shape[0],) + (1,) * (nu.ndim - 1), float(c), dtype=torch.float64, device=nu.device)
+
+
+def _dense_args(amp, angle, nu, kap, plan):
+    """The detached inputs of :func:`_envelope_dense` (and its backward) from :class:`_EdgeEnvelope`'s and a
+    :func:`_dense_plan`."""
+    # contiguous (a copy only of a strided crop): fewer stride patterns, fewer compiled graphs (torch.compile's limit)
+    return (amp.detach().contiguous(), angle.detach().contiguous(), nu.detach().contiguous(),
+            None if kap is None else kap.detach().contiguous(), plan[0], plan[1])
+
+
+#: samples per call of :func:`_envelope_dense` (its real and imaginary parts exist a block at a time before they
+#: are written into the complex result: 2 × 32 MB, not 2 × 8 bytes a sample of a 64 M-sample window)
+DENSE_BLOCK_SAMPLES = 1 << 22
+
+
+def _dense_values(amp, angle, nu, kap, plan) -> torch.Tensor:
+    """The envelope (complex128, ``nu``'s shape) from :func:`_envelope_dense` in blocks of rows of about
+    :data:`DENSE_BLOCK_SAMPLES` (an even split: never a one-row block, which would compile a graph of its own);
+    elementwise, the same values whatever the blocks."""
+    amp, angle, nu, kap, nb, nm = _dense_args(amp, angle, nu, kap, plan)
+    rows = nu.shape[0]
+    n = max(1, min(rows // 2, -(-nu.numel() // DENSE_BLOCK_SAMPLES)))
+    if n == 1:
+        with torch.no_grad():  # (detached inputs; one graph whether or not autograd records the call)
+            return torch.complex(*_envelope_dense(amp, angle, nu, kap, nb, nm, *plan[2:]))
+    out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
+    bounds = [round(i * rows / n) for i in range(n + 1)]
+    with torch.no_grad():
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            part = (amp[a:b] if amp.ndim else amp, angle[a:b], nu[a:b], None if kap is None else kap[a:b],
+                    *(c[a:b] if c.ndim == nu.ndim and c.shape[0] == rows else c for c in (nb, nm)))
+            torch.complex(*_envelope_dense(*part, *plan[2:]), out=out[a:b])
+    return out
+
+
+def _dense_backward(grad, inputs: tuple, consts, need):
+    """:meth:`_EdgeEnvelope.backward` of the compiled loop's forward (:func:`_envelope_dense_grads`)."""
+    amp, angle, nu, kap = inputs
+    plan = _dense_plan(nu, consts, compiled=False)  # (the same loop's arithmetic, eager if compiling is off now)
+    with torch.no_grad():
+        gr = torch.view_as_real(grad.resolve_conj())
+        g = _envelope_dense_grads(gr[..., 0], gr[..., 1], *_dense_args(amp, angle, nu, kap, plan), *plan[2:])
+    return (g[0].sum_to_size(amp.shape) if need[0] else None, g[1] if need[1] else None, g[2] if need[2] else None,
+            g[3] if need[3] else None, None, None, None, None)
 
 
 #: stop-rim points at which :func:`stop_rim_images` finds the edge's image
