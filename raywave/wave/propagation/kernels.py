@@ -1,0 +1,100 @@
+"""The transfer function of a window pair as one compiled loop (:func:`raywave.utils.fused.fused`, issue 43), and
+:class:`TransferBand`: a source's transfer function on its band, evaluated block by block where the band
+convolution multiplies it (:func:`~raywave.wave.propagation.band.convolve_band`) instead of as a band-sized array.
+
+The function is that of :func:`~raywave.wave.propagation.transfer.window_transfer` (its docstring): on the
+frequencies ``f`` (cycles/mm, the envelope's, carrier removed) ``G = W · exp(2πi (z·w + f_x d_x + f_y d_y))`` with
+``w = sqrt(k² − |f + f_c|²)``, ``W`` 0 where evanescent and otherwise the product of the quintic roll-offs of the
+lateral shifts ``Δ = z (f + f_c)/w`` per axis beyond their bands. One loop evaluates ``w``, both roll-offs, the
+phase and its ``cos``/``sin`` per sample (the eager chain: ~20 passes over band-sized arrays, the roll-off restricted
+to the lines where it can act; here every sample runs the roll-off, whose factor is exactly 1 inside the band).
+Values to rounding of the eager chain's (a few ulp of the phase, ~1e4 rad: ~1e-12 of |G|).
+
+Lengths mm, frequencies cycles/mm, float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from raywave.utils.fused import fused
+
+__all__ = ["TransferBand", "transfer_params", "transfer_values"]
+
+_TWO_PI = 2.0 * math.pi
+#: the layout of a source's parameter vector (:func:`transfer_params`): n/λ, z, the carrier's frequency (k·α, k·β),
+#: the output-to-input window shift (dx, dy), and per axis the band of Δ as (middle, half width, roll-off width)
+PARAMS = ("k", "z", "kax", "kay", "dx", "dy", "x_mid", "x_half", "x_taper", "y_mid", "y_half", "y_taper")
+
+
+def transfer_params(geo) -> list[float]:
+    """The parameter vector (:data:`PARAMS`, host floats) of a checked geometry ``geo``
+    (:func:`~raywave.wave.propagation.transfer._geometry`). Every roll-off width must be > 0 (the sharp band limit
+    has no loop here)."""
+    k, (ax, ay), (dx, dy) = geo.k, geo.carrier, geo.shift
+    (xl, xh, xt), (yl, yh, yt) = geo.bx, geo.by
+    return [k, geo.zf, k * ax, k * ay, dx, dy, 0.5 * (xl + xh), 0.5 * (xh - xl), xt, 0.5 * (yl + yh),
+            0.5 * (yh - yl), yt]
+
+
+def _parts(fx: torch.Tensor, fy: torch.Tensor, p: torch.Tensor):
+    """``(Re G, Im G)`` on ``fx``, ``fy`` (broadcast against each other and against ``p``'s leading axes; ``p``
+    ``(..., 12)`` the :data:`PARAMS`), float64. The operations of the eager
+    :func:`~raywave.wave.propagation.batch._band_values`, in its order."""
+    k, z, kax, kay, dx, dy, xm, xh, xt, ym, yh, yt = p.unbind(-1)
+    gx, gy = fx + kax, fy + kay  # physical frequencies
+    arg = (k * k - gy * gy) - gx * gx
+    prop = arg > 0
+    w = torch.where(prop, arg, 1.0).sqrt()  # (n/λ)·cosθ; 1 on evanescent samples
+    weight = prop.to(arg.dtype)  # evanescent: exactly 0
+    inv_w = 1.0 / w
+    for g, mid, half, taper in ((gx, xm, xh, xt), (gy, ym, yh, yt)):
+        # how far Δ lies outside its band (0 inside), over the roll-off width, and the smoothstep S(t): W ← W − W·S
+        t = (((z * g) * inv_w - mid).abs() - half).clamp_min(0.0).div(taper).clamp_max(1.0)
+        s = t * t * t * (10.0 + t * (6.0 * t - 15.0))
+        weight = weight - s * weight
+    phase = w * (_TWO_PI * z) + (fx * dx + fy * dy) * _TWO_PI
+    return torch.cos(phase) * weight, torch.sin(phase) * weight
+
+
+def _values(fx: torch.Tensor, fy: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    re, im = _parts(fx, fy, p)
+    return torch.stack([re, im], -1)
+
+
+#: ``G`` on ``fx``, ``fy`` for the parameters ``p`` (:func:`_parts`'s broadcasting) as a stacked ``(..., 2)`` float64
+#: tensor (:func:`torch.view_as_complex` gives complex128): one compiled loop
+transfer_values = fused(_values)
+
+
+class TransferBand:
+    """One source's transfer function on its band ``fy × fx`` (its rows' ``fy`` ``(R,)`` and columns' ``fx`` ``(C,)``
+    frequencies, cycles/mm; ``p`` ``(12,)`` float64 its :data:`PARAMS`), evaluated on demand: :meth:`block` the
+    transposed columns ``c0:c1`` (what the band convolution multiplies a block of its spectrum by), :meth:`full` the
+    whole ``(R, C)`` band. The band-sized complex array exists only where :meth:`full` is asked for."""
+
+    __slots__ = ("fx", "fy", "p")
+
+    def __init__(self, fx: torch.Tensor, fy: torch.Tensor, p: torch.Tensor):
+        self.fx, self.fy, self.p = fx, fy, p
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(R, C)``."""
+        return (self.fy.numel(), self.fx.numel())
+
+    @property
+    def device(self) -> torch.device:
+        return self.p.device
+
+    def block(self, c0: int, c1: int, dtype=torch.complex128) -> torch.Tensor:
+        """``G`` on the columns ``c0:c1``, transposed: ``(c1 − c0, R)`` of ``dtype``."""
+        g = torch.view_as_complex(transfer_values(self.fx[c0:c1, None], self.fy, self.p))
+        return g if g.dtype == dtype else g.to(dtype)
+
+    def full(self, dtype=torch.complex128) -> torch.Tensor:
+        """``G`` on the band: ``(R, C)`` of ``dtype``."""
+        g = torch.view_as_complex(transfer_values(self.fx, self.fy[:, None], self.p))
+        return g if g.dtype == dtype else g.to(dtype)
