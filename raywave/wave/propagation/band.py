@@ -177,6 +177,18 @@ class _Columns:
         return self.h.block(c0, c1, self.dtype) if self.lazy else self.h_t[..., c0:c1, :]
 
 
+def _band_put_(spec: torch.Tensor, row_runs, values: torch.Tensor) -> torch.Tensor:
+    """In place on a full-length spectrum ``spec`` ``(..., c, My)``: its band rows set to ``values`` ``(..., c, R)``,
+    every other entry 0 (:func:`_band_product_` with the product already formed); returns ``spec``."""
+    pos = prev = 0
+    for a, b in row_runs:
+        spec[..., prev:a].zero_()
+        spec[..., a:b].copy_(values[..., pos:pos + b - a])
+        pos, prev = pos + b - a, b
+    spec[..., prev:].zero_()
+    return spec
+
+
 def convolve_band(u: torch.Tensor, h, size, rows: torch.Tensor, cols: torch.Tensor, noy: int,
                   nox: int) -> torch.Tensor:
     """``ifft2(fft2(u, s=size)·H)[..., :noy, :nox]`` for ``H`` zero outside ``rows × cols`` (``h`` on it,

@@ -35,8 +35,9 @@ from raywave.utils import devices
 from raywave.utils.phasor import polar
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation._common import _TWO_PI, _pair
-from raywave.wave.propagation.band import _adjoint, convolve_band, index_runs
-from raywave.wave.propagation.kernels import TransferBand, transfer_params, transfer_values
+from raywave.wave.propagation.band import (_adjoint, _band_put_, _blocks, _x_band, _y_band, _y_spectrum, band_chunks,
+                                           convolve_band, index_runs, put, take)
+from raywave.wave.propagation.kernels import TransferBand, adjoint_terms, transfer_params, transfer_values
 from raywave.wave.propagation.transfer import WindowSource, _geometry
 from raywave.wave.propagation.window import _convolve
 
@@ -602,15 +603,12 @@ def _scalar_grads(g: torch.Tensor, y: torch.Tensor, scalars: tuple, band: tuple,
 
 class _BandJob(NamedTuple):
     """One source's band convolution with a lazily evaluated transfer function (:class:`_TransferConvolve`): its
-    :class:`OwnBand` ``part``, the FFT grid ``size`` ``(My, Mx)``, the output window ``out_shape`` ``(noy, nox)``,
-    the band's frequencies ``freqs`` ``(fx (C,), fy (R,))`` and the source's ``wave`` ``(3, 1, 1, 1)`` (None: no
-    distance term)."""
+    :class:`OwnBand` ``part``, the FFT grid ``size`` ``(My, Mx)`` and the output window ``out_shape`` ``(noy,
+    nox)``."""
 
     part: OwnBand
     size: tuple
     out_shape: tuple
-    freqs: tuple
-    wave: torch.Tensor | None
 
 
 class _TransferConvolve(torch.autograd.Function):
@@ -618,9 +616,10 @@ class _TransferConvolve(torch.autograd.Function):
     order by zero-valued ``sx``, ``sy`` (``(1, 1, 1)`` mm) and ``dz`` (0-d mm) (each None or a tensor that carries a
     derivative; :class:`_Perturbed`), the transfer function evaluated where it is used (``job`` a :class:`_BandJob`:
     :class:`~raywave.wave.propagation.kernels.TransferBand`): the forward is the convolution without autograd, bit
-    for bit (the perturbation is zero), and keeps ``u`` alone besides the scalars; the backward is
-    :class:`~raywave.wave.propagation.band.BandConvolve`'s adjoint and :class:`_Perturbed`'s reductions on the band
-    evaluated once more (the band-sized transfer function exists only there, one source at a time)."""
+    for bit (the perturbation is zero), and keeps ``u`` alone besides the scalars; the backward
+    (:func:`_transfer_adjoint`) is :class:`~raywave.wave.propagation.band.BandConvolve`'s adjoint and
+    :class:`_Perturbed`'s reductions with the band's products in one compiled loop per column block
+    (:func:`~raywave.wave.propagation.kernels.adjoint_terms`): no band-sized array."""
 
     @staticmethod
     def forward(ctx, u, sx, sy, dz, job: _BandJob):
@@ -634,18 +633,63 @@ class _TransferConvolve(torch.autograd.Function):
         u, sx, sy, dz = ctx.saved_tensors
         job = ctx.job
         part, need_u, needs = job.part, ctx.needs_input_grad[0], ctx.needs_input_grad[1:4]
-        need_h = any(needs)
-        runs = index_runs(part.rows), index_runs(part.cols)
-        grad_u, grad_h = _adjoint(g, u, part.values, job.size, runs, ctx.in_shape, (need_u, need_h))
+        if not any(needs):
+            runs = index_runs(part.rows), index_runs(part.cols)
+            grad_u, _ = _adjoint(g, None, part.values, job.size, runs, ctx.in_shape, (need_u, False))
+            return grad_u, None, None, None, None
+        grad_u, (col_qa, row_qa, qa_w, q_re) = _transfer_adjoint(g, u, job, ctx.in_shape, need_u)
+        fx, fy, rel = part.values.fx, part.values.fy, part.rel
+        terms = ((col_qa * fx).sum(), (row_qa * fy).sum(), qa_w)
         grads = [grad_u, None, None, None, None]
-        if need_h:
-            h = part.values.full()[None]  # y = h: the perturbation is zero-valued
-            zero = torch.zeros((1, 1, 1), dtype=torch.float64, device=h.device)
-            scalars = tuple(zero if v is None else v for v in (sx, sy))
-            scalars += (torch.zeros((), dtype=torch.float64, device=h.device) if dz is None else dz,)
-            fx, fy = job.freqs
-            grads[1:4] = _scalar_grads(grad_h[None], h, scalars, (fx, fy, job.wave, part.rel), True, needs)
+        for i, (target, chan) in enumerate(((sx, 1), (sy, 2), (dz, 0))):
+            if not needs[i]:
+                continue
+            val = torch.zeros((1, 1, 1), dtype=torch.float64, device=g.device) - _TWO_PI * terms[i]
+            if rel is not None:
+                val = val + rel.sums(q_re[None], chan)
+            grads[i + 1] = val.sum_to_size(target.shape)
         return tuple(grads)
+
+
+def _transfer_adjoint(g: torch.Tensor, u: torch.Tensor, job: _BandJob, in_shape: tuple, need_u: bool):
+    """:class:`_TransferConvolve`'s backward from the output's gradient ``g`` ``(noy, nox)``: ``(∂L/∂u (Ny, Nx) or
+    None, (Σ_rows Im q (C,), Σ_columns Im q (R,), Σ Im q·w (0-d), Re q (R, C) or None))`` with ``q`` the band's
+    ``conj(∂L/∂G)·G`` (:func:`~raywave.wave.propagation.kernels.adjoint_terms`; ``Re q`` only for the roll-off
+    derivatives' sums). The transforms of :func:`~raywave.wave.propagation.band._adjoint`, in its column blocks."""
+    part = job.part
+    tb = part.values
+    (my, mx), (ny, nx) = job.size, in_shape
+    row_runs, col_runs = index_runs(part.rows), index_runs(part.cols)
+    n_rows, n_cols = part.rows.numel(), part.cols.numel()
+    chunks = band_chunks(g, my, n_cols)
+    gx = _x_band(g, mx, col_runs, chunks)  # (noy, C), not yet / mx
+    ux = _x_band(u, mx, col_runs, chunks)
+    full = torch.zeros((ny, mx), dtype=g.dtype, device=g.device) if need_u else None
+    f64 = dict(dtype=torch.float64, device=g.device)
+    col_qa, row_qa, qa_w = torch.empty(n_cols, **f64), torch.zeros(n_rows, **f64), torch.zeros((), **f64)
+    q_re = torch.empty((n_rows, n_cols), **f64) if part.rel is not None else None
+    for c0, c1 in _blocks(n_cols, chunks):
+        gs = _y_spectrum(gx, c0, c1, my).div_(my * mx)  # (c, My); on the band rows ∂L/∂(product)
+        su = _y_band(ux, c0, c1, my, row_runs)  # (c, R)
+        prod, qa, qre, qw = adjoint_terms(torch.view_as_real(take(gs, row_runs)), torch.view_as_real(su),
+                                          tb.fx[c0:c1, None], tb.fy, tb.p)
+        del su
+        col_qa[c0:c1] = qa.sum(-1)
+        row_qa += qa.sum(-2)
+        qa_w += qw.sum()
+        del qa, qw
+        if q_re is not None:
+            q_re[:, c0:c1] = qre.T
+        del qre
+        if need_u:  # the band rows: gs·conj(G), the others 0; fft(n=my)'s adjoint
+            q = _band_put_(gs, row_runs, torch.view_as_complex(prod))
+            del prod
+            put(full, col_runs, torch.fft.ifft(q, dim=-1)[..., :ny].mul_(my).transpose(-1, -2), c0)
+            del q
+        del gs
+    del gx, ux
+    grad_u = torch.fft.ifft(full, dim=-1)[..., :nx] * mx if need_u else None
+    return grad_u, (col_qa, row_qa, qa_w, q_re)
 
 
 def propagate_batch(field: Field, out, z=None, *legacy, transfer: BatchTransfer | None = None,
@@ -736,8 +780,7 @@ def _propagate_flat(u: torch.Tensor, transfer: BatchTransfer, out_shape, shift: 
                                      wave, part.rel)[0]
                 outs.append(_convolve(us[i], h.to(u.dtype), transfer.size, part.rows, part.cols, noy, nox))
             elif grad:
-                job = _BandJob(part, transfer.size, (noy, nox), (fx[part.cols], fy[part.rows]) if perturbed else None,
-                               None if dz is None else transfer.wave[:, i:i + 1])
+                job = _BandJob(part, transfer.size, (noy, nox))
                 scalars = (sx[i:i + 1], sy[i:i + 1], dzt) if perturbed else (None, None, None)
                 outs.append(_TransferConvolve.apply(us[i], *scalars, job))
             else:

@@ -21,7 +21,7 @@ import torch
 
 from raywave.utils.fused import fused
 
-__all__ = ["TransferBand", "transfer_params", "transfer_values"]
+__all__ = ["TransferBand", "adjoint_terms", "transfer_params", "transfer_values"]
 
 _TWO_PI = 2.0 * math.pi
 #: the layout of a source's parameter vector (:func:`transfer_params`): n/λ, z, the carrier's frequency (k·α, k·β),
@@ -67,6 +67,29 @@ def _values(fx: torch.Tensor, fy: torch.Tensor, p: torch.Tensor) -> torch.Tensor
 #: ``G`` on ``fx``, ``fy`` for the parameters ``p`` (:func:`_parts`'s broadcasting) as a stacked ``(..., 2)`` float64
 #: tensor (:func:`torch.view_as_complex` gives complex128): one compiled loop
 transfer_values = fused(_values)
+
+
+def _adjoint_terms(gs: torch.Tensor, su: torch.Tensor, fx: torch.Tensor, fy: torch.Tensor, p: torch.Tensor):
+    """The band convolution's backward on a block of the band, with ``G`` evaluated in the loop: ``gs`` the output
+    gradient's band spectrum and ``su`` the input's (stacked ``(c, R, 2)``, transposed columns), ``fx`` ``(c, 1)``,
+    ``fy`` ``(R,)``, ``p`` ``(12,)``. Returns ``(gs·conj(G)`` stacked ``(c, R, 2)`` (the input's gradient's band
+    spectrum), ``Im q``, ``Re q``, ``Im q · w)`` with ``q = conj(gs·conj(su))·G`` (the terms of the window shift's
+    and the distance's gradients, :func:`~raywave.wave.propagation.batch._scalar_grads`), float64 ``(c, R)``."""
+    k, z, kax, kay = p[0], p[1], p[2], p[3]
+    gx, gy = fx + kax, fy + kay
+    arg = (k * k - gy * gy) - gx * gx
+    w = torch.where(arg > 0, arg, 1.0).sqrt()
+    hr, hi = _parts(fx, fy, p)
+    a, b = gs[..., 0].to(hr.dtype), gs[..., 1].to(hr.dtype)
+    c, d = su[..., 0].to(hr.dtype), su[..., 1].to(hr.dtype)
+    ghr, ghi = a * c + b * d, b * c - a * d  # gs·conj(su): the transfer function's gradient
+    qa = ghr * hi - ghi * hr
+    prod = torch.stack([a * hr + b * hi, b * hr - a * hi], -1).to(gs.dtype)
+    return prod, qa, ghr * hr + ghi * hi, qa * w
+
+
+#: :func:`_adjoint_terms` as one compiled loop
+adjoint_terms = fused(_adjoint_terms)
 
 
 class TransferBand:
