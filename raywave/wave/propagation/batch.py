@@ -37,7 +37,8 @@ from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation._common import _TWO_PI, _pair
 from raywave.wave.propagation.band import (_adjoint, _band_put_, _blocks, _x_band, _y_band, _y_spectrum, band_chunks,
                                            convolve_band, index_runs, put, take)
-from raywave.wave.propagation.kernels import TransferBand, adjoint_terms, transfer_params, transfer_values
+from raywave.wave.propagation.kernels import (TransferBand, adjoint_terms, band_values, roll_off_terms,
+                                             transfer_params)
 from raywave.wave.propagation.transfer import WindowSource, _geometry
 from raywave.wave.propagation.window import _convolve
 
@@ -279,34 +280,6 @@ def _host_candidates(geos: list, m: int, axis: int) -> tuple[np.ndarray, np.ndar
     return idx, f[idx]
 
 
-def _roll_off(shift: torch.Tensor, band, zf, weight: torch.Tensor, weight_derivative: bool):
-    """The batched :func:`~raywave.wave.propagation.transfer._roll_off` of one axis: ``weight`` (B, R, C) multiplied
-    in place by the quintic roll-off of the lateral shift ``shift`` (B, R, C) (mm, consumed) beyond ``[lo, hi]``
-    over ``taper`` (``band``: three ``(B, 1, 1)``; every taper > 0); returns (∂ log W/∂z, ∂ log W/∂s) with
-    ``weight_derivative``, else None."""
-    lo, hi, taper = band
-    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    zero = torch.zeros((), dtype=shift.dtype, device=shift.device)
-    if weight_derivative:
-        sgn = torch.sign(shift - mid)
-        dshift = torch.where(zf != 0, sgn * shift / torch.where(zf != 0, zf, 1.0), zero)
-    dist = shift.sub_(mid).abs_().sub_(half).clamp_(min=0.0)
-    if weight_derivative:
-        ramp = (dist > 0) & (dist < taper)
-        dt_z = torch.where(ramp, (dshift - dist / (2.0 * zf)) / taper, zero)
-        dt_s = torch.where(ramp, -sgn / taper, zero)
-        del dshift, sgn, ramp
-    t = dist.div_(taper).clamp_(max=1.0)
-    factor = None
-    if weight_derivative:
-        dlog = torch.where(t < 1, -30.0 * t * t / ((1.0 - t) * (1.0 + t * (3.0 + 6.0 * t))).clamp_min(1e-300), zero)
-        factor = (dlog * dt_z, dlog * dt_s)
-    if weight is not None:
-        s = t * t * t * (10.0 + t * (6.0 * t - 15.0))  # S(t); W ← W − W·S
-        weight.sub_(s.mul_(weight))
-    return factor
-
-
 def _ramp_lines(g, g_other, k, zf, band) -> torch.Tensor:
     """Indices of the band's lines (``g`` (B, 1, C) or (B, R, 1): one axis's physical frequencies; ``g_other`` the
     other's) where some source's lateral shift may leave its ``[lo, hi]`` (the batched
@@ -324,17 +297,18 @@ def _ramp_lines(g, g_other, k, zf, band) -> torch.Tensor:
     return torch.nonzero(~inside.all(0).reshape(-1)).squeeze(1)
 
 
-def _rel_lines(g, g_other, kz, inv_w, band, dim: int) -> tuple:
+def _rel_lines(g, g_other, kz, band, dim: int) -> tuple:
     """The roll-off weights' relative derivatives of one axis (``dim`` −1: x, the band's columns; −2: y, its rows;
-    ``g`` that axis's physical frequencies, ``kz`` = ``(k, zf)``, ``inv_w`` a :class:`_LineReciprocal`) on the lines
-    that can roll off alone (:func:`_ramp_lines`; elsewhere the factor is 1 and its derivatives 0), a contiguous run
-    of lines at a time: the runs of :class:`RollOffRel`, ``((a, b, ∂ log W/∂z, ∂ log W/∂s), …)`` on the lines
-    ``a:b`` of ``dim``."""
+    ``g`` that axis's physical frequencies, ``g_other`` the other's, ``kz`` = ``(k, zf)``) on the lines that can roll
+    off alone (:func:`_ramp_lines`; elsewhere the factor is 1 and its derivatives 0), a contiguous run of lines at a
+    time, each in one compiled loop (:func:`~raywave.wave.propagation.kernels.roll_off_terms`): the runs of
+    :class:`RollOffRel`, ``((a, b, ∂ log W/∂z, ∂ log W/∂s), …)`` on the lines ``a:b`` of ``dim``."""
     k, zf = kz
+    stacked = torch.stack(band, -1)  # (B, 1, 1, 3)
     facs = []
     for a, b in index_runs(_ramp_lines(g, g_other, k, zf, band)):
-        fac = _roll_off((zf * g.narrow(dim, a, b - a)) * inv_w.narrow(dim, a, b - a), band, zf, None, True)
-        facs.append((a, b, *fac))
+        fac = roll_off_terms(g.narrow(dim, a, b - a), g_other, k, zf, stacked)
+        facs.append((a, b, fac[..., 0], fac[..., 1]))
     return tuple(facs)
 
 
@@ -403,7 +377,7 @@ def _band_values(params: tuple, pvec: torch.Tensor, freqs: tuple, weight_derivat
     fyr)`` (1/mm; the band ``fyr[:, None], fxc``), in one compiled loop; ``params`` (:func:`batch_transfer`'s ``(k,
     zf, kα, kβ, dx, dy, x band, y band)``, each ``(B, 1, 1)``) for the roll-off derivatives."""
     fxc, fyr = freqs
-    band = torch.view_as_complex(transfer_values(fxc, fyr[:, None], pvec[:, None, None, :]))
+    band = band_values(fxc, fyr, pvec)
     return band, (_rel(params, fxc, fyr) if weight_derivative else None)
 
 
@@ -412,24 +386,9 @@ def _rel(params: tuple, fxc: torch.Tensor, fyr: torch.Tensor) -> "RollOffRel":
     :func:`_band_values`) on the band ``fyr[:, None], fxc``, evaluated on the roll-off lines alone."""
     k, zf, kax, kay, _, _, bx, by = params
     gxs, gys = fxc + kax, fyr[:, None] + kay  # (B, 1, C), (B, R, 1): physical frequencies (cycles/mm)
-    inv_w = _LineReciprocal(gxs, gys, k)
-    fac_x = _rel_lines(gxs, gys, (k, zf), inv_w, bx, -1)
-    fac_y = _rel_lines(gys, gxs, (k, zf), inv_w, by, -2)
+    fac_x = _rel_lines(gxs, gys, (k, zf), bx, -1)
+    fac_y = _rel_lines(gys, gxs, (k, zf), by, -2)
     return RollOffRel((k.shape[0], fyr.numel(), fxc.numel()), fac_x, fac_y, fxc.device)
-
-
-class _LineReciprocal:
-    """``1/w``, ``w = sqrt((n/λ)² − g_x² − g_y²)`` (1 where evanescent), on the lines of the band ``gy × gx``
-    (``(B, R, 1)``, ``(B, 1, C)``) that :func:`_rel_lines` narrows it to: the band-sized ``w`` never exists."""
-
-    def __init__(self, gx: torch.Tensor, gy: torch.Tensor, k: torch.Tensor):
-        self.gx, self.gy, self.k = gx, gy, k
-
-    def narrow(self, dim: int, start: int, length: int) -> torch.Tensor:
-        gx = self.gx.narrow(dim, start, length) if dim == -1 else self.gx
-        gy = self.gy.narrow(dim, start, length) if dim == -2 else self.gy
-        arg = (self.k * self.k - gy * gy) - gx * gx
-        return arg.masked_fill_(~(arg > 0), 1.0).sqrt_().reciprocal_()
 
 
 def _own_band_values(params: tuple, pvec: torch.Tensor, freqs: tuple, weight_derivative: bool) -> tuple:
@@ -448,7 +407,8 @@ def _own_band_values(params: tuple, pvec: torch.Tensor, freqs: tuple, weight_der
             parts.append(OwnBand(r_own, c_own, None, None))
             continue
         fxc, fyr = fx[c_own], fy[r_own]
-        parts.append(OwnBand(r_own, c_own, TransferBand(fxc, fyr, pvec[i]),
+        # (the parameters a tensor of their own: a compiled loop guards on a view's offset into its base)
+        parts.append(OwnBand(r_own, c_own, TransferBand(fxc, fyr, pvec[i].clone()),
                              _rel(one, fxc, fyr) if weight_derivative else None))
     return tuple(parts)
 

@@ -8,7 +8,8 @@ frequencies ``f`` (cycles/mm, the envelope's, carrier removed) ``G = W · exp(2�
 lateral shifts ``Δ = z (f + f_c)/w`` per axis beyond their bands. One loop evaluates ``w``, both roll-offs, the
 phase and its ``cos``/``sin`` per sample (the eager chain: ~20 passes over band-sized arrays, the roll-off restricted
 to the lines where it can act; here every sample runs the roll-off, whose factor is exactly 1 inside the band).
-Values to rounding of the eager chain's (a few ulp of the phase, ~1e4 rad: ~1e-12 of |G|).
+Values to rounding of the eager chain's (a few ulp of the phase, ~1e4 rad: ~1e-12 of |G|; the phase is reduced to
+one cycle before its ``cos``/``sin``, which makes them 1.5× faster).
 
 Lengths mm, frequencies cycles/mm, float64.
 """
@@ -21,7 +22,7 @@ import torch
 
 from raywave.utils.fused import fused
 
-__all__ = ["TransferBand", "adjoint_terms", "transfer_params", "transfer_values"]
+__all__ = ["TransferBand", "adjoint_terms", "band_values", "roll_off_terms", "transfer_params", "transfer_values"]
 
 _TWO_PI = 2.0 * math.pi
 #: the layout of a source's parameter vector (:func:`transfer_params`): n/λ, z, the carrier's frequency (k·α, k·β),
@@ -55,7 +56,10 @@ def _parts(fx: torch.Tensor, fy: torch.Tensor, p: torch.Tensor):
         t = (((z * g) * inv_w - mid).abs() - half).clamp_min(0.0).div(taper).clamp_max(1.0)
         s = t * t * t * (10.0 + t * (6.0 * t - 15.0))
         weight = weight - s * weight
-    phase = w * (_TWO_PI * z) + (fx * dx + fy * dy) * _TWO_PI
+    # the phase in cycles, reduced to [−½, ½] before the 2π: the vector cos/sin then skip their slow argument
+    # reduction (phases of ~1e4 rad: 1.5× less time for the loop; the same rounding, ~1e-12 cycles)
+    cycles = w * z + (fx * dx + fy * dy)
+    phase = (cycles - torch.round(cycles)) * _TWO_PI
     return torch.cos(phase) * weight, torch.sin(phase) * weight
 
 
@@ -92,6 +96,46 @@ def _adjoint_terms(gs: torch.Tensor, su: torch.Tensor, fx: torch.Tensor, fy: tor
 adjoint_terms = fused(_adjoint_terms)
 
 
+def _roll_off_terms(g: torch.Tensor, g_other: torch.Tensor, k: torch.Tensor, z: torch.Tensor, band: torch.Tensor):
+    """The roll-off weight's relative derivatives ``(∂ log W/∂z, ∂ log W/∂s)`` of one axis on lines of the band:
+    ``g`` that axis's physical frequencies and ``g_other`` the other's (cycles/mm, broadcast to the lines' shape),
+    ``k`` = n/λ, ``z`` (mm, non-zero) and ``band`` ``(..., 3)`` = ``(lo, hi, roll-off width)`` of the lateral shift
+    (mm), each broadcast per source. Stacked ``(..., 2)`` float64: the operations of the eager
+    :func:`~raywave.wave.propagation.transfer._roll_off`, in its order."""
+    lo, hi, taper = band.unbind(-1)
+    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    arg = (k * k - g_other * g_other) - g * g
+    shift = (z * g) * (1.0 / torch.where(arg > 0, arg, 1.0).sqrt())
+    sgn = torch.sign(shift - mid)
+    dshift = sgn * shift / z  # Δ ∝ z
+    dist = ((shift - mid).abs() - half).clamp_min(0.0)
+    ramp = (dist > 0) & (dist < taper)
+    dt_z = torch.where(ramp, (dshift - dist / (2.0 * z)) / taper, 0.0)  # T ∝ sqrt|z|
+    dt_s = torch.where(ramp, -sgn / taper, 0.0)  # the band moves with the window
+    t = (dist / taper).clamp_max(1.0)
+    # d(log(1 − S))/dt, S' = 30 t²(1 − t)², 1 − S = (1 − t)³(1 + 3t + 6t²): finite up to t = 1
+    dlog = torch.where(t < 1, -30.0 * t * t / ((1.0 - t) * (1.0 + t * (3.0 + 6.0 * t))).clamp_min(1e-300), 0.0)
+    return torch.stack([dlog * dt_z, dlog * dt_s], -1)
+
+
+_roll_off_flat = fused(_roll_off_terms)
+
+
+def roll_off_terms(g: torch.Tensor, g_other: torch.Tensor, k: torch.Tensor, z: torch.Tensor,
+                   band: torch.Tensor) -> torch.Tensor:
+    """:func:`_roll_off_terms` in one compiled loop, ``(*shape, 2)`` for the broadcast ``shape`` of its arguments
+    (``band`` broadcast with its last axis dropped). The arguments are expanded into flat arrays of one length (a
+    run of roll-off lines is a sliver of the band: a few copies), so that one compiled graph serves every source
+    count, run width and axis (a size-1 axis that broadcasts would otherwise compile a graph of its own)."""
+    shape = torch.broadcast_shapes(g.shape, g_other.shape, k.shape, z.shape, band.shape[:-1])
+    n = math.prod(shape)
+    flat = [t.expand(shape).reshape(-1) for t in (g, g_other, k, z)]
+    lo_hi = band.expand(*shape, 3).reshape(-1, 3)
+    if n == 1:  # (a length-1 array compiles a graph of its own: one sample twice, the same values)
+        flat, lo_hi = [t.repeat(2) for t in flat], lo_hi.repeat(2, 1)
+    return _roll_off_flat(*flat, lo_hi)[:n].reshape(*shape, 2)
+
+
 class TransferBand:
     """One source's transfer function on its band ``fy × fx`` (its rows' ``fy`` ``(R,)`` and columns' ``fx`` ``(C,)``
     frequencies, cycles/mm; ``p`` ``(12,)`` float64 its :data:`PARAMS`), evaluated on demand: :meth:`block` the
@@ -114,10 +158,27 @@ class TransferBand:
 
     def block(self, c0: int, c1: int, dtype=torch.complex128) -> torch.Tensor:
         """``G`` on the columns ``c0:c1``, transposed: ``(c1 − c0, R)`` of ``dtype``."""
-        g = torch.view_as_complex(transfer_values(self.fx[c0:c1, None], self.fy, self.p))
+        fx, fy = _two(self.fx[c0:c1]), _two(self.fy)
+        g = torch.view_as_complex(transfer_values(fx[:, None], fy, self.p))[:c1 - c0, :self.fy.numel()]
         return g if g.dtype == dtype else g.to(dtype)
 
     def full(self, dtype=torch.complex128) -> torch.Tensor:
         """``G`` on the band: ``(R, C)`` of ``dtype``."""
-        g = torch.view_as_complex(transfer_values(self.fx, self.fy[:, None], self.p))
-        return g if g.dtype == dtype else g.to(dtype)
+        return band_values(self.fx, self.fy, self.p, dtype)
+
+
+def band_values(fx: torch.Tensor, fy: torch.Tensor, p: torch.Tensor, dtype=torch.complex128) -> torch.Tensor:
+    """``G`` on the band ``fy[:, None], fx`` (``(R,)``, ``(C,)`` cycles/mm) of the sources ``p`` (``(12,)``: ``(R,
+    C)``; ``(B, 12)``: ``(B, R, C)``), in one compiled loop, as ``dtype``."""
+    r, c = fy.numel(), fx.numel()
+    pp = p if p.ndim == 1 else _two(p)[:, None, None, :]
+    g = torch.view_as_complex(transfer_values(_two(fx), _two(fy)[:, None], pp))[..., :r, :c]
+    if p.ndim > 1:
+        g = g[:p.shape[0]]
+    return g if g.dtype == dtype else g.to(dtype)
+
+
+def _two(v: torch.Tensor) -> torch.Tensor:
+    """``v`` with its first axis at least 2 long (a single entry repeated): a compiled loop's size-1 axis would
+    compile a graph of its own (the values do not depend on the position)."""
+    return v if v.shape[0] != 1 else v.repeat(2, *([1] * (v.ndim - 1)))

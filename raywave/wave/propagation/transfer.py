@@ -13,7 +13,7 @@ import torch
 from raywave.utils.phasor import polar
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation.band import index_runs
-from raywave.wave.propagation.kernels import transfer_params, transfer_values
+from raywave.wave.propagation.kernels import band_values, transfer_params
 from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _pair, _positive, _sqrt_kz, _xy, _z_value,
                                               check_single_field, fast_fft_size, legacy_call)
 
@@ -206,7 +206,7 @@ def _band_values(geo: _Geometry, fx, fy, rows, cols, weight_derivative: bool):
                                                         and torch.is_grad_enabled())
     if compiled:
         p = torch.tensor(transfer_params(geo), dtype=torch.float64, device=fx.device)
-        g = torch.view_as_complex(transfer_values(fx[cols], fy[rows][:, None], p))
+        g = band_values(fx[cols], fy[rows], p)
         if not weight_derivative:
             return g, None
         _, rel = _eager_band_values(geo, fx, fy, (rows, cols), weight_derivative)
