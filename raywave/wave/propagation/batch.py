@@ -178,11 +178,20 @@ class OwnBand:
     (:class:`BatchTransfer`'s, for this source). :attr:`band` evaluates the whole band, complex128 ``(R_i, C_i)``
     (None where it is empty)."""
 
-    __slots__ = ("rows", "cols", "values", "rel")
+    __slots__ = ("rows", "cols", "values", "_rel", "_rel_params")
 
     def __init__(self, rows: torch.Tensor, cols: torch.Tensor, values: TransferBand | None,
-                 rel: "RollOffRel | None" = None):
-        self.rows, self.cols, self.values, self.rel = rows, cols, values, rel
+                 rel: "RollOffRel | None" = None, rel_params: tuple | None = None):
+        self.rows, self.cols, self.values, self._rel = rows, cols, values, rel
+        self._rel_params = rel_params  # (the source's parameters for a rel built on first use)
+
+    @property
+    def rel(self) -> "RollOffRel | None":
+        """The roll-off derivatives (built on first use: the engine's backward evaluates them in its compiled loop,
+        :func:`~raywave.wave.propagation.kernels.adjoint_terms`, and never asks for them)."""
+        if self._rel is None and self._rel_params is not None:
+            self._rel = _rel(self._rel_params, self.values.fx, self.values.fy)
+        return self._rel
 
     @property
     def band(self) -> torch.Tensor | None:
@@ -408,8 +417,8 @@ def _own_band_values(params: tuple, pvec: torch.Tensor, freqs: tuple, weight_der
             continue
         fxc, fyr = fx[c_own], fy[r_own]
         # (the parameters a tensor of their own: a compiled loop guards on a view's offset into its base)
-        parts.append(OwnBand(r_own, c_own, TransferBand(fxc, fyr, pvec[i].clone()),
-                             _rel(one, fxc, fyr) if weight_derivative else None))
+        parts.append(OwnBand(r_own, c_own, TransferBand(fxc, fyr, pvec[i].clone()), None,
+                             one if weight_derivative else None))
     return tuple(parts)
 
 
@@ -597,59 +606,44 @@ class _TransferConvolve(torch.autograd.Function):
             runs = index_runs(part.rows), index_runs(part.cols)
             grad_u, _ = _adjoint(g, None, part.values, job.size, runs, ctx.in_shape, (need_u, False))
             return grad_u, None, None, None, None
-        grad_u, (col_qa, row_qa, qa_w, q_re) = _transfer_adjoint(g, u, job, ctx.in_shape, need_u)
-        fx, fy, rel = part.values.fx, part.values.fy, part.rel
-        terms = ((col_qa * fx).sum(), (row_qa * fy).sum(), qa_w)
+        grad_u, terms = _transfer_adjoint(g, u, job, ctx.in_shape, need_u)
         grads = [grad_u, None, None, None, None]
-        for i, (target, chan) in enumerate(((sx, 1), (sy, 2), (dz, 0))):
-            if not needs[i]:
-                continue
-            val = torch.zeros((1, 1, 1), dtype=torch.float64, device=g.device) - _TWO_PI * terms[i]
-            if rel is not None:
-                val = val + rel.sums(q_re[None], chan)
-            grads[i + 1] = val.sum_to_size(target.shape)
+        for i, target in enumerate((sx, sy, dz)):
+            if needs[i]:
+                grads[i + 1] = terms[i].reshape((1,) * target.ndim)
         return tuple(grads)
 
 
 def _transfer_adjoint(g: torch.Tensor, u: torch.Tensor, job: _BandJob, in_shape: tuple, need_u: bool):
     """:class:`_TransferConvolve`'s backward from the output's gradient ``g`` ``(noy, nox)``: ``(∂L/∂u (Ny, Nx) or
-    None, (Σ_rows Im q (C,), Σ_columns Im q (R,), Σ Im q·w (0-d), Re q (R, C) or None))`` with ``q`` the band's
-    ``conj(∂L/∂G)·G`` (:func:`~raywave.wave.propagation.kernels.adjoint_terms`; ``Re q`` only for the roll-off
-    derivatives' sums). The transforms of :func:`~raywave.wave.propagation.band._adjoint`, in its column blocks."""
+    None, the gradients of (s_x, s_y, dz) (three 0-d))``, from one compiled loop per column block
+    (:func:`~raywave.wave.propagation.kernels.adjoint_terms`: the band's products, the transfer function and its
+    roll-off derivatives evaluated in it) between the transforms of
+    :func:`~raywave.wave.propagation.band._adjoint`, in its column blocks."""
     part = job.part
     tb = part.values
     (my, mx), (ny, nx) = job.size, in_shape
     row_runs, col_runs = index_runs(part.rows), index_runs(part.cols)
-    n_rows, n_cols = part.rows.numel(), part.cols.numel()
-    chunks = band_chunks(g, my, n_cols)
+    chunks = band_chunks(g, my, part.cols.numel())
     gx = _x_band(g, mx, col_runs, chunks)  # (noy, C), not yet / mx
     ux = _x_band(u, mx, col_runs, chunks)
     full = torch.zeros((ny, mx), dtype=g.dtype, device=g.device) if need_u else None
-    f64 = dict(dtype=torch.float64, device=g.device)
-    col_qa, row_qa, qa_w = torch.empty(n_cols, **f64), torch.zeros(n_rows, **f64), torch.zeros((), **f64)
-    q_re = torch.empty((n_rows, n_cols), **f64) if part.rel is not None else None
-    for c0, c1 in _blocks(n_cols, chunks):
+    terms = torch.zeros(3, dtype=torch.float64, device=g.device)
+    for c0, c1 in _blocks(part.cols.numel(), chunks):
         gs = _y_spectrum(gx, c0, c1, my).div_(my * mx)  # (c, My); on the band rows ∂L/∂(product)
         su = _y_band(ux, c0, c1, my, row_runs)  # (c, R)
-        prod, qa, qre, qw = adjoint_terms(torch.view_as_real(take(gs, row_runs)), torch.view_as_real(su),
-                                          tb.fx[c0:c1, None], tb.fy, tb.p)
+        re, im, *per_col = adjoint_terms(torch.view_as_real(take(gs, row_runs)), torch.view_as_real(su),
+                                         tb.fx[c0:c1, None], tb.fy, tb.p)
         del su
-        col_qa[c0:c1] = qa.sum(-1)
-        row_qa += qa.sum(-2)
-        qa_w += qw.sum()
-        del qa, qw
-        if q_re is not None:
-            q_re[:, c0:c1] = qre.T
-        del qre
+        terms += torch.stack(per_col).sum(-1)
         if need_u:  # the band rows: gs·conj(G), the others 0; fft(n=my)'s adjoint
-            q = _band_put_(gs, row_runs, torch.view_as_complex(prod))
-            del prod
+            q = _band_put_(gs, row_runs, torch.complex(re, im))
             put(full, col_runs, torch.fft.ifft(q, dim=-1)[..., :ny].mul_(my).transpose(-1, -2), c0)
             del q
-        del gs
+        del gs, re, im
     del gx, ux
     grad_u = torch.fft.ifft(full, dim=-1)[..., :nx] * mx if need_u else None
-    return grad_u, (col_qa, row_qa, qa_w, q_re)
+    return grad_u, terms.unbind(0)
 
 
 def propagate_batch(field: Field, out, z=None, *legacy, transfer: BatchTransfer | None = None,

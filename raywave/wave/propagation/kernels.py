@@ -74,22 +74,45 @@ transfer_values = fused(_values)
 
 
 def _adjoint_terms(gs: torch.Tensor, su: torch.Tensor, fx: torch.Tensor, fy: torch.Tensor, p: torch.Tensor):
-    """The band convolution's backward on a block of the band, with ``G`` evaluated in the loop: ``gs`` the output
-    gradient's band spectrum and ``su`` the input's (stacked ``(c, R, 2)``, transposed columns), ``fx`` ``(c, 1)``,
-    ``fy`` ``(R,)``, ``p`` ``(12,)``. Returns ``(gs·conj(G)`` stacked ``(c, R, 2)`` (the input's gradient's band
-    spectrum), ``Im q``, ``Re q``, ``Im q · w)`` with ``q = conj(gs·conj(su))·G`` (the terms of the window shift's
-    and the distance's gradients, :func:`~raywave.wave.propagation.batch._scalar_grads`), float64 ``(c, R)``."""
-    k, z, kax, kay = p[0], p[1], p[2], p[3]
+    """The band convolution's backward on a block of one source's band, with ``G`` and the roll-off weights'
+    derivatives evaluated in the loop: ``gs`` the output gradient's band spectrum and ``su`` the input's (stacked
+    ``(c, R, 2)``, transposed columns), ``fx`` ``(c, 1)``, ``fy`` ``(R,)``, ``p`` ``(12,)``. Returns ``gs·conj(G)``
+    (the input gradient's band spectrum) as its real and imaginary planes ``(c, R)`` and, per column ``(c,)``, the
+    window shift's and the distance's gradient terms ``Σ_rows (−2π Im q·∂φ/∂s + Re q·∂ log W/∂s)`` for ``s`` =
+    ``(s_x, s_y, z)`` with ``q = conj(gs·conj(su))·G`` (``∂φ/∂s`` = ``f_x``, ``f_y``, ``w``; the gradients of
+    :class:`~raywave.wave.propagation.batch._Perturbed` at a zero perturbation, whose roll-off derivatives are those
+    of :func:`_roll_off_terms`), float64."""
+    k, z, kax, kay, dx, dy, xm, xh, xt, ym, yh, yt = p.unbind(-1)
     gx, gy = fx + kax, fy + kay
     arg = (k * k - gy * gy) - gx * gx
-    w = torch.where(arg > 0, arg, 1.0).sqrt()
-    hr, hi = _parts(fx, fy, p)
+    prop = arg > 0
+    w = torch.where(prop, arg, 1.0).sqrt()
+    weight = prop.to(arg.dtype)
+    inv_w = 1.0 / w
+    dlogs = []
+    for g, mid, half, taper in ((gx, xm, xh, xt), (gy, ym, yh, yt)):
+        shift = (z * g) * inv_w
+        sgn = torch.sign(shift - mid)
+        dist = ((shift - mid).abs() - half).clamp_min(0.0)
+        t = (dist / taper).clamp_max(1.0)
+        s = t * t * t * (10.0 + t * (6.0 * t - 15.0))
+        weight = weight - s * weight
+        ramp = (dist > 0) & (dist < taper)
+        dlog = torch.where(t < 1, -30.0 * t * t / ((1.0 - t) * (1.0 + t * (3.0 + 6.0 * t))).clamp_min(1e-300), 0.0)
+        dlogs.append((torch.where(ramp, dlog * ((sgn * shift / z - dist / (2.0 * z)) / taper), 0.0),
+                      torch.where(ramp, dlog * (-sgn / taper), 0.0)))
+    cycles = w * z + (fx * dx + fy * dy)
+    phase = (cycles - torch.round(cycles)) * _TWO_PI
+    hr, hi = torch.cos(phase) * weight, torch.sin(phase) * weight
     a, b = gs[..., 0].to(hr.dtype), gs[..., 1].to(hr.dtype)
     c, d = su[..., 0].to(hr.dtype), su[..., 1].to(hr.dtype)
     ghr, ghi = a * c + b * d, b * c - a * d  # gs·conj(su): the transfer function's gradient
-    qa = ghr * hi - ghi * hr
-    prod = torch.stack([a * hr + b * hi, b * hr - a * hi], -1).to(gs.dtype)
-    return prod, qa, ghr * hr + ghi * hi, qa * w
+    qa, q_re = ghr * hi - ghi * hr, ghr * hr + ghi * hi
+    (fz_x, fs_x), (fz_y, fs_y) = dlogs
+    g_sx = (q_re * fs_x - _TWO_PI * (qa * fx)).sum(-1)
+    g_sy = (q_re * fs_y - _TWO_PI * (qa * fy)).sum(-1)
+    g_dz = (q_re * (fz_x + fz_y) - _TWO_PI * (qa * w)).sum(-1)
+    return (a * hr + b * hi).to(gs.dtype), (b * hr - a * hi).to(gs.dtype), g_sx, g_sy, g_dz
 
 
 #: :func:`_adjoint_terms` as one compiled loop
