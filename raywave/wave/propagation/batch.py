@@ -633,7 +633,7 @@ def _transfer_adjoint(g: torch.Tensor, u: torch.Tensor, job: _BandJob, in_shape:
         gs = _y_spectrum(gx, c0, c1, my).div_(my * mx)  # (c, My); on the band rows ∂L/∂(product)
         su = _y_band(ux, c0, c1, my, row_runs)  # (c, R)
         re, im, *per_col = adjoint_terms(torch.view_as_real(take(gs, row_runs)), torch.view_as_real(su),
-                                         tb.fx[c0:c1, None], tb.fy, tb.p)
+                                         tb.fx[c0:c1, None].clone(), tb.fy, tb.p)  # (a view: guards on its base)
         del su
         terms += torch.stack(per_col).sum(-1)
         if need_u:  # the band rows: gs·conj(G), the others 0; fft(n=my)'s adjoint

@@ -181,7 +181,7 @@ class TransferBand:
 
     def block(self, c0: int, c1: int, dtype=torch.complex128) -> torch.Tensor:
         """``G`` on the columns ``c0:c1``, transposed: ``(c1 − c0, R)`` of ``dtype``."""
-        fx, fy = _two(self.fx[c0:c1]), _two(self.fy)
+        fx, fy = _two(self.fx[c0:c1].clone()), _two(self.fy)  # (a view: a compiled loop guards on its base)
         g = torch.view_as_complex(transfer_values(fx[:, None], fy, self.p))[:c1 - c0, :self.fy.numel()]
         return g if g.dtype == dtype else g.to(dtype)
 
