@@ -1,6 +1,7 @@
 """A/B timing of the PSF map per PSF (issue 17): two source trees, runs interleaved, one process per run.
 
-Each run builds the bundled ``hybrid_asphere``, warms up with a 1-PSF map, then times one N×N×3 map (R, G, B
+Each run builds the bundled ``hybrid_asphere``, warms up with a 1-PSF map (``grad``: and one PSF's forward +
+backward; compiled loops, :mod:`raywave.utils.fused`, compile on first use), then times one N×N×3 map (R, G, B
 channel centres, ks = 64, accurate mode, no autograd) and reports wall and CPU seconds (``process_time``, all
 threads) per PSF. The trees alternate A, B, A, B, … so that a machine shared with other work loads both alike;
 the medians are reported. Prints one JSON object (and writes it with ``-o``).
@@ -58,6 +59,8 @@ psf_map(hl, (1, 1), wavelengths=wls[:1], ks=64)
 if sys.argv[5] == "grad":  # forward + backward, one model call (8 field points × 3 λ) at a time, as the replay does
     from raywave.imaging.psfmap import field_grid
     f = field_grid(hl, (n, n)).reshape(-1, 2)
+    # a warm-up call with its backward (compiled loops: the backward's own graphs compile on first use)
+    hl.psf_result(f[:1], list(wls[:1]), ks=64).psf.sum().backward()
     w = torch.rand((n * n, 3, 64, 64), dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     t0, c0 = time.perf_counter(), time.process_time()
     parts = []

@@ -191,76 +191,79 @@ def _mirror_images(in_shape, in_origin, out_origin, carrier, nout):
     ((121, 101), (-0.06, -0.06), (-0.02, -0.02), (0.0, 0.0)),    # on axis, its window symmetric in y
     ((90, 131), (0.2, -0.045), (0.27, -0.02), (0.12, 0.0)),      # a large carrier along x only
 ])
-def test_mirror_images_take_the_flipped_band(monkeypatch, in_shape, in_origin, out_origin, carrier):
-    """On the CPU a source that is an earlier one's mirror image takes its band flipped and turned by the windows'
-    linear phase (``_mirrored_twin``): the same rows, columns and values as evaluating it (to the phases' rounding,
-    ~1e-11 of the band for phases of ~1e4 rad), and the propagated fields the same to 1e-11."""
+def test_lazily_evaluated_bands_equal_the_single_window_transfer(monkeypatch, in_shape, in_origin, out_origin, carrier):
+    """On the CPU each source's transfer function is evaluated where the band convolution uses it (one compiled loop,
+    :class:`~raywave.wave.propagation.kernels.TransferBand`): its band (rows, columns) and values equal the
+    single-window :func:`window_transfer` of that source alone on the same FFT size, and the eager chain's values
+    (to the phases' rounding, ~1e-12 of the band for phases of ~1e4 rad), its column blocks are the band's columns bit for bit, and the propagated
+    fields equal the union's evaluation (an accelerator's plan) to 1e-12."""
     import raywave.wave.propagation.batch as batch_mod
+    import raywave.wave.propagation.transfer as transfer_mod
+    from raywave.wave.grid import Field, Grid
 
     nout = 41
     srcs = _mirror_images(in_shape, in_origin, out_origin, carrier, nout)
     wb = WindowBatch(tuple(srcs), (nout, nout), P)
-    geos = wb.geometries()
-    pairs = [batch_mod._mirror_axes(geos[0], g) for g in geos]  # (a window symmetric about an axis: equal there)
-    assert pairs[0] == (False, False) and all(p is not None for p in pairs) and any(any(p) for p in pairs)
-    fast = batch_transfer(wb)
-    monkeypatch.setattr(batch_mod, "_mirrored_twin", lambda *a: None)
-    slow = batch_transfer(wb)
+    lazy = batch_transfer(wb)
+    assert lazy.parts is not None and all(p.values is not None for p in lazy.parts)
+    my, mx = lazy.size
+    fx = torch.fft.fftfreq(mx, d=P, dtype=torch.float64)
+    fy = torch.fft.fftfreq(my, d=P, dtype=torch.float64)
+    for s, part, geo in zip(srcs, lazy.parts, wb.geometries()):
+        field = Field(torch.zeros(s.in_shape, dtype=torch.complex128), Grid(s.in_origin, P, s.in_shape),
+                      s.wavelength, s.n, s.carrier)
+        ref = transfer_mod.window_transfer(field, Grid(s.out_origin, P, (nout, nout)), s.z)
+        assert ref.size == lazy.size and torch.equal(ref.rows, part.rows) and torch.equal(ref.cols, part.cols)
+        band = part.band
+        assert torch.equal(band, ref.band)  # the single window's transfer: the same compiled loop
+        eager = transfer_mod._eager_band_values(geo, fx, fy, (part.rows, part.cols), False)[0]
+        scale = float(eager.abs().max())
+        assert scale > 0 and float((band - eager).abs().max()) <= 1e-11 * scale
+        c = band.shape[1]
+        assert torch.equal(part.values.block(3, c - 2), band[:, 3:c - 2].T)
+    monkeypatch.setattr(batch_mod, "_by_source", lambda device, b: False)
+    union = batch_transfer(wb)
     monkeypatch.undo()
-    for a, b in zip(slow.parts, fast.parts):
-        assert torch.equal(a.rows, b.rows) and torch.equal(a.cols, b.cols)
-        scale = float(a.band.abs().max())
-        assert scale > 0 and float((a.band - b.band).abs().max()) <= 1e-10 * scale
+    assert union.parts is None
     g = torch.Generator().manual_seed(5)
     u = torch.randn((4, *in_shape), dtype=torch.complex128, generator=g)
-    v_fast, v_slow = _run(wb, u, fast), _run(wb, u, slow)
-    assert float((v_fast - v_slow).abs().max()) <= 1e-11 * float(v_slow.abs().max())
+    v_lazy, v_union = _run(wb, u, lazy), _run(wb, u, union)
+    assert float((v_lazy - v_union).abs().max()) <= 1e-12 * float(v_union.abs().max())
 
 
 @pytest.mark.parametrize("in_shape, in_origin, out_origin, carrier", [
     ((120, 100), (0.01, -0.03), (0.05, 0.02), (0.03, -0.02)),
     ((90, 131), (0.2, -0.045), (0.27, -0.02), (0.12, 0.0)),
 ])
-def test_mirror_images_take_the_flipped_roll_off_derivatives(monkeypatch, in_shape, in_origin, out_origin, carrier):
-    """With the roll-off weights' derivatives (a differentiable window shift: the engine with autograd) a mirror
-    image takes its twin's :class:`RollOffRel` mirrored (the lines moved, ∂s along a flipped axis negated, ∂z kept):
-    the dense derivatives equal evaluating the source itself to 1e-10 of their scale, and the window-shift
-    gradients of the propagated fields agree to 1e-9."""
+def test_lazily_evaluated_bands_carry_the_union_gradients(monkeypatch, in_shape, in_origin, out_origin, carrier):
+    """With autograd the lazily evaluated bands (``_TransferConvolve``: the forward without the band-sized transfer
+    function, the backward evaluating it once more) give the window-shift, distance and field gradients of the
+    union's evaluation (the materialised band through ``_Perturbed`` and ``BandConvolve``) to 1e-10, and the forward
+    equals the one without autograd bit for bit."""
     import raywave.wave.propagation.batch as batch_mod
 
     nout = 41
     wb = WindowBatch(tuple(_mirror_images(in_shape, in_origin, out_origin, carrier, nout)), (nout, nout), P)
-    fast = batch_transfer(wb, weight_derivative=True)
-    monkeypatch.setattr(batch_mod, "_mirrored_twin", lambda *a: None)
-    slow = batch_transfer(wb, weight_derivative=True)
+    lazy = batch_transfer(wb, weight_derivative=True)
+    monkeypatch.setattr(batch_mod, "_by_source", lambda device, b: False)
+    union = batch_transfer(wb, weight_derivative=True)
     monkeypatch.undo()
-    for a, b in zip(slow.parts, fast.parts):
-        assert torch.equal(a.rows, b.rows) and torch.equal(a.cols, b.cols)
-        live = a.band[None] != 0
-        da, db = a.rel.dense(live), b.rel.dense(live)
-        scale = float(da.abs().max())
-        assert scale > 0 and float((da - db).abs().max()) <= 1e-10 * scale
+    assert lazy.parts is not None and union.parts is None
     g = torch.Generator().manual_seed(7)
-    u = torch.randn((4, *in_shape), dtype=torch.complex128, generator=g)
+    u0 = torch.randn((4, *in_shape), dtype=torch.complex128, generator=g)
     w = torch.randn((4, nout, nout), dtype=torch.complex128, generator=g)
-    grads = []
-    for transfer in (fast, slow):
+    grads, outs = [], []
+    for transfer in (lazy, union):
+        u = u0.clone().requires_grad_()
         shift = torch.zeros((4, 2), dtype=torch.float64, requires_grad=True)
-        out = propagate_batch(wb.field(u), wb.out_grids(), wb.distances(), transfer=transfer, shift=shift).envelope
-        grads.append(torch.autograd.grad((out * w.conj()).real.sum(), shift)[0])
-    assert float((grads[0] - grads[1]).abs().max()) <= 1e-9 * float(grads[1].abs().max())
+        dz = torch.zeros((), dtype=torch.float64, requires_grad=True)
+        out = _run(wb, u, transfer, shift=shift, dz=dz)
+        grads.append(torch.autograd.grad((out * w.conj()).real.sum(), (u, shift, dz)))
+        outs.append(out.detach())
+    with torch.no_grad():
+        assert torch.equal(outs[0], _run(wb, u0, lazy))
+    assert float((outs[0] - outs[1]).abs().max()) <= 1e-12 * float(outs[1].abs().max())
+    for a, b in zip(*grads):
+        assert float((a - b).abs().max()) <= 1e-10 * float(b.abs().max())
 
 
-def test_mirror_images_need_a_matching_geometry():
-    """``_mirror_axes`` pairs only geometries equal to rounding except for negated carriers and shift bands: another
-    distance, wavelength or a shifted window is no mirror image."""
-    import raywave.wave.propagation.batch as batch_mod
-
-    srcs = _mirror_images((60, 60), (0.01, 0.02), (0.03, 0.04), (0.02, 0.01), 21)
-    a = srcs[0]
-    others = [WindowSource(a.in_shape, a.in_origin, a.out_origin, 0.53, 1.6, 1.0, a.carrier),
-              WindowSource(a.in_shape, a.in_origin, a.out_origin, 0.47, 1.5, 1.0, a.carrier),
-              WindowSource(srcs[1].in_shape, (srcs[1].in_origin[0] + P, srcs[1].in_origin[1]), srcs[1].out_origin,
-                           0.53, 1.5, 1.0, srcs[1].carrier)]
-    geos = WindowBatch((a, *others), (21, 21), P).geometries()
-    assert all(batch_mod._mirror_axes(geos[0], g) is None for g in geos[1:])

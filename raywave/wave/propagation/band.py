@@ -163,26 +163,55 @@ def _band_product_(spec: torch.Tensor, row_runs, h_block: torch.Tensor) -> torch
     return spec
 
 
-def convolve_band(u: torch.Tensor, h: torch.Tensor, size, rows: torch.Tensor, cols: torch.Tensor, noy: int,
+class _Columns:
+    """The transposed column blocks ``(..., c, R)`` of a transfer function on its band: ``h`` a tensor ``(..., R, C)``
+    (views), or a lazily evaluated band (:class:`~raywave.wave.propagation.kernels.TransferBand`: each block
+    evaluated where it is used, in ``dtype``; no band-sized array)."""
+
+    def __init__(self, h, dtype):
+        self.lazy = not isinstance(h, torch.Tensor)
+        self.h, self.dtype = h, dtype
+        self.h_t = None if self.lazy else h.transpose(-1, -2)
+
+    def block(self, c0: int, c1: int) -> torch.Tensor:
+        return self.h.block(c0, c1, self.dtype) if self.lazy else self.h_t[..., c0:c1, :]
+
+
+def _band_put_(spec: torch.Tensor, row_runs, values: torch.Tensor) -> torch.Tensor:
+    """In place on a full-length spectrum ``spec`` ``(..., c, My)``: its band rows set to ``values`` ``(..., c, R)``,
+    every other entry 0 (:func:`_band_product_` with the product already formed); returns ``spec``."""
+    pos = prev = 0
+    for a, b in row_runs:
+        spec[..., prev:a].zero_()
+        spec[..., a:b].copy_(values[..., pos:pos + b - a])
+        pos, prev = pos + b - a, b
+    spec[..., prev:].zero_()
+    return spec
+
+
+def convolve_band(u: torch.Tensor, h, size, rows: torch.Tensor, cols: torch.Tensor, noy: int,
                   nox: int) -> torch.Tensor:
     """``ifft2(fft2(u, s=size)·H)[..., :noy, :nox]`` for ``H`` zero outside ``rows × cols`` (``h`` on it,
-    ``(..., R, C)``; ``rows`` ``(R,)``, ``cols`` ``(C,)`` sorted int64 indices into the FFT grid ``size`` = ``(My,
-    Mx)``), for ``u`` ``(..., Ny, Nx)``: the output window ``(..., noy, nox)``. Autograd records it where its
-    inputs require grad (the plain operations; :class:`BandConvolve` keeps less for the backward)."""
+    ``(..., R, C)``, or one source's :class:`~raywave.wave.propagation.kernels.TransferBand`, evaluated a column
+    block at a time where the product needs it; ``rows`` ``(R,)``, ``cols`` ``(C,)`` sorted int64 indices into the
+    FFT grid ``size`` = ``(My, Mx)``), for ``u`` ``(..., Ny, Nx)``: the output window ``(..., noy, nox)``. Autograd
+    records it where its inputs require grad (the plain operations; :class:`BandConvolve` keeps less for the
+    backward)."""
     my, mx = size
-    lead = torch.broadcast_shapes(u.shape[:-2], h.shape[:-2])
+    lazy = not isinstance(h, torch.Tensor)
+    lead = u.shape[:-2] if lazy else torch.broadcast_shapes(u.shape[:-2], h.shape[:-2])
     if rows.numel() == 0 or cols.numel() == 0:
         return torch.zeros((*lead, noy, nox), dtype=u.dtype, device=u.device) + 0 * u.sum()
-    grad = torch.is_grad_enabled() and (u.requires_grad or h.requires_grad)
+    grad = torch.is_grad_enabled() and (u.requires_grad or (not lazy and h.requires_grad))
     if devices.accelerator(u):
-        return _convolve_indexed(u, h, size, (rows, cols), (noy, nox), grad)
+        return _convolve_indexed(u, h.full(u.dtype) if lazy else h, size, (rows, cols), (noy, nox), grad)
     if not grad and per_field(u, lead):
-        return _field_by_field(lambda ui, hi: convolve_band(ui, hi, size, rows, cols, noy, nox), (u, h), lead,
-                               (noy, nox))
+        return _field_by_field(lambda ui, hi: convolve_band(ui, h if lazy else hi, size, rows, cols, noy, nox),
+                               (u, None if lazy else h), lead, (noy, nox))
     row_runs, col_runs = index_runs(rows), index_runs(cols)
     chunks = band_chunks(u, my, cols.numel())
     ux = _x_band(u, mx, col_runs, chunks)  # (..., Ny, C)
-    h_t = h.transpose(-1, -2)  # (..., C, R)
+    h_t = _Columns(h, u.dtype)  # (..., C, R) a block at a time
     out = torch.zeros((*lead, noy, mx), dtype=u.dtype, device=u.device)
     blocks = _blocks(cols.numel(), chunks)
     for c0, c1 in blocks:
@@ -192,9 +221,9 @@ def convolve_band(u: torch.Tensor, h: torch.Tensor, size, rows: torch.Tensor, co
         spec = torch.fft.fft(blk, dim=-1)
         del blk
         if grad:
-            full = _scattered(take(spec, row_runs) * h_t[..., c0:c1, :], row_runs, my)
+            full = _scattered(take(spec, row_runs) * h_t.block(c0, c1), row_runs, my)
         else:  # the product in place on the block's spectrum (no band copy, no second full-length array)
-            full = _band_product_(spec, row_runs, h_t[..., c0:c1, :])
+            full = _band_product_(spec, row_runs, h_t.block(c0, c1))
         del spec
         part = torch.fft.ifft(full, dim=-1)[..., :noy]  # (..., c, noy)
         del full
@@ -274,7 +303,7 @@ def _adjoint(g: torch.Tensor, u: torch.Tensor, h: torch.Tensor, size, runs, in_s
     gx = _x_band(g, mx, col_runs, chunks)  # (..., noy, C), not yet / mx
     ux = _x_band(u, mx, col_runs, chunks) if need_h else None
     full = torch.zeros((*g.shape[:-2], ny, mx), dtype=g.dtype, device=g.device) if need_u else None
-    h_t = h.transpose(-1, -2) if need_u else None
+    h_t = _Columns(h, g.dtype) if need_u else None
     grad_h = []
     for c0, c1 in _blocks(n_cols, chunks):
         gs = _y_spectrum(gx, c0, c1, my).div_(my * mx)  # (..., c, My); on the band rows ∂L/∂(product)
@@ -283,7 +312,7 @@ def _adjoint(g: torch.Tensor, u: torch.Tensor, h: torch.Tensor, size, runs, in_s
             grad_h.append((take(gs, row_runs) * spec.conj()).transpose(-1, -2))
             del spec
         if need_u:  # in place: the band rows times conj(h), the others 0
-            q = _band_product_(gs, row_runs, h_t[..., c0:c1, :].conj())
+            q = _band_product_(gs, row_runs, h_t.block(c0, c1).conj())
             part = torch.fft.ifft(q, dim=-1)[..., :ny].mul_(my)  # fft(n=my)'s adjoint: (..., c, ny)
             del q
             put(full, col_runs, part.transpose(-1, -2), c0)

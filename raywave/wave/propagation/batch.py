@@ -26,6 +26,7 @@ size, the band's rows and columns) are made once per batch.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -34,7 +35,10 @@ from raywave.utils import devices
 from raywave.utils.phasor import polar
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation._common import _TWO_PI, _pair
-from raywave.wave.propagation.band import index_runs, per_field
+from raywave.wave.propagation.band import (_adjoint, _band_put_, _blocks, _x_band, _y_band, _y_spectrum, band_chunks,
+                                           convolve_band, index_runs, put, take)
+from raywave.wave.propagation.kernels import (TransferBand, adjoint_terms, band_values, roll_off_terms,
+                                             transfer_params)
 from raywave.wave.propagation.transfer import WindowSource, _geometry
 from raywave.wave.propagation.window import _convolve
 
@@ -167,16 +171,31 @@ class BatchTransfer:
         return BatchTransfer(self.size, self.rows, self.cols, band, rel, self.wave, self.pitch, self.batch)
 
 
-@dataclass
 class OwnBand:
-    """One source's transfer function on its own band: ``band`` complex128 ``(R_i, C_i)`` on the rows ``rows``
-    (R_i,) × columns ``cols`` (C_i,) of the FFT grid (None: the band is empty), ``rel`` a :class:`RollOffRel` of one
-    source or None (:class:`BatchTransfer`'s, for this source)."""
+    """One source's transfer function on its own band, on the rows ``rows`` (R_i,) × columns ``cols`` (C_i,) of the
+    FFT grid: ``values`` a :class:`~raywave.wave.propagation.kernels.TransferBand` (evaluated where the band
+    convolution uses it) or None (the band is empty); ``rel`` a :class:`RollOffRel` of one source or None
+    (:class:`BatchTransfer`'s, for this source). :attr:`band` evaluates the whole band, complex128 ``(R_i, C_i)``
+    (None where it is empty)."""
 
-    rows: torch.Tensor
-    cols: torch.Tensor
-    band: torch.Tensor | None
-    rel: torch.Tensor | None
+    __slots__ = ("rows", "cols", "values", "_rel", "_rel_params")
+
+    def __init__(self, rows: torch.Tensor, cols: torch.Tensor, values: TransferBand | None,
+                 rel: "RollOffRel | None" = None, rel_params: tuple | None = None):
+        self.rows, self.cols, self.values, self._rel = rows, cols, values, rel
+        self._rel_params = rel_params  # (the source's parameters for a rel built on first use)
+
+    @property
+    def rel(self) -> "RollOffRel | None":
+        """The roll-off derivatives (built on first use: the engine's backward evaluates them in its compiled loop,
+        :func:`~raywave.wave.propagation.kernels.adjoint_terms`, and never asks for them)."""
+        if self._rel is None and self._rel_params is not None:
+            self._rel = _rel(self._rel_params, self.values.fx, self.values.fy)
+        return self._rel
+
+    @property
+    def band(self) -> torch.Tensor | None:
+        return None if self.values is None else self.values.full()
 
 
 
@@ -270,46 +289,6 @@ def _host_candidates(geos: list, m: int, axis: int) -> tuple[np.ndarray, np.ndar
     return idx, f[idx]
 
 
-def _roll_off(shift: torch.Tensor, band, zf, weight: torch.Tensor, weight_derivative: bool):
-    """The batched :func:`~raywave.wave.propagation.transfer._roll_off` of one axis: ``weight`` (B, R, C) multiplied
-    in place by the quintic roll-off of the lateral shift ``shift`` (B, R, C) (mm, consumed) beyond ``[lo, hi]``
-    over ``taper`` (``band``: three ``(B, 1, 1)``; every taper > 0); returns (∂ log W/∂z, ∂ log W/∂s) with
-    ``weight_derivative``, else None."""
-    lo, hi, taper = band
-    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    zero = torch.zeros((), dtype=shift.dtype, device=shift.device)
-    if weight_derivative:
-        sgn = torch.sign(shift - mid)
-        dshift = torch.where(zf != 0, sgn * shift / torch.where(zf != 0, zf, 1.0), zero)
-    dist = shift.sub_(mid).abs_().sub_(half).clamp_(min=0.0)
-    if weight_derivative:
-        ramp = (dist > 0) & (dist < taper)
-        dt_z = torch.where(ramp, (dshift - dist / (2.0 * zf)) / taper, zero)
-        dt_s = torch.where(ramp, -sgn / taper, zero)
-        del dshift, sgn, ramp
-    t = dist.div_(taper).clamp_(max=1.0)
-    factor = None
-    if weight_derivative:
-        dlog = torch.where(t < 1, -30.0 * t * t / ((1.0 - t) * (1.0 + t * (3.0 + 6.0 * t))).clamp_min(1e-300), zero)
-        factor = (dlog * dt_z, dlog * dt_s)
-    s = t * t * t * (10.0 + t * (6.0 * t - 15.0))  # S(t); W ← W − W·S
-    weight.sub_(s.mul_(weight))
-    return factor
-
-
-def _roll_off_whole(shift: torch.Tensor, band, weight: torch.Tensor) -> None:
-    """:func:`_roll_off` without the weights' derivatives, in place with two band-sized temporaries (an accelerator's
-    whole band at once: its peak memory): the same operations on the same values (bit for bit). ``band``: ``(lo, hi,
-    roll-off)``, or with the middle and half width ``0.5·(lo ± hi)`` as two more (host values: no op)."""
-    lo, hi, taper, *mid_half = band
-    mid, half = mid_half if mid_half else (0.5 * (lo + hi), 0.5 * (hi - lo))
-    t = shift.sub_(mid).abs_().sub_(half).clamp_(min=0.0).div_(taper).clamp_(max=1.0)
-    q = t * 6.0
-    q.sub_(15.0).mul_(t).add_(10.0)  # 10 + t·(6t − 15)
-    s = t * t
-    weight.sub_(s.mul_(t).mul_(q).mul_(weight))  # W ← W − W·S(t), S(t) = t³·(10 + t·(6t − 15))
-
-
 def _ramp_lines(g, g_other, k, zf, band) -> torch.Tensor:
     """Indices of the band's lines (``g`` (B, 1, C) or (B, R, 1): one axis's physical frequencies; ``g_other`` the
     other's) where some source's lateral shift may leave its ``[lo, hi]`` (the batched
@@ -327,26 +306,19 @@ def _ramp_lines(g, g_other, k, zf, band) -> torch.Tensor:
     return torch.nonzero(~inside.all(0).reshape(-1)).squeeze(1)
 
 
-def _roll_off_lines(g, g_other, kz, inv_w, band, weight, weight_derivative: bool, dim: int):
-    """:func:`_roll_off` of one axis (``dim`` −1: x, the band's columns; −2: y, its rows; ``g`` that axis's physical
-    frequencies, ``kz`` = ``(k, zf)``, ``inv_w`` (B, R, C) 1/w) on ``weight`` in place, evaluated on the lines that
-    can roll off alone (:func:`_ramp_lines`; the same values: elsewhere the factor is 1 and its derivatives 0), a
-    contiguous run of lines at a time (views). Returns the factors with ``weight_derivative`` (the runs of
-    :class:`RollOffRel`: ``((a, b, ∂ log W/∂z, ∂ log W/∂s), …)`` on the lines ``a:b`` of ``dim``), else None."""
+def _rel_lines(g, g_other, kz, band, dim: int) -> tuple:
+    """The roll-off weights' relative derivatives of one axis (``dim`` −1: x, the band's columns; −2: y, its rows;
+    ``g`` that axis's physical frequencies, ``g_other`` the other's, ``kz`` = ``(k, zf)``) on the lines that can roll
+    off alone (:func:`_ramp_lines`; elsewhere the factor is 1 and its derivatives 0), a contiguous run of lines at a
+    time, each in one compiled loop (:func:`~raywave.wave.propagation.kernels.roll_off_terms`): the runs of
+    :class:`RollOffRel`, ``((a, b, ∂ log W/∂z, ∂ log W/∂s), …)`` on the lines ``a:b`` of ``dim``."""
     k, zf = kz
-    if not weight_derivative and devices.accelerator(weight):
-        # an accelerator: every line at once (no line search, no host read, one set of kernels; the same values:
-        # elsewhere the factor is exactly 1)
-        _roll_off_whole(inv_w.whole().mul_(zf * g), band, weight)
-        return None
-    runs = index_runs(_ramp_lines(g, g_other, k, zf, band))
-    facs = [] if weight_derivative else None
-    for a, b in runs:
-        gl, iw = g.narrow(dim, a, b - a), inv_w.narrow(dim, a, b - a)
-        fac = _roll_off((zf * gl) * iw, band, zf, weight.narrow(dim, a, b - a), weight_derivative)
-        if weight_derivative:
-            facs.append((a, b, *fac))
-    return None if facs is None else tuple(facs)
+    stacked = torch.stack(band, -1)  # (B, 1, 1, 3)
+    facs = []
+    for a, b in index_runs(_ramp_lines(g, g_other, k, zf, band)):
+        fac = roll_off_terms(g.narrow(dim, a, b - a), g_other, k, zf, stacked)
+        facs.append((a, b, fac[..., 0], fac[..., 1]))
+    return tuple(facs)
 
 
 def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = False) -> BatchTransfer:
@@ -361,12 +333,13 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
                          "window_transfer for the sharp band limit")
     my, mx = batch.fft_size()
     (px, py) = geos[0].pitch
-    k, zf, ax, ay, dx, dy, bxl, bxh, bxt, byl, byh, byt, *mid_half = _columns(
-        [[g.k, g.zf, g.carrier[0], g.carrier[1], g.shift[0], g.shift[1], *g.bx, *g.by, *_mid_half(g.bx),
-          *_mid_half(g.by)] for g in geos], device)
+    k, zf, ax, ay, dx, dy, bxl, bxh, bxt, byl, byh, byt = _columns(
+        [[g.k, g.zf, g.carrier[0], g.carrier[1], g.shift[0], g.shift[1], *g.bx, *g.by] for g in geos], device)
     kax, kay = k * ax, k * ay
     wave = torch.stack([k, kax, kay])
-    b = len(geos)
+    # each source's parameters of the compiled transfer function (kernels.PARAMS), one transfer
+    pvec = torch.tensor([transfer_params(g) for g in geos], dtype=torch.float64, device=device)
+    params = (k, zf, kax, kay, dx, dy, (bxl, bxh, bxt), (byl, byh, byt))
     if devices.accelerator(device):
         # an accelerator: the band's lines from host arithmetic (the same lines), one transfer each
         (cols, fxc), (rows, fyr) = _host_candidates(geos, mx, 0), _host_candidates(geos, my, 1)
@@ -374,10 +347,7 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
         cols, rows, fxc, fyr = (torch.from_numpy(np.ascontiguousarray(v)).to(device) for v in (cols, rows, fxc, fyr))
         if cols.numel() == 0 or rows.numel() == 0:
             return _empty_transfer(batch, (rows, cols), wave, weight_derivative, device)
-        bx, by = (bxl, bxh, bxt), (byl, byh, byt)
-        if not weight_derivative:  # each band's middle and half width from the host (for _roll_off_whole)
-            bx, by = bx + tuple(mid_half[:2]), by + tuple(mid_half[2:])
-        band, rel = _band_values((k, zf, kax, kay, dx, dy, bx, by), fxc, fyr, weight_derivative)
+        band, rel = _band_values(params, pvec, (fxc, fyr), weight_derivative)
         return BatchTransfer((my, mx), rows, cols, band, rel, wave, (px, py), batch)
     fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=device)
     fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=device)
@@ -385,18 +355,11 @@ def batch_transfer(batch: WindowBatch, device=None, weight_derivative: bool = Fa
     rows = _union_candidates(fy, k, kay, zf, byl, byh, byt)
     if cols.numel() == 0 or rows.numel() == 0:
         return _empty_transfer(batch, (rows, cols), wave, weight_derivative, device)
-    params = (k, zf, kax, kay, dx, dy, (bxl, bxh, bxt), (byl, byh, byt))
-    if _by_source(device, b):
-        parts = _own_band_values(params, (fx, fy), weight_derivative, geos)
+    if _by_source(device, len(geos)):
+        parts = _own_band_values(params, pvec, (fx, fy), weight_derivative)
         return BatchTransfer((my, mx), rows, cols, None, None, wave, (px, py), batch, parts)
-    band, rel = _band_values(params, fx[cols], fy[rows], weight_derivative)
+    band, rel = _band_values(params, pvec, (fx[cols], fy[rows]), weight_derivative)
     return BatchTransfer((my, mx), rows, cols, band, rel, wave, (px, py), batch)
-
-
-def _mid_half(band: tuple) -> tuple[float, float]:
-    """``(middle, half width)`` of a band ``(lo, hi, roll-off)`` (host floats: :func:`_roll_off`'s arithmetic)."""
-    lo, hi, _ = band
-    return 0.5 * (lo + hi), 0.5 * (hi - lo)
 
 
 def _empty_transfer(batch: WindowBatch, lines: tuple, wave: torch.Tensor, weight_derivative: bool,
@@ -410,66 +373,41 @@ def _empty_transfer(batch: WindowBatch, lines: tuple, wave: torch.Tensor, weight
 
 
 def _by_source(device, b: int) -> bool:
-    """Whether :func:`batch_transfer` evaluates each source on its own band (a CPU: the work follows each source's own
-    band and roll-off lines, ~3× less than on the union for a map's batches) rather than the batch at once on the
-    union (an accelerator: one set of kernels)."""
-    return b > 1 and not devices.accelerator(device)
+    """Whether :func:`batch_transfer` describes each source on its own band (a CPU: a lazily evaluated
+    :class:`~raywave.wave.propagation.kernels.TransferBand` per source, which the band convolution evaluates a column
+    block at a time where it multiplies the spectrum; the work follows each source's own band, ~3× less than the
+    union's for a map's batches) rather than the batch at once on the union (an accelerator: one set of kernels)."""
+    return not devices.accelerator(device)
 
 
-def _band_values(params: tuple, fxc: torch.Tensor, fyr: torch.Tensor, weight_derivative: bool):
+def _band_values(params: tuple, pvec: torch.Tensor, freqs: tuple, weight_derivative: bool):
     """``(band (B, R, C) complex128, rel (:class:`RollOffRel`) or None)``: the transfer functions of the sources
-    ``params`` (:func:`batch_transfer`'s ``(k, zf, kα, kβ, dx, dy, x band, y band)``, each ``(B, 1, 1)``) on the
-    frequencies ``fyr[:, None], fxc`` (1/mm)."""
-    k, zf, kax, kay, dx, dy, bx, by = params
+    ``pvec`` ``(B, 12)`` (:data:`~raywave.wave.propagation.kernels.PARAMS`) on the frequencies ``freqs`` = ``(fxc,
+    fyr)`` (1/mm; the band ``fyr[:, None], fxc``), in one compiled loop; ``params`` (:func:`batch_transfer`'s ``(k,
+    zf, kα, kβ, dx, dy, x band, y band)``, each ``(B, 1, 1)``) for the roll-off derivatives."""
+    fxc, fyr = freqs
+    band = band_values(fxc, fyr, pvec)
+    return band, (_rel(params, fxc, fyr) if weight_derivative else None)
+
+
+def _rel(params: tuple, fxc: torch.Tensor, fyr: torch.Tensor) -> "RollOffRel":
+    """The roll-off weights' relative derivatives (:class:`RollOffRel`) of the sources ``params`` (as
+    :func:`_band_values`) on the band ``fyr[:, None], fxc``, evaluated on the roll-off lines alone."""
+    k, zf, kax, kay, _, _, bx, by = params
     gxs, gys = fxc + kax, fyr[:, None] + kay  # (B, 1, C), (B, R, 1): physical frequencies (cycles/mm)
-    arg = (k * k - gys * gys) - gxs * gxs  # (B, R, C)
-    prop = arg > 0
-    w = arg.masked_fill_(~prop, 1.0).sqrt_()  # (n/λ)·cosθ; 1 on evanescent entries
-    weight = prop.to(torch.float64)  # evanescent: exactly 0
-    del prop
-    inv_w = _LineReciprocal(w)  # 1/w on the roll-off lines alone (the only place it is read)
-    fac_x = _roll_off_lines(gxs, gys, (k, zf), inv_w, bx, weight, weight_derivative, -1)
-    fac_y = _roll_off_lines(gys, gxs, (k, zf), inv_w, by, weight, weight_derivative, -2)
-    del inv_w
-    # polar(weight, phase) with one band-sized temporary (the linear phase's, reused for the cosine) instead of
-    # four, the product in contiguous arrays: the same values bit for bit (issue 47: ~5 % of the map's transfer time)
-    lin = torch.add(fxc * dx, fyr[:, None] * dy)
-    phase = w.mul_(_TWO_PI * zf).add_(lin.mul_(_TWO_PI))
-    re = torch.cos(phase, out=lin).mul_(weight)
-    im = phase.sin_().mul_(weight)
-    del weight
-    band = torch.complex(re, im)
-    del re, im, phase
-    rel = RollOffRel(tuple(band.shape), fac_x, fac_y, band.device) if weight_derivative else None
-    return band, rel
+    fac_x = _rel_lines(gxs, gys, (k, zf), bx, -1)
+    fac_y = _rel_lines(gys, gxs, (k, zf), by, -2)
+    return RollOffRel((k.shape[0], fyr.numel(), fxc.numel()), fac_x, fac_y, fxc.device)
 
 
-class _LineReciprocal:
-    """``1/w`` of a band ``w`` (B, R, C) evaluated on the lines :func:`_roll_off_lines` narrows it to (the same values
-    as ``w.reciprocal().narrow(...)``, without the band-sized reciprocal)."""
-
-    def __init__(self, w: torch.Tensor):
-        self.w = w
-
-    def narrow(self, dim: int, start: int, length: int) -> torch.Tensor:
-        return self.w.narrow(dim, start, length).reciprocal()
-
-    def whole(self) -> torch.Tensor:
-        return self.w.reciprocal()
-
-
-def _own_band_values(params: tuple, freqs: tuple, weight_derivative: bool, geos: list | None = None) -> tuple:
-    """:func:`_band_values` of each source on its own band (its own candidate rows and columns, the lines where it
-    alone can roll off): a tuple of :class:`OwnBand`. The same values as :func:`_band_values` on the union, where the
-    union holds exact zeros outside each source's band (:meth:`BatchTransfer.placed`).
-
-    ``geos`` (the sources' host geometries, :func:`~raywave.wave.propagation.transfer._geometry`; None: every source
-    evaluated): a source that is an earlier one's mirror image (a symmetric lens's map: its four images of a field
-    point, :func:`_mirror_axes`) takes that one's band flipped and turned by a linear phase (:func:`_mirrored_band`)
-    instead of its own ``sqrt`` and ``cos``/``sin`` over the band, ~10× less work: the same function to rounding."""
+def _own_band_values(params: tuple, pvec: torch.Tensor, freqs: tuple, weight_derivative: bool) -> tuple:
+    """Each source on its own band (its own candidate rows and columns, the lines where it alone can roll off): a
+    tuple of :class:`OwnBand`, their values lazily evaluated (:class:`~raywave.wave.propagation.kernels.
+    TransferBand`; ``pvec`` ``(B, 12)`` their parameters). The same values as :func:`_band_values` on the union,
+    where the union holds exact zeros outside each source's band (:meth:`BatchTransfer.placed`)."""
     fx, fy = freqs
     parts = []
-    for i in range(params[0].shape[0]):
+    for i in range(pvec.shape[0]):
         one = tuple(p[i:i + 1] if isinstance(p, torch.Tensor) else tuple(q[i:i + 1] for q in p) for p in params)
         k, zf, kax, kay, _, _, bx, by = one
         c_own = _union_candidates(fx, k, kax, zf, *bx)
@@ -477,116 +415,11 @@ def _own_band_values(params: tuple, freqs: tuple, weight_derivative: bool, geos:
         if c_own.numel() == 0 or r_own.numel() == 0:
             parts.append(OwnBand(r_own, c_own, None, None))
             continue
-        twin = None if geos is None else _mirrored_twin(geos, i, parts, freqs, (r_own, c_own))
-        if twin is not None:
-            parts.append(twin)
-            continue
-        v, r = _band_values(one, fx[c_own], fy[r_own], weight_derivative)
-        parts.append(OwnBand(r_own, c_own, v[0], r))
+        fxc, fyr = fx[c_own], fy[r_own]
+        # (the parameters a tensor of their own: a compiled loop guards on a view's offset into its base)
+        parts.append(OwnBand(r_own, c_own, TransferBand(fxc, fyr, pvec[i].clone()), None,
+                             one if weight_derivative else None))
     return tuple(parts)
-
-
-def _close(a: float, b: float) -> bool:
-    """``a`` and ``b`` equal to rounding (1e-12 of their size; lengths in mm, direction cosines)."""
-    return abs(a - b) <= 1e-12 * max(abs(a), abs(b), 1.0)
-
-
-def _mirror_axes(a, b) -> tuple[bool, bool] | None:
-    """``(flip_x, flip_y)`` when the geometry ``b`` is ``a``'s mirror image along the flipped axes and equal along
-    the others (:func:`~raywave.wave.propagation.transfer._geometry`: the same k, distance, FFT size and pitch; per
-    axis its carrier and its lateral shift's band ``(lo, hi)`` negated, ``(−hi, −lo)``, or equal; to rounding), else
-    None. Then ``b``'s transfer function is ``a``'s at the negated frequencies times ``exp(2πi f (d_a + d_b))``
-    along each flipped axis (``d`` the output-to-input window shift; :func:`_mirrored_band`)."""
-    if a.k != b.k or a.zf != b.zf or a.size != b.size or a.pitch != b.pitch:
-        return None
-    flips = []
-    for ca, cb, ba, bb in ((a.carrier[0], b.carrier[0], a.bx, b.bx), (a.carrier[1], b.carrier[1], a.by, b.by)):
-        if not _close(ba[2], bb[2]):
-            return None
-        if _close(ca, cb) and _close(ba[0], bb[0]) and _close(ba[1], bb[1]):
-            flips.append(False)
-        elif _close(ca, -cb) and _close(ba[0], -bb[1]) and _close(ba[1], -bb[0]):
-            flips.append(True)
-        else:
-            return None
-    return flips[0], flips[1]
-
-
-def _mirrored_twin(geos: list, i: int, parts: list, freqs: tuple, own: tuple) -> OwnBand | None:
-    """Source ``i``'s :class:`OwnBand` from an earlier source's ``parts[j]`` whose mirror image it is
-    (:func:`_mirror_axes`, :func:`_mirrored_band`), or None: no such source, or the flipped band's lines are not
-    source ``i``'s own candidate lines ``own`` = ``(rows, cols)`` (an even FFT size's Nyquist line, whose negated
-    frequency is not on the grid; a line at the band's edge that rounding puts in or out)."""
-    for j in range(i):
-        flips = _mirror_axes(geos[j], geos[i])
-        if flips is None or parts[j].band is None:
-            continue
-        out = _mirrored_band(parts[j], flips, (geos[j].shift[0] + geos[i].shift[0],
-                                               geos[j].shift[1] + geos[i].shift[1]), freqs)
-        if out is not None and torch.equal(out.rows, own[0]) and torch.equal(out.cols, own[1]):
-            return out
-    return None
-
-
-def _mirrored_band(part: OwnBand, flips: tuple, shifts: tuple, freqs: tuple) -> OwnBand | None:
-    """The mirror image's band of ``part`` (one source's :class:`OwnBand`): along each flipped axis (``flips`` =
-    ``(x, y)``) the band at the negated frequencies (FFT index ``i → (M − i) mod M``: its lines reversed, line 0
-    kept first) times ``exp(2πi f·s)``, ``s`` = ``shifts`` (mm) that axis's ``d_a + d_b``; None where a flipped axis's
-    band holds the Nyquist line of an even size ``M`` (its own negative only by aliasing). ``freqs`` = ``(fx, fy)``
-    the FFT grid's frequencies."""
-    band, idx, rel = part.band, [part.cols, part.rows], part.rel
-    for axis, (flip, f, s) in enumerate(zip(flips, freqs, shifts)):
-        if not flip:
-            continue
-        dim, n, lines, m = -1 - axis, f.numel(), idx[axis], band.shape[-1 - axis]
-        if n % 2 == 0 and bool((lines == n // 2).any()):  # (host reads: the CPU path)
-            return None
-        keep = 1 if int(lines[0]) == 0 else 0  # frequency 0 is its own negative
-        lines = torch.cat([lines[:keep], (n - lines[keep:]).flip(0)])
-        ramp = polar(torch.ones_like(f[lines]), _TWO_PI * s * f[lines])
-        band = _reversed_lines(band, dim, keep).mul_(ramp if axis == 0 else ramp[:, None])
-        idx[axis] = lines
-        if rel is not None:
-            rel = _mirrored_rel(rel, axis, keep)
-    return OwnBand(idx[1], idx[0], band, rel)
-
-
-def _mirrored_rel(rel: RollOffRel, axis: int, keep: int) -> RollOffRel:
-    """The mirror image's :class:`RollOffRel` along ``axis`` (0: x, the columns; 1: y, the rows) of one source's
-    ``rel``, for the band's lines reordered as :func:`_reversed_lines` with ``keep`` (the line at position ``p ≥
-    keep`` moves to ``M − p − 1 + keep``). Mirroring negates the lateral shift, its band and the carrier along the
-    axis: the weight at the negated frequency is the same, its derivative with respect to the window's shift along
-    the axis changes sign and that with respect to the distance does not. The runs along the axis move to their
-    mirrored lines (their values reversed, ∂s negated); the other axis's runs keep their lines, their values
-    reordered along this axis."""
-    m = rel.shape[-1 - axis]
-    dim = -1 - axis
-
-    def moved(runs):
-        out = []
-        for a, b, fz, fs in runs:
-            if a < keep:  # the kept line 0 stays in place
-                out.append((0, 1, fz.narrow(dim, 0, 1), -fs.narrow(dim, 0, 1)))
-                if b == 1:
-                    continue
-                fz, fs, a = fz.narrow(dim, 1, b - 1), fs.narrow(dim, 1, b - 1), 1
-            out.append((m - b + keep, m - a + keep, fz.flip(dim), fs.flip(dim).neg_()))
-        return tuple(out)
-
-    def reordered(runs):
-        return tuple((a, b, _reversed_lines(fz, dim, keep), _reversed_lines(fs, dim, keep)) for a, b, fz, fs in runs)
-
-    x, y = (moved(rel.x), reordered(rel.y)) if axis == 0 else (reordered(rel.x), moved(rel.y))
-    return RollOffRel(rel.shape, x, y, rel.device)
-
-
-def _reversed_lines(band: torch.Tensor, dim: int, keep: int) -> torch.Tensor:
-    """A new array of ``band``'s lines along ``dim`` with the first ``keep`` (0 or 1) in place and the rest in reverse
-    order (line ``i → (M − i) mod M`` of an FFT grid): a flip, and a concatenation where ``keep`` is 1. A CPU's
-    ``index_select`` along the last axis gathers element by element, ~6× slower than the flip's copy (a 1438 ×
-    1435 band: 7.0 vs 1.1 ms); the same values."""
-    flipped = band.narrow(dim, keep, band.shape[dim] - keep).flip(dim)
-    return torch.cat([band.narrow(dim, 0, keep), flipped], dim) if keep else flipped
 
 
 def _place_parts(parts: tuple, band_index: tuple, weight_derivative: bool):
@@ -607,10 +440,11 @@ def _place_parts(parts: tuple, band_index: tuple, weight_derivative: bool):
             continue
         rp = index_runs(torch.searchsorted(rows, part.rows))
         cp = index_runs(torch.searchsorted(cols, part.cols))
-        _place(band[i], part.band, rp, cp)
+        values = part.band
+        _place(band[i], values, rp, cp)
         _zero_outside(band[i], rp, cp)
         if weight_derivative:
-            _place(rel[i], part.rel.dense(part.band[None] != 0)[0], rp, cp)
+            _place(rel[i], part.rel.dense(values[None] != 0)[0], rp, cp)
             _zero_outside(rel[i], rp, cp)
     return band, rel
 
@@ -700,29 +534,116 @@ class _Perturbed(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g):
         y, sx, sy, dz, fx, fy, wave = ctx.saved_tensors
-        rel = ctx.rel
-        qa_c = (g.conj() * y).to(torch.complex128)  # conj(g)·h·e^{iφ}·a
-        qa = qa_c.imag
-        amp = None if rel is None or ctx.zero else _amplitude(rel, sx, sy, dz)
-        q_re = qa_c.real if amp is None else qa_c.real / amp
-        del qa_c
-        w = None if wave is None or not ctx.needs_input_grad[3] else _axial(fx, fy, wave)
         grads = [None] * 8
-        for i, (freq, chan, target) in enumerate(((fx, 1, sx), (fy, 2, sy), (w, 0, dz))):
-            if not ctx.needs_input_grad[i + 1]:
-                continue
-            part = torch.zeros_like(qa[..., :1, :1])
-            if freq is not None and i < 2:  # a frequency of one axis: the band summed across the other axis first
-                line = qa.sum(-2 if i == 0 else -1)  # (B, C) or (B, R)
-                part = part - _TWO_PI * (line * freq).sum(-1)[:, None, None]
-            elif freq is not None:
-                part = part - _TWO_PI * (qa * freq).sum((-2, -1), keepdim=True)
-            if isinstance(rel, RollOffRel):
-                part = part + rel.sums(q_re, chan)
-            elif rel is not None:
-                part = part + (q_re * rel[:, chan]).sum((-2, -1), keepdim=True)
-            grads[i + 1] = part.sum_to_size(target.shape)
+        grads[1:4] = _scalar_grads(g, y, (sx, sy, dz), (fx, fy, wave, ctx.rel), ctx.zero, ctx.needs_input_grad[1:4])
         return tuple(grads)
+
+
+def _scalar_grads(g: torch.Tensor, y: torch.Tensor, scalars: tuple, band: tuple, zero: bool, needs) -> list:
+    """The gradients of :class:`_Perturbed`'s ``(sx, sy, dz)`` (``scalars``; None where ``needs`` says not wanted)
+    from the gradient ``g`` of its output ``y`` ``(B, R, C)``; ``band`` = ``(fx, fy, wave, rel)`` (the band's
+    frequencies, the axial frequency's ``wave`` or None, the roll-off derivatives or None), ``zero``: the
+    perturbation is zero-valued (the amplitude is 1)."""
+    sx, sy, dz = scalars
+    fx, fy, wave, rel = band
+    qa_c = (g.conj() * y).to(torch.complex128)  # conj(g)·h·e^{iφ}·a
+    qa = qa_c.imag
+    amp = None if rel is None or zero else _amplitude(rel, sx, sy, dz)
+    q_re = qa_c.real if amp is None else qa_c.real / amp
+    del qa_c
+    w = None if wave is None or not needs[2] else _axial(fx, fy, wave)
+    grads = [None] * 3
+    for i, (freq, chan, target) in enumerate(((fx, 1, sx), (fy, 2, sy), (w, 0, dz))):
+        if not needs[i]:
+            continue
+        part = torch.zeros_like(qa[..., :1, :1])
+        if freq is not None and i < 2:  # a frequency of one axis: the band summed across the other axis first
+            line = qa.sum(-2 if i == 0 else -1)  # (B, C) or (B, R)
+            part = part - _TWO_PI * (line * freq).sum(-1)[:, None, None]
+        elif freq is not None:
+            part = part - _TWO_PI * (qa * freq).sum((-2, -1), keepdim=True)
+        if isinstance(rel, RollOffRel):
+            part = part + rel.sums(q_re, chan)
+        elif rel is not None:
+            part = part + (q_re * rel[:, chan]).sum((-2, -1), keepdim=True)
+        grads[i] = part.sum_to_size(target.shape)
+    return grads
+
+
+class _BandJob(NamedTuple):
+    """One source's band convolution with a lazily evaluated transfer function (:class:`_TransferConvolve`): its
+    :class:`OwnBand` ``part``, the FFT grid ``size`` ``(My, Mx)`` and the output window ``out_shape`` ``(noy,
+    nox)``."""
+
+    part: OwnBand
+    size: tuple
+    out_shape: tuple
+
+
+class _TransferConvolve(torch.autograd.Function):
+    """The band convolution of one field ``u`` ``(Ny, Nx)`` with its source's transfer function perturbed to first
+    order by zero-valued ``sx``, ``sy`` (``(1, 1, 1)`` mm) and ``dz`` (0-d mm) (each None or a tensor that carries a
+    derivative; :class:`_Perturbed`), the transfer function evaluated where it is used (``job`` a :class:`_BandJob`:
+    :class:`~raywave.wave.propagation.kernels.TransferBand`): the forward is the convolution without autograd, bit
+    for bit (the perturbation is zero), and keeps ``u`` alone besides the scalars; the backward
+    (:func:`_transfer_adjoint`) is :class:`~raywave.wave.propagation.band.BandConvolve`'s adjoint and
+    :class:`_Perturbed`'s reductions with the band's products in one compiled loop per column block
+    (:func:`~raywave.wave.propagation.kernels.adjoint_terms`): no band-sized array."""
+
+    @staticmethod
+    def forward(ctx, u, sx, sy, dz, job: _BandJob):
+        ctx.job, ctx.in_shape = job, tuple(u.shape[-2:])
+        ctx.save_for_backward(u if any(ctx.needs_input_grad[1:4]) else None, sx, sy, dz)
+        part = job.part
+        return convolve_band(u, part.values, job.size, part.rows, part.cols, *job.out_shape)
+
+    @staticmethod
+    def backward(ctx, g):
+        u, sx, sy, dz = ctx.saved_tensors
+        job = ctx.job
+        part, need_u, needs = job.part, ctx.needs_input_grad[0], ctx.needs_input_grad[1:4]
+        if not any(needs):
+            runs = index_runs(part.rows), index_runs(part.cols)
+            grad_u, _ = _adjoint(g, None, part.values, job.size, runs, ctx.in_shape, (need_u, False))
+            return grad_u, None, None, None, None
+        grad_u, terms = _transfer_adjoint(g, u, job, ctx.in_shape, need_u)
+        grads = [grad_u, None, None, None, None]
+        for i, target in enumerate((sx, sy, dz)):
+            if needs[i]:
+                grads[i + 1] = terms[i].reshape((1,) * target.ndim)
+        return tuple(grads)
+
+
+def _transfer_adjoint(g: torch.Tensor, u: torch.Tensor, job: _BandJob, in_shape: tuple, need_u: bool):
+    """:class:`_TransferConvolve`'s backward from the output's gradient ``g`` ``(noy, nox)``: ``(∂L/∂u (Ny, Nx) or
+    None, the gradients of (s_x, s_y, dz) (three 0-d))``, from one compiled loop per column block
+    (:func:`~raywave.wave.propagation.kernels.adjoint_terms`: the band's products, the transfer function and its
+    roll-off derivatives evaluated in it) between the transforms of
+    :func:`~raywave.wave.propagation.band._adjoint`, in its column blocks."""
+    part = job.part
+    tb = part.values
+    (my, mx), (ny, nx) = job.size, in_shape
+    row_runs, col_runs = index_runs(part.rows), index_runs(part.cols)
+    chunks = band_chunks(g, my, part.cols.numel())
+    gx = _x_band(g, mx, col_runs, chunks)  # (noy, C), not yet / mx
+    ux = _x_band(u, mx, col_runs, chunks)
+    full = torch.zeros((ny, mx), dtype=g.dtype, device=g.device) if need_u else None
+    terms = torch.zeros(3, dtype=torch.float64, device=g.device)
+    for c0, c1 in _blocks(part.cols.numel(), chunks):
+        gs = _y_spectrum(gx, c0, c1, my).div_(my * mx)  # (c, My); on the band rows ∂L/∂(product)
+        su = _y_band(ux, c0, c1, my, row_runs)  # (c, R)
+        re, im, *per_col = adjoint_terms(torch.view_as_real(take(gs, row_runs)), torch.view_as_real(su),
+                                         tb.fx[c0:c1, None].clone(), tb.fy, tb.p)  # (a view: guards on its base)
+        del su
+        terms += torch.stack(per_col).sum(-1)
+        if need_u:  # the band rows: gs·conj(G), the others 0; fft(n=my)'s adjoint
+            q = _band_put_(gs, row_runs, torch.complex(re, im))
+            put(full, col_runs, torch.fft.ifft(q, dim=-1)[..., :ny].mul_(my).transpose(-1, -2), c0)
+            del q
+        del gs, re, im
+    del gx, ux
+    grad_u = torch.fft.ifft(full, dim=-1)[..., :nx] * mx if need_u else None
+    return grad_u, terms.unbind(0)
 
 
 def propagate_batch(field: Field, out, z=None, *legacy, transfer: BatchTransfer | None = None,
@@ -794,22 +715,30 @@ def _propagate_flat(u: torch.Tensor, transfer: BatchTransfer, out_shape, shift: 
         px, py = transfer.pitch
         fx = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=dev)
         fy = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=dev)
-    if transfer.parts is not None and per_field(u, (b,)):
+    if transfer.parts is not None and not devices.accelerator(u):
+        # zero-valued perturbations (the engine's: they carry derivatives only) leave each source's transfer function
+        # as it is: it is evaluated where the band convolution multiplies it (one host read for the batch)
+        zero = not perturbed or not bool(torch.cat([sx.reshape(-1), sy.reshape(-1), dzt.reshape(-1)]).any())
+        grad = torch.is_grad_enabled() and (u.requires_grad or (perturbed and (
+            sx.requires_grad or sy.requires_grad or dzt.requires_grad)))
         outs = []
         # the fields as views of one unbind: its backward stacks their gradients once, where each indexed read's
         # backward would allocate (and add) a zero array of the whole batch (B² window-sized arrays)
         us = u.unbind(0)
         for i, part in enumerate(transfer.parts):
-            if part.band is None:  # nothing passes: zeros (that keep u in the graph)
+            if part.values is None:  # nothing passes: zeros (that keep u in the graph)
                 outs.append(torch.zeros((noy, nox), dtype=u.dtype, device=dev) + 0 * us[i].sum())
-                continue
-            h = part.band
-            if perturbed:
+            elif not zero:  # a non-zero perturbation: the band's values times its factors
                 wave = None if dz is None else transfer.wave[:, i:i + 1]
-                rel = part.rel
-                h = _Perturbed.apply(h[None], sx[i:i + 1], sy[i:i + 1], dzt, fx[part.cols], fy[part.rows], wave,
-                                     rel)[0]
-            outs.append(_convolve(us[i], h.to(u.dtype), transfer.size, part.rows, part.cols, noy, nox))
+                h = _Perturbed.apply(part.band[None], sx[i:i + 1], sy[i:i + 1], dzt, fx[part.cols], fy[part.rows],
+                                     wave, part.rel)[0]
+                outs.append(_convolve(us[i], h.to(u.dtype), transfer.size, part.rows, part.cols, noy, nox))
+            elif grad:
+                job = _BandJob(part, transfer.size, (noy, nox))
+                scalars = (sx[i:i + 1], sy[i:i + 1], dzt) if perturbed else (None, None, None)
+                outs.append(_TransferConvolve.apply(us[i], *scalars, job))
+            else:
+                outs.append(convolve_band(us[i], part.values, transfer.size, part.rows, part.cols, noy, nox))
         return torch.stack(outs)
     transfer = transfer.placed()
     h = transfer.band

@@ -13,6 +13,7 @@ import torch
 from raywave.utils.phasor import polar
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation.band import index_runs
+from raywave.wave.propagation.kernels import band_values, transfer_params
 from raywave.wave.propagation._common import (_TWO_PI, _UM_TO_MM, _pair, _positive, _sqrt_kz, _xy, _z_value,
                                               check_single_field, fast_fft_size, legacy_call)
 
@@ -197,7 +198,26 @@ def _roll_off_lines(g, g_other, k: float, zf: float, inv_w, band, weight, weight
 
 
 def _band_values(geo: _Geometry, fx, fy, rows, cols, weight_derivative: bool):
-    """The transfer function on the band rectangle ``rows × cols``: (G, relative weight derivatives or None)."""
+    """The transfer function on the band rectangle ``rows × cols``: (G, relative weight derivatives or None). With a
+    roll-off on both axes and a distance that carries no derivative, ``G`` is the compiled loop's
+    (:func:`~raywave.wave.propagation.kernels.transfer_values`: the batched engine's values, ~10× faster than this
+    eager chain); the eager chain otherwise (and for the weights' derivatives)."""
+    compiled = geo.bx[2] > 0 and geo.by[2] > 0 and not (isinstance(geo.zt, torch.Tensor) and geo.zt.requires_grad
+                                                        and torch.is_grad_enabled())
+    if compiled:
+        p = torch.tensor(transfer_params(geo), dtype=torch.float64, device=fx.device)
+        g = band_values(fx[cols], fy[rows], p)
+        if not weight_derivative:
+            return g, None
+        _, rel = _eager_band_values(geo, fx, fy, (rows, cols), weight_derivative)
+        return g, rel
+    return _eager_band_values(geo, fx, fy, (rows, cols), weight_derivative)
+
+
+def _eager_band_values(geo: _Geometry, fx, fy, band, weight_derivative: bool):
+    """:func:`_band_values` as a chain of tensor operations (the sharp band limit, a distance that carries a
+    derivative, the weights' derivatives); ``band`` = ``(rows, cols)``."""
+    rows, cols = band
     k, zf = geo.k, geo.zf
     (ax, ay), (dx, dy) = geo.carrier, geo.shift
     gxs, gys = fx[cols] + k * ax, fy[rows] + k * ay  # physical spatial frequencies (cycles/mm)
