@@ -76,8 +76,8 @@ def test_compiled_loop_equals_its_eager_function():
         for a, b in zip(se._envelope_dense(*args), se._envelope_dense.__wrapped__(*args)):
             assert _close(a, b)
         g_re, g_im = torch.randn(2, *nu.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
-        for a, b in zip(se._envelope_dense_grads(g_re, g_im, *args),
-                        se._envelope_dense_grads.__wrapped__(g_re, g_im, *args)):
+        for a, b in zip(se._envelope_dense_grads((g_re, g_im), *args),
+                        se._envelope_dense_grads.__wrapped__((g_re, g_im), *args)):
             assert _close(a, b)
 
 

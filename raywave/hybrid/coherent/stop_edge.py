@@ -795,11 +795,12 @@ def _envelope_dense(amp, angle, nu, kap, nb, nu_max, tab, offset: int, sign: flo
 
 
 @fused
-def _envelope_dense_grads(g_re, g_im, amp, angle, nu, kap, nb, nu_max, tab, offset: int, sign: float):
+def _envelope_dense_grads(grad: tuple, amp, angle, nu, kap, nb, nu_max, tab, offset: int, sign: float):
     """The backward of :func:`_envelope_dense` as one compiled loop: ``(∂L/∂a, ∂L/∂θ, ∂L/∂ν, ∂L/∂(κ/g) or None)``
-    from the output's gradient ``(g_re, g_im)``: :meth:`_EdgeEnvelope._block_grads`' arithmetic (``q =
+    from the output's gradient ``grad`` = ``(g_re, g_im)``: :meth:`_EdgeEnvelope._block_grads`' arithmetic (``q =
     conj(G)·e^{iθ}``, ``∂L/∂a = Re(q·D)``, ``∂L/∂θ = −a·Im(q·D)``, on the band :meth:`_EdgeBand.grads`' of
     ``∂L/∂D = conj(q)·a``), the band's Fresnel integrals recomputed from the table. All four always (one graph)."""
+    g_re, g_im = grad
     cos_, sin_ = torch.cos(angle), torch.sin(angle)
     q_re = g_re * cos_ + g_im * sin_
     q_im = sin_ * g_re - cos_ * g_im
@@ -916,7 +917,7 @@ def _dense_backward(grad, inputs: tuple, consts, need):
     plan = _dense_plan(nu, consts, compiled=False)  # (the same loop's arithmetic, eager if compiling is off now)
     with torch.no_grad():
         gr = torch.view_as_real(grad.resolve_conj())
-        g = _envelope_dense_grads(gr[..., 0], gr[..., 1], *_dense_args(amp, angle, nu, kap, plan), *plan[2:])
+        g = _envelope_dense_grads((gr[..., 0], gr[..., 1]), *_dense_args(amp, angle, nu, kap, plan), *plan[2:])
     return (g[0].sum_to_size(amp.shape) if need[0] else None, g[1] if need[1] else None, g[2] if need[2] else None,
             g[3] if need[3] else None, None, None, None, None)
 
