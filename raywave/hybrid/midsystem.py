@@ -1023,7 +1023,7 @@ class MidSystemLens(nn.Module):
         f = torch.tensor([list(field)] * len(orders), dtype=torch.float64)
         wl = torch.tensor([wavelength], dtype=torch.float64, device=lens_m.device)
         with torch.no_grad(), warnings.catch_warnings(), per_source(lens_m, values):
-            warnings.simplefilter("ignore")  # a vignetted probe marks its order as not to be culled
+            warnings.simplefilter("ignore", VignettingWarning)  # a vignetted probe marks its order as kept
             rays = point_source_rays(lens_m, f, wl, pupil=(px, py), aim="full", depth=depth)
             out = lens_m.trace(rays)
         nmed = lens_m.surfaces[-1].material.n(out.wavelength).to(out.dtype)
