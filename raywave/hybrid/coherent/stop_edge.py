@@ -682,36 +682,9 @@ class _EdgeBand(torch.autograd.Function):
     def grads(v, kap, nb, c_, s_, nu_max: float, forward_edge: bool, g_re, g_im, need_kap: bool):
         """The gradients ``(∂L/∂ν, ∂L/∂(κ/g) or None)`` on the band samples from those of ``(Re, Im)`` of the
         factor (``c_``, ``s_`` the Fresnel integrals at ``v``)."""
-        t_out, t_in, w_out, w_in, f, ok = _EdgeBand._terms(v, kap, nb, nu_max)
-        d_re, d_im = _EdgeBand._knife(c_, s_, forward_edge)
-        sign = 1.0 if forward_edge else -1.0
-        ph = 0.5 * math.pi * v * v  # C' = cos, S' = sin
-        cos_, sin_ = torch.cos(ph), torch.sin(ph)
-        dd_re, dd_im = 0.5 * (cos_ + sin_), sign * 0.5 * (sin_ - cos_)
-        dw_out = _smoothstep_slope(t_out) / (ROLL_ZONES * math.sqrt(2.0))
-        dw_in = -_smoothstep_slope(t_in) / (0.5 * nb)
-        w = w_out * w_in
-        dw = dw_out * w_in + w_out * dw_in
-        lit = v > 0
-        e_re = torch.where(lit, d_re - 1.0, d_re)  # the edge wave D − H
-        if kap is None:
-            m, dm = w, dw
-        else:
-            m, dm = w * f, dw * f + w * torch.where(ok, 0.5 * kap / f, torch.zeros_like(f))
-        dre = torch.where(lit, dw_out, torch.zeros_like(dw_out)) + dd_re * m + e_re * dm
-        dim = dd_im * m + d_im * dm
-        if kap is not None:  # d(c·w)/dν = ∂c/∂ν·w + c·dw/dν, c = e·B, ∂B/∂ν = D − H
-            b_re, b_im = curved_edge_term(v, d_re, d_im, forward_edge, (cos_, sin_))
-            e = -0.5 * kap.clamp(-KAPPA_MAX, KAPPA_MAX)
-            dre = dre + e * (e_re * w + b_re * dw)
-            dim = dim + e * (d_im * w + b_im * dw)
-        g_v = g_re * dre + g_im * dim
-        g_k = None
-        if kap is not None and need_kap:
-            df = torch.where(ok, 0.5 * v / f, torch.zeros_like(f)) * w  # ∂f/∂(κ/g)·w
-            de = torch.where((kap >= -KAPPA_MAX) & (kap <= KAPPA_MAX), -0.5 * w, torch.zeros_like(w))  # ∂e/∂(κ/g)·w
-            g_k = g_re * (e_re * df + b_re * de) + g_im * (d_im * df + b_im * de)
-        return g_v, g_k
+        # the compiled loop's arithmetic with the edge's direction as a sign (the same bits as the branches)
+        g_v, g_k = _band_grads(v, kap, nb, (c_, s_), nu_max, 1.0 if forward_edge else -1.0, (g_re, g_im))
+        return g_v, (g_k if need_kap else None)
 
 
 @functools.lru_cache(maxsize=4)
