@@ -294,11 +294,12 @@ def _check_node_count(kx: int, ky: int, nodes: int, extent: float, margin: float
                      f"plane.{why}")
 
 
-#: Fresnel zones (:func:`_zone_estimate`) the node grid reaches beyond the stop edge's ripple band (:func:`_node_layout`).
-#: The estimate is an upper one (30 % over the chief ray's), so 0 leaves the bundled asphere 7–12 nodes beyond the band
-#: (its interpolation needs 3) where the 1 zone of before issue 47's sixteenth session left 11–18: ~13 % fewer node rays
-#: (a single PSF at 12.25° 109² instead of 117²). Where the band comes within :data:`NODE_SPARE` nodes of the grid's
-#: edge all the same (:func:`_band_at_grid_edge`), the construction traces again with :data:`NODE_MARGIN_WIDE`
+#: Fresnel zones (:func:`_zone_estimate`) the node grid reaches beyond the stop edge's ripple band
+#: (:func:`_node_layout`). The estimate is an upper one (30 % over the chief ray's), so 0 leaves the bundled asphere
+#: 7–12 nodes beyond the band (its interpolation needs 3; the Cooke triplet and the 50 mm singlet 5–7, the double Gauss
+#: with the caustic fallback 4–5) where the 1 zone of before (issue 47, h47m) left 11–18 on the asphere: ~13 % fewer
+#: node rays (a single PSF at 12.25° 109² instead of 117²). Where the band comes within :data:`NODE_SPARE` nodes of the
+#: grid's edge all the same (:func:`_band_at_grid_edge`), the construction traces again with :data:`NODE_MARGIN_WIDE`
 NODE_MARGIN_ZONES = 0.0
 #: the margin (zones beyond the band) of the second trace where the first one's grid cut the band
 NODE_MARGIN_WIDE = 1.0
