@@ -216,7 +216,8 @@ def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int)
         for (my, mx), group in sorted(groups.items()):
             per = max(1, cap // (my * mx * element_size))
             for i in range(0, len(group), per):
-                batches.extend(group[i:i + per] if accel else _stack_cut(group[i:i + per]))
+                part = group[i:i + per]
+                batches.extend([part] if accel else _stack_cut(part))
     return batches
 
 
