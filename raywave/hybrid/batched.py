@@ -215,8 +215,36 @@ def plan_groups(planned: list[Planned], sensor: SensorWindow, element_size: int)
             groups.setdefault(_fft_size(pl, 2 * kk + 1, kk), []).append(pl)
         for (my, mx), group in sorted(groups.items()):
             per = max(1, cap // (my * mx * element_size))
-            batches.extend(group[i:i + per] for i in range(0, len(group), per))
+            for i in range(0, len(group), per):
+                part = group[i:i + per]
+                batches.extend([part] if accel else _stack_cut(part))
     return batches
+
+
+#: on a CPU a batch's zero-padded input stack (:func:`modulated_batch`, complex128) holds at most this many bytes
+#: (each batch at least one source): glibc maps an array of 32 MiB or more (its largest mmap threshold) fresh from the
+#: kernel on every allocation, page-faults it in and unmaps it on release, ~1.5 µs per 4 KiB page. The default stop
+#: edge's windows (~1 M samples on the bundled asphere's map, 16 MB each) made 4–9-source stacks of 64–140 MB: ~8 ms
+#: per PSF of faults, zero-fill and unmapping (issue 47). A CPU convolves the batch field by field anyway
+#: (:func:`~raywave.wave.propagation.band.per_field`), so smaller batches give the same PSFs bit for bit.
+STACK_BYTES = 2**25 - 2**20
+
+
+def _stack_cut(group: list[Planned]) -> list[list[Planned]]:
+    """``group`` (one FFT size, in order) cut into consecutive batches whose padded input stack (the count × each
+    axis's largest window, complex128) stays within :data:`STACK_BYTES`."""
+    out, cur, (ny, nx) = [], [], (0, 0)
+    for pl in group:
+        sy, sx = pl.fd.grid.shape
+        my, mx = max(ny, sy), max(nx, sx)
+        if cur and (len(cur) + 1) * my * mx * 16 > STACK_BYTES:
+            out.append(cur)
+            cur, my, mx = [], sy, sx
+        cur.append(pl)
+        ny, nx = my, mx
+    if cur:
+        out.append(cur)
+    return out
 
 
 def _common_batches(members: list[Planned], kk: int, element_size: int, cap: int) -> list[list[Planned]]:
