@@ -146,20 +146,31 @@ def _banded_values(values: torch.Tensor, my: torch.Tensor, mx: torch.Tensor) -> 
 def _banded_adjoint(g: torch.Tensor, my: torch.Tensor, mx: torch.Tensor, node_shape: tuple) -> torch.Tensor:
     """The adjoint of :func:`_banded_values`: ``myᵀ @ g @ mx`` (..., Ky, Kx) for ``g`` (..., Ny, Nx), block by block
     of fine samples (each block's products onto the node span its rows touch, added where spans overlap)."""
-    ky, kx = node_shape
     lead = g.shape[:-2]
-    gb = g.reshape(-1, *g.shape[-2:])
+    return _banded_adjoints(list(g.reshape(-1, *g.shape[-2:]).unbind(0)), my, mx, node_shape).reshape(*lead,
+                                                                                                      *node_shape)
+
+
+def _banded_adjoints(gs: list, my: torch.Tensor, mx: torch.Tensor, node_shape: tuple) -> torch.Tensor:
+    """:func:`_banded_adjoint` of the channels ``gs`` (each ``(Ny, Nx)``, or None: a zero gradient), without their
+    stack: ``(len(gs), Ky, Kx)`` (the same products channel by channel)."""
+    ky, kx = node_shape
+    g0 = next(g for g in gs if g is not None)
     xs, ys = _row_spans(mx, UPSAMPLE_BLOCK), _row_spans(my, UPSAMPLE_BLOCK)
-    out = torch.zeros((gb.shape[0], ky, kx), dtype=g.dtype, device=g.device)
-    s = torch.zeros((gb.shape[0], gb.shape[1], kx), dtype=g.dtype, device=g.device)
-    for b in range(gb.shape[0]):
+    out = torch.zeros((len(gs), ky, kx), dtype=g0.dtype, device=g0.device)
+    s = torch.zeros((g0.shape[0], kx), dtype=g0.dtype, device=g0.device)
+    for b, g in enumerate(gs):
+        if g is None:
+            continue
+        if b:
+            s.zero_()
         for x0, x1, k0, k1 in xs:  # s = g @ mx: (Ny, Kx)
             if k1 > k0:
-                s[b, :, k0:k1].addmm_(gb[b, :, x0:x1], mx[x0:x1, k0:k1])
+                s[:, k0:k1].addmm_(g[:, x0:x1], mx[x0:x1, k0:k1])
         for y0, y1, k0, k1 in ys:  # out = myᵀ @ s: (Ky, Kx)
             if k1 > k0:
-                out[b, k0:k1].addmm_(my[y0:y1, k0:k1].T, s[b, y0:y1])
-    return out.reshape(*lead, ky, kx)
+                out[b, k0:k1].addmm_(my[y0:y1, k0:k1].T, s[y0:y1])
+    return out
 
 
 class _BandedUpsample(torch.autograd.Function):
@@ -182,26 +193,55 @@ class _BandedUpsample(torch.autograd.Function):
         return _banded_adjoint(g, my, mx, tuple(ctx.kshape[-2:])).reshape(ctx.kshape), None, None, None
 
 
+class _BandedChannels(torch.autograd.Function):
+    """:class:`_BandedUpsample` of channels ``values`` (C, Ky, Kx) returned as the C channel views of ``out`` (C, Ny,
+    Nx) (one output each): the backward takes each channel's gradient where it is (:func:`_banded_adjoints`; a
+    channel without one is skipped), where an unbind of one output would first stack the channels' gradients into a
+    window-sized (C, Ny, Nx) array (issue 43). The same values and gradients bit for bit."""
+
+    @staticmethod
+    def forward(ctx, values, my, mx, out):
+        ctx.save_for_backward(my, mx)
+        ctx.kshape = values.shape
+        ctx.set_materialize_grads(False)
+        return out.unbind(0)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *gs):
+        my, mx = ctx.saved_tensors
+        if all(g is None for g in gs):
+            return None, None, None, None
+        return _banded_adjoints(list(gs), my, mx, tuple(ctx.kshape[-2:])), None, None, None
+
+
 def upsample_nodes_window(values: torch.Tensor, pos_y: torch.Tensor, pos_x: torch.Tensor):
     """:func:`upsample_nodes` of ``values`` (..., Ky, Kx) at the positions ``pos_y`` (Ny,), ``pos_x`` (Nx,) for a
     caller that reads the values first and then keeps a window of them: ``(fine, window)``, ``fine`` (..., Ny, Nx)
     the values (detached) and ``window(box)`` the differentiable window ``box = (a0, a1, b0, b1)`` (half-open
-    rows, columns) of them. On a CPU with autograd the window's backward is the banded transpose of its own rows
-    (:class:`_BandedUpsample`; issue 46: the interpolation's backward through its blocks' slices and products, and
-    the window's zero-padded gradient of the whole array, were a tenth of a mid-system DOE PSF's backward); the
-    same values bit for bit (the products without autograd are those with it)."""
+    rows, columns) of them; ``window(box, split=True)`` (``values`` (C, Ky, Kx)) its C channels, as one unbind would
+    give them. On a CPU with autograd the window's backward is the banded transpose of its own rows
+    (:class:`_BandedUpsample`, :class:`_BandedChannels`; issue 46: the interpolation's backward through its blocks'
+    slices and products, and the window's zero-padded gradient of the whole array, were a tenth of a mid-system DOE
+    PSF's backward); the same values bit for bit (the products without autograd are those with it)."""
     grad = torch.is_grad_enabled() and values.requires_grad
     if not grad or devices.accelerator(values):
         fine = upsample_nodes(values, pos_y=pos_y, pos_x=pos_x)
-        return fine.detach(), lambda box: fine[..., box[0]:box[1], box[2]:box[3]]
+
+        def plain(box, split=False):
+            w = fine[..., box[0]:box[1], box[2]:box[3]]
+            return w.unbind(0) if split else w
+
+        return fine.detach(), plain
     ky, kx = values.shape[-2:]
     my, mx = cubic_matrix(pos_y.to(values.dtype), ky), cubic_matrix(pos_x.to(values.dtype), kx)
     with torch.no_grad():
         fine = _banded_upsample(values, my, mx)
 
-    def window(box):
+    def window(box, split=False):
         a0, a1, b0, b1 = box
-        return _BandedUpsample.apply(values, my[a0:a1], mx[b0:b1], fine[..., a0:a1, b0:b1])
+        fn = _BandedChannels if split else _BandedUpsample
+        return fn.apply(values, my[a0:a1], mx[b0:b1], fine[..., a0:a1, b0:b1])
 
     return fine, window
 
