@@ -86,3 +86,45 @@ def test_upsample_window_of_one_channel():
     assert torch.equal(got.detach(), ref.detach())
     w = torch.randn(ref.shape, generator=g, dtype=torch.float64)
     assert torch.allclose(torch.autograd.grad(got, v, w)[0], torch.autograd.grad(ref, v, w)[0], rtol=0, atol=1e-13)
+
+
+def test_upsample_window_split_is_the_unbind_of_the_window():
+    """upsample_nodes_window's window split into its channels (``split=True``; :class:`_BandedChannels`, issue 43:
+    each channel's gradient taken where it is, no stack): the channels of the window bit for bit, the gradient that
+    of the unbound window bit for bit (a channel left out of the loss included), and without autograd the plain
+    slice's channels."""
+    g = torch.Generator().manual_seed(11)
+    values = torch.randn((5, 23, 19), generator=g, dtype=torch.float64)
+    pos_y = torch.linspace(0.2, 21.7, 131, dtype=torch.float64)
+    pos_x = torch.linspace(0.0, 18.0, 117, dtype=torch.float64)
+    box = (9, 120, 3, 101)
+    v = values.clone().requires_grad_()
+    fine, window = upsample_nodes_window(v, pos_y, pos_x)
+    ref = window(box).unbind(0)
+    got = window(box, split=True)
+    assert len(got) == 5 and all(torch.equal(a.detach(), b.detach()) for a, b in zip(got, ref))
+    w = torch.randn((5, *ref[0].shape), generator=g, dtype=torch.float64)
+    used = (0, 2, 3)  # channels 1 and 4 get no gradient (None in the backward)
+    g_ref, = torch.autograd.grad(sum((ref[i] * w[i]).sum() for i in used), v)
+    g_got, = torch.autograd.grad(sum((got[i] * w[i]).sum() for i in used), v)
+    assert torch.equal(g_got, g_ref)
+    with torch.no_grad():
+        plain, win = upsample_nodes_window(values, pos_y, pos_x)
+        assert all(torch.equal(a, b) for a, b in zip(win(box, split=True), plain[:, box[0]:box[1], box[2]:box[3]]))
+
+
+def test_banded_channels_gradcheck():
+    """torch.autograd.gradcheck of :class:`_BandedChannels` (every channel an output) on a small window."""
+    from raywave.wave.field import _BandedChannels, _banded_upsample
+
+    g = torch.Generator().manual_seed(5)
+    v = torch.randn((3, 6, 5), generator=g, dtype=torch.float64, requires_grad=True)
+    my = cubic_matrix(torch.linspace(0.3, 4.6, 11, dtype=torch.float64), 6)[2:9]
+    mx = cubic_matrix(torch.linspace(0.0, 3.9, 9, dtype=torch.float64), 5)[1:8]
+
+    def f(x):
+        with torch.no_grad():
+            out = _banded_upsample(x, my, mx)
+        return _BandedChannels.apply(x, my, mx, out)
+
+    assert torch.autograd.gradcheck(f, (v,), check_undefined_grad=False)

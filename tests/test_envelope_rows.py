@@ -83,3 +83,24 @@ def test_mirror_fields_negate_the_centres_as_each_fields_own():
         ref = mirror_field(fd, sim, fx, fy)
         assert all(torch.equal(a, b) for a, b in zip(got.center, ref.center))
         assert got.box == ref.box and torch.equal(got.envelope, ref.envelope)
+
+
+def test_padded_stack_zeroes_the_padding():
+    """padded_stack (issue 43: only the padding zeroed, no zero fill of the whole batch first): each envelope in its
+    corner and exact zeros elsewhere (the batch is allocated empty), padded along rows, columns and both; its
+    gradient each envelope's corner of the batch's."""
+    from raywave.hybrid.batched import padded_stack
+
+    envs = [_base(s, shape)[0] for s, shape in ((1, (1, 7, 9)), (2, (1, 4, 11)), (3, (1, 8, 3)))]
+    shape = (8, 11)
+    got = padded_stack(envs, shape)
+    want = torch.zeros((3, *shape), dtype=envs[0].dtype)
+    for i, e in enumerate(envs):
+        want[i, :e.shape[0], :e.shape[1]] = e
+    assert torch.equal(got, want)
+    leaves = [e.clone().requires_grad_() for e in envs]
+    out = padded_stack(leaves, shape)
+    w = _base(9, (3, *shape))
+    grads = torch.autograd.grad((out * w).real.sum(), leaves)
+    for i, (e, gr) in enumerate(zip(envs, grads)):
+        assert torch.equal(gr, w[i, :e.shape[0], :e.shape[1]].conj())

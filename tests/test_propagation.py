@@ -565,6 +565,38 @@ def test_double_grid_intensity_is_the_2x_upsampled_intensity(shape, device):
         assert torch.allclose(double_grid_intensity(u, window), blocks.detach(), rtol=0, atol=0)
 
 
+def test_half_sample_shift_of_a_large_prime_length_is_the_plain_fft_shift(monkeypatch):
+    """field._half_sample_shift of a length with a large prime factor (213 = 3·71, the PSF windows') runs as a
+    circular convolution through zero-padded FFTs of a 5-smooth length (issue 43, CPU): the plain FFT shift's values
+    and gradients to rounding, along rows and columns, batched, with and without autograd; small helpers exact."""
+    import raywave.wave.field as F
+
+    assert [F._largest_prime_factor(n) for n in (1, 2, 12, 213, 225, 97, 1440)] == [1, 2, 3, 71, 5, 97, 5]
+    for m in (1, 7, 425, 433, 1441):
+        s = F._smooth_length(m)
+        assert s >= m and F._largest_prime_factor(s) <= 5
+        assert all(F._largest_prime_factor(k) > 5 for k in range(m, s))
+    assert F._smooth_length(425) == 432
+    g = torch.Generator().manual_seed(43)
+    u = torch.complex(torch.randn(3, 2, 213, 213, generator=g, dtype=F64), torch.randn(3, 2, 213, 213, generator=g,
+                                                                                       dtype=F64))
+    w = torch.complex(torch.randn(u.shape, generator=g, dtype=F64), torch.randn(u.shape, generator=g, dtype=F64))
+    for dim in (-1, -2):
+        x = u.clone().requires_grad_()
+        got = F._half_sample_shift(x, dim)
+        (g_got,) = torch.autograd.grad((got * w).real.sum(), x)
+        with torch.no_grad():
+            got_ng = F._half_sample_shift(u, dim)
+        monkeypatch.setattr(F, "SHIFT_SMOOTH_PRIME", 10 ** 9)  # the plain FFT shift
+        want = F._half_sample_shift(x, dim)
+        (g_want,) = torch.autograd.grad((want * w).real.sum(), x)
+        monkeypatch.undo()
+        scale = float(want.detach().abs().max())
+        assert float((got - want).detach().abs().max()) < 1e-14 * scale
+        assert torch.equal(got_ng, got.detach())
+        assert float((g_got - g_want).abs().max()) < 1e-14 * float(g_want.abs().max())
+
+
 def test_band_convolution_field_by_field_equals_the_batch(monkeypatch):
     """On a CPU a batch's band convolution runs field by field (cache-sized blocks): the same values and gradients as
     the whole batch at once (the accelerator's way), for two leading axes, a per-field and a shared transfer."""

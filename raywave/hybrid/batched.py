@@ -308,7 +308,7 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
 
 def padded_stack(envs: list, shape: tuple) -> torch.Tensor:
     """The envelopes ``envs`` (each ``(ny_i, nx_i)``) zero-padded at their end to ``shape`` ``(Ny, Nx)`` and stacked
-    ``(B, Ny, Nx)``: one zero-filled array with each envelope copied into its corner; with autograd
+    ``(B, Ny, Nx)``: one array with each envelope copied into its corner and only the padding zeroed; with autograd
     :class:`_PaddedStack` (each envelope's gradient a view of the batch's: a slice copy's backward would clone the
     whole batch's gradient per source, B² window-sized arrays). The same values either way."""
     if torch.is_grad_enabled() and any(e.requires_grad for e in envs):
@@ -321,10 +321,15 @@ class _PaddedStack(torch.autograd.Function):
 
     @staticmethod
     def values(envs, shape) -> torch.Tensor:
+        """The stack: each envelope copied into its corner and only the rest of its row zeroed (a zero fill of the
+        whole batch first wrote its samples twice: issue 43)."""
         e0 = envs[0]
-        out = torch.zeros((len(envs), *shape), dtype=e0.dtype, device=e0.device)
+        out = torch.empty((len(envs), *shape), dtype=e0.dtype, device=e0.device)
         for i, e in enumerate(envs):
-            out[i, :e.shape[-2], :e.shape[-1]].copy_(e)
+            a, b = e.shape[-2:]
+            out[i, :a, :b].copy_(e)
+            out[i, :a, b:].zero_()
+            out[i, a:].zero_()
         return out
 
     @staticmethod

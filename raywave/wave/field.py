@@ -146,20 +146,31 @@ def _banded_values(values: torch.Tensor, my: torch.Tensor, mx: torch.Tensor) -> 
 def _banded_adjoint(g: torch.Tensor, my: torch.Tensor, mx: torch.Tensor, node_shape: tuple) -> torch.Tensor:
     """The adjoint of :func:`_banded_values`: ``myᵀ @ g @ mx`` (..., Ky, Kx) for ``g`` (..., Ny, Nx), block by block
     of fine samples (each block's products onto the node span its rows touch, added where spans overlap)."""
-    ky, kx = node_shape
     lead = g.shape[:-2]
-    gb = g.reshape(-1, *g.shape[-2:])
+    return _banded_adjoints(list(g.reshape(-1, *g.shape[-2:]).unbind(0)), my, mx, node_shape).reshape(*lead,
+                                                                                                      *node_shape)
+
+
+def _banded_adjoints(gs: list, my: torch.Tensor, mx: torch.Tensor, node_shape: tuple) -> torch.Tensor:
+    """:func:`_banded_adjoint` of the channels ``gs`` (each ``(Ny, Nx)``, or None: a zero gradient), without their
+    stack: ``(len(gs), Ky, Kx)`` (the same products channel by channel)."""
+    ky, kx = node_shape
+    g0 = next(g for g in gs if g is not None)
     xs, ys = _row_spans(mx, UPSAMPLE_BLOCK), _row_spans(my, UPSAMPLE_BLOCK)
-    out = torch.zeros((gb.shape[0], ky, kx), dtype=g.dtype, device=g.device)
-    s = torch.zeros((gb.shape[0], gb.shape[1], kx), dtype=g.dtype, device=g.device)
-    for b in range(gb.shape[0]):
+    out = torch.zeros((len(gs), ky, kx), dtype=g0.dtype, device=g0.device)
+    s = torch.zeros((g0.shape[0], kx), dtype=g0.dtype, device=g0.device)
+    for b, g in enumerate(gs):
+        if g is None:
+            continue
+        if b:
+            s.zero_()
         for x0, x1, k0, k1 in xs:  # s = g @ mx: (Ny, Kx)
             if k1 > k0:
-                s[b, :, k0:k1].addmm_(gb[b, :, x0:x1], mx[x0:x1, k0:k1])
+                s[:, k0:k1].addmm_(g[:, x0:x1], mx[x0:x1, k0:k1])
         for y0, y1, k0, k1 in ys:  # out = myᵀ @ s: (Ky, Kx)
             if k1 > k0:
-                out[b, k0:k1].addmm_(my[y0:y1, k0:k1].T, s[b, y0:y1])
-    return out.reshape(*lead, ky, kx)
+                out[b, k0:k1].addmm_(my[y0:y1, k0:k1].T, s[y0:y1])
+    return out
 
 
 class _BandedUpsample(torch.autograd.Function):
@@ -182,26 +193,55 @@ class _BandedUpsample(torch.autograd.Function):
         return _banded_adjoint(g, my, mx, tuple(ctx.kshape[-2:])).reshape(ctx.kshape), None, None, None
 
 
+class _BandedChannels(torch.autograd.Function):
+    """:class:`_BandedUpsample` of channels ``values`` (C, Ky, Kx) returned as the C channel views of ``out`` (C, Ny,
+    Nx) (one output each): the backward takes each channel's gradient where it is (:func:`_banded_adjoints`; a
+    channel without one is skipped), where an unbind of one output would first stack the channels' gradients into a
+    window-sized (C, Ny, Nx) array (issue 43). The same values and gradients bit for bit."""
+
+    @staticmethod
+    def forward(ctx, values, my, mx, out):
+        ctx.save_for_backward(my, mx)
+        ctx.kshape = values.shape
+        ctx.set_materialize_grads(False)
+        return out.unbind(0)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *gs):
+        my, mx = ctx.saved_tensors
+        if all(g is None for g in gs):
+            return None, None, None, None
+        return _banded_adjoints(list(gs), my, mx, tuple(ctx.kshape[-2:])), None, None, None
+
+
 def upsample_nodes_window(values: torch.Tensor, pos_y: torch.Tensor, pos_x: torch.Tensor):
     """:func:`upsample_nodes` of ``values`` (..., Ky, Kx) at the positions ``pos_y`` (Ny,), ``pos_x`` (Nx,) for a
     caller that reads the values first and then keeps a window of them: ``(fine, window)``, ``fine`` (..., Ny, Nx)
     the values (detached) and ``window(box)`` the differentiable window ``box = (a0, a1, b0, b1)`` (half-open
-    rows, columns) of them. On a CPU with autograd the window's backward is the banded transpose of its own rows
-    (:class:`_BandedUpsample`; issue 46: the interpolation's backward through its blocks' slices and products, and
-    the window's zero-padded gradient of the whole array, were a tenth of a mid-system DOE PSF's backward); the
-    same values bit for bit (the products without autograd are those with it)."""
+    rows, columns) of them; ``window(box, split=True)`` (``values`` (C, Ky, Kx)) its C channels, as one unbind would
+    give them. On a CPU with autograd the window's backward is the banded transpose of its own rows
+    (:class:`_BandedUpsample`, :class:`_BandedChannels`; issue 46: the interpolation's backward through its blocks'
+    slices and products, and the window's zero-padded gradient of the whole array, were a tenth of a mid-system DOE
+    PSF's backward); the same values bit for bit (the products without autograd are those with it)."""
     grad = torch.is_grad_enabled() and values.requires_grad
     if not grad or devices.accelerator(values):
         fine = upsample_nodes(values, pos_y=pos_y, pos_x=pos_x)
-        return fine.detach(), lambda box: fine[..., box[0]:box[1], box[2]:box[3]]
+
+        def plain(box, split=False):
+            w = fine[..., box[0]:box[1], box[2]:box[3]]
+            return w.unbind(0) if split else w
+
+        return fine.detach(), plain
     ky, kx = values.shape[-2:]
     my, mx = cubic_matrix(pos_y.to(values.dtype), ky), cubic_matrix(pos_x.to(values.dtype), kx)
     with torch.no_grad():
         fine = _banded_upsample(values, my, mx)
 
-    def window(box):
+    def window(box, split=False):
         a0, a1, b0, b1 = box
-        return _BandedUpsample.apply(values, my[a0:a1], mx[b0:b1], fine[..., a0:a1, b0:b1])
+        fn = _BandedChannels if split else _BandedUpsample
+        return fn.apply(values, my[a0:a1], mx[b0:b1], fine[..., a0:a1, b0:b1])
 
     return fine, window
 
@@ -219,13 +259,61 @@ def _half_sample_ramp(n: int, device) -> torch.Tensor:
     return torch.polar(torch.ones(n, dtype=torch.float64, device=device), torch.pi * k / n)
 
 
+#: :func:`_half_sample_shift` of ``n`` samples runs as a circular convolution through FFTs of a 5-smooth length
+#: ``M ≥ 2n − 1`` when ``n`` has a prime factor above this: an FFT's pass for a prime factor ``p`` costs ~``n·p``
+#: (issue 43: the PSF windows' 213 = 3·71 samples took 3.9× the time of 225 ones for an FFT pair, 12.9 against 7.1 ms
+#: for the padded convolution on a batch's (4, 2, 213, 213) fields, 1 thread; the same shift to ~1e-15). CPU only
+SHIFT_SMOOTH_PRIME = 7
+
+
+def _largest_prime_factor(n: int) -> int:
+    """The largest prime factor of ``n`` ≥ 1 (1 for 1)."""
+    p, big = 2, 1
+    while p * p <= n:
+        while n % p == 0:
+            n, big = n // p, p
+        p += 1
+    return max(big, n) if n > 1 else big
+
+
+def _smooth_length(m: int) -> int:
+    """The smallest ``2^a·3^b·5^c ≥ m``."""
+    best = 1 << max(m - 1, 0).bit_length()
+    p3 = 1
+    while p3 < 2 * m:
+        p5 = p3
+        while p5 < 2 * m:
+            v = p5
+            while v < m:
+                v *= 2
+            best = min(best, v)
+            p5 *= 5
+        p3 *= 3
+    return best
+
+
 def _half_sample_shift(v: torch.Tensor, dim: int) -> torch.Tensor:
     """The band-limited interpolant of the rolled field ``v`` (see :func:`_roll_modulation`) half a sample along
-    ``dim``: ``ifft(fft(v)·e^{iπk/n})`` — the odd samples of its 2× upsampling (the even ones are ``v``)."""
-    ramp = _half_sample_ramp(v.shape[dim], v.device).to(v.dtype)
-    if dim in (-2, v.ndim - 2):
-        ramp = ramp[:, None]
-    return torch.fft.ifft(torch.fft.fft(v, dim=dim) * ramp, dim=dim)
+    ``dim``: ``ifft(fft(v)·e^{iπk/n})`` — the odd samples of its 2× upsampling (the even ones are ``v``). For a length
+    ``n`` with a large prime factor (:data:`SHIFT_SMOOTH_PRIME`) the same circular convolution with the kernel
+    ``h = ifft(e^{iπk/n})`` through zero-padded FFTs of a smooth length ``M ≥ 2n − 1`` (the kernel's ``2n − 1`` taps
+    ``h[(t) mod n]``, ``t = −(n−1) … n−1``: the linear convolution's samples ``n−1 … 2n−2`` are the circular one's,
+    untouched by the wrap-around of length ``M``): the same values to rounding (~1e-15), a view of the padded result."""
+    n = v.shape[dim]
+    rows = dim in (-2, v.ndim - 2)
+    ramp = _half_sample_ramp(n, v.device)
+    if devices.accelerator(v) or _largest_prime_factor(n) <= SHIFT_SMOOTH_PRIME:  # (cuFFT: its own Bluestein)
+        ramp = ramp.to(v.dtype)
+        return torch.fft.ifft(torch.fft.fft(v, dim=dim) * (ramp[:, None] if rows else ramp), dim=dim)
+    m = _smooth_length(2 * n - 1)
+    taps = torch.fft.ifft(ramp)[torch.arange(-(n - 1), n, device=v.device) % n]
+    kernel = torch.fft.fft(taps, n=m).to(v.dtype)
+    spec = torch.fft.fft(v, n=m, dim=dim)
+    kernel = kernel[:, None] if rows else kernel
+    if torch.is_grad_enabled() and spec.requires_grad:
+        return torch.fft.ifft(spec * kernel, dim=dim).narrow(dim, n - 1, n)
+    spec = spec.mul_(kernel)  # without autograd in place: one padded array (fewer fresh pages)
+    return torch.fft.ifft(spec, dim=dim, out=spec).narrow(dim, n - 1, n)
 
 
 def double_grid_intensity(u: torch.Tensor, window: torch.Tensor | None = None) -> torch.Tensor:

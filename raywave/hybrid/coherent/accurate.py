@@ -1230,7 +1230,7 @@ def _fine_field(b: _Build, nd: _Nodes, maps: dict, sim: Grid):
     nodes = torch.stack([maps["phi_env"], amp] + ([] if diffracting else [dist]) + edge_chan)
     grad = torch.is_grad_enabled() and nodes.requires_grad
     # with autograd the crop is read from the channels' values, then the interpolation's window taken by one op
-    # (upsample_nodes_window) and split by one unbind, the coverage formed on the crop (elementwise: the same values):
+    # (upsample_nodes_window) and split into channels, the coverage formed on the crop (elementwise: the same values):
     # the backward is the window's own banded products, where the reads of the whole window (the coverage's channel,
     # the crop's two slices) built three zero arrays of it and the interpolation's blocks a graph of slices
     fine, window = upsample_nodes_window(nodes, pos_y.clamp(0, ky - 1), pos_x.clamp(0, kx - 1))
@@ -1239,7 +1239,7 @@ def _fine_field(b: _Build, nd: _Nodes, maps: dict, sim: Grid):
     if b is None:
         return None
     a0, a1, b0, b1 = b
-    ch = window(b).unbind(0)
+    ch = window(b, split=True)  # the channels (their gradients taken where they are: no stack)
     if grad and cov is not None:
         cov = _coverage(ch[2], p, diffracting, other is not None, None if dcov is None else dcov[a0:a1, b0:b1])
     elif cov is not None:
