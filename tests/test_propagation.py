@@ -573,10 +573,10 @@ def test_half_sample_shift_of_a_large_prime_length_is_the_plain_fft_shift(monkey
 
     assert [F._largest_prime_factor(n) for n in (1, 2, 12, 213, 225, 97, 1440)] == [1, 2, 3, 71, 5, 97, 5]
     for m in (1, 7, 425, 433, 1441):
-        s = F._smooth_length(m)
+        s = F.fast_fft_size(m)
         assert s >= m and F._largest_prime_factor(s) <= 5
         assert all(F._largest_prime_factor(k) > 5 for k in range(m, s))
-    assert F._smooth_length(425) == 432
+    assert F.fast_fft_size(425) == 432
     g = torch.Generator().manual_seed(43)
     u = torch.complex(torch.randn(3, 2, 213, 213, generator=g, dtype=F64), torch.randn(3, 2, 213, 213, generator=g,
                                                                                        dtype=F64))

@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 
 from raywave.utils import devices
+from raywave.wave.propagation._common import fast_fft_size
 
 __all__ = ["cubic_matrix", "cubic_matrices", "upsampled_intensity", "double_grid_intensity", "keys_matrix",
            "upsample_nodes", "upsample_nodes_window", "splat_bilinear", "edge_coverage", "fourier_upsample"]
@@ -276,22 +277,6 @@ def _largest_prime_factor(n: int) -> int:
     return max(big, n) if n > 1 else big
 
 
-def _smooth_length(m: int) -> int:
-    """The smallest ``2^a·3^b·5^c ≥ m``."""
-    best = 1 << max(m - 1, 0).bit_length()
-    p3 = 1
-    while p3 < 2 * m:
-        p5 = p3
-        while p5 < 2 * m:
-            v = p5
-            while v < m:
-                v *= 2
-            best = min(best, v)
-            p5 *= 5
-        p3 *= 3
-    return best
-
-
 def _half_sample_shift(v: torch.Tensor, dim: int) -> torch.Tensor:
     """The band-limited interpolant of the rolled field ``v`` (see :func:`_roll_modulation`) half a sample along
     ``dim``: ``ifft(fft(v)·e^{iπk/n})`` — the odd samples of its 2× upsampling (the even ones are ``v``). For a length
@@ -305,7 +290,7 @@ def _half_sample_shift(v: torch.Tensor, dim: int) -> torch.Tensor:
     if devices.accelerator(v) or _largest_prime_factor(n) <= SHIFT_SMOOTH_PRIME:  # (cuFFT: its own Bluestein)
         ramp = ramp.to(v.dtype)
         return torch.fft.ifft(torch.fft.fft(v, dim=dim) * (ramp[:, None] if rows else ramp), dim=dim)
-    m = _smooth_length(2 * n - 1)
+    m = fast_fft_size(2 * n - 1)
     taps = torch.fft.ifft(ramp)[torch.arange(-(n - 1), n, device=v.device) % n]
     kernel = torch.fft.fft(taps, n=m).to(v.dtype)
     spec = torch.fft.fft(v, n=m, dim=dim)
