@@ -233,25 +233,12 @@ STACK_BYTES = 2**25 - 2**20
 def _stack_cut(group: list[Planned]) -> list[list[Planned]]:
     """``group`` (one FFT size, in order) cut into consecutive batches whose padded input stack (the count × each
     axis's largest window, complex128) stays within :data:`STACK_BYTES`."""
-    out, cur, (ny, nx) = [], [], (0, 0)
-    for pl in group:
-        sy, sx = pl.fd.grid.shape
-        my, mx = max(ny, sy), max(nx, sx)
-        if cur and (len(cur) + 1) * my * mx * 16 > STACK_BYTES:
-            out.append(cur)
-            cur, my, mx = [], sy, sx
-        cur.append(pl)
-        ny, nx = my, mx
-    if cur:
-        out.append(cur)
-    return out
+    return _cut_by_bytes([(pl.fd.grid.shape, pl) for pl in group], 16, STACK_BYTES)
 
 
-def _common_batches(members: list[Planned], kk: int, element_size: int, cap: int) -> list[list[Planned]]:
-    """:data:`COMMON_FFT`'s batches of one group (output half-width ``kk``): the members by own FFT size, largest
-    first (a stable sort: ties keep the call's order), cut where a batch on the FFT size its members need (each
-    axis's largest) would pass ``cap`` bytes."""
-    sized = sorted(((_fft_size(pl, 2 * kk + 1, kk), pl) for pl in members), key=lambda t: -t[0][0] * t[0][1])
+def _cut_by_bytes(sized: list, element_size: int, cap: int) -> list[list[Planned]]:
+    """``sized`` (``[((ny, nx), planned)]``, in order) cut into consecutive batches whose stack on each axis's
+    largest size, ``count · ny · nx · element_size`` bytes, stays within ``cap`` (each batch at least one)."""
     batches, cur, (my, mx) = [], [], (0, 0)
     for (sy, sx), pl in sized:
         ny, nx = max(my, sy), max(mx, sx)
@@ -263,6 +250,14 @@ def _common_batches(members: list[Planned], kk: int, element_size: int, cap: int
     if cur:
         batches.append(cur)
     return batches
+
+
+def _common_batches(members: list[Planned], kk: int, element_size: int, cap: int) -> list[list[Planned]]:
+    """:data:`COMMON_FFT`'s batches of one group (output half-width ``kk``): the members by own FFT size, largest
+    first (a stable sort: ties keep the call's order), cut where a batch on the FFT size its members need (each
+    axis's largest) would pass ``cap`` bytes."""
+    sized = sorted(((_fft_size(pl, 2 * kk + 1, kk), pl) for pl in members), key=lambda t: -t[0][0] * t[0][1])
+    return _cut_by_bytes(sized, element_size, cap)
 
 
 def window_batch(batch: list[Planned], sensor: SensorWindow) -> tuple[WindowBatch, int]:
