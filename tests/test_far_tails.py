@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 import midsystem_systems as M  # noqa: E402
@@ -112,3 +113,24 @@ def test_grating_orders_in_each_others_tails():
     traced = sum(c * np.exp(1j * float(s) * phi0) for s, c in orders)
     ref = W.sensor_psf(sys_, N, PITCH, traced, res.center[0, 0].detach().numpy(), PS, 32)
     assert W.rel_l1(res.psf[0, 0].detach().numpy(), ref) < 5e-4
+
+
+def test_crop_reach_is_what_the_psf_call_passes_and_is_checked():
+    """``psf_result(ks)`` builds its fields for its crop's reach (:meth:`HybridLens.crop_reach`): the same PSF from
+    ``doe_fields(crop_reach=hl.crop_reach(ks))`` as a cache, bit for bit; without it (``crop_reach=0``) the lattice
+    is the rim rays' (3× here, not 2×: another PSF); a bad reach is named before any work."""
+    a = Surface(Plane(), get_material("AIR"), 10.0, aperture=CircularAperture(0.4), interaction=IdealLens(10.0),
+                is_stop=True)
+    hl = HybridLens(Lens([a], wavelengths=(WL,), primary=0), BlankDOE(N, PITCH), 9.0, sensor_pitch=PS,
+                    stop_edge="exit_pupil", edge_step="asm")
+    assert hl.crop_reach(128) == pytest.approx(math.sqrt(0.5) * 129 * PS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        direct = hl.psf_result([(0.0, 0.0)], WL, ks=128).psf
+        cached = hl.psf_result(ks=128, cache=hl.doe_fields([(0.0, 0.0)], WL, crop_reach=hl.crop_reach(128))).psf
+        plain = hl.psf_result(ks=128, cache=hl.doe_fields([(0.0, 0.0)], WL)).psf
+    assert torch.equal(direct, cached)
+    assert float((direct - plain).abs().max()) > 1e-9
+    for bad in (-1.0, math.inf, math.nan):
+        with pytest.raises(ValueError, match="crop_reach"):
+            hl.doe_fields([(0.0, 0.0)], WL, crop_reach=bad)

@@ -649,6 +649,8 @@ class HybridLens(nn.Module):
             raise ValueError(f"mode must be 'accurate' or 'faithful', got {mode!r}")
         if mode == "accurate" and trace_dtype != torch.float64:
             raise ValueError("the accurate mode traces in float64 only (its rays land on their nodes to 1e-10 mm)")
+        if not (math.isfinite(float(crop_reach)) and float(crop_reach) >= 0.0):
+            raise ValueError(f"crop_reach must be a finite distance >= 0 mm, got {crop_reach!r}")
         f = self._engine_fields(fields)
         wls = self.wavelength_list(wavelengths)
         if mode == "accurate":
@@ -1046,7 +1048,8 @@ class HybridLens(nn.Module):
             psf = self._checked(psf, [wls] * psf.shape[0])
             return PSFResult(psf, center, outside, self.sensor_pitch, nr,
                              torch.tensor(clip, dtype=torch.float64, device=center.device))
-        fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw)
+        fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw,
+                                                              crop_reach=self.crop_reach(ks))
         psf, center, outside, nr = self.propagate_fields(fds, ks, propagation_dtype)
         clip = [[fd.clipped for fd in row] for row in fds]
         self._check_sensor(center)
