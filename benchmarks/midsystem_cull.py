@@ -152,7 +152,7 @@ def lens_a_tail() -> dict:
                 is_stop=True)
     lens = Lens([a], wavelengths=(WL,), primary=0)
     ks = 128
-    ref = W.airy_reference(sys_, PS, ks, sub=8, n_rho=300, n_phi=512)
+    ref = W.airy_reference(sys_, PS, ks, n_rho=300, n_phi=512)
     out = {}
     for d in (7.0, 9.0):
         r = _psf(HybridLens(lens, BlankDOE(N, PITCH), d, sensor_pitch=PS, stop_edge="doe"), (0.0, 0.0), ks)

@@ -54,6 +54,9 @@ def test_the_lattice_follows_the_waves_bandwidth():
     assert EP.asm_coarsening(rim, Chief, 0.55, 1.0, 0.25e-3) == EP.MAX_ASM_COARSENING
     assert EP.asm_coarsening(rim, Chief, 0.55, 1.0, 3e-3) == 1
     assert EP.asm_coarsening(None, Chief, 0.55, 1.0, 1e-3) == 1
+    # the PSF crop's far tail: the edge waves landing 0.2 mm out from 10 mm turn by a further 0.02 (m = 1.96 µm / p)
+    assert EP.asm_coarsening(rim, Chief, 0.55, 1.0, 1e-3, tail=0.02) == 1
+    assert EP.asm_coarsening(rim, Chief, 0.55, 1.0, 0.25e-3, tail=0.02) == 7
 
 
 @pytest.mark.slow  # ~15 s

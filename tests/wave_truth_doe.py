@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft as sfft
+from scipy.interpolate import CubicSpline
 from scipy.special import roots_legendre
 
 
@@ -236,32 +237,40 @@ def sensor_psf(sys: TwoLensSystem, n: int, pitch: float, doe_phase, center, sens
     return crop / crop.sum()
 
 
-def airy_reference(sys: TwoLensSystem, sensor_pitch: float, ks: int, sub: int = 4, n_rho: int = 200,
-                   n_phi: int = 256) -> np.ndarray:
+def airy_reference(sys: TwoLensSystem, sensor_pitch: float, ks: int, sub: int = 6, n_rho: int = 200,
+                   n_phi: int = 256, n_radii: int | None = None) -> np.ndarray:
     """Lens A alone, on axis: the Rayleigh–Sommerfeld (first kind) integral over its pupil by Gauss–Legendre
-    quadrature, at the focal plane, integrated over sensor pixels (``sub``² midpoint samples each); (ks, ks), sum 1.
-    The radial profile is computed on a fine set of radii and interpolated."""
+    quadrature (radius) and the trapezoidal rule (azimuth), at the focal plane, integrated over sensor pixels
+    (``sub``² Gauss–Legendre points each); (ks, ks), sum 1. The radial profile is computed on ``n_radii`` radii up to
+    the crop's corner (default: 24 a micrometre) and interpolated by a cubic spline. Converged: with 24 radii a µm the
+    spline is within 1e-8 (ring relative L1) of 48 a µm, and 8 → 12 pixel points change it by 5e-11; with n_rho 300,
+    n_phi 512 the quadrature is converged for radii ≤ 0.2 mm (600 → 1024 changes nothing). Issue 46: the earlier
+    form (600 radii over twice the crop's width, linear interpolation, midpoint pixel points) was 2.6e-3 – 7e-3 off
+    ring by ring on a 128-pixel crop, which read as an engine error."""
     k, a, f = sys.k, sys.radius_a, sys.f_a
     t, wt = roots_legendre(n_rho)
     rho = 0.5 * a * (t + 1)
     w_rho = 0.5 * a * wt * rho
     phi = (np.arange(n_phi) + 0.5) * 2 * math.pi / n_phi
-    r_max = sensor_pitch * ks
-    radii = np.linspace(0, r_max, 600)
+    r_max = sensor_pitch * (ks // 2 + 1) * math.sqrt(2.0)
+    n_r = n_radii if n_radii is not None else max(64, int(math.ceil(r_max * 1e3 * 24)))
+    radii = np.linspace(0, r_max, n_r)
     prof = np.empty(radii.size)
-    cp = np.cos(phi)
+    cp, sp = np.cos(phi), np.sin(phi)
+    r0 = np.sqrt(rho * rho + f * f)[:, None]
     for i, r in enumerate(radii):
         dx = r - rho[:, None] * cp[None, :]
-        dy = -rho[:, None] * np.sin(phi)[None, :]
-        R = np.sqrt(dx * dx + dy * dy + f * f)
-        R0 = np.sqrt(rho * rho + f * f)[:, None]
-        h = (f / R**2) * (1 / R - 1j * k) * np.exp(1j * k * (R - R0))
+        dy = -rho[:, None] * sp[None, :]
+        big_r = np.sqrt(dx * dx + dy * dy + f * f)
+        h = (f / big_r**2) * (1 / big_r - 1j * k) * np.exp(1j * k * (big_r - r0))
         prof[i] = abs(np.sum(h * w_rho[:, None]) * (2 * math.pi / n_phi)) ** 2
-    o = ((np.arange(sub) + 0.5) / sub - 0.5) * sensor_pitch
+    g, wg = roots_legendre(sub)
+    o = 0.5 * g * sensor_pitch
     c = (np.arange(ks) - ks // 2) * sensor_pitch
     xx = (c[:, None] + o[None, :]).reshape(-1)
+    ww = np.tile(0.5 * wg, ks)
     rr = np.hypot(xx[None, :], xx[:, None])
-    img = np.interp(rr, radii, prof).reshape(ks, sub, ks, sub).sum((1, 3))
+    img = (CubicSpline(radii, prof)(rr) * ww[None, :] * ww[:, None]).reshape(ks, sub, ks, sub).sum((1, 3))
     return img / img.sum()
 
 

@@ -63,7 +63,8 @@ class PSFTolerance:
         lens = self.lens
         self.work = lens.with_doe(probe)
         with torch.no_grad():
-            fds = self.work.doe_fields(self.fields, wavelengths, rays=self.rays)
+            fds = self.work.doe_fields(self.fields, wavelengths, rays=self.rays,
+                                       crop_reach=self.work.crop_reach(self.ks))
             if len(fds) != 1:
                 raise ValueError(f"the PSF tolerance takes one field point, got {len(fds)}")
             for row in fds:

@@ -102,7 +102,10 @@ class _CallGeometry:
     None: the DOE-plane edge); ``orders`` None, or per source of ``f`` its per-source value (:class:`~raywave.hybrid.
     coherent.settings.Source` ``order``: a mid-system DOE's orders, issue 46); ``reach`` None, or ``[R][W]`` the stop
     edge's waves' reach on the DOE plane for the Fresnel step's ripple band (:func:`_edge_reaches`); ``aim`` the
-    built sources' chief-ray aim (:func:`~raywave.lens.sources.chief_aim`), shared by their diagnostic ray sets."""
+    built sources' chief-ray aim (:func:`~raywave.lens.sources.chief_aim`), shared by their diagnostic ray sets;
+    ``crop_reach`` (mm) the PSF crop's half-diagonal where the call knows it (:meth:`HybridLens.psf_result`; 0:
+    :meth:`HybridLens.doe_fields`), for the exact edge's lattice (:class:`~raywave.hybrid.coherent.settings.
+    FieldSettings` ``crop_reach``)."""
 
     f: torch.Tensor
     wls: list
@@ -117,6 +120,7 @@ class _CallGeometry:
     orders: list | None = None
     reach: list | None = None
     aim: tuple | None = None
+    crop_reach: float = 0.0
 
     def host_fields(self) -> list:
         """The fields ``f`` as host values ``[F][2]`` (one read for the call, on first use: the warnings' text)."""
@@ -615,7 +619,7 @@ class HybridLens(nn.Module):
     # ------------------------------------------------------------------ step 1-2: the DOE-plane field
     def doe_fields(self, fields=(0.0, 0.0), wavelengths=None, depth=None, mode: str = "accurate",
                    rays: int | None = None, full_grid: bool = False, generator=None, check: bool = True,
-                   trace_dtype=torch.float64):
+                   trace_dtype=torch.float64, crop_reach: float = 0.0):
         """The fields arriving at the DOE plane, a nested list ``[F][W]`` of :class:`DOEField`.
 
         Depends on the refractive lens only (not on the DOE phase): call ``.detach()`` on each to cache
@@ -636,15 +640,22 @@ class HybridLens(nn.Module):
             generator: torch.Generator for the faithful mode's random pupil samples.
             trace_dtype: faithful only: the ray-tracing precision (float64; float32 only to study its failure,
                 see examples/precision_study.py). The accurate mode always traces in float64.
+            crop_reach: accurate, exact edge: how far (mm) from the chief ray's landing the PSF crop these fields are
+                for reaches (its half-diagonal, :meth:`crop_reach`; :meth:`psf_result` passes its own; 0: the
+                geometric spot only): the exact construction's lattice keeps the edge waves that land there (issue
+                46, the far tails).
         """
         if mode not in ("accurate", "faithful"):
             raise ValueError(f"mode must be 'accurate' or 'faithful', got {mode!r}")
         if mode == "accurate" and trace_dtype != torch.float64:
             raise ValueError("the accurate mode traces in float64 only (its rays land on their nodes to 1e-10 mm)")
+        if not (math.isfinite(float(crop_reach)) and float(crop_reach) >= 0.0):
+            raise ValueError(f"crop_reach must be a finite distance >= 0 mm, got {crop_reach!r}")
         f = self._engine_fields(fields)
         wls = self.wavelength_list(wavelengths)
         if mode == "accurate":
             geo = self._accurate_geometry(f, wls, depth)
+            geo.crop_reach = float(crop_reach)
             return self._finish_fields(self._accurate_group(geo, list(range(f.shape[0])), rays or 64, check), geo)
         optics = self.optics
         z_doe, z_sen = self.doe_z(), self.sensor_z()
@@ -746,7 +757,8 @@ class HybridLens(nn.Module):
         # dispatches ~25 ops; unbinding every source's row ~5 per source)
         built = [geo.todo[r] for r in rows]
         cd, cs, cuv = (_source_elements(t, built, len(geo.wls)) for t in geo.chief)
-        settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step)
+        settings = FieldSettings(nodes=nodes, oversample=self.oversample, check=check, method=self.edge_step,
+                                 crop_reach=geo.crop_reach)
         go = self._go_errors(geo, rows) if check else None
         nw = len(geo.wls)
         media = [_medium_index(optics, wl) for wl in geo.wls]  # (one host read per wavelength, not per source)
@@ -1011,6 +1023,11 @@ class HybridLens(nn.Module):
                       lambda: window_transfer(fd.field.with_envelope(u), Grid(out_origin, p, (n_out, n_out)), fd.z,
                                               weight_derivative=weight_derivative), 8)
 
+    def crop_reach(self, ks: int) -> float:
+        """How far (mm) a ``ks``-pixel PSF crop reaches from its centre pixel's centre: its half-diagonal,
+        ``(ks/2 + 1/2)·√2`` sensor pixels (:meth:`doe_fields` ``crop_reach``)."""
+        return math.sqrt(0.5) * (int(ks) + 1) * self.sensor_pitch
+
     def psf_result(self, fields=(0.0, 0.0), wavelengths=None, ks: int = 64, depth=None, mode: str = "accurate",
                    rays: int | None = None, cache=None, propagation_dtype=torch.complex128, **field_kw) -> PSFResult:
         """PSFs with their centres and the energy outside the crop (see :class:`PSFResult`).
@@ -1031,7 +1048,8 @@ class HybridLens(nn.Module):
             psf = self._checked(psf, [wls] * psf.shape[0])
             return PSFResult(psf, center, outside, self.sensor_pitch, nr,
                              torch.tensor(clip, dtype=torch.float64, device=center.device))
-        fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw)
+        fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw,
+                                                              crop_reach=self.crop_reach(ks))
         psf, center, outside, nr = self.propagate_fields(fds, ks, propagation_dtype)
         clip = [[fd.clipped for fd in row] for row in fds]
         self._check_sensor(center)
@@ -1048,6 +1066,7 @@ class HybridLens(nn.Module):
         f = self._engine_fields(fields)
         wls = self.wavelength_list(wavelengths)
         geo = self._accurate_geometry(f, wls, depth)
+        geo.crop_reach = self.crop_reach(ks)
         pending: tuple = ([], [])
         order, parts, clip = [], [], {}
         nodes = rays or 64

@@ -822,19 +822,20 @@ class MidSystemLens(nn.Module):
         return keep
 
     def source_field(self, field, wavelength: float, depth=None, report: bool = True, phase_maps=None,
-                     orders=None):
+                     orders=None, ks: int | None = None):
         """The combined field on the final plane for one source: ``(DOEField, HybridLens of the strongest
         order, orders)``. ``phase_maps``: the DOEs' :meth:`DOEPhaseSurface.phase_map` when the caller built them
         (once for all its sources); else built here. ``orders``: the source's :meth:`source_orders` when the
-        caller has them."""
+        caller has them. ``ks``: the PSF crop the field is for (the exact edge's lattice keeps the edge waves that
+        land in it: :meth:`HybridLens.doe_fields` ``crop_reach``); None: the geometric spot only."""
         pms = phase_maps if phase_maps is not None else [DOEPhaseSurface(d).phase_map() for d in self.does]
         if orders is None:
             orders = self.source_orders(field, wavelength, depth, pms, report)
         if len(orders) > 1 and self.stop_edge == "doe":
             return self._orders_field(field, wavelength, depth, pms, orders)
         if len(orders) > 1 and self.stop_edge == "exit_pupil" and self.weak_edge == "doe":
-            return self._split_field(field, wavelength, depth, pms, orders)
-        return self._orders_loop(field, wavelength, depth, pms, orders)
+            return self._split_field(field, wavelength, depth, pms, orders, ks)
+        return self._orders_loop(field, wavelength, depth, pms, orders, ks)
 
     def source_orders(self, field, wavelength: float, depth=None, pms=None, report: bool = True) -> list:
         """The orders ``[(scale, c)]`` (:meth:`orders`) of the source ``field`` at ``wavelength`` µm; with ``report``,
@@ -855,7 +856,7 @@ class MidSystemLens(nn.Module):
                 per[i] = sampling_report(self.does[i], per[i], box=box, phase_map=pms[i])["kept"]
         return self.orders(wavelength, per)
 
-    def _orders_loop(self, field, wavelength: float, depth, pms, orders):
+    def _orders_loop(self, field, wavelength: float, depth, pms, orders, ks: int | None = None):
         """:meth:`source_field` with one engine call per order (one order; or the exit-pupil edge for every order)."""
         parts = []
         for j, (scale, c) in enumerate(orders):
@@ -864,7 +865,7 @@ class MidSystemLens(nn.Module):
                 hl.use_rim_images(_CropRims(parts[0][1].center, hl.sensor_z()))
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                fd = hl.doe_fields([tuple(field)], [wavelength], depth)[0][0]
+                fd = hl.doe_fields([tuple(field)], [wavelength], depth, crop_reach=_reach(hl, ks))[0][0]
             caustic = any(issubclass(w.category, CausticWarning) for w in caught)
             if caustic and j > 0:  # a weak order that folds before the engine's plane: its field is not built
                 warnings.warn(SamplingWarning(
@@ -955,7 +956,7 @@ class MidSystemLens(nn.Module):
             hl._warn_caustic([(geo.clips[first][0][2], list(field), float(wavelength))])
         return hl, geo, fds, keep, values
 
-    def _split_field(self, field, wavelength: float, depth, pms, orders):
+    def _split_field(self, field, wavelength: float, depth, pms, orders, ks: int | None = None):
         """:meth:`source_field` of ``orders`` (more than one) with ``weak_edge="doe"``: the strongest order with the
         exact edge (its own engine, :meth:`order_lens`; its absolute phase over the pupil, :func:`_pupil_phase`),
         the weaker ones with the DOE-plane edge as the sources of ONE engine call (:meth:`_batched_orders`; each
@@ -963,7 +964,7 @@ class MidSystemLens(nn.Module):
         with their Gouy phases relative to the strongest."""
         scale0, c0 = orders[0]
         hl0 = self.order_lens(scale0, None, pms)
-        fd0 = hl0.doe_fields([tuple(field)], [wavelength], depth)[0][0]
+        fd0 = hl0.doe_fields([tuple(field)], [wavelength], depth, crop_reach=_reach(hl0, ks))[0][0]
         hl, geo, fds, keep, values = self._batched_orders(field, wavelength, depth, pms, orders[1:], None, "doe")
         if not keep:
             return fd0, hl0, orders
@@ -1108,9 +1109,10 @@ class MidSystemLens(nn.Module):
         if len(fields) > 1 and len(one) == len(fields) and all(s == one[0] for s in one):
             hl = self.order_lens(one[0], None, pms)
             hl.mirror = False  # a DOE inside the lens may break the lens's mirror symmetry
-            fds = hl.doe_fields([tuple(f) for f in fields], [wavelength], depth)
+            fds = hl.doe_fields([tuple(f) for f in fields], [wavelength], depth, crop_reach=_reach(hl, ks))
             return [(fds[i][0], hl, orders[i]) for i in range(len(fields))]
-        return [self.source_field(f, wavelength, depth, phase_maps=pms, orders=o) for f, o in zip(fields, orders)]
+        return [self.source_field(f, wavelength, depth, phase_maps=pms, orders=o, ks=ks)
+                for f, o in zip(fields, orders)]
 
     def psf(self, fields=(0.0, 0.0), wavelengths=0.55, ks: int = 64, depth=None) -> torch.Tensor:
         return self.psf_result(fields, wavelengths, ks, depth).psf
@@ -1148,6 +1150,11 @@ def _phase_at(chief, fd: DOEField, wavelength: float) -> torch.Tensor:
     k = _TWO_PI / (wavelength * 1e-3)
     a, b = fd.carrier
     return opl - fd.n * (a * x + b * y) - torch.angle(val) / k
+
+
+def _reach(hl: HybridLens, ks: int | None) -> float:
+    """The ``ks``-pixel PSF crop's reach (mm) on ``hl``'s sensor (:meth:`HybridLens.crop_reach`), 0 without a crop."""
+    return 0.0 if ks is None else hl.crop_reach(ks)
 
 
 def _combine(parts, final: DOE, field, wavelength: float, depth) -> DOEField:

@@ -380,7 +380,8 @@ class DOEFieldCache:
             self._signature = sig
         wls = [float(w) for w in torch.as_tensor(wavelengths, dtype=torch.float64, device="cpu").reshape(-1)]
         f = fields.detach().cpu().reshape(-1, 2)
-        keys = [[self.key(depth, f[i], wl, mode, rays) for wl in wls] for i in range(f.shape[0])]
+        reach = round(float(field_kw.get("crop_reach", 0.0)), 12)  # the exact edge's lattice follows the crop's reach
+        keys = [[self.key(depth, f[i], wl, mode, rays) + (reach,) for wl in wls] for i in range(f.shape[0])]
         missing_rows = [i for i in range(f.shape[0]) if any(k not in self._store for k in keys[i])]
         if missing_rows:
             self.misses += len(missing_rows)
@@ -463,8 +464,9 @@ def psf_map_points(model, fields, wavelengths=None, depth=None, ks: int = 64, ca
             raise ValueError(f"psf_map_points: {unknown} cannot be used with a DOE-field cache")
         rays = psf_kw.get("rays", getattr(model, "rays", None))
         model = _cache_target(model)
+        reach = {"crop_reach": model.crop_reach(ks)} if hasattr(model, "crop_reach") else {}
         fds = cache.fields(model, f, wls, depth, psf_kw.get("mode", "accurate"), rays,
-                           **{k: v for k, v in psf_kw.items() if k in field_keys})
+                           **{k: v for k, v in psf_kw.items() if k in field_keys}, **reach)
         kw = {k: v for k, v in psf_kw.items() if k in prop_keys}
         return model.psf_result(f, wls, ks=ks, depth=depth, cache=fds, **kw)
     return model.psf_result(f, wls, ks=ks, depth=depth, **psf_kw)

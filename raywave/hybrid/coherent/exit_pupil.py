@@ -135,7 +135,10 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
     # the construction and its angular spectrum on a lattice m× coarser than the DOE's where the wave's own
     # bandwidth allows (the envelope upsampled to the DOE pitch at the end): its cost falls ~m²
-    m = asm_coarsening(rim, chief_doe, wavelength, n, p)
+    # the edge waves that land in the crop turn by up to its reach over the distance from the exit pupil
+    far = abs(z_sensor - z_xp)
+    tail = settings.crop_reach / far if settings.crop_reach > 0 and far > 0 else 0.0
+    m = asm_coarsening(rim, chief_doe, wavelength, n, p, tail)
     lattice = doe if m == 1 else CoarseLattice.of(doe.sim_grid(oversample), m, doe.device)
     coarse = settings if m == 1 else replace(settings, oversample=1)
     if z_from is not None:  # the caustic fallback: the Fresnel step to z_from, the angular spectrum beyond
@@ -190,19 +193,25 @@ MAX_ASM_COARSENING = 8
 ASM_UPSAMPLE_PAD = 8
 
 
-def asm_coarsening(rim, chief_doe, wavelength: float, n: float, p: float) -> int:
+def asm_coarsening(rim, chief_doe, wavelength: float, n: float, p: float, tail: float = 0.0) -> int:
     """``m`` ≥ 1: how many DOE-lattice samples (pitch ``p`` mm) one sample of the exact construction's lattice spans
     (:func:`exit_pupil_field`, ``method="asm"`` and the caustic fallback; issue 46: a mid-system DOE's strongest order
     at 1 µm spent ≥ 90 % of its PSF's time on a 2307² field its phase needs only a quarter of): the largest integer
     with ``m·p ≤`` :data:`ASM_NYQUIST_FRACTION` · ``λ/(2 n Δ)``, ``Δ`` the largest difference of a rim ray's
     direction cosine (:class:`~raywave.hybrid.coherent.stop_edge.RimImages` ``directions``, the image medium) from
-    the chief ray's on the DOE plane (``chief_doe``: the envelope's carrier), at most :data:`MAX_ASM_COARSENING`; 1
-    without rim rays (the DOE's own lattice, as before). ``wavelength`` µm, ``n`` the image medium's index."""
+    the chief ray's on the DOE plane (``chief_doe``: the envelope's carrier), plus ``tail``, at most
+    :data:`MAX_ASM_COARSENING`; 1 without rim rays (the DOE's own lattice, as before). ``wavelength`` µm, ``n`` the
+    image medium's index. ``tail``: the largest further turn (direction cosine) of the stop edge's waves that land in
+    the PSF crop (its reach on the sensor over the distance from the exit pupil, :class:`~raywave.hybrid.coherent.
+    settings.FieldSettings` ``crop_reach``): the rim rays' spread alone is the geometric spot's, and the lattice it
+    allows drops the edge waves of the far tail (issue 46: lens A alone, F/12.5, a 128-pixel crop of 2 µm, the DOE
+    plane 3 mm before the focus: 1.1e-2 off the Rayleigh–Sommerfeld integral at 90–126 µm on the 3× lattice, 2.2e-3
+    on the 2× one that the crop's reach asks for; tests/test_far_tails.py)."""
     dirs = getattr(rim, "directions", None) if rim is not None else None
     if dirs is None or MAX_ASM_COARSENING <= 1:
         return 1
     c = chief_doe.d.detach()[:2].to(dirs.dtype)
-    spread = float((dirs.detach()[:, :2] - c).abs().max())  # (one host read)
+    spread = float((dirs.detach()[:, :2] - c).abs().max()) + float(tail)  # (one host read)
     if not math.isfinite(spread) or spread <= 0.0:
         return 1
     p_max = ASM_NYQUIST_FRACTION * wavelength * 1e-3 / (2.0 * n * spread)

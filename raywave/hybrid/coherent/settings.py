@@ -79,7 +79,10 @@ class FieldSettings:
       bound and without the DOE aperture (the window indices may be negative or beyond the DOE grid);
     * ``stop_plane``: accurate construction: z (mm) of the plane where the stop's edge is sharp (the exit pupil): the
       edge then carries its Fresnel diffraction from there (:func:`~raywave.hybrid.coherent.stop_edge_factor`);
-      None: the paper's sharp edge on the construction's plane.
+      None: the paper's sharp edge on the construction's plane;
+    * ``crop_reach``: exact edge (and the caustic fallback): how far (mm) from the chief ray's landing the PSF crop
+      reaches on the sensor (its half-diagonal; 0: unknown, the geometric spot only): the construction's lattice keeps
+      the directions of the edge waves that land there (:func:`~raywave.hybrid.coherent.exit_pupil.asm_coarsening`).
     """
 
     nodes: int = 64
@@ -94,6 +97,7 @@ class FieldSettings:
     rim_images: bool = True
     virtual: bool = False
     stop_plane: float | None = None
+    crop_reach: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
