@@ -84,6 +84,7 @@ def test_exact_edge_far_tail_against_the_rs_integral(d, bar, stop_integral):
     assert max(rings(e, stop_integral)) < bar
 
 
+@pytest.mark.slow
 def test_fresnel_step_far_tail_against_the_rs_integral(stop_integral):
     """The Fresnel edge step (``edge_step="fresnel"``, what the default takes where the edge wave is not a sphere) on
     lens A alone, the DOE plane 3 mm before the focus (Fresnel number 12.5 there): every ring to 60 µm (7 Airy
