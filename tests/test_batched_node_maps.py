@@ -143,6 +143,29 @@ def test_batched_node_stage_of_a_mid_system_grating(monkeypatch):
     _assert_batch_equals_one_by_one(reqs)
 
 
+def test_batched_fresnel_scale_limit_ignores_the_beam_centre(monkeypatch):
+    """Lens A alone (an ideal lens f 10 mm, F/12.5, tests/test_far_tails.py), a blank DOE 3 mm before the focus, the
+    Fresnel step, on axis and off it: the batch's maps and its inner-tail scale ``g_max`` are each construction's
+    own, and ``g_max`` is the edge's Fresnel scale ``sqrt(2/(λ L))``, L = 7 mm · 0.3 (41.6/mm), not the scale of the
+    node on the beam's centre (its normal undefined: the shortest length's 0.94/pitch, 943/mm; issue 47)."""
+    from raywave.lens.lens import Lens
+    from raywave.materials import get_material
+    from raywave.surfaces.geometry import Plane
+    from raywave.surfaces.interaction import IdealLens
+    from raywave.surfaces.surface import Surface
+    a = Surface(Plane(), get_material("AIR"), 10.0, aperture=CircularAperture(0.4), interaction=IdealLens(10.0),
+                is_stop=True)
+    hl = HybridLens(Lens([a], wavelengths=(0.55,), primary=0), BlankDOE(1000, 1e-3), 7.0, sensor_pitch=2e-3,
+                    stop_edge="exit_pupil", edge_step="fresnel")
+    reqs = _requests(monkeypatch, lambda: hl.psf_result([(0.0, 0.0), (0.0, 0.2)], 0.55, ks=32))
+    assert len(reqs) == 2
+    _assert_batch_equals_one_by_one(reqs)
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        for r in reqs:
+            assert r.run()["g_max"] == pytest.approx(math.sqrt(2.0 / (0.55e-3 * 2.1)), rel=2e-2)
+
+
 def test_batched_fill_of_failed_nodes(asphere, monkeypatch):
     """Nodes whose ray failed take their nearest good node's values (the optical path extended to first order) in
     the batch as in each construction's own fill; a construction with no traced node answers None."""

@@ -16,6 +16,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import midsystem_systems as M  # noqa: E402
 import wave_truth_doe as W  # noqa: E402
 
+import raywave.hybrid.coherent.accurate as AC  # noqa: E402
 import raywave.hybrid.midsystem as ms  # noqa: E402
 from raywave.doe.base import BlankDOE  # noqa: E402
 from raywave.doe.params import GratingDOE  # noqa: E402
@@ -81,6 +82,28 @@ def test_exact_edge_far_tail_against_the_rs_integral(d, bar, stop_integral):
     (:func:`~raywave.hybrid.coherent.exit_pupil.asm_coarsening` ``tail``: 2× here)."""
     e = lens_a_psf(d, 128, stop_edge="exit_pupil", edge_step="asm")
     assert max(rings(e, stop_integral)) < bar
+
+
+@pytest.mark.slow
+def test_fresnel_step_far_tail_against_the_rs_integral(stop_integral):
+    """The Fresnel edge step (``edge_step="fresnel"``, what the default takes where the edge wave is not a sphere) on
+    lens A alone, the DOE plane 3 mm before the focus (Fresnel number 12.5 there): every ring to 60 µm (7 Airy
+    radii) within 1e-2 of the stop's integral, to 90 µm within 3e-2; measured 5.0e-5 / 7.6e-4 / 2.4e-3 / 1.2e-2 /
+    8.3e-2 (benchmarks/fresnel_tail.py). Issue 47: the node on the beam's centre (an undefined edge normal: its
+    Fresnel scale the shortest length's, 943/mm, 23× the edge's 41.6/mm) set the inner tail's anti-aliasing limit,
+    which dropped the far edge's waves beyond ~25 µm: 3.1e-2 / 0.22 / 0.58 at 10–30 / 30–60 / 60–90 µm."""
+    e = lens_a_psf(7.0, 128, stop_edge="exit_pupil", edge_step="fresnel")
+    r = rings(e, stop_integral)
+    assert max(r[:3]) < 1e-2 and r[3] < 3e-2
+
+
+def test_fresnel_scale_limit_ignores_the_beam_centre():
+    """The inner tail's anti-aliasing limit reads the Fresnel scale where the edge's normal is defined: the node on
+    the beam's centre (zero normal: the distance map's kink) is left out (:func:`accurate._normal_defined`); every
+    unit normal is kept."""
+    nx_ = torch.tensor([[0.0, 1.0, 0.6], [-1.0, 0.0, 1e-13]], dtype=torch.float64)
+    ny_ = torch.tensor([[0.0, 0.0, -0.8], [0.0, -1.0, 0.0]], dtype=torch.float64)
+    assert AC._normal_defined(nx_, ny_).tolist() == [[False, True, True], [True, True, False]]
 
 
 @pytest.mark.slow
