@@ -33,6 +33,7 @@ STAGES = (
     ("  coverage and crop", _ACC, "_fine_coverage"),
     ("  envelope (_envelope)", _ACC, "_envelope"),
     ("    compiled loop (_envelope_dense)", _SE, "_envelope_dense"),
+    ("    compiled loop with cov, k·φ (_envelope_dense_scaled)", _SE, "_envelope_dense_scaled"),
     ("    Fresnel integrals (scipy)", _SE, "_fresnel_integrals"),
     ("    knife-edge arithmetic (_EdgeBand._values)", _SE, "_EdgeBand._values"),
     ("    band masks", _SE, "_band_masks"),

@@ -17,7 +17,7 @@ def fresh_compiled_loops(monkeypatch):
     torch.compile's recompile limit, after which the loops fall back to the eager blocks for the process (by design:
     one FusedFallbackWarning); these tests check the compiled loop itself."""
     torch._dynamo.reset()
-    for f in (se._envelope_dense, se._envelope_dense_grads):
+    for f in (se._envelope_dense, se._envelope_dense_grads, se._envelope_dense_scaled):
         monkeypatch.setattr(f, "_failed", False)
         monkeypatch.setattr(f, "_compiled", None)
 
@@ -98,3 +98,29 @@ def test_compiled_envelope_in_blocks_of_rows_equals_one_call(per_row, monkeypatc
     one = se.edge_envelope(amp, angle, nu, 0.8, rz, g, 2e-3, kappa=kap)
     monkeypatch.setattr(se, "DENSE_BLOCK_SAMPLES", 5 * 41)  # 5 blocks of 4–5 rows
     assert torch.equal(se.edge_envelope(amp, angle, nu, 0.8, rz, g, 2e-3, kappa=kap), one)
+
+
+@pytest.mark.parametrize("dz", [0.8, -0.8])
+@pytest.mark.parametrize("cov", [True, False])
+@pytest.mark.parametrize("blocks", [False, True])
+def test_scaled_envelope_equals_the_products_first(dz, cov, blocks, monkeypatch):
+    """``edge_envelope``'s ``scale`` (the coverage and k·φ taken inside the compiled loop, on strided crops of a
+    channel stack as the accurate construction passes them, issue 47) against the products formed first: the same
+    values bit for bit (exact products), in one call and in blocks of rows, without a graph and with one."""
+    if blocks:
+        monkeypatch.setattr(se, "DENSE_BLOCK_SAMPLES", 5 * 41)
+    gen = torch.Generator().manual_seed(3)
+    stack = torch.rand(5, 45, 61, dtype=torch.float64, generator=gen)
+    stack[0] = stack[0] * 0.02 - 0.01  # φ mm
+    stack[3] = stack[3] * 21.0 - 12.0  # ν
+    stack[4] = stack[4] * 1.4 - 0.7  # κ/g
+    crop = stack[:, 3:40, 5:58]  # strided views, as the window's crop
+    phi, amp, c, nu, kap = crop.unbind(0)
+    c = c if cov else None
+    k = 2 * torch.pi / 0.53e-3
+    ref = se.edge_envelope(amp if c is None else amp * c, k * phi, nu, dz, 5.0, 40.0, 2e-3, kappa=kap)
+    got = se.edge_envelope(amp, phi, nu, dz, 5.0, 40.0, 2e-3, kappa=kap, scale=(c, k))
+    assert torch.equal(got, ref)
+    amp_g = amp.clone().requires_grad_(True)
+    got_g = se.edge_envelope(amp_g, phi, nu, dz, 5.0, 40.0, 2e-3, kappa=kap, scale=(c, k))
+    assert torch.equal(got_g.detach(), ref)

@@ -1267,11 +1267,11 @@ def _envelope(fine, cov: torch.Tensor | None, k: float, edge: tuple | None) -> t
     # the channels as views of one unbind: its backward stacks their gradients into one array, where each indexed
     # read's backward would allocate (and add) a zero array of the whole stack
     ch = fine.unbind(0) if isinstance(fine, torch.Tensor) else fine
-    amp = ch[1] if cov is None else ch[1] * cov
     if edge is None:
-        return polar(amp, k * ch[0])
+        return polar(ch[1] if cov is None else ch[1] * cov, k * ch[0])
     dz, ripple_zones, g_max, p = edge
-    return edge_envelope(amp, k * ch[0], ch[-2], dz, ripple_zones, g_max, p, kappa=ch[-1])
+    # the coverage and k·φ taken with the knife edge (in its compiled loop without a graph: issue 47)
+    return edge_envelope(ch[1], ch[0], ch[-2], dz, ripple_zones, g_max, p, kappa=ch[-1], scale=(cov, k))
 
 
 def _span_window(nd: _Nodes, sim: Grid, clamp: bool):

@@ -313,7 +313,7 @@ def _edge_band(nu: torch.Tensor, ripple_zones: float, g, pitch: float):
 
 
 def edge_envelope(amp: torch.Tensor, angle: torch.Tensor, nu: torch.Tensor, dz: float, ripple_zones: float, g,
-                  pitch: float, kappa: torch.Tensor | None = None) -> torch.Tensor:
+                  pitch: float, kappa: torch.Tensor | None = None, scale: tuple | None = None) -> torch.Tensor:
     """``polar(amp, angle) · stop_edge_factor(nu, dz, ripple_zones, g, pitch, kappa)`` (complex128, the shape of
     ``amp``): the geometric envelope times the knife edge, the same values, with a hand-written backward when
     autograd records it (a trainable lens). Autograd would keep ~14 window-sized arrays (the phasor, the factor,
@@ -323,10 +323,24 @@ def edge_envelope(amp: torch.Tensor, angle: torch.Tensor, nu: torch.Tensor, dz: 
     each row with its own window's constants (:func:`_band_masks`; the batched field stage, issue 43). On the CPU
     forward and backward each run as one compiled loop over the window (:func:`_envelope_dense`, issue 47: a single
     PSF's envelope 43 → 24 ms), with ``RAYWAVE_COMPILE=0`` as the eager band arithmetic below (the same values to
-    ~2e-16 relative)."""
-    graph = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (amp, angle, nu, kappa))
+    ~2e-16 relative).
+
+    ``scale`` ``(cov, k)``: ``amp`` and ``angle`` are then the amplitude before a coverage ``cov`` (``amp``'s shape, or
+    None: 1) and the phase φ (mm) with ``k`` (1/mm, a float): the envelope of ``amp·cov`` and ``k·φ``, the same
+    values bit for bit (two exact products). Without a graph and in the compiled loop (:func:`_dense_plan`) the two
+    products are taken inside it, on strided crops as they come (issue 47: no window-sized product or contiguous copy
+    before the loop); otherwise formed here first."""
+    graph = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (amp, angle, nu, kappa)
+                                            + (() if scale is None or scale[0] is None else (scale[0],)))
+    consts = (dz >= 0, ripple_zones, g, pitch)
+    if scale is not None:
+        cov, k = scale
+        plan = None if graph else _dense_plan(nu, consts)
+        if plan is not None:
+            return _dense_values_scaled((amp, cov, angle, k), nu, kappa, plan)
+        amp, angle = (amp if cov is None else amp * cov), k * angle
     if not graph:  # the same blocks as with a graph: the same values bit for bit (a replay compares the two)
-        return _EdgeEnvelope.values(amp, angle, nu, kappa, (dz >= 0, ripple_zones, g, pitch), False)[0]
+        return _EdgeEnvelope.values(amp, angle, nu, kappa, consts, False)[0]
     return _EdgeEnvelope.apply(amp, angle, nu, kappa, dz >= 0, ripple_zones, g, pitch)
 
 
@@ -768,6 +782,20 @@ def _envelope_dense(amp, angle, nu, kap, nb, nu_max, tab, offset: int, sign: flo
 
 
 @fused
+def _envelope_dense_scaled(fine: tuple, nu, kap, nb, nu_max, tab, offset: int, sign: float):
+    """:func:`_envelope_dense` of ``amp·cov`` and ``k·φ`` from ``fine`` = ``(amp, cov or None, φ, k (a 0-dim
+    tensor))``: the two products inside the loop (the same values: exact products), the inputs strided as they
+    come (:func:`edge_envelope`'s ``scale``)."""
+    amp, cov, phi, k = fine
+    a = amp if cov is None else amp * cov
+    angle = k * phi
+    _, _, d_re, d_im, _ = _dense_band(nu, kap, nb, nu_max, tab, offset, sign)
+    x = torch.cos(angle) * a
+    y = torch.sin(angle) * a
+    return x * d_re - y * d_im, y * d_re + x * d_im
+
+
+@fused
 def _envelope_dense_grads(grad: tuple, amp, angle, nu, kap, nb, nu_max, tab, offset: int, sign: float):
     """The backward of :func:`_envelope_dense` as one compiled loop: ``(∂L/∂a, ∂L/∂θ, ∂L/∂ν, ∂L/∂(κ/g) or None)``
     from the output's gradient ``grad`` = ``(g_re, g_im)``: :meth:`_EdgeEnvelope._block_grads`' arithmetic (``q =
@@ -881,6 +909,28 @@ def _dense_values(amp, angle, nu, kap, plan) -> torch.Tensor:
             part = (amp[a:b] if amp.ndim else amp, angle[a:b], nu[a:b], None if kap is None else kap[a:b],
                     *(c[a:b] if c.ndim == nu.ndim and c.shape[0] == rows else c for c in (nb, nm)))
             torch.complex(*_envelope_dense(*part, *plan[2:]), out=out[a:b])
+    return out
+
+
+def _dense_values_scaled(fine: tuple, nu, kap, plan) -> torch.Tensor:
+    """:func:`_dense_values` of :func:`_envelope_dense_scaled` (``fine`` = ``(amp, cov or None, φ, k float)``, the
+    window-sized inputs as they come: no contiguous copy), in the same blocks of rows."""
+    amp, cov, phi, k = fine
+    kt = torch.tensor(float(k), dtype=torch.float64, device=nu.device)  # (a tensor: one graph for every wavelength)
+    nb, nm = plan[0], plan[1]
+    rows = nu.shape[0]
+    n = max(1, min(rows // 2, -(-nu.numel() // DENSE_BLOCK_SAMPLES)))
+    if n == 1:
+        with torch.no_grad():
+            return torch.complex(*_envelope_dense_scaled((amp, cov, phi, kt), nu, kap, nb, nm, *plan[2:]))
+    out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
+    bounds = [round(i * rows / n) for i in range(n + 1)]
+    with torch.no_grad():
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            sl = (c[a:b] if c.ndim == nu.ndim and c.shape[0] == rows else c for c in (nb, nm))
+            torch.complex(*_envelope_dense_scaled((amp[a:b], None if cov is None else cov[a:b], phi[a:b], kt),
+                                                  nu[a:b], None if kap is None else kap[a:b], *sl, *plan[2:]),
+                          out=out[a:b])
     return out
 
 
