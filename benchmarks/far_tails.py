@@ -57,16 +57,16 @@ EXACT = dict(stop_edge="exit_pupil", edge_step="asm")
 RINGS = ((0, 10), (10, 30), (30, 60), (60, 90), (90, 126))
 
 
-def rings(e, ref, ks: int = KS_TAIL) -> dict:
+def rings(e, ref, ks: int = KS_TAIL, edges=RINGS) -> dict:
     """Relative L1 of ``e`` against ``ref`` ((ks, ks), both scaled to the same power in their central 32 µm) over
-    rings of radius (µm) around the centre pixel."""
+    the rings ``edges`` (inner and outer radius, µm) around the centre pixel."""
     h = ks // 2
     core = (slice(h - 8, h + 8), slice(h - 8, h + 8))
     e, ref = e / e[core].sum(), ref / ref[core].sum()
     idx = np.arange(ks) - h
     rr = np.hypot(*np.meshgrid(idx, idx)) * PS * 1e3
     return {f"{lo}-{hi}um": float(np.abs(e[(rr >= lo) & (rr < hi)] - ref[(rr >= lo) & (rr < hi)]).sum()
-                                  / ref[(rr >= lo) & (rr < hi)].sum()) for lo, hi in RINGS}
+                                  / ref[(rr >= lo) & (rr < hi)].sum()) for lo, hi in edges}
 
 
 def old_airy(sys_, ks: int) -> np.ndarray:

@@ -36,6 +36,7 @@ from _report import emit_json  # noqa: E402  (benchmarks/ is on sys.path)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import midsystem_systems as M  # noqa: E402
 import wave_truth_doe as W  # noqa: E402
+from far_tails import rings  # noqa: E402  (the ring-by-ring relative L1)
 
 import raywave.hybrid.midsystem as ms  # noqa: E402
 from raywave.doe.base import BlankDOE  # noqa: E402
@@ -131,18 +132,6 @@ def tail_check() -> float:
     return float((p.detach()[sel] / PS ** 2 / ms.tail_envelope(rho[sel], na, WL)).max())
 
 
-def _rings(e, ref, ks, edges=((0, 10), (10, 30), (30, 60), (60, 90), (90, 126))) -> dict:
-    """Relative L1 of ``e`` against ``ref`` ((ks, ks), both scaled to the same power in their central 32 µm) over
-    rings of radius (µm) around the centre pixel."""
-    h = ks // 2
-    core = (slice(h - 8, h + 8), slice(h - 8, h + 8))
-    e, ref = e / e[core].sum(), ref / ref[core].sum()
-    idx = np.arange(ks) - h
-    rr = np.hypot(*np.meshgrid(idx, idx)) * PS * 1e3
-    return {f"{lo}-{hi}um": float(np.abs(e[(rr >= lo) & (rr < hi)] - ref[(rr >= lo) & (rr < hi)]).sum()
-                                  / ref[(rr >= lo) & (rr < hi)].sum()) for lo, hi in edges}
-
-
 def lens_a_tail() -> dict:
     """The engine's far tail of a plain focused beam: lens A alone (f 10 mm, F/12.5), a blank DOE plane 3 mm or 1 mm
     before its focus (the DOE-plane edge), a 256 µm crop, against the Rayleigh–Sommerfeld integral by quadrature
@@ -156,7 +145,7 @@ def lens_a_tail() -> dict:
     out = {}
     for d in (7.0, 9.0):
         r = _psf(HybridLens(lens, BlankDOE(N, PITCH), d, sensor_pitch=PS, stop_edge="doe"), (0.0, 0.0), ks)
-        out[f"doe_plane_{10 - d:g}mm_before_focus"] = _rings(r.psf[0, 0].detach().numpy(), ref, ks)
+        out[f"doe_plane_{10 - d:g}mm_before_focus"] = rings(r.psf[0, 0].detach().numpy(), ref, ks)
     return out
 
 
@@ -207,7 +196,7 @@ def grating_diagnosis() -> dict:
         ks = 128
         e, c1 = eng([1], ks, **kw)
         ref = W.sensor_psf(sys_, N, PITCH, np.exp(1j * phi0), c1, PS, ks)
-        out["order+1_far_tail_ring_l1"][name] = _rings(e, ref, ks, ((0, 10), (10, 30), (30, 60), (60, 90), (90, 130)))
+        out["order+1_far_tail_ring_l1"][name] = rings(e, ref, ks, ((0, 10), (10, 30), (30, 60), (60, 90), (90, 130)))
     return out
 
 
