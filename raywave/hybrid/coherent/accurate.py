@@ -310,8 +310,8 @@ NODE_SPARE = 3
 
 def _band_at_grid_edge(b: _Build, nd: _Nodes, maps: dict) -> bool:
     """Whether the stop edge's ripple band (the nodes the field stage keeps: ``ν > −√2·ripple``) comes within
-    :data:`NODE_SPARE` nodes of the node grid's edge (one host read); False without a diffracting stop edge or on a
-    grid already traced with the wide margin."""
+    :data:`NODE_SPARE` nodes of the node grid's edge (one host read); False without a diffracting stop edge. The
+    caller asks once, after the trimmed grid: the wide grid's trace is not checked again."""
     if b.cfg.stop_plane is None or "nu_raw" not in maps or maps.get("nu_raw") is None:
         return False
     keep = maps["nu_raw"] > -math.sqrt(2.0) * b.ripple

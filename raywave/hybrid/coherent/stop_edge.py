@@ -893,23 +893,10 @@ DENSE_BLOCK_SAMPLES = 1 << 22
 
 
 def _dense_values(amp, angle, nu, kap, plan) -> torch.Tensor:
-    """The envelope (complex128, ``nu``'s shape) from :func:`_envelope_dense` in blocks of rows of about
-    :data:`DENSE_BLOCK_SAMPLES` (an even split: never a one-row block, which would compile a graph of its own);
-    elementwise, the same values whatever the blocks."""
+    """The envelope (complex128, ``nu``'s shape) from :func:`_envelope_dense` in blocks of rows
+    (:func:`_in_row_blocks`); elementwise, the same values whatever the blocks."""
     amp, angle, nu, kap, nb, nm = _dense_args(amp, angle, nu, kap, plan)
-    rows = nu.shape[0]
-    n = max(1, min(rows // 2, -(-nu.numel() // DENSE_BLOCK_SAMPLES)))
-    if n == 1:
-        with torch.no_grad():  # (detached inputs; one graph whether or not autograd records the call)
-            return torch.complex(*_envelope_dense(amp, angle, nu, kap, nb, nm, *plan[2:]))
-    out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
-    bounds = [round(i * rows / n) for i in range(n + 1)]
-    with torch.no_grad():
-        for a, b in zip(bounds[:-1], bounds[1:]):
-            part = (amp[a:b] if amp.ndim else amp, angle[a:b], nu[a:b], None if kap is None else kap[a:b],
-                    *(c[a:b] if c.ndim == nu.ndim and c.shape[0] == rows else c for c in (nb, nm)))
-            torch.complex(*_envelope_dense(*part, *plan[2:]), out=out[a:b])
-    return out
+    return _in_row_blocks(nu, lambda r: _envelope_dense(*(r(t) for t in (amp, angle, nu, kap, nb, nm)), *plan[2:]))
 
 
 def _dense_values_scaled(fine: tuple, nu, kap, plan) -> torch.Tensor:
@@ -917,20 +904,27 @@ def _dense_values_scaled(fine: tuple, nu, kap, plan) -> torch.Tensor:
     window-sized inputs as they come: no contiguous copy), in the same blocks of rows."""
     amp, cov, phi, k = fine
     kt = torch.tensor(float(k), dtype=torch.float64, device=nu.device)  # (a tensor: one graph for every wavelength)
-    nb, nm = plan[0], plan[1]
+    return _in_row_blocks(nu, lambda r: _envelope_dense_scaled((r(amp), r(cov), r(phi), kt),
+                                                               *(r(t) for t in (nu, kap, plan[0], plan[1])),
+                                                               *plan[2:]))
+
+
+def _in_row_blocks(nu: torch.Tensor, loop) -> torch.Tensor:
+    """The complex128 array (``nu``'s shape) whose real and imaginary parts ``loop(r)`` computes, without autograd,
+    in blocks of rows of about :data:`DENSE_BLOCK_SAMPLES` (an even split: never a one-row block, which would compile
+    a graph of its own). ``r(t)``: the block's rows of an input ``t`` of the window's rows (anything else, a 0-dim or
+    None, as it is); one block: the inputs whole."""
     rows = nu.shape[0]
     n = max(1, min(rows // 2, -(-nu.numel() // DENSE_BLOCK_SAMPLES)))
-    if n == 1:
-        with torch.no_grad():
-            return torch.complex(*_envelope_dense_scaled((amp, cov, phi, kt), nu, kap, nb, nm, *plan[2:]))
-    out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
-    bounds = [round(i * rows / n) for i in range(n + 1)]
-    with torch.no_grad():
+    with torch.no_grad():  # (detached inputs; one graph whether or not autograd records the call)
+        if n == 1:
+            return torch.complex(*loop(lambda t: t))
+        out = torch.empty(nu.shape, dtype=torch.complex128, device=nu.device)
+        bounds = [round(i * rows / n) for i in range(n + 1)]
         for a, b in zip(bounds[:-1], bounds[1:]):
-            sl = (c[a:b] if c.ndim == nu.ndim and c.shape[0] == rows else c for c in (nb, nm))
-            torch.complex(*_envelope_dense_scaled((amp[a:b], None if cov is None else cov[a:b], phi[a:b], kt),
-                                                  nu[a:b], None if kap is None else kap[a:b], *sl, *plan[2:]),
-                          out=out[a:b])
+            def r(t, a=a, b=b):
+                return t[a:b] if t is not None and t.ndim == nu.ndim and t.shape[0] == rows else t
+            torch.complex(*loop(r), out=out[a:b])
     return out
 
 
