@@ -141,7 +141,8 @@ def test_grating_orders_in_each_others_tails():
 def test_crop_reach_is_what_the_psf_call_passes_and_is_checked():
     """``psf_result(ks)`` builds its fields for its crop's reach (:meth:`HybridLens.crop_reach`): the same PSF from
     ``doe_fields(crop_reach=hl.crop_reach(ks))`` as a cache, bit for bit; without it (``crop_reach=0``) the lattice
-    is the rim rays' (3× here, not 2×: another PSF); a bad reach is named before any work."""
+    is the rim rays' (3× here, not 2×: another PSF), also where the caller passes ``crop_reach=0`` to the PSF call;
+    a bad reach is named before any work."""
     a = Surface(Plane(), get_material("AIR"), 10.0, aperture=CircularAperture(0.4), interaction=IdealLens(10.0),
                 is_stop=True)
     hl = HybridLens(Lens([a], wavelengths=(WL,), primary=0), BlankDOE(N, PITCH), 9.0, sensor_pitch=PS,
@@ -152,7 +153,9 @@ def test_crop_reach_is_what_the_psf_call_passes_and_is_checked():
         direct = hl.psf_result([(0.0, 0.0)], WL, ks=128).psf
         cached = hl.psf_result(ks=128, cache=hl.doe_fields([(0.0, 0.0)], WL, crop_reach=hl.crop_reach(128))).psf
         plain = hl.psf_result(ks=128, cache=hl.doe_fields([(0.0, 0.0)], WL)).psf
+        own = hl.psf_result([(0.0, 0.0)], WL, ks=128, crop_reach=0.0).psf  # the caller's reach wins
     assert torch.equal(direct, cached)
+    assert torch.equal(own, plain)
     assert float((direct - plain).detach().abs().max()) > 1e-9
     for bad in (-1.0, math.inf, math.nan):
         with pytest.raises(ValueError, match="crop_reach"):

@@ -1032,7 +1032,8 @@ class HybridLens(nn.Module):
                    rays: int | None = None, cache=None, propagation_dtype=torch.complex128, **field_kw) -> PSFResult:
         """PSFs with their centres and the energy outside the crop (see :class:`PSFResult`).
 
-        Args: as :meth:`doe_fields` (``field_kw``: ``full_grid``, ``generator``, ``trace_dtype``, ``check``),
+        Args: as :meth:`doe_fields` (``field_kw``: ``full_grid``, ``generator``, ``trace_dtype``, ``check``,
+        ``crop_reach``: default :meth:`crop_reach` of ``ks``),
         plus ``ks`` (PSF size in sensor pixels), ``cache`` (the output of :meth:`doe_fields`, e.g. detached
         for a frozen refractive lens; then the field arguments are taken from it) and ``propagation_dtype``
         (see :meth:`propagate`)."""
@@ -1048,8 +1049,9 @@ class HybridLens(nn.Module):
             psf = self._checked(psf, [wls] * psf.shape[0])
             return PSFResult(psf, center, outside, self.sensor_pitch, nr,
                              torch.tensor(clip, dtype=torch.float64, device=center.device))
-        fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw,
-                                                              crop_reach=self.crop_reach(ks))
+        # the crop's own reach unless the caller gives one (a wider reach for fields reused by a larger crop)
+        field_kw = {"crop_reach": self.crop_reach(ks), **field_kw}
+        fds = cache if cache is not None else self.doe_fields(fields, wavelengths, depth, mode, rays, **field_kw)
         psf, center, outside, nr = self.propagate_fields(fds, ks, propagation_dtype)
         clip = [[fd.clipped for fd in row] for row in fds]
         self._check_sensor(center)
