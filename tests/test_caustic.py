@@ -69,10 +69,12 @@ def test_beam_folds_finds_the_double_gauss_caustic(dz, crossed):
 
 def test_the_default_blank_doe_stays_before_the_caustic():
     """The default plane moves towards focus for a wide beam (beam fit) but stops where the widest beam is still
-    CAUSTIC_MARGIN × as wide as where the first rays cross; the rule and the crossing are reported."""
+    CAUSTIC_MARGIN × as wide as where the first rays cross; the rule and the crossing are reported. (With the
+    DOE-plane edge: the default edge moves this lens's plane further back, where its Fresnel step takes no caustic
+    fallback: tests/test_caustic_fallback.py.)"""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        hl = load_hybrid(DOUBLE_GAUSS, fields=[[0.0, 14.0], [0.0, 0.0]], field_type="angle")
+        hl = load_hybrid(DOUBLE_GAUSS, fields=[[0.0, 14.0], [0.0, 0.0]], field_type="angle", stop_edge="doe")
     info = hl.doe_info
     assert info["distance_rule"] == "before_caustic"
     d, dc = info["distance"], info["caustic_distance"]
@@ -121,7 +123,8 @@ def test_cli_psf_reports_the_caustic_rule(capsys):
 
     from raywave.cli.main import main
 
-    assert main(["psf", DOUBLE_GAUSS, "--field", "0", "14", "--ks", "8", "--rays", "16", "--json"]) == 0
+    assert main(["psf", DOUBLE_GAUSS, "--field", "0", "14", "--ks", "8", "--rays", "16", "--stop-edge", "doe",
+                 "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     doe = summary["doe"]
     assert doe["distance_rule"] == "before_caustic"

@@ -12,6 +12,7 @@ DOE 80 mm after the lens (estimate ~1e-5 rad) and 93.5 mm, 5 mm before focus (~1
 
 import math
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -157,3 +158,57 @@ def test_a_fallback_too_large_for_its_grid_warns_and_keeps_the_plane(monkeypatch
     monkeypatch.setattr(ep, "MAX_XP_SAMPLES", 10)
     with pytest.warns(StopEdgeWarning, match="built on the plane itself; move the DOE towards the lens"):
         assert ep._fallback_fits(lens, src, z_from, hl.doe_z(), hl.doe.pitch, est) is None
+
+
+DOUBLE_GAUSS = str(Path(__file__).parent / "data" / "zmx" / "double_gauss_ohara_cdgm_hoya.zmx")
+
+
+def _double_gauss(**kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return load_hybrid(DOUBLE_GAUSS, fields=[[0.0, 0.0]], field_type="angle", **kw)
+
+
+def test_the_default_plane_of_a_blank_doe_needs_no_fallback():
+    """A lens file without a DOE (assembly.build.go_field_distance): the f/3 double Gauss on axis, whose beam fit
+    puts the plane where the edge's Fresnel step would take the fallback (go_phase_error above GO_PHASE_TOL), gets
+    the plane the fallback would build on: the error there within the tolerance for every source, before the
+    caustic, the rule and the error it left reported. The DOE-plane edge (no fallback) keeps the beam fit's plane."""
+    hl, doe_edge = _double_gauss(), _double_gauss(stop_edge="doe")
+    info, old = hl.doe_info, doe_edge.doe_info
+    assert old["distance_rule"] in ("beam_fit", "before_caustic")
+    assert info["distance_rule"] == "go_field" and info["go_phase_error"] > ep.GO_PHASE_TOL
+    assert info["distance"] < old["distance"] < info["caustic_distance"]
+    lens = hl.lens
+
+    def error(wl, z):
+        with torch.no_grad():
+            return float(ep.go_phase_error(lens, Source((0.0, 0.0), wl, None, "angle"), hl.exit_pupil_z(wl), z)[1][-1])
+
+    assert max(error(wl, hl.doe_z()) for wl in lens.wavelengths) <= ep.GO_PHASE_TOL
+    # the beam fit's plane: every wavelength over it (0.49 / 0.59 / 0.66 µm: 8.9e-5, 3.6e-4, 8.0e-4 rad), the
+    # largest the one reported (the paraxial exit pupil there, the engine's real-ray one here)
+    before = [error(wl, doe_edge.doe_z()) for wl in lens.wavelengths]
+    assert max(before) == pytest.approx(info["go_phase_error"], rel=1e-3)
+    # a lens whose default plane is far from focus keeps it (the bundled singlet, half way)
+    assert load_hybrid("singlet").doe_info["distance_rule"] == "half_way"
+
+
+@pytest.mark.slow  # ~1 min: two double-Gauss PSFs, one through the fallback
+def test_the_moved_default_plane_gives_the_fallbacks_psf_without_its_warning():
+    """The double Gauss on axis: the PSF on the moved default plane equals the one on the beam fit's plane through
+    the fallback (the same construction plane up to the fallback's plane grid; measured 4.1e-5 rel L1) and warns
+    no StopEdgeWarning; the fallback's does."""
+    hl, doe_edge = _double_gauss(), _double_gauss(stop_edge="doe")
+    near = hl.with_doe(doe_edge.doe, doe_distance=doe_edge.doe_info["distance"])
+    with torch.no_grad(), warnings.catch_warnings(record=True) as moved:
+        warnings.simplefilter("always")
+        psf = hl.psf_result((0.0, 0.0), ks=32).psf[0, 0]
+    with torch.no_grad(), warnings.catch_warnings(record=True) as fell:
+        warnings.simplefilter("always")
+        ref = near.psf_result((0.0, 0.0), ks=32).psf[0, 0]
+    assert not [w for w in moved if issubclass(w.category, StopEdgeWarning)]
+    assert [w for w in fell if issubclass(w.category, StopEdgeWarning) and "angular spectrum" in str(w.message)]
+    err = float((psf - ref).abs().sum())
+    print(f"moved plane vs fallback: {err:.3g}")
+    assert err < 1e-4

@@ -7,7 +7,10 @@ assembly layer, above :mod:`raywave.hybrid` (docs/architecture.md); ``raywave.hy
 Grid rules (``load_hybrid`` / ``hybrid_from_spec``; explicit arguments override the file):
 
 * **distance**: ``doe_distance``, else the file's ``doe.distance``, else (a lens file without a DOE) half
-  way between the last vertex and the sensor (:data:`DEFAULT_DISTANCE_FRACTION` of the last thickness).
+  way between the last vertex and the sensor (:data:`DEFAULT_DISTANCE_FRACTION` of the last thickness), moved
+  towards the sensor until every beam spans at most :data:`MAX_DEFAULT_BEAM_PIXELS` pixels, never beyond the first
+  caustic (:func:`fit_doe_distance`), and back from the rays' focus where the geometric-optics field would be off
+  (:func:`go_field_distance`); ``hl.doe_info["distance_rule"]`` says which rule placed it.
 * **pitch**: ``doe_pitch``, else the file's (``doe.pitch`` or the .npz's ``pitch``); a lens file without a
   DOE gets the pitch that samples its wavefront (:func:`nyquist_doe_pitch`: :data:`NYQUIST_FILL` of the
   Nyquist pitch of the steepest phase slope, relative to the chief ray, that any traced ray reaches on the DOE
@@ -37,19 +40,23 @@ import torch
 
 from raywave.doe import BlankDOE, PixelDOE, doe_from_phase_model
 from raywave.doe.spec import check_phase_finite
+from raywave.hybrid.coherent.exit_pupil import (GO_FALLBACK_FRACTION, GO_PHASE_TOL, MAX_XP_SAMPLES, blank_edge_steps,
+                                               go_phase_errors)
+from raywave.hybrid.coherent.geometry import check_window_memory
 from raywave.hybrid.coherent.stop_edge import RIPPLE_ZONES
-from raywave.hybrid.hybrid_lens import BEAM_MARGIN, DEFAULT_STOP_EDGE, HybridLens
+from raywave.hybrid.hybrid_lens import BEAM_MARGIN, DEFAULT_EDGE_STEP, DEFAULT_STOP_EDGE, HybridLens
 from raywave.io.errors import LensFileError, with_location
-from raywave.lens.analysis import beam_folds, beam_half_extent, beam_rays_at
+from raywave.lens.analysis import beam_field_points, beam_folds, beam_half_extent, beam_rays_at
 from raywave.lens.build import lens_from_spec, resolve_lens_path
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import ParaxialUndefinedError, paraxial_data
 from raywave.utils.checks import pitch_mm
-from raywave.utils.errors import NonFiniteError, check_allocation
+from raywave.utils.errors import MemoryLimitError, NonFiniteError, check_allocation
 
 __all__ = ["BEAM_MARGIN", "DEFAULT_DISTANCE_FRACTION", "DEFAULT_DOE_PITCH", "MAX_DEFAULT_PITCH", "NYQUIST_FILL",
            "CAUSTIC_MARGIN", "MAX_DEFAULT_BEAM_PIXELS", "beam_half_extent", "caustic_free_distance", "default_doe_size",
-           "edge_band_reach", "fit_doe_distance", "hybrid_from_spec", "load_hybrid", "nyquist_doe_pitch"]
+           "edge_band_reach", "fit_doe_distance", "go_field_distance", "hybrid_from_spec", "load_hybrid",
+           "nyquist_doe_pitch"]
 
 #: Pixel pitch (mm) of the blank DOE given to a lens file without a DOE when no ray can size it (before issue 19
 #: every lens file without a DOE got it; now :func:`nyquist_doe_pitch` chooses).
@@ -166,6 +173,58 @@ def fit_doe_distance(lens, distance: float, pitch: float, fields=None, wavelengt
         fitted = safe
         report["distance_rule"] = "before_caustic"
     return fitted
+
+
+def go_field_distance(lens, distance: float, pitch: float, sources: tuple = (None, None, None),
+                      report: dict | None = None, sphere_cut: bool = True) -> float:
+    """The default DOE distance (mm after the last vertex) of a blank DOE moved back from the rays' focus where the
+    exit-pupil edge's Fresnel step would take its caustic fallback on the plane ``distance``: where a source's
+    :func:`~raywave.hybrid.coherent.exit_pupil.go_phase_error` there exceeds
+    :data:`~raywave.hybrid.coherent.exit_pupil.GO_PHASE_TOL`, the plane nearest it towards the lens where every such
+    source's error is at most ``GO_FALLBACK_FRACTION`` × the tolerance: the plane on which the fallback would build
+    the field before carrying it to the DOE plane by the angular spectrum. Placed there, the DOE takes the field as
+    it is built, with no carrying step and no warning (a blank DOE's PSF with the exit-pupil edge does not depend on
+    the plane, docs/ray-wave.md). Kept where no plane helps, an exit pupil lies after the plane, or the widest beam
+    there would span more than ``MAX_XP_SAMPLES`` pixels of ``pitch`` mm or not fit in memory (the engine then
+    falls back or warns as before). ``sources`` = ``(fields, wavelengths, depth)`` as :func:`fit_doe_distance`;
+    ``sphere_cut``: the edge step is "adaptive", so sources whose edge is cut on the DOE plane (a sphere focused on
+    the sensor, :func:`~raywave.hybrid.coherent.exit_pupil.blank_edge_steps`) take no fallback and do not count.
+    ``report`` receives ``distance_rule`` "go_field" and ``go_phase_error`` (rad, the largest that asked for the
+    move) when it moves."""
+    fields, wavelengths, depth = sources
+    z_last = float(lens.vertex_z()[-1].detach())
+    z_doe = z_last + distance
+    wls = list(lens.wavelengths) if wavelengths is None else [
+        float(w) for w in torch.as_tensor(wavelengths, device="cpu").reshape(-1)]
+    z_xps = [_exit_pupil_z(lens, wl) for wl in wls]
+    if any(z is None or not z < z_doe for z in z_xps):
+        return distance
+    points = beam_field_points(lens, fields)
+    zs, err = go_phase_errors(lens, points, wls, depth, None, (z_xps, z_doe))
+    need = err[..., -1] > GO_PHASE_TOL  # (F, W)
+    if bool(need.any()) and sphere_cut:
+        steps = blank_edge_steps(lens, points, wls, depth, (z_doe, z_last + _last_gap(lens)))
+        need = need & torch.tensor([[s == "fresnel" for s in row] for row in steps], device=need.device)
+    if not bool(need.any()):
+        return distance
+    worst = float(err[..., -1][need].max())
+    plane = math.inf
+    for fi, wi in torch.nonzero(need).tolist():
+        fine = torch.nonzero(err[fi, wi] <= GO_FALLBACK_FRACTION * GO_PHASE_TOL).reshape(-1)
+        if not fine.numel() or int(fine[-1]) == 0:  # no plane between the exit pupil and this one helps
+            return distance
+        plane = min(plane, float(zs[wi, int(fine[-1])]))
+    at, _, _ = beam_rays_at(lens, plane, fields, wavelengths, depth)
+    side = float(_widest(at.o[None, ..., :2], at.valid & torch.isfinite(at.o).all(-1))[0])
+    if side / pitch > MAX_XP_SAMPLES:
+        return distance
+    try:
+        check_window_memory(math.ceil(side / pitch), math.ceil(side / pitch), pitch, lens.device)
+    except MemoryLimitError:
+        return distance
+    if report is not None:
+        report.update(distance_rule="go_field", go_phase_error=worst)
+    return plane - z_last
 
 
 def _last_gap(lens) -> float:
@@ -506,6 +565,11 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     if doe_distance is None and data is None:  # a beam too wide for the grid: move the default plane to focus
         fit: dict = {}
         distance = fit_doe_distance(optics, distance, pitch, fields, wavelengths, depth, report=fit)
+        step = DEFAULT_EDGE_STEP if edge_step is None else edge_step
+        if (DEFAULT_STOP_EDGE if stop_edge is None else stop_edge) == "exit_pupil" and step in ("adaptive", "fresnel"):
+            # ... but not so near it that the edge's Fresnel step would build the field elsewhere and carry it here
+            distance = go_field_distance(optics, distance, pitch, (fields, wavelengths, depth), fit,
+                                         sphere_cut=step == "adaptive")
         info.update(fit)
     size = _size_arg(doe_size)
     band = (DEFAULT_STOP_EDGE if stop_edge is None else stop_edge) == "exit_pupil"  # the edge builds its band

@@ -285,7 +285,9 @@ def _format_text(s: dict) -> str:
         f"  DOE ({d['source']}): {d['shape'][1]} × {d['shape'][0]} pixels of {d['pitch_mm'] * 1e3:g} µm, "
         f"{d['distance_mm']:g} mm after the last vertex"
         + (f" (kept before the rays' first crossing, {d['caustic_distance_mm']:g} mm)"
-           if d.get("distance_rule") == "before_caustic" else "") + f", {d['aperture']}, "
+           if d.get("distance_rule") == "before_caustic" else "")
+        + (" (moved back from the rays' focus, where the geometric-optics field holds)"
+           if d.get("distance_rule") == "go_field" else "") + f", {d['aperture']}, "
         + (f"phase {d['phase']}" if d["phase"] is not None else f"{d['phase_model']} phase"
            if d.get("phase_model") else "blank")
         + (f", {d['levels']} levels" if d.get("levels") else "")

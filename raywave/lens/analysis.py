@@ -56,7 +56,7 @@ def blocking_aperture(lens, rays) -> str:
 
 
 # ---------------------------------------------------------------------------- beam extent
-def _beam_field_points(lens, fields):
+def beam_field_points(lens, fields):
     """Field points (F, 2) float64 for the beam extent: ``fields`` ((2,), (F, 2) or one y value), default the
     lens's fields along y and (0, 0)."""
     if fields is None:
@@ -92,7 +92,7 @@ def beam_rays_at(lens, z: float, fields=None, wavelengths=None, depth=None, chie
            else [float(w) for w in torch.as_tensor(wavelengths, device="cpu").reshape(-1)])
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # vignetted rays are left out (valid mask)
-        rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full", depth=depth)
+        rays = point_source_rays(lens, beam_field_points(lens, fields), wls, pupil=(px, py), aim="full", depth=depth)
         out = lens.trace(rays)
         n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         return out.propagate_to_z(z, n), n, wls
@@ -147,7 +147,7 @@ def beam_folds(lens, z, fields=None, wavelengths=None, depth=None, n_grid: int =
     zs = torch.as_tensor(z, dtype=torch.float64, device=lens.device).reshape(-1)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # vignetted rays are left out (valid mask)
-        rays = point_source_rays(lens, _beam_field_points(lens, fields), wls, pupil=(px, py), aim="full", depth=depth)
+        rays = point_source_rays(lens, beam_field_points(lens, fields), wls, pupil=(px, py), aim="full", depth=depth)
         out = lens.trace(rays)
         n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
         at = out.propagate_to_z(float(zs[0]), n)

@@ -667,6 +667,14 @@ def adaptive_edge_steps(lens, doe, fields, wavelengths, depth, planes: tuple, fi
     nf = torch.as_tensor(fields).reshape(-1, 2).shape[0]
     if not is_blank(doe):
         return [["fresnel"] * len(wavelengths) for _ in range(nf)]
+    return blank_edge_steps(lens, fields, wavelengths, depth, planes, field_type, chief)
+
+
+def blank_edge_steps(lens, fields, wavelengths, depth, planes: tuple, field_type: str | None = None,
+                     chief: tuple | None = None) -> list:
+    """:func:`adaptive_edge_steps` for a blank DOE: ``[F][W]`` of "doe" (the wave near the stop's edge a sphere
+    focused on the sensor, :func:`_sphere_step`) or "fresnel", from one trace of the sources' edge rays (arguments as
+    :func:`adaptive_edge_steps`)."""
     z_doe, z_sensor = planes
     return [[_sphere_step(foc, wl, z_doe, z_sensor) for foc, wl in zip(row, wavelengths)]
             for row in edge_focus_many(lens, fields, wavelengths, depth, field_type, chief)]
