@@ -184,9 +184,9 @@ def go_field_distance(lens, distance: float, pitch: float, sources: tuple = (Non
     source's error is at most ``GO_FALLBACK_FRACTION`` × the tolerance: the plane on which the fallback would build
     the field before carrying it to the DOE plane by the angular spectrum. Placed there, the DOE takes the field as
     it is built, with no carrying step and no warning (a blank DOE's PSF with the exit-pupil edge does not depend on
-    the plane, docs/ray-wave.md). Kept where no plane helps, an exit pupil lies after the plane, or the widest beam
-    there would span more than ``MAX_XP_SAMPLES`` pixels of ``pitch`` mm or not fit in memory (the engine then
-    falls back or warns as before). ``sources`` = ``(fields, wavelengths, depth)`` as :func:`fit_doe_distance`;
+    the plane, docs/ray-wave.md). Kept where no plane helps, an exit pupil lies after the plane, or a beam there
+    would span more than ``MAX_XP_SAMPLES`` pixels of ``pitch`` mm or its window not fit in the memory available
+    now (the fallback's own rules, with a 1.25× window: the engine then warns as before). ``sources`` = ``(fields, wavelengths, depth)`` as :func:`fit_doe_distance`;
     ``sphere_cut``: the edge step is "adaptive", so sources whose edge is cut on the DOE plane (a sphere focused on
     the sensor, :func:`~raywave.hybrid.coherent.exit_pupil.blank_edge_steps`) take no fallback and do not count.
     ``report`` receives ``distance_rule`` "go_field" and ``go_phase_error`` (rad, the largest that asked for the
@@ -214,17 +214,29 @@ def go_field_distance(lens, distance: float, pitch: float, sources: tuple = (Non
         if not fine.numel() or int(fine[-1]) == 0:  # no plane between the exit pupil and this one helps
             return distance
         plane = min(plane, float(zs[wi, int(fine[-1])]))
-    at, _, _ = beam_rays_at(lens, plane, fields, wavelengths, depth)
-    side = float(_widest(at.o[None, ..., :2], at.valid & torch.isfinite(at.o).all(-1))[0])
-    if side / pitch > MAX_XP_SAMPLES:
+    wx, wy = _footprint_sides(lens, plane, (fields, wavelengths, depth))
+    if max(wx, wy) / pitch > MAX_XP_SAMPLES:
         return distance
-    try:
-        check_window_memory(math.ceil(side / pitch), math.ceil(side / pitch), pitch, lens.device)
+    try:  # the window (beam and edge band) as the engine's fallback checks it (1.2×), with a margin: at the time
+        # of the call, like the fallback (where it does not fit, the engine keeps the plane as before)
+        check_window_memory(math.ceil(1.25 * wy / pitch), math.ceil(1.25 * wx / pitch), pitch, lens.device)
     except MemoryLimitError:
         return distance
     if report is not None:
         report.update(distance_rule="go_field", go_phase_error=worst)
     return plane - z_last
+
+
+def _footprint_sides(lens, z: float, sources: tuple) -> tuple[float, float]:
+    """The largest x and y extents (mm) of any one source's beam on the plane ``z`` (mm from the first vertex;
+    ``sources`` = ``(fields, wavelengths, depth)`` as :func:`beam_rays_at`), 0 where no ray reaches it."""
+    at, _, _ = beam_rays_at(lens, z, *sources)
+    ok = at.valid & torch.isfinite(at.o).all(-1)  # (F, W, N)
+    big = torch.tensor(math.inf, dtype=at.o.dtype, device=at.o.device)
+    xy = at.o[..., :2]
+    span = torch.where(ok[..., None], xy, -big).amax(-2) - torch.where(ok[..., None], xy, big).amin(-2)
+    span = torch.where(ok.any(-1)[..., None], span, torch.zeros_like(span)).reshape(-1, 2)
+    return float(span[:, 0].max()), float(span[:, 1].max())
 
 
 def _last_gap(lens) -> float:
