@@ -8,7 +8,11 @@ the whole crop (both scaled to unit sum) and ring by ring (:func:`far_tails.ring
 Rayleigh–Sommerfeld integral (:func:`wave_truth_doe.airy_reference`) for the default, ``edge_step="fresnel"`` and
 ``"asm"``; also the time of one PSF with the default against ``"fresnel"`` (A/B in this process, warm, best of 3).
 
-Usage: ``RAYWAVE_COMPILE=0 python benchmarks/edge_estimate.py [--distances 9,8,7,5] [--ks 32,64,128] [--out F]``
+With ``--asphere 64,96,128``: the bundled hybrid_asphere's step per crop and its Fresnel step's distance from the
+exact construction there (:func:`asphere`).
+
+Usage: ``RAYWAVE_COMPILE=0 python benchmarks/edge_estimate.py [--distances 9,8,7,5] [--ks 32,64,128] [--time]
+[--asphere 64,96,128] [--edges default,fresnel,asm,blank_default] [--out F]``
 """
 
 from __future__ import annotations
@@ -85,12 +89,42 @@ def timed(hl: HybridLens, ks: int, repeat: int = 3) -> float:
     return best
 
 
+def asphere(kss: list[int]) -> dict:
+    """The bundled hybrid_asphere (0.53 µm, 0° / 12.25° / 17.5°): per crop the step the default takes, the Fresnel
+    step's and the default's whole-crop rel L1 from the exact construction (the arbiter where it fits), and the CPU
+    time of one warm PSF per edge."""
+    from raywave.assembly.build import load_hybrid
+    from raywave.lens.build import bundled_lens_path
+
+    out = {}
+    for ks in kss:
+        for f in (0.0, 12.25, 17.5):
+            r = {}
+            for name, kw in (("default", {}), ("fresnel", {"edge_step": "fresnel"}), ("asm", {"edge_step": "asm"})):
+                hl = load_hybrid(bundled_lens_path("hybrid_asphere"), **kw)
+                with warnings.catch_warnings(), torch.no_grad():
+                    warnings.simplefilter("ignore")
+                    hl.psf_result((0.0, f), 0.53, ks=ks)
+                    t0 = time.process_time()
+                    p = hl.psf_result((0.0, f), 0.53, ks=ks).psf[0, 0].numpy()
+                    t = time.process_time() - t0
+                    step = hl.doe_fields((0.0, f), 0.53, crop_reach=hl.crop_reach(ks))[0][0].info.edge_step
+                r[name] = (p, t, step)
+            row = {"step": r["default"][2], "fresnel_vs_asm": whole(r["fresnel"][0], r["asm"][0]),
+                   "default_vs_asm": whole(r["default"][0], r["asm"][0]),
+                   "cpu_s": {k: v[1] for k, v in r.items()}}
+            out[f"ks{ks}_field{f:g}"] = row
+            print("asphere", ks, f, row, file=sys.stderr, flush=True)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--distances", default="9,8,7,5")
     ap.add_argument("--ks", default="32,64,128")
     ap.add_argument("--edges", default="default,fresnel,asm,blank_default")
     ap.add_argument("--time", action="store_true", help="time the default against edge_step='fresnel'")
+    ap.add_argument("--asphere", default=None, help="also the bundled asphere on these crops (e.g. 64,96,128)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -123,6 +157,8 @@ def main(argv=None):
                 case["seconds"] = {"default": timed(hd, ks), "fresnel": timed(hf, ks)}
                 print(d, ks, case["seconds"], file=sys.stderr, flush=True)
             out["cases"][f"d{10 - d:g}mm_ks{ks}"] = case
+    if a.asphere:
+        out["hybrid_asphere"] = asphere([int(v) for v in a.asphere.split(",")])
     emit_json(out, a.out, indent=1)
 
 

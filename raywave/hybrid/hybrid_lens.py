@@ -72,8 +72,9 @@ EDGE_STEPS = ("adaptive", "auto", "fresnel", "asm")
 DEFAULT_STOP_EDGE = "exit_pupil"
 #: how the default exit-pupil edge reaches the DOE plane: "adaptive" (issue 47), per source the Fresnel step
 #: (1.3–1.8× the DOE-plane edge's cost, any beam size), or with a blank DOE and a spherical wave at the stop's edge the
-#: edge cut on the DOE plane, there exact (raywave.hybrid.coherent.exit_pupil.adaptive_edge_step); "asm" is the exact
-#: construction at ~4×, "auto" takes it where the beam fits
+#: edge cut on the DOE plane, there exact (raywave.hybrid.coherent.exit_pupil.adaptive_edge_step), and the exact
+#: construction where the Fresnel step's error estimate rejects it and the beam fits (exit_pupil.
+#: fresnel_step_estimates); "asm" is the exact construction at ~4×, "auto" takes it where the beam fits
 DEFAULT_EDGE_STEP = "adaptive"
 
 
@@ -365,7 +366,10 @@ class HybridLens(nn.Module):
             construction on the bundled asphere, docs/ray-wave.md).
             "auto": "asm" where the beam fits, else "fresnel". "adaptive" (the default since issue 47): "fresnel", or
             where the DOE is blank and the wave at the stop's edge a sphere, the edge cut on the DOE plane (exact
-            there: :func:`raywave.hybrid.coherent.exit_pupil.adaptive_edge_step`).
+            there: :func:`raywave.hybrid.coherent.exit_pupil.adaptive_edge_step`), or "asm" where the Fresnel step's
+            error estimate for the PSF's crop rejects it and the beam fits as for "auto" (:func:`raywave.hybrid.
+            coherent.exit_pupil.fresnel_step_estimates`; else "fresnel" with a :class:`StopEdgeWarning`). Each
+            field's ``info.edge_step`` says which step it took.
         mirror: build the DOE-plane field of a source that is the mirror image of another in the same call (across
             x or y, on a lens and DOE grid symmetric across that axis: :func:`raywave.hybrid.mirror.symmetric_axes`)
             by mirroring the other's (default True: a map's symmetric grid builds a quarter of its fields; the PSFs

@@ -76,9 +76,11 @@ def exit_pupil_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays
     ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel". ``method="adaptive"``
     (:class:`~raywave.hybrid.HybridLens`'s default): :func:`adaptive_edge_step` per source, the Fresnel step or, with
     a blank DOE on a spherical wave, the edge cut on the DOE plane (``method="doe"``, exact there: the construction of
-    :func:`accurate_field` with the stop's sharp edge on the DOE plane). ``rim_images``: each node's
-    edge is sharp at its stop-rim point's own image (:func:`stop_rim_images`); False: on the exit-pupil plane for
-    every node (both steps as they were before the rim images)."""
+    :func:`accurate_field` with the stop's sharp edge on the DOE plane); where the Fresnel step's error estimate for
+    a crop reaching ``settings.crop_reach`` mm rejects it (:func:`fresnel_step_estimates`), "asm" where the beam fits
+    as for "auto" (:func:`_adaptive_fallback`). The field's ``info.edge_step`` records the step. ``rim_images``: each
+    node's edge is sharp at its stop-rim point's own image (:func:`stop_rim_images`); False: on the exit-pupil plane
+    for every node (both steps as they were before the rim images)."""
     return run_serial(exit_pupil_field_steps(lens, doe, source, planes, chief, settings))
 
 
@@ -701,7 +703,7 @@ def adaptive_edge_step(lens, doe, field, wavelength: float, depth, z_doe: float,
     :data:`SPHERE_TOL`; ``z_doe``, ``z_sensor`` mm the planes): the focal field of a sharp aperture on a spherical
     wave does not depend on the plane along the cone where it cuts (the Fresnel scaling theorem), so the edge cut on
     the DOE plane is the exit-pupil edge's exact result there, and the cheapest; else "fresnel" (the knife-edge
-    step).
+    step; the PSF calls then check it against its error estimate, :func:`fresnel_step_estimates`).
     A blank DOE's PSF and a phase DOE's PSF of the same lens may so come from different edge constructions: their
     difference then holds the Fresnel step's own error (1.3e-3 in a grating's first-order efficiency unmixed with
     the blank PSF at F/4, tests/test_doe_params.py); pass ``edge_step="fresnel"`` to compare them like for like."""
@@ -752,11 +754,12 @@ def defocus_mismatch(z_focus: float, na: float, n: float, wavelength: float, z_d
 #: ``sqrt(λ_m L)`` on the DOE plane times its magnification ``R/d`` to the sensor, the smallest over the rim), scaled
 #: down where the inner tail is cut by the grid's anti-aliasing limit (:func:`~raywave.hybrid.coherent.stop_edge.
 #: _band_limits`: the step's inner tail holds the edge waves up to ``ν_b/√2`` zones inside the shadow, 4 with the
-#: default band). Calibrated on lens A (ideal, F/12.5, a zero-phase DOE 2 to 7 mm before the focus, whole-crop
+#: default band). Calibrated on lens A (ideal, F/12.5, a zero-phase DOE 1 to 7 mm before the focus, whole-crop
 #: relative L1 against the Rayleigh–Sommerfeld integral, crops of 32 to 384 pixels of 2 µm;
-#: benchmarks/edge_estimate.py): every crop within 3.3 zones ≤ 7.8e-4 (≤ 4.8e-4 within 3.22; N_F ≥ 12), 3.7 – 3.76
-#: zones 6.8e-4 – 1.64e-3, 4.8 – 4.9 zones 1.5e-3 – 2.4e-3 (the exact construction 0.9e-4 – 1.9e-4 on all of them).
-#: The bundled asphere's 64-pixel crops of 3 µm reach 2.6 – 3.12 zones (its default keeps the Fresnel step there)
+#: benchmarks/edge_estimate.py, edge_estimate_2026-11-30_xxiii_h47a.json): with the curvature ratio ≤ 0.28 every crop
+#: within 3.21 zones ≤ 4.8e-4 (3.3 zones 7.8e-4), 3.68 – 3.76 zones 6.8e-4 – 1.64e-3, 4.5 – 4.9 zones 1.5e-3 –
+#: 2.4e-3, beyond up to 1.2e-2 (the exact construction 0.99e-4 – 2.3e-4 on all of them). The bundled asphere's
+#: 64-pixel crops of 3 µm reach 2.6 – 3.12 zones (its default keeps the Fresnel step there)
 FRESNEL_REACH_ZONES = 3.5
 #: ``method="adaptive"``: the Fresnel step is kept while the edge's Fresnel zone on the DOE plane is at most this
 #: fraction of the radius of curvature of the edge's shadow there (:func:`fresnel_step_estimates`; the rim's image
