@@ -107,7 +107,8 @@ class _CallGeometry:
     built sources' chief-ray aim (:func:`~raywave.lens.sources.chief_aim`), shared by their diagnostic ray sets;
     ``crop_reach`` (mm) the PSF crop's half-diagonal where the call knows it (:meth:`HybridLens.psf_result`; 0:
     :meth:`HybridLens.doe_fields`), for the exact edge's lattice (:class:`~raywave.hybrid.coherent.settings.
-    FieldSettings` ``crop_reach``)."""
+    FieldSettings` ``crop_reach``) and the adaptive step's error estimates; ``estimates`` None, or ``[R][W]`` those
+    estimates (:func:`~raywave.hybrid.coherent.exit_pupil.fresnel_step_estimates`; None where none was made)."""
 
     f: torch.Tensor
     wls: list
