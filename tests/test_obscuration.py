@@ -107,8 +107,10 @@ def test_geometric_collected_power_fraction():
 def test_psf_engine_power_of_obscured_pupil(edge):
     """The ray-wave engine (HybridLens field at the DOE plane): the power of an obscured circular pupil over the
     unobscured one is 1 − (r_obs/R)² (analytic; free propagation conserves it), within a few %: the DOE-plane
-    edge and the exact exit-pupil construction. The Fresnel edge step (the default) warns instead: the obscuration's
-    shadow on the DOE plane (0.075 mm radius) is not large against the edge's Fresnel zone (0.05 mm)."""
+    edge and the exact exit-pupil construction. The Fresnel edge step warns instead: the obscuration's shadow on the
+    DOE plane (0.075 mm radius) is not large against the edge's Fresnel zone (0.05 mm); it gets 0.859. The default
+    (adaptive) step's error estimate (issue 47: the zone 0.34 × the shadow's radius, over 0.3) takes the exact
+    construction there: 0.8405 against the unobscured pupil's default."""
     from raywave.doe import PixelDOE
     from raywave.hybrid import HybridLens, StopEdgeWarning
     from raywave.lens.build import ideal_lens
@@ -128,8 +130,13 @@ def test_psf_engine_power_of_obscured_pupil(edge):
     assert ratio == pytest.approx(1 - 0.4**2, rel=0.01)  # measured 0.8380 (doe), 0.8388 (exit pupil, asm)
     if edge.get("stop_edge") == "doe":
         with pytest.warns(StopEdgeWarning, match="edge_step='asm'"):
-            HybridLens(lens, PixelDOE(torch.zeros(n, n, dtype=torch.float64), p), 2.0,
-                       sensor_pitch=2e-3).doe_fields((0.0, 0.0), 0.55, rays=24)
+            HybridLens(lens, PixelDOE(torch.zeros(n, n, dtype=torch.float64), p), 2.0, sensor_pitch=2e-3,
+                       edge_step="fresnel").doe_fields((0.0, 0.0), 0.55, rays=24)
+        unobscured = ideal_lens(5.0, f_number=8, wavelengths=(0.55,))
+        fds = [HybridLens(x, PixelDOE(torch.zeros(n, n, dtype=torch.float64), p), 2.0,
+                          sensor_pitch=2e-3).doe_fields((0.0, 0.0), 0.55, rays=24)[0][0] for x in (unobscured, lens)]
+        assert [fd.info.edge_step for fd in fds] == ["fresnel", "asm"]
+        assert float(fds[1].power.detach()) / float(fds[0].power.detach()) == pytest.approx(1 - 0.4**2, rel=0.005)
 
 
 def test_json_round_trip(tmp_path):

@@ -34,7 +34,8 @@ from torch import nn
 from raywave.doe import DOE
 from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
                                      entrance_pupil, exit_pupil_field_steps, faithful_field, run_batched)
-from raywave.hybrid.coherent.exit_pupil import adaptive_edge_steps, go_phase_errors
+from raywave.hybrid.coherent.exit_pupil import (adaptive_edge_steps, fresnel_step_estimates, fresnel_step_holds,
+                                                go_phase_errors, obscuration_fraction)
 from raywave.hybrid.coherent.geometry import _medium_index, footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import edge_reach_many, stop_rim_images_all
 from raywave.hybrid.coherent.record import EnvelopeRow
@@ -71,8 +72,9 @@ EDGE_STEPS = ("adaptive", "auto", "fresnel", "asm")
 DEFAULT_STOP_EDGE = "exit_pupil"
 #: how the default exit-pupil edge reaches the DOE plane: "adaptive" (issue 47), per source the Fresnel step
 #: (1.3–1.8× the DOE-plane edge's cost, any beam size), or with a blank DOE and a spherical wave at the stop's edge the
-#: edge cut on the DOE plane, there exact (raywave.hybrid.coherent.exit_pupil.adaptive_edge_step); "asm" is the exact
-#: construction at ~4×, "auto" takes it where the beam fits
+#: edge cut on the DOE plane, there exact (raywave.hybrid.coherent.exit_pupil.adaptive_edge_step), and the exact
+#: construction where the Fresnel step's error estimate rejects it and the beam fits (exit_pupil.
+#: fresnel_step_estimates); "asm" is the exact construction at ~4×, "auto" takes it where the beam fits
 DEFAULT_EDGE_STEP = "adaptive"
 
 
@@ -105,7 +107,8 @@ class _CallGeometry:
     built sources' chief-ray aim (:func:`~raywave.lens.sources.chief_aim`), shared by their diagnostic ray sets;
     ``crop_reach`` (mm) the PSF crop's half-diagonal where the call knows it (:meth:`HybridLens.psf_result`; 0:
     :meth:`HybridLens.doe_fields`), for the exact edge's lattice (:class:`~raywave.hybrid.coherent.settings.
-    FieldSettings` ``crop_reach``)."""
+    FieldSettings` ``crop_reach``) and the adaptive step's error estimates; ``estimates`` None, or ``[R][W]`` those
+    estimates (:func:`~raywave.hybrid.coherent.exit_pupil.fresnel_step_estimates`; None where none was made)."""
 
     f: torch.Tensor
     wls: list
@@ -121,6 +124,7 @@ class _CallGeometry:
     reach: list | None = None
     aim: tuple | None = None
     crop_reach: float = 0.0
+    estimates: list | None = None
 
     def host_fields(self) -> list:
         """The fields ``f`` as host values ``[F][2]`` (one read for the call, on first use: the warnings' text)."""
@@ -363,7 +367,10 @@ class HybridLens(nn.Module):
             construction on the bundled asphere, docs/ray-wave.md).
             "auto": "asm" where the beam fits, else "fresnel". "adaptive" (the default since issue 47): "fresnel", or
             where the DOE is blank and the wave at the stop's edge a sphere, the edge cut on the DOE plane (exact
-            there: :func:`raywave.hybrid.coherent.exit_pupil.adaptive_edge_step`).
+            there: :func:`raywave.hybrid.coherent.exit_pupil.adaptive_edge_step`), or "asm" where the Fresnel step's
+            error estimate for the PSF's crop rejects it and the beam fits as for "auto" (:func:`raywave.hybrid.
+            coherent.exit_pupil.fresnel_step_estimates`; else "fresnel" with a :class:`StopEdgeWarning`). Each
+            field's ``info.edge_step`` says which step it took.
         mirror: build the DOE-plane field of a source that is the mirror image of another in the same call (across
             x or y, on a lens and DOE grid symmetric across that axis: :func:`raywave.hybrid.mirror.symmetric_axes`)
             by mirroring the other's (default True: a map's symmetric grid builds a quarter of its fields; the PSFs
@@ -654,8 +661,7 @@ class HybridLens(nn.Module):
         f = self._engine_fields(fields)
         wls = self.wavelength_list(wavelengths)
         if mode == "accurate":
-            geo = self._accurate_geometry(f, wls, depth)
-            geo.crop_reach = float(crop_reach)
+            geo = self._accurate_geometry(f, wls, depth, float(crop_reach))
             return self._finish_fields(self._accurate_group(geo, list(range(f.shape[0])), rays or 64, check), geo)
         optics = self.optics
         z_doe, z_sen = self.doe_z(), self.sensor_z()
@@ -679,19 +685,20 @@ class HybridLens(nn.Module):
                              "fisheye's wider field is traced by the geometric analyses (trace, spot, info)")
         return f
 
-    def _accurate_geometry(self, f: torch.Tensor, wls: list[float], depth) -> "_CallGeometry":
+    def _accurate_geometry(self, f: torch.Tensor, wls: list[float], depth, crop_reach: float = 0.0) -> "_CallGeometry":
         """What the accurate construction of the call's sources ``f`` (F, 2) × ``wls`` (µm) shares, each traced once
         for the call (whatever the number of its sources, issue 43): the chief rays, the mirror pairing, and for the
         sources that are built (not mirror images) their lit footprints, the DOE-aperture diagnostics, the entrance
-        pupil, the exit-pupil planes, the stop rim's images and (exact edge step) the chief rays on the exit
-        pupil."""
+        pupil, the exit-pupil planes, the stop rim's images, (adaptive edge step) each source's step and its
+        Fresnel step's error estimate for the PSF crop reaching ``crop_reach`` mm (0: unknown), and (exact edge
+        step, or an adaptive source that takes it) the chief rays on the exit pupil."""
         optics = self.optics  # the lens, or its image-space view (one object for the whole call: run_batched groups by it)
         z_doe, z_sen = self.doe_z(), self.sensor_z()
         cd, cs, cuv = _quiet_chief_rays(optics, f, wls, depth, z_doe, z_sen)
         axes = symmetric_axes(self.lens, self.doe, self.oversample) if self.mirror else (False, False)
         src = mirror_sources(f, axes) if any(axes) else [None] * f.shape[0]
         todo = [i for i, s_ in enumerate(src) if s_ is None]
-        geo = _CallGeometry(f, wls, depth, (cd, cs, cuv), src, todo=todo)
+        geo = _CallGeometry(f, wls, depth, (cd, cs, cuv), src, todo=todo, crop_reach=crop_reach)
         ft = f[torch.tensor(todo, dtype=torch.long, device=f.device)]
         wls_t = torch.tensor(wls, dtype=torch.float64, device=self.lens.device)
         # the lit footprints and the DOE-aperture diagnostic (a mirror image's are its source's) of every built
@@ -709,17 +716,19 @@ class HybridLens(nn.Module):
             rims = stop_rim_images_all(optics, ft, wls, depth)  # one trace for every source and wavelength
             if self._rim_images is not None:
                 rims = self._rim_images(optics, ft, wls, depth, rims)
-            if self.edge_step in ("fresnel", "adaptive"):  # these steps need no chief ray on the exit-pupil plane
-                cx = [[None] * ft.shape[0] for _ in wls]
-            else:
+            steps, ests = None, None
+            if self.edge_step == "adaptive":  # every built source's step from one trace of their edge rays
+                steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen), chief=geo.aim)
+                steps, ests = self._fresnel_estimates(steps, rims, wls, crop_reach)
+            # the Fresnel step needs no chief ray on the exit-pupil plane
+            cx = [[None] * ft.shape[0] for _ in wls]
+            if self.edge_step not in ("fresnel", "adaptive") or any("asm" in row for row in steps or []):
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", VignettingWarning)
                     cx = [chief_rays(optics, ft, torch.tensor([wl], dtype=torch.float64, device=optics.device),
                                      depth, zx, z_sen)[0][:, 0] for wl, zx in zip(wls, z_xps)]
-            steps = None
-            if self.edge_step == "adaptive":  # every built source's step from one trace of their edge rays
-                steps = adaptive_edge_steps(optics, self.doe, ft, wls, depth, (z_doe, z_sen), chief=geo.aim)
             geo.edge = (z_xps, rims, cx, steps)
+            geo.estimates = ests
             if self.edge_step in ("fresnel", "adaptive"):  # the Fresnel step's ripple band, for every source at once
                 geo.reach = _edge_reaches(optics, rims, cs, todo, wls, (z_doe, z_sen))
         return geo
@@ -784,8 +793,25 @@ class HybridLens(nn.Module):
                                                             None if steps is None else steps[r][j],
                                                             None if go is None else (go[0][j], go[1][k * nw + j]),
                                                             ... if geo.reach is None else geo.reach[r][j],
-                                                            media[j], self._edge_transfers)))
+                                                            media[j], self._edge_transfers,
+                                                            None if geo.estimates is None else geo.estimates[r][j])))
         return out
+
+    def _fresnel_estimates(self, steps: list, rims: list, wls: list, crop_reach: float) -> tuple:
+        """The adaptive edge step's ``steps`` ``[R][W]`` with "fresnel" turned to "asm" where the Fresnel step's
+        error estimate rejects it (:func:`~raywave.hybrid.coherent.exit_pupil.fresnel_step_estimates` from the rim
+        images ``rims`` ``[W][R]``, for a crop reaching ``crop_reach`` mm; the construction then takes the exact
+        step where it fits, else keeps the Fresnel step with a warning), and the estimates ``[R][W]``."""
+        optics = self.optics
+        planes, p_sim, obscured = (self.doe_z(), self.sensor_z()), self.doe.pitch / self.oversample, \
+            obscuration_fraction(optics)
+        per_wl = [fresnel_step_estimates(rims[j], (wl, _medium_index(optics, wl)), planes, crop_reach, p_sim,
+                                         obscured) if any(row[j] == "fresnel" for row in steps) else [None] * len(steps)
+                  for j, wl in enumerate(wls)]
+        ests = [[per_wl[j][r] for j in range(len(wls))] for r in range(len(steps))]
+        steps = [["asm" if st == "fresnel" and not fresnel_step_holds(e) else st for st, e in zip(row, erow)]
+                 for row, erow in zip(steps, ests)]
+        return steps, ests
 
     def _go_errors(self, geo: "_CallGeometry", rows: list[int]):
         """The geometric-optics phase errors of the exit-pupil edge's Fresnel step for the built sources ``rows``
@@ -1067,8 +1093,7 @@ class HybridLens(nn.Module):
         rays (F, W), clipped fractions [F][W])``; the aperture and caustic warnings once for the call."""
         f = self._engine_fields(fields)
         wls = self.wavelength_list(wavelengths)
-        geo = self._accurate_geometry(f, wls, depth)
-        geo.crop_reach = self.crop_reach(ks)
+        geo = self._accurate_geometry(f, wls, depth, self.crop_reach(ks))
         pending: tuple = ([], [])
         order, parts, clip = [], [], {}
         nodes = rays or 64

@@ -18,10 +18,12 @@ from raywave.wave.field import fourier_upsample
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation import propagate_window, window_transfer
 from raywave.hybrid.coherent.accurate import accurate_field_steps
-from raywave.hybrid.coherent.geometry import _common_setup, _empty_field, _footprint, check_window_memory, lit_box
+from raywave.hybrid.coherent.geometry import (_common_setup, _empty_field, _footprint, _medium_index,
+                                             check_window_memory, lit_box)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, StopEdgeWarning
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source, check_types
-from raywave.hybrid.coherent.stop_edge import RIPPLE_ZONES, _zone_estimate, ripple_band, stop_rim_images
+from raywave.hybrid.coherent.stop_edge import (RIPPLE_ZONES, _nu_inner, _zone_estimate, ripple_band,
+                                               stop_rim_images)
 from raywave.hybrid.coherent.tracing import run_serial
 
 
@@ -74,9 +76,11 @@ def exit_pupil_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays
     ``method="auto"``: "asm" up to :data:`AUTO_ASM_SAMPLES` samples, else "fresnel". ``method="adaptive"``
     (:class:`~raywave.hybrid.HybridLens`'s default): :func:`adaptive_edge_step` per source, the Fresnel step or, with
     a blank DOE on a spherical wave, the edge cut on the DOE plane (``method="doe"``, exact there: the construction of
-    :func:`accurate_field` with the stop's sharp edge on the DOE plane). ``rim_images``: each node's
-    edge is sharp at its stop-rim point's own image (:func:`stop_rim_images`); False: on the exit-pupil plane for
-    every node (both steps as they were before the rim images)."""
+    :func:`accurate_field` with the stop's sharp edge on the DOE plane); where the Fresnel step's error estimate for
+    a crop reaching ``settings.crop_reach`` mm rejects it (:func:`fresnel_step_estimates`), "asm" where the beam fits
+    as for "auto" (:func:`_adaptive_fallback`). The field's ``info.edge_step`` records the step. ``rim_images``: each
+    node's edge is sharp at its stop-rim point's own image (:func:`stop_rim_images`); False: on the exit-pupil plane
+    for every node (both steps as they were before the rim images)."""
     return run_serial(exit_pupil_field_steps(lens, doe, source, planes, chief, settings))
 
 
@@ -99,15 +103,28 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     ripple_zones = None if ripple_zones is None else float(ripple_zones)
     p_sim = doe.pitch / oversample
     on_doe = ChiefRays(chief_doe, chief_sensor, uv=chief_uv)  # the chief ray on the DOE plane
+    xb = ...
     if method == "adaptive":  # the caller's choice (decided for all its sources at once), else this source's own
-        method = known.edge_step or adaptive_edge_step(lens, doe, field, wavelength, depth, z_doe, z_sensor,
-                                                       field_type)
+        estimate = known.edge_estimate
+        method = known.edge_step
+        if method is None:
+            method = adaptive_edge_step(lens, doe, field, wavelength, depth, z_doe, z_sensor, field_type)
+            if method == "fresnel":
+                stop_rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth,
+                                                                                 field_type)
+                estimate = fresnel_step_estimates([stop_rim], (wavelength, _medium_index(lens, float(wavelength))),
+                                                  (z_doe, z_sensor), settings.crop_reach, p_sim,
+                                                  obscuration_fraction(lens))[0]
+                method = "fresnel" if fresnel_step_holds(estimate) else "asm"
+        if method == "asm":  # the estimate says the Fresnel step cannot hold: the exact construction where it fits
+            method, xb = _adaptive_fallback(lens, source, z_xp, p_sim, estimate)
     if method == "doe":  # exact for this source (see adaptive_edge_step): the edge cut on the DOE plane
         fd = yield from accurate_field_steps(lens, doe, source, Planes(z_doe, z_sensor), on_doe,
                                              replace(settings, virtual=False, stop_plane=None),
                                              Known(bbox, entrance, medium=known.medium))
-        return fd.with_info(stop_edge="exit_pupil")
-    method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
+        return fd.with_info(stop_edge="exit_pupil", edge_step="doe")
+    if xb is ...:
+        method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
     z_from = None
     if method == "fresnel" and settings.check:  # the plane too near a caustic: built before it, carried by the ASM
         z_from, est = go_fallback_plane(lens, source, z_xp, z_doe, known.go_error)
@@ -124,7 +141,7 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                                                      ripple_zones=ripple_zones),
                                              Known(bbox, entrance, rim, reach=known.reach if rim is stop_rim else ...,
                                                    medium=known.medium))
-        return fd.with_info(stop_edge="exit_pupil")
+        return fd.with_info(stop_edge="exit_pupil", edge_step="fresnel")
     if method != "asm":
         raise ValueError(f"method must be 'adaptive', 'auto', 'fresnel' or 'asm', got {method!r}")
     _check_xp_beam(xb, p_sim, z_xp)
@@ -158,9 +175,10 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                                              Known(stop_rim=rim, medium=known.medium))
     carrier = fx.carrier  # the chief ray's direction: the same on both planes
     bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
+    step = "fresnel" if z_from is not None else "asm"  # (the caustic fallback: the Fresnel step, carried)
     if bbox is None or float(fx.power.detach()) == 0.0:
         return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays,
-                            "accurate").with_info(stop_edge="exit_pupil")
+                            "accurate").with_info(stop_edge="exit_pupil", edge_step=step)
     dz = z_doe - (z_xp if z_edge is None else z_edge)
     margin = _window_margin(ripple_zones, rim, (z_doe, z_sensor, z_far), chief_sensor,
                             (wavelength, n, carrier)) + 4 * m * p
@@ -168,7 +186,7 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     box = lit_box(sim, bbox, margin)
     if box is None:
         return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays,
-                            "accurate").with_info(stop_edge="exit_pupil")
+                            "accurate").with_info(stop_edge="exit_pupil", edge_step=step)
     grid = sim.window(*box)
     check_window_memory(*grid.shape, p, lens.device)
     fin = Field(fx.envelope, fx.grid, float(wavelength), n, carrier)
@@ -178,7 +196,7 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         u = _coarse_propagate(fin, sim, box, dz, m, known.transfers)
     u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)
     return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
-                    FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil"))
+                    FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil", edge_step=step))
 
 
 #: the exact construction's lattice is coarsened (:func:`asm_coarsening`) while its pitch stays within this fraction
@@ -334,6 +352,40 @@ def _rim_step_plane(rim, z_xp: float, z_doe: float, wavelength: float, n: float,
     if not math.isfinite(z_edge) or s * (z_doe - z_edge) < step:
         return None, z_xp
     return z_edge, (min(far, z_xp) if s > 0 else max(far, z_xp))
+
+
+def _beam_fits(lens, xb, p_sim: float, limit: int) -> bool:
+    """Whether the exact construction's beam ``xb`` ``(xmin, xmax, ymin, ymax)`` mm (None: none) spans at most
+    ``limit`` simulation samples of ``p_sim`` mm a side and its window (the beam 1.2× wide) fits in memory
+    (:func:`~raywave.hybrid.coherent.geometry.check_window_memory`, as the construction will check it)."""
+    if xb is None or max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > limit:
+        return False
+    try:
+        check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
+                            p_sim, lens.device)
+    except MemoryLimitError:
+        return False
+    return True
+
+
+def _adaptive_fallback(lens, source: Source, z_xp: float, p_sim: float, estimate):
+    """``(method, xb)`` for a source of ``method="adaptive"`` whose Fresnel step the error estimate
+    (:func:`fresnel_step_estimates`) rejects: "asm" where the beam on the exit-pupil plane ``z_xp`` fits the exact
+    construction ("auto"'s rule, :data:`AUTO_ASM_SAMPLES` simulation samples of ``p_sim`` mm a side, and its window
+    in memory), else "fresnel" with a :class:`StopEdgeWarning` naming the estimate, where it failed on the crop's
+    reach (a failed curvature ratio is warned by the construction itself: :data:`~raywave.hybrid.coherent.accurate.
+    EDGE_CURVATURE_LIMIT`, naming ``edge_step="asm"``)."""
+    method, xb = _edge_method(lens, source.field, source.wavelength, source.depth, z_xp, p_sim, "asm")
+    if _beam_fits(lens, xb, p_sim, AUTO_ASM_SAMPLES):
+        return "asm", xb
+    if estimate is not None and estimate[0] > estimate[1]:
+        fld = [round(float(v), 6) for v in torch.as_tensor(source.field).reshape(-1).tolist()]
+        warnings.warn(f"field {fld} at {float(source.wavelength):g} µm: {describe_estimate(estimate)}: the PSF crop "
+                      "reaches beyond the edge waves the Fresnel edge step holds, and the exact construction does not "
+                      f"fit (the beam spans over {AUTO_ASM_SAMPLES} samples on the exit-pupil plane, or its window "
+                      "over the memory): kept the Fresnel step; take a smaller crop (ks), or "
+                      f"HybridLens(edge_step='asm') (up to {MAX_XP_SAMPLES} samples)", StopEdgeWarning, stacklevel=4)
+    return "fresnel", None
 
 
 def _edge_method(lens, field, wavelength: float, depth, z_xp: float, p_sim: float, method: str):
@@ -651,7 +703,7 @@ def adaptive_edge_step(lens, doe, field, wavelength: float, depth, z_doe: float,
     :data:`SPHERE_TOL`; ``z_doe``, ``z_sensor`` mm the planes): the focal field of a sharp aperture on a spherical
     wave does not depend on the plane along the cone where it cuts (the Fresnel scaling theorem), so the edge cut on
     the DOE plane is the exit-pupil edge's exact result there, and the cheapest; else "fresnel" (the knife-edge
-    step).
+    step; the PSF calls then check it against its error estimate, :func:`fresnel_step_estimates`).
     A blank DOE's PSF and a phase DOE's PSF of the same lens may so come from different edge constructions: their
     difference then holds the Fresnel step's own error (1.3e-3 in a grating's first-order efficiency unmixed with
     the blank PSF at F/4, tests/test_doe_params.py); pass ``edge_step="fresnel"`` to compare them like for like."""
@@ -703,6 +755,122 @@ def defocus_mismatch(z_focus: float, na: float, n: float, wavelength: float, z_d
     if gap == 0.0:
         return math.inf
     return abs(delta) * na * na / (2 * float(wavelength) * 1e-3 / n) * abs(delta) / gap
+
+
+#: ``method="adaptive"`` (issue 47): the Fresnel step is kept while the PSF crop reaches at most this many of the
+#: edge's Fresnel zones as the sensor sees them (:func:`fresnel_step_estimates`: the crop's reach over the zone
+#: ``sqrt(λ_m L)`` on the DOE plane times its magnification ``R/d`` to the sensor, the smallest over the rim), scaled
+#: down where the inner tail is cut by the grid's anti-aliasing limit (:func:`~raywave.hybrid.coherent.stop_edge.
+#: _band_limits`: the step's inner tail holds the edge waves up to ``ν_b/√2`` zones inside the shadow, 4 with the
+#: default band). Calibrated on lens A (ideal, F/12.5, a zero-phase DOE 1 to 7 mm before the focus, whole-crop
+#: relative L1 against the Rayleigh–Sommerfeld integral, crops of 32 to 384 pixels of 2 µm;
+#: benchmarks/edge_estimate.py, edge_estimate_2026-11-30_xxiii_h47a.json): with the curvature ratio ≤ 0.28 every crop
+#: within 3.21 zones ≤ 4.8e-4 (3.3 zones 7.8e-4), 3.68 – 3.76 zones 6.8e-4 – 1.64e-3, 4.5 – 4.9 zones 1.5e-3 –
+#: 2.4e-3, beyond up to 1.2e-2 (the exact construction 0.99e-4 – 2.3e-4 on all of them). The bundled asphere's
+#: 64-pixel crops of 3 µm reach 2.6 – 3.12 zones (its default keeps the Fresnel step there)
+FRESNEL_REACH_ZONES = 3.5
+#: ``method="adaptive"``: the Fresnel step is kept while the edge's Fresnel zone on the DOE plane is at most this
+#: fraction of the radius of curvature of the edge's shadow there (:func:`fresnel_step_estimates`; the rim's image
+#: curve, divided by an obscuration's size over the stop's: :func:`obscuration_fraction`). Lens A on small crops
+#: (within the reach above): 0.28 (N_F 12.5) 2.1e-4, 0.37 (N_F 7.3) 8.3e-4, 0.56 (N_F 3.2) 1.07e-2; a 0.4
+#: obscuration 2 mm before the DOE (tests/test_obscuration.py) 0.34: 2 % of the power off
+FRESNEL_CURVATURE_MAX = 0.3
+
+
+def obscuration_fraction(lens) -> float:
+    """The smallest radius of curvature of the stop's edges over its clear radius (1: no obscuration): a circular
+    obscuration's radius (an annulus's inner radius, a rectangle's smaller half width) over the stop aperture's
+    radius (a square's half width, a rectangle's smaller half width); 1 where either is unknown."""
+    try:
+        ap = lens.surfaces[lens.stop_index].aperture
+    except (AttributeError, IndexError, TypeError):
+        return 1.0
+    obs = getattr(ap, "obscuration", None)
+    if obs is None:
+        return 1.0
+    if hasattr(ap, "radius"):
+        outer = float(ap.radius)
+    elif hasattr(ap, "half_width"):
+        outer = float(ap.half_width)
+    elif hasattr(ap, "half_widths"):
+        outer = float(ap.half_widths.min())
+    else:
+        return 1.0
+    if obs.shape == "circle":
+        inner = float(obs.radius)
+    elif obs.shape == "annulus":
+        inner = float(obs.inner_radius) if float(obs.inner_radius) > 0 else float(obs.radius)
+    else:
+        inner = float(obs.half_widths.min())
+    return min(1.0, inner / outer) if outer > 0 and inner > 0 else 1.0
+
+
+def fresnel_step_estimates(rims: list, medium: tuple, planes: tuple, crop_reach: float, p_sim: float,
+                           obscured: float = 1.0) -> list:
+    """Whether the exit-pupil edge's Fresnel step can hold 1e-3 (relative L1 of the PSF crop) for the sources
+    ``rims`` (their :func:`~raywave.hybrid.coherent.stop_edge.stop_rim_images` at one wavelength, R), from their
+    rim rays alone (one host read for all; no trace): per source None (no rim images) or ``(zones, zones_max,
+    curvature)``. Per rim point ``j`` (its image ``E_j``, its ray's direction ``u_j``), ``d_j`` and ``R_j`` the
+    distances along the ray from ``E_j`` to the DOE plane and the sensor (``planes = (z_doe, z_sensor)`` mm),
+    ``L_j = d_j (R_j − d_j) / R_j`` (a converging wave's Fresnel length), the zone ``sqrt(λ_m L_j)`` (``medium =
+    (wavelength µm, n)``, ``λ_m = λ/n``) and its image on the sensor ``R_j/d_j · sqrt(λ_m L_j)``:
+
+    * ``zones``: the crop's reach ``crop_reach`` (mm, :meth:`~raywave.hybrid.HybridLens.crop_reach`; 0: the
+      caller does not know its crop) over the smallest image of a zone. The edge wave that lands ``ρ`` from the rim
+      ray's focus leaves the DOE plane ``ρ d/R`` inside the shadow; the step's inner tail holds it up to ``ν_b/√2``
+      zones (4 with the default band) and no single-edge knife edge holds the far edge's wave once it crosses the
+      beam's centre (``sqrt(N_F)`` zones); ``zones_max`` = :data:`FRESNEL_REACH_ZONES` × ``min(1, ν_b/(4√2))``,
+      ``ν_b`` the inner tail's limit at the simulation pitch ``p_sim`` mm (:func:`~raywave.hybrid.coherent.
+      stop_edge._band_limits`).
+    * ``curvature``: the largest zone over the local radius of curvature of the rim rays' curve on the DOE plane
+      (three neighbouring rim points), divided by ``obscured`` (:func:`obscuration_fraction`): ``1/sqrt(N_F)``
+      for a round beam, compared with :data:`FRESNEL_CURVATURE_MAX`.
+
+    :func:`fresnel_step_holds` reads the verdict. Calibrated on measured cases (the constants' notes)."""
+    out = [None] * len(rims)
+    live = [k for k, r in enumerate(rims) if r is not None and getattr(r, "points", None) is not None
+            and getattr(r, "directions", None) is not None]
+    if not live:
+        return out
+    z_doe, z_sensor = planes
+    lam = float(medium[0]) * 1e-3 / float(medium[1])
+    with torch.no_grad():
+        e = torch.stack([rims[k].points.detach() for k in live])  # (B, k, 3)
+        u = torch.stack([rims[k].directions.detach() for k in live])
+        t_d = (z_doe - e[..., 2]) / u[..., 2]  # along the ray from the rim image to the DOE plane (mm)
+        t_s = (z_sensor - e[..., 2]) / u[..., 2]
+        zone = torch.sqrt(lam * (t_d * (t_s - t_d) / t_s).abs())
+        image = zone * (t_s / t_d).abs()
+        p = e[..., :2] + t_d[..., None] * u[..., :2]  # the rim rays on the DOE plane (B, k, 2)
+        a, c = p.roll(1, -2), p.roll(-1, -2)
+        ab, bc, ac = ((x - y).norm(dim=-1) for x, y in ((p, a), (c, p), (c, a)))
+        cross = ((p - a)[..., 0] * (c - a)[..., 1] - (p - a)[..., 1] * (c - a)[..., 0]).abs()
+        rho = ab * bc * ac / (2 * cross).clamp_min(1e-300)  # circumradius of three neighbours (mm)
+        host = torch.stack([image.amin(-1), zone.amin(-1), (zone / rho).amax(-1)], -1).cpu().tolist()
+    for k, (img, z_min, curv) in zip(live, host):
+        if not (math.isfinite(img) and math.isfinite(z_min) and math.isfinite(curv)) or img <= 0 or z_min <= 0:
+            continue
+        nu_b = max(min(0.6 * z_min / (math.sqrt(2.0) * p_sim), _nu_inner(RIPPLE_ZONES)), 2.0)
+        out[k] = (float(crop_reach) / img, FRESNEL_REACH_ZONES * min(1.0, nu_b / _nu_inner(RIPPLE_ZONES)),
+                  curv / obscured)
+    return out
+
+
+def fresnel_step_holds(estimate) -> bool:
+    """:func:`fresnel_step_estimates`' verdict for one source: True where the Fresnel step is expected to hold
+    1e-3 (or no estimate could be made)."""
+    if estimate is None:
+        return True
+    zones, zones_max, curvature = estimate
+    return zones <= zones_max and curvature <= FRESNEL_CURVATURE_MAX
+
+
+def describe_estimate(estimate) -> str:
+    """The text of :func:`fresnel_step_estimates`' ``estimate`` for a warning."""
+    zones, zones_max, curvature = estimate
+    return (f"the Fresnel step's error estimate: the crop reaches {zones:.3g} of the edge's Fresnel zones (at most "
+            f"{zones_max:.3g}), its zone is {curvature:.2g} × its radius of curvature (at most "
+            f"{FRESNEL_CURVATURE_MAX:g})")
 
 
 def _check_xp_beam(xb, p_sim: float, z_xp: float) -> None:

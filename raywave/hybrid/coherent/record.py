@@ -47,6 +47,9 @@ class FieldInfo:
         beam_half: largest |x| or |y| (mm) of the beam's geometric footprint on the DOE plane.
         stop_edge: where the field's geometric-optics edge was formed: "doe" (at the DOE plane) or
             "exit_pupil" (at the exit pupil, then carried to the DOE plane).
+        edge_step: with the exit-pupil edge, the step that carried it to the DOE plane: "doe" (cut on the DOE
+            plane, exact there), "fresnel" (the knife-edge step, its caustic fallback included) or "asm" (the exact
+            construction); None: the DOE-plane edge.
     """
 
     rays: int
@@ -55,6 +58,7 @@ class FieldInfo:
     clipped: float = 0.0
     beam_half: float = 0.0
     stop_edge: str = "doe"
+    edge_step: str | None = None
 
 
 @dataclass(frozen=True)

@@ -106,8 +106,10 @@ class Known:
     footprint on the DOE plane (:func:`~raywave.hybrid.coherent.footprints`; ``False``: none), ``entrance`` ``(z,
     radius)`` mm of the paraxial entrance pupil, ``stop_rim`` the stop rim's images
     (:func:`~raywave.hybrid.coherent.stop_rim_images`), ``edge_step`` the exit-pupil edge's step of
-    ``method="adaptive"`` for this source, "doe" or "fresnel" (:func:`~raywave.hybrid.coherent.exit_pupil.
-    adaptive_edge_steps`, decided for all of a call's sources from one trace), ``go_error`` ``(z (P,), error (P,))``
+    ``method="adaptive"`` for this source, "doe", "fresnel" or "asm" (:func:`~raywave.hybrid.coherent.exit_pupil.
+    adaptive_edge_steps`, decided for all of a call's sources from one trace; "asm": the Fresnel step's error
+    estimate ``edge_estimate`` (:func:`~raywave.hybrid.coherent.exit_pupil.fresnel_step_estimates`) rejects it,
+    the exact construction taken where it fits), ``go_error`` ``(z (P,), error (P,))``
     this source's geometric-optics phase error (:func:`~raywave.hybrid.coherent.exit_pupil.go_phase_errors`, for
     all of a call's sources from one trace), ``reach`` the stop edge's waves' reach (Fresnel zones, or None: unknown)
     at the crop's centre on the DOE plane from ``stop_rim`` (:func:`~raywave.hybrid.coherent.stop_edge.
@@ -125,6 +127,7 @@ class Known:
     reach: object = ...
     medium: float | None = None
     transfers: object = None
+    edge_estimate: tuple | None = None
 
 
 def check_types(where: str, source, planes, chief, settings) -> None:
