@@ -104,3 +104,35 @@ def test_padded_stack_zeroes_the_padding():
     grads = torch.autograd.grad((out * w).real.sum(), leaves)
     for i, (e, gr) in enumerate(zip(envs, grads)):
         assert torch.equal(gr, w[i, :e.shape[0], :e.shape[1]].conj())
+
+
+def test_a_made_cpu_records_mirror_image_is_flipped_where_it_is_read():
+    """Issue 47 (h47p): on a CPU without autograd a made record's mirror image is deferred (no flipped copy of its
+    own); the propagation's padded stack copies its row in reverse (:meth:`EnvelopeRow.copy_into`) and the darkness
+    test reads it unflipped: the values of the flipped envelope exactly, for every flip, from a contiguous and from
+    a strided envelope. With autograd the image is flipped at once (its graph through the flip)."""
+    from raywave.hybrid.batched import padded_stack
+
+    sim = Grid((-0.2, -0.2), (0.01, 0.01), (40, 40))
+    for env in (_base(6)[1, :5, :7].contiguous(), _base(7)[2, 1:6, ::2]):  # contiguous, strided (5, 5)
+        fd = DOEField.on_box(env, (3, 3 + env.shape[0], 4, 4 + env.shape[1]), sim, (0.55, 1.0, (0.01, -0.02)),
+                             10.0, (0.1, -0.3), FieldInfo(5, "accurate"))
+        made = [env]
+        for flips in ((True, False), (False, True), (True, True)):
+            dims = [d for d, on in ((-1, flips[0]), (-2, flips[1])) if on]
+            got = mirror_field(fd, sim, *flips)
+            assert got.pending_row is not None
+            made.append(env.flip(dims))
+            stack = padded_stack([got.pending_row, env, _base(8)[0]], (9, 10))
+            want = padded_stack([env.flip(dims), env, _base(8)[0]], (9, 10))
+            assert torch.equal(stack, want)
+            assert _dark_many([fd, got]) == [False, False]
+            assert torch.equal(got.envelope, env.flip(dims)) and got.pending_row is None  # made when read
+        dark = DOEField.on_box(torch.zeros_like(env), fd.box, sim, (0.55, 1.0, (0.0, 0.0)), 10.0, (0.0, 0.0),
+                               FieldInfo(5, "accurate"))
+        assert _dark_many([fd, mirror_field(dark, sim, True, True)]) == [False, True]
+    leaf = _base(9)[0, :4, :6].clone().requires_grad_()
+    fd = DOEField.on_box(leaf, (0, 4, 0, 6), sim, (0.55, 1.0, (0.0, 0.0)), 10.0, (0.0, 0.0), FieldInfo(5, "accurate"))
+    img = mirror_field(fd, sim, True, False)
+    assert img.pending_row is None and img.envelope.requires_grad
+    assert torch.equal(img.envelope.detach(), leaf.detach().flip(-1))

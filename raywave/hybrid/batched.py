@@ -287,7 +287,8 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
         env = torch.stack([torch.nn.functional.pad(e, (0, nx - e.shape[-1], 0, ny - e.shape[-2]))
                            for e in (pl.fd.envelope for pl in batch)])
     else:
-        env = padded_stack([pl.fd.envelope for pl in batch], shape)
+        # (a mirror image's deferred row copied into the stack in reverse: no flipped copy of its own)
+        env = padded_stack([pl.fd.pending_row or pl.fd.envelope for pl in batch], shape)
     p = batch[0].fd.pitch
     with torch.no_grad():  # (env detached only where autograd records it: a detach is an op)
         power = torch.linalg.vector_norm(torch.view_as_real(env.detach() if env.requires_grad else env),
@@ -302,12 +303,13 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
 
 
 def padded_stack(envs: list, shape: tuple) -> torch.Tensor:
-    """The envelopes ``envs`` (each ``(ny_i, nx_i)``) zero-padded at their end to ``shape`` ``(Ny, Nx)`` and stacked
+    """The envelopes ``envs`` (each ``(ny_i, nx_i)``, or an :class:`EnvelopeRow` not yet made: copied from its batch,
+    a flipped one in reverse) zero-padded at their end to ``shape`` ``(Ny, Nx)`` and stacked
     ``(B, Ny, Nx)``: one array with each envelope copied into its corner and only the padding zeroed; with autograd
     :class:`_PaddedStack` (each envelope's gradient a view of the batch's: a slice copy's backward would clone the
     whole batch's gradient per source, B² window-sized arrays). The same values either way."""
-    if torch.is_grad_enabled() and any(e.requires_grad for e in envs):
-        return _PaddedStack.apply(tuple(shape), *envs)
+    if torch.is_grad_enabled() and any(isinstance(e, torch.Tensor) and e.requires_grad for e in envs):
+        return _PaddedStack.apply(tuple(shape), *(e if isinstance(e, torch.Tensor) else e.make() for e in envs))
     return _PaddedStack.values(envs, shape)
 
 
@@ -318,11 +320,15 @@ class _PaddedStack(torch.autograd.Function):
     def values(envs, shape) -> torch.Tensor:
         """The stack: each envelope copied into its corner and only the rest of its row zeroed (a zero fill of the
         whole batch first wrote its samples twice: issue 43)."""
-        e0 = envs[0]
+        e0 = envs[0] if isinstance(envs[0], torch.Tensor) else envs[0].base
         out = torch.empty((len(envs), *shape), dtype=e0.dtype, device=e0.device)
         for i, e in enumerate(envs):
-            a, b = e.shape[-2:]
-            out[i, :a, :b].copy_(e)
+            if isinstance(e, EnvelopeRow):
+                a, b = e.shape
+                e.copy_into(out[i, :a, :b])
+            else:
+                a, b = e.shape[-2:]
+                out[i, :a, :b].copy_(e)
             out[i, :a, b:].zero_()
             out[i, a:].zero_()
         return out

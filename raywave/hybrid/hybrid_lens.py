@@ -261,7 +261,10 @@ def _dark_many(fds: list) -> list[bool]:
         for k, f in zip(order, flags):
             out[k] = not f
         return out
-    counts = torch.stack([torch.count_nonzero(torch.view_as_real(fd.envelope.detach())) for fd in fds])
+    # (a deferred envelope counted on its row unflipped: a count does not depend on the order)
+    counts = torch.stack([torch.count_nonzero(torch.view_as_real(
+        fd.pending_row.unflipped().detach() if getattr(fd, "pending_row", None) is not None else fd.envelope.detach()))
+        for fd in fds])
     return [c == 0 for c in counts.tolist()]
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 
 from raywave.wave.grid import Field, Grid
-from raywave.hybrid.coherent.record import DOEField, FieldInfo
+from raywave.hybrid.coherent.record import DOEField, EnvelopeRow, FieldInfo
 
 #: aperture shapes (``Aperture.shape``) symmetric under x → −x and y → −y about the axis (with a centred obscuration)
 _SYMMETRIC_APERTURES = ("circle", "square", "rectangle", "none")
@@ -121,8 +121,10 @@ def mirror_field(fd: DOEField, sim: Grid, flip_x: bool, flip_y: bool, centre: tu
     axis) flipped along x (``flip_x``) and y (``flip_y``), its window mirrored, its carrier's and its chief ray's
     image point's mirrored components negated (differentiable: the flips and the negations carry ``fd``'s graph).
     The diagnostics are copied; ``chief_tan`` is left to the caller (:meth:`HybridLens.doe_fields` sets every
-    field's from its own chief ray). Neither flip: a copy of the record on the same envelope. ``centre``: the
-    mirrored centre when the caller has it (:func:`mirror_fields`)."""
+    field's from its own chief ray). Neither flip: a copy of the record on the same envelope. A made envelope on a
+    CPU without autograd is flipped where it is read (a deferred record on an :class:`EnvelopeRow` of it: the
+    propagation copies it into its stack in reverse). ``centre``: the mirrored centre when the caller has it
+    (:func:`mirror_fields`)."""
     iy0, iy1, ix0, ix1 = fd.box
     ny, nx = sim.shape
     if flip_x:
@@ -140,6 +142,14 @@ def mirror_field(fd: DOEField, sim: Grid, flip_x: bool, flip_y: bool, centre: tu
     if fd.row is not None:  # a row of a batch (DOEField.deferred): the flip made only where the envelope is read
         return DOEField.deferred(fd.row.flipped(flip_x, flip_y), grid, (fd.wavelength, fd.n, carrier), box, fd.z,
                                  centre, info)
+    env = fd.envelope
+    if (flip_x or flip_y) and env.device.type == "cpu" and not env.requires_grad:
+        # on a CPU without autograd the flip is made where the envelope is read: the propagation copies the row in
+        # reverse into its padded input stack (:meth:`EnvelopeRow.copy_into`), the darkness test reads it unflipped;
+        # a flipped copy of each mirror image's window was a fresh window-sized array (issue 47: ~2 ms a PSF of the
+        # default edge's 6×6×3 map). The same values
+        row = EnvelopeRow(env[None], 0, tuple(env.shape), (flip_x, flip_y))
+        return DOEField.deferred(row, grid, (fd.wavelength, fd.n, carrier), box, fd.z, centre, info)
     dims = [d for d, on in ((-1, flip_x), (-2, flip_y)) if on]
-    env = fd.envelope.flip(dims) if dims else fd.envelope
+    env = env.flip(dims) if dims else env
     return DOEField(Field(env, grid, fd.wavelength, fd.n, carrier), box, fd.z, centre, info)

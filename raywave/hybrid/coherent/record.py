@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 
 from raywave.wave.grid import Field, Grid
@@ -84,10 +85,27 @@ class EnvelopeRow:
 
     def make(self) -> torch.Tensor:
         """The envelope: a strided view of the row's corner (flipped: a copy)."""
-        s0, s1, s2 = self.base.stride()
-        e = torch.as_strided(self.base, tuple(self.shape), (s1, s2), self.base.storage_offset() + self.row * s0)
+        e = self.unflipped()
         dims = [d for d, on in ((-1, self.flip[0]), (-2, self.flip[1])) if on]
         return e.flip(dims) if dims else e
+
+    def unflipped(self) -> torch.Tensor:
+        """The row's samples without its flips: a strided view (the envelope's samples in another order, for a
+        read that does not depend on it: a count, a sum)."""
+        s0, s1, s2 = self.base.stride()
+        return torch.as_strided(self.base, tuple(self.shape), (s1, s2), self.base.storage_offset() + self.row * s0)
+
+    def copy_into(self, dst: torch.Tensor) -> torch.Tensor:
+        """``dst.copy_(self.make())`` (``dst`` ``shape``) without the flipped copy between them: on a CPU without
+        autograd a flipped row is copied in reverse order (numpy's negative strides) straight into ``dst``; the
+        same values. Returns ``dst``."""
+        src = self.unflipped()
+        if any(self.flip) and src.device.type == "cpu" and dst.device.type == "cpu" and not src.requires_grad \
+                and not dst.requires_grad and src.dtype == dst.dtype and not (src.is_conj() or dst.is_conj()):
+            a = src.numpy()
+            np.copyto(dst.numpy(), a[::-1 if self.flip[1] else 1, ::-1 if self.flip[0] else 1])
+            return dst
+        return dst.copy_(self.make())
 
     def flipped(self, flip_x: bool, flip_y: bool) -> "EnvelopeRow":
         """The mirror image's row (no op)."""
@@ -176,6 +194,12 @@ class DOEField:
     def device(self) -> torch.device:
         """The envelope's device (without making a deferred one)."""
         return self.row.base.device if self._field is None else self._field.envelope.device
+
+    @property
+    def pending_row(self) -> "EnvelopeRow | None":
+        """The :class:`EnvelopeRow` of a deferred record whose envelope has not been made yet (a batched consumer
+        reads it there: :meth:`EnvelopeRow.copy_into`, :meth:`EnvelopeRow.unflipped`), else None."""
+        return self.row if self._field is None else None
 
     def _with(self, info: FieldInfo, chief_tan, field: Field | None = None, center=None) -> "DOEField":
         """A copy with ``info``, ``chief_tan`` (and ``field`` / ``center`` where given); a deferred record's copy
