@@ -599,8 +599,8 @@ def test_half_sample_shift_of_a_large_prime_length_is_the_plain_fft_shift(monkey
 
 def test_band_convolution_kept_spectrum_equals_the_recomputed_one(monkeypatch):
     """One field's band convolution keeps the input's band spectrum from the forward for the transfer function's
-    gradient (KEEP_SPECTRUM_BYTES) instead of recomputing it in the backward, and transforms the output and the
-    field's gradient along x in blocks of rows (_x_inverse): the same values and gradients as recomputing, for
+    gradient (KEEP_SPECTRUM_BYTES) instead of recomputing it in the backward, and transforms the field's gradient
+    along x in blocks of rows (_x_inverse): the same values and gradients as recomputing, for
     rows in one run (the kept spectrum a copy, not a view the in-place product overwrites) and in several, one
     column block and many."""
     import raywave.wave.propagation.band as W
@@ -627,6 +627,23 @@ def test_band_convolution_kept_spectrum_equals_the_recomputed_one(monkeypatch):
             for other in results[1:]:
                 for a, b in zip(other, results[0]):
                     assert float((a - b).abs().max()) <= 1e-14 * float(b.abs().max())
+
+
+def test_x_inverse_is_the_whole_arrays_inverse_bit_for_bit():
+    """_x_inverse (the band's columns placed in a full-width buffer and transformed along x in blocks of rows) is
+    the inverse transform of the whole zero-filled array, bit for bit, scaled or not."""
+    import raywave.wave.propagation.band as W
+
+    g = torch.Generator().manual_seed(10)
+    for rows, mx, runs in ((83, 250, ((0, 120), (140, 250))), (503, 375, ((0, 180), (200, 375))), (37, 64, ((3, 60),))):
+        n_cols = sum(b - a for a, b in runs)
+        band = torch.randn(rows, n_cols, dtype=C128, generator=g)
+        full = W.put(torch.zeros(rows, mx, dtype=C128), runs, band)
+        keep = min(rows, mx) - 3
+        for scale in (None, float(mx)):
+            ref = torch.fft.ifft(full, dim=-1)[..., :keep]
+            ref = ref if scale is None else ref * scale
+            assert torch.equal(W._x_inverse(band, mx, runs, keep, scale), ref)
 
 
 def test_band_convolution_field_by_field_equals_the_batch(monkeypatch):

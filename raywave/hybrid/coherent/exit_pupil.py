@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import torch
 
-from raywave.doe.base import BlankDOE
+from raywave.doe.base import DOE, BlankDOE
 from raywave.lens.sources import VignettingWarning, point_source_rays
 from raywave.utils import devices
 from raywave.utils.errors import MemoryLimitError
@@ -158,7 +158,9 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                                              Known(stop_rim=rim, medium=known.medium))
     carrier = fx.carrier  # the chief ray's direction: the same on both planes
     bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
-    if bbox is None or float(fx.power.detach()) == 0.0:
+    with torch.no_grad():  # (a check: no graph of the window's |U|²)
+        dark = float(fx.power) == 0.0
+    if bbox is None or dark:
         return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays,
                             "accurate").with_info(stop_edge="exit_pupil")
     dz = z_doe - (z_xp if z_edge is None else z_edge)
@@ -176,9 +178,16 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         u = propagate_window(fin, grid, dz, transfer=edge_transfer(known.transfers, fin, grid, dz)).envelope
     else:
         u = _coarse_propagate(fin, sim, box, dz, m, known.transfers)
-    u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)
+    if not _square_coverage(doe):  # (a square DOE's coverage is 1 on its grid: u itself, without two passes)
+        u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)
     return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
                     FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil"))
+
+
+def _square_coverage(doe) -> bool:
+    """Whether ``doe``'s :meth:`~raywave.doe.DOE.coverage` is 1 on every window of its grid: a square aperture and
+    the base class's coverage."""
+    return type(doe).coverage is DOE.coverage and getattr(doe, "aperture", None) == "square"
 
 
 #: the exact construction's lattice is coarsened (:func:`asm_coarsening`) while its pitch stays within this fraction

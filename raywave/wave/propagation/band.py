@@ -128,6 +128,10 @@ def _x_band(u: torch.Tensor, mx: int, col_runs, chunks: int) -> torch.Tensor:
     return out
 
 
+#: :func:`_x_inverse`'s blocks of rows are a multiple of this many rows (pocketfft's SIMD groups: 2–8 lines)
+INVERSE_ROW_ALIGN = 16
+
+
 def _x_inverse(band: torch.Tensor, mx: int, col_runs, n_keep: int, scale: float | None = None) -> torch.Tensor:
     """``ifft(full, dim=-1)[..., :n_keep]`` (times ``scale`` where given) of the full-width array ``full`` ``(..., R,
     mx)`` that holds ``band`` ``(..., R, C)`` at the columns ``col_runs`` and 0 elsewhere, without ``full``: in blocks
@@ -136,7 +140,10 @@ def _x_inverse(band: torch.Tensor, mx: int, col_runs, n_keep: int, scale: float 
     (a 1141 × 1875 inverse: ~2× faster in blocks)."""
     rows = band.shape[-2]
     out = torch.empty((*band.shape[:-1], n_keep), dtype=band.dtype, device=band.device)
-    step = max(1, math.ceil(rows / max(band_chunks(band, mx, rows), X_ROW_BLOCKS)))
+    # a multiple of INVERSE_ROW_ALIGN rows a block: pocketfft transforms the lines in SIMD groups from the first, the
+    # last few alone, so every line falls in the group it has in the whole array's transform (bit for bit)
+    step = math.ceil(rows / max(band_chunks(band, mx, rows), X_ROW_BLOCKS))
+    step = max(1, -(-step // INVERSE_ROW_ALIGN) * INVERSE_ROW_ALIGN)
     buf = torch.zeros((*band.shape[:-2], min(step, rows), mx), dtype=band.dtype, device=band.device)
     for r0 in range(0, rows, step):
         k = min(step, rows - r0)
@@ -236,10 +243,7 @@ def convolve_band(u: torch.Tensor, h, size, rows: torch.Tensor, cols: torch.Tens
     chunks = band_chunks(u, my, cols.numel())
     ux = _x_band(u, mx, col_runs, chunks)  # (..., Ny, C)
     h_t = _Columns(h, u.dtype)  # (..., C, R) a block at a time
-    # the output's band columns (..., noy, C); without autograd, transformed along x in blocks of rows
-    # (:func:`_x_inverse`), with it (the plain operations) on the zero-filled full width
-    out = torch.zeros((*lead, noy, mx), dtype=u.dtype, device=u.device) if grad else \
-        torch.empty((*lead, noy, cols.numel()), dtype=u.dtype, device=u.device)
+    out = torch.zeros((*lead, noy, mx), dtype=u.dtype, device=u.device)
     blocks = _blocks(cols.numel(), chunks)
     for c0, c1 in blocks:
         blk = _padded_columns(ux, c0, c1, my)  # (..., c, My)
@@ -257,14 +261,9 @@ def convolve_band(u: torch.Tensor, h, size, rows: torch.Tensor, cols: torch.Tens
         del spec
         part = torch.fft.ifft(full, dim=-1)[..., :noy]  # (..., c, noy)
         del full
-        if grad:
-            put(out, col_runs, part.transpose(-1, -2), c0)
-        else:
-            out[..., c0:c1].copy_(part.transpose(-1, -2))
+        put(out, col_runs, part.transpose(-1, -2), c0)
         del part
-    if grad:
-        return torch.fft.ifft(out, dim=-1)[..., :nox]
-    return _x_inverse(out, mx, col_runs, nox)
+    return torch.fft.ifft(out, dim=-1)[..., :nox]
 
 
 def _convolve_indexed(u: torch.Tensor, h: torch.Tensor, size, band: tuple, out_shape: tuple, grad: bool):
