@@ -597,6 +597,55 @@ def test_half_sample_shift_of_a_large_prime_length_is_the_plain_fft_shift(monkey
         assert float((g_got - g_want).abs().max()) < 1e-14 * float(g_want.abs().max())
 
 
+def test_band_convolution_kept_spectrum_equals_the_recomputed_one(monkeypatch):
+    """One field's band convolution keeps the input's band spectrum from the forward for the transfer function's
+    gradient (KEEP_SPECTRUM_BYTES) instead of recomputing it in the backward, and transforms the field's gradient
+    along x in blocks of rows (_x_inverse): the same values and gradients as recomputing, for
+    rows in one run (the kept spectrum a copy, not a view the in-place product overwrites) and in several, one
+    column block and many."""
+    import raywave.wave.propagation.band as W
+
+    g = torch.Generator().manual_seed(9)
+    size, noy, nox = (16, 18), 6, 5
+    u0 = torch.randn(7, 9, dtype=C128, generator=g)
+    w = torch.randn(noy, nox, dtype=C128, generator=g)
+    cols = torch.tensor([0, 3, 4, 7, 16, 17])
+    for rows in (torch.tensor([0, 1, 2, 5, 9, 14, 15]), torch.arange(3, 11)):
+        h0 = torch.randn(len(rows), len(cols), dtype=C128, generator=g)
+        for limit in (2**60, 64):
+            monkeypatch.setattr(W, "BAND_CHUNK_BYTES", limit)
+            results = []
+            for keep in (0, 2**60):
+                monkeypatch.setattr(W, "KEEP_SPECTRUM_BYTES", keep)
+                u, h = u0.clone().requires_grad_(), h0.clone().requires_grad_()
+                out = W.BandConvolve.apply(u, h, size, rows, cols, noy, nox)
+                results.append((out.detach(), *torch.autograd.grad((out * w.conj()).real.sum(), (u, h))))
+            with torch.enable_grad():
+                u, h = u0.clone().requires_grad_(), h0.clone().requires_grad_()
+                plain = W.convolve_band(u, h, size, rows, cols, noy, nox)
+                results.append((plain.detach(), *torch.autograd.grad((plain * w.conj()).real.sum(), (u, h))))
+            for other in results[1:]:
+                for a, b in zip(other, results[0]):
+                    assert float((a - b).abs().max()) <= 1e-14 * float(b.abs().max())
+
+
+def test_x_inverse_is_the_whole_arrays_inverse_bit_for_bit():
+    """_x_inverse (the band's columns placed in a full-width buffer and transformed along x in blocks of rows) is
+    the inverse transform of the whole zero-filled array, bit for bit, scaled or not."""
+    import raywave.wave.propagation.band as W
+
+    g = torch.Generator().manual_seed(10)
+    for rows, mx, runs in ((83, 250, ((0, 120), (140, 250))), (503, 375, ((0, 180), (200, 375))), (37, 64, ((3, 60),))):
+        n_cols = sum(b - a for a, b in runs)
+        band = torch.randn(rows, n_cols, dtype=C128, generator=g)
+        full = W.put(torch.zeros(rows, mx, dtype=C128), runs, band)
+        keep = min(rows, mx) - 3
+        for scale in (None, float(mx)):
+            ref = torch.fft.ifft(full, dim=-1)[..., :keep]
+            ref = ref if scale is None else ref * scale
+            assert torch.equal(W._x_inverse(band, mx, runs, keep, scale), ref)
+
+
 def test_band_convolution_field_by_field_equals_the_batch(monkeypatch):
     """On a CPU a batch's band convolution runs field by field (cache-sized blocks): the same values and gradients as
     the whole batch at once (the accelerator's way), for two leading axes, a per-field and a shared transfer."""

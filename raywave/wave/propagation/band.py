@@ -128,6 +128,35 @@ def _x_band(u: torch.Tensor, mx: int, col_runs, chunks: int) -> torch.Tensor:
     return out
 
 
+#: :func:`_x_inverse`'s blocks of rows are a multiple of this many rows (pocketfft's SIMD groups: 2–8 lines)
+INVERSE_ROW_ALIGN = 16
+
+
+def _x_inverse(band: torch.Tensor, mx: int, col_runs, n_keep: int, scale: float | None = None) -> torch.Tensor:
+    """``ifft(full, dim=-1)[..., :n_keep]`` (times ``scale`` where given) of the full-width array ``full`` ``(..., R,
+    mx)`` that holds ``band`` ``(..., R, C)`` at the columns ``col_runs`` and 0 elsewhere, without ``full``: in blocks
+    of rows (as :func:`_x_band`'s) through one full-width buffer whose other columns are zeroed once. The same
+    transforms of the same values as the whole array's, without its zero fill and with a cache-sized working set
+    (a 1141 × 1875 inverse: ~2× faster in blocks)."""
+    rows = band.shape[-2]
+    out = torch.empty((*band.shape[:-1], n_keep), dtype=band.dtype, device=band.device)
+    # a multiple of INVERSE_ROW_ALIGN rows a block: pocketfft transforms the lines in SIMD groups from the first, the
+    # last few alone, so every line falls in the group it has in the whole array's transform (bit for bit)
+    step = math.ceil(rows / max(band_chunks(band, mx, rows), X_ROW_BLOCKS))
+    step = max(1, -(-step // INVERSE_ROW_ALIGN) * INVERSE_ROW_ALIGN)
+    buf = torch.zeros((*band.shape[:-2], min(step, rows), mx), dtype=band.dtype, device=band.device)
+    for r0 in range(0, rows, step):
+        k = min(step, rows - r0)
+        blk = put(buf[..., :k, :], col_runs, band[..., r0:r0 + k, :])  # the band's columns; the others stay 0
+        res = torch.fft.ifft(blk, dim=-1)[..., :n_keep]
+        if scale is None:
+            out[..., r0:r0 + k, :].copy_(res)
+        else:
+            torch.mul(res, scale, out=out[..., r0:r0 + k, :])
+        del res
+    return out
+
+
 def _padded_columns(ux: torch.Tensor, c0: int, c1: int, my: int) -> torch.Tensor:
     """The columns ``c0:c1`` of ``ux`` ``(..., Ny, C)`` transposed into rows of memory and zero-padded to ``my``:
     ``(..., c, My)``, in one copy (``fft(x.transpose().contiguous(), n=my)`` copies twice: the transpose, then
@@ -190,13 +219,15 @@ def _band_put_(spec: torch.Tensor, row_runs, values: torch.Tensor) -> torch.Tens
 
 
 def convolve_band(u: torch.Tensor, h, size, rows: torch.Tensor, cols: torch.Tensor, noy: int,
-                  nox: int) -> torch.Tensor:
+                  nox: int, keep: list | None = None) -> torch.Tensor:
     """``ifft2(fft2(u, s=size)·H)[..., :noy, :nox]`` for ``H`` zero outside ``rows × cols`` (``h`` on it,
     ``(..., R, C)``, or one source's :class:`~raywave.wave.propagation.kernels.TransferBand`, evaluated a column
     block at a time where the product needs it; ``rows`` ``(R,)``, ``cols`` ``(C,)`` sorted int64 indices into the
     FFT grid ``size`` = ``(My, Mx)``), for ``u`` ``(..., Ny, Nx)``: the output window ``(..., noy, nox)``. Autograd
     records it where its inputs require grad (the plain operations; :class:`BandConvolve` keeps less for the
-    backward)."""
+    backward). ``keep``: a list to which, without autograd on one field on a CPU, the input's band spectrum is
+    appended a column block at a time (``(c, R)`` each, :func:`_blocks`' blocks: what :class:`BandConvolve`'s
+    backward would recompute); left empty otherwise."""
     my, mx = size
     lazy = not isinstance(h, torch.Tensor)
     lead = u.shape[:-2] if lazy else torch.broadcast_shapes(u.shape[:-2], h.shape[:-2])
@@ -223,6 +254,9 @@ def convolve_band(u: torch.Tensor, h, size, rows: torch.Tensor, cols: torch.Tens
         if grad:
             full = _scattered(take(spec, row_runs) * h_t.block(c0, c1), row_runs, my)
         else:  # the product in place on the block's spectrum (no band copy, no second full-length array)
+            if keep is not None:  # the input's band spectrum, for a backward (:class:`BandConvolve`)
+                kept = take(spec, row_runs)  # (a copy where the band's rows are two runs, else a view)
+                keep.append(kept if len(row_runs) > 1 else kept.clone())
             full = _band_product_(spec, row_runs, h_t.block(c0, c1))
         del spec
         part = torch.fft.ifft(full, dim=-1)[..., :noy]  # (..., c, noy)
@@ -267,9 +301,14 @@ class BandConvolve(torch.autograd.Function):
     @staticmethod
     def forward(ctx, u, h, size, rows, cols, noy: int, nox: int):
         ctx.size, ctx.noy, ctx.nox, ctx.u_shape, ctx.h_shape = size, noy, nox, u.shape, h.shape
-        ctx.save_for_backward(u if ctx.needs_input_grad[1] else None, h if ctx.needs_input_grad[0] else None,
-                              rows, cols)
-        return convolve_band(u, h, size, rows, cols, noy, nox)
+        # ∂/∂h needs the input's band spectrum: kept from the forward where it is small (one field on a CPU),
+        # else the input kept and its spectrum recomputed in the backward
+        keep = [] if ctx.needs_input_grad[1] and _keeps_spectrum(u, h, rows, cols) else None
+        out = convolve_band(u, h, size, rows, cols, noy, nox, keep)
+        ctx.spectrum = keep or None
+        ctx.save_for_backward(u if ctx.needs_input_grad[1] and not keep else None,
+                              h if ctx.needs_input_grad[0] else None, rows, cols)
+        return out
 
     @staticmethod
     def backward(ctx, g):
@@ -278,7 +317,10 @@ class BandConvolve(torch.autograd.Function):
         runs = index_runs(rows), index_runs(cols)
         ny, nx = ctx.u_shape[-2:]
         lead = g.shape[:-2]
-        if per_field(g, lead):  # field by field on a CPU, as the forward (:func:`per_field`)
+        spectrum = ctx.spectrum
+        if spectrum is not None:  # one field, its band spectrum kept
+            grad_u, grad_h = _adjoint(g, spectrum, h, ctx.size, runs, (ny, nx), need)
+        elif per_field(g, lead):  # field by field on a CPU, as the forward (:func:`per_field`)
             parts = _fields(lambda gi, ui, hi: _adjoint(gi, ui, hi, ctx.size, runs, (ny, nx), need),
                             (g, u if need[1] else None, h if need[0] else None), lead)
             grad_u = torch.stack([q[0] for q in parts]).reshape(*lead, ny, nx) if need[0] else None
@@ -290,10 +332,25 @@ class BandConvolve(torch.autograd.Function):
         return grad_u, grad_h, None, None, None, None, None
 
 
-def _adjoint(g: torch.Tensor, u: torch.Tensor, h: torch.Tensor, size, runs, in_shape, need) -> tuple:
+#: :class:`BandConvolve` keeps the input's band spectrum from the forward for ``∂/∂h`` (instead of the input, its
+#: spectrum recomputed in the backward: two of the backward's five passes of transforms) up to this many bytes (a
+#: mid-system DOE's PSF window: 1015 × 1135 complex128, 18 MB)
+KEEP_SPECTRUM_BYTES = 64 * 2**20
+
+
+def _keeps_spectrum(u: torch.Tensor, h, rows: torch.Tensor, cols: torch.Tensor) -> bool:
+    """Whether :class:`BandConvolve` keeps the input's band spectrum (:data:`KEEP_SPECTRUM_BYTES`): one field (no
+    batch axes) on a CPU, the band within the bytes."""
+    return (u.ndim == 2 and isinstance(h, torch.Tensor) and h.ndim == 2 and not devices.accelerator(u)
+            and rows.numel() * cols.numel() * u.element_size() <= KEEP_SPECTRUM_BYTES)
+
+
+def _adjoint(g: torch.Tensor, u, h: torch.Tensor, size, runs, in_shape, need) -> tuple:
     """:class:`BandConvolve`'s backward: ``(∂L/∂u (..., Ny, Nx) or None, ∂L/∂h (..., R, C) or None)`` (before any
     broadcast is summed) from the output's gradient ``g`` ``(..., noy, nox)``; ``runs`` = the band's ``(row runs,
-    column runs)``, ``in_shape`` = ``(Ny, Nx)``, ``need`` = (∂u wanted, ∂h wanted)."""
+    column runs)``, ``in_shape`` = ``(Ny, Nx)``, ``need`` = (∂u wanted, ∂h wanted). ``u``: the input (its band
+    spectrum recomputed for ∂h), or that spectrum kept by the forward (a list of :func:`_blocks`' column blocks ``(...,
+    c, R)``: :func:`convolve_band` ``keep``)."""
     (my, mx), (ny, nx), (need_u, need_h) = size, in_shape, need
     row_runs, col_runs = runs
     n_cols = sum(b - a for a, b in col_runs)
@@ -301,24 +358,27 @@ def _adjoint(g: torch.Tensor, u: torch.Tensor, h: torch.Tensor, size, runs, in_s
     # kept rows' ifft along y (fft / my) and the rows' copy: ∂L/∂(product) on the band
     chunks = band_chunks(g, my, n_cols)
     gx = _x_band(g, mx, col_runs, chunks)  # (..., noy, C), not yet / mx
-    ux = _x_band(u, mx, col_runs, chunks) if need_h else None
-    full = torch.zeros((*g.shape[:-2], ny, mx), dtype=g.dtype, device=g.device) if need_u else None
+    kept = isinstance(u, list)
+    ux = _x_band(u, mx, col_runs, chunks) if need_h and not kept else None
+    # ∂L/∂u's band columns before the inverse transform along x (:func:`_x_inverse`)
+    full = torch.empty((*g.shape[:-2], ny, n_cols), dtype=g.dtype, device=g.device) if need_u else None
     h_t = _Columns(h, g.dtype) if need_u else None
     grad_h = []
-    for c0, c1 in _blocks(n_cols, chunks):
+    for i, (c0, c1) in enumerate(_blocks(n_cols, chunks)):
         gs = _y_spectrum(gx, c0, c1, my).div_(my * mx)  # (..., c, My); on the band rows ∂L/∂(product)
         if need_h:
-            spec = _y_band(ux, c0, c1, my, row_runs)
-            grad_h.append((take(gs, row_runs) * spec.conj()).transpose(-1, -2))
+            spec = u[i] if kept else _y_band(ux, c0, c1, my, row_runs)
+            grad_h.append((take(gs, row_runs) * torch.conj_physical(spec)).transpose(-1, -2))
             del spec
-        if need_u:  # in place: the band rows times conj(h), the others 0
-            q = _band_product_(gs, row_runs, h_t.block(c0, c1).conj())
+        if need_u:  # in place: the band rows times conj(h), the others 0, as conj(conj(gs)·h) (the same values:
+            # a product with a lazily conjugated strided block of h took ~8× the plain product's time)
+            q = torch.conj_physical_(_band_product_(torch.conj_physical_(gs), row_runs, h_t.block(c0, c1)))
             part = torch.fft.ifft(q, dim=-1)[..., :ny].mul_(my)  # fft(n=my)'s adjoint: (..., c, ny)
             del q
-            put(full, col_runs, part.transpose(-1, -2), c0)
+            full[..., c0:c1].copy_(part.transpose(-1, -2))
             del part
         del gs
     del gx, ux
     grad_h = torch.cat(grad_h, dim=-1) if need_h else None
-    grad_u = torch.fft.ifft(full, dim=-1)[..., :nx] * mx if need_u else None
+    grad_u = _x_inverse(full, mx, col_runs, nx, mx) if need_u else None
     return grad_u, grad_h

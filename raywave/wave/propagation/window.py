@@ -195,25 +195,31 @@ class _Perturbed(torch.autograd.Function):
     def _scalar_sums(g, y, sx, sy, dz, fx, fy, axial, rel):
         """The real gradients of ``(s_x, s_y, dz)``: ``Re Σ conj(g)·∂y/∂s = Re Σ conj(g)·h·e^{iφ}·(∂a/∂s + i a
         ∂φ/∂s)``, with ``conj(g)·h·e^{iφ}·a = conj(g)·y`` (``a`` real), summed over blocks of
-        :data:`PERTURBED_BLOCK_ROWS` rows of the band: its band-sized temporaries (~8 arrays, the peak of a
-        lens-trained backward) exist a block at a time."""
-        sums = [y.real.new_zeros(()).to(torch.float64) for _ in range(3)]
+        :data:`PERTURBED_BLOCK_ROWS` rows of the band: its band-sized temporaries (~4 arrays, the peak of a
+        lens-trained backward) exist a block at a time. Per block: ``q·a = conj(g)·y`` once; the shifts' terms
+        ``Σ Im(q·a)·f`` as the block summed down its rows (f_x) or across its columns (f_y) first, then one short
+        product; the roll-off terms ``Σ Re(q)·R`` of the three channels as one matrix-vector product; ``a`` is
+        not formed for zero-valued perturbations (it is 1 exactly: ``Re(q) = Re(q·a)``)."""
+        sums = torch.zeros(3, dtype=torch.float64, device=y.device)
+        zero = rel is None or not bool(torch.stack([sx, sy, dz]).detach().any())  # (one host read)
         for r0 in range(0, y.shape[-2], PERTURBED_BLOCK_ROWS):
             rows = slice(r0, r0 + PERTURBED_BLOCK_ROWS)
-            qa_c = (g[..., rows, :].conj() * y[..., rows, :]).to(torch.complex128)  # q·a
-            qa = qa_c.imag
-            rel_b = None if rel is None else rel[:, rows]
-            if rel_b is None:
-                q_re = qa_c.real
-            else:
-                q_re = qa_c.real / (1.0 + (sx * rel_b[1] + sy * rel_b[2] + dz * rel_b[0]))
-            w = None if axial is None else _axial_frequency(fx, fy[rows], *axial)
-            for k, (freq, chan) in enumerate(((fx[None, :], 1), (fy[rows, None], 2), (w, 0))):
-                part = -_TWO_PI * (qa * freq).sum() if freq is not None else sums[k].new_zeros(())
-                if rel_b is not None:
-                    part = part + (q_re * rel_b[chan]).sum()
-                sums[k] = sums[k] + part
-        return sums
+            qa_c = torch.view_as_real((g[..., rows, :].conj() * y[..., rows, :]).to(torch.complex128))  # q·a
+            qa = qa_c[..., 1]
+            terms = [-_TWO_PI * (qa.sum(-2) * fx).sum(), -_TWO_PI * (qa.sum(-1) * fy[rows]).sum(),
+                     -_TWO_PI * (qa * _axial_frequency(fx, fy[rows], *axial)).sum() if axial is not None
+                     else sums.new_zeros(())]
+            if rel is not None:
+                rel_b = rel[:, rows]
+                q_re = qa_c[..., 0] if zero else qa_c[..., 0] / (1.0 + (sx * rel_b[1] + sy * rel_b[2] +
+                                                                         dz * rel_b[0]))
+                if q_re.ndim == 2:  # the channels (dz, s_x, s_y) in one pass over the block
+                    r_d, r_x, r_y = torch.mv(rel_b.reshape(3, -1), q_re.reshape(-1)).unbind()
+                else:
+                    r_d, r_x, r_y = ((q_re * rel_b[c]).sum() for c in range(3))
+                terms = [terms[0] + r_x, terms[1] + r_y, terms[2] + r_d]
+            sums = sums + torch.stack(terms)
+        return list(sums.unbind())
 
 
 #: rows of the band per block of :meth:`_Perturbed._scalar_sums`
