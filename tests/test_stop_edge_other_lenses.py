@@ -46,6 +46,7 @@ CASES = {
     # name: (file, field fraction, sensor pitch mm or None: the DOE pitch) -> measured (docstring below)
     "telephoto": ("Cosina Voigtlander Tele-Dynar 100mm f6.3.zmx", 0.7, 3e-3),
     "achromat": ("Telescope Fraunhofer.zmx", 1.0, None),
+    "tessar_on_axis": ("Zeiss Tessar f2.8 50mm.zmx", 0.0, None),
 }
 
 
@@ -55,7 +56,10 @@ def test_default_psf_of_other_lens_classes_within_1e_3_of_the_converged_referenc
     """Measured (h47c): the Cosina Voigtländer Tele-Dynar 100 mm F/6.3 (a telephoto, 11.8° field) at 0.7 field
     (8.25°), 3 µm pixels: 1.66e-4 (the Fresnel step; the reference's own error 3.0e-9; the DOE-plane edge 1.1e-2);
     the Fraunhofer telescope objective (an air-spaced achromat, 100 mm F/7, 0.57° field) at full field, its 2.7 µm
-    DOE pitch as the pixels: 3.91e-4 (the Fresnel step; own error 5.4e-10; the DOE-plane edge 6.7e-4)."""
+    DOE pitch as the pixels: 3.91e-4 (the Fresnel step; own error 5.4e-10; the DOE-plane edge 6.7e-4); the Zeiss
+    Tessar 50 mm F/2.8 on axis: 4.42e-4 (2026-11-30 xxiii; own error 8.2e-11; 4.0e-4 – 5.0e-4 with the DOE 5.7 –
+    23 mm before focus; 2.75e-3 in h47c's sweep and at bc9381a, 4.63e-4 at 11a3346 on the same plane: fixed by session
+    xxii's changes to the Fresnel step)."""
     fname, frac, pitch = CASES[name]
     psf, ref = _default_and_reference(DATA / fname, frac, pitch)
     err = float((psf - ref.psf).abs().sum())
@@ -63,28 +67,3 @@ def test_default_psf_of_other_lens_classes_within_1e_3_of_the_converged_referenc
           f"levels {ref.levels})")
     assert ref.error_estimate is not None and ref.error_estimate < REF_TOL
     assert err < 1e-3
-
-
-#: lens classes where the default does not yet meet 1e-3, with the measured figure and its cause (docs/ray-wave.md
-#: "Other lens classes"): the test bounds them and is an expected failure until they do
-NOT_YET = {
-    "tessar_on_axis": ("Zeiss Tessar f2.8 50mm.zmx", 0.0, None,
-                       "2.75e-3 (h47c): the Fresnel step's path-difference nu outside the stop's shadow; with g*s "
-                       "there 5.4e-4, which the bundled asphere at 17.5 deg does not allow (7.4e-4 -> 3.9e-3)"),
-}
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("name", list(NOT_YET))
-def test_default_psf_of_lens_classes_not_yet_within_1e_3(name):
-    """The Zeiss Tessar 50 mm F/2.8 on axis (the caustic fallback: its DOE plane 5.7 mm before focus): 2.75e-3 from
-    the reference converged to 8.0e-11 (the DOE-plane edge 2.88e-2). Bounded at 4e-3 so that a change for the worse
-    shows; xfail until within 1e-3."""
-    fname, frac, pitch, why = NOT_YET[name]
-    psf, ref = _default_and_reference(DATA / fname, frac, pitch)
-    err = float((psf - ref.psf).abs().sum())
-    print(f"{name}: {err:.3g} from the Huygens PSF (its own error ~{ref.error_estimate:.2g})")
-    assert ref.error_estimate is not None and ref.error_estimate < REF_TOL
-    assert err < 4e-3
-    if err >= 1e-3:
-        pytest.xfail(f"not yet 1e-3: {why}")
