@@ -194,6 +194,19 @@ def test_the_default_plane_of_a_blank_doe_needs_no_fallback():
     assert load_hybrid("singlet").doe_info["distance_rule"] == "half_way"
 
 
+def test_a_fallback_plane_inside_the_lens_keeps_the_default_plane():
+    """The Zeiss Hologon 15 mm f/8 (4.5 mm from the last vertex to the sensor): its fallback would build the field
+    on a virtual plane before the last vertex, where no DOE can sit, so the default plane stays half way (the
+    engine's fallback then builds it there, as before) instead of a refused distance."""
+    path = Path(__file__).parent / "data" / "opticsdatabase" / "Zeiss Hologon f8 15mm.zmx"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hl = load_hybrid(path, fields=[[0.0, 0.0]], field_type="angle")
+    info = hl.doe_info
+    assert info["distance_rule"] == "half_way"
+    assert 0 < info["distance"] < float(hl.lens.surfaces[-1].thickness.detach())
+
+
 @pytest.mark.slow  # ~1 min: two double-Gauss PSFs, one through the fallback
 def test_the_moved_default_plane_gives_the_fallbacks_psf_without_its_warning():
     """The double Gauss on axis: the PSF on the moved default plane equals the one on the beam fit's plane through

@@ -184,7 +184,8 @@ def go_field_distance(lens, distance: float, pitch: float, sources: tuple = (Non
     source's error is at most ``GO_FALLBACK_FRACTION`` × the tolerance: the plane on which the fallback would build
     the field before carrying it to the DOE plane by the angular spectrum. Placed there, the DOE takes the field as
     it is built, with no carrying step and no warning (a blank DOE's PSF with the exit-pupil edge does not depend on
-    the plane, docs/ray-wave.md). Kept where no plane helps, an exit pupil lies after the plane, or a beam there
+    the plane, docs/ray-wave.md). Kept where no plane helps, that plane lies before the last vertex (the fallback
+    builds there on a virtual plane; a DOE cannot sit there), an exit pupil lies after the plane, or a beam there
     would span more than ``MAX_XP_SAMPLES`` pixels of ``pitch`` mm or its window not fit in the memory available
     now (the fallback's own rules, with a 1.25× window: the engine then warns as before). ``sources`` = ``(fields, wavelengths, depth)`` as :func:`fit_doe_distance`;
     ``sphere_cut``: the edge step is "adaptive", so sources whose edge is cut on the DOE plane (a sphere focused on
@@ -214,6 +215,8 @@ def go_field_distance(lens, distance: float, pitch: float, sources: tuple = (Non
         if not fine.numel() or int(fine[-1]) == 0:  # no plane between the exit pupil and this one helps
             return distance
         plane = min(plane, float(zs[wi, int(fine[-1])]))
+    if not plane > z_last:  # the fallback's plane lies inside the lens (a virtual plane): no DOE plane there
+        return distance
     wx, wy = _footprint_sides(lens, plane, (fields, wavelengths, depth))
     if max(wx, wy) / pitch > MAX_XP_SAMPLES:
         return distance
