@@ -51,14 +51,19 @@ def test_banded_upsample_equals_the_dense_products():
     assert one.shape == ref.shape and float((one - ref).abs().max()) < 1e-13
 
 
+def _random_stack(seed: int, shape: tuple, y: tuple, x: tuple):
+    """``(generator, values, pos_y, pos_x)``: a generator seeded ``seed``, random float64 node values ``shape`` drawn
+    from it, and the fine positions ``linspace(*y)`` (rows) and ``linspace(*x)`` (columns), in node units."""
+    g = torch.Generator().manual_seed(seed)
+    values = torch.randn(shape, generator=g, dtype=torch.float64)
+    return g, values, torch.linspace(*y, dtype=torch.float64), torch.linspace(*x, dtype=torch.float64)
+
+
 def test_upsample_window_is_the_slice_of_the_upsampling():
     """upsample_nodes_window (issue 46: the fine field's crop): the values (and the window's) are upsample_nodes'
     bit for bit, and the window's gradient (its banded transpose) equals autograd's through the slice of the whole
     upsampling to rounding; without autograd the window is a plain slice."""
-    g = torch.Generator().manual_seed(7)
-    values = torch.randn((4, 40, 37), generator=g, dtype=torch.float64)
-    pos_y = torch.linspace(0.3, 38.6, 301, dtype=torch.float64)
-    pos_x = torch.linspace(0.0, 36.0, 290, dtype=torch.float64)
+    g, values, pos_y, pos_x = _random_stack(7, (4, 40, 37), (0.3, 38.6, 301), (0.0, 36.0, 290))
     box = (17, 260, 5, 281)
     v = values.clone().requires_grad_()
     full = upsample_nodes(v, pos_y=pos_y, pos_x=pos_x)
@@ -93,10 +98,7 @@ def test_upsample_window_split_is_the_unbind_of_the_window():
     each channel's gradient taken where it is, no stack): the channels of the window bit for bit, the gradient that
     of the unbound window bit for bit (a channel left out of the loss included), and without autograd the plain
     slice's channels."""
-    g = torch.Generator().manual_seed(11)
-    values = torch.randn((5, 23, 19), generator=g, dtype=torch.float64)
-    pos_y = torch.linspace(0.2, 21.7, 131, dtype=torch.float64)
-    pos_x = torch.linspace(0.0, 18.0, 117, dtype=torch.float64)
+    g, values, pos_y, pos_x = _random_stack(11, (5, 23, 19), (0.2, 21.7, 131), (0.0, 18.0, 117))
     box = (9, 120, 3, 101)
     v = values.clone().requires_grad_()
     fine, window = upsample_nodes_window(v, pos_y, pos_x)
