@@ -7,7 +7,7 @@ trees the PSFs' relative L1 difference.
 
     d=/tmp/optics && mkdir -p $d && tar xzf ../shared/data/opticsdatabase/optics.tar.gz -C $d
     python benchmarks/lens_files_psf.py $d/Optics/Photography [--n 8] [--seed 1] [--trees A B] [--timeout 300]
-        [-o benchmarks/results/lens_files_psf.json]
+        [--clip-apertures off|on|both] [-o benchmarks/results/lens_files_psf.json]
 
 ``--trees``: source trees whose ``raywave`` to run (default: this one); each file and field runs in every tree in
 turn (A, B, A, B…), so the trees share the machine's load.
@@ -36,7 +36,7 @@ import numpy as np, torch
 torch.set_num_threads(1)
 from raywave.cli.psf_commands import compute_psf
 from raywave.lens.build import load_lens
-path, frac, out = sys.argv[1], float(sys.argv[2]), sys.argv[3]
+path, frac, out, clip = sys.argv[1], float(sys.argv[2]), sys.argv[3], sys.argv[4] == "1"
 row = {}
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
@@ -44,7 +44,7 @@ with warnings.catch_warnings(record=True) as caught:
         lens = load_lens(path)
         fmax = max(abs(float(f)) for f in lens.fields)
         t = time.perf_counter()
-        res = compute_psf(path, field=(0.0, frac * fmax), ks=32)
+        res = compute_psf(path, field=(0.0, frac * fmax), ks=32, **({"clip_apertures": True} if clip else {}))
         row["s"] = round(time.perf_counter() - t, 2)
         info = res["hybrid"].doe_info
         row.update(field=round(frac * fmax, 4), rule=info.get("distance_rule"), distance=info.get("distance"),
@@ -59,11 +59,13 @@ print(json.dumps(row))
 """
 
 
-def run_child(tree: str, path: Path, frac: float, psf_out: str, timeout: float) -> dict:
-    """One default PSF of ``path`` at ``frac`` of its largest field with ``tree``'s raywave (a fresh process)."""
+def run_child(tree: str, path: Path, frac: float, psf_out: str, timeout: float, clip: bool = False) -> dict:
+    """One default PSF of ``path`` at ``frac`` of its largest field with ``tree``'s raywave (a fresh process);
+    ``clip``: with ``clip_apertures=True`` (the surfaces' semi-diameters vignette)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(Path(tree).resolve()))
     try:
-        done = subprocess.run([sys.executable, "-c", CHILD, str(path), str(frac), psf_out], env=env,
+        done = subprocess.run([sys.executable, "-c", CHILD, str(path), str(frac), psf_out, "1" if clip else "0"],
+                              env=env,
                               capture_output=True, text=True, timeout=timeout, cwd=tempfile.gettempdir())
     except subprocess.TimeoutExpired:
         return {"error": f"timeout {timeout:g} s"}
@@ -79,6 +81,9 @@ def main(argv=None):
     ap.add_argument("--trees", nargs="*", default=[str(Path(__file__).resolve().parents[1])])
     ap.add_argument("--fracs", type=float, nargs="*", default=[0.0, 0.7])
     ap.add_argument("--timeout", type=float, default=300.0)
+    ap.add_argument("--clip-apertures", choices=("off", "on", "both"), default="off",
+                    help="load with clip_apertures (the semi-diameters vignette); both: each PSF plainly and "
+                         "clipped, the clipped one compared with the plain one (rel_l1_vs_plain)")
     ap.add_argument("-o", "--output")
     args = ap.parse_args(argv)
     files = sorted(Path(args.root).rglob("*.zmx"))
@@ -89,14 +94,22 @@ def main(argv=None):
             for frac in args.fracs:
                 psfs = []
                 for k, tree in enumerate(args.trees):
-                    out = os.path.join(tmp, f"psf{k}.npy")
-                    row = run_child(tree, path, frac, out, args.timeout)
-                    psfs.append(out if "s" in row else None)
-                    row.update(file=str(path.relative_to(args.root)), frac=frac, tree=tree)
-                    if k and psfs[0] and psfs[k]:
-                        a, b = np.load(psfs[0]), np.load(psfs[k])
-                        row["rel_l1_vs_first_tree"] = float(abs(a - b).sum() / abs(a).sum())
-                    emit_row(rows, row, args.output)
+                    plain = None
+                    for clip in {"off": [False], "on": [True], "both": [False, True]}[args.clip_apertures]:
+                        out = os.path.join(tmp, f"psf{k}{'c' if clip else ''}.npy")
+                        row = run_child(tree, path, frac, out, args.timeout, clip)
+                        row.update(file=str(path.relative_to(args.root)), frac=frac, tree=tree, clip_apertures=clip)
+                        if not clip or args.clip_apertures == "on":
+                            psfs.append(out if "s" in row else None)
+                            if k and psfs[0] and psfs[k]:
+                                a, b = np.load(psfs[0]), np.load(psfs[k])
+                                row["rel_l1_vs_first_tree"] = float(abs(a - b).sum() / abs(a).sum())
+                        if not clip:
+                            plain = out if "s" in row else None
+                        elif plain and "s" in row:
+                            a, b = np.load(plain), np.load(out)
+                            row["rel_l1_vs_plain"] = float(abs(a - b).sum() / abs(a).sum())
+                        emit_row(rows, row, args.output)
 
 
 if __name__ == "__main__":

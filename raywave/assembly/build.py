@@ -47,7 +47,8 @@ from raywave.hybrid.coherent.stop_edge import RIPPLE_ZONES
 from raywave.hybrid.hybrid_lens import BEAM_MARGIN, DEFAULT_EDGE_STEP, DEFAULT_STOP_EDGE, HybridLens
 from raywave.io.errors import LensFileError, with_location
 from raywave.lens.analysis import beam_field_points, beam_folds, beam_half_extent, beam_rays_at
-from raywave.lens.build import lens_from_spec, resolve_lens_path
+from raywave.lens.build import lens_from_spec, resolve_lens_path, clip_at_semi_diameters
+from raywave.lens.prescription import rays_beyond_semi_diameters
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import ParaxialUndefinedError, paraxial_data
 from raywave.utils.checks import pitch_mm
@@ -545,6 +546,19 @@ def _doe_summary(data, doe, distance: float, pitch: float, oversample: int) -> d
                 dispersion=doe.dispersion)
 
 
+def _clip_apertures_hint(lens) -> str:
+    """A sentence for a memory refusal where the lens's rays pass outside surfaces' semi-diameters (which do not
+    clip): those rays, steep behind the lens, set the DOE's Nyquist pitch; '' where none does."""
+    beyond = rays_beyond_semi_diameters(lens)
+    if not beyond:
+        return ""
+    where = ", ".join(f"{i} ({h:.3g} mm rays, semi-diameter {sd:.3g} mm)" for i, h, sd in beyond[:4])
+    more = f" and {len(beyond) - 4} more" if len(beyond) > 4 else ""
+    return (f". The lens's rays pass outside the semi-diameters of surface{'s' if len(beyond) > 1 else ''} {where}"
+            f"{more}, which do not clip them: to vignette at the clear apertures as the lens's mounts do, load it "
+            "with clip_apertures=True (raywave: --clip-apertures)")
+
+
 def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, doe_size=None,
                      doe_distance: float | None = None, sensor_pitch: float | None = None,
                      oversample: int | None = None, fields=None, wavelengths=None, depth=None,
@@ -593,7 +607,10 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     stores_map = data is not None and (data.phase is not None or data.material is not None
                                        or data.levels is not None)
     beam = widest_beam(optics, distance, fields, wavelengths, depth)
-    check_doe_memory(shape, pitch, q, stores_map, source, beam, lens.device)
+    try:
+        check_doe_memory(shape, pitch, q, stores_map, source, beam, lens.device)
+    except MemoryLimitError as err:  # rays outside the elements: name the option that vignettes them
+        raise MemoryLimitError(f"{err}{_clip_apertures_hint(lens)}") from None
     doe = _make_doe(data, shape, pitch, source)
     step = {} if edge_step is None else {"edge_step": edge_step}
     hl = HybridLens(lens, doe, distance, sensor_pitch=sensor_pitch, oversample=q, stop_edge=stop_edge, **step)
@@ -605,10 +622,11 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
 def load_hybrid(path: str | Path, doe_pitch: float | None = None, doe_size=None, doe_distance: float | None = None,
                 *, sensor_pitch: float | None = None, oversample: int | None = None, fields=None, wavelengths=None,
                 depth=None, field_type: str | None = None, stop_edge: str | None = None,
-                edge_step: str | None = None) -> HybridLens:
+                edge_step: str | None = None, clip_apertures: bool = False) -> HybridLens:
     """Read a lens file (raywave .json with its ``"doe"``, .zmx with a diffractive last surface, or any lens
     file, which gets a default blank DOE), or a bundled lens by name (``"hybrid_asphere"``, see
-    :func:`raywave.lens.build.bundled_lens_path`), into a :class:`HybridLens`.
+    :func:`raywave.lens.build.bundled_lens_path`), into a :class:`HybridLens`. ``clip_apertures``: vignette at
+    every surface's semi-diameter (:func:`raywave.lens.build.clip_at_semi_diameters`; default off).
 
     ``hl.doe_info`` records the DOE used (distance, pitch, shape, size, aperture, phase file, and whether it
     came from the file or the defaults). ``stop_edge``, ``edge_step``: where the accurate field's sharp edge
@@ -619,6 +637,8 @@ def load_hybrid(path: str | Path, doe_pitch: float | None = None, doe_size=None,
 
     path = resolve_lens_path(path)
     spec, data = read_hybrid_spec(path)
+    if clip_apertures:
+        spec = clip_at_semi_diameters(spec)
     try:
         return hybrid_from_spec(spec, data, doe_pitch=doe_pitch, doe_size=doe_size, doe_distance=doe_distance,
                                 sensor_pitch=sensor_pitch, oversample=oversample, fields=fields,

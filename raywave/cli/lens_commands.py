@@ -9,18 +9,20 @@ import torch
 
 from raywave.cli.errors import CommandError, integer_arg, json_dumps, wavelength_arg
 from raywave.cli.fields import add_field_arguments, field_list
+from raywave.cli.psf_commands import add_clip_apertures_argument
 
 
-def _load(name_or_path, config=None):
+def _load(name_or_path, config=None, clip_apertures: bool = False):
     """The lens of a file or bundled name; ``config``: the configuration of a multi-configuration .zmx file
-    (``--config N``, 1-based; default 1)."""
+    (``--config N``, 1-based; default 1); ``clip_apertures``: vignette at the semi-diameters
+    (``--clip-apertures``)."""
     from raywave.lens.build import load_lens, resolve_lens_path
 
     if config is not None:
         config = integer_arg(config, "--config")
         if config < 1:
             raise CommandError(f"--config: configurations are numbered from 1, got {config}")
-    return load_lens(resolve_lens_path(name_or_path), config=config)
+    return load_lens(resolve_lens_path(name_or_path), config=config, clip_apertures=clip_apertures)
 
 
 def _load_shown(args, inside_doe: bool = False):
@@ -36,7 +38,7 @@ def _load_shown(args, inside_doe: bool = False):
             warnings.catch_warnings():
         if inside_doe:
             warnings.simplefilter("ignore", SurfaceDOEWarning)
-        lens = _load(args.lens, getattr(args, "config", None))
+        lens = _load(args.lens, getattr(args, "config", None), getattr(args, "clip_apertures", False))
         pbar.update(1)
     return lens
 
@@ -582,6 +584,7 @@ def register(sub) -> None:
     p.add_argument("--wavelength", default=None, help="µm (default: the lens's primary)")
     p.add_argument("--config", default=None, help="configuration of a multi-configuration .zmx file (1-based; "
                                                   "default 1)")
+    add_clip_apertures_argument(p)
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("layout", help="2D section with ray fans (PNG)")
@@ -590,6 +593,7 @@ def register(sub) -> None:
     add_field_arguments(p, "the lens's fields; Y values: the y-z section", legacy_y_list=True)
     p.add_argument("--rays", default="7", help="rays per fan")
     p.add_argument("--config", default=None, help="configuration of a multi-configuration .zmx file (1-based)")
+    add_clip_apertures_argument(p)
     p.set_defaults(func=cmd_layout)
 
     p = sub.add_parser("spot", help="RMS spot radius per field and wavelength")
@@ -598,6 +602,7 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", default=None, help="spot diagram PNG, or a folder (receives spot.png)")
     add_field_arguments(p, "the lens's fields", legacy_y_list=True)
     p.add_argument("--config", default=None, help="configuration of a multi-configuration .zmx file (1-based)")
+    add_clip_apertures_argument(p)
     p.set_defaults(func=cmd_spot)
 
     p = sub.add_parser("convert", help="convert a lens file (.json <-> .zmx; DeepLens .json in)")

@@ -83,12 +83,21 @@ def parse_psf_args(args) -> dict:
     out["stop_edge"] = getattr(args, "stop_edge", None)
     out["edge_step"] = getattr(args, "edge_step", None)
     out["device"] = device_arg(getattr(args, "device", "cpu"))
+    out["clip_apertures"] = bool(getattr(args, "clip_apertures", False))
     if args.output is not None and Path(args.output).suffix.lower() not in OUTPUT_EXTENSIONS:
         raise CommandError(f"-o: the PSF is written as .npy (the array) or .npz (psf, center, pitch, "
                            f"energy_outside, ...), got {args.output!r}")
     if args.png is not None and Path(args.png).suffix.lower() != ".png":
         raise CommandError(f"--png: the image is a .png file, got {args.png!r}")
     return out
+
+
+def add_clip_apertures_argument(p) -> None:
+    """``--clip-apertures`` (shared by the commands that read a lens file)."""
+    p.add_argument("--clip-apertures", action="store_true",
+                   help="vignette at every surface's semi-diameter, as the lens's mounts do (a semi-diameter alone "
+                        "does not clip, as in OpticStudio: a fast camera lens off axis then passes rays outside its "
+                        "elements)")
 
 
 def add_edge_arguments(p) -> None:
@@ -109,7 +118,7 @@ def add_edge_arguments(p) -> None:
 def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 64, mode: str = "accurate",
                 rays: int | None = None, doe_pitch=None, doe_size=None, doe_distance=None, sensor_pitch=None,
                 oversample=None, doe_levels=None, doe_wavelength=None, doe_material=None, stop_edge=None,
-                edge_step=None, device: str = "cpu") -> dict:
+                edge_step=None, device: str = "cpu", clip_apertures: bool = False) -> dict:
     """The PSF of one point source through the hybrid lens of ``path`` and its metrics.
 
     Field angles in degrees (whatever the file's field type), ``depth`` object distance in mm (None: the lens
@@ -119,7 +128,8 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
     ``doe_levels`` / ``doe_wavelength`` / ``doe_material``: fabricate the DOE first (see the module docstring).
     ``stop_edge`` / ``edge_step``: the engine's stop edge (None: the default, the exit pupil with the adaptive step;
     "doe": the paper's model), see :class:`raywave.hybrid.HybridLens`. ``device``: where to compute (the result
-    is on the CPU)."""
+    is on the CPU). ``clip_apertures``: vignette at the surfaces' semi-diameters
+    (:func:`raywave.lens.build.clip_at_semi_diameters`)."""
     import torch
 
     from raywave.assembly.build import load_hybrid
@@ -129,7 +139,7 @@ def compute_psf(path, field=(0.0, 0.0), depth=None, wavelength=None, ks: int = 6
     wl_list = None if wavelength is None else [wavelength]
     hl = load_hybrid(path, doe_pitch, doe_size, doe_distance, sensor_pitch=sensor_pitch, oversample=oversample,
                      fields=[list(field), [0.0, 0.0]], wavelengths=wl_list, depth=depth, field_type="angle",
-                     stop_edge=stop_edge, edge_step=edge_step)
+                     stop_edge=stop_edge, edge_step=edge_step, clip_apertures=clip_apertures)
     if doe_levels is not None or doe_wavelength is not None or doe_material is not None:
         fabricate_doe(hl, doe_levels, doe_wavelength, doe_material)
     wl = hl.lens.primary_wavelength if wavelength is None else float(wavelength)
@@ -314,7 +324,7 @@ def cmd_psf(args) -> int:
             result = compute_psf(a["path"], a["field"], a["depth"], a["wavelength"], a["ks"], args.mode, a["rays"],
                                  a["doe_pitch"], a["doe_size"], a["doe_distance"], a["sensor_pitch"],
                                  a["oversample"], a["doe_levels"], a["doe_wavelength"], a["doe_material"],
-                                 a["stop_edge"], a["edge_step"], a["device"])
+                                 a["stop_edge"], a["edge_step"], a["device"], a["clip_apertures"])
             pbar.update(1)
         warn_crop(result["energy_outside"], a["ks"], f"the PSF of field ({a['field'][0]:g}, {a['field'][1]:g}) deg")
     report_warnings(caught)
@@ -377,6 +387,7 @@ def register(sub) -> None:
                    help="last vertex to DOE plane in mm (overrides the file's; default for a lens without a DOE: half "
                         "way to the sensor, or nearer the sensor where the beam would span over 2048 DOE pixels)")
     add_edge_arguments(p)
+    add_clip_apertures_argument(p)
     p.add_argument("--sensor-pitch", default=None, metavar="MM",
                    help="PSF pixel pitch in mm (default: the lens's sensor pixel pitch, else the DOE pitch)")
     p.add_argument("--oversample", default=None, metavar="Q",

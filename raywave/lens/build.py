@@ -258,18 +258,42 @@ class SurfaceDOEWarning(UserWarning):
     :func:`load_lens` leaves out: ``raywave.load_midsystem`` builds the lens with it."""
 
 
-def load_lens(path: str | Path, config: int | None = None) -> Lens:
+def clip_at_semi_diameters(spec: dict) -> dict:
+    """The lens spec ``spec`` with each surface's semi-diameter made a hard circular aperture, as a lens's mounts
+    and element rims vignette (OpticStudio's "convert semi-diameters to circular apertures"). A semi-diameter
+    alone does not clip (OpticStudio's convention, and raywave's): a fast camera lens's file then passes rays
+    outside its elements off axis, up to ~70° steep behind the lens, whose Nyquist pitch asks for a DOE grid of
+    terabytes. Surfaces that have an aperture (a stop, an obscuration), the stop (sized by the system aperture)
+    and coordinate breaks keep theirs; surfaces without a semi-diameter get none. Returns a new spec (``spec`` is
+    not changed); see :func:`load_lens` (``clip_apertures=True``)."""
+    out = dict(spec)
+    surfaces = []
+    for s in spec.get("surfaces", []):
+        sd = s.get("semi_diameter") if isinstance(s, dict) else None
+        if (isinstance(s, dict) and s.get("aperture") is None and not s.get("stop")
+                and s.get("type") != "coordinate_break" and isinstance(sd, (int, float)) and math.isfinite(sd)
+                and sd > 0):
+            s = dict(s, aperture={"shape": "circle", "radius": float(sd)})
+        surfaces.append(s)
+    out["surfaces"] = surfaces
+    return out
+
+
+def load_lens(path: str | Path, config: int | None = None, *, clip_apertures: bool = False) -> Lens:
     """Read any lens file raywave knows (.json raywave or DeepLens-style, .zmx), or a bundled lens by name
     (``"cooke_triplet"``, see :func:`bundled_lens_path`), into a :class:`Lens`.
 
     ``config``: the configuration of a multi-configuration .zmx file (1-based; default 1, reported in a warning).
-    A DOE placed at a surface (a surface's ``"doe"``, a ``.zmx`` BINARY_2 / DGRATING inside the lens) is not part of
-    the refractive lens: :class:`SurfaceDOEWarning` names the surfaces that carry one."""
+    ``clip_apertures``: vignette at every surface's semi-diameter (:func:`clip_at_semi_diameters`; default off, as
+    OpticStudio). A DOE placed at a surface (a surface's ``"doe"``, a ``.zmx`` BINARY_2 / DGRATING inside the lens)
+    is not part of the refractive lens: :class:`SurfaceDOEWarning` names the surfaces that carry one."""
     from raywave.io import read_lens_spec
     from raywave.io.errors import with_location
 
     path = resolve_lens_path(path)
     spec = read_lens_spec(path) if config is None else read_lens_spec(path, config=config)
+    if clip_apertures:
+        spec = clip_at_semi_diameters(spec)
     try:
         lens = lens_from_spec(spec)
     except ValueError as err:  # a spec that validates but builds no lens: name the file

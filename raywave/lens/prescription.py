@@ -65,6 +65,21 @@ def _terms(surface) -> dict:
     return out
 
 
+def rays_beyond_semi_diameters(lens, tol: float = 1e-3) -> list[tuple[int, float, float]]:
+    """The surfaces whose semi-diameter (without an aperture of their own: it does not clip) the lens's own fields'
+    rim rays pass beyond by more than ``tol`` of it: ``[(surface index, largest ray height mm, semi-diameter mm)]``
+    (:func:`_ray_heights`, the primary wavelength; empty where none does or the trace fails)."""
+    heights = _ray_heights(lens, lens.primary_wavelength)
+    if heights is None:
+        return []
+    out = []
+    for i, (s, h) in enumerate(zip(lens.surfaces, heights)):
+        sd = s.semi_diameter
+        if s.aperture is None and sd is not None and math.isfinite(sd) and sd > 0 and h > sd * (1 + tol):
+            out.append((i, float(h), float(sd)))
+    return out
+
+
 def _ray_heights(lens, wavelength=None) -> list[float] | None:
     """Largest ray height (mm, in each surface's own frame) per surface of the lens's fields (along y, and on
     axis) at every wavelength through the full pupil rim (aimed rays, without autograd); None when the trace
