@@ -136,3 +136,45 @@ def test_psf_with_clip_apertures_of_a_lens_whose_beams_fit_them():
     assert radii == [1.0, 3.0, 3.5]
     assert [s.aperture is None for s in plain["hybrid"].lens.surfaces] == [False, True, True]
     assert abs(clear["psf"] - plain["psf"]).max() == 0.0
+
+
+def _asphere_with_semi_diameters(tmp_path, sd: float) -> Path:
+    """The bundled hybrid asphere's file with its two lens surfaces' semi-diameters set to ``sd`` mm."""
+    import json
+
+    from raywave.lens.build import bundled_lens_path
+
+    spec = json.loads(bundled_lens_path("hybrid_asphere").read_text())
+    for s in spec["surfaces"]:
+        if "semi_diameter" in s:
+            s["semi_diameter"] = sd
+    out = tmp_path / "asphere.json"
+    out.write_text(json.dumps(spec))
+    for name in ("doe_phase.npy",):  # the DOE's phase file, if the bundled lens names one beside it
+        src = bundled_lens_path("hybrid_asphere").parent / name
+        if src.exists():
+            (tmp_path / name).write_bytes(src.read_bytes())
+    return out
+
+
+def test_apertures_at_the_beams_rim_leave_the_on_axis_psf_unchanged(tmp_path):
+    """Clipping apertures raised to the on-axis beam's rim (semi-diameters of 0.1 mm, far inside the beam): on axis
+    they block no ray, and the default PSF (exit-pupil edge) is the PSF without them bit for bit; before, the edge's
+    ripple band, built on virtual rays past the stop's rim, was cut at them. Off axis (14°) they vignette the
+    beam: less power reaches the DOE."""
+    from raywave.assembly.build import load_hybrid
+
+    path = _asphere_with_semi_diameters(tmp_path, 0.1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plain = load_hybrid(path)
+        clipped = load_hybrid(path, clip_apertures=True)
+        radii = [float(s.aperture.radius) for s in clipped.lens.surfaces[1:]]
+        assert radii == pytest.approx([1.0, 0.4676], abs=1e-3)  # raised to the on-axis beam's rim, not 0.1 mm
+        with torch.no_grad():
+            a = plain.psf((0.0, 0.0), 0.53, ks=32)
+            b = clipped.psf((0.0, 0.0), 0.53, ks=32)
+            pa = plain.doe_fields((0.0, 14.0), [0.53])[0][0].power
+            pb = clipped.doe_fields((0.0, 14.0), [0.53])[0][0].power
+    assert torch.equal(a, b)
+    assert float(pb) < 0.95 * float(pa)

@@ -80,17 +80,18 @@ def rays_beyond_semi_diameters(lens, tol: float = 1e-3) -> list[tuple[int, float
     return out
 
 
-def _ray_heights(lens, wavelength=None) -> list[float] | None:
+def _ray_heights(lens, wavelength=None, fields=None) -> list[float] | None:
     """Largest ray height (mm, in each surface's own frame) per surface of the lens's fields (along y, and on
-    axis) at every wavelength through the full pupil rim (aimed rays, without autograd); None when the trace
-    fails (e.g. a lens whose field cannot be aimed) and for a folded lens (its record is in global coordinates)."""
+    axis; ``fields``: these y fields instead) at every wavelength through the full pupil rim (aimed rays, without
+    autograd); None when the trace fails (e.g. a lens whose field cannot be aimed) and for a folded lens (its
+    record is in global coordinates)."""
     if lens.is_folded:
         return None
     from raywave.lens.sources import VignettingWarning, point_source_rays
 
     t = torch.linspace(0, 2 * math.pi, _RIM_SAMPLES + 1, dtype=torch.float64, device=lens.device)[:-1]
     px, py = torch.cat([t.new_zeros(1), torch.cos(t)]), torch.cat([t.new_zeros(1), torch.sin(t)])
-    fields = sorted({0.0, *(float(f) for f in lens.fields)})
+    fields = sorted({0.0, *(float(f) for f in lens.fields)} if fields is None else {float(f) for f in fields})
     pts = torch.tensor([[0.0, f] for f in fields], dtype=torch.float64, device=lens.device)
     wls = lens.wavelengths if wavelength is None else [float(wavelength)]
     try:
