@@ -587,26 +587,36 @@ def _node_maps(b: _Build, nd: _Nodes, traced: tuple, is_stop, diffracting) -> di
     phi_env = phi_g - phi_g[ky // 2, kx // 2].detach() - n * (carrier[0] * nd.tx + carrier[1] * nd.ty)
     maps = {"phi_env": phi_env, "amp2": w0_g * det.abs() / gamma_g, "det": det, "slopes": grid[5 + len(slacks):],
             "phi": phi_g}
-    maps.update(_edge_distances(grid[5:5 + len(slacks)], is_stop, diffracting, nd.h))
+    maps.update(_edge_distances(grid[5:5 + len(slacks)], is_stop, diffracting, nd.h, ACTING_TOLERANCE * b.p))
     if maps["dist"] is None:  # no aperture at all: far from every edge
         maps["dist"] = torch.full_like(phi_g, 3.0 * nd.h)
     return maps
 
 
-def _acting(dj: torch.Tensor, s_stop: torch.Tensor) -> torch.Tensor:
-    """The non-stop apertures' distances ``dj`` (..., A, ky, kx) with those that block none of the source's real
-    rays (every node ray inside the stop, ``s_stop`` (..., ky, kx) > 0, passes them) set to +inf: such an aperture
-    lies at or beyond the beam's rim everywhere (an element's clear aperture, ``load_lens(...,
-    clip_apertures=True)``), and is no edge of this beam. The exit-pupil edge builds its ripple band from virtual
-    node rays past the stop's rim, and an aperture that they pass outside cut the band, though it blocks no light
-    (6.8e-2 of the Nikkor 50 mm F/1.4's on-axis PSF with apertures at the beam's rim; now bit for bit the PSF
-    without them). An aperture that vignettes the beam keeps cutting as before, the band included."""
-    real = (s_stop > 0).unsqueeze(-3)
-    blocks = ((dj < 0) & real).flatten(-2).any(-1)[..., None, None]  # (..., A, 1, 1)
+#: :func:`_acting`: an aperture's edge within this many simulation pitches of the stop's edge (inside the beam)
+#: counts as the stop's edge itself (the two distances' first-order estimates differ by less near the rim)
+ACTING_TOLERANCE = 2.0
+
+
+def _acting(dj: torch.Tensor, s_stop: torch.Tensor, lim, tol) -> torch.Tensor:
+    """The non-stop apertures' distances ``dj`` (..., A, ky, kx) (plane mm) with those that vignette none of the
+    source's real rays set to +inf. A real ray's node lies inside the stop (``s_stop`` (..., ky, kx) > 0); an
+    aperture vignettes where such a node is outside it (``dj < 0``) or, within ``lim`` of the stop's edge, nearer to
+    its edge than to the stop's by more than ``tol`` (its edge then lies inside the beam's rim: a sliver thinner
+    than the node spacing). An aperture that contains the beam (an element's clear aperture at or beyond the beam's
+    rim, ``load_lens(..., clip_apertures=True)``) is no edge of it. The exit-pupil edge builds its ripple band from
+    virtual node rays past the stop's rim, and such an aperture cut the band where those rays passed outside it,
+    though it blocks no light (on axis 2.2e-2 of the bundled asphere's PSF, 6.8e-2 of the Nikkor 50 mm F/1.4's,
+    with apertures at the beam's rim; now bit for bit the PSF without them). An aperture that vignettes the beam
+    cuts as before, the band included."""
+    s = s_stop.unsqueeze(-3)
+    real = s > 0
+    inside = (dj < 0) | ((dj < s - tol) & (s < lim))
+    blocks = (inside & real).flatten(-2).any(-1)[..., None, None]  # (..., A, 1, 1)
     return torch.where(blocks, dj, torch.full_like(dj, math.inf))
 
 
-def _edge_distances(slack_maps, is_stop, diffracting: bool, h_node: float) -> dict:
+def _edge_distances(slack_maps, is_stop, diffracting: bool, h_node: float, tol: float = 0.0) -> dict:
     """Distance (plane mm) to the nearest aperture edge, ``slack / |∇_x slack|``, clamped to ±3h (only the
     distance near an edge matters; clamping keeps the cubic interpolation from ringing where the slack has a kink,
     a circular aperture's centre, or far from any edge); with ``diffracting`` the stop's edge apart (``stop``:
@@ -638,7 +648,7 @@ def _edge_distances(slack_maps, is_stop, diffracting: bool, h_node: float) -> di
             gn_l = torch.where(ok, safe_sqrt(n2, ok), torch.full_like(n2, 1e-12))
             stop = (sl / gn_l, gx_l / gn_l, gy_l / gn_l)
         if others:
-            other = (dj[others] if stop is None else _acting(dj[others], stop[0])).amin(0)
+            other = (dj[others] if stop is None else _acting(dj[others], stop[0], 3.0 * h_node, tol)).amin(0)
     lim = 3.0 * h_node
     return {"dist": dist.clamp(-lim, lim), "stop": stop, "other": None if other is None else other.clamp(-lim, lim)}
 
@@ -1037,8 +1047,9 @@ def _batch_node_maps(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict,
     the node positions mm, ``center`` (B,) the flat index of each grid's centre node and (diffracting)
     ``slope_grads`` the y and x differences of the slopes ``t_x/γ, t_y/γ`` ((B, 2, KY, KX) each)."""
     is_stop, diffracting = roles
-    c = _batch_scalars(reqs, lambda r: [r.b.n, r.b.carrier[0], r.b.carrier[1], 3.0 * r.nd.h])[:, :, None, None]
-    n, c0, c1, lim = c.unbind(1)
+    c = _batch_scalars(reqs, lambda r: [r.b.n, r.b.carrier[0], r.b.carrier[1], 3.0 * r.nd.h,
+                                        ACTING_TOLERANCE * r.b.p])[:, :, None, None]
+    n, c0, c1, lim, tol = c.unbind(1)
     dev = grid.device
     bsz, _, ky_max, kx_max = grid.shape
     ch = grid.unbind(1)
@@ -1081,7 +1092,7 @@ def _batch_node_maps(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict,
         stop = (dj[:, j], gx_[:, j] / den[:, j], gy_[:, j] / den[:, j])
         others = [k for k, s_ in enumerate(is_stop) if not s_]
         if others:
-            other = _acting(dj[:, others], stop[0]).amin(1)
+            other = _acting(dj[:, others], stop[0], lim[:, None], tol[:, None]).amin(1)
     maps.update(dist=dist.clamp(-lim, lim), stop=stop, other=None if other is None else other.clamp(-lim, lim))
     return maps
 
