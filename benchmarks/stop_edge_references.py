@@ -84,8 +84,7 @@ VARIANTS = {"default": {}, "fresnel": {"edge_step": "fresnel"}, "asm": {"edge_st
             "doe": {"stop_edge": "doe"}, "default_iu8": {"intensity_upsample": 8},
             "doe_iu8": {"stop_edge": "doe", "intensity_upsample": 8}}
 #: lens kinds of ``--pick``: (path regex relative to the database root, F-number range (lo, hi], focal range mm or
-#: None);
-#: a zoom is named by a focal range ("24-70mm"), a prime by its absence
+#: None); a zoom is named by a focal range ("24-70mm"), a prime by its absence
 _ZOOM = r"\d+(?:\.\d+)?\s*-\s*\d+(?:\.\d+)?\s*mm"
 KINDS = {
     "slow camera prime (F/4 - F/8)": (rf"^Photography/(?!.*{_ZOOM})", (4.0, 8.0), (35.0, 150.0)),
