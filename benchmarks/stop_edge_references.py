@@ -13,8 +13,9 @@ References:
   level's change).
 - ``file:PATH:FRAC[:PITCH_UM]`` (issue 47, h47c: any lens file, e.g. of the OpticExplorer database in
   ../shared/data/opticsdatabase, through ``raywave psf``'s defaults and its blank DOE, as ``real:``; ``FRAC`` a
-  fraction of the file's largest field or ``NNdeg`` an angle, for files with only an on-axis field such as a
-  catalogue achromat; ``PITCH_UM`` the sensor pitch, default the DOE pitch): the same Huygens reference. Each row
+  fraction of the file's largest field, in its own field type (an angle, or since h47v an object height for a
+  finite object) or ``NNdeg`` an angle, for files with only an on-axis field such as a catalogue achromat;
+  ``PITCH_UM`` the sensor pitch, default the DOE pitch): the same Huygens reference. Each row
   also names the step the default took (``step``: "doe cut", "fresnel" or "caustic fallback", :func:`default_step`)
   and the lens's F-number. ``--tol`` sets the reference's level agreement (1e-6: ~1e-10 once resolved).
 - ``two_lens:DEG`` (tests/test_ideal_lens_truth.py's two ideal lenses, a blank DOE 5 mm behind lens B) and
@@ -36,14 +37,27 @@ the paper's edge), and ``*_iu8`` (the same with ``intensity_upsample=8``: the se
 4 leaves ~1e-3 on a PSF as sharp as the DOE grid allows, e.g. the F/1.3 asphere at its 0.56 µm Nyquist pitch).
 ``--cache DIR`` keeps the references (torch files) so that a sweep can be resumed.
 
+``--pick ROOT [--seed S]`` (h47v) runs nothing: it prints a seeded pick of lens files from a database folder (e.g.
+the OpticExplorer database extracted from ../shared/data/opticsdatabase/optics.tar.gz), one per kind of
+:data:`KINDS` (:func:`pick_lens_files`): each kind's candidates in a ``random.Random(S)`` order, the first that
+loads, has a finite focal length, its kind's F-number and focal ranges (camera lenses F > 2: faster ones off axis
+are refused for memory) and is not among the lenses already tested (:data:`TESTED`); the files passed over are
+listed with their reasons. ``--doe-distance MM`` (h47v): a file case's blank DOE on that plane instead of the
+default rule's (a plane scan at a fixed ``PITCH_UM``; the cached reference is reused).
+
     PYTHONPATH=. python benchmarks/stop_edge_references.py real:double_gauss:0 asphere:0 two_lens:0 single:blank \
         [--variants default doe] [--max-n 432] [--cache DIR] [-o F]
     PYTHONPATH=. python benchmarks/stop_edge_references.py "file:/tmp/db/Optics/.../Lens.zmx:0.7:3" \
         --variants default doe --sphere rim_images --max-n 1024 --tol 1e-6 --cache DIR
+    PYTHONPATH=. python benchmarks/stop_edge_references.py --pick /tmp/db/Optics --seed 47
 """
 
 import argparse
+import json
 import math
+import os
+import random
+import re
 import sys
 import time
 import warnings
@@ -54,6 +68,7 @@ import torch
 from _report import emit_row  # noqa: E402  (benchmarks/ is on sys.path)
 
 from raywave.lens.sources import entrance_plane_z, point_source_rays, source_weight
+from raywave.utils.errors import MEMORY_LIMIT_ENV
 
 ROOT = Path(__file__).resolve().parents[1]
 LENSES = {
@@ -68,8 +83,65 @@ PITCH = {("asphere_f13", 0.7): 3e-3, ("asphere_f13", 1.0): 3e-3, ("double_gauss"
 VARIANTS = {"default": {}, "fresnel": {"edge_step": "fresnel"}, "asm": {"edge_step": "asm"},
             "doe": {"stop_edge": "doe"}, "default_iu8": {"intensity_upsample": 8},
             "doe_iu8": {"stop_edge": "doe", "intensity_upsample": 8}}
+#: lens kinds of ``--pick``: (path regex relative to the database root, F-number range (lo, hi], focal range mm or
+#: None); a zoom is named by a focal range ("24-70mm"), a prime by its absence
+_ZOOM = r"\d+(?:\.\d+)?\s*-\s*\d+(?:\.\d+)?\s*mm"
+KINDS = {
+    "slow camera prime (F/4 - F/8)": (rf"^Photography/(?!.*{_ZOOM})", (4.0, 8.0), (35.0, 150.0)),
+    "wide-angle prime (f <= 28 mm)": (rf"^Photography/(?!.*{_ZOOM})(?!.*(?i:fisheye))", (2.0, 11.0), (0.0, 28.0)),
+    "long telephoto (f >= 200 mm)": (rf"^Photography/(?!.*{_ZOOM})", (2.0, 11.0), (200.0, 2000.0)),
+    "zoom": (rf"^Photography/.*{_ZOOM}", (2.0, 11.0), None),
+    "triplet / Heliar / Tessar variant": (r"(?i)(heliar|triplet|tessar|cooke|taylor)(?!.*\d-\d)", (2.0, 16.0), None),
+    "eyepiece": (r"^Astronomy/Eyepieces/", (0.0, 100.0), None),
+    "telescope objective": (r"^Astronomy/Objectives/", (2.0, 30.0), None),
+    "catalogue doublet": (r"^(Achromats/|Components/.*Doublet)", (2.0, 30.0), None),
+    "microscope objective": (r"^Microscopy/", (0.0, 100.0), None),
+    "telecentric": (r"^Illumination/Telecentric", (0.0, 100.0), None),
+}
+#: lens files already compared with the converged reference (tests/test_stop_edge_{other,real}_lenses.py)
+TESTED = ("Zeiss Tessar f2.8 50mm", "Zeiss Planar 2.880", "Tele-Dynar 100mm f6.3", "Telescope Fraunhofer",
+          "cooke_triplet", "double_gauss", "singlet_nbk7_50", "asphere_f13")
 SINGLE = {"binary": "binary", "16level": "16-level at 0.45 µm", "fresnel200": "Fresnel, object at 200 mm",
           "blank": "blank"}
+
+
+def pick_lens_files(root: Path, seed: int) -> dict:
+    """One lens file per kind of :data:`KINDS` under ``root`` (``.zmx`` / ``.seq``), in a ``random.Random(seed)``
+    order of each kind's candidates (sorted paths): the first that loads, has a positive finite focal length, an
+    F-number and a focal length in the kind's ranges, and is not in :data:`TESTED` or picked for an earlier kind.
+    Returns ``{"seed", "root", "kinds": {kind: {"file", "f_number", "efl", "fields", "field_type", "candidates",
+    "passed_over": [[file, reason], ...]}}}``."""
+    from raywave.lens.build import load_lens
+
+    files = sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.suffix.lower() in (".zmx", ".seq"))
+    rng, out, taken = random.Random(seed), {}, set()
+    for kind, (pattern, (f_lo, f_hi), efl_range) in KINDS.items():
+        cands = [f for f in files if re.search(pattern, f) and f not in taken and not any(t in f for t in TESTED)]
+        rng.shuffle(cands)
+        row = {"file": None, "candidates": len(cands), "passed_over": []}
+        for rel in cands:
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    lens = load_lens(root / rel)
+                    par = lens.paraxial()
+                    efl, fno = float(par.efl), float(par.efl) / float(par.epd)
+            except Exception as err:  # a refusal is a reason to pass over
+                row["passed_over"].append([rel, f"refused: {type(err).__name__}: {str(err)[:80]}"])
+                continue
+            reason = ("afocal or virtual image" if not (math.isfinite(efl) and efl > 0) else
+                      f"F/{fno:.2f} outside ({f_lo:g}, {f_hi:g}]" if not f_lo < fno <= f_hi else
+                      f"f {efl:.1f} mm outside {efl_range}" if efl_range and not efl_range[0] <= efl <= efl_range[1]
+                      else None)
+            if reason is not None:
+                row["passed_over"].append([rel, reason])
+                continue
+            taken.add(rel)
+            row.update(file=rel, f_number=round(fno, 3), efl=round(efl, 3),
+                       fields=[round(float(f), 4) for f in lens.fields], field_type=lens.field_type)
+            break
+        out[kind] = row
+    return {"seed": seed, "root": str(root), "kinds": out}
 
 
 def l1(a, b) -> float:
@@ -93,12 +165,13 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def _field_angle(frac: str, lens) -> float:
-    """The field angle (degrees) of a case's ``FRAC``: a fraction of the lens's largest field, or ``"2deg"``: an
-    angle (for a lens file with only an on-axis field, e.g. a catalogue achromat)."""
+def _field_value(frac: str, lens) -> tuple:
+    """``(field value, field type)`` of a case's ``FRAC``: a fraction of the lens's largest field in the file's own
+    field type (degrees, or mm of object height for a finite object), or ``"2deg"``: an angle (for a lens file with
+    only an on-axis field, e.g. a catalogue achromat)."""
     if frac.endswith("deg"):
-        return float(frac[:-3])
-    return float(frac) * max(float(f) for f in lens.fields)
+        return float(frac[:-3]), "angle"
+    return float(frac) * max(abs(float(f)) for f in lens.fields), lens.field_type
 
 
 def _case_tag(case: str) -> str:
@@ -151,10 +224,11 @@ def _hybrid(case: str, kw: dict):
         else:
             path, frac, pitch = _file_case(rest)
         lens = load_lens(resolve_lens_path(path))
-        fld = (0.0, _field_angle(frac, lens))
+        value, field_type = _field_value(frac, lens)
+        fld = (0.0, value)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            hl = load_hybrid(path, sensor_pitch=pitch, fields=[list(fld), [0.0, 0.0]], field_type="angle", **kw)
+            hl = load_hybrid(path, sensor_pitch=pitch, fields=[list(fld), [0.0, 0.0]], field_type=field_type, **kw)
         hl.intensity_upsample = iu
         return hl, fld, hl.lens.primary_wavelength, None
     sys.path.insert(0, str(ROOT / "tests"))
@@ -171,11 +245,19 @@ def _hybrid(case: str, kw: dict):
     return hl, (0.0, 0.0), wl, depth
 
 
-def engine_psfs(case: str, ks: int, variants):
-    """``({variant: (psf (ks, ks), seconds, warnings) or an error string}, (hybrid, field, λ, depth, centre))``."""
+def engine_psfs(case: str, ks: int, variants, doe_distance: float | None = None):
+    """``({variant: (psf (ks, ks), seconds, warnings, step, DOE plane) or an error string}, (hybrid, field, λ,
+    depth, centre))``; the DOE plane: ``{"doe_distance": mm after the last vertex, "distance_rule": the rule that
+    placed a default blank DOE (raywave.assembly.build)}``; ``doe_distance``: a file case's DOE plane (mm after the
+    last vertex) instead of the default rule's."""
     out, geo = {}, None
     for v in variants:
-        hl, fld, wl, depth = _hybrid(case, VARIANTS[v])
+        try:
+            extra = {} if doe_distance is None else {"doe_distance": doe_distance}
+            hl, fld, wl, depth = _hybrid(case, {**VARIANTS[v], **extra})
+        except ValueError as e:  # a refusal on load (e.g. a MemoryLimitError of the default DOE's grid)
+            out[v] = f"{type(e).__name__}: {str(e)[:200]}"
+            continue
         t = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -189,7 +271,9 @@ def engine_psfs(case: str, ks: int, variants):
         out[v] = (r.psf[0, 0].detach(), dt,
                   sorted({f"{w.category.__name__}: {str(w.message)[:100]}" for w in caught
                           if w.category.__name__ != "SensorCropWarning"}),
-                  default_step(hl, fld, wl, depth, [str(w.message) for w in caught]))
+                  default_step(hl, fld, wl, depth, [str(w.message) for w in caught]),
+                  dict(doe_distance=hl.doe_distance,
+                       distance_rule=(getattr(hl, "doe_info", None) or {}).get("distance_rule")))
         geo = (hl, fld, wl, depth, tuple(float(c) for c in r.center[0, 0]))
     return out, geo
 
@@ -304,26 +388,35 @@ def reference(case: str, geo, ks: int, max_n: int, cache: Path | None, sphere: s
     return psf, row
 
 
-def run(case: str, ks: int, variants, max_n: int, cache, sphere: str = "paraxial", tol: float | None = None):
-    eng, geo = engine_psfs(case, ks, variants)
+def run(case: str, ks: int, variants, max_n: int, cache, sphere: str = "paraxial", tol: float | None = None,
+        doe_distance: float | None = None):
+    eng, geo = engine_psfs(case, ks, variants, doe_distance)
+    limit = {"memory_limit": os.environ.get(MEMORY_LIMIT_ENV)}  # (the engine's refusals depend on it)
     if geo is None:
-        return dict(case=case, error={v: r for v, r in eng.items()})
-    ref, row = reference(case, geo, ks, max_n, cache, sphere, tol)
+        return dict(case=case, error={v: r for v, r in eng.items()}, **limit)
+    try:
+        ref, row = reference(case, geo, ks, max_n, cache, sphere, tol)
+    except ValueError as e:  # e.g. no stop-rim images for sphere="rim_images" (a rim ray that fails off axis)
+        ref, row = None, dict(reference_error=str(e)[:200])
     row["sphere"] = sphere
     hl, fld, wl, depth, center = geo
     res = dict(case=case, ks=ks, field=list(fld), wavelength=wl, depth=depth, pitch=hl.sensor_pitch,
-               doe_distance=hl.doe_distance, doe_pitch=float(hl.doe.pitch), **row)
+               doe_distance=hl.doe_distance, doe_pitch=float(hl.doe.pitch), **limit, **row)
     if case.startswith("file:"):
         par = hl.lens.paraxial()
         res["f_number"] = float(par.efl) / float(par.epd)
     for v, r in eng.items():
-        res[v] = r if isinstance(r, str) else dict(l1=l1(r[0], ref), time_s=r[1], step=r[3], warnings=r[2])
+        res[v] = r if isinstance(r, str) else dict(l1=None if ref is None else l1(r[0], ref), time_s=r[1], step=r[3],
+                                                   warnings=r[2], **r[4])
     return res
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("cases", nargs="+")
+    ap.add_argument("cases", nargs="*")
+    ap.add_argument("--pick", type=Path, default=None, help="print a seeded pick of lens files from this folder, "
+                    "one per kind (pick_lens_files), and run nothing")
+    ap.add_argument("--seed", type=int, default=47, help="--pick's seed")
     ap.add_argument("--ks", type=int, default=32)
     ap.add_argument("--max-n", type=int, default=432, help="the Huygens reference's finest pupil grid")
     ap.add_argument("--variants", nargs="+", default=["default", "fresnel", "asm", "doe", "default_iu8"])
@@ -331,15 +424,27 @@ def main(argv=None):
     ap.add_argument("--sphere", type=_sphere_kind, default="paraxial",
                     help="the Huygens reference's edge: 'paraxial' (on the sphere through the paraxial exit pupil), "
                          "'rim_images' (at the stop rim's images) or a sphere radius in mm")
+    ap.add_argument("--doe-distance", type=float, default=None,
+                    help="file cases with PITCH_UM only: the blank DOE's plane (mm after the last vertex) instead "
+                         "of the default rule's (a plane scan; the reference, which does not depend on it, is reused)")
     ap.add_argument("--tol", type=float, default=None,
                     help="the Huygens reference's levels must agree to this (default: huygens_psf's AUTO_TOL, 2e-4)")
     ap.add_argument("-o", "--output")
     a = ap.parse_args(argv)
+    if a.pick is not None:
+        picked = pick_lens_files(a.pick, a.seed)
+        print(json.dumps(picked, indent=1))
+        return picked
+    if not a.cases:
+        ap.error("give cases (or --pick ROOT)")
+    if a.doe_distance is not None and not all(c.startswith("file:") and _file_case(c.split(":")[1:])[2] is not None
+                                               for c in a.cases):
+        ap.error("--doe-distance: file:PATH:FRAC:PITCH_UM cases only (the sensor pitch must not follow the DOE's)")
     if a.cache is not None:
         a.cache.mkdir(parents=True, exist_ok=True)
     rows = []
     for c in a.cases:
-        r = run(c, a.ks, a.variants, a.max_n, a.cache, a.sphere, a.tol)
+        r = run(c, a.ks, a.variants, a.max_n, a.cache, a.sphere, a.tol, a.doe_distance)
         emit_row(rows, r, a.output)
     return rows
 

@@ -7,7 +7,9 @@ agreeing to 1e-6), the reference's own error beside the figure. Slow (the refere
 The sweep behind it (h47c, 2026-11-29; ``benchmarks/stop_edge_references.py "file:PATH:FRAC[:PITCH_UM]" --sphere
 rim_images --tol 1e-6``, benchmarks/results/stop_edge_other_lenses_2026-11-29_xv_h47c.json, docs/ray-wave.md
 "Other lens classes") covers a Tessar, a telephoto, a Planar, an air-spaced achromat objective and a catalogue
-cemented achromat; the cases that hold are pinned here, the others are described there.
+cemented achromat; the cases that hold are pinned here, the others are described there. Session xxiv's seeded
+pick (h47v, ``--pick``: a slow wide angle, a telescope objective, a telecentric lens with a finite object, and seven
+more, benchmarks/results/stop_edge_new_lenses_2026-11-30_xxiv_h47v.json) adds three that hold with a margin.
 """
 
 import warnings
@@ -22,8 +24,9 @@ REF_TOL = 1e-5
 
 
 def _default_and_reference(path: Path, frac: float, pitch: float | None):
-    """``(default psf (32, 32), Huygens result)`` at ``frac`` of the file's largest field (an angle), primary
-    wavelength, ks 32, as the benchmark's ``file:`` cases."""
+    """``(default psf (32, 32), Huygens result)`` at ``frac`` of the file's largest field (in its own field type: an
+    angle, or an object height for a finite object), primary wavelength, ks 32, as the benchmark's ``file:``
+    cases."""
     from raywave.assembly.build import load_hybrid
     from raywave.lens.build import load_lens
     from raywave.models.exit_pupil import huygens_psf
@@ -31,8 +34,8 @@ def _default_and_reference(path: Path, frac: float, pitch: float | None):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         lens = load_lens(path)
-        fld = (0.0, frac * max(float(f) for f in lens.fields))
-        hl = load_hybrid(path, sensor_pitch=pitch, fields=[list(fld), [0.0, 0.0]], field_type="angle")
+        fld = (0.0, frac * max(abs(float(f)) for f in lens.fields))
+        hl = load_hybrid(path, sensor_pitch=pitch, fields=[list(fld), [0.0, 0.0]], field_type=lens.field_type)
         wl = hl.lens.primary_wavelength
         with torch.no_grad():
             r = hl.psf_result(fld, wl, ks=32)
@@ -47,6 +50,9 @@ CASES = {
     "telephoto": ("Cosina Voigtlander Tele-Dynar 100mm f6.3.zmx", 0.7, 3e-3),
     "achromat": ("Telescope Fraunhofer.zmx", 1.0, None),
     "tessar_on_axis": ("Zeiss Tessar f2.8 50mm.zmx", 0.0, None),
+    "wide_angle_on_axis": ("Fujifilm Fujinon-SW 65mm F5.6.zmx", 0.0, None),
+    "steinheil": ("Telescope Steinheil.zmx", 1.0, None),
+    "telecentric_on_axis": ("Telecentric USP4929066.zmx", 0.0, None),
 }
 
 
@@ -59,7 +65,13 @@ def test_default_psf_of_other_lens_classes_within_1e_3_of_the_converged_referenc
     DOE pitch as the pixels: 3.91e-4 (the Fresnel step; own error 5.4e-10; the DOE-plane edge 6.7e-4); the Zeiss
     Tessar 50 mm F/2.8 on axis: 4.42e-4 (2026-11-30 xxiii; own error 8.2e-11; 4.0e-4 – 5.0e-4 with the DOE 5.7 –
     23 mm before focus; 2.75e-3 in h47c's sweep and at bc9381a, 4.63e-4 at 11a3346 on the same plane: fixed by session
-    xxii's changes to the Fresnel step)."""
+    xxii's changes to the Fresnel step). Since 2026-11-30 (xxiv, h47v: a seeded pick of lens kinds the tests lacked,
+    benchmarks/results/stop_edge_new_lenses_2026-11-30_xxiv_h47v.json): the Fujinon-SW 65 mm F/5.6 (a 6×9 wide
+    angle, 38° field) on axis: 5.70e-5 (the Fresnel step on the half-way plane; own error 1.9e-10; the DOE-plane
+    edge 3.9e-3); the Steinheil telescope objective (100 mm F/7, 0.57°) at full field: 4.04e-4 (own error 5.2e-10;
+    the DOE-plane edge 6.8e-4); the telecentric lens of US 4,929,066 (F/4.5, a finite object, image-space
+    telecentric: the default falls back to the DOE-plane edge with a StopEdgeWarning) on axis: 4.28e-4 (own error
+    5.6e-9)."""
     fname, frac, pitch = CASES[name]
     psf, ref = _default_and_reference(DATA / fname, frac, pitch)
     err = float((psf - ref.psf).abs().sum())
