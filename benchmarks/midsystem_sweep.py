@@ -124,6 +124,7 @@ CASES = dict([
           conv=True),
     _case("conformal_R10_f50_y1.5", "conformal", (0.0, 1.5), f_design=50.0, doe_radius=10.0),
 ])
+XP_FRESNEL = {"stop_edge": "exit_pupil", "edge_step": "fresnel"}
 #: name → (period mm, wavelength µm, DOE pixels a side, pitch mm, final plane size mm): the test's 100 µm grating has
 #: 1000 pixels of 12 µm (8.3 a period); the final plane holds orders ±1 (deflected by λ/Λ, ~EFL·λ/Λ on the sensor)
 GRATINGS = {"grating_50um_0.65": (0.05, 0.65, 2400, 0.005, 2.0), "grating_200um_0.55": (0.2, 0.55, 1000, 0.012, 1.0),
@@ -134,6 +135,10 @@ GRATINGS = {"grating_50um_0.65": (0.05, 0.65, 2400, 0.005, 2.0), "grating_200um_
             "grating_25um_0.45_fd40": (0.025, 0.45, 2400, 0.005, 2.4, 40.0),
             "grating_50um_0.45_fd40": (0.05, 0.45, 2400, 0.005, 1.6, 40.0),
             "grating_100um_0.45_fd40": (0.1, 0.45, 1000, 0.012, 0.8, 40.0),
+            # the test's plane (41.5 mm) with the exit-pupil edge (the Fresnel step: the exact one's lattice is too big)
+            "grating_50um_0.65_xp": (0.05, 0.65, 2400, 0.005, 2.0, 41.5, XP_FRESNEL),
+            "grating_25um_0.45_xp": (0.025, 0.45, 2400, 0.005, 2.4, 41.5, XP_FRESNEL),
+            "grating_100um_0.45_xp": (0.1, 0.45, 1000, 0.012, 0.8, 41.5, XP_FRESNEL),
             "grating_20um_0.55_undersampled": (0.02, 0.55, 1000, 0.012, 0.8)}
 COARSE = ["fresnel_x1.5", "fresnel_diag1.5", "fresnel_y3", "blank_diag3", "fresnel_fA20_y1.5", "fresnel_F8_y1.5",
           "fresnel_nearA_y1.5", "fresnel_nearB_y1.5", "fresnel_0.45_y1.5", "fresnel_0.65_x1.5", "fresnel_f200_y1.5",
@@ -252,7 +257,7 @@ def diagnose_orders(name: str, subsets, edges=("asm_weak_doe",)) -> list:
 
 
 def run_grating(name: str, period: float, wl: float, n: int, pitch: float, final_size: float,
-                final_distance: float = 41.5) -> dict:
+                final_distance: float = 41.5, edge: dict | None = None) -> dict:
     """The grating in the Cooke triplet (tests/test_midsystem_grating.py's checks) at another period / wavelength:
     order angles against the grating equation (max |Δθ| rad, on axis and at (3°, 5°)), each order's efficiency
     against the staircase formula."""
@@ -271,8 +276,9 @@ def run_grating(name: str, period: float, wl: float, n: int, pitch: float, final
         sampling = json.loads(json.dumps(sampling, default=str))
     except ValueError as exc:
         sampling = {"refused": str(exc)[:300]}
+    edge = dict(edge or {})
     ml = MidSystemLens(lens, doe, after, dist, final_distance=final_distance, final_size=final_size, final_pitch=1e-3,
-                       sensor_pitch=2e-3, min_efficiency=0.05)
+                       sensor_pitch=2e-3, min_efficiency=0.05, **edge)
     t0 = time.process_time()
     orders = ml.orders(wl)
     lam_mm = wl * 1e-3
@@ -290,7 +296,8 @@ def run_grating(name: str, period: float, wl: float, n: int, pitch: float, final
             err_y = float((d2[:, 1] - d1[:, 1]).abs().max().detach())
             angle_err[f"{field}:{round(scale)}"] = [err, err_y, bool(after_.valid.all())]
     alpha = detuning("FUSED_SILICA", wl, 0.55)
-    blank = MidSystemLens(lens, BlankDOE(n, pitch), after, dist, final_distance, final_size, 1e-3, sensor_pitch=2e-3)
+    blank = MidSystemLens(lens, BlankDOE(n, pitch), after, dist, final_distance, final_size, 1e-3, sensor_pitch=2e-3,
+                          **edge)
     p_blank = float((blank.source_field((0.0, 0.0), wl)[0].envelope.abs() ** 2).sum())
     eff = {}
     for scale, c in orders:
@@ -298,7 +305,7 @@ def run_grating(name: str, period: float, wl: float, n: int, pitch: float, final
         eta = abs(c) ** 2 * float((fd.envelope.abs() ** 2).sum()) / p_blank
         eff[str(round(scale))] = [eta, staircase_efficiency(int(round(scale)), 2, alpha)]
     return {"case": name, "kind": "grating", "period_mm": period, "wavelength": wl, "alpha": alpha,
-            "doe_pixels": n, "doe_pitch_mm": pitch, "final_distance_mm": final_distance, "final_size_mm": final_size, "sampling_report": sampling,
+            "doe_pixels": n, "doe_pitch_mm": pitch, "final_distance_mm": final_distance, "edge": edge, "final_size_mm": final_size, "sampling_report": sampling,
             "orders": [round(float(s), 6) for s, _ in orders],
             "max_angle_err_rad": max(v[0] for v in angle_err.values()), "angle_err": angle_err,
             "max_eff_err": max(abs(a - b) for a, b in eff.values()), "efficiency_vs_staircase": eff,
@@ -309,7 +316,9 @@ def power_vs_plane(distances=(38.0, 40.0, 41.0, 41.5, 42.0)) -> list:
     """The 50 µm binary grating at 0.65 µm in the Cooke triplet: the power of the field on the engine's plane (its
     envelope's Σ|u|², 1 µm samples) for a blank DOE and for order +1 (c = 1) against the plane's distance after the
     last vertex (the sensor at 42.38 mm): the field's power is not conserved near the focus, and not by the same
-    factor for the two beams, which moves the efficiencies read there."""
+    factor for the two beams, which moves the efficiencies read there; with the exit-pupil edge (Fresnel step) at
+    38 and 41.5 mm, which conserves it. (No ray crosses before 41.5 mm: ``raywave.lens.analysis.beam_folds`` on
+    32² … 256² stop cells reads 0 there, 0.47–0.49 at 42 mm.)"""
     import raywave
     from raywave.doe.params import GratingDOE
 
@@ -317,16 +326,16 @@ def power_vs_plane(distances=(38.0, 40.0, 41.0, 41.5, 42.0)) -> list:
     doe = GratingDOE(0.05, 2400, 0.005, material="FUSED_SILICA")
     doe.fabricate(2)
     rows = []
-    for dist in distances:
+    for dist, edge in [(d, {}) for d in distances] + [(d, XP_FRESNEL) for d in (38.0, 41.5)]:
         ml = MidSystemLens(lens, doe, 1, 3.0, final_distance=dist, final_size=2.0, final_pitch=1e-3,
-                           sensor_pitch=2e-3, min_efficiency=0.05)
-        blank = MidSystemLens(lens, BlankDOE(2400, 0.005), 1, 3.0, dist, 2.0, 1e-3, sensor_pitch=2e-3)
+                           sensor_pitch=2e-3, min_efficiency=0.05, **edge)
+        blank = MidSystemLens(lens, BlankDOE(2400, 0.005), 1, 3.0, dist, 2.0, 1e-3, sensor_pitch=2e-3, **edge)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             fb = blank.source_field((0.0, 0.0), 0.65)[0]
             fo = ml.order_lens(1.0, False).doe_fields([(0.0, 0.0)], [0.65])[0][0]
         pb, po = float((fb.envelope.abs() ** 2).sum()), float((fo.envelope.abs() ** 2).sum())
-        rows.append({"final_distance_mm": dist, "blank_power": pb, "order1_power": po, "order1_over_blank_minus_1":
+        rows.append({"final_distance_mm": dist, "edge": edge or "default (stop_edge='doe')", "blank_power": pb, "order1_power": po, "order1_over_blank_minus_1":
                      po / pb - 1, "beam_samples": int(fb.envelope.shape[0]),
                      "warnings": sorted({str(w.message)[:160] for w in caught
                                          if not issubclass(w.category, DeprecationWarning)})})
