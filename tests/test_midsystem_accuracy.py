@@ -176,17 +176,22 @@ def test_reference_orders_for_16_levels(field, o1, o3):
     assert W.rel_l1(three, fab) < o3
 
 
-@pytest.mark.parametrize("field", [(0.0, 0.0), (0.0, 1.0)])
-def test_midsystem_gradients_by_finite_differences(field):
+@pytest.mark.parametrize("field,seed,step", [((0.0, 0.0), 3, 1e-6), ((0.0, 1.0), 3, 1e-6),
+                                             (_diagonal(1.0), 11, 1e-7)])
+def test_midsystem_gradients_by_finite_differences(field, seed, step):
     """d(Σ w·PSF) with respect to the DOE (its focal length) and lens A's focal length, on axis and at 1°, against
     central differences: measured 6e-5 relative for both, both fields. (With a 0.6 mm DOE the 1° beam overruns the
-    DOE's grid: that hard edge inside the lens is not differentiated, 1.3–1.5 % off; DOEClipWarning, test below.)"""
+    DOE's grid: that hard edge inside the lens is not differentiated, 1.3–1.5 % off; DOEClipWarning, test below.)
+    At 1° along (1, 1)/√2 (weights seed 11) lens A's reads 2.1e-3 from central differences at the step 1e-6 (1e-5
+    mm), 9.3e-3 at 1e-5, 1.6e-6 at 1e-7: the truncation of the differences across the cut's piecewise-linear
+    coverage (a sample leaves the ramp every ~0.1 µm of edge motion, docs/ray-wave.md), not the gradient; that
+    field is checked at 1e-7."""
     sys_ = W.TwoLensSystem(f_doe=50.0, field=field)
     doe = FresnelDOE(50.0, 800, PITCH, wavelength=0.55)
     lens = M.two_lens(sys_)
     ml = MidSystemLens(lens, doe, 0, sys_.gap1, final_distance=0.01, final_size=0.8, final_pitch=1e-3,
                        sensor_pitch=PS)
-    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
 
     def loss():
         with warnings.catch_warnings():
@@ -194,7 +199,7 @@ def test_midsystem_gradients_by_finite_differences(field):
             return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
 
     params = {"doe focal length": doe.focal_length, "lens A focal length": lens.surfaces[0].interaction.focal_length}
-    M.assert_central_differences(loss, params, 1e-3)  # step 1e-6: at 1e-5 the FD truncation is 2e-3 for lens A
+    M.assert_central_differences(loss, params, 1e-3, step)  # 1e-6: at 1e-5 the FD truncation is 2e-3 for lens A
 
 
 def test_midsystem_doe_clipping_warns():
