@@ -11,7 +11,8 @@ tests/test_midsystem_two_does.py, tests/test_midsystem_grating.py).
 Usage: ``python benchmarks/midsystem_sweep.py [--cases NAME ...] [--list] [--out FILE]`` (prints one JSON line a
 case, then the whole report; ``--out`` is rewritten after every case, so an interrupted run keeps its rows);
 ``--diagnose CASE --edges ...``: a 16-level case with its orders kept in subsets, each against the reference fed the
-same orders; ``--power-vs-plane``: the grating's field power against the engine's plane's distance and the pitch. One thread;
+same orders; ``--power-vs-plane``: the grating's field power against the engine's plane's distance and the pitch; ``--gradients``: the
+finite-difference check at other fields and seeds. One thread;
 2–10 s a case (every case: ~3.5 min, < 3 GB).
 """
 
@@ -377,6 +378,35 @@ def power_vs_pitch() -> list:
     return rows
 
 
+def gradient_checks() -> list:
+    """tests/test_midsystem_accuracy.py's finite-difference check (Σ w·PSF, 16×16, the Fresnel DOE on 800 1 µm
+    pixels, the default cut) at other fields, weights' seeds and DOE powers: the autograd derivative with respect to
+    the DOE's focal length and lens A's against central differences at relative steps 1e-5 / 1e-6 / 1e-7."""
+    rows = []
+    cases = [((1.0, 0.0), 7, 50.0), (_diag(1.0), 11, 50.0), (_diag(1.0), 3, 50.0), ((0.0, 1.0), 5, 20.0),
+             ((0.0, 0.0), 13, -30.0)]
+    for field, seed, f in cases:
+        sys_ = W.TwoLensSystem(f_doe=f, field=field)
+        doe = FresnelDOE(f, 800, PITCH, wavelength=0.55)
+        lens = M.two_lens(sys_)
+        ml = MidSystemLens(lens, doe, 0, sys_.gap1, final_distance=0.01, final_size=0.8, final_pitch=PITCH,
+                           sensor_pitch=PS)
+        w = torch.rand(16, 16, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+
+        def loss():
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                return (ml.psf([field], 0.55, ks=16)[0, 0] * w).sum()
+
+        params = {"doe focal length": doe.focal_length,
+                  "lens A focal length": lens.surfaces[0].interaction.focal_length}
+        for name, step, g, fd in M.central_differences(loss, params, (1e-5, 1e-6, 1e-7)):
+            rows.append({"field_deg": list(field), "seed": seed, "f_doe": f, "param": name, "step": step,
+                         "autograd": g, "central_difference": fd, "rel_err": abs(g - fd) / abs(fd)})
+            print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="*", default=None, help="case names (default: the coarse selection)")
@@ -388,7 +418,17 @@ def main(argv=None):
     ap.add_argument("--edges", nargs="*", default=["asm_weak_doe"])
     ap.add_argument("--power-vs-plane", action="store_true", help="the grating's power against the engine's "
                     "plane's distance (power_vs_plane), into --out's 'power_vs_plane'")
+    ap.add_argument("--gradients", action="store_true", help="the FD gradient check at other fields and seeds "
+                    "(gradient_checks), into --out's 'gradient_checks'")
     args = ap.parse_args(argv)
+    if args.gradients:
+        torch.set_num_threads(1)
+        rows = gradient_checks()
+        if args.out:
+            report = json.loads(Path(args.out).read_text())
+            report["gradient_checks"] = rows
+            Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+        return
     if args.power_vs_plane:
         torch.set_num_threads(1)
         rows, pitch_rows = power_vs_plane(), power_vs_pitch()
