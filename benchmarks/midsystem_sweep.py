@@ -404,6 +404,50 @@ def gradient_checks() -> list:
             rows.append({"field_deg": list(field), "seed": seed, "f_doe": f, "param": name, "step": step,
                          "autograd": g, "central_difference": fd, "rel_err": abs(g - fd) / abs(fd)})
             print(json.dumps(rows[-1]), flush=True)
+    rows += _conformal_two_doe_gradients()
+    return rows
+
+
+def _conformal_two_doe_gradients() -> list:
+    """tests/test_midsystem_two_does.py's gradient check (the error against ``Σ|w·∂PSF|``, the central differences'
+    terms) at 1° along (1, 1)/√2 with the weights' seed 9: the conformal surface's curvature and its DOE's focal
+    length, the second of two DOEs' focal length."""
+    field = _diag(1.0)
+    w = torch.rand(16, 16, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    sys_c = W.TwoLensSystem(f_doe=10.0, field=field, doe_radius=10.0)
+    lens_c = M.two_lens_split(sys_c)
+    doe_c = FresnelDOE(10.0, 800, PITCH, wavelength=0.55)
+    conf = MidSystemLens(lens_c, doe_c, 1, None, final_distance=0.01, final_size=0.8, final_pitch=PITCH,
+                         sensor_pitch=PS)
+    sys_t = W.TwoLensSystem(f_doe=50.0, f_doe2=-80.0, gap1=3.0, gap12=1.0, gap2=2.0, field=field)
+    d1, d2 = FresnelDOE(50.0, 800, PITCH, wavelength=0.55), FresnelDOE(-80.0, 800, PITCH, wavelength=0.55)
+    two = MidSystemLens(M.two_lens(sys_t), [d1, d2], 0, [3.0, 4.0], final_distance=0.01, final_size=0.8,
+                        final_pitch=PITCH, sensor_pitch=PS)
+    rows = []
+    for label, ml, prm in [("conformal curvature", conf, lens_c.surfaces[1].geometry.curvature),
+                           ("conformal DOE focal length", conf, doe_c.focal_length),
+                           ("second DOE focal length", two, d2.focal_length)]:
+        def psf():
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                return ml.psf([field], 0.55, ks=16)[0, 0]
+
+        g = float(torch.autograd.grad((psf() * w).sum(), prm)[0])
+        for step in (1e-6, 1e-7):
+            h = step * max(abs(float(prm.detach())), 1e-2)
+            with torch.no_grad():
+                prm += h
+            pp = psf().detach()
+            with torch.no_grad():
+                prm -= 2 * h
+            pm = psf().detach()
+            with torch.no_grad():
+                prm += h
+            terms = w * (pp - pm) / (2 * h)
+            rows.append({"field_deg": list(field), "seed": 9, "param": label, "step": step, "autograd": g,
+                         "central_difference": float(terms.sum()),
+                         "err_over_sum_abs_terms": abs(g - float(terms.sum())) / float(terms.abs().sum())})
+            print(json.dumps(rows[-1]), flush=True)
     return rows
 
 
