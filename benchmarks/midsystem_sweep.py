@@ -11,8 +11,8 @@ tests/test_midsystem_two_does.py, tests/test_midsystem_grating.py).
 Usage: ``python benchmarks/midsystem_sweep.py [--cases NAME ...] [--list] [--out FILE]`` (prints one JSON line a
 case, then the whole report; ``--out`` is rewritten after every case, so an interrupted run keeps its rows);
 ``--diagnose CASE --edges ...``: a 16-level case with its orders kept in subsets, each against the reference fed the
-same orders; ``--power-vs-plane``: the grating's field power against the engine's plane's distance and the pitch; ``--gradients``: the
-finite-difference check at other fields and seeds. One thread;
+same orders; ``--power-vs-plane``: the grating's field power against the engine's plane's distance and the
+pitch; ``--gradients``: the finite-difference check at other fields and seeds. One thread;
 2–10 s a case (every case: ~3.5 min, < 3 GB).
 """
 
@@ -126,8 +126,9 @@ CASES = dict([
     _case("conformal_R10_f50_y1.5", "conformal", (0.0, 1.5), f_design=50.0, doe_radius=10.0),
 ])
 XP_FRESNEL = {"stop_edge": "exit_pupil", "edge_step": "fresnel"}
-#: name → (period mm, wavelength µm, DOE pixels a side, pitch mm, final plane size mm): the test's 100 µm grating has
-#: 1000 pixels of 12 µm (8.3 a period); the final plane holds orders ±1 (deflected by λ/Λ, ~EFL·λ/Λ on the sensor)
+#: name → (period mm, wavelength µm, DOE pixels a side, pitch mm, final plane size mm[, its distance after the last
+#: vertex mm (default 41.5, the test's), the stop edge's keywords]): the test's 100 µm grating has 1000 pixels of
+#: 12 µm (8.3 a period); the final plane holds orders ±1 (deflected by λ/Λ, ~EFL·λ/Λ on the sensor)
 GRATINGS = {"grating_50um_0.65": (0.05, 0.65, 2400, 0.005, 2.0), "grating_200um_0.55": (0.2, 0.55, 1000, 0.012, 1.0),
             "grating_100um_0.65": (0.1, 0.65, 1000, 0.012, 1.6), "grating_50um_0.45": (0.05, 0.45, 2400, 0.005, 1.6),
             "grating_25um_0.45": (0.025, 0.45, 2400, 0.005, 2.4), "grating_100um_0.45": (0.1, 0.45, 1000, 0.012, 0.8),
@@ -306,7 +307,8 @@ def run_grating(name: str, period: float, wl: float, n: int, pitch: float, final
         eta = abs(c) ** 2 * float((fd.envelope.abs() ** 2).sum()) / p_blank
         eff[str(round(scale))] = [eta, staircase_efficiency(int(round(scale)), 2, alpha)]
     return {"case": name, "kind": "grating", "period_mm": period, "wavelength": wl, "alpha": alpha,
-            "doe_pixels": n, "doe_pitch_mm": pitch, "final_distance_mm": final_distance, "edge": edge, "final_size_mm": final_size, "sampling_report": sampling,
+            "doe_pixels": n, "doe_pitch_mm": pitch, "final_distance_mm": final_distance, "edge": edge,
+            "final_size_mm": final_size, "sampling_report": sampling,
             "orders": [round(float(s), 6) for s, _ in orders],
             "max_angle_err_rad": max(v[0] for v in angle_err.values()), "angle_err": angle_err,
             "max_eff_err": max(abs(a - b) for a, b in eff.values()), "efficiency_vs_staircase": eff,
@@ -336,8 +338,9 @@ def power_vs_plane(distances=(38.0, 40.0, 41.0, 41.5, 42.0)) -> list:
             fb = blank.source_field((0.0, 0.0), 0.65)[0]
             fo = ml.order_lens(1.0, False).doe_fields([(0.0, 0.0)], [0.65])[0][0]
         pb, po = float((fb.envelope.abs() ** 2).sum()), float((fo.envelope.abs() ** 2).sum())
-        rows.append({"final_distance_mm": dist, "edge": edge or "default (stop_edge='doe')", "blank_power": pb, "order1_power": po, "order1_over_blank_minus_1":
-                     po / pb - 1, "beam_samples": int(fb.envelope.shape[0]),
+        rows.append({"final_distance_mm": dist, "edge": edge or "default (stop_edge='doe')", "blank_power": pb,
+                     "order1_power": po, "order1_over_blank_minus_1": po / pb - 1,
+                     "beam_samples": int(fb.envelope.shape[0]),
                      "warnings": sorted({str(w.message)[:160] for w in caught
                                          if not issubclass(w.category, DeprecationWarning)})})
         print(json.dumps(rows[-1]), flush=True)
@@ -500,7 +503,10 @@ def main(argv=None):
     if unknown:
         raise SystemExit(f"unknown cases {unknown}; --list names them")
     report = {"issue": 46, "what": __doc__.split("\n\n")[0].replace("\n", " "),
-              "command": "OMP_NUM_THREADS=1 python benchmarks/midsystem_sweep.py --cases ... --out FILE",
+              "command": "OMP_NUM_THREADS=1 python benchmarks/midsystem_sweep.py --cases $(python "
+                         "benchmarks/midsystem_sweep.py --list) --out FILE; then --diagnose 16_weakdoe_f100_y0 --edges "
+                         "asm_weak_doe default_weak asm_weak --out FILE; --power-vs-plane --out FILE; --gradients "
+                         "--out FILE",
               "rows": []}
     if args.out and Path(args.out).exists():
         report = json.loads(Path(args.out).read_text())
