@@ -53,6 +53,7 @@ CASES = {
     "wide_angle_on_axis": ("Fujifilm Fujinon-SW 65mm F5.6.zmx", 0.0, None),
     "steinheil": ("Telescope Steinheil.zmx", 1.0, None),
     "telecentric_on_axis": ("Telecentric USP4929066.zmx", 0.0, None),
+    "tessar_off_axis": ("Zeiss Tessar f2.8 50mm.zmx", 0.7, None),
 }
 
 
@@ -71,7 +72,8 @@ def test_default_psf_of_other_lens_classes_within_1e_3_of_the_converged_referenc
     edge 3.9e-3); the Steinheil telescope objective (100 mm F/7, 0.57°) at full field: 4.04e-4 (own error 5.2e-10;
     the DOE-plane edge 6.8e-4); the telecentric lens of US 4,929,066 (F/4.5, a finite object, image-space
     telecentric: the default falls back to the DOE-plane edge with a StopEdgeWarning) on axis: 4.28e-4 (own error
-    5.6e-9)."""
+    5.6e-9). The Tessar at 0.7 field (16.4°): 3.56e-4 (2026-11-30 xxiv; own error 1.4e-11; the DOE-plane edge
+    6.2e-2)."""
     fname, frac, pitch = CASES[name]
     psf, ref = _default_and_reference(DATA / fname, frac, pitch)
     err = float((psf - ref.psf).abs().sum())
