@@ -437,16 +437,7 @@ def _conformal_two_doe_gradients() -> list:
 
         g = float(torch.autograd.grad((psf() * w).sum(), prm)[0])
         for step in (1e-6, 1e-7):
-            h = step * max(abs(float(prm.detach())), 1e-2)
-            with torch.no_grad():
-                prm += h
-            pp = psf().detach()
-            with torch.no_grad():
-                prm -= 2 * h
-            pm = psf().detach()
-            with torch.no_grad():
-                prm += h
-            terms = w * (pp - pm) / (2 * h)
+            terms = M.central_difference_terms(psf, w, prm, step)
             rows.append({"field_deg": list(field), "seed": 9, "param": label, "step": step, "autograd": g,
                          "central_difference": float(terms.sum()),
                          "err_over_sum_abs_terms": abs(g - float(terms.sum())) / float(terms.abs().sum())})

@@ -106,6 +106,22 @@ def central_differences(loss, params: dict, steps=(1e-6,)) -> list:
     return out
 
 
+def central_difference_terms(psf, w: torch.Tensor, prm: torch.Tensor, step: float, floor: float = 1e-2):
+    """The per-pixel terms ``w·(psf(p + h) − psf(p − h)) / 2h`` of the central difference of ``Σ w·psf()`` with
+    respect to the 0-d parameter ``prm`` at ``h = step · max(|p|, floor)`` (the parameter is restored); their sum is
+    the derivative, their absolute sum the scale a near-cancelling sum is judged against."""
+    h = step * max(abs(float(prm.detach())), floor)
+    with torch.no_grad():
+        prm += h
+    pp = psf().detach()
+    with torch.no_grad():
+        prm -= 2 * h
+    pm = psf().detach()
+    with torch.no_grad():
+        prm += h
+    return w * (pp - pm) / (2 * h)
+
+
 def assert_central_differences(loss, params: dict, rel: float, step: float = 1e-6) -> None:
     """The autograd gradient of the scalar ``loss()`` with respect to each 0-d parameter of ``params`` (name →
     tensor) within ``rel`` of its central difference at the step ``step`` × max(|value|, 1) (the parameter is

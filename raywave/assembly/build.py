@@ -47,10 +47,10 @@ from raywave.hybrid.coherent.stop_edge import RIPPLE_ZONES
 from raywave.hybrid.hybrid_lens import BEAM_MARGIN, DEFAULT_EDGE_STEP, DEFAULT_STOP_EDGE, HybridLens
 from raywave.io.errors import LensFileError, with_location
 from raywave.lens.analysis import beam_field_points, beam_folds, beam_half_extent, beam_rays_at
-from raywave.lens.build import lens_from_spec, resolve_lens_path, clip_at_semi_diameters
-from raywave.lens.prescription import rays_beyond_semi_diameters
+from raywave.lens.build import clip_at_semi_diameters, lens_from_spec, resolve_lens_path
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import ParaxialUndefinedError, paraxial_data
+from raywave.lens.prescription import rays_beyond_semi_diameters
 from raywave.utils.checks import pitch_mm
 from raywave.utils.errors import MemoryLimitError, NonFiniteError, check_allocation
 
@@ -637,9 +637,9 @@ def load_hybrid(path: str | Path, doe_pitch: float | None = None, doe_size=None,
 
     path = resolve_lens_path(path)
     spec, data = read_hybrid_spec(path)
-    if clip_apertures:
-        spec = clip_at_semi_diameters(spec)
     try:
+        if clip_apertures:
+            spec = clip_at_semi_diameters(spec)
         return hybrid_from_spec(spec, data, doe_pitch=doe_pitch, doe_size=doe_size, doe_distance=doe_distance,
                                 sensor_pitch=sensor_pitch, oversample=oversample, fields=fields,
                                 wavelengths=wavelengths, depth=depth, field_type=field_type, source=str(path),

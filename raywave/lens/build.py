@@ -310,9 +310,9 @@ def load_lens(path: str | Path, config: int | None = None, *, clip_apertures: bo
 
     path = resolve_lens_path(path)
     spec = read_lens_spec(path) if config is None else read_lens_spec(path, config=config)
-    if clip_apertures:
-        spec = clip_at_semi_diameters(spec)
     try:
+        if clip_apertures:
+            spec = clip_at_semi_diameters(spec)
         lens = lens_from_spec(spec)
     except ValueError as err:  # a spec that validates but builds no lens: name the file
         raise with_location(_with_glass_line(err, path), path)
