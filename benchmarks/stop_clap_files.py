@@ -49,7 +49,7 @@ def main() -> None:
     a = ap.parse_args()
     root = Path(a.root)
     out = {}
-    for f in sorted(root.rglob("*.zmx")):
+    for f in sorted(p for p in root.rglob("*") if p.suffix.lower() == ".zmx"):
         r = one(f)
         if r is not None:
             out[str(f.relative_to(root))] = r

@@ -124,3 +124,35 @@ def test_grid_fraction_is_the_area_ratio():
     x, y = grid(step=0.01, half=R_STOP)
     r2 = x * x + y * y
     assert np.mean(r2[r2 <= R_STOP**2] <= CLAP**2) == pytest.approx((CLAP / R_STOP) ** 2, abs=2e-3)
+
+
+def test_optiland_reads_the_stop_clap_alike(tmp_path):
+    """Optiland 0.6.3 (an independent .zmx reader and tracer) on the same file: the same EPD and F/# (the ENPD's),
+    the CLAP as the stop's radial aperture, and the same rays of a grid filling the ENPD pass, ray for ray."""
+    pytest.importorskip("optiland")
+    from optiland.fileio.zemax.reader.converter import ZemaxToOpticConverter
+    from optiland.fileio.zemax.reader.parser import ZemaxDataParser
+    from optiland.rays import RealRays
+
+    path, _ = _file(tmp_path)
+    lens, _ = _load(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        o = ZemaxToOpticConverter(ZemaxDataParser(str(path)).parse()).convert()
+        epd, f2 = float(np.ravel(o.paraxial.EPD())[0]), float(np.ravel(o.paraxial.f2())[0])
+    stop = o.surfaces.surfaces[2]
+    assert stop.is_stop and float(stop.aperture.r_max) == CLAP
+    p = lens.paraxial()
+    assert p.epd == pytest.approx(epd, rel=1e-14) and p.fnum == pytest.approx(f2 / epd, rel=1e-6)
+    x, y = grid(step=0.05, half=R_STOP)
+    keep = x * x + y * y <= R_STOP**2
+    x, y = x[keep], y[keep]
+    n = x.size
+    rays = RealRays(x, y, np.full(n, -1.0), np.zeros(n), np.zeros(n), np.ones(n), np.ones(n),
+                    np.full(n, lens.primary_wavelength))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        o.surfaces.trace(rays, skip=1)
+    theirs = np.asarray(rays.i) > 0
+    ours = lens.trace(parallel_rays(x, y)).valid.numpy()
+    assert bool((ours == theirs).all()) and ours.mean() == pytest.approx((CLAP / R_STOP) ** 2, abs=1e-2)
