@@ -156,3 +156,16 @@ def test_optiland_reads_the_stop_clap_alike(tmp_path):
     theirs = np.asarray(rays.i) > 0
     ours = lens.trace(parallel_rays(x, y)).valid.numpy()
     assert bool((ours == theirs).all()) and ours.mean() == pytest.approx((CLAP / R_STOP) ** 2, abs=1e-2)
+
+
+def test_the_edmund_catalogue_file():
+    """The database's Edmund 32-303 (tests/data/opticsdatabase): ENPD 6.25 and the stop's CLAP 2.8125 (line 44):
+    the stop's hard edge 2.8125 mm, the paraxial EPD 6.25 mm, F/3.2 (EFL 19.999 mm), the warning at line 44."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent / "data" / "opticsdatabase" / "Edmund 32-303.zmx"
+    lens, warned = _load(path)
+    p = lens.paraxial()
+    assert lens.stop_radius() == 2.8125 and lens.pupil_stop_radius() == pytest.approx(3.125, rel=1e-15)
+    assert p.epd == 6.25 and p.fnum == pytest.approx(19.999164535792882 / 6.25, rel=1e-12)
+    assert [str(w.message) for w in warned if "own clear aperture" in str(w.message)][0].startswith(f"{path}:44: ")
