@@ -169,3 +169,11 @@ def test_the_edmund_catalogue_file():
     assert lens.stop_radius() == 2.8125 and lens.pupil_stop_radius() == pytest.approx(3.125, rel=1e-15)
     assert p.epd == 6.25 and p.fnum == pytest.approx(19.999164535792882 / 6.25, rel=1e-12)
     assert [str(w.message) for w in warned if "own clear aperture" in str(w.message)][0].startswith(f"{path}:44: ")
+    # the paraxial comparison model's thin lens takes the beam's pupil (the stop at the first vertex: the CLAP)
+    from raywave.assembly.build import load_hybrid
+    from raywave.models.paraxial import ParaxialModel
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hl = load_hybrid(path)
+    assert ParaxialModel(hl).thin_lens()[1] == pytest.approx(2.8125, rel=1e-14)
