@@ -1,7 +1,8 @@
 """The aiming's entrance-pupil diameter (:func:`raywave.lens.paraxial.entrance_pupil_diameter`, issue 43: the
 aiming asked ~10 times per PSF call for the whole first-order data) is the float that the whole data give
 (:func:`~raywave.lens.paraxial.paraxial_data`'s ``epd``), on lenses with the stop first and inside, distant and
-finite objects, and lens files of the public corpus."""
+finite objects, and lens files of the public corpus; where a stop's own clear aperture cuts the beam inside the
+system aperture's pupil (a .zmx stop's CLAP, class E), the beam's image of it."""
 
 import warnings
 from pathlib import Path
@@ -34,4 +35,10 @@ def test_corpus_lenses(path):
             lens = load_lens(path)
         except ValueError as e:  # a file refused with a named error: tested there too
             pytest.skip(f"refused: {e}")
-    assert entrance_pupil_diameter(lens) == paraxial_data(lens, lens.primary_wavelength).epd
+    epd = paraxial_data(lens, lens.primary_wavelength).epd
+    if lens.paraxial_stop_radius is None:
+        assert entrance_pupil_diameter(lens) == epd
+    else:  # the stop's own CLAP cuts the beam (Edmund 32-303, class E): the rays fill its image, the paraxial EPD
+        # is the system aperture's
+        assert entrance_pupil_diameter(lens) == pytest.approx(epd * lens.stop_radius() / lens.pupil_stop_radius(),
+                                                              rel=1e-14)

@@ -615,7 +615,12 @@ class _Validator:
         size_keys = _size_keys(APERTURE_SHAPES[shape])
         misplaced = {k: f"{k!r} belongs to a {s!r} aperture, not a {shape!r} one"
                      for s, ks in APERTURE_SHAPES.items() if s != shape for k in _size_keys(ks) if k not in size_keys}
-        self.keys(a, path, ("shape", "decenter", "obscuration") + size_keys, misplaced)
+        if shape != "circle":
+            misplaced["fixed"] = "'fixed' belongs to a 'circle' aperture (a stop's own clear aperture)"
+        self.keys(a, path, ("shape", "decenter", "obscuration") + size_keys + (("fixed",) if shape == "circle" else ()),
+                  misplaced)
+        if "fixed" in a and not isinstance(a["fixed"], bool):
+            self.err(path + ("fixed",), f"'fixed' must be true or false, got {_typename(a['fixed'])}")
         v = None
         for size_key in size_keys:
             if size_key not in a:

@@ -95,8 +95,23 @@ def aperture_canonical(a):
     if a is None:
         return None
     if a["shape"] == "circle":
-        return {"shape": "circle", "radius": float(a["radius"])}
+        out = {"shape": "circle", "radius": float(a["radius"])}
+        if a.get("fixed"):
+            out["fixed"] = True
+        return out
     return {"shape": "square", "half_width": float(a["half_width"])}
+
+
+def resized_stop_aperture(surfaces: list) -> int | None:
+    """The index of the stop surface (marked, else the first that is not a coordinate break) when its aperture is a
+    plain circle (no ``fixed``, decentre or obscuration) that a system aperture resizes entirely (the same lens as no
+    aperture there), else None."""
+    stops = [i for i, s in enumerate(surfaces) if s.get("stop")]
+    i = stops[0] if stops else next((j for j, s in enumerate(surfaces) if s.get("type") != "coordinate_break"), None)
+    a = surfaces[i].get("aperture") if i is not None else None
+    plain = isinstance(a, dict) and a.get("shape") == "circle" and not (a.get("fixed") or a.get("obscuration")
+                                                                          or any(a.get("decenter") or []))
+    return i if plain else None
 
 
 def surface_canonical(s: dict) -> dict:
@@ -165,6 +180,10 @@ def canonical_spec(spec: dict) -> dict:
         if s.get("resolution") is not None:
             out["sensor"]["resolution"] = [int(v) for v in s["resolution"]]
     out["surfaces"] = [surface_canonical(s) for s in spec["surfaces"]]
+    if ap is not None:
+        i = resized_stop_aperture(spec["surfaces"])
+        if i is not None:  # the system aperture sizes it: the same lens as no aperture there
+            out["surfaces"][i]["aperture"] = None
     if spec.get("doe") is not None:
         out["doe"] = doe_canonical(spec["doe"])
     return out

@@ -317,7 +317,51 @@ def load_lens(path: str | Path, config: int | None = None, *, clip_apertures: bo
     except ValueError as err:  # a spec that validates but builds no lens: name the file
         raise with_location(_with_glass_line(err, path), path)
     _warn_surface_does(spec, path)
+    _warn_stop_clear_aperture(lens, path)
     return lens
+
+
+def _warn_stop_clear_aperture(lens: Lens, path) -> None:
+    """A :class:`~raywave.io.errors.LensFileWarning` (``path:LINE:`` of the stop's CLAP in a .zmx file) where the
+    stop's own clear aperture is smaller than the stop radius the system aperture gives it: which sets what."""
+    from raywave.io.errors import LensFileWarning
+
+    if lens.paraxial_stop_radius is None:
+        return
+    r_own, r_sys = lens.stop_radius(), lens.paraxial_stop_radius
+    (kind, value), = lens.system_aperture.items()
+    p = lens.paraxial()
+    beam = lens.epd * r_own / r_sys
+    warnings.warn(LensFileWarning(
+        f"{path}{_stop_clap_line(path)}: the stop (surface {lens.stop_index}) has its own clear aperture of radius "
+        f"{r_own:.6g} mm, smaller than the {r_sys:.6g} mm the system aperture ({kind} {value:g}) gives it: the "
+        f"system aperture sets the paraxial pupil (EPD {p.epd:.6g} mm, F/# {p.fnum:.4g}), the stop's clear aperture "
+        f"is its hard edge (the rays beyond it are vignetted at the stop; the beam fills an entrance pupil "
+        f"{beam:.6g} mm wide), as OpticStudio does"), stacklevel=3)
+
+
+def _stop_clap_line(path) -> str:
+    """``":LINE"`` of the clear-aperture line (CLAP) of the stop's SURF block of a .zmx file, else ``""``."""
+    from raywave.io.zmx.tokens import decode_zmx_bytes
+
+    if Path(path).suffix.lower() != ".zmx":
+        return ""
+    try:
+        text, _ = decode_zmx_bytes(Path(path).read_bytes())
+    except OSError:
+        return ""
+    stop, clap = False, None
+    for ln, line in enumerate(text.splitlines(), start=1):
+        key = line.split("!", 1)[0].split()[:1]
+        if key == ["SURF"]:
+            if stop and clap:
+                break
+            stop, clap = False, None
+        elif key == ["STOP"]:
+            stop = True
+        elif key == ["CLAP"]:
+            clap = ln
+    return f":{clap}" if stop and clap else ""
 
 
 def _warn_surface_does(spec: dict, path) -> None:

@@ -136,6 +136,10 @@ class Lens(nn.Module):
         self.catalogs = list(catalogs) if catalogs else None
         self.epd = None if epd is None else float(epd)
         self.system_aperture = None
+        #: the stop radius (mm) the system aperture gives where the stop's own fixed clear aperture (a .zmx stop's
+        #: CLAP) is smaller and stays its hard edge (:meth:`_size_stop`): it sizes the paraxial pupil
+        #: (:meth:`pupil_stop_radius`); None otherwise
+        self.paraxial_stop_radius: float | None = None
         #: curvature (1/mm) of a lens file's curved object surface (finite object): object points lie on it
         self.object_curvature = 0.0
         #: curvature (1/mm) of a curved image surface (a lens file's): trace_to_image ends on it; 0: a plane
@@ -332,6 +336,7 @@ class Lens(nn.Module):
         if not aperture or aperture.get("float_by_stop_size"):
             self.system_aperture = None
             self.epd = None
+            self.paraxial_stop_radius = None
             return
         if len(aperture) != 1:
             raise ValueError(f"a system aperture has one type, got {aperture!r}")
@@ -357,8 +362,15 @@ class Lens(nn.Module):
         stop = self.surfaces[self.stop_index]
         m = float(paraxial.stop_to_entrance_pupil(self, self.primary_wavelength)[1].detach())
         radius = 0.5 * epd * abs(m)
+        own = getattr(stop.aperture, "fixed_radius", None)
+        self.paraxial_stop_radius = None
         if stop.aperture is None:
             stop.aperture = CircularAperture(radius).to(self.device)
+        elif own is not None and own < radius * (1.0 - 1e-12):
+            # the stop's own clear aperture (a .zmx stop's CLAP) is the beam's hard edge; the system aperture's
+            # radius sizes only the paraxial pupil (paraxial_data: EPD, F/#), as in OpticStudio
+            stop.aperture.set_radius(own)
+            self.paraxial_stop_radius = radius
         else:
             stop.aperture.set_radius(radius)
         self.epd = float(epd)
@@ -381,6 +393,12 @@ class Lens(nn.Module):
         if self.sensor_size is None or self.sensor_resolution is None:
             return None
         return self.sensor_size[0] / self.sensor_resolution[0]
+
+    def pupil_stop_radius(self) -> float:
+        """The stop radius (mm) that sizes the paraxial pupil (:func:`raywave.lens.paraxial.paraxial_data`: EPD,
+        exit pupil, F/#): the system aperture's, also where the stop's own fixed clear aperture (a .zmx stop's
+        ``CLAP``) is smaller and cuts the beam (:meth:`stop_radius`, which the rays fill); else :meth:`stop_radius`."""
+        return self.paraxial_stop_radius if self.paraxial_stop_radius is not None else self.stop_radius()
 
     def stop_radius(self) -> float:
         stop = self.surfaces[self.stop_index]

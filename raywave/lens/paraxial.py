@@ -328,8 +328,10 @@ def paraxial_image_distance(lens, wavelength: float) -> torch.Tensor:
 
 
 def entrance_pupil_diameter(lens, wavelength: float | None = None) -> float:
-    """The paraxial entrance-pupil diameter (mm) at ``wavelength`` µm (default the lens's primary): the same float as
-    :func:`paraxial_data`'s ``epd``, without the rest of the first-order data (~0.2 ms instead of ~2 ms on the bundled
+    """The entrance-pupil diameter (mm) that the rays fill, at ``wavelength`` µm (default the lens's primary): the
+    image of the stop's clear radius (:meth:`~raywave.lens.lens.Lens.stop_radius`). The same float as
+    :func:`paraxial_data`'s ``epd``, except where the stop's own fixed clear aperture (a .zmx stop's ``CLAP``) is
+    smaller than the system aperture makes the stop (``epd`` is the system aperture's there), without the rest of the first-order data (~0.2 ms instead of ~2 ms on the bundled
     asphere; the aiming of every ray bundle asks for it, ~10 times per PSF call)."""
     _, m_ep = stop_to_entrance_pupil(lens, lens.primary_wavelength if wavelength is None else wavelength)
     return 2.0 * lens.stop_radius() / abs(float(m_ep.detach()))
@@ -348,7 +350,7 @@ def paraxial_data(lens, wavelength: float) -> ParaxialData:
     ffl = float(d) * float(n[0]) / float(c) if power != 0 else math.inf
     ep_z, m_ep = (v.detach() for v in stop_to_entrance_pupil(lens, wavelength))
     xp_z, m_xp = (v.detach() for v in exit_pupil(lens, wavelength))
-    r_stop = lens.stop_radius()
+    r_stop = lens.pupil_stop_radius()  # the system aperture's, also where the stop's own CLAP cuts the beam
     epd = 2.0 * r_stop / abs(float(m_ep))
     xpd = 2.0 * r_stop * abs(float(m_xp))
     z_img_par = float(paraxial_image_distance(lens, wavelength).detach())

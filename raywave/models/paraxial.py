@@ -37,6 +37,7 @@ import warnings
 import torch
 
 from raywave.hybrid.coherent import DOEField, FieldInfo, SamplingWarning
+from raywave.lens.paraxial import entrance_pupil_diameter
 from raywave.lens.sources import object_distance
 from raywave.models.base import ModelPSFResult, PSFModel, lit_window, propagate_fields, window_field, window_xy
 from raywave.utils.phasor import polar
@@ -105,7 +106,8 @@ class ParaxialModel(PSFModel):
         lens = self.lens
         with torch.no_grad():
             z_l = thin_lens_plane(lens, self.hybrid.sensor_z(), self.plane)
-            radius = 0.5 * lens.paraxial(lens.primary_wavelength).epd
+            # the beam's entrance pupil (the paraxial EPD, or its image of a stop's own smaller CLAP: class E)
+            radius = 0.5 * entrance_pupil_diameter(lens, lens.primary_wavelength)
         z_doe = self.hybrid.doe_z()
         if not z_l < z_doe:
             raise ValueError(f"the paraxial model's thin lens (z = {z_l:.6g} mm) lies behind the DOE plane "

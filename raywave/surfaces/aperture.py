@@ -217,17 +217,30 @@ class Aperture(nn.Module):
 
 
 class CircularAperture(Aperture):
-    """A circle of ``radius`` (mm) about the axis, optionally with a central ``obscuration``."""
+    """A circle of ``radius`` (mm) about the axis, optionally with a central ``obscuration``.
+
+    ``fixed``: on the stop, a clear aperture of the stop's own (a .zmx stop's ``CLAP``) that the system aperture does
+    not resize beyond: :meth:`raywave.lens.lens.Lens.set_system_aperture` keeps ``fixed_radius`` (mm) as the stop's
+    hard edge where it is smaller than the radius the system aperture gives the stop (OpticStudio: a surface aperture
+    vignettes whatever the system aperture says), while the paraxial pupil still comes from the system aperture."""
 
     shape = "circle"
 
-    def __init__(self, radius: float, obscuration: Obscuration | dict | None = None, decenter=(0.0, 0.0)):
+    def __init__(self, radius: float, obscuration: Obscuration | dict | None = None, decenter=(0.0, 0.0),
+                 fixed: bool = False):
         super().__init__()
         if not radius > 0:
             raise ValueError(f"circular aperture radius must be > 0 mm, got {radius!r}")
         self.register_buffer("radius", torch.tensor(float(radius), dtype=torch.float64))
         self._set_decenter(decenter)
         self._set_obscuration(obscuration)
+        #: the stop's own clear radius (mm) that a system aperture does not enlarge, or None (:attr:`fixed`)
+        self.fixed_radius = float(radius) if fixed else None
+
+    @property
+    def fixed(self) -> bool:
+        """Whether the system aperture keeps this (stop) aperture's own radius where it is the smaller."""
+        return self.fixed_radius is not None
 
     def _contains(self, x, y):
         r = self.radius.to(x.dtype)
@@ -244,7 +257,10 @@ class CircularAperture(Aperture):
         self.radius.fill_(float(radius))
 
     def to_spec(self) -> dict:
-        return self._obscuration_spec({"shape": "circle", "radius": float(self.radius)})
+        out = self._obscuration_spec({"shape": "circle", "radius": float(self.radius)})
+        if self.fixed:
+            out["fixed"] = True
+        return out
 
     def extra_repr(self):
         return f"radius={float(self.radius)}"
@@ -366,7 +382,7 @@ def aperture_from_spec(spec: dict | None) -> Aperture | None:
     obs = obscuration_from_spec(spec.get("obscuration"))
     dec = spec.get("decenter", (0.0, 0.0))
     if spec["shape"] == "circle":
-        return CircularAperture(spec["radius"], obs, dec)
+        return CircularAperture(spec["radius"], obs, dec, fixed=bool(spec.get("fixed", False)))
     if spec["shape"] == "square":
         return SquareAperture(spec["half_width"], obs, dec)
     if spec["shape"] == "rectangle":

@@ -526,6 +526,11 @@ def _lens_surface(p: dict, has_system_aperture: bool, path: str) -> dict:
             raise LensFileError(f"surface {p['number']}: the stop has an obscuration (OBSC / OBSQ) but no "
                                 "semi-diameter (DIAM) for its clear aperture", path, p["line"])
         aperture = {"shape": "circle", "radius": p["diam"], "obscuration": aperture["obscuration"]}
+    elif (p["stop"] and has_system_aperture and aperture is not None and aperture["shape"] == "circle"
+          and not p.get("floating_aperture")):
+        # the stop's own CLAP: a hard edge the system aperture does not enlarge (OpticStudio vignettes at a surface
+        # aperture whatever the system aperture says); the system aperture still sets the paraxial pupil
+        aperture = dict(aperture, fixed=True)
     s["aperture"] = aperture
     if p["diam"] is not None:
         s["semi_diameter"] = p["diam"]

@@ -9,7 +9,8 @@ from pathlib import Path
 
 from raywave.io.errors import LensFileError, LensFileWarning
 from raywave.io.json_format import validate_spec
-from raywave.io.spec import DEFAULT_WAVELENGTHS, aspheric_canonical, curvature_of, rotation_radius_canonical
+from raywave.io.spec import (DEFAULT_WAVELENGTHS, aspheric_canonical, curvature_of, resized_stop_aperture,
+                             rotation_radius_canonical, system_aperture_canonical)
 from raywave.io.zmx.tables import MAX_BINARY2_TERMS, MAX_EVENASPH_PARM, MAX_ODDASPHE_PARM, SURFACE_TYPES, \
     SYSTEM_APERTURE_KEYS
 
@@ -39,9 +40,11 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     binary2 = doe is not None and model is not None and model.get("type") == "binary_2" and doe.get("phase") is None
     nsurf = len(spec["surfaces"])
     sign, medium = _doe_side(spec["surfaces"])
+    resized = resized_stop_aperture(spec["surfaces"]) if system_aperture_canonical(spec.get("system_aperture")) \
+        else None
     for i, s in enumerate(spec["surfaces"], start=1):
         _surface_lines(w, i, s, dict(doe, distance=sign * float(doe["distance"]) + 0.0)
-                       if binary2 and i == nsurf else None, source)
+                       if binary2 and i == nsurf else None, source, resized=resized == i - 1)
     n = len(spec["surfaces"]) + 1
     if binary2:
         _write_binary2(w, n, doe, spec["surfaces"][-1], source, sign, medium)
@@ -101,7 +104,7 @@ def _doe_side(surfaces: list) -> tuple[float, object]:
     return (-1.0 if mirrors % 2 else 1.0), medium
 
 
-def _surface_lines(w, i: int, s: dict, doe_after: dict | None, source) -> None:
+def _surface_lines(w, i: int, s: dict, doe_after: dict | None, source, resized: bool = False) -> None:
     """The SURF block of spec surface ``s`` (number ``i``) through ``w``; ``doe_after``: the spec's DOE when a
     BINARY_2 DOE plane follows ``s`` (then its thickness is the DOE's distance, mm, signed: negative after an odd
     number of mirrors)."""
@@ -131,7 +134,7 @@ def _surface_lines(w, i: int, s: dict, doe_after: dict | None, source) -> None:
         w(f"  CONI {_num(s.get('conic', 0.0))}")
     _parm_lines(w, i, kind, s, source)
     ap = s.get("aperture")
-    if ap is not None:
+    if ap is not None and not resized:  # a stop's plain circle a system aperture resizes: no CLAP (it would fix it)
         _aperture_lines(w, i, ap, source)
 
 
