@@ -331,8 +331,9 @@ def entrance_pupil_diameter(lens, wavelength: float | None = None) -> float:
     """The entrance-pupil diameter (mm) that the rays fill, at ``wavelength`` µm (default the lens's primary): the
     image of the stop's clear radius (:meth:`~raywave.lens.lens.Lens.stop_radius`). The same float as
     :func:`paraxial_data`'s ``epd``, except where the stop's own fixed clear aperture (a .zmx stop's ``CLAP``) is
-    smaller than the system aperture makes the stop (``epd`` is the system aperture's there), without the rest of the first-order data (~0.2 ms instead of ~2 ms on the bundled
-    asphere; the aiming of every ray bundle asks for it, ~10 times per PSF call)."""
+    smaller than the system aperture makes the stop (``epd`` is the system aperture's there), without the rest of
+    the first-order data (~0.2 ms instead of ~2 ms on the bundled asphere; the aiming of every ray bundle asks for
+    it, ~10 times per PSF call)."""
     _, m_ep = stop_to_entrance_pupil(lens, lens.primary_wavelength if wavelength is None else wavelength)
     return 2.0 * lens.stop_radius() / abs(float(m_ep.detach()))
 
