@@ -766,3 +766,25 @@ def test_a_telecentric_lens_falls_back_to_the_doe_plane_edge_with_a_warning():
     assert torch.equal(got, want)
     with pytest.raises(ValueError, match="telecentric"):
         HybridLens(lens, doe, 1.0, sensor_pitch=1e-3, stop_edge="exit_pupil").psf((0.0, 1.0), 0.55, ks=16, rays=24)
+
+
+def test_a_telecentric_lens_files_default_doe_is_the_doe_plane_edges():
+    """A lens file whose exit pupil lies at infinity (US 4,929,066, image-space telecentric, a finite object): the
+    default edge falls back to the DOE plane, so its default DOE is sized and placed as the DOE-plane edge's (not
+    for an exit-pupil edge's ripple band: a wider grid, 2029² against 1682², had put the default 1.1e-6 off the
+    DOE-plane edge's PSF, h47v), and the two PSFs are the same."""
+    import warnings
+    from pathlib import Path
+
+    from raywave.assembly.build import load_hybrid
+
+    path = Path(__file__).resolve().parent / "data" / "opticsdatabase" / "Telecentric USP4929066.zmx"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        default = load_hybrid(path, fields=[[0.0, 0.0]])
+        paper = load_hybrid(path, fields=[[0.0, 0.0]], stop_edge="doe")
+        assert default.doe_info["shape"] == paper.doe_info["shape"]
+        assert default.doe_info["distance"] == paper.doe_info["distance"]
+        wl = default.lens.primary_wavelength
+        with torch.no_grad():
+            assert torch.equal(default.psf((0.0, 0.0), wl, ks=16), paper.psf((0.0, 0.0), wl, ks=16))

@@ -73,7 +73,7 @@ def test_default_psf_of_other_lens_classes_within_1e_3_of_the_converged_referenc
     edge 3.9e-3); the Steinheil telescope objective (100 mm F/7, 0.57°) at full field: 4.04e-4 (own error 5.2e-10;
     the DOE-plane edge 6.8e-4); the telecentric lens of US 4,929,066 (F/4.5, a finite object, image-space
     telecentric: the default falls back to the DOE-plane edge with a StopEdgeWarning) on axis: 4.28e-4 (own error
-    5.6e-9). The Tessar at 0.7 field (16.4°): 3.56e-4 (2026-11-30 xxiv; own error 1.4e-11; the DOE-plane edge
+    5.6e-9; 4.27e-4 since its default DOE is the DOE-plane edge's, 2026-11-30 xxiv). The Tessar at 0.7 field (16.4°): 3.56e-4 (2026-11-30 xxiv; own error 1.4e-11; the DOE-plane edge
     6.2e-2). Since h44e (class E: a .zmx stop's own CLAP is its hard edge): the Edmund 32-303 doublet (f 20 mm, ENPD
     F/3.2, its stop's CLAP 0.9 of the ENPD's radius) on axis: 1.37e-4 (own error 1.4e-9; before, with the CLAP
     dropped, 1.51e-3 and no verdict: the reference did not converge, 1.9e-3 at 960 nodes)."""

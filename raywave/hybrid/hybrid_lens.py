@@ -139,6 +139,11 @@ class _CallGeometry:
         self.row = {i: r for r, i in enumerate(self.todo)}
 
 
+#: an exit pupil farther than this (mm) from the DOE plane lies "at infinity" (image-space telecentric): the default
+#: stop edge falls back to the DOE plane (:meth:`HybridLens._checked_pupil`)
+EXIT_PUPIL_FAR = 1e3
+
+
 class _PupilAtInfinity(ValueError):
     """The exit pupil lies at (or near) infinity: no exit-pupil plane to form the stop's edge on."""
 
@@ -521,7 +526,7 @@ class HybridLens(nn.Module):
 
     def _checked_pupil(self, z: float) -> float:
         """``z`` (an exit pupil's z, mm), or :class:`_PupilAtInfinity` where it lies at or near infinity."""
-        if not math.isfinite(z) or abs(z - self.doe_z()) > 1e3:
+        if not math.isfinite(z) or abs(z - self.doe_z()) > EXIT_PUPIL_FAR:
             raise _PupilAtInfinity(f"stop_edge='exit_pupil': the lens's exit pupil lies at z = {z:g} mm (at or near "
                              "infinity: image-space telecentric), where no field can be built; use stop_edge='doe'")
         return z
