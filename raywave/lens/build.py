@@ -286,15 +286,17 @@ def clip_at_semi_diameters(spec: dict) -> dict:
 
 def _on_axis_heights(spec: dict) -> list[float] | None:
     """The on-axis beam's rim height (mm) per surface of the lens of ``spec`` at every wavelength
-    (:func:`raywave.lens.prescription._ray_heights`; NaN where no ray passes), or None where it cannot be traced (a
+    (:func:`raywave.lens.prescription.ray_heights`; NaN where no ray passes), or None where it cannot be traced (a
     folded lens). The lens is built with one on-axis field only: no real image height is solved."""
-    from raywave.lens.prescription import _ray_heights
+    from raywave.lens.prescription import ray_heights
 
     finite = (spec.get("object") or {}).get("distance", "inf") != "inf"
     probe = dict(spec, fields={"type": "object_height" if finite else "angle", "values": [0.0]})
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the reader's warnings were given when the file was read
-        return _ray_heights(lens_from_spec(probe), fields=[0.0])
+        # a probe of the same spec: the lens's own warnings (glasses, geometry) come from the real build right after
+        # it, the reader's came when the file was read, and ray_heights leaves vignetted rays out by their mask
+        warnings.simplefilter("ignore")
+        return ray_heights(lens_from_spec(probe), fields=[0.0])
 
 
 def load_lens(path: str | Path, config: int | None = None, *, clip_apertures: bool = False) -> Lens:

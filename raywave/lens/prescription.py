@@ -68,8 +68,8 @@ def _terms(surface) -> dict:
 def rays_beyond_semi_diameters(lens, tol: float = 1e-3) -> list[tuple[int, float, float]]:
     """The surfaces whose semi-diameter (without an aperture of their own: it does not clip) the lens's own fields'
     rim rays pass beyond by more than ``tol`` of it: ``[(surface index, largest ray height mm, semi-diameter mm)]``
-    (:func:`_ray_heights`, the primary wavelength; empty where none does or the trace fails)."""
-    heights = _ray_heights(lens, lens.primary_wavelength)
+    (:func:`ray_heights`, the primary wavelength; empty where none does or the trace fails)."""
+    heights = ray_heights(lens, lens.primary_wavelength)
     if heights is None:
         return []
     out = []
@@ -80,7 +80,7 @@ def rays_beyond_semi_diameters(lens, tol: float = 1e-3) -> list[tuple[int, float
     return out
 
 
-def _ray_heights(lens, wavelength=None, fields=None) -> list[float] | None:
+def ray_heights(lens, wavelength=None, fields=None) -> list[float] | None:
     """Largest ray height (mm, in each surface's own frame) per surface of the lens's fields (along y, and on
     axis; ``fields``: these y fields instead) at every wavelength through the full pupil rim (aimed rays, without
     autograd); None when the trace fails (e.g. a lens whose field cannot be aimed) and for a folded lens (its
@@ -112,8 +112,8 @@ def _ray_heights(lens, wavelength=None, fields=None) -> list[float] | None:
 
 def surface_table(lens, wavelength: float | None = None, semi_diameters: bool = True) -> list[SurfaceRow]:
     """The prescription of ``lens``: one :class:`SurfaceRow` per surface. ``semi_diameters``: compute the
-    semi-diameters of surfaces without a clear aperture from a trace (:func:`_ray_heights`; else None)."""
-    heights = _ray_heights(lens, wavelength) if semi_diameters else None
+    semi-diameters of surfaces without a clear aperture from a trace (:func:`ray_heights`; else None)."""
+    heights = ray_heights(lens, wavelength) if semi_diameters else None
     rows = []
     for i, s in enumerate(lens.surfaces):
         c = _f(s.geometry.curvature) if hasattr(s.geometry, "curvature") else 0.0
