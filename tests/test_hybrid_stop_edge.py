@@ -744,10 +744,14 @@ def test_huygens_default_pixel_integration_matches_the_debye_focus_at_3um_pixels
     assert l1(mid3, ref) > 0.03  # why the default changed
 
 
-def test_a_telecentric_lens_falls_back_to_the_doe_plane_edge_with_a_warning():
-    """Stop in the front focal plane of an ideal lens: the exit pupil lies at infinity. The default edge warns
-    (StopEdgeWarning) and gives the paper's DOE-plane PSF; an explicit exit-pupil edge is an error."""
+def test_a_telecentric_lens_takes_the_exit_pupil_edge_without_a_warning():
+    """Stop in the front focal plane of an ideal lens: the exit pupil lies at infinity. Since 2026-12-01 (issue 47
+    class D) the default edge is the exit pupil's, as on any lens, its construction starting
+    :data:`~raywave.hybrid.hybrid_lens.EXIT_PUPIL_FAR` before the DOE plane (against the wave truth:
+    tests/test_ideal_lens_truth.py); a blank DOE on this spherical wave takes the cut on the DOE plane, exact there,
+    so the PSF is the DOE-plane edge's. An undefined pupil (NaN) still falls back to the DOE plane with a warning."""
     from raywave.hybrid import StopEdgeWarning
+    from raywave.hybrid.hybrid_lens import EXIT_PUPIL_FAR
     from raywave.lens.lens import Lens
     from raywave.materials import get_material
     from raywave.surfaces.aperture import CircularAperture
@@ -760,31 +764,39 @@ def test_a_telecentric_lens_falls_back_to_the_doe_plane_edge_with_a_warning():
     thin = Surface(Plane(), get_material("AIR"), f, aperture=CircularAperture(2.0), interaction=IdealLens(f))
     lens = Lens([stop, thin], wavelengths=(0.55,), primary=0)
     doe = BlankDOE(800, 1e-3)
-    with pytest.warns(StopEdgeWarning, match="telecentric"):
-        got = HybridLens(lens, doe, 1.0, sensor_pitch=1e-3).psf((0.0, 1.0), 0.55, ks=16, rays=24)
+    hl = HybridLens(lens, doe, 1.0, sensor_pitch=1e-3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", StopEdgeWarning)
+        got = hl.psf((0.0, 1.0), 0.55, ks=16, rays=24)
+    assert hl.exit_pupil_z() == pytest.approx(hl.doe_z() - EXIT_PUPIL_FAR, abs=1e-9)
     want = HybridLens(lens, doe, 1.0, sensor_pitch=1e-3, stop_edge="doe").psf((0.0, 1.0), 0.55, ks=16, rays=24)
     assert torch.equal(got, want)
-    with pytest.raises(ValueError, match="telecentric"):
-        HybridLens(lens, doe, 1.0, sensor_pitch=1e-3, stop_edge="exit_pupil").psf((0.0, 1.0), 0.55, ks=16, rays=24)
+    explicit = HybridLens(lens, doe, 1.0, sensor_pitch=1e-3, stop_edge="exit_pupil", edge_step="fresnel")
+    assert float((explicit.psf((0.0, 1.0), 0.55, ks=16, rays=24) - want).abs().sum()) < 1e-2
+    undefined = HybridLens(lens, doe, 1.0, sensor_pitch=1e-3)
+    undefined._exit_pupil_zs = lambda wls: [math.nan] * len(wls)
+    with pytest.warns(StopEdgeWarning, match="undefined"):
+        assert torch.equal(undefined.psf((0.0, 1.0), 0.55, ks=16, rays=24), want)
 
 
-def test_a_telecentric_lens_files_default_doe_is_the_doe_plane_edges():
-    """A lens file whose exit pupil lies at infinity (US 4,929,066, image-space telecentric, a finite object): the
-    default edge falls back to the DOE plane, so its default DOE is sized and placed as the DOE-plane edge's (not
-    for an exit-pupil edge's ripple band: a wider grid, 2029² against 1682², had put the default 1.1e-6 off the
-    DOE-plane edge's PSF, h47v), and the two PSFs are the same."""
-    import warnings
+def test_a_telecentric_lens_files_default_doe_holds_the_exit_pupil_edges_band():
+    """A lens file whose exit pupil lies 3.4 m before its DOE plane (US 4,929,066, image-space telecentric, a finite
+    object): the default edge is the exit pupil's (until 2026-12-01 it fell back to the DOE plane: 3.82e-3 from the
+    converged Huygens PSF at 0.7 field, tests/test_stop_edge_other_lenses.py), so its default DOE is sized for that
+    edge's ripple band, wider than the DOE-plane edge's, and no StopEdgeWarning names the pupil."""
     from pathlib import Path
 
     from raywave.assembly.build import load_hybrid
+    from raywave.hybrid import StopEdgeWarning
 
     path = Path(__file__).resolve().parent / "data" / "opticsdatabase" / "Telecentric USP4929066.zmx"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         default = load_hybrid(path, fields=[[0.0, 0.0]])
         paper = load_hybrid(path, fields=[[0.0, 0.0]], stop_edge="doe")
-        assert default.doe_info["shape"] == paper.doe_info["shape"]
-        assert default.doe_info["distance"] == paper.doe_info["distance"]
-        wl = default.lens.primary_wavelength
-        with torch.no_grad():
-            assert torch.equal(default.psf((0.0, 0.0), wl, ks=16), paper.psf((0.0, 0.0), wl, ks=16))
+    assert default.doe_info["shape"][0] > paper.doe_info["shape"][0]
+    wl = default.lens.primary_wavelength
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("error", StopEdgeWarning)
+        assert float(default.psf((0.0, 0.0), wl, ks=16).sum()) > 0
+

@@ -33,11 +33,11 @@ def l1(a, b) -> float:
     return float((torch.as_tensor(a) - torch.as_tensor(b)).abs().sum())
 
 
-def _lens_b_phase(theta_y: float):
+def _lens_b_phase(theta_y: float, system: TwoLenses = SYSTEM):
     """Lens B of the engine: the exact phase (rad and its x, y derivatives, rad/mm, at B's local x, y mm) from the
     sphere converging on A's focus to the one converging on B's image of it (the truth's lens B)."""
-    pa, pb = SYSTEM.focus_a((0.0, theta_y)), SYSTEM.focus_b((0.0, theta_y))
-    za, zb = pa[2] - SYSTEM.gap, pb[2] - SYSTEM.gap
+    pa, pb = system.focus_a((0.0, theta_y)), system.focus_b((0.0, theta_y))
+    za, zb = pa[2] - system.gap, pb[2] - system.gap
 
     def phase(x, y, wavelength):
         k = 2 * math.pi / (wavelength * 1e-3)
@@ -47,8 +47,9 @@ def _lens_b_phase(theta_y: float):
     return phase
 
 
-def two_lens_engine_lens(theta_y: float):
-    """The two-ideal-lens system as an engine :class:`~raywave.lens.lens.Lens` for the source at ``theta_y`` degrees."""
+def two_lens_engine_lens(theta_y: float, system: TwoLenses = SYSTEM):
+    """The two-ideal-lens ``system`` as an engine :class:`~raywave.lens.lens.Lens` for the source at ``theta_y``
+    degrees."""
     from raywave.lens.lens import Lens
     from raywave.materials import Air
     from raywave.surfaces.aperture import CircularAperture
@@ -56,10 +57,10 @@ def two_lens_engine_lens(theta_y: float):
     from raywave.surfaces.interaction import Diffraction, IdealLens
     from raywave.surfaces.surface import Surface
 
-    s = SYSTEM
+    s = system
     return Lens([Surface(Plane(), Air(), s.gap, aperture=CircularAperture(s.radius), interaction=IdealLens(s.f_a),
                          is_stop=True),
-                 Surface(Plane(), Air(), s.image_distance(), interaction=Diffraction(_lens_b_phase(theta_y)))],
+                 Surface(Plane(), Air(), s.image_distance(), interaction=Diffraction(_lens_b_phase(theta_y, s)))],
                 wavelengths=(WL,), primary=0, fields=(0.0, 2.0))
 
 
@@ -118,6 +119,38 @@ def test_default_stop_edge_matches_the_two_lens_truth(theta):
     print(f"{theta}°: default {e_def:.2e}, DOE-plane edge {e_doe:.2e} from the two-lens truth")
     assert e_def < 1e-3
     assert e_def <= e_doe  # a blank DOE: never worse than the DOE-plane edge (issue 47)
+
+
+# ------------------------------------------------------------------ an image-space telecentric system (class D)
+# The two ideal lenses with B's front focal plane on the stop (gap = f_B = 12 mm): the exit pupil lies at infinity.
+# A Fresnel-lens DOE (f 200 mm, 1 µm pixels) 5 mm behind B; the truth samples it at its pixel centres.
+TELECENTRIC = TwoLenses(gap=12.0)
+
+
+@pytest.mark.parametrize("theta", [0.0, pytest.param(2.0, marks=pytest.mark.slow)])
+def test_a_telecentric_system_takes_the_exit_pupil_edge(theta):
+    """Issue 47 class D. Measured (2026-12-01): the default 1.83e-4 / 3.27e-4 from the wave truth at 0° / 2°, the
+    DOE-plane edge (the default's fallback until then) 4.91e-2 / 5.01e-2; with B 11.99 mm behind A (the pupil 14 m
+    away) 1.82e-4 / 1.80e-4, the same to 1e-12 whether the construction starts at the pupil or 1 m before the DOE
+    (:data:`raywave.hybrid.hybrid_lens.EXIT_PUPIL_FAR`)."""
+    from raywave.doe import FresnelDOE
+    from wave_truth import pixel_phase
+
+    doe = FresnelDOE(200.0, (2400, 2400), 1e-3, design_wavelength=WL)
+    lens = two_lens_engine_lens(theta, TELECENTRIC)
+    out = {}
+    for name, kw in (("default", {}), ("doe", {"stop_edge": "doe"})):
+        hl = HybridLens(lens, doe, 5.0, sensor_pitch=PIXEL, **kw)
+        with torch.no_grad():
+            r = hl.psf_result((0.0, theta), WL, ks=KS)
+        out[name] = (r.psf[0, 0], tuple(float(c) for c in r.center[0, 0]))
+    phase, lattice = pixel_phase(doe, WL)
+    truth = two_ideal_lenses_psf(TELECENTRIC, (0.0, theta), WL, out["default"][1], KS, PIXEL, pitch=1e-3, doe=phase,
+                                 doe_z=TELECENTRIC.gap + 5.0, doe_lattice=lattice)
+    e_def, e_doe = l1(out["default"][0], truth), l1(out["doe"][0], truth)
+    print(f"telecentric {theta}°: default {e_def:.2e}, DOE-plane edge {e_doe:.2e} from the wave truth")
+    assert e_def < 1e-3
+    assert e_def < 0.05 * e_doe
 
 
 # ------------------------------------------------------------------ one ideal lens and a DOE 1 mm behind it

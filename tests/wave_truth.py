@@ -177,13 +177,15 @@ def _direction(p_from, p_to):
 
 def two_ideal_lenses_psf(system: TwoLenses, theta, wavelength: float, center, ks: int, pixel: float,
                          pitch: float = 1e-3, doe=None, doe_z: float | None = None, sensor_z: float | None = None,
-                         margin: float = 0.4) -> torch.Tensor:
+                         margin: float = 0.4, doe_lattice=None) -> torch.Tensor:
     """The PSF (ks, ks) float64 summing to 1 of :class:`TwoLenses` for a plane wave at ``theta`` (θx, θy) degrees,
     ``wavelength`` µm, on the sensor (default at :meth:`TwoLenses.image_distance` behind B; ``sensor_z`` mm from A
     otherwise), pixels of ``pixel`` mm, pixel [ks//2, ks//2] centred at ``center`` (x, y) mm. ``doe``: an optional
     thin phase element ``doe(x, y, wavelength) -> phase (rad)`` at ``doe_z`` mm from A (between the lenses, or after
     B). Field sampled at ``pitch`` mm (the stop's edge area-weighted), ``margin`` mm of ripples kept around the beam
-    and tapered off (their light lands ≥ ~margin mm from the focus)."""
+    and tapered off (their light lands ≥ ~margin mm from the focus). ``doe_lattice``: (x, y) mm of a pixel centre of a
+    pixelated DOE (:func:`pixel_phase`) of pitch ``pitch``: the DOE plane's samples then sit on its pixel centres, one
+    sample a pixel, instead of straddling the pixels' phase steps."""
     s = system
     th = [math.radians(t) for t in theta]
     pa = s.focus_a(theta)
@@ -213,6 +215,8 @@ def two_ideal_lenses_psf(system: TwoLenses, theta, wavelength: float, center, ks
         beam_r = beam_r * abs(target[2] - zp) / abs(target[2] - z)
         m = int(math.ceil((beam_r + margin) / pitch))
         out_org = (cx1 - m * pitch, cy1 - m * pitch)
+        if what == "DOE" and doe_lattice is not None:
+            out_org = tuple(c + round((o - c) / pitch) * pitch for o, c in zip(out_org, doe_lattice))
         env = asm(env, org, pitch, wavelength, zp - z, carrier, out_org, (2 * m + 1, 2 * m + 1), margin=margin)
         env = env * taper(env.shape, max(int(0.25 * margin / pitch), 4))
         org, z = out_org, zp
@@ -243,6 +247,19 @@ def doe_phase_on(doe, wavelength: float):
         x, y = doe.pixel_xy()
         ph = doe.phase_pixels(wavelength, slice(None), slice(None)).detach().to(F64)
     return (float(x[0]), float(y[0])), float(doe.pitch), ph
+
+
+def pixel_phase(doe, wavelength: float):
+    """A raywave DOE as :func:`two_ideal_lenses_psf`'s thin element: ``(phase(x, y, wavelength) -> rad, lattice)``,
+    ``phase`` the phase of the pixel (of :func:`doe_phase_on`) holding each point (the nearest pixel centre; the edge
+    pixels' beyond the grid), ``lattice`` (x, y) mm of pixel [0, 0]'s centre (pass it as ``doe_lattice``)."""
+    origin, p, ph = doe_phase_on(doe, wavelength)
+
+    def phase(x, y, _wavelength):
+        ix = torch.clamp(torch.round((x - origin[0]) / p).long(), 0, ph.shape[1] - 1)
+        iy = torch.clamp(torch.round((y - origin[1]) / p).long(), 0, ph.shape[0] - 1)
+        return ph[iy, ix]
+    return phase, origin
 
 
 def ideal_lens_doe_psf(f: float, radius: float, wavelength: float, center, ks: int, pixel: float, sensor_dist: float,

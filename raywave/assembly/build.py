@@ -44,7 +44,7 @@ from raywave.hybrid.coherent.exit_pupil import (GO_FALLBACK_FRACTION, GO_PHASE_T
                                                go_phase_errors)
 from raywave.hybrid.coherent.geometry import check_window_memory
 from raywave.hybrid.coherent.stop_edge import RIPPLE_ZONES
-from raywave.hybrid.hybrid_lens import BEAM_MARGIN, DEFAULT_EDGE_STEP, DEFAULT_STOP_EDGE, EXIT_PUPIL_FAR, HybridLens
+from raywave.hybrid.hybrid_lens import BEAM_MARGIN, DEFAULT_EDGE_STEP, DEFAULT_STOP_EDGE, HybridLens
 from raywave.io.errors import LensFileError, with_location
 from raywave.lens.analysis import beam_field_points, beam_folds, beam_half_extent, beam_rays_at
 from raywave.lens.build import clip_at_semi_diameters, lens_from_spec, resolve_lens_path
@@ -338,20 +338,19 @@ def edge_band_reach(lens, z: float, fields=None, wavelengths=None, depth=None) -
     return EDGE_ZONE_WIDENING * reach
 
 
-def _exit_pupil_edge(lens, stop_edge: str | None, distance: float) -> bool:
+def _exit_pupil_edge(lens, stop_edge: str | None) -> bool:
     """Whether the hybrid lens's stop edge will be formed at the exit pupil (``stop_edge``, None: the default), so
-    that its default DOE is sized and placed for that edge: not where the paraxial exit pupil lies at infinity or
-    farther than :data:`~raywave.hybrid.hybrid_lens.EXIT_PUPIL_FAR` from the plane ``distance`` mm after the last
-    vertex (image-space telecentric: the default edge falls back to the DOE plane there, and its DOE is then the
-    DOE-plane edge's, the same PSF: it was 1.1e-6 off on a wider grid, h47v's telecentric lens)."""
+    that its default DOE is sized and placed for that edge: not where the paraxial exit pupil is undefined (NaN; the
+    default edge falls back to the DOE plane there, and its DOE is then the DOE-plane edge's, the same PSF). A pupil
+    at or near infinity (image-space telecentric) takes the exit-pupil edge like any other since 2026-12-01
+    (:data:`~raywave.hybrid.hybrid_lens.EXIT_PUPIL_FAR`)."""
     if (DEFAULT_STOP_EDGE if stop_edge is None else stop_edge) != "exit_pupil":
         return False
     try:
         z_xp = float(paraxial_data(lens, lens.primary_wavelength).xp_z)
     except ParaxialUndefinedError:  # a decentred or tilted powered surface: the engine's real chief ray decides
         return True
-    z = float(lens.vertex_z()[-1].detach()) + distance
-    return math.isfinite(z_xp) and abs(z_xp - z) <= EXIT_PUPIL_FAR
+    return not math.isnan(z_xp)
 
 
 def _exit_pupil_z(lens, wavelength: float) -> float | None:
@@ -611,13 +610,13 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
         fit: dict = {}
         distance = fit_doe_distance(optics, distance, pitch, fields, wavelengths, depth, report=fit)
         step = DEFAULT_EDGE_STEP if edge_step is None else edge_step
-        if _exit_pupil_edge(optics, stop_edge, distance) and step in ("adaptive", "fresnel"):
+        if _exit_pupil_edge(optics, stop_edge) and step in ("adaptive", "fresnel"):
             # ... but not so near it that the edge's Fresnel step would build the field elsewhere and carry it here
             distance = go_field_distance(optics, distance, pitch, (fields, wavelengths, depth), fit,
                                          sphere_cut=step == "adaptive")
         info.update(fit)
     size = _size_arg(doe_size)
-    band = _exit_pupil_edge(optics, stop_edge, distance)  # the edge builds its band
+    band = _exit_pupil_edge(optics, stop_edge)  # the edge builds its band
     shape = _doe_shape(optics, data, pitch, doe_pitch, size, distance, (fields, wavelengths, depth, band), source)
     q = int(oversample) if oversample is not None else (data.oversample if data is not None else 1)
     stores_map = data is not None and (data.phase is not None or data.material is not None

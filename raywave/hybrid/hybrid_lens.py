@@ -37,7 +37,7 @@ from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, 
 from raywave.hybrid.coherent.exit_pupil import (adaptive_edge_steps, fresnel_step_estimates, fresnel_step_holds,
                                                 go_phase_errors, obscuration_fraction)
 from raywave.hybrid.coherent.geometry import _medium_index, footprints_and_clippings
-from raywave.hybrid.coherent.stop_edge import edge_reach_many, stop_rim_images_all
+from raywave.hybrid.coherent.stop_edge import EXIT_PUPIL_FAR, edge_reach_many, stop_rim_images_all
 from raywave.hybrid.coherent.record import EnvelopeRow
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, accelerator_cap, ceil_samples,
@@ -137,11 +137,6 @@ class _CallGeometry:
         if self.todo is None:
             self.todo = [i for i, s_ in enumerate(self.src) if s_ is None]
         self.row = {i: r for r, i in enumerate(self.todo)}
-
-
-#: an exit pupil farther than this (mm) from the DOE plane lies "at infinity" (image-space telecentric): the default
-#: stop edge falls back to the DOE plane (:meth:`HybridLens._checked_pupil`)
-EXIT_PUPIL_FAR = 1e3
 
 
 class _PupilAtInfinity(ValueError):
@@ -518,18 +513,25 @@ class HybridLens(nn.Module):
         stop's centre: where a real chief ray of a small field (1e-3 of the largest field), extended as a
         straight line in the image medium, crosses the axis (the paraxial exit pupil, but also right for
         surfaces the paraxial trace does not model, e.g. phase surfaces); usually a virtual plane inside the
-        lens. Falls back to :func:`raywave.lens.paraxial.exit_pupil` when that ray cannot be traced."""
+        lens. Falls back to :func:`raywave.lens.paraxial.exit_pupil` when that ray cannot be traced. A pupil farther
+        than :data:`EXIT_PUPIL_FAR` from the DOE plane (image-space telecentric) is placed at that distance on its
+        side: the plane where the exit-pupil edge's construction starts."""
         from raywave.lens.sources import chief_ray
 
         wl = self.lens.primary_wavelength if wavelength is None else float(wavelength)
         return self._checked_pupil(self._exit_pupil_zs([wl])[0])
 
     def _checked_pupil(self, z: float) -> float:
-        """``z`` (an exit pupil's z, mm), or :class:`_PupilAtInfinity` where it lies at or near infinity."""
-        if not math.isfinite(z) or abs(z - self.doe_z()) > EXIT_PUPIL_FAR:
-            raise _PupilAtInfinity(f"stop_edge='exit_pupil': the lens's exit pupil lies at z = {z:g} mm (at or near "
-                             "infinity: image-space telecentric), where no field can be built; use stop_edge='doe'")
-        return z
+        """``z`` (an exit pupil's z, mm); one farther than :data:`EXIT_PUPIL_FAR` from the DOE plane, or at infinity,
+        placed at that distance on its side (before the plane where infinite); :class:`_PupilAtInfinity` where ``z``
+        is undefined (NaN: no chief ray and no paraxial pupil)."""
+        zd = self.doe_z()
+        if math.isnan(z):
+            raise _PupilAtInfinity(f"stop_edge='exit_pupil': the lens's exit pupil is undefined (z = {z:g}), where no "
+                                   "field can be built; use stop_edge='doe'")
+        if abs(z - zd) <= EXIT_PUPIL_FAR:
+            return z
+        return zd + (EXIT_PUPIL_FAR if z > zd else -EXIT_PUPIL_FAR)
 
     def _exit_pupil_zs(self, wls: list) -> list:
         """:meth:`exit_pupil_z`'s z (mm) at each wavelength of ``wls`` (µm), unchecked (inf or NaN where it fails):
@@ -599,8 +601,9 @@ class HybridLens(nn.Module):
 
     def _exit_pupil_planes(self, wls: list[float]) -> list[float] | None:
         """z (mm) of every wavelength's exit-pupil plane when the accurate field forms the stop's edge there, else
-        None: ``stop_edge="doe"``, or the default edge on a lens whose exit pupil lies at infinity (warns
-        :class:`StopEdgeWarning` and uses the DOE-plane edge; an explicit ``stop_edge="exit_pupil"`` raises)."""
+        None: ``stop_edge="doe"``, or the default edge on a lens whose exit pupil is undefined (warns
+        :class:`StopEdgeWarning` and uses the DOE-plane edge; an explicit ``stop_edge="exit_pupil"`` raises). A pupil
+        at or near infinity (image-space telecentric) is placed at :data:`EXIT_PUPIL_FAR` (:meth:`_checked_pupil`)."""
         if self.stop_edge != "exit_pupil":
             return None
         stop_ap = self.lens.surfaces[self.lens.stop_index].aperture
@@ -617,8 +620,8 @@ class HybridLens(nn.Module):
         except _PupilAtInfinity:
             if self._edge_requested is not None:
                 raise
-            warnings.warn("the lens's exit pupil lies at or near infinity (image-space telecentric): the stop's edge "
-                          "is formed on the DOE plane (the paper's model) instead of the default exit pupil",
+            warnings.warn("the lens's exit pupil is undefined (no chief ray crosses the axis): the stop's edge is "
+                          "formed on the DOE plane (the paper's model) instead of the default exit pupil",
                           StopEdgeWarning, stacklevel=4)
             return None
 
@@ -721,7 +724,8 @@ class HybridLens(nn.Module):
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
         z_xps = self._exit_pupil_planes(wls)
         if z_xps is not None:
-            rims = stop_rim_images_all(optics, ft, wls, depth)  # one trace for every source and wavelength
+            # one trace for every source and wavelength; images beyond EXIT_PUPIL_FAR (telecentric) held there
+            rims = stop_rim_images_all(optics, ft, wls, depth, bound=(z_doe, EXIT_PUPIL_FAR))
             if self._rim_images is not None:
                 rims = self._rim_images(optics, ft, wls, depth, rims)
             steps, ests = None, None

@@ -22,8 +22,8 @@ from raywave.hybrid.coherent.geometry import (_common_setup, _empty_field, _foot
                                              check_window_memory, lit_box)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, StopEdgeWarning
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source, check_types
-from raywave.hybrid.coherent.stop_edge import (RIPPLE_ZONES, _nu_inner, _zone_estimate, ripple_band,
-                                               stop_rim_images)
+from raywave.hybrid.coherent.stop_edge import (EXIT_PUPIL_FAR, RIPPLE_ZONES, _nu_inner, _zone_estimate,
+                                               ripple_band, stop_rim_images)
 from raywave.hybrid.coherent.tracing import run_serial
 
 
@@ -110,8 +110,9 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         if method is None:
             method = adaptive_edge_step(lens, doe, field, wavelength, depth, z_doe, z_sensor, field_type)
             if method == "fresnel":
-                stop_rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth,
-                                                                                 field_type)
+                if stop_rim is None:
+                    stop_rim = stop_rim_images(lens, field, wavelength, depth, field_type,
+                                               bound=(z_doe, EXIT_PUPIL_FAR))
                 estimate = fresnel_step_estimates([stop_rim], (wavelength, _medium_index(lens, float(wavelength))),
                                                   (z_doe, z_sensor), settings.crop_reach, p_sim,
                                                   obscuration_fraction(lens))[0]
@@ -135,7 +136,8 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     if method == "fresnel":
         rim = None
         if rim_images:
-            rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
+            rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type,
+                                                                         bound=(z_doe, EXIT_PUPIL_FAR))
         fd = yield from accurate_field_steps(lens, doe, source, Planes(z_doe, z_sensor), on_doe,
                                              replace(settings, virtual=False, stop_plane=z_xp,
                                                      ripple_zones=ripple_zones),
@@ -149,7 +151,8 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         lens, doe, source, (z_doe, z_sensor), chief, oversample, known.medium)
     rim = None
     if rim_images or z_from is not None:
-        rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type)
+        rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type,
+                                                                     bound=(z_doe, EXIT_PUPIL_FAR))
     # the construction and its angular spectrum on a lattice m× coarser than the DOE's where the wave's own
     # bandwidth allows (the envelope upsampled to the DOE pitch at the end): its cost falls ~m²
     # the edge waves that land in the crop turn by up to its reach over the distance from the exit pupil

@@ -941,13 +941,25 @@ def _dense_backward(grad, inputs: tuple, consts, need):
 
 #: stop-rim points at which :func:`stop_rim_images` finds the edge's image
 RIM_POINTS = 64
+#: the engine's stop-edge images lie at most this far (mm) from the DOE plane: an exit pupil or a rim image farther
+#: away, or at infinity (an image-space telecentric lens: the rays through a rim point leave parallel), is placed at
+#: this distance along its ray, on its side (before the plane where the rays are parallel). The edge's Fresnel length
+#: on the DOE plane, ``d·r/(d + r)`` for an edge ``d`` mm before it and a focus ``r`` mm after it, is then within
+#: ``r/d`` of its telecentric limit ``r``, and the construction's margins stay finite. Issue 47 class D (2026-12-01):
+#: the two ideal lenses with B's focus on the stop and a Fresnel DOE, 1.8e-4 / 3.3e-4 from the wave truth at 0° / 2°
+#: (tests/test_ideal_lens_truth.py; B 11.99 mm behind A, its pupil 14 m away: 2.1e-4 / 2.2e-4 placed here, 1.8e-4 where
+#: it lies); the telecentric lens file of US 4,929,066 (pupil 3.4 m before the DOE) 2.30e-4 / 1.75e-4 at 0 / 0.7
+#: field from the converged Huygens PSF. Until then a pupil over 1 m away made the default fall back to the DOE-plane
+#: edge: 4.9e-2 / 3.82e-3 there
+EXIT_PUPIL_FAR = 1e4
 #: the source nudge of :func:`stop_rim_images`' central differences, relative to the lens's largest field: small
 #: enough that the rim images do not depend on the field's units (an angle or an object height naming the same
 #: source agree to ~1e-10 in the PSF), large enough for float64 rays
 RIM_NUDGE = 1e-5
 
 
-def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | None = None, k: int = RIM_POINTS):
+def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | None = None, k: int = RIM_POINTS,
+                    bound: tuple | None = None):
     """Where the stop's rim is sharp, seen by one source: z (mm) of the image of every rim point along the ray
     that the source sends through it, ``(theta (k,), z (k,))`` with ``theta`` the rim point's azimuth on the stop
     (``atan2(y, x)`` of the stop coordinates), a :class:`RimImages` that also holds the image points and the
@@ -959,9 +971,11 @@ def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | Non
     aberration, astigmatism). The neighbouring source is displaced along the rim point's radial direction (the
     edge's normal, the direction its Fresnel diffraction runs), to first order from central differences;
     the crossing is the closest approach of the two rays. Differentiable with respect to the lens (the rays are
-    traced with autograd when it is on). Many sources at once: :func:`stop_rim_images_many`."""
+    traced with autograd when it is on). Many sources at once: :func:`stop_rim_images_many`. ``bound``: ``(z_plane,
+    far)`` mm: images farther than ``far`` from the plane (or at infinity) placed at that distance along their rays
+    (the engine's :data:`EXIT_PUPIL_FAR` from the DOE plane); None: where they lie."""
     f = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(1, 2)
-    return stop_rim_images_many(lens, f, wavelength, depth, field_type, k)[0]
+    return stop_rim_images_all(lens, f, [float(wavelength)], depth, field_type, k, bound)[0][0]
 
 
 def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str | None = None,
@@ -972,10 +986,10 @@ def stop_rim_images_many(lens, fields, wavelength: float, depth, field_type: str
 
 
 def stop_rim_images_all(lens, fields, wavelengths, depth, field_type: str | None = None,
-                        k: int = RIM_POINTS) -> list:
+                        k: int = RIM_POINTS, bound: tuple | None = None) -> list:
     """:func:`stop_rim_images` of the sources ``fields`` (F, 2) at every wavelength of ``wavelengths`` (W,) µm, from
     one trace of all their rim rays (5·F sources × W wavelengths × k rim points; issue 43: one trace per call instead
-    of one per wavelength): ``[W][F]`` results (``(theta, z)`` or None)."""
+    of one per wavelength): ``[W][F]`` results (``(theta, z)`` or None); ``bound`` as :func:`stop_rim_images`."""
     field_type = field_type or lens.field_type
     f = torch.as_tensor(fields, dtype=torch.float64, device=lens.device).reshape(-1, 2)
     nf = f.shape[0]
@@ -1012,7 +1026,8 @@ def stop_rim_images_all(lens, fields, wavelengths, depth, field_type: str | None
     live = torch.tensor([v[i][j] for i in range(nf) for j in range(nw)], device=o.device)[:, None, None, None]
     o, d, dv = (torch.where(live, t_, torch.ones_like(t_)) for t_ in
                 (t.transpose(1, 2).reshape(rows, 5, k, 3) for t in (o, d, dv)))
-    z, points, paths, ok = _rim_crossings(o, d, dv, c, s, opl[:, 0].reshape(rows, k), n_img.repeat(nf)[:, None])
+    z, points, paths, ok = _rim_crossings(o, d, dv, c, s, (opl[:, 0].reshape(rows, k), n_img.repeat(nf)[:, None]),
+                                          bound)
     ok = ok.tolist()
     dirs = d[:, 0]  # (rows, k, 3): the source's own rim rays in the image medium
     # every row's views from one unbind per tensor (issue 43: not four selects a row)
@@ -1033,12 +1048,15 @@ class RimImages(tuple):
         return obj
 
 
-def _rim_crossings(o, d, dv, c, s, opl0, n_img):
+def _rim_crossings(o, d, dv, c, s, paths: tuple, bound: tuple | None = None):
     """The rim images of B sources at once from their rays (B, 5, k, 3) (each source and its four nudges) through the
     rim points at azimuths with cosines and sines ``c``, ``s`` (k,): ``(z (B, k) mm, image points (B, k, 3), optical
-    paths to them (B, k) mm, ok (B,) bool)`` (``opl0`` (B, k) the source's rays' paths at ``o[:, 0]``, ``n_img``
-    (B, 1) the image medium's index); ``ok`` False for a degenerate source (:func:`_radial_nudge`) or a non-finite
-    crossing."""
+    paths to them (B, k) mm, ok (B,) bool)`` (``paths`` = ``(opl0, n_img)``: ``opl0`` (B, k) the source's rays' paths
+    at ``o[:, 0]``, ``n_img`` (B, 1) the image medium's index); ``ok`` False for a degenerate source
+    (:func:`_radial_nudge`) or a non-finite crossing. ``bound`` ``(z_plane, far)``: a crossing farther than ``far``
+    mm from the plane, or none (parallel rays: a telecentric rim), placed at ``far`` on its side (before the plane
+    for parallel rays)."""
+    opl0, n_img = paths
     w, turns = _radial_nudge(dv, c, s)
     # (B, k, 3): the ray of the source nudged so that its ray through the rim point turns along the rim's normal
     do = w[..., :1] * (o[:, 1] - o[:, 3]) + w[..., 1:] * (o[:, 2] - o[:, 4])
@@ -1050,9 +1068,25 @@ def _rim_crossings(o, d, dv, c, s, opl0, n_img):
 
     po, pd = perp(do), perp(dd)
     t = -(po * pd).sum(-1) / (pd * pd).sum(-1).clamp_min(1e-300)
+    if bound is not None:
+        t = _bounded_steps(t, o[:, 0, :, 2], a[..., 2], (po, pd), bound)
     z = o[:, 0, :, 2] + t * a[..., 2]
     ok = turns & torch.isfinite(z.detach()).all(-1)
     return z, o[:, 0] + t[..., None] * a, opl0 + n_img * t, ok
+
+
+def _bounded_steps(t: torch.Tensor, oz: torch.Tensor, az: torch.Tensor, turn: tuple, bound: tuple) -> torch.Tensor:
+    """The steps ``t`` (B, k) mm along the rays (from ``oz`` (B, k) mm, direction z-cosines ``az``) to their rim
+    images, held within ``far`` mm of the plane ``z_plane`` (``bound``); where the nudged rays do not turn (``turn``
+    = ``(po, pd)`` (B, k, 3): their offset (mm) and turn across them; a turn under 1e-12 of the offset puts the image
+    beyond 1e12 mm, and an exact 0 would put it at ``t = 0``) the step to ``far`` before the plane."""
+    z_plane, far = bound
+    po, pd = turn
+    lo = (z_plane - far - oz) / az
+    hi = (z_plane + far - oz) / az
+    parallel = (pd * pd).sum(-1).detach() * 1e24 <= (po * po).sum(-1).detach()
+    t = torch.where(parallel, lo, t)
+    return torch.minimum(torch.maximum(t, torch.minimum(lo, hi)), torch.maximum(lo, hi))
 
 
 def _radial_nudge(dv: torch.Tensor, c: torch.Tensor, s: torch.Tensor):
