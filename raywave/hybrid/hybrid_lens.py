@@ -514,24 +514,25 @@ class HybridLens(nn.Module):
         straight line in the image medium, crosses the axis (the paraxial exit pupil, but also right for
         surfaces the paraxial trace does not model, e.g. phase surfaces); usually a virtual plane inside the
         lens. Falls back to :func:`raywave.lens.paraxial.exit_pupil` when that ray cannot be traced. A pupil farther
-        than :data:`EXIT_PUPIL_FAR` from the DOE plane (image-space telecentric) is placed at that distance on its
-        side: the plane where the exit-pupil edge's construction starts."""
+        than :data:`EXIT_PUPIL_FAR` from the DOE plane (image-space telecentric) is placed that far before the plane:
+        where the exit-pupil edge's construction starts."""
         from raywave.lens.sources import chief_ray
 
         wl = self.lens.primary_wavelength if wavelength is None else float(wavelength)
         return self._checked_pupil(self._exit_pupil_zs([wl])[0])
 
     def _checked_pupil(self, z: float) -> float:
-        """``z`` (an exit pupil's z, mm); one farther than :data:`EXIT_PUPIL_FAR` from the DOE plane, or at infinity,
-        placed at that distance on its side (before the plane where infinite); :class:`_PupilAtInfinity` where ``z``
-        is undefined (NaN: no chief ray and no paraxial pupil)."""
+        """``z`` (an exit pupil's z, mm); one farther than :data:`EXIT_PUPIL_FAR` from the DOE plane on either side,
+        or at infinity, placed that far before the plane (the telecentric limit is the same from both sides; the
+        rim images are placed alike); :class:`_PupilAtInfinity` where ``z`` is undefined (NaN: no chief ray and no
+        paraxial pupil)."""
         zd = self.doe_z()
         if math.isnan(z):
             raise _PupilAtInfinity(f"stop_edge='exit_pupil': the lens's exit pupil is undefined (z = {z:g}), where no "
                                    "field can be built; use stop_edge='doe'")
         if abs(z - zd) <= EXIT_PUPIL_FAR:
             return z
-        return zd + (EXIT_PUPIL_FAR if z > zd else -EXIT_PUPIL_FAR)
+        return zd - EXIT_PUPIL_FAR
 
     def _exit_pupil_zs(self, wls: list) -> list:
         """:meth:`exit_pupil_z`'s z (mm) at each wavelength of ``wls`` (µm), unchecked (inf or NaN where it fails):

@@ -187,11 +187,20 @@ def _nu_inner(ripple_zones: float) -> float:
     return INNER_TAIL * math.sqrt(2.0) * ripple_zones
 
 
+#: :func:`_zone_estimate`'s floor of 0.1 on the convergence holds over at most this distance (mm) from the edge: beyond
+#: (an edge at :data:`EXIT_PUPIL_FAR`, a telecentric lens's) the floor would make the 10 m edge a 1 m one, whose zone is
+#: ~3× the beam's own (``d·r/(d + r) → r``) and whose node grid the memory refused (the Sigma 8-16 mm DC file on axis,
+#: 8.4 GiB of nearest-node fill); every edge within it keeps its estimate
+ZONE_FLOOR_DISTANCE = 1e3
+
+
 def _zone_estimate(wavelength: float, n: float, dz: float, dz_focus: float, alpha: float, beta: float) -> float:
     """Upper estimate (mm) of the stop edge's Fresnel zone on the DOE plane ``sqrt(λ/n·|L|)`` (see
     :func:`_fresnel_scale`) from the chief ray: ``L = dz·M/cos³θ`` with the convergence ``M`` towards a focus
-    ``dz_focus`` beyond the edge's plane (at least 0.1, at most 1), 30 % wider for the marginal rays' tilt."""
-    m = min(max(abs(dz_focus - dz) / max(abs(dz_focus), 1e-12), 0.1), 1.0)
+    ``dz_focus`` beyond the edge's plane (at least 0.1 (0.1·:data:`ZONE_FLOOR_DISTANCE`/|dz| for an edge farther
+    than it), at most 1), 30 % wider for the marginal rays' tilt."""
+    floor = 0.1 * min(1.0, ZONE_FLOOR_DISTANCE / max(abs(dz), 1e-12))
+    m = min(max(abs(dz_focus - dz) / max(abs(dz_focus), 1e-12), floor), 1.0)
     cos2 = max(1.0 - alpha * alpha - beta * beta, 0.1)
     return 1.3 * math.sqrt(wavelength * 1e-3 / n * abs(dz) * m / cos2**1.5)
 
@@ -942,10 +951,12 @@ def _dense_backward(grad, inputs: tuple, consts, need):
 #: stop-rim points at which :func:`stop_rim_images` finds the edge's image
 RIM_POINTS = 64
 #: the engine's stop-edge images lie at most this far (mm) from the DOE plane: an exit pupil or a rim image farther
-#: away, or at infinity (an image-space telecentric lens: the rays through a rim point leave parallel), is placed at
-#: this distance along its ray, on its side (before the plane where the rays are parallel). The edge's Fresnel length
-#: on the DOE plane, ``d·r/(d + r)`` for an edge ``d`` mm before it and a focus ``r`` mm after it, is then within
-#: ``r/d`` of its telecentric limit ``r``, and the construction's margins stay finite. Issue 47 class D (2026-12-01):
+#: away on either side, or at infinity (an image-space telecentric lens: the rays through a rim point leave parallel),
+#: is placed at this distance before the plane, along its ray. The edge's Fresnel length on the DOE plane, ``d·r/(d +
+#: r)`` for an edge ``d`` mm before it and a focus ``r`` mm after it, has the same limit ``r`` from either side and is
+#: then within ``r/d`` of it, and the construction's margins stay finite; near-parallel rays put a telecentric lens's
+#: rim images at ±tens of metres at random, and left on their sides they made one rim of two far halves (the
+#: Telecentric Tandem file: 1.03e-2 on axis that way, 7.7e-5 placed before the plane). Issue 47 class D (2026-12-01):
 #: the two ideal lenses with B's focus on the stop and a Fresnel DOE, 1.8e-4 / 3.3e-4 from the wave truth at 0° / 2°
 #: (tests/test_ideal_lens_truth.py; B 11.99 mm behind A, its pupil 14 m away: 2.1e-4 / 2.2e-4 placed here, 1.8e-4 where
 #: it lies); the telecentric lens file of US 4,929,066 (pupil 3.4 m before the DOE) 2.30e-4 / 1.75e-4 at 0 / 0.7
@@ -972,7 +983,7 @@ def stop_rim_images(lens, field, wavelength: float, depth, field_type: str | Non
     edge's normal, the direction its Fresnel diffraction runs), to first order from central differences;
     the crossing is the closest approach of the two rays. Differentiable with respect to the lens (the rays are
     traced with autograd when it is on). Many sources at once: :func:`stop_rim_images_many`. ``bound``: ``(z_plane,
-    far)`` mm: images farther than ``far`` from the plane (or at infinity) placed at that distance along their rays
+    far)`` mm: images farther than ``far`` from the plane (or at infinity) placed that far before it along their rays
     (the engine's :data:`EXIT_PUPIL_FAR` from the DOE plane); None: where they lie."""
     f = torch.as_tensor(field, dtype=torch.float64, device=lens.device).reshape(1, 2)
     return stop_rim_images_all(lens, f, [float(wavelength)], depth, field_type, k, bound)[0][0]
@@ -1054,8 +1065,8 @@ def _rim_crossings(o, d, dv, c, s, paths: tuple, bound: tuple | None = None):
     paths to them (B, k) mm, ok (B,) bool)`` (``paths`` = ``(opl0, n_img)``: ``opl0`` (B, k) the source's rays' paths
     at ``o[:, 0]``, ``n_img`` (B, 1) the image medium's index); ``ok`` False for a degenerate source
     (:func:`_radial_nudge`) or a non-finite crossing. ``bound`` ``(z_plane, far)``: a crossing farther than ``far``
-    mm from the plane, or none (parallel rays: a telecentric rim), placed at ``far`` on its side (before the plane
-    for parallel rays)."""
+    mm from the plane, or none (parallel rays: a telecentric rim), placed ``far`` before the plane
+    (:func:`_bounded_steps`)."""
     opl0, n_img = paths
     w, turns = _radial_nudge(dv, c, s)
     # (B, k, 3): the ray of the source nudged so that its ray through the rim point turns along the rim's normal
@@ -1077,16 +1088,16 @@ def _rim_crossings(o, d, dv, c, s, paths: tuple, bound: tuple | None = None):
 
 def _bounded_steps(t: torch.Tensor, oz: torch.Tensor, az: torch.Tensor, turn: tuple, bound: tuple) -> torch.Tensor:
     """The steps ``t`` (B, k) mm along the rays (from ``oz`` (B, k) mm, direction z-cosines ``az``) to their rim
-    images, held within ``far`` mm of the plane ``z_plane`` (``bound``); where the nudged rays do not turn (``turn``
-    = ``(po, pd)`` (B, k, 3): their offset (mm) and turn across them; a turn under 1e-12 of the offset puts the image
-    beyond 1e12 mm, and an exact 0 would put it at ``t = 0``) the step to ``far`` before the plane."""
+    images, an image farther than ``far`` mm from the plane ``z_plane`` (``bound``) on either side, or at infinity
+    (the nudged rays do not turn: ``turn`` = ``(po, pd)`` (B, k, 3), their offset (mm) and turn across them; a turn
+    under 1e-12 of the offset puts the image beyond 1e12 mm, and an exact 0 would put it at ``t = 0``), moved to
+    ``far`` before the plane (:data:`EXIT_PUPIL_FAR`)."""
     z_plane, far = bound
     po, pd = turn
-    lo = (z_plane - far - oz) / az
-    hi = (z_plane + far - oz) / az
+    before = (z_plane - far - oz) / az
     parallel = (pd * pd).sum(-1).detach() * 1e24 <= (po * po).sum(-1).detach()
-    t = torch.where(parallel, lo, t)
-    return torch.minimum(torch.maximum(t, torch.minimum(lo, hi)), torch.maximum(lo, hi))
+    beyond = (oz + t.detach() * az - z_plane).abs() > far
+    return torch.where(parallel | beyond, before, t)
 
 
 def _radial_nudge(dv: torch.Tensor, c: torch.Tensor, s: torch.Tensor):
