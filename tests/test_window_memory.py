@@ -81,8 +81,8 @@ print(json.dumps(out))
 """
 
 
-#: what a PSF holds whatever its window (its rays and traces; with gradients their graph): measured 0.1 – 0.4 GiB
-#: (benchmarks/window_memory.py's intercepts); the estimate's margin holds it on large windows, not on 6·10⁶ samples
+#: what a PSF holds whatever its window (its rays and traces; with gradients their graph): benchmarks/window_memory.py's
+#: intercepts are 0.02 – 0.41 GiB; the estimate's margin holds them on large windows, not on 6·10⁶ samples
 FIXED = 128 * 2**20
 
 
