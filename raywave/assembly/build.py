@@ -223,7 +223,10 @@ def go_field_distance(lens, distance: float, pitch: float, sources: tuple = (Non
         return distance
     try:  # the window (beam and edge band) as the engine's fallback checks it (1.2×), with a margin: at the time
         # of the call, like the fallback (where it does not fit, the engine keeps the plane as before)
-        check_window_memory(math.ceil(1.25 * wy / pitch), math.ceil(1.25 * wx / pitch), pitch, lens.device)
+        # (the Fresnel step's, without a graph: the plane is chosen for the PSF whatever the mode of the load; a PSF
+        # with gradients that does not fit there is refused by the engine's own check)
+        check_window_memory(math.ceil(1.25 * wy / pitch), math.ceil(1.25 * wx / pitch), pitch, lens.device,
+                            step="fresnel", graph=False)
     except MemoryLimitError:
         return distance
     if report is not None:
@@ -492,11 +495,12 @@ def check_doe_memory(shape: tuple[int, int], pitch: float, oversample: int, stor
     is allocated or traced: the element's own arrays (:data:`DOE_BYTES_PER_PIXEL` per pixel when ``stores_map``)
     plus the largest field window, ``oversample``² simulation samples per pixel over the DOE grid or, when
     ``beam`` (mm, :func:`widest_beam`) is known, over the widest beam, at
-    :data:`raywave.hybrid.coherent.geometry.WINDOW_BYTES_PER_SAMPLE`. Refused
+    :func:`raywave.hybrid.coherent.geometry.window_bytes_per_sample` (the field built on the DOE plane, without a
+    graph: a PSF with gradients is checked again by the engine). Refused
     (:class:`~raywave.utils.errors.MemoryLimitError`) over the limit of
     :func:`~raywave.utils.errors.check_allocation`, naming the options that shrink it and, for a pitch below
     0.1 µm, the likely unit slip."""
-    from raywave.hybrid.coherent.geometry import WINDOW_BYTES_PER_SAMPLE
+    from raywave.hybrid.coherent.geometry import window_bytes_per_sample
 
     ny, nx = (int(v) for v in shape)
     q = max(int(oversample), 1)
@@ -504,7 +508,8 @@ def check_doe_memory(shape: tuple[int, int], pitch: float, oversample: int, stor
     if beam is not None:
         side = math.ceil(beam / pitch) + 2
         wy, wx = min(ny, side), min(nx, side)
-    need = float(ny) * nx * (DOE_BYTES_PER_PIXEL if stores_map else 0) + float(wy) * wx * q * q * WINDOW_BYTES_PER_SAMPLE
+    per_sample = window_bytes_per_sample("cut", graph=False)
+    need = float(ny) * nx * (DOE_BYTES_PER_PIXEL if stores_map else 0) + float(wy) * wx * q * q * per_sample
     slip = ""
     if pitch < 1e-4:
         slip = (f" (the pitch is {pitch:g} mm = {pitch * 1e3:g} µm, finer than any DOE pixel: pitches are in mm, "

@@ -42,10 +42,11 @@ from __future__ import annotations
 
 from raywave.hybrid.coherent.record import (CausticWarning, DOEField, FieldInfo, SamplingWarning,  # noqa: F401
                                             StopEdgeWarning, _NEWTON_ITERS, _NEWTON_TOL)
-from raywave.hybrid.coherent.geometry import (WINDOW_BYTES_PER_SAMPLE, _check_beyond_last_surface, _common_setup,
+from raywave.hybrid.coherent.geometry import (WINDOW_BYTES, _check_beyond_last_surface, _common_setup,
                                               _crop_to_lit, _empty_field, _footprint, _medium_index, _sim_grid,
                                               _warn_nyquist, check_window_memory, chief_rays, lit_box,
-                                              doe_clipping, doe_clippings, footprints, inside_doe)  # noqa: F401
+                                              window_bytes_per_sample, doe_clipping, doe_clippings, footprints,
+                                              inside_doe)  # noqa: F401
 from raywave.hybrid.coherent.tracing import (_Aim, _TraceRequest, _invert_to_nodes, _landing_and_jacobian, _nearest_fill,
                                              _solve2, _split_bundle, _trace_group, _trace_uv, run_batched,
                                              run_serial)  # noqa: F401

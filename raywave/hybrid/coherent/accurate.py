@@ -1238,7 +1238,7 @@ def _fine_field(b: _Build, nd: _Nodes, maps: dict, sim: Grid):
     x0, y0 = sim.origin
     gx, gy, h_node, ky, kx = nd.gx, nd.gy, nd.h, nd.ky, nd.kx
     diffracting, dist = "nu" in maps, maps["dist"]
-    win = _span_window(nd, sim, doe is not None)
+    win = _span_window(nd, sim, doe is not None, "fresnel" if diffracting else "cut")
     if win is None:
         return None
     iy0, iy1, ix0, ix1 = win
@@ -1298,16 +1298,17 @@ def _envelope(fine, cov: torch.Tensor | None, k: float, edge: tuple | None) -> t
     return edge_envelope(ch[1], ch[0], ch[-2], dz, ripple_zones, g_max, p, kappa=ch[-1], scale=(cov, k))
 
 
-def _span_window(nd: _Nodes, sim: Grid, clamp: bool):
+def _span_window(nd: _Nodes, sim: Grid, clamp: bool, step: str = "cut"):
     """The fine window: the simulation samples inside the node span, half-open ``(iy0, iy1, ix0, ix1)`` indices on
     ``sim``'s lattice (pitch mm), clamped to the DOE grid with ``clamp`` (a virtual plane's window is not: it lies
     on the DOE grid's lattice extended); None when empty. Refuses a window too large for memory
-    (:func:`check_window_memory`) before any array of its size exists."""
+    (:func:`check_window_memory` of ``step``: "fresnel" with the knife edge, "cut" without) before any array of its
+    size exists."""
     ends = torch.stack([nd.gy[0], nd.gx[0], nd.gy[-1], nd.gx[-1]]).tolist()  # one host read
-    return _span_bounds(ends, sim, clamp, nd.gx.device)
+    return _span_bounds(ends, sim, clamp, nd.gx.device, step)
 
 
-def _span_bounds(ends, sim: Grid, clamp: bool, device):
+def _span_bounds(ends, sim: Grid, clamp: bool, device, step: str = "cut"):
     """:func:`_span_window` from the node span's ends ``(gy0, gx0, gy1, gx1)`` mm (host floats)."""
     p = sim.pitch[0]
     (x0, y0), (sy, sx) = sim.origin, sim.shape
@@ -1318,7 +1319,7 @@ def _span_bounds(ends, sim: Grid, clamp: bool, device):
         iy0, iy1, ix0, ix1 = max(0, iy0), min(sy, iy1), max(0, ix0), min(sx, ix1)
     if iy1 <= iy0 or ix1 <= ix0:
         return None
-    check_window_memory(iy1 - iy0, ix1 - ix0, p, device)  # before any array of the window's size
+    check_window_memory(iy1 - iy0, ix1 - ix0, p, device, step)  # before any array of the window's size
     return iy0, iy1, ix0, ix1
 
 
@@ -1429,7 +1430,8 @@ def _fine_fields(reqs: list) -> list:
     if doe is not None and (type(doe).coverage is not DOE.coverage or doe.aperture not in ("square", "circle")):
         return [r.run() for r in reqs]  # an aperture of its own: the DOE's coverage per window
     ends = _node_span_ends([r.nd for r in reqs])
-    wins = [_span_bounds(e, r0.sim, doe is not None, dev) for e in ends]
+    step = "fresnel" if "nu" in r0.maps else "cut"
+    wins = [_span_bounds(e, r0.sim, doe is not None, dev, step) for e in ends]
     out: list = [None] * len(reqs)
     for chunk in _field_chunks(wins, _field_batch_cap(dev)):
         for j, res in zip(chunk, _fine_field_batch([reqs[j] for j in chunk], [wins[j] for j in chunk],

@@ -191,7 +191,9 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays,
                             "accurate").with_info(stop_edge="exit_pupil", edge_step=step)
     grid = sim.window(*box)
-    check_window_memory(*grid.shape, p, lens.device)
+    (cy, cx), (wy, wx) = fx.grid.shape, grid.shape  # the carry's cost: per sample of the larger window
+    (ny, nx) = (cy, cx) if cy * cx > wy * wx else (wy, wx)
+    check_window_memory(ny, nx, p, lens.device, step="fallback" if z_from is not None else "asm")
     fin = Field(fx.envelope, fx.grid, float(wavelength), n, carrier)
     if m == 1:
         u = propagate_window(fin, grid, dz, transfer=edge_transfer(known.transfers, fin, grid, dz)).envelope
@@ -387,7 +389,7 @@ def _beam_fits(lens, xb, p_sim: float, limit: int) -> bool:
         return False
     try:
         check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
-                            p_sim, lens.device)
+                            p_sim, lens.device, step="asm")
     except MemoryLimitError:
         return False
     return True
@@ -606,7 +608,7 @@ def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: flo
     if fits:
         try:  # the window (beam and edge band, 1.2x) in memory, as the construction will check it
             check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
-                                p_sim, lens.device)
+                                p_sim, lens.device, step="fallback")
         except MemoryLimitError:
             fits = False
     if not fits:

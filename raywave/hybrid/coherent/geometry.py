@@ -216,15 +216,40 @@ def _nyquist_warning(ratio: float, at: tuple, field, wavelength: float, pitch: f
         f"oversample ≥ {math.ceil(ratio * 1.05)}.", SamplingWarning, stacklevel=stacklevel)
 
 
-#: peak bytes per simulation sample of building and propagating a DOE-plane field window (float64 interpolated
-#: channels and coverage, the complex128 envelope, the DOE phase and the propagation's FFT buffers)
-WINDOW_BYTES_PER_SAMPLE = 192
+#: peak bytes per simulation sample of a DOE-plane field window, by ``(step, graph)``: ``step`` "fresnel" (the field
+#: built on its plane with the stop's knife edge, the Fresnel edge step, and the PSF's propagation to the sensor),
+#: "cut" (the same with the edges cut sharply: the DOE-plane edge, a blank DOE's cut edge; the faithful splat, not
+#: measured, is held to it too), "asm" (the exact construction: built on a plane near the exit pupil and carried to
+#: the DOE plane by the windowed angular spectrum; per sample of the larger of its two windows) or "fallback" (the
+#: caustic fallback: the Fresnel step on an earlier plane, carried to the DOE plane near the focus; per sample of the
+#: earlier plane's window); ``graph``: whether autograd keeps the construction's graph (gradients enabled). Measured
+#: (benchmarks/window_memory.py, the Zeiss Pro-Tessar on axis, DOE pitches 9.6 – 2.8 µm, 1.2·10⁶ – 2.8·10⁷ samples,
+#: and 1.2 µm, 1.1 – 1.3·10⁸ samples, without a graph; benchmarks/results/window_memory_2026-12-01_xxv_h47a.json):
+#: 1.28 – 1.44× the least-squares slope of the peak resident memory against the samples, at least 1.14× its steepest
+#: rise between neighbouring sizes from 4·10⁶ samples on (compiled and eager kernels) and above the whole extra peak
+#: per sample of the largest window (the Fresnel step without a graph: 74 B against a slope of 51.9 B, a rise of up
+#: to 65.2 B and 53.7 B a sample on 1.25·10⁸ samples)
+WINDOW_BYTES = {("fresnel", False): 74, ("fresnel", True): 160, ("cut", False): 92, ("cut", True): 215,
+                ("asm", False): 215, ("asm", True): 260, ("fallback", False): 120, ("fallback", True): 200}
 
 
-def check_window_memory(ny: int, nx: int, p: float, device=None) -> None:
+def window_bytes_per_sample(step: str = "cut", graph: bool | None = None) -> int:
+    """:data:`WINDOW_BYTES` of ``step`` ("fresnel", "cut", "asm" or "fallback"); ``graph`` None: whether gradients
+    are enabled now (:func:`torch.is_grad_enabled`: a graph may be kept)."""
+    if graph is None:
+        graph = torch.is_grad_enabled()
+    try:
+        return WINDOW_BYTES[(step, bool(graph))]
+    except KeyError:
+        raise ValueError(f"the window's step is 'fresnel', 'cut', 'asm' or 'fallback', got {step!r}") from None
+
+
+def check_window_memory(ny: int, nx: int, p: float, device=None, step: str = "cut",
+                        graph: bool | None = None) -> None:
     """Refuse (:class:`~raywave.utils.errors.MemoryLimitError`) a field window of ny×nx simulation samples of
-    pitch ``p`` mm that would not fit in memory, before anything of that size is allocated."""
-    check_allocation(float(ny) * float(nx) * WINDOW_BYTES_PER_SAMPLE,
+    pitch ``p`` mm that would not fit in memory, before anything of that size is allocated: at
+    :func:`window_bytes_per_sample` of ``step`` and ``graph`` (None: gradients enabled now) a sample."""
+    check_allocation(float(ny) * float(nx) * window_bytes_per_sample(step, graph),
                      f"the {ny}×{nx}-sample DOE-plane field (simulation pitch {p * 1e3:.3g} µm)",
                      "use a coarser DOE pitch (doe pitch / --doe-pitch), a lower oversample (--oversample), a "
                      "smaller DOE or, for a blank DOE, a plane nearer focus (--doe-distance; the beam is narrower "
