@@ -54,6 +54,7 @@ CASES = {
     "steinheil": ("Telescope Steinheil.zmx", 1.0, None),
     "telecentric_on_axis": ("Telecentric USP4929066.zmx", 0.0, None),
     "telecentric_off_axis": ("Telecentric USP4929066.zmx", 0.7, None),
+    "telecentric_tandem_off_axis": ("Telecentric Tandem Jps46-2940.zmx", 0.7, None),
     "tessar_off_axis": ("Zeiss Tessar f2.8 50mm.zmx", 0.7, None),
     "edmund_doublet_on_axis": ("Edmund 32-303.zmx", 0.0, None),
 }
@@ -75,7 +76,9 @@ def test_default_psf_of_other_lens_classes_within_1e_3_of_the_converged_referenc
     the DOE-plane edge 6.8e-4); the telecentric lens of US 4,929,066 (F/4.5, a finite object, image-space
     telecentric, its exit pupil 3.4 m before the DOE plane) on axis: 2.30e-4 (own error 5.6e-9), at 0.7 field 1.75e-4
     (own error 5.8e-7) since it takes the exit-pupil edge (2026-12-01, class D; the DOE-plane edge it fell back to
-    before: 4.27e-4 / 3.82e-3). The Tessar at 0.7 field (16.4°): 3.56e-4 (2026-11-30 xxiv; own error 1.4e-11; the DOE-plane edge
+    before: 4.27e-4 / 3.82e-3). The Telecentric Tandem (JP S46-2940, F/3.5, its exit pupil ~30 m away, the rim images
+    on both sides of the DOE plane) at 0.7 field: 7.76e-5 (own error 4.8e-8; on axis 7.68e-5; the DOE-plane edge
+    5.1e-3 / 9.8e-3; 1.03e-2 on axis before its far rim images were placed on one side)). The Tessar at 0.7 field (16.4°): 3.56e-4 (2026-11-30 xxiv; own error 1.4e-11; the DOE-plane edge
     6.2e-2). Since h44e (class E: a .zmx stop's own CLAP is its hard edge): the Edmund 32-303 doublet (f 20 mm, ENPD
     F/3.2, its stop's CLAP 0.9 of the ENPD's radius) on axis: 1.37e-4 (own error 1.4e-9; before, with the CLAP
     dropped, 1.51e-3 and no verdict: the reference did not converge, 1.9e-3 at 960 nodes)."""
