@@ -560,30 +560,43 @@ def _band_cut(lens, f: torch.Tensor, wls: list, how: tuple, zs: torch.Tensor, z_
     rays = point_source_rays(lens, f, wls, pupil=(px, py), aim="full", depth=depth, field_type=field_type,
                              chief=chief)
     out = lens.trace(rays, apertures=False)
-    o, d = out.o.reshape(nf, nw, na, nk, 3), out.d.reshape(nf, nw, na, nk, 3)
+    o, d = out.o.reshape(nf * nw, na, nk, 3), out.d.reshape(nf * nw, na, nk, 3)
+    wi = torch.arange(nw, device=dev).repeat(nf)  # each flattened source's wavelength
+    n = lens.surfaces[-1].material.n(torch.tensor(wls, dtype=torch.float64, device=dev))
+    lam = torch.tensor(wls, dtype=torch.float64, device=dev) * 1e-3 / n  # (W,) mm in the image medium
+    zx = torch.tensor(z_xps, dtype=torch.float64, device=dev)
+    valid = out.valid.reshape(nf * nw, na, nk)
+    blk = GO_SOURCE_BLOCK_ACCELERATOR if devices.accelerator(dev) else GO_SOURCE_BLOCK
+    cut = [_band_cut_block(o[i:i + blk], d[i:i + blk], valid[i:i + blk],
+                           (zs[wi[i:i + blk]], zx[wi[i:i + blk]], lam[wi[i:i + blk]]))
+           for i in range(0, nf * nw, blk)]
+    return (cut[0] if len(cut) == 1 else torch.cat(cut)).reshape(nf, nw, -1)
+
+
+def _band_cut_block(o, d, valid, planes: tuple) -> torch.Tensor:
+    """:func:`_band_cut` for a block of S sources: their band rays after the lens ``o``, ``d`` (S, A, K, 3) and
+    ``valid`` (S, A, K); ``planes`` = ``(zs (S, P) mm, exit-pupil planes (S,) mm, λ_m (S,) mm)``. Returns (S, P)
+    bool (memory: ~10 arrays of A·K·P samples a source)."""
+    zs, zx, lam = planes
     tan = d[..., :2] / d[..., 2:]
-    ok = out.valid.reshape(nf, nw, na, nk) & torch.isfinite(tan).all(-1)
-    z = zs[None, :, None, None, :]  # (1, W, 1, 1, P)
-    x = o[..., :2, None] + tan[..., None] * (z[..., None, :] - o[..., 2:, None])  # (F, W, A, K, 2, P)
-    out_dir = x[:, :, :, 1] - x[:, :, :, 0]  # (F, W, A, 2, P): outwards, along the next ray's landing
+    ok = valid & torch.isfinite(tan).all(-1)
+    z = zs[:, None, None, :]  # (S, 1, 1, P)
+    x = o[..., :2, None] + tan[..., None] * (z[..., None, :] - o[..., 2:, None])  # (S, A, K, 2, P)
+    out_dir = x[:, :, 1] - x[:, :, 0]  # (S, A, 2, P): outwards, along the next ray's landing
     norm = out_dir.norm(dim=-2, keepdim=True).clamp_min(1e-300)
-    s = ((x - x[:, :, :, :1]) * (out_dir / norm)[:, :, :, None]).sum(-2)  # (F, W, A, K, P)
-    grows = torch.cat([torch.ones_like(s[:, :, :, :1], dtype=torch.bool), s[:, :, :, 1:] > s[:, :, :, :-1]], 3)
-    held = torch.cumprod((grows & ok[..., None]).to(torch.int8), 3).bool()  # the rays out to the first fold/loss
-    reach = torch.where(held, s, torch.zeros_like(s)).amax(3)  # (F, W, A, P)
-    reach = torch.where(held[:, :, :, -1], math.inf, reach)  # no fold or loss out to the last ray: not cut
+    s = ((x - x[:, :, :1]) * (out_dir / norm)[:, :, None]).sum(-2)  # (S, A, K, P)
+    grows = torch.cat([torch.ones_like(s[:, :, :1], dtype=torch.bool), s[:, :, 1:] > s[:, :, :-1]], 2)
+    held = torch.cumprod((grows & ok[..., None]).to(torch.int8), 2).bool()  # the rays out to the first fold/loss
+    reach = torch.where(held, s, torch.zeros_like(s)).amax(2)  # (S, A, P)
+    reach = torch.where(held[:, :, -1], math.inf, reach)  # no fold or loss out to the last ray: not cut
     # the local focus across the edge: where the rim ray and the next one out cross (their separation's zero)
-    dt = ((tan[:, :, :, 1] - tan[:, :, :, 0])[..., None] * (out_dir / norm)).sum(-2)  # (F, W, A, P) per mm of z
-    sep = norm[..., 0, :]
-    zf = z[:, :, 0] - sep / torch.where(dt.abs() > 1e-300, dt, torch.full_like(dt, 1e-300))  # (F, W, A, P)
-    zx = torch.tensor(z_xps, dtype=torch.float64, device=dev)[None, :, None, None]
-    dd = (z[:, :, 0] - zx).abs()
-    length = (dd * (zf - z[:, :, 0]) / (zf - zx)).abs()
-    n = lens.surfaces[-1].material.n(torch.tensor(wls, dtype=torch.float64, device=dev))[None, :, None, None]
-    lam = torch.tensor(wls, dtype=torch.float64, device=dev)[None, :, None, None] * 1e-3 / n
-    band = RIPPLE_ZONES * torch.sqrt(lam * length)
-    lit = ok[:, :, :, 0][..., None]  # azimuths whose rim ray is traced
-    return (lit & (reach < band)).any(2)  # (F, W, P)
+    dt = ((tan[:, :, 1] - tan[:, :, 0])[..., None] * (out_dir / norm)).sum(-2)  # (S, A, P) per mm of z
+    zp = z[:, :, 0]  # (S, 1, P)
+    zf = zp - norm[..., 0, :] / torch.where(dt.abs() > 1e-300, dt, torch.full_like(dt, 1e-300))
+    zx = zx[:, None, None]
+    length = ((zp - zx).abs() * (zf - zp) / (zf - zx)).abs()
+    band = RIPPLE_ZONES * torch.sqrt(lam[:, None, None] * length)
+    return (ok[:, :, :1] & (reach < band)).any(1)  # (S, P): azimuths whose rim ray is traced
 
 
 def _go_error_block(x0, tan, ok, zs, k, plane) -> torch.Tensor:
