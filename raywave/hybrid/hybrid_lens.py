@@ -844,7 +844,8 @@ class HybridLens(nn.Module):
         # the shared chief-ray aim where these are all the built sources (an aim's Newton runs over its whole batch:
         # a part of them aims on its own)
         aim = geo.aim if list(rows) == list(range(len(geo.todo))) else None
-        return go_phase_errors(self.optics, geo.f[idx], geo.wls, geo.depth, None, (z_xps, z_doe), aim)
+        return go_phase_errors(self.optics, geo.f[idx], geo.wls, geo.depth, None, (z_xps, z_doe), aim,
+                               band_fold=True)
 
     def _ray_stage(self, geo: "_CallGeometry", groups: list[list[int]], nodes: int, check: bool) -> dict:
         """The ray stage of the accurate constructions of every built source in ``groups`` (their aiming, Newton
