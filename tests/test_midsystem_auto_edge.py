@@ -1,6 +1,6 @@
 """``MidSystemLens(stop_edge="auto")``, the default (issue 46 with issue 47's rule: the default must be right on
 every lens): per source the sharp cut on the engine's plane where :meth:`MidSystemLens.cut_estimates` says it holds,
-else the exit-pupil edge (the exact construction where the beam fits). The decision on the two-lens test system
+else the exit-pupil edge (the Fresnel step where its estimate holds with a margin, else the exact construction). The decision on the two-lens test system
 of tests/wave_truth_doe.py (where the cut holds 9.0e-4) and with a stronger DOE (where it is 3.1e-3 / 9.3e-3 off),
 and against the independent wave reference on systems where the cut fails."""
 
@@ -18,7 +18,8 @@ import wave_truth_doe as W  # noqa: E402
 
 from raywave.doe.base import BlankDOE  # noqa: E402
 from raywave.doe.params import FresnelDOE  # noqa: E402
-from raywave.hybrid.midsystem import CUT_MISMATCH_TOL, CUT_SPHERE_TOL, MidSystemLens  # noqa: E402
+from raywave.hybrid.midsystem import (CUT_MISMATCH_TOL, CUT_SPHERE_TOL, MID_FRESNEL_CURVATURE,  # noqa: E402
+                                      MidSystemLens)
 
 PITCH, PS, KS = 1e-3, 2e-3, 32
 
@@ -97,6 +98,46 @@ def test_auto_mixes_edges_in_one_map():
         for i, (edge, step) in enumerate(edges):
             one = _lens(50.0, (0.0, 1.5), stop_edge=edge, **({} if step is None else {"edge_step": step}))[0]
             torch.testing.assert_close(both[i], one.psf([fields[i]], 0.55, ks=16)[0], rtol=0, atol=1e-12)
+
+
+def _asphere_at_stop(**edge):
+    """The bundled asphere with a blank DOE at its stop (configs/midsystem_stop_doe.yaml's place), the engine's
+    plane 0.7 mm after the lens."""
+    import raywave
+    from raywave.assembly.midsystem import midsystem_of
+
+    return midsystem_of(raywave.load_lens("hybrid_asphere"), BlankDOE(512, 4e-3), 0, 0.0, 0.7, **edge)
+
+
+ASPHERE_FIELDS = [(0.0, 0.0), (0.0, 5.0), (0.0, 9.0)]
+
+
+def test_auto_takes_the_fresnel_step_on_a_wide_beam():
+    """The asphere's wave near the stop's edge is 0.10 / 1.4 / 3.4 waves from a sphere (the cut fails); the engine's
+    Fresnel-step estimate holds with the curvature ratio 0.09–0.096 ≤ MID_FRESNEL_CURVATURE: the Fresnel step.
+    On the two-lens system (ratio 0.26 with f 20 mm, above) the exact step."""
+    ml = _asphere_at_stop()
+    assert not any(e["holds"] for e in ml.cut_estimates(ASPHERE_FIELDS, 0.55))
+    assert all(fe[2] < 0.1 and fe[0] <= fe[1] for fe in ml.fresnel_estimates(ASPHERE_FIELDS, 0.55, ks=32))
+    assert ml.edges(ASPHERE_FIELDS, 0.55, ks=32) == [("exit_pupil", "fresnel")] * 3
+    two = _lens(20.0, (0.0, 1.5))[0]
+    assert two.fresnel_estimates([(0.0, 1.5)], 0.55, ks=KS)[0][2] > MID_FRESNEL_CURVATURE
+
+
+@pytest.mark.slow
+def test_auto_on_the_asphere_is_the_exact_edge_within_3e_4():
+    """The asphere at its stop, ks 32: the default (the Fresnel step) 1.1e-4 / 8.7e-5 / 1.4e-4 from the exact
+    step at 0° / 5° / 9°, where the cut is 3.5e-3 / 5.8e-3 / 2.0e-2 from it."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        auto = _asphere_at_stop().psf(ASPHERE_FIELDS, 0.55, ks=32)
+        exact = _asphere_at_stop(stop_edge="exit_pupil", edge_step="asm").psf(ASPHERE_FIELDS, 0.55, ks=32)
+        cut = _asphere_at_stop(stop_edge="doe").psf(ASPHERE_FIELDS, 0.55, ks=32)
+    def rel(a):
+        return ((a - exact).abs().sum((-1, -2)) / exact.sum((-1, -2))).reshape(-1)
+
+    assert float(rel(auto).max()) < 3e-4
+    assert float(rel(cut).min()) > 3e-3
 
 
 @pytest.mark.slow

@@ -654,9 +654,9 @@ class MidSystemLens(nn.Module):
         sensor_pitch: as :class:`~raywave.hybrid.HybridLens`.
         stop_edge, edge_step: where the stop's edge is formed. "auto" (the default; None means it too): per source,
             the sharp cut on the engine's plane where :meth:`cut_estimates` says it holds (the wave near the stop's
-            edge a sphere focused on the sensor), else the exit-pupil edge with ``edge_step`` (default "asm", the
-            exact construction, where the beam fits its lattice (the engine's "auto" rule); else the engine's
-            "adaptive" step); :meth:`edges` gives each source's choice. "doe": the sharp cut on the engine's plane
+            edge a sphere focused on the sensor), else the exit-pupil edge with ``edge_step`` (default: the Fresnel
+            step where its error estimate holds with a margin, else "asm", the exact construction, where the beam
+            fits its lattice, else the engine's "adaptive" step); :meth:`edges` gives each source's choice. "doe": the sharp cut on the engine's plane
             for every source (before 2026-12-01 the default). "exit_pupil" (``edge_step`` as
             :class:`~raywave.hybrid.HybridLens`; "asm": the stop's edge formed at each rim point's image and
             propagated by the angular spectrum, 3× closer to the reference for the strong order at ~10-20× the
