@@ -55,8 +55,10 @@ def _diag(theta):
 
 
 #: name → case. ``sys``: TwoLensSystem's fields (lengths mm, λ µm) plus ``n`` (the DOE's pixels a side, 1 µm) and
-#: ``f_design`` (the Fresnel DOE's focal length; ``f_doe`` follows it). ``edge``: "default" (the DOE-plane cut),
-#: "asm" (the exact edge), "asm_weak" (the exact edge, min_efficiency 1e-3), "asm_weak_doe" (the same, weak_edge doe).
+#: ``f_design`` (the Fresnel DOE's focal length; ``f_doe`` follows it). ``edge``: "default" (MidSystemLens's
+#: default: ``stop_edge="auto"`` since 2026-12-01, the row's ``edge_chosen``), "cut" (``stop_edge="doe"``, the default
+#: before), "asm" (the exact edge), "asm_weak" (the exact edge, min_efficiency 1e-3), "asm_weak_doe" (the same,
+#: weak_edge doe).
 CASES = dict([
     # field directions and angles (the tests: (0, 0), (0, 1.5))
     _case("fresnel_x1.5", "fresnel", (1.5, 0.0), f_design=50.0),
@@ -149,7 +151,7 @@ COARSE = ["fresnel_x1.5", "fresnel_diag1.5", "fresnel_y3", "blank_diag3", "fresn
 
 
 def _edge_kw(edge):
-    return {"default": {}, "asm": dict(ASM), "asm_weak": dict(ASM, min_efficiency=1e-3),
+    return {"default": {}, "cut": {"stop_edge": "doe"}, "asm": dict(ASM), "asm_weak": dict(ASM, min_efficiency=1e-3),
             "asm_weak_doe": dict(ASM, min_efficiency=1e-3, weak_edge="doe"),
             "xp_weak": {"stop_edge": "exit_pupil", "min_efficiency": 1e-3},
             "xp_fresnel_weak": {"stop_edge": "exit_pupil", "edge_step": "fresnel", "min_efficiency": 1e-3},
@@ -182,6 +184,7 @@ def run_case(name: str, spec: dict) -> dict:
         res = ml.psf_result([field], wl, ks=KS)
         orders = [round(float(s), 6) for s, _ in ml.orders(wl)]
     t_engine = time.process_time() - t0
+    edges = [list(e) for e in ml.edges([field], wl)]
     center = res.center[0, 0].detach().numpy()
     phase = None if kind == "blank" else doe.phase(wl).detach().numpy()
     t0 = time.process_time()
@@ -192,7 +195,7 @@ def run_case(name: str, spec: dict) -> dict:
     row = {"case": name, "kind": kind, "field_deg": [round(v, 9) for v in field], "edge": spec["edge"],
            "system": dict(sys_.__dict__, n_doe=n, doe_radius=str(sys_.doe_radius), f_doe=str(sys_.f_doe),
                           f_doe2=str(sys_.f_doe2), field=None),
-           "orders": orders, "rel_l1": W.rel_l1(psf, ref), "bar": BAR[kind],
+           "orders": orders, "edge_chosen": edges, "rel_l1": W.rel_l1(psf, ref), "bar": BAR[kind],
            "center_vs_image_mm": float(np.abs(center - sys_.image()[:2]).max()),
            "warnings": sorted({f"{w.category.__name__}: {str(w.message)[:160]}" for w in caught
                                 if not issubclass(w.category, DeprecationWarning)}),
@@ -300,6 +303,9 @@ def run_grating(name: str, period: float, wl: float, n: int, pitch: float, final
     alpha = detuning("FUSED_SILICA", wl, 0.55)
     blank = MidSystemLens(lens, BlankDOE(n, pitch), after, dist, final_distance, final_size, 1e-3, sensor_pitch=2e-3,
                           **edge)
+    # the orders and the blank through the same edge: the blank's (the default "auto" decides it on axis)
+    chosen = blank.edges([(0.0, 0.0)], wl)[0]
+    blank, ml = blank.with_edge(*chosen), ml.with_edge(*chosen)
     p_blank = float((blank.source_field((0.0, 0.0), wl)[0].envelope.abs() ** 2).sum())
     eff = {}
     for scale, c in orders:
@@ -308,6 +314,7 @@ def run_grating(name: str, period: float, wl: float, n: int, pitch: float, final
         eff[str(round(scale))] = [eta, staircase_efficiency(int(round(scale)), 2, alpha)]
     return {"case": name, "kind": "grating", "period_mm": period, "wavelength": wl, "alpha": alpha,
             "doe_pixels": n, "doe_pitch_mm": pitch, "final_distance_mm": final_distance, "edge": edge,
+            "edge_chosen": list(chosen),
             "final_size_mm": final_size, "sampling_report": sampling,
             "orders": [round(float(s), 6) for s, _ in orders],
             "max_angle_err_rad": max(v[0] for v in angle_err.values()), "angle_err": angle_err,
@@ -329,7 +336,7 @@ def power_vs_plane(distances=(38.0, 40.0, 41.0, 41.5, 42.0)) -> list:
     doe = GratingDOE(0.05, 2400, 0.005, material="FUSED_SILICA")
     doe.fabricate(2)
     rows = []
-    for dist, edge in [(d, {}) for d in distances] + [(d, XP_FRESNEL) for d in (38.0, 41.5)]:
+    for dist, edge in [(d, {"stop_edge": "doe"}) for d in distances] + [(d, XP_FRESNEL) for d in (38.0, 41.5)]:
         ml = MidSystemLens(lens, doe, 1, 3.0, final_distance=dist, final_size=2.0, final_pitch=1e-3,
                            sensor_pitch=2e-3, min_efficiency=0.05, **edge)
         blank = MidSystemLens(lens, BlankDOE(2400, 0.005), 1, 3.0, dist, 2.0, 1e-3, sensor_pitch=2e-3, **edge)
@@ -338,7 +345,7 @@ def power_vs_plane(distances=(38.0, 40.0, 41.0, 41.5, 42.0)) -> list:
             fb = blank.source_field((0.0, 0.0), 0.65)[0]
             fo = ml.order_lens(1.0, False).doe_fields([(0.0, 0.0)], [0.65])[0][0]
         pb, po = float((fb.envelope.abs() ** 2).sum()), float((fo.envelope.abs() ** 2).sum())
-        rows.append({"final_distance_mm": dist, "edge": edge or "default (stop_edge='doe')", "blank_power": pb,
+        rows.append({"final_distance_mm": dist, "edge": edge, "blank_power": pb,
                      "order1_power": po, "order1_over_blank_minus_1": po / pb - 1,
                      "beam_samples": int(fb.envelope.shape[0]),
                      "warnings": sorted({str(w.message)[:160] for w in caught

@@ -29,7 +29,7 @@ def test_final_plane_value_type_and_the_earlier_forms_agree():
     for ml in (new, kw, pos):
         assert ml.final_distance == 0.01 and ml.final.shape == new.final.shape
         assert ml.final.pitch == 1e-3 and ml.sensor_pitch == 2e-3 and ml.min_efficiency == 0.02
-        assert ml.stop_edge == "doe"
+        assert ml.stop_edge == ("doe" if ml is pos else "auto")
     assert new.final.shape[0] == 400
 
 

@@ -26,6 +26,7 @@ and warns past 1 %), and orders below ``min_efficiency``. Differentiable in the 
 from __future__ import annotations
 
 import cmath
+import copy
 import math
 import warnings
 from collections import OrderedDict
@@ -36,6 +37,11 @@ from torch import nn
 
 from raywave.rays.pupil import rim_and_grid
 from raywave.doe.base import DOE, BlankDOE
+from raywave.hybrid.coherent.exit_pupil import (MAX_XP_SAMPLES, SPHERE_TOL, _beam_fits,
+                                                _edge_method, defocus_mismatch, edge_focus_many,
+                                                fresnel_step_estimates, obscuration_fraction)
+from raywave.hybrid.coherent.geometry import _medium_index
+from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
 from raywave.hybrid.coherent.record import CausticWarning, DOEField, SamplingWarning
 from raywave.hybrid.coherent.stop_edge import RimImages
 from raywave.hybrid.coherent.tracing import per_source
@@ -58,6 +64,30 @@ _TWO_PI = 2.0 * math.pi
 MAX_STEP = 0.5 * math.pi
 #: the pixels' flat steps (sample-and-hold) may cost this much of an order's amplitude before a warning
 PIXEL_LOSS_WARN = 0.01
+#: ``MidSystemLens(stop_edge=...)``: "auto" (the default) chooses per source between the sharp cut on the engine's
+#: plane ("doe") and the exit-pupil edge ("exit_pupil") by :meth:`MidSystemLens.cut_estimates`
+MID_STOP_EDGES = ("auto", "doe", "exit_pupil")
+#: ``stop_edge="auto"``: the cut on the engine's plane is kept while the wave near the stop's edge is a sphere to
+#: this many waves (:func:`~raywave.hybrid.coherent.exit_pupil.edge_aberration`; 2× the engine's
+#: :data:`~raywave.hybrid.coherent.exit_pupil.SPHERE_TOL`: a guard against an aberrated wave whose edge rays' focus
+#: happens to lie on the sensor, e.g. the Cooke triplet on axis, 0.56 waves, its cut 1.8e-2 off); the sweep's cases
+#: that hold reach 0.0103 waves (the Fresnel DOE at 3°: the cut 9.4e-4 / 9.7e-4, the exact edge 1.5e-3 along y) ...
+CUT_SPHERE_TOL = 2 * SPHERE_TOL
+#: ... and its edge rays' focus lies on the sensor to within this Fresnel-scaling mismatch (waves,
+#: :func:`~raywave.hybrid.coherent.exit_pupil.defocus_mismatch` of the edge rays' focus, the sensor and the engine's
+#: plane: how much a sharp cut's focal field depends on the plane where it cuts). Calibrated on issue 46's sweep
+#: (benchmarks/midsystem_sweep.py, 32 × 32 crops of 2 µm, the cut against the wave reference): every Fresnel / blank
+#: case up to 3.17e-6 is within 9.7e-4 (the test system 2.59e-6, 9.0e-4), from 3.59e-6 on 1.05e-3 … 9.3e-3 (the exact
+#: edge 2.1e-4 … 6.1e-4 there)
+CUT_MISMATCH_TOL = 3.0e-6
+#: ``stop_edge="auto"``, where the cut fails: the exit-pupil edge's Fresnel step (cheaper than the exact one for a
+#: wide beam) is taken where the engine's error estimate (:func:`~raywave.hybrid.coherent.exit_pupil.
+#: fresnel_step_estimates`) holds with the edge's Fresnel zone at most this fraction of the rim curve's radius of
+#: curvature on the engine's plane (the engine's own bar is 0.3), else the exact step. The bundled asphere with a
+#: DOE at its stop, 0.09–0.096 (0°–9°): the Fresnel step 0.9e-4 – 1.4e-4 from the exact one at 1/7 of its time; the
+#: two-lens sweep's failing cases 0.15 – 0.31, where the Fresnel step reads 6.8e-4 (F/8, 0.15), 5.3e-4 (f 20 mm,
+#: 0.26) but 1.26e-3 (the DOE near A, 0.26) and costs up to 16× the exact step (f 20 mm)
+MID_FRESNEL_CURVATURE = 0.12
 
 
 def dispersion_alpha(doe: DOE, wavelength: float) -> float:
@@ -621,24 +651,31 @@ class MidSystemLens(nn.Module):
             last vertex, see :class:`~raywave.hybrid.HybridLens` ``doe_distance``, and its square grid's size and
             pitch, mm; the pitch is its simulation pitch). The earlier form ``final_distance, final_size,
             final_pitch`` (positional or keywords) is still accepted.
-        sensor_pitch, stop_edge, edge_step: as :class:`~raywave.hybrid.HybridLens` (``stop_edge="doe"``: the sharp
-            cut on the final plane, the default; ``stop_edge="exit_pupil", edge_step="asm"``: the stop's edge formed
-            at each rim point's image and propagated by the angular spectrum, 3× closer to the reference for the
-            strong order at ~10-20× the cost; with it the weak orders' edge waves reach the crop with their traced
-            paths: a 16-level DOE within 1e-3 of the reference with ``min_efficiency=1e-3``; see docs/ray-wave.md,
-            "A DOE inside the lens").
+        sensor_pitch: as :class:`~raywave.hybrid.HybridLens`.
+        stop_edge, edge_step: where the stop's edge is formed. "auto" (the default; None means it too): per source,
+            the sharp cut on the engine's plane where :meth:`cut_estimates` says it holds (the wave near the stop's
+            edge a sphere focused on the sensor), else the exit-pupil edge with ``edge_step`` (default: the Fresnel
+            step where its error estimate holds with a margin, else "asm", the exact construction, where the beam
+            fits its lattice, else the engine's "adaptive" step); :meth:`edges` gives each source's choice. "doe": the sharp cut on the engine's plane
+            for every source (before 2026-12-01 the default). "exit_pupil" (``edge_step`` as
+            :class:`~raywave.hybrid.HybridLens`; "asm": the stop's edge formed at each rim point's image and
+            propagated by the angular spectrum, 3× closer to the reference for the strong order at ~10-20× the
+            cost; with it the weak orders' edge waves reach the crop with their traced paths: a 16-level DOE within
+            1e-3 of the reference with ``min_efficiency=1e-3``); see docs/ray-wave.md, "A DOE inside the lens".
         orders: which diffraction orders are traced and how the weak ones' edge is formed (:class:`Orders`); the
             short forms: the orders to keep themselves (``orders=[1, -1]``: :class:`Orders` ``keep``), and the
             keywords ``min_efficiency=`` and ``weak_edge=`` (:class:`Orders`' fields).
     """
 
     def __init__(self, lens: Lens, doe, after, distance, *final, sensor_pitch: float | None = None,
-                 stop_edge: str | None = "doe", edge_step: str | None = None, orders=None, **legacy):
+                 stop_edge: str | None = "auto", edge_step: str | None = None, orders=None, **legacy):
         short = {k: legacy.pop(k) for k in _ORDER_KEYWORDS if k in legacy}
         opts = {"sensor_pitch": sensor_pitch, "stop_edge": stop_edge, "min_efficiency": short.get("min_efficiency"),
                 "orders": orders}
         plane = _final_plane(final, legacy, opts)
-        sensor_pitch, stop_edge = opts["sensor_pitch"], opts["stop_edge"]
+        sensor_pitch, stop_edge = opts["sensor_pitch"], "auto" if opts["stop_edge"] is None else opts["stop_edge"]
+        if stop_edge not in MID_STOP_EDGES:
+            raise ValueError(f"MidSystemLens: stop_edge must be one of {MID_STOP_EDGES}, got {stop_edge!r}")
         choice = _orders(opts["orders"], opts["min_efficiency"], short.get("weak_edge"), short.get("cull_tol"))
         super().__init__()
         does = list(doe) if isinstance(doe, (list, tuple)) else [doe]
@@ -670,6 +707,111 @@ class MidSystemLens(nn.Module):
         self._transfer_cache = OrderedDict()
         self._edge_transfers = OrderedDict()  # the exact edge step's (exit_pupil.edge_transfer), shared likewise
         self.build_lens([1.0] * n)  # checks the placements now
+
+    def _engine_edge(self) -> str:
+        """The engine's ``stop_edge`` for this lens's own engines: "doe" where it is "auto" (the per-source choice is
+        made by a view, :meth:`with_edge`)."""
+        return "doe" if self.stop_edge == "auto" else self.stop_edge
+
+    def with_edge(self, stop_edge: str, edge_step: str | None = None) -> "MidSystemLens":
+        """A view of this lens (the same lens, DOEs, parameters and transfer memos; a shallow copy) whose stop edge
+        is ``stop_edge`` ("doe" or "exit_pupil") with ``edge_step``: how "auto" builds a source's field."""
+        if stop_edge not in ("doe", "exit_pupil"):
+            raise ValueError(f"MidSystemLens.with_edge: stop_edge must be 'doe' or 'exit_pupil', got {stop_edge!r}")
+        view = copy.copy(self)
+        view.stop_edge, view.edge_step = stop_edge, edge_step
+        return view
+
+    def cut_estimates(self, fields, wavelength: float, depth=None, phase_maps=None) -> list:
+        """Whether the sharp cut on the engine's plane (``stop_edge="doe"``) holds for each source of ``fields`` (F,
+        2) at ``wavelength`` µm (issue 46, ``stop_edge="auto"``): ``[{"waves", "mismatch", "holds"}]``. On the lens
+        with every DOE's strongest order, from one trace of the sources' edge rays (48 each: the rings 0.9 / 1.0 /
+        1.1 of the stop; :func:`~raywave.hybrid.coherent.exit_pupil.edge_focus_many`, host floats): ``waves`` how far
+        the wave near the stop's edge is from a sphere (its edge rays' spread about their common focus over the
+        focus's diffraction scale), ``mismatch`` how much a sharp cut's focal field depends on where it cuts, for a
+        sphere on that focus (:func:`~raywave.hybrid.coherent.exit_pupil.defocus_mismatch`: the edge's defocus on
+        the sensor in waves × that defocus over the engine's plane's distance to the focus). For a sphere focused
+        on the sensor both are 0 and the cut is exact (the Fresnel scaling theorem); a DOE that aberrates the
+        converging beam moves the edge rays' focus off the sensor. ``holds``: ``waves`` ≤ :data:`CUT_SPHERE_TOL`
+        and ``mismatch`` ≤ :data:`CUT_MISMATCH_TOL` (False where an edge ray cannot be traced)."""
+        hl = self.with_edge("doe").order_lens(self._strongest_scales(wavelength), None, phase_maps)
+        f = torch.as_tensor(fields, dtype=torch.float64).reshape(-1, 2)
+        z_doe, z_sensor = hl.doe_z(), hl.sensor_z()
+        out = []
+        for waves, z_focus, na, n_med in (row[0] for row in edge_focus_many(hl.lens, f, [float(wavelength)], depth)):
+            if z_focus is None:
+                out.append({"waves": math.inf, "mismatch": math.inf, "holds": False})
+                continue
+            mis = defocus_mismatch(z_focus, na, n_med, float(wavelength), z_doe, z_sensor)
+            out.append({"waves": waves, "mismatch": mis, "holds": waves <= CUT_SPHERE_TOL and mis <= CUT_MISMATCH_TOL})
+        return out
+
+    def edges(self, fields, wavelength: float, depth=None, phase_maps=None, ks: int | None = None) -> list:
+        """Each source's ``(stop_edge, edge_step)`` (``fields`` (F, 2), ``wavelength`` µm, the PSF crop ``ks``
+        pixels, None: unknown): this lens's own unless it is "auto"; then ``("doe", None)`` where
+        :meth:`cut_estimates` says the cut holds, else ``("exit_pupil", edge_step)``: the ``edge_step`` given, else
+        "fresnel" where the engine's Fresnel-step estimate holds with the curvature ratio at most
+        :data:`MID_FRESNEL_CURVATURE` (:meth:`fresnel_estimates`), else "asm" where the beam on the exit-pupil plane
+        fits the exact construction (at most :data:`~raywave.hybrid.coherent.exit_pupil.MAX_XP_SAMPLES` of the
+        engine plane's pitch a side, and its window in memory: the exact step's own limits), else "adaptive" (the
+        engine's default step: the Fresnel step, with its error estimate's warning where that does not hold)."""
+        f = torch.as_tensor(fields, dtype=torch.float64).reshape(-1, 2).tolist()
+        if self.stop_edge != "auto":
+            return [(self.stop_edge, self.edge_step)] * len(f)
+        est = self.cut_estimates(f, wavelength, depth, phase_maps)
+        fail = [i for i, e in enumerate(est) if not e["holds"]]
+        out = [("doe", None)] * len(f)
+        if not fail:
+            return out
+        if self.edge_step is not None:
+            return [("exit_pupil", self.edge_step) if i in fail else o for i, o in enumerate(out)]
+        hl = self.with_edge("exit_pupil").order_lens(self._strongest_scales(wavelength), None, phase_maps)
+        fres = self.fresnel_estimates([f[i] for i in fail], wavelength, depth, phase_maps, ks)
+        for i, fe in zip(fail, fres):
+            if fe is not None and fe[0] <= fe[1] and fe[2] <= MID_FRESNEL_CURVATURE:
+                out[i] = ("exit_pupil", "fresnel")
+            else:
+                out[i] = ("exit_pupil", self._exact_step(hl, f[i], float(wavelength), depth))
+        return out
+
+    def fresnel_estimates(self, fields, wavelength: float, depth=None, phase_maps=None, ks: int | None = None) -> list:
+        """The engine's Fresnel-step error estimate (:func:`~raywave.hybrid.coherent.exit_pupil.
+        fresnel_step_estimates`: ``(zones, zones_max, curvature)`` or None) of each source of ``fields`` (F, 2) at
+        ``wavelength`` µm on the lens with the strongest orders, for a ``ks``-pixel crop (None: the crop unknown,
+        its reach 0), from one trace of the sources' stop-rim images."""
+        hl = self.with_edge("exit_pupil").order_lens(self._strongest_scales(wavelength), None, phase_maps)
+        optics, wl = hl.optics, float(wavelength)
+        f = torch.as_tensor(fields, dtype=torch.float64, device=optics.device).reshape(-1, 2)
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore", VignettingWarning)  # a probe; the PSF warns
+            rims = stop_rim_images_all(optics, f, [wl], depth)[0]
+        return fresnel_step_estimates(rims, (wl, _medium_index(optics, wl)), (hl.doe_z(), hl.sensor_z()),
+                                      _reach(hl, ks), self.final.pitch, obscuration_fraction(optics))
+
+    def _strongest_scales(self, wavelength: float) -> tuple:
+        """Each DOE's strongest order's scale at ``wavelength`` µm among the orders it keeps
+        (:meth:`doe_order_list`; all its orders where it keeps none): the orders' product with the most light."""
+        out = []
+        for j in range(len(self.does)):
+            kept = self.doe_order_list(j, float(wavelength)) or doe_orders(self.does[j], float(wavelength),
+                                                                             self.min_efficiency)
+            out.append(kept[0][0])
+        return tuple(out)
+
+    def _exact_step(self, hl: HybridLens, field, wavelength: float, depth) -> str:
+        """"asm" where the source's beam fits the exact construction on ``hl``'s exit-pupil plane
+        (:data:`~raywave.hybrid.coherent.exit_pupil.MAX_XP_SAMPLES` samples a side and its window in memory), else
+        "adaptive"; "adaptive" too where the exit pupil lies at infinity (the engine then cuts on its plane, with
+        its warning)."""
+        try:
+            z_xp = hl.exit_pupil_z(wavelength)
+        except ValueError:
+            return "adaptive"
+        p_sim = self.final.pitch
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", VignettingWarning)  # a footprint probe; the PSF warns
+            _, xb = _edge_method(hl.lens, field, wavelength, depth, z_xp, p_sim, "asm")
+        return "asm" if _beam_fits(hl.lens, xb, p_sim, MAX_XP_SAMPLES) else "adaptive"
 
     def build_lens(self, scales, phase_maps=None, dispersive=None, per_source: bool = False):
         """``(lens, indices)``: the lens with every DOE's order phase (``scales[i]·φ0`` of DOE ``i``; a callable
@@ -712,15 +854,16 @@ class MidSystemLens(nn.Module):
         """The engine for one order: the lens with the order's phase planes, the blank final plane, the sensor.
         ``scale``: the order's scale (a number, or a tuple with one per DOE); ``phase_map``: the DOEs'
         :meth:`DOEPhaseSurface.phase_map` (one, or a list), when already built; ``dispersive``: whether the DOEs
-        are continuous (their scale α(λ)); default: read from the DOEs."""
+        are continuous (their scale α(λ)); default: read from the DOEs. With ``stop_edge="auto"`` the engine of
+        the cut (``"doe"``): the choice is per source (:meth:`edges`), made by :meth:`psf` / :meth:`source_field`."""
         n = len(self.does)
         scales = list(scale) if isinstance(scale, (tuple, list)) else [scale] * n
         pms = phase_map if isinstance(phase_map, (list, tuple)) else [phase_map] * n
         disp = [self._continuous(i) for i in range(n)] if dispersive is None else _as_list(dispersive, n, "dispersive")
         lens_m, _ = self.build_lens(scales, pms, disp)
-        edge = {} if self.edge_step is None else {"edge_step": self.edge_step}
+        edge = {} if self.edge_step is None or self.stop_edge != "exit_pupil" else {"edge_step": self.edge_step}
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
-                        stop_edge=self.stop_edge, **edge)
+                        stop_edge=self._engine_edge(), **edge)
         # one memo of window transfer functions (and of the exact edge step's) for every order
         return hl.use_transfer_cache(self._transfer_cache, self._edge_transfers)
 
@@ -829,6 +972,9 @@ class MidSystemLens(nn.Module):
         caller has them. ``ks``: the PSF crop the field is for (the exact edge's lattice keeps the edge waves that
         land in it: :meth:`HybridLens.doe_fields` ``crop_reach``); None: the geometric spot only."""
         pms = phase_maps if phase_maps is not None else [DOEPhaseSurface(d).phase_map() for d in self.does]
+        if self.stop_edge == "auto":
+            view = self.with_edge(*self.edges([tuple(field)], wavelength, depth, pms, ks)[0])
+            return view.source_field(field, wavelength, depth, report, pms, orders, ks)
         if orders is None:
             orders = self.source_orders(field, wavelength, depth, pms, report)
         if len(orders) > 1 and self.stop_edge == "doe":
@@ -895,8 +1041,8 @@ class MidSystemLens(nn.Module):
         disp = [self._continuous(i) for i in range(n)]
         lens_m, _ = self.build_lens([None] * n, pms, disp, per_source=True)
         edge = {} if self.edge_step is None else {"edge_step": self.edge_step}
-        edge_at = self.stop_edge if stop_edge is None else stop_edge
-        if stop_edge is not None and stop_edge != "exit_pupil":
+        edge_at = self._engine_edge() if stop_edge is None else stop_edge
+        if edge_at != "exit_pupil":
             edge = {}
         hl = HybridLens(lens_m, self.final, self.final_distance, sensor_pitch=self.sensor_pitch,
                         stop_edge=edge_at, mirror=False, **edge)
@@ -1097,7 +1243,19 @@ class MidSystemLens(nn.Module):
         order alone is kept), they are the sources of ONE engine call (its traces batched across them; each field
         the one its own call builds, to the batched aiming's rounding); else one :meth:`source_field` per source.
         ``ks``: the crop for which a source's orders far outside it are left out (:meth:`cull`; their records
-        appended to ``culled``); None: none is."""
+        appended to ``culled``); None: none is. With ``stop_edge="auto"`` the sources are grouped by their edge
+        (:meth:`edges`) and each group built as above with its edge."""
+        if self.stop_edge == "auto":
+            groups = {}
+            for i, key in enumerate(self.edges(fields, wavelength, depth, pms, ks)):
+                groups.setdefault(key, []).append(i)
+            out = [None] * len(fields)
+            for key, idx in groups.items():
+                part = self.with_edge(*key)._wavelength_fields([fields[i] for i in idx], wavelength, depth, pms, ks,
+                                                               culled)
+                for i, r in zip(idx, part):
+                    out[i] = r
+            return out
         orders = [self.source_orders(f, wavelength, depth, pms) for f in fields]
         if ks is not None and self.cull_tol > 0:
             for i, f in enumerate(fields):

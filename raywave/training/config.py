@@ -55,7 +55,9 @@ class LensConfig:
             the square inscribed in the lens's image circle (:func:`raywave.lens.analysis.default_sensor_size`).
         stop_edge: where the ray-wave engine forms the stop's sharp edge: None (default) / "exit_pupil" (the
             stop's image, where it is physically sharp) or "doe" (the paper's model); see
-            :class:`raywave.hybrid.HybridLens`.
+            :class:`raywave.hybrid.HybridLens`. A DOE inside the lens (:class:`~raywave.hybrid.midsystem.
+            MidSystemLens`): None is its default "auto" (per source the cut on its engine plane where that holds,
+            else the exit-pupil edge), "doe" the cut for every source, "exit_pupil" the exit-pupil edge.
         edge_step: with the exit-pupil edge, how it reaches the DOE plane: None (the engine's default,
             "adaptive": per source the Fresnel step, or the DOE-plane cut where that is exact), "fresnel", "asm"
             or "auto"; see :data:`raywave.hybrid.hybrid_lens.EDGE_STEPS`.

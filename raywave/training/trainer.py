@@ -135,14 +135,12 @@ def build_midsystem(lc, path):
     engine's plane near the sensor is the file's DOE plane when it had one (else
     :func:`raywave.assembly.midsystem.midsystem_of`'s choice). ``doe: pixel`` / ``zernike`` make the DOE a
     zero-phase :func:`learned_doe` of that grid. The sensor is set and refocused on the refractive lens; the
-    refractive lens frozen unless ``train_lens``."""
+    refractive lens frozen unless ``train_lens``. ``lens.stop_edge`` / ``lens.edge_step``: the MidSystemLens's
+    (None: its default, ``stop_edge="auto"``)."""
     from raywave.assembly.midsystem import doe_lens, midsystem_of, surface_doe_positions
     from raywave.io import read_lens_spec, validate_spec
     from raywave.io.errors import LensFileError
 
-    if lc.edge_step is not None:
-        raise ValueError("lens.edge_step: a DOE inside the lens builds its engine plane's field with the stop edge "
-                         "on that plane (lens.stop_edge 'doe'); leave edge_step out")
     spec = copy.deepcopy(read_lens_spec(path))
     size = None if lc.doe_size is None else [float(lc.doe_size)] * 2
     final = None  # the engine's plane near the sensor: midsystem_of's default
@@ -182,7 +180,8 @@ def build_midsystem(lc, path):
     elif lc.doe != "file":
         raise ValueError(f"lens.doe must be 'pixel', 'zernike' or 'file', got {lc.doe!r}")
     ml = midsystem_of(lens, doe, after, distance, final, sensor_pitch=sensor_pitch, fields=fields,
-                      **({} if lc.stop_edge is None else {"stop_edge": lc.stop_edge}))
+                      **({} if lc.stop_edge is None else {"stop_edge": lc.stop_edge}),
+                      **({} if lc.edge_step is None else {"edge_step": lc.edge_step}))
     ml.lens.requires_grad_(bool(lc.train_lens))
     return ml
 
