@@ -23,10 +23,10 @@ DATA = Path(__file__).resolve().parent / "data" / "opticsdatabase"
 REF_TOL = 1e-5
 
 
-def _default_and_reference(path: Path, frac: float, pitch: float | None):
+def _default_and_reference(path: Path, frac: float, pitch: float | None, doe_distance: float | None = None):
     """``(default psf (32, 32), Huygens result)`` at ``frac`` of the file's largest field (in its own field type: an
     angle, or an object height for a finite object), primary wavelength, ks 32, as the benchmark's ``file:``
-    cases."""
+    cases; ``doe_distance`` (mm after the last vertex) moves the default blank DOE's plane."""
     from raywave.assembly.build import load_hybrid
     from raywave.lens.build import load_lens
     from raywave.models.exit_pupil import huygens_psf
@@ -35,7 +35,9 @@ def _default_and_reference(path: Path, frac: float, pitch: float | None):
         warnings.simplefilter("ignore")
         lens = load_lens(path)
         fld = (0.0, frac * max(abs(float(f)) for f in lens.fields))
-        hl = load_hybrid(path, sensor_pitch=pitch, fields=[list(fld), [0.0, 0.0]], field_type=lens.field_type)
+        extra = {} if doe_distance is None else {"doe_distance": doe_distance}
+        hl = load_hybrid(path, sensor_pitch=pitch, fields=[list(fld), [0.0, 0.0]], field_type=lens.field_type,
+                         **extra)
         wl = hl.lens.primary_wavelength
         with torch.no_grad():
             r = hl.psf_result(fld, wl, ks=32)
@@ -102,26 +104,9 @@ def test_olympus_wide_angle_off_axis_within_1e_3_at_every_doe_plane(monkeypatch,
     11 mm planes the rays past the compressed side's rim fold within the band (tests/test_band_fold.py: now the
     caustic fallback's plane, 2.4 / 2.1 mm before). Run with 16 GiB allowed and under a lock of big runs: the
     fallback's window peaks at 8.3 GB RSS (the 9 mm plane, built in place, 2.7 GB); 3.3 min for the three."""
-    from raywave.assembly.build import load_hybrid
-    from raywave.lens.build import load_lens
-    from raywave.models.exit_pupil import huygens_psf
-
     monkeypatch.setenv("RAYWAVE_MEMORY_LIMIT", "16GiB")
-    path = DATA / "Olympus M.Zuiko 12mm F2.0.zmx"
-    extra = {} if doe_distance is None else {"doe_distance": doe_distance}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        lens = load_lens(path)
-        fld = (0.0, 0.7 * max(abs(float(f)) for f in lens.fields))
-        hl = load_hybrid(path, sensor_pitch=3e-3, fields=[list(fld), [0.0, 0.0]], field_type=lens.field_type,
-                         **extra)
-        wl = hl.lens.primary_wavelength
-        with torch.no_grad():
-            r = hl.psf_result(fld, wl, ks=32)
-            ref = huygens_psf(hl.lens, fld, wl, ks=32, pitch=hl.sensor_pitch,
-                              center=tuple(float(c) for c in r.center[0, 0]), n_pupil="auto",
-                              sensor_z=float(hl.sensor_z()), max_n_pupil=1024, sphere="rim_images", tol=1e-6)
-    err = float((r.psf[0, 0] - ref.psf).abs().sum())
+    psf, ref = _default_and_reference(DATA / "Olympus M.Zuiko 12mm F2.0.zmx", 0.7, 3e-3, doe_distance)
+    err = float((psf - ref.psf).abs().sum())
     print(f"Olympus 0.7 field, DOE {doe_distance} mm after the last vertex: {err:.3g} (own error "
           f"~{ref.error_estimate:.2g})")
     assert ref.error_estimate is not None and ref.error_estimate < REF_TOL
