@@ -41,9 +41,8 @@ from raywave.hybrid.coherent.exit_pupil import (MAX_XP_SAMPLES, SPHERE_TOL, _bea
                                                 _edge_method, defocus_mismatch, edge_focus_many,
                                                 fresnel_step_estimates, obscuration_fraction)
 from raywave.hybrid.coherent.geometry import _medium_index
-from raywave.hybrid.coherent.stop_edge import stop_rim_images_all
 from raywave.hybrid.coherent.record import CausticWarning, DOEField, SamplingWarning
-from raywave.hybrid.coherent.stop_edge import RimImages
+from raywave.hybrid.coherent.stop_edge import EXIT_PUPIL_FAR, RimImages, stop_rim_images_all
 from raywave.hybrid.coherent.tracing import per_source
 from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
 from raywave.lens.lens import Lens
@@ -784,7 +783,8 @@ class MidSystemLens(nn.Module):
         f = torch.as_tensor(fields, dtype=torch.float64, device=optics.device).reshape(-1, 2)
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore", VignettingWarning)  # a probe; the PSF warns
-            rims = stop_rim_images_all(optics, f, [wl], depth)[0]
+            # far rim images placed as the engine places them (a telecentric rear group)
+            rims = stop_rim_images_all(optics, f, [wl], depth, bound=(hl.doe_z(), EXIT_PUPIL_FAR))[0]
         return fresnel_step_estimates(rims, (wl, _medium_index(optics, wl)), (hl.doe_z(), hl.sensor_z()),
                                       _reach(hl, ks), self.final.pitch, obscuration_fraction(optics))
 
@@ -801,8 +801,8 @@ class MidSystemLens(nn.Module):
     def _exact_step(self, hl: HybridLens, field, wavelength: float, depth) -> str:
         """"asm" where the source's beam fits the exact construction on ``hl``'s exit-pupil plane
         (:data:`~raywave.hybrid.coherent.exit_pupil.MAX_XP_SAMPLES` samples a side and its window in memory), else
-        "adaptive"; "adaptive" too where the exit pupil lies at infinity (the engine then cuts on its plane, with
-        its warning)."""
+        "adaptive"; "adaptive" too where the exit pupil is undefined (the engine then cuts on its plane, with its
+        warning)."""
         try:
             z_xp = hl.exit_pupil_z(wavelength)
         except ValueError:
