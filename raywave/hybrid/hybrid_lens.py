@@ -139,8 +139,9 @@ class _CallGeometry:
         self.row = {i: r for r, i in enumerate(self.todo)}
 
 
-class _PupilAtInfinity(ValueError):
-    """The exit pupil lies at (or near) infinity: no exit-pupil plane to form the stop's edge on."""
+class _PupilUndefined(ValueError):
+    """The exit pupil is undefined (NaN: no chief ray crosses the axis and no paraxial pupil): no exit-pupil plane to
+    form the stop's edge on. (A pupil at infinity is placed at :data:`EXIT_PUPIL_FAR`.)"""
 
 
 _OUT_MARGIN = OUT_MARGIN  # samples around the PSF window (keeps the periodic upsampling's edge effects out of it)
@@ -524,11 +525,11 @@ class HybridLens(nn.Module):
     def _checked_pupil(self, z: float) -> float:
         """``z`` (an exit pupil's z, mm); one farther than :data:`EXIT_PUPIL_FAR` from the DOE plane on either side,
         or at infinity, placed that far before the plane (the telecentric limit is the same from both sides; the
-        rim images are placed alike); :class:`_PupilAtInfinity` where ``z`` is undefined (NaN: no chief ray and no
+        rim images are placed alike); :class:`_PupilUndefined` where ``z`` is undefined (NaN: no chief ray and no
         paraxial pupil)."""
         zd = self.doe_z()
         if math.isnan(z):
-            raise _PupilAtInfinity(f"stop_edge='exit_pupil': the lens's exit pupil is undefined (z = {z:g}), where no "
+            raise _PupilUndefined(f"stop_edge='exit_pupil': the lens's exit pupil is undefined (z = {z:g}), where no "
                                    "field can be built; use stop_edge='doe'")
         if abs(z - zd) <= EXIT_PUPIL_FAR:
             return z
@@ -618,7 +619,7 @@ class HybridLens(nn.Module):
             return None
         try:
             return self._exit_pupil_memo(wls)
-        except _PupilAtInfinity:
+        except _PupilUndefined:
             if self._edge_requested is not None:
                 raise
             warnings.warn("the lens's exit pupil is undefined (no chief ray crosses the axis): the stop's edge is "
