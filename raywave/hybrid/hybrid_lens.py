@@ -359,9 +359,10 @@ class HybridLens(nn.Module):
             is physically sharp); the edge's Fresnel diffraction between there and the DOE plane is added by
             ``edge_step``, so off-axis PSFs do not depend on the DOE distance and agree with the Huygens exit-pupil
             model (docs/ray-wave.md, Accuracy). "doe" (the paper's model): cut sharply on the DOE plane. None: the
-            default; a lens whose exit pupil lies at infinity (image-space telecentric) then falls back to "doe"
-            with a :class:`StopEdgeWarning` (an explicit "exit_pupil" raises instead). The faithful mode ignores
-            it.
+            default; a lens whose exit pupil is undefined (no chief ray crosses the axis) then falls back to "doe"
+            with a :class:`StopEdgeWarning` (an explicit "exit_pupil" raises instead); one at or near infinity
+            (image-space telecentric) takes the exit pupil's edge too (:data:`EXIT_PUPIL_FAR`). The faithful mode
+            ignores it.
         edge_step: with ``stop_edge="exit_pupil"``, how the edge's diffraction reaches the DOE plane. "asm": the
             exact construction, the field built on the exit-pupil plane and propagated to the DOE plane by the
             angular spectrum (~10× the DOE-plane edge's cost; only for beams that span at most
