@@ -727,8 +727,7 @@ class HybridLens(nn.Module):
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
         z_xps = self._exit_pupil_planes(wls)
         if z_xps is not None:
-            # one trace for every source and wavelength; images beyond EXIT_PUPIL_FAR (telecentric) held there
-            rims = stop_rim_images_all(optics, ft, wls, depth, bound=(z_doe, EXIT_PUPIL_FAR))
+            rims = self.edge_rim_images(ft, wls, depth)  # one trace for every source and wavelength
             if self._rim_images is not None:
                 rims = self._rim_images(optics, ft, wls, depth, rims)
             steps, ests = None, None
@@ -812,17 +811,29 @@ class HybridLens(nn.Module):
                                                             None if geo.estimates is None else geo.estimates[r][j])))
         return out
 
+    def edge_rim_images(self, fields, wavelengths: list, depth) -> list:
+        """The stop rim's images ``[W][F]`` of the sources ``fields`` (F, 2) × ``wavelengths`` (µm) as the exit-pupil
+        edge uses them (:func:`~raywave.hybrid.coherent.stop_edge.stop_rim_images_all` on :attr:`optics`, one trace):
+        images farther than :data:`EXIT_PUPIL_FAR` from the DOE plane, or at infinity, placed that far before it."""
+        return stop_rim_images_all(self.optics, fields, wavelengths, depth, bound=(self.doe_z(), EXIT_PUPIL_FAR))
+
+    def edge_step_estimates(self, rims: list, wavelength: float, crop_reach: float) -> list:
+        """The Fresnel edge step's error estimate (:func:`~raywave.hybrid.coherent.exit_pupil.fresnel_step_estimates`:
+        ``(zones, zones_max, curvature)`` or None) of each source's rim images ``rims`` (F,) at ``wavelength`` µm,
+        for a PSF crop reaching ``crop_reach`` mm on the sensor, on this lens's DOE and sensor planes and simulation
+        pitch."""
+        optics = self.optics
+        return fresnel_step_estimates(rims, (wavelength, _medium_index(optics, wavelength)),
+                                      (self.doe_z(), self.sensor_z()), crop_reach, self.doe.pitch / self.oversample,
+                                      obscuration_fraction(optics))
+
     def _fresnel_estimates(self, steps: list, rims: list, wls: list, crop_reach: float) -> tuple:
         """The adaptive edge step's ``steps`` ``[R][W]`` with "fresnel" turned to "asm" where the Fresnel step's
         error estimate rejects it (:func:`~raywave.hybrid.coherent.exit_pupil.fresnel_step_estimates` from the rim
         images ``rims`` ``[W][R]``, for a crop reaching ``crop_reach`` mm; the construction then takes the exact
         step where it fits, else keeps the Fresnel step with a warning), and the estimates ``[R][W]``."""
-        optics = self.optics
-        planes, p_sim, obscured = (self.doe_z(), self.sensor_z()), self.doe.pitch / self.oversample, \
-            obscuration_fraction(optics)
-        per_wl = [fresnel_step_estimates(rims[j], (wl, _medium_index(optics, wl)), planes, crop_reach, p_sim,
-                                         obscured) if any(row[j] == "fresnel" for row in steps) else [None] * len(steps)
-                  for j, wl in enumerate(wls)]
+        per_wl = [self.edge_step_estimates(rims[j], wl, crop_reach) if any(row[j] == "fresnel" for row in steps)
+                  else [None] * len(steps) for j, wl in enumerate(wls)]
         ests = [[per_wl[j][r] for j in range(len(wls))] for r in range(len(steps))]
         steps = [["asm" if st == "fresnel" and not fresnel_step_holds(e) else st for st, e in zip(row, erow)]
                  for row, erow in zip(steps, ests)]

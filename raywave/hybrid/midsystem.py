@@ -37,12 +37,10 @@ from torch import nn
 
 from raywave.rays.pupil import rim_and_grid
 from raywave.doe.base import DOE, BlankDOE
-from raywave.hybrid.coherent.exit_pupil import (MAX_XP_SAMPLES, SPHERE_TOL, _beam_fits,
-                                                _edge_method, defocus_mismatch, edge_focus_many,
-                                                fresnel_step_estimates, obscuration_fraction)
-from raywave.hybrid.coherent.geometry import _medium_index
+from raywave.hybrid.coherent.exit_pupil import (MAX_XP_SAMPLES, SPHERE_TOL, _beam_fits, _edge_method,
+                                                defocus_mismatch, edge_focus_many)
 from raywave.hybrid.coherent.record import CausticWarning, DOEField, SamplingWarning
-from raywave.hybrid.coherent.stop_edge import EXIT_PUPIL_FAR, RimImages, stop_rim_images_all
+from raywave.hybrid.coherent.stop_edge import RimImages
 from raywave.hybrid.coherent.tracing import per_source
 from raywave.hybrid.hybrid_lens import HybridLens, PSFResult
 from raywave.lens.lens import Lens
@@ -779,14 +777,12 @@ class MidSystemLens(nn.Module):
         ``wavelength`` µm on the lens with the strongest orders, for a ``ks``-pixel crop (None: the crop unknown,
         its reach 0), from one trace of the sources' stop-rim images."""
         hl = self.with_edge("exit_pupil").order_lens(self._strongest_scales(wavelength), None, phase_maps)
-        optics, wl = hl.optics, float(wavelength)
-        f = torch.as_tensor(fields, dtype=torch.float64, device=optics.device).reshape(-1, 2)
+        wl = float(wavelength)
+        f = torch.as_tensor(fields, dtype=torch.float64, device=hl.optics.device).reshape(-1, 2)
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore", VignettingWarning)  # a probe; the PSF warns
-            # far rim images placed as the engine places them (a telecentric rear group)
-            rims = stop_rim_images_all(optics, f, [wl], depth, bound=(hl.doe_z(), EXIT_PUPIL_FAR))[0]
-        return fresnel_step_estimates(rims, (wl, _medium_index(optics, wl)), (hl.doe_z(), hl.sensor_z()),
-                                      _reach(hl, ks), self.final.pitch, obscuration_fraction(optics))
+            rims = hl.edge_rim_images(f, [wl], depth)[0]  # as the engine traces them
+        return hl.edge_step_estimates(rims, wl, _reach(hl, ks))
 
     def _strongest_scales(self, wavelength: float) -> tuple:
         """Each DOE's strongest order's scale at ``wavelength`` µm among the orders it keeps
