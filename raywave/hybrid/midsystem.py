@@ -762,8 +762,8 @@ class MidSystemLens(nn.Module):
             return out
         if self.edge_step is not None:
             return [("exit_pupil", self.edge_step) if i in fail else o for i, o in enumerate(out)]
-        hl = self.with_edge("exit_pupil").order_lens(self._strongest_scales(wavelength), None, phase_maps)
-        fres = self.fresnel_estimates([f[i] for i in fail], wavelength, depth, phase_maps, ks)
+        hl = self._strongest_exit_pupil_lens(wavelength, phase_maps)
+        fres = _fresnel_estimates_on(hl, [f[i] for i in fail], float(wavelength), depth, ks)
         for i, fe in zip(fail, fres):
             if fe is not None and fe[0] <= fe[1] and fe[2] <= MID_FRESNEL_CURVATURE:
                 out[i] = ("exit_pupil", "fresnel")
@@ -776,13 +776,13 @@ class MidSystemLens(nn.Module):
         fresnel_step_estimates`: ``(zones, zones_max, curvature)`` or None) of each source of ``fields`` (F, 2) at
         ``wavelength`` µm on the lens with the strongest orders, for a ``ks``-pixel crop (None: the crop unknown,
         its reach 0), from one trace of the sources' stop-rim images."""
-        hl = self.with_edge("exit_pupil").order_lens(self._strongest_scales(wavelength), None, phase_maps)
-        wl = float(wavelength)
-        f = torch.as_tensor(fields, dtype=torch.float64, device=hl.optics.device).reshape(-1, 2)
-        with torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore", VignettingWarning)  # a probe; the PSF warns
-            rims = hl.edge_rim_images(f, [wl], depth)[0]  # as the engine traces them
-        return hl.edge_step_estimates(rims, wl, _reach(hl, ks))
+        return _fresnel_estimates_on(self._strongest_exit_pupil_lens(wavelength, phase_maps), fields,
+                                     float(wavelength), depth, ks)
+
+    def _strongest_exit_pupil_lens(self, wavelength: float, phase_maps=None) -> HybridLens:
+        """The engine on the lens with every DOE's strongest order at ``wavelength`` µm, with the exit-pupil edge:
+        what :meth:`edges` estimates the Fresnel and exact steps on (built once a call)."""
+        return self.with_edge("exit_pupil").order_lens(self._strongest_scales(wavelength), None, phase_maps)
 
     def _strongest_scales(self, wavelength: float) -> tuple:
         """Each DOE's strongest order's scale at ``wavelength`` µm among the orders it keeps
@@ -1304,6 +1304,16 @@ def _phase_at(chief, fd: DOEField, wavelength: float) -> torch.Tensor:
     k = _TWO_PI / (wavelength * 1e-3)
     a, b = fd.carrier
     return opl - fd.n * (a * x + b * y) - torch.angle(val) / k
+
+
+def _fresnel_estimates_on(hl: HybridLens, fields, wavelength: float, depth, ks: int | None) -> list:
+    """:meth:`MidSystemLens.fresnel_estimates` on the engine ``hl`` (one trace of the sources' stop-rim images, as
+    the engine traces them)."""
+    f = torch.as_tensor(fields, dtype=torch.float64, device=hl.optics.device).reshape(-1, 2)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", VignettingWarning)  # a probe; the PSF warns
+        rims = hl.edge_rim_images(f, [wavelength], depth)[0]
+    return hl.edge_step_estimates(rims, wavelength, _reach(hl, ks))
 
 
 def _reach(hl: HybridLens, ks: int | None) -> float:
