@@ -609,19 +609,19 @@ def hybrid_from_spec(spec: dict, doe_data=None, doe_pitch: float | None = None, 
     data = doe_data
     info: dict = {"source": "file" if data is not None else "default"}
     distance = _first_distance(data, doe_distance, last, source)
+    band = _exit_pupil_edge(optics, stop_edge)  # the edge builds its ripple band (a paraxial trace: once)
     pitch, rule = _doe_pitch(optics, data, doe_pitch, distance, fields, wavelengths, depth, source)
     info.update(rule)
     if doe_distance is None and data is None:  # a beam too wide for the grid: move the default plane to focus
         fit: dict = {}
         distance = fit_doe_distance(optics, distance, pitch, fields, wavelengths, depth, report=fit)
         step = DEFAULT_EDGE_STEP if edge_step is None else edge_step
-        if _exit_pupil_edge(optics, stop_edge) and step in ("adaptive", "fresnel"):
+        if band and step in ("adaptive", "fresnel"):
             # ... but not so near it that the edge's Fresnel step would build the field elsewhere and carry it here
             distance = go_field_distance(optics, distance, pitch, (fields, wavelengths, depth), fit,
                                          sphere_cut=step == "adaptive")
         info.update(fit)
     size = _size_arg(doe_size)
-    band = _exit_pupil_edge(optics, stop_edge)  # the edge builds its band
     shape = _doe_shape(optics, data, pitch, doe_pitch, size, distance, (fields, wavelengths, depth, band), source)
     q = int(oversample) if oversample is not None else (data.oversample if data is not None else 1)
     stores_map = data is not None and (data.phase is not None or data.material is not None
