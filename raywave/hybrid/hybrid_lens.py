@@ -38,7 +38,7 @@ from raywave.hybrid.coherent.exit_pupil import (adaptive_edge_steps, fresnel_ste
                                                 go_phase_errors, obscuration_fraction)
 from raywave.hybrid.coherent.geometry import _medium_index, footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import EXIT_PUPIL_FAR, edge_reach_many, stop_rim_images_all
-from raywave.hybrid.coherent.record import EnvelopeRow
+from raywave.hybrid.coherent.record import EnvelopeRow, resolve_band_infos
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, accelerator_cap, ceil_samples,
                                     plan_groups, propagate_group)
@@ -60,6 +60,11 @@ __all__ = ["DEFAULT_EDGE_STEP", "DEFAULT_STOP_EDGE", "DOEApertureWarning", "Hybr
 
 #: blocked power fraction above which :class:`DOEApertureWarning` is raised
 CLIP_WARN = 0.01
+#: the same for the stop edge's ripple band beyond the geometric beam (the beam itself within CLIP_WARN): the PSF
+#: moves by 0.5 – 4× this fraction when the DOE grows to hold the band (the bundled asphere with the Fresnel step,
+#: DOEs of 0.76 – 1.05 mm on axis and 3 mm at 11°; tests/test_band_clipping.py), so a cut that moves it by ~1e-3 (the
+#: accuracy bars' scale) is named
+BAND_CLIP_WARN = 5e-4
 #: Default DOE size: this factor times the beam's extent on the DOE plane (raywave.assembly.build.default_doe_size;
 #: quoted by :class:`DOEApertureWarning`).
 BEAM_MARGIN = 1.2
@@ -280,43 +285,54 @@ class SensorCropWarning(UserWarning):
 
 
 class DOEApertureWarning(UserWarning):
-    """The DOE aperture blocks part of the beam (more than 1 % of its power); ``energy_outside`` does not show
-    it, since it is measured against the power that reaches the DOE.
+    """The DOE aperture blocks part of the beam (more than 1 % of its power), or (``kind`` "band") of the stop
+    edge's diffraction ripples beyond the beam's geometric shadow (more than :data:`BAND_CLIP_WARN` of the beam's
+    power, the beam itself fitting); ``energy_outside`` does not show it, since it is measured against the power
+    that reaches the DOE.
 
     Either a plain message (``DOEApertureWarning("text")``, as ``warnings`` builds it), or built from ``entries``,
     one ``(blocked fraction, beam half-width mm, where)`` per clipped source of one ``scope`` ("call", "map"),
     and the DOE's ``size`` (w, h) mm; these are kept as attributes, so that the warnings of several calls can be
-    merged into one (:meth:`merged`)."""
+    merged into one (:meth:`merged`, one per ``kind``). For the "band" kind the half-width is the ripple band's."""
 
-    def __init__(self, message: str = "", entries=None, size=None, scope: str = "call"):
+    def __init__(self, message: str = "", entries=None, size=None, scope: str = "call", kind: str = "beam"):
         self.entries = None if entries is None else list(entries)
-        self.size, self.scope = (None if size is None else tuple(size)), scope
+        self.size, self.scope, self.kind = (None if size is None else tuple(size)), scope, kind
         super().__init__(message if self.entries is None else self._text())
 
     def _text(self) -> str:
         w, h = self.size
         blocked, half, where = max(self.entries, key=lambda e: e[0])
         need = 2.0 * max(e[1] for e in self.entries)
+        band = self.kind == "band"
+        what_blocked = "the stop edge's diffraction ripples beyond the beam's geometric edge, " if band else ""
+        pct = (lambda v: f"{100 * v:.2g}") if band else (lambda v: f"{100 * v:.1f}")  # the ripples: small fractions
         if len(self.entries) == 1:
-            what = f"{where}: the {w:g}×{h:g} mm DOE aperture blocks {100 * blocked:.1f} % of the beam's power"
-            beams = "the beam needs"
+            what = (f"{where}: the {w:g}×{h:g} mm DOE aperture blocks {what_blocked}{pct(blocked)} % of the "
+                    "beam's power")
+            beams = "the ripple band needs" if band else "the beam needs"
         else:
-            low = 100 * min(e[0] for e in self.entries)
+            low = min(e[0] for e in self.entries)
             kind = "field × wavelength × depth" if self.scope == "map" else "field × wavelength"
             what = (f"{len(self.entries)} sources ({kind}) of this {self.scope}: the {w:g}×{h:g} mm DOE "
-                    f"aperture blocks {low:.1f}–{100 * blocked:.1f} % of their beams' power (most at {where})")
-            beams = "the widest beam needs"
+                    f"aperture blocks {what_blocked}{pct(low)}–{pct(blocked)} % of their beams' power (most at "
+                    f"{where})")
+            beams = "the widest ripple band needs" if band else "the widest beam needs"
+        if band:  # the beam fits: the PSF carries the DOE edge's own diffraction of the ripples
+            return (f"{what} (not counted in energy_outside; the PSF carries the DOE edge's diffraction of them); "
+                    f"{beams} a DOE of at least {need:.3g} mm square")
         return (f"{what} (not counted in energy_outside); {beams} a DOE of at least {need:.3g} mm square "
                 f"({BEAM_MARGIN * need:.3g} mm with the usual {BEAM_MARGIN:g}× margin, see "
                 "raywave.assembly.build.default_doe_size)")
 
     @classmethod
     def merged(cls, warnings_: list, scope: str) -> "DOEApertureWarning":
-        """One warning for the sources of several built from entries (of one DOE size)."""
-        return cls("", [e for w in warnings_ for e in w.entries], warnings_[0].size, scope)
+        """One warning for the sources of several built from entries (of one DOE size and one ``kind``)."""
+        return cls("", [e for w in warnings_ for e in w.entries], warnings_[0].size, scope,
+                   getattr(warnings_[0], "kind", "beam"))
 
     def __reduce__(self):  # picklable (multi-process training) with its attributes
-        return (type(self), (str(self), self.entries, self.size, self.scope))
+        return (type(self), (str(self), self.entries, self.size, self.scope, self.kind))
 
 
 @dataclass
@@ -935,6 +951,7 @@ class HybridLens(nn.Module):
         # flags from one host read (issue 43: not one per field)
         own_fields = [(i, j, built[k * nw + j]) for k, i in enumerate(members) if geo.src[i] is None for j in range(nw)]
         dark = dict(zip([(i, j) for i, j, _ in own_fields], _dark_many([fd for _, _, fd in own_fields])))
+        resolve_band_infos(built)  # the ripple bands' blocked power (FieldInfo.band_clipped): one host read
         for k, i in enumerate(members):
             row = []
             own = i if geo.src[i] is None else geo.src[i][0]
@@ -950,6 +967,8 @@ class HybridLens(nn.Module):
                         folded.append((fold, geo.f[i].tolist(), wl))
                 if fd.clipped > CLIP_WARN:  # the field as host values, read once for the call (not per warning)
                     clipped.append((fd, geo.host_fields()[i]))
+                elif fd.info.band_clipped > BAND_CLIP_WARN:  # the beam fits, the edge's ripple band does not
+                    clipped.append((fd, geo.host_fields()[i], "band"))
                 fd.chief_tan = tans[k][j]
                 row.append(fd)
             out.append(row)
@@ -976,13 +995,22 @@ class HybridLens(nn.Module):
     def _warn_clipped(self, clipped: list) -> None:
         """One :class:`DOEApertureWarning` (pointing at the caller of :meth:`doe_fields`, through
         :meth:`_finish_fields`) for the ``clipped`` sources, a list of ``(DOEField, field (2,))`` whose power the DOE
-        aperture blocks by more than :data:`CLIP_WARN`: a call's many sources give one line, not one each (and
-        :func:`raywave.imaging.psf_map` merges its calls' into one for the map)."""
-        if not clipped:
-            return
-        entries = [(float(fd.clipped), float(fd.beam_half),
-                    f"field {[float(v) for v in field]} at {fd.wavelength:g} µm") for fd, field in clipped]
-        warnings.warn(DOEApertureWarning("", entries, self.doe.size, "call"), stacklevel=4)
+        aperture blocks by more than :data:`CLIP_WARN`, and one of ``kind`` "band" for those given as ``(DOEField,
+        field (2,), "band")``, whose stop-edge ripple band it blocks by more than :data:`BAND_CLIP_WARN`: a call's many
+        sources give one line a kind, not one each (and :func:`raywave.imaging.psf_map` merges its calls' into one
+        for the map)."""
+        beam = [e for e in clipped if len(e) == 2]
+        if beam:
+            entries = [(float(fd.clipped), float(fd.beam_half),
+                        f"field {[float(v) for v in field]} at {fd.wavelength:g} µm") for fd, field in beam]
+            warnings.warn(DOEApertureWarning("", entries, self.doe.size, "call"), stacklevel=4)
+        band = [e for e in clipped if len(e) == 3]
+        if band:
+            entries = [(float(fd.info.band_clipped), float(fd.info.band_half),
+                        f"field {[float(v) for v in field]} at {fd.wavelength:g} µm"
+                        + (f" (and {100 * float(fd.clipped):.2g} % within the beam's edge)" if fd.clipped > 0 else ""))
+                       for fd, field, _ in band]
+            warnings.warn(DOEApertureWarning("", entries, self.doe.size, "call", "band"), stacklevel=4)
 
     # ------------------------------------------------------------------ steps 3-4: DOE, propagation, sensor
     def propagate(self, fd: DOEField, ks: int, propagation_dtype=torch.complex128):

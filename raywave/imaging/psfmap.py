@@ -598,9 +598,11 @@ def _one_aperture_warning():
     for w in caught:  # the others passed the caller's filters already: show them as they were
         if not (isinstance(w.message, DOEApertureWarning) and w.message.entries):
             warnings.showwarning(w.message, w.category, w.filename, w.lineno, w.file, w.line)
-    if aperture:
-        # stacklevel: this generator → contextlib's __exit__ → psf_map → psf_map's caller
-        warnings.warn(DOEApertureWarning.merged(aperture, "map"), stacklevel=4)
+    for kind in ("beam", "band"):  # one warning per kind: the beam's clipping, the edge ripples'
+        same = [w for w in aperture if getattr(w, "kind", "beam") == kind]
+        if same:
+            # stacklevel: this generator → contextlib's __exit__ → psf_map → psf_map's caller
+            warnings.warn(DOEApertureWarning.merged(same, "map"), stacklevel=4)
 
 
 def _model_device(model) -> torch.device:

@@ -22,7 +22,7 @@ from raywave.doe.base import DOE
 from raywave.wave.field import cubic_matrices, cubic_matrix, edge_coverage, upsample_nodes_window
 from raywave.wave.grid import Field, Grid
 from raywave.hybrid.coherent.geometry import (_common_setup, _crop_to_lit, _empty_field, _footprint, _near_nodes,
-                                              _nyquist_warning, _warn_nyquist, check_window_memory)
+                                              _nyquist_warning, _warn_nyquist, check_window_memory, inside_doe)
 from raywave.hybrid.coherent.record import (_NEWTON_TOL, DOEField, EnvelopeRow, FieldInfo, SamplingWarning,
                                             StopEdgeWarning)
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
@@ -185,6 +185,8 @@ class _Build:
     chief: ChiefRays
     cfg: FieldSettings
     given: Known
+    #: the edge band's power the DOE aperture blocks and the band's half reach (mm): :func:`_band_blocked`'s
+    band_cut: tuple = (0.0, 0.0)
 
     def __post_init__(self):
         cfg, src = self.cfg, self.src
@@ -234,6 +236,8 @@ def accurate_field_steps(lens, doe, source: Source, planes: Planes, chief: Chief
         maps = yield _NodeMapRequest(b, nd, nodes)
     n_rays = nd.count
     del nodes
+    if maps is not None:
+        b.band_cut = _band_blocked(b, nd, maps)
     if maps is None:
         warnings.warn(f"no ray could be traced to the DOE plane for field {b.field.tolist()} at "
                       f"{source.wavelength:g} µm", SamplingWarning, stacklevel=3)
@@ -269,11 +273,44 @@ def _window_field(b: _Build, env: torch.Tensor, box, sim: Grid, rays: int) -> DO
     ``(iy0, iy1, ix0, ix1)`` of ``sim``'s lattice, built from ``rays`` traced rays."""
     # on the DOE's simulation lattice (a virtual plane's box may extend beyond the DOE grid)
     grid = Grid(sim.position(box[0], box[2]), b.p, (box[1] - box[0], box[3] - box[2]))
+    info = FieldInfo(rays, "accurate", band_clipped=b.band_cut[0], band_half=b.band_cut[1])
     if isinstance(env, EnvelopeRow):  # a row of the batched field stage's envelopes: made when first read
-        return DOEField.deferred(env, grid, (float(b.src.wavelength), b.n, b.carrier), box, b.zprop, b.center,
-                                 FieldInfo(rays, "accurate"))
-    return DOEField(Field(env, grid, float(b.src.wavelength), b.n, b.carrier), box, b.zprop, b.center,
-                    FieldInfo(rays, "accurate"))
+        return DOEField.deferred(env, grid, (float(b.src.wavelength), b.n, b.carrier), box, b.zprop, b.center, info)
+    return DOEField(Field(env, grid, float(b.src.wavelength), b.n, b.carrier), box, b.zprop, b.center, info)
+
+
+def _band_blocked(b: _Build, nd: _Nodes, maps: dict):
+    """``(fraction, reach)``: the fraction of the source's power on the plane (the ray density times the knife-edge
+    intensity ``|D(ν)|²``, summed over the nodes of the beam and of the stop edge's ripple band) that falls beyond the
+    geometric shadow (ν < 0) and outside the DOE aperture, and the band's half reach ``max(|x|, |y|)`` mm (the
+    square DOE that holds it), as 0-dim float64 tensors, not read here (the caller reads a call's at once:
+    :meth:`~raywave.hybrid.HybridLens.doe_fields`); ``(0.0, 0.0)`` without a diffracting stop edge, on a virtual
+    plane, on a grid without an aperture (the exact construction's lattice), or where the whole node grid lies inside
+    the aperture (host numbers: most sources). ``|D(ν)|²`` beyond the shadow as ``1/(4 + 2π²ν²)`` (¼ on the edge,
+    the far ripples' mean ``1/(2π²ν²)``; an estimate for a warning), 1 inside. The beam's own clipping is
+    :func:`~raywave.hybrid.coherent.geometry.doe_clipping`'s; this is the edge's diffracted light beyond the shadow,
+    which the DOE's edge also blocks (and diffracts again)."""
+    doe, nu = b.doe, maps.get("nu_raw")
+    if nu is None or b.cfg.stop_plane is None or b.cfg.virtual or not isinstance(doe, DOE):
+        return 0.0, 0.0
+    x0, x1 = nd.x0 - nd.cx * nd.h, nd.x0 + (nd.kx - 1 - nd.cx) * nd.h  # the node grid's corners (host numbers)
+    y0, y1 = nd.y0 - nd.cy * nd.h, nd.y0 + (nd.ky - 1 - nd.cy) * nd.h
+    w, h = doe.size
+    if doe.aperture == "circle":
+        inside = max(x0 * x0, x1 * x1) + max(y0 * y0, y1 * y1) <= (0.5 * min(w, h)) ** 2
+    else:
+        inside = max(-x0, x1) <= 0.5 * w and max(-y0, y1) <= 0.5 * h
+    if inside:
+        return 0.0, 0.0
+    nu = nu.detach()
+    beyond = nu < 0
+    band = beyond & (nu > -math.sqrt(2.0) * b.ripple)
+    power = maps["amp2"].detach().clamp_min(0.0) * torch.where(beyond, 1.0 / (4.0 + 2.0 * math.pi**2 * nu * nu),
+                                                               1.0)
+    power = torch.where(band | ~beyond, power, 0.0)
+    out = torch.where(band & ~inside_doe(doe, torch.stack([nd.tx, nd.ty], -1)), power, 0.0).sum()
+    reach = torch.where(band & (power > 0), torch.maximum(nd.tx.abs(), nd.ty.abs()), 0.0).amax()
+    return out / power.sum().clamp_min(1e-300), reach
 
 
 #: the most rays a node grid may hold (2048² nodes; the default 64 nodes per side give ~150² with the exit-pupil

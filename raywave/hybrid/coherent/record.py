@@ -51,6 +51,11 @@ class FieldInfo:
         edge_step: with the exit-pupil edge, the step that carried it to the DOE plane: "doe" (cut on the DOE
             plane, exact there), "fresnel" (the knife-edge step, its caustic fallback included) or "asm" (the exact
             construction); None: the DOE-plane edge.
+        band_clipped: with the exit-pupil edge (the knife-edge step), the fraction of the source's power on the
+            plane in the edge's diffraction ripples beyond the geometric shadow that falls outside the DOE aperture
+            (an estimate from the node maps; 0 where the node grid lies inside the aperture). A 0-dim tensor until
+            :meth:`~raywave.hybrid.HybridLens.doe_fields` reads a call's at once (:func:`resolve_band_infos`).
+        band_half: the half width (mm) of the square DOE that would hold that ripple band (0 where not computed).
     """
 
     rays: int
@@ -60,6 +65,21 @@ class FieldInfo:
     beam_half: float = 0.0
     stop_edge: str = "doe"
     edge_step: str | None = None
+    band_clipped: float = 0.0
+    band_half: float = 0.0
+
+
+def resolve_band_infos(fds: list) -> None:
+    """Turn the :class:`FieldInfo` ``band_clipped`` / ``band_half`` tensors of the fields ``fds`` into host floats,
+    from one host read for all of them (in place: each field's info replaced)."""
+    pending = [fd for fd in fds if isinstance(fd.info.band_clipped, torch.Tensor)]
+    if not pending:
+        return
+    values = torch.stack([torch.stack([torch.as_tensor(fd.info.band_clipped, dtype=torch.float64),
+                                       torch.as_tensor(fd.info.band_half, dtype=torch.float64)])
+                          for fd in pending]).tolist()
+    for fd, (clipped, half) in zip(pending, values):
+        fd.info = replace(fd.info, band_clipped=clipped, band_half=half)
 
 
 @dataclass(frozen=True)
