@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -310,17 +310,17 @@ class DOEApertureWarning(UserWarning):
         if len(self.entries) == 1:
             what = (f"{where}: the {w:g}×{h:g} mm DOE aperture blocks {what_blocked}{pct(blocked)} % of the "
                     "beam's power")
-            beams = "the ripple band needs" if band else "the beam needs"
+            beams = "a DOE of {:.3g} mm square holds the ripple band" if band else "the beam needs"
         else:
             low = min(e[0] for e in self.entries)
             kind = "field × wavelength × depth" if self.scope == "map" else "field × wavelength"
             what = (f"{len(self.entries)} sources ({kind}) of this {self.scope}: the {w:g}×{h:g} mm DOE "
                     f"aperture blocks {what_blocked}{pct(low)}–{pct(blocked)} % of their beams' power (most at "
                     f"{where})")
-            beams = "the widest ripple band needs" if band else "the widest beam needs"
+            beams = "a DOE of {:.3g} mm square holds every ripple band" if band else "the widest beam needs"
         if band:  # the beam fits: the PSF carries the DOE edge's own diffraction of the ripples
             return (f"{what} (not counted in energy_outside; the PSF carries the DOE edge's diffraction of them); "
-                    f"{beams} a DOE of at least {need:.3g} mm square")
+                    + beams.format(need))
         return (f"{what} (not counted in energy_outside); {beams} a DOE of at least {need:.3g} mm square "
                 f"({BEAM_MARGIN * need:.3g} mm with the usual {BEAM_MARGIN:g}× margin, see "
                 "raywave.assembly.build.default_doe_size)")
@@ -967,8 +967,12 @@ class HybridLens(nn.Module):
                         folded.append((fold, geo.f[i].tolist(), wl))
                 if fd.clipped > CLIP_WARN:  # the field as host values, read once for the call (not per warning)
                     clipped.append((fd, geo.host_fields()[i]))
-                elif fd.info.band_clipped > BAND_CLIP_WARN:  # the beam fits, the edge's ripple band does not
-                    clipped.append((fd, geo.host_fields()[i], "band"))
+                elif fd.info.band_clipped > BAND_CLIP_WARN:
+                    if fd.info.band_total:  # the window's whole loss: the ripples' share beyond the beam's
+                        fd.info = replace(fd.info, band_clipped=max(fd.info.band_clipped - fd.clipped, 0.0),
+                                          band_total=False)
+                    if fd.info.band_clipped > BAND_CLIP_WARN:  # the beam fits, the edge's ripple band does not
+                        clipped.append((fd, geo.host_fields()[i], "band"))
                 fd.chief_tan = tans[k][j]
                 row.append(fd)
             out.append(row)

@@ -201,8 +201,29 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         u = _coarse_propagate(fin, sim, box, dz, m, known.transfers)
     if not _square_coverage(doe):  # (a square DOE's coverage is 1 on its grid: u itself, without two passes)
         u = u * doe.coverage(grid, oversample, device=u.device).to(u.dtype)
+    lost, half = _window_loss(fin, u, (sim, bbox, margin))
     return DOEField(Field(u, grid, float(wavelength), n, carrier), box, zprop, center,
-                    FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil", edge_step=step))
+                    FieldInfo(fx.rays, "accurate", stop_edge="exit_pupil", edge_step=step, band_clipped=lost,
+                              band_half=half, band_total=True))
+
+
+def _window_loss(carried: Field, u: torch.Tensor, wanted: tuple):
+    """``(lost, half)``: the fraction of the carried field's power (``carried``, on its own plane) that the DOE-plane
+    window ``u`` (on the DOE's lattice) does not hold, a 0-dim tensor (not read here), and the half width (mm) of the
+    square DOE that holds the window asked for; ``(0.0, 0.0)`` where that window, ``wanted`` = ``(sim, bbox,
+    margin)`` (:func:`~raywave.hybrid.coherent.geometry.lit_box`'s arguments), lies inside the DOE grid (host numbers:
+    nothing computed). The loss counts the geometric beam's clipping too (the caller subtracts
+    :func:`~raywave.hybrid.coherent.geometry.doe_clipping`'s): the angular spectrum keeps the power of what it
+    carries into the window."""
+    sim, (xmin, xmax, ymin, ymax), margin = wanted
+    (x0, y0), (sy, sx), p = sim.origin, sim.shape, sim.pitch[0]
+    if xmin - margin >= x0 and ymin - margin >= y0 and xmax + margin <= x0 + (sx - 1) * p \
+            and ymax + margin <= y0 + (sy - 1) * p:
+        return 0.0, 0.0
+    half = max(abs(xmin - margin), abs(xmax + margin), abs(ymin - margin), abs(ymax + margin))
+    before = torch.view_as_real(carried.envelope.detach()).square().sum() * (carried.grid.pitch[0] ** 2)
+    after = torch.view_as_real(u.detach()).square().sum() * (p * p)
+    return (1.0 - after / before.clamp_min(1e-300)).clamp_min(0.0), half
 
 
 #: :func:`_dark`: a field whose largest real or imaginary part is below this has its power summed (its squares may

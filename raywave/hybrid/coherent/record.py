@@ -56,6 +56,9 @@ class FieldInfo:
             (an estimate from the node maps; 0 where the node grid lies inside the aperture). A 0-dim tensor until
             :meth:`~raywave.hybrid.HybridLens.doe_fields` reads a call's at once (:func:`resolve_band_infos`).
         band_half: the half width (mm) of the square DOE that would hold that ripple band (0 where not computed).
+        band_total: ``band_clipped`` counts the geometric beam's clipping too (the exact construction and the
+            caustic fallback: the carried field's power the DOE-plane window loses); the caller subtracts
+            ``clipped``.
     """
 
     rays: int
@@ -67,6 +70,7 @@ class FieldInfo:
     edge_step: str | None = None
     band_clipped: float = 0.0
     band_half: float = 0.0
+    band_total: bool = False
 
 
 def resolve_band_infos(fds: list) -> None:
