@@ -128,9 +128,9 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
     z_from = None
     if method == "fresnel" and settings.check:  # the plane too near a caustic: built before it, carried by the ASM
-        z_from, est = go_fallback_plane(lens, source, z_xp, z_doe, known.go_error)
+        z_from, est, others = _fallback_planes(lens, source, z_xp, z_doe, known.go_error)
         if z_from is not None:
-            z_from = _fallback_fits(lens, source, z_from, z_doe, p_sim, est)
+            z_from = _fallback_fits(lens, source, z_from, z_doe, p_sim, est, others)
         if z_from is not None:
             method = "asm"
     if method == "fresnel":
@@ -649,44 +649,82 @@ def go_fallback_plane(lens, source: Source, z_xp: float, z_doe: float, known: tu
     angular spectrum, exact over that step); ``(None, error)`` when the DOE plane is fine (or no plane is), and
     ``(None, 0.0)`` when it lies before the exit pupil. ``known``: this source's :func:`go_phase_error` ``(z,
     error)`` when the caller computed it for many sources (:func:`go_phase_errors`)."""
+    return _fallback_planes(lens, source, z_xp, z_doe, known)[:2]
+
+
+def _fallback_planes(lens, source: Source, z_xp: float, z_doe: float, known: tuple | None = None):
+    """:func:`go_fallback_plane`'s ``(z_from, error)`` and the planes to try, in order, where ``z_from``'s beam does
+    not fit (:func:`_fallback_fits`): every plane nearer the DOE plane than ``z_from`` whose error is finite (the rays
+    past the rim do not fold within the edge's band there) and below the DOE plane's own, the least error first (the
+    estimate ranks the planes; it does not predict the error's size). Issue 47, class B (h47f): the Planar 80 mm
+    F/2.8 off axis, whose DOE plane lies past such a fold and whose plane within the fraction of the tolerance needs
+    14 163 samples a side, has planes 2 – 6 times the tolerance before the fold that fit."""
     if not z_xp < z_doe:  # a DOE plane before the exit pupil (its edge stepped backwards): no earlier plane
-        return None, 0.0
+        return None, 0.0, ()
     zs, err = go_phase_error(lens, source, z_xp, z_doe) if known is None else known
     err = err.tolist()  # (one host read; issue 43: no tensor op per source)
     e = err[-1]
     if not e > GO_PHASE_TOL:
-        return None, e
+        return None, e, ()
     fine = [k for k, v in enumerate(err) if v <= GO_FALLBACK_FRACTION * GO_PHASE_TOL]
     if (not fine or fine[-1] == 0) and math.isinf(e):  # the rays past the rim fold within the edge's band there
         # (go_phase_errors' band_fold) and no plane is within the tolerance: the nearest plane where they do not fold
         fine = [k for k, v in enumerate(err) if math.isfinite(v)]
     if not fine or fine[-1] == 0:
-        return None, e
-    return float(zs[fine[-1]]), e
+        return None, e, ()
+    zl = zs.tolist()
+    others = sorted((k for k in range(fine[-1] + 1, len(err) - 1) if math.isfinite(err[k]) and err[k] < e),
+                    key=lambda k: (err[k], -k))
+    return float(zl[fine[-1]]), e, tuple((float(zl[k]), float(err[k])) for k in others)
 
 
-def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: float, est: float):
+def _plane_side(lens, source: Source, z: float, p_sim: float) -> tuple:
+    """``(side, xb)``: the beam's footprint ``xb`` on the plane ``z`` mm (traced; None where every ray is
+    vignetted) and its larger extent in simulation samples of ``p_sim`` mm (inf without a footprint)."""
+    fld = torch.as_tensor(source.field, dtype=torch.float64, device=lens.device).reshape(2)
+    xb = _footprint(lens, fld, torch.tensor([float(source.wavelength)], dtype=torch.float64, device=lens.device),
+                    source.depth, z, virtual=True)
+    return (math.inf if xb is None else max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim), xb
+
+
+def _plane_fits(lens, side: float, xb, p_sim: float) -> bool:
+    """Whether a beam of ``side`` samples (footprint ``xb``) fits the caustic fallback: at most
+    :data:`MAX_XP_SAMPLES` a side and its window (beam and edge band, 1.2×) in memory, as the construction will
+    check it."""
+    if not side <= MAX_XP_SAMPLES:
+        return False
+    try:
+        check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
+                            p_sim, lens.device, step="fallback")
+    except MemoryLimitError:
+        return False
+    return True
+
+
+def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: float, est: float, others=()):
     """``z_from`` when the beam there spans at most :data:`MAX_XP_SAMPLES` simulation samples of ``p_sim`` mm a
     side (the exact construction's limit; the window's memory is checked as for any field), with a
-    :class:`StopEdgeWarning` naming the fallback; else None with a warning that the DOE plane ``z_doe`` is too near
-    the rays' focus for the construction (``est``: the :func:`go_phase_error` there, rad)."""
+    :class:`StopEdgeWarning` naming the fallback; else the first of ``others`` (:func:`_fallback_planes`: ``(z,
+    error)`` pairs, the least error first) whose beam fits, with a warning naming its error; else None with a
+    warning that the DOE plane ``z_doe`` is too near the rays' focus for the construction (``est``: the
+    :func:`go_phase_error` there, rad)."""
     fld = torch.as_tensor(source.field, dtype=torch.float64, device=lens.device).reshape(2)
     wl = float(source.wavelength)
-    xb = _footprint(lens, fld, torch.tensor([wl], dtype=torch.float64, device=lens.device), source.depth, z_from,
-                    virtual=True)
-    side = math.inf if xb is None else max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim
+    side, xb = _plane_side(lens, source, z_from, p_sim)
     where = (f"the DOE plane z = {z_doe:.4g} mm lies near the rays' focus for field "
              f"{[round(float(v), 6) for v in fld.tolist()]} at {wl:g} µm: " +
              ("the rays past the stop's rim fold within the edge's ripple band there" if math.isinf(est) else
               f"the geometric-optics field there is off by ~{est:.2g} rad (go_phase_error > {GO_PHASE_TOL:g} rad)"))
-    fits = side <= MAX_XP_SAMPLES
-    if fits:
-        try:  # the window (beam and edge band, 1.2x) in memory, as the construction will check it
-            check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
-                                p_sim, lens.device, step="fallback")
-        except MemoryLimitError:
-            fits = False
-    if not fits:
+    if not _plane_fits(lens, side, xb, p_sim):
+        for z, err in others:  # issue 47, class B: the least-error plane that fits
+            s2, xb2 = _plane_side(lens, source, z, p_sim)
+            if _plane_fits(lens, s2, xb2, p_sim):
+                warnings.warn(f"{where}; building it {z_doe - z_from:.3g} mm before would take {side:.0f} samples a "
+                              f"side (over {MAX_XP_SAMPLES}, or more than the memory holds): the field is built "
+                              f"{z_doe - z:.3g} mm before it, where the geometric-optics field is off by ~{err:.2g} "
+                              "rad, and carried to it by the angular spectrum (slower)", StopEdgeWarning,
+                              stacklevel=4)
+                return z
         warnings.warn(f"{where}, and building it {z_doe - z_from:.3g} mm before would take {side:.0f} samples a side "
                       f"(over {MAX_XP_SAMPLES}, or more than the memory holds): built on the plane itself; move the "
                       "DOE towards the lens or use a coarser DOE pitch", StopEdgeWarning, stacklevel=4)
