@@ -236,14 +236,14 @@ def test_the_fallback_planes_after_the_first_are_the_finite_ones_below_the_doe_p
                        dtype=torch.float64)
     z_from, est, others = ep._fallback_planes(None, None, -1.0, 10.0, (zs, err))
     assert z_from == 2.0 and math.isinf(est)
-    assert [z for z, _ in others] == [5.0, 4.0, 3.0, 7.0, 9.0]
+    assert [z for z, _ in others] == [3.0, 4.0, 5.0, 7.0, 9.0]
     err[-1] = 4e-4  # a finite error on the DOE plane: only the planes below it
     z_from, est, others = ep._fallback_planes(None, None, -1.0, 10.0, (zs, err))
-    assert z_from == 2.0 and est == 4e-4 and [z for z, _ in others] == [5.0, 4.0, 3.0]
+    assert z_from == 2.0 and est == 4e-4 and [z for z, _ in others] == [3.0, 4.0, 5.0]
     assert ep.go_fallback_plane(None, None, -1.0, 10.0, (zs, err)) == (2.0, 4e-4)
 
 
-def test_a_fallback_too_large_takes_the_least_error_plane_that_fits(monkeypatch):
+def test_a_fallback_too_large_takes_the_farthest_plane_that_fits(monkeypatch):
     """The singlet 5 mm before focus: with MAX_XP_SAMPLES just below the beam on the fallback's plane (7.6 mm
     before the DOE plane, 322 samples) the field is built on the next plane (6.0 mm before it, 280 samples, its
     geometric-optics error 5.3e-5 rad) with a warning that names it; against the converged Huygens PSF 6.8e-4

@@ -655,10 +655,12 @@ def go_fallback_plane(lens, source: Source, z_xp: float, z_doe: float, known: tu
 def _fallback_planes(lens, source: Source, z_xp: float, z_doe: float, known: tuple | None = None):
     """:func:`go_fallback_plane`'s ``(z_from, error)`` and the planes to try, in order, where ``z_from``'s beam does
     not fit (:func:`_fallback_fits`): every plane nearer the DOE plane than ``z_from`` whose error is finite (the rays
-    past the rim do not fold within the edge's band there) and below the DOE plane's own, the least error first (the
-    estimate ranks the planes; it does not predict the error's size). Issue 47, class B (h47f): the Planar 80 mm
-    F/2.8 off axis, whose DOE plane lies past such a fold and whose plane within the fraction of the tolerance needs
-    14 163 samples a side, has planes 2 – 6 times the tolerance before the fold that fit."""
+    past the rim do not fold within the edge's band there) and below the DOE plane's own, the farthest from the DOE
+    plane first: the construction is exact on the rim images' plane (the exact construction's) and its Fresnel step
+    and geometric optics grow with the distance from them, so the field is built as far back as the memory allows.
+    Issue 47, class B (h47f): the Planar 80 mm F/2.8 off axis, whose DOE plane lies past such a fold and whose plane
+    within the fraction of the tolerance needs 14 163 samples a side, has planes 2 – 6 times the tolerance before
+    the fold that fit."""
     if not z_xp < z_doe:  # a DOE plane before the exit pupil (its edge stepped backwards): no earlier plane
         return None, 0.0, ()
     zs, err = go_phase_error(lens, source, z_xp, z_doe) if known is None else known
@@ -673,8 +675,7 @@ def _fallback_planes(lens, source: Source, z_xp: float, z_doe: float, known: tup
     if not fine or fine[-1] == 0:
         return None, e, ()
     zl = zs.tolist()
-    others = sorted((k for k in range(fine[-1] + 1, len(err) - 1) if math.isfinite(err[k]) and err[k] < e),
-                    key=lambda k: (err[k], -k))
+    others = [k for k in range(fine[-1] + 1, len(err) - 1) if math.isfinite(err[k]) and err[k] < e]
     return float(zl[fine[-1]]), e, tuple((float(zl[k]), float(err[k])) for k in others)
 
 
@@ -705,7 +706,7 @@ def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: flo
     """``z_from`` when the beam there spans at most :data:`MAX_XP_SAMPLES` simulation samples of ``p_sim`` mm a
     side (the exact construction's limit; the window's memory is checked as for any field), with a
     :class:`StopEdgeWarning` naming the fallback; else the first of ``others`` (:func:`_fallback_planes`: ``(z,
-    error)`` pairs, the least error first) whose beam fits, with a warning naming its error; else None with a
+    error)`` pairs, the farthest from the DOE plane first) whose beam fits, with a warning naming its error; else None with a
     warning that the DOE plane ``z_doe`` is too near the rays' focus for the construction (``est``: the
     :func:`go_phase_error` there, rad)."""
     fld = torch.as_tensor(source.field, dtype=torch.float64, device=lens.device).reshape(2)
@@ -716,7 +717,7 @@ def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: flo
              ("the rays past the stop's rim fold within the edge's ripple band there" if math.isinf(est) else
               f"the geometric-optics field there is off by ~{est:.2g} rad (go_phase_error > {GO_PHASE_TOL:g} rad)"))
     if not _plane_fits(lens, side, xb, p_sim):
-        for z, err in others:  # issue 47, class B: the least-error plane that fits
+        for z, err in others:  # issue 47, class B: the farthest plane that fits
             s2, xb2 = _plane_side(lens, source, z, p_sim)
             if _plane_fits(lens, s2, xb2, p_sim):
                 warnings.warn(f"{where}; building it {z_doe - z_from:.3g} mm before would take {side:.0f} samples a "
