@@ -266,3 +266,23 @@ def test_a_fallback_too_large_takes_the_farthest_plane_that_fits(monkeypatch):
     err = float((psf - _huygens(hl)).abs().sum())
     print(f"from the Huygens PSF: the next plane {err:.3g}")
     assert err < 1e-3
+
+
+def test_where_no_plane_fits_the_plain_carry_the_scaled_carry_builds_on_the_fallbacks_plane(monkeypatch):
+    """The singlet 5 mm before focus with MAX_XP_SAMPLES 200 and no other plane to try: the fallback's plane (7.6 mm
+    before the DOE plane, 322 samples a side at the DOE pitch) is built relative to the sphere converging on the
+    chief ray's sensor point on a lattice 2.53× the DOE pitch (128 samples) and carried by the scaled angular
+    spectrum (exit_pupil.scaled_carry; tests/test_scaled_carry.py): 7.8e-4 from the converged Huygens PSF (the plain
+    carry from the same plane 4.8e-4, the plane itself 1.8e-2)."""
+    hl = _singlet(NEAR, size=2.0)
+    planes = ep._fallback_planes
+    monkeypatch.setattr(ep, "_fallback_planes", lambda *a, **k: planes(*a, **k)[:2] + ((),))
+    monkeypatch.setattr(ep, "MAX_XP_SAMPLES", 200)
+    with torch.no_grad(), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        psf = hl.psf_result((0.0, 0.0), ks=32).psf[0, 0]
+    msgs = [str(w.message) for w in caught if issubclass(w.category, StopEdgeWarning)]
+    assert any("scaled angular spectrum" in m and "128 samples a side" in m for m in msgs), msgs
+    err = float((psf - _huygens(hl)).abs().sum())
+    print(f"from the Huygens PSF: the scaled carry {err:.3g}")
+    assert err < 1e-3
