@@ -1,7 +1,7 @@
 """The caustic fallback's scaled carry (issue 47, class B, h47f): a wave converging on a point, built on a plane far
 from it relative to the spherical wave and carried to a plane near it by the Fresnel-scaled angular spectrum
-(:func:`raywave.hybrid.coherent.exit_pupil.scaled_carry`), against the plain angular spectrum of the whole wave at
-the fine pitch (exact), and in the engine against the converged Huygens PSF.
+(:func:`raywave.hybrid.coherent.exit_pupil.scaled_carry`), against the plain angular spectrum of the whole wave
+at the fine pitch (exact); in the engine against the converged Huygens PSF: tests/test_caustic_fallback.py.
 
 Physics: the Fresnel scaling theorem. A wave ``A(x)·S₁(x)`` (``S`` the spherical wave converging on ``F`` at
 ``R₁`` from the first plane) reaches the plane ``R₂ = R₁ − dz`` from ``F`` as ``(1/M)·A'((x' − F)/M + F)·S₂(x')``,
@@ -10,13 +10,11 @@ converging wave's Nyquist pitch, so a plane far from the focus costs the near pl
 """
 
 import math
-import warnings
 
 import pytest
 import torch
 
 import raywave.hybrid.coherent.exit_pupil as ep
-from raywave.hybrid.coherent import StopEdgeWarning
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation import propagate_window
 
@@ -36,8 +34,11 @@ def _disc(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 
 def _axes(grid: Grid):
+    """The grid's sample centres: x (1, nx), y (ny, 1) mm."""
     (ny, nx), (ox, oy), (p, _) = grid.shape, grid.origin, grid.pitch
-    return (ox + torch.arange(nx, dtype=torch.float64) * p)[None, :], (oy + torch.arange(ny, dtype=torch.float64) * p)[:, None]
+    xs = ox + torch.arange(nx, dtype=torch.float64) * p
+    ys = oy + torch.arange(ny, dtype=torch.float64) * p
+    return xs[None, :], ys[:, None]
 
 
 def test_the_scaled_carry_of_a_converging_disc_is_the_plain_angular_spectrum():

@@ -716,17 +716,12 @@ def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: flo
     """``z_from`` when the beam there spans at most :data:`MAX_XP_SAMPLES` simulation samples of ``p_sim`` mm a
     side (the exact construction's limit; the window's memory is checked as for any field), with a
     :class:`StopEdgeWarning` naming the fallback; else the first of ``others`` (:func:`_fallback_planes`: ``(z,
-    error)`` pairs, the farthest from the DOE plane first) whose beam fits, with a warning naming its error; else None with a
-    warning that the DOE plane ``z_doe`` is too near the rays' focus for the construction (``est``: the
+    error)`` pairs, the farthest from the DOE plane first) whose beam fits, with a warning naming its error; else
+    None with a warning that the DOE plane ``z_doe`` is too near the rays' focus for the construction (``est``: the
     :func:`go_phase_error` there, rad); without ``final`` (the caller tries the scaled carry next,
     :func:`_scaled_fallback_fits`) None without a warning."""
-    fld = torch.as_tensor(source.field, dtype=torch.float64, device=lens.device).reshape(2)
-    wl = float(source.wavelength)
     side, xb = _plane_side(lens, source, z_from, p_sim)
-    where = (f"the DOE plane z = {z_doe:.4g} mm lies near the rays' focus for field "
-             f"{[round(float(v), 6) for v in fld.tolist()]} at {wl:g} µm: " +
-             ("the rays past the stop's rim fold within the edge's ripple band there" if math.isinf(est) else
-              f"the geometric-optics field there is off by ~{est:.2g} rad (go_phase_error > {GO_PHASE_TOL:g} rad)"))
+    where = _fallback_where(source, z_doe, est)
     if not _plane_fits(lens, side, xb, p_sim):
         for z, err in others:  # issue 47, class B: the farthest plane that fits
             s2, xb2 = _plane_side(lens, source, z, p_sim)
