@@ -124,7 +124,8 @@ def test_class_b_fast_lenses_off_axis_within_1e_3(monkeypatch, fname, frac):
     the plane itself, the DOE-plane edge 2.84e-2 / 2.32e-2). The Nikon AF-S 300 mm f/2.8 at 0.7 field: no plane
     before the fold fits (12 400 – 16 162 samples a side), the scaled carry from the fallback's plane (38.3 mm
     before) on a lattice 4.2× the DOE pitch: **3.10e-4** (own error 5.9e-11; before 2.99e-3, the DOE-plane edge
-    7.98e-3). 16 GiB allowed, under a lock of big runs: peak RSS 10.2 / 12.7 / 6.3 GB."""
+    7.98e-3). 16 GiB allowed, under a lock of big runs: peak RSS 10.2 / 12.7 / 6.3 GB; 18 min for the three on
+    a loaded 2-core machine."""
     monkeypatch.setenv("RAYWAVE_MEMORY_LIMIT", "16GiB")
     psf, ref = _default_and_reference(DATA / fname, frac, 3e-3)
     err = float((psf - ref.psf).abs().sum())
