@@ -188,7 +188,8 @@ def default_step(hl, fld, wl, depth, caught) -> str:
     """The step the default (``edge_step="adaptive"``) took for the source: "doe cut" (a blank DOE on a spherical
     wave: the edge cut on the DOE plane, exact there), "fresnel" (the knife-edge step from the rim images) or
     "caustic fallback" (the DOE plane too near the rays' focus: the Fresnel step to an earlier plane, the angular
-    spectrum beyond; named by its StopEdgeWarning in ``caught``)."""
+    spectrum beyond; named by its StopEdgeWarning in ``caught``; "caustic fallback (scaled carry)": the same with the
+    envelope relative to the converging sphere, issue 47 class B)."""
     from raywave.hybrid.coherent.exit_pupil import adaptive_edge_step
 
     if hl.stop_edge != "exit_pupil":
@@ -196,6 +197,8 @@ def default_step(hl, fld, wl, depth, caught) -> str:
     if hl.edge_step != "adaptive":
         return hl.edge_step
     step = adaptive_edge_step(hl.lens, hl.doe, fld, wl, depth, float(hl.doe_z()), float(hl.sensor_z()), "angle")
+    if step == "fresnel" and any("carried to it by the scaled angular spectrum" in w for w in caught):
+        return "caustic fallback (scaled carry)"
     if step == "fresnel" and any("carried to it by the angular spectrum" in w for w in caught):
         return "caustic fallback"
     return step if step == "fresnel" else "doe cut"

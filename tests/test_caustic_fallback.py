@@ -225,3 +225,64 @@ def test_the_moved_default_plane_gives_the_fallbacks_psf_without_its_warning():
     err = float((psf - ref).abs().sum())
     print(f"moved plane vs fallback: {err:.3g}")
     assert err < 1e-4
+
+
+def test_the_fallback_planes_after_the_first_are_the_finite_ones_below_the_doe_planes_error_least_first():
+    """Issue 47, class B (h47f): where the plane within GO_FALLBACK_FRACTION of the tolerance does not fit, the
+    planes tried next are those nearer the DOE plane whose error is finite (no band fold) and below the DOE plane's
+    own, the least error first (ties: the nearer the DOE plane first)."""
+    zs = torch.linspace(0.0, 10.0, 11, dtype=torch.float64)
+    err = torch.tensor([0, 1e-5, 4e-5, 3e-4, 2e-4, 2e-4, math.inf, 5e-4, math.inf, 9e-4, math.inf],
+                       dtype=torch.float64)
+    z_from, est, others = ep._fallback_planes(None, None, -1.0, 10.0, (zs, err))
+    assert z_from == 2.0 and math.isinf(est)
+    assert [z for z, _ in others] == [3.0, 4.0, 5.0, 7.0, 9.0]
+    err[-1] = 4e-4  # a finite error on the DOE plane: only the planes below it
+    z_from, est, others = ep._fallback_planes(None, None, -1.0, 10.0, (zs, err))
+    assert z_from == 2.0 and est == 4e-4 and [z for z, _ in others] == [3.0, 4.0, 5.0]
+    assert ep.go_fallback_plane(None, None, -1.0, 10.0, (zs, err)) == (2.0, 4e-4)
+
+
+def test_a_fallback_too_large_takes_the_farthest_plane_that_fits(monkeypatch):
+    """The singlet 5 mm before focus: with MAX_XP_SAMPLES just below the beam on the fallback's plane (7.6 mm
+    before the DOE plane, 322 samples) the field is built on the next plane (6.0 mm before it, 280 samples, its
+    geometric-optics error 5.3e-5 rad) with a warning that names it; against the converged Huygens PSF 6.8e-4
+    (the fallback's own plane 4.8e-4, the plane itself 1.8e-2: the slow test above)."""
+    hl = _singlet(NEAR, size=2.0)
+    lens, wl = hl.lens, hl.lens.primary_wavelength
+    src = Source((0.0, 0.0), wl, None, lens.field_type)
+    with torch.no_grad():
+        z_from, est, others = ep._fallback_planes(lens, src, hl.exit_pupil_z(wl), hl.doe_z())
+        side = ep._plane_side(lens, src, z_from, hl.doe.pitch)[0]
+    z_next = others[0][0]
+    assert z_from < z_next < hl.doe_z() and others[0][1] < est
+    monkeypatch.setattr(ep, "MAX_XP_SAMPLES", math.floor(side) - 1)
+    with pytest.warns(StopEdgeWarning, match="where the geometric-optics field is off by"):
+        assert ep._fallback_fits(lens, src, z_from, hl.doe_z(), hl.doe.pitch, est, others) == z_next
+    with torch.no_grad(), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        psf = hl.psf_result((0.0, 0.0), ks=32).psf[0, 0]
+    assert any(f"built {hl.doe_z() - z_next:.3g} mm before it" in str(w.message) for w in caught)
+    err = float((psf - _huygens(hl)).abs().sum())
+    print(f"from the Huygens PSF: the next plane {err:.3g}")
+    assert err < 1e-3
+
+
+def test_where_no_plane_fits_the_plain_carry_the_scaled_carry_builds_on_the_fallbacks_plane(monkeypatch):
+    """The singlet 5 mm before focus with MAX_XP_SAMPLES 200 and no other plane to try: the fallback's plane (7.6 mm
+    before the DOE plane, 322 samples a side at the DOE pitch) is built relative to the sphere converging on the
+    chief ray's sensor point on a lattice 2.53× the DOE pitch (128 samples) and carried by the scaled angular
+    spectrum (exit_pupil.scaled_carry; tests/test_scaled_carry.py): 7.8e-4 from the converged Huygens PSF (the plain
+    carry from the same plane 4.8e-4, the plane itself 1.8e-2)."""
+    hl = _singlet(NEAR, size=2.0)
+    planes = ep._fallback_planes
+    monkeypatch.setattr(ep, "_fallback_planes", lambda *a, **k: planes(*a, **k)[:2] + ((),))
+    monkeypatch.setattr(ep, "MAX_XP_SAMPLES", 200)
+    with torch.no_grad(), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        psf = hl.psf_result((0.0, 0.0), ks=32).psf[0, 0]
+    msgs = [str(w.message) for w in caught if issubclass(w.category, StopEdgeWarning)]
+    assert any("scaled angular spectrum" in m and "128 samples a side" in m for m in msgs), msgs
+    err = float((psf - _huygens(hl)).abs().sum())
+    print(f"from the Huygens PSF: the scaled carry {err:.3g}")
+    assert err < 1e-3

@@ -193,6 +193,8 @@ class _Build:
         self.field_type, self.field, self.wl, self.n, sim, self.carrier, self.center, self.zprop = _common_setup(
             self.lens, self.doe, src, (self.z_doe, self.z_sensor), self.chief, cfg.oversample, self.given.medium)
         self.p = sim[0]
+        if cfg.sphere is not None:  # the envelope relative to the converging sphere (its own carrier): none
+            self.carrier = (0.0, 0.0)
         self.ripple = None
         if cfg.stop_plane is not None:  # the band: the caller's, else RIPPLE_ZONES widened by the edge waves' reach
             reach = self.given.reach  # (the caller's: the crop's centre is not read)
@@ -622,6 +624,8 @@ def _node_maps(b: _Build, nd: _Nodes, traced: tuple, is_stop, diffracting) -> di
     det = du_dx * dv_dy - du_dy * dv_dx
     ky, kx = nd.ky, nd.kx
     phi_env = phi_g - phi_g[ky // 2, kx // 2].detach() - n * (carrier[0] * nd.tx + carrier[1] * nd.ty)
+    if b.cfg.sphere is not None:
+        phi_env = phi_env + _sphere_path(b.cfg.sphere, b.z_doe, n, nd.tx, nd.ty)
     maps = {"phi_env": phi_env, "amp2": w0_g * det.abs() / gamma_g, "det": det, "slopes": grid[5 + len(slacks):],
             "phi": phi_g}
     maps.update(_edge_distances(grid[5:5 + len(slacks)], is_stop, diffracting, nd.h, ACTING_TOLERANCE * b.p))
@@ -790,6 +794,24 @@ def _path_difference_nu(b: _Build, nd: _Nodes, stop_xy: tuple, good, edge: tuple
     return s_stop * torch.sqrt(g2)
 
 
+def _sphere_path(sphere: tuple, z: float, n, tx: torch.Tensor, ty: torch.Tensor) -> torch.Tensor:
+    """The optical path (mm) of the wave converging on the point ``sphere`` ``(x, y, z_f)`` mm from the nodes ``tx``,
+    ``ty`` (ky, kx) mm of the plane ``z`` to it, less the centre node's (``n`` the medium's index): added to the
+    optical path, it leaves the envelope relative to that sphere (:class:`FieldSettings` ``sphere``)."""
+    fx, fy, fz = (float(v) for v in sphere)
+    tx, ty = torch.broadcast_tensors(tx, ty)
+    r = torch.sqrt((tx - fx) ** 2 + (ty - fy) ** 2 + (fz - z) ** 2)
+    return n * (r - r[r.shape[0] // 2, r.shape[1] // 2].detach())
+
+
+def _sphere_directions(sphere: tuple, z: float, x: torch.Tensor, y: torch.Tensor) -> tuple:
+    """The direction cosines ``(α, β)`` towards the point ``sphere`` from the points ``x``, ``y`` mm of the plane
+    ``z`` mm (the converging sphere's rays)."""
+    fx, fy, fz = (float(v) for v in sphere)
+    r = torch.sqrt((fx - x) ** 2 + (fy - y) ** 2 + (fz - z) ** 2)
+    return (fx - x) / r, (fy - y) / r
+
+
 def _check_nodes(b: _Build, nd: _Nodes, maps: dict, good, dvec) -> None:
     """Warn where the pupil → plane map folds (a caustic) or the envelope's phase slope passes Nyquist (``dvec``
     (N, 3) the node rays' directions)."""
@@ -799,7 +821,10 @@ def _check_nodes(b: _Build, nd: _Nodes, maps: dict, good, dvec) -> None:
     det = maps["det"].detach()
     if bool(((det * det[ky // 2, kx // 2] <= 0) & lit_nodes).any()):
         _fold_warning(field.tolist(), wavelength, stacklevel=5)
-    slope = n * torch.sqrt((dvec[:, 0] - carrier[0]) ** 2 + (dvec[:, 1] - carrier[1]) ** 2).reshape(ky, kx)
+    c0, c1 = carrier
+    if b.cfg.sphere is not None:  # the envelope's phase slope relative to the sphere's rays
+        c0, c1 = _sphere_directions(b.cfg.sphere, b.z_doe, nd.targets[:, 0], nd.targets[:, 1])
+    slope = n * torch.sqrt((dvec[:, 0] - c0) ** 2 + (dvec[:, 1] - c1) ** 2).reshape(ky, kx)
     _warn_nyquist(slope * (2 * p) / (wavelength * 1e-3), lit_nodes, nd.targets, field.tolist(), wavelength, p)
 
 
@@ -1110,6 +1135,10 @@ def _batch_node_maps(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict,
     center = torch.tensor([(ky // 2) * kx_max + kx // 2 for ky, kx in nb.sizes], device=dev)
     phi_c = phi_g.reshape(bsz, -1).gather(1, center[:, None]).detach()[:, :, None]
     phi_env = phi_g - phi_c - n * (c0 * tx + c1 * ty)
+    if any(r.b.cfg.sphere is not None for r in reqs):  # (the caustic fallback's scaled carry only)
+        phi_env = phi_env + torch.stack([torch.zeros_like(phi_env[i]) if r.b.cfg.sphere is None else
+                                         _sphere_path(r.b.cfg.sphere, r.b.z_doe, r.b.n, tx[i], ty[i])
+                                         for i, r in enumerate(reqs)])
     maps = {"phi_env": phi_env, "amp2": w0_g * det.abs() / gamma_g, "det": det, "slopes": slopes, "phi": phi_g,
             "tx": tx, "ty": ty, "center": center, "slope_grads": slope_grads if diffracting else None}
     if n_ap == 0:  # no aperture at all: far from every edge
@@ -1221,6 +1250,11 @@ def _check_nodes_batch(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dic
     det = maps["det"].detach()
     det_c = det.reshape(bsz, -1).gather(1, maps["center"][:, None])[:, :, None]
     fold = ((det * det_c <= 0) & lit).flatten(1).any(1)
+    if any(r.b.cfg.sphere is not None for r in reqs):  # relative to the sphere's rays (the scaled carry)
+        c0, c1 = c0.expand(bsz, *grid.shape[2:]).clone(), c1.expand(bsz, *grid.shape[2:]).clone()
+        for i, r in enumerate(reqs):
+            if r.b.cfg.sphere is not None:
+                c0[i], c1[i] = _sphere_directions(r.b.cfg.sphere, r.b.z_doe, maps["tx"][i], maps["ty"][i])
     slope = n * torch.sqrt((grid[:, k_of["dx"]] - c0) ** 2 + (grid[:, k_of["dy"]] - c1) ** 2)
     ratio = slope * two_p / lam
     r = torch.where(lit, ratio.detach(), torch.zeros_like(ratio)).flatten(1)

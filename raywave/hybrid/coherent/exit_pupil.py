@@ -126,11 +126,14 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         return fd.with_info(stop_edge="exit_pupil", edge_step="doe")
     if xb is ...:
         method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
-    z_from = None
+    z_from, sphere = None, None
     if method == "fresnel" and settings.check:  # the plane too near a caustic: built before it, carried by the ASM
-        z_from, est = go_fallback_plane(lens, source, z_xp, z_doe, known.go_error)
+        z_from, est, others = _fallback_planes(lens, source, z_xp, z_doe, known.go_error)
         if z_from is not None:
-            z_from = _fallback_fits(lens, source, z_from, z_doe, p_sim, est)
+            z0, z_from = z_from, _fallback_fits(lens, source, z_from, z_doe, p_sim, est, others, final=False)
+            if z_from is None:  # no plane fits the plain carry: the scaled one on the fallback's own plane
+                z_from, sphere = _scaled_fallback_fits(lens, source, (z0, z_doe, z_sensor), p_sim, est,
+                                                       chief_sensor)
         if z_from is not None:
             method = "asm"
     if method == "fresnel":
@@ -147,7 +150,7 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     if method != "asm":
         raise ValueError(f"method must be 'adaptive', 'auto', 'fresnel' or 'asm', got {method!r}")
     _check_xp_beam(xb, p_sim, z_xp)
-    _, fld, wl, n, (p, x0, y0, sy, sx), _, center, zprop = _common_setup(
+    _, fld, wl, n, (p, x0, y0, sy, sx), carrier_doe, center, zprop = _common_setup(
         lens, doe, source, (z_doe, z_sensor), chief, oversample, known.medium)
     rim = None
     if rim_images or z_from is not None:
@@ -158,9 +161,12 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     # the edge waves that land in the crop turn by up to its reach over the distance from the exit pupil
     far = abs(z_sensor - z_xp)
     tail = settings.crop_reach / far if settings.crop_reach > 0 and far > 0 else 0.0
-    m = asm_coarsening(rim, chief_doe, wavelength, n, p, tail)
+    m = asm_coarsening(rim, chief_doe, wavelength, n, p, tail) if sphere is None else 1
     lattice = doe if m == 1 else CoarseLattice.of(doe.sim_grid(oversample), m, doe.device)
     coarse = settings if m == 1 else replace(settings, oversample=1)
+    if sphere is not None:  # the scaled carry: the envelope relative to the sphere on the magnified lattice
+        lattice = _scaled_lattice(doe.sim_grid(oversample), sphere, (z_from, z_doe), doe.device)
+        coarse = replace(settings, oversample=1, sphere=sphere)
     if z_from is not None:  # the caustic fallback: the Fresnel step to z_from, the angular spectrum beyond
         z_edge, z_far = z_from, _rim_step_plane(rim, z_xp, z_doe, wavelength, n, 0.0)[1]
         chief_xp = chief_doe
@@ -176,7 +182,7 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                                              replace(coarse, virtual=True, stop_plane=z_xp,
                                                      ripple_zones=ripple_zones),
                                              Known(stop_rim=rim, medium=known.medium))
-    carrier = fx.carrier  # the chief ray's direction: the same on both planes
+    carrier = fx.carrier if sphere is None else carrier_doe  # the chief ray's direction: the same on both planes
     bbox = _footprint(lens, fld, wl, depth, z_doe)  # also checks that the DOE plane lies behind the lens
     step = "fresnel" if z_from is not None else "asm"  # (the caustic fallback: the Fresnel step, carried)
     if bbox is None or _dark(fx):
@@ -195,7 +201,10 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     (ny, nx) = (cy, cx) if cy * cx > wy * wx else (wy, wx)
     check_window_memory(ny, nx, p, lens.device, step="fallback" if z_from is not None else "asm")
     fin = Field(fx.envelope, fx.grid, float(wavelength), n, carrier)
-    if m == 1:
+    if sphere is not None:
+        carrier = carrier_doe
+        u = scaled_carry(fin, grid, sphere, (z_from, z_doe), carrier_doe)
+    elif m == 1:
         u = propagate_window(fin, grid, dz, transfer=edge_transfer(known.transfers, fin, grid, dz)).envelope
     else:
         u = _coarse_propagate(fin, sim, box, dz, m, known.transfers)
@@ -670,44 +679,82 @@ def go_fallback_plane(lens, source: Source, z_xp: float, z_doe: float, known: tu
     angular spectrum, exact over that step); ``(None, error)`` when the DOE plane is fine (or no plane is), and
     ``(None, 0.0)`` when it lies before the exit pupil. ``known``: this source's :func:`go_phase_error` ``(z,
     error)`` when the caller computed it for many sources (:func:`go_phase_errors`)."""
+    return _fallback_planes(lens, source, z_xp, z_doe, known)[:2]
+
+
+def _fallback_planes(lens, source: Source, z_xp: float, z_doe: float, known: tuple | None = None):
+    """:func:`go_fallback_plane`'s ``(z_from, error)`` and the planes to try, in order, where ``z_from``'s beam does
+    not fit (:func:`_fallback_fits`): every plane nearer the DOE plane than ``z_from`` whose error is finite (the rays
+    past the rim do not fold within the edge's band there) and below the DOE plane's own, the farthest from the DOE
+    plane first: the construction is exact on the rim images' plane (the exact construction's) and its Fresnel step
+    and geometric optics grow with the distance from them, so the field is built as far back as the memory allows.
+    Issue 47, class B (h47f): the Planar 80 mm F/2.8 off axis, whose DOE plane lies past such a fold and whose plane
+    within the fraction of the tolerance needs 14 163 samples a side, has planes 2 – 6 times the tolerance before
+    the fold that fit."""
     if not z_xp < z_doe:  # a DOE plane before the exit pupil (its edge stepped backwards): no earlier plane
-        return None, 0.0
+        return None, 0.0, ()
     zs, err = go_phase_error(lens, source, z_xp, z_doe) if known is None else known
     err = err.tolist()  # (one host read; issue 43: no tensor op per source)
     e = err[-1]
     if not e > GO_PHASE_TOL:
-        return None, e
+        return None, e, ()
     fine = [k for k, v in enumerate(err) if v <= GO_FALLBACK_FRACTION * GO_PHASE_TOL]
     if (not fine or fine[-1] == 0) and math.isinf(e):  # the rays past the rim fold within the edge's band there
         # (go_phase_errors' band_fold) and no plane is within the tolerance: the nearest plane where they do not fold
         fine = [k for k, v in enumerate(err) if math.isfinite(v)]
     if not fine or fine[-1] == 0:
-        return None, e
-    return float(zs[fine[-1]]), e
+        return None, e, ()
+    zl = zs.tolist()
+    others = [k for k in range(fine[-1] + 1, len(err) - 1) if math.isfinite(err[k]) and err[k] < e]
+    return float(zl[fine[-1]]), e, tuple((float(zl[k]), float(err[k])) for k in others)
 
 
-def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: float, est: float):
+def _plane_side(lens, source: Source, z: float, p_sim: float) -> tuple:
+    """``(side, xb)``: the beam's footprint ``xb`` on the plane ``z`` mm (traced; None where every ray is
+    vignetted) and its larger extent in simulation samples of ``p_sim`` mm (inf without a footprint)."""
+    fld = torch.as_tensor(source.field, dtype=torch.float64, device=lens.device).reshape(2)
+    xb = _footprint(lens, fld, torch.tensor([float(source.wavelength)], dtype=torch.float64, device=lens.device),
+                    source.depth, z, virtual=True)
+    return (math.inf if xb is None else max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim), xb
+
+
+def _plane_fits(lens, side: float, xb, p_sim: float) -> bool:
+    """Whether a beam of ``side`` samples (footprint ``xb``) fits the caustic fallback: at most
+    :data:`MAX_XP_SAMPLES` a side and its window (beam and edge band, 1.2×) in memory, as the construction will
+    check it."""
+    if not side <= MAX_XP_SAMPLES:
+        return False
+    try:
+        check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
+                            p_sim, lens.device, step="fallback")
+    except MemoryLimitError:
+        return False
+    return True
+
+
+def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: float, est: float, others=(),
+                   final: bool = True):
     """``z_from`` when the beam there spans at most :data:`MAX_XP_SAMPLES` simulation samples of ``p_sim`` mm a
     side (the exact construction's limit; the window's memory is checked as for any field), with a
-    :class:`StopEdgeWarning` naming the fallback; else None with a warning that the DOE plane ``z_doe`` is too near
-    the rays' focus for the construction (``est``: the :func:`go_phase_error` there, rad)."""
-    fld = torch.as_tensor(source.field, dtype=torch.float64, device=lens.device).reshape(2)
-    wl = float(source.wavelength)
-    xb = _footprint(lens, fld, torch.tensor([wl], dtype=torch.float64, device=lens.device), source.depth, z_from,
-                    virtual=True)
-    side = math.inf if xb is None else max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim
-    where = (f"the DOE plane z = {z_doe:.4g} mm lies near the rays' focus for field "
-             f"{[round(float(v), 6) for v in fld.tolist()]} at {wl:g} µm: " +
-             ("the rays past the stop's rim fold within the edge's ripple band there" if math.isinf(est) else
-              f"the geometric-optics field there is off by ~{est:.2g} rad (go_phase_error > {GO_PHASE_TOL:g} rad)"))
-    fits = side <= MAX_XP_SAMPLES
-    if fits:
-        try:  # the window (beam and edge band, 1.2x) in memory, as the construction will check it
-            check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
-                                p_sim, lens.device, step="fallback")
-        except MemoryLimitError:
-            fits = False
-    if not fits:
+    :class:`StopEdgeWarning` naming the fallback; else the first of ``others`` (:func:`_fallback_planes`: ``(z,
+    error)`` pairs, the farthest from the DOE plane first) whose beam fits, with a warning naming its error; else
+    None with a warning that the DOE plane ``z_doe`` is too near the rays' focus for the construction (``est``: the
+    :func:`go_phase_error` there, rad); without ``final`` (the caller tries the scaled carry next,
+    :func:`_scaled_fallback_fits`) None without a warning."""
+    side, xb = _plane_side(lens, source, z_from, p_sim)
+    where = _fallback_where(source, z_doe, est)
+    if not _plane_fits(lens, side, xb, p_sim):
+        for z, err in others:  # issue 47, class B: the farthest plane that fits
+            s2, xb2 = _plane_side(lens, source, z, p_sim)
+            if _plane_fits(lens, s2, xb2, p_sim):
+                warnings.warn(f"{where}; building it {z_doe - z_from:.3g} mm before would take {side:.0f} samples a "
+                              f"side (over {MAX_XP_SAMPLES}, or more than the memory holds): the field is built "
+                              f"{z_doe - z:.3g} mm before it, where the geometric-optics field is off by ~{err:.2g} "
+                              "rad, and carried to it by the angular spectrum (slower)", StopEdgeWarning,
+                              stacklevel=4)
+                return z
+        if not final:
+            return None
         warnings.warn(f"{where}, and building it {z_doe - z_from:.3g} mm before would take {side:.0f} samples a side "
                       f"(over {MAX_XP_SAMPLES}, or more than the memory holds): built on the plane itself; move the "
                       "DOE towards the lens or use a coarser DOE pitch", StopEdgeWarning, stacklevel=4)
@@ -715,6 +762,81 @@ def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: flo
     warnings.warn(f"{where}; the field is built {z_doe - z_from:.3g} mm before it and carried to it by the angular "
                   "spectrum (slower)", StopEdgeWarning, stacklevel=4)
     return z_from
+
+
+def _fallback_where(source: Source, z_doe: float, est: float) -> str:
+    """The start of the caustic fallback's warnings: the DOE plane ``z_doe`` near the rays' focus, and why."""
+    fld = [round(float(v), 6) for v in torch.as_tensor(source.field).reshape(-1).tolist()]
+    return (f"the DOE plane z = {z_doe:.4g} mm lies near the rays' focus for field {fld} at "
+            f"{float(source.wavelength):g} µm: " +
+            ("the rays past the stop's rim fold within the edge's ripple band there" if math.isinf(est) else
+             f"the geometric-optics field there is off by ~{est:.2g} rad (go_phase_error > {GO_PHASE_TOL:g} rad)"))
+
+
+def _scaled_fallback_fits(lens, source: Source, zs: tuple, p_sim: float, est: float, chief_sensor):
+    """``(z_from, sphere)`` for the scaled carry (:func:`scaled_carry`) of the caustic fallback from its plane
+    ``z_from`` (``zs = (z_from, z_doe, z_sensor)`` mm) where no plane fits the plain carry: ``sphere`` ``(x, y, z)``
+    mm the chief ray's sensor point (``chief_sensor``), the beam there in samples of ``p_sim / M`` (``M`` the
+    sphere's magnification from ``z_from`` to ``z_doe``) within :data:`MAX_XP_SAMPLES` and its window in memory,
+    with a :class:`StopEdgeWarning` naming it; else ``(None, None)`` with the warning that the field is built on the
+    DOE plane itself."""
+    z_from, z_doe, z_sensor = zs
+    where = _fallback_where(source, z_doe, est)
+    side, xb = _plane_side(lens, source, z_from, p_sim)
+    sphere = tuple(float(v) for v in chief_sensor.o.detach()[:2].tolist()) + (float(z_sensor),)
+    mag = (z_sensor - z_doe) / (z_sensor - z_from) if z_sensor != z_from else 0.0
+    if 0.0 < mag < 1.0 and _plane_fits(lens, side * mag, xb, p_sim / mag):
+        warnings.warn(f"{where}; the field is built {z_doe - z_from:.3g} mm before it, relative to the sphere "
+                      f"converging on the chief ray's sensor point on a lattice {1 / mag:.3g}× the DOE pitch "
+                      f"({side * mag:.0f} samples a side, {side:.0f} at the DOE pitch), and carried to it by the "
+                      "scaled angular spectrum (slower)", StopEdgeWarning, stacklevel=4)
+        return z_from, sphere
+    warnings.warn(f"{where}, and building it {z_doe - z_from:.3g} mm before would take {side:.0f} samples a side "
+                  f"(over {MAX_XP_SAMPLES}, or more than the memory holds): built on the plane itself; move the "
+                  "DOE towards the lens or use a coarser DOE pitch", StopEdgeWarning, stacklevel=4)
+    return None, None
+
+
+def _scaled_lattice(sim: Grid, sphere: tuple, planes: tuple, device) -> CoarseLattice:
+    """The lattice of the scaled carry's construction on the plane ``planes[0]`` (``planes = (z_from, z_doe)`` mm):
+    the DOE's simulation lattice ``sim`` seen from the point ``sphere`` ``(x, y, z)`` mm, i.e. magnified about its
+    foot ``(x, y)`` by ``1/M``, ``M = (z − z_doe)/(z − z_from)``."""
+    fx, fy, fz = sphere
+    z_from, z_doe = planes
+    mag = (fz - z_doe) / (fz - z_from)
+    ox, oy = sim.origin
+    sy, sx = sim.shape
+    return CoarseLattice((fx + (ox - fx) / mag, fy + (oy - fy) / mag), sim.pitch[0] / mag,
+                         (math.ceil(sy / mag), math.ceil(sx / mag)), device)
+
+
+def scaled_carry(field: Field, out: Grid, sphere: tuple, planes: tuple, carrier: tuple) -> torch.Tensor:
+    """The envelope (complex, ``out``'s shape; relative to ``carrier`` ``(α, β)``) on the DOE window ``out`` of the
+    plane ``z_doe`` of a wave built on the plane ``z_from`` (``planes = (z_from, z_doe)`` mm) as ``field``: its
+    envelope relative to the spherical wave converging on ``sphere`` ``(x, y, z_f)`` mm (carrier 0, on the lattice
+    :func:`_scaled_lattice`). The Fresnel scaling of a converging wave (issue 47, class B, h47f): with ``R1``,
+    ``R2`` the distances from the two planes to ``z_f`` and ``M = R2/R1``, the wave on ``z_doe`` at ``x'`` is the
+    envelope propagated ``dz·R1/R2`` (angular spectrum, exact for the envelope's own spectrum) read at ``x_f + (x' −
+    x_f)/M``, times ``1/M`` and the sphere there: its rays are the straight lines to the point, mapped exactly; the
+    envelope's deviations from them are carried paraxially about the axis (their Fresnel length exact only to
+    ``O(θ²)`` in the rays' tilt ``θ``). The lattice is the beam's own size over the DOE pitch's, ``1/M`` times
+    coarser than the plane's Nyquist pitch would ask: the exact carry's window of the Nikon 300 mm F/2.8's plane 38
+    mm before its DOE plane, 16 162 samples a side, is 3 870 here."""
+    fx, fy, fz = sphere
+    z_from, z_doe = planes
+    r1, r2 = fz - z_from, fz - z_doe
+    mag = r2 / r1
+    ox, oy = out.origin
+    src = Grid((fx + (ox - fx) / mag, fy + (oy - fy) / mag), field.grid.pitch[0], out.shape)
+    a = propagate_window(Field(field.envelope, field.grid, field.wavelength, field.n, (0.0, 0.0)), src,
+                         (z_doe - z_from) * r1 / r2).envelope
+    k = 2 * math.pi * field.n / (field.wavelength * 1e-3)
+    dev, dt = a.device, torch.float64
+    xs = ox + torch.arange(out.shape[1], dtype=dt, device=dev) * out.pitch[0]
+    ys = oy + torch.arange(out.shape[0], dtype=dt, device=dev) * out.pitch[1]
+    rr = torch.sqrt((xs[None, :] - fx) ** 2 + (ys[:, None] - fy) ** 2 + r2 * r2)
+    phase = -k * ((rr - abs(r2)) + carrier[0] * xs[None, :] + carrier[1] * ys[:, None])
+    return a * (torch.polar(torch.full_like(rr, 1.0 / mag), phase)).to(a.dtype)
 
 
 def edge_fresnel_number(beam_half: float, wavelength: float, n: float, d: float, r: float) -> float:

@@ -82,7 +82,11 @@ class FieldSettings:
       None: the paper's sharp edge on the construction's plane;
     * ``crop_reach``: exact edge (and the caustic fallback): how far (mm) from the chief ray's landing the PSF crop
       reaches on the sensor (its half-diagonal; 0: unknown, the geometric spot only): the construction's lattice keeps
-      the directions of the edge waves that land there (:func:`~raywave.hybrid.coherent.exit_pupil.asm_coarsening`).
+      the directions of the edge waves that land there (:func:`~raywave.hybrid.coherent.exit_pupil.asm_coarsening`);
+    * ``sphere``: accurate construction: ``(x, y, z)`` mm of a point the wave converges to (the chief ray's sensor
+      point): the envelope is taken relative to the spherical wave converging on it (carrier 0) instead of the chief
+      ray's plane wave, so a lattice much coarser than the wave's own Nyquist pitch holds it (the caustic fallback's
+      scaled carry, :func:`~raywave.hybrid.coherent.exit_pupil.scaled_fallback`); None: the plane wave.
     """
 
     nodes: int = 64
@@ -98,6 +102,7 @@ class FieldSettings:
     virtual: bool = False
     stop_plane: float | None = None
     crop_reach: float = 0.0
+    sphere: tuple | None = None
 
 
 @dataclass(frozen=True, eq=False)
