@@ -49,6 +49,29 @@ def accurate_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays,
 EDGE_CURVATURE_LIMIT = 0.25
 
 
+def _stencil_traced(good: torch.Tensor, det: torch.Tensor, det_c: torch.Tensor) -> torch.Tensor:
+    """The nodes where the edge normal's divergence describes the edge: ``good`` (..., KY, KX) bool the nodes whose
+    ray was traced, ``det`` (..., KY, KX) the node map's Jacobian and ``det_c`` (broadcastable) its value on the
+    beam's centre node → the nodes with every node within two steps along the grid (Manhattan distance ≤ 2: the
+    central differences of the normal, itself central differences of the stop's slack) traced and on the centre's
+    sheet of the ray map (the Jacobian's sign; a node beyond a grid's border counts as both, its differences being
+    one-sided there; pass ``good`` True there). A bad node takes its nearest good node's values
+    (:func:`~raywave.hybrid.coherent.tracing._nearest_fill`) and where the rays past the rim fold neighbouring nodes
+    lie on different sheets: either way the normal jumps and its divergence says nothing of the edge's curvature
+    (issue 47, h47s: the Ricoh GR 6 mm on axis, nodes beside the band's untraced corners, 5.6 × where the edge's own
+    ratio is 0.066; the Pentax 6×7 300 mm at 0.7 field, a fold of the band 0.1 – 0.3 mm outside the shadow, 0.65 ×
+    where it is 0.041)."""
+    ok = good & (det * det_c > 0)
+    for _ in range(2):
+        nxt = ok.clone()
+        nxt[..., 1:, :] &= ok[..., :-1, :]
+        nxt[..., :-1, :] &= ok[..., 1:, :]
+        nxt[..., :, 1:] &= ok[..., :, :-1]
+        nxt[..., :, :-1] &= ok[..., :, 1:]
+        ok = nxt
+    return ok
+
+
 def _warn_edge_curvature(div_n: torch.Tensor, g: torch.Tensor, near: torch.Tensor, field, wavelength: float) -> None:
     """Warn (:class:`StopEdgeWarning`) where the Fresnel step's edge curves too much for its Fresnel zone.
     ``div_n`` (ky, kx): divergence of the edge normal (−curvature, 1/mm); ``g``: Fresnel scale (1/mm, zone = √2/g);
@@ -731,7 +754,10 @@ def _stop_edge_maps(b: _Build, nd: _Nodes, traced: tuple, maps: dict) -> dict:
     g_d = g_s.detach()
     g_max = float(torch.where(near.any(), torch.where(near, g_d, -math.inf).amax(), g_d.amax()))  # one host read
     if b.cfg.check:
-        _warn_edge_curvature(div_n.detach(), g_s.detach(), nu.detach().abs() < 2.0, b.field.tolist(), wavelength)
+        det = maps["det"].detach()
+        traced_ = _stencil_traced(traced[4].reshape(nd.ky, nd.kx), det, det[nd.ky // 2, nd.kx // 2])
+        _warn_edge_curvature(div_n.detach(), g_s.detach(), (nu.detach().abs() < 2.0) & traced_, b.field.tolist(),
+                             wavelength)
     return {"nu": nu.clamp(-nu_lim, nu_lim), "nu_raw": nu.detach(),
             "kappa": (-div_n * g_s / (g_t * g_t)).clamp(-KAPPA_MAX, KAPPA_MAX), "g_max": g_max}
 
@@ -1038,7 +1064,7 @@ def _node_stage_batch(reqs: list) -> list:
     maps = _batch_node_maps(reqs, nb, grid, k_of, (is_stop, diffracting))
     checks = []
     if diffracting:
-        edge = _stop_edge_batch(reqs, nb, grid, k_of, maps)
+        edge = _stop_edge_batch(reqs, nb, grid, k_of, maps, x["good"])
         checks.append(edge.pop("g_max"))
         if "curvature" in edge:
             checks.append(edge.pop("curvature"))
@@ -1163,12 +1189,14 @@ def _batch_node_maps(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict,
     return maps
 
 
-def _stop_edge_batch(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict, maps: dict) -> dict:
+def _stop_edge_batch(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict, maps: dict,
+                     good: torch.Tensor) -> dict:
     """:func:`_stop_edge_maps` of the batch (``maps``: :func:`_batch_node_maps`'): ``nu``, ``nu_raw``, ``kappa``
     (B, KY, KX), ``g_max`` (B,) (a tensor: read with the checks) and with ``check`` ``curvature`` (B,): the ratio
     :func:`_warn_edge_curvature` compares with :data:`EDGE_CURVATURE_LIMIT`. Each construction's edge plane (its rim
     images where they all lie on the pupil's side of the plane, else the stop plane) and its ν (the path difference
-    with rim images, :func:`_path_difference_batch`) chosen by masks, with no host read."""
+    with rim images, :func:`_path_difference_batch`) chosen by masks, with no host read. ``good`` (N,): the
+    concatenated nodes' traced flags (the curvature is read only where its stencil was traced, :func:`_stencil_traced`)."""
     r0 = reqs[0].b
     bsz, _, ky_max, kx_max = grid.shape
 
@@ -1206,8 +1234,12 @@ def _stop_edge_batch(reqs: list, nb: _NodeBatch, grid: torch.Tensor, k_of: dict,
     out = {"nu": nu.clamp(-nu_lim, nu_lim), "nu_raw": nu_d,
            "kappa": (-div_n * g_s / (g_t * g_t)).clamp(-KAPPA_MAX, KAPPA_MAX), "g_max": g_max}
     if r0.cfg.check:
-        out["curvature"] = torch.where(nb.own(nu_d.abs() < 2.0), div_n.detach().abs() * math.sqrt(2.0) / g_d,
-                                       -math.inf).flatten(1).amax(1)
+        det = maps["det"].detach()
+        det_c = det.reshape(bsz, -1).gather(1, maps["center"][:, None])[:, :, None]
+        own_good = nb.padded(good[:, None])[:, 0] | ~nb.valid  # (beyond a grid's own nodes: traced, same sheet)
+        traced_ = _stencil_traced(own_good, torch.where(nb.valid, det, det_c), det_c)
+        out["curvature"] = torch.where(nb.own((nu_d.abs() < 2.0) & traced_), div_n.detach().abs() * math.sqrt(2.0)
+                                       / g_d, -math.inf).flatten(1).amax(1)
     return out
 
 
