@@ -417,9 +417,16 @@ def _beam_fits(lens, xb, p_sim: float, limit: int) -> bool:
     (:func:`~raywave.hybrid.coherent.geometry.check_window_memory`, as the construction will check it)."""
     if xb is None or max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim > limit:
         return False
+    return _window_fits(lens, xb, p_sim, "asm")
+
+
+def _window_fits(lens, xb, p_sim: float, step: str) -> bool:
+    """Whether the window of the beam ``xb`` ``(xmin, xmax, ymin, ymax)`` mm (1.2× wide) at ``p_sim`` mm a sample
+    fits in memory for ``step`` (:func:`~raywave.hybrid.coherent.geometry.check_window_memory`, as the construction
+    will check it)."""
     try:
         check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
-                            p_sim, lens.device, step="asm")
+                            p_sim, lens.device, step=step)
     except MemoryLimitError:
         return False
     return True
@@ -722,14 +729,7 @@ def _plane_fits(lens, side: float, xb, p_sim: float) -> bool:
     """Whether a beam of ``side`` samples (footprint ``xb``) fits the caustic fallback: at most
     :data:`MAX_XP_SAMPLES` a side and its window (beam and edge band, 1.2×) in memory, as the construction will
     check it."""
-    if not side <= MAX_XP_SAMPLES:
-        return False
-    try:
-        check_window_memory(math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim),
-                            p_sim, lens.device, step="fallback")
-    except MemoryLimitError:
-        return False
-    return True
+    return side <= MAX_XP_SAMPLES and _window_fits(lens, xb, p_sim, "fallback")
 
 
 def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: float, est: float, others=(),
