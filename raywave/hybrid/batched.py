@@ -482,6 +482,11 @@ def _nbytes(v) -> int:
     return 0
 
 
+def _doe_records(doe) -> bool:
+    """Whether autograd records the DOE's phase (a trainable DOE with gradients on)."""
+    return torch.is_grad_enabled() and any(p.requires_grad for p in getattr(doe, "parameters", lambda: ())())
+
+
 def propagate_group(engine, batch: list[Planned], centers: torch.Tensor, dz, dtype, sensor: SensorWindow,
                     shared=None):
     """Steps 2–4 for one batch (:func:`plan_groups`) of ``engine`` (a :class:`~raywave.hybrid.HybridLens`):
@@ -492,7 +497,8 @@ def propagate_group(engine, batch: list[Planned], centers: torch.Tensor, dz, dty
     energies outside the crops ``(B,)``."""
     wb, kk = window_batch(batch, sensor)
     shift = centers - centers.detach() if centers.requires_grad else None
-    frames = shared.frames(batch) if shared is not None and dz is None and shift is None else None
+    frames = shared.frames(batch) if shared is not None and dz is None and shift is None \
+        and not _doe_records(engine.doe) else None
     u, power = modulated_batch(engine.doe, batch, wb.in_shape(), engine.oversample, dtype, frames)
     if frames is not None and u.requires_grad:  # (not expected: the framed rows are a CPU's without autograd)
         raise RuntimeError("propagate_group: a mirror frame with autograd")
