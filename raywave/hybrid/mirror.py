@@ -162,6 +162,9 @@ def mirror_field(fd: DOEField, sim: Grid, flip_x: bool, flip_y: bool, centre: tu
 #: family's frame, gives the family's parameters to this (relative, 1 at least: mm, cycles/mm): the windows' origins
 #: differ there by the rounding of their positions (~1e-16 mm), a phase of ~1e-13 cycles at the band's edge
 FRAME_TOL = 1e-12
+#: a family's transfer function is evaluated once as one array (:class:`FrameBands`) up to this many bytes (complex128
+#: band samples); a larger band is evaluated lazily per member in the frame, as before (no band-sized array)
+SHARED_BAND_BYTES = 64 * 2**20
 
 
 def _row_key(row: EnvelopeRow) -> tuple:
@@ -246,13 +249,15 @@ class FrameBands:
             row = _eligible_row(pl.fd)
             key = (*_row_key(row), transfer.size, wb.out_shape)
             fam = self._families.get(key)
-            if fam is None or not _close(fam[0], p):
-                fam = self._family(key, row, p, (cols, rows), (fx_all, fy_all))
-            cpos = _positions(cols, fam[2], mx, fr[0])
-            rpos = _positions(rows, fam[3], my, fr[1])
+            cpos = rpos = None
+            if (len(cols) + 1) * (len(rows) + 1) * 16 <= SHARED_BAND_BYTES:
+                if fam is None or not _close(fam[0], p):
+                    fam = self._family(key, row, p, (cols, rows), (fx_all, fy_all))
+                cpos = _positions(cols, fam[2], mx, fr[0])
+                rpos = _positions(rows, fam[3], my, fr[1])
             if cpos is not None and rpos is not None:
                 values = BandView(fam[1], cpos, rpos)
-            else:  # lines the family's evaluation lacks: this member's own, in the frame
+            else:  # lines the family's evaluation lacks (or a band too large to hold): this member's own, in the frame
                 fxv, fyv = _frame_freqs(fx_all, cols, fr[0]), _frame_freqs(fy_all, rows, fr[1])
                 values = TransferBand(fxv, fyv, torch.tensor(p, dtype=torch.float64, device=dev))
             parts[i] = OwnBand(torch.tensor(rows, dtype=torch.long, device=dev),
