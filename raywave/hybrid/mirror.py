@@ -4,7 +4,8 @@ centred on the axis, sends the source (−x, y) exactly the mirror image of the 
 y → −y. :meth:`HybridLens.doe_fields` builds each set of mirror images once: the field of (±x, ±y) is the field of
 (x, y) flipped, with its carrier and chief-ray point mirrored (:func:`mirror_field`). The DOE's phase is not part of
 the DOE-plane field (it is applied in the propagation), so any DOE, a trained pixel map too, keeps the symmetry of
-the field stage; the propagation runs for every PSF.
+the field stage; the propagation runs for every PSF, a mirror image's in its source's frame with the source's
+transfer function, evaluated once a family (:class:`FrameBands`, issue 47).
 
 The mirrored field equals the one built for the mirrored source itself to the rounding of the construction (its
 rays are aimed at their nodes to 1e-10 mm, by paths that are not mirror images): the PSFs of the bundled asphere's
