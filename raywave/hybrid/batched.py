@@ -271,10 +271,11 @@ def window_batch(batch: list[Planned], sensor: SensorWindow) -> tuple[WindowBatc
     return WindowBatch(sources, (2 * kk + 1, 2 * kk + 1), p), kk
 
 
-def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
+def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype, frames: list | None = None):
     """The envelopes of ``batch`` zero-padded to ``shape`` ``(Ny, Nx)`` and multiplied by the DOE's ``exp(iφ)``
     (:meth:`raywave.doe.DOE.window_phasors`), cast to ``dtype``: ``(B, Ny, Nx)``; and each field's power ``(B,)``
-    (∫|U|² dA, no autograd: a diagnostic)."""
+    (∫|U|² dA, no autograd: a diagnostic). ``frames`` (:meth:`raywave.hybrid.mirror.FrameBands.frames`): a member
+    with flips there is its family's frame: its deferred row read unflipped and its window's phasors flipped."""
     ny, nx = shape
     rows = [getattr(pl.fd, "row", None) for pl in batch]
     if all(r is not None for r in rows) and devices.accelerator(rows[0].base):
@@ -288,7 +289,10 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
                            for e in (pl.fd.envelope for pl in batch)])
     else:
         # (a mirror image's deferred row copied into the stack in reverse: no flipped copy of its own)
-        env = padded_stack([pl.fd.pending_row or pl.fd.envelope for pl in batch], shape)
+        rows = [pl.fd.pending_row for pl in batch]
+        if frames is not None:  # (a member in its family's frame: its row as stored)
+            rows = [r if f is None or r is None else r.flipped(*f) for r, f in zip(rows, frames)]
+        env = padded_stack([r or pl.fd.envelope for r, pl in zip(rows, batch)], shape)
     p = batch[0].fd.pitch
     with torch.no_grad():  # (env detached only where autograd records it: a detach is an op)
         power = torch.linalg.vector_norm(torch.view_as_real(env.detach() if env.requires_grad else env),
@@ -297,6 +301,11 @@ def modulated_batch(doe, batch: list[Planned], shape, oversample: int, dtype):
         return env.to(dtype), power
     corners = [(pl.fd.box[0], pl.fd.box[2]) for pl in batch]
     phasors = doe.window_phasors(batch[0].fd.wavelength, corners, shape, oversample).to(env.device)
+    for b, f in enumerate(frames or ()):
+        dims = [d for d, on in ((-1, f[0]), (-2, f[1])) if on] if f is not None else []
+        if dims:  # the member's window in its family's frame
+            a, c = batch[b].fd.grid.shape
+            phasors[b, :a, :c] = phasors[b, :a, :c].flip(dims)
     if env.requires_grad or phasors.requires_grad:
         return (env * phasors).to(dtype), power
     return env.mul_(phasors).to(dtype), power
@@ -473,15 +482,33 @@ def _nbytes(v) -> int:
     return 0
 
 
-def propagate_group(engine, batch: list[Planned], centers: torch.Tensor, dz, dtype, sensor: SensorWindow):
+def _doe_records(doe) -> bool:
+    """Whether autograd records the DOE's phase (a trainable DOE with gradients on)."""
+    return torch.is_grad_enabled() and any(p.requires_grad for p in getattr(doe, "parameters", lambda: ())())
+
+
+def propagate_group(engine, batch: list[Planned], centers: torch.Tensor, dz, dtype, sensor: SensorWindow,
+                    shared=None):
     """Steps 2–4 for one batch (:func:`plan_groups`) of ``engine`` (a :class:`~raywave.hybrid.HybridLens`):
     ``centers`` ``(B, 2)`` mm the chief rays' image points (differentiable: the crops follow them), ``dz`` the
     zero-valued sensor-distance tensor or None, ``dtype`` the propagation's complex dtype, ``sensor`` the PSF
-    window. Returns the PSFs ``(B, ks, ks)`` and the energies outside the crops ``(B,)``."""
+    window; ``shared``: the call's :class:`~raywave.hybrid.mirror.FrameBands` (mirror images propagated in their
+    source's frame with its transfer function, evaluated once) or None. Returns the PSFs ``(B, ks, ks)`` and the
+    energies outside the crops ``(B,)``."""
     wb, kk = window_batch(batch, sensor)
-    u, power = modulated_batch(engine.doe, batch, wb.in_shape(), engine.oversample, dtype)
     shift = centers - centers.detach() if centers.requires_grad else None
+    frames = shared.frames(batch) if shared is not None and dz is None and shift is None \
+        and not _doe_records(engine.doe) else None
+    u, power = modulated_batch(engine.doe, batch, wb.in_shape(), engine.oversample, dtype, frames)
+    if frames is not None and u.requires_grad:  # (not expected: the framed rows are a CPU's without autograd)
+        raise RuntimeError("propagate_group: a mirror frame with autograd")
     transfer = batch_transfer(wb, u.device, dz is not None or shift is not None)
+    if frames is not None:
+        transfer = shared.framed(transfer, wb, batch, frames)
     out = propagate_batch(wb.field(u), wb.out_grids(), wb.distances(), transfer=transfer, shift=shift, dz=dz).envelope
+    for b, f in enumerate(frames or ()):
+        dims = [d for d, on in ((-1, f[0]), (-2, f[1])) if on] if f is not None else []
+        if dims:  # back from the family's frame
+            out[b] = out[b].flip(dims)
     del u
     return sensor_psfs(out, kk, wb.pitch, sensor, power, engine._geometry_memo)

@@ -42,7 +42,7 @@ from raywave.hybrid.coherent.record import EnvelopeRow, resolve_band_infos
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, accelerator_cap, ceil_samples,
                                     plan_groups, propagate_group)
-from raywave.hybrid.mirror import mirror_fields, mirror_sources, symmetric_axes
+from raywave.hybrid.mirror import FrameBands, mirror_fields, mirror_sources, symmetric_axes
 from raywave.lens.frames import image_space
 from raywave.lens.paraxial import exit_pupil
 from raywave.lens.sources import VignettingWarning, _as_fields, chief_aim
@@ -1197,11 +1197,12 @@ class HybridLens(nn.Module):
                 psf, _, o = self.propagate(fd, ks, propagation_dtype)
                 order.append(i), psfs.append(psf[None]), outs.append(o.reshape(1))
         elem = torch.empty((), dtype=propagation_dtype, device="meta").element_size()
+        shared = FrameBands(lattice)  # (a mirror image's transfer function its source's: issue 47)
         for batch in plan_groups(lattice, sensor, elem):
             idx = [pl.index for pl in batch]
             cb = centers[torch.tensor(idx, dtype=torch.long, device=centers.device)]
             psf, o = propagate_group(self, batch, cb, dz if batch[0].fd.chief_tan is not None else None,
-                                     propagation_dtype, sensor)
+                                     propagation_dtype, sensor, shared)
             order.extend(idx), psfs.append(psf), outs.append(o)
         back = torch.argsort(torch.tensor(order, dtype=torch.long, device="cpu")).to(centers.device)
         psf = torch.cat(psfs)[back].reshape(nf, nw, ks, ks)

@@ -4,7 +4,8 @@ centred on the axis, sends the source (−x, y) exactly the mirror image of the 
 y → −y. :meth:`HybridLens.doe_fields` builds each set of mirror images once: the field of (±x, ±y) is the field of
 (x, y) flipped, with its carrier and chief-ray point mirrored (:func:`mirror_field`). The DOE's phase is not part of
 the DOE-plane field (it is applied in the propagation), so any DOE, a trained pixel map too, keeps the symmetry of
-the field stage; the propagation runs for every PSF.
+the field stage; the propagation runs for every PSF, a mirror image's in its source's frame with the source's
+transfer function, evaluated once a family (:class:`FrameBands`, issue 47).
 
 The mirrored field equals the one built for the mirrored source itself to the rounding of the construction (its
 rays are aimed at their nodes to 1e-10 mm, by paths that are not mirror images): the PSFs of the bundled asphere's
@@ -16,6 +17,9 @@ from __future__ import annotations
 import torch
 
 from raywave.wave.grid import Field, Grid
+from raywave.wave.propagation.batch import BatchTransfer, OwnBand, WindowSource
+from raywave.wave.propagation.kernels import BandView, SharedBand, TransferBand, transfer_params
+from raywave.wave.propagation.transfer import _geometry
 from raywave.hybrid.coherent.record import DOEField, EnvelopeRow, FieldInfo
 
 #: aperture shapes (``Aperture.shape``) symmetric under x → −x and y → −y about the axis (with a centred obscuration)
@@ -153,3 +157,174 @@ def mirror_field(fd: DOEField, sim: Grid, flip_x: bool, flip_y: bool, centre: tu
     dims = [d for d, on in ((-1, flip_x), (-2, flip_y)) if on]
     env = env.flip(dims) if dims else env
     return DOEField(Field(env, grid, fd.wavelength, fd.n, carrier), box, fd.z, centre, info)
+
+
+#: a mirror image shares its family's transfer function (:class:`FrameBands`) where its geometry, mirrored into the
+#: family's frame, gives the family's parameters to this (relative, 1 at least: mm, cycles/mm): the windows' origins
+#: differ there by the rounding of their positions (~1e-16 mm), a phase of ~1e-13 cycles at the band's edge
+FRAME_TOL = 1e-12
+#: a family's transfer function is evaluated once as one array (:class:`FrameBands`) up to this many bytes (complex128
+#: band samples); a larger band is evaluated lazily per member in the frame, as before (no band-sized array)
+SHARED_BAND_BYTES = 64 * 2**20
+
+
+def _row_key(row: EnvelopeRow) -> tuple:
+    """The stored envelope a deferred row reads (the family of a source and its mirror images)."""
+    return (row.base.data_ptr(), row.row, tuple(row.shape))
+
+
+def _mirrored_lines(idx: torch.Tensor, m: int, flip: bool) -> list:
+    """The FFT-grid lines ``idx`` (int64, sorted) of one axis of length ``m`` in the mirrored frame (``f → −f``:
+    the line ``(m − c) mod m``), sorted, as a host list; as they are without ``flip``."""
+    v = idx.tolist()
+    return sorted((m - c) % m for c in v) if flip else v
+
+
+def _positions(lines: list, shared: list, m: int, flip: bool):
+    """The positions of ``lines`` (a source's band lines in its family's frame) among a family's ``shared`` lines
+    (:class:`FrameBands`: its regular lines, then the +Nyquist line of an even ``m``): a mirrored source's Nyquist
+    line (``m/2``, −Nyquist on the ``fftfreq`` grid) reads the family's +Nyquist line, its mirror image. None where a
+    line is not there."""
+    at = {c: k for k, c in enumerate(shared[:-1] if m % 2 == 0 else shared)}
+    out = []
+    for c in lines:
+        k = len(shared) - 1 if flip and m % 2 == 0 and c == m // 2 else at.get(c)
+        if k is None:
+            return None
+        out.append(k)
+    return out
+
+
+class FrameBands:
+    """The transfer functions of a source and its mirror images shared within one call (issue 47): a mirror image
+    (a deferred :class:`EnvelopeRow` flipped along x / y) is propagated in its source's frame, i.e. its envelope
+    read unflipped (its DOE phasors flipped), the kernel the source's, its output window flipped back. The
+    convolution commutes with the mirror, so the PSF is the one of its own frame to the rounding of the windows'
+    positions (the transfer function ``G_i(f) = G_j(−f)·exp(2πi f (N_in − N_out) p)`` of window corners, the same
+    FFT grid: a frequency line ``c`` of the image is the line ``−c`` of the source, the Nyquist line's mirror the
+    +Nyquist frequency, kept as an extra line). The family's transfer function is then evaluated once on its first
+    member's band (:class:`~raywave.wave.propagation.kernels.SharedBand`) and each member's band read from it
+    (:class:`~raywave.wave.propagation.kernels.BandView`), instead of once per member: 4 evaluations of the
+    compiled transfer loop become 1 on a symmetric map's quadrants. Only families of two or more members in the
+    call (a single PSF's source is propagated as before, bit for bit), on a CPU without autograd and without the
+    window-shift / distance perturbations. ``keep``: the families held at once (a map's batches run a family's
+    members one after another)."""
+
+    def __init__(self, planned: list, keep: int = 2):
+        counts: dict = {}
+        for pl in planned:
+            row = _eligible_row(pl.fd)
+            if row is not None:
+                counts[_row_key(row)] = counts.get(_row_key(row), 0) + 1
+        self._shared = {k for k, n in counts.items() if n > 1}
+        self._families: dict = {}
+        self.keep = keep
+
+    def frames(self, batch: list) -> list | None:
+        """Per member of ``batch`` (:class:`~raywave.hybrid.batched.Planned`): its flips ``(flip_x, flip_y)`` into
+        its family's frame (``(False, False)``: the family's own orientation), or None (propagated as it is); None
+        where no member shares."""
+        out = []
+        for pl in batch:
+            row = _eligible_row(pl.fd)
+            out.append(tuple(row.flip) if row is not None and _row_key(row) in self._shared else None)
+        return out if any(f is not None for f in out) else None
+
+    def framed(self, transfer, wb, batch: list, frames: list):
+        """``transfer`` (:func:`~raywave.wave.propagation.batch.batch_transfer` of ``wb``, each source on its own band)
+        with each framed member's band in its family's frame, read from the family's shared evaluation (or, where
+        its lines or geometry differ from the family's, evaluated on its own in that frame)."""
+        my, mx = transfer.size
+        dev = transfer.rows.device
+        (px, py), parts = transfer.pitch, list(transfer.parts)
+        fx_all = torch.fft.fftfreq(mx, d=px, dtype=torch.float64, device=dev)
+        fy_all = torch.fft.fftfreq(my, d=py, dtype=torch.float64, device=dev)
+        for i, (pl, fr) in enumerate(zip(batch, frames)):
+            part = parts[i]
+            if fr is None or part.values is None:
+                continue
+            cols = _mirrored_lines(part.cols, mx, fr[0])
+            rows = _mirrored_lines(part.rows, my, fr[1])
+            p = transfer_params(_geometry(_framed_source(wb.sources[i], fr, wb), wb.out_shape, wb.pitch, wb.margin,
+                                          wb.guard))
+            row = _eligible_row(pl.fd)
+            key = (*_row_key(row), transfer.size, wb.out_shape)
+            fam = self._families.get(key)
+            cpos = rpos = None
+            if (len(cols) + 1) * (len(rows) + 1) * 16 <= SHARED_BAND_BYTES:
+                if fam is None or not _close(fam[0], p):
+                    fam = self._family(key, row, p, (cols, rows), (fx_all, fy_all))
+                cpos = _positions(cols, fam[2], mx, fr[0])
+                rpos = _positions(rows, fam[3], my, fr[1])
+            if cpos is not None and rpos is not None:
+                values = BandView(fam[1], cpos, rpos)
+            else:  # lines the family's evaluation lacks (or a band too large to hold): this member's own, in the frame
+                fxv, fyv = _frame_freqs(fx_all, cols, fr[0]), _frame_freqs(fy_all, rows, fr[1])
+                values = TransferBand(fxv, fyv, torch.tensor(p, dtype=torch.float64, device=dev))
+            parts[i] = OwnBand(torch.tensor(rows, dtype=torch.long, device=dev),
+                               torch.tensor(cols, dtype=torch.long, device=dev), values)
+        return BatchTransfer(transfer.size, transfer.rows, transfer.cols, None, None, transfer.wave, transfer.pitch,
+                             transfer.batch, tuple(parts))
+
+    def _family(self, key, row: EnvelopeRow, p: list, lines: tuple, freqs: tuple) -> tuple:
+        """A new family: its parameters ``p``, the shared evaluation on the first member's ``lines`` = ``(cols,
+        rows)`` (frame lines) and the +Nyquist line of each even axis, those lines, and its row's base (held: the
+        key's address stays its own while the family lives)."""
+        (cols, rows), (fx_all, fy_all) = lines, freqs
+        mx, my = fx_all.numel(), fy_all.numel()
+        cl = list(cols) + ([None] if mx % 2 == 0 else [])
+        rl = list(rows) + ([None] if my % 2 == 0 else [])
+        fx = _frame_freqs(fx_all, cols, False, extra=mx % 2 == 0)
+        fy = _frame_freqs(fy_all, rows, False, extra=my % 2 == 0)
+        shared = SharedBand(fx, fy, torch.tensor(p, dtype=torch.float64, device=fx.device))
+        fam = (p, shared, cl, rl, row.base)
+        self._families[key] = fam
+        while len(self._families) > self.keep:
+            self._families.pop(next(iter(self._families)))
+        return fam
+
+
+def _eligible_row(fd) -> EnvelopeRow | None:
+    """The deferred row of ``fd`` (a made envelope: itself as a row, the base its mirror images read,
+    :func:`mirror_field`) where its propagation may run in its family's frame: a CPU without autograd."""
+    row = getattr(fd, "pending_row", None)
+    if row is None:
+        env = fd.envelope
+        if env.ndim != 2:
+            return None
+        row = EnvelopeRow(env[None], 0, tuple(env.shape))
+    if row.base.device.type != "cpu" or row.base.requires_grad:
+        return None
+    return row
+
+
+def _framed_source(src, flips: tuple, wb):
+    """The :class:`~raywave.wave.propagation.batch.WindowSource` ``src`` mirrored along ``flips`` = ``(x, y)``: its
+    input and output windows' corners (pixel (0, 0) centres) mirrored, its carrier's components negated."""
+    pitch = wb.pitch if isinstance(wb.pitch, tuple) else (wb.pitch, wb.pitch)
+    (ny, nx), (oy, ox) = src.in_shape, wb.out_shape
+    io, oo, car = list(src.in_origin), list(src.out_origin), list(src.carrier)
+    for a, (flip, n_in, n_out) in enumerate(zip(flips, (nx, ny), (ox, oy))):
+        if flip:
+            io[a] = -(io[a] + (n_in - 1) * pitch[a])
+            oo[a] = -(oo[a] + (n_out - 1) * pitch[a])
+            car[a] = -car[a]
+    return WindowSource(src.in_shape, tuple(io), tuple(oo), src.wavelength, src.z, src.n, tuple(car))
+
+
+def _frame_freqs(f_all: torch.Tensor, lines: list, flip: bool, extra: bool = False) -> torch.Tensor:
+    """The frequencies (cycles/mm) of the frame lines ``lines`` of one axis (``f_all`` its ``fftfreq`` grid): a
+    mirrored source's Nyquist line at +Nyquist (``flip``); ``extra``: the +Nyquist line appended."""
+    m = f_all.numel()
+    f = f_all[torch.tensor(lines, dtype=torch.long, device=f_all.device)]
+    if flip and m % 2 == 0 and m // 2 in lines:
+        f = f.clone()
+        f[lines.index(m // 2)] = -f_all[m // 2]
+    if extra:
+        f = torch.cat([f, -f_all[m // 2:m // 2 + 1]])
+    return f
+
+
+def _close(a: list, b: list) -> bool:
+    """Parameter vectors equal to :data:`FRAME_TOL` (relative, 1 at least)."""
+    return all(abs(x - y) <= FRAME_TOL * max(1.0, abs(x), abs(y)) for x, y in zip(a, b))

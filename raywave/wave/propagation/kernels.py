@@ -22,7 +22,7 @@ import torch
 
 from raywave.utils.fused import fused
 
-__all__ = ["TransferBand", "adjoint_terms", "band_values", "roll_off_terms", "transfer_params", "transfer_values"]
+__all__ = ["BandView", "SharedBand", "TransferBand", "adjoint_terms", "band_values", "roll_off_terms", "transfer_params", "transfer_values"]
 
 _TWO_PI = 2.0 * math.pi
 #: the layout of a source's parameter vector (:func:`transfer_params`): n/λ, z, the carrier's frequency (k·α, k·β),
@@ -188,6 +188,66 @@ class TransferBand:
     def full(self, dtype=torch.complex128) -> torch.Tensor:
         """``G`` on the band: ``(R, C)`` of ``dtype``."""
         return band_values(self.fx, self.fy, self.p, dtype)
+
+
+class SharedBand:
+    """A transfer function evaluated once on a set of frequency lines, ``fx`` ``(C,)`` × ``fy`` ``(R,)`` (cycles/mm;
+    ``p`` ``(12,)`` its :data:`PARAMS`), for several sources whose bands are among those lines (:class:`BandView`:
+    the mirror images of one source propagated in its frame, :mod:`raywave.hybrid.mirror`). Evaluated on first use
+    as one ``(C, R)`` complex128 array (the transposed columns :class:`TransferBand` gives), then read by slices."""
+
+    __slots__ = ("fx", "fy", "p", "_t")
+
+    def __init__(self, fx: torch.Tensor, fy: torch.Tensor, p: torch.Tensor):
+        self.fx, self.fy, self.p, self._t = fx, fy, p, None
+
+    def columns(self) -> torch.Tensor:
+        """``G`` on every line, transposed: ``(C, R)`` complex128 (evaluated once)."""
+        if self._t is None:
+            self._t = TransferBand(self.fx, self.fy, self.p).block(0, self.fx.numel())
+        return self._t
+
+
+def _run(pos: list, a: int, b: int):
+    """``(start, stop)`` where the positions ``pos[a:b]`` are consecutive ascending integers, else None."""
+    return (pos[a], pos[b - 1] + 1) if b > a and pos[b - 1] - pos[a] == b - a - 1 else None
+
+
+class BandView:
+    """One source's band read from a :class:`SharedBand`: its columns and rows at the positions ``cols`` ``(C_i,)``
+    and ``rows`` ``(R_i,)`` (host lists of ints, ascending where they are runs) among the shared lines; the
+    interface of :class:`TransferBand` that the band convolution uses (:meth:`block`, :meth:`full`, :attr:`shape`).
+    A block is a view of the shared array where its positions are runs, else a gathered copy."""
+
+    __slots__ = ("shared", "cols", "rows", "_row_run")
+
+    def __init__(self, shared: SharedBand, cols: list, rows: list):
+        self.shared, self.cols, self.rows = shared, list(cols), list(rows)
+        self._row_run = _run(self.rows, 0, len(self.rows))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(R_i, C_i)``."""
+        return (len(self.rows), len(self.cols))
+
+    @property
+    def device(self) -> torch.device:
+        return self.shared.p.device
+
+    def block(self, c0: int, c1: int, dtype=torch.complex128) -> torch.Tensor:
+        """``G`` on the columns ``c0:c1``, transposed: ``(c1 − c0, R_i)`` of ``dtype``."""
+        t = self.shared.columns()
+        run = _run(self.cols, c0, c1)
+        g = t[run[0]:run[1]] if run else t.index_select(0, torch.tensor(self.cols[c0:c1], device=t.device))
+        if self._row_run:
+            g = g[:, self._row_run[0]:self._row_run[1]]
+        else:
+            g = g.index_select(1, torch.tensor(self.rows, device=t.device))
+        return g if g.dtype == dtype else g.to(dtype)
+
+    def full(self, dtype=torch.complex128) -> torch.Tensor:
+        """``G`` on the band: ``(R_i, C_i)`` of ``dtype``."""
+        return self.block(0, len(self.cols), dtype).transpose(0, 1).contiguous()
 
 
 def band_values(fx: torch.Tensor, fy: torch.Tensor, p: torch.Tensor, dtype=torch.complex128) -> torch.Tensor:
