@@ -22,7 +22,8 @@ import torch
 
 from raywave.utils.fused import fused
 
-__all__ = ["BandView", "SharedBand", "TransferBand", "adjoint_terms", "band_values", "roll_off_terms", "transfer_params", "transfer_values"]
+__all__ = ["BandView", "SharedBand", "TransferBand", "adjoint_terms", "band_values", "roll_off_terms", "transfer_params",
+           "transfer_values"]
 
 _TWO_PI = 2.0 * math.pi
 #: the layout of a source's parameter vector (:func:`transfer_params`): n/λ, z, the carrier's frequency (k·α, k·β),
