@@ -91,7 +91,8 @@ def test_a_doe_grid_beyond_any_size_is_refused_naming_the_file(tmp_path):
 def _shown_lines(err: str) -> list[str]:
     """The non-blank lines of captured stderr as a terminal shows them: a progress bar drawn on a slow machine (after
     its 2 s delay) and cleared with a carriage return leaves only what follows the last ``\\r`` of its line."""
-    return [ln.rsplit("\r", 1)[-1] for ln in err.splitlines() if ln.rsplit("\r", 1)[-1].strip()]
+    # split at newlines only: str.splitlines() also splits at "\r", so every redraw of a bar came out as a line
+    return [ln.rsplit("\r", 1)[-1] for ln in err.split("\n") if ln.rsplit("\r", 1)[-1].strip()]
 
 
 def test_cli_psf_with_no_light_prints_only_the_error(capsys):

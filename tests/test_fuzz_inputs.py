@@ -531,7 +531,8 @@ def _run_cli(tmp: Path, seeds, n: int) -> dict:
             assert "Traceback" not in err, (argv, err)
             assert rc in (0, 2), (argv, rc, err)
             if rc == 2:
-                lines = [ln for ln in err.splitlines() if ln.strip()]
+                # as a terminal shows it: a progress bar drawn after its delay is cleared by a carriage return
+                lines = [ln.rsplit("\r", 1)[-1] for ln in err.split("\n") if ln.rsplit("\r", 1)[-1].strip()]
                 assert lines and (lines[-1].startswith("raywave: error:") or "error:" in lines[-1]), (argv, err)
                 if not err.startswith("usage:"):
                     assert len(lines) == 1, (argv, err)

@@ -80,3 +80,19 @@ def test_a_field_far_outside_the_lens_is_one_clean_error(capsys):
     assert main(["--quiet", "psf", "singlet", "--field", "80", "--ks", "8", "--rays", "8"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("raywave: error:") and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_a_bar_drawn_only_by_its_ticks_is_cleared_before_an_error(capsys):
+    """Under load a long unit of work (one PSF that ends in an error) outlasted the bar's delay, so only the ticking
+    thread drew the bar; tqdm did not clear it on close, and the error line joined the bar (as a terminal shows it:
+    what follows the last carriage return of the line)."""
+    pbar = progress.tqdm(total=1, unit="PSF", desc="psf", file=progress.sys.stderr, delay=0.05, leave=False)
+    with pytest.raises(ValueError):
+        with pbar, progress.ticking(pbar, every_s=0.02):
+            time.sleep(0.3)
+            raise ValueError("no light")
+    print("raywave: error: no light", file=progress.sys.stderr)
+    err = capsys.readouterr().err
+    assert "psf:" in err  # the bar was drawn
+    shown = [ln.rsplit("\r", 1)[-1] for ln in err.split("\n") if ln.rsplit("\r", 1)[-1].strip()]
+    assert shown == ["raywave: error: no light"], shown

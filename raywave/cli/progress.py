@@ -49,6 +49,10 @@ def ticking(pbar: tqdm, every_s: float = 1.0):
                 pbar.refresh()
             except Exception:  # noqa: BLE001 - a closed bar or stream: stop redrawing
                 return
+            # tqdm's close() clears only a bar it knows was drawn (last_print_t past its delay), and refresh() does
+            # not set it: a bar drawn here alone stayed on the line, and an error printed after it joined it. The
+            # earliest such time, so that update()'s own redraw (mininterval after the last print) is not held back
+            pbar.last_print_t = max(pbar.last_print_t, pbar.start_t + pbar.delay)
 
     t = threading.Thread(target=run, daemon=True)
     t.start()
