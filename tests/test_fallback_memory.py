@@ -88,7 +88,8 @@ def _carry_estimate(hl, src, plan, z):
     """The fit test's estimate (bytes) of the plain carry from the plane ``z``."""
     p = hl.doe.pitch
     side, xb = ep._plane_side(hl.lens, src, z, p)
-    n_from = (math.ceil(1.2 * (xb[3] - xb[2]) / p), math.ceil(1.2 * (xb[1] - xb[0]) / p))
+    n_from = ep._from_window(plan, xb, z, p)
+    assert n_from[0] >= 1.2 * (xb[3] - xb[2]) / p and n_from[1] >= 1.2 * (xb[1] - xb[0]) / p
     fft = g.carry_fft_shape(n_from, plan.window, p, plan.z_doe - z, plan.medium, plan.carrier)
     return g.carry_bytes(n_from, fft, graph=False), n_from
 

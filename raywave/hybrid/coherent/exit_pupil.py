@@ -772,13 +772,16 @@ def _plane_side(lens, source: Source, z: float, p_sim: float) -> tuple:
 class CarryPlan(NamedTuple):
     """What the caustic fallback's fit tests know of its carry before the construction (issue 47, h47m): the
     DOE-plane window's ``window`` (ny, nx) samples (:func:`_carry_plan`), ``medium`` (wavelength µm, n), the
-    envelope's ``carrier`` (α, β), the DOE plane ``z_doe`` and the sensor ``z_sensor`` mm, and the device."""
+    envelope's ``carrier`` (α, β), the DOE plane ``z_doe`` and the sensor ``z_sensor`` mm, the device, and what the
+    edge band's margin on an earlier plane needs (:func:`_window_margin`): ``edge`` = ``(ripple_zones, rim images,
+    z_far mm, chief ray on the sensor)``, None: no margin (1.2× the beam)."""
     window: tuple
     medium: tuple
     carrier: tuple
     z_doe: float
     z_sensor: float
     device: object
+    edge: tuple | None = None
 
 
 def _carry_plan(lens, doe, source: Source, zs: tuple, chief: ChiefRays, how: tuple) -> CarryPlan:
@@ -796,14 +799,28 @@ def _carry_plan(lens, doe, source: Source, zs: tuple, chief: ChiefRays, how: tup
                       z_doe)
     sim = doe.sim_grid(settings.oversample)
     window = (1, 1)
+    z_far = _rim_step_plane(rim, z_xp, z_doe, wavelength, n, 0.0)[1]
+    rz = None if settings.ripple_zones is None else float(settings.ripple_zones)
     if bbox is not None:
-        z_far = _rim_step_plane(rim, z_xp, z_doe, wavelength, n, 0.0)[1]
-        rz = None if settings.ripple_zones is None else float(settings.ripple_zones)
         margin = _window_margin(rz, rim, (z_doe, z_sensor, z_far), chief.sensor, (wavelength, n, carrier))
         box = lit_box(sim, bbox, margin + 4 * sim.pitch[0])
         if box is not None:
             window = (box[1] - box[0], box[3] - box[2])
-    return CarryPlan(window, (wavelength, n), carrier, float(z_doe), float(z_sensor), lens.device)
+    return CarryPlan(window, (wavelength, n), carrier, float(z_doe), float(z_sensor), lens.device,
+                     (rz, rim, z_far, chief.sensor))
+
+
+def _from_window(plan: CarryPlan, xb, z: float, p_sim: float) -> tuple:
+    """The carried field's window (ny, nx) on the plane ``z`` mm for the fit test: the beam ``xb`` plus the edge band's
+    margin there on both sides (:func:`_window_margin` of the plan's ``edge``, the construction's own band rule with
+    the DOE plane's distances: ~1.1 – 1.2× the cropped construction on the Pentax-DA 50 mm at 0.7 field), at least
+    1.2× the beam, in samples of ``p_sim`` mm."""
+    wy, wx = xb[3] - xb[2], xb[1] - xb[0]
+    margin = 0.0
+    if plan.edge is not None:
+        rz, rim, z_far, chief_sensor = plan.edge
+        margin = _window_margin(rz, rim, (z, plan.z_sensor, z_far), chief_sensor, (*plan.medium, plan.carrier))
+    return (math.ceil(max(1.2 * wy, wy + 2 * margin) / p_sim), math.ceil(max(1.2 * wx, wx + 2 * margin) / p_sim))
 
 
 def _plane_fits(lens, side: float, xb, p_sim: float, carry: tuple) -> bool:
@@ -815,7 +832,7 @@ def _plane_fits(lens, side: float, xb, p_sim: float, carry: tuple) -> bool:
     if not side <= MAX_XP_SAMPLES:
         return False
     plan, z, sphere = carry
-    n_from = (math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim))
+    n_from = _from_window(plan, xb, z, p_sim)
     dz, carrier = plan.z_doe - z, plan.carrier
     if sphere is not None:
         dz, carrier = dz * (sphere[2] - z) / (sphere[2] - plan.z_doe), (0.0, 0.0)
