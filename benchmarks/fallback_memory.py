@@ -149,6 +149,40 @@ def child(case: str, pitch_um: float | None, grad: bool) -> dict:
 
 
 CASE_ALIASES = {**CASES, **SCALED}
+
+
+def _carry_sizes(row: dict):
+    """``(extra bytes, FFT samples, carried samples)`` of a row whose PSF ran a carry (None otherwise)."""
+    plain = [c for c in row.get("carries", []) if "fft" in c]
+    if not plain or row.get("error") or row.get("carry_extra_mb") is None:
+        return None
+    c = plain[-1]
+    return row["carry_extra_mb"] * 2**20, c["fft"][0] * c["fft"][1], c["n_from"][0] * c["n_from"][1]
+
+
+def fit_carry(rows: list) -> dict:
+    """Least squares of the carry's extra peak (bytes) against ``a`` · FFT samples + ``b`` · carried samples over the
+    rows without a graph, and each row's ratio to :data:`raywave.hybrid.coherent.geometry.CARRY_BYTES`' estimate and
+    to the old estimate (120 B a sample of the larger window the old check saw)."""
+    import numpy as np
+
+    from raywave.hybrid.coherent.geometry import CARRY_BYTES
+
+    pts = [(r, _carry_sizes(r)) for r in rows if not r.get("grad") and _carry_sizes(r) is not None]
+    a = np.array([[f, n] for _, (_, f, n) in pts], float)
+    y = np.array([e for _, (e, _, _) in pts], float)
+    coef = np.linalg.lstsq(a, y, rcond=None)[0]
+    out = dict(b_fft=float(coef[0]), b_field=float(coef[1]), points=len(pts),
+               residuals=[float(v) for v in (a @ coef - y) / y], per_row=[])
+    for r, (e, f, n) in pts:
+        old = [c["ny"] * c["nx"] for c in r["checks"] if c.get("step") == "fallback"]
+        new = CARRY_BYTES[False][0] * f + CARRY_BYTES[False][1] * n
+        out["per_row"].append(dict(case=r["case"], doe_pitch_um=r["doe_pitch_um"], exit=r["exit"],
+                                   extra_bytes=e, fft_samples=f, carried_samples=n,
+                                   bytes_per_fft_sample=e / f, bytes_per_carried_sample=e / n,
+                                   new_estimate_over_peak=new / e,
+                                   old_estimate_over_peak=(120 * old[-1] / e) if old else None))
+    return out
 #: the cases' default DOE planes (mm after the last vertex; benchmarks/results/stop_edge_*_xxvi*.json), kept when
 #: ``--pitches`` changes the DOE pitch (the default rule would move the plane with it)
 PLANES = {"leica28_0.7": 32.80754512041693, "pentax50_0.7": 36.71321623199246, "planar80_0.7": 51.33601442413169,
@@ -157,11 +191,14 @@ PLANES = {"leica28_0.7": 32.80754512041693, "pentax50_0.7": 36.71321623199246, "
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("cases", nargs="*", default=list(CASES), help="case names of CASES or stop_edge_references cases")
+    ap.add_argument("cases", nargs="*", default=[], help="case names of CASES or stop_edge_references cases (none: "
+                    "CASES)")
     ap.add_argument("--pitches", nargs="*", type=float, default=[], help="DOE pitches µm (none: the case's own)")
     ap.add_argument("--grad", action="store_true", help="gradients enabled (the lens's parameters' graph)")
     ap.add_argument("--child", nargs=3, metavar=("CASE", "PITCH_UM", "GRAD"), default=None)
     ap.add_argument("--time", action="store_true", help="each child under /usr/bin/time -v (its whole-process peak)")
+    ap.add_argument("--rows-from", nargs="*", type=Path, default=[], help="result files whose rows join (no run "
+                    "unless cases are named)")
     ap.add_argument("-o", "--output")
     a = ap.parse_args(argv)
     if a.child:
@@ -169,8 +206,8 @@ def main(argv=None):
         print(json.dumps(child(a.child[0], pitch, a.child[2] == "1")))
         return
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    rows = []
-    for case in a.cases:
+    rows = [dict(r, source=str(f)) for f in a.rows_from for r in json.loads(f.read_text())["rows"]]
+    for case in (a.cases or ([] if a.rows_from else list(CASES))):
         for pitch in (a.pitches or [None]):
             cmd = [sys.executable, __file__, "--child", case, "case" if pitch is None else str(pitch),
                    "1" if a.grad else "0"]
@@ -189,6 +226,10 @@ def main(argv=None):
     res = dict(description=__doc__.split("\n\n")[0], command="OMP_NUM_THREADS=1 python benchmarks/fallback_memory.py "
                + " ".join(argv if argv is not None else sys.argv[1:]),
                memory_limit=os.environ.get("RAYWAVE_MEMORY_LIMIT"), rows=rows)
+    try:
+        res["fit"] = fit_carry(rows)
+    except (ValueError, ImportError, IndexError) as e:  # too few points
+        res["fit"] = f"no fit: {e}"
     text = json.dumps(res, indent=1)
     if a.output:
         Path(a.output).write_text(text + "\n")

@@ -261,16 +261,19 @@ def check_window_memory(ny: int, nx: int, p: float, device=None, step: str = "cu
 
 #: peak bytes of the caustic fallback's carry (issue 47, h47m: the plain carry from the fallback's plane or the
 #: farthest plane before the fold that fits, and the scaled carry), by ``graph``: ``(fft, field, sphere)`` bytes per
-#: sample of the windowed angular spectrum's FFT grid (:func:`carry_fft_shape`: the transfer function built on it,
-#: complex, and its float64 temporaries: the peak, before the convolution's band arrays), of the field carried (the
+#: sample of the windowed angular spectrum's FFT grid (:func:`carry_fft_shape`: the transfer function is built on all
+#: of it, ~57 B a band sample while it is built and 16 B held: the carry's peak), of the field carried (the
 #: construction on the earlier plane, held throughout) and, for the scaled carry, of the DOE-plane window (the sphere's
-#: factor and its float64 temporaries). Measured (benchmarks/fallback_memory.py, no graph, the Leica Elmarit-R 28 mm,
-#: Pentax-DA 50 mm and Planar 80 mm at 0.7 field, 1.17 – 1.54·10⁸ FFT samples;
-#: benchmarks/results/window_memory_fallback_2026-12-01_xxvii_h47m.json): the extra peak is 48.9 – 49.4 B an FFT
-#: sample plus 16 B a carried sample (the field), the least-squares fit's residuals within 1 %; the constants are
-#: ~1.2× that. With a graph: ×2 (see the JSON). The old single "fallback" estimate (120 B a sample of the larger window)
-#: admitted 2.1 – 2.4× too little (6.2 – 8.0 GiB peaks under a 6 GiB limit)
-CARRY_BYTES = {False: (60, 20, 80), True: (120, 40, 160)}
+#: factor and its float64 temporaries, after the propagation: the larger of the two counts). Measured
+#: (benchmarks/fallback_memory.py, no graph, peak RSS above the process's before the PSF; the Leica Elmarit-R 28 mm,
+#: Pentax-DA 50 mm and Planar 80 mm at 0.7 field, each at two DOE pitches, the Planar's 16 GiB plane and the Olympus
+#: 24 mm's scaled carry, 0.93 – 1.82·10⁸ FFT samples; benchmarks/results/window_memory_fallback_2026-12-01_xxvii_h47m.json):
+#: 48.5 B an FFT sample plus 18.0 B a carried sample (least squares, residuals within 2 %); the estimate is 1.20 –
+#: 1.23× every point's peak. The sphere's 96 B are counted, not measured (its phase is not the peak of the one
+#: scaled point). With a graph ×2 (one point, the Leica at a 2.2 µm pitch: 1.62× the no-graph fit, the estimate
+#: 1.54× its peak). The old single "fallback" estimate (120 B a sample of the larger window) admitted 0.72 – 0.97× the
+#: peaks (6.3 – 8.1 GiB under a 6 GiB limit)
+CARRY_BYTES = {False: (56, 32, 96), True: (112, 64, 192)}
 
 
 def carry_fft_shape(n_from, n_doe, pitch: float, dz: float, medium: tuple, carrier=(0.0, 0.0)) -> tuple:
