@@ -333,8 +333,8 @@ def _check_fallback_carry(fx, grid: Grid, lattice: tuple, step: tuple, sphere, p
     geometry.carry_fft_shape`) and :func:`~raywave.hybrid.coherent.geometry.carry_bytes`. ``lattice`` = ``(sim, box,
     m)``: the DOE's simulation grid, the window's box on it and the coarsening (m > 1: the carry onto the coarse
     window of :func:`_coarse_window`, plus the Fourier upsampling to the DOE pitch at :data:`~raywave.hybrid.coherent.
-    geometry.WINDOW_BYTES` "fallback" a fine sample, not measured) and the device; ``step`` = ``(dz mm, wavelength µm, n)``;
-    ``sphere`` the scaled carry's point (None: the plain carry), ``planes`` = ``(z_from, z_doe)`` mm."""
+    geometry.WINDOW_BYTES` "fallback" a fine sample, not measured) and the device; ``step`` = ``(dz mm, wavelength
+    µm, n)``; ``sphere`` the scaled carry's point (None: the plain carry), ``planes`` = ``(z_from, z_doe)`` mm."""
     sim, box, m, device = lattice
     dz, wavelength, n = step
     n_from, pitch = tuple(fx.grid.shape), fx.grid.pitch[0]

@@ -266,13 +266,14 @@ def check_window_memory(ny: int, nx: int, p: float, device=None, step: str = "cu
 #: construction on the earlier plane, held throughout) and, for the scaled carry, of the DOE-plane window (the sphere's
 #: factor and its float64 temporaries, after the propagation: the larger of the two counts). Measured
 #: (benchmarks/fallback_memory.py, no graph, peak RSS above the process's before the PSF; the Leica Elmarit-R 28 mm,
-#: Pentax-DA 50 mm and Planar 80 mm at 0.7 field, each at two DOE pitches, the Planar's 16 GiB plane and the Olympus
-#: 24 mm's scaled carry, 0.93 – 1.82·10⁸ FFT samples; benchmarks/results/window_memory_fallback_2026-12-01_xxvii_h47m.json):
-#: 48.5 B an FFT sample plus 18.0 B a carried sample (least squares, residuals within 2 %); the estimate is 1.20 –
-#: 1.23× every point's peak. The sphere's 96 B are counted, not measured (its phase is not the peak of the one
-#: scaled point). With a graph ×2 (one point, the Leica at a 2.2 µm pitch: 1.62× the no-graph fit, the estimate
-#: 1.54× its peak). The old single "fallback" estimate (120 B a sample of the larger window) admitted 0.72 – 0.97× the
-#: peaks (6.3 – 8.1 GiB under a 6 GiB limit)
+#: Pentax-DA 50 mm and Planar 80 mm at 0.7 field at two DOE pitches and under 6 GiB, the Planar's 16 GiB plane and the
+#: Olympus 24 mm's scaled carry, 11 points, 0.32 – 1.82·10⁸ FFT samples;
+#: benchmarks/results/window_memory_fallback_2026-12-01_xxvii_h47m.json): 49.2 B an FFT sample plus 16.6 B a carried
+#: sample (least squares; residuals within 2 % from 9·10⁷ FFT samples on, −8 % on the two smallest, where a fixed
+#: ~0.1 GiB counts); the estimate is 1.07 – 1.24× every point's peak (1.2× from 9·10⁷ FFT samples on). The sphere's
+#: 96 B are counted, not measured (its phase was not the peak of the scaled points). With a graph ×2 (one point, the
+#: Leica at a 2.2 µm pitch: 1.62× the no-graph fit, the estimate 1.54× its peak). The old single "fallback" estimate
+#: (120 B a sample of the larger window) admitted 0.71 – 0.97× the peaks (6.3 – 8.1 GiB under a 6 GiB limit)
 CARRY_BYTES = {False: (56, 32, 96), True: (112, 64, 192)}
 
 
