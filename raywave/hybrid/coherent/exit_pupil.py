@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import replace
+from typing import NamedTuple
 
 import torch
 
@@ -18,8 +19,8 @@ from raywave.wave.field import fourier_upsample
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation import propagate_window, window_transfer
 from raywave.hybrid.coherent.accurate import accurate_field_steps
-from raywave.hybrid.coherent.geometry import (_common_setup, _empty_field, _footprint, _medium_index,
-                                             check_window_memory, lit_box)
+from raywave.hybrid.coherent.geometry import (WINDOW_BYTES, _common_setup, _empty_field, _footprint, _medium_index,
+                                             carry_fft_shape, check_carry_memory, check_window_memory, lit_box)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, StopEdgeWarning
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source, check_types
 from raywave.hybrid.coherent.stop_edge import (EXIT_PUPIL_FAR, RIPPLE_ZONES, _nu_inner, _zone_estimate,
@@ -126,21 +127,26 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         return fd.with_info(stop_edge="exit_pupil", edge_step="doe")
     if xb is ...:
         method, xb = _edge_method(lens, field, wavelength, depth, z_xp, p_sim, method)
-    z_from, sphere = None, None
+    z_from, sphere, fallback_rim = None, None, None
     if method == "fresnel" and settings.check:  # the plane too near a caustic: built before it, carried by the ASM
         z_from, est, others = _fallback_planes(lens, source, z_xp, z_doe, known.go_error)
-        if z_from is not None:
-            z0, z_from = z_from, _fallback_fits(lens, source, z_from, z_doe, p_sim, est, others, final=False)
+        if z_from is not None:  # the carry's DOE-plane window (its memory: issue 47, h47m)
+            fallback_rim = stop_rim if stop_rim is not None else stop_rim_images(
+                lens, field, wavelength, depth, field_type, bound=(z_doe, EXIT_PUPIL_FAR))
+            plan = _carry_plan(lens, doe, source, (z_xp, z_doe, z_sensor), chief,
+                               (settings, fallback_rim, known.medium))
+            z0, z_from = z_from, _fallback_fits(lens, source, z_from, z_doe, p_sim, est, others, final=False,
+                                                carry=plan)
             if z_from is None:  # no plane fits the plain carry: the scaled one on the fallback's own plane
                 z_from, sphere = _scaled_fallback_fits(lens, source, (z0, z_doe, z_sensor), p_sim, est,
-                                                       chief_sensor)
+                                                       chief_sensor, plan)
         if z_from is not None:
             method = "asm"
     if method == "fresnel":
         rim = None
         if rim_images:
-            rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type,
-                                                                         bound=(z_doe, EXIT_PUPIL_FAR))
+            rim = stop_rim if stop_rim is not None else fallback_rim if fallback_rim is not None else \
+                stop_rim_images(lens, field, wavelength, depth, field_type, bound=(z_doe, EXIT_PUPIL_FAR))
         fd = yield from accurate_field_steps(lens, doe, source, Planes(z_doe, z_sensor), on_doe,
                                              replace(settings, virtual=False, stop_plane=z_xp,
                                                      ripple_zones=ripple_zones),
@@ -154,8 +160,8 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         lens, doe, source, (z_doe, z_sensor), chief, oversample, known.medium)
     rim = None
     if rim_images or z_from is not None:
-        rim = stop_rim if stop_rim is not None else stop_rim_images(lens, field, wavelength, depth, field_type,
-                                                                     bound=(z_doe, EXIT_PUPIL_FAR))
+        rim = stop_rim if stop_rim is not None else fallback_rim if fallback_rim is not None else \
+            stop_rim_images(lens, field, wavelength, depth, field_type, bound=(z_doe, EXIT_PUPIL_FAR))
     # the construction and its angular spectrum on a lattice m× coarser than the DOE's where the wave's own
     # bandwidth allows (the envelope upsampled to the DOE pitch at the end): its cost falls ~m²
     # the edge waves that land in the crop turn by up to its reach over the distance from the exit pupil
@@ -197,9 +203,12 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
         return _empty_field(doe, oversample, carrier, n, wavelength, zprop, center, fx.rays,
                             "accurate").with_info(stop_edge="exit_pupil", edge_step=step)
     grid = sim.window(*box)
-    (cy, cx), (wy, wx) = fx.grid.shape, grid.shape  # the carry's cost: per sample of the larger window
-    (ny, nx) = (cy, cx) if cy * cx > wy * wx else (wy, wx)
-    check_window_memory(ny, nx, p, lens.device, step="fallback" if z_from is not None else "asm")
+    if z_from is not None:  # the caustic fallback's carry: its FFT grid, exactly (issue 47, h47m)
+        _check_fallback_carry(fx, grid, (sim, box, m, lens.device), (dz, wavelength, n), sphere, (z_from, z_doe))
+    else:  # the exact construction's carry: per sample of the larger window
+        (cy, cx), (wy, wx) = fx.grid.shape, grid.shape
+        (ny, nx) = (cy, cx) if cy * cx > wy * wx else (wy, wx)
+        check_window_memory(ny, nx, p, lens.device, step="asm")
     fin = Field(fx.envelope, fx.grid, float(wavelength), n, carrier)
     if sphere is not None:
         carrier = carrier_doe
@@ -317,6 +326,46 @@ class CoarseLattice:
         return Grid(self.origin, self.pitch, self.shape)
 
 
+def _check_fallback_carry(fx, grid: Grid, lattice: tuple, step: tuple, sphere, planes: tuple) -> None:
+    """Refuse (:class:`~raywave.utils.errors.MemoryLimitError`) the caustic fallback's carry of the construction
+    ``fx`` (:class:`~raywave.hybrid.coherent.record.DOEField` on the earlier plane) onto the DOE-plane window
+    ``grid`` before anything of its size is allocated, from its exact FFT grid (:func:`~raywave.hybrid.coherent.
+    geometry.carry_fft_shape`) and :func:`~raywave.hybrid.coherent.geometry.carry_bytes`. ``lattice`` = ``(sim, box,
+    m)``: the DOE's simulation grid, the window's box on it and the coarsening (m > 1: the carry onto the coarse
+    window of :func:`_coarse_window`, plus the Fourier upsampling to the DOE pitch at :data:`~raywave.hybrid.coherent.
+    geometry.WINDOW_BYTES` "fallback" a fine sample, not measured) and the device; ``step`` = ``(dz mm, wavelength
+    µm, n)``; ``sphere`` the scaled carry's point (None: the plain carry), ``planes`` = ``(z_from, z_doe)`` mm."""
+    sim, box, m, device = lattice
+    dz, wavelength, n = step
+    n_from, pitch = tuple(fx.grid.shape), fx.grid.pitch[0]
+    if sphere is not None:  # scaled_carry's propagation: the envelope relative to the sphere, the scaled distance
+        r1, r2 = sphere[2] - planes[0], sphere[2] - planes[1]
+        fft = carry_fft_shape(n_from, grid.shape, pitch, dz * r1 / r2, (wavelength, n))
+        check_carry_memory(n_from, grid.shape, fft, pitch, device, scaled=True)
+        return
+    out, extra = grid, 0.0
+    if m > 1:
+        out = _coarse_window(sim, box, m)
+        extra = WINDOW_BYTES[("fallback", torch.is_grad_enabled())] * float(grid.shape[0]) * float(grid.shape[1])
+    fft = carry_fft_shape(n_from, out.shape, pitch, dz, (wavelength, n), fx.carrier)
+    check_carry_memory(n_from, out.shape, fft, pitch, device, extra=extra)
+
+
+def _coarse_window(sim: Grid, box, m: int) -> Grid:
+    """The coarse window (``sim``'s origin, ``m`` times its pitch) of :func:`_coarse_propagate`: the coarse samples
+    that cover the box ``(iy0, iy1, ix0, ix1)`` of the DOE's simulation lattice ``sim`` plus
+    :data:`ASM_UPSAMPLE_PAD` a side, an odd count a side."""
+    iy0, iy1, ix0, ix1 = box
+    pad = ASM_UPSAMPLE_PAD
+
+    def span(i0, i1):  # coarse indices covering fine [i0, i1) plus the pad, an odd count
+        j0, j1 = i0 // m - pad, -(-(i1 - 1) // m) + 1 + pad
+        return j0, j1 + (1 - (j1 - j0) % 2)
+
+    (jy0, jy1), (jx0, jx1) = span(iy0, iy1), span(ix0, ix1)
+    return Grid(sim.position(jy0 * m, jx0 * m), m * sim.pitch[0], (jy1 - jy0, jx1 - jx0))
+
+
 def _coarse_propagate(field: Field, sim: Grid, box, dz: float, m: int, transfers=None) -> torch.Tensor:
     """The envelope (complex128 on the window ``box`` ``(iy0, iy1, ix0, ix1)`` of the DOE's simulation lattice
     ``sim``) of ``field`` (on the coarse lattice: ``sim``'s origin, ``m`` times its pitch) propagated ``dz`` mm:
@@ -326,15 +375,10 @@ def _coarse_propagate(field: Field, sim: Grid, box, dz: float, m: int, transfers
     of the step's transfer functions (:func:`edge_transfer`), or None."""
     iy0, iy1, ix0, ix1 = box
     pad = ASM_UPSAMPLE_PAD
-
-    def span(i0, i1):  # coarse indices covering fine [i0, i1) plus the pad, an odd count
-        j0, j1 = i0 // m - pad, -(-(i1 - 1) // m) + 1 + pad
-        return j0, j1 + (1 - (j1 - j0) % 2)
-
-    (jy0, jy1), (jx0, jx1) = span(iy0, iy1), span(ix0, ix1)
-    out = Grid(sim.position(jy0 * m, jx0 * m), m * sim.pitch[0], (jy1 - jy0, jx1 - jx0))
+    out = _coarse_window(sim, box, m)
+    (jy0, jx0), (ny_c, nx_c) = (iy0 // m - pad, ix0 // m - pad), out.shape  # (its first coarse sample, its size)
     uc = propagate_window(field, out, dz, transfer=edge_transfer(transfers, field, out, dz)).envelope
-    taper = [_edge_taper(n_, pad, uc.device) for n_ in (jy1 - jy0, jx1 - jx0)]
+    taper = [_edge_taper(n_, pad, uc.device) for n_ in (ny_c, nx_c)]
     up = fourier_upsample(uc * (taper[0][:, None] * taper[1][None, :]).to(uc.dtype), m)
     oy, ox = iy0 - jy0 * m, ix0 - jx0 * m
     return up[oy:oy + iy1 - iy0, ox:ox + ix1 - ix0]
@@ -725,28 +769,97 @@ def _plane_side(lens, source: Source, z: float, p_sim: float) -> tuple:
     return (math.inf if xb is None else max(xb[1] - xb[0], xb[3] - xb[2]) / p_sim), xb
 
 
-def _plane_fits(lens, side: float, xb, p_sim: float) -> bool:
+class CarryPlan(NamedTuple):
+    """What the caustic fallback's fit tests know of its carry before the construction (issue 47, h47m): the
+    DOE-plane window's ``window`` (ny, nx) samples (:func:`_carry_plan`), ``medium`` (wavelength µm, n), the
+    envelope's ``carrier`` (α, β), the DOE plane ``z_doe`` and the sensor ``z_sensor`` mm, the device, and what the
+    edge band's margin on an earlier plane needs (:func:`_window_margin`): ``edge`` = ``(ripple_zones, rim images,
+    z_far mm, chief ray on the sensor)``, None: no margin (1.2× the beam)."""
+    window: tuple
+    medium: tuple
+    carrier: tuple
+    z_doe: float
+    z_sensor: float
+    device: object
+    edge: tuple | None = None
+
+
+def _carry_plan(lens, doe, source: Source, zs: tuple, chief: ChiefRays, how: tuple) -> CarryPlan:
+    """The :class:`CarryPlan` of a source's caustic fallback: its DOE-plane window as the construction will make it
+    (the footprint on the DOE plane ``zs[1]`` plus :func:`_window_margin` for the rim images ``rim`` and 4 samples,
+    clamped to the DOE's simulation grid; (1, 1) where nothing is lit). ``zs`` = ``(z_xp, z_doe, z_sensor)`` mm,
+    ``how`` = ``(settings, rim, medium index or None)``."""
+    z_xp, z_doe, z_sensor = zs
+    settings, rim, medium = how
+    wavelength = float(source.wavelength)
+    n = _medium_index(lens, wavelength) if medium is None else float(medium)
+    carrier = tuple(float(v) for v in chief.doe.d.detach().tolist()[:2])
+    fld = torch.as_tensor(source.field, dtype=torch.float64, device=lens.device).reshape(2)
+    bbox = _footprint(lens, fld, torch.tensor([wavelength], dtype=torch.float64, device=lens.device), source.depth,
+                      z_doe)
+    sim = doe.sim_grid(settings.oversample)
+    window = (1, 1)
+    z_far = _rim_step_plane(rim, z_xp, z_doe, wavelength, n, 0.0)[1]
+    rz = None if settings.ripple_zones is None else float(settings.ripple_zones)
+    if bbox is not None:
+        margin = _window_margin(rz, rim, (z_doe, z_sensor, z_far), chief.sensor, (wavelength, n, carrier))
+        box = lit_box(sim, bbox, margin + 4 * sim.pitch[0])
+        if box is not None:
+            window = (box[1] - box[0], box[3] - box[2])
+    return CarryPlan(window, (wavelength, n), carrier, float(z_doe), float(z_sensor), lens.device,
+                     (rz, rim, z_far, chief.sensor))
+
+
+def _from_window(plan: CarryPlan, xb, z: float, p_sim: float) -> tuple:
+    """The carried field's window (ny, nx) on the plane ``z`` mm for the fit test: the beam ``xb`` plus the edge band's
+    margin there on both sides (:func:`_window_margin` of the plan's ``edge``, the construction's own band rule with
+    the DOE plane's distances: ~1.1 – 1.2× the cropped construction on the Pentax-DA 50 mm at 0.7 field), at least
+    1.2× the beam, in samples of ``p_sim`` mm."""
+    wy, wx = xb[3] - xb[2], xb[1] - xb[0]
+    margin = 0.0
+    if plan.edge is not None:
+        rz, rim, z_far, chief_sensor = plan.edge
+        margin = _window_margin(rz, rim, (z, plan.z_sensor, z_far), chief_sensor, (*plan.medium, plan.carrier))
+    return (math.ceil(max(1.2 * wy, wy + 2 * margin) / p_sim), math.ceil(max(1.2 * wx, wx + 2 * margin) / p_sim))
+
+
+def _plane_fits(lens, side: float, xb, p_sim: float, carry: tuple) -> bool:
     """Whether a beam of ``side`` samples (footprint ``xb``) fits the caustic fallback: at most
-    :data:`MAX_XP_SAMPLES` a side and its window (beam and edge band, 1.2×) in memory, as the construction will
-    check it."""
-    return side <= MAX_XP_SAMPLES and _window_fits(lens, xb, p_sim, "fallback")
+    :data:`MAX_XP_SAMPLES` a side and its carry in memory (issue 47, h47m: :func:`~raywave.hybrid.coherent.geometry.
+    carry_bytes` of its window, beam and edge band 1.2× wide, and its FFT grid onto the DOE-plane window), as the
+    carry will check it. ``carry`` = ``(plan, z, sphere)``: the :class:`CarryPlan`, the plane ``z`` mm of the beam and
+    the scaled carry's point ``(x, y, z)`` mm (None: the plain carry; ``p_sim`` is then the scaled lattice's)."""
+    if not side <= MAX_XP_SAMPLES:
+        return False
+    plan, z, sphere = carry
+    n_from = _from_window(plan, xb, z, p_sim)
+    dz, carrier = plan.z_doe - z, plan.carrier
+    if sphere is not None:
+        dz, carrier = dz * (sphere[2] - z) / (sphere[2] - plan.z_doe), (0.0, 0.0)
+    try:
+        fft = carry_fft_shape(n_from, plan.window, p_sim, dz, plan.medium, carrier)
+        check_carry_memory(n_from, plan.window, fft, p_sim, plan.device, scaled=sphere is not None)
+    except MemoryLimitError:
+        return False
+    return True
 
 
 def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: float, est: float, others=(),
-                   final: bool = True):
+                   final: bool = True, carry: CarryPlan | None = None):
     """``z_from`` when the beam there spans at most :data:`MAX_XP_SAMPLES` simulation samples of ``p_sim`` mm a
     side (the exact construction's limit; the window's memory is checked as for any field), with a
     :class:`StopEdgeWarning` naming the fallback; else the first of ``others`` (:func:`_fallback_planes`: ``(z,
     error)`` pairs, the farthest from the DOE plane first) whose beam fits, with a warning naming its error; else
     None with a warning that the DOE plane ``z_doe`` is too near the rays' focus for the construction (``est``: the
     :func:`go_phase_error` there, rad); without ``final`` (the caller tries the scaled carry next,
-    :func:`_scaled_fallback_fits`) None without a warning."""
+    :func:`_scaled_fallback_fits`) None without a warning. ``carry``: the :class:`CarryPlan` whose memory each plane's
+    carry must fit (None: a DOE-plane window as large as the beam on the plane, the FFT grid twice its side)."""
     side, xb = _plane_side(lens, source, z_from, p_sim)
     where = _fallback_where(source, z_doe, est)
-    if not _plane_fits(lens, side, xb, p_sim):
+    if not _plane_fits(lens, side, xb, p_sim, (_plan_for(carry, lens, xb, p_sim, z_doe), z_from, None)):
         for z, err in others:  # issue 47, class B: the farthest plane that fits
             s2, xb2 = _plane_side(lens, source, z, p_sim)
-            if _plane_fits(lens, s2, xb2, p_sim):
+            if _plane_fits(lens, s2, xb2, p_sim, (_plan_for(carry, lens, xb2, p_sim, z_doe), z, None)):
                 warnings.warn(f"{where}; building it {z_doe - z_from:.3g} mm before would take {side:.0f} samples a "
                               f"side (over {MAX_XP_SAMPLES}, or more than the memory holds): the field is built "
                               f"{z_doe - z:.3g} mm before it, where the geometric-optics field is off by ~{err:.2g} "
@@ -764,6 +877,17 @@ def _fallback_fits(lens, source: Source, z_from: float, z_doe: float, p_sim: flo
     return z_from
 
 
+def _plan_for(carry, lens, xb, p_sim: float, z_doe: float) -> CarryPlan:
+    """``carry``, or where None (a caller without the DOE's grid) a :class:`CarryPlan` whose DOE-plane window is the
+    beam ``xb``'s on its own plane (1.2× wide at ``p_sim`` mm), on axis at 0.55 µm in air: an upper bound of the
+    window near the rays' focus."""
+    if carry is not None or xb is None:
+        return carry if carry is not None else CarryPlan((1, 1), (0.55, 1.0), (0.0, 0.0), z_doe, math.inf,
+                                                         lens.device)
+    win = (math.ceil(1.2 * (xb[3] - xb[2]) / p_sim), math.ceil(1.2 * (xb[1] - xb[0]) / p_sim))
+    return CarryPlan(win, (0.55, 1.0), (0.0, 0.0), z_doe, math.inf, lens.device)
+
+
 def _fallback_where(source: Source, z_doe: float, est: float) -> str:
     """The start of the caustic fallback's warnings: the DOE plane ``z_doe`` near the rays' focus, and why."""
     fld = [round(float(v), 6) for v in torch.as_tensor(source.field).reshape(-1).tolist()]
@@ -773,19 +897,21 @@ def _fallback_where(source: Source, z_doe: float, est: float) -> str:
              f"the geometric-optics field there is off by ~{est:.2g} rad (go_phase_error > {GO_PHASE_TOL:g} rad)"))
 
 
-def _scaled_fallback_fits(lens, source: Source, zs: tuple, p_sim: float, est: float, chief_sensor):
+def _scaled_fallback_fits(lens, source: Source, zs: tuple, p_sim: float, est: float, chief_sensor,
+                          carry: CarryPlan | None = None):
     """``(z_from, sphere)`` for the scaled carry (:func:`scaled_carry`) of the caustic fallback from its plane
     ``z_from`` (``zs = (z_from, z_doe, z_sensor)`` mm) where no plane fits the plain carry: ``sphere`` ``(x, y, z)``
     mm the chief ray's sensor point (``chief_sensor``), the beam there in samples of ``p_sim / M`` (``M`` the
-    sphere's magnification from ``z_from`` to ``z_doe``) within :data:`MAX_XP_SAMPLES` and its window in memory,
-    with a :class:`StopEdgeWarning` naming it; else ``(None, None)`` with the warning that the field is built on the
-    DOE plane itself."""
+    sphere's magnification from ``z_from`` to ``z_doe``) within :data:`MAX_XP_SAMPLES` and its carry in memory
+    (``carry``: the :class:`CarryPlan`, as :func:`_fallback_fits`), with a :class:`StopEdgeWarning` naming it; else
+    ``(None, None)`` with the warning that the field is built on the DOE plane itself."""
     z_from, z_doe, z_sensor = zs
     where = _fallback_where(source, z_doe, est)
     side, xb = _plane_side(lens, source, z_from, p_sim)
     sphere = tuple(float(v) for v in chief_sensor.o.detach()[:2].tolist()) + (float(z_sensor),)
     mag = (z_sensor - z_doe) / (z_sensor - z_from) if z_sensor != z_from else 0.0
-    if 0.0 < mag < 1.0 and _plane_fits(lens, side * mag, xb, p_sim / mag):
+    if 0.0 < mag < 1.0 and xb is not None and _plane_fits(lens, side * mag, xb, p_sim / mag,
+                                                          (_plan_for(carry, lens, xb, p_sim, z_doe), z_from, sphere)):
         warnings.warn(f"{where}; the field is built {z_doe - z_from:.3g} mm before it, relative to the sphere "
                       f"converging on the chief ray's sensor point on a lattice {1 / mag:.3g}× the DOE pitch "
                       f"({side * mag:.0f} samples a side, {side:.0f} at the DOE pitch), and carried to it by the "

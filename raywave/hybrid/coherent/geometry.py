@@ -14,6 +14,7 @@ from raywave.lens.sources import (VignettingWarning, chief_pupil, entrance_plane
 from raywave.rays.pupil import RIM_INSET  # the footprint's rim a hair inside the stop: the engine's one rim rule
 from raywave.utils.errors import check_allocation
 from raywave.wave.grid import Grid
+from raywave.wave.propagation.transfer import WindowSource, _geometry as _window_geometry
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning
 
 
@@ -222,7 +223,9 @@ def _nyquist_warning(ratio: float, at: tuple, field, wavelength: float, pitch: f
 #: measured, is held to it too), "asm" (the exact construction: built on a plane near the exit pupil and carried to
 #: the DOE plane by the windowed angular spectrum; per sample of the larger of its two windows) or "fallback" (the
 #: caustic fallback: the Fresnel step on an earlier plane, carried to the DOE plane near the focus; per sample of the
-#: earlier plane's window); ``graph``: whether autograd keeps the construction's graph (gradients enabled). Measured
+#: earlier plane's window; since h47m the carry itself is estimated by :data:`CARRY_BYTES` from its FFT grid, and
+#: "fallback" counts only the Fourier upsampling of a coarsened carry, per sample of the DOE-plane window, not
+#: measured); ``graph``: whether autograd keeps the construction's graph (gradients enabled). Measured
 #: (benchmarks/window_memory.py, the Zeiss Pro-Tessar on axis, DOE pitches 9.6 – 2.8 µm, 1.2·10⁶ – 2.8·10⁷ samples,
 #: and 1.2 µm, 1.1 – 1.3·10⁸ samples, without a graph; benchmarks/results/window_memory_2026-12-01_xxv_h47a.json):
 #: 1.28 – 1.44× the least-squares slope of the peak resident memory against the samples, at least 1.14× its steepest
@@ -254,6 +257,63 @@ def check_window_memory(ny: int, nx: int, p: float, device=None, step: str = "cu
                      "use a coarser DOE pitch (doe pitch / --doe-pitch), a lower oversample (--oversample), a "
                      "smaller DOE or, for a blank DOE, a plane nearer focus (--doe-distance; the beam is narrower "
                      "there, but the plane must stay before the rays' first crossing: CausticWarning)", device)
+
+
+#: peak bytes of the caustic fallback's carry (issue 47, h47m: the plain carry from the fallback's plane or the
+#: farthest plane before the fold that fits, and the scaled carry), by ``graph``: ``(fft, field, sphere)`` bytes per
+#: sample of the windowed angular spectrum's FFT grid (:func:`carry_fft_shape`: the transfer function is built on all
+#: of it, ~57 B a band sample while it is built and 16 B held: the carry's peak), of the field carried (the
+#: construction on the earlier plane, held throughout) and, for the scaled carry, of the DOE-plane window (the sphere's
+#: factor and its float64 temporaries, after the propagation: the larger of the two counts). Measured
+#: (benchmarks/fallback_memory.py, no graph, peak RSS above the process's before the PSF; the Leica Elmarit-R 28 mm,
+#: Pentax-DA 50 mm and Planar 80 mm at 0.7 field at two DOE pitches and under 6 GiB, the Planar's 16 GiB plane and the
+#: Olympus 24 mm's scaled carry, 11 points, 0.32 – 1.82·10⁸ FFT samples;
+#: benchmarks/results/window_memory_fallback_2026-12-01_xxvii_h47m.json): 49.2 B an FFT sample plus 16.6 B a carried
+#: sample (least squares; residuals within 2 % from 9·10⁷ FFT samples on, −8 % on the two smallest, where a fixed
+#: ~0.1 GiB counts); the estimate is 1.07 – 1.24× every point's peak (1.2× from 9·10⁷ FFT samples on). The sphere's
+#: 96 B are counted, not measured (its phase was not the peak of the scaled points). With a graph ×2 (one point, the
+#: Leica at a 2.2 µm pitch: 1.62× the no-graph fit, the estimate 1.54× its peak). The old single "fallback" estimate
+#: (120 B a sample of the larger window) admitted 0.71 – 0.97× the peaks (6.3 – 8.1 GiB under a 6 GiB limit)
+CARRY_BYTES = {False: (56, 32, 96), True: (112, 64, 192)}
+
+
+def carry_fft_shape(n_from, n_doe, pitch: float, dz: float, medium: tuple, carrier=(0.0, 0.0)) -> tuple:
+    """``(My, Mx)``: the FFT grid of :func:`~raywave.wave.propagate_window` carrying a field of ``n_from`` = (ny, nx)
+    samples of ``pitch`` mm by ``dz`` mm onto a window of ``n_doe`` = (ny, nx) samples (its default band limit;
+    ``medium`` = (wavelength µm, n), ``carrier`` (α, β) the envelope's): host numbers, nothing allocated."""
+    src = WindowSource((int(n_from[0]), int(n_from[1])), (0.0, 0.0), (0.0, 0.0), float(medium[0]), float(dz),
+                       float(medium[1]), (float(carrier[0]), float(carrier[1])))
+    return tuple(_window_geometry(src, (int(n_doe[0]), int(n_doe[1])), pitch, 0.5, 2.0).size)
+
+
+def carry_bytes(n_from, fft, n_doe=None, graph: bool | None = None) -> float:
+    """The caustic fallback's carry's peak memory estimate (bytes, :data:`CARRY_BYTES`): the carried field of
+    ``n_from`` = (ny, nx) samples, the FFT grid ``fft`` = (My, Mx) (:func:`carry_fft_shape`) and, for the scaled
+    carry, its DOE-plane window ``n_doe`` = (ny, nx) (None: the plain carry); ``graph`` None: whether gradients are
+    enabled now."""
+    if graph is None:
+        graph = torch.is_grad_enabled()
+    b_fft, b_field, b_sphere = CARRY_BYTES[bool(graph)]
+    field = b_field * float(n_from[0]) * float(n_from[1])
+    total = b_fft * float(fft[0]) * float(fft[1]) + field
+    if n_doe is not None:  # the sphere's factor comes after the propagation has let its transfer function go
+        total = max(total, field + b_sphere * float(n_doe[0]) * float(n_doe[1]))
+    return total
+
+
+def check_carry_memory(n_from, n_doe, fft, p: float, device=None, scaled: bool = False,
+                       graph: bool | None = None, extra: float = 0.0) -> None:
+    """Refuse (:class:`~raywave.utils.errors.MemoryLimitError`) the caustic fallback's carry of a field of ``n_from``
+    = (ny, nx) samples of pitch ``p`` mm onto the DOE-plane window of ``n_doe`` samples through the FFT grid ``fft``
+    (:func:`carry_fft_shape`), at :func:`carry_bytes` (``scaled``: the scaled carry; ``extra`` bytes more), before
+    anything of its size is allocated."""
+    need = carry_bytes(n_from, fft, n_doe if scaled else None, graph) + float(extra)
+    what = ("the caustic fallback's " + ("scaled " if scaled else "") +
+            f"carry of the {int(n_from[0])}×{int(n_from[1])}-sample field (simulation pitch {p * 1e3:.3g} µm) to "
+            f"the {int(n_doe[0])}×{int(n_doe[1])}-sample DOE-plane window (a {int(fft[0])}×{int(fft[1])} FFT grid)")
+    check_allocation(need, what, "use a coarser DOE pitch (doe pitch / --doe-pitch), a smaller PSF crop (ks), or a "
+                     "DOE plane further from the rays' focus (--doe-distance: nearer the lens); or raise the limit "
+                     "(RAYWAVE_MEMORY_LIMIT / --memory-limit)", device)
 
 
 def lit_box(grid: Grid, bbox, margin: float) -> tuple[int, int, int, int] | None:
