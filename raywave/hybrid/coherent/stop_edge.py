@@ -38,17 +38,19 @@ REACH_MARGIN = 0.0
 
 #: :func:`ripple_band` where the edge waves' reach at the crop's centre is short (issue 47's cost): the band is the
 #: reach plus :data:`REACH_TAIL_ZONES`, at least this many zones and at most :data:`RIPPLE_ZONES`. The 5-zone band
-#: was set by the bundled asphere at 17.5° (reach 2.8: 4 zones 2.6e-3, 5 zones 8.2e-4 rel L1 from the converged
-#: Huygens reference); nearer the axis the reach is shorter and 4 zones hold as 5 do (2026-12-01, h47c; 0 / 7 / 10 /
-#: 12.25 / 14 / 16°, reach 0.06 – 2.4: 7.7e-5 / 1.5e-4 / 1.7e-4 / 2.3e-4 / 3.8e-4 / 4.5e-4 against 5.5e-5 / 1.4e-4 /
-#: 1.6e-4 / 1.9e-4 / 2.5e-4 / 4.0e-4 with 5 zones; 3.5 zones 1.4e-4 – 8.8e-4). Equal to :data:`RIPPLE_ZONES`: the
-#: fixed band of before
+#: was set by the bundled asphere at 17.5° (reach 2.81: 4 zones 2.6e-3, 5 zones 8.2e-4 rel L1 from the converged
+#: Huygens reference); nearer the axis the reach is shorter and 4 zones hold as 5 do (2026-12-01, h47c: the bundled
+#: asphere at 0 / 7 / 10°, reach 0.06 / 0.51 / 0.98: 7.7e-5 / 1.5e-4 / 1.7e-4 against 5.5e-5 / 1.4e-4 / 1.6e-4 with
+#: 5 zones; 3.5 zones 1.4e-4 / 2.1e-4 / 2.4e-4). Equal to :data:`RIPPLE_ZONES`: the fixed band of before
 RIPPLE_MIN_ZONES = 4.0
 
 #: :func:`ripple_band`: Fresnel zones kept beyond the edge waves' reach where the band is narrower than
-#: :data:`RIPPLE_ZONES` (the roll-off's :data:`ROLL_ZONES` and a little more: the bundled asphere's 17.5°, reach 2.81,
-#: keeps its 5 zones)
-REACH_TAIL_ZONES = 2.2
+#: :data:`RIPPLE_ZONES`. The reach is taken at the crop's centre only, and the crop's other pixels receive edge waves
+#: from farther out: the 50 mm singlet at 0.7 field (reach 1.86, the sensor at the DOE's pitch) needs ~4.5 zones
+#: (4.06 / 4.25 / 4.5 / 4.75 / 5: 1.26e-3 / 9.4e-4 / 7.4e-4 / 6.3e-4 / 5.7e-4), the bundled asphere at 17.5° (reach
+#: 2.81) 5 (4 zones 2.6e-3); 2.2 zones beyond the reach (the roll-off's :data:`ROLL_ZONES` and a little more) were too
+#: few for the singlet, 3 hold both (h47c, 2026-12-01)
+REACH_TAIL_ZONES = 3.0
 
 #: Fresnel zones over which the ripple band rolls off to 0 at its outer end (its shape hardly matters, its
 #: extent does: at 17.5° full weight out to 3 zones and a roll-off over 1 / 1.5 / 2 zones: 1.5e-3 / 1.1e-3 /
