@@ -71,6 +71,10 @@ def _ideal_exit_pupil():
 #: 2026-11-29 (issue 47, k47) when the Fresnel edge step began reading the stop rim's images by trigonometric
 #: interpolation (raywave.hybrid.coherent.stop_edge._rim_fourier): rel L1 1.9e-4, 4.8e-5 and 1.4e-5; the others moved
 #: by < 1e-11 (benchmarks/results/psf_pins_rim_fourier_2026-11-29_k47.json).
+#: ``hybrid_asphere_default``, ``ideal_binary2_exit_pupil`` and ``hybrid_asphere_exit_pupil`` were re-pinned on
+#: 2026-12-01 (issue 47's cost, h47c) when the ripple band began to narrow where the edge waves' reach is short
+#: (stop_edge.short_reach_band): rel L1 4.3e-5 / 7.9e-6, 7.0e-6 / 6.9e-6 and 7.5e-6; the others bit for bit
+#: (benchmarks/results/stop_edge_band_accuracy_2026-12-01_xxvii_h47c.json, with the references' figures).
 CASES = {
     "hybrid_asphere": (_hybrid_asphere, dict(fields=[(0.0, 0.0), (0.0, 7.0), (0.0, 14.0), (3.0, 10.0)],
                                              wavelengths=[0.47, 0.53, 0.66], ks=32)),

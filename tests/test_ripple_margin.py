@@ -34,6 +34,7 @@ def _band(monkeypatch, zones: float):
     full = se.RIPPLE_ZONES
     monkeypatch.setattr(se, "RIPPLE_ZONES", float(zones))  # the band fixed (no reach rule: MAX at the same)
     monkeypatch.setattr(se, "MAX_RIPPLE_ZONES", float(zones))
+    monkeypatch.setattr(se, "RIPPLE_MIN_ZONES", float(zones))  # (no narrowing where the reach is short)
     inner = se.INNER_TAIL * math.sqrt(2.0) * full
     monkeypatch.setattr(ac, "_nu_inner", lambda _z: inner)
     monkeypatch.setattr(se, "_nu_inner", lambda _z: inner)

@@ -36,6 +36,22 @@ MAX_RIPPLE_ZONES = 16.0
 #: 6.0e-4 but the F/1.3 asphere at full field to a 12.6 GiB DOE-plane window (6.1 zones; 2.0e-4 there)
 REACH_MARGIN = 0.0
 
+#: :func:`ripple_band` where the edge waves' reach at the crop's centre is short (issue 47's cost): the band is the
+#: reach plus :data:`REACH_TAIL_ZONES`, at least this many zones and at most :data:`RIPPLE_ZONES`. The 5-zone band
+#: was set by the bundled asphere at 17.5° (reach 2.81: 4 zones 2.6e-3, 5 zones 8.2e-4 rel L1 from the converged
+#: Huygens reference); nearer the axis the reach is shorter and 4 zones hold as 5 do (2026-12-01, h47c: the bundled
+#: asphere at 0 / 7 / 10°, reach 0.06 / 0.51 / 0.98: 7.7e-5 / 1.5e-4 / 1.7e-4 against 5.5e-5 / 1.4e-4 / 1.6e-4 with
+#: 5 zones; 3.5 zones 1.4e-4 / 2.1e-4 / 2.4e-4). Equal to :data:`RIPPLE_ZONES`: the fixed band of before
+RIPPLE_MIN_ZONES = 4.0
+
+#: :func:`ripple_band`: Fresnel zones kept beyond the edge waves' reach where the band is narrower than
+#: :data:`RIPPLE_ZONES`. The reach is taken at the crop's centre only, and the crop's other pixels receive edge waves
+#: from farther out: the 50 mm singlet at 0.7 field (reach 1.86, the sensor at the DOE's pitch) needs ~4.5 zones
+#: (4.06 / 4.25 / 4.5 / 4.75 / 5: 1.26e-3 / 9.4e-4 / 7.4e-4 / 6.3e-4 / 5.7e-4), the bundled asphere at 17.5° (reach
+#: 2.81) 5 (4 zones 2.6e-3); 2.2 zones beyond the reach (the roll-off's :data:`ROLL_ZONES` and a little more) were too
+#: few for the singlet, 3 hold both (h47c, 2026-12-01)
+REACH_TAIL_ZONES = 3.0
+
 #: Fresnel zones over which the ripple band rolls off to 0 at its outer end (its shape hardly matters, its
 #: extent does: at 17.5° full weight out to 3 zones and a roll-off over 1 / 1.5 / 2 zones: 1.5e-3 / 1.1e-3 /
 #: 8.8e-4 L1 from the Huygens PSF)
@@ -1292,7 +1308,9 @@ def ripple_band(rim, z_plane: float, z_sensor: float, point, lam_m: float, reach
     widened where the stop edge's waves that reach the sensor point ``point`` (2,) mm (the PSF crop's centre, the
     chief ray's landing) start farther out: :func:`edge_reach_zones` + :data:`REACH_MARGIN`, at most
     :data:`MAX_RIPPLE_ZONES` (issue 47). Where the crop holds the geometric spot's light from near the rim (a
-    diffraction-limited spot, most aberrated ones) the reach is a few zones and the band stays :data:`RIPPLE_ZONES`;
+    diffraction-limited spot, most aberrated ones) the reach is a few zones and the band is at most
+    :data:`RIPPLE_ZONES` (:func:`short_reach_band`: the reach + :data:`REACH_TAIL_ZONES`, at least
+    :data:`RIPPLE_MIN_ZONES`);
     where only the inner pupil lights it (the cusp of a wide coma spot: the double Gauss at full field, 8.9 zones;
     at 0.7 field 6.5; the F/1.3 asphere at full field 5.1) the edge waves it receives start far out, and the band
     widens to them. ``lam_m`` (mm):
@@ -1303,4 +1321,11 @@ def ripple_band(rim, z_plane: float, z_sensor: float, point, lam_m: float, reach
         reach = edge_reach_zones(rim, z_plane, z_sensor, point, lam_m)
     if reach is None:
         return RIPPLE_ZONES
-    return max(RIPPLE_ZONES, min(reach + REACH_MARGIN, MAX_RIPPLE_ZONES))
+    return max(short_reach_band(reach), min(reach + REACH_MARGIN, MAX_RIPPLE_ZONES))
+
+
+def short_reach_band(reach: float) -> float:
+    """The ripple band (Fresnel zones) that the edge waves reaching the crop from ``reach`` zones out need: ``reach +``
+    :data:`REACH_TAIL_ZONES`, within [:data:`RIPPLE_MIN_ZONES`, :data:`RIPPLE_ZONES`] (:func:`ripple_band` widens it
+    further to a reach beyond :data:`RIPPLE_ZONES`)."""
+    return min(max(RIPPLE_MIN_ZONES, reach + REACH_TAIL_ZONES), RIPPLE_ZONES)
