@@ -32,13 +32,15 @@ import torch
 from torch import nn
 
 from raywave.doe import DOE
-from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
-                                     entrance_pupil, exit_pupil_field_steps, faithful_field, run_batched)
+from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, VignettingEdgeWarning,
+                                     accurate_field_steps, chief_rays, entrance_pupil, exit_pupil_field_steps,
+                                     faithful_field, run_batched)
 from raywave.hybrid.coherent.exit_pupil import (adaptive_edge_steps, fresnel_step_estimates, fresnel_step_holds,
                                                 go_phase_errors, obscuration_fraction)
 from raywave.hybrid.coherent.geometry import _medium_index, footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import EXIT_PUPIL_FAR, edge_reach_many, stop_rim_images_all
 from raywave.hybrid.coherent.record import EnvelopeRow, resolve_band_infos
+from raywave.hybrid.coherent.vignetting import VIGNETTING_WARN
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, accelerator_cap, ceil_samples,
                                     plan_groups, propagate_group)
@@ -737,12 +739,13 @@ class HybridLens(nn.Module):
         with warnings.catch_warnings():  # vignetting is reported once, by the PSF (as footprints_and_clippings does)
             warnings.simplefilter("ignore", VignettingWarning)
             geo.aim = chief_aim(optics, ft, wls_t, depth=depth)
-        boxes, geo.clips = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True,
-                                                    chief=geo.aim)
+        z_xps = self._exit_pupil_planes(wls)
+        boxes, geo.clips, *vig = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True,
+                                                          chief=geo.aim, vignetting=z_xps is not None)
         geo.boxes = [[False if b is None else b for b in row] for row in boxes]
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
-        z_xps = self._exit_pupil_planes(wls)
         if z_xps is not None:
+            self._warn_vignetting(geo, vig[0])
             rims = self.edge_rim_images(ft, wls, depth)  # one trace for every source and wavelength
             if self._rim_images is not None:
                 rims = self._rim_images(optics, ft, wls, depth, rims)
@@ -983,6 +986,24 @@ class HybridLens(nn.Module):
             pending[0].extend(clipped)
             pending[1].extend(folded)
         return out
+
+    def _warn_vignetting(self, geo: "_CallGeometry", edges: dict) -> None:
+        """One :class:`~raywave.hybrid.coherent.VignettingEdgeWarning` for the call's sources (a mirror image's
+        its source's) whose vignetting by a surface other than the stop
+        (:func:`~raywave.hybrid.coherent.vignetting.vignetting_edges`: ``edges`` ``{(row in geo.todo, w):
+        VignettingEdge}``) may cost more than :data:`~raywave.hybrid.coherent.vignetting.VIGNETTING_WARN`."""
+        loud = {k: e for k, e in edges.items() if e.estimate >= VIGNETTING_WARN}
+        if not loud:
+            return
+        entries = []
+        for i, s_ in enumerate(geo.src):
+            own = geo.row[i if s_ is None else s_[0]]
+            for j, wl in enumerate(geo.wls):
+                e = loud.get((own, j))
+                if e is not None:
+                    entries.append((e.estimate, e.length, e.lost, e.surface,
+                                    f"field {[float(v) for v in geo.host_fields()[i]]} at {wl:g} µm"))
+        warnings.warn(VignettingEdgeWarning("", entries, "call"), stacklevel=4)
 
     def _warn_caustic(self, folded: list) -> None:
         """One :class:`~raywave.hybrid.coherent.CausticWarning` (pointing at the caller of :meth:`doe_fields`) for

@@ -15,6 +15,7 @@ from raywave.rays.pupil import RIM_INSET  # the footprint's rim a hair inside th
 from raywave.utils.errors import check_allocation
 from raywave.wave.grid import Grid
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning
+from raywave.hybrid.coherent.vignetting import vignetting_edges
 
 
 def _medium_index(lens, wavelength) -> float:
@@ -102,12 +103,17 @@ def _boxes(lens, out, z_doe: float, virtual: bool) -> list:
 
 
 def footprints_and_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, folds: bool = False,
-                             chief: tuple | None = None) -> tuple:
+                             chief: tuple | None = None, vignetting: bool = False) -> tuple:
     """``(footprints(...), doe_clippings(..., folds=folds))`` of the same F×W beams (default samplings) from one
     aimed trace of both ray sets (issue 43: one aiming, one paraxial set-up and one trace for the call instead of
-    two); ``chief``: these sources' :func:`~raywave.lens.sources.chief_aim` when the caller shares it."""
-    fx, fy = _footprint_pupil(15, 72, lens.device)
-    cx, cy, index = pupil_grid(48, lens.device)
+    two); ``chief``: these sources' :func:`~raywave.lens.sources.chief_aim` when the caller shares it.
+
+    ``vignetting``: also ``{(f, w): VignettingEdge}`` (a third item) of the sources whose stop grid or rim ring loses
+    rays before the DOE plane to a surface other than the stop
+    (:func:`~raywave.hybrid.coherent.vignetting.vignetting_edges`): which of them lose any is read with the clipping
+    (no host read of its own); only those are traced again."""
+    fx, fy = _footprint_pupil(15, _RIM_RAYS, lens.device)
+    cx, cy, index = pupil_grid(_STOP_GRID, lens.device)
     k = fx.numel()
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # the caller reports vignetting once
@@ -115,8 +121,23 @@ def footprints_and_clippings(lens, doe, fields, wavelengths, depth, z_doe: float
                                  aim="full", depth=depth, chief=chief)
         out = lens.trace(rays)
         boxes = _boxes(lens, out[..., :k], z_doe, False)
-        clips = _clippings(lens, doe, rays[..., k:], out[..., k:], z_doe, (index, 48) if folds else None, depth)
-    return boxes, clips
+        lost = None
+        if vignetting:  # any rim-ring or stop-grid ray lost before the DOE plane (read with the clipping)
+            v = out.valid
+            lost = (~v[..., :_RIM_RAYS]).any(-1) | (~v[..., k:]).any(-1)
+        clips = _clippings(lens, doe, rays[..., k:], out[..., k:], z_doe, (index, _STOP_GRID) if folds else None,
+                           depth, lost)
+    if not vignetting:
+        return boxes, clips
+    clips, lost = clips
+    suspect = [(i, j) for i, row in enumerate(lost) for j, on in enumerate(row) if on]
+    keep = torch.cat([torch.arange(_RIM_RAYS, device=lens.device), torch.arange(k, k + cx.numel(), device=lens.device)])
+    return boxes, clips, vignetting_edges(lens, rays[..., keep] if suspect else rays, suspect, (index, _STOP_GRID),
+                                          _RIM_RAYS)
+
+
+#: :func:`footprints_and_clippings`' rim ring (rays) and stop grid (cells a side)
+_RIM_RAYS, _STOP_GRID = 72, 48
 
 
 def inside_doe(doe, xy: torch.Tensor) -> torch.Tensor:
@@ -158,10 +179,11 @@ def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: i
         return _clippings(lens, doe, rays, out, z_doe, (index, n_grid) if folds else None, depth)
 
 
-def _clippings(lens, doe, rays, out, z_doe: float, folds, depth) -> list:
+def _clippings(lens, doe, rays, out, z_doe: float, folds, depth, extra: torch.Tensor | None = None):
     """:func:`doe_clippings`' nested list from the aimed rays ``rays`` (F, W, N) of the :func:`pupil_grid` and
     their trace ``out`` (apertures applied; no autograd); ``folds``: ``(index, n_grid)`` of that grid, or None;
-    ``depth`` the object distance (:func:`source_weight`)."""
+    ``depth`` the object distance (:func:`source_weight`). ``extra``: an (F, W) tensor read with the blocked
+    fractions (no host read of its own), returned as ``(list, extra [F][W] as bools)``."""
     n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
     at = out.propagate_to_z(z_doe, n)
     v = at.valid
@@ -172,7 +194,12 @@ def _clippings(lens, doe, rays, out, z_doe: float, folds, depth) -> list:
     half = torch.where(v[..., None], xy.abs(), torch.zeros((), dtype=xy.dtype, device=xy.device)).amax((-1, -2))
     lit = v.any(-1)
     folded = fold_fraction(xy, v, folds[0], folds[1]).cpu().tolist() if folds is not None else None
-    blocked, half, lit = blocked.cpu().tolist(), half.cpu().tolist(), lit.cpu().tolist()  # host values
+    if extra is not None:  # read with the blocked fractions
+        blocked, extra = torch.stack([blocked, extra.to(blocked.dtype)]).cpu().tolist()
+        extra = [[bool(e) for e in row] for row in extra]
+    else:
+        blocked = blocked.cpu().tolist()
+    half, lit = half.cpu().tolist(), lit.cpu().tolist()  # host values
     result = []
     for i in range(v.shape[0]):
         row = []
@@ -180,7 +207,7 @@ def _clippings(lens, doe, rays, out, z_doe: float, folds, depth) -> list:
             entry = (blocked[i][j], half[i][j]) if lit[i][j] else (0.0, 0.0)
             row.append(entry if folded is None else entry + (folded[i][j],))
         result.append(row)
-    return result
+    return result if extra is None else (result, extra)
 
 
 def _sim_grid(doe, oversample: int):

@@ -34,6 +34,47 @@ class StopEdgeWarning(UserWarning):
     infinity (the DOE-plane edge is used instead)."""
 
 
+class VignettingEdgeWarning(StopEdgeWarning):
+    """With the exit-pupil stop edge, an aperture other than the stop (and the DOE's) vignettes a source's beam: its
+    edge is cut sharply on the DOE plane without its own edge waves (only the stop's rim diffracts from its images),
+    so the default's accuracy figures (docs/ray-wave.md, 1e-4 – 1e-3 against the converged references) do not cover
+    that source (issue 47, class G). The estimate is a guard, not a figure: the vignetting edge's length across the
+    stop against the stop's rim, times the DOE-plane edge's cost for a whole rim
+    (:data:`~raywave.hybrid.coherent.vignetting.SHARP_EDGE_COST`).
+
+    Either a plain message, or built from ``entries``, one ``(estimate, edge length / stop rim, lost fraction of the
+    stop grid's rays, surface index, where)`` per source of one ``scope`` ("call", "map"); :meth:`merged` joins the
+    warnings of several calls (a map's) into one."""
+
+    def __init__(self, message: str = "", entries=None, scope: str = "call"):
+        self.entries = None if entries is None else list(entries)
+        self.scope = scope
+        super().__init__(message if self.entries is None else self._text())
+
+    def _text(self) -> str:
+        est, length, lost, surface, where = max(self.entries, key=lambda e: e[0])
+        surfaces = sorted({e[3] for e in self.entries})
+        if len(self.entries) == 1:
+            what = f"{where}: surface {surface}'s aperture (or the surface itself) vignettes the beam"
+        else:
+            kind = "field × wavelength × depth" if self.scope == "map" else "field × wavelength"
+            what = (f"{len(self.entries)} sources ({kind}) of this {self.scope}: surface(s) "
+                    f"{', '.join(str(j) for j in surfaces)} vignette their beams (most at {where}, surface {surface})")
+        return (f"{what}: {100 * lost:.3g} % of the stop grid's rays lost, a vignetting edge {length:.3g} × the stop's "
+                f"rim; its edge is cut sharply on the DOE plane without its own edge waves (only the stop's rim "
+                f"diffracts from its images), which may cost the PSF up to ~{est:.1g} (relative L1; a guard, not a "
+                "figure): the stop_edge default's accuracy figures do not cover vignetted sources. Open that aperture "
+                "(or use fields it does not vignette) for the modelled accuracy, or accept the estimate")
+
+    @classmethod
+    def merged(cls, warnings_: list, scope: str) -> "VignettingEdgeWarning":
+        """One warning for the sources of several built from entries."""
+        return cls("", [e for w in warnings_ for e in w.entries], scope)
+
+    def __reduce__(self):  # picklable (multi-process training) with its attributes
+        return (type(self), (str(self), self.entries, self.scope))
+
+
 @dataclass
 class FieldInfo:
     """How a DOE-plane field was built (diagnostics; nothing here enters the PSF's numbers).
