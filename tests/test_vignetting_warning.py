@@ -1,0 +1,136 @@
+"""The vignetting guard (issue 47, class G): with the exit-pupil stop edge (the default), an aperture other than the
+stop that vignettes a source's beam is cut on the DOE plane without its own edge waves; the engine says so
+(:class:`~raywave.hybrid.VignettingEdgeWarning`) with the vignetting's figures, checked here against the geometry of
+two circles (a window of radius R1 a distance T before the stop of radius RS: the collimated beam at angle θ meets
+the window shifted by T·tan θ)."""
+
+import math
+import warnings
+
+import pytest
+import torch
+
+from raywave.doe import BlankDOE
+from raywave.hybrid import HybridLens, StopEdgeWarning, VignettingEdgeWarning
+from raywave.hybrid.coherent.geometry import footprints_and_clippings
+from raywave.hybrid.coherent.vignetting import SHARP_EDGE_COST, VIGNETTING_WARN, edge_length
+from raywave.imaging import psf_map
+from raywave.lens.build import clip_at_semi_diameters, lens_from_spec
+
+R1, T, RS = 1.5, 10.0, 1.0
+
+
+def _spec(field_deg: float) -> dict:
+    return {
+        "format": "raywave-lens", "version": 1, "object": {"distance": "inf"},
+        "fields": {"type": "angle", "values": [0.0, field_deg]},
+        "wavelengths": {"values": [0.55], "primary": 0},
+        "surfaces": [
+            {"type": "standard", "radius": "inf", "thickness": T, "material": "air", "semi_diameter": R1},
+            {"type": "paraxial", "focal_length": 50.0, "thickness": 50.0, "material": "air",
+             "aperture": {"shape": "circle", "radius": RS}, "stop": True},
+        ],
+    }
+
+
+def _overlap(r1: float, r2: float, d: float) -> float:
+    """Area common to two discs of radii r1, r2 whose centres are d apart."""
+    if d >= r1 + r2:
+        return 0.0
+    if d <= abs(r1 - r2):
+        return math.pi * min(r1, r2) ** 2
+    a1 = r1 * r1 * math.acos((d * d + r1 * r1 - r2 * r2) / (2 * d * r1))
+    a2 = r2 * r2 * math.acos((d * d + r2 * r2 - r1 * r1) / (2 * d * r2))
+    return a1 + a2 - 0.5 * math.sqrt((-d + r1 + r2) * (d + r1 - r2) * (d - r1 + r2) * (d + r1 + r2))
+
+
+def _analytic(field_deg: float) -> tuple:
+    """(lost fraction of the stop's area, lost fraction of the stop's rim, the window's arc inside the stop / 2π) of
+    the window circle (radius R1) whose centre lies d = T tan θ from the beam's on the window (all in RS = 1)."""
+    d = T * math.tan(math.radians(field_deg))
+    lost = 1.0 - _overlap(R1, RS, d) / (math.pi * RS * RS)
+    c = (RS * RS + d * d - R1 * R1) / (2 * RS * d)  # a stop-rim point RS e_φ is outside the window where sin φ < c
+    rim = 0.5 + math.asin(max(-1.0, min(1.0, c))) / math.pi
+    beta = math.acos(max(-1.0, min(1.0, (d * d + R1 * R1 - RS * RS) / (2 * d * R1))))  # half angle at the window's centre
+    return lost, rim, R1 * 2 * beta / (2 * math.pi * RS)
+
+
+def _hybrid(field_deg: float, clip: bool = True, **kw) -> HybridLens:
+    spec = _spec(field_deg)
+    lens = lens_from_spec(clip_at_semi_diameters(spec) if clip else spec)
+    return HybridLens(lens, BlankDOE(1000, 4e-3), 5.0, sensor_pitch=4e-3, **kw)
+
+
+def _figures(hl, field_deg):
+    f = torch.tensor([[0.0, field_deg]], dtype=torch.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, _, edges = footprints_and_clippings(hl.optics, hl.doe, f, torch.tensor([0.55], dtype=torch.float64),
+                                               None, hl.doe_z(), vignetting=True)
+    return edges.get((0, 0))
+
+
+@pytest.mark.parametrize("field_deg", [3.5, 5.0, 9.0])
+def test_the_vignetting_figures_are_the_two_circles(field_deg):
+    """The lost fraction of the 48² stop grid's rays is the two discs' analytic non-overlap to the grid's sampling
+    (< 0.02), the rim ring's lost fraction the stop rim's arc outside the window (< 2/72), the surface the window
+    (0), and the edge's length (the larger of the grid's count and the lost rim's arc) that of the window's arc
+    inside the stop or the lost rim's to the grid's bias (≤ 30 %); the estimate that length × the sharp edge's
+    cost."""
+    lost, rim, arc = _analytic(field_deg)
+    e = _figures(_hybrid(field_deg), field_deg)
+    assert e.surface == 0
+    assert abs(e.lost - lost) < 0.02, (e.lost, lost)
+    assert abs(e.rim_lost - rim) < 2 / 72, (e.rim_lost, rim)
+    assert e.length >= e.rim_lost and 0.9 * min(rim, arc) <= e.length <= 1.3 * max(rim, arc), (e.length, rim, arc)
+    assert e.estimate == pytest.approx(e.length * SHARP_EDGE_COST)
+
+
+@pytest.mark.parametrize("c", [0.0, 0.5, -0.6])
+def test_edge_length_of_a_chord_is_its_length(c):
+    """A straight cut x = c across the stop (48² grid): the Cauchy–Crofton count reads the chord 2√(1 − c²) within
+    its orientation's bias (π/4 of it along a grid axis, √2·π/4 at 45°: the count's average over directions is the
+    length)."""
+    n = 48
+    g = (torch.arange(n, dtype=torch.float64) + 0.5) / n * 2 - 1
+    gx, gy = torch.meshgrid(g, g, indexing="xy")
+    state = torch.where(gx**2 + gy**2 <= 1, torch.where(gx < c, 2, 1), 0)
+    chord = 2 * math.sqrt(1 - c * c)
+    got = float(edge_length(state, n))
+    assert chord * math.pi / 4 * 0.95 < got < chord * math.pi / 4 * 1.05, (got, chord)
+    diag = torch.where(gx**2 + gy**2 <= 1, torch.where(gx + gy < c * math.sqrt(2), 2, 1), 0)  # 45°: √2 × π/4 = 1.11
+    assert chord * 1.0 < float(edge_length(diag, n)) < chord * math.sqrt(2) * math.pi / 4 * 1.05
+
+
+def test_a_vignetted_source_warns_once_naming_it_and_the_surface():
+    hl = _hybrid(5.0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        hl.psf_result([[0.0, 0.0], [0.0, 5.0]], 0.55, ks=16)
+    vig = [w.message for w in caught if isinstance(w.message, VignettingEdgeWarning)]
+    assert len(vig) == 1 and isinstance(vig[0], StopEdgeWarning)
+    (est, length, lost, surface, where), = vig[0].entries  # the on-axis source is not vignetted
+    assert surface == 0 and "field [0.0, 5.0] at 0.55 µm" in where and est >= VIGNETTING_WARN
+    text = str(vig[0])
+    assert "surface 0" in text and "without its own edge waves" in text and "Open that aperture" in text
+
+
+def test_no_warning_without_vignetting_nor_with_the_doe_plane_edge():
+    """The same lens without the window's aperture, or on axis (the window holds the beam), or with
+    ``stop_edge="doe"`` (every edge is cut on the DOE plane there, the stop's too): no warning."""
+    for hl, fld in ((_hybrid(5.0, clip=False), 5.0), (_hybrid(0.0), 0.0), (_hybrid(5.0, stop_edge="doe"), 5.0)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            hl.psf_result([0.0, fld], 0.55, ks=16)
+        assert not [w for w in caught if isinstance(w.message, VignettingEdgeWarning)], (hl.stop_edge, fld)
+
+
+def test_a_map_merges_its_calls_warnings_into_one():
+    hl = _hybrid(7.0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")  # rows at about -6.8°, 0 and 6.8°, one call each
+        psf_map(hl, (3, 1), wavelengths=(0.55, 0.6), ks=16, batch=1, sensor_size=(1.0, 12.0))
+    vig = [w.message for w in caught if isinstance(w.message, VignettingEdgeWarning)]
+    assert len(vig) == 1 and vig[0].scope == "map"
+    assert len(vig[0].entries) >= 4  # the two off-axis rows × two wavelengths
+    assert "sources (field × wavelength × depth) of this map" in str(vig[0])
