@@ -5,6 +5,7 @@ two circles (a window of radius R1 a distance T before the stop of radius RS: th
 the window shifted by T·tan θ)."""
 
 import math
+from pathlib import Path
 import warnings
 
 import pytest
@@ -134,3 +135,48 @@ def test_a_map_merges_its_calls_warnings_into_one():
     assert len(vig) == 1 and vig[0].scope == "map"
     assert len(vig[0].entries) >= 4  # the two off-axis rows × two wavelengths
     assert "sources (field × wavelength × depth) of this map" in str(vig[0])
+
+
+JP = Path(__file__).resolve().parent / "data" / "opticsdatabase" / "Telecentric Jps48-25673.zmx"
+
+
+def _jp(frac: float):
+    from raywave.assembly.build import load_hybrid
+    from raywave.lens.build import load_lens
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        top = max(abs(float(f)) for f in load_lens(JP).fields)
+        return load_hybrid(JP, fields=[[0.0, frac * top], [0.0, 0.0]], field_type="angle"), frac * top
+
+
+def test_the_telecentric_jp_lens_is_vignetted_at_full_field_only():
+    """Issue 47 class G's lens (JP S48-25673): on axis and at 0.7 field every ray passes; at full field (11.3°) the
+    apertures of surfaces 7 – 9 (radii 16, 20, 20 mm) lose 14.6 % of the stop grid's rays (surface 8 the most) and
+    32 % of its rim, where the default read 7.04e-3 against an unconverged reference (its levels wander ~1e-3)."""
+    hl, fy = _jp(1.0)  # (the figures do not depend on the DOE the lens file's fields size)
+    for frac in (0.0, 0.7):
+        assert _figures(hl, frac * fy) is None
+    f = torch.tensor([[0.0, fy]], dtype=torch.float64)
+    wl = hl.lens.primary_wavelength
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, _, edges = footprints_and_clippings(hl.optics, hl.doe, f, torch.tensor([wl], dtype=torch.float64), None,
+                                               hl.doe_z(), vignetting=True)
+    e = edges[(0, 0)]
+    assert e.surface == 8 and abs(e.lost - 0.146) < 0.01 and abs(e.rim_lost - 23 / 72) < 1e-9
+    assert e.estimate >= VIGNETTING_WARN
+
+
+@pytest.mark.slow
+def test_the_telecentric_jp_lens_psf_at_full_field_warns():
+    """The default PSF of the JP lens at full field (~35 s) carries the warning; at 0.7 field (~45 s) none."""
+    for frac, warns in ((1.0, True), (0.7, False)):
+        hl, fy = _jp(frac)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            hl.psf_result([0.0, fy], hl.lens.primary_wavelength, ks=32)
+        vig = [w.message for w in caught if isinstance(w.message, VignettingEdgeWarning)]
+        assert bool(vig) == warns, frac
+        if warns:
+            assert vig[0].entries[0][3] == 8
