@@ -36,7 +36,7 @@ def figures(hl, fld, wl, depth=None) -> dict:
         out.update(vignetted=False, estimate=0.0)
     else:
         out.update(vignetted=True, surface=e.surface, lost=e.lost, rim_lost=e.rim_lost, length=e.length,
-                   estimate=e.estimate)
+                   clearance_zones=e.clearance, estimate=e.estimate)
     return out
 
 
