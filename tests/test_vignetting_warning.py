@@ -127,10 +127,25 @@ def test_a_vignetted_source_warns_once_naming_it_and_the_surface():
         hl.psf_result([[0.0, 0.0], [0.0, 5.0]], 0.55, ks=16)
     vig = [w.message for w in caught if isinstance(w.message, VignettingEdgeWarning)]
     assert len(vig) == 1 and isinstance(vig[0], StopEdgeWarning)
-    (est, length, lost, surface, where), = vig[0].entries  # the on-axis source is not vignetted
-    assert surface == 0 and "field [0.0, 5.0] at 0.55 µm" in where and est >= VIGNETTING_WARN
+    (est, length, lost, surface, where, clear), = vig[0].entries  # the on-axis source is not vignetted
+    assert surface == 0 and "field [0.0, 5.0] at 0.55 µm" in where and est >= VIGNETTING_WARN and clear <= 0
+    assert [w.filename for w in caught if isinstance(w.message, VignettingEdgeWarning)] == [__file__]  # the caller
     text = str(vig[0])
     assert "surface 0" in text and "without its own edge waves" in text and "Open that aperture" in text
+
+
+def test_a_near_aperture_warns_that_it_clips_the_edge_waves():
+    """The window 0.05 mm (0.67 zones) clear of the beam: no ray lost, the warning names the clearance; doe_fields
+    warns at its own caller too."""
+    theta = math.degrees(math.atan((R1 - RS - 0.05) / T))
+    hl = _hybrid(theta)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        hl.doe_fields([0.0, theta], 0.55)
+    vig = [w for w in caught if isinstance(w.message, VignettingEdgeWarning)]
+    assert len(vig) == 1 and vig[0].filename == __file__
+    text = str(vig[0].message)
+    assert "passes 0.67 Fresnel zones outside the beam's rim" in text and "clips the stop edge's waves" in text
 
 
 def test_no_warning_without_vignetting_nor_with_the_doe_plane_edge():

@@ -115,7 +115,9 @@ class _CallGeometry:
     ``crop_reach`` (mm) the PSF crop's half-diagonal where the call knows it (:meth:`HybridLens.psf_result`; 0:
     :meth:`HybridLens.doe_fields`), for the exact edge's lattice (:class:`~raywave.hybrid.coherent.settings.
     FieldSettings` ``crop_reach``) and the adaptive step's error estimates; ``estimates`` None, or ``[R][W]`` those
-    estimates (:func:`~raywave.hybrid.coherent.exit_pupil.fresnel_step_estimates`; None where none was made)."""
+    estimates (:func:`~raywave.hybrid.coherent.exit_pupil.fresnel_step_estimates`; None where none was made);
+    ``vignetting`` (the exit-pupil edge) ``{(R, W): VignettingEdge}`` of the built sources that an aperture other
+    than the stop cuts or nears (:func:`~raywave.hybrid.coherent.vignetting.vignetting_edges`)."""
 
     f: torch.Tensor
     wls: list
@@ -132,6 +134,7 @@ class _CallGeometry:
     aim: tuple | None = None
     crop_reach: float = 0.0
     estimates: list | None = None
+    vignetting: dict | None = None
 
     def host_fields(self) -> list:
         """The fields ``f`` as host values ``[F][2]`` (one read for the call, on first use: the warnings' text)."""
@@ -694,7 +697,9 @@ class HybridLens(nn.Module):
         wls = self.wavelength_list(wavelengths)
         if mode == "accurate":
             geo = self._accurate_geometry(f, wls, depth, float(crop_reach))
-            return self._finish_fields(self._accurate_group(geo, list(range(f.shape[0])), rays or 64, check), geo)
+            out = self._finish_fields(self._accurate_group(geo, list(range(f.shape[0])), rays or 64, check), geo)
+            self._warn_vignetting(geo, stacklevel=2)
+            return out
         optics = self.optics
         z_doe, z_sen = self.doe_z(), self.sensor_z()
         cd, cs, _ = _quiet_chief_rays(optics, f, wls, depth, z_doe, z_sen)
@@ -745,7 +750,7 @@ class HybridLens(nn.Module):
         geo.boxes = [[False if b is None else b for b in row] for row in boxes]
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
         if z_xps is not None:
-            self._warn_vignetting(geo, vig[0])
+            geo.vignetting = vig[0]  # warned by the caller (doe_fields, psf_result), at its own caller
             rims = self.edge_rim_images(ft, wls, depth)  # one trace for every source and wavelength
             if self._rim_images is not None:
                 rims = self._rim_images(optics, ft, wls, depth, rims)
@@ -987,12 +992,14 @@ class HybridLens(nn.Module):
             pending[1].extend(folded)
         return out
 
-    def _warn_vignetting(self, geo: "_CallGeometry", edges: dict) -> None:
-        """One :class:`~raywave.hybrid.coherent.VignettingEdgeWarning` for the call's sources (a mirror image's
-        its source's) whose vignetting by a surface other than the stop
-        (:func:`~raywave.hybrid.coherent.vignetting.vignetting_edges`: ``edges`` ``{(row in geo.todo, w):
-        VignettingEdge}``) may cost more than :data:`~raywave.hybrid.coherent.vignetting.VIGNETTING_WARN`."""
-        loud = {k: e for k, e in edges.items() if e.estimate >= VIGNETTING_WARN}
+    def _warn_vignetting(self, geo: "_CallGeometry", stacklevel: int) -> None:
+        """One :class:`~raywave.hybrid.coherent.VignettingEdgeWarning` (``stacklevel`` 1: pointing at the method that
+        calls this; 2: at its caller, as :meth:`doe_fields` passes; 3: one further, :meth:`_accurate_psfs`) for the call's
+        sources (a mirror image's its source's) whose vignetting by a surface other than the stop, or whose rim's
+        nearness to one (:func:`~raywave.hybrid.coherent.vignetting.vignetting_edges`: ``geo.vignetting`` ``{(row in
+        geo.todo, w): VignettingEdge}``), may cost more than :data:`~raywave.hybrid.coherent.vignetting.
+        VIGNETTING_WARN`."""
+        loud = {k: e for k, e in (geo.vignetting or {}).items() if e.estimate >= VIGNETTING_WARN}
         if not loud:
             return
         entries = []
@@ -1002,8 +1009,8 @@ class HybridLens(nn.Module):
                 e = loud.get((own, j))
                 if e is not None:
                     entries.append((e.estimate, e.length, e.lost, e.surface,
-                                    f"field {[float(v) for v in geo.host_fields()[i]]} at {wl:g} µm"))
-        warnings.warn(VignettingEdgeWarning("", entries, "call"), stacklevel=4)
+                                    f"field {[float(v) for v in geo.host_fields()[i]]} at {wl:g} µm", e.clearance))
+        warnings.warn(VignettingEdgeWarning("", entries, "call"), stacklevel=stacklevel + 1)
 
     def _warn_caustic(self, folded: list) -> None:
         """One :class:`~raywave.hybrid.coherent.CausticWarning` (pointing at the caller of :meth:`doe_fields`) for
@@ -1187,6 +1194,7 @@ class HybridLens(nn.Module):
                 del fds
         self._warn_clipped(pending[0])
         self._warn_caustic(pending[1])
+        self._warn_vignetting(geo, stacklevel=3)
         if len(parts) == 1 and order == list(range(f.shape[0])):
             psf, center, outside, nr = parts[0]
         else:

@@ -43,8 +43,10 @@ class VignettingEdgeWarning(StopEdgeWarning):
     (:data:`~raywave.hybrid.coherent.vignetting.SHARP_EDGE_COST`).
 
     Either a plain message, or built from ``entries``, one ``(estimate, edge length / stop rim, lost fraction of the
-    stop grid's rays, surface index, where)`` per source of one ``scope`` ("call", "map"); :meth:`merged` joins the
-    warnings of several calls (a map's) into one."""
+    stop grid's rays, surface index, where, clearance in Fresnel zones)`` per source of one ``scope`` ("call",
+    "map"); :meth:`merged` joins the warnings of several calls (a map's) into one. An aperture that loses no ray but
+    passes within ~2 Fresnel zones of the beam's rim warns too: it clips the stop edge's waves, which the engine
+    leaves out as well."""
 
     def __init__(self, message: str = "", entries=None, scope: str = "call"):
         self.entries = None if entries is None else list(entries)
@@ -52,19 +54,25 @@ class VignettingEdgeWarning(StopEdgeWarning):
         super().__init__(message if self.entries is None else self._text())
 
     def _text(self) -> str:
-        est, length, lost, surface, where = max(self.entries, key=lambda e: e[0])
+        est, length, lost, surface, where, clear = max(self.entries, key=lambda e: e[0])
         surfaces = sorted({e[3] for e in self.entries})
+        if length > 0 or lost > 0:
+            how = (f"surface {surface}'s aperture (or the surface itself) vignettes the beam: {100 * lost:.3g} % of "
+                   f"the stop grid's rays lost, a vignetting edge {length:.3g} × the stop's rim; that edge is cut "
+                   "sharply on the DOE plane without its own edge waves (only the stop's rim diffracts from its "
+                   "images)")
+        else:
+            how = (f"surface {surface}'s aperture passes {clear:.2g} Fresnel zones outside the beam's rim: it clips "
+                   "the stop edge's waves there, which the engine leaves out")
         if len(self.entries) == 1:
-            what = f"{where}: surface {surface}'s aperture (or the surface itself) vignettes the beam"
+            what = f"{where}: {how}"
         else:
             kind = "field × wavelength × depth" if self.scope == "map" else "field × wavelength"
-            what = (f"{len(self.entries)} sources ({kind}) of this {self.scope}: surface(s) "
-                    f"{', '.join(str(j) for j in surfaces)} vignette their beams (most at {where}, surface {surface})")
-        return (f"{what}: {100 * lost:.3g} % of the stop grid's rays lost, a vignetting edge {length:.3g} × the stop's "
-                f"rim; its edge is cut sharply on the DOE plane without its own edge waves (only the stop's rim "
-                f"diffracts from its images), which may cost the PSF up to ~{est:.1g} (relative L1; a guard, not a "
-                "figure): the stop_edge default's accuracy figures do not cover vignetted sources. Open that aperture "
-                "(or use fields it does not vignette) for the modelled accuracy, or accept the estimate")
+            what = (f"{len(self.entries)} sources ({kind}) of this {self.scope} near or cut by the apertures of "
+                    f"surface(s) {', '.join(str(j) for j in surfaces)}; most at {where}: {how}")
+        return (f"{what}. This may cost the PSF up to ~{est:.1g} (relative L1; a guard, not a figure): the stop_edge "
+                "default's accuracy figures do not cover these sources. Open that aperture (or use fields it does not "
+                "reach) for the modelled accuracy, or accept the estimate")
 
     @classmethod
     def merged(cls, warnings_: list, scope: str) -> "VignettingEdgeWarning":
