@@ -32,13 +32,15 @@ import torch
 from torch import nn
 
 from raywave.doe import DOE
-from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, accurate_field_steps, chief_rays,
-                                     entrance_pupil, exit_pupil_field_steps, faithful_field, run_batched)
+from raywave.hybrid.coherent import (CausticWarning, DOEField, StopEdgeWarning, VignettingEdgeWarning,
+                                     accurate_field_steps, chief_rays, entrance_pupil, exit_pupil_field_steps,
+                                     faithful_field, run_batched)
 from raywave.hybrid.coherent.exit_pupil import (adaptive_edge_steps, fresnel_step_estimates, fresnel_step_holds,
                                                 go_phase_errors, obscuration_fraction)
 from raywave.hybrid.coherent.geometry import _medium_index, footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import EXIT_PUPIL_FAR, edge_reach_many, stop_rim_images_all
 from raywave.hybrid.coherent.record import EnvelopeRow, resolve_band_infos
+from raywave.hybrid.coherent.vignetting import VIGNETTING_WARN
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, accelerator_cap, ceil_samples,
                                     plan_groups, propagate_group)
@@ -113,7 +115,9 @@ class _CallGeometry:
     ``crop_reach`` (mm) the PSF crop's half-diagonal where the call knows it (:meth:`HybridLens.psf_result`; 0:
     :meth:`HybridLens.doe_fields`), for the exact edge's lattice (:class:`~raywave.hybrid.coherent.settings.
     FieldSettings` ``crop_reach``) and the adaptive step's error estimates; ``estimates`` None, or ``[R][W]`` those
-    estimates (:func:`~raywave.hybrid.coherent.exit_pupil.fresnel_step_estimates`; None where none was made)."""
+    estimates (:func:`~raywave.hybrid.coherent.exit_pupil.fresnel_step_estimates`; None where none was made);
+    ``vignetting`` (the exit-pupil edge) ``{(R, W): VignettingEdge}`` of the built sources that an aperture other
+    than the stop cuts or nears (:func:`~raywave.hybrid.coherent.vignetting.vignetting_edges`)."""
 
     f: torch.Tensor
     wls: list
@@ -130,6 +134,7 @@ class _CallGeometry:
     aim: tuple | None = None
     crop_reach: float = 0.0
     estimates: list | None = None
+    vignetting: dict | None = None
 
     def host_fields(self) -> list:
         """The fields ``f`` as host values ``[F][2]`` (one read for the call, on first use: the warnings' text)."""
@@ -692,7 +697,9 @@ class HybridLens(nn.Module):
         wls = self.wavelength_list(wavelengths)
         if mode == "accurate":
             geo = self._accurate_geometry(f, wls, depth, float(crop_reach))
-            return self._finish_fields(self._accurate_group(geo, list(range(f.shape[0])), rays or 64, check), geo)
+            out = self._finish_fields(self._accurate_group(geo, list(range(f.shape[0])), rays or 64, check), geo)
+            self._warn_vignetting(geo, stacklevel=2)
+            return out
         optics = self.optics
         z_doe, z_sen = self.doe_z(), self.sensor_z()
         cd, cs, _ = _quiet_chief_rays(optics, f, wls, depth, z_doe, z_sen)
@@ -737,12 +744,13 @@ class HybridLens(nn.Module):
         with warnings.catch_warnings():  # vignetting is reported once, by the PSF (as footprints_and_clippings does)
             warnings.simplefilter("ignore", VignettingWarning)
             geo.aim = chief_aim(optics, ft, wls_t, depth=depth)
-        boxes, geo.clips = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True,
-                                                    chief=geo.aim)
+        z_xps = self._exit_pupil_planes(wls)
+        boxes, geo.clips, *vig = footprints_and_clippings(optics, self.doe, ft, wls_t, depth, z_doe, folds=True,
+                                                          chief=geo.aim, vignetting=z_xps is not None)
         geo.boxes = [[False if b is None else b for b in row] for row in boxes]
         geo.entrance = entrance_pupil(optics)  # one lens: once for every field
-        z_xps = self._exit_pupil_planes(wls)
         if z_xps is not None:
+            geo.vignetting = vig[0]  # warned by the caller (doe_fields, psf_result), at its own caller
             rims = self.edge_rim_images(ft, wls, depth)  # one trace for every source and wavelength
             if self._rim_images is not None:
                 rims = self._rim_images(optics, ft, wls, depth, rims)
@@ -984,6 +992,26 @@ class HybridLens(nn.Module):
             pending[1].extend(folded)
         return out
 
+    def _warn_vignetting(self, geo: "_CallGeometry", stacklevel: int) -> None:
+        """One :class:`~raywave.hybrid.coherent.VignettingEdgeWarning` (``stacklevel`` 1: pointing at the method that
+        calls this; 2: at its caller, as :meth:`doe_fields` passes; 3: one further, :meth:`_accurate_psfs`) for the call's
+        sources (a mirror image's its source's) whose vignetting by a surface other than the stop, or whose rim's
+        nearness to one (:func:`~raywave.hybrid.coherent.vignetting.vignetting_edges`: ``geo.vignetting`` ``{(row in
+        geo.todo, w): VignettingEdge}``), may cost more than :data:`~raywave.hybrid.coherent.vignetting.
+        VIGNETTING_WARN`."""
+        loud = {k: e for k, e in (geo.vignetting or {}).items() if e.estimate >= VIGNETTING_WARN}
+        if not loud:
+            return
+        entries = []
+        for i, s_ in enumerate(geo.src):
+            own = geo.row[i if s_ is None else s_[0]]
+            for j, wl in enumerate(geo.wls):
+                e = loud.get((own, j))
+                if e is not None:
+                    entries.append((e.estimate, e.length, e.lost, e.surface,
+                                    f"field {[float(v) for v in geo.host_fields()[i]]} at {wl:g} µm", e.clearance))
+        warnings.warn(VignettingEdgeWarning("", entries, "call"), stacklevel=stacklevel + 1)
+
     def _warn_caustic(self, folded: list) -> None:
         """One :class:`~raywave.hybrid.coherent.CausticWarning` (pointing at the caller of :meth:`doe_fields`) for
         the sources whose rays cross before the DOE plane: ``folded`` a list of ``(fraction of the stop grid's cells
@@ -1166,6 +1194,7 @@ class HybridLens(nn.Module):
                 del fds
         self._warn_clipped(pending[0])
         self._warn_caustic(pending[1])
+        self._warn_vignetting(geo, stacklevel=3)
         if len(parts) == 1 and order == list(range(f.shape[0])):
             psf, center, outside, nr = parts[0]
         else:

@@ -586,23 +586,34 @@ def _progress_disable(progress: bool | None, n_psfs: int):
 
 @contextlib.contextmanager
 def _one_aperture_warning():
-    """Merge the :class:`~raywave.hybrid.DOEApertureWarning` of each model call inside (one per chunk and depth)
-    into one for the whole map, issued at the caller of :func:`psf_map`. Every other warning meets the caller's
-    filters as it happens (an "error" filter still stops the map at once) and is shown as usual."""
+    """Merge the :class:`~raywave.hybrid.DOEApertureWarning` and :class:`~raywave.hybrid.VignettingEdgeWarning` of
+    each model call inside (one per chunk and depth) into one a kind for the whole map, issued at the caller of
+    :func:`psf_map`. Every other warning meets the caller's filters as it happens (an "error" filter still stops the
+    map at once) and is shown as usual."""
+    from raywave.hybrid.coherent.record import VignettingEdgeWarning
     from raywave.hybrid.hybrid_lens import DOEApertureWarning
 
+    merged = (DOEApertureWarning, VignettingEdgeWarning)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", DOEApertureWarning)  # collected here, filtered once merged
+        warnings.simplefilter("always", VignettingEdgeWarning)
         yield
-    aperture = [w.message for w in caught if isinstance(w.message, DOEApertureWarning) and w.message.entries]
+
+    def mergeable(w):
+        return isinstance(w.message, merged) and w.message.entries
+
     for w in caught:  # the others passed the caller's filters already: show them as they were
-        if not (isinstance(w.message, DOEApertureWarning) and w.message.entries):
+        if not mergeable(w):
             warnings.showwarning(w.message, w.category, w.filename, w.lineno, w.file, w.line)
+    aperture = [w.message for w in caught if mergeable(w) and isinstance(w.message, DOEApertureWarning)]
     for kind in ("beam", "band"):  # one warning per kind: the beam's clipping, the edge ripples'
         same = [w for w in aperture if getattr(w, "kind", "beam") == kind]
         if same:
             # stacklevel: this generator → contextlib's __exit__ → psf_map → psf_map's caller
             warnings.warn(DOEApertureWarning.merged(same, "map"), stacklevel=4)
+    vignetted = [w.message for w in caught if mergeable(w) and isinstance(w.message, VignettingEdgeWarning)]
+    if vignetted:  # the sources whose vignetting edge is cut without its waves: one warning for the map
+        warnings.warn(VignettingEdgeWarning.merged(vignetted, "map"), stacklevel=4)
 
 
 def _model_device(model) -> torch.device:

@@ -227,6 +227,8 @@ def _kind(warning) -> str | None:
     (keyed by their message with the numbers masked)."""
     if getattr(warning, "entries", None) is not None and getattr(warning, "size", None) is not None:
         return f"DOE aperture {tuple(warning.size)}"
+    if getattr(warning, "entries", None) is not None and type(warning).__name__ == "VignettingEdgeWarning":
+        return "vignetting edge"
     return None
 
 

@@ -41,7 +41,7 @@ are read where they are used (e.g. ``coherent.exit_pupil.AUTO_ASM_SAMPLES``).
 from __future__ import annotations
 
 from raywave.hybrid.coherent.record import (CausticWarning, DOEField, FieldInfo, SamplingWarning,  # noqa: F401
-                                            StopEdgeWarning, _NEWTON_ITERS, _NEWTON_TOL)
+                                            StopEdgeWarning, VignettingEdgeWarning, _NEWTON_ITERS, _NEWTON_TOL)
 from raywave.hybrid.coherent.geometry import (WINDOW_BYTES, _check_beyond_last_surface, _common_setup,
                                               _crop_to_lit, _empty_field, _footprint, _medium_index, _sim_grid,
                                               _warn_nyquist, check_window_memory, chief_rays, lit_box,
@@ -60,6 +60,7 @@ from raywave.hybrid.coherent.exit_pupil import (AUTO_ASM_SAMPLES, MAX_XP_SAMPLES
 from raywave.hybrid.coherent.faithful import (faithful_field)  # noqa: F401
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source  # noqa: F401
 
-__all__ = ["CausticWarning", "DOEField", "FieldInfo", "SamplingWarning", "StopEdgeWarning", "accurate_field",
+__all__ = ["CausticWarning", "DOEField", "FieldInfo", "SamplingWarning", "StopEdgeWarning", "VignettingEdgeWarning",
+           "accurate_field",
            "chief_rays", "doe_clipping", "doe_clippings",
            "exit_pupil_field", "footprints", "faithful_field", "ChiefRays", "FieldSettings", "Known", "Planes", "Source"]

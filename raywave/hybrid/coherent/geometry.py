@@ -16,6 +16,7 @@ from raywave.utils.errors import check_allocation
 from raywave.wave.grid import Grid
 from raywave.wave.propagation.transfer import WindowSource, _geometry as _window_geometry
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning
+from raywave.hybrid.coherent.vignetting import NEAR_ZONES, aperture_zones, rim_clearance, vignetting_edges
 
 
 def _medium_index(lens, wavelength) -> float:
@@ -103,12 +104,19 @@ def _boxes(lens, out, z_doe: float, virtual: bool) -> list:
 
 
 def footprints_and_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, folds: bool = False,
-                             chief: tuple | None = None) -> tuple:
+                             chief: tuple | None = None, vignetting: bool = False) -> tuple:
     """``(footprints(...), doe_clippings(..., folds=folds))`` of the same F×W beams (default samplings) from one
     aimed trace of both ray sets (issue 43: one aiming, one paraxial set-up and one trace for the call instead of
-    two); ``chief``: these sources' :func:`~raywave.lens.sources.chief_aim` when the caller shares it."""
-    fx, fy = _footprint_pupil(15, 72, lens.device)
-    cx, cy, index = pupil_grid(48, lens.device)
+    two); ``chief``: these sources' :func:`~raywave.lens.sources.chief_aim` when the caller shares it.
+
+    ``vignetting``: also ``{(f, w): VignettingEdge}`` (a third item) of the sources whose stop grid or rim ring loses
+    rays before the DOE plane to a surface other than the stop, or whose rim passes within
+    :data:`~raywave.hybrid.coherent.vignetting.NEAR_ZONES` Fresnel zones of such a surface's aperture
+    (:func:`~raywave.hybrid.coherent.vignetting.vignetting_edges`): which of them do is read with the clipping (no host
+    read of its own; the rim's clearance from one recorded trace of the rim ring, only on a lens with apertures besides
+    the stop); only those are traced again."""
+    fx, fy = _footprint_pupil(15, _RIM_RAYS, lens.device)
+    cx, cy, index = pupil_grid(_STOP_GRID, lens.device)
     k = fx.numel()
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # the caller reports vignetting once
@@ -116,8 +124,33 @@ def footprints_and_clippings(lens, doe, fields, wavelengths, depth, z_doe: float
                                  aim="full", depth=depth, chief=chief)
         out = lens.trace(rays)
         boxes = _boxes(lens, out[..., :k], z_doe, False)
-        clips = _clippings(lens, doe, rays[..., k:], out[..., k:], z_doe, (index, 48) if folds else None, depth)
-    return boxes, clips
+        extra = zones = None
+        if vignetting:  # any rim-ring or stop-grid ray lost before the DOE plane, and (where the lens has apertures
+            # besides the stop) the rim's clearance inside them: read with the clipping
+            v = out.valid
+            extra = ((~v[..., :_RIM_RAYS]).any(-1) | (~v[..., k:]).any(-1)).to(torch.float64)[None]
+            zones = aperture_zones(lens, wavelengths)
+            if zones is not None:
+                clear, surf = rim_clearance(lens, rays[..., :_RIM_RAYS], zones)
+                extra = torch.cat([extra, clear[None], surf.to(torch.float64)[None]])
+        clips = _clippings(lens, doe, rays[..., k:], out[..., k:], z_doe, (index, _STOP_GRID) if folds else None,
+                           depth, extra)
+    if not vignetting:
+        return boxes, clips
+    clips, extra = clips
+    near = {}
+    if zones is not None:
+        near = {(i, j): (extra[1][i][j], int(extra[2][i][j])) for i in range(len(extra[0]))
+                for j in range(len(extra[0][i]))}
+    suspect = [(i, j) for i, row in enumerate(extra[0]) for j, on in enumerate(row)
+               if on or near.get((i, j), (math.inf,))[0] < NEAR_ZONES]
+    keep = torch.cat([torch.arange(_RIM_RAYS, device=lens.device), torch.arange(k, k + cx.numel(), device=lens.device)])
+    return boxes, clips, vignetting_edges(lens, rays[..., keep] if suspect else rays, suspect, (index, _STOP_GRID),
+                                          _RIM_RAYS, near)
+
+
+#: :func:`footprints_and_clippings`' rim ring (rays) and stop grid (cells a side)
+_RIM_RAYS, _STOP_GRID = 72, 48
 
 
 def inside_doe(doe, xy: torch.Tensor) -> torch.Tensor:
@@ -159,10 +192,11 @@ def doe_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, n_grid: i
         return _clippings(lens, doe, rays, out, z_doe, (index, n_grid) if folds else None, depth)
 
 
-def _clippings(lens, doe, rays, out, z_doe: float, folds, depth) -> list:
+def _clippings(lens, doe, rays, out, z_doe: float, folds, depth, extra: torch.Tensor | None = None):
     """:func:`doe_clippings`' nested list from the aimed rays ``rays`` (F, W, N) of the :func:`pupil_grid` and
     their trace ``out`` (apertures applied; no autograd); ``folds``: ``(index, n_grid)`` of that grid, or None;
-    ``depth`` the object distance (:func:`source_weight`)."""
+    ``depth`` the object distance (:func:`source_weight`). ``extra``: a (K, F, W) tensor read with the blocked
+    fractions (no host read of its own), returned as ``(list, extra as K nested lists [F][W])``."""
     n = lens.surfaces[-1].material.n(out.wavelength).to(out.dtype)
     at = out.propagate_to_z(z_doe, n)
     v = at.valid
@@ -173,7 +207,11 @@ def _clippings(lens, doe, rays, out, z_doe: float, folds, depth) -> list:
     half = torch.where(v[..., None], xy.abs(), torch.zeros((), dtype=xy.dtype, device=xy.device)).amax((-1, -2))
     lit = v.any(-1)
     folded = fold_fraction(xy, v, folds[0], folds[1]).cpu().tolist() if folds is not None else None
-    blocked, half, lit = blocked.cpu().tolist(), half.cpu().tolist(), lit.cpu().tolist()  # host values
+    if extra is not None:  # read with the blocked fractions
+        blocked, *extra = torch.cat([blocked[None], extra.to(blocked.dtype)]).cpu().tolist()
+    else:
+        blocked = blocked.cpu().tolist()
+    half, lit = half.cpu().tolist(), lit.cpu().tolist()  # host values
     result = []
     for i in range(v.shape[0]):
         row = []
@@ -181,7 +219,7 @@ def _clippings(lens, doe, rays, out, z_doe: float, folds, depth) -> list:
             entry = (blocked[i][j], half[i][j]) if lit[i][j] else (0.0, 0.0)
             row.append(entry if folded is None else entry + (folded[i][j],))
         result.append(row)
-    return result
+    return result if extra is None else (result, extra)
 
 
 def _sim_grid(doe, oversample: int):

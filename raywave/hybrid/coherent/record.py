@@ -34,6 +34,55 @@ class StopEdgeWarning(UserWarning):
     infinity (the DOE-plane edge is used instead)."""
 
 
+class VignettingEdgeWarning(StopEdgeWarning):
+    """With the exit-pupil stop edge, an aperture other than the stop (and the DOE's) vignettes a source's beam: its
+    edge is cut sharply on the DOE plane without its own edge waves (only the stop's rim diffracts from its images),
+    so the default's accuracy figures (docs/ray-wave.md, 1e-4 – 1e-3 against the converged references) do not cover
+    that source (issue 47, class G). The estimate is a guard, not a figure: the vignetting edge's length across the
+    stop against the stop's rim, times the DOE-plane edge's cost for a whole rim
+    (:data:`~raywave.hybrid.coherent.vignetting.SHARP_EDGE_COST`).
+
+    Either a plain message, or built from ``entries``, one ``(estimate, edge length / stop rim, lost fraction of the
+    stop grid's rays, surface index, where, clearance in Fresnel zones)`` per source of one ``scope`` ("call",
+    "map"); :meth:`merged` joins the warnings of several calls (a map's) into one. An aperture that loses no ray but
+    passes within ~2 Fresnel zones of the beam's rim warns too: it clips the stop edge's waves, which the engine
+    leaves out as well."""
+
+    def __init__(self, message: str = "", entries=None, scope: str = "call"):
+        self.entries = None if entries is None else list(entries)
+        self.scope = scope
+        super().__init__(message if self.entries is None else self._text())
+
+    def _text(self) -> str:
+        est, length, lost, surface, where, clear = max(self.entries, key=lambda e: e[0])
+        surfaces = sorted({e[3] for e in self.entries})
+        if length > 0 or lost > 0:
+            how = (f"surface {surface}'s aperture (or the surface itself) vignettes the beam: {100 * lost:.3g} % of "
+                   f"the stop grid's rays lost, a vignetting edge {length:.3g} × the stop's rim; that edge is cut "
+                   "sharply on the DOE plane without its own edge waves (only the stop's rim diffracts from its "
+                   "images)")
+        else:
+            how = (f"surface {surface}'s aperture passes {clear:.2g} Fresnel zones outside the beam's rim: it clips "
+                   "the stop edge's waves there, which the engine leaves out")
+        if len(self.entries) == 1:
+            what = f"{where}: {how}"
+        else:
+            kind = "field × wavelength × depth" if self.scope == "map" else "field × wavelength"
+            what = (f"{len(self.entries)} sources ({kind}) of this {self.scope} near or cut by the apertures of "
+                    f"surface(s) {', '.join(str(j) for j in surfaces)}; most at {where}: {how}")
+        return (f"{what}. This may cost the PSF up to ~{est:.1g} (relative L1; a guard, not a figure): the stop_edge "
+                "default's accuracy figures do not cover these sources. Open that aperture (or use fields it does not "
+                "reach) for the modelled accuracy, or accept the estimate")
+
+    @classmethod
+    def merged(cls, warnings_: list, scope: str) -> "VignettingEdgeWarning":
+        """One warning for the sources of several built from entries."""
+        return cls("", [e for w in warnings_ for e in w.entries], scope)
+
+    def __reduce__(self):  # picklable (multi-process training) with its attributes
+        return (type(self), (str(self), self.entries, self.scope))
+
+
 @dataclass
 class FieldInfo:
     """How a DOE-plane field was built (diagnostics; nothing here enters the PSF's numbers).
