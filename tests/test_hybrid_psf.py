@@ -71,7 +71,7 @@ def test_ideal_lens_psf_matches_the_nonparaxial_debye_integral(fno, lam):
     # the energy in the crop: ray-wave (Fresnel propagation of the DOE field) vs Debye, ~1e-3; the default Fresnel
     # edge step drops the edge's ripples beyond 4 Fresnel zones (~0.1 % of the power, counted as in the crop):
     # 2.5e-3 at F/8, 0.47 µm (the DOE-plane edge 1.3e-3, the exact exit-pupil construction 1.3e-3)
-    assert 1 - float(res.energy_outside) == pytest.approx(ref.energy_fraction, abs=3e-3)
+    assert 1 - float(res.energy_outside) == pytest.approx(ref.energy_fraction, abs=4e-3)
 
 
 def test_airy_first_dark_ring_and_encircled_energy(blank):
@@ -358,7 +358,10 @@ def test_asphere_psf_agrees_with_the_exit_pupil_huygens_psf(fld, tol):
     The two models put the diffracting edge in different planes (the DOE plane vs the exit-pupil sphere), so
     they differ at the 1/(Fresnel number) level in fine interference detail: measured L1 0.010 (on axis),
     0.045 (7°) and 0.08 (5°, 10°, strongly aberrated) with the Huygens PSF converged in its pupil sampling;
-    centroids agree to a few hundredths of a pixel and the crop energies to ~1e-3."""
+    centroids agree to a few hundredths of a pixel and the crop energies to a few 1e-3 (on axis 2.67e-3 with the 5-zone
+    ripple band, 3.42e-3 since the short-reach band of 2026-12-01 (h47c): its 4 zones on axis leave out the 7.5e-4 of
+    the beam's power that the band's fifth zone carries, most of it landing outside the crop, so ``energy_outside``
+    falls by that much; 7°: 0.9572 → 0.9579)."""
     from raywave.models.exit_pupil import huygens_psf
 
     lens = load_lens(bundled_lens_path("asphere_hk51"))
@@ -371,4 +374,4 @@ def test_asphere_psf_agrees_with_the_exit_pupil_huygens_psf(fld, tol):
     assert float((psf - ref.psf).abs().sum()) < tol
     (ax, ay), (bx, by) = centroid_px(psf), centroid_px(ref.psf)
     assert abs(ax - bx) < 0.06 and abs(ay - by) < 0.06
-    assert 1 - float(res.energy_outside) == pytest.approx(ref.energy_fraction, abs=3e-3)
+    assert 1 - float(res.energy_outside) == pytest.approx(ref.energy_fraction, abs=4e-3)
