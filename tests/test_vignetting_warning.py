@@ -17,32 +17,8 @@ from raywave.hybrid.coherent.geometry import footprints_and_clippings
 from raywave.hybrid.coherent.vignetting import CUT_COST, NEAR_ZONES, VIGNETTING_WARN, ZONE_DECAY, edge_length
 from raywave.imaging import psf_map
 from raywave.lens.build import clip_at_semi_diameters, lens_from_spec
-
-R1, T, RS = 1.5, 10.0, 1.0
-
-
-def _spec(field_deg: float) -> dict:
-    return {
-        "format": "raywave-lens", "version": 1, "object": {"distance": "inf"},
-        "fields": {"type": "angle", "values": [0.0, field_deg]},
-        "wavelengths": {"values": [0.55], "primary": 0},
-        "surfaces": [
-            {"type": "standard", "radius": "inf", "thickness": T, "material": "air", "semi_diameter": R1},
-            {"type": "paraxial", "focal_length": 50.0, "thickness": 50.0, "material": "air",
-             "aperture": {"shape": "circle", "radius": RS}, "stop": True},
-        ],
-    }
-
-
-def _overlap(r1: float, r2: float, d: float) -> float:
-    """Area common to two discs of radii r1, r2 whose centres are d apart."""
-    if d >= r1 + r2:
-        return 0.0
-    if d <= abs(r1 - r2):
-        return math.pi * min(r1, r2) ** 2
-    a1 = r1 * r1 * math.acos((d * d + r1 * r1 - r2 * r2) / (2 * d * r1))
-    a2 = r2 * r2 * math.acos((d * d + r2 * r2 - r1 * r1) / (2 * d * r2))
-    return a1 + a2 - 0.5 * math.sqrt((-d + r1 + r2) * (d + r1 - r2) * (d - r1 + r2) * (d + r1 + r2))
+# the two-circle system (a window of radius R1 a distance T before the stop) and its analytic overlap
+from test_clip_apertures import R1, RS, T, _overlap, _spec
 
 
 def _analytic(field_deg: float) -> tuple:
