@@ -9,12 +9,13 @@ trace (no PSF). Cases as benchmarks/stop_edge_references.py's (``file:PATH:FRAC`
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import warnings
 from pathlib import Path
 
 import torch
+
+from _report import emit_row  # benchmarks/ is on sys.path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -60,10 +61,7 @@ def main(argv=None) -> None:
         else:
             hl, fld, wl, depth = ser._hybrid(case, {})
         row = {"case": case, **figures(hl, fld, wl, depth)}
-        print(json.dumps(row), flush=True)
-        rows.append(row)
-    if a.json:
-        Path(a.json).write_text(json.dumps(rows, indent=1) + "\n")
+        emit_row(rows, row, a.json)  # streamed: an interrupted run keeps its rows
 
 
 if __name__ == "__main__":

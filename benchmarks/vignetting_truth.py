@@ -12,7 +12,6 @@ estimate), the default's and the DOE-plane edge's rel L1 from the truth.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -20,6 +19,8 @@ import warnings
 from pathlib import Path
 
 import torch
+
+from _report import emit_row  # benchmarks/ is on sys.path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
@@ -112,10 +113,7 @@ def main(argv=None) -> None:
         for name in psfs:
             row[f"{name}_l1"] = float((psfs[name][0] - truth).abs().sum())
         row["default_over_length"] = row["default_l1"] / row["length"] if row["length"] > 0 else None
-        print(json.dumps(row), flush=True)
-        rows.append(row)
-    if a.json:
-        Path(a.json).write_text(json.dumps(rows, indent=1) + "\n")
+        emit_row(rows, row, a.json)  # streamed: an interrupted run keeps its rows
 
 
 if __name__ == "__main__":
