@@ -1,15 +1,16 @@
-"""A guard for the exit-pupil stop edge (issue 47, class G): how much of a source's stop-filling beam an aperture
-other than the stop vignettes, and what leaving that vignetting edge's own waves out may cost.
+"""A guard for the exit-pupil stop edge (issue 47, class G): an aperture other than the stop that vignettes a
+source's stop-filling beam, or lies near its rim, and what leaving that aperture's own edge waves out may cost.
 
 The exit-pupil edge (``stop_edge="exit_pupil"``, the default) diffracts the stop's rim from its images; an aperture
 that vignettes the beam is cut sharply on the DOE plane, without its edge waves (docs/ray-wave.md, "An aperture that
-vignettes the beam cuts it"). Its cost scales with that edge's length: the DOE-plane edge's error for the stop's
-whole rim (``stop_edge="doe"``) is 1e-2 – 1e-1 on the real lenses measured, and a vignetting edge is a piece of such a
-sharp edge. :func:`vignetting_edges` measures it from the rays :func:`~raywave.hybrid.coherent.geometry.
+vignettes the beam cuts it"), and one just outside the beam's rim clips the stop edge's own waves, which the engine
+does not see. Against a wave truth (benchmarks/vignetting_truth.py) the cost does not follow the cut edge's length: a
+sliver costs as much as a deep cut, and an aperture a fraction of a Fresnel zone outside the rim nearly as much.
+:func:`vignetting_edges` reads which rays were lost from the rays :func:`~raywave.hybrid.coherent.geometry.
 footprints_and_clippings` already traces (the stop grid and the rim ring, aimed and traced with the apertures once
-for the call): only the sources some of whose rays were lost before the DOE plane are traced again, with the
-per-surface record, to tell which surface lost them. A guard, not a figure: the estimate is the vignetting edge's
-length against the stop rim's times :data:`SHARP_EDGE_COST`.
+for the call), and :func:`rim_clearance` the rim's clearance inside the other apertures in Fresnel zones; only the
+sources that lost rays, or come near such an aperture, are traced again, with the per-surface record, to name the
+surface. A guard, not a figure: :func:`estimate` of the clearance (:data:`CUT_COST` where the aperture cuts).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import math
 from dataclasses import dataclass
 
 import torch
+
+from raywave.lens.paraxial import system_matrix
 
 #: the DOE-plane (sharp, un-diffracted) edge's relative L1 error for the stop's whole rim, taken at the upper end of
 #: the scan's real lenses (1e-2 – 1e-1; docs/ray-wave.md's seed-scan table): the scale of the guard's estimate
@@ -66,8 +69,6 @@ def aperture_zones(lens, wavelengths) -> tuple | None:
     js = [j for j, s in enumerate(lens.surfaces) if s.aperture is not None and j != stop]
     if not js:
         return None
-    from raywave.lens.paraxial import system_matrix
-
     try:
         rows = []
         for wl in wavelengths.reshape(-1).tolist():
