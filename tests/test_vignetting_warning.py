@@ -6,6 +6,7 @@ the window shifted by T·tan θ)."""
 
 import math
 from pathlib import Path
+import pickle
 import warnings
 
 import pytest
@@ -13,6 +14,7 @@ import torch
 
 from raywave.doe import BlankDOE
 from raywave.hybrid import HybridLens, StopEdgeWarning, VignettingEdgeWarning
+from raywave.hybrid.hybrid_lens import DOEApertureWarning
 from raywave.hybrid.coherent.geometry import footprints_and_clippings
 from raywave.hybrid.coherent.vignetting import CUT_COST, NEAR_ZONES, VIGNETTING_WARN, ZONE_DECAY, edge_length
 from raywave.imaging import psf_map
@@ -156,6 +158,24 @@ def _jp(frac: float):
         warnings.simplefilter("ignore")
         top = max(abs(float(f)) for f in load_lens(JP).fields)
         return load_hybrid(JP, fields=[[0.0, frac * top], [0.0, 0.0]], field_type="angle"), frac * top
+
+
+@pytest.mark.parametrize("make", [
+    lambda e, scope="call": VignettingEdgeWarning("", e, scope),
+    lambda e, scope="call": DOEApertureWarning("", [x[:3] for x in e], (3.0, 2.5), scope, "band"),
+])
+def test_merged_warnings_keep_their_entries_and_attributes_through_a_pickle(make):
+    """Both per-source warnings merge a map's calls into one and pickle (multi-process training) with their entries,
+    scope and (the DOE's) size and kind: the shared MergedWarning base."""
+    a = make([(1e-2, 0.1, 0.02, 3, "field (0, 5)°", 0.0)])
+    b = make([(2e-3, 0.05, 0.0, 4, "field (0, 9)°", 1.2)])
+    m = type(a).merged([a, b], "map")
+    assert m.scope == "map" and len(m.entries) == 2 and "2 sources" in str(m)
+    r = pickle.loads(pickle.dumps(m))
+    assert type(r) is type(m) and str(r) == str(m) and r.entries == m.entries and r.scope == "map"
+    if isinstance(m, DOEApertureWarning):
+        assert (r.size, r.kind) == ((3.0, 2.5), "band")
+    assert str(pickle.loads(pickle.dumps(type(a)("plain text")))) == "plain text"
 
 
 def test_the_telecentric_jp_lens_is_vignetted_at_full_field_only():

@@ -39,7 +39,7 @@ from raywave.hybrid.coherent.exit_pupil import (adaptive_edge_steps, fresnel_ste
                                                 go_phase_errors, obscuration_fraction)
 from raywave.hybrid.coherent.geometry import _medium_index, footprints_and_clippings
 from raywave.hybrid.coherent.stop_edge import EXIT_PUPIL_FAR, edge_reach_many, stop_rim_images_all
-from raywave.hybrid.coherent.record import EnvelopeRow, resolve_band_infos
+from raywave.hybrid.coherent.record import EnvelopeRow, MergedWarning, resolve_band_infos
 from raywave.hybrid.coherent.vignetting import VIGNETTING_WARN
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source
 from raywave.hybrid.batched import (OUT_MARGIN, GeometryMemo, Planned, SensorWindow, accelerator_cap, ceil_samples,
@@ -289,7 +289,7 @@ class SensorCropWarning(UserWarning):
     """The PSF crop is centred outside the sensor."""
 
 
-class DOEApertureWarning(UserWarning):
+class DOEApertureWarning(MergedWarning):
     """The DOE aperture blocks part of the beam (more than 1 % of its power), or (``kind`` "band") of the stop
     edge's diffraction ripples beyond the beam's geometric shadow (more than :data:`BAND_CLIP_WARN` of the beam's
     power, the beam itself fitting); ``energy_outside`` does not show it, since it is measured against the power
@@ -298,7 +298,10 @@ class DOEApertureWarning(UserWarning):
     Either a plain message (``DOEApertureWarning("text")``, as ``warnings`` builds it), or built from ``entries``,
     one ``(blocked fraction, beam half-width mm, where)`` per clipped source of one ``scope`` ("call", "map"),
     and the DOE's ``size`` (w, h) mm; these are kept as attributes, so that the warnings of several calls can be
-    merged into one (:meth:`merged`, one per ``kind``). For the "band" kind the half-width is the ripple band's."""
+    merged into one (:meth:`merged`, one per ``kind`` and DOE size). For the "band" kind the half-width is the ripple
+    band's."""
+
+    _ARGS = ("entries", "size", "scope", "kind")
 
     def __init__(self, message: str = "", entries=None, size=None, scope: str = "call", kind: str = "beam"):
         self.entries = None if entries is None else list(entries)
@@ -329,15 +332,6 @@ class DOEApertureWarning(UserWarning):
         return (f"{what} (not counted in energy_outside); {beams} a DOE of at least {need:.3g} mm square "
                 f"({BEAM_MARGIN * need:.3g} mm with the usual {BEAM_MARGIN:g}× margin, see "
                 "raywave.assembly.build.default_doe_size)")
-
-    @classmethod
-    def merged(cls, warnings_: list, scope: str) -> "DOEApertureWarning":
-        """One warning for the sources of several built from entries (of one DOE size and one ``kind``)."""
-        return cls("", [e for w in warnings_ for e in w.entries], warnings_[0].size, scope,
-                   getattr(warnings_[0], "kind", "beam"))
-
-    def __reduce__(self):  # picklable (multi-process training) with its attributes
-        return (type(self), (str(self), self.entries, self.size, self.scope, self.kind))
 
 
 @dataclass

@@ -14,7 +14,7 @@ from raywave.lens.sources import (VignettingWarning, chief_pupil, entrance_plane
 from raywave.rays.pupil import RIM_INSET  # the footprint's rim a hair inside the stop: the engine's one rim rule
 from raywave.utils.errors import check_allocation
 from raywave.wave.grid import Grid
-from raywave.wave.propagation.transfer import WindowSource, _geometry as _window_geometry
+from raywave.wave.propagation.transfer import WindowSource, window_fft_shape
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, SamplingWarning
 from raywave.hybrid.coherent.vignetting import NEAR_ZONES, aperture_zones, rim_clearance, vignetting_edges
 
@@ -103,6 +103,10 @@ def _boxes(lens, out, z_doe: float, virtual: bool) -> list:
     return [[tuple(b) if on else None for b, on in zip(box_row, lit_row)] for box_row, lit_row in zip(box, lit)]
 
 
+#: :func:`footprints_and_clippings`' rim ring (rays) and stop grid (cells a side)
+_RIM_RAYS, _STOP_GRID = 72, 48
+
+
 def footprints_and_clippings(lens, doe, fields, wavelengths, depth, z_doe: float, folds: bool = False,
                              chief: tuple | None = None, vignetting: bool = False) -> tuple:
     """``(footprints(...), doe_clippings(..., folds=folds))`` of the same F×W beams (default samplings) from one
@@ -147,10 +151,6 @@ def footprints_and_clippings(lens, doe, fields, wavelengths, depth, z_doe: float
     keep = torch.cat([torch.arange(_RIM_RAYS, device=lens.device), torch.arange(k, k + cx.numel(), device=lens.device)])
     return boxes, clips, vignetting_edges(lens, rays[..., keep] if suspect else rays, suspect, (index, _STOP_GRID),
                                           _RIM_RAYS, near)
-
-
-#: :func:`footprints_and_clippings`' rim ring (rays) and stop grid (cells a side)
-_RIM_RAYS, _STOP_GRID = 72, 48
 
 
 def inside_doe(doe, xy: torch.Tensor) -> torch.Tensor:
@@ -324,7 +324,7 @@ def carry_fft_shape(n_from, n_doe, pitch: float, dz: float, medium: tuple, carri
     ``medium`` = (wavelength µm, n), ``carrier`` (α, β) the envelope's): host numbers, nothing allocated."""
     src = WindowSource((int(n_from[0]), int(n_from[1])), (0.0, 0.0), (0.0, 0.0), float(medium[0]), float(dz),
                        float(medium[1]), (float(carrier[0]), float(carrier[1])))
-    return tuple(_window_geometry(src, (int(n_doe[0]), int(n_doe[1])), pitch, 0.5, 2.0).size)
+    return window_fft_shape(src, (int(n_doe[0]), int(n_doe[1])), pitch)
 
 
 def carry_bytes(n_from, fft, n_doe=None, graph: bool | None = None) -> float:

@@ -34,19 +34,38 @@ class StopEdgeWarning(UserWarning):
     infinity (the DOE-plane edge is used instead)."""
 
 
-class VignettingEdgeWarning(StopEdgeWarning):
-    """With the exit-pupil stop edge, an aperture other than the stop (and the DOE's) vignettes a source's beam: its
-    edge is cut sharply on the DOE plane without its own edge waves (only the stop's rim diffracts from its images),
-    so the default's accuracy figures (docs/ray-wave.md, 1e-4 – 1e-3 against the converged references) do not cover
-    that source (issue 47, class G). The estimate is a guard, not a figure: the vignetting edge's length across the
-    stop against the stop's rim, times the DOE-plane edge's cost for a whole rim
-    (:data:`~raywave.hybrid.coherent.vignetting.SHARP_EDGE_COST`).
+class MergedWarning(UserWarning):
+    """A warning built either from a plain message or from ``entries``, one per source of one ``scope`` ("call",
+    "map"), that can be merged across calls (a map's) into one (:meth:`merged`) and pickled with its attributes
+    (multi-process training). A subclass lists its constructor's arguments after the message in ``_ARGS`` (with
+    "entries" and "scope" among them) and renders its text from them in ``_text``."""
+
+    _ARGS: tuple = ("entries", "scope")
+
+    @classmethod
+    def merged(cls, warnings_: list, scope: str):
+        """One warning for the sources of several built from entries (the first's other attributes kept)."""
+        first = warnings_[0]
+        args = {a: getattr(first, a) for a in cls._ARGS if a not in ("entries", "scope")}
+        return cls("", entries=[e for w in warnings_ for e in w.entries], scope=scope, **args)
+
+    def __reduce__(self):
+        return (type(self), (str(self), *(getattr(self, a) for a in self._ARGS)))
+
+
+class VignettingEdgeWarning(StopEdgeWarning, MergedWarning):
+    """With the exit-pupil stop edge, an aperture other than the stop (and the DOE's) vignettes a source's beam, or
+    passes near its rim: its edge is cut sharply on the DOE plane without its own edge waves (only the stop's rim
+    diffracts from its images), and one just outside the rim clips the stop edge's waves, which the engine leaves out
+    too; so the default's accuracy figures (docs/ray-wave.md, 1e-4 – 1e-3 against the converged references) do not
+    cover that source (issue 47, class G). The estimate is a guard, not a figure: it follows the rim's clearance
+    inside that aperture in Fresnel zones, not the cut edge's length
+    (:func:`~raywave.hybrid.coherent.vignetting.estimate`: :data:`~raywave.hybrid.coherent.vignetting.CUT_COST`
+    where rays are lost, decaying with the clearance outside the rim).
 
     Either a plain message, or built from ``entries``, one ``(estimate, edge length / stop rim, lost fraction of the
     stop grid's rays, surface index, where, clearance in Fresnel zones)`` per source of one ``scope`` ("call",
-    "map"); :meth:`merged` joins the warnings of several calls (a map's) into one. An aperture that loses no ray but
-    passes within ~2 Fresnel zones of the beam's rim warns too: it clips the stop edge's waves, which the engine
-    leaves out as well."""
+    "map"); :meth:`merged` joins the warnings of several calls (a map's) into one."""
 
     def __init__(self, message: str = "", entries=None, scope: str = "call"):
         self.entries = None if entries is None else list(entries)
@@ -73,14 +92,6 @@ class VignettingEdgeWarning(StopEdgeWarning):
         return (f"{what}. This may cost the PSF up to ~{est:.1g} (relative L1; a guard, not a figure): the stop_edge "
                 "default's accuracy figures do not cover these sources. Open that aperture (or use fields it does not "
                 "reach) for the modelled accuracy, or accept the estimate")
-
-    @classmethod
-    def merged(cls, warnings_: list, scope: str) -> "VignettingEdgeWarning":
-        """One warning for the sources of several built from entries."""
-        return cls("", [e for w in warnings_ for e in w.entries], scope)
-
-    def __reduce__(self):  # picklable (multi-process training) with its attributes
-        return (type(self), (str(self), self.entries, self.scope))
 
 
 @dataclass

@@ -22,17 +22,14 @@ import torch
 
 from raywave.lens.paraxial import system_matrix
 
-#: the DOE-plane (sharp, un-diffracted) edge's relative L1 error for the stop's whole rim, taken at the upper end of
-#: the scan's real lenses (1e-2 – 1e-1; docs/ray-wave.md's seed-scan table): the scale of the guard's estimate
-SHARP_EDGE_COST = 0.1
-
-#: what an aperture that cuts the beam, or lies at its rim, costs the default's PSF (relative L1): half the whole rim's
-#: sharp edge. Measured (benchmarks/vignetting_truth.py against the two-ideal-lens wave truth with a clear aperture on
-#: lens B, whose DOE-plane edge is 4.5e-2; vignetting_warning_2026-12-01_xxvii_h47g.json): 1.6e-2 – 2.0e-2 whether the
-#: aperture cuts a sliver (0.5 % of the rays) or a quarter of the beam, or passes 6 µm outside its rim (the stop
-#: edge's waves clipped there): not the cut edge's length; the JP S48-25673 at full field 7.0e-3, the Pro-Tessar with
-#: its semi-diameters clipping at 0.7 field 8.2e-3 (their DOE-plane edges 2.5e-2 / 5.4e-2)
-CUT_COST = 0.5 * SHARP_EDGE_COST
+#: what an aperture that cuts the beam, or lies at its rim, costs the default's PSF (relative L1): half the upper end
+#: of the DOE-plane (sharp) edge's cost for the stop's whole rim on the scan's real lenses (1e-2 – 1e-1,
+#: docs/ray-wave.md's seed-scan table). Measured (benchmarks/vignetting_truth.py against the two-ideal-lens wave truth
+#: with a clear aperture on lens B, whose DOE-plane edge is 4.5e-2; vignetting_warning_2026-12-01_xxvii_h47g.json):
+#: 1.6e-2 – 2.0e-2 whether the aperture cuts a sliver (0.5 % of the rays) or a quarter of the beam, or passes 6 µm
+#: outside its rim (the stop edge's waves clipped there): not the cut edge's length; the JP S48-25673 at full field
+#: 7.0e-3, the Pro-Tessar with its semi-diameters clipping at 0.7 field 8.2e-3 (their DOE-plane edges 2.5e-2 / 5.4e-2)
+CUT_COST = 0.05
 
 #: how fast that cost falls with the aperture's clearance outside the beam's rim, per Fresnel zone of the stop edge's
 #: waves there (``sqrt(λ |B|)``, B the stop → surface ray-transfer element): the truth's 1.65e-2, 9.5e-3, 2.2e-3,

@@ -114,6 +114,13 @@ def _geometry(src: WindowSource, out_shape, pitch, margin, guard) -> _Geometry:
     return _Geometry(n / lam, zf, zt, (my, mx), (dx, dy), (ax, ay), (px, py), bx, by)
 
 
+def window_fft_shape(src: WindowSource, out_shape, pitch, margin: float = 0.5, guard: float = 2.0) -> tuple:
+    """``(My, Mx)``: the FFT grid that propagating the geometry ``src`` (:class:`WindowSource`) onto a window of
+    ``out_shape`` = (ny, nx) samples of ``pitch`` mm uses, with the band limit's ``margin`` (pixels) and ``guard``
+    (Fresnel zones) as in :func:`window_transfer`: host numbers, nothing allocated (a memory plan's input)."""
+    return tuple(int(v) for v in _geometry(src, out_shape, pitch, margin, guard).size)
+
+
 def _candidates(g: torch.Tensor, k: float, zf: float, lo: float, hi: float, taper: float) -> torch.Tensor:
     """Indices of the spatial frequencies ``g`` (1-D, cycles/mm) whose column (row) can be non-zero:
     |Δx| = |z gx|/w ≥ |z gx|/sqrt(k² − gx²) whatever gy is."""
