@@ -128,8 +128,8 @@ class FieldInfo:
     beam_half: float = 0.0
     stop_edge: str = "doe"
     edge_step: str | None = None
-    band_clipped: float = 0.0
-    band_half: float = 0.0
+    band_clipped: float | torch.Tensor = 0.0  # a 0-dim tensor until resolve_band_infos reads it
+    band_half: float | torch.Tensor = 0.0
     band_total: bool = False
 
 
