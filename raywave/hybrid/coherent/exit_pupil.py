@@ -574,9 +574,17 @@ def go_phase_errors(lens, fields: torch.Tensor, wls: list[float], depth, field_t
     gx, gy = torch.meshgrid(g, g, indexing="xy")
     f = fields.reshape(-1, 2).to(device=dev, dtype=torch.float64)
     nf, nw = f.shape[0], len(wls)
+    # with band_fold (and an unfolded lens) the band's rays (:func:`_band_cut`) are aimed and traced with the stop
+    # grid's, after them (issue 47: one aiming and one trace instead of two; each ray is aimed and traced on its own)
+    band = _band_pupil(dev) if band_fold and not lens.is_folded else None
+    ngo = ng * ng
+    pupil = (gx.flatten(), gy.flatten())
+    if band is not None:
+        pupil = (torch.cat([pupil[0], band[0]]), torch.cat([pupil[1], band[1]]))
+    band_rays = None
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", VignettingWarning)  # a diagnostic trace, apertures off
-        rays = point_source_rays(lens, f, list(wls), pupil=(gx.flatten(), gy.flatten()), aim="full", depth=depth,
+        rays = point_source_rays(lens, f, list(wls), pupil=pupil, aim="full", depth=depth,
                                  field_type=field_type or lens.field_type, chief=chief)
         lit = None
         if lens.is_folded:
@@ -589,12 +597,15 @@ def go_phase_errors(lens, fields: torch.Tensor, wls: list[float], depth, field_t
                     lit = lit & srf.aperture.contains(*rec.points[i + 1][:2])
         if lit is None:
             lit = lens.trace(rays).valid
+        o, d, valid = out.o, out.d, out.valid  # (F, W, N, 3), (F, W, N)
+        if band is not None:  # the stop grid's rays first, then the band's
+            band_rays = (o[:, :, ngo:], d[:, :, ngo:], valid[:, :, ngo:])
+            o, d, valid, lit = o[:, :, :ngo], d[:, :, :ngo], valid[:, :, :ngo], lit[:, :, :ngo]
         lit = lit.reshape(nf, nw, ng, ng)  # the rays every aperture passes (inside the stop)
         n = lens.surfaces[-1].material.n(torch.tensor(list(wls), dtype=torch.float64, device=dev))  # (W,)
-        o, d = out.o, out.d  # (F, W, N, 3)
         tan = (d[..., :2] / d[..., 2:]).reshape(nf, nw, ng, ng, 2)
         x0 = (o[..., :2] + (d[..., :2] / d[..., 2:]) * (z_doe - o[..., 2:])).reshape(nf, nw, ng, ng, 2)
-        bad = ~(out.valid.reshape(nf, nw, ng, ng) & torch.isfinite(x0).all(-1) & torch.isfinite(tan).all(-1))
+        bad = ~(valid.reshape(nf, nw, ng, ng) & torch.isfinite(x0).all(-1) & torch.isfinite(tan).all(-1))
         x0 = x0.masked_fill(bad[..., None], math.nan)
         u = torch.linspace(0.0, 1.0, GO_PLANES + 1, dtype=torch.float64, device=dev)
         zx = torch.tensor(z_xps, dtype=torch.float64, device=dev)[:, None]
@@ -614,7 +625,7 @@ def go_phase_errors(lens, fields: torch.Tensor, wls: list[float], depth, field_t
                              for i in range(0, nf * nw, blk)])
         err = err.reshape(nf, nw, -1)
         if band_fold:
-            cut = _band_cut(lens, f, list(wls), (depth, field_type or lens.field_type, chief), zs, z_xps)
+            cut = _band_cut(lens, f, list(wls), (depth, field_type or lens.field_type, chief), zs, z_xps, band_rays)
             err = err.masked_fill(cut, math.inf)
     return zs, err
 
@@ -624,7 +635,16 @@ BAND_AZIMUTHS = 32
 BAND_RADII = tuple(1.0 + 0.02 * i for i in range(31))
 
 
-def _band_cut(lens, f: torch.Tensor, wls: list, how: tuple, zs: torch.Tensor, z_xps: list) -> torch.Tensor:
+def _band_pupil(dev) -> tuple:
+    """The stop coordinates ``(px, py)`` (:data:`BAND_AZIMUTHS` · len(:data:`BAND_RADII`),) in stop radii of
+    :func:`_band_cut`'s rays, azimuth-major."""
+    phi = torch.arange(BAND_AZIMUTHS, dtype=torch.float64, device=dev) * (2 * math.pi / BAND_AZIMUTHS)
+    rad = torch.tensor(BAND_RADII, dtype=torch.float64, device=dev)
+    return (rad[None, :] * torch.cos(phi)[:, None]).flatten(), (rad[None, :] * torch.sin(phi)[:, None]).flatten()
+
+
+def _band_cut(lens, f: torch.Tensor, wls: list, how: tuple, zs: torch.Tensor, z_xps: list,
+              traced: tuple | None = None) -> torch.Tensor:
     """Whether the ripple band of the stop's edge (:data:`~raywave.hybrid.coherent.stop_edge.RIPPLE_ZONES` Fresnel
     zones outside its shadow) meets a fold of the rays past the stop's rim, or rays that cannot be traced, on each
     plane ``zs`` (W, P) mm: ``(F, W, P)`` bool for the sources ``f`` (F, 2) × ``wls`` (µm; ``how`` = ``(depth,
@@ -636,22 +656,23 @@ def _band_cut(lens, f: torch.Tensor, wls: list, how: tuple, zs: torch.Tensor, z_
     wave's local focus across the edge). The Fresnel step's factor multiplies the geometric field continued past
     the rim (its amplitude singular at the fold, none beyond it) over the band: the Olympus M.Zuiko 12 mm at 0.7
     field, rays folding 0.07 mm (~2 zones) outside the shadow 2.2 mm before the sensor: 1.84e-3 from the converged
-    reference on that plane, 3.4e-4 – 5.5e-4 built 3.9 – 1.9 mm before it and carried by the angular spectrum."""
+    reference on that plane, 3.4e-4 – 5.5e-4 built 3.9 – 1.9 mm before it and carried by the angular spectrum.
+    ``traced``: the band rays after the lens ``(o, d, valid)`` (F, W, A·K, …) when the caller traced them
+    (:func:`go_phase_errors`, with its stop grid's), else aimed and traced here."""
     dev = f.device
     depth, field_type, chief = how
-    phi = torch.arange(BAND_AZIMUTHS, dtype=torch.float64, device=dev) * (2 * math.pi / BAND_AZIMUTHS)
-    rad = torch.tensor(BAND_RADII, dtype=torch.float64, device=dev)
-    px, py = (rad[None, :] * torch.cos(phi)[:, None]).flatten(), (rad[None, :] * torch.sin(phi)[:, None]).flatten()
     nf, nw, na, nk = f.shape[0], len(wls), BAND_AZIMUTHS, len(BAND_RADII)
-    rays = point_source_rays(lens, f, wls, pupil=(px, py), aim="full", depth=depth, field_type=field_type,
-                             chief=chief)
-    out = lens.trace(rays, apertures=False)
-    o, d = out.o.reshape(nf * nw, na, nk, 3), out.d.reshape(nf * nw, na, nk, 3)
+    if traced is None:
+        rays = point_source_rays(lens, f, wls, pupil=_band_pupil(dev), aim="full", depth=depth,
+                                 field_type=field_type, chief=chief)
+        out = lens.trace(rays, apertures=False)
+        traced = (out.o, out.d, out.valid)
+    o, d = traced[0].reshape(nf * nw, na, nk, 3), traced[1].reshape(nf * nw, na, nk, 3)
     wi = torch.arange(nw, device=dev).repeat(nf)  # each flattened source's wavelength
     n = lens.surfaces[-1].material.n(torch.tensor(wls, dtype=torch.float64, device=dev))
     lam = torch.tensor(wls, dtype=torch.float64, device=dev) * 1e-3 / n  # (W,) mm in the image medium
     zx = torch.tensor(z_xps, dtype=torch.float64, device=dev)
-    valid = out.valid.reshape(nf * nw, na, nk)
+    valid = traced[2].reshape(nf * nw, na, nk)
     blk = GO_SOURCE_BLOCK_ACCELERATOR if devices.accelerator(dev) else GO_SOURCE_BLOCK
     cut = [_band_cut_block(o[i:i + blk], d[i:i + blk], valid[i:i + blk],
                            (zs[wi[i:i + blk]], zx[wi[i:i + blk]], lam[wi[i:i + blk]]))
