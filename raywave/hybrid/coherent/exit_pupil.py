@@ -941,7 +941,7 @@ def _scaled_lattice(sim: Grid, sphere: tuple, planes: tuple, device) -> CoarseLa
 #: h47o) where True; False (the default): in the far plane's own coordinates (h47f; the metric's O(θ·Δθ) variation
 #: left in). Measured (rel L1 from the converged Huygens PSF, docs/notes/ray-wave-research.md): the analytic disc at
 #: 30° 0.111 → 0.006 (relative L2); the Olympus 24 mm at 0.7 field 1.46e-3 → 1.14e-3; the Leica 28 mm at 0.7 under
-#: 6 GiB 2.46e-3 → 1.50e-3; the Planar 80 mm at 0.7 forced
+#: 6 GiB 2.46e-3 → 1.50e-3; the Nikon 300 mm at 0.7 3.09e-4 → 2.83e-4; the Planar 80 mm at 0.7 forced
 #: from the plain carry's plane 2.30e-3 → 2.67e-3 on its lattice, 1.39e-3 → 1.32e-3 on one 2× finer (the bicubic
 #: resampling loses on the lattice's near-Nyquist content); its extra arrays are not in the carry's memory estimate
 #: (:func:`~raywave.hybrid.coherent.geometry.carry_bytes`): not the default until both are settled
