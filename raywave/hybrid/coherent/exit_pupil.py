@@ -22,6 +22,7 @@ from raywave.hybrid.coherent.accurate import accurate_field_steps
 from raywave.hybrid.coherent.geometry import (WINDOW_BYTES, _common_setup, _empty_field, _footprint, _medium_index,
                                              carry_fft_shape, check_carry_memory, check_window_memory, lit_box)
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, StopEdgeWarning
+from raywave.hybrid.coherent.sphere_chart import SphereChart, sample_bicubic
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source, check_types
 from raywave.hybrid.coherent.stop_edge import (EXIT_PUPIL_FAR, RIPPLE_ZONES, _nu_inner, _zone_estimate,
                                                ripple_band, stop_rim_images)
@@ -957,6 +958,69 @@ def _scaled_lattice(sim: Grid, sphere: tuple, planes: tuple, device) -> CoarseLa
                          (math.ceil(sy / mag), math.ceil(sx / mag)), device)
 
 
+#: :func:`scaled_carry` carries the envelope in the chart of :mod:`~raywave.hybrid.coherent.sphere_chart` (issue 47,
+#: h47o) where True; False (the default): in the far plane's own coordinates (h47f; the metric's O(θ·Δθ) variation
+#: left in). Measured (rel L1 from the converged Huygens PSF, docs/notes/ray-wave-research.md): the analytic disc at
+#: 30° 0.111 → 0.006 (relative L2); the Olympus 24 mm at 0.7 field 1.46e-3 → 1.14e-3; the Leica 28 mm at 0.7 under
+#: 6 GiB 2.46e-3 → 1.50e-3; the Nikon 300 mm at 0.7 3.09e-4 → 2.83e-4; the Planar 80 mm at 0.7 forced
+#: from the plain carry's plane 2.30e-3 → 2.67e-3 on its lattice, 1.39e-3 → 1.32e-3 on one 2× finer (the bicubic
+#: resampling loses on the lattice's near-Nyquist content); its extra arrays are not in the carry's memory estimate
+#: (:func:`~raywave.hybrid.coherent.geometry.carry_bytes`): not the default until both are settled
+SCALED_CARRY_CHART = False
+
+
+def _charted_carry(field: Field, out: Grid, sphere: tuple, planes: tuple) -> torch.Tensor:
+    """The envelope (complex, ``out``'s shape) of :func:`scaled_carry` before the sphere's phase: ``field``'s
+    envelope (relative to the sphere, on the far plane ``planes[0]``) resampled into the
+    :class:`~raywave.hybrid.coherent.sphere_chart.SphereChart` about its power centroid, carried ``dz·R₁/R₂`` there
+    by the angular spectrum, and read (bicubic) at the chart point of each DOE-plane sample's sphere image
+    ``F + (x' − F)/M`` on the far plane."""
+    fx, fy, fz = sphere
+    z_from, z_doe = planes
+    r1, r2 = fz - z_from, fz - z_doe
+    mag = r2 / r1
+    env, g1 = field.envelope, field.grid
+    dev, dt = env.device, torch.float64
+    (ny, nx), (x0, y0), pc = g1.shape, g1.origin, g1.pitch[0]
+    xs = x0 + torch.arange(nx, dtype=dt, device=dev) * pc
+    ys = y0 + torch.arange(ny, dtype=dt, device=dev) * pc
+    with torch.no_grad():
+        w = torch.view_as_real(env.detach()).square().sum(-1)
+        tot = w.sum().clamp_min(1e-300)
+        cx = float((w.sum(0) * xs).sum() / tot)
+        cy = float((w.sum(1) * ys).sum() / tot)
+    chart = SphereChart((cx, cy), (fx, fy, fz), r1)
+    pq = pc * chart.s_min
+    # the chart grid over the input lattice's image (its border's chart points)
+    bx = torch.cat([xs, xs, torch.full((ny,), xs[0], dtype=dt, device=dev), torch.full((ny,), xs[-1], dtype=dt,
+                                                                                       device=dev)])
+    by = torch.cat([torch.full((nx,), ys[0], dtype=dt, device=dev), torch.full((nx,), ys[-1], dtype=dt, device=dev),
+                    ys, ys])
+    q0, q1 = chart.forward(bx, by)
+    qx0, qy0 = float(q0.min()), float(q1.min())
+    mx, my = int(math.ceil((float(q0.max()) - qx0) / pq)) + 1, int(math.ceil((float(q1.max()) - qy0) / pq)) + 1
+    gq = Grid((qx0, qy0), pq, (my, mx))
+    qa = qx0 + torch.arange(mx, dtype=dt, device=dev) * pq
+    qb = qy0 + torch.arange(my, dtype=dt, device=dev) * pq
+    px, py = chart.inverse(qa[None, :].expand(my, mx), qb[:, None].expand(my, mx))
+    aq = sample_bicubic(env, (x0, y0), pc, px, py)
+    del px, py
+    # the DOE-plane samples' sphere images on the far plane, in the chart
+    (oy_n, ox_n), (ox, oy), po = out.shape, out.origin, out.pitch[0]
+    xo = fx + (ox + torch.arange(ox_n, dtype=dt, device=dev) * po - fx) / mag
+    yo = fy + (oy + torch.arange(oy_n, dtype=dt, device=dev) * out.pitch[1] - fy) / mag
+    s0, s1 = chart.forward(xo[None, :].expand(oy_n, ox_n), yo[:, None].expand(oy_n, ox_n))
+    pad = 3 * pq
+    ax0, ay0 = float(s0.min()) - pad, float(s1.min()) - pad
+    nox = int(math.ceil((float(s0.max()) + pad - ax0) / pq)) + 1
+    noy = int(math.ceil((float(s1.max()) + pad - ay0) / pq)) + 1
+    go = Grid((ax0, ay0), pq, (noy, nox))
+    carried = propagate_window(Field(aq.to(env.dtype), gq, field.wavelength, field.n, (0.0, 0.0)), go,
+                               (z_doe - z_from) * r1 / r2).envelope
+    del aq
+    return sample_bicubic(carried, (ax0, ay0), pq, s0, s1).to(env.dtype)
+
+
 def scaled_carry(field: Field, out: Grid, sphere: tuple, planes: tuple, carrier: tuple) -> torch.Tensor:
     """The envelope (complex, ``out``'s shape; relative to ``carrier`` ``(α, β)``) on the DOE window ``out`` of the
     plane ``z_doe`` of a wave built on the plane ``z_from`` (``planes = (z_from, z_doe)`` mm) as ``field``: its
@@ -974,9 +1038,15 @@ def scaled_carry(field: Field, out: Grid, sphere: tuple, planes: tuple, carrier:
     r1, r2 = fz - z_from, fz - z_doe
     mag = r2 / r1
     ox, oy = out.origin
-    src = Grid((fx + (ox - fx) / mag, fy + (oy - fy) / mag), field.grid.pitch[0], out.shape)
-    a = propagate_window(Field(field.envelope, field.grid, field.wavelength, field.n, (0.0, 0.0)), src,
-                         (z_doe - z_from) * r1 / r2).envelope
+    if SCALED_CARRY_CHART:
+        a = _charted_carry(field, out, sphere, planes)
+    else:
+        # (a lattice f× finer than out's pitch / M: every f-th sample of the carried window)
+        f = max(1, int(round(out.pitch[0] / mag / field.grid.pitch[0])))
+        src = Grid((fx + (ox - fx) / mag, fy + (oy - fy) / mag), field.grid.pitch[0],
+                   (f * (out.shape[0] - 1) + 1, f * (out.shape[1] - 1) + 1))
+        a = propagate_window(Field(field.envelope, field.grid, field.wavelength, field.n, (0.0, 0.0)), src,
+                             (z_doe - z_from) * r1 / r2).envelope[::f, ::f]
     k = 2 * math.pi * field.n / (field.wavelength * 1e-3)
     dev, dt = a.device, torch.float64
     xs = ox + torch.arange(out.shape[1], dtype=dt, device=dev) * out.pitch[0]
