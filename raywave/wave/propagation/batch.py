@@ -597,23 +597,22 @@ class _TransferConvolve(torch.autograd.Function):
         scalars = any(ctx.needs_input_grad[1:4])
         # the scalars' gradients need the input's band spectrum: kept from the forward where it is small (the
         # column blocks the backward walks; two of its six passes of transforms not redone), else u kept
+        # (saved as tensors: autograd frees them after the backward, while the graph's outputs may live on)
         keep = [] if scalars and _keeps_band(u, part) else None
         out = convolve_band(u, part.values, job.size, part.rows, part.cols, *job.out_shape, keep)
-        ctx.spectrum = keep or None
-        ctx.save_for_backward(u if scalars and not keep else None, sx, sy, dz)
+        ctx.save_for_backward(u if scalars and not keep else None, sx, sy, dz, *(keep or ()))
         return out
 
     @staticmethod
     def backward(ctx, g):
-        u, sx, sy, dz = ctx.saved_tensors
+        u, sx, sy, dz, *kept = ctx.saved_tensors
         job = ctx.job
         part, need_u, needs = job.part, ctx.needs_input_grad[0], ctx.needs_input_grad[1:4]
         if not any(needs):
             runs = index_runs(part.rows), index_runs(part.cols)
             grad_u, _ = _adjoint(g, None, part.values, job.size, runs, ctx.in_shape, (need_u, False))
             return grad_u, None, None, None, None
-        grad_u, terms = _transfer_adjoint(g, u if ctx.spectrum is None else ctx.spectrum, job, ctx.in_shape, need_u)
-        ctx.spectrum = None
+        grad_u, terms = _transfer_adjoint(g, kept or u, job, ctx.in_shape, need_u)
         grads = [grad_u, None, None, None, None]
         for i, target in enumerate((sx, sy, dz)):
             if needs[i]:
