@@ -958,8 +958,14 @@ def _dense_backward(grad, inputs: tuple, consts, need):
     amp, angle, nu, kap = inputs
     plan = _dense_plan(nu, consts, compiled=False)  # (the same loop's arithmetic, eager if compiling is off now)
     with torch.no_grad():
+        # the gradient's real and imaginary planes as two fresh contiguous arrays: the incoming gradient is often a
+        # strided view (of a crop, a stack's slice) whose row stride, storage offset and base's shape vary from
+        # call to call, and each new pattern recompiled the loop (~1-3 s with inductor's disk cache, ~20 s without;
+        # once or twice per model call of a map; issue 43, xxviii); two copies of the window, the same values
         gr = torch.view_as_real(grad.resolve_conj())
-        g = _envelope_dense_grads((gr[..., 0], gr[..., 1]), *_dense_args(amp, angle, nu, kap, plan), *plan[2:])
+        g = _envelope_dense_grads((gr[..., 0].clone(memory_format=torch.contiguous_format),
+                                   gr[..., 1].clone(memory_format=torch.contiguous_format)),
+                                  *_dense_args(amp, angle, nu, kap, plan), *plan[2:])
     return (g[0].sum_to_size(amp.shape) if need[0] else None, g[1] if need[1] else None, g[2] if need[2] else None,
             g[3] if need[3] else None, None, None, None, None)
 

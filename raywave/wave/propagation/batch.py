@@ -35,8 +35,8 @@ from raywave.utils import devices
 from raywave.utils.phasor import polar
 from raywave.wave.grid import Field, Grid
 from raywave.wave.propagation._common import _TWO_PI, _pair
-from raywave.wave.propagation.band import (_adjoint, _band_put_, _blocks, _x_band, _y_band, _y_spectrum, band_chunks,
-                                           convolve_band, index_runs, put, take)
+from raywave.wave.propagation.band import (KEEP_SPECTRUM_BYTES, _adjoint, _band_put_, _blocks, _x_band, _y_band,
+                                           _y_spectrum, band_chunks, convolve_band, index_runs, put, take)
 from raywave.wave.propagation.kernels import (TransferBand, adjoint_terms, band_values, roll_off_terms,
                                              transfer_params)
 from raywave.wave.propagation.transfer import WindowSource, _geometry
@@ -593,20 +593,26 @@ class _TransferConvolve(torch.autograd.Function):
     @staticmethod
     def forward(ctx, u, sx, sy, dz, job: _BandJob):
         ctx.job, ctx.in_shape = job, tuple(u.shape[-2:])
-        ctx.save_for_backward(u if any(ctx.needs_input_grad[1:4]) else None, sx, sy, dz)
         part = job.part
-        return convolve_band(u, part.values, job.size, part.rows, part.cols, *job.out_shape)
+        scalars = any(ctx.needs_input_grad[1:4])
+        # the scalars' gradients need the input's band spectrum: kept from the forward where it is small (the
+        # column blocks the backward walks; two of its six passes of transforms not redone), else u kept
+        # (saved as tensors: autograd frees them after the backward, while the graph's outputs may live on)
+        keep = [] if scalars and _keeps_band(u, part) else None
+        out = convolve_band(u, part.values, job.size, part.rows, part.cols, *job.out_shape, keep)
+        ctx.save_for_backward(u if scalars and not keep else None, sx, sy, dz, *(keep or ()))
+        return out
 
     @staticmethod
     def backward(ctx, g):
-        u, sx, sy, dz = ctx.saved_tensors
+        u, sx, sy, dz, *kept = ctx.saved_tensors
         job = ctx.job
         part, need_u, needs = job.part, ctx.needs_input_grad[0], ctx.needs_input_grad[1:4]
         if not any(needs):
             runs = index_runs(part.rows), index_runs(part.cols)
             grad_u, _ = _adjoint(g, None, part.values, job.size, runs, ctx.in_shape, (need_u, False))
             return grad_u, None, None, None, None
-        grad_u, terms = _transfer_adjoint(g, u, job, ctx.in_shape, need_u)
+        grad_u, terms = _transfer_adjoint(g, kept or u, job, ctx.in_shape, need_u)
         grads = [grad_u, None, None, None, None]
         for i, target in enumerate((sx, sy, dz)):
             if needs[i]:
@@ -614,9 +620,18 @@ class _TransferConvolve(torch.autograd.Function):
         return tuple(grads)
 
 
-def _transfer_adjoint(g: torch.Tensor, u: torch.Tensor, job: _BandJob, in_shape: tuple, need_u: bool):
+def _keeps_band(u: torch.Tensor, part) -> bool:
+    """Whether :class:`_TransferConvolve` keeps the input ``u``'s band spectrum from its forward (one field on a CPU,
+    the band of ``part`` (:class:`OwnBand`) within :data:`~raywave.wave.propagation.band.KEEP_SPECTRUM_BYTES`)."""
+    return (u.ndim == 2 and not devices.accelerator(u)
+            and part.rows.numel() * part.cols.numel() * u.element_size() <= KEEP_SPECTRUM_BYTES)
+
+
+def _transfer_adjoint(g: torch.Tensor, u, job: _BandJob, in_shape: tuple, need_u: bool):
     """:class:`_TransferConvolve`'s backward from the output's gradient ``g`` ``(noy, nox)``: ``(∂L/∂u (Ny, Nx) or
-    None, the gradients of (s_x, s_y, dz) (three 0-d))``, from one compiled loop per column block
+    None, the gradients of (s_x, s_y, dz) (three 0-d))``; ``u`` the input ``(Ny, Nx)`` or its band spectrum kept by
+    the forward (:func:`~raywave.wave.propagation.band.convolve_band`'s ``keep``: a list of the column blocks'
+    ``(c, R)``, the blocks this walks), from one compiled loop per column block
     (:func:`~raywave.wave.propagation.kernels.adjoint_terms`: the band's products, the transfer function and its
     roll-off derivatives evaluated in it) between the transforms of
     :func:`~raywave.wave.propagation.band._adjoint`, in its column blocks."""
@@ -626,12 +641,13 @@ def _transfer_adjoint(g: torch.Tensor, u: torch.Tensor, job: _BandJob, in_shape:
     row_runs, col_runs = index_runs(part.rows), index_runs(part.cols)
     chunks = band_chunks(g, my, part.cols.numel())
     gx = _x_band(g, mx, col_runs, chunks)  # (noy, C), not yet / mx
-    ux = _x_band(u, mx, col_runs, chunks)
+    kept = u if isinstance(u, list) else None
+    ux = None if kept is not None else _x_band(u, mx, col_runs, chunks)
     full = torch.zeros((ny, mx), dtype=g.dtype, device=g.device) if need_u else None
     terms = torch.zeros(3, dtype=torch.float64, device=g.device)
-    for c0, c1 in _blocks(part.cols.numel(), chunks):
+    for i, (c0, c1) in enumerate(_blocks(part.cols.numel(), chunks)):
         gs = _y_spectrum(gx, c0, c1, my).div_(my * mx)  # (c, My); on the band rows ∂L/∂(product)
-        su = _y_band(ux, c0, c1, my, row_runs)  # (c, R)
+        su = _y_band(ux, c0, c1, my, row_runs) if kept is None else kept[i]  # (c, R)
         re, im, *per_col = adjoint_terms(torch.view_as_real(take(gs, row_runs)), torch.view_as_real(su),
                                          tb.fx[c0:c1, None].clone(), tb.fy, tb.p)  # (a view: guards on its base)
         del su
