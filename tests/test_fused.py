@@ -86,3 +86,26 @@ def test_the_raised_recompile_limit_is_scoped_to_the_fused_call():
     x, y = _inputs(64)
     _fused_chain(x, y, 1.5)
     assert torch._dynamo.config.cache_size_limit == before
+
+
+def _window_chain(a, b, k: float):
+    """A 2-D window chain (the knife edge's kind: two crops of one array in, two arrays out)."""
+    return torch.cos(k * b) * a, torch.sin(k * b) * a
+
+
+_fused_window = fused(_window_chain)
+
+
+def test_a_square_window_first_does_not_cost_a_rectangular_one_its_own_graph():
+    """Duck sizing off: a square first call (an on-axis PSF's window) does not specialise its two sizes as equal, so
+    rectangular windows later (off-axis PSFs) run the same compiled graph (each extra graph ~1–15 s)."""
+    from torch._dynamo.utils import counters
+    g = torch.Generator().manual_seed(5)
+    base = torch.rand(2, 90, 120, dtype=torch.float64, generator=g)
+    before = counters["stats"]["unique_graphs"]
+    for (r0, r1, c0, c1) in ((3, 67, 5, 69), (2, 50, 7, 101), (4, 81, 3, 40)):  # square, then wide and tall
+        a, b = base[0, r0:r1, c0:c1], base[1, r0:r1, c0:c1]
+        got = _fused_window(a, b, 2.0)
+        want = _window_chain(a, b, 2.0)
+        assert all((x - y).abs().max() <= 1e-14 for x, y in zip(got, want))
+    assert counters["stats"]["unique_graphs"] - before == 1

@@ -30,6 +30,7 @@ import os
 import warnings
 
 import torch
+import torch.fx.experimental._config as fx_config
 
 __all__ = ["fused", "FusedFallbackWarning", "compile_enabled"]
 
@@ -78,7 +79,11 @@ class _Fused:
         if self._compiled is None:
             self._compiled = torch.compile(self.fn, dynamic=True, fullgraph=True)
         try:
-            with torch._dynamo.config.patch(cache_size_limit=RECOMPILE_LIMIT):
+            # no duck sizing: two sizes equal on the first call (a square window) are not assumed equal, so a later
+            # rectangular one does not compile a graph of its own (~1–3 s with inductor's disk cache warm, ~15 s
+            # cold; the bundled lens's first 10×10×3 map after a one-PSF warm-up compiled the knife edge's loop twice
+            # more, once now: a crop at its array's corner, whose storage offset 0 inductor compiles as a constant)
+            with torch._dynamo.config.patch(cache_size_limit=RECOMPILE_LIMIT), fx_config.patch(use_duck_shape=False):
                 return self._compiled(*args, **kwargs)
         except Exception as exc:  # noqa: BLE001 (any compiler failure: the eager function is the same physics)
             out = self.fn(*args, **kwargs)  # bad input raises its own error here, not a compiler's
