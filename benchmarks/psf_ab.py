@@ -13,7 +13,11 @@ the medians are reported. Prints one JSON object (and writes it with ``-o``).
 each followed by the backward of a weighted sum of its PSFs) and reports every PSF's relative L1 difference between
 the trees (``max_rel_l1_per_psf``): issue 43's A/B is
 ``git worktree add /tmp/base d9ddfa8`` then
-``python benchmarks/psf_ab.py --a /tmp/base --grid 10 --repeat 1 --threads 2 --modes map,grad``.
+``python benchmarks/psf_ab.py --a /tmp/base --grid 10 --repeat 2 --threads 2 --modes map,grad --warm``.
+``--warm`` runs the timed map (grad: its first call) once untimed first, so that the times hold no compiles of the
+compiled loops' off-axis windows (a tree's first run on a machine compiles them cold, ~15 s each: main's first of
+three runs on 2026-12-02 read 0.120 s per PSF, the next two 0.067 / 0.057 s); without it, give ``--repeat`` ≥ 2 and
+read the runs after the first.
 
 ``--b-set MODULE.NAME=VALUE`` (repeatable) sets a module constant in tree B's runs before they build the lens (VALUE
 a Python literal): e.g. ``--b-set raywave.hybrid.coherent.accurate.RIM_FOURIER=False`` switches off issue 47's
@@ -53,6 +57,7 @@ for item in json.loads(sys.argv[6]):  # --b-set: module constants of this tree's
 n = int(sys.argv[1])
 wls = (0.66, 0.53, 0.47)
 edge = sys.argv[4]
+warm = sys.argv[7] == "1"
 hl = load_hybrid(bundled_lens_path("hybrid_asphere"), **({} if edge == "default" else {"stop_edge": edge}))
 warnings.simplefilter("ignore")
 psf_map(hl, (1, 1), wavelengths=wls[:1], ks=64)
@@ -62,6 +67,11 @@ if sys.argv[5] == "grad":  # forward + backward, one model call (8 field points 
     # a warm-up call with its backward (compiled loops: the backward's own graphs compile on first use)
     hl.psf_result(f[:1], list(wls[:1]), ks=64).psf.sum().backward()
     w = torch.rand((n * n, 3, 64, 64), dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    first = None
+    if warm:  # the first call of 8 field points once untimed (its off-axis windows' compiles)
+        t0 = time.perf_counter()
+        (hl.psf_result(f[:8], list(wls), ks=64).psf * w[:8]).sum().backward()
+        first = time.perf_counter() - t0
     t0, c0 = time.perf_counter(), time.process_time()
     parts = []
     for s in range(0, f.shape[0], 8):
@@ -71,6 +81,11 @@ if sys.argv[5] == "grad":  # forward + backward, one model call (8 field points 
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     psf = torch.cat(parts).transpose(0, 1).reshape(3, n, n, 64, 64)[None]
 else:
+    first = None
+    if warm:  # the same map once untimed (its off-axis windows' compiles)
+        t0 = time.perf_counter()
+        psf_map(hl, (n, n), wavelengths=wls, ks=64)
+        first = (time.perf_counter() - t0) / (n * n * len(wls))
     t0, c0 = time.perf_counter(), time.process_time()
     m = psf_map(hl, (n, n), wavelengths=wls, ks=64)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -78,16 +93,17 @@ else:
 torch.save(psf, sys.argv[3])
 k = n * n * len(wls)
 import raywave
-print(json.dumps({"wall_per_psf": wall / k, "cpu_per_psf": cpu / k, "raywave": raywave.__file__}))
+print(json.dumps({"wall_per_psf": wall / k, "cpu_per_psf": cpu / k, "raywave": raywave.__file__,
+                  "warm_up_wall_s": first}))
 """
 
 
 def _run(tree: str, n: int, threads: int, out: str, edge: str = "default", grad: bool = False,
-         sets: list | None = None) -> dict:
+         sets: list | None = None, warm: bool = False) -> dict:
     env = dict(os.environ, PYTHONPATH=os.path.abspath(tree), OMP_NUM_THREADS=str(threads))
     # run in the tree itself: ``python -c`` puts the working directory ahead of PYTHONPATH on sys.path
     res = subprocess.run([sys.executable, "-c", _CHILD, str(n), str(threads), out, edge, "grad" if grad else "map",
-                          json.dumps(sets or [])], capture_output=True, text=True, env=env, cwd=os.path.abspath(tree))
+                          json.dumps(sets or []), "1" if warm else "0"], capture_output=True, text=True, env=env, cwd=os.path.abspath(tree))
     if res.returncode != 0:
         raise RuntimeError(res.stderr[-3000:])
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -107,20 +123,24 @@ def main() -> None:
     ap.add_argument("--scratch", default="/tmp", help="folder for the runs' PSF files (one per mode and tree)")
     ap.add_argument("--b-set", action="append", default=[], metavar="MODULE.NAME=VALUE",
                     help="set a module constant in tree B's runs (repeatable; VALUE a Python literal)")
+    ap.add_argument("--warm", action="store_true",
+                    help="time a warm engine: the map (grad: its first call of 8 field points) run once untimed "
+                         "first, so that neither tree's time holds compiles of its off-axis windows (a tree run "
+                         "for the first time on a machine compiles them cold: ~15 s each)")
     ap.add_argument("-o", "--output")
     args = ap.parse_args()
     import torch
 
     out = {"benchmark": "psf_ab", "lens": "hybrid_asphere", "grid": [args.grid, args.grid], "wavelengths": 3, "ks": 64,
            "threads": args.threads, "stop_edge": args.stop_edge, "a": os.path.abspath(args.a),
-           "b": os.path.abspath(args.b), "b_set": args.b_set}
+           "b": os.path.abspath(args.b), "b_set": args.b_set, "warm": args.warm}
     for mode in args.modes.split(","):
         runs = {"a": [], "b": []}
         for r in range(args.repeat):
             for key in ("a", "b"):
                 out_pt = os.path.join(args.scratch, f"raywave_psf_ab_{mode}_{key}.pt")
                 runs[key].append(_run(getattr(args, key), args.grid, args.threads, out_pt, args.stop_edge,
-                                      mode == "grad", args.b_set if key == "b" else None))
+                                      mode == "grad", args.b_set if key == "b" else None, args.warm))
                 print(mode, key, r, runs[key][-1], file=sys.stderr, flush=True)
         a, b = (torch.load(os.path.join(args.scratch, f"raywave_psf_ab_{mode}_{k}.pt")) for k in ("a", "b"))
         rel_l1 = (a - b).abs().sum((-2, -1)) / a.abs().sum((-2, -1)).clamp_min(1e-300)  # per PSF
