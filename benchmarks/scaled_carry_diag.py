@@ -2,7 +2,11 @@
 (cached in $SCALED_CARRY_DIAG_CACHE), PSFs and rel L1 saved to OUT.pt / OUT.json. Variants (comma separated):
 default; forced_scaled (the scaled carry from the fallback's own plane); scaled_same_plane (the scaled carry from
 the plane the plain carry takes); fineF (that, on a scaled lattice F times finer); append _nochart for the carry in
-the far plane's own coordinates (SCALED_CARRY_CHART False), else the chart.
+the far plane's own coordinates (SCALED_CARRY_CHART False), else the chart. h47q: aaF (fineF's construction, F times
+finer, low-passed to the default lattice's band and decimated to it before the carry: an alias-free input, the carry
+on the default lattice); default_aaF / forced_aaF: the same from the default's / the fallback's own plane; aarF (with
+the chart): low-passed but not decimated, the chart's grid at the default lattice's pitch (its bicubic reads the finer
+field).
 
 Usage (repository root, under the memory lock): python benchmarks/scaled_carry_diag.py CASE VARIANTS OUT"""
 import os, sys, json, time, warnings, resource
@@ -16,14 +20,59 @@ from pathlib import Path
 case, variants = sys.argv[1], sys.argv[2].split(",")
 out = Path(sys.argv[3])
 CACHE = Path(os.environ.get("SCALED_CARRY_DIAG_CACHE", "benchmark_cache"))
-orig_ff, orig_sff, orig_sl = X._fallback_fits, X._scaled_fallback_fits, X._scaled_lattice
+orig_ff, orig_sff, orig_sl, orig_sc = X._fallback_fits, X._scaled_fallback_fits, X._scaled_lattice, X.scaled_carry
+orig_cfc = X._check_fallback_carry
+orig_chart = X.SphereChart
+from raywave.wave.grid import Field, Grid
+
+
+def decimated(field, f, keep: bool = False):
+    """``field`` (a scaled-carry input on a lattice ``f``× finer) low-passed to the band of the lattice ``f``× coarser
+    (an ideal filter on its FFT) and decimated to it (``keep``: not decimated)."""
+    env, g = field.envelope, field.grid
+    ny, nx = env.shape
+    spec = torch.fft.fft2(env)
+    fy = torch.fft.fftfreq(ny, dtype=torch.float64).abs()
+    fx = torch.fft.fftfreq(nx, dtype=torch.float64).abs()
+    spec *= ((fy[:, None] < 0.5 / f) & (fx[None, :] < 0.5 / f)).to(spec.dtype)
+    low = torch.fft.ifft2(spec)
+    low = low if keep else low[::f, ::f].contiguous()
+    del spec
+    return Field(low, Grid(g.origin, g.pitch[0] * (1 if keep else f), low.shape), field.wavelength, field.n,
+                 field.carrier)
+
+
+class CoarseChart(X.SphereChart):
+    """h47o's chart whose grid's pitch (``pc * s_min`` in ``_charted_carry``) is ``FACTOR``× the field's."""
+    FACTOR = 1
+
+    def __init__(self, *a):
+        super().__init__(*a)
+        self.s_min = self.s_min * CoarseChart.FACTOR
 state = {}
 
 def patched(variant):
     X._fallback_fits, X._scaled_fallback_fits, X._scaled_lattice = orig_ff, orig_sff, orig_sl
+    X.scaled_carry, X._check_fallback_carry, X.SphereChart = orig_sc, orig_cfc, orig_chart
     X.SCALED_CARRY_CHART = not variant.endswith("_nochart")
     variant = variant.replace("_nochart", "")
-    if variant == "forced_scaled":  # the research notes' forcing: _fallback_fits -> None
+    if "aa" in variant:  # the construction F x finer, decimated alias-free before the carry on the default lattice
+        head, f = variant.split("aa")
+        keep = f.startswith("r")  # aarF: low-passed but kept F x finer; the chart's grid F x the field's pitch
+        f = int(f.lstrip("r"))
+        if keep:
+            CoarseChart.FACTOR = f
+            X.SphereChart = CoarseChart
+        def sl(sim, sphere, planes, device):
+            lat = orig_sl(sim, sphere, planes, device)
+            return X.CoarseLattice(lat.origin, lat.pitch / f, (lat.shape[0] * f, lat.shape[1] * f), device)
+        X._scaled_lattice = sl
+        X.scaled_carry = lambda field, *a: orig_sc(decimated(field, f, keep), *a)
+        X._check_fallback_carry = lambda *a, **k: None  # (it would size the carry on the finer construction)
+        variant = {"": "scaled_same_plane", "default_": "default", "forced_": "forced_scaled"}[head]
+    if variant == "default":
+        pass
+    elif variant == "forced_scaled":  # the research notes' forcing: _fallback_fits -> None
         X._fallback_fits = lambda *a, **k: None
     elif variant == "scaled_same_plane":  # the scaled carry from the plane the plain carry would take
         def ff(*a, **k):
@@ -70,7 +119,7 @@ for v in variants:
     res["rows"][v] = dict(step=r[3], time_s=time.perf_counter() - t,
                           warnings=[w for w in r[2] if "Deprec" not in w])
     print(v, r[3], [w[:100] for w in r[2] if "Stop" in w], flush=True)
-X._fallback_fits, X._scaled_fallback_fits = orig_ff, orig_sff
+X._fallback_fits, X._scaled_fallback_fits, X._scaled_lattice, X.scaled_carry = orig_ff, orig_sff, orig_sl, orig_sc
 ref, row = S.reference(case, geo, 32, 1024, CACHE, "rim_images", 1e-6)
 res["ref_error"] = row.get("ref_error")
 for v, p in psfs.items():
