@@ -34,4 +34,4 @@ def cp(fin, *a, **k):
     return orig_cp(fin, *a, **k)
 X.propagate_window, X._coarse_propagate = pw, cp
 eng, geo = S.engine_psfs(case, 32, ["default"])
-torch.save(saved, fos.environ.get("RUNS", "runs") + "/planar_plainA{os.environ.get('FACT', '1')}.pt")
+torch.save(saved, f"{os.environ.get('RUNS', 'runs')}/planar_plainA{os.environ.get('FACT', '1')}.pt")
