@@ -145,10 +145,10 @@ def surface_doe_plan(surfaces: list, resized: int | None, last_doe: float | None
         own, planes = None, []
         for j, doe in enumerate(does):
             where = f"surfaces[{i}].doe" + (f"[{j}]" if isinstance(s["doe"], list) else "")
-            typ, why = zemax_type(doe)
+            why = zemax_type(doe)[1]
             if why is None and (kind == "coordinate_break" or mirror):
-                why = f"on a {'mirror' if mirror else 'coordinate break'}: not a diffractive .zmx surface inside " \
-                      "the lens"
+                why = (f"on a {'mirror' if mirror else 'coordinate break'}: the reader takes a diffractive surface "
+                       "inside the lens for a refracting one")
             if why is None and is_conformal(doe) and kind != "standard":
                 why = (f"conformal on a {kind} surface: a BINARY_2 / DGRATING inside the lens is read as a "
                        "spherical / conic (STANDARD) surface")
