@@ -340,7 +340,10 @@ def write_zmx(spec: dict, path, encoding: str = "utf-16") -> None:
 
     ``encoding``: "utf-16" (default; UTF-16 LE with BOM, as OpticStudio writes) or "utf-8".
     Lines end with CRLF. The sensor and description are not stored (a :class:`LensFileWarning` says so);
-    the image surface gets the sensor half-diagonal as its semi-diameter.
+    the image surface gets the sensor half-diagonal as its semi-diameter. A DOE inside the lens (a surface's
+    ``"doe"``) becomes a BINARY_2 / DGRATING surface: on its surface, or on a plane of its own that reads back as
+    one more plane surface (:mod:`raywave.io.zmx.surface_doe_writer`); what a .zmx cannot hold is named in the
+    warning.
     """
     text = zmx_text(spec, str(path))
     enc = encoding.lower().replace("_", "-")
