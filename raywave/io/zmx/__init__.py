@@ -8,7 +8,9 @@ coordinate breaks (``TYPE COORDBRK``: PARM 1..6 = decentre x, decentre y, tilt x
 (its DISZ is the object distance), the last surface is the image plane (dropped: the thickness before it
 is the distance to the image). A diffractive surface (BINARY_2, DGRATING, ...) as the last surface before the
 image becomes the spec's "doe" (the DOE plane of a hybrid lens; BINARY_2 coefficients become its
-``phase_model``, and :func:`write_zmx` writes such a DOE back as a BINARY_2 surface). Anything raywave
+``phase_model``, and :func:`write_zmx` writes such a DOE back as a BINARY_2 surface); anywhere else it is a DOE
+inside the lens (a surface's ``"doe"``), which :func:`write_zmx` writes back as a BINARY_2 / DGRATING surface.
+Anything raywave
 cannot model (other surface types, decentred
 apertures, curved object or image, non-sequential mode) raises
 :class:`LensFileError` naming the surface and line; known bookkeeping keys are skipped and unknown keys
@@ -19,7 +21,8 @@ Latin-1. :func:`write_zmx` writes UTF-16 LE with BOM and CRLF line ends by defau
 """
 
 # Split by concern (issue 17): tables (the .zmx vocabulary), tokens (decoding, lines), surface (one SURF block),
-# diffractive (the DOE plane), reader (read_zmx), writer (zmx_text, write_zmx). Every name stays importable here.
+# diffractive (the DOE plane), reader (read_zmx), writer (zmx_text, write_zmx), surface_doe_writer (the diffractive
+# surfaces the writer makes of DOEs). Every name stays importable here.
 from raywave.io.zmx.reader import read_zmx
 from raywave.io.zmx.tables import (DIFFRACTIVE_NAME_PARTS, DIFFRACTIVE_TYPES, IGNORED_SURFACE_KEYS,
                                    IGNORED_SYSTEM_KEYS, KNOWN_UNSUPPORTED_TYPES, MAX_BINARY2_TERMS,

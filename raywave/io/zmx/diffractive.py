@@ -89,8 +89,9 @@ def doe_inside(d, path, scale) -> dict:
     same ray bending, ``n2 sinθ2 − n1 sinθ1 = M λ ∂φ/∂s / 2π``, on a plane), aperture, stop and comment stay the
     surface's; the DOE (``phase_model`` of BINARY_2 / DGRATING, else blank) sits 0 mm after the vertex, sized by
     the surface's aperture (else its semi-diameter, as a circle). A curved one (a DOE on a curved substrate) keeps
-    its curvature and carries a conformal DOE (``"conformal": true``): the phase, a function of the surface's x, y as
-    OpticStudio defines it, on the sag, refracting in the same step."""
+    its curvature and conic (CONI) and carries a conformal DOE (``"conformal": true``): the phase, a function of
+    the surface's x, y as OpticStudio defines it, on the sag, refracting in the same step. :func:`write_zmx` writes
+    such DOEs back (:mod:`raywave.io.zmx.surface_doe_writer`)."""
     where = f"surface {d['number']}"
     model = _diffractive_phase(d, where, path, scale, d["line"], curved_ok=True)
     if d["curv"] == 0.0 and (d["disz"] is None or not math.isfinite(d["disz"]) or not d["disz"] > 0):
@@ -103,7 +104,7 @@ def doe_inside(d, path, scale) -> dict:
     doe["phase"] = None
     if model is not None:
         doe["phase_model"] = model
-    return dict(d, kind="standard", conic=0.0, parms={}, surface_doe=doe)
+    return dict(d, kind="standard", parms={}, surface_doe=doe)  # its CONI kept (a conic substrate)
 
 
 def _doe_from_surface(d, before, path, scale, sign: float = 1.0, medium=None) -> dict:

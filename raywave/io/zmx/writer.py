@@ -1,5 +1,6 @@
 """Lens specs -> .zmx text and files (:func:`zmx_text`, :func:`write_zmx`): UTF-16 LE with BOM and CRLF line
-ends by default, as OpticStudio writes; a binary_2 DOE becomes a BINARY_2 surface."""
+ends by default, as OpticStudio writes; a binary_2 DOE becomes a BINARY_2 surface, and a DOE inside the lens (a
+surface's ``"doe"``, issue 46) a BINARY_2 / DGRATING surface (:mod:`raywave.io.zmx.surface_doe_writer`)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ from raywave.io.errors import LensFileError, LensFileWarning
 from raywave.io.json_format import validate_spec
 from raywave.io.spec import (DEFAULT_WAVELENGTHS, aspheric_canonical, curvature_of, resized_stop_aperture,
                              rotation_radius_canonical, system_aperture_canonical)
-from raywave.io.zmx.tables import MAX_BINARY2_TERMS, MAX_EVENASPH_PARM, MAX_ODDASPHE_PARM, SURFACE_TYPES, \
-    SYSTEM_APERTURE_KEYS
+from raywave.io.zmx.surface_doe_writer import (doe_aperture_lines, doe_extras, phase_lines, surface_doe_plan,
+                                               zemax_type)
+from raywave.io.zmx.tables import MAX_EVENASPH_PARM, MAX_ODDASPHE_PARM, SURFACE_TYPES, SYSTEM_APERTURE_KEYS
 
 
 def _num(x) -> str:
@@ -42,10 +44,27 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     sign, medium = _doe_side(spec["surfaces"])
     resized = resized_stop_aperture(spec["surfaces"]) if system_aperture_canonical(spec.get("system_aperture")) \
         else None
-    for i, s in enumerate(spec["surfaces"], start=1):
-        _surface_lines(w, i, s, dict(doe, distance=sign * float(doe["distance"]) + 0.0)
-                       if binary2 and i == nsurf else None, source, resized=resized == i - 1)
-    n = len(spec["surfaces"]) + 1
+    last_doe = sign * float(doe["distance"]) + 0.0 if binary2 else None  # DISZ to the DOE plane (+ 0.0: no -0.0)
+    plan, lost_inside = surface_doe_plan(spec["surfaces"], resized, last_doe, source)
+    n = 1
+    for i, s in enumerate(spec["surfaces"]):
+        own, planes = plan.get(i, (None, []))
+        # the DISZ after the surface: to its first DOE plane, else to the DOE before the sensor, else its thickness
+        ends = [d for d, _ in planes] + ([last_doe] if binary2 and i == nsurf - 1 else []) + [float(s["thickness"])]
+        # a diffractive surface last before the image would be read as the DOE before the sensor (the top-level
+        # "doe"): a plain plane half way from the last DOE to the image keeps the DOEs inside the lens
+        plain = i == nsurf - 1 and not binary2 and (own is not None or planes)
+        if plain:
+            at = planes[-1][0] if planes else 0.0
+            ends.insert(-1, at + 0.5 * (ends[-1] - at))
+        _surface_lines(w, n, i, s, ends[0], source, resized=resized == i, own_doe=own)
+        n += 1
+        for k, (d, pdoe) in enumerate(planes):
+            _doe_plane(w, n, i, pdoe, ends[k + 1] - d, s.get("material", "air"), source)
+            n += 1
+        if plain:
+            _plain_plane(w, n, ends[-1] - ends[-2], s.get("material", "air"))
+            n += 1
     if binary2:
         _write_binary2(w, n, doe, spec["surfaces"][-1], source, sign, medium)
         n += 1
@@ -56,7 +75,7 @@ def zmx_text(spec: dict, source="<spec>") -> str:
     sensor = spec.get("sensor")
     if sensor:
         w(f'  DIAM {_num(0.5 * math.hypot(*sensor["size"]))} 1 0 0 1 ""')
-    _warn_left_out(spec, doe, binary2, source)
+    _warn_left_out(spec, doe, binary2, lost_inside, source)
     return "\r\n".join(out) + "\r\n"
 
 
@@ -104,27 +123,30 @@ def _doe_side(surfaces: list) -> tuple[float, object]:
     return (-1.0 if mirrors % 2 else 1.0), medium
 
 
-def _surface_lines(w, i: int, s: dict, doe_after: dict | None, source, resized: bool = False) -> None:
-    """The SURF block of spec surface ``s`` (number ``i``) through ``w``; ``doe_after``: the spec's DOE when a
-    BINARY_2 DOE plane follows ``s`` (then its thickness is the DOE's distance, mm, signed: negative after an odd
-    number of mirrors)."""
-    w(f"SURF {i}")
+def _surface_lines(w, number: int, i: int, s: dict, disz: float, source, resized: bool = False,
+                   own_doe: dict | None = None) -> None:
+    """The SURF block (``SURF number``) of spec surface ``s`` (``surfaces[i]``) through ``w``; ``disz``: its DISZ
+    (mm: its thickness, or the distance to a DOE plane after it, signed: negative after an odd number of mirrors);
+    ``own_doe``: a DOE written on the surface itself (a BINARY_2 / DGRATING surface,
+    :mod:`raywave.io.zmx.surface_doe_writer`)."""
+    w(f"SURF {number}")
     kind = s.get("type", "standard")
     if s.get("stop"):
         w("  STOP")
     if s.get("comment"):
         w("  COMM " + " ".join(str(s["comment"]).split()))
     extended = _extended_terms(s)
-    w("  TYPE " + (extended[0] if extended else {v: k for k, v in SURFACE_TYPES.items()}[kind]))
+    typ = zemax_type(own_doe)[0] if own_doe is not None else None
+    w("  TYPE " + (typ or (extended[0] if extended else {v: k for k, v in SURFACE_TYPES.items()}[kind])))
     if kind == "coordinate_break":
         dec, tilt = s.get("decenter", [0.0, 0.0]), s.get("tilt", [0.0, 0.0, 0.0])
         for j, v in enumerate(list(dec) + list(tilt) + [s.get("order", 0)], start=1):
             w(f"  PARM {j} {_num(v)}")
-        w(f"  DISZ {_num(doe_after['distance'] if doe_after is not None else s['thickness'])}")
+        w(f"  DISZ {_num(disz)}")
         return
     if kind != "paraxial":
         w(f"  CURV {_num(curvature_of(s))}")
-    w(f"  DISZ {_num(doe_after['distance'] if doe_after is not None else s['thickness'])}")
+    w(f"  DISZ {_num(disz)}")
     g = _glas_line(s.get("material", "air"))
     if g:
         w("  " + g)
@@ -132,10 +154,42 @@ def _surface_lines(w, i: int, s: dict, doe_after: dict | None, source, resized: 
         w(f'  DIAM {_num(s["semi_diameter"])} 1 0 0 1 ""')
     if kind != "paraxial":
         w(f"  CONI {_num(s.get('conic', 0.0))}")
-    _parm_lines(w, i, kind, s, source)
+    if own_doe is not None:
+        phase_lines(w, own_doe, f"surfaces[{i}].doe", source)
+    else:
+        _parm_lines(w, i + 1, kind, s, source)
     ap = s.get("aperture")
     if ap is not None and not resized:  # a stop's plain circle a system aperture resizes: no CLAP (it would fix it)
-        _aperture_lines(w, i, ap, source)
+        _aperture_lines(w, i + 1, ap, source)
+
+
+def _doe_plane(w, number: int, i: int, doe: dict, disz: float, medium, source) -> None:
+    """A DOE inside the lens on a plane of its own (``SURF number``, BINARY_2 / DGRATING) in the gap after
+    ``surfaces[i]`` (``medium``: the medium there; ``disz``: mm to the next DOE plane or surface): the reader gives
+    it back as a plane surface carrying the DOE 0 mm after it, its clear aperture the DOE's size."""
+    w(f"SURF {number}")
+    w("  TYPE " + zemax_type(doe)[0])
+    w("  CURV 0.0")
+    w(f"  DISZ {_num(disz)}")
+    g = _glas_line(medium)
+    if g:
+        w("  " + g)
+    w("  CONI 0.0")
+    phase_lines(w, doe, f"surfaces[{i}].doe", source)
+    doe_aperture_lines(w, doe)
+
+
+def _plain_plane(w, number: int, disz: float, medium) -> None:
+    """A plane STANDARD surface (``SURF number``) in ``medium``, ``disz`` mm before the next surface (it changes no
+    ray)."""
+    w(f"SURF {number}")
+    w("  TYPE STANDARD")
+    w("  CURV 0.0")
+    w(f"  DISZ {_num(disz)}")
+    g = _glas_line(medium)
+    if g:
+        w("  " + g)
+    w("  CONI 0.0")
 
 
 def _aperture_lines(w, i: int, ap: dict, source) -> None:
@@ -221,21 +275,18 @@ def _parm_lines(w, i: int, kind: str, s: dict, source) -> None:
         w(f"  PARM 1 {_num(s['focal_length'])}")
 
 
-def _warn_left_out(spec: dict, doe, binary2: bool, source) -> None:
+def _warn_left_out(spec: dict, doe, binary2: bool, lost_inside: list, source) -> None:
     """One :class:`LensFileWarning` naming what a .zmx file cannot store (sensor, description, a DOE that is not a
-    binary_2 model, or the DOE's grid and fabrication data)."""
+    binary_2 model, or the DOE's grid and fabrication data; ``lost_inside``: the same for the DOEs inside the lens,
+    :func:`raywave.io.zmx.surface_doe_writer.surface_doe_plan`)."""
     lost = [k for k in ("sensor", "description") if spec.get(k)]
     if doe is not None and not binary2:
         lost.append("doe (only a binary_2 phase model becomes a BINARY_2 surface)")
     elif doe is not None:
-        extra = [k for k in ("pitch", "shape", "design_wavelength", "material", "levels", "wrap") if doe.get(k)]
-        if doe.get("oversample", 1) != 1:
-            extra.append("oversample")
+        extra = doe_extras(doe)
         if extra:
             lost.append(f"the DOE's {', '.join(extra)}")
-    inside = [str(i) for i, s in enumerate(spec.get("surfaces", [])) if s.get("doe") is not None]
-    if inside:  # issue 46: a DOE inside the lens is not written back (yet)
-        lost.append(f"the DOEs inside the lens (at surface{'s' if len(inside) > 1 else ''} {', '.join(inside)})")
+    lost += lost_inside
     if lost:
         warnings.warn(LensFileWarning(f"{source}: .zmx files do not store {' and '.join(lost)}; "
                                       "they are left out"), stacklevel=4)
@@ -254,13 +305,8 @@ def _system_aperture_line(ap) -> str:
 
 def _write_binary2(w, number: int, doe: dict, last: dict, source, sign: float = 1.0, medium=None) -> None:
     """The DOE plane as a BINARY_2 surface (PARM 0 = diffraction order, XDAT 1 = N, XDAT 2 = normalisation
-    radius, XDAT 3.. = A_i in rad) between the last lens surface and the image (``sign``, ``medium``: see
-    :func:`_doe_side`)."""
-    model = doe["phase_model"]
-    coeffs = [float(c) for c in model["coefficients"]]
-    if len(coeffs) > MAX_BINARY2_TERMS:
-        raise LensFileError(f"doe.phase_model: a .zmx BINARY_2 surface holds at most {MAX_BINARY2_TERMS} terms, got "
-                            f"{len(coeffs)}", source)
+    radius, XDAT 3.. = A_i in rad: :func:`raywave.io.zmx.surface_doe_writer.phase_lines`) between the last lens
+    surface and the image (``sign``, ``medium``: see :func:`_doe_side`)."""
     rest = float(last["thickness"]) - sign * float(doe["distance"])
     w(f"SURF {number}")
     w("  TYPE BINARY_2")
@@ -271,15 +317,8 @@ def _write_binary2(w, number: int, doe: dict, last: dict, source, sign: float = 
         w("  " + g)
     size = doe.get("size")
     if size is not None and size[0] == size[1]:
-        if doe.get("aperture", "square") == "circle":
-            w(f"  CLAP 0 {_num(0.5 * size[0])} 0")
-        else:
-            w(f"  SQAP {_num(0.5 * size[0])} {_num(0.5 * size[1])}")
-    w(f"  PARM 0 {_num(model.get('order', 1.0))}")
-    for j in range(1, 9):
-        w(f"  PARM {j} 0.0")
-    for j, v in enumerate([float(len(coeffs)), float(model["norm_radius"])] + coeffs, start=1):
-        w(f'  XDAT {j} {_num(v)} 0 0 1 0 0 ""')
+        doe_aperture_lines(w, doe)
+    phase_lines(w, doe, "doe", source)
 
 
 def _glas_line(m) -> str | None:
@@ -301,7 +340,10 @@ def write_zmx(spec: dict, path, encoding: str = "utf-16") -> None:
 
     ``encoding``: "utf-16" (default; UTF-16 LE with BOM, as OpticStudio writes) or "utf-8".
     Lines end with CRLF. The sensor and description are not stored (a :class:`LensFileWarning` says so);
-    the image surface gets the sensor half-diagonal as its semi-diameter.
+    the image surface gets the sensor half-diagonal as its semi-diameter. A DOE inside the lens (a surface's
+    ``"doe"``) becomes a BINARY_2 / DGRATING surface: on its surface, or on a plane of its own that reads back as
+    one more plane surface (:mod:`raywave.io.zmx.surface_doe_writer`); what a .zmx cannot hold is named in the
+    warning.
     """
     text = zmx_text(spec, str(path))
     enc = encoding.lower().replace("_", "-")
