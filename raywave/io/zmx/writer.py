@@ -167,23 +167,16 @@ def _doe_plane(w, number: int, i: int, doe: dict, disz: float, medium, source) -
     """A DOE inside the lens on a plane of its own (``SURF number``, BINARY_2 / DGRATING) in the gap after
     ``surfaces[i]`` (``medium``: the medium there; ``disz``: mm to the next DOE plane or surface): the reader gives
     it back as a plane surface carrying the DOE 0 mm after it, its clear aperture the DOE's size."""
-    w(f"SURF {number}")
-    w("  TYPE " + zemax_type(doe)[0])
-    w("  CURV 0.0")
-    w(f"  DISZ {_num(disz)}")
-    g = _glas_line(medium)
-    if g:
-        w("  " + g)
-    w("  CONI 0.0")
+    _plain_plane(w, number, disz, medium, zemax_type(doe)[0])
     phase_lines(w, doe, f"surfaces[{i}].doe", source)
     doe_aperture_lines(w, doe)
 
 
-def _plain_plane(w, number: int, disz: float, medium) -> None:
-    """A plane STANDARD surface (``SURF number``) in ``medium``, ``disz`` mm before the next surface (it changes no
-    ray)."""
+def _plain_plane(w, number: int, disz: float, medium, kind: str = "STANDARD") -> None:
+    """A plane surface of Zemax type ``kind`` (``SURF number``) in ``medium``, ``disz`` mm before the next surface (a
+    STANDARD one changes no ray)."""
     w(f"SURF {number}")
-    w("  TYPE STANDARD")
+    w("  TYPE " + kind)
     w("  CURV 0.0")
     w(f"  DISZ {_num(disz)}")
     g = _glas_line(medium)
