@@ -120,3 +120,52 @@ def test_lens_a_near_focus_default_matches_the_rayleigh_sommerfeld_integral():
     print(f"whole {whole:.2e}, rings {[f'{v:.1e}' for v in ring]} at {RINGS}")
     assert whole < 3e-4
     assert max(ring[:4]) < 1e-3 and ring[4] < 2e-3
+
+
+# ------------------------------------------------------------------ a sensor far from the focus (class J)
+def _doublet_on_sensor(sensor: float, plane: float):
+    """tests/test_midsystem_zmx.py's doublet without its DOE (focus ≈ 35 mm after its last vertex at 0.55 µm), its
+    sensor ``sensor`` mm after the last vertex, a blank DOE of 2 µm pixels ``plane`` mm after it, 2 µm sensor pixels."""
+    from test_midsystem_zmx import DOUBLET
+
+    from raywave.assembly.build import hybrid_from_spec
+    from raywave.io.zmx import read_zmx
+
+    with __import__("tempfile").TemporaryDirectory() as d:
+        path = Path(d) / "doublet.zmx"
+        path.write_text(DOUBLET)
+        spec = read_zmx(path)
+    del spec["surfaces"][1]["doe"]
+    spec["surfaces"][-1]["thickness"] = sensor
+    return hybrid_from_spec(spec, doe_pitch=0.002, sensor_pitch=0.002, doe_distance=plane)
+
+
+def _doublet_estimate(sensor: float, plane: float):
+    hl = _doublet_on_sensor(sensor, plane)
+    rim = stop_rim_images(hl.lens, (0.0, 0.0), 0.55, None, bound=(hl.doe_z(), XP.EXIT_PUPIL_FAR))
+    return XP.fresnel_step_estimates([rim], (0.55, 1.0), (hl.doe_z(), hl.sensor_z()), hl.crop_reach(32),
+                                     hl.doe.pitch)[0]
+
+
+def test_a_crop_inside_the_rim_rays_ring_counts_the_ring_in_its_reach():
+    """Class J (docs/ray-wave.md): with the doublet's sensor 5.5 mm past its focus (~100 waves) every rim ray lands
+    ~0.6 mm from the 32-pixel crop (reach 0.047 mm), and the edge waves that reach the crop leave the DOE plane that
+    much farther from the rim: on the file's plane (half the gap, 20 mm) the Fresnel step reads 1.38e-1 from the
+    converged Huygens reference (benchmarks/defocused_sensor.py), and the estimate now rejects it (4.6 zones; the
+    crop's reach alone: 0.34); on a plane 5 mm after the lens, 3.3e-4 from it, the estimate keeps it; in focus (34.5
+    mm, 1.75e-4) the estimate is the crop's reach alone, as before."""
+    far, near = _doublet_estimate(40.0, 20.0), _doublet_estimate(40.0, 5.0)
+    assert not XP.fresnel_step_holds(far) and far[0] > 4.0
+    assert XP.fresnel_step_holds(near)
+    focus = _doublet_estimate(34.5, 17.25)
+    assert XP.fresnel_step_holds(focus) and focus[0] < 1.0
+
+
+def test_a_crop_inside_the_rim_rays_ring_is_not_silent():
+    """Where the estimate rejects the Fresnel step and the exact construction does not fit (the doublet's beam on its
+    exit-pupil plane), the PSF call warns and names the way out (a DOE plane nearer the exit pupil, or
+    edge_step='asm': 6.4e-3 from the reference there); before class J's rule it was silent."""
+    hl = _doublet_on_sensor(40.0, 20.0)
+    with pytest.warns(StopEdgeWarning, match="inside the rim rays' ring"):
+        with torch.no_grad():
+            hl.psf_result(torch.zeros(1, 2, dtype=torch.float64), [0.55], ks=32)

@@ -492,8 +492,10 @@ def _adaptive_fallback(lens, source: Source, z_xp: float, p_sim: float, estimate
         warnings.warn(f"field {fld} at {float(source.wavelength):g} µm: {describe_estimate(estimate)}: the PSF crop "
                       "reaches beyond the edge waves the Fresnel edge step holds, and the exact construction does not "
                       f"fit (the beam spans over {AUTO_ASM_SAMPLES} samples on the exit-pupil plane, or its window "
-                      "over the memory): kept the Fresnel step; take a smaller crop (ks), or "
-                      f"HybridLens(edge_step='asm') (up to {MAX_XP_SAMPLES} samples)", StopEdgeWarning, stacklevel=4)
+                      "over the memory): kept the Fresnel step; take a smaller crop (ks) (on a sensor far from the "
+                      "focus, where the crop lies inside the rim rays' ring, a DOE plane nearer the exit pupil "
+                      f"instead), or HybridLens(edge_step='asm') (up to {MAX_XP_SAMPLES} samples)", StopEdgeWarning,
+                      stacklevel=4)
     return "fresnel", None
 
 
@@ -1278,7 +1280,10 @@ def fresnel_step_estimates(rims: list, medium: tuple, planes: tuple, crop_reach:
     (wavelength µm, n)``, ``λ_m = λ/n``) and its image on the sensor ``R_j/d_j · sqrt(λ_m L_j)``:
 
     * ``zones``: the crop's reach ``crop_reach`` (mm, :meth:`~raywave.hybrid.HybridLens.crop_reach`; 0: the
-      caller does not know its crop) over the smallest image of a zone. The edge wave that lands ``ρ`` from the rim
+      caller does not know its crop) over the smallest image of a zone; on a sensor so far from the rim rays' focus
+      that they all land beyond that reach (the crop inside their ring), the reach from each landing (``crop_reach``
+      plus the landing's distance from the ring's centre, :func:`_defocus_ring`) over its own zone image, the largest
+      over the rim. The edge wave that lands ``ρ`` from the rim
       ray's focus leaves the DOE plane ``ρ d/R`` inside the shadow; the step's inner tail holds it up to ``ν_b/√2``
       zones (4 with the default band) and no single-edge knife edge holds the far edge's wave once it crosses the
       beam's centre (``sqrt(N_F)`` zones); ``zones_max`` = :data:`FRESNEL_REACH_ZONES` × ``min(1, ν_b/(4√2))``,
@@ -1303,19 +1308,32 @@ def fresnel_step_estimates(rims: list, medium: tuple, planes: tuple, crop_reach:
         t_s = (z_sensor - e[..., 2]) / u[..., 2]
         zone = torch.sqrt(lam * (t_d * (t_s - t_d) / t_s).abs())
         image = zone * (t_s / t_d).abs()
+        reach = float(crop_reach) + _defocus_ring(e, u, t_s, float(crop_reach))  # (B, k) mm on the sensor
         p = e[..., :2] + t_d[..., None] * u[..., :2]  # the rim rays on the DOE plane (B, k, 2)
         a, c = p.roll(1, -2), p.roll(-1, -2)
         ab, bc, ac = ((x - y).norm(dim=-1) for x, y in ((p, a), (c, p), (c, a)))
         cross = ((p - a)[..., 0] * (c - a)[..., 1] - (p - a)[..., 1] * (c - a)[..., 0]).abs()
         rho = ab * bc * ac / (2 * cross).clamp_min(1e-300)  # circumradius of three neighbours (mm)
-        host = torch.stack([image.amin(-1), zone.amin(-1), (zone / rho).amax(-1)], -1).cpu().tolist()
-    for k, (img, z_min, curv) in zip(live, host):
-        if not (math.isfinite(img) and math.isfinite(z_min) and math.isfinite(curv)) or img <= 0 or z_min <= 0:
+        host = torch.stack([(reach / image).amax(-1), zone.amin(-1), (zone / rho).amax(-1)], -1).cpu().tolist()
+    for k, (zones, z_min, curv) in zip(live, host):
+        if not (math.isfinite(zones) and math.isfinite(z_min) and math.isfinite(curv)) or zones < 0 or z_min <= 0:
             continue
         nu_b = max(min(0.6 * z_min / (math.sqrt(2.0) * p_sim), _nu_inner(RIPPLE_ZONES)), 2.0)
-        out[k] = (float(crop_reach) / img, FRESNEL_REACH_ZONES * min(1.0, nu_b / _nu_inner(RIPPLE_ZONES)),
-                  curv / obscured)
+        out[k] = (zones, FRESNEL_REACH_ZONES * min(1.0, nu_b / _nu_inner(RIPPLE_ZONES)), curv / obscured)
     return out
+
+
+def _defocus_ring(e: torch.Tensor, u: torch.Tensor, t_s: torch.Tensor, crop_reach: float) -> torch.Tensor:
+    """How much farther (mm) the PSF crop's points lie from each rim ray's landing on the sensor than the crop's own
+    reach ``crop_reach`` mm, ``(B, k)``, for rim images ``e`` and directions ``u`` ``(B, k, 3)`` reaching the sensor
+    ``t_s`` ``(B, k)`` mm along them: each landing's distance from the rim rays' centre where the sensor lies so far
+    from their focus that every one lands beyond the crop's reach (a defocused sensor: the crop inside the rim's
+    ring, class J of docs/ray-wave.md), else 0 (some land within it: a focus, aberrated or not, the case the
+    estimate was calibrated on)."""
+    land = e[..., :2] + t_s[..., None] * u[..., :2]  # the rim rays on the sensor (B, k, 2)
+    ring = (land - land.mean(-2, keepdim=True)).norm(dim=-1)
+    inside = ring.amin(-1, keepdim=True) > crop_reach
+    return torch.where(inside, ring, torch.zeros_like(ring))
 
 
 def fresnel_step_holds(estimate) -> bool:
