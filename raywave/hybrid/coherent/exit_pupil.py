@@ -1329,7 +1329,9 @@ def _defocus_ring(e: torch.Tensor, u: torch.Tensor, t_s: torch.Tensor, crop_reac
     ``t_s`` ``(B, k)`` mm along them: each landing's distance from the rim rays' centre where the sensor lies so far
     from their focus that every one lands beyond the crop's reach (a defocused sensor: the crop inside the rim's
     ring, class J of docs/ray-wave.md), else 0 (some land within it: a focus, aberrated or not, the case the
-    estimate was calibrated on)."""
+    estimate was calibrated on; or the caller does not know its crop, ``crop_reach`` 0)."""
+    if not crop_reach > 0:
+        return torch.zeros_like(t_s)
     land = e[..., :2] + t_s[..., None] * u[..., :2]  # the rim rays on the sensor (B, k, 2)
     ring = (land - land.mean(-2, keepdim=True)).norm(dim=-1)
     inside = ring.amin(-1, keepdim=True) > crop_reach
