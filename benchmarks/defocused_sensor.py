@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -70,25 +69,17 @@ def ideal_rows(dz: float, margins=(0.3, 1.5, 3.0)) -> dict:
 
 def doublet_rows(sensor: float, planes) -> list:
     """The doublet with its sensor at ``sensor`` mm: each plane's default / asm / DOE-plane edge against Huygens."""
-    import test_midsystem_zmx as M
+    from test_edge_estimate import _doublet_on_sensor
 
-    from raywave.assembly.build import hybrid_from_spec
-    from raywave.io.zmx import read_zmx
     from raywave.models.exit_pupil import huygens_psf
 
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / "doublet.zmx"
-        path.write_text(M.DOUBLET)
-        spec = read_zmx(path)
-    del spec["surfaces"][1]["doe"]
-    spec["surfaces"][-1]["thickness"] = sensor
     rows, ref = [], None
     for plane in planes:
         out = {"system": "doublet", "sensor_mm": sensor, "plane_mm": plane}
         for name, kw in (("default", {}), ("asm", {"edge_step": "asm"}), ("doe", {"stop_edge": "doe"})):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                hl = hybrid_from_spec(spec, doe_pitch=PIXEL, sensor_pitch=PIXEL, doe_distance=plane, **kw)
+                hl = _doublet_on_sensor(sensor, plane, **kw)  # 2 µm DOE and sensor pixels (PIXEL)
                 t0 = time.perf_counter()
                 with torch.no_grad():
                     r = hl.psf_result(torch.zeros(1, 2, dtype=torch.float64), [WL], ks=KS)

@@ -123,9 +123,11 @@ def test_lens_a_near_focus_default_matches_the_rayleigh_sommerfeld_integral():
 
 
 # ------------------------------------------------------------------ a sensor far from the focus (class J)
-def _doublet_on_sensor(sensor: float, plane: float):
+def _doublet_on_sensor(sensor: float, plane: float | None, **kw):
     """tests/test_midsystem_zmx.py's doublet without its DOE (focus ≈ 35 mm after its last vertex at 0.55 µm), its
-    sensor ``sensor`` mm after the last vertex, a blank DOE of 2 µm pixels ``plane`` mm after it, 2 µm sensor pixels."""
+    sensor ``sensor`` mm after the last vertex, a blank DOE of 2 µm pixels ``plane`` mm after it (None: the file's
+    default plane), 2 µm sensor pixels; ``kw`` to ``hybrid_from_spec`` (``stop_edge``, ``edge_step``). Also
+    benchmarks/defocused_sensor.py's doublet."""
     from test_midsystem_zmx import DOUBLET
 
     from raywave.assembly.build import hybrid_from_spec
@@ -137,7 +139,7 @@ def _doublet_on_sensor(sensor: float, plane: float):
         spec = read_zmx(path)
     del spec["surfaces"][1]["doe"]
     spec["surfaces"][-1]["thickness"] = sensor
-    return hybrid_from_spec(spec, doe_pitch=0.002, sensor_pitch=0.002, doe_distance=plane)
+    return hybrid_from_spec(spec, doe_pitch=0.002, sensor_pitch=0.002, doe_distance=plane, **kw)
 
 
 def _doublet_estimate(sensor: float, plane: float):
