@@ -12,6 +12,7 @@ Two systems, one source on axis, ks 32 at 2 µm, relative L1 of the PSF crop (ea
   ``stop_edge="doe"``, against ``huygens_psf(sphere="rim_images", n_pupil="auto")`` (its own error beside it).
 
     PYTHONPATH=. python benchmarks/defocused_sensor.py [--dz 3 8] [--sensor 34.5 40] [--planes None 5 10 30] [-o F]
+    PYTHONPATH=. python benchmarks/defocused_sensor.py --more [-o F]   # before the focus, off axis (MORE)
 """
 
 from __future__ import annotations
@@ -101,20 +102,62 @@ def doublet_rows(sensor: float, planes) -> list:
     return rows
 
 
+#: ``--more``: other sensors, planes and fields of the doublet (sensor mm, DOE plane mm or None, field °): before the
+#: focus, off axis, nearer the focus
+MORE = ((30.0, None, 0.0), (30.0, 10.0, 0.0), (40.0, 10.0, 2.0), (40.0, None, 2.0), (37.0, None, 0.0),
+        (37.0, None, 1.5))
+
+
+def more_rows() -> list:
+    """The doublet's :data:`MORE` cases: the default and the DOE-plane edge against the converged Huygens reference."""
+    from test_edge_estimate import _doublet_on_sensor
+
+    from raywave.models.exit_pupil import huygens_psf
+
+    rows = []
+    for sensor, plane, fy in MORE:
+        out, ref = {"system": "doublet", "sensor_mm": sensor, "plane_mm": plane, "field_deg": fy}, None
+        for name, kw in (("default", {}), ("doe", {"stop_edge": "doe"})):
+            hl = _doublet_on_sensor(sensor, plane, **kw)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                t0 = time.perf_counter()
+                with torch.no_grad():
+                    r = hl.psf_result(torch.tensor([[0.0, fy]], dtype=torch.float64), [WL], ks=KS)
+                dt = time.perf_counter() - t0
+            if ref is None:
+                with torch.no_grad():
+                    h = huygens_psf(hl.lens, (0.0, fy), WL, ks=KS, pitch=PIXEL, n_pupil="auto", sphere="rim_images",
+                                    max_n_pupil=3072)
+                ref, out["reference_error_estimate"] = h.psf.squeeze(), h.error_estimate
+                out["plane_mm"] = float(hl.doe_distance)
+            out[name], out[name + "_s"] = _l1(r.psf.squeeze(), ref), round(dt, 2)
+            if name == "default":
+                out["default_warnings"] = sorted({type(w.message).__name__ for w in caught
+                                                  if not issubclass(w.category, DeprecationWarning)})
+        rows.append(out)
+        print(out, file=sys.stderr, flush=True)
+    return rows
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dz", type=float, nargs="*", default=[3.0, 8.0])
     ap.add_argument("--sensor", type=float, nargs="*", default=[34.5, 40.0])
     ap.add_argument("--planes", nargs="*", default=["None", "5", "10", "30"])
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--more", action="store_true", help="only the MORE cases (other sensors, planes and fields)")
     ap.add_argument("-o", "--output")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     warnings.simplefilter("ignore")
     planes = [None if p == "None" else float(p) for p in args.planes]
-    rows = [ideal_rows(dz) for dz in args.dz]
-    for s in args.sensor:
-        rows += doublet_rows(s, planes if s == args.sensor[-1] else [None])
+    if args.more:
+        rows = more_rows()
+    else:
+        rows = [ideal_rows(dz) for dz in args.dz]
+        for s in args.sensor:
+            rows += doublet_rows(s, planes if s == args.sensor[-1] else [None])
     out = {"benchmark": "defocused_sensor", "torch": torch.__version__, "threads": args.threads, "rows": rows}
     emit_json(out, args.output)
     return out

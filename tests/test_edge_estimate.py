@@ -95,11 +95,12 @@ def test_mixed_steps_in_one_call_match_their_own_calls():
 
 
 def test_where_the_exact_step_does_not_fit_the_fresnel_step_stays_with_a_warning(monkeypatch):
-    """A beam over AUTO_ASM_SAMPLES on the exit-pupil plane (here the limit lowered to 8 samples): the Fresnel step
-    with a StopEdgeWarning naming the estimate and edge_step='asm'."""
+    """A beam over the exact step's limits on the exit-pupil plane (here AUTO_ASM_SAMPLES and FALLBACK_ASM_SAMPLES
+    lowered to 8 samples): the Fresnel step with a StopEdgeWarning naming the estimate and the memory limit."""
     monkeypatch.setattr(XP, "AUTO_ASM_SAMPLES", 8)
+    monkeypatch.setattr(XP, "FALLBACK_ASM_SAMPLES", 8)
     hl = lens_a_hybrid(7.0)
-    with pytest.warns(StopEdgeWarning, match=r"error estimate.*edge_step='asm'"):
+    with pytest.warns(StopEdgeWarning, match=r"error estimate.*RAYWAVE_MEMORY_LIMIT"):
         fd = hl.doe_fields([(0.0, 0.0)], WL, crop_reach=hl.crop_reach(128))[0][0]
     assert fd.info.edge_step == "fresnel"
 
@@ -152,10 +153,10 @@ def _doublet_estimate(sensor: float, plane: float):
 def test_a_crop_inside_the_rim_rays_ring_counts_the_ring_in_its_reach():
     """Class J (docs/ray-wave.md): with the doublet's sensor 5.5 mm past its focus (~100 waves) every rim ray lands
     ~0.6 mm from the 32-pixel crop (reach 0.047 mm), and the edge waves that reach the crop leave the DOE plane that
-    much farther from the rim: on the file's plane (half the gap, 20 mm) the Fresnel step reads 1.38e-1 from the
-    converged Huygens reference (benchmarks/defocused_sensor.py), and the estimate now rejects it (4.6 zones; the
-    crop's reach alone: 0.34); on a plane 5 mm after the lens, 3.3e-4 from it, the estimate keeps it; in focus (34.5
-    mm, 1.75e-4) the estimate is the crop's reach alone, as before."""
+    much farther from the rim: on the file's plane (half the gap, 20 mm) the Fresnel step reads 1.44e-3 from the
+    converged Huygens reference with the ring's band (1.38e-1 with the in-focus band; benchmarks/defocused_sensor.py),
+    and the estimate rejects it (4.6 zones; the crop's reach alone: 0.34); on a plane 5 mm after the lens, 6.7e-5
+    from it, the estimate keeps it; in focus (34.5 mm, 1.75e-4) the estimate is the crop's reach alone, as before."""
     far, near = _doublet_estimate(40.0, 20.0), _doublet_estimate(40.0, 5.0)
     assert not XP.fresnel_step_holds(far) and far[0] > 4.0
     assert XP.fresnel_step_holds(near)
@@ -163,11 +164,141 @@ def test_a_crop_inside_the_rim_rays_ring_counts_the_ring_in_its_reach():
     assert XP.fresnel_step_holds(focus) and focus[0] < 1.0
 
 
-def test_a_crop_inside_the_rim_rays_ring_is_not_silent():
-    """Where the estimate rejects the Fresnel step and the exact construction does not fit (the doublet's beam on its
-    exit-pupil plane), the PSF call warns and names the way out (a DOE plane nearer the exit pupil, or
-    edge_step='asm': 6.4e-3 from the reference there); before class J's rule it was silent."""
+def test_a_crop_inside_the_rim_rays_ring_is_not_silent(monkeypatch):
+    """Where the estimate rejects the Fresnel step and the exact construction does not fit (here its beam limit
+    lowered to 8 samples), the PSF call warns and names the way out (a DOE plane nearer the exit pupil)."""
+    monkeypatch.setattr(XP, "FALLBACK_ASM_SAMPLES", 8)
     hl = _doublet_on_sensor(40.0, 20.0)
     with pytest.warns(StopEdgeWarning, match="inside the rim rays' ring"):
         with torch.no_grad():
             hl.psf_result(torch.zeros(1, 2, dtype=torch.float64), [0.55], ks=32)
+
+
+def _ring(radius: float, centre=(0.0, 0.0), k: int = 64) -> torch.Tensor:
+    t = torch.arange(k, dtype=torch.float64) * (2 * torch.pi / k)
+    return torch.stack([centre[0] + radius * torch.cos(t), centre[1] + radius * torch.sin(t)], -1)[None]
+
+
+def test_a_crop_inside_the_ring_is_one_the_ring_encloses_and_misses():
+    """:func:`crop_inside_ring`: rim rays landing on a 0.6 mm ring round the crop (a defocused sensor) enclose it and
+    miss its 0.05 mm reach; a 0.01 mm ring (a focus) lands within it; a ring beside the crop's centre (a coma spot's
+    cusp, or a crop off the blur) does not enclose it; the ring's direction does not matter."""
+    from raywave.hybrid.coherent.stop_edge import crop_inside_ring
+
+    pt = torch.zeros(1, 2, dtype=torch.float64)
+    assert bool(crop_inside_ring(_ring(0.6), pt, 0.05))
+    assert bool(crop_inside_ring(_ring(0.6).flip(1), pt, 0.05))
+    assert not bool(crop_inside_ring(_ring(0.01), pt, 0.05))
+    assert not bool(crop_inside_ring(_ring(0.3, (0.4, 0.0)), pt, 0.05))
+    assert not bool(crop_inside_ring(_ring(0.6), torch.tensor([[0.9, 0.0]], dtype=torch.float64), 0.05))
+
+
+def _doublet_reach(sensor: float, plane: float, crop_reach: float):
+    from raywave.hybrid.coherent.stop_edge import edge_reach_many
+
+    hl = _doublet_on_sensor(sensor, plane)
+    rim = stop_rim_images(hl.lens, (0.0, 0.0), 0.55, None, bound=(hl.doe_z(), XP.EXIT_PUPIL_FAR))
+    return edge_reach_many([rim], hl.doe_z(), hl.sensor_z(), torch.zeros(1, 2, dtype=torch.float64), [0.55e-3],
+                           crop_reach=crop_reach * hl.crop_reach(32))[0]
+
+
+def test_the_band_of_a_crop_inside_the_ring_reaches_beyond_the_edge_waves():
+    """Class J: on the defocused doublet every rim point's edge wave reaches the crop (on axis as much light as the
+    geometric wave), and so does the band's own roll-off: the band reaches DEFOCUS_TAIL_ZONES beyond the edge waves'
+    reach, at least DEFOCUS_BAND_ZONES (the 10 mm plane: reach 2.8, band 6.8); in focus the reach is as before."""
+    from raywave.hybrid.coherent.stop_edge import DEFOCUS_BAND_ZONES, DEFOCUS_TAIL_ZONES
+
+    plain, wide = _doublet_reach(40.0, 10.0, 0.0), _doublet_reach(40.0, 10.0, 1.0)
+    assert 2.0 < plain < 4.0
+    assert wide == max(plain + DEFOCUS_TAIL_ZONES, DEFOCUS_BAND_ZONES)
+    assert _doublet_reach(34.5, 17.25, 1.0) == _doublet_reach(34.5, 17.25, 0.0)
+
+
+@pytest.fixture(scope="module")
+def defocused_doublet_reference():
+    """The rim-image Huygens PSF of the doublet with its sensor at 40 mm (~100 waves past its focus), n_pupil
+    converged (its error estimate ~2e-10)."""
+    from raywave.models.exit_pupil import huygens_psf
+
+    hl = _doublet_on_sensor(40.0, 10.0)
+    with torch.no_grad():
+        h = huygens_psf(hl.lens, (0.0, 0.0), 0.55, ks=32, pitch=0.002, n_pupil="auto", sphere="rim_images",
+                        max_n_pupil=3072)
+    assert h.error_estimate < 1e-6
+    return h.psf.squeeze()
+
+
+def _rel_l1(a, b) -> float:
+    return float((a - b).abs().sum() / b.abs().sum())
+
+
+def test_the_default_holds_on_a_sensor_far_from_the_focus(defocused_doublet_reference):
+    """Class J: the doublet's sensor 5.5 mm past its focus, its DOE plane 10 mm after the lens: the default (the
+    Fresnel step, kept by its estimate, 3.0 zones) 1.9e-4 from the converged Huygens reference with the ring's band
+    (2.6e-3 with the in-focus band of 5 zones)."""
+    hl = _doublet_on_sensor(40.0, 10.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", StopEdgeWarning)
+        with torch.no_grad():
+            r = hl.psf_result(torch.zeros(1, 2, dtype=torch.float64), [0.55], ks=32)
+    err = _rel_l1(r.psf.squeeze(), defocused_doublet_reference)
+    print(f"defocused doublet, 10 mm plane: default {err:.2e}")
+    assert err < 1e-3
+
+
+@pytest.mark.slow
+def test_the_exact_step_takes_over_where_the_fresnel_step_cannot_hold(defocused_doublet_reference):
+    """Class J: on the file's plane (half the last gap, 20 mm) the estimate rejects the Fresnel step (4.6 zones; with
+    the ring's band it reads 1.44e-3) and the exact construction takes over (a 4 425-sample beam, over "auto"'s 3 072,
+    within FALLBACK_ASM_SAMPLES): 1.9e-4 from the converged reference (its rim step's band the ring's: 6.4e-3 with
+    the in-focus band), no warning. ~15 s and 2.8 GB."""
+    hl = _doublet_on_sensor(40.0, None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", StopEdgeWarning)
+        with torch.no_grad():
+            fd = hl.doe_fields(torch.zeros(1, 2, dtype=torch.float64), 0.55, crop_reach=hl.crop_reach(32))[0][0]
+            r = hl.psf_result(torch.zeros(1, 2, dtype=torch.float64), [0.55], ks=32)
+    assert fd.info.edge_step == "asm"
+    err = _rel_l1(r.psf.squeeze(), defocused_doublet_reference)
+    print(f"defocused doublet, the file's plane: default {err:.2e}")
+    assert err < 1e-3
+
+
+def test_the_exact_step_keeps_room_for_its_rim_step():
+    """The exact construction's lattice is coarsened only while its rim step fits before the DOE plane
+    (``_room_for_rim_step``): a 2 µm lattice needs a 1.86 mm step at 0.55 µm, a 1 µm one 0.47 mm; with the DOE
+    plane 1 mm after the rim images only the finer fits (a sharp edge on the coarse lattice: 1.4e-3 from the wave
+    truth on a sensor 8 mm past the focus, tests/test_ideal_lens_truth.py; 5.0e-4 with the rim step)."""
+    from raywave.hybrid.coherent.stop_edge import RimImages
+
+    rim = RimImages(torch.zeros(8, dtype=torch.float64), torch.zeros(8, dtype=torch.float64))
+    assert XP._room_for_rim_step(2, rim, (0.0, 1.0), (0.55, 1.0), 1e-3) == 1
+    assert XP._room_for_rim_step(2, rim, (0.0, 5.0), (0.55, 1.0), 1e-3) == 2
+    assert XP._room_for_rim_step(3, rim, (0.0, 0.5), (0.55, 1.0), 1e-3) == 1  # no room at all: the finest lattice
+    assert XP._room_for_rim_step(3, None, (0.0, 0.5), (0.55, 1.0), 1e-3) == 3
+
+
+def test_the_exact_steps_window_is_measured_on_its_own_plane(monkeypatch):
+    """Beyond "auto"'s AUTO_ASM_SAMPLES the fallback measures the exact construction's window on its own plane (the
+    rim step's, with the widest band) against FALLBACK_ASM_SAMPLES: the defocused doublet's 4 425-sample beam, a
+    5 053² window with the band, fits 6 144; with the limit at 5 000 the beam on the exit-pupil plane would fit but the
+    window does not, and the Fresnel step stays (with its warning)."""
+    hl = _doublet_on_sensor(40.0, 20.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", StopEdgeWarning)
+        fits = [XP._exact_step_fits(hl.lens, *_exact_step_args(hl))]
+        monkeypatch.setattr(XP, "FALLBACK_ASM_SAMPLES", 5000)
+        fits.append(XP._exact_step_fits(hl.lens, *_exact_step_args(hl)))
+    assert fits == [True, False]
+
+
+def _exact_step_args(hl):
+    from raywave.hybrid.coherent.geometry import chief_rays
+    from raywave.hybrid.coherent.settings import Planes, Source
+
+    wl = 0.55
+    z_xp = hl._exit_pupil_planes([wl])[0]
+    chief = chief_rays(hl.lens, torch.zeros(1, 2, dtype=torch.float64), torch.tensor([wl], dtype=torch.float64),
+                       None, hl.doe_z(), hl.sensor_z())[0][0, 0]
+    return (Source((0.0, 0.0), wl, None), (Planes(hl.doe_z(), hl.sensor_z(), z_xp), chief, hl.doe.pitch),
+            (None, hl.crop_reach(32)))

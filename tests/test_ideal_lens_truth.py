@@ -274,8 +274,9 @@ def test_adaptive_step_cuts_the_edge_on_the_doe_plane_only_for_a_blank_doe_on_a_
 def test_default_stop_edge_holds_on_a_defocused_sensor():
     """Class J (docs/ray-wave.md): the single ideal lens (F/8, a blank DOE 1 mm behind it) with its sensor 3 mm past
     the focus (10.7 waves of defocus; the crop inside the rim rays' ring): the default within 1e-3 of the wave truth
-    (4.9e-4, benchmarks/defocused_sensor.py), whose padding is raised until two levels agree (the tests' 0.3 mm margin
-    is 1.5e-3 off on this sensor); the Fresnel step kept (its estimate, the ring counted, 0.8 zones), no warning."""
+    (2.5e-4 with the ring's ripple band, 4.9e-4 with the in-focus band; benchmarks/defocused_sensor.py), whose padding
+    is raised until two levels agree (the tests' 0.3 mm margin is 1.5e-3 off on this sensor); the Fresnel step kept
+    (its estimate, the ring counted, 0.8 zones), no warning."""
     from wave_truth import ideal_lens_doe_psf
 
     wl, sensor = 0.55, F1 + 3.0
@@ -290,4 +291,26 @@ def test_default_stop_edge_holds_on_a_defocused_sensor():
     assert l1(truths[0], truths[1]) < 5e-5  # the truth converged in its padding (2.0e-5 between 1 and 1.5 mm)
     err = l1(r.psf[0, 0], truths[1])
     print(f"defocused sensor (10.7 waves): default {err:.2e} from the wave truth")
+    assert err < 1e-3
+
+
+@pytest.mark.slow
+def test_exact_step_holds_on_a_defocused_sensor():
+    """Class J: the exact construction (``edge_step="asm"``) on the single ideal lens with its sensor 8 mm past the
+    focus (28 waves): within 1e-3 of the wave truth (5.0e-4; padding 1.5 vs 3 mm: 3.8e-5). Its lattice is coarsened
+    only while its rim step fits before the DOE plane (``exit_pupil._room_for_rim_step``): the 2 µm lattice the wave
+    allows had no room for its 1.86 mm step, and the edge cut sharp on it read 1.4e-3."""
+    from wave_truth import ideal_lens_doe_psf
+
+    wl, sensor = 0.55, F1 + 8.0
+    hl = HybridLens(_single_lens(None, sensor, wl), BlankDOE(1600, 1e-3), DOE_DIST, sensor_pitch=PIXEL,
+                    edge_step="asm")
+    with torch.no_grad():
+        r = hl.psf_result((0.0, 0.0), wl, ks=KS)
+    c = tuple(float(v) for v in r.center[0, 0])
+    truths = [ideal_lens_doe_psf(F1, R1, wl, c, KS, PIXEL, sensor, doe=BlankDOE(1600, 1e-3), doe_dist=DOE_DIST,
+                                 margin=m) for m in (1.5, 3.0)]
+    assert l1(truths[0], truths[1]) < 1e-4
+    err = l1(r.psf[0, 0], truths[1])
+    print(f"defocused sensor (28 waves): exact step {err:.2e} from the wave truth")
     assert err < 1e-3

@@ -197,14 +197,17 @@ def _edge_reaches(optics, rims: list, chief_sensor, todo: list, wls: list, plane
     centre (its chief ray on the sensor, ``chief_sensor`` (F, W)), from its rim images ``rims`` ``[W][R]``, for the
     Fresnel step's ripple band (:func:`~raywave.hybrid.coherent.stop_edge.edge_reach_many`: one host read for the
     call, issue 43; each value that of the construction's own :func:`~raywave.hybrid.coherent.stop_edge.ripple_band`).
-    ``planes`` = ``(z_doe, z_sensor)`` mm."""
+    ``planes`` = ``(z_doe, z_sensor, crop_reach)`` mm (``crop_reach``: the PSF crop's half-diagonal, 0: unknown;
+    a crop inside the rim rays' ring widens its band)."""
     nr, nw = len(todo), len(wls)
     if nr == 0:
         return []
     pts = chief_sensor.o.detach()[torch.tensor(todo, dtype=torch.long, device=chief_sensor.o.device)][..., :2]
     lam = [wl * 1e-3 / _medium_index(optics, wl) for wl in wls]  # the image medium's wavelength (mm), as _Build's
-    flat = edge_reach_many([rims[j][r] for j in range(nw) for r in range(nr)], *planes,
-                           pts.transpose(0, 1).reshape(-1, 2), [lam[j] for j in range(nw) for _ in range(nr)])
+    z_doe, z_sen, crop_reach = planes
+    flat = edge_reach_many([rims[j][r] for j in range(nw) for r in range(nr)], z_doe, z_sen,
+                           pts.transpose(0, 1).reshape(-1, 2), [lam[j] for j in range(nw) for _ in range(nr)],
+                           crop_reach=crop_reach)
     return [[flat[j * nr + r] for j in range(nw)] for r in range(nr)]
 
 
@@ -762,7 +765,7 @@ class HybridLens(nn.Module):
             geo.edge = (z_xps, rims, cx, steps)
             geo.estimates = ests
             if self.edge_step in ("fresnel", "adaptive"):  # the Fresnel step's ripple band, for every source at once
-                geo.reach = _edge_reaches(optics, rims, cs, todo, wls, (z_doe, z_sen))
+                geo.reach = _edge_reaches(optics, rims, cs, todo, wls, (z_doe, z_sen, crop_reach))
         return geo
 
     def _accurate_group(self, geo: "_CallGeometry", members: list[int], nodes: int, check: bool,

@@ -224,7 +224,7 @@ class _Build:
             self.ripple = float(cfg.ripple_zones) if cfg.ripple_zones is not None else ripple_band(
                 self.given.stop_rim, self.z_doe, self.z_sensor,
                 None if reach is not ... else self.chief.sensor.o[:2].detach(), self.src.wavelength * 1e-3 / self.n,
-                reach)
+                reach, cfg.crop_reach)
 
     def empty(self, rays: int) -> DOEField:
         """The field without light (``rays`` traced)."""

@@ -24,8 +24,8 @@ from raywave.hybrid.coherent.geometry import (WINDOW_BYTES, _common_setup, _empt
 from raywave.hybrid.coherent.record import DOEField, FieldInfo, StopEdgeWarning
 from raywave.hybrid.coherent.sphere_chart import SphereChart, sample_bicubic
 from raywave.hybrid.coherent.settings import ChiefRays, FieldSettings, Known, Planes, Source, check_types
-from raywave.hybrid.coherent.stop_edge import (EXIT_PUPIL_FAR, RIPPLE_ZONES, _nu_inner, _zone_estimate,
-                                               ripple_band, stop_rim_images)
+from raywave.hybrid.coherent.stop_edge import (EXIT_PUPIL_FAR, MAX_RIPPLE_ZONES, RIPPLE_ZONES, _nu_inner,
+                                               _zone_estimate, ripple_band, stop_rim_images)
 from raywave.hybrid.coherent.tracing import run_serial
 
 
@@ -34,6 +34,14 @@ MAX_XP_SAMPLES = 8192
 #: ``method="auto"`` of :func:`exit_pupil_field`: the exact angular-spectrum construction up to this beam extent
 #: (simulation samples a side on the exit-pupil plane), the Fresnel step beyond
 AUTO_ASM_SAMPLES = 3072
+#: ``method="adaptive"``: where the Fresnel step's error estimate rejects it and the beam on the exit-pupil plane
+#: spans more than "auto"'s :data:`AUTO_ASM_SAMPLES`, the exact construction still runs where its window on its own
+#: plane (the beam there and the widest ripple band, samples of its lattice a side: :func:`_exact_step_fits`) spans at
+#: most this many samples and fits in memory (~8 GB at its 215 B a sample without a graph): the estimate says the
+#: Fresnel step cannot hold 1e-3 there (class J of docs/ray-wave.md: the doublet's sensor 5.5 mm past its focus, a
+#: 4 425-sample beam, a 5 053² window with the band: the Fresnel step 1.44e-3 from the converged reference, the exact
+#: construction 1.9e-4 in ~12 s and 2.8 GB peak)
+FALLBACK_ASM_SAMPLES = 6144
 #: the exact construction with the rim's images: the shortest Fresnel step from a rim image to the plane where the
 #: angular spectrum takes over, in pixels of that step's Fresnel zone ``sqrt(λ d / n)`` (a step whose zone spans a
 #: pixel or two is not resolved by the grid; 16 pixels: 0.48 mm at 1 µm and 0.53 µm)
@@ -80,7 +88,7 @@ def exit_pupil_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays
     a blank DOE on a spherical wave, the edge cut on the DOE plane (``method="doe"``, exact there: the construction of
     :func:`accurate_field` with the stop's sharp edge on the DOE plane); where the Fresnel step's error estimate for
     a crop reaching ``settings.crop_reach`` mm rejects it (:func:`fresnel_step_estimates`), "asm" where the beam fits
-    as for "auto" (:func:`_adaptive_fallback`). The field's ``info.edge_step`` records the step. ``rim_images``: each
+    (:data:`FALLBACK_ASM_SAMPLES` and the memory: :func:`_adaptive_fallback`). The field's ``info.edge_step`` records the step. ``rim_images``: each
     node's edge is sharp at its stop-rim point's own image (:func:`stop_rim_images`); False: on the exit-pupil plane
     for every node (both steps as they were before the rim images)."""
     return run_serial(exit_pupil_field_steps(lens, doe, source, planes, chief, settings))
@@ -120,7 +128,8 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                                                   obscuration_fraction(lens))[0]
                 method = "fresnel" if fresnel_step_holds(estimate) else "asm"
         if method == "asm":  # the estimate says the Fresnel step cannot hold: the exact construction where it fits
-            method, xb = _adaptive_fallback(lens, source, z_xp, p_sim, estimate)
+            method, xb = _adaptive_fallback(lens, source, (planes, chief_doe, p_sim),
+                                            (estimate, stop_rim, settings.crop_reach))
     if method == "doe":  # exact for this source (see adaptive_edge_step): the edge cut on the DOE plane
         fd = yield from accurate_field_steps(lens, doe, source, Planes(z_doe, z_sensor), on_doe,
                                              replace(settings, virtual=False, stop_plane=None),
@@ -166,9 +175,8 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
     # the construction and its angular spectrum on a lattice m× coarser than the DOE's where the wave's own
     # bandwidth allows (the envelope upsampled to the DOE pitch at the end): its cost falls ~m²
     # the edge waves that land in the crop turn by up to its reach over the distance from the exit pupil
-    far = abs(z_sensor - z_xp)
-    tail = settings.crop_reach / far if settings.crop_reach > 0 and far > 0 else 0.0
-    m = asm_coarsening(rim, chief_doe, wavelength, n, p, tail) if sphere is None else 1
+    m = 1 if sphere is not None else _exact_coarsening(rim, chief_doe, (z_xp, z_doe, z_sensor), (wavelength, n), p,
+                                                       (settings.crop_reach, z_from is None))
     lattice = doe if m == 1 else CoarseLattice.of(doe.sim_grid(oversample), m, doe.device)
     coarse = settings if m == 1 else replace(settings, oversample=1)
     if sphere is not None:  # the scaled carry: the envelope relative to the sphere on the magnified lattice
@@ -197,7 +205,7 @@ def exit_pupil_field_steps(lens, doe, source: Source, planes: Planes, chief: Chi
                             "accurate").with_info(stop_edge="exit_pupil", edge_step=step)
     dz = z_doe - (z_xp if z_edge is None else z_edge)
     margin = _window_margin(ripple_zones, rim, (z_doe, z_sensor, z_far), chief_sensor,
-                            (wavelength, n, carrier)) + 4 * m * p
+                            (wavelength, n, carrier), settings.crop_reach) + 4 * m * p
     sim = doe.sim_grid(oversample)
     box = lit_box(sim, bbox, margin)
     if box is None:
@@ -418,19 +426,21 @@ def _edge_taper(n: int, pad: int, device) -> torch.Tensor:
     return w
 
 
-def _window_margin(ripple_zones, rim, zs, chief_sensor, medium) -> float:
+def _window_margin(ripple_zones, rim, zs, chief_sensor, medium, crop_reach: float = 0.0) -> float:
     """The DOE-plane window's margin (mm) beyond the footprint for the exact construction and the caustic fallback:
     ``ripple_zones`` Fresnel zones of the plain distance ``z_doe − z_far`` (``zs = (z_doe, z_sensor, z_far)``; the
     farthest rim image), or with the default band (None) :data:`RIPPLE_ZONES` of them, or the reach rule's wider band
     (:func:`ripple_band`) in the converging beam's zones (:func:`_zone_estimate`: near a caustic the plain distance's
     zone overstates it ~3×, and a 12-zone band of it would ask for a 17 GiB window on the double Gauss at full field),
-    whichever is wider. ``medium`` ``(wavelength µm, n, carrier (α, β))``."""
+    whichever is wider. ``medium`` ``(wavelength µm, n, carrier (α, β))``; ``crop_reach`` (mm) the PSF crop's
+    half-diagonal (0: unknown), for the band of a crop inside the rim rays' ring (:func:`ripple_band`)."""
     z_doe, z_sensor, z_far = zs
     wavelength, n, carrier = medium
     plain = math.sqrt(wavelength * 1e-3 * abs(z_doe - z_far) / n)
     if ripple_zones is not None:
         return ripple_zones * plain
-    zones = ripple_band(rim, z_doe, z_sensor, chief_sensor.o[:2].detach(), wavelength * 1e-3 / n)
+    zones = ripple_band(rim, z_doe, z_sensor, chief_sensor.o[:2].detach(), wavelength * 1e-3 / n,
+                        crop_reach=crop_reach)
     margin = RIPPLE_ZONES * plain
     if zones > RIPPLE_ZONES:
         margin = max(margin, zones * _zone_estimate(wavelength, n, z_doe - z_far, z_sensor - z_far, *carrier))
@@ -456,6 +466,31 @@ def _rim_step_plane(rim, z_xp: float, z_doe: float, wavelength: float, n: float,
     return z_edge, (min(far, z_xp) if s > 0 else max(far, z_xp))
 
 
+def _exact_coarsening(rim, chief_doe, zs: tuple, medium: tuple, p: float, how: tuple) -> int:
+    """The exact construction's coarsening ``m`` (:func:`asm_coarsening` with the edge waves that land in the crop:
+    ``crop_reach`` mm over the exit pupil's distance from the sensor), lowered where its rim step needs room
+    (:func:`_room_for_rim_step`, with ``room``; not for the caustic fallback, whose plane is its own). ``zs`` =
+    ``(z_xp, z_doe, z_sensor)`` mm, ``medium`` = ``(wavelength µm, n)``, ``p`` the DOE's simulation pitch mm, ``how``
+    = ``(crop_reach, room)``."""
+    (z_xp, z_doe, z_sensor), (wavelength, n), (crop_reach, room) = zs, medium, how
+    far = abs(z_sensor - z_xp)
+    tail = crop_reach / far if crop_reach > 0 and far > 0 else 0.0
+    m = asm_coarsening(rim, chief_doe, wavelength, n, p, tail)
+    return _room_for_rim_step(m, rim, (z_xp, z_doe), medium, p) if room else m
+
+
+def _room_for_rim_step(m: int, rim, zs: tuple, medium: tuple, p: float) -> int:
+    """The exact construction's coarsening ``m`` (:func:`asm_coarsening`) lowered until its rim step fits between the
+    rim images ``rim`` and the DOE plane (:func:`_rim_step_plane` at the pitch ``m·p`` mm; the step grows as
+    ``(m p)²``), else 1: with no room for the step the edge is cut sharp on the exit-pupil plane, and a sharp edge on a
+    coarse lattice aliases its edge waves (tests/test_ideal_lens_truth.py's lens with its sensor 8 mm past the focus:
+    1.4e-3 from the wave truth with the 2 µm lattice's sharp edge, 5.0e-4 with the DOE's 1 µm lattice and its rim
+    step). ``zs`` = ``(z_xp, z_doe)`` mm, ``medium`` = ``(wavelength µm, n)``."""
+    while m > 1 and rim is not None and _rim_step_plane(rim, *zs, *medium, m * p)[0] is None:
+        m -= 1
+    return m
+
+
 def _beam_fits(lens, xb, p_sim: float, limit: int) -> bool:
     """Whether the exact construction's beam ``xb`` ``(xmin, xmax, ymin, ymax)`` mm (None: none) spans at most
     ``limit`` simulation samples of ``p_sim`` mm a side and its window (the beam 1.2× wide) fits in memory
@@ -477,26 +512,63 @@ def _window_fits(lens, xb, p_sim: float, step: str) -> bool:
     return True
 
 
-def _adaptive_fallback(lens, source: Source, z_xp: float, p_sim: float, estimate):
+def _adaptive_fallback(lens, source: Source, where: tuple, edge: tuple):
     """``(method, xb)`` for a source of ``method="adaptive"`` whose Fresnel step the error estimate
-    (:func:`fresnel_step_estimates`) rejects: "asm" where the beam on the exit-pupil plane ``z_xp`` fits the exact
-    construction ("auto"'s rule, :data:`AUTO_ASM_SAMPLES` simulation samples of ``p_sim`` mm a side, and its window
-    in memory), else "fresnel" with a :class:`StopEdgeWarning` naming the estimate, where it failed on the crop's
-    reach (a failed curvature ratio is warned by the construction itself: :data:`~raywave.hybrid.coherent.accurate.
-    EDGE_CURVATURE_LIMIT`, naming ``edge_step="asm"``)."""
-    method, xb = _edge_method(lens, source.field, source.wavelength, source.depth, z_xp, p_sim, "asm")
-    if _beam_fits(lens, xb, p_sim, AUTO_ASM_SAMPLES):
+    (:func:`fresnel_step_estimates`) rejects: "asm" where the beam on the exit-pupil plane fits the exact construction
+    ("auto"'s :data:`AUTO_ASM_SAMPLES` simulation samples a side and its window in memory, or beyond that
+    :func:`_exact_step_fits`), else "fresnel" with a :class:`StopEdgeWarning` naming the estimate, where it failed on
+    the crop's reach (a failed curvature ratio is warned by the construction itself: :data:`~raywave.hybrid.coherent.
+    accurate.EDGE_CURVATURE_LIMIT`, naming ``edge_step="asm"``). ``where`` = ``(planes, chief ray on the DOE plane,
+    simulation pitch mm)``, ``edge`` = ``(estimate, rim images or None, crop_reach mm)``."""
+    planes, chief_doe, p_sim = where
+    estimate = edge[0]
+    method, xb = _edge_method(lens, source.field, source.wavelength, source.depth, planes.z_xp, p_sim, "asm")
+    if _beam_fits(lens, xb, p_sim, AUTO_ASM_SAMPLES) or (
+            _beam_fits(lens, xb, p_sim, FALLBACK_ASM_SAMPLES) and _exact_step_fits(lens, source, where, edge[1:])):
         return "asm", xb
     if estimate is not None and estimate[0] > estimate[1]:
         fld = [round(float(v), 6) for v in torch.as_tensor(source.field).reshape(-1).tolist()]
         warnings.warn(f"field {fld} at {float(source.wavelength):g} µm: {describe_estimate(estimate)}: the PSF crop "
                       "reaches beyond the edge waves the Fresnel edge step holds, and the exact construction does not "
-                      f"fit (the beam spans over {AUTO_ASM_SAMPLES} samples on the exit-pupil plane, or its window "
-                      "over the memory): kept the Fresnel step; take a smaller crop (ks) (on a sensor far from the "
-                      "focus, where the crop lies inside the rim rays' ring, a DOE plane nearer the exit pupil "
-                      f"instead), or HybridLens(edge_step='asm') (up to {MAX_XP_SAMPLES} samples)", StopEdgeWarning,
+                      f"fit (the beam spans over {FALLBACK_ASM_SAMPLES} samples on the exit-pupil plane, or its "
+                      "window over the memory): kept the Fresnel step; take a smaller crop (ks) (on a sensor far from "
+                      "the focus, where the crop lies inside the rim rays' ring, a DOE plane nearer the exit pupil "
+                      "instead), or a coarser DOE pitch; where only memory stopped it, a higher limit "
+                      "(RAYWAVE_MEMORY_LIMIT / raywave --memory-limit) lets the exact construction run",
+                      StopEdgeWarning,
                       stacklevel=4)
     return "fresnel", None
+
+
+def _exact_step_fits(lens, source: Source, where: tuple, edge: tuple) -> bool:
+    """Whether the exact construction's window on its own plane (the rim step's plane, :func:`_rim_step_plane`, else
+    the exit pupil's), on its lattice (:func:`_exact_coarsening`), spans at most :data:`FALLBACK_ASM_SAMPLES` a side
+    and fits in memory: the beam there (one trace) plus, on the rim step's plane, the widest ripple band
+    (:data:`~raywave.hybrid.coherent.stop_edge.MAX_RIPPLE_ZONES` zones of :data:`RIM_STEP_ZONE_PIXELS` samples) on
+    both sides, at least 1.2× the beam. The beam on the exit-pupil plane understates it where the rim images lie far
+    from it (a random lens of tests/test_random_lenses.py: 5 883 samples there, a 9 632² window on the step's plane).
+    ``where`` = ``(planes, chief ray on the DOE plane, simulation pitch mm)``, ``edge`` = ``(rim images or None:
+    traced here, crop_reach mm)``."""
+    (planes, chief_doe, p_sim), (rim, crop_reach) = where, edge
+    z_xp, z_doe, z_sensor = planes.z_xp, planes.z_doe, planes.z_sensor
+    wl = float(source.wavelength)
+    n = _medium_index(lens, wl)
+    if rim is None:
+        rim = stop_rim_images(lens, source.field, wl, source.depth, source.field_type, bound=(z_doe, EXIT_PUPIL_FAR))
+    q = p_sim * _exact_coarsening(rim, chief_doe, (z_xp, z_doe, z_sensor), (wl, n), p_sim, (crop_reach, True))
+    z_edge = _rim_step_plane(rim, z_xp, z_doe, wl, n, q)[0]
+    _, xb = _edge_method(lens, source.field, wl, source.depth, z_xp if z_edge is None else z_edge, q, "asm")
+    if xb is None:
+        return True
+    band = 0.0 if z_edge is None else MAX_RIPPLE_ZONES * RIM_STEP_ZONE_PIXELS * q
+    ny, nx = (math.ceil(max(1.2 * w, w + 2 * band) / q) for w in (xb[3] - xb[2], xb[1] - xb[0]))
+    if max(ny, nx) > FALLBACK_ASM_SAMPLES:
+        return False
+    try:
+        check_window_memory(ny, nx, q, lens.device, step="asm")
+    except MemoryLimitError:
+        return False
+    return True
 
 
 def _edge_method(lens, field, wavelength: float, depth, z_xp: float, p_sim: float, method: str):
@@ -798,7 +870,7 @@ class CarryPlan(NamedTuple):
     DOE-plane window's ``window`` (ny, nx) samples (:func:`_carry_plan`), ``medium`` (wavelength µm, n), the
     envelope's ``carrier`` (α, β), the DOE plane ``z_doe`` and the sensor ``z_sensor`` mm, the device, and what the
     edge band's margin on an earlier plane needs (:func:`_window_margin`): ``edge`` = ``(ripple_zones, rim images,
-    z_far mm, chief ray on the sensor)``, None: no margin (1.2× the beam)."""
+    z_far mm, chief ray on the sensor, the PSF crop's reach mm)``, None: no margin (1.2× the beam)."""
     window: tuple
     medium: tuple
     carrier: tuple
@@ -826,12 +898,13 @@ def _carry_plan(lens, doe, source: Source, zs: tuple, chief: ChiefRays, how: tup
     z_far = _rim_step_plane(rim, z_xp, z_doe, wavelength, n, 0.0)[1]
     rz = None if settings.ripple_zones is None else float(settings.ripple_zones)
     if bbox is not None:
-        margin = _window_margin(rz, rim, (z_doe, z_sensor, z_far), chief.sensor, (wavelength, n, carrier))
+        margin = _window_margin(rz, rim, (z_doe, z_sensor, z_far), chief.sensor, (wavelength, n, carrier),
+                                settings.crop_reach)
         box = lit_box(sim, bbox, margin + 4 * sim.pitch[0])
         if box is not None:
             window = (box[1] - box[0], box[3] - box[2])
     return CarryPlan(window, (wavelength, n), carrier, float(z_doe), float(z_sensor), lens.device,
-                     (rz, rim, z_far, chief.sensor))
+                     (rz, rim, z_far, chief.sensor, settings.crop_reach))
 
 
 def _from_window(plan: CarryPlan, xb, z: float, p_sim: float) -> tuple:
@@ -842,8 +915,9 @@ def _from_window(plan: CarryPlan, xb, z: float, p_sim: float) -> tuple:
     wy, wx = xb[3] - xb[2], xb[1] - xb[0]
     margin = 0.0
     if plan.edge is not None:
-        rz, rim, z_far, chief_sensor = plan.edge
-        margin = _window_margin(rz, rim, (z, plan.z_sensor, z_far), chief_sensor, (*plan.medium, plan.carrier))
+        rz, rim, z_far, chief_sensor, crop_reach = plan.edge
+        margin = _window_margin(rz, rim, (z, plan.z_sensor, z_far), chief_sensor, (*plan.medium, plan.carrier),
+                                crop_reach)
     return (math.ceil(max(1.2 * wy, wy + 2 * margin) / p_sim), math.ceil(max(1.2 * wx, wx + 2 * margin) / p_sim))
 
 

@@ -36,6 +36,22 @@ MAX_RIPPLE_ZONES = 16.0
 #: 6.0e-4 but the F/1.3 asphere at full field to a 12.6 GiB DOE-plane window (6.1 zones; 2.0e-4 there)
 REACH_MARGIN = 0.0
 
+#: :func:`edge_reach_many` where the PSF crop lies inside the stop rim rays' ring on the sensor (a sensor far from
+#: their focus: every rim ray lands beyond the crop's reach, and the ring winds round the crop's centre; class J of
+#: docs/ray-wave.md): the band reaches this many Fresnel zones beyond the edge waves' reach, and at least
+#: :data:`DEFOCUS_BAND_ZONES`. There every rim point's edge wave reaches the crop (an axial caustic of the edge
+#: waves: on axis they carry as much light as the geometric wave), and so does the band's own roll-off, which the
+#: in-focus rule (the reach itself) leaves as an error of the crop's order. Measured (session xxxi, rel L1 from
+#: converged references; benchmarks/defocused_sensor.py): the doublet of tests/test_midsystem_zmx.py 5.5 mm past
+#: its focus (~100 waves), its DOE plane 5 / 10 / 20 mm after the lens (reach 2.2 / 2.8 / 4.3 zones): the reach's
+#: band (5 zones) 3.3e-4 / 2.6e-3 / 1.38e-1, 3 zones beyond it 3.0e-4 / 3.5e-4 / 3.5e-3, 4 zones 7.7e-5 / 1.9e-4 /
+#: 1.44e-3 (the Fresnel step's own limit there: 5 zones 1.42e-3), and the exact construction's rim step (reach
+#: 0.75) 6.4e-3 with its 4 zones, 3.4e-3 with 4.75, 7.5e-4 with 5.75, 1.9e-4 with 8
+DEFOCUS_TAIL_ZONES = 4.0
+#: the narrowest band (Fresnel zones) :func:`edge_reach_many` allows a crop inside the rim rays' ring
+#: (:data:`DEFOCUS_TAIL_ZONES`)
+DEFOCUS_BAND_ZONES = 8.0
+
 #: :func:`ripple_band` where the edge waves' reach at the crop's centre is short (issue 47's cost): the band is the
 #: reach plus :data:`REACH_TAIL_ZONES`, at least this many zones and at most :data:`RIPPLE_ZONES`. The 5-zone band
 #: was set by the bundled asphere at 17.5° (reach 2.81: 4 zones 2.6e-3, 5 zones 8.2e-4 rel L1 from the converged
@@ -1260,11 +1276,13 @@ def _reach_rows(rims: list):
 
 
 def edge_reach_many(rims: list, z_doe: float, z_sensor: float, points: torch.Tensor, lam_ms: list,
-                    half: float = 0.0) -> list:
+                    half: float = 0.0, crop_reach: float = 0.0) -> list:
     """:func:`edge_reach_zones` of many sources at once: their rim images ``rims`` (S), sensor points ``points``
     (S, 2) mm and wavelengths in the image medium ``lam_ms`` (S,) mm, on the planes ``z_doe``, ``z_sensor`` (issue 43:
     one host read for a call's sources instead of a few per construction). Returns S values (zones, or None), each the
-    arithmetic of the one-source rule on its row."""
+    arithmetic of the one-source rule on its row. ``crop_reach`` (mm, the PSF crop's half-diagonal; 0: unknown):
+    where the crop lies inside the rim rays' ring on the sensor (:func:`crop_inside_ring`) the value is the reach the
+    band must cover there, the reach + :data:`DEFOCUS_TAIL_ZONES` and at least :data:`DEFOCUS_BAND_ZONES`."""
     out: list = [None] * len(rims)
     for rows, e, a in _reach_rows(rims):
         idx = torch.tensor(rows, device=e.device)
@@ -1304,12 +1322,28 @@ def edge_reach_many(rims: list, z_doe: float, z_sensor: float, points: torch.Ten
 
         best = torch.maximum(reach(z, c, hit), reach(zones, crop, near))
         best = torch.where(torch.isneginf(best), torch.zeros_like(best), best)  # no stationary rim point: 0
+        if crop_reach > 0:  # a crop inside the rim rays' ring: every rim point's edge wave reaches it
+            wide = torch.clamp_min(best + DEFOCUS_TAIL_ZONES, DEFOCUS_BAND_ZONES)
+            best = torch.where(crop_inside_ring(l_pt, pt, crop_reach), wide, best)
         for i, v, good in zip(rows, best.tolist(), ok.tolist()):
             out[i] = float(v) if good else None
     return out
 
 
-def ripple_band(rim, z_plane: float, z_sensor: float, point, lam_m: float, reach=...) -> float:
+def crop_inside_ring(land: torch.Tensor, point: torch.Tensor, crop_reach: float) -> torch.Tensor:
+    """Whether a PSF crop lies inside its stop rim rays' ring on the sensor, ``(S,)`` bool: the rim rays' landings
+    ``land`` ``(S, k, 2)`` mm (in rim order) wind round the crop's centre ``point`` ``(S, 2)`` and every one lies
+    farther from it than the crop's reach ``crop_reach`` mm (a sensor far from the rim rays' focus; at a focus,
+    aberrated or not, some land within the crop, or the ring does not enclose it: a coma spot's cusp)."""
+    rel = land - point[:, None, :]
+    ang = torch.atan2(rel[..., 1], rel[..., 0])
+    turn = torch.remainder(torch.roll(ang, -1, 1) - ang + math.pi, 2 * math.pi) - math.pi
+    winds = turn.sum(1).abs() > math.pi  # the winding number is ±1 (0: outside)
+    return winds & (rel.norm(dim=-1).amin(1) > crop_reach)
+
+
+def ripple_band(rim, z_plane: float, z_sensor: float, point, lam_m: float, reach=...,
+                crop_reach: float = 0.0) -> float:
     """The ripple band's width (Fresnel zones) for one source's field on the plane ``z_plane``: :data:`RIPPLE_ZONES`,
     widened where the stop edge's waves that reach the sensor point ``point`` (2,) mm (the PSF crop's centre, the
     chief ray's landing) start farther out: :func:`edge_reach_zones` + :data:`REACH_MARGIN`, at most
@@ -1322,9 +1356,11 @@ def ripple_band(rim, z_plane: float, z_sensor: float, point, lam_m: float, reach
     widens to them. ``lam_m`` (mm):
     the wavelength in the image medium. :data:`RIPPLE_ZONES` where the rim images carry no ray directions (a
     mid-system DOE's rim images). ``reach``: the caller's :func:`edge_reach_zones` of these arguments (e.g. from
-    :func:`edge_reach_many` for all of a call's sources), else computed here (one host read)."""
+    :func:`edge_reach_many` for all of a call's sources), else computed here (one host read), with the crop's reach
+    ``crop_reach`` mm (0: unknown): a crop inside the rim rays' ring widens the band (:data:`DEFOCUS_TAIL_ZONES`)."""
     if reach is ...:
-        reach = edge_reach_zones(rim, z_plane, z_sensor, point, lam_m)
+        reach = edge_reach_many([rim], z_plane, z_sensor, torch.as_tensor(point).reshape(1, 2), [lam_m],
+                                crop_reach=crop_reach)[0]
     if reach is None:
         return RIPPLE_ZONES
     return max(short_reach_band(reach), min(reach + REACH_MARGIN, MAX_RIPPLE_ZONES))
