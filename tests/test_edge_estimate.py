@@ -232,10 +232,12 @@ def _rel_l1(a, b) -> float:
     return float((a - b).abs().sum() / b.abs().sum())
 
 
+@pytest.mark.slow
 def test_the_default_holds_on_a_sensor_far_from_the_focus(defocused_doublet_reference):
     """Class J: the doublet's sensor 5.5 mm past its focus, its DOE plane 10 mm after the lens: the default (the
     Fresnel step, kept by its estimate, 3.0 zones) 1.9e-4 from the converged Huygens reference with the ring's band
-    (2.6e-3 with the in-focus band of 5 zones)."""
+    (2.6e-3 with the in-focus band of 5 zones). Slow (~17 s, most of it the reference's convergence); the default
+    suite checks the band's rule (test_the_band_of_a_crop_inside_the_ring_reaches_beyond_the_edge_waves)."""
     hl = _doublet_on_sensor(40.0, 10.0)
     with warnings.catch_warnings():
         warnings.simplefilter("error", StopEdgeWarning)

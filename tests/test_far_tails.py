@@ -55,10 +55,11 @@ def lens_a_psf(d: float, ks: int, **edge) -> np.ndarray:
         return hl.psf_result([(0.0, 0.0)], WL, ks=ks).psf[0, 0].detach().numpy()
 
 
+@pytest.mark.slow
 def test_rs_reference_is_converged():
     """The quadrature's radial spline and pixel points: doubling the radii and 6 → 10 pixel points change no ring by
     more than 1e-7 (measured ≤ 1.1e-9 on 128 pixels); the earlier form (600 radii, linear interpolation) was
-    2.6e-3 – 7e-3 off (benchmarks/far_tails.py)."""
+    2.6e-3 – 7e-3 off (benchmarks/far_tails.py). Slow (~20 s: the reference three times; the default suite's time)."""
     s = W.TwoLensSystem()
     ref = W.airy_reference(s, PS, 64)
     n = int(math.ceil(PS * 33 * math.sqrt(2) * 1e3 * 48))
