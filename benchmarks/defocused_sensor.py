@@ -68,37 +68,54 @@ def ideal_rows(dz: float, margins=(0.3, 1.5, 3.0)) -> dict:
             "huygens_error_estimate": h.error_estimate}
 
 
-def doublet_rows(sensor: float, planes) -> list:
-    """The doublet with its sensor at ``sensor`` mm: each plane's default / asm / DOE-plane edge against Huygens."""
-    from test_edge_estimate import _doublet_on_sensor
+def _run(hl, fy: float) -> tuple:
+    """``(psf (ks, ks), seconds, warning class names)`` of the doublet ``hl`` at the field (0, ``fy``) °."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            r = hl.psf_result(torch.tensor([[0.0, fy]], dtype=torch.float64), [WL], ks=KS)
+        dt = time.perf_counter() - t0
+    names = sorted({type(w.message).__name__ for w in caught if not issubclass(w.category, DeprecationWarning)})
+    return r.psf.squeeze(), round(dt, 2), names
 
+
+def _reference(hl, fy: float) -> tuple:
+    """``(psf, its own error estimate)``: the rim-image Huygens reference of ``hl`` at (0, ``fy``) °."""
     from raywave.models.exit_pupil import huygens_psf
 
+    with torch.no_grad():
+        h = huygens_psf(hl.lens, (0.0, fy), WL, ks=KS, pitch=PIXEL, n_pupil="auto", sphere="rim_images",
+                        max_n_pupil=3072)
+    return h.psf.squeeze(), h.error_estimate
+
+
+def _edges_row(out: dict, sensor: float, plane, fy: float, edges, ref=None) -> tuple:
+    """Fill ``out`` with each of ``edges`` ``((name, kw), …)``'s rel L1 from the reference (computed on first use
+    unless given as ``ref``), its time and (the default) its warnings; returns ``(out, ref)``."""
+    from test_edge_estimate import _doublet_on_sensor
+
+    for name, kw in edges:
+        hl = _doublet_on_sensor(sensor, plane, **kw)  # 2 µm DOE and sensor pixels (PIXEL)
+        psf, dt, names = _run(hl, fy)
+        if ref is None:
+            ref, out["reference_error_estimate"] = _reference(hl, fy)
+        out["plane_mm"] = float(hl.doe_distance)
+        out[name], out[name + "_s"] = _l1(psf, ref), dt
+        if name == "default":
+            out["default_warnings"] = names
+    print(out, file=sys.stderr, flush=True)
+    return out, ref
+
+
+def doublet_rows(sensor: float, planes) -> list:
+    """The doublet with its sensor at ``sensor`` mm: each plane's default / asm / DOE-plane edge against Huygens."""
     rows, ref = [], None
+    edges = (("default", {}), ("asm", {"edge_step": "asm"}), ("doe", {"stop_edge": "doe"}))
     for plane in planes:
-        out = {"system": "doublet", "sensor_mm": sensor, "plane_mm": plane}
-        for name, kw in (("default", {}), ("asm", {"edge_step": "asm"}), ("doe", {"stop_edge": "doe"})):
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                hl = _doublet_on_sensor(sensor, plane, **kw)  # 2 µm DOE and sensor pixels (PIXEL)
-                t0 = time.perf_counter()
-                with torch.no_grad():
-                    r = hl.psf_result(torch.zeros(1, 2, dtype=torch.float64), [WL], ks=KS)
-                dt = time.perf_counter() - t0
-            if ref is None:
-                with torch.no_grad():
-                    h = huygens_psf(hl.lens, (0.0, 0.0), WL, ks=KS, pitch=PIXEL, n_pupil="auto", sphere="rim_images",
-                                    max_n_pupil=3072)
-                ref = h.psf.squeeze()
-                out["reference_error_estimate"] = h.error_estimate
-            out["plane_mm"] = float(hl.doe_distance)
-            out[name] = _l1(r.psf.squeeze(), ref)
-            out[name + "_s"] = round(dt, 2)
-            if name == "default":
-                out["default_warnings"] = sorted({type(w.message).__name__ for w in caught
-                                                  if not issubclass(w.category, DeprecationWarning)})
+        out, ref = _edges_row({"system": "doublet", "sensor_mm": sensor, "plane_mm": plane}, sensor, plane, 0.0, edges,
+                              ref)
         rows.append(out)
-        print(out, file=sys.stderr, flush=True)
     return rows
 
 
@@ -110,34 +127,9 @@ MORE = ((30.0, None, 0.0), (30.0, 10.0, 0.0), (40.0, 10.0, 2.0), (40.0, None, 2.
 
 def more_rows() -> list:
     """The doublet's :data:`MORE` cases: the default and the DOE-plane edge against the converged Huygens reference."""
-    from test_edge_estimate import _doublet_on_sensor
-
-    from raywave.models.exit_pupil import huygens_psf
-
-    rows = []
-    for sensor, plane, fy in MORE:
-        out, ref = {"system": "doublet", "sensor_mm": sensor, "plane_mm": plane, "field_deg": fy}, None
-        for name, kw in (("default", {}), ("doe", {"stop_edge": "doe"})):
-            hl = _doublet_on_sensor(sensor, plane, **kw)
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                t0 = time.perf_counter()
-                with torch.no_grad():
-                    r = hl.psf_result(torch.tensor([[0.0, fy]], dtype=torch.float64), [WL], ks=KS)
-                dt = time.perf_counter() - t0
-            if ref is None:
-                with torch.no_grad():
-                    h = huygens_psf(hl.lens, (0.0, fy), WL, ks=KS, pitch=PIXEL, n_pupil="auto", sphere="rim_images",
-                                    max_n_pupil=3072)
-                ref, out["reference_error_estimate"] = h.psf.squeeze(), h.error_estimate
-                out["plane_mm"] = float(hl.doe_distance)
-            out[name], out[name + "_s"] = _l1(r.psf.squeeze(), ref), round(dt, 2)
-            if name == "default":
-                out["default_warnings"] = sorted({type(w.message).__name__ for w in caught
-                                                  if not issubclass(w.category, DeprecationWarning)})
-        rows.append(out)
-        print(out, file=sys.stderr, flush=True)
-    return rows
+    edges = (("default", {}), ("doe", {"stop_edge": "doe"}))
+    return [_edges_row({"system": "doublet", "sensor_mm": sensor, "plane_mm": plane, "field_deg": fy}, sensor, plane,
+                       fy, edges)[0] for sensor, plane, fy in MORE]
 
 
 def main(argv=None) -> dict:
