@@ -88,9 +88,10 @@ def exit_pupil_field(lens, doe, source: Source, planes: Planes, chief: ChiefRays
     a blank DOE on a spherical wave, the edge cut on the DOE plane (``method="doe"``, exact there: the construction of
     :func:`accurate_field` with the stop's sharp edge on the DOE plane); where the Fresnel step's error estimate for
     a crop reaching ``settings.crop_reach`` mm rejects it (:func:`fresnel_step_estimates`), "asm" where the beam fits
-    (:data:`FALLBACK_ASM_SAMPLES` and the memory: :func:`_adaptive_fallback`). The field's ``info.edge_step`` records the step. ``rim_images``: each
-    node's edge is sharp at its stop-rim point's own image (:func:`stop_rim_images`); False: on the exit-pupil plane
-    for every node (both steps as they were before the rim images)."""
+    (:data:`FALLBACK_ASM_SAMPLES` and the memory: :func:`_adaptive_fallback`). The field's ``info.edge_step``
+    records the step. ``rim_images``: each node's edge is sharp at its stop-rim point's own image
+    (:func:`stop_rim_images`); False: on the exit-pupil plane for every node (both steps as they were before the rim
+    images)."""
     return run_serial(exit_pupil_field_steps(lens, doe, source, planes, chief, settings))
 
 
@@ -530,8 +531,8 @@ def _adaptive_fallback(lens, source: Source, where: tuple, edge: tuple):
         fld = [round(float(v), 6) for v in torch.as_tensor(source.field).reshape(-1).tolist()]
         warnings.warn(f"field {fld} at {float(source.wavelength):g} µm: {describe_estimate(estimate)}: the PSF crop "
                       "reaches beyond the edge waves the Fresnel edge step holds, and the exact construction does not "
-                      f"fit (the beam spans over {FALLBACK_ASM_SAMPLES} samples on the exit-pupil plane, or its "
-                      "window over the memory): kept the Fresnel step; take a smaller crop (ks) (on a sensor far from "
+                      f"fit (its window spans over {FALLBACK_ASM_SAMPLES} samples on its plane, or over the "
+                      "memory): kept the Fresnel step; take a smaller crop (ks) (on a sensor far from "
                       "the focus, where the crop lies inside the rim rays' ring, a DOE plane nearer the exit pupil "
                       "instead), or a coarser DOE pitch; where only memory stopped it, a higher limit "
                       "(RAYWAVE_MEMORY_LIMIT / raywave --memory-limit) lets the exact construction run",
