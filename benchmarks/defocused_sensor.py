@@ -13,6 +13,7 @@ Two systems, one source on axis, ks 32 at 2 µm, relative L1 of the PSF crop (ea
 
     PYTHONPATH=. python benchmarks/defocused_sensor.py [--dz 3 8] [--sensor 34.5 40] [--planes None 5 10 30] [-o F]
     PYTHONPATH=. python benchmarks/defocused_sensor.py --more [-o F]   # before the focus, off axis (MORE)
+    PYTHONPATH=. python benchmarks/defocused_sensor.py --lenses [-o F]   # other lenses off focus (LENSES)
 """
 
 from __future__ import annotations
@@ -69,7 +70,8 @@ def ideal_rows(dz: float, margins=(0.3, 1.5, 3.0)) -> dict:
 
 
 def _run(hl, fy: float) -> tuple:
-    """``(psf (ks, ks), seconds, warning class names)`` of the doublet ``hl`` at the field (0, ``fy``) °."""
+    """``(psf (ks, ks), seconds, warning class names, the crop's centre (x, y) mm)`` of ``hl`` at the field (0,
+    ``fy``) °."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         t0 = time.perf_counter()
@@ -77,7 +79,7 @@ def _run(hl, fy: float) -> tuple:
             r = hl.psf_result(torch.tensor([[0.0, fy]], dtype=torch.float64), [WL], ks=KS)
         dt = time.perf_counter() - t0
     names = sorted({type(w.message).__name__ for w in caught if not issubclass(w.category, DeprecationWarning)})
-    return r.psf.squeeze(), round(dt, 2), names
+    return r.psf.squeeze(), round(dt, 2), names, tuple(float(c) for c in r.center[0, 0])
 
 
 def _reference(hl, fy: float) -> tuple:
@@ -97,7 +99,7 @@ def _edges_row(out: dict, sensor: float, plane, fy: float, edges, ref=None) -> t
 
     for name, kw in edges:
         hl = _doublet_on_sensor(sensor, plane, **kw)  # 2 µm DOE and sensor pixels (PIXEL)
-        psf, dt, names = _run(hl, fy)
+        psf, dt, names, _ = _run(hl, fy)
         if ref is None:
             ref, out["reference_error_estimate"] = _reference(hl, fy)
         out["plane_mm"] = float(hl.doe_distance)
@@ -132,6 +134,54 @@ def more_rows() -> list:
                        fy, edges)[0] for sensor, plane, fy in MORE]
 
 
+#: ``--lenses``: other lenses with the sensor moved ``dz`` mm along the axis (lens file, dz mm, field °, DOE and
+#: sensor pitch mm or None: the file's default, the Nyquist pitch)
+LENSES = (("raywave/data/lenses/cooke_triplet.json", 0.5, 0.0, 0.002),
+          ("raywave/data/lenses/cooke_triplet.json", -0.5, 14.0, 0.002),
+          ("raywave/data/lenses/cooke_triplet.json", 1.5, 0.0, 0.002),
+          ("tests/data/real_lenses/singlet_nbk7_50.zmx", 1.0, 0.0, 0.002),
+          ("tests/data/real_lenses/asphere_f13_nsf11.zmx", 0.15, 0.0, None),
+          ("tests/data/real_lenses/asphere_f13_nsf11.zmx", 0.3, 0.0, None))
+
+
+def lens_rows() -> list:
+    """:data:`LENSES`: the default and the DOE-plane edge against the converged rim-image Huygens reference."""
+    import copy
+    import json
+
+    from raywave.assembly.build import hybrid_from_spec
+    from raywave.io.zmx import read_zmx
+    from raywave.models.exit_pupil import huygens_psf
+
+    rows = []
+    for name, dz, fy, pitch in LENSES:
+        path = ROOT / name
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            spec = copy.deepcopy(json.loads(path.read_text()) if path.suffix == ".json" else read_zmx(path))
+        spec["surfaces"][-1]["thickness"] = float(spec["surfaces"][-1]["thickness"]) + dz
+        out, ref = {"lens": path.name, "dz_mm": dz, "field_deg": fy}, None
+        for edge, kw in (("default", {}), ("doe", {"stop_edge": "doe"})):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                hl = hybrid_from_spec(spec, doe_pitch=pitch, sensor_pitch=pitch, **kw)
+            psf, dt, names, center = _run(hl, fy)
+            if ref is None:
+                with torch.no_grad(), warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    h = huygens_psf(hl.lens, (0.0, fy), WL, ks=KS, pitch=float(hl.sensor_pitch), n_pupil="auto",
+                                    sphere="rim_images", max_n_pupil=3072,
+                                    center=center, sensor_z=float(hl.sensor_z()))
+                ref, out["reference_error_estimate"] = h.psf.squeeze(), h.error_estimate
+                out["pitch_mm"], out["doe_distance_mm"] = float(hl.sensor_pitch), float(hl.doe_distance)
+            out[edge], out[edge + "_s"] = _l1(psf, ref), dt
+            if edge == "default":
+                out["default_warnings"] = names
+        rows.append(out)
+        print(out, file=sys.stderr, flush=True)
+    return rows
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dz", type=float, nargs="*", default=[3.0, 8.0])
@@ -139,12 +189,15 @@ def main(argv=None) -> dict:
     ap.add_argument("--planes", nargs="*", default=["None", "5", "10", "30"])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--more", action="store_true", help="only the MORE cases (other sensors, planes and fields)")
+    ap.add_argument("--lenses", action="store_true", help="only the LENSES cases (other lenses off focus)")
     ap.add_argument("-o", "--output")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     warnings.simplefilter("ignore")
     planes = [None if p == "None" else float(p) for p in args.planes]
-    if args.more:
+    if args.lenses:
+        rows = lens_rows()
+    elif args.more:
         rows = more_rows()
     else:
         rows = [ideal_rows(dz) for dz in args.dz]
