@@ -1242,7 +1242,8 @@ def _rim_z(rim, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
     return z[i0] * (1 - w) + z[(i0 + 1) % k] * w
 
 
-def edge_reach_zones(rim, z_doe: float, z_sensor: float, point, lam_m: float, half: float = 0.0):
+def edge_reach_zones(rim, z_doe: float, z_sensor: float, point, lam_m: float, half: float = 0.0,
+                     crop_reach: float = 0.0):
     """How far outside (or inside) the geometric shadow on the DOE plane the stop edge's waves that reach a sensor
     point start, in DOE-plane Fresnel zones of the ripple band (:data:`RIPPLE_ZONES`'s unit: ``s / sqrt(λ_m L)``,
     ``L = d (R − d) / R`` with ``d``, ``R`` the rim image's distances to the DOE plane and to the sensor along its rim
@@ -1256,9 +1257,11 @@ def edge_reach_zones(rim, z_doe: float, z_sensor: float, point, lam_m: float, ha
     edge wave (stationary phase along the rim) where the normal line ``L_j + t·n̂_j`` passes through it: the sign
     changes of ``(P − L_j)·t̂_j`` between consecutive rim points (``t̂`` the tangent), interpolated. ``point`` (2,)
     mm the sensor point (the crop's centre), ``half`` (mm) the crop's half-width (the reach grows by its projection
-    on the normal), ``lam_m`` (mm) the wavelength in the image medium. No autograd; one host read (:func:`edge_reach_many`
-    of the one source)."""
-    return edge_reach_many([rim], z_doe, z_sensor, torch.as_tensor(point).reshape(1, 2), [lam_m], half)[0]
+    on the normal), ``lam_m`` (mm) the wavelength in the image medium, ``crop_reach`` (mm) the crop's half-diagonal
+    for a crop inside the rim rays' ring (:func:`edge_reach_many`). No autograd; one host read
+    (:func:`edge_reach_many` of the one source)."""
+    return edge_reach_many([rim], z_doe, z_sensor, torch.as_tensor(point).reshape(1, 2), [lam_m], half,
+                           crop_reach)[0]
 
 
 def _reach_rows(rims: list):
@@ -1359,8 +1362,7 @@ def ripple_band(rim, z_plane: float, z_sensor: float, point, lam_m: float, reach
     :func:`edge_reach_many` for all of a call's sources), else computed here (one host read), with the crop's reach
     ``crop_reach`` mm (0: unknown): a crop inside the rim rays' ring widens the band (:data:`DEFOCUS_TAIL_ZONES`)."""
     if reach is ...:
-        reach = edge_reach_many([rim], z_plane, z_sensor, torch.as_tensor(point).reshape(1, 2), [lam_m],
-                                crop_reach=crop_reach)[0]
+        reach = edge_reach_zones(rim, z_plane, z_sensor, point, lam_m, crop_reach=crop_reach)
     if reach is None:
         return RIPPLE_ZONES
     return max(short_reach_band(reach), min(reach + REACH_MARGIN, MAX_RIPPLE_ZONES))
